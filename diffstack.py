@@ -179,3 +179,514 @@ def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     step = lambda d: unicycle_step((z + d)[..., :n], (z + d)[..., n:], dt)  # noqa: E731
     J = torch.func.jacfwd(step)(torch.zeros(z.shape[-1], dtype=z.dtype))  # (..., 4, 6)
     return J[..., :n], J[..., n:]
+
+
+# ============================================================================================
+# 3. Cost, eq. (2) and App. D
+# ============================================================================================
+#
+#   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
+#
+# The cost is a sum of per-step terms (each step's term depends on that step's state and control
+# only). The controller relies on this: it is what makes the cost's Hessian block-diagonal in time.
+
+
+@dataclass
+class CostContext:
+    """What the cost knows about the world. Tensors, so that gradients can reach every one of them."""
+
+    preds: torch.Tensor  # (B, K, T, 2)  predicted agent's mode positions, t1..T
+    probs: torch.Tensor  # (B, K)        mode probabilities pi_k
+    pred_mask: torch.Tensor  # (B,)      1 where the predicted agent counts (0: "No prediction")
+    others: torch.Tensor  # (B, A, T, 2) other agents' GT future positions
+    others_mask: torch.Tensor  # (B, A)
+    goal: torch.Tensor  # (B, 2)         goal position at T
+    lanes: torch.Tensor  # (B, L, P, 3)  lane centre lines (x, y, heading)
+    lanes_mask: torch.Tensor  # (B, L, P)
+
+    def tensors(self):
+        return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes, self.lanes_mask)
+
+
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Angle to (-pi, pi], smooth everywhere it is used (away from +-pi)."""
+    return torch.atan2(torch.sin(a), torch.cos(a))
+
+
+def lane_segments(p, lanes, lanes_mask):
+    """Project points on every lane segment. p (B, *S, 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
+
+    Returns, per segment (B, *S, L, P-1): the fraction along it of the closest point, the squared
+    distance to it, the lane heading there (interpolated between the ends), and segment validity.
+    """
+    B = lanes.shape[0]
+    view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over *S
+    a, b = view(lanes[:, :, :-1]), view(lanes[:, :, 1:])  # segment ends (B, 1.., L, P-1, 3)
+    seg_ok = view(lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:])
+    p = p[..., None, None, :]  # (B, *S, 1, 1, 2)
+    d = b[..., :2] - a[..., :2]
+    frac = (((p - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)  # (B, *S, L, P-1)
+    d2 = ((p - a[..., :2] - frac[..., None] * d) ** 2).sum(-1)
+    lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
+    return frac, d2, lane_h, seg_ok.expand_as(d2)
+
+
+def project_to_lanes(pos, heading, lanes, lanes_mask):
+    """The lane point closest to each state: squared lateral distance and heading error.
+
+    pos (B, *S, 2), heading (B, *S). The closest segment whose heading is within 90 degrees of the
+    state's wins, so an oncoming lane is never 'closest'. Returns d2, heading error and has_lane,
+    each (B, *S); where no lane matches, d2 = heading error = 0.
+    """
+    _, d2, lane_h, seg_ok = lane_segments(pos, lanes, lanes_mask)
+    head_err = wrap_angle(heading[..., None, None] - lane_h)
+    ok = seg_ok & (head_err.abs() < math.pi / 2)
+    best = torch.where(ok, d2, torch.full_like(d2, 1e9)).flatten(-2).argmin(-1, keepdim=True)
+    pick = lambda t: t.flatten(-2).gather(-1, best).squeeze(-1)  # noqa: E731
+    has_lane = pick(ok)
+    return torch.where(has_lane, pick(d2), 0.0), torch.where(has_lane, pick(head_err), 0.0), has_lane
+
+
+def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
+    """The five unweighted terms of eq. (2), per trajectory.
+
+    x (B, *S, T+1, 4) states with s0 first, u (B, *S, T, 2); *S are extra dims such as candidates N.
+    Returns (B, *S, 5): (C_coll, C_goal, C_lat, C_head, C_u).
+    """
+    B = x.shape[0]
+    extra = x.dim() - 3
+    view = lambda t: t.reshape(B, *([1] * extra), *t.shape[1:])  # noqa: E731  broadcast the context over *S
+    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, *S, T, 2), (B, *S, T): the cost skips t0
+    # C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    d2_pred = (view(ctx.probs)[..., :, None] * ((pos[..., None, :, :] - view(ctx.preds)) ** 2).sum(-1)).sum(-2)  # (B, *S, T)
+    coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
+    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, *S, A, T)
+    coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
+    # C_goal = ||s_T - g||^2
+    goal = ((pos[..., -1, :] - view(ctx.goal)) ** 2).sum(-1)
+    # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
+    lat, head_err, _ = project_to_lanes(pos, head, ctx.lanes, ctx.lanes_mask)
+    # C_u = sum_t w_t^2 + a_t^2
+    effort = (u**2).sum((-1, -2))
+    return torch.stack([coll.sum(-1), goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
+
+
+def cost_weights(cfg: Config, dtype=torch.float32) -> torch.Tensor:
+    """The hand-tuned weights (w1..w5) of App. D."""
+    return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype)
+
+
+def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
+    """Eq. (2): C = sum_i w_i C_i. x (B, *S, T+1, 4), u (B, *S, T, 2), w (5,) or (B, 5) -> (B, *S)."""
+    terms = cost_terms(x, u, ctx, rbf_var)
+    w = w if w.dim() == 1 else w.reshape(w.shape[0], *([1] * (terms.dim() - 2)), 5)
+    return (terms * w).sum(-1)
+
+
+# ============================================================================================
+# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (1) and App. D
+# ============================================================================================
+
+
+@dataclass
+class Candidates:
+    """The planner's candidate trajectories for a batch."""
+
+    x: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
+    u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
+    valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
+
+
+def _lane_arclength(lanes, lanes_mask):
+    """Cumulative arc length along each lane, flat past its last valid point. -> (B, L, P)."""
+    seg = (lanes[:, :, 1:, :2] - lanes[:, :, :-1, :2]).norm(dim=-1)
+    seg = torch.where(lanes_mask[:, :, 1:] & lanes_mask[:, :, :-1], seg, 0.0)  # (B, L, P-1)
+    return torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)
+
+
+def _project_each_lane(p, lanes, lanes_mask, cum):
+    """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each (B, L)."""
+    frac, d2, lane_h, seg_ok = lane_segments(p, lanes, lanes_mask)  # (B, L, P-1)
+    d2 = torch.where(seg_ok, d2, torch.full_like(d2, 1e9))
+    best = d2.argmin(-1, keepdim=True)  # (B, L, 1)
+    pick = lambda t: t.gather(-1, best).squeeze(-1)  # noqa: E731
+    seg_len = cum[..., 1:] - cum[..., :-1]
+    return pick(d2), pick(cum[..., :-1] + frac * seg_len), pick(lane_h)
+
+
+def _point_at_arclength(lanes, cum, s):
+    """Interpolate lane points at arc lengths s (B, G, Q) on lanes (B, G, P, 3) -> (B, G, Q, 3)."""
+    i = torch.searchsorted(cum.contiguous(), s.contiguous()).clamp(1, cum.shape[-1] - 1)  # segment end index
+    s0, s1 = cum.gather(-1, i - 1), cum.gather(-1, i)
+    a = lanes.gather(-2, (i - 1)[..., None].expand(*i.shape, 3))
+    b = lanes.gather(-2, i[..., None].expand(*i.shape, 3))
+    f = ((s - s0) / (s1 - s0).clamp_min(1e-6)).clamp(0, 1)[..., None]
+    xy = a[..., :2] + f * (b[..., :2] - a[..., :2])
+    h = a[..., 2:] + f * wrap_angle(b[..., 2:] - a[..., 2:])
+    return torch.cat([xy, h], -1)
+
+
+def _hermite(p0, m0, p1, m1, tau):
+    """Cubic Hermite curve through p0 -> p1 with end tangents m0, m1 at tau in [0, 1] (Q,):
+    value, first and second derivative wrt tau. p0, m0, p1, m1 (..., 2) -> each (..., Q, 2)."""
+    t = tau[:, None]
+    h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
+    dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
+    ddh = [12 * t - 6, 6 * t - 4, -12 * t + 6, 6 * t - 2]
+    pts = [c[..., None, :] for c in (p0, m0, p1, m1)]
+    return [sum(c * p for c, p in zip(coef, pts)) for coef in (h, dh, ddh)]
+
+
+def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
+    """Candidate trajectories (App. D): for up to `max_goal_lanes` goal lanes, 8 accelerations x 3
+    lateral offsets give 24 terminal states each; a cubic spline joins s0 to each.
+
+    s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
+    """
+    B, T, dt = s0.shape[0], cfg.horizon, cfg.dt
+    dur = T * dt
+    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
+    # goal lanes: within goal_lane_dist of the goal, heading within goal_lane_heading of the goal's
+    d2_goal, _, h_goal = _project_each_lane(goal[:, :2], lanes, lanes_mask, cum)  # (B, L)
+    is_goal_lane = (d2_goal < cfg.goal_lane_dist**2) & (wrap_angle(h_goal - goal[:, 2:3]).abs() < cfg.goal_lane_heading)
+    G = min(cfg.max_goal_lanes, lanes.shape[1])
+    score, lane_idx = torch.where(is_goal_lane, d2_goal, torch.full_like(d2_goal, math.inf)).topk(G, -1, largest=False)
+    lane_ok = torch.isfinite(score)  # (B, G)
+    g_lanes = lanes.gather(1, lane_idx[:, :, None, None].expand(B, G, *lanes.shape[2:]))  # (B, G, P, 3)
+    g_cum = cum.gather(1, lane_idx[:, :, None].expand(B, G, cum.shape[-1]))  # (B, G, P)
+    g_mask = lanes_mask.gather(1, lane_idx[:, :, None].expand(B, G, lanes_mask.shape[-1]))
+    _, s_ego, _ = _project_each_lane(s0[:, :2], g_lanes, g_mask, g_cum)  # (B, G) ego's arc length on each
+    # terminal states: v_f = max(v0 + a T dt, 0), distance (v0 + v_f) / 2 * T dt along the lane, then offset
+    acc = s0.new_tensor(cfg.plan_accels)  # (8,)
+    off = s0.new_tensor(cfg.plan_offsets)  # (3,)
+    v0 = s0[:, 3:4]  # (B, 1)
+    v_f = (v0 + acc * dur).clamp_min(0)  # (B, 8)
+    s_end = s_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, 8)
+    on_lane = s_end <= g_cum[..., -1:]  # the terminal lies on the lane
+    lp = _point_at_arclength(g_lanes, g_cum, s_end)  # (B, G, 8, 3)
+    normal = torch.stack([-torch.sin(lp[..., 2]), torch.cos(lp[..., 2])], -1)  # (B, G, 8, 2)
+    p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, 8, 3, 2)
+    h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, 8, 3)
+    v1 = v_f[:, None, :, None].expand_as(h1)
+    p1, h1, v1 = p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1)  # N = G * 24
+    N = p1.shape[1]
+    valid = (lane_ok[:, :, None] & on_lane)[..., None].expand(B, G, 8, len(off)).reshape(B, N)
+    # cubic Hermite x(t), y(t): position and velocity matched at both ends, sampled at the T+1 steps
+    heading_vec = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
+    p0 = s0[:, None, :2].expand(B, N, 2)
+    m0 = (s0[:, 3:4] * heading_vec(s0[:, 2]))[:, None].expand(B, N, 2) * dur  # tangents scale with the duration
+    m1 = v1[..., None] * heading_vec(h1) * dur
+    tau = torch.linspace(0, 1, T + 1, dtype=s0.dtype)
+    pos, dpos, ddpos = _hermite(p0, m0, p1, m1, tau)  # (B, N, T+1, 2) each
+    vel, accel = dpos / dur, ddpos / dur**2
+    speed = vel.norm(dim=-1)  # (B, N, T+1)
+    # heading = direction of travel; near standstill it is undefined, so blend from h0 to the terminal heading
+    h_blend = s0[:, None, None, 2] + tau * wrap_angle(h1 - s0[:, None, 2])[..., None]
+    yaw = torch.where(speed > 0.1, torch.atan2(vel[..., 1], vel[..., 0]), h_blend)
+    yaw = s0[:, None, None, 2] + wrap_angle(yaw - s0[:, None, None, 2])  # continuous from h0
+    yaw_rate = (vel[..., 0] * accel[..., 1] - vel[..., 1] * accel[..., 0]) / speed.clamp_min(0.1) ** 2
+    lon_acc = (vel * accel).sum(-1) / speed.clamp_min(0.1)
+    x = torch.stack([pos[..., 0], pos[..., 1], yaw, speed], -1)  # (B, N, T+1, 4)
+    # controls of step t = average of the derived values at t and t+1
+    both = torch.stack([yaw_rate, lon_acc], -1)  # (B, N, T+1, 2)
+    u = (both[..., 1:, :] + both[..., :-1, :]) / 2  # (B, N, T, 2)
+    # dynamic feasibility: the controller's box, lateral acceleration, yaw rate per unit speed
+    lo, hi = s0.new_tensor(cfg.u_lower), s0.new_tensor(cfg.u_upper)
+    v_mid = (speed[..., 1:] + speed[..., :-1]) / 2
+    feasible = (
+        ((u >= lo) & (u <= hi)).all(-1)
+        & ((u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel)
+        & (u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3)
+    ).all(-1)
+    return Candidates(x, u, valid & feasible)
+
+
+def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
+    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over valid candidates, L_plan = -log p_{n*}.
+
+    cost (B, N), valid (B, N), target (B,) index n* -> (B,).
+    """
+    logp = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
+    return -logp.gather(-1, target[:, None]).squeeze(-1)
+
+
+def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """argmin over the last dim among valid entries. (B, N) -> (B,)"""
+    return torch.where(valid, values, math.inf).argmin(-1)
+
+
+# ============================================================================================
+# 5. Controller: box-constrained iLQR, eq. (3) and App. D, and its exact KKT backward
+# ============================================================================================
+#
+#   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
+#
+# The solver is general: `cost_fn(x, u, *params) -> (B, *S)` is any twice-differentiable cost that is
+# a sum of per-step terms (x (B, *S, T+1, n) with x_0 first, u (B, *S, T, m); *S are extra dims, used
+# to line-search several step sizes at once), `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable
+# step. Gradients reach every tensor in `params` and x_init.
+#
+# Derivatives. A step's term depends on that step's (x_t, u_t) only, so the cost Hessian is block-
+# diagonal in time, and so are the dynamics Jacobians. Perturbing coordinate i of *every* step at once
+# and differentiating therefore gives column i of every block together: n + m forward-mode passes
+# (torch.func.jacfwd over a shared perturbation d) give all blocks of all steps and all scenarios.
+
+
+def _stagewise_jacobian(fn, z: torch.Tensor) -> torch.Tensor:
+    """d fn(z)[..., t, :] / d z[..., t, :] for every step t, for fn acting step by step.
+    z (B, T, k) -> (B, T, out, k)."""
+    return torch.func.jacfwd(lambda d: fn(z + d))(z.new_zeros(z.shape[-1]))
+
+
+def _split(z, n, T):
+    """Stacked per-step variables z (B, T+1, n+m) -> x (B, T+1, n), u (B, T, m) (u_T is padding)."""
+    return z[..., :n], z[:, :T, n:]
+
+
+def cost_expansion(cost_fn, x, u, params):
+    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
+    n, T = x.shape[-1], u.shape[1]
+    z = torch.cat([x, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m)
+    grad = torch.func.grad(lambda z: cost_fn(*_split(z, n, T), *params).sum())
+    return grad(z), _stagewise_jacobian(grad, z)
+
+
+def dynamics_jacobians(dynamics, x, u):
+    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m)."""
+    n = x.shape[-1]
+    J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), torch.cat([x[:, :-1], u], -1))
+    return J[..., :n], J[..., n:]
+
+
+def rollout(dynamics, x0, u):
+    """x0 (..., n), u (..., T, m) -> x (..., T+1, n)."""
+    xs = [x0]
+    for t in range(u.shape[-2]):
+        xs.append(dynamics(xs[-1], u[..., t, :]))
+    return torch.stack(xs, -2)
+
+
+def _solve_masked(Q, rhs, free):
+    """Solve the rows of Q y = rhs that are free, with y = rhs on the others.
+
+    Q (..., m, m), rhs (..., m, r), free (..., m) bool. The matrix with identity rows on the fixed
+    coordinates, M = F Q F + (I - F), is what eliminating the fixed coordinates leaves.
+    """
+    F = free.to(Q.dtype)
+    M = F[..., :, None] * Q * F[..., None, :] + torch.diag_embed(1 - F)
+    return torch.linalg.solve(M, rhs)
+
+
+def box_qp(Q, q, lo, hi):
+    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m.
+
+    Each control is free, at its lower bound or at its upper bound: 3^m active sets (9 for m = 2).
+    For each, the free coordinates minimise the quadratic with the others fixed; the best of the
+    feasible ones is the optimum (Q positive definite). Batched over everything, no iterations.
+    Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool.
+    """
+    m = q.shape[-1]
+    assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
+    sets = torch.cartesian_prod(*[torch.arange(3)] * m).reshape(-1, m)  # (3^m, m): 0 free, 1 lower, 2 upper
+    free = sets == 0
+    fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
+    Qs, qs = Q[:, None], q[:, None]
+    Fv = free.to(Q.dtype)
+    # free rows: Q_ff d_f = -(q_f + Q_fc d_c); fixed rows: d_c = fixed value
+    rhs = torch.where(free, -(qs + (Qs @ ((1 - Fv) * fixed_val)[..., None])[..., 0]), fixed_val)
+    d = _solve_masked(Qs.expand(-1, len(sets), m, m), rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
+    feasible = ((d >= lo[:, None] - 1e-9) & (d <= hi[:, None] + 1e-9)).all(-1)
+    obj = 0.5 * (d[..., None, :] @ Qs @ d[..., None])[..., 0, 0] + (qs * d).sum(-1)
+    best = torch.where(feasible, obj, math.inf).argmin(-1)  # (B,)
+    idx = torch.arange(len(q))
+    return d[idx, best], free.expand(len(q), -1, -1)[idx, best]
+
+
+def _make_pd(Q, eps):
+    """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
+    lam = torch.linalg.eigvalsh(Q)[..., 0]
+    return Q + (eps - lam).clamp_min(0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype)
+
+
+def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
+    """The Riccati recursion of a time-varying LQR with quadratic cost blocks H (B, T+1, n+m, n+m) and
+    linear terms g (B, T+1, n+m), dynamics dx_{t+1} = A_t dx_t + B_t du_t.
+
+    Forward pass of iLQR (lo, hi given): the control step of each stage solves a box QP with Quu made
+    positive definite. KKT backward (u_free given): the fixed controls are held at 0 and the exact Quu
+    is used. Returns feedback k (B, T, m), gains K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n).
+    """
+    T = A.shape[1]
+    P, p = H[:, T, :n, :n], g[:, T, :n]  # V_T(dx) = 1/2 dx'P dx + p'dx
+    ks, Ks, frees = [], [], []
+    for t in reversed(range(T)):
+        At, Bt, Ht, gt = A[:, t], B[:, t], H[:, t], g[:, t]
+        AtT, BtT = At.transpose(-1, -2), Bt.transpose(-1, -2)
+        # Q_t(dx, du) = l_t + V_{t+1}(A dx + B du): its blocks
+        Qxx = Ht[:, :n, :n] + AtT @ P @ At
+        Quu = Ht[:, n:, n:] + BtT @ P @ Bt
+        Qux = Ht[:, n:, :n] + BtT @ P @ At
+        qx = gt[:, :n] + (AtT @ p[..., None])[..., 0]
+        qu = gt[:, n:] + (BtT @ p[..., None])[..., 0]
+        if u_free is None:  # iLQR step: the box QP on du, then the gain of the free controls
+            Quu = _make_pd(Quu, pd_eps)
+            k, free = box_qp(Quu, qu, lo[:, t], hi[:, t])
+        else:  # KKT backward: active controls fixed at du = 0
+            free = u_free[:, t]
+            k = _solve_masked(Quu, torch.where(free, -qu, 0.0)[..., None], free)[..., 0]
+        K = _solve_masked(Quu, torch.where(free[..., None], -Qux, 0.0), free)  # (B, m, n); 0 on clamped rows
+        # V_t = Q_t(dx, k + K dx)
+        KT = K.transpose(-1, -2)
+        P = Qxx + KT @ Quu @ K + KT @ Qux + Qux.transpose(-1, -2) @ K
+        P = (P + P.transpose(-1, -2)) / 2
+        p = qx + (KT @ (Quu @ k[..., None] + qu[..., None]) + Qux.transpose(-1, -2) @ k[..., None])[..., 0]
+        ks.append(k), Ks.append(K), frees.append(free)
+    flip = lambda xs: torch.stack(xs[::-1], 1)  # noqa: E731
+    return flip(ks), flip(Ks), flip(frees), p
+
+
+@dataclass
+class ILQRInfo:
+    """What the solver reports per scenario."""
+
+    converged: torch.Tensor  # (B,) bool: the last full LQR step was below tol
+    step_norm: torch.Tensor  # (B,) norm of the last full LQR control step
+    iters: torch.Tensor  # (B,) iterations run
+    costs: torch.Tensor  # (B, I+1) true cost after each iteration (the first: at u_init)
+
+
+def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0):
+    """iLQR with box controls (App. D). Differentiable if the inputs are (autograd through the
+    unrolled iterations; `ILQR` below gives the cheap exact gradient instead).
+
+    x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
+    and the dynamics to first order, solve the box-constrained LQR, line-search the step scale
+    1, 1/5, 1/25, ... per scenario (all scales rolled out at once) and keep the largest that does not
+    raise the true cost. A scenario whose full step is below tol has converged and stops moving.
+    Returns x (B, T+1, n), u (B, T, m), ILQRInfo.
+    """
+    Bsz, T, m = u_init.shape
+    n = x_init.shape[-1]
+    lo, hi = lo.expand(Bsz, T, m), hi.expand(Bsz, T, m)
+    u = u_init.clamp(lo, hi)
+    x = rollout(dynamics, x_init, u)
+    cost = cost_fn(x, u, *params)
+    eps = torch.finfo(x.dtype).eps
+    pd_eps = 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
+    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype)  # (S,) 1, 1/5, ...
+    active = torch.ones(Bsz, dtype=torch.bool)
+    step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype)
+    n_iter = torch.zeros(Bsz, dtype=torch.long)
+    costs = [cost]
+    for _ in range(iters):
+        g, H = cost_expansion(cost_fn, x, u, params)
+        A, Bm = dynamics_jacobians(dynamics, x, u)
+        k, K, _, _ = lqr_backward(A, Bm, H, g, n, lo=lo - u, hi=hi - u, pd_eps=pd_eps)
+        # closed-loop rollouts of every step scale at once: u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t))
+        xs = [x_init[:, None].expand(Bsz, ls_steps, n)]
+        us = []
+        for t in range(T):
+            du = scales[:, None] * k[:, None, t] + (K[:, None, t] @ (xs[-1] - x[:, None, t])[..., None])[..., 0]
+            us.append((u[:, None, t] + du).clamp(lo[:, None, t], hi[:, None, t]))  # (B, S, m)
+            xs.append(dynamics(xs[-1], us[-1]))
+        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (B, S, T+1, n), (B, S, T, m)
+        c_try = cost_fn(x_try, u_try, *params)  # (B, S)
+        ok = c_try <= cost[:, None] + 100 * eps * (1 + cost.abs()[:, None])  # no increase, up to rounding
+        first = torch.where(ok, torch.arange(ls_steps), ls_steps).min(-1).values  # largest accepted scale
+        accept = active & (first < ls_steps)
+        pick = first.clamp(max=ls_steps - 1)
+        idx = torch.arange(Bsz)
+        full_step = (u_try[:, 0] - u).flatten(1).norm(dim=-1)  # the full LQR step, scale 1
+        step_norm = torch.where(active, full_step, step_norm)
+        n_iter = n_iter + active.long()
+        sel = lambda new, old: torch.where(accept.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
+        x, u, cost = sel(x_try[idx, pick], x), sel(u_try[idx, pick], u), sel(c_try[idx, pick], cost)
+        costs.append(cost)
+        active = active & (step_norm >= tol)
+        if not active.any():
+            break
+    return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
+
+
+
+def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
+    """Gradients of a loss on the solution (x, u) wrt x_init and params (Amos et al. 2018).
+
+    At the solution, the KKT conditions F(x, u, lambda; params) = 0 hold. By the implicit function
+    theorem, dloss/dparams = d' dF/dparams, where d solves the KKT system with the incoming gradient
+    as right-hand side: that is an LQR problem,
+        min_d 1/2 d' H d + (dloss/dz)' d   s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t, du_active = 0,
+    with H the Hessian of the Lagrangian L = C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
+        H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(x_t, u_t)      (the dynamics' curvature)
+    The costates follow from stationarity in x: lambda_T = dl_T/dx_T, lambda_t = dl_t/dx_t + A_t' lambda_{t+1}.
+    mpc.pytorch and the authors' code drop the curvature term (exact=False here): exact on linear
+    dynamics only. Then
+        dloss/dparams = d/dparams [ sum_t dl_t/dz_t(params) . d_t ]     (d fixed)
+        dloss/dx_init = p_0, the gradient at dx_0 = 0 of the LQR's value function.
+    x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u.
+    """
+    n, T = x.shape[-1], u.shape[1]
+    g, H = cost_expansion(cost_fn, x, u, params)
+    A, Bm = dynamics_jacobians(dynamics, x, u)
+    if exact:
+        lam = [g[:, T, :n]]  # costates lambda_T .. lambda_1
+        for t in reversed(range(1, T)):
+            lam.append(g[:, t, :n] + (A[:, t].transpose(-1, -2) @ lam[-1][..., None])[..., 0])
+        lam = torch.stack(lam[::-1], 1)  # (B, T, n): lambda_1 .. lambda_T
+        z = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
+        lam_f = lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum()  # noqa: E731
+        Hf = _stagewise_jacobian(torch.func.grad(lam_f), z)  # (B, T, n+m, n+m)
+        H = H + torch.cat([Hf, torch.zeros_like(H[:, :1])], 1)
+    rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
+    k, K, _, p0 = lqr_backward(A, Bm, H, rhs, n, u_free=free)
+    dx, du = [torch.zeros_like(x[:, 0])], []
+    for t in range(T):
+        du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
+        dx.append((A[:, t] @ dx[-1][..., None] + Bm[:, t] @ du[-1][..., None])[..., 0])
+    dx, du = torch.stack(dx, 1), torch.stack(du, 1)
+    # dloss/dparams = d/dparams < dC/dz (params), d >
+    needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
+    grads = [None] * len(params)
+    if needs:
+        with torch.enable_grad():
+            ps = [p.detach().requires_grad_(i in needs) if torch.is_tensor(p) else p for i, p in enumerate(params)]
+            xg, ug = x.detach().requires_grad_(), u.detach().requires_grad_()
+            gx, gu = torch.autograd.grad(cost_fn(xg, ug, *ps).sum(), (xg, ug), create_graph=True)
+            inner = (gx * dx).sum() + (gu * du).sum()
+            for i, gi in zip(needs, torch.autograd.grad(inner, [ps[i] for i in needs], allow_unused=True)):
+                grads[i] = gi
+    return p0, grads
+
+
+class ILQR(torch.autograd.Function):
+    """iLQR with the KKT backward. Use through `ilqr_solve`. Scenarios that did not converge pass no
+    gradient (paper §3.1); `exact=False` drops the dynamics' curvature, as mpc.pytorch does."""
+
+    @staticmethod
+    def forward(ctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
+        with torch.no_grad():
+            x, u, info = ilqr(cost_fn, dynamics, x_init, u_init, params, **settings)
+        ctx.fns = (cost_fn, dynamics, exact)
+        lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
+        ctx.save_for_backward(x, u, info.converged, lo, hi, *params)
+        ctx.mark_non_differentiable(info.converged)
+        return x, u, info.converged
+
+    @staticmethod
+    def backward(ctx, grad_x, grad_u, _):
+        cost_fn, dynamics, exact = ctx.fns
+        x, u, converged, lo, hi, *params = ctx.saved_tensors
+        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # active bounds are held fixed
+        keep = converged.to(x.dtype)[:, None, None]
+        p0, grads = kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact)
+        return (None, None, None, None, p0, None, *grads)
+
+
+def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, exact=True):
+    """The differentiable controller, eq. (3): x (B, T+1, n), u (B, T, m), converged (B,).
+
+    Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
+    """
+    lo, hi = torch.as_tensor(lo, dtype=x_init.dtype), torch.as_tensor(hi, dtype=x_init.dtype)
+    settings = dict(lo=lo, hi=hi, iters=iters, tol=tol)
+    return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
