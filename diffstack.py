@@ -104,6 +104,21 @@ class Config:
     """scenarios per training step"""
 
 
+def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
+    """Raise ValueError naming `name` unless t is a floating tensor of the given shape (None: any size
+    there), dtype and finite values. Used at the public entry points, never inside the math."""
+    if not torch.is_tensor(t):
+        raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
+    if shape is not None and (t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape))):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
+    if dtype is not None and t.dtype != dtype:
+        raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
+    if finite and t.is_floating_point() and not torch.isfinite(t).all():
+        raise ValueError(f"{name}: contains NaN or inf")
+    return t
+
+
 # ============================================================================================
 # 2. Dynamics: the dynamically-extended unicycle
 # ============================================================================================
@@ -111,48 +126,55 @@ class Config:
 # With constant yaw rate w and acceleration a over one step tau = dt, starting from (x, y, h, v):
 #     h' = h + w tau,   v' = v + a tau,
 #     [x', y'] = [x, y] + R(h) [along, lateral],
-#     along   = int_0^tau (v + a s) cos(w s) ds = v c0 + a c1,
-#     lateral = int_0^tau (v + a s) sin(w s) ds = v s0 + a s1,
-# with c0 = sin(th)/w, s0 = (1 - cos th)/w, c1 = tau sin(th)/w + (cos th - 1)/w^2,
-#      s1 = sin(th)/w^2 - tau cos(th)/w, th = w tau.
-# These divide by w. For |th| < 0.3 we use their Taylor series instead (error < 1e-16 with seven
-# terms), and feed the closed form a safe w = 1 there: a division by a tiny w inside torch.where
-# would still put NaN into the gradient of the branch that is not selected.
+#     along   = int_0^tau (v + a s) cos(w s) ds = v c_0 + a c_1,
+#     lateral = int_0^tau (v + a s) sin(w s) ds = v s_0 + a s_1,
+# with the moments c_j = int_0^tau s^j cos(w s) ds and s_j = int_0^tau s^j sin(w s) ds. Their
+# derivatives are moments again, d c_j / dw = -s_{j+1} and d s_j / dw = c_{j+1}: that gives the
+# Jacobians the controller needs in closed form too.
+# The closed forms of c_j, s_j divide by w^(j+1). For |th| = |w tau| < 0.3 we use their Taylor series
+#     c_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),  s_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2))
+# (seven terms: error < 1e-16), and feed the closed forms a safe w = 1 there: dividing by a tiny w
+# inside torch.where would still put NaN into the gradient of the branch that is not selected.
 
 _SERIES_TERMS = 7
 _SERIES_SWITCH = 0.3
 
 
-def _motion_integrals(w, tau):
-    """c0, s0, c1, s1 above, for yaw rates w (...,), step tau: exact and smooth at w = 0."""
+def _horner(x, coefs):
+    """sum_k coefs[k] x^k."""
+    acc = torch.full_like(x, coefs[-1])
+    for c in reversed(coefs[:-1]):
+        acc = acc * x + c
+    return acc
+
+
+def _moments(w, tau, jmax):
+    """[c_0..c_jmax], [s_0..s_jmax] for yaw rates w (...,) over tau: exact and smooth at w = 0."""
     th = w * tau
     small = th.abs() < _SERIES_SWITCH
-    # closed form, with w = 1 where it is not used
-    ws = torch.where(small, torch.ones_like(w), w)
-    ths = ws * tau
-    sin, cos = torch.sin(ths), torch.cos(ths)
-    c0, s0 = sin / ws, (1 - cos) / ws
-    c1 = tau * sin / ws + (cos - 1) / ws**2
-    s1 = sin / ws**2 - tau * cos / ws
-    # series in th:  c0/tau = sum (-1)^n th^2n / (2n+1)!       s0/tau = sum (-1)^n th^(2n+1) / (2n+2)!
-    #                c1/tau^2 = sum (-1)^n th^2n / ((2n)! (2n+2))   s1/tau^2 = sum (-1)^n th^(2n+1) / ((2n+1)! (2n+3))
+    ws = torch.where(small, torch.ones_like(w), w)  # closed forms only where w is not small
+    sin, cos = torch.sin(ws * tau), torch.cos(ws * tau)
+    # closed forms by integration by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (-tau^j cos + j c_{j-1}) / w
+    c_closed, s_closed = [sin / ws], [(1 - cos) / ws]
+    for j in range(1, jmax + 1):
+        c_closed.append((tau**j * sin - j * s_closed[-1]) / ws)
+        s_closed.append((-(tau**j) * cos + j * c_closed[-2]) / ws)
     thz = torch.where(small, th, torch.zeros_like(th))
-    sc0 = ss0 = sc1 = ss1 = torch.zeros_like(th)
-    for k in range(_SERIES_TERMS):
-        even, odd = (-1) ** k * thz ** (2 * k), (-1) ** k * thz ** (2 * k + 1)
-        sc0 = sc0 + even / math.factorial(2 * k + 1)
-        ss0 = ss0 + odd / math.factorial(2 * k + 2)
-        sc1 = sc1 + even / (math.factorial(2 * k) * (2 * k + 2))
-        ss1 = ss1 + odd / (math.factorial(2 * k + 1) * (2 * k + 3))
-    pick = lambda series, closed, scale: torch.where(small, series * scale, closed)  # noqa: E731
-    return pick(sc0, c0, tau), pick(ss0, s0, tau), pick(sc1, c1, tau**2), pick(ss1, s1, tau**2)
+    th2 = thz * thz
+    c, s = [], []
+    for j in range(jmax + 1):
+        sc = _horner(th2, [(-1) ** k / (math.factorial(2 * k) * (2 * k + j + 1)) for k in range(_SERIES_TERMS)])
+        ss = thz * _horner(th2, [(-1) ** k / (math.factorial(2 * k + 1) * (2 * k + j + 2)) for k in range(_SERIES_TERMS)])
+        c.append(torch.where(small, sc * tau ** (j + 1), c_closed[j]))
+        s.append(torch.where(small, ss * tau ** (j + 1), s_closed[j]))
+    return c, s
 
 
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """One exact step of the unicycle. s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4)."""
     x, y, h, v = s.unbind(-1)
     w, a = u.unbind(-1)
-    c0, s0, c1, s1 = _motion_integrals(w, dt)
+    (c0, c1), (s0, s1) = _moments(w, dt, 1)
     along, lateral = v * c0 + a * c1, v * s0 + a * s1
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     return torch.stack(
@@ -160,25 +182,55 @@ def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     )
 
 
+def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
+    """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form."""
+    h, v = s[..., 2], s[..., 3]
+    w, a = u.unbind(-1)
+    (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
+    dx, dy = rot(v * c0 + a * c1, v * s0 + a * s1)  # the displacement
+    one, zero = torch.ones_like(h), torch.zeros_like(h)
+    xv, yv = rot(c0, s0)  # d/dv
+    xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
+    xa, ya = rot(c1, s1)  # d/da
+    A = torch.stack([
+        torch.stack([one, zero, -dy, xv], -1),
+        torch.stack([zero, one, dx, yv], -1),
+        torch.stack([zero, zero, one, zero], -1),
+        torch.stack([zero, zero, zero, one], -1)], -2)
+    B = torch.stack([
+        torch.stack([xw, xa], -1),
+        torch.stack([yw, ya], -1),
+        torch.stack([dt * one, zero], -1),
+        torch.stack([zero, dt * one], -1)], -2)
+    return A, B
+
+
+def rollout(dynamics, x0, u):
+    """Integrate controls u (..., T, m) from x0 (..., n) with a step function: x (..., T+1, n), x0 first."""
+    xs = [x0]
+    for t in range(u.shape[-2]):  # T is 6: a loop over time, never over scenarios
+        xs.append(dynamics(xs[-1], u[..., t, :]))
+    return torch.stack(xs, -2)
+
+
 def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """Integrate controls u (..., T, 2) from s0 (..., 4): states (..., T+1, 4), s0 included."""
-    states = [s0]
-    for t in range(u.shape[-2]):  # T is 6: a loop over time, never over scenarios
-        states.append(unicycle_step(states[-1], u[..., t, :], dt))
-    return torch.stack(states, -2)
+    return rollout(Unicycle(dt), s0, u)
 
 
-def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
-    """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2), exact, by forward-mode autodiff.
+class Unicycle:
+    """The unicycle as the controller sees it: a step function with closed-form Jacobians."""
 
-    Every step depends only on its own (s, u), so one forward-mode pass per input direction,
-    shared by all steps and scenarios at once, gives every Jacobian: 6 passes in all.
-    """
-    n = s.shape[-1]
-    z = torch.cat([s, u], -1)
-    step = lambda d: unicycle_step((z + d)[..., :n], (z + d)[..., n:], dt)  # noqa: E731
-    J = torch.func.jacfwd(step)(torch.zeros(z.shape[-1], dtype=z.dtype))  # (..., 4, 6)
-    return J[..., :n], J[..., n:]
+    def __init__(self, dt: float):
+        self.dt = dt
+
+    def __call__(self, s, u):
+        return unicycle_step(s, u, self.dt)
+
+    def jacobians(self, s, u):
+        return unicycle_jacobians(s, u, self.dt)
 
 
 # ============================================================================================
@@ -234,17 +286,44 @@ def lane_segments(p, lanes, lanes_mask):
 def project_to_lanes(pos, heading, lanes, lanes_mask):
     """The lane point closest to each state: squared lateral distance and heading error.
 
-    pos (B, *S, 2), heading (B, *S). The closest segment whose heading is within 90 degrees of the
-    state's wins, so an oncoming lane is never 'closest'. Returns d2, heading error and has_lane,
-    each (B, *S); where no lane matches, d2 = heading error = 0.
+    pos (B, *S, 2), heading (B, *S); lanes (B, L, P, 3), lanes_mask (B, L, P). Only lane points whose
+    heading is within 90 degrees of the state's count, so an oncoming lane is never 'closest'.
+    Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the
+    exact projection on the two segments that meet there. The search ranks points by
+        |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
+    so a lane pointing the other way counts as 10 m further away: one batched matrix product.
+    Returns d2, heading error and has_lane, each (B, *S); where no lane matches, d2 = error = 0.
     """
-    _, d2, lane_h, seg_ok = lane_segments(pos, lanes, lanes_mask)
-    head_err = wrap_angle(heading[..., None, None] - lane_h)
-    ok = seg_ok & (head_err.abs() < math.pi / 2)
-    best = torch.where(ok, d2, torch.full_like(d2, 1e9)).flatten(-2).argmin(-1, keepdim=True)
-    pick = lambda t: t.flatten(-2).gather(-1, best).squeeze(-1)  # noqa: E731
-    has_lane = pick(ok)
-    return torch.where(has_lane, pick(d2), 0.0), torch.where(has_lane, pick(head_err), 0.0), has_lane
+    B, L, P, _ = lanes.shape
+    q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
+    pts = lanes.reshape(B, L * P, 3)
+    unit = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
+    # 1. nearest point: |q|^2 is the same for every p and drops out of the ranking
+    lam, qd, pd = 50.0, q.detach(), pts.detach()
+    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pd[..., :2] ** 2).sum(-1) + lam, math.inf)  # (B, L*P)
+    feat_q = torch.cat([qd, lam / 2 * unit(hq.detach())], -1)  # (B, Q, 4)
+    feat_p = torch.cat([pd[..., :2], unit(pd[..., 2])], -1)  # (B, L*P, 4)
+    j = torch.baddbmm(p_norm[:, None], feat_q, feat_p.transpose(1, 2), alpha=-2).argmin(-1)  # (B, Q)
+    near = pts.gather(1, j[..., None].expand(B, -1, 3))
+    has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hq.detach() - near[..., 2].detach()) > 0)
+    # 2. exact projection on the segments before and after that point (a lane's valid points are a prefix)
+    lane, i = j // P, j % P
+    n_valid = lanes_mask.sum(-1).gather(1, lane)  # (B, Q)
+    point = lambda k: pts.gather(1, (lane * P + k)[..., None].expand(B, -1, 3))  # noqa: E731  (B, Q, 3)
+    prev, here, nxt = point((i - 1).clamp_min(0)), point(i), point(torch.minimum(i + 1, (n_valid - 1).clamp_min(0)))
+    best = None
+    for a, b in ((prev, here), (here, nxt)):
+        d = b[..., :2] - a[..., :2]
+        frac = (((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)
+        dist2 = ((q - a[..., :2] - frac[..., None] * d) ** 2).sum(-1)
+        lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
+        if best is None:
+            best = (dist2, lane_h)
+        else:
+            closer = dist2 < best[0]
+            best = (torch.where(closer, dist2, best[0]), torch.where(closer, lane_h, best[1]))
+    d2, err = torch.where(has_lane, best[0], 0.0), torch.where(has_lane, wrap_angle(hq - best[1]), 0.0)
+    return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
 
 
 def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
@@ -258,7 +337,12 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     view = lambda t: t.reshape(B, *([1] * extra), *t.shape[1:])  # noqa: E731  broadcast the context over *S
     pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, *S, T, 2), (B, *S, T): the cost skips t0
     # C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
-    d2_pred = (view(ctx.probs)[..., :, None] * ((pos[..., None, :, :] - view(ctx.preds)) ** 2).sum(-1)).sum(-2)  # (B, *S, T)
+    # The expected squared distance splits into the distance to the modes' mean and their spread:
+    #   sum_k pi_k ||s - s^_k||^2 = ||s - mu||^2 + sum_k pi_k ||s^_k - mu||^2,   mu = sum_k pi_k s^_k,
+    # so the planner sees a prediction only through its per-step mean and spread.
+    mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
+    spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
+    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, *S, T)
     coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
     d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, *S, A, T)
     coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
@@ -415,6 +499,18 @@ def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid, values, math.inf).argmin(-1)
 
 
+def plan(s0, ctx: CostContext, goal_state, w, cfg: Config):
+    """Eq. (1): the candidates, their costs C_n (B, N), the argmin plan index (B,), and whether the
+    scenario can be planned at all (at least 2 valid candidates; others are flagged, not crashed on)."""
+    B = check_tensor("s0", s0, (None, 4)).shape[0]
+    check_tensor("goal_state", goal_state, (B, 4), s0.dtype)
+    check_tensor("lanes", ctx.lanes, (B, None, None, 3), s0.dtype)
+    cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
+    cost = total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var)  # (B, N)
+    plannable = cands.valid.sum(-1) >= 2
+    return cands, cost, masked_argmin(cost, cands.valid), plannable
+
+
 # ============================================================================================
 # 5. Controller: box-constrained iLQR, eq. (3) and App. D, and its exact KKT backward
 # ============================================================================================
@@ -452,18 +548,13 @@ def cost_expansion(cost_fn, x, u, params):
 
 
 def dynamics_jacobians(dynamics, x, u):
-    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m)."""
+    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m).
+    Closed form where the dynamics provide it (Unicycle), forward-mode autodiff otherwise."""
+    if hasattr(dynamics, "jacobians"):
+        return dynamics.jacobians(x[:, :-1], u)
     n = x.shape[-1]
     J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), torch.cat([x[:, :-1], u], -1))
     return J[..., :n], J[..., n:]
-
-
-def rollout(dynamics, x0, u):
-    """x0 (..., n), u (..., T, m) -> x (..., T+1, n)."""
-    xs = [x0]
-    for t in range(u.shape[-2]):
-        xs.append(dynamics(xs[-1], u[..., t, :]))
-    return torch.stack(xs, -2)
 
 
 def _solve_masked(Q, rhs, free):
@@ -687,6 +778,15 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 
     Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
     """
+    check_tensor("x_init", x_init, (None, None))
+    B, n = x_init.shape
+    check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
     lo, hi = torch.as_tensor(lo, dtype=x_init.dtype), torch.as_tensor(hi, dtype=x_init.dtype)
+    check_tensor("lo", lo), check_tensor("hi", hi)
+    if (lo > hi).any():
+        raise ValueError("lo: a lower control bound is above its upper bound")
+    for i, p in enumerate(params):
+        if torch.is_tensor(p) and p.is_floating_point():
+            check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
     settings = dict(lo=lo, hi=hi, iters=iters, tol=tol)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
