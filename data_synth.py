@@ -494,7 +494,7 @@ def _script_agents(lay, cfg, rng):
     # (c) an oncoming vehicle at the intersection: turn_across / go_straight; at the box edge at t_e + 1
     turn, onc = is_("turn_across"), is_("turn_across", "go_straight")
     v_onc, v_turn = U(7, 11), U(4.0, 5.5)
-    t_box = t_e + 1.0
+    t_box = t_e  # at the box edge at the event time; it reaches the ego's lane 1-2 s later
     # (d) a vehicle on the crossing road from the ego's right: cross_go / cross_yield
     cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
     v_cross = U(6, 9)
@@ -502,7 +502,7 @@ def _script_agents(lay, cfg, rng):
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
         [_lane_path(dj, kappa, True), _lane_path(de, kappa, True), _turn_path(S, W, bx, R_left, lay["n_fwd"]),
-         _lane_path(d_o(0) * one, kappa, False)],
+         _turn_path(S, W, bx, R_left, lay["n_fwd"], turn=False)],
         _cross_path(S, W, y_bot))
     p["v0"][:, 0] = np.select([adj, lead, onc], [v_adj, v_lead, v_onc], v_cross)
     # adjacent: placement, lane change at t_e, the cue (drift to the line) or the false cue (drift and back)
@@ -554,9 +554,10 @@ def _script_agents(lay, cfg, rng):
     # the other vehicle does (the expert then yields); the same delta for both twins, so nothing leaks
     h = de - (W / 2 - R_left)
     x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
-    s_e0 = np.where(onc, x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_box + U(1.5, 3.5)), s_e0)
-    t_in = (de - y_bot) / v_cross  # from the box edge to the ego's lane
-    t_pass = t_box + t_in + U(0.5, 2.5)
+    delta = U(-0.5, 1.0)  # the ego's front at the conflict point this long after the other's centre
+    t_turn_in = t_box + R_left * np.arccos(np.clip(h / R_left, -1, 1)) / v_turn  # the turner in the ego's lane
+    s_e0 = np.where(onc, x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_turn_in + delta), s_e0)
+    t_pass = t_box + (de - y_bot) / v_cross + delta  # the crossing car in the ego's lane, plus delta
     s_e0 = np.where(cross, W / 2 - 1.0 - _EGO_L / 2 - v_e0 * t_pass, s_e0)
     p["t_go"][:, 0] = np.where(yields, t_pass + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)
     # adjacent and lead placements were relative to s_e0 before the intersection override; redo them
@@ -596,17 +597,18 @@ def _script_agents(lay, cfg, rng):
     # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ---------------------
     pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + cfg.n_parked)
     d_out = d_f(lay["n_fwd"] - 1)[:, None]
-    s_pk = s_e0[:, None] + rng.uniform(-20, 200, (S, cfg.n_parked))
+    s_pk = s_e0[:, None] + rng.uniform(-20, 100, (S, 1)) + np.cumsum(rng.uniform(8, 60, (S, cfg.n_parked)), 1)
     s_pk = np.where(lay["inter"][:, None] & (abs(s_pk) < 25), s_pk + 50, s_pk)
     p["exists"][:, pk] = rng.random((S, cfg.n_parked)) < 0.5
     p["segs"][:, pk] = _lane_path(d_out, kappa[:, None], True)
     p["u_start"][:, pk] = s_pk * (1 - kappa[:, None] * d_out)
-    p["d0"][:, pk] = -(W / 2 + 1.3)
+    p["d0"][:, pk] = -(W / 2 + 1.0)  # centre 1 m outside the lane's edge
 
     # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) -----------------
     pd = slice(M - cfg.n_peds, M)
     left = rng.random((S, cfg.n_peds)) < 0.5
-    d_sw = np.where(left, lay["n_opp"][:, None] * W + 2.0, -lay["n_fwd"][:, None] * W - 2.0)
+    walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)  # each pedestrian its own line: they never walk into each other
+    d_sw = np.where(left, lay["n_opp"][:, None] * W + walkway, -lay["n_fwd"][:, None] * W - walkway)
     s_pd = s_e0[:, None] + rng.uniform(-30, 200, (S, cfg.n_peds))
     s_pd = np.where(lay["inter"][:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
     fwd = np.where(lay["inter"][:, None], s_pd > 0, rng.random((S, cfg.n_peds)) < 0.5)
@@ -621,10 +623,13 @@ def _script_agents(lay, cfg, rng):
     return p, s_e0
 
 
-def _turn_path(S, W, bx, R, n_fwd):
-    """The oncoming (westbound) vehicle's left turn into the southbound crossing lane: approach, arc, exit."""
+def _turn_path(S, W, bx, R, n_fwd, turn=True):
+    """The oncoming (westbound) vehicle's left turn into the southbound crossing lane: approach, arc, exit;
+    or (turn=False) straight on along its lane. u = _FAR at the box edge either way."""
     one = np.ones(S)
-    approach = np.stack([(bx + _FAR) * one, W / 2 * one, np.pi * one, 0 * one, _FAR * one], -1)
+    approach = np.stack([(bx + _FAR) * one, W / 2 * one, np.pi * one, 0 * one, (_FAR if turn else _LONG) * one], -1)
+    if not turn:
+        return np.stack([approach, 0 * approach, 0 * approach], -2)
     arc = np.stack([bx * one, W / 2 * one, np.pi * one, one / R, np.pi / 2 * R * one], -1)
     exit_ = np.stack([-W / 2 * one, (W / 2 - R) * one, 1.5 * np.pi * one, 0 * one, _LONG * one], -1)
     return np.stack([approach, arc, exit_], -2)
@@ -882,3 +887,329 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
                     routes=T(arr["routes"]).long(), names=[f"synth-{seed}-{i:06d}" for i in range(n)])
     generate_scenes.dropped = dropped
     return scenes
+
+
+# ============================================================================================
+# 5. Planning samples: cut a batch out of scenes at frame t0
+# ============================================================================================
+
+
+def _twrap(a):
+    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+
+def _to_frame(states, origin):
+    """World states (S, ..., >=3) -> the frame of origin (S, 4): positions rotated by -h0, headings - h0."""
+    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
+    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
+    c, s = torch.cos(h0), torch.sin(h0)
+    dx, dy = states[..., 0] - x0, states[..., 1] - y0
+    out = states.clone()
+    out[..., 0], out[..., 1], out[..., 2] = c * dx + s * dy, -s * dx + c * dy, _twrap(states[..., 2] - h0)
+    return out
+
+
+def _fill_gaps(x, mask):
+    """Missing steps (mask False) of x (..., T, C) take the previous observed step, or else the next one."""
+    T = mask.shape[-1]
+    ar = torch.arange(T)
+    prev = torch.cummax(torch.where(mask, ar, -1), -1).values
+    nxt = torch.flip(torch.cummin(torch.flip(torch.where(mask, ar, T), [-1]), -1).values, [-1])
+    src = torch.where(prev >= 0, prev, nxt).clamp(max=T - 1)
+    return torch.gather(x, -2, src[..., None].expand(x.shape))
+
+
+def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = None,
+              dtype=torch.float32) -> Scenarios:
+    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0.
+
+    ego_state replaces the logged ego for closed-loop log replay: (S, 4) the current world state only, or
+    (S, 9, 4) the whole history. The frame, the history and the others follow it; the ego's GT future, the
+    goal and the lanes stay those of the logged ego (paper §4.3). The predicted agent is scenes.pred_idx;
+    the others are the agents present at t0 within cfg.others_radius (closest first, at most max_others);
+    the lanes are the cfg.max_lanes routes that come within cfg.lane_radius, cropped to P points from
+    cfg.lane_behind points behind the one closest to the ego."""
+    cfg = cfg or SynthConfig()
+    S, F = scenes.ego.shape[:2]
+    H, T, P = cfg.hist, cfg.fut, cfg.lane_points
+    frame = torch.as_tensor(frame, dtype=torch.int64).expand(S)
+    if ((frame < H) | (frame > F - T - 1)).any():
+        raise ValueError(f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), got {frame}")
+    ar = torch.arange(S)
+    win = frame[:, None] + torch.arange(-H, T + 1)  # (S, 15) the sample's frames
+    ego = scenes.ego[ar[:, None], win]  # (S, 15, 4) world
+    if ego_state is not None:
+        es = torch.as_tensor(ego_state, dtype=ego.dtype)
+        if es.shape == (S, 4):
+            ego[:, H] = es
+        elif es.shape == (S, H + 1, 4):
+            ego[:, : H + 1] = es
+        else:
+            raise ValueError(f"sample_at: ego_state must be ({S}, 4) or ({S}, {H + 1}, 4), got {tuple(es.shape)}")
+    pred = scenes.pred_idx[ar, frame]  # (S,)
+    if (pred < 0).any():
+        raise ValueError(f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames")
+    origin = ego[:, H].clone()  # (S, 4)
+    ego = _to_frame(ego, origin)
+
+    # the predicted vehicle
+    ag = scenes.agents[ar, pred][ar[:, None], win]  # (S, 15, 4)
+    ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
+    ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
+
+    # the others: present at t0, near, closest first
+    M = scenes.agents.shape[1]
+    now = scenes.agents[ar, :, frame]  # (S, M, 4)
+    dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
+    cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M) != pred[:, None]) & (dist < cfg.others_radius)
+    A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
+    order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
+    o_mask = torch.gather(cand, 1, order)  # (S, A)
+    idx = win[:, None, :, None]
+    o_all = scenes.agents[ar[:, None], order]  # (S, A, F, 4)
+    o = torch.gather(o_all, 2, idx.expand(S, A, T + H + 1, 4))  # (S, A, 15, 4)
+    o_obs = torch.gather(scenes.agents_mask[ar[:, None], order], 2, win[:, None].expand(S, A, T + H + 1))
+    o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
+
+    # the lanes near the ego
+    lanes = _to_frame(scenes.lanes, origin)  # (S, Lw, Pw, 3)
+    d2 = torch.where(scenes.lanes_mask, lanes[..., 0] ** 2 + lanes[..., 1] ** 2, math.inf)  # (S, Lw, Pw)
+    dmin, jmin = d2.min(-1)  # (S, Lw)
+    near = dmin < cfg.lane_radius**2
+    L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
+    lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
+    Pw = scenes.lanes.shape[2]
+    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P)  # (S, L, P)
+    inside = pidx < Pw
+    pidx = pidx.clamp(max=Pw - 1)
+    sel = lanes[ar[:, None], lorder]  # (S, L, Pw, 3)
+    lane_pts = torch.gather(sel, 2, pidx[..., None].expand(S, L, P, 3))  # (S, L, P, 3)
+    lane_mask = torch.gather(scenes.lanes_mask[ar[:, None], lorder], 2, pidx) & inside & torch.gather(near, 1, lorder)[..., None]
+
+    out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
+                    agent_hist_mask=ag_mask[:, : H + 1], agent_fut=ag[:, H + 1:],
+                    others_hist=o[:, :, : H + 1], others_fut=o[:, :, H + 1:], others_mask=o_mask,
+                    others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
+                    lanes=lane_pts * lane_mask[..., None], lanes_mask=lane_mask, goal=ego[:, -1].clone(),
+                    behaviour=scenes.behaviour.clone())
+    return out.to(dtype)
+
+
+def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
+                cfg: SynthConfig | None = None) -> tuple[Scenarios, int]:
+    """Planning samples from every scene: per_scene random frames among those with a predicted agent (for
+    synthetic scenes: from 5 frames before its event to 1 after, so the manoeuvre falls in the 3 s future or
+    has just begun), or all such frames when per_scene is None. Samples with no lane near the ego are
+    dropped; returns (samples, number dropped)."""
+    cfg = cfg or SynthConfig()
+    S, F = scenes.pred_idx.shape
+    f = torch.arange(F)
+    e = scenes.event_frame[:, None]
+    cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e - 5) & (f <= e + 1)))  # (S, F)
+    k = per_scene if per_scene is not None else int(cand.sum(1).max())
+    score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene else -f.double(), -math.inf)
+    frames = torch.argsort(score, 1, descending=True)[:, :k]  # (S, k)
+    ok = torch.gather(cand, 1, frames)
+    parts = []
+    for r in range(k):  # k rounds over all scenes at once
+        sel = ok[:, r]
+        if sel.any():
+            parts.append(sample_at(scenes if sel.all() else scenes[sel], frames[sel, r], cfg=cfg))
+    batch = Scenarios.cat(parts)
+    has_lane = batch.lanes_mask.flatten(1).any(1)
+    return batch[has_lane], int((~has_lane).sum())
+
+
+# ============================================================================================
+# 6. Dataset: train/val split by scene, disk cache
+# ============================================================================================
+
+_CACHE_FORMAT = 1  # bump when the generator's output changes, so old caches are not reused
+
+
+class Dataset(NamedTuple):
+    train: Scenarios
+    val: Scenarios
+    val_scenes: Scenes  # the validation scenes, for closed-loop log replay
+
+
+def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Dataset:
+    """n planning samples (train + val) from ceil(n / samples_per_scene) synthetic scenes; the last
+    val_fraction of the scenes are validation, so no scene gives samples to both."""
+    cfg = cfg or SynthConfig()
+    n_scenes = max(2, math.ceil(n / cfg.samples_per_scene))
+    scenes = generate_scenes(n_scenes, cfg, seed)
+    n_val = min(max(1, round(cfg.val_fraction * n_scenes)), n_scenes - 1)
+    rng = np.random.default_rng([seed, 1])  # frame choice: its own stream, derived from the seed
+    val, _ = cut_samples(scenes[n_scenes - n_val:], cfg.samples_per_scene, rng, cfg)
+    train, _ = cut_samples(scenes[: n_scenes - n_val], cfg.samples_per_scene, rng, cfg)
+    return Dataset(train[: max(n - len(val), 0)], val, scenes[n_scenes - n_val:])
+
+
+def _cache_path(n, seed, cfg, cache_dir):
+    key = json.dumps({"n": n, "seed": seed, "cfg": dataclasses.asdict(cfg), "format": _CACHE_FORMAT}, sort_keys=True)
+    return Path(cache_dir) / f"scenarios-n{n}-s{seed}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt", key
+
+
+def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = ".cache/data_synth",
+                     cfg: SynthConfig | None = None) -> Dataset:
+    """The Dataset for (n, seed, cfg): loaded from cache_dir if it is there, else generated and saved.
+
+    The file name carries a hash of everything that determines the data; a file of that name that is not
+    a cache of this module is an error (it is never overwritten)."""
+    cfg = cfg or SynthConfig()
+    path, key = _cache_path(n, seed, cfg, cache_dir)
+    if path.exists():
+        try:
+            blob = torch.load(path, weights_only=True)
+            assert blob["key"] == key, "made with other settings"
+            return Dataset(Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"]))
+        except Exception as e:  # noqa: BLE001  (any failure means: not our cache)
+            raise ValueError(f"{path}: not a readable data_synth cache ({e}); move it away or use another "
+                             f"cache_dir") from e
+    data = make_dataset(n, cfg, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {"key": key, "train": data.train.tensors(), "val": data.val.tensors(),
+            "val_scenes": {**data.val_scenes.tensors(), "names": data.val_scenes.names}}
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    torch.save(blob, tmp)
+    os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
+    return data
+
+
+# ============================================================================================
+# 7. Statistics
+# ============================================================================================
+
+PLAUSIBLE = {"speed_max": 20.5, "accel_p99": 4.0, "yaw_rate_p99": 0.7}
+"""Urban driving at 2 Hz: speeds up to 20 m/s, 99 % of |accelerations| below 4 m/s^2 and of vehicle |yaw rates|
+below 0.7 rad/s (derived from the states by backward differences, tracking noise included)."""
+
+
+def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
+    """Kinematics (from the states, by backward differences), the behaviour mix and how close the predicted
+    vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a few metres)."""
+    def kin(states, mask):  # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
+        v, h = states[..., 3], states[..., 2]
+        acc = (v[..., 1:] - v[..., :-1]) / dt
+        yaw = _twrap(h[..., 1:] - h[..., :-1]) / dt
+        moving = (v[..., 1:] > 2.0) & mask[..., None]  # headings of (near) stopped vehicles mean little
+        return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
+
+    def summary(x):
+        x = x.double()
+        if x.numel() == 0:
+            return {}
+        q = torch.quantile(x[:100_000], torch.tensor([0.01, 0.5, 0.99], dtype=torch.float64)).tolist()
+        return {"p1": q[0], "p50": q[1], "p99": q[2], "max": x.max().item()}
+
+    B = len(batch)
+    groups = {"ego": (torch.cat([batch.ego_hist, batch.ego_fut], 1), torch.ones(B, dtype=torch.bool)),
+              "predicted": (torch.cat([batch.agent_hist, batch.agent_fut], 1), batch.agent_hist_mask.all(1)),
+              "other vehicles": (torch.cat([batch.others_hist, batch.others_fut], 2),
+                                 batch.others_mask & ~batch.others_is_ped)}
+    out = {"samples": B}
+    for name, (states, mask) in groups.items():
+        v, a, w = kin(states, mask)
+        out[name] = {"speed": summary(v), "|accel|": summary(a), "|yaw rate|": summary(w)}
+    d = torch.linalg.norm(batch.ego_fut[..., :2] - batch.agent_fut[..., :2], dim=-1).min(1).values  # (B,)
+    mix = {}
+    for i, name in enumerate(BEHAVIOURS):
+        m = batch.behaviour == i
+        if m.any():
+            mix[name] = {"share": m.float().mean().item(), "min_dist_p50": d[m].median().item(),
+                         "within_5m": (d[m] < 5).float().mean().item()}
+    out["behaviour"] = mix
+    vehicles = [out[g] for g in groups]
+    out["plausible"] = {
+        "speed_max": max(g["speed"].get("max", 0) for g in vehicles) <= PLAUSIBLE["speed_max"],
+        "accel_p99": max(g["|accel|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["accel_p99"],
+        "yaw_rate_p99": max(g["|yaw rate|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["yaw_rate_p99"]}
+    return out
+
+
+def format_statistics(st: dict) -> str:
+    lines = [f"{st['samples']} samples   plausible ranges: speed <= {PLAUSIBLE['speed_max']} m/s, "
+             f"p99 |accel| <= {PLAUSIBLE['accel_p99']} m/s^2, p99 |yaw rate| <= {PLAUSIBLE['yaw_rate_p99']} rad/s"]
+    for g in ("ego", "predicted", "other vehicles"):
+        for q, unit in (("speed", "m/s"), ("|accel|", "m/s^2"), ("|yaw rate|", "rad/s")):
+            s = st[g][q]
+            if s:
+                lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  "
+                             f"max {s['max']:6.2f} {unit}")
+    lines.append("  behaviour      share   min ego-agent distance over the future: median, share < 5 m")
+    for name, m in st["behaviour"].items():
+        lines.append(f"  {name:13s} {m['share']:6.1%}   {m['min_dist_p50']:6.1f} m   {m['within_5m']:6.1%}")
+    lines.append("  plausible: " + ", ".join(f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items()))
+    return "\n".join(lines)
+
+
+# ============================================================================================
+# 8. Plot
+# ============================================================================================
+
+
+def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)):
+    """Draw sample i in the ego frame: lanes (grey, arrows along the driving direction), other vehicles and
+    pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle (orange), the ego (blue,
+    GT future dashed) and its goal (star). Returns ax; callers overlay predictions and plans with ax.plot."""
+    from matplotlib.patches import Rectangle
+    b = batch[torch.tensor([i])].to(torch.float64)
+    for lane, m in zip(b.lanes[0], b.lanes_mask[0]):
+        pts = lane[m].numpy()
+        if len(pts):
+            ax.plot(pts[:, 0], pts[:, 1], color="0.75", lw=1, zorder=1)
+            k = min(len(pts) - 1, 5)
+            ax.annotate("", pts[k, :2] + 1.5 * np.array([np.cos(pts[k, 2]), np.sin(pts[k, 2])]), pts[k, :2],
+                        arrowprops=dict(arrowstyle="->", color="0.6", lw=0.8), zorder=1)
+
+    def box(state, size, color, z):
+        x, y, h = state[:3].tolist()
+        w, length = size
+        corner = np.array([x, y]) - np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
+        ax.add_patch(Rectangle(corner, length, w, angle=math.degrees(h), rotation_point="xy", fc=color, ec="k",
+                               lw=0.5, alpha=0.8, zorder=z))
+
+    def track(hist, fut, color, z, dashed=False):
+        ax.plot(hist[:, 0], hist[:, 1], ":", color=color, lw=1.2, zorder=z)
+        ax.plot(np.r_[hist[-1:, 0], fut[:, 0]], np.r_[hist[-1:, 1], fut[:, 1]], "--" if dashed else "-",
+                color=color, lw=1.5, zorder=z, marker=".", ms=3)
+
+    for oh, of, m, ped in zip(b.others_hist[0], b.others_fut[0], b.others_mask[0], b.others_is_ped[0]):
+        if m:
+            color = "tab:green" if ped else "tab:gray"
+            track(oh.numpy(), of.numpy(), color, 2)
+            if ped:
+                ax.plot(*oh[-1, :2].tolist(), "o", color=color, ms=4, zorder=3)
+            else:
+                box(oh[-1], (1.9, 4.6), "0.6", 3)
+    track(b.agent_hist[0].numpy(), b.agent_fut[0].numpy(), "tab:orange", 4)
+    box(b.agent_hist[0, -1], (1.9, 4.6), "tab:orange", 5)
+    track(b.ego_hist[0].numpy(), b.ego_fut[0].numpy(), "tab:blue", 4, dashed=True)
+    box(b.ego_hist[0, -1], (_EGO_W, _EGO_L), "tab:blue", 5)
+    ax.plot(*b.goal[0, :2].tolist(), "*", color="tab:blue", ms=12, mec="k", zorder=6)
+    beh = int(b.behaviour[0])
+    ax.set_title(title if title is not None else (BEHAVIOURS[beh] if beh >= 0 else f"sample {i}"), fontsize=9)
+    ax.set_xlim(*extent[:2])
+    ax.set_ylim(*extent[2:])
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    return ax
+
+
+def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
+    """Save the first n samples of batch as a grid of plot_scenario panels (PNG)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    n = min(n, len(batch))
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    for k, ax in enumerate(axes.flat):
+        if k < n:
+            plot_scenario(ax, batch, k)
+        else:
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
