@@ -25,7 +25,7 @@ Map of the module (the order the data flows):
 
 Shape letters:  S scenes   F frames (41 = 20 s at 2 Hz)   M agents per scene   B samples   A other agents
                 L lanes    P points per lane   Q arcline paths per scene   R paths per lane (a route)
-                N fine simulation steps (0.1 s)   9 = history incl. t0   6 = future steps
+                N fine simulation steps (sim_dt)   9 = history incl. t0   6 = future steps
 A state is s = (x, y, heading h, speed v). Speeds are backward differences of positions everywhere (central
 differences would leak the future into the inputs); accelerations and yaw rates are left to the consumer.
 Everything random takes a numpy Generator made from a seed: no global RNG.
@@ -81,7 +81,7 @@ class SynthConfig:
     """past steps of a sample's history (the current state makes 9)"""
     fut: int = 6
     """future steps of a sample (3 s)"""
-    sim_dt: float = 0.1
+    sim_dt: float = 0.25
     """step of the generator's simulation (s); frames are every dt / sim_dt steps"""
 
     # --- behaviour mix ---
@@ -268,9 +268,13 @@ def wrap(a):
 
 
 def _arc(kappa, u):
-    """(A, C) above for curvature kappa and arc length u (broadcast), exact at kappa = 0."""
+    """(A, C) above for curvature kappa and arc length u (broadcast); a Taylor series where |kappa u| < 1e-4."""
     ku = kappa * u
-    return u * np.sinc(ku / np.pi), u * np.sin(ku / 2) * np.sinc(ku / (2 * np.pi))
+    small = np.abs(ku) < 1e-4
+    ks = np.where(small, 1.0, kappa)
+    a = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks)
+    c = np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
+    return a, c
 
 
 def _segment_pose(seg, u):
@@ -308,14 +312,13 @@ def pose_along(segs, u):
     first / last segment is extended, so agents can drive off a path's ends smoothly."""
     lengths = segs[..., 4]  # (..., G)
     starts = np.cumsum(lengths, -1) - lengths
-    nonempty = lengths > 0
-    ok = nonempty[..., None, :] & (starts[..., None, :] <= u[..., None])  # (..., N, G)
     G = lengths.shape[-1]
-    last_ok = G - 1 - np.argmax(ok[..., ::-1], -1)  # (..., N) the last segment that starts before u
-    k = np.where(ok.any(-1), last_ok, np.argmax(nonempty, -1)[..., None])
-    seg = np.take_along_axis(segs, k[..., None], -2)  # (..., N, 5)
-    local = u - np.take_along_axis(starts, k, -1)
-    return _segment_pose(seg, local), seg[..., 3]
+    first = np.argmax(lengths > 0, -1)[..., None]  # (..., 1)
+    k = np.broadcast_to(first, u.shape).copy()  # (..., N) the segment each u falls on
+    for g in range(G):  # G is small: a loop over segments, vectorised over everything else
+        k = np.where((lengths[..., g:g + 1] > 0) & (starts[..., g:g + 1] <= u), g, k)
+    seg = np.stack([np.take_along_axis(segs[..., c], k, -1) for c in range(5)], -1)  # (..., N, 5)
+    return _segment_pose(seg, u - np.take_along_axis(starts, k, -1)), seg[..., 3]
 
 
 def discretize(segs, spacing: float):
@@ -386,7 +389,7 @@ _PED = (0.6, 0.6, 1.75)
 _EGO_W, _EGO_L = 1.9, 4.7
 _BOX_MARGIN = 3.0  # between the road edges and the intersection box (m)
 _FAR = 300.0  # paths that approach the intersection start this far before it; u = 300 is the box edge
-_IDM = dict(a_max=1.5, b=2.5, T=1.2, s0=2.5, look=6)  # the ego's IDM, look-ahead in frames (3 s)
+_IDM = dict(a_max=1.5, b=2.5, T=1.0, s0=2.0, look=6)  # the ego's IDM, look-ahead in frames (3 s)
 _LONG = 1e4  # length of a path's open-ended segment (m)
 
 
@@ -478,26 +481,31 @@ def _script_agents(lay, cfg, rng):
     cue, false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
 
     # (a) an agent in the adjacent forward lane: cut_in / keep_lane / far / behind.
-    #     At t_ref (the middle of its lane change) it is `gap` ahead of the ego's nominal, constant-speed position.
+    #     Its lane change starts 1 s before the event (so the event is when it reaches the ego's lane); in the
+    #     middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
     adj = is_("cut_in", "keep_lane", "far", "behind")
     T_lc = U(2.5, 4.0)
-    t_ref = t_e + T_lc / 2
-    gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(6, 14), U(35, 60)], U(-25, -10))
-    v_adj = np.select([is_("cut_in", "keep_lane"), is_("far")], [v_e0 + U(-3, 0.5), v_e0 + U(-1, 1)],
+    t_lc = t_e - 1.0
+    t_ref = t_lc + T_lc / 2
+    gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(4, 10), U(35, 60)], U(-25, -10))
+    v_adj = np.select([is_("cut_in", "keep_lane"), is_("far")], [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
                       v_e0 + U(-2, 0.5)).clip(5.0, 20.0)
     changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
     toward = np.sign(de - dj)
     # (b) the vehicle ahead in the ego's lane: lead_brake / lead_cruise
     lead = is_("lead_brake", "lead_cruise")
     v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
-    g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.9, 1.6)
-    # (c) an oncoming vehicle at the intersection: turn_across / go_straight; at the box edge at t_e + 1
+    g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
+    # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the ego's
+    #     lane at the event time; it is at the box edge R acos(h / R) / v_turn earlier (h: see below).
     turn, onc = is_("turn_across"), is_("turn_across", "go_straight")
     v_onc, v_turn = U(7, 11), U(4.0, 5.5)
-    t_box = t_e  # at the box edge at the event time; it reaches the ego's lane 1-2 s later
-    # (d) a vehicle on the crossing road from the ego's right: cross_go / cross_yield
+    h = de - (W / 2 - R_left)  # the ego lane's offset from the turn's centre
+    t_box = t_e - R_left * np.arccos(np.clip(h / R_left, -1, 1)) / v_turn
+    # (d) a vehicle on the crossing road from the ego's right: cross_go / cross_yield; in the ego's lane at t_e
     cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
     v_cross = U(6, 9)
+    t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
 
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
@@ -509,18 +517,18 @@ def _script_agents(lay, cfg, rng):
     u_adj = (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref
     p["u_start"][:, 0] = np.where(adj, u_adj, np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0))
     p["D"][:, 0] = np.where(adj & changes, de - dj, 0.0)
-    p["t_lc"][:, 0], p["T_lc"][:, 0] = np.where(adj & changes, t_e, inf), T_lc
+    p["t_lc"][:, 0], p["T_lc"][:, 0] = np.where(adj & changes, t_lc, inf), T_lc
     drift = adj & np.where(changes, cue, false_cue)
     p["c"][:, 0] = np.where(drift, 0.4 * toward, 0.0)
-    p["t_up"][:, 0] = np.where(drift, t_e - 1.5, inf)
-    p["t_dn"][:, 0] = np.where(drift, np.where(changes, t_e, t_e + 0.5), inf)
+    p["t_up"][:, 0] = np.where(drift, t_lc - 1.5, inf)
+    p["t_dn"][:, 0] = np.where(drift, np.where(changes, t_lc, t_lc + 0.5), inf)
     p["T_dn"][:, 0] = np.where(changes, T_lc, 2.0)
-    # lead: brake at t_e (to 0-50 % of its speed, a third to a stop), announced by a gentle slow-down before
-    brake = is_("lead_brake")
+    # lead: brake 1 s before t_e (to 0-50 % of its speed, a third to a stop), announced by a gentle slow-down
+    brake, t_brake = is_("lead_brake"), t_e - 1.0
     slow_first = lead & np.where(brake, cue, false_cue)
-    p["t1"][:, 0] = np.where(slow_first, t_e - 1.5, np.where(lead, t_e, inf))
+    p["t1"][:, 0] = np.where(slow_first, t_brake - 1.5, np.where(lead, t_brake, inf))
     p["v1"][:, 0], p["dec1"][:, 0] = v_lead - 1.5, 1.0
-    p["t2"][:, 0] = np.where(lead, t_e, p["t2"][:, 0])
+    p["t2"][:, 0] = np.where(lead, t_brake, p["t2"][:, 0])
     p["v2"][:, 0] = np.where(brake, v_lead * U(0, 0.5) * (rng.random(S) > 0.33), v_lead)
     p["dec2"][:, 0] = np.where(brake, U(2.5, 4.0), 2.0)
     # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and harder);
@@ -552,12 +560,10 @@ def _script_agents(lay, cfg, rng):
 
     # the ego's start for the intersection situations: its front reaches the conflict point delta s after
     # the other vehicle does (the expert then yields); the same delta for both twins, so nothing leaks
-    h = de - (W / 2 - R_left)
     x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
     delta = U(-0.5, 1.0)  # the ego's front at the conflict point this long after the other's centre
-    t_turn_in = t_box + R_left * np.arccos(np.clip(h / R_left, -1, 1)) / v_turn  # the turner in the ego's lane
-    s_e0 = np.where(onc, x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_turn_in + delta), s_e0)
-    t_pass = t_box + (de - y_bot) / v_cross + delta  # the crossing car in the ego's lane, plus delta
+    s_e0 = np.where(onc, x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta), s_e0)
+    t_pass = t_e + delta
     s_e0 = np.where(cross, W / 2 - 1.0 - _EGO_L / 2 - v_e0 * t_pass, s_e0)
     p["t_go"][:, 0] = np.where(yields, t_pass + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)
     # adjacent and lead placements were relative to s_e0 before the intersection override; redo them
@@ -684,9 +690,11 @@ def _agent_states(p, us, vs, t):
 def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields.
 
-    It sees the others' TRUE futures: every agent that will be in its lane corridor within the next 3 s is an
-    obstacle at the road position it will have then (a crossing or merging car is a stopped obstacle at the
-    conflict point until it has cleared), unless the ego at constant speed would already be past it. IDM
+    It sees the others' TRUE futures: an agent that will be in its lane corridor within the next 3 s is an
+    obstacle at the road position it will have then, if it drives along the road (a leader, a car merging in)
+    or if it is still there at most 0.6 s before the ego would reach that position at its current speed (a car
+    crossing or turning through the ego's lane: the ego yields, or passes just after it has cleared);
+    never if the ego at constant speed would already be past it. IDM
     (Treiber et al. 2000):  a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
                             s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))),  a in [-4, a_max]."""
     S, N, W = len(s_e0), len(t), cfg.lane_width
@@ -712,8 +720,10 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
         s_e = u / (1 - kappa * de)
         sa, ex = s_a[..., idx], ext_long[..., idx]  # (S, M, J)
         passed = (tau > 0) & (s_e[:, None, None] + v[:, None, None] * tau - _EGO_L / 2 - 1.0 > sa + ex)
-        obstacle = in_corr[..., idx] & (sa > s_e[:, None, None]) & ~passed
         gap = np.maximum(sa - ex - s_e[:, None, None] - _EGO_L / 2, 0.1)
+        arrival = gap / np.maximum(v, 1.0)[:, None, None]  # when the ego would reach it at its current speed
+        along = (sdot_a[..., idx] > 2.0) | (tau >= arrival - 0.6)
+        obstacle = in_corr[..., idx] & (sa > s_e[:, None, None]) & ~passed & along
         vv = v[:, None, None]
         s_star = _IDM["s0"] + np.maximum(0.0, vv * _IDM["T"] + vv * (vv - sdot_a[..., idx]) / sqrt_ab)
         interaction = np.where(obstacle, (s_star / gap) ** 2, 0.0).max((1, 2))
@@ -810,12 +820,14 @@ def _collides(ego, agents, sizes, is_ped, exists):
     ex = np.concatenate([np.ones((S, 1), bool), exists], 1)
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
-    hit = np.zeros((S, len(iu)), bool)
-    for a in range(3):
-        for b in range(3):
-            dist = np.linalg.norm(c[:, iu][..., a, :] - c[:, ju][..., b, :], axis=-1)  # (S, pairs, F)
-            hit |= (dist < (r[:, iu] + r[:, ju])).any(-1)
-    return (hit & ex[:, iu] & ex[:, ju]).any(-1)
+    # only pairs whose centres come within reach (two car lengths) need the disc test
+    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1)
+    near &= ex[:, iu] & ex[:, ju]
+    s, k = np.nonzero(near)
+    ci, cj = c[s, iu[k]], c[s, ju[k]]  # (n, F, 3, 2)
+    dist = np.linalg.norm(ci[:, :, :, None] - cj[:, :, None], axis=-1)  # (n, F, 3, 3)
+    hit = (dist < (r[s, iu[k]] + r[s, ju[k]])[:, :, None, None]).any((1, 2, 3))
+    return np.bincount(s[hit], minlength=S) > 0
 
 
 def _ar1_noise(shape, sigma, rho, rng):
@@ -965,15 +977,14 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
     order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
     o_mask = torch.gather(cand, 1, order)  # (S, A)
-    idx = win[:, None, :, None]
-    o_all = scenes.agents[ar[:, None], order]  # (S, A, F, 4)
-    o = torch.gather(o_all, 2, idx.expand(S, A, T + H + 1, 4))  # (S, A, 15, 4)
-    o_obs = torch.gather(scenes.agents_mask[ar[:, None], order], 2, win[:, None].expand(S, A, T + H + 1))
+    pick = (ar[:, None, None], order[..., None], win[:, None, :])  # -> (S, A, 15)
+    o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
 
-    # the lanes near the ego
-    lanes = _to_frame(scenes.lanes, origin)  # (S, Lw, Pw, 3)
-    d2 = torch.where(scenes.lanes_mask, lanes[..., 0] ** 2 + lanes[..., 1] ** 2, math.inf)  # (S, Lw, Pw)
+    # the lanes near the ego (distances in the world frame; only the crop is transformed)
+    dx = scenes.lanes[..., 0] - origin[:, 0, None, None]
+    dy = scenes.lanes[..., 1] - origin[:, 1, None, None]
+    d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
     L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
@@ -982,9 +993,9 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P)  # (S, L, P)
     inside = pidx < Pw
     pidx = pidx.clamp(max=Pw - 1)
-    sel = lanes[ar[:, None], lorder]  # (S, L, Pw, 3)
-    lane_pts = torch.gather(sel, 2, pidx[..., None].expand(S, L, P, 3))  # (S, L, P, 3)
-    lane_mask = torch.gather(scenes.lanes_mask[ar[:, None], lorder], 2, pidx) & inside & torch.gather(near, 1, lorder)[..., None]
+    pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
+    lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
+    lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
 
     out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
                     agent_hist_mask=ag_mask[:, : H + 1], agent_fut=ag[:, H + 1:],
@@ -1113,12 +1124,15 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
         v, a, w = kin(states, mask)
         out[name] = {"speed": summary(v), "|accel|": summary(a), "|yaw rate|": summary(w)}
     d = torch.linalg.norm(batch.ego_fut[..., :2] - batch.agent_fut[..., :2], dim=-1).min(1).values  # (B,)
+    rel = (_no_brake_plan(batch, dt) - batch.agent_fut[..., :2]).abs()  # (B, 6, 2), ego frame at t0
+    overlap = ((rel[..., 0] < _EGO_L) & (rel[..., 1] < _EGO_W)).any(1)  # the two footprints touch
     mix = {}
     for i, name in enumerate(BEHAVIOURS):
         m = batch.behaviour == i
         if m.any():
             mix[name] = {"share": m.float().mean().item(), "min_dist_p50": d[m].median().item(),
-                         "within_5m": (d[m] < 5).float().mean().item()}
+                         "within_5m": (d[m] < 5).float().mean().item(),
+                         "no_brake_conflict": overlap[m].float().mean().item()}
     out["behaviour"] = mix
     vehicles = [out[g] for g in groups]
     out["plausible"] = {
@@ -1126,6 +1140,19 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
         "accel_p99": max(g["|accel|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["accel_p99"],
         "yaw_rate_p99": max(g["|yaw rate|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["yaw_rate_p99"]}
     return out
+
+
+def _no_brake_plan(batch: Scenarios, dt: float):
+    """The ego's positions (B, 6, 2) had it kept its t0 speed along its GT path (extended straight past its end):
+    the plan of a planner that ignores the predicted vehicle."""
+    path = torch.cat([batch.ego_hist[:, -1:, :2], batch.ego_fut[..., :2]], 1)  # (B, 7, 2)
+    seg = path[:, 1:] - path[:, :-1]  # (B, 6, 2)
+    seg_len = torch.linalg.norm(seg, dim=-1).clamp(min=1e-6)
+    cum = torch.cat([torch.zeros(len(path), 1, dtype=path.dtype), seg_len.cumsum(1)], 1)  # (B, 7)
+    want = batch.ego_hist[:, -1, 3:4] * dt * torch.arange(1, 7, dtype=path.dtype)  # (B, 6)
+    k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)  # segment index (last extends)
+    frac = (want - cum.gather(1, k)) / seg_len.gather(1, k)
+    return path.gather(1, k[..., None].expand(-1, -1, 2)) + frac[..., None] * seg.gather(1, k[..., None].expand(-1, -1, 2))
 
 
 def format_statistics(st: dict) -> str:
@@ -1137,9 +1164,11 @@ def format_statistics(st: dict) -> str:
             if s:
                 lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  "
                              f"max {s['max']:6.2f} {unit}")
-    lines.append("  behaviour      share   min ego-agent distance over the future: median, share < 5 m")
+    lines.append("  behaviour      share | predicted vehicle vs the ego's GT future: median min distance, share < 5 m"
+                 " | share colliding with a no-braking ego")
     for name, m in st["behaviour"].items():
-        lines.append(f"  {name:13s} {m['share']:6.1%}   {m['min_dist_p50']:6.1f} m   {m['within_5m']:6.1%}")
+        lines.append(f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%}"
+                     f" | {m['no_brake_conflict']:7.1%}")
     lines.append("  plausible: " + ", ".join(f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items()))
     return "\n".join(lines)
 
@@ -1213,3 +1242,583 @@ def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# ============================================================================================
+# 9. nuScenes v1.0 writer
+# ============================================================================================
+#
+# REFERENCE.md §8. A dataset folder holds <version>/ with 13 JSON tables, maps/expansion/<location>.json
+# (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and connectivity), the map
+# PNGs named by map.json, and maps/prediction/prediction_scenes.json. The ego is not an annotation: it is the
+# ego_pose of the key-frame sample_data (CAM_FRONT and LIDAR_TOP, both at the sample's timestamp, so that ego
+# and annotations are exactly simultaneous and the round trip is exact).
+
+NUSC_VERSIONS = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
+NUSC_TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
+               "log", "scene", "sample", "sample_data", "sample_annotation", "map")
+NUSC_LOCATIONS = ("singapore-onenorth", "singapore-hollandvillage", "singapore-queenstown", "boston-seaport")
+MAP_LAYERS = ("polygon", "line", "node", "drivable_area", "road_segment", "road_block", "lane", "ped_crossing",
+              "walkway", "stop_line", "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
+MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-0916",
+               "scene-1077", "scene-1094", "scene-1100")
+"""The devkit's prediction split only knows official scene names: the first 10 written scenes take these
+(v1.0-mini: 0103 and 0916 are mini_val, the others mini_train); later ones are named scene-9xxx."""
+_SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
+_T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
+
+
+def _token(*parts) -> str:
+    """A deterministic 32-hex token (the format of nuScenes tokens)."""
+    return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
+
+
+def _quat(yaw: float) -> list:
+    """Planar yaw -> quaternion [w, x, y, z]."""
+    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+
+
+def _dump(obj, path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(obj, f)
+
+
+def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
+                   overwrite: bool = False) -> Path:
+    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root.
+
+    Scenes go round-robin to the four map locations and sit side by side (300 m apart) in their map's canvas.
+    Refuses to replace existing files unless overwrite=True."""
+    cfg = cfg or SynthConfig()
+    if version not in NUSC_VERSIONS:
+        raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
+    root = Path(root)
+    outputs = [root / version / f"{t}.json" for t in NUSC_TABLES] + \
+        [root / "maps" / "expansion" / f"{loc}.json" for loc in NUSC_LOCATIONS] + \
+        [root / "maps" / "prediction" / "prediction_scenes.json"]
+    existing = [str(p) for p in outputs if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
+                              f"pass overwrite=True (CLI: --overwrite)")
+    S, F = scenes.ego.shape[:2]
+    ego, agents, amask = scenes.ego.numpy(), scenes.agents.numpy(), scenes.agents_mask.numpy()
+    paths = scenes.paths.numpy()
+    path_valid = paths[..., 4:7].sum(-1) > 0
+    names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
+
+    # placement: a translation per scene that puts it, with 300 m around it, next to the previous one
+    offsets, cursor, height = np.zeros((S, 2)), {loc: 300.0 for loc in NUSC_LOCATIONS}, dict.fromkeys(NUSC_LOCATIONS, 300.0)
+    locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
+    for i in range(S):
+        pts = np.concatenate([scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy(), ego[i, :, :2],
+                              agents[i][amask[i]][:, :2]])
+        lo, hi = pts.min(0), pts.max(0)
+        offsets[i] = (cursor[locs[i]] - lo[0], 300.0 - lo[1])
+        cursor[locs[i]] += hi[0] - lo[0] + 300.0
+        height[locs[i]] = max(height[locs[i]], hi[1] - lo[1] + 600.0)
+
+    # fixed tables
+    cat = {False: _token("category", "vehicle.car"), True: _token("category", "human.pedestrian.adult")}
+    tables = {t: [] for t in NUSC_TABLES}
+    tables["category"] = [
+        {"token": cat[False], "name": "vehicle.car", "description": "Vehicle designed primarily for personal use.",
+         "index": 17},
+        {"token": cat[True], "name": "human.pedestrian.adult", "description": "Adult subcategory.", "index": 2}]
+    attr = {n: _token("attribute", n) for n in ("vehicle.moving", "vehicle.stopped", "pedestrian.moving",
+                                                "pedestrian.standing")}
+    tables["attribute"] = [{"token": t, "name": n, "description": n.replace(".", " ")} for n, t in attr.items()]
+    tables["visibility"] = [{"token": str(k + 1), "level": lvl, "description": f"visibility of whole object is {lvl}"}
+                            for k, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"))]
+    sensors = {"CAM_FRONT": ("camera", [1.70, 0.016, 1.51], [0.4998, -0.5031, 0.4998, -0.4972],
+                             [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]], "jpg", 900, 1600),
+               "LIDAR_TOP": ("lidar", [0.943, 0.0, 1.84], [0.7071, 0.0, 0.0, -0.7071], [], "pcd.bin", 0, 0)}
+    for ch, (modality, trans, rot, intr, *_rest) in sensors.items():
+        tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": modality})
+        tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "sensor_token": _token("sensor", ch),
+                                            "translation": trans, "rotation": rot, "camera_intrinsic": intr})
+
+    # scenes: log, samples, key-frame sample_data with their ego poses, instances and annotations
+    split = {}
+    for i in range(S):
+        name, (ox, oy) = names[i], offsets[i]
+        log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
+        tables["log"].append({"token": log_tok, "logfile": f"synthetic-{scenes.names[i]}", "vehicle": "synthetic",
+                              "date_captured": "2026-01-01", "location": locs[i]})
+        ts = [_T0_US + (i * (F + 20) + f) * int(round(cfg.dt * 1e6)) for f in range(F)]
+        sample_tok = [_token(name, "sample", f) for f in range(F)]
+        tables["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": F,
+                                "first_sample_token": sample_tok[0], "last_sample_token": sample_tok[-1],
+                                "name": name, "description": f"synthetic; {_behaviour_name(int(scenes.behaviour[i]))}"})
+        for f in range(F):
+            tables["sample"].append({"token": sample_tok[f], "timestamp": ts[f], "scene_token": scene_tok,
+                                     "prev": sample_tok[f - 1] if f else "", "next": sample_tok[f + 1] if f < F - 1 else ""})
+            x, y, h = (float(v) for v in ego[i, f, :3])
+            for ch, (_m, _t, _r, _i, fmt, height_px, width_px) in sensors.items():
+                sd = lambda g: _token(name, ch, "sample_data", g)  # noqa: E731
+                pose_tok = _token(name, ch, "ego_pose", f)
+                tables["ego_pose"].append({"token": pose_tok, "timestamp": ts[f], "rotation": _quat(h),
+                                           "translation": [x + ox, y + oy, 0.0]})
+                tables["sample_data"].append({
+                    "token": sd(f), "sample_token": sample_tok[f], "ego_pose_token": pose_tok,
+                    "calibrated_sensor_token": _token("calibrated_sensor", ch), "timestamp": ts[f], "fileformat": fmt,
+                    "is_key_frame": True, "height": height_px, "width": width_px,
+                    "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
+                    "prev": sd(f - 1) if f else "", "next": sd(f + 1) if f < F - 1 else ""})
+        for m in np.nonzero(amask[i].any(-1))[0]:
+            frames = np.nonzero(amask[i, m])[0]
+            inst = _token(name, "instance", m)
+            ann = [_token(name, "annotation", m, f) for f in frames]
+            ped = bool(scenes.agents_is_ped[i, m])
+            tables["instance"].append({"token": inst, "category_token": cat[ped], "nbr_annotations": len(frames),
+                                       "first_annotation_token": ann[0], "last_annotation_token": ann[-1]})
+            w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
+            for k, f in enumerate(frames):
+                x, y, h, v = (float(q) for q in agents[i, m, f])
+                moving = v > 0.5
+                a = ("pedestrian." if ped else "vehicle.") + (("moving" if moving else "standing") if ped
+                                                                  else ("moving" if moving else "stopped"))
+                tables["sample_annotation"].append({
+                    "token": ann[k], "sample_token": sample_tok[f], "instance_token": inst, "visibility_token": "4",
+                    "attribute_tokens": [attr[a]], "translation": [x + ox, y + oy, hgt / 2], "size": [w, length, hgt],
+                    "rotation": _quat(h), "prev": ann[k - 1] if k else "", "next": ann[k + 1] if k < len(frames) - 1 else "",
+                    "num_lidar_pts": 20, "num_radar_pts": 0})
+        pred = scenes.pred_idx[i].numpy()
+        split[name] = [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in range(F)
+                       if pred[f] >= 0 and amask[i, pred[f], f]]
+
+    # maps: one record per location (with its logs and a tiny PNG), and the expansion json per location
+    import matplotlib.image
+    for loc in NUSC_LOCATIONS:
+        tok = _token("map", loc)
+        tables["map"].append({"token": tok, "category": "semantic_prior", "filename": f"maps/{tok}.png",
+                              "log_tokens": [_token(names[i], "log") for i in range(S) if locs[i] == loc]})
+        (root / "maps").mkdir(parents=True, exist_ok=True)
+        matplotlib.image.imsave(root / "maps" / f"{tok}.png", np.zeros((8, 8)), cmap="gray")
+        expansion = {"version": "1.3", "canvas_edge": [cursor[loc] + 300.0, height[loc]],
+                     **{layer: [] for layer in MAP_LAYERS}, "arcline_path_3": {}, "connectivity": {}}
+        for i in (i for i in range(S) if locs[i] == loc):
+            _write_scene_map(expansion, names[i], paths[i], path_valid[i], scenes.paths_is_connector[i].numpy(),
+                             scenes.routes[i].numpy(), offsets[i], cfg)
+        _dump(expansion, root / "maps" / "expansion" / f"{loc}.json")
+    for t in NUSC_TABLES:
+        _dump(tables[t], root / version / f"{t}.json")
+    _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
+    return root
+
+
+def _behaviour_name(b: int) -> str:
+    return BEHAVIOURS[b] if b >= 0 else "real"
+
+
+def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset, cfg):
+    """Add one scene's arcline paths to a map expansion: each path becomes a lane (or lane connector) with a
+    polygon (the centre line +- W/2), edge lines and connectivity from consecutive paths of the routes."""
+    ox, oy = offset
+    tok = {q: _token(name, "lane", q) for q in np.nonzero(valid)[0]}
+    links = {q: {"incoming": [], "outgoing": []} for q in tok}
+    for r in routes:
+        r = [q for q in r if q >= 0]
+        for a, b in zip(r[:-1], r[1:]):
+            if tok[b] not in links[a]["outgoing"]:
+                links[a]["outgoing"].append(tok[b])
+                links[b]["incoming"].append(tok[a])
+    segs = arcline_segments(paths)  # (Q, 3, 5)
+    for q, t in tok.items():
+        x, y, yaw, radius, *lengths = paths[q, :7]
+        end = _segment_pose(segs[q, 2], lengths[2])
+        exp["arcline_path_3"][t] = [{
+            "start_pose": [float(x + ox), float(y + oy), float(yaw)],
+            "end_pose": [float(end[0] + ox), float(end[1] + oy), float(wrap(end[2]))],
+            "shape": _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])], "radius": float(radius),
+            "segment_length": [float(v) for v in lengths]}]
+        exp["connectivity"][t] = links[q]
+        # polygon: the centre line every 2 m (and its end), offset by half a lane to either side
+        total = sum(lengths)
+        u = np.append(np.arange(0.0, total, cfg.lane_spacing), total)
+        pose, _ = pose_along(segs[q], u)
+        normal = np.stack([-np.sin(pose[:, 2]), np.cos(pose[:, 2])], -1) * cfg.lane_width / 2
+        ring = np.concatenate([pose[:, :2] + normal, (pose[:, :2] - normal)[::-1]]) + offset
+        nodes = [_token(t, "node", k) for k in range(len(ring))]
+        exp["node"] += [{"token": n, "x": float(px), "y": float(py)} for n, (px, py) in zip(nodes, ring)]
+        poly = _token(t, "polygon")
+        exp["polygon"].append({"token": poly, "exterior_node_tokens": nodes, "holes": []})
+        if is_conn[q]:
+            exp["lane_connector"].append({"token": t, "polygon_token": poly})
+        else:
+            n = len(u)
+            edges = [_token(t, "from_edge"), _token(t, "to_edge")]
+            exp["line"] += [{"token": edges[0], "node_tokens": [nodes[0], nodes[-1]]},
+                            {"token": edges[1], "node_tokens": [nodes[n - 1], nodes[n]]}]
+            exp["lane"].append({"token": t, "polygon_token": poly, "lane_type": "CAR", "from_edge_line_token": edges[0],
+                                "to_edge_line_token": edges[1], "left_lane_divider_segments": [],
+                                "right_lane_divider_segments": []})
+    polys = [_token(t, "polygon") for t in tok.values()]
+    exp["drivable_area"].append({"token": _token(name, "drivable_area"), "polygon_tokens": polys})
+
+
+# ============================================================================================
+# 10. nuScenes v1.0 loader (json + numpy; no devkit)
+# ============================================================================================
+#
+# Any v1.0 folder (written above, or the real v1.0-mini / v1.0-trainval with the map expansion) -> Scenes:
+#   ego      the CAM_FRONT key-frame ego_pose of every sample; speed by backward differences
+#   agents   vehicle.* and human.pedestrian.* instances, one track each, masked where not annotated
+#   predicted at each frame t0: among vehicles observed at t0 with a complete 3 s future, the one listed in
+#            maps/prediction/prediction_scenes.json for that sample if the file lists the scene, else the
+#            moving ones (>= 1 m over the sample's window); the one that comes closest to the ego over t0..t6
+#   lanes    the lanes and lane connectors within cfg.map_radius of the ego's logged path form a graph
+#            (connectivity); every maximal chain through it is a route, discretised every 2 m
+# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped
+# and counted.
+
+
+class NuScenesFormatError(ValueError):
+    """A nuScenes folder that cannot be read; the message starts with the offending file."""
+
+
+def _read_json(path: Path):
+    if not path.is_file():
+        raise NuScenesFormatError(f"{path}: missing")
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise NuScenesFormatError(f"{path}: malformed JSON ({e})") from e
+
+
+class _Blame:
+    """Context manager: a missing key or a wrong type while reading `path` becomes a NuScenesFormatError."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, err, tb):
+        if kind in (KeyError, TypeError, IndexError, ValueError) and not isinstance(err, NuScenesFormatError):
+            raise NuScenesFormatError(f"{self.path}: unexpected content ({kind.__name__}: {err})") from err
+
+
+def _yaw(q) -> float:
+    w, x, y, z = q
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _read_map(root: Path, location: str, cfg: SynthConfig) -> dict:
+    """A map expansion's lanes and lane connectors: their arcline paths (n, 10) each, points every 2 m for the
+    proximity test, and the connectivity as index lists."""
+    path = root / "maps" / "expansion" / f"{location}.json"
+    js = _read_json(path)
+    with _Blame(path):
+        if str(js.get("version", "1.0")) < "1.3":
+            raise NuScenesFormatError(f"{path}: map expansion version {js.get('version', '1.0')}; 1.3 or later needed "
+                                      f"(arcline paths and connectivity)")
+        records = [(r["token"], False) for r in js["lane"]] + [(r["token"], True) for r in js["lane_connector"]]
+        tokens = [t for t, _ in records]
+        index = {t: k for k, t in enumerate(tokens)}
+        lane_paths = []
+        for t in tokens:
+            arcs = js["arcline_path_3"].get(t, [])
+            lane_paths.append(np.array([[*a["start_pose"], a["radius"], *a["segment_length"], *_SHAPE_SIGNS[a["shape"]]]
+                                        for a in arcs], dtype=np.float64).reshape(-1, 10))
+        conn = js["connectivity"]
+        nxt = [[index[o] for o in conn.get(t, {}).get("outgoing", []) if o in index] for t in tokens]
+        prv = [[index[o] for o in conn.get(t, {}).get("incoming", []) if o in index] for t in tokens]
+    # points of every lane for the proximity test, in chunks (real maps have ~10^4 lanes)
+    pts, mask = [], []
+    for c in range(0, len(tokens), 1024):
+        chunk = lane_paths[c: c + 1024]
+        R = max([len(p) for p in chunk] + [1])
+        padded = np.zeros((len(chunk), R, 10))
+        for k, p in enumerate(chunk):
+            padded[k, : len(p)] = p
+        segs = arcline_segments(padded).reshape(len(chunk), 3 * R, 5)
+        p, m = discretize(segs, cfg.lane_spacing)
+        pts.append(p[..., :2])
+        mask.append(m)
+    P = max([p.shape[1] for p in pts] + [1])
+    pad = lambda a, v: np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2),
+                                              constant_values=v) for x in a]) if a else np.zeros((0, P))  # noqa: E731
+    return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
+                next=nxt, prev=prv, pts=pad(pts, 0.0), mask=pad(mask, False))
+
+
+def _routes(lmap: dict, near: list, max_routes: int = 256):
+    """Maximal chains (lists of lane indices) through the graph restricted to `near`, following outgoing links;
+    started from the lanes without an incoming link inside it (and from lanes left over, for cycles)."""
+    inside = set(near)
+    out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
+    sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
+    routes, covered = [], set()
+    for start in sources + near:
+        if start in covered or len(routes) >= max_routes:
+            continue
+        stack = [[start]]
+        while stack and len(routes) < max_routes:
+            chain = stack.pop()
+            succ = [j for j in out[chain[-1]] if j not in chain]
+            if succ:
+                stack += [chain + [j] for j in reversed(succ)]
+            else:
+                routes.append(chain)
+                covered.update(chain)
+    return routes
+
+
+def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
+    """Read a nuScenes v1.0 folder into Scenes (world frame) and a report of what was read and skipped."""
+    cfg = cfg or SynthConfig()
+    root = Path(root)
+    tdir = root / version
+    if version not in NUSC_VERSIONS:
+        raise NuScenesFormatError(f"{tdir}: unknown version folder {version!r}; expected one of {NUSC_VERSIONS}")
+    if not tdir.is_dir():
+        found = sorted(p.name for p in root.glob("v1.0-*")) if root.is_dir() else []
+        raise NuScenesFormatError(f"{tdir}: no such version folder (found: {found or 'none'})")
+    tab = {t: _read_json(tdir / f"{t}.json") for t in NUSC_TABLES}
+    file = lambda t: tdir / f"{t}.json"  # noqa: E731
+    with _Blame(file("calibrated_sensor")):
+        channel = {s["token"]: s["channel"] for s in tab["sensor"]}
+        cs_channel = {c["token"]: channel[c["sensor_token"]] for c in tab["calibrated_sensor"]}
+    with _Blame(file("ego_pose")):
+        poses = {p["token"]: p for p in tab["ego_pose"]}
+    with _Blame(file("sample_data")):
+        ego_of = {sd["sample_token"]: poses[sd["ego_pose_token"]] for sd in tab["sample_data"]
+                  if sd["is_key_frame"] and cs_channel[sd["calibrated_sensor_token"]] == "CAM_FRONT"}
+    with _Blame(file("instance")):
+        cat_name = {c["token"]: c["name"] for c in tab["category"]}
+        inst_cat = {i["token"]: cat_name[i["category_token"]] for i in tab["instance"]}
+    with _Blame(file("sample_annotation")):
+        anns = {}
+        for a in tab["sample_annotation"]:
+            kind = inst_cat[a["instance_token"]]
+            if kind.startswith("vehicle.") or kind.startswith("human.pedestrian."):
+                anns.setdefault(a["sample_token"], []).append(a)
+    with _Blame(file("sample")):
+        samples = {s["token"]: s for s in tab["sample"]}
+    with _Blame(file("log")):
+        location = {lg["token"]: lg["location"] for lg in tab["log"]}
+    split_path = root / "maps" / "prediction" / "prediction_scenes.json"
+    split = _read_json(split_path) if split_path.exists() else {}
+    with _Blame(split_path):
+        listed = {tuple(s.split("_")) for entries in split.values() for s in entries}
+
+    H, T = cfg.hist, cfg.fut
+    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
+    maps, out = {}, []
+    for sc in tab["scene"]:
+        with _Blame(file("scene")):
+            tokens, tok = [], sc["first_sample_token"]
+            while tok and len(tokens) <= len(samples):
+                tokens.append(tok)
+                tok = samples[tok]["next"]
+            loc = location[sc["log_token"]]
+        F = len(tokens)
+        if F < H + T + 1:
+            report["skipped_short"] += 1
+            continue
+        t = np.array([samples[k]["timestamp"] for k in tokens], np.float64)
+        t = (t - t[0]) * 1e-6  # (F,) seconds
+        missing = [k for k in tokens if k not in ego_of]
+        if missing:
+            raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
+        with _Blame(file("ego_pose")):
+            ego = np.array([[*ego_of[k]["translation"][:2], _yaw(ego_of[k]["rotation"]), 0.0] for k in tokens])
+        ego[:, 2] = wrap(ego[:, 2])
+        ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
+        # agent tracks, in order of first appearance
+        with _Blame(file("sample_annotation")):
+            slot, rows = {}, []
+            for f, k in enumerate(tokens):
+                for a in anns.get(k, []):
+                    m = slot.setdefault(a["instance_token"], len(slot))
+                    rows.append((m, f, a["translation"][0], a["translation"][1], _yaw(a["rotation"]), *a["size"]))
+        M = len(slot)
+        rows = np.array(rows, np.float64).reshape(-1, 8)
+        mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
+        agents, amask = np.zeros((M, F, 4)), np.zeros((M, F), bool)
+        agents[mi, fi, :3], amask[mi, fi] = rows[:, 2:5], True
+        agents[..., 2] = wrap(agents[..., 2])
+        agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
+        size = np.zeros((M, 3))
+        size[mi] = rows[:, 5:8]
+        inst = list(slot)
+        is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
+        # lanes near the ego's path
+        if loc not in maps:
+            maps[loc] = _read_map(root, loc, cfg)
+        lmap = maps[loc]
+        near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
+        routes = _routes(lmap, near)
+        if not routes:
+            report["skipped_no_lanes"] += 1
+            continue
+        # the predicted vehicle per frame
+        pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, sc["name"] in split, listed, cfg)
+        if (pred < 0).all():
+            report["skipped_no_agent"] += 1
+            continue
+        out.append(_scene_arrays(sc["name"], ego, agents, amask, is_ped, size, pred, lmap, routes, cfg))
+        report["loaded"] += 1
+    if not out:
+        raise NuScenesFormatError(f"{tdir}: no usable scene ({report})")
+    return Scenes.cat(out), report
+
+
+def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
+    """Indices of the lanes with a point within radius of any of the positions path_xy (F, 2)."""
+    lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
+    p, m = lmap["pts"], lmap["mask"]
+    box = (m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)  # a cheap bounding-box test first
+    cand = np.nonzero(box)[0]
+    d = np.linalg.norm(p[cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
+    ok = (np.where(m[cand][..., None], d, np.inf) < radius).any((1, 2))
+    return cand[ok].tolist()
+
+
+def _choose_predicted(ego, agents, amask, is_ped, inst, tokens, scene_listed, listed, cfg):
+    """pred (F,): the predicted vehicle per frame t0 (-1: none), see the section comment."""
+    H, T = cfg.hist, cfg.fut
+    M, F = amask.shape
+    pred = np.full(F, -1)
+    for f in range(H, F - T):
+        fut = amask[:, f: f + T + 1].all(1) & ~is_ped  # observed at t0 and the whole future
+        if scene_listed:
+            ok = fut & np.array([(i, tokens[f]) in listed for i in inst], bool).reshape(M)
+        else:
+            w = agents[:, f - H: f + T + 1, :2]
+            wm = amask[:, f - H: f + T + 1]
+            first = np.take_along_axis(w, np.argmax(wm, 1)[:, None, None], 1)
+            moved = np.where(wm, np.linalg.norm(w - first, axis=-1), 0.0).max(1)
+            ok = fut & (moved >= 1.0)
+        if ok.any():
+            d = np.linalg.norm(agents[:, f: f + T + 1, :2] - ego[None, f: f + T + 1, :2], axis=-1).min(1)
+            pred[f] = int(np.argmin(np.where(ok, d, np.inf)))
+    return pred
+
+
+def _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg) -> Scenes:
+    """One loaded scene as a Scenes of length 1 (paths: those of the lanes its routes use)."""
+    used = sorted({i for r in routes for i in r})
+    first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path index of each used lane
+    where = {i: k for k, i in enumerate(used)}
+    paths = np.concatenate([lmap["paths"][i] for i in used])  # (Q, 10)
+    conn = np.concatenate([np.full(len(lmap["paths"][i]), lmap["is_connector"][i]) for i in used])
+    chains = [[q for i in r for q in range(first[where[i]], first[where[i] + 1])] for r in routes]
+    R = max(len(c) for c in chains)
+    route_arr = np.array([c + [-1] * (R - len(c)) for c in chains])  # (L, R)
+    lanes, lanes_mask = discretize(route_segments(paths[None], route_arr[None]), cfg.lane_spacing)
+    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
+    return Scenes(ego=T(ego), agents=T(agents), agents_mask=T(amask), agents_is_ped=T(is_ped), agents_size=T(size),
+                  pred_idx=T(pred).long(), event_frame=torch.tensor([-1]), behaviour=torch.tensor([-1]),
+                  lanes=torch.from_numpy(lanes), lanes_mask=torch.from_numpy(lanes_mask), paths=T(paths),
+                  paths_is_connector=T(conn), routes=T(route_arr).long(), names=[name])
+
+
+def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None):
+    """Read a nuScenes folder straight into planning samples at every usable frame: (Scenarios, report)."""
+    scenes, report = load_nuscenes(root, version, cfg)
+    batch, no_lanes = cut_samples(scenes, None, np.random.default_rng(0), cfg)
+    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes)
+    return batch, report
+
+
+# ============================================================================================
+# 11. CLI
+# ============================================================================================
+
+BENCH_MINI = dict(n_vehicles=20, n_parked=12, n_peds=24)
+"""Agents per scene for the read benchmark: 10 scenes then carry about as many annotations as v1.0-mini (18 538)."""
+
+
+def _bench(cache_dir: str):
+    import tempfile
+    runs = 3
+    times = []
+    for r in range(runs):
+        t = time.perf_counter()
+        data = make_dataset(10_000, SynthConfig(), seed=r)
+        times.append(time.perf_counter() - t)
+    print(f"generate 10 000 samples ({len(data.train)} train + {len(data.val)} val): median "
+          f"{pystats.median(times):.2f} s over {runs} runs (target < 30 s)  {['%.2f' % x for x in times]}")
+    cfg = SynthConfig(**BENCH_MINI)
+    with tempfile.TemporaryDirectory() as tmp:
+        write_nuscenes(generate_scenes(10, cfg, seed=0), tmp, cfg=cfg)
+        n_ann = len(_read_json(Path(tmp) / "v1.0-mini" / "sample_annotation.json"))
+        times = []
+        for _ in range(runs):
+            t = time.perf_counter()
+            batch, report = load_nuscenes_scenarios(tmp, "v1.0-mini", cfg)
+            times.append(time.perf_counter() - t)
+    print(f"read a v1.0-mini-sized folder (10 scenes, {n_ann} annotations) into {len(batch)} samples: median "
+          f"{pystats.median(times):.2f} s over {runs} runs (target < 10 s)  {['%.2f' % x for x in times]}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="DiffStack scenario data: synthetic nuScenes-like scenes, the nuScenes "
+                                             "v1.0 format written and read.")
+    ap.add_argument("--bench", action="store_true", help="time generating 10 000 samples and reading a "
+                                                         "v1.0-mini-sized folder; print the medians of 3 runs")
+    sub = ap.add_subparsers(dest="cmd")
+    g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
+    g.add_argument("--n", type=int, default=10_000)
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--cache-dir", default=".cache/data_synth")
+    w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
+    w.add_argument("out")
+    w.add_argument("--scenes", type=int, default=10)
+    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    w.add_argument("--overwrite", action="store_true", help="replace the files of an existing folder")
+    r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
+    r.add_argument("root")
+    r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    p = sub.add_parser("render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)")
+    p.add_argument("out")
+    p.add_argument("--n", type=int, default=12)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
+    p.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    s = sub.add_parser("stats", help="statistics of a generated set against plausible ranges")
+    s.add_argument("--n", type=int, default=4000)
+    s.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    if args.bench:
+        _bench(".cache/data_synth")
+    elif args.cmd == "generate":
+        t = time.perf_counter()
+        data = load_or_generate(args.n, args.seed, args.cache_dir)
+        path, _ = _cache_path(args.n, args.seed, SynthConfig(), args.cache_dir)
+        print(f"{len(data.train)} train + {len(data.val)} val samples ({len(data.val_scenes)} val scenes) in "
+              f"{time.perf_counter() - t:.1f} s: {path}")
+    elif args.cmd == "write-nuscenes":
+        scenes = generate_scenes(args.scenes, SynthConfig(), args.seed)
+        write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
+        print(f"wrote {args.scenes} scenes to {args.out}/{args.version} (+ maps/expansion, maps/prediction)")
+    elif args.cmd == "read-nuscenes":
+        t = time.perf_counter()
+        batch, report = load_nuscenes_scenarios(args.root, args.version)
+        print(f"read {args.root}/{args.version} in {time.perf_counter() - t:.2f} s")
+        for k, v in report.items():
+            print(f"  {k:26s} {v}")
+        print(f"  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
+        print(format_statistics(statistics(batch)))
+    elif args.cmd == "render":
+        if args.nuscenes:
+            batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
+        else:
+            batch, _ = cut_samples(generate_scenes(math.ceil(args.n / 4) + 1, seed=args.seed), 4,
+                                   np.random.default_rng(args.seed))
+        render_grid(batch, args.out, args.n)
+        print(f"wrote {min(args.n, len(batch))} samples to {args.out}")
+    elif args.cmd == "stats":
+        data = make_dataset(args.n, SynthConfig(), args.seed)
+        print(format_statistics(statistics(Scenarios.cat([data.train, data.val]))))
+    else:
+        ap.print_help()
+
+
+if __name__ == "__main__":
+    main()

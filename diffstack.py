@@ -23,7 +23,11 @@ A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceler
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import statistics
+import time
 from dataclasses import dataclass
 
 import torch
@@ -140,34 +144,34 @@ _SERIES_TERMS = 7
 _SERIES_SWITCH = 0.3
 
 
-def _horner(x, coefs):
-    """sum_k coefs[k] x^k."""
-    acc = torch.full_like(x, coefs[-1])
-    for c in reversed(coefs[:-1]):
-        acc = acc * x + c
-    return acc
+def _series_coefficients(jmax):
+    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2: (terms, 2 (jmax+1))."""
+    f = math.factorial
+    return [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
+            + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
 
 
 def _moments(w, tau, jmax):
     """[c_0..c_jmax], [s_0..s_jmax] for yaw rates w (...,) over tau: exact and smooth at w = 0."""
     th = w * tau
     small = th.abs() < _SERIES_SWITCH
-    ws = torch.where(small, torch.ones_like(w), w)  # closed forms only where w is not small
+    # series, all moments at once by Horner's rule in th^2: (..., 2 (jmax+1))
+    thz = torch.where(small, th, torch.zeros_like(th))[..., None]
+    coef = torch.tensor(_series_coefficients(jmax), dtype=w.dtype)
+    series = coef[-1].expand(*th.shape, -1)
+    for c in coef.flip(0)[1:]:
+        series = series * thz**2 + c
+    j = torch.arange(jmax + 1, dtype=w.dtype)
+    series = series * torch.cat([tau ** (j + 1) * torch.ones_like(thz), tau ** (j + 1) * thz], -1)
+    # closed forms, by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (j c_{j-1} - tau^j cos) / w; w = 1 where small
+    ws = torch.where(small, torch.ones_like(w), w)
     sin, cos = torch.sin(ws * tau), torch.cos(ws * tau)
-    # closed forms by integration by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (-tau^j cos + j c_{j-1}) / w
-    c_closed, s_closed = [sin / ws], [(1 - cos) / ws]
-    for j in range(1, jmax + 1):
-        c_closed.append((tau**j * sin - j * s_closed[-1]) / ws)
-        s_closed.append((-(tau**j) * cos + j * c_closed[-2]) / ws)
-    thz = torch.where(small, th, torch.zeros_like(th))
-    th2 = thz * thz
-    c, s = [], []
-    for j in range(jmax + 1):
-        sc = _horner(th2, [(-1) ** k / (math.factorial(2 * k) * (2 * k + j + 1)) for k in range(_SERIES_TERMS)])
-        ss = thz * _horner(th2, [(-1) ** k / (math.factorial(2 * k + 1) * (2 * k + j + 2)) for k in range(_SERIES_TERMS)])
-        c.append(torch.where(small, sc * tau ** (j + 1), c_closed[j]))
-        s.append(torch.where(small, ss * tau ** (j + 1), s_closed[j]))
-    return c, s
+    c, s = [sin / ws], [(1 - cos) / ws]
+    for jj in range(1, jmax + 1):
+        c.append((tau**jj * sin - jj * s[-1]) / ws)
+        s.append((jj * c[-2] - tau**jj * cos) / ws)
+    moments = torch.where(small[..., None], series, torch.stack(c + s, -1)).unbind(-1)
+    return moments[: jmax + 1], moments[jmax + 1 :]
 
 
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
@@ -326,6 +330,25 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
     return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
 
 
+def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
+    """C_coll per trajectory: pos (B, *S, T, 2) positions t1..T -> (B, *S).
+
+    C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    The expected squared distance splits into the distance to the modes' mean and their spread:
+        sum_k pi_k ||s - s^_k||^2 = ||s - mu||^2 + sum_k pi_k ||s^_k - mu||^2,   mu = sum_k pi_k s^_k,
+    so the planner sees a prediction only through its per-step mean and spread.
+    """
+    B = pos.shape[0]
+    view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over *S
+    mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
+    spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
+    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, *S, T)
+    coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
+    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, *S, A, T)
+    coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
+    return coll.sum(-1)
+
+
 def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
     """The five unweighted terms of eq. (2), per trajectory.
 
@@ -333,26 +356,16 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     Returns (B, *S, 5): (C_coll, C_goal, C_lat, C_head, C_u).
     """
     B = x.shape[0]
-    extra = x.dim() - 3
-    view = lambda t: t.reshape(B, *([1] * extra), *t.shape[1:])  # noqa: E731  broadcast the context over *S
+    view = lambda t: t.reshape(B, *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over *S
     pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, *S, T, 2), (B, *S, T): the cost skips t0
-    # C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
-    # The expected squared distance splits into the distance to the modes' mean and their spread:
-    #   sum_k pi_k ||s - s^_k||^2 = ||s - mu||^2 + sum_k pi_k ||s^_k - mu||^2,   mu = sum_k pi_k s^_k,
-    # so the planner sees a prediction only through its per-step mean and spread.
-    mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
-    spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
-    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, *S, T)
-    coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
-    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, *S, A, T)
-    coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
+    coll = collision_term(pos, ctx, rbf_var)
     # C_goal = ||s_T - g||^2
     goal = ((pos[..., -1, :] - view(ctx.goal)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
     lat, head_err, _ = project_to_lanes(pos, head, ctx.lanes, ctx.lanes_mask)
     # C_u = sum_t w_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
-    return torch.stack([coll.sum(-1), goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
+    return torch.stack([coll, goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
 
 def cost_weights(cfg: Config, dtype=torch.float32) -> torch.Tensor:
@@ -528,10 +541,11 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config):
 # (torch.func.jacfwd over a shared perturbation d) give all blocks of all steps and all scenarios.
 
 
-def _stagewise_jacobian(fn, z: torch.Tensor) -> torch.Tensor:
+def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
     """d fn(z)[..., t, :] / d z[..., t, :] for every step t, for fn acting step by step.
-    z (B, T, k) -> (B, T, out, k)."""
-    return torch.func.jacfwd(lambda d: fn(z + d))(z.new_zeros(z.shape[-1]))
+    z (B, T, k) -> (B, T, out, k); with_value: also fn(z), from the same pass."""
+    jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
+    return jac if with_value else jac[0]
 
 
 def _split(z, n, T):
@@ -544,7 +558,8 @@ def cost_expansion(cost_fn, x, u, params):
     n, T = x.shape[-1], u.shape[1]
     z = torch.cat([x, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m)
     grad = torch.func.grad(lambda z: cost_fn(*_split(z, n, T), *params).sum())
-    return grad(z), _stagewise_jacobian(grad, z)
+    H, g = _stagewise_jacobian(grad, z, with_value=True)
+    return g, H
 
 
 def dynamics_jacobians(dynamics, x, u):
@@ -611,14 +626,13 @@ def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
     P, p = H[:, T, :n, :n], g[:, T, :n]  # V_T(dx) = 1/2 dx'P dx + p'dx
     ks, Ks, frees = [], [], []
     for t in reversed(range(T)):
-        At, Bt, Ht, gt = A[:, t], B[:, t], H[:, t], g[:, t]
-        AtT, BtT = At.transpose(-1, -2), Bt.transpose(-1, -2)
-        # Q_t(dx, du) = l_t + V_{t+1}(A dx + B du): its blocks
-        Qxx = Ht[:, :n, :n] + AtT @ P @ At
-        Quu = Ht[:, n:, n:] + BtT @ P @ Bt
-        Qux = Ht[:, n:, :n] + BtT @ P @ At
-        qx = gt[:, :n] + (AtT @ p[..., None])[..., 0]
-        qu = gt[:, n:] + (BtT @ p[..., None])[..., 0]
+        # Q_t(dx, du) = l_t(dx, du) + V_{t+1}(A dx + B du): with F = [A B], its Hessian and gradient are
+        #   Q = H_t + F'P F,   q = g_t + F'p
+        F = torch.cat([A[:, t], B[:, t]], -1)  # (B, n, n+m)
+        FT = F.transpose(-1, -2)
+        Q = H[:, t] + FT @ P @ F  # (B, n+m, n+m)
+        q = g[:, t] + (FT @ p[..., None])[..., 0]  # (B, n+m)
+        Qux, Quu, qu = Q[:, n:, :n], Q[:, n:, n:], q[:, n:]
         if u_free is None:  # iLQR step: the box QP on du, then the gain of the free controls
             Quu = _make_pd(Quu, pd_eps)
             k, free = box_qp(Quu, qu, lo[:, t], hi[:, t])
@@ -626,11 +640,13 @@ def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
             free = u_free[:, t]
             k = _solve_masked(Quu, torch.where(free, -qu, 0.0)[..., None], free)[..., 0]
         K = _solve_masked(Quu, torch.where(free[..., None], -Qux, 0.0), free)  # (B, m, n); 0 on clamped rows
-        # V_t = Q_t(dx, k + K dx)
-        KT = K.transpose(-1, -2)
-        P = Qxx + KT @ Quu @ K + KT @ Qux + Qux.transpose(-1, -2) @ K
+        # V_t(dx) = Q_t(dx, k + K dx): with G = [I; K] and g0 = [0; k],
+        #   P = G'Q G,   p = G'(q + Q g0)
+        G = torch.cat([torch.eye(n, dtype=K.dtype).expand(len(K), n, n), K], 1)  # (B, n+m, n)
+        GT = G.transpose(-1, -2)
+        P = GT @ Q @ G
         P = (P + P.transpose(-1, -2)) / 2
-        p = qx + (KT @ (Quu @ k[..., None] + qu[..., None]) + Qux.transpose(-1, -2) @ k[..., None])[..., 0]
+        p = (GT @ (q + (Q[:, :, n:] @ k[..., None])[..., 0])[..., None])[..., 0]
         ks.append(k), Ks.append(K), frees.append(free)
     flip = lambda xs: torch.stack(xs[::-1], 1)  # noqa: E731
     return flip(ks), flip(Ks), flip(frees), p
@@ -790,3 +806,365 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
             check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
     settings = dict(lo=lo, hi=hi, iters=iters, tol=tol)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
+
+
+# ============================================================================================
+# 7. The stack: predict -> plan -> control, §3.2
+# ============================================================================================
+#
+#   L = a1 L_pred + a2 L_plan + a3 L_ctr
+#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 2 with GT futures, fixed weights),
+#       planner target n* = argmin_n C_H(candidate n)
+#   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
+
+
+@dataclass
+class Method:
+    """A row of Table 1: where predictions come from and how the predictor is trained."""
+
+    name: str
+    predictor: str = "learned"
+    """'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)"""
+    losses: tuple = (1, 0, 0)
+    """which of (L_pred, L_plan, L_ctr) train the predictor; multiplied by the setting's alphas"""
+    weighting: str = "standard"
+    """per-scenario weights of L_pred: 'standard', 'distance' or 'grad_cost' (§4.1)"""
+
+
+TABLE1_METHODS = (
+    Method("No prediction", "none"),
+    Method("Standard"),
+    Method("Distance weighted", weighting="distance"),
+    Method("Grad-cost weighted", weighting="grad_cost"),
+    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+    Method("DiffStack", losses=(1, 1, 1)),
+    Method("GT prediction", "gt"),
+)
+
+
+@dataclass
+class StackOutput:
+    """Per-scenario results of one pass through the stack (all (B,) unless noted)."""
+
+    l_pred: torch.Tensor  # InfoVAE loss (0 without a learned predictor)
+    l_plan: torch.Tensor  # cross-entropy of the relaxed planner with the target candidate
+    l_ctr: torch.Tensor  # RL: hindsight cost of the controller's trajectory; IL: its squared error to the GT
+    hindsight: torch.Tensor  # hindsight cost of the final trajectory
+    mse: torch.Tensor  # sum_t ||s_t - s_gt,t||^2 of the final trajectory
+    plannable: torch.Tensor  # bool: at least 2 planner candidates
+    converged: torch.Tensor  # bool: iLQR converged
+    x: torch.Tensor  # (B, T+1, 4) the final ego trajectory
+    cands: Candidates | None = None
+    cand_cost: torch.Tensor | None = None  # (B, N)
+    pred: object = None  # the predictor's output
+
+
+def _contexts(batch, preds, probs, pred_mask):
+    """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent)."""
+    common = dict(others=batch.others_fut[..., :2], others_mask=batch.others_mask.to(preds.dtype),
+                  goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
+    ctx = CostContext(preds, probs, pred_mask, **common)
+    ones = torch.ones_like(pred_mask)
+    hctx = CostContext(batch.agent_fut[:, None, :, :2], ones[:, None], ones, **common)
+    return ctx, hctx
+
+
+def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
+              w=None, planner=True, controller=True, pred_target=None) -> StackOutput:
+    """One pass of the stack over a batch of Scenarios.
+
+    setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
+    q(z|x,y) and the KL/logit schedules use `step` (as the authors' code); otherwise p(z|x).
+    w: cost weights (5,) (learnable in the cost-learning experiment), default the hand-tuned ones.
+    planner=False: iLQR starts from zero controls (ablation); controller=False: the plan is final.
+    pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
+    """
+    B, T, dt = len(batch), cfg.horizon, cfg.dt
+    dtype = batch.ego_hist.dtype
+    s0 = batch.ego_hist[:, -1]  # (B, 4)
+    w_fixed = cost_weights(cfg, dtype)
+    w = w_fixed if w is None else w
+    # --- predict ---
+    pred, l_pred = None, torch.zeros(B, dtype=dtype)
+    if method.predictor == "learned":
+        pred = model(batch, use_posterior=train, step=step)
+        preds, probs, pred_mask = pred.states[..., :2], pred.probs, torch.ones(B, dtype=dtype)  # (B, K, T, 2), (B, K)
+        if train:
+            target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
+            l_pred, _ = pred_loss(pred, target, step, cfg)
+    elif method.predictor == "gt":
+        preds, probs, pred_mask = batch.agent_fut[:, None, :, :2], torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
+    else:
+        preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
+    ctx, hctx = _contexts(batch, preds, probs, pred_mask)
+    gt_pos = batch.ego_fut[..., :2]  # (B, T, 2)
+    # --- plan, eq. (1): costs of all candidates, with predictions and in hindsight ---
+    cands = plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)
+    terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+    cost = (terms * w).sum(-1)  # (B, N)
+    h_terms = torch.cat([collision_term(cands.x[..., 1:, :2], hctx, cfg.rbf_var)[..., None], terms[..., 1:]], -1)
+    h_cost = (h_terms.detach() * w_fixed).sum(-1)  # (B, N)
+    if setting == "rl":
+        target = masked_argmin(h_cost, cands.valid)
+    else:
+        target = masked_argmin(((cands.x[..., 1:, :2] - gt_pos[:, None]) ** 2).sum(-1).mean(-1), cands.valid)
+    plannable = cands.valid.sum(-1) >= 2
+    valid = cands.valid | ~plannable[:, None]  # keep the softmax finite where nothing can be planned
+    l_plan = torch.where(plannable, plan_loss(cost, valid, target, cfg.beta), 0.0)
+    best = masked_argmin(cost.detach(), cands.valid)  # (B,) the plan
+    idx = torch.arange(B)
+    # --- control, eq. (3): iLQR from the plan, gradients by the KKT backward ---
+    converged = torch.ones(B, dtype=torch.bool)
+    if controller:
+        u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
+
+        def cost_fn(x, u, w, preds, probs):
+            c = CostContext(preds, probs, ctx.pred_mask, ctx.others, ctx.others_mask, ctx.goal, ctx.lanes, ctx.lanes_mask)
+            return total_cost(x, u, c, w, cfg.rbf_var)
+
+        x, u, converged = ilqr_solve(cost_fn, Unicycle(dt), s0, u_init, (w, preds, probs), cfg.u_lower, cfg.u_upper,
+                                     iters=cfg.ilqr_iters, tol=cfg.ilqr_tol)
+    else:
+        x, u = cands.x[idx, best], cands.u[idx, best]
+    hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
+    mse = ((x[:, 1:, :2] - gt_pos) ** 2).sum((-1, -2))  # (B,)
+    l_ctr = hindsight if setting == "rl" else mse
+    return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, cands, cost, pred)
+
+
+# ============================================================================================
+# 8. Training and evaluation, §3.2, §4.1, App. E
+# ============================================================================================
+
+
+def alphas(method: Method, setting: str, cfg: Config):
+    """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
+    base = cfg.alpha_rl if setting == "rl" else cfg.alpha_il
+    return tuple(a * on for a, on in zip(base, method.losses))
+
+
+def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
+    """Grad-cost weighting (§4.1, Ivanovic et al. 2021): ||dC/d(agent GT future)|| for the expert's (GT) ego
+    trajectory, i.e. how much the planning cost reacts to this agent. (B,)"""
+    fut = batch.agent_fut[..., :2].detach().clone().requires_grad_(True)  # (B, T, 2)
+    B = len(batch)
+    ones = torch.ones(B, dtype=fut.dtype)
+    ctx, _ = _contexts(batch, fut[:, None], ones[:, None], ones)
+    x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
+    with torch.enable_grad():
+        (g,) = torch.autograd.grad(collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut)
+    return g.flatten(1).norm(dim=-1)
+
+
+def loss_weights(batch, weighting: str, cfg: Config) -> torch.Tensor:
+    """Per-scenario weights of L_pred, normalised to mean 1 over the batch. (B,)"""
+    if weighting == "standard":
+        return torch.ones(len(batch), dtype=batch.ego_hist.dtype)
+    raw = distance_weights(batch) if weighting == "distance" else grad_cost_weights(batch, cfg)
+    return raw / raw.mean().clamp_min(1e-12)
+
+
+def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
+                pred_offset=0.0, **stack_kw):
+    """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, §App. E).
+
+    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
+    a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
+    pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
+    Returns the per-step log (list of dicts).
+    """
+    g = torch.Generator().manual_seed(seed)
+    a1, a2, a3 = alphas(method, setting, cfg)
+    downstream = a2 > 0 or a3 > 0
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
+    n = len(data)
+    steps_per_epoch = max(1, n // cfg.batch_size)
+    total = max(1, round(epochs * steps_per_epoch))
+    history, t0, step = [], time.time(), 0
+    model.train()
+    while step < total:
+        perm = torch.randperm(n, generator=g)
+        for i in range(steps_per_epoch):
+            if step >= total:
+                break
+            batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
+            target = offset_targets(batch, pred_offset) if pred_offset else None
+            if downstream:
+                out = run_stack(batch, model, method, cfg, setting, step=step, train=True, pred_target=target, **stack_kw)
+                keep = out.plannable.to(out.l_plan.dtype)
+                m = keep.sum().clamp_min(1)
+                l_pred = (out.l_pred * loss_weights(batch, method.weighting, cfg) * keep).sum() / m
+                l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
+                conv = out.converged[out.plannable].float().mean().item()
+            else:
+                pred = model(batch, use_posterior=True, step=step)
+                l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
+                l_pred = (l_pred_b * loss_weights(batch, method.weighting, cfg)).mean()
+                l_plan = l_ctr = torch.zeros(())
+                conv = float("nan")
+            loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_value_(model.parameters(), cfg.pred_grad_clip)
+            opt.step()
+            sched.step()
+            step += 1
+            history.append(dict(step=step, loss=loss.item(), l_pred=l_pred.item(), l_plan=l_plan.item(), l_ctr=l_ctr.item(), converged=conv))
+            if log and (step % max(1, total // 10) == 0 or step == total):
+                el = time.time() - t0
+                log(f"  [{method.name}] step {step}/{total}  loss {loss.item():9.3f}  L_pred {l_pred.item():7.3f}  "
+                    f"L_plan {l_plan.item():6.3f}  L_ctr {l_ctr.item():7.4f}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
+    return history
+
+
+def offset_targets(batch, offset: float) -> torch.Tensor:
+    """The agent's GT future shifted `offset` metres to its left (its heading at t0): Table 2's interface error."""
+    h = batch.agent_hist[:, -1, 2]  # (B,)
+    shift = offset * torch.stack([-torch.sin(h), torch.cos(h)], -1)  # (B, 2)
+    fut = batch.agent_fut.clone()
+    fut[..., :2] += shift[:, None]
+    return fut
+
+
+def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, **stack_kw) -> dict:
+    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
+    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate."""
+    if model is not None:
+        model.eval()
+    sums, n, n_all = {}, 0, 0
+    for i in range(0, len(data), batch_size):
+        batch = data[i:i + batch_size]
+        out = run_stack(batch, model, method, cfg, setting, **stack_kw)
+        keep = out.plannable
+        vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
+        if out.pred is not None:
+            vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
+        for k, v in vals.items():
+            sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
+        n, n_all = n + keep.sum().item(), n_all + len(batch)
+    out = {k: v / max(n, 1) for k, v in sums.items()}
+    out.update(n=n, skipped=n_all - n)
+    return out
+
+
+# ============================================================================================
+# 9. Experiments (Tables 1-3) and the command line
+# ============================================================================================
+
+SETTING_COLUMNS = {  # (metric, scale of the relative column, header)
+    "rl": (("plan_loss", 1e-2, "Planning loss (x1e-2)"), ("hindsight", 1e-2, "Hindsight cost (x1e-2)")),
+    "il": (("plan_loss", 1e-3, "Planning loss (x1e-3)"), ("mse", 1e-2, "MSE (x1e-2)")),
+}
+
+
+def mean_se(xs):
+    """Mean and standard error of a list of numbers."""
+    m = statistics.fmean(xs)
+    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
+
+
+def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
+                         pred_offset=0.0, log=print, **stack_kw) -> dict:
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1-3, ablations).
+
+    Returns {method name: [metrics dict per seed]}, with the planning metrics also relative to No
+    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables).
+    """
+    results = {}
+    for m in methods:
+        runs = []
+        for seed in seeds if m.predictor == "learned" else seeds[:1]:
+            t0 = time.time()
+            model = None
+            if m.predictor == "learned":
+                torch.manual_seed(seed)  # the predictor's initialisation
+                model = Predictor(cfg)
+                train_stack(model, data.train, m, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+            r = evaluate_stack(model, data.val, m, cfg, setting, **stack_kw)
+            r["seconds"] = time.time() - t0
+            runs.append(r)
+            if log:
+                log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+        results[m.name] = runs
+    base = results["No prediction"][0] if "No prediction" in results else None
+    for runs in results.values():
+        for r in runs:
+            for key, scale, _ in SETTING_COLUMNS[setting]:
+                if base is not None:
+                    r["rel_" + key] = (r[key] - base[key]) / scale
+    return results
+
+
+def format_table(results: dict, setting="rl") -> str:
+    """A markdown table like the paper's: means +- standard errors over seeds."""
+    cols = SETTING_COLUMNS[setting]
+    head = ["Method", "ADE (m)", "NLL (nats)"] + [c[2] for c in cols] + ["iLQR converged"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, runs in results.items():
+        cell = lambda k, f="{:.2f}": (lambda m, s: f"{f.format(m)} ± {f.format(s)}")(*mean_se([r[k] for r in runs])) if k in runs[0] else "--"  # noqa: E731
+        row = [name, cell("ade"), cell("nll")] + [cell("rel_" + c[0]) for c in cols] + [cell("converged", "{:.3f}")]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def gap_closed(results: dict, metric="rel_hindsight") -> tuple:
+    """Share of the Standard -> GT prediction gap that DiffStack closes, per seed: mean and s.e."""
+    gt = results["GT prediction"][0][metric]
+    shares = [(s[metric] - d[metric]) / (s[metric] - gt) for s, d in zip(results["Standard"], results["DiffStack"])]
+    return mean_se(shares)
+
+
+# --- benchmarks (printed figures, never timed tests) -----------------------------------------
+
+
+def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
+    """B unicycle tracking problems, the benchmark shared with mpc.pytorch (bench_mpc.py):
+        min sum_t 1/2 (s_t - r_t)' Q (s_t - r_t) + 1/2 (u_t - ur_t)' R (u_t - ur_t),  box controls,
+    the reference rolled out from smooth random controls (some outside the box), the start perturbed."""
+    g = torch.Generator().manual_seed(seed)
+    U = lambda lo, hi, *shape: lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)  # noqa: E731
+    x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-math.pi, math.pi, B), U(2.0, 15.0, B)], -1)
+    tt = torch.arange(T, dtype=dtype) / (T - 1)
+    u_ref = torch.stack([U(-0.5, 0.5, B, 1) + U(-0.6, 0.6, B, 1) * tt, U(-3.0, 2.5, B, 1) + U(-3.5, 3.5, B, 1) * tt], -1)
+    x_ref = unicycle_rollout(x0, u_ref, 0.5)  # (B, T+1, 4)
+    x_init = x0 + torch.randn(B, 4, generator=g, dtype=dtype) * torch.tensor([1.0, 1.0, 0.15, 1.0], dtype=dtype)
+    Q, R = torch.tensor([1.0, 1.0, 1.0, 0.2], dtype=dtype), torch.tensor([0.5, 0.1], dtype=dtype)
+    return dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R)
+
+
+def tracking_cost(x, u, x_ref, u_ref, Q, R):
+    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S)."""
+    view = lambda t: t.reshape(t.shape[0], *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731
+    return 0.5 * ((x - view(x_ref)) ** 2 * Q).sum((-1, -2)) + 0.5 * ((u - view(u_ref)) ** 2 * R).sum((-1, -2))
+
+
+def _median_ms(fn, reps=7, warmup=2):
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(times)
+
+
+def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> dict:
+    """Median iLQR forward and KKT backward (ms) on the tracking benchmark, and the converged share."""
+    P = tracking_problem(B, dtype=dtype)
+    cfg = Config()
+    lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
+    u0 = torch.zeros(B, 6, 2, dtype=dtype)
+    params = (P["x_ref"], P["u_ref"], P["Q"], P["R"])
+    dyn = Unicycle(0.5)
+    fwd = _median_ms(lambda: ilqr(tracking_cost, dyn, P["x_init"], u0, params, lo, hi, iters=iters, tol=tol), reps)
+
+    def fwd_bwd():
+        x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
+        x, u, _ = ilqr_solve(tracking_cost, dyn, x_init, u0, (x_ref, *params[1:]), lo, hi, iters=iters, tol=tol)
+        x[:, -1, :2].sum().backward()
+
+    both = _median_ms(fwd_bwd, reps)
+    _, _, info = ilqr(tracking_cost, dyn, P["x_init"], u0, params, lo, hi, iters=iters, tol=tol)
+    return dict(forward_ms=fwd, backward_ms=both - fwd, converged=info.converged.float().mean().item())
