@@ -47,8 +47,6 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from diffstack import unicycle_rollout  # noqa: F401  (re-exported for notebooks: the same dynamics as the stack)
-
 # ============================================================================================
 # 1. Config
 # ============================================================================================
@@ -122,7 +120,10 @@ class SynthConfig:
 
     # --- cutting samples (synthetic and real) ---
     samples_per_scene: int = 4
-    """samples cut from a synthetic scene, at frames around the predicted agent's event"""
+    """samples cut from a synthetic scene, at random frames of event_window"""
+    event_window: tuple = (-5, 1)
+    """frames around the predicted agent's event where synthetic samples are cut: t0 from 2.5 s before the
+    event (it happens within the 3 s future) to 0.5 s after (it has just begun, visible in the history)"""
     lane_points: int = 40
     """P: points per lane in a sample (2 m apart: 80 m)"""
     lane_spacing: float = 2.0
@@ -211,7 +212,7 @@ class Scenarios(_Batch):
     ego_hist: torch.Tensor  # (B, 9, 4)   ego states t-8..t0; ego_hist[:, -1] = (0, 0, 0, v)
     ego_fut: torch.Tensor  # (B, 6, 4)    ego GT future t1..t6 (the expert's plan)
     agent_hist: torch.Tensor  # (B, 9, 4)  the predicted vehicle's history
-    agent_hist_mask: torch.Tensor  # (B, 9) bool  observed steps (missing ones hold the earliest observed state)
+    agent_hist_mask: torch.Tensor  # (B, 9) bool  observed steps (missing early ones hold the earliest observed)
     agent_fut: torch.Tensor  # (B, 6, 4)   its GT future (always complete)
     others_hist: torch.Tensor  # (B, A, 9, 4) other vehicles and pedestrians
     others_fut: torch.Tensor  # (B, A, 6, 4)  their GT futures (gaps hold the nearest observed state)
@@ -254,7 +255,7 @@ class Scenes(_Batch):
 # constant curvature sign_k / radius and length l_k (shape LSR = left arc, straight, right arc, ...). We use
 # the same primitive for the generator's roads, so that a map written to disk and read back gives back the
 # same lanes bit for bit. A *segment* below is one piece with its start pose: [x0, y0, yaw0, kappa, length].
-# Along a segment, at arc length u (kappa -> 0 is the straight line; np.sinc keeps it exact there):
+# Along a segment, at arc length u (kappa -> 0 is the straight line; a Taylor series keeps it exact there):
 #     x = x0 + cos(yaw0) A - sin(yaw0) C,   y = y0 + sin(yaw0) A + cos(yaw0) C,   yaw = yaw0 + kappa u,
 #     A = sin(kappa u) / kappa,   C = (1 - cos(kappa u)) / kappa.
 
@@ -327,7 +328,7 @@ def discretize(segs, spacing: float):
     total = segs[..., 4].sum(-1)  # (...)
     P = int(np.floor(total.max() / spacing + 1e-9)) + 1 if total.size else 1
     u = np.broadcast_to(np.arange(P) * spacing, (*total.shape, P))
-    mask = u <= total[..., None] + 1e-9
+    mask = (u <= total[..., None] + 1e-9) & (total[..., None] > 0)  # an empty route has no points
     pts, _ = pose_along(segs, u)
     pts[..., 2] = wrap(pts[..., 2])
     return np.where(mask[..., None], pts, 0.0), mask
@@ -452,7 +453,7 @@ def _script_agents(lay, cfg, rng):
     (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift and back).
     Agents with a finite anchor_t are shifted after simulation so that they are at anchor_u at anchor_t."""
     S, W = len(lay["beh"]), cfg.lane_width
-    M = 2 + cfg.n_vehicles - 1 + cfg.n_parked + cfg.n_peds  # predicted, ego-lane leader, background, parked, peds
+    M = 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds  # predicted; ego-lane leader + background; parked; peds
     beh, kappa, t_e, v_e0 = lay["beh"], lay["kappa"], lay["t_e"], lay["v_e0"]
     inf, one = np.inf, np.ones(S)
     U = lambda lo, hi, n=S: rng.uniform(lo, hi, n)  # noqa: E731
@@ -471,9 +472,6 @@ def _script_agents(lay, cfg, rng):
     bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
     y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
     R_left = bx + W / 2  # radius of the oncoming left turn
-
-    # --- the ego's start (road s), for scenes whose situation does not fix it: before any intersection
-    s_e0 = np.where(lay["inter"], -v_e0 * U(4, 16), 0.0)
 
     # --- slot 0, the predicted vehicle ------------------------------------------------------------------
     p["exists"][:, 0] = True
@@ -507,15 +505,24 @@ def _script_agents(lay, cfg, rng):
     v_cross = U(6, 9)
     t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
 
+    # --- the ego's start (road s). Intersection situations: its front reaches the conflict point delta after
+    #     the other vehicle's centre (the expert then yields); the same delta for both twins, so nothing leaks.
+    #     Other scenes: 4-16 s before the intersection if there is one, else at s = 0.
+    delta = U(-0.5, 1.0)
+    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
+    s_e0 = np.select([onc, cross, lay["inter"]],
+                     [x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
+                      W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta), -v_e0 * U(4, 16)], 0.0)
+
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
         [_lane_path(dj, kappa, True), _lane_path(de, kappa, True), _turn_path(S, W, bx, R_left, lay["n_fwd"]),
          _turn_path(S, W, bx, R_left, lay["n_fwd"], turn=False)],
         _cross_path(S, W, y_bot))
     p["v0"][:, 0] = np.select([adj, lead, onc], [v_adj, v_lead, v_onc], v_cross)
-    # adjacent: placement, lane change at t_e, the cue (drift to the line) or the false cue (drift and back)
-    u_adj = (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref
-    p["u_start"][:, 0] = np.where(adj, u_adj, np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0))
+    # adjacent: placement, lane change, the cue (a drift to the line) or the false cue (a drift and back)
+    p["u_start"][:, 0] = np.where(adj, (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref,
+                                  np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0))
     p["D"][:, 0] = np.where(adj & changes, de - dj, 0.0)
     p["t_lc"][:, 0], p["T_lc"][:, 0] = np.where(adj & changes, t_lc, inf), T_lc
     drift = adj & np.where(changes, cue, false_cue)
@@ -555,20 +562,10 @@ def _script_agents(lay, cfg, rng):
     p["b_stop"][:, 0] = b_stop
     p["u_start"][:, 0] = np.where(yields, u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
                                   p["u_start"][:, 0])
+    p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)  # the ego has passed
     p["anchor_t"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf)
     p["anchor_u"][:, 0] = _FAR
 
-    # the ego's start for the intersection situations: its front reaches the conflict point delta s after
-    # the other vehicle does (the expert then yields); the same delta for both twins, so nothing leaks
-    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
-    delta = U(-0.5, 1.0)  # the ego's front at the conflict point this long after the other's centre
-    s_e0 = np.where(onc, x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta), s_e0)
-    t_pass = t_e + delta
-    s_e0 = np.where(cross, W / 2 - 1.0 - _EGO_L / 2 - v_e0 * t_pass, s_e0)
-    p["t_go"][:, 0] = np.where(yields, t_pass + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)
-    # adjacent and lead placements were relative to s_e0 before the intersection override; redo them
-    p["u_start"][:, 0] = np.where(adj, (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref,
-                                  np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), p["u_start"][:, 0]))
 
     # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) -----------
     p["exists"][:, 1] = ~lead & (rng.random(S) < 0.5)
@@ -737,7 +734,8 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
     x = pose[..., 0] - off * np.sin(pose[..., 2])
     y = pose[..., 1] + off * np.cos(pose[..., 2])
-    return np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1), us / (1 - kappa * de)[:, None]
+    ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)  # (S, N, 4)
+    return ego, us / (1 - kappa * de)[:, None]
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
@@ -757,7 +755,7 @@ def _build_map(lay, s_lo, s_hi, cfg):
     conn = np.zeros((S, 23), bool)
     routes = np.full((S, 9, 3), -1)
     for i in range(3):
-        for j, (d, fwd) in enumerate([(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]):
+        for d, fwd in [(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]:
             if not fwd and i > 1:
                 continue
             base, r = (3 * i, i) if fwd else (9 + 3 * i, 3 + i)
@@ -869,21 +867,19 @@ def _simulate_chunk(S, cfg, rng):
     return dict(ego=keep(ego), agents=keep(noisy), agents_mask=keep(mask), agents_is_ped=keep(p["is_ped"]),
                 agents_size=keep(p["size"]), behaviour=keep(lay["beh"]),
                 event_frame=keep(np.round(lay["t_e"] / cfg.dt).astype(np.int64)),
-                paths=keep(paths), paths_is_connector=keep(conn), routes=keep(routes)), int((~ok).sum())
+                paths=keep(paths), paths_is_connector=keep(conn), routes=keep(routes))
 
 
 def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512) -> Scenes:
-    """n synthetic scenes of cfg.frames frames, deterministic for (cfg, seed). Colliding candidates are
-    dropped and replaced; the count is in Scenes.names' companion attribute `dropped` of the last call."""
+    """n synthetic scenes of cfg.frames frames, deterministic for (cfg, seed). Candidates where any two bodies
+    touch are dropped and replaced (about 4 % with the defaults, mostly intersection scenes where the crossing
+    vehicle meets background traffic), simulated in chunks of `chunk` scenes to bound memory."""
     cfg = cfg or SynthConfig()
     rng = np.random.default_rng(seed)
-    parts, have, dropped = [], 0, 0
+    parts, have = [], 0
     while have < n:
-        want = min(chunk, int((n - have) * 1.15) + 4)
-        part, d = _simulate_chunk(want, cfg, rng)
-        parts.append(part)
-        have += len(part["ego"])
-        dropped += d
+        parts.append(_simulate_chunk(min(chunk, int((n - have) * 1.1) + 4), cfg, rng))
+        have += len(parts[-1]["ego"])
     arr = {k: np.concatenate([q[k] for q in parts])[:n] for k in parts[0]}
     segs = route_segments(arr["paths"], arr["routes"])
     lanes, lanes_mask = discretize(segs, cfg.lane_spacing)
@@ -897,7 +893,6 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
                     behaviour=T(arr["behaviour"]).long(), lanes=T(lanes), lanes_mask=T(lanes_mask),
                     paths=T(arr["paths"]), paths_is_connector=T(arr["paths_is_connector"]),
                     routes=T(arr["routes"]).long(), names=[f"synth-{seed}-{i:06d}" for i in range(n)])
-    generate_scenes.dropped = dropped
     return scenes
 
 
@@ -1009,16 +1004,17 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
 def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
                 cfg: SynthConfig | None = None) -> tuple[Scenarios, int]:
     """Planning samples from every scene: per_scene random frames among those with a predicted agent (for
-    synthetic scenes: from 5 frames before its event to 1 after, so the manoeuvre falls in the 3 s future or
-    has just begun), or all such frames when per_scene is None. Samples with no lane near the ego are
-    dropped; returns (samples, number dropped)."""
+    synthetic scenes: within cfg.event_window of its event), or all such frames when per_scene is None.
+    Samples with no lane near the ego are dropped; returns (samples, number dropped)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.pred_idx.shape
     f = torch.arange(F)
     e = scenes.event_frame[:, None]
-    cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e - 5) & (f <= e + 1)))  # (S, F)
+    lo, hi = cfg.event_window
+    cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e + lo) & (f <= e + hi)))  # (S, F)
     k = per_scene if per_scene is not None else int(cand.sum(1).max())
-    score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene else -f.double(), -math.inf)
+    score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene is not None else -f.double(),
+                        -math.inf)
     frames = torch.argsort(score, 1, descending=True)[:, :k]  # (S, k)
     ok = torch.gather(cand, 1, frames)
     parts = []
@@ -1062,7 +1058,7 @@ def _cache_path(n, seed, cfg, cache_dir):
     return Path(cache_dir) / f"scenarios-n{n}-s{seed}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt", key
 
 
-def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = ".cache/data_synth",
+def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data_cache",
                      cfg: SynthConfig | None = None) -> Dataset:
     """The Dataset for (n, seed, cfg): loaded from cache_dir if it is there, else generated and saved.
 
@@ -1080,8 +1076,9 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = ".cac
                              f"cache_dir") from e
     data = make_dataset(n, cfg, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
-    blob = {"key": key, "train": data.train.tensors(), "val": data.val.tensors(),
-            "val_scenes": {**data.val_scenes.tensors(), "names": data.val_scenes.names}}
+    own = lambda batch: {k: v.clone() for k, v in batch.tensors().items()}  # noqa: E731  (slices share storage)
+    blob = {"key": key, "train": own(data.train), "val": own(data.val),
+            "val_scenes": {**own(data.val_scenes), "names": data.val_scenes.names}}
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     torch.save(blob, tmp)
     os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
@@ -1152,7 +1149,8 @@ def _no_brake_plan(batch: Scenarios, dt: float):
     want = batch.ego_hist[:, -1, 3:4] * dt * torch.arange(1, 7, dtype=path.dtype)  # (B, 6)
     k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)  # segment index (last extends)
     frac = (want - cum.gather(1, k)) / seg_len.gather(1, k)
-    return path.gather(1, k[..., None].expand(-1, -1, 2)) + frac[..., None] * seg.gather(1, k[..., None].expand(-1, -1, 2))
+    k2 = k[..., None].expand(-1, -1, 2)
+    return path.gather(1, k2) + frac[..., None] * seg.gather(1, k2)
 
 
 def format_statistics(st: dict) -> str:
@@ -1169,7 +1167,8 @@ def format_statistics(st: dict) -> str:
     for name, m in st["behaviour"].items():
         lines.append(f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%}"
                      f" | {m['no_brake_conflict']:7.1%}")
-    lines.append("  plausible: " + ", ".join(f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items()))
+    verdict = (f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items())
+    lines.append("  plausible: " + ", ".join(verdict))
     return "\n".join(lines)
 
 
@@ -1195,7 +1194,8 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
     def box(state, size, color, z):
         x, y, h = state[:3].tolist()
         w, length = size
-        corner = np.array([x, y]) - np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
+        back_right = -np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
+        corner = np.array([x, y]) + back_right
         ax.add_patch(Rectangle(corner, length, w, angle=math.degrees(h), rotation_point="xy", fc=color, ec="k",
                                lw=0.5, alpha=0.8, zorder=z))
 
@@ -1263,7 +1263,9 @@ MAP_LAYERS = ("polygon", "line", "node", "drivable_area", "road_segment", "road_
 MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-0916",
                "scene-1077", "scene-1094", "scene-1100")
 """The devkit's prediction split only knows official scene names: the first 10 written scenes take these
-(v1.0-mini: 0103 and 0916 are mini_val, the others mini_train); later ones are named scene-9xxx."""
+(the v1.0-mini scenes); later ones are named scene-9xxx."""
+MINI_VAL = ("scene-0103", "scene-0916")
+"""The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
 _SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
 
@@ -1308,7 +1310,8 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
 
     # placement: a translation per scene that puts it, with 300 m around it, next to the previous one
-    offsets, cursor, height = np.zeros((S, 2)), {loc: 300.0 for loc in NUSC_LOCATIONS}, dict.fromkeys(NUSC_LOCATIONS, 300.0)
+    offsets = np.zeros((S, 2))
+    cursor, height = dict.fromkeys(NUSC_LOCATIONS, 300.0), dict.fromkeys(NUSC_LOCATIONS, 300.0)
     locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
     for i in range(S):
         pts = np.concatenate([scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy(), ego[i, :, :2],
@@ -1335,8 +1338,9 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
                "LIDAR_TOP": ("lidar", [0.943, 0.0, 1.84], [0.7071, 0.0, 0.0, -0.7071], [], "pcd.bin", 0, 0)}
     for ch, (modality, trans, rot, intr, *_rest) in sensors.items():
         tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": modality})
-        tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "sensor_token": _token("sensor", ch),
-                                            "translation": trans, "rotation": rot, "camera_intrinsic": intr})
+        tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "translation": trans,
+                                            "sensor_token": _token("sensor", ch), "rotation": rot,
+                                            "camera_intrinsic": intr})
 
     # scenes: log, samples, key-frame sample_data with their ego poses, instances and annotations
     split = {}
@@ -1351,20 +1355,21 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
                                 "first_sample_token": sample_tok[0], "last_sample_token": sample_tok[-1],
                                 "name": name, "description": f"synthetic; {_behaviour_name(int(scenes.behaviour[i]))}"})
         for f in range(F):
+            prev, nxt = _links(sample_tok, f)
             tables["sample"].append({"token": sample_tok[f], "timestamp": ts[f], "scene_token": scene_tok,
-                                     "prev": sample_tok[f - 1] if f else "", "next": sample_tok[f + 1] if f < F - 1 else ""})
+                                     "prev": prev, "next": nxt})
             x, y, h = (float(v) for v in ego[i, f, :3])
             for ch, (_m, _t, _r, _i, fmt, height_px, width_px) in sensors.items():
-                sd = lambda g: _token(name, ch, "sample_data", g)  # noqa: E731
+                sd_toks = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
                 pose_tok = _token(name, ch, "ego_pose", f)
                 tables["ego_pose"].append({"token": pose_tok, "timestamp": ts[f], "rotation": _quat(h),
                                            "translation": [x + ox, y + oy, 0.0]})
                 tables["sample_data"].append({
-                    "token": sd(f), "sample_token": sample_tok[f], "ego_pose_token": pose_tok,
+                    "token": sd_toks[1], "sample_token": sample_tok[f], "ego_pose_token": pose_tok,
                     "calibrated_sensor_token": _token("calibrated_sensor", ch), "timestamp": ts[f], "fileformat": fmt,
                     "is_key_frame": True, "height": height_px, "width": width_px,
                     "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
-                    "prev": sd(f - 1) if f else "", "next": sd(f + 1) if f < F - 1 else ""})
+                    "prev": sd_toks[0] if f else "", "next": sd_toks[2] if f < F - 1 else ""})
         for m in np.nonzero(amask[i].any(-1))[0]:
             frames = np.nonzero(amask[i, m])[0]
             inst = _token(name, "instance", m)
@@ -1381,8 +1386,8 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
                 tables["sample_annotation"].append({
                     "token": ann[k], "sample_token": sample_tok[f], "instance_token": inst, "visibility_token": "4",
                     "attribute_tokens": [attr[a]], "translation": [x + ox, y + oy, hgt / 2], "size": [w, length, hgt],
-                    "rotation": _quat(h), "prev": ann[k - 1] if k else "", "next": ann[k + 1] if k < len(frames) - 1 else "",
-                    "num_lidar_pts": 20, "num_radar_pts": 0})
+                    "rotation": _quat(h), "prev": _links(ann, k)[0], "next": _links(ann, k)[1], "num_lidar_pts": 20,
+                    "num_radar_pts": 0})
         pred = scenes.pred_idx[i].numpy()
         split[name] = [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in range(F)
                        if pred[f] >= 0 and amask[i, pred[f], f]]
@@ -1405,6 +1410,11 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         _dump(tables[t], root / version / f"{t}.json")
     _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
     return root
+
+
+def _links(tokens: list, k: int) -> tuple:
+    """(prev, next) tokens of item k of a chain ("" at the ends)."""
+    return tokens[k - 1] if k else "", tokens[k + 1] if k < len(tokens) - 1 else ""
 
 
 def _behaviour_name(b: int) -> str:
@@ -1539,10 +1549,10 @@ def _read_map(root: Path, location: str, cfg: SynthConfig) -> dict:
         pts.append(p[..., :2])
         mask.append(m)
     P = max([p.shape[1] for p in pts] + [1])
-    pad = lambda a, v: np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])] + [(0, 0)] * (x.ndim - 2),
-                                              constant_values=v) for x in a]) if a else np.zeros((0, P))  # noqa: E731
+    pts = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))])
+    mask = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)])
     return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
-                next=nxt, prev=prv, pts=pad(pts, 0.0), mask=pad(mask, False))
+                next=nxt, prev=prv, pts=pts, mask=mask)
 
 
 def _routes(lmap: dict, near: list, max_routes: int = 256):
@@ -1729,11 +1739,11 @@ def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig |
 # 11. CLI
 # ============================================================================================
 
-BENCH_MINI = dict(n_vehicles=20, n_parked=12, n_peds=24)
+BENCH_MINI = dict(n_vehicles=22, n_parked=14, n_peds=26)
 """Agents per scene for the read benchmark: 10 scenes then carry about as many annotations as v1.0-mini (18 538)."""
 
 
-def _bench(cache_dir: str):
+def _bench():
     import tempfile
     runs = 3
     times = []
@@ -1765,7 +1775,7 @@ def main(argv=None):
     g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
     g.add_argument("--n", type=int, default=10_000)
     g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--cache-dir", default=".cache/data_synth")
+    g.add_argument("--cache-dir", default="data_cache")
     w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
     w.add_argument("out")
     w.add_argument("--scenes", type=int, default=10)
@@ -1785,8 +1795,15 @@ def main(argv=None):
     s.add_argument("--n", type=int, default=4000)
     s.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    try:
+        _run(ap, args)
+    except (NuScenesFormatError, FileExistsError) as e:  # bad input: the message names the file
+        ap.exit(2, f"data_synth: error: {e}\n")
+
+
+def _run(ap, args):
     if args.bench:
-        _bench(".cache/data_synth")
+        _bench()
     elif args.cmd == "generate":
         t = time.perf_counter()
         data = load_or_generate(args.n, args.seed, args.cache_dir)
@@ -1803,7 +1820,7 @@ def main(argv=None):
         print(f"read {args.root}/{args.version} in {time.perf_counter() - t:.2f} s")
         for k, v in report.items():
             print(f"  {k:26s} {v}")
-        print(f"  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
+        print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
         print(format_statistics(statistics(batch)))
     elif args.cmd == "render":
         if args.nuscenes:

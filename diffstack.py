@@ -28,8 +28,13 @@ import json
 import math
 import statistics
 import time
+import os
+import pathlib
+import platform
+import sys
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 # ============================================================================================
@@ -870,7 +875,7 @@ def _contexts(batch, preds, probs, pred_mask):
 
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
-              w=None, planner=True, controller=True, pred_target=None) -> StackOutput:
+              w=None, planner=True, controller=True, pred_target=None, timings=None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
@@ -878,7 +883,15 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     w: cost weights (5,) (learnable in the cost-learning experiment), default the hand-tuned ones.
     planner=False: iLQR starts from zero controls (ablation); controller=False: the plan is final.
     pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
+    timings: a dict that receives the seconds spent predicting, planning and controlling.
     """
+    clock = [time.perf_counter()]
+
+    def lap(name):
+        if timings is not None:
+            clock.append(time.perf_counter())
+            timings[name] = clock[-1] - clock[-2]
+
     B, T, dt = len(batch), cfg.horizon, cfg.dt
     dtype = batch.ego_hist.dtype
     s0 = batch.ego_hist[:, -1]  # (B, 4)
@@ -898,6 +911,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
     ctx, hctx = _contexts(batch, preds, probs, pred_mask)
     gt_pos = batch.ego_fut[..., :2]  # (B, T, 2)
+    lap("predict")
     # --- plan, eq. (1): costs of all candidates, with predictions and in hindsight ---
     cands = plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)
     terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
@@ -913,6 +927,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     l_plan = torch.where(plannable, plan_loss(cost, valid, target, cfg.beta), 0.0)
     best = masked_argmin(cost.detach(), cands.valid)  # (B,) the plan
     idx = torch.arange(B)
+    lap("plan")
     # --- control, eq. (3): iLQR from the plan, gradients by the KKT backward ---
     converged = torch.ones(B, dtype=torch.bool)
     if controller:
@@ -929,6 +944,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
     mse = ((x[:, 1:, :2] - gt_pos) ** 2).sum((-1, -2))  # (B,)
     l_ctr = hindsight if setting == "rl" else mse
+    lap("control")
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, cands, cost, pred)
 
 
@@ -1130,7 +1146,9 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
     x_ref = unicycle_rollout(x0, u_ref, 0.5)  # (B, T+1, 4)
     x_init = x0 + torch.randn(B, 4, generator=g, dtype=dtype) * torch.tensor([1.0, 1.0, 0.15, 1.0], dtype=dtype)
     Q, R = torch.tensor([1.0, 1.0, 1.0, 0.2], dtype=dtype), torch.tensor([0.5, 0.1], dtype=dtype)
-    return dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R)
+    cfg = Config()
+    lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
+    return dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi))
 
 
 def tracking_cost(x, u, x_ref, u_ref, Q, R):
@@ -1153,18 +1171,174 @@ def _median_ms(fn, reps=7, warmup=2):
 def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> dict:
     """Median iLQR forward and KKT backward (ms) on the tracking benchmark, and the converged share."""
     P = tracking_problem(B, dtype=dtype)
-    cfg = Config()
-    lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
-    u0 = torch.zeros(B, 6, 2, dtype=dtype)
     params = (P["x_ref"], P["u_ref"], P["Q"], P["R"])
-    dyn = Unicycle(0.5)
-    fwd = _median_ms(lambda: ilqr(tracking_cost, dyn, P["x_init"], u0, params, lo, hi, iters=iters, tol=tol), reps)
-
-    def fwd_bwd():
+    solve = lambda x_init, params: ilqr_solve(tracking_cost, Unicycle(0.5), x_init, P["u_init"], params,  # noqa: E731
+                                              P["lo"], P["hi"], iters=iters, tol=tol)
+    fwd = _median_ms(lambda: solve(P["x_init"], params), reps)
+    bwd = []
+    for _ in range(reps + 1):
         x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
-        x, u, _ = ilqr_solve(tracking_cost, dyn, x_init, u0, (x_ref, *params[1:]), lo, hi, iters=iters, tol=tol)
-        x[:, -1, :2].sum().backward()
+        x, u, converged = solve(x_init, (x_ref, *params[1:]))
+        t = time.perf_counter()
+        x.sum().backward()
+        bwd.append(time.perf_counter() - t)
+    return dict(forward_ms=fwd, backward_ms=1e3 * statistics.median(bwd[1:]), converged=converged.float().mean().item())
 
-    both = _median_ms(fwd_bwd, reps)
-    _, _, info = ilqr(tracking_cost, dyn, P["x_init"], u0, params, lo, hi, iters=iters, tol=tol)
-    return dict(forward_ms=fwd, backward_ms=both - fwd, converged=info.converged.float().mean().item())
+
+def bench(threads=(1, 2), reps=7, log=print) -> dict:
+    """`--bench`: medians of the controller (tracking benchmark, B = 256, T = 6, dt 0.5, 5 iterations),
+    the planner and a DiffStack training step (B = 256) with its split across the modules."""
+    import data_synth
+
+    cfg = Config()
+    data = data_synth.load_or_generate(2000, seed=0, cache_dir=DATA_CACHE)
+    batch = data.train[:cfg.batch_size]
+    out = {}
+    for nt in threads:
+        torch.set_num_threads(nt)
+        r = {}
+        for dtype in (torch.float64, torch.float32):
+            c = bench_controller(256, dtype, reps=reps)
+            r.update({f"ilqr_{k}_{str(dtype)[6:]}": v for k, v in c.items()})
+        r["planner_ms"] = _median_ms(lambda: plan_candidates(batch.ego_hist[:, -1], batch.goal, batch.lanes, batch.lanes_mask, cfg), reps)
+        r.update(bench_stack_step(batch, cfg, reps=max(3, reps // 2)))
+        out[nt] = r
+        log(f"torch.set_num_threads({nt}): " + "  ".join(f"{k} {v:.1f}" if "conv" not in k else f"{k} {v:.2f}" for k, v in r.items()))
+    return out
+
+
+def bench_stack_step(batch, cfg: Config, reps=3) -> dict:
+    """Median time (ms) of one DiffStack training step (RL, B = len(batch)) and its parts."""
+    torch.manual_seed(0)
+    model = Predictor(cfg)
+    method = Method("DiffStack", losses=(1, 1, 1))
+    a1, a2, a3 = alphas(method, "rl", cfg)
+    runs = []
+    for _ in range(reps + 1):  # the first is a warm-up
+        t = {}
+        out = run_stack(batch, model, method, cfg, "rl", step=0, train=True, timings=t)
+        t0 = time.perf_counter()
+        (a1 * out.l_pred.mean() + a2 * out.l_plan.mean() + a3 * out.l_ctr.mean()).backward()
+        t["backward"] = time.perf_counter() - t0
+        t["step"] = sum(t.values())
+        runs.append(t)
+    return {f"step_{k}_ms": 1e3 * statistics.median(r[k] for r in runs[1:]) for k in runs[0]}
+
+
+# --- the command line -------------------------------------------------------------------------
+
+DATA_CACHE = ".cache/data_synth"
+EXPERIMENTS = ("rl", "biased", "il")
+
+
+def load_data(path=None, n=4000, seed=0, version=None, log=print):
+    """Training and validation Scenarios: synthetic (cached), or read from a nuScenes folder at `path`
+    (real or written by data_synth), whose last 15 % of scenes (by name) validate."""
+    import data_synth
+
+    if path is None:
+        d = data_synth.load_or_generate(n, seed=seed, cache_dir=DATA_CACHE)
+        return d.train, d.val
+    root = pathlib.Path(path)
+    if not root.is_dir():
+        raise ValueError(f"--data: {path} is not a folder")
+    versions = [version] if version else [v for v in ("v1.0-mini", "v1.0-trainval", "v1.0-test") if (root / v).is_dir()]
+    if not versions:
+        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini, v1.0-trainval)")
+    scenes, report = data_synth.load_nuscenes(root, versions[0])
+    order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
+    n_val = max(1, round(0.15 * len(order)))
+    if len(order) < 2:
+        raise ValueError(f"--data: {path} has {len(order)} usable scene(s); training needs at least 2")
+    rng = np.random.default_rng(seed)
+    train, _ = data_synth.cut_samples(scenes[torch.tensor(order[:-n_val])], None, rng)
+    val, _ = data_synth.cut_samples(scenes[torch.tensor(order[-n_val:])], None, rng)
+    log(f"read {path} ({versions[0]}): {report}; {len(train)} training and {len(val)} validation samples")
+    return train, val
+
+
+def quick(threads=2, log=print):
+    """`--quick`: a Table-1-style comparison on synthetic data in about a minute."""
+    torch.set_num_threads(threads)
+    cfg = Config()
+    log("DiffStack --quick: synthetic scenarios (generated once, then cached in .cache/), Standard and DiffStack\n"
+        "trained briefly (RL setting), evaluated with No prediction and GT prediction beside them. About a minute.")
+    t0 = time.time()
+    train, val = load_data(n=QUICK["n"])
+    log(f"data: {len(train)} training, {len(val)} validation scenarios ({time.time() - t0:.0f}s)")
+    methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+    res = open_loop_experiment(SimpleData(train, val), cfg, "rl", methods, seeds=(0,), epochs=QUICK["epochs"], log=log)
+    log("\n" + format_table(res, "rl"))
+    log(f"\ntotal {time.time() - t0:.0f}s")
+    return res
+
+
+QUICK = dict(n=2000, epochs=1.0)
+
+
+@dataclass
+class SimpleData:
+    train: object
+    val: object
+
+
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022), the readable reference.")
+    ap.add_argument("--quick", action="store_true", help="a Table-1-style run on synthetic data in about a minute")
+    ap.add_argument("--bench", action="store_true", help="print benchmark medians (1 and 2 threads)")
+    ap.add_argument("--experiment", choices=EXPERIMENTS, help="run a table of the paper; writes results/<name>.json and .md")
+    ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
+    ap.add_argument("--epochs", type=float, default=1.0, help="training epochs per method (default 1; fractions allowed)")
+    ap.add_argument("--n", type=int, default=4000, help="synthetic scenarios (train + val, default 4000)")
+    ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    ap.add_argument("--out", default="results", help="where experiments write (default results/)")
+    args = ap.parse_args(argv)
+    if not (args.quick or args.bench or args.experiment):
+        ap.error("choose one of --quick, --bench, --experiment")
+    if args.seeds < 1 or args.epochs <= 0 or args.n < 10:
+        ap.error("--seeds must be >= 1, --epochs > 0, --n >= 10")
+    if args.quick:
+        return quick(args.threads)
+    if args.bench:
+        return bench()
+    torch.set_num_threads(args.threads)
+    try:
+        train, val = load_data(args.data, args.n)
+    except ValueError as e:
+        ap.error(str(e))
+    return run_experiment(args.experiment, SimpleData(train, val), Config(), range(args.seeds), args.epochs, args.out,
+                          " ".join(["python diffstack.py", *(argv if argv is not None else sys.argv[1:])]))
+
+
+def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
+    """Tables 1-3: train, evaluate, write results/<name>.json and results/<name>.md."""
+    seeds = tuple(seeds)
+    t0 = time.time()
+    if name == "rl":
+        res = open_loop_experiment(data, cfg, "rl", TABLE1_METHODS, seeds, epochs, log=log)
+        setting = "rl"
+    elif name == "biased":
+        methods = (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1])
+        res = open_loop_experiment(data, cfg, "rl", methods, seeds, epochs, pred_offset=1.0, log=log)
+        setting = "rl"
+    else:
+        methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+        res = open_loop_experiment(data, cfg, "il", methods, seeds, epochs, log=log)
+        setting = "il"
+    table = format_table(res, setting)
+    meta = dict(experiment=name, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+                date=time.strftime("%Y-%m-%d"), machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
+                f"{torch.get_num_threads()} threads", train=len(data.train), val=len(data.val))
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(dict(meta=meta, results=res), indent=1))
+    (out / f"{name}.md").write_text(f"# {name}\n\n`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f}s)\n\n{table}\n")
+    log("\n" + table)
+    return res
+
+
+if __name__ == "__main__":
+    main()
