@@ -26,16 +26,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import statistics
-import time
 import os
 import pathlib
 import platform
+import statistics
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn as nn
 
 # ============================================================================================
 # 1. Config
@@ -101,6 +102,38 @@ class Config:
     """step scales tried: 1, 1/5, 1/25, ..."""
     line_search_decay: float = 5.0
     """divide the step by this on failure"""
+
+    # --- predictor, §3.1, REFERENCE §6 (Trajectron++ defaults) ---
+    pred_modes: int = 25
+    """K, the number of values of the discrete latent z (= GMM components = trajectories for the planner)"""
+    pred_enc_hidden: int = 32
+    """width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM"""
+    pred_latent_hidden: int = 32
+    """hidden width of the p(z|x) and q(z|x,y) MLPs"""
+    pred_dec_hidden: int = 64
+    """decoder GRU width (Trajectron++: 128; 64 trains 2-3x faster on CPU)"""
+    pred_radius: float = 30.0
+    """neighbours within this distance (m) of the predicted agent at t0 are attended to"""
+    pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)
+    """input scales: position (m), velocity (m/s), acceleration (m/s^2), heading (rad) and heading rate (rad/s)"""
+    pred_min_speed: float = 0.5
+    """below this speed (m/s) the velocity direction is unreliable: the tracked heading replaces it at t0"""
+    pred_pos_std_min: float = 0.05
+    """std (m) added to every GMM component: at v = 0 the controls cannot move the agent sideways"""
+    pred_log_p_max: float = 6.0
+    """the per-step log-likelihood in the loss is clamped above at this (Trajectron++ log_p_yt_xz_max)"""
+    pred_kl_min: float = 0.07
+    """free bits: the batch-mean KL(q || p) is clamped below at this"""
+    pred_beta: tuple = (100.0, 400.0, 100.0)
+    """KL weight beta(step) = b0 sigmoid((step - b1) / b2)"""
+    pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
+    """logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3), applied in training"""
+    pred_nll_min: float = -20.0
+    """the NLL metric clamps each step's log p(y_t) below at this"""
+    pred_lr_decay: float = 0.9999
+    """learning rate multiplied by this after every iteration"""
+    pred_grad_clip: float = 1.0
+    """gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)"""
 
     # --- training, §3.2, App. E ---
     alpha_rl: tuple = (1.0, 100.0, 1000.0)
@@ -307,12 +340,13 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
     pts = lanes.reshape(B, L * P, 3)
     unit = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
-    # 1. nearest point: |q|^2 is the same for every p and drops out of the ranking
+    # 1. nearest point: |q|^2 is the same for every p and drops out of the ranking, and the rest is one
+    #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]  (1e30 for padding points)
     lam, qd, pd = 50.0, q.detach(), pts.detach()
-    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pd[..., :2] ** 2).sum(-1) + lam, math.inf)  # (B, L*P)
-    feat_q = torch.cat([qd, lam / 2 * unit(hq.detach())], -1)  # (B, Q, 4)
-    feat_p = torch.cat([pd[..., :2], unit(pd[..., 2])], -1)  # (B, L*P, 4)
-    j = torch.baddbmm(p_norm[:, None], feat_q, feat_p.transpose(1, 2), alpha=-2).argmin(-1)  # (B, Q)
+    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pd[..., :2] ** 2).sum(-1) + lam, 1e30)  # (B, L*P)
+    feat_q = torch.cat([-2 * qd, -lam * unit(hq.detach()), torch.ones_like(qd[..., :1])], -1)  # (B, Q, 5)
+    feat_p = torch.cat([pd[..., :2], unit(pd[..., 2]), p_norm[..., None]], -1)  # (B, L*P, 5)
+    j = (feat_q @ feat_p.transpose(1, 2)).argmin(-1)  # (B, Q)
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
     has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hq.detach() - near[..., 2].detach()) > 0)
     # 2. exact projection on the segments before and after that point (a lane's valid points are a prefix)
@@ -814,6 +848,503 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 
 
 # ============================================================================================
+# 6. Predictor: a Trajectron++-style CVAE over controls (paper §3.1, Salzmann et al. 2020)
+# ============================================================================================
+#
+# The predictor sees 4 s of history of the predicted vehicle and of its neighbours (the other agents
+# and the ego) and outputs K = 25 futures, one per value of a discrete latent z:
+#     p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
+# For each k a GRU emits, per step, a bivariate Gaussian over the controls u = (yaw rate w, accel a);
+# the mean controls are integrated through the same unicycle as the planner and controller, and the
+# control covariances are pushed through its Jacobians (EKF), so every step gets a K-component GMM
+# over positions. Training maximises Trajectron++'s InfoVAE objective with q(z | x, y) from a
+# bidirectional LSTM over the ground-truth future; all K values of z are enumerated, none sampled.
+#
+# The GRU's next input is the reparameterised sample of u_t in training (as Trajectron++) and the mean at
+# evaluation; either way the modes are the integrated MEAN controls. The planner gets the modes weighted by
+# q(z|x,y) in training (as the authors' code) and by p(z|x) at evaluation.
+#
+# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128;
+# 64 trains 2-3x faster on CPU). The decoder runs all B K = 6400 (scenario, mode) rows at once; the input
+# projection of the one-hot z is a column lookup, so the rows only pay for h @ W_hh and the gate arithmetic.
+#
+# Left out of Trajectron++ (the paper uses no map and no ego-future conditioning): the map CNN, the robot-future
+# encoder, dropout, and the LSTM over summed neighbours of each edge type with attention over the types (here a
+# per-neighbour MLP, type as a feature, and masked attention over the neighbours themselves). Changed: the future
+# BiLSTM starts from zeros (Trajectron++: from the current state), v0 is the tracked speed, and every GMM
+# component gets a 5 cm position std floor (at v = 0 the controls cannot move the agent sideways).
+#
+#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 training + weighted baselines    6.6 plot    6.7 bench
+
+
+
+# --------------------------------------------------------------------------------------------
+# 6.1 Inputs: the 8-D state history, by backward differences
+# --------------------------------------------------------------------------------------------
+
+
+def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
+    """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (no observed predecessor) copy d_{first+1}.
+
+    Backward, never central: a central difference at t0 would read x_{t1}, the future (REFERENCE §6).
+    first (...,) int64 is the index of the first observed step.
+    """
+    H = x.shape[-2]
+    d = torch.cat([torch.zeros_like(x[..., :1, :]), (x[..., 1:, :] - x[..., :-1, :]) / dt], -2)  # (..., H, D)
+    idx = (first + 1).clamp(max=H - 1)[..., None, None]  # (..., 1, 1)
+    d_first = torch.take_along_dim(d, idx, dim=-2)  # (..., 1, D)
+    t = torch.arange(H, device=x.device)
+    return torch.where((t <= first[..., None])[..., None], d_first, d)  # (..., H, D)
+
+
+def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor, cfg: Config) -> torch.Tensor:
+    """Trajectron++'s 8-D input state from (x, y, h, v) tracks: hist (..., H, 4), origin (..., 2) -> (..., H, 8).
+
+    (position - origin, velocity, acceleration, heading, heading rate), scaled by 30 m, 15 m/s, 4 m/s^2, pi.
+    """
+    sp, sv, sa, sh = cfg.pred_scales
+    pos = hist[..., :2]  # (..., H, 2)
+    vel = backward_diff(pos, first, cfg.dt)  # (..., H, 2)
+    acc = backward_diff(vel, (first + 1).clamp(max=hist.shape[-2] - 1), cfg.dt)  # (..., H, 2); vel starts at first+1
+    dh = wrap_angle(hist[..., 1:, 2] - hist[..., :-1, 2])  # (..., H-1)
+    h_unwrapped = torch.cat([hist[..., :1, 2], hist[..., :1, 2] + dh.cumsum(-1)], -1)  # (..., H)
+    h_rate = backward_diff(h_unwrapped[..., None], first, cfg.dt)  # (..., H, 1)
+    return torch.cat(
+        [(pos - origin[..., None, :]) / sp, vel / sv, acc / sa, wrap_angle(hist[..., 2:3]) / sh, h_rate / sh], -1
+    )  # (..., H, 8)
+
+
+def check_batch(batch, cfg: Config, need_future: bool) -> None:
+    """ValueError naming the field when a batch has the wrong history/future length or NaN states."""
+    H, T = cfg.hist_len + 1, cfg.horizon
+    expect = {"agent_hist": (H, 4), "ego_hist": (H, 4), "others_hist": (H, 4)}
+    if need_future:
+        expect["agent_fut"] = (T, 4)
+    for name, tail in expect.items():
+        x = getattr(batch, name)
+        if tuple(x.shape[-2:]) != tail:
+            raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
+        if torch.isnan(x).any():
+            raise ValueError(f"{name} contains NaN")
+    m = batch.agent_hist_mask
+    if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
+        raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
+    if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
+        raise ValueError("agent_hist_mask: the current step must be observed and missing steps must be the earliest")
+
+
+# --------------------------------------------------------------------------------------------
+# 6.2 The model
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Prediction:
+    """What the predictor hands to the planner (and to its loss and metrics). All differentiable in theta."""
+
+    s0: torch.Tensor
+    """(B, 4) the agent's state at t0 the modes start from (heading = velocity direction + learned correction)"""
+    states: torch.Tensor
+    """(B, K, T, 4) mode trajectories t1..T: the mean controls of each mode integrated by the unicycle"""
+    controls: torch.Tensor
+    """(B, K, T, 2) mean controls (yaw rate, acceleration) of each mode"""
+    pos_cov: torch.Tensor
+    """(B, K, T, 2, 2) position covariance of each GMM component (EKF propagation + a small floor)"""
+    log_p: torch.Tensor
+    """(B, K) log p(z|x) (logits clipped when a training step is given)"""
+    log_q: torch.Tensor | None
+    """(B, K) log q(z|x,y), or None when the future was not used"""
+    probs: torch.Tensor
+    """(B, K) the mode weights: q(z|x,y) with use_posterior (training, as the authors' code), p(z|x) otherwise"""
+
+    @property
+    def means(self) -> torch.Tensor:
+        """(B, K, T, 2) GMM component means = mode positions."""
+        return self.states[..., :2]
+
+
+def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Tensor:
+    """Trajectron++'s z-logit clipping, in training only: zero-mean logits clamped to +-c(step)."""
+    if step is None:
+        return logits
+    c0, c1, centre, width = cfg.pred_logit_clip
+    # c(step) = c0 + (c1 - c0) sigmoid((step - centre) / width)
+    c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))
+    return (logits - logits.mean(-1, keepdim=True)).clamp(-c, c)
+
+
+class Predictor(nn.Module):
+    """Trajectron++-style CVAE over unicycle controls. pred = predictor(batch, use_posterior, step)."""
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.cfg = cfg
+        E, Hd, K, Z = cfg.pred_enc_hidden, cfg.pred_dec_hidden, cfg.pred_modes, cfg.pred_latent_hidden
+        X = 2 * E  # x = (history encoding, neighbour context)
+        n_hist = cfg.hist_len + 1
+        # encoders
+        self.hist_lstm = nn.LSTMCell(8, E)
+        self.nbr_mlp = nn.Sequential(nn.Linear(n_hist * 8 + 2, E), nn.ReLU(), nn.Linear(E, E))
+        self.att_q, self.att_k = nn.Linear(E, E, bias=False), nn.Linear(E, E, bias=False)
+        self.fut_lstm = nn.LSTM(8, E, batch_first=True, bidirectional=True)
+        # latent
+        self.p_z = nn.Sequential(nn.Linear(X, Z), nn.ReLU(), nn.Linear(Z, K))
+        self.q_z = nn.Sequential(nn.Linear(X + 2 * E, Z), nn.ReLU(), nn.Linear(Z, K))
+        # decoder: a GRU over input cat(z, x, u_prev), h_0 = Linear(cat(z, x));
+        # per step it emits (mu_w, mu_a, log s_w, log s_a, rho) through dec_out
+        self.dec_h0 = nn.Linear(K + X, Hd)
+        self.dec_u0 = nn.Linear(8, 2)  # u_prev at t0 from the current state (Trajectron++'s state_action)
+        self.dec_in = nn.Linear(K + X + 2, 3 * Hd)
+        self.dec_hh = nn.Linear(Hd, 3 * Hd)
+        self.dec_out = nn.Linear(Hd, 5)
+        # heading at t0 = velocity direction + tanh(Linear(x, direction))  (Trajectron++'s Unicycle p0_model)
+        self.heading_fix = nn.Linear(X + 1, 1)
+
+    # ---- encoders ------------------------------------------------------------------------
+
+    def encode(self, batch) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (B, 2E) = (history LSTM state, attention over neighbours), and the agent's features (B, H, 8)."""
+        cfg = self.cfg
+        hist, mask = batch.agent_hist, batch.agent_hist_mask  # (B, H, 4), (B, H)
+        B, H = mask.shape
+        first = (~mask).sum(-1)  # (B,) index of the first observed step (missing steps are a prefix)
+        origin = hist[:, -1, :2]  # (B, 2) the agent's current position
+        f = state_features(hist, origin, first, cfg)  # (B, H, 8)
+        # history LSTM; unobserved steps leave its state untouched
+        h = c = f.new_zeros(B, cfg.pred_enc_hidden)  # (B, E)
+        for t in range(H):
+            h_new, c_new = self.hist_lstm(f[:, t], (h, c))
+            keep = mask[:, t, None]  # (B, 1)
+            h, c = torch.where(keep, h_new, h), torch.where(keep, c_new, c)  # (B, E)
+        # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
+        nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
+        nbr_valid = torch.cat([batch.others_mask, mask.new_ones(B, 1)], 1)  # (B, A+1)
+        is_ped = torch.cat([batch.others_is_ped, mask.new_zeros(B, 1)], 1)  # (B, A+1)
+        is_ego = torch.cat([torch.zeros_like(batch.others_mask), mask.new_ones(B, 1)], 1)  # (B, A+1)
+        near = nbr_valid & ((nbr[:, :, -1, :2] - origin[:, None]).norm(dim=-1) < cfg.pred_radius)  # (B, A+1)
+        all_observed = torch.zeros_like(near, dtype=torch.long)  # (B, A+1) first observed step: 0
+        nf = state_features(nbr, origin[:, None].expand(-1, nbr.shape[1], -1), all_observed, cfg)  # (B, A+1, H, 8)
+        flags = torch.stack([is_ped, is_ego], -1).to(f.dtype)  # (B, A+1, 2)
+        e = self.nbr_mlp(torch.cat([nf.flatten(-2), flags], -1))  # (B, A+1, E)
+        # masked dot-product attention, query = the agent's history encoding
+        scores = (self.att_k(e) @ self.att_q(h)[:, :, None])[..., 0] / math.sqrt(e.shape[-1])  # (B, A+1)
+        alpha = torch.softmax(scores.masked_fill(~near, -1e9), -1) * near  # (B, A+1); all masked -> all zero
+        ctx = (alpha[..., None] * e).sum(1)  # (B, E); zero for an agent without neighbours
+        return torch.cat([h, ctx], -1), f  # (B, 2E), (B, H, 8)
+
+    def encode_future(self, batch, x: torch.Tensor) -> torch.Tensor:
+        """The q(z|x,y) logits (B, K): a bidirectional LSTM over the GT future's 8-D states."""
+        cur_fut = torch.cat([batch.agent_hist[:, -1:], batch.agent_fut], 1)  # (B, 1+T, 4)
+        zero = torch.zeros(len(cur_fut), dtype=torch.long, device=cur_fut.device)
+        fy = state_features(cur_fut, batch.agent_hist[:, -1, :2], zero, self.cfg)[:, 1:]  # (B, T, 8)
+        _, (h_n, _) = self.fut_lstm(fy)  # h_n (2, B, E): last state of each direction
+        y_enc = torch.cat([h_n[0], h_n[1]], -1)  # (B, 2E)
+        return self.q_z(torch.cat([x, y_enc], -1))  # (B, K)
+
+    # ---- decoder -------------------------------------------------------------------------
+
+    def decode(self, x: torch.Tensor, f0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
+
+        All K values of z at once, as B*K rows. The GRU is written out (Cho et al. 2014) so that the input
+        projection of cat(z, x) is computed once: W [z; x] = W_z[:, k] + W_x x, a column lookup plus a (B, 2E) matmul.
+        The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
+        """
+        cfg = self.cfg
+        K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
+        B, X = x.shape
+        W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,)
+        gi_zx = ((x @ W[:, K : K + X].T + b)[:, None] + W[:, :K].T).reshape(B * K, 3 * Hd)  # W [one_hot(k); x] + b
+        W_u = W[:, K + X :]  # (3Hd, 2)
+        W0 = self.dec_h0.weight  # (Hd, K+X)
+        h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T).reshape(B * K, Hd)  # h_0 = Linear([z; x])
+        u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
+        mus, covs = [], []
+        for t in range(T):
+            gi = torch.addmm(gi_zx, u_prev, W_u.T)  # (B*K, 3Hd) = W [z; x; u_prev] + b
+            gh = self.dec_hh(h)  # (B*K, 3Hd)
+            # (split, not slicing: the backward of a slice writes into a zero tensor of the full size, 6400 x 192)
+            (i_rz, i_n), (h_rz, h_n) = gi.split([2 * Hd, Hd], 1), gh.split([2 * Hd, Hd], 1)
+            # r, z = sigma(W_r x + U_r h), sigma(W_z x + U_z h);  n = tanh(W_n x + r * U_n h);  h' = (1 - z) n + z h
+            r, z = torch.sigmoid(i_rz + h_rz).chunk(2, 1)  # (B*K, Hd) each
+            h = torch.lerp(torch.tanh(i_n + r * h_n), h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
+            mu, log_s, rho = self.dec_out(h).split([2, 2, 1], 1)  # (B*K, 2), (B*K, 2), (B*K, 1)
+            s_w, s_a = log_s.exp().unbind(1)  # (B*K,) each
+            rho = torch.tanh(rho[:, 0])  # (B*K,)
+            # Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
+            c = rho * s_w * s_a  # (B*K,)
+            covs.append(torch.stack([s_w**2, c, c, s_a**2], -1))  # (B*K, 4)
+            mus.append(mu)
+            if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
+                e1, e2 = torch.randn_like(mu).unbind(1)  # (B*K,) each
+                u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
+            else:
+                u_prev = mu
+        return torch.stack(mus, 1).reshape(B, K, T, 2), torch.stack(covs, 1).reshape(B, K, T, 2, 2)
+
+    def initial_state(self, batch, x: torch.Tensor) -> torch.Tensor:
+        """s0 = (x0, y0, heading, v0) (B, 4): heading = velocity direction + a learned correction in (-1, 1) rad."""
+        hist = batch.agent_hist  # (B, H, 4)
+        vel = (hist[:, -1, :2] - hist[:, -2, :2]) / self.cfg.dt  # (B, 2) backward difference at t0
+        moving = vel.norm(dim=-1) > self.cfg.pred_min_speed  # (B,)
+        phi = torch.where(moving, torch.atan2(vel[:, 1], vel[:, 0]), hist[:, -1, 2])  # (B,)
+        phi = phi + torch.tanh(self.heading_fix(torch.cat([x, phi[:, None]], -1)))[:, 0]  # (B,)
+        return torch.stack([hist[:, -1, 0], hist[:, -1, 1], phi, hist[:, -1, 3]], -1)  # (B, 4); tracked speed
+
+    # ---- the whole forward pass ----------------------------------------------------------
+
+    def forward(self, batch, use_posterior: bool, step: int | None = None) -> Prediction:
+        """K mode trajectories with their probabilities and the position GMM.
+
+        use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut; training) instead of p(z|x).
+        step: the training iteration; when given, the z logits are clipped by its schedule (Trajectron++).
+        Training mode (self.training) feeds sampled controls back into the GRU; eval mode feeds the means.
+        """
+        cfg = self.cfg
+        check_batch(batch, cfg, need_future=use_posterior)
+        x, f = self.encode(batch)  # (B, 2E), (B, H, 8)
+        log_p = torch.log_softmax(clip_logits(self.p_z(x), step, cfg), -1)  # (B, K)
+        log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
+        s0 = self.initial_state(batch, x)  # (B, 4)
+        mu, cov_u = self.decode(x, f[:, -1])  # (B, K, T, 2), (B, K, T, 2, 2)
+        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t)
+        traj = unicycle_rollout(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cfg.dt)  # (B, K, T+1, 4), s0 first
+        pos_cov = propagate_covariance(traj[:, :, :-1], mu, cov_u, cfg)  # (B, K, T, 2, 2)
+        probs = (log_q if use_posterior else log_p).exp()  # (B, K)
+        return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
+
+
+def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> torch.Tensor:
+    """EKF prediction steps through the unicycle. s (..., T, 4), u (..., T, 2): mean states and controls t0..T-1;
+    cov_u (..., T, 2, 2) the control covariances.
+
+    Sigma_0 = 0 (the current state is known); Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,
+    A = df/ds, B = df/du at the mean. Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I,
+    (..., T, 2, 2).
+    """
+    A, Bm = unicycle_jacobians(s, u, cfg.dt)  # (..., T, 4, 4), (..., T, 4, 2)
+    # Batched matmuls of 4x4 matrices are slow on CPU; with the matrix indices first and the rows last, a product is
+    # a broadcast and a sum over contiguous rows, about twice as fast: (i, j, ...) x (j, k, ...) -> (i, k, ...).
+    mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
+    # (..., T, i, j) -> (T, i, j, ...)
+    rows_last = lambda m: m.movedim(-3, 0).movedim((-2, -1), (1, 2)).contiguous()  # noqa: E731
+    A, Bm, Su = rows_last(A), rows_last(Bm), rows_last(cov_u)  # (T, 4, 4, ...), (T, 4, 2, ...), (T, 2, 2, ...)
+    Sigma = torch.zeros_like(A[0])  # (4, 4, ...)
+    out = []
+    for t in range(s.shape[-2]):
+        Sigma = mm(mm(A[t], Sigma), A[t].transpose(0, 1)) + mm(mm(Bm[t], Su[t]), Bm[t].transpose(0, 1))  # (4, 4, ...)
+        out.append(Sigma[:2, :2])
+    P = torch.stack(out).movedim((1, 2), (-2, -1)).movedim(0, -3)  # (..., T, 2, 2)
+    return P + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=s.dtype, device=s.device)
+
+
+# --------------------------------------------------------------------------------------------
+# 6.3 Loss: Trajectron++'s InfoVAE objective
+# --------------------------------------------------------------------------------------------
+
+
+def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """log N(y; mean, cov) for 2-D Gaussians, broadcasting: y, mean (..., 2), cov (..., 2, 2) -> (...)."""
+    d = y - mean  # (..., 2)
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    det = a * c - b * b  # (...)
+    # d^T Sigma^-1 d with Sigma^-1 = [[c, -b], [-b, a]] / det
+    maha = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
+    return -0.5 * maha - 0.5 * torch.log(det) - math.log(2 * math.pi)
+
+
+def gmm_log_prob(pred: Prediction, y: torch.Tensor, log_w: torch.Tensor) -> torch.Tensor:
+    """log sum_k w_k N(y_t; mu_kt, Sigma_kt) per step: y (B, T, 2), log_w (B, K) -> (B, T)."""
+    log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov)  # (B, K, T)
+    return torch.logsumexp(log_w[..., None] + log_n, 1)  # (B, T)
+
+
+def kl_beta(step: int, cfg: Config) -> float:
+    """beta(step) = b0 sigmoid((step - b1) / b2): the KL weight anneals from ~0 to 100 around step 400."""
+    b0, centre, width = cfg.pred_beta
+    return b0 / (1 + math.exp(-(step - centre) / width))
+
+
+def pred_loss(pred: Prediction, batch, step: int, cfg: Config) -> tuple[torch.Tensor, dict]:
+    """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging.
+
+    L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
+    LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
+    KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
+    I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p, a batch quantity
+    """
+    if pred.log_q is None:
+        raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
+    y = batch.agent_fut[..., :2]  # (B, T, 2)
+    ll = gmm_log_prob(pred, y, pred.log_q).clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
+    q = pred.log_q.exp()  # (B, K)
+    kl = (q * (pred.log_q - pred.log_p)).sum(-1)  # (B,)
+    kl_fb = torch.where(kl.mean() > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
+    p = pred.log_p.exp()  # (B, K)
+    p_bar = p.mean(0)  # (K,)
+    mi = -(p_bar * torch.log(p_bar)).sum() + (p * pred.log_p).sum(-1).mean()  # scalar
+    beta = kl_beta(step, cfg)
+    loss = -(ll - beta * kl_fb + mi)  # (B,)
+    parts = {"loss": loss.mean().item(), "ll": ll.mean().item(), "kl": kl.mean().item(), "mi": mi.item(), "beta": beta}
+    return loss, parts
+
+
+# --------------------------------------------------------------------------------------------
+# 6.4 Metrics, and the constant-velocity baseline
+# --------------------------------------------------------------------------------------------
+
+
+def constant_velocity(batch, cfg: Config) -> torch.Tensor:
+    """Positions t1..T (B, T, 2) keeping the tracked speed and heading of t0."""
+    s = batch.agent_hist[:, -1]  # (B, 4)
+    tt = cfg.dt * torch.arange(1, cfg.horizon + 1, dtype=s.dtype, device=s.device)  # (T,)
+    v = torch.stack([s[:, 3] * torch.cos(s[:, 2]), s[:, 3] * torch.sin(s[:, 2])], -1)  # (B, 2)
+    return s[:, None, :2] + tt[None, :, None] * v[:, None]  # (B, T, 2)
+
+
+def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.Tensor]:
+    """Per-scenario metrics (B,): ADE/FDE of the most likely mode (argmax of pred.probs), min-ADE/min-FDE over
+    modes, GMM NLL = -mean_t max(log p(y_t), -20) with weights pred.probs; and constant velocity's ADE/FDE.
+    Call with an eval-mode prediction and use_posterior=False for the paper's metrics (argmax p, mean controls)."""
+    y = batch.agent_fut[..., :2]  # (B, T, 2)
+    err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
+    best = pred.probs.argmax(-1)  # (B,)
+    err_ml = err[torch.arange(len(best)), best]  # (B, T)
+    nll = -gmm_log_prob(pred, y, pred.probs.log()).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
+    err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
+    return {
+        "ade": err_ml.mean(-1), "fde": err_ml[:, -1],
+        "min_ade": err.mean(-1).min(-1).values, "min_fde": err[..., -1].min(-1).values,
+        "nll": nll, "cv_ade": err_cv.mean(-1), "cv_fde": err_cv[:, -1],
+    }
+
+
+@torch.no_grad()
+def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 1024) -> dict[str, float]:
+    """Mean metrics over a Scenarios set, in eval mode (prior weights, mean controls), constant velocity beside.
+
+    cv_nll is constant velocity made a distribution: an isotropic Gaussian per step whose variance is fit to this
+    very set (sigma_t^2 = mean squared error / 2), an oracle calibration that favours the baseline.
+    """
+    was_training = model.training
+    model.eval()
+    sums, cv_sq, n = {}, 0.0, 0
+    for i in range(0, len(data), batch_size):
+        batch = data[i : i + batch_size]
+        m = prediction_metrics(model(batch, use_posterior=False), batch, cfg)
+        for k, v in m.items():
+            sums[k] = sums.get(k, 0.0) + v.sum().item()
+        cv_sq = cv_sq + ((constant_velocity(batch, cfg) - batch.agent_fut[..., :2]) ** 2).sum((0, 2))  # (T,)
+        n += len(batch)
+    model.train(was_training)
+    out = {k: v / n for k, v in sums.items()}
+    var = cv_sq / (2 * n)  # (T,) ML variance per axis
+    # -mean_t log N(e_t; 0, var_t I) = mean_t [log(2 pi var_t) + E e^2 / (2 var_t)] = mean_t [log(2 pi var_t) + 1]
+    out["cv_nll"] = (torch.log(2 * math.pi * var) + 1).mean().item()  # (no per-step clamp here)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# 6.5 Training: Standard, Distance weighted and grad-Cost weighted (§4.1)
+# --------------------------------------------------------------------------------------------
+
+
+def distance_weights(batch) -> torch.Tensor:
+    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored at 1 m."""
+    d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
+    return 1.0 / d.clamp(min=1.0)
+
+
+def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
+    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch.
+
+    weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
+    `grad_cost_weights` in section 8, which needs the cost) or a callable batch -> (B,) raw weights.
+    """
+    if weighting == "standard":
+        return torch.ones(len(batch), dtype=batch.agent_fut.dtype)
+    if weighting == "distance":
+        raw = distance_weights(batch)
+    elif weighting == "grad_cost":
+        raw = grad_cost_weights(batch, cfg)
+    else:
+        raw = weighting(batch)
+    raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
+    if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
+        raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
+    mean = raw.mean()
+    return raw / mean if mean > 0 else torch.ones_like(raw)
+
+
+# --------------------------------------------------------------------------------------------
+# 6.6 Plot
+# --------------------------------------------------------------------------------------------
+
+
+def plot_prediction(ax, pred: Prediction, i: int, color: str = "tab:red", cov: bool = True,
+                    label: str | None = "prediction"):
+    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with the mode's
+    probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode. Meant to go over plot_scenario."""
+    p = pred.probs[i].detach().cpu()  # (K,)
+    xy = torch.cat([pred.s0[i, None, None, :2].expand(len(p), 1, 2), pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
+    rel = p / p.max()
+    for k in torch.argsort(p).tolist():  # the likely modes drawn last, on top
+        ax.plot(xy[k, :, 0], xy[k, :, 1], color=color, alpha=0.1 + 0.9 * rel[k].item(), lw=0.5 + 2.5 * rel[k].item(),
+                label=label if k == int(p.argmax()) else None)
+    if cov:
+        k = int(p.argmax())
+        theta = torch.linspace(0, 2 * math.pi, 40, dtype=pred.pos_cov.dtype)
+        circle = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (40, 2)
+        for t in range(pred.pos_cov.shape[2]):
+            L = torch.linalg.cholesky(pred.pos_cov[i, k, t].detach().cpu())  # (2, 2)
+            ell = xy[k, t + 1] + circle @ L.T  # (40, 2)
+            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
+
+
+# --------------------------------------------------------------------------------------------
+# 6.7 Benchmark
+# --------------------------------------------------------------------------------------------
+
+
+def bench_predictor(batch=None, cfg: Config | None = None, iters: int = 10, threads: int | None = 1) -> dict:
+    """Medians (ms) of a training iteration (forward + loss + backward + Adam step) and of an eval forward on a
+    batch (default: cfg.batch_size synthetic scenarios), as wall clock and as process CPU time (with one thread on
+    a busy machine, the CPU time is closer to what an idle machine's wall clock would show). Prints them."""
+    cfg = cfg or Config()
+    if batch is None:
+        import data_synth
+
+        batch = data_synth.make_dataset(2 * cfg.batch_size, seed=0).train[: cfg.batch_size]
+    if threads is not None:
+        torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = Predictor(cfg).to(batch.agent_hist.dtype)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    times = {k: [] for k in ("train_wall", "train_cpu", "eval_wall", "eval_cpu")}
+    for it in range(iters + 2):  # 2 warm-up iterations
+        w0, c0 = time.perf_counter(), time.process_time()
+        model.train()
+        loss, _ = pred_loss(model(batch, use_posterior=True, step=it), batch, it, cfg)
+        opt.zero_grad()
+        loss.mean().backward()
+        opt.step()
+        w1, c1 = time.perf_counter(), time.process_time()
+        model.eval()
+        with torch.no_grad():
+            model(batch, use_posterior=False)
+        w2, c2 = time.perf_counter(), time.process_time()
+        if it >= 2:
+            for k, v in zip(times, (w1 - w0, c1 - c0, w2 - w1, c2 - c1)):
+                times[k].append(1e3 * v)
+    med = {k + "_ms": sorted(v)[len(v) // 2] for k, v in times.items()}
+    print(f"predictor bench: B={len(batch)} K={cfg.pred_modes} decoder {cfg.pred_dec_hidden}, "
+          f"torch.set_num_threads({torch.get_num_threads()}), medians of {iters}: training iteration "
+          f"{med['train_wall_ms']:.0f} ms wall / {med['train_cpu_ms']:.0f} ms CPU, eval forward "
+          f"{med['eval_wall_ms']:.0f} ms wall / {med['eval_cpu_ms']:.0f} ms CPU")
+    return med
+
+
+# ============================================================================================
 # 7. The stack: predict -> plan -> control, §3.2
 # ============================================================================================
 #
@@ -972,14 +1503,6 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
     return g.flatten(1).norm(dim=-1)
 
 
-def loss_weights(batch, weighting: str, cfg: Config) -> torch.Tensor:
-    """Per-scenario weights of L_pred, normalised to mean 1 over the batch. (B,)"""
-    if weighting == "standard":
-        return torch.ones(len(batch), dtype=batch.ego_hist.dtype)
-    raw = distance_weights(batch) if weighting == "distance" else grad_cost_weights(batch, cfg)
-    return raw / raw.mean().clamp_min(1e-12)
-
-
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
                 pred_offset=0.0, **stack_kw):
     """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, §App. E).
@@ -989,7 +1512,8 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
     Returns the per-step log (list of dicts).
     """
-    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)  # the decoder's sampled controls
+    g = torch.Generator().manual_seed(seed)  # the order of the scenarios
     a1, a2, a3 = alphas(method, setting, cfg)
     downstream = a2 > 0 or a3 > 0
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -1010,13 +1534,13 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                 out = run_stack(batch, model, method, cfg, setting, step=step, train=True, pred_target=target, **stack_kw)
                 keep = out.plannable.to(out.l_plan.dtype)
                 m = keep.sum().clamp_min(1)
-                l_pred = (out.l_pred * loss_weights(batch, method.weighting, cfg) * keep).sum() / m
+                l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg) * keep).sum() / m
                 l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
                 conv = out.converged[out.plannable].float().mean().item()
             else:
                 pred = model(batch, use_posterior=True, step=step)
                 l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
-                l_pred = (l_pred_b * loss_weights(batch, method.weighting, cfg)).mean()
+                l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg)).mean()
                 l_plan = l_ctr = torch.zeros(())
                 conv = float("nan")
             loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
@@ -1227,7 +1751,7 @@ def bench_stack_step(batch, cfg: Config, reps=3) -> dict:
 
 # --- the command line -------------------------------------------------------------------------
 
-DATA_CACHE = ".cache/data_synth"
+DATA_CACHE = "data_cache"
 EXPERIMENTS = ("rl", "biased", "il")
 
 
@@ -1261,7 +1785,7 @@ def quick(threads=2, log=print):
     """`--quick`: a Table-1-style comparison on synthetic data in about a minute."""
     torch.set_num_threads(threads)
     cfg = Config()
-    log("DiffStack --quick: synthetic scenarios (generated once, then cached in .cache/), Standard and DiffStack\n"
+    log("DiffStack --quick: synthetic scenarios (generated once, then cached in data_cache/), Standard and DiffStack\n"
         "trained briefly (RL setting), evaluated with No prediction and GT prediction beside them. About a minute.")
     t0 = time.time()
     train, val = load_data(n=QUICK["n"])

@@ -1,9 +1,14 @@
-"""Tests of diffstack.py and data_synth.py. Gradient tests run in float64."""
+"""Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread."""
+import json
 import math
+import os
+from dataclasses import dataclass, fields
 
+import numpy as np
 import pytest
 import torch
 
+import data_synth
 import diffstack as ds
 
 DT = 0.5
@@ -334,3 +339,803 @@ def test_planner_bad_input_names_the_argument():
         ds.plan(s0, ctx, goal[:2], w, cfg)
     with pytest.raises(ValueError, match="s0"):
         ds.plan(torch.full_like(s0, math.nan), ctx, goal, w, cfg)
+
+
+# ---------------------------------------------------------------------------------------------
+# Predictor
+# ---------------------------------------------------------------------------------------------
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models gain nothing from threads, and two threads on a busy 2-core machine can run 10x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# ---------------------------------------------------------------------------------------------
+# A stand-in for data_synth.Scenarios: the exact field names and shapes of INTERFACES.md, with
+# plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at it).
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class FakeScenarios:
+    ego_hist: torch.Tensor
+    ego_fut: torch.Tensor
+    agent_hist: torch.Tensor
+    agent_hist_mask: torch.Tensor
+    agent_fut: torch.Tensor
+    others_hist: torch.Tensor
+    others_fut: torch.Tensor
+    others_mask: torch.Tensor
+    others_is_ped: torch.Tensor
+    lanes: torch.Tensor
+    lanes_mask: torch.Tensor
+    goal: torch.Tensor
+    behaviour: torch.Tensor
+
+    def __len__(self):
+        return len(self.ego_hist)
+
+    def __getitem__(self, idx):
+        return FakeScenarios(*[getattr(self, f.name)[idx] for f in fields(self)])
+
+    def replace(self, **kw):
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d.update(kw)
+        return FakeScenarios(**d)
+
+    @staticmethod
+    def cat(items):
+        return FakeScenarios(*[torch.cat([getattr(b, f.name) for b in items]) for f in fields(FakeScenarios)])
+
+
+def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    rnd = lambda *s: torch.rand(*s, generator=g, dtype=dtype)  # noqa: E731
+    behaviour = torch.randint(0, 4, (B,), generator=g)
+    w = torch.tensor([0.0, 0.25, -0.25, 0.0], dtype=dtype)[behaviour]
+    a = torch.tensor([0.0, 0.0, 0.0, -1.5], dtype=dtype)[behaviour]
+    s = torch.stack([5 + 20 * rnd(B), -10 + 20 * rnd(B), math.pi * (2 * rnd(B) - 1), 3 + 7 * rnd(B)], -1)
+    states = [s]
+    for t in range(14):
+        u = torch.stack([w, a], -1) * (t >= 6)
+        s = ds.unicycle_step(states[-1], u, DT)
+        s = torch.stack([s[:, 0], s[:, 1], s[:, 2], s[:, 3].clamp(min=0)], -1)
+        states.append(s)
+    traj = torch.stack(states, 1)  # (B, 15, 4), t0 at index 8
+    # the ego drives along +x through the origin at t0
+    ve = 4 + 6 * rnd(B, 1)
+    tt = DT * torch.arange(-8, 7, dtype=dtype)
+    ego = torch.stack([ve * tt, 0 * tt.expand(B, -1), 0 * tt.expand(B, -1), ve.expand(-1, 15)], -1)
+    # other agents: constant velocity, some padding, some pedestrians
+    o0 = torch.stack([60 * rnd(B, A) - 30, 60 * rnd(B, A) - 30, math.pi * (2 * rnd(B, A) - 1), 8 * rnd(B, A)], -1)
+    vel = torch.stack([o0[..., 3] * torch.cos(o0[..., 2]), o0[..., 3] * torch.sin(o0[..., 2])], -1)
+    pos = o0[..., None, :2] + tt[:, None] * vel[..., None, :]  # (B, A, 15, 2)
+    others = torch.cat([pos, o0[..., None, 2:].expand(-1, -1, 15, -1)], -1)
+    others_mask = rnd(B, A) < 0.7
+    others = others * others_mask[..., None, None]
+    return FakeScenarios(
+        ego_hist=ego[:, :9], ego_fut=ego[:, 9:], agent_hist=traj[:, :9],
+        agent_hist_mask=torch.ones(B, 9, dtype=torch.bool),
+        agent_fut=traj[:, 9:], others_hist=others[:, :, :9], others_fut=others[:, :, 9:], others_mask=others_mask,
+        others_is_ped=rnd(B, A) < 0.3, lanes=torch.zeros(B, 1, 40, 3, dtype=dtype),
+        lanes_mask=torch.zeros(B, 1, 40, dtype=torch.bool), goal=ego[:, -1], behaviour=behaviour,
+    )
+
+
+def small_cfg(**kw):
+    return ds.Config(**{"pred_modes": 5, "pred_dec_hidden": 16, "batch_size": 16, **kw})
+
+
+def make_model(cfg, seed=0):
+    torch.manual_seed(seed)
+    return ds.Predictor(cfg).double()
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs
+# ---------------------------------------------------------------------------------------------
+
+def test_backward_differences_and_mask_prefix():
+    t = torch.arange(9, dtype=torch.float64)
+    x = torch.stack([2.0 * t, 0.5 * t**2], -1)[None]  # (1, 9, 2): v = (2, t - 1/4 ...) backward
+    first = torch.tensor([0])
+    v = ds.backward_diff(x, first, 1.0)
+    assert torch.allclose(v[0, 1:, 0], torch.full((8,), 2.0, dtype=torch.float64))
+    assert torch.allclose(v[0, 1:, 1], 0.5 * (t[1:] ** 2 - t[:-1] ** 2))  # backward, not central
+    assert torch.allclose(v[0, 0], v[0, 1])  # no predecessor: copies the first difference
+    # a history observed from step 3 on: steps <= 3 take the difference at 4; the masked values never matter
+    x2 = x.clone()
+    x2[0, :3] = 1e3
+    v2 = ds.backward_diff(x2, torch.tensor([3]), 1.0)
+    assert torch.allclose(v2[0, :4], v[0, 4].expand(4, 2)) and torch.allclose(v2[0, 4:], v[0, 4:])
+
+
+def test_state_features_values():
+    cfg = ds.Config()
+    b = make_batch(4)
+    f = ds.state_features(b.agent_hist, b.agent_hist[:, -1, :2], torch.zeros(4, dtype=torch.long), cfg)
+    assert f.shape == (4, 9, 8)
+    assert torch.allclose(f[:, -1, :2], torch.zeros(4, 2, dtype=torch.float64))  # relative to the current position
+    vel = (b.agent_hist[:, -1, :2] - b.agent_hist[:, -2, :2]) / DT
+    assert torch.allclose(f[:, -1, 2:4] * 15.0, vel)
+    assert torch.allclose(f[:, -1, 6] * math.pi, ds.wrap_angle(b.agent_hist[:, -1, 2]))
+
+
+# ---------------------------------------------------------------------------------------------
+# The model: shapes, masks, no leakage, determinism in eval
+# ---------------------------------------------------------------------------------------------
+
+def test_shapes_and_probabilities():
+    cfg = ds.Config(pred_dec_hidden=16)  # K = 25
+    model, b = make_model(cfg), make_batch(8)
+    for use_post in (True, False):
+        p = model(b, use_posterior=use_post, step=0 if use_post else None)
+        assert p.states.shape == (8, 25, 6, 4) and p.controls.shape == (8, 25, 6, 2)
+        assert p.means.shape == (8, 25, 6, 2) and p.pos_cov.shape == (8, 25, 6, 2, 2) and p.s0.shape == (8, 4)
+        assert p.probs.shape == (8, 25) and torch.allclose(p.probs.sum(-1), torch.ones(8, dtype=torch.float64))
+        assert (p.log_q is not None) == use_post
+        assert torch.allclose(p.probs, (p.log_q if use_post else p.log_p).exp())
+        assert torch.linalg.eigvalsh(p.pos_cov).min() > 0  # proper covariances
+    # logit clipping: at step 0 the logits lie within +-c(0) ~ 0.083, at step 1000 within +-5
+    p = model(b, use_posterior=True, step=0)
+    c0 = 0.05 + 4.95 / (1 + math.exp(5))
+    for lg in (p.log_p, p.log_q):
+        spread = lg.max(-1).values - lg.min(-1).values
+        assert (spread <= 2 * c0 + 1e-9).all() and (spread > c0).any()
+
+
+def test_masks_padding_radius_and_history_mask():
+    cfg = small_cfg()
+    model, b = make_model(cfg).eval(), make_batch(8)
+    ref = model(b, use_posterior=False)
+    # padded agents' values do not matter
+    oh = b.others_hist.clone()
+    oh[~b.others_mask] = 7.0
+    assert torch.allclose(model(b.replace(others_hist=oh), use_posterior=False).states, ref.states)
+    # neither do agents beyond 30 m (moved from 31 to 100 m away)
+    far = b.agent_hist[:, -1:, None, :2] + torch.tensor([31.0, 0.0], dtype=torch.float64)
+    b_far = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + far, b.others_hist[..., 2:]], -1))
+    b_farther = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + far + 69.0, b.others_hist[..., 2:]], -1))
+    assert torch.allclose(model(b_far, use_posterior=False).states, model(b_farther, use_posterior=False).states)
+    # but a near agent does change the prediction (the test above could not pass by ignoring everyone)
+    near = b.agent_hist[:, -1:, None, :2] + torch.tensor([5.0, 0.0], dtype=torch.float64)
+    b_near = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + near, b.others_hist[..., 2:]], -1),
+                       others_mask=torch.ones_like(b.others_mask))
+    assert not torch.allclose(model(b_near, use_posterior=False).states, ref.states)
+    # agent_hist_mask: unobserved early steps (filled with the earliest observed state) do not matter
+    m = b.agent_hist_mask.clone()
+    m[:4, :3] = False
+    h1, h2 = b.agent_hist.clone(), b.agent_hist.clone()
+    h1[:4, :3] = b.agent_hist[:4, 3:4]
+    h2[:4, :3] = 50.0
+    p1 = model(b.replace(agent_hist=h1, agent_hist_mask=m), use_posterior=False)
+    p2 = model(b.replace(agent_hist=h2, agent_hist_mask=m), use_posterior=False)
+    assert torch.allclose(p1.states, p2.states) and torch.allclose(p1.probs, p2.probs)
+    assert not torch.allclose(p1.states[:4], ref.states[:4])  # the mask is used
+
+
+def test_no_neighbours_no_nan():
+    cfg = small_cfg()
+    model, b = make_model(cfg), make_batch(8)
+    ego_far = b.ego_hist.clone()
+    ego_far[..., 1] += 500.0  # the ego is a neighbour too: move it out of range
+    b0 = b.replace(others_mask=torch.zeros_like(b.others_mask), ego_hist=ego_far)
+    x, _ = model.encode(b0)
+    assert torch.equal(x[:, cfg.pred_enc_hidden:], torch.zeros_like(x[:, cfg.pred_enc_hidden:]))  # zero context
+    p = model(b0, use_posterior=True, step=0)
+    loss, _ = ds.pred_loss(p, b0, 0, cfg)
+    loss.mean().backward()
+    assert torch.isfinite(loss).all()
+    assert all(torch.isfinite(q.grad).all() for q in model.parameters() if q.grad is not None)
+
+
+def test_stationary_agent_is_finite():
+    cfg = small_cfg()
+    model, b = make_model(cfg), make_batch(4)
+    still = b.agent_hist[:, -1:].expand(-1, 9, -1).clone()
+    still[..., 3] = 0.0  # parked: no motion, no speed, no velocity direction
+    b0 = b.replace(agent_hist=still, agent_fut=still[:, :6])
+    p = model(b0, use_posterior=True, step=500)
+    assert (ds.wrap_angle(p.s0[:, 2] - still[:, -1, 2]).abs() < 1).all()  # the tracked heading + a correction
+    loss, _ = ds.pred_loss(p, b0, 500, cfg)
+    loss.mean().backward()
+    assert torch.isfinite(loss).all() and torch.linalg.eigvalsh(p.pos_cov).min() >= 0.05**2 - 1e-12
+    assert all(torch.isfinite(q.grad).all() for q in model.parameters() if q.grad is not None)
+
+
+def test_prior_does_not_see_the_future_and_eval_is_deterministic():
+    cfg = small_cfg()
+    model, b = make_model(cfg).eval(), make_batch(8)
+    p1 = model(b, use_posterior=False)
+    p2 = model(b.replace(agent_fut=b.agent_fut + 3.0, others_fut=b.others_fut + 3.0), use_posterior=False)
+    assert torch.equal(p1.states, p2.states) and torch.equal(p1.probs, p2.probs)
+    q1 = model(b, use_posterior=True).probs
+    assert not torch.allclose(q1, model(b.replace(agent_fut=b.agent_fut + 3.0), use_posterior=True).probs)
+    model.train()  # training feeds sampled controls back: two calls differ
+    assert not torch.allclose(model(b, use_posterior=False).states, model(b, use_posterior=False).states)
+
+
+def test_bad_input_names_the_argument():
+    cfg = small_cfg()
+    model, b = make_model(cfg), make_batch(4)
+    with pytest.raises(ValueError, match="agent_hist"):
+        model(b.replace(agent_hist=b.agent_hist[:, 1:], agent_hist_mask=b.agent_hist_mask[:, 1:]), use_posterior=False)
+    with pytest.raises(ValueError, match="others_hist"):
+        model(b.replace(others_hist=b.others_hist[:, :, :5]), use_posterior=False)
+    with pytest.raises(ValueError, match="agent_fut"):
+        model(b.replace(agent_fut=b.agent_fut[:, :4]), use_posterior=True)
+    for name in ("agent_hist", "ego_hist", "others_hist", "agent_fut"):
+        x = getattr(b, name).clone()
+        x.view(-1)[5] = float("nan")
+        with pytest.raises(ValueError, match=f"{name} contains NaN"):
+            model(b.replace(**{name: x}), use_posterior=True)
+    bad = b.agent_hist_mask.clone()
+    bad[0, 4] = False  # a gap in the middle
+    with pytest.raises(ValueError, match="agent_hist_mask"):
+        model(b.replace(agent_hist_mask=bad), use_posterior=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamics: modes, covariance propagation, the Gaussian density
+# ---------------------------------------------------------------------------------------------
+
+def test_modes_are_the_unicycle_integration_of_the_mean_controls():
+    cfg = small_cfg()
+    model, b = make_model(cfg).eval(), make_batch(6)
+    p = model(b, use_posterior=False)
+    ref = ds.unicycle_rollout(p.s0[:, None].expand(-1, cfg.pred_modes, -1), p.controls, DT)  # (B, K, 7, 4)
+    assert torch.allclose(p.states, ref[:, :, 1:], atol=1e-10)
+    assert torch.allclose(p.s0[:, :2], b.agent_hist[:, -1, :2]) and torch.allclose(p.s0[:, 3], b.agent_hist[:, -1, 3])
+    # heading = velocity direction + a correction bounded by 1 rad
+    vel = b.agent_hist[:, -1, :2] - b.agent_hist[:, -2, :2]
+    assert (ds.wrap_angle(p.s0[:, 2] - torch.atan2(vel[:, 1], vel[:, 0])).abs() < 1).all()
+
+
+def test_covariance_one_step_by_hand():
+    cfg = ds.Config(pred_pos_std_min=0.0)
+    v, sw, sa, rho = 2.0, 0.3, 0.8, 0.4
+    s = torch.tensor([[[0.0, 0.0, 0.0, v]]], dtype=torch.float64)  # (1, T=1, 4), heading 0
+    u = torch.zeros(1, 1, 2, dtype=torch.float64)  # w = a = 0
+    cov_u = torch.tensor([[[[sw**2, rho * sw * sa], [rho * sw * sa, sa**2]]]], dtype=torch.float64)
+    # x' = x + v dt + a dt^2/2,  y' = y + v w dt^2/2 + O(w^2)  =>  dx/da = dt^2/2, dy/dw = v dt^2/2
+    gx, gy = DT**2 / 2, v * DT**2 / 2
+    cxy = gx * gy * rho * sw * sa
+    expect = torch.tensor([[gx**2 * sa**2, cxy], [cxy, gy**2 * sw**2]], dtype=torch.float64)
+    got = ds.propagate_covariance(s, u, cov_u, cfg)[0, 0]
+    assert torch.allclose(got, expect, atol=1e-12)
+
+
+def test_covariance_propagation_matches_monte_carlo():
+    cfg = ds.Config(pred_pos_std_min=0.0)
+    g = torch.Generator().manual_seed(1)
+    s0 = torch.tensor([1.0, -2.0, 0.4, 6.0], dtype=torch.float64)
+    mu = torch.tensor([[0.2, 1.0], [0.1, -0.5], [-0.3, 0.0], [0.0, 0.5], [0.25, -1.0], [0.0, 0.0]], dtype=torch.float64)
+    sig = torch.tensor([0.05, 0.3], dtype=torch.float64)
+    cov_u = torch.diag(sig**2).expand(6, 2, 2)
+    states = ds.unicycle_rollout(s0, mu, DT)  # (7, 4)
+    ekf = ds.propagate_covariance(states[:-1], mu, cov_u, cfg)  # (6, 2, 2)
+    n = 40000
+    u = mu + sig * torch.randn(n, 6, 2, generator=g, dtype=torch.float64)
+    xy = ds.unicycle_rollout(s0.expand(n, 4), u, DT)[:, 1:, :2]  # (n, 6, 2)
+    d = xy - xy.mean(0)
+    mc = torch.einsum("nti,ntj->tij", d, d) / (n - 1)  # (6, 2, 2)
+    assert torch.allclose(ekf, mc, rtol=0.1, atol=2e-3 * mc.abs().max())
+    assert not torch.allclose(ekf[1:], ekf[:-1], rtol=0.1)  # it grows
+
+
+def test_gaussian_log_prob_matches_torch_distributions():
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(5, 2, 2, generator=g, dtype=torch.float64)
+    cov = A @ A.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
+    mean, y = torch.randn(5, 2, generator=g, dtype=torch.float64), torch.randn(5, 2, generator=g, dtype=torch.float64)
+    ref = torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(y)
+    assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov), ref)
+
+
+def test_gradients_through_the_covariance_propagation():
+    cfg = ds.Config()
+    g = torch.Generator().manual_seed(2)
+    s = torch.tensor([[0.0, 0.0, 0.3, 4.0]], dtype=torch.float64).expand(3, 4).clone().requires_grad_(True)
+    u = (0.2 * torch.randn(3, 2, generator=g, dtype=torch.float64)).requires_grad_(True)
+    cu = torch.diag(torch.tensor([0.04, 0.2], dtype=torch.float64)).expand(3, 2, 2).clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda s, u, c: ds.propagate_covariance(s, u, c, cfg), (s, u, cu))
+
+
+# ---------------------------------------------------------------------------------------------
+# Loss, training, weighting
+# ---------------------------------------------------------------------------------------------
+
+def test_loss_matches_an_independent_computation():
+    cfg = small_cfg()
+    model, b = make_model(cfg), make_batch(16)
+    for step in (0, 1000):  # KL below (free bits) and above 0.07
+        p = model(b, use_posterior=True, step=step)
+        loss, parts = ds.pred_loss(p, b, step, cfg)
+        assert loss.shape == (16,)
+        # LL with torch.distributions' mixture, per scenario
+        D = torch.distributions
+        comp = D.MultivariateNormal(p.means.transpose(1, 2), covariance_matrix=p.pos_cov.transpose(1, 2))  # (B, T | K)
+        mix = D.MixtureSameFamily(D.Categorical(probs=p.probs[:, None].expand(-1, 6, -1)), comp)
+        ll = mix.log_prob(b.agent_fut[..., :2]).clamp(max=6).sum(-1)  # (B,)
+        prior = D.Categorical(logits=p.log_p)
+        kl = D.kl_divergence(D.Categorical(logits=p.log_q), prior)
+        mi = D.Categorical(probs=prior.probs.mean(0)).entropy() - prior.entropy().mean()
+        beta = 100 / (1 + math.exp(-(step - 400) / 100))
+        kl_term = kl if kl.mean() > 0.07 else torch.full_like(kl, 0.07)
+        assert torch.allclose(loss, -(ll - beta * kl_term + mi))
+        assert math.isclose(parts["ll"], ll.mean().item()) and math.isclose(parts["beta"], beta)
+    with pytest.raises(ValueError, match="pred"):
+        ds.pred_loss(model(b, use_posterior=False), b, 0, cfg)
+
+
+STANDARD = ds.Method("Standard")
+
+
+def test_loss_decreases_on_a_small_set():
+    cfg = small_cfg(batch_size=32, lr=1e-2)
+    model, data = make_model(cfg), make_batch(64, seed=3)
+
+    def loss_at_step0():
+        torch.manual_seed(0)
+        return ds.pred_loss(model(data, use_posterior=True, step=0), data, 0, cfg)[0].mean().item()
+
+    before = loss_at_step0()
+    ds.train_stack(model, data, STANDARD, cfg, epochs=30, seed=0, log=None)
+    assert loss_at_step0() < before - 5.0
+
+
+def test_same_seed_same_model():
+    cfg = small_cfg()
+    data = make_batch(48, seed=4)
+    params = []
+    for seed in (0, 0, 1):
+        model = make_model(cfg, seed=0)
+        hist = ds.train_stack(model, data, STANDARD, cfg, epochs=2, seed=seed, log=None)
+        assert len(hist) == 6  # 2 epochs of 3 batches of 16
+        params.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
+    assert torch.equal(params[0], params[1]) and not torch.equal(params[0], params[2])
+
+
+def test_progress_lines_fractional_epochs_and_val_metrics():
+    cfg = small_cfg()
+    data, val = make_batch(48, seed=5), make_batch(16, seed=6)
+    lines = []
+    hist = ds.train_stack(make_model(cfg), data, STANDARD, cfg, epochs=2 / 3, log=lines.append)
+    assert len(hist) == 2 and lines and "ETA" in lines[-1] and "L_pred" in lines[-1]
+    m = ds.evaluate_predictor(make_model(cfg), val, cfg)
+    assert {"ade", "min_ade", "nll", "cv_ade", "cv_nll"} <= set(m)
+    # the calibrated constant-velocity NLL, by hand: sigma_t^2 = mean squared error / 2 per axis
+    err2 = ((ds.constant_velocity(val, cfg) - val.agent_fut[..., :2]) ** 2).sum(-1)  # (B, T)
+    var = err2.mean(0) / 2
+    e = (ds.constant_velocity(val, cfg) - val.agent_fut[..., :2]).transpose(1, 2)  # (B, 2, T)
+    by_hand = -torch.distributions.Normal(0.0, var.sqrt()).log_prob(e).sum(1).mean()
+    assert math.isclose(m["cv_nll"], by_hand.item(), rel_tol=1e-6)
+
+
+def test_distance_and_cost_gradient_weights():
+    cfg = ds.Config()
+    b = make_batch(8)
+    w = ds.scenario_weights(b, "distance", cfg)
+    d = (b.ego_fut[..., :2] - b.agent_fut[..., :2]).norm(dim=-1).mean(-1)
+    assert torch.isclose(w.mean(), torch.tensor(1.0, dtype=w.dtype))
+    assert w[d.argmin()] == w.max() and w[d.argmax()] == w.min()
+    # grad-cost: |d (w1 C_coll) / d agent future| along the ego's GT future, by hand
+    diff = b.agent_fut[..., :2] - b.ego_fut[..., :2]
+    by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(1).norm(dim=-1)
+    assert torch.allclose(ds.grad_cost_weights(b, cfg), by_hand)
+    assert torch.allclose(ds.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
+    zero = ds.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
+    assert torch.equal(zero, torch.ones(8, dtype=torch.float64))
+    with pytest.raises(ValueError, match="weighting"):
+        ds.scenario_weights(b, lambda batch: -torch.ones(len(batch)), cfg)
+
+
+def test_weighting_changes_training():
+    cfg = small_cfg()
+    data = make_batch(32, seed=7)
+    out = []
+    for weighting in ("standard", "distance"):
+        model = make_model(cfg)
+        ds.train_stack(model, data, ds.Method("x", weighting=weighting), cfg, epochs=1, log=None)
+        out.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
+    assert not torch.allclose(out[0], out[1])
+
+
+def test_collision_cost_gradient_reaches_all_decoder_parameters():
+    cfg = small_cfg()
+    model, b = make_model(cfg), make_batch(8)
+    p = model(b, use_posterior=False)
+    ego = b.ego_fut[:, None, :, :2]  # (B, 1, T, 2)
+    # phi(sum_k pi_k ||s_t - s_hat_kt||^2), eq. (2)'s collision term
+    cost = torch.exp(-(p.probs[..., None] * ((ego - p.means) ** 2).sum(-1)).sum(1) / 4).sum()
+    cost.backward()
+    names = ("dec_in.weight", "dec_hh.weight", "dec_out.weight", "p_z.2.weight", "hist_lstm.weight_hh", "heading_fix.weight")
+    for name in names:
+        grad = dict(model.named_parameters())[name].grad
+        assert grad is not None and grad.abs().sum() > 0, name
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics and plot
+# ---------------------------------------------------------------------------------------------
+
+def test_metrics_on_a_known_prediction():
+    cfg = small_cfg()
+    b = make_batch(4)
+    K = cfg.pred_modes
+    states = b.agent_fut[:, None].repeat(1, K, 1, 1)
+    states[:, 1:, :, 0] += 2.0  # mode 0 exact, others 2 m off in x
+    probs = torch.full((4, K), 0.1 / (K - 1), dtype=torch.float64)
+    probs[:, 0] = 0.9
+    cov = 0.25 * torch.eye(2, dtype=torch.float64).expand(4, K, 6, 2, 2)
+    controls = torch.zeros(4, K, 6, 2, dtype=torch.float64)
+    pred = ds.Prediction(b.agent_hist[:, -1], states, controls, cov, probs.log(), None, probs)
+    m = ds.prediction_metrics(pred, b, cfg)
+    zeros = torch.zeros(4, dtype=torch.float64)
+    assert torch.allclose(m["ade"], zeros) and torch.allclose(m["min_fde"], zeros)
+    nll = -math.log(0.9 / (2 * math.pi * 0.25) + 0.1 / (2 * math.pi * 0.25) * math.exp(-4 / 0.5))
+    assert torch.allclose(m["nll"], torch.full((4,), nll, dtype=torch.float64))
+    probs2 = probs.flip(-1)
+    m2 = ds.prediction_metrics(ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg)
+    assert torch.allclose(m2["ade"], torch.full((4,), 2.0, dtype=torch.float64))
+    assert torch.allclose(m2["min_ade"], m["min_ade"])
+    # constant velocity is exact on a constant-velocity agent (behaviour 0 after its manoeuvre: w = a = 0)
+    s0 = b.agent_hist[:, -1]
+    cv_fut = torch.stack([s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
+                          s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7)], -1)
+    m3 = ds.prediction_metrics(pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg)
+    assert torch.allclose(m3["cv_ade"], torch.zeros(4, dtype=torch.float64), atol=1e-12)
+
+
+def test_plot_prediction_draws_modes():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    cfg = small_cfg()
+    model, b = make_model(cfg).eval(), make_batch(2)
+    fig, ax = plt.subplots()
+    ds.plot_prediction(ax, model(b, use_posterior=False), 1)
+    assert len(ax.lines) == cfg.pred_modes + cfg.horizon
+    widths = sorted(line.get_linewidth() for line in ax.lines[: cfg.pred_modes])
+    assert widths[-1] == 3.0 and widths[0] < widths[-1]
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Slow: a few minutes of training on the synthetic data (DIFFSTACK_SLOW=1 to run)
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.skipif(os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1")
+def test_trained_predictor_beats_constant_velocity():
+    data_synth = pytest.importorskip("data_synth")
+    data = data_synth.make_dataset(8000, seed=0)
+    cfg = ds.Config()
+    torch.manual_seed(0)
+    model = ds.Predictor(cfg)
+    ds.train_stack(model, data.train, STANDARD, cfg, epochs=12, seed=0)
+    m = ds.evaluate_predictor(model, data.val, cfg)
+    assert m["min_ade"] < 0.7 * m["cv_ade"]  # measured: 0.82 vs 1.67 (312 steps, about 1 minute)
+    assert m["nll"] < m["cv_nll"] - 1.0  # measured: 0.86 vs 3.20
+
+
+# ---------------------------------------------------------------------------------------------
+# Data: synthetic scenes, the nuScenes format written and read (data_synth.py)
+# ---------------------------------------------------------------------------------------------
+
+SYNTH_CFG = data_synth.SynthConfig()
+
+
+@pytest.fixture(scope="module")
+def small():
+    return data_synth.make_dataset(120, SYNTH_CFG, seed=0)
+
+
+@pytest.fixture(scope="module")
+def scenes_mixed():
+    """Curved roads, straight roads with intersections, turns and cut-ins: every kind of geometry."""
+    cfg = data_synth.SynthConfig(mix={"turn_across": 1.0, "cut_in": 1.0, "cross_yield": 1.0}, curved_prob=1.0)
+    return data_synth.generate_scenes(6, cfg, seed=5), cfg
+
+
+# --------------------------------------------------------------------------------------------------------------
+# shapes and conventions (INTERFACES.md)
+
+
+def test_scenarios_shapes_and_frame(small):
+    b = small.train
+    B, A, L = len(b), b.others_hist.shape[1], b.lanes.shape[1]
+    expect = {"ego_hist": (B, 9, 4), "ego_fut": (B, 6, 4), "agent_hist": (B, 9, 4), "agent_hist_mask": (B, 9),
+              "agent_fut": (B, 6, 4), "others_hist": (B, A, 9, 4), "others_fut": (B, A, 6, 4), "others_mask": (B, A),
+              "others_is_ped": (B, A), "lanes": (B, L, 40, 3), "lanes_mask": (B, L, 40), "goal": (B, 4),
+              "behaviour": (B,)}
+    assert {k: tuple(v.shape) for k, v in b.tensors().items()} == expect
+    assert b.ego_hist.dtype == torch.float32 and b.behaviour.dtype == torch.int64 and b.lanes_mask.dtype == torch.bool
+    assert all(torch.isfinite(v).all() for v in b.tensors().values() if v.is_floating_point())
+    assert torch.equal(b.ego_hist[:, -1, :3], torch.zeros(B, 3))  # ego frame at t0
+    assert torch.equal(b.goal, b.ego_fut[:, -1])
+    assert b.agent_hist_mask.all() and A > 0 and L > 0
+    assert (b.others_hist[~b.others_mask] == 0).all() and (b.lanes[~b.lanes_mask] == 0).all()  # padding is 0
+    m = b.lanes_mask.long()
+    assert (m[..., 1:] <= m[..., :-1]).all()  # valid lane points are a prefix
+    gaps = torch.linalg.norm(b.lanes[..., 1:, :2] - b.lanes[..., :-1, :2], dim=-1)[b.lanes_mask[..., 1:]]
+    assert gaps.min() > 1.95 and gaps.max() < 2.0 + 1e-4  # 2 m apart along the lane (chords on tight turns)
+    assert set(b.behaviour.tolist()) <= set(range(len(data_synth.BEHAVIOURS)))
+    # the ego's lane: some lane passes within 1 m of the ego, along its heading
+    d = torch.where(b.lanes_mask, torch.linalg.norm(b.lanes[..., :2], dim=-1), math.inf).flatten(1).min(1).values
+    assert (d < 1.0).float().mean() > 0.95
+
+
+def test_scenes_fields(scenes_mixed):
+    s, cfg = scenes_mixed
+    S, F = s.ego.shape[:2]
+    assert F == 41 and s.agents.shape[:3] == s.agents_mask.shape and s.pred_idx.shape == (S, F)
+    assert (s.pred_idx[:, 8:35] == 0).all() and (s.pred_idx[:, :8] == -1).all() and (s.pred_idx[:, 35:] == -1).all()
+    assert s.ego.dtype == torch.float64 and len(s.names) == S
+    assert torch.equal(s.lanes_mask.any(-1), (s.routes >= 0).any(-1))  # every route has points, padding none
+    # the predicted vehicle is present at every frame; the v channel is the backward-difference speed
+    assert s.agents_mask[:, 0].all()
+    v = torch.linalg.norm(s.ego[:, 1:, :2] - s.ego[:, :-1, :2], dim=-1) / cfg.dt
+    assert torch.allclose(s.ego[:, 1:, 3], v) and torch.equal(s.ego[:, 0, 3], s.ego[:, 1, 3])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# determinism, statistics
+
+
+def test_same_seed_same_data_other_seed_other_data():
+    a, b, c = (data_synth.make_dataset(40, SYNTH_CFG, seed=s) for s in (1, 1, 2))
+    for k, v in a.train.tensors().items():
+        assert torch.equal(v, getattr(b.train, k)), k
+    assert not torch.equal(a.train.ego_fut, c.train.ego_fut)
+
+
+def test_statistics_plausible_and_planning_relevant():
+    data = data_synth.make_dataset(1200, SYNTH_CFG, seed=0)
+    st = data_synth.statistics(data_synth.Scenarios.cat([data.train, data.val]))
+    assert all(st["plausible"].values()), data_synth.format_statistics(st)
+    assert set(st["behaviour"]) == set(data_synth.BEHAVIOURS)  # the whole mix is there
+    assert st["ego"]["speed"]["max"] <= 15.01 and st["ego"]["speed"]["p1"] >= 0
+    # the active manoeuvres often hit a no-braking ego; the passive twins, far and behind agents never do
+    beh = st["behaviour"]
+    assert beh["cut_in"]["no_brake_conflict"] > 0.25 and beh["lead_brake"]["no_brake_conflict"] > 0.1
+    assert beh["turn_across"]["no_brake_conflict"] > 0.02 and beh["cross_go"]["no_brake_conflict"] > 0.02
+    for name in ("keep_lane", "lead_cruise", "go_straight", "cross_yield", "far", "behind"):
+        assert beh[name]["no_brake_conflict"] == 0.0, name
+    assert beh["far"]["min_dist_p50"] > 30 and beh["keep_lane"]["within_5m"] > 0.3
+
+
+def test_mix_is_configurable():
+    data = data_synth.make_dataset(60, data_synth.SynthConfig(mix={"lead_brake": 1.0}), seed=0)
+    assert (data.train.behaviour == data_synth.BEHAVIOURS.index("lead_brake")).all()
+    with pytest.raises(ValueError, match="unknown behaviours"):
+        data_synth.generate_scenes(2, data_synth.SynthConfig(mix={"tailgate": 1.0}))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# nuScenes round trip, bad input, skipped scenes
+
+
+def _same_lanes(a, am, b, bm, tol):
+    """Every lane of one sample has a twin in the other (the order of equidistant lanes may differ)."""
+    for x, xm, y, ym in ((a, am, b, bm), (b, bm, a, am)):
+        for lane, m in zip(x, xm):
+            if m.any():
+                assert any(torch.equal(m, m2) and (lane - l2).abs().max() < tol for l2, m2 in zip(y, ym))
+
+
+def test_nuscenes_round_trip(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
+    loaded, report = data_synth.load_nuscenes(tmp_path, "v1.0-mini", cfg)
+    assert report == dict(scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
+    assert torch.equal(loaded.pred_idx >= 0, scenes.pred_idx >= 0)
+    for frame in (8, 21, 34):
+        a = data_synth.sample_at(scenes, frame, cfg=cfg, dtype=torch.float64)
+        b = data_synth.sample_at(loaded, frame, cfg=cfg, dtype=torch.float64)
+        for k in ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal"):  # exact up to float64 rounding
+            assert (getattr(a, k) - getattr(b, k)).abs().max() < 1e-9, k
+        A = a.others_mask.shape[1]
+        assert torch.equal(a.others_mask, b.others_mask[:, :A]) and not b.others_mask[:, A:].any()
+        assert (a.others_hist - b.others_hist[:, :A]).abs().max() < 1e-9
+        assert (a.others_fut - b.others_fut[:, :A]).abs().max() < 1e-9
+        assert torch.equal(a.others_is_ped, b.others_is_ped[:, :A])
+        for i in range(len(scenes)):
+            _same_lanes(a.lanes[i], a.lanes_mask[i], b.lanes[i], b.lanes_mask[i], 1e-9)
+    # the float32 samples agree to float32 precision
+    a32, b32 = data_synth.sample_at(scenes, 20, cfg=cfg), data_synth.sample_at(loaded, 20, cfg=cfg)
+    assert (a32.ego_fut - b32.ego_fut).abs().max() < 1e-4 and a32.ego_fut.dtype == torch.float32
+
+
+def test_writer_refuses_to_overwrite(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    with pytest.raises(FileExistsError, match="overwrite"):
+        data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg, overwrite=True)
+
+
+@pytest.fixture
+def folder(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
+    return tmp_path
+
+
+def test_bad_input_names_the_file(folder):
+    (folder / "v1.0-mini" / "sample.json").unlink()
+    with pytest.raises(data_synth.NuScenesFormatError, match=r"sample\.json: missing"):
+        data_synth.load_nuscenes(folder)
+
+
+def test_malformed_json_names_the_file(folder):
+    (folder / "v1.0-mini" / "scene.json").write_text('[{"token": "x", ')
+    with pytest.raises(ValueError, match=r"scene\.json: malformed JSON"):
+        data_synth.load_nuscenes(folder)
+
+
+def test_missing_key_names_the_file(folder):
+    path = folder / "v1.0-mini" / "ego_pose.json"
+    poses = json.loads(path.read_text())
+    del poses[4]["translation"]  # a CAM_FRONT pose (the writer alternates CAM_FRONT, LIDAR_TOP)
+    path.write_text(json.dumps(poses))
+    with pytest.raises(data_synth.NuScenesFormatError, match=r"ego_pose\.json"):
+        data_synth.load_nuscenes(folder)
+
+
+def test_missing_map_expansion_names_the_file(folder):
+    loc = json.loads((folder / "v1.0-mini" / "log.json").read_text())[0]["location"]
+    (folder / "maps" / "expansion" / f"{loc}.json").unlink()
+    with pytest.raises(data_synth.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
+        data_synth.load_nuscenes(folder)
+
+
+def test_unknown_or_missing_version_folder(folder):
+    with pytest.raises(data_synth.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
+        data_synth.load_nuscenes(folder, "v2.0-beta")
+    with pytest.raises(data_synth.NuScenesFormatError, match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini"):
+        data_synth.load_nuscenes(folder, "v1.0-trainval")
+
+
+def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    s = data_synth.Scenes(**{k: v.clone() for k, v in scenes[:4].tensors().items()}, names=scenes.names[:4])
+    s.ego[1, :, :2] += 5000.0  # the ego drives far from its lanes: no lanes
+    s.pred_idx[2] = -1  # nobody to predict
+    data_synth.write_nuscenes(s, tmp_path, cfg=cfg)
+    path = tmp_path / "v1.0-mini" / "sample.json"
+    samples = json.loads(path.read_text())
+    first = json.loads((tmp_path / "v1.0-mini" / "scene.json").read_text())[0]["first_sample_token"]
+    rec = next(r for r in samples if r["token"] == first)
+    for _ in range(10):  # the first scene ends after 11 frames: too short for a 15-frame sample
+        rec = next(r for r in samples if r["token"] == rec["next"])
+    rec["next"] = ""
+    path.write_text(json.dumps(samples))
+    loaded, report = data_synth.load_nuscenes(tmp_path, cfg=cfg)
+    assert report == dict(scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1)
+    assert loaded.names == [data_synth.MINI_SCENES[3]]
+    batch, report = data_synth.load_nuscenes_scenarios(tmp_path, cfg=cfg)
+    assert report["samples"] == len(batch) == 27 and report["samples_skipped_no_lanes"] == 0
+
+
+def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    (tmp_path / "maps" / "prediction" / "prediction_scenes.json").unlink()
+    loaded, _ = data_synth.load_nuscenes(tmp_path, cfg=cfg)
+    for i in range(2):
+        for f in range(8, 35):
+            p = int(loaded.pred_idx[i, f])
+            if p < 0:
+                continue
+            assert not loaded.agents_is_ped[i, p] and loaded.agents_mask[i, p, f:f + 7].all()
+            gap = loaded.agents[i, :, f:f + 7, :2] - loaded.ego[i, None, f:f + 7, :2]
+            d = torch.linalg.norm(gap, dim=-1).min(1).values
+            window = loaded.agents[i, :, f - 8:f + 7, :2]
+            moved = torch.linalg.norm(window - window[:, :1], dim=-1).max(1).values  # all observed here
+            ok = ~loaded.agents_is_ped[i] & loaded.agents_mask[i, :, f - 8:f + 7].all(1) & (moved >= 1.0)
+            assert d[p] <= d[ok].min() + 1e-9
+
+
+# --------------------------------------------------------------------------------------------------------------
+# batches, closed-loop cutting, cache, plot
+
+
+def test_scenarios_indexing_cat_and_to(small):
+    b = small.train
+    assert len(b[2:5]) == 3 and len(b[torch.tensor([0, 3])]) == 2 and len(b[b.behaviour == b.behaviour[0]]) >= 1
+    assert torch.equal(b[torch.tensor([3])].goal, b.goal[3:4])
+    few = b[:2]
+    few = data_synth.Scenarios(**{**few.tensors(), "others_hist": few.others_hist[:, :1], "others_fut": few.others_fut[:, :1],
+                          "others_mask": few.others_mask[:, :1], "others_is_ped": few.others_is_ped[:, :1],
+                          "lanes": few.lanes[:, :1], "lanes_mask": few.lanes_mask[:, :1]})
+    cat = data_synth.Scenarios.cat([few, b[2:4]])
+    assert len(cat) == 4 and cat.others_hist.shape[1] == b.others_hist.shape[1]
+    assert cat.lanes.shape[1] == b.lanes.shape[1]
+    assert not cat.others_mask[:2, 1:].any() and (cat.others_hist[:2, 1:] == 0).all()
+    assert not cat.lanes_mask[:2, 1:].any()
+    assert torch.equal(cat.others_hist[2:], b.others_hist[2:4])
+    b64 = b.to(torch.float64)
+    assert b64.lanes.dtype == torch.float64 and b64.lanes_mask.dtype == torch.bool
+    assert b64.behaviour.dtype == torch.int64
+
+
+def test_sample_at_with_a_simulated_ego(scenes_mixed):
+    scenes, cfg = scenes_mixed
+    logged = data_synth.sample_at(scenes, 20, cfg=cfg, dtype=torch.float64)
+    state = scenes.ego[:, 20].clone()
+    h = state[:, 2]
+    state[:, 0] += torch.cos(h) + 0.5 * -torch.sin(h)  # 1 m ahead and 0.5 m to the left of the log
+    state[:, 1] += torch.sin(h) + 0.5 * torch.cos(h)
+    sim = data_synth.sample_at(scenes, 20, ego_state=state, cfg=cfg, dtype=torch.float64)
+    assert torch.allclose(sim.ego_hist[:, -1, :3], torch.zeros(len(scenes), 3, dtype=torch.float64), atol=1e-12)
+    shift = torch.tensor([1.0, 0.5], dtype=torch.float64)
+    assert torch.allclose(sim.goal[:, :2], logged.goal[:, :2] - shift)  # the goal stays the logged ego's
+    assert torch.allclose(sim.agent_fut[..., :2], logged.agent_fut[..., :2] - shift)
+    hist = scenes.ego[:, 12:21].clone()
+    hist[:, -1] = state
+    full = data_synth.sample_at(scenes, 20, ego_state=hist, cfg=cfg, dtype=torch.float64)
+    assert torch.allclose(full.ego_hist, sim.ego_hist)
+    with pytest.raises(ValueError, match="ego_state"):
+        data_synth.sample_at(scenes, 20, ego_state=state[:, :3], cfg=cfg)
+    with pytest.raises(ValueError, match="frames must be in"):
+        data_synth.sample_at(scenes, 35, cfg=cfg)
+
+
+def test_cache_round_trip_and_foreign_file(tmp_path):
+    a = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
+    (path,) = tmp_path.glob("scenarios-*.pt")
+    b = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
+    assert torch.equal(a.train.lanes, b.train.lanes) and torch.equal(a.val_scenes.ego, b.val_scenes.ego)
+    assert b.val_scenes.names == a.val_scenes.names and len(a.train) + len(a.val) == 30
+    path.write_bytes(b"not a cache")
+    with pytest.raises(ValueError, match=path.name):
+        data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
+    assert path.read_bytes() == b"not a cache"  # never overwritten
+
+
+def test_plot_scenario_draws_everything(small):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots()
+    data_synth.plot_scenario(ax, small.train, 0)
+    n_lanes = int(small.train.lanes_mask[0].any(-1).sum())
+    n_others = int(small.train.others_mask[0].sum())
+    assert len(ax.lines) >= n_lanes + 2 * n_others + 5 and len(ax.patches) >= 2
+    assert ax.get_title() == data_synth.BEHAVIOURS[int(small.train.behaviour[0])]
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# geometry
+
+
+def test_arcline_geometry():
+    # a left quarter circle of radius 10 from the origin heading +x ends at (10, 10) heading +y, points on the circle
+    p = np.array([[0.0, 0.0, 0.0, 10.0, 5 * math.pi, 0.0, 0.0, 1, 0, 1]])
+    segs = data_synth.arcline_segments(p)
+    pts, mask = data_synth.discretize(segs, 2.0)
+    assert mask.sum() == 8  # 15.7 m: points at 0, 2, ..., 14
+    assert np.allclose(np.linalg.norm(pts[mask][:, :2] - [0, 10], axis=-1), 10)
+    end, _ = data_synth.pose_along(segs[0], np.array([5 * math.pi]))
+    assert np.allclose(end[0], [10, 10, math.pi / 2])
+    # arc then straight (shape LSR with lengths [arc, 5, 0]): the straight continues north; past the end it extends
+    p2 = np.array([[0.0, 0.0, 0.0, 10.0, 5 * math.pi, 5.0, 0.0, 1, 0, -1]])
+    ends, _ = data_synth.pose_along(data_synth.arcline_segments(p2)[0], np.array([5 * math.pi + 5, 5 * math.pi + 7]))
+    assert np.allclose(ends, [[10, 15, math.pi / 2], [10, 17, math.pi / 2]])
+    # the road frame round trip, straight and curved
+    for kappa in (0.0, 1 / 150, -1 / 300):
+        s, d = np.array([-40.0, 0.0, 120.0]), np.array([-5.25, 1.75, 8.0])
+        x, y, _ = data_synth.frenet_to_xy(s, d, kappa)
+        s2, d2 = data_synth.xy_to_frenet(x, y, kappa)
+        assert np.allclose(s2, s) and np.allclose(d2, d)
+
+
+def test_backward_speed_with_gaps():
+    xy = np.array([[0, 0], [1, 0], [0, 0], [4, 0], [5, 0]], float)
+    mask = np.array([True, True, False, True, True])
+    v = data_synth.backward_speed(xy, mask, np.arange(5) * 0.5)
+    assert np.allclose(v[[0, 1, 3, 4]], [2.0, 2.0, 3.0, 2.0])  # first copies the second; the gap spans 1 s
