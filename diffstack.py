@@ -1755,55 +1755,58 @@ DATA_CACHE = "data_cache"
 EXPERIMENTS = ("rl", "biased", "il")
 
 
-def load_data(path=None, n=4000, seed=0, version=None, log=print):
-    """Training and validation Scenarios: synthetic (cached), or read from a nuScenes folder at `path`
-    (real or written by data_synth), whose last 15 % of scenes (by name) validate."""
+@dataclass
+class SimpleData:
+    """A training and a validation set of Scenarios."""
+
+    train: object
+    val: object
+
+
+def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
+    """Training and validation Scenarios: synthetic (cached in cache_dir), or read from a nuScenes folder at
+    `path` (real, or written by data_synth.py), whose last 15 % of scenes (by name) validate."""
     import data_synth
 
     if path is None:
-        d = data_synth.load_or_generate(n, seed=seed, cache_dir=DATA_CACHE)
-        return d.train, d.val
+        d = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
+        return SimpleData(d.train, d.val)
     root = pathlib.Path(path)
     if not root.is_dir():
         raise ValueError(f"--data: {path} is not a folder")
-    versions = [version] if version else [v for v in ("v1.0-mini", "v1.0-trainval", "v1.0-test") if (root / v).is_dir()]
+    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
     if not versions:
-        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini, v1.0-trainval)")
+        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
     scenes, report = data_synth.load_nuscenes(root, versions[0])
+    if len(scenes) < 2:
+        raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
     order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
     n_val = max(1, round(0.15 * len(order)))
-    if len(order) < 2:
-        raise ValueError(f"--data: {path} has {len(order)} usable scene(s); training needs at least 2")
     rng = np.random.default_rng(seed)
     train, _ = data_synth.cut_samples(scenes[torch.tensor(order[:-n_val])], None, rng)
     val, _ = data_synth.cut_samples(scenes[torch.tensor(order[-n_val:])], None, rng)
-    log(f"read {path} ({versions[0]}): {report}; {len(train)} training and {len(val)} validation samples")
-    return train, val
+    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
+    return SimpleData(train, val)
 
 
-def quick(threads=2, log=print):
+def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir=DATA_CACHE, log=print):
     """`--quick`: a Table-1-style comparison on synthetic data in about a minute."""
     torch.set_num_threads(threads)
-    cfg = Config()
-    log("DiffStack --quick: synthetic scenarios (generated once, then cached in data_cache/), Standard and DiffStack\n"
-        "trained briefly (RL setting), evaluated with No prediction and GT prediction beside them. About a minute.")
+    cfg = cfg or Config()
+    n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
+    log(f"DiffStack --quick: {n} synthetic scenarios (generated once, then cached in {cache_dir}/); Standard and\n"
+        f"DiffStack trained for {epochs:g} epochs (RL setting) and evaluated with No prediction and GT prediction beside\n"
+        "them. About a minute on 2 cores.")
     t0 = time.time()
-    train, val = load_data(n=QUICK["n"])
-    log(f"data: {len(train)} training, {len(val)} validation scenarios ({time.time() - t0:.0f}s)")
+    data = load_data(n=n, cache_dir=cache_dir)
+    log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
     methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-    res = open_loop_experiment(SimpleData(train, val), cfg, "rl", methods, seeds=(0,), epochs=QUICK["epochs"], log=log)
-    log("\n" + format_table(res, "rl"))
-    log(f"\ntotal {time.time() - t0:.0f}s")
+    res = open_loop_experiment(data, cfg, "rl", methods, seeds=(0,), epochs=epochs, log=log)
+    log("\n" + format_table(res, "rl") + f"\n\ntotal {time.time() - t0:.0f}s")
     return res
 
 
-QUICK = dict(n=2000, epochs=1.0)
-
-
-@dataclass
-class SimpleData:
-    train: object
-    val: object
+QUICK = dict(n=3000, epochs=8.0)
 
 
 def main(argv=None):
@@ -1830,10 +1833,10 @@ def main(argv=None):
         return bench()
     torch.set_num_threads(args.threads)
     try:
-        train, val = load_data(args.data, args.n)
+        data = load_data(args.data, args.n)
     except ValueError as e:
         ap.error(str(e))
-    return run_experiment(args.experiment, SimpleData(train, val), Config(), range(args.seeds), args.epochs, args.out,
+    return run_experiment(args.experiment, data, Config(), range(args.seeds), args.epochs, args.out,
                           " ".join(["python diffstack.py", *(argv if argv is not None else sys.argv[1:])]))
 
 
