@@ -82,10 +82,9 @@ class Config:
     """terminal lateral offsets from the lane centre (m)"""
     beta: float = 1.0
     """temperature of the relaxed argmin p_n = softmax(-beta C_n)"""
-    feas_accel: tuple = (-6.0, 4.0)
-    """feasible acceleration range of a candidate (m/s^2), authors' code"""
     feas_lat_accel: float = 8.0
-    """feasible |w v| (m/s^2), authors' code"""
+    """feasible |w v| (m/s^2), authors' code; candidates must also respect the controller's box u_lower..u_upper
+    (authors' code: acceleration in [-6, 4])"""
     feas_yaw_per_speed: float = 0.5
     """feasible |w| <= this * |v| (1/m), authors' code"""
 
@@ -828,7 +827,7 @@ class ILQR(torch.autograd.Function):
         return (None, None, None, None, p0, None, *grads)
 
 
-def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, exact=True):
+def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True):
     """The differentiable controller, eq. (3): x (B, T+1, n), u (B, T, m), converged (B,).
 
     Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
@@ -843,7 +842,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     for i, p in enumerate(params):
         if torch.is_tensor(p) and p.is_floating_point():
             check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
-    settings = dict(lo=lo, hi=hi, iters=iters, tol=tol)
+    settings = dict(lo=lo, hi=hi, iters=iters, tol=tol, ls_steps=ls_steps, ls_decay=ls_decay)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
 
@@ -1469,7 +1468,8 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
             return total_cost(x, u, c, w, cfg.rbf_var)
 
         x, u, converged = ilqr_solve(cost_fn, Unicycle(dt), s0, u_init, (w, preds, probs), cfg.u_lower, cfg.u_upper,
-                                     iters=cfg.ilqr_iters, tol=cfg.ilqr_tol)
+                                     iters=cfg.ilqr_iters, tol=cfg.ilqr_tol, ls_steps=cfg.line_search_steps,
+                                     ls_decay=cfg.line_search_decay)
     else:
         x, u = cands.x[idx, best], cands.u[idx, best]
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
@@ -1641,17 +1641,23 @@ def format_table(results: dict, setting="rl") -> str:
     cols = SETTING_COLUMNS[setting]
     head = ["Method", "ADE (m)", "NLL (nats)"] + [c[2] for c in cols] + ["iLQR converged"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def cell(runs, key, fmt="{:.2f}"):
+        if key not in runs[0]:
+            return "--"
+        m, s = mean_se([r[key] for r in runs])
+        return f"{fmt.format(m)} ± {fmt.format(s)}"
+
     for name, runs in results.items():
-        cell = lambda k, f="{:.2f}": (lambda m, s: f"{f.format(m)} ± {f.format(s)}")(*mean_se([r[k] for r in runs])) if k in runs[0] else "--"  # noqa: E731
-        row = [name, cell("ade"), cell("nll")] + [cell("rel_" + c[0]) for c in cols] + [cell("converged", "{:.3f}")]
-        lines.append("| " + " | ".join(row) + " |")
+        row = [name, cell(runs, "ade"), cell(runs, "nll")] + [cell(runs, "rel_" + c[0]) for c in cols]
+        lines.append("| " + " | ".join(row + [cell(runs, "converged", "{:.3f}")]) + " |")
     return "\n".join(lines)
 
 
-def gap_closed(results: dict, metric="rel_hindsight") -> tuple:
-    """Share of the Standard -> GT prediction gap that DiffStack closes, per seed: mean and s.e."""
+def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
+    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e."""
     gt = results["GT prediction"][0][metric]
-    shares = [(s[metric] - d[metric]) / (s[metric] - gt) for s, d in zip(results["Standard"], results["DiffStack"])]
+    shares = [(s[metric] - d[metric]) / (s[metric] - gt) for s, d in zip(results[standard], results[diffstack])]
     return mean_se(shares)
 
 
@@ -1765,7 +1771,8 @@ class SimpleData:
 
 def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
     """Training and validation Scenarios: synthetic (cached in cache_dir), or read from a nuScenes folder at
-    `path` (real, or written by data_synth.py), whose last 15 % of scenes (by name) validate."""
+    `path` (real, or written by data_synth.py), split by scene: the official v1.0-mini validation scenes, or
+    else the last 15 % of the scenes by name."""
     import data_synth
 
     if path is None:
@@ -1780,11 +1787,15 @@ def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
     scenes, report = data_synth.load_nuscenes(root, versions[0])
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
-    order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
-    n_val = max(1, round(0.15 * len(order)))
+    # the official v1.0-mini validation scenes where present, else the last 15 % of the scenes by name
+    is_val = torch.tensor([name in data_synth.MINI_VAL for name in scenes.names])
+    if not is_val.any() or is_val.all():
+        order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
+        is_val = torch.zeros(len(scenes), dtype=torch.bool)
+        is_val[order[-max(1, round(0.15 * len(order))):]] = True
     rng = np.random.default_rng(seed)
-    train, _ = data_synth.cut_samples(scenes[torch.tensor(order[:-n_val])], None, rng)
-    val, _ = data_synth.cut_samples(scenes[torch.tensor(order[-n_val:])], None, rng)
+    train, _ = data_synth.cut_samples(scenes[~is_val], None, rng)
+    val, _ = data_synth.cut_samples(scenes[is_val], None, rng)
     log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
     return SimpleData(train, val)
 
@@ -1817,8 +1828,8 @@ def main(argv=None):
     ap.add_argument("--bench", action="store_true", help="print benchmark medians (1 and 2 threads)")
     ap.add_argument("--experiment", choices=EXPERIMENTS, help="run a table of the paper; writes results/<name>.json and .md")
     ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
-    ap.add_argument("--epochs", type=float, default=1.0, help="training epochs per method (default 1; fractions allowed)")
-    ap.add_argument("--n", type=int, default=4000, help="synthetic scenarios (train + val, default 4000)")
+    ap.add_argument("--epochs", type=float, default=6.0, help="training epochs per method (default 6; fractions allowed)")
+    ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     ap.add_argument("--out", default="results", help="where experiments write (default results/)")
@@ -1856,6 +1867,10 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         res = open_loop_experiment(data, cfg, "il", methods, seeds, epochs, log=log)
         setting = "il"
     table = format_table(res, setting)
+    if name in ("rl", "biased"):
+        names = ("Standard", "DiffStack") if name == "rl" else ("Standard-biased", "DiffStack-biased")
+        m, s = gap_closed(res, *names)
+        table += f"\n\n{names[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {names[0]} -> GT prediction hindsight-cost gap."
     meta = dict(experiment=name, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                 date=time.strftime("%Y-%m-%d"), machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
                 f"{torch.get_num_threads()} threads", train=len(data.train), val=len(data.val))
