@@ -1716,24 +1716,27 @@ def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> d
 
 
 def bench(threads=(1, 2), reps=7, log=print) -> dict:
-    """`--bench`: medians of the controller (tracking benchmark, B = 256, T = 6, dt 0.5, 5 iterations),
-    the planner and a DiffStack training step (B = 256) with its split across the modules."""
+    """`--bench`: medians (ms) of the controller on the tracking benchmark (B = 256, T = 6, dt 0.5, up to 5
+    iterations, tol 0.01), the planner's candidates, and a DiffStack training step (RL, B = 256) split across
+    the modules. mpc.pytorch on the same benchmark: bench_mpc.py."""
     import data_synth
 
     cfg = Config()
-    data = data_synth.load_or_generate(2000, seed=0, cache_dir=DATA_CACHE)
-    batch = data.train[:cfg.batch_size]
+    batch = data_synth.load_or_generate(2000, seed=0, cache_dir=DATA_CACHE).train[:cfg.batch_size]
+    cols = ["threads", "iLQR fwd f64", "KKT bwd f64", "iLQR fwd f32", "KKT bwd f32", "converged f32", "candidates",
+            "step: predict", "plan", "control", "backward", "total"]
+    log("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     out = {}
     for nt in threads:
         torch.set_num_threads(nt)
-        r = {}
-        for dtype in (torch.float64, torch.float32):
-            c = bench_controller(256, dtype, reps=reps)
-            r.update({f"ilqr_{k}_{str(dtype)[6:]}": v for k, v in c.items()})
-        r["planner_ms"] = _median_ms(lambda: plan_candidates(batch.ego_hist[:, -1], batch.goal, batch.lanes, batch.lanes_mask, cfg), reps)
-        r.update(bench_stack_step(batch, cfg, reps=max(3, reps // 2)))
-        out[nt] = r
-        log(f"torch.set_num_threads({nt}): " + "  ".join(f"{k} {v:.1f}" if "conv" not in k else f"{k} {v:.2f}" for k, v in r.items()))
+        c64, c32 = bench_controller(256, torch.float64, reps=reps), bench_controller(256, torch.float32, reps=reps)
+        cand = _median_ms(lambda: plan_candidates(batch.ego_hist[:, -1], batch.goal, batch.lanes, batch.lanes_mask, cfg), reps)
+        step = bench_stack_step(batch, cfg, reps=max(3, reps // 2))
+        out[nt] = dict(controller_f64=c64, controller_f32=c32, candidates_ms=cand, step=step)
+        row = [c64["forward_ms"], c64["backward_ms"], c32["forward_ms"], c32["backward_ms"]]
+        row = [str(nt)] + [f"{v:.0f}" for v in row] + [f"{c32['converged']:.2f}", f"{cand:.0f}"]
+        row += [f"{step[k]:.0f}" for k in ("predict", "plan", "control", "backward", "step")]
+        log("| " + " | ".join(row) + " |")
     return out
 
 
@@ -1752,7 +1755,7 @@ def bench_stack_step(batch, cfg: Config, reps=3) -> dict:
         t["backward"] = time.perf_counter() - t0
         t["step"] = sum(t.values())
         runs.append(t)
-    return {f"step_{k}_ms": 1e3 * statistics.median(r[k] for r in runs[1:]) for k in runs[0]}
+    return {k: 1e3 * statistics.median(r[k] for r in runs[1:]) for k in runs[0]}
 
 
 # --- the command line -------------------------------------------------------------------------
