@@ -248,6 +248,35 @@ def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     return A, B
 
 
+def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float) -> torch.Tensor:
+    """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates lam (..., 4).
+
+    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, w, a). With
+    mu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
+        d2/dh2 = -mu'd,   d2/dh dq = (J'mu)' dd/dq,   d2/dq dr = mu' d2d/dq dr,   q, r in (v, w, a),
+    and the moments' rule d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1} gives every derivative of d.
+    """
+    h, v = s[..., 2], s[..., 3]
+    w, a = u.unbind(-1)
+    (c0, c1, c2, c3), (s0, s1, s2, s3) = _moments(w, dt, 3)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    mu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # mu = R(h)' lam_xy
+    mu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
+    dot = lambda e: mu_x * e[0] + mu_y * e[1]  # noqa: E731  mu' e
+    dot_j = lambda e: mu_y * e[0] - mu_x * e[1]  # noqa: E731  (J' mu)' e
+    d = (v * c0 + a * c1, v * s0 + a * s1)
+    dd = {"v": (c0, s0), "w": (-(v * s1 + a * s2), v * c1 + a * c2), "a": (c1, s1)}  # first derivatives of d
+    d2 = {("v", "w"): (-s1, c1), ("w", "a"): (-s2, c2), ("w", "w"): (-(v * c2 + a * c3), -(v * s2 + a * s3))}
+    index = {"h": 2, "v": 3, "w": 4, "a": 5}  # positions in z = (x, y, h, v, w, a)
+    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype)
+    H[..., 2, 2] = -dot(d)
+    for q, e in dd.items():
+        H[..., 2, index[q]] = H[..., index[q], 2] = dot_j(e)
+    for (q, r), e in d2.items():
+        H[..., index[q], index[r]] = H[..., index[r], index[q]] = dot(e)
+    return H
+
+
 def rollout(dynamics, x0, u):
     """Integrate controls u (..., T, m) from x0 (..., n) with a step function: x (..., T+1, n), x0 first."""
     xs = [x0]
@@ -272,6 +301,9 @@ class Unicycle:
 
     def jacobians(self, s, u):
         return unicycle_jacobians(s, u, self.dt)
+
+    def curvature(self, s, u, lam):
+        return unicycle_curvature(s, u, lam, self.dt)
 
 
 # ============================================================================================
@@ -778,9 +810,12 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
         for t in reversed(range(1, T)):
             lam.append(g[:, t, :n] + (A[:, t].transpose(-1, -2) @ lam[-1][..., None])[..., 0])
         lam = torch.stack(lam[::-1], 1)  # (B, T, n): lambda_1 .. lambda_T
-        z = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
-        lam_f = lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum()  # noqa: E731
-        Hf = _stagewise_jacobian(torch.func.grad(lam_f), z)  # (B, T, n+m, n+m)
+        if hasattr(dynamics, "curvature"):  # closed form (Unicycle)
+            Hf = dynamics.curvature(x[:, :-1], u, lam)  # (B, T, n+m, n+m)
+        else:
+            z = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
+            lam_f = lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum()  # noqa: E731
+            Hf = _stagewise_jacobian(torch.func.grad(lam_f), z)
         H = H + torch.cat([Hf, torch.zeros_like(H[:, :1])], 1)
     rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
     k, K, _, p0 = lqr_backward(A, Bm, H, rhs, n, u_free=free)

@@ -60,6 +60,17 @@ def test_unicycle_batched_and_jacobians():
     assert states.shape == (3, 6, 4) and torch.allclose(states[:, 1], ds.unicycle_step(s[:, 0], u[:, 0], DT))
 
 
+@pytest.mark.parametrize("w_scale", [1e-3, 0.59, 0.61, 3.0])
+def test_unicycle_curvature_matches_autodiff(w_scale):
+    g = torch.Generator().manual_seed(2)
+    s, u, lam = (torch.randn(10, k, generator=g, dtype=torch.float64) for k in (4, 2, 4))
+    u[:, 0] *= w_scale  # both sides of the series switch
+    H = ds.unicycle_curvature(s, u, lam, DT)
+    lagrangian = lambda z, l: (l * ds.unicycle_step(z[:4], z[4:], DT)).sum()  # noqa: E731
+    expect = torch.vmap(torch.func.hessian(lagrangian))(torch.cat([s, u], -1), lam)
+    assert torch.allclose(H, expect, atol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------------
 # Cost, planner, controller on small hand-made scenes
 # ---------------------------------------------------------------------------------------------
