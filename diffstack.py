@@ -1866,7 +1866,7 @@ def main(argv=None):
     ap.add_argument("--bench", action="store_true", help="print benchmark medians (1 and 2 threads)")
     ap.add_argument("--experiment", choices=EXPERIMENTS, help="run a table of the paper; writes results/<name>.json and .md")
     ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
-    ap.add_argument("--epochs", type=float, default=6.0, help="training epochs per method (default 6; fractions allowed)")
+    ap.add_argument("--epochs", type=float, default=4.0, help="training epochs per method (default 4; fractions allowed)")
     ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
