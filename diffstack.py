@@ -14,7 +14,9 @@ Map of the module (the order the data flows):
     6. Predictor              Trajectron++-style CVAE over controls
     7. Stack                  predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
     8. Training, evaluation   the methods of Table 1 and their metrics
-    9. Experiments, CLI       Tables 1-5, --quick, --bench
+    9. Experiments            Tables 1-3 (open loop), the benchmarks
+   10. Beyond open loop       cost learning (Table 4), closed loop (Table 5), ablations, figures
+   11. Command line           --quick, --experiment, --bench
 
 Shape letters used in comments:
     B scenarios (batch)   A other agents   K prediction modes   N planner candidates
@@ -1424,29 +1426,32 @@ class StackOutput:
     plannable: torch.Tensor  # bool: at least 2 planner candidates
     converged: torch.Tensor  # bool: iLQR converged
     x: torch.Tensor  # (B, T+1, 4) the final ego trajectory
+    u: torch.Tensor  # (B, T, 2) its controls
     cands: Candidates | None = None
     cand_cost: torch.Tensor | None = None  # (B, N)
     pred: object = None  # the predictor's output
 
 
-def _contexts(batch, preds, probs, pred_mask):
-    """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent)."""
-    common = dict(others=batch.others_fut[..., :2], others_mask=batch.others_mask.to(preds.dtype),
-                  goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
-    ctx = CostContext(preds, probs, pred_mask, **common)
+def _contexts(batch, preds, probs, pred_mask, plan_others=True):
+    """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
+    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. E)."""
+    others_mask = batch.others_mask.to(preds.dtype)
+    common = dict(others=batch.others_fut[..., :2], goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
+    ctx = CostContext(preds, probs, pred_mask, others_mask=others_mask * plan_others, **common)
     ones = torch.ones_like(pred_mask)
-    hctx = CostContext(batch.agent_fut[:, None, :, :2], ones[:, None], ones, **common)
+    hctx = CostContext(batch.agent_fut[:, None, :, :2], ones[:, None], ones, others_mask=others_mask, **common)
     return ctx, hctx
 
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
-              w=None, planner=True, controller=True, pred_target=None, timings=None) -> StackOutput:
+              w=None, planner=True, controller=True, plan_others=True, pred_target=None, timings=None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
     q(z|x,y) and the KL/logit schedules use `step` (as the authors' code); otherwise p(z|x).
     w: cost weights (5,) (learnable in the cost-learning experiment), default the hand-tuned ones.
     planner=False: iLQR starts from zero controls (ablation); controller=False: the plan is final.
+    plan_others=False: planner and controller ignore the other agents (they still count in hindsight).
     pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
     timings: a dict that receives the seconds spent predicting, planning and controlling.
     """
@@ -1474,7 +1479,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         preds, probs, pred_mask = batch.agent_fut[:, None, :, :2], torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
-    ctx, hctx = _contexts(batch, preds, probs, pred_mask)
+    ctx, hctx = _contexts(batch, preds, probs, pred_mask, plan_others)
     gt_pos = batch.ego_fut[..., :2]  # (B, T, 2)
     lap("predict")
     # --- plan, eq. (1): costs of all candidates, with predictions and in hindsight ---
@@ -1511,7 +1516,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     mse = ((x[:, 1:, :2] - gt_pos) ** 2).sum((-1, -2))  # (B,)
     l_ctr = hindsight if setting == "rl" else mse
     lap("control")
-    return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, cands, cost, pred)
+    return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
 
 
 # ============================================================================================
@@ -1624,7 +1629,7 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
 
 
 # ============================================================================================
-# 9. Experiments (Tables 1-3) and the command line
+# 9. Experiments: Tables 1-3, and the benchmarks
 # ============================================================================================
 
 SETTING_COLUMNS = {  # (metric, scale of the relative column, header)
@@ -1793,18 +1798,577 @@ def bench_stack_step(batch, cfg: Config, reps=3) -> dict:
     return {k: 1e3 * statistics.median(r[k] for r in runs[1:]) for k in runs[0]}
 
 
-# --- the command line -------------------------------------------------------------------------
+# ============================================================================================
+# 10. Beyond open loop: cost learning (Table 4), closed loop (Table 5), ablations (App. A.1), figures
+# ============================================================================================
+#
+#   10.1 cost learning    w_i = alpha c softmax(psi)_i, learned from L_ctr = MSE through the KKT backward
+#   10.2 closed loop      log replay: the ego driven by the stack's first control, the others replay the log
+#   10.3 ablations        loss weights, no L_plan / L_ctr, no planner, no controller (dt = 0.1 s: see the note)
+#   10.4 figures          Fig. 3 (Standard vs DiffStack on one scenario), a closed-loop rollout, learned weights
+#   10.5 report           every table and figure in one markdown file
+
+
+# --------------------------------------------------------------------------------------------
+# 10.1 Cost learning (§4.2, Table 4, App. A.2)
+# --------------------------------------------------------------------------------------------
+
+
+class CostWeights(nn.Module):
+    """The cost weights of eq. (2), reparameterised as in App. A.2:
+
+        w_i = alpha w'_i,   w'_i = c exp(psi_i) / sum_j exp(psi_j),   i = 1..5
+
+    alpha and psi_2..5 are trained; psi_1 (collision) is fixed "to ensure safety" and c is a constant.
+    At initialisation c = sum of the hand-tuned weights, psi = log w, alpha = 1 recover them exactly.
+    (With psi_1 fixed, w'_1 still moves a little through the normaliser sum_j exp(psi_j).)
+    """
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        w0 = cost_weights(cfg, torch.float32)  # (5,)
+        self.register_buffer("c", w0.sum())
+        self.register_buffer("psi_coll", w0[:1].log())  # (1,) fixed, not a parameter
+        self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
+        self.alpha = nn.Parameter(torch.ones(()))
+
+    def normalised(self) -> torch.Tensor:
+        """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 4)."""
+        return self.c * torch.softmax(torch.cat([self.psi_coll, self.psi]), 0)
+
+    def forward(self) -> torch.Tensor:
+        """w = alpha w' (5,), what the planner and the controller use."""
+        return self.alpha * self.normalised()
+
+
+def _plannable_mean(v: torch.Tensor, out: StackOutput) -> torch.Tensor:
+    """Mean of a per-scenario value (B,) over the plannable scenarios of a batch."""
+    keep = out.plannable.to(v.dtype)
+    return (v * keep).sum() / keep.sum().clamp_min(1)
+
+
+def train_cost_weights(weights: CostWeights, model, data, cfg: Config, epochs=1.0, seed=0, log=print):
+    """Learn the cost weights in the IL setting (App. A.2): L = a3 L_ctr, L_ctr = MSE of the controller's
+    trajectory to the GT ego, no L_plan; the gradient dL/dw comes from the controller's KKT backward (w is
+    a parameter of the iLQR problem). The predictor is frozen (the paper: "similar results"), weighting its
+    modes by p(z|x), as at evaluation. Adam, lr cfg.lr, gradient value clipping, batch cfg.batch_size.
+    Returns the per-step log."""
+    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)
+    model.eval().requires_grad_(False)
+    method = Method("Standard")  # a learned predictor; its losses do not matter here
+    a3 = cfg.alpha_il[2]
+    opt = torch.optim.Adam(weights.parameters(), lr=cfg.lr)
+    steps_per_epoch = max(1, len(data) // cfg.batch_size)
+    total = max(1, round(epochs * steps_per_epoch))
+    history, t0 = [], time.time()
+    for step in range(total):
+        if step % steps_per_epoch == 0:
+            perm = torch.randperm(len(data), generator=g)
+        i = step % steps_per_epoch
+        batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
+        out = run_stack(batch, model, method, cfg, "il", w=weights())
+        loss = a3 * _plannable_mean(out.l_ctr, out)  # L = a3 L_ctr,  L_ctr = sum_t ||s_ctr,t - s_gt,t||^2
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_value_(weights.parameters(), cfg.pred_grad_clip)
+        opt.step()
+        history.append(dict(step=step + 1, loss=loss.item(), w=weights().tolist()))
+        if log and ((step + 1) % max(1, total // 5) == 0 or step + 1 == total):
+            log(f"  [cost weights] step {step + 1}/{total}  L_ctr {loss.item() / a3:.4f}  w "
+                + " ".join(f"{v:.3f}" for v in weights().tolist()) + f"  {time.time() - t0:4.0f}s")
+    return history
+
+
+def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print) -> dict:
+    """Table 4: per seed, train a Standard predictor (train_stack), then the cost weights with it frozen;
+    evaluate both the hand-tuned and the learned weights on data.val in the IL setting.
+
+    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised
+    weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
+    res = {"Hand-tuned": [], "Learned": []}
+    for seed in seeds:
+        torch.manual_seed(seed)
+        model = Predictor(cfg)
+        train_stack(model, data.train, Method("Standard"), cfg, "il", epochs, seed, log)
+        weights = CostWeights(cfg)
+        for name in res:
+            if name == "Learned":
+                train_cost_weights(weights, model, data.train, cfg, epochs, seed, log)
+            with torch.no_grad():
+                w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
+            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w)
+            r.update(w=w_norm.tolist(), alpha=alpha)
+            res[name].append(r)
+            if log:
+                log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
+                    + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
+    return res
+
+
+def format_cost_table(results: dict) -> str:
+    """Table 4 as markdown: the normalised weights w', alpha, planning loss and MSE (means +- s.e. over seeds)."""
+    head = ["Cost weights", "w'1 (coll)", "w'2 (goal)", "w'3 (lane)", "w'4 (heading)", "w'5 (control)", "alpha",
+            "Planning loss", "MSE (m^2)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, runs in results.items():
+        cell = lambda xs: "{:.3f} ± {:.3f}".format(*mean_se(xs))  # noqa: E731
+        row = [name] + [cell([r["w"][i] for r in runs]) for i in range(5)]
+        row += [cell([r["alpha"] for r in runs]), cell([r["plan_loss"] for r in runs]), cell([r["mse"] for r in runs])]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# 10.2 Closed loop: log replay (§4.3, Table 5, App. E)
+# --------------------------------------------------------------------------------------------
+#
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego
+# (data_synth.sample_at with its simulated 4 s history), run the stack, move the ego by the first control
+# of the controller's trajectory through the known unicycle; the other agents replay their logs, and the goal
+# and lanes come from the logged ego (sample_at). As in the paper (App. E), the stack plans with the
+# predicted agent only (the other agents are dropped from the planning cost, they stay the predictor's
+# neighbours); the metrics count every agent. The simulation starts at the first frame with a full history,
+# so 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
+
+
+@dataclass
+class Rollout:
+    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
+
+    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
+    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
+    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
+    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 2, GT futures)
+    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
+    start_frame: int  # f0
+
+
+def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
+    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
+    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
+    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
+    c, s = torch.cos(h0), torch.sin(h0)
+    x, y = states[..., 0], states[..., 1]
+    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
+
+
+def stack_policy(model, method: Method, cfg: Config):
+    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
+    the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
+
+    The planner and controller see the predicted agent only (App. E); the predictor still sees every
+    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls."""
+    if model is not None:
+        model.eval()
+
+    def policy(batch):
+        with torch.no_grad():
+            out = run_stack(batch, model, method, cfg, plan_others=False)
+        return out.x, out.u, out.hindsight, out.plannable
+
+    return policy
+
+
+def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
+             dtype=torch.float32) -> Rollout:
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first
+    frame with a full history). policy(batch) -> (x, u, hindsight, plannable) as stack_policy's; the ego
+    moves by u[:, 0] through the unicycle (eq. of §2), the agents replay the log. scfg: the data's
+    SynthConfig (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
+    import data_synth
+
+    scfg = scfg or data_synth.SynthConfig()
+    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
+    if abs(cfg.dt - scfg.dt) > 1e-9:
+        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
+                         f"got {cfg.dt}")
+    steps = sim_time / cfg.dt
+    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
+        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
+    N = round(steps)
+    f0 = H if start_frame is None else start_frame
+    if f0 < H or f0 + N - 1 + T > F - 1:
+        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
+                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
+    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
+    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
+    for k in range(N):  # a loop over simulation steps; every scene at once
+        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
+        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
+        s = hist[:, -1]  # (S, 4)
+        u0 = u[:, 0].to(s.dtype)  # (S, 2)
+        # s_{k+1} = f(s_k, u_0): the known dynamics, in the world frame (controls do not depend on the frame)
+        s_next = unicycle_step(s, u0, cfg.dt)
+        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
+        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
+        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s.dtype), s))
+        open_loop.append(hindsight.to(s.dtype)), plannable.append(ok)
+    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
+    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
+
+
+def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
+
+      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 2, w hand-tuned)
+      collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
+      lane             1/N sum_t (w3 C_lat + w4 C_head)
+      control effort   1/N sum_t w5 ||u_t||^2
+      open-loop cost   mean of each step's hindsight cost C_H (over the plannable steps)
+      deviation        1/N sum_t ||s_t - s_log,t|| (m)
+    """
+    N, f0 = roll.controls.shape[1], roll.start_frame
+    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
+    frames = slice(f0 + 1, f0 + N + 1)
+    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
+    # C_coll = sum_a phi(||s_t - s_a,t||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N)
+    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
+    # C_lat, C_head against the map's lanes (world frame)
+    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
+    w = cost_weights(cfg, x.dtype)
+    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
+    out = {k: v.mean(-1) for k, v in parts.items()}
+    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
+    keep = roll.plannable.to(x.dtype)
+    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
+    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
+    out["plannable"] = keep.mean(-1)
+    return out
+
+
+CLOSED_LOOP_COLUMNS = (("trajectory", "Trajectory cost"), ("open_loop", "Open-loop cost"), ("collision", "Collision cost"),
+                       ("lane", "Lane keep cost"), ("control", "Control effort"), ("deviation", "Deviation (m)"))
+CLOSED_LOOP_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
+
+
+def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one)."""
+    import data_synth
+
+    scfg = scfg or data_synth.SynthConfig()
+    N = round(sim_time / cfg.dt)
+    return scenes[(scenes.pred_idx[:, scfg.hist:scfg.hist + N] >= 0).all(1)]
+
+
+def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print):
+    """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
+    validation scene. Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
+    {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
+    scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
+    results, rollouts = {}, {}
+    for m in CLOSED_LOOP_METHODS:
+        runs = []
+        for seed in seeds if m.predictor == "learned" else seeds[:1]:
+            t0, model = time.time(), None
+            if m.predictor == "learned":
+                torch.manual_seed(seed)
+                model = Predictor(cfg)
+                train_stack(model, data.train, m, cfg, "rl", epochs, seed, log)
+            t1 = time.time()
+            roll = simulate(scenes, stack_policy(model, m, cfg), cfg, sim_time)
+            per_scene = closed_loop_metrics(scenes, roll, cfg)
+            r = {k: v.mean().item() for k, v in per_scene.items()}
+            r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
+            runs.append(r)
+            rollouts.setdefault(m.name, (roll, per_scene))
+            if log:
+                log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+        results[m.name] = runs
+    base = results["No prediction"][0]
+    for runs in results.values():
+        for r in runs:
+            for k, _ in CLOSED_LOOP_COLUMNS:
+                r["rel_" + k] = (r[k] - base[k]) / 1e-2
+    return results, rollouts, scenes
+
+
+def format_closed_loop_table(results: dict) -> str:
+    """Table 5 as markdown: differences to No prediction (x1e-2), means +- s.e. over seeds, and the absolute
+    trajectory cost of No prediction for scale."""
+    head = ["Method"] + [f"{h} (x1e-2)" for _, h in CLOSED_LOOP_COLUMNS] + ["Plannable steps"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, runs in results.items():
+        cell = lambda k, f="{:.2f}": "{} ± {}".format(*(f.format(v) for v in mean_se([r[k] for r in runs])))  # noqa: E731
+        lines.append("| " + " | ".join([name] + [cell("rel_" + k) for k, _ in CLOSED_LOOP_COLUMNS]
+                                       + [cell("plannable", "{:.3f}")]) + " |")
+    base = results["No prediction"][0]
+    lines.append(f"\nNo prediction, absolute: trajectory cost {base['trajectory']:.4f}, open-loop cost "
+                 f"{base['open_loop']:.4f}, deviation {base['deviation']:.3f} m ({base['scenes']} scenes).")
+    return "\n".join(lines)
+
+
+def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, reps=3, log=print) -> dict:
+    """Median wall time (s) of simulating n scenes for sim_time with each stack (an untrained predictor: the
+    time does not depend on the weights), one thread."""
+    cfg = cfg or Config()
+    torch.set_num_threads(1)
+    scenes = closed_loop_scenes(scenes, cfg, sim_time)[:n]
+    torch.manual_seed(0)
+    model = Predictor(cfg)
+    out = {}
+    for m in CLOSED_LOOP_METHODS:
+        policy = stack_policy(model if m.predictor == "learned" else None, m, cfg)
+        out[m.name] = _median_ms(lambda: simulate(scenes, policy, cfg, sim_time), reps, warmup=1) / 1e3
+    if log:
+        log(f"closed loop, {len(scenes)} scenes x {sim_time:.0f} s ({round(sim_time / cfg.dt)} replanning steps), "
+            f"median of {reps}, torch.set_num_threads(1): " + "  ".join(f"{k} {v:.1f}s" for k, v in out.items()))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# 10.3 Ablations (App. A.1)
+# --------------------------------------------------------------------------------------------
+#
+# Each section compares methods under one configuration of the stack, with its own No prediction and
+# GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
+# alphas (1, 100, 1000), so losses (1, 5, 5) are alphas (1, 500, 5000).
+#
+# dt = 0.1 s is not run: it needs the stack at 0.1 s (T = 30) while the predictor stays at the data's
+# 0.5 s, its modes and the GT futures interpolated, and L_pred computed on the 0.5 s prediction. run_stack
+# has one Config for both; faking it by interpolating the prediction inside a wrapper would count L_pred
+# over 30 interpolated steps (5x its weight) -- not the paper's experiment.
+
+ABLATION_SECTIONS = (
+    ("Loss weights", {}, (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)), Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
+        Method("DiffStack (no L_ctr)", losses=(1, 1, 0)), Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
+        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)))),
+    ("No planner (iLQR from zero controls)", dict(planner=False), (
+        Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
+    ("No controller (the plan is final)", dict(controller=False), (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 0)))),
+)
+
+
+def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print) -> dict:
+    """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
+    res = {}
+    for title, stack_kw, methods in ABLATION_SECTIONS:
+        if log:
+            log(f"--- ablation: {title}")
+        res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
+                                          tuple(seeds), epochs, log=log, **stack_kw)
+    return res
+
+
+def format_ablation_table(results: dict) -> str:
+    """The ablation table as markdown: the loss multipliers (x1, x1e2, x1e3 as in the paper), ADE, NLL and the
+    planning metrics relative to the section's No prediction (x1e-2); '--' where a loss or metric does not apply."""
+    methods = {title: {m.name: m for m in ms} for title, _, ms in ABLATION_SECTIONS}
+    kw = {title: k for title, k, _ in ABLATION_SECTIONS}
+    head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3", "ADE (m)", "NLL (nats)", "Planning loss (x1e-2)",
+            "Hindsight cost (x1e-2)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for title, res in results.items():
+        lines.append(f"| **{title}** |" + " |" * (len(head) - 1))
+        no_plan, no_ctrl = kw[title].get("planner") is False, kw[title].get("controller") is False
+        for name, runs in res.items():
+            cell = lambda k: "{:.2f} ± {:.2f}".format(*mean_se([r[k] for r in runs])) if k in runs[0] else "--"  # noqa: E731
+            m = methods[title].get(name)
+            loss = ["", "", ""] if m is None else [f"{v:g}" for v in m.losses]
+            if no_plan:
+                loss[1] = "--"
+            if no_ctrl:
+                loss[2] = "--"
+            plan_cell = "--" if no_plan else cell("rel_plan_loss")
+            lines.append("| " + " | ".join([name, *loss, cell("ade"), cell("nll"), plan_cell, cell("rel_hindsight")]) + " |")
+    lines.append("| **dt = 0.1 s** | not run: see the note |" + " |" * (len(head) - 2))
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# 10.4 Figures
+# --------------------------------------------------------------------------------------------
+
+
+def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | None = None, extent=(-10, 45, -12, 14)):
+    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted modes (alpha
+    by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the plan (argmin) and the
+    controller's trajectory."""
+    import matplotlib.pyplot as plt
+    import data_synth
+
+    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
+    if out.pred is not None:
+        plot_prediction(ax, out.pred, i, cov=False)
+    valid = out.cands.valid[i]  # (N,)
+    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (1) relaxed
+    xs = out.cands.x[i].detach()  # (N, T+1, 4)
+    cmap = plt.get_cmap("Greens")
+    for n in torch.argsort(p).tolist():  # the likely candidates on top
+        if valid[n]:
+            ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
+    best = int(p.argmax())
+    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.6, zorder=7, label="plan (argmin)")
+    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=2.2, zorder=8, label="controller")
+    return ax
+
+
+def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
+    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
+    the one among the first n_search where the first model's hindsight cost exceeds the second's the most."""
+    import matplotlib.pyplot as plt
+
+    batch = data.val[:n_search]
+    outs = {}
+    with torch.no_grad():
+        for name, model in models.items():
+            model.eval()
+            outs[name] = run_stack(batch, model, Method(name), cfg, "rl")
+    (a, oa), (b, ob) = list(outs.items())[:2]
+    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
+    i = int(gap.argmax())
+    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
+    for ax, (name, out) in zip(axes, outs.items()):
+        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
+        ax.legend(loc="lower left", fontsize=7)
+    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
+    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
+                 ticks=[0, 0.25, 0.5, 0.75, 1])
+    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
+                 fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    return i
+
+
+def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
+    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
+    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
+    Standard's trajectory cost exceeds DiffStack's the most."""
+    import matplotlib.pyplot as plt
+
+    if scene is None:
+        scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
+    s = scene
+    any_roll = next(iter(rollouts.values()))[0]
+    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
+    frames = torch.arange(f0, f0 + N + 1)
+    pred = int(scenes.pred_idx[s, f0])
+    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
+    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
+    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
+    tt = (frames - f0).double() * dt  # (N+1,) seconds
+    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
+    fig, axes = plt.subplots(len(rollouts), 1, figsize=(11, len(rollouts) * (10 * aspect + 0.5)), sharex=True)
+    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
+        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
+            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
+        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
+            if a != pred and scenes.agents_mask[s, a, frames].any():
+                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
+                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
+        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
+        for k in range(0, N, 4):
+            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
+        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
+        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
+        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
+                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
+    fig.colorbar(sc, ax=axes, shrink=0.6, label="time (s)")
+    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    return s
+
+
+def figure_cost_weights(results: dict, path):
+    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds."""
+    import matplotlib.pyplot as plt
+
+    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    x = np.arange(len(names))
+    for j, (label, runs) in enumerate(results.items()):
+        vals = [[*r["w"], r["alpha"]] for r in runs]
+        ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
+        ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
+    ax.set_xticks(x, names, fontsize=8)
+    ax.set_yscale("log")
+    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
+    ax.minorticks_off()
+    ax.set_ylabel("weight (log scale)")
+    ax.legend(fontsize=8)
+    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)", fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------
+# 10.5 Entry points and the report
+# --------------------------------------------------------------------------------------------
+
+
+def run_cost_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
+    """Table 4 and its bar chart (cost_weights.png). Returns (results, markdown table)."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res = cost_learning_experiment(data, cfg, tuple(seeds), epochs, log)
+    figure_cost_weights(res, out / "cost_weights.png")
+    return res, format_cost_table(res)
+
+
+def run_closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
+    """Table 5, the closed-loop figure (closed_loop.png) and Fig. 3 (stack_example.png, with predictors
+    trained for it). Returns (results, markdown table)."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res, rollouts, scenes = closed_loop_experiment(data, val_scenes, cfg, tuple(seeds), epochs, log=log)
+    figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
+    models = {}
+    for m in CLOSED_LOOP_METHODS[1:3]:  # Standard, DiffStack, first seed
+        torch.manual_seed(seeds[0])
+        models[m.name] = Predictor(cfg)
+        train_stack(models[m.name], data.train, m, cfg, "rl", epochs, seeds[0], log=None)
+    figure_stack_example(data, models, cfg, out / "stack_example.png")
+    return res, format_closed_loop_table(res)
+
+
+def run_ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
+    """The ablation table of App. A.1. Returns (results, markdown table)."""
+    pathlib.Path(out_dir).mkdir(parents=True, exist_ok=True)
+    res = ablation_experiment(data, cfg, tuple(seeds), epochs, log)
+    return res, format_ablation_table(res)
+
+
+def write_report(out_dir, sections) -> pathlib.Path:
+    """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
+    out_dir]); each figure is linked below its section's table."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
+             f"torch {torch.__version__}, {torch.get_num_threads()} threads\n"]
+    for title, md, figures in sections:
+        parts.append(f"## {title}\n\n{md}\n")
+        parts += [f"![{f}]({f})\n" for f in figures]
+    path = out / "report.md"
+    path.write_text("\n".join(parts))
+    return path
+
+
+# ============================================================================================
+# 11. The command line
+# ============================================================================================
 
 DATA_CACHE = "data_cache"
-EXPERIMENTS = ("rl", "biased", "il")
+EXPERIMENTS = ("rl", "biased", "il", "cost", "closed_loop", "ablation")
 
 
 @dataclass
 class SimpleData:
-    """A training and a validation set of Scenarios."""
+    """A training and a validation set of Scenarios, and the validation scenes' logs (closed loop)."""
 
     train: object
     val: object
+    val_scenes: object = None
 
 
 def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
@@ -1815,7 +2379,7 @@ def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
 
     if path is None:
         d = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-        return SimpleData(d.train, d.val)
+        return SimpleData(d.train, d.val, d.val_scenes)
     root = pathlib.Path(path)
     if not root.is_dir():
         raise ValueError(f"--data: {path} is not a folder")
@@ -1835,7 +2399,7 @@ def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
     train, _ = data_synth.cut_samples(scenes[~is_val], None, rng)
     val, _ = data_synth.cut_samples(scenes[is_val], None, rng)
     log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
-    return SimpleData(train, val)
+    return SimpleData(train, val, scenes[is_val])
 
 
 def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir=DATA_CACHE, log=print):
@@ -1864,7 +2428,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022), the readable reference.")
     ap.add_argument("--quick", action="store_true", help="a Table-1-style run on synthetic data in about a minute")
     ap.add_argument("--bench", action="store_true", help="print benchmark medians (1 and 2 threads)")
-    ap.add_argument("--experiment", choices=EXPERIMENTS, help="run a table of the paper; writes results/<name>.json and .md")
+    ap.add_argument("--experiment", choices=EXPERIMENTS + ("all",),
+                    help="run a table of the paper (results/<name>.json, .md, figures); all: every one, and results/report.md")
     ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
     ap.add_argument("--epochs", type=float, default=4.0, help="training epochs per method (default 4; fractions allowed)")
     ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
@@ -1889,35 +2454,56 @@ def main(argv=None):
                           " ".join(["python diffstack.py", *(argv if argv is not None else sys.argv[1:])]))
 
 
+TITLES = {"rl": "Table 1: reinforcement learning (hindsight cost)", "biased": "Table 2: a 1 m offset on the prediction targets",
+          "il": "Table 3: imitation learning", "cost": "Table 4: learned cost weights (IL)",
+          "closed_loop": "Table 5: closed-loop log replay", "ablation": "Ablations (App. A.1)"}
+
+
+def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log):
+    """One experiment: (results, markdown table, figure file names)."""
+    if name in ("rl", "biased", "il"):
+        methods = TABLE1_METHODS
+        if name == "biased":
+            methods = (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1])
+        elif name == "il":
+            methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+        setting = "il" if name == "il" else "rl"
+        res = open_loop_experiment(data, cfg, setting, methods, seeds, epochs, pred_offset=1.0 if name == "biased" else 0.0, log=log)
+        table = format_table(res, setting)
+        if name != "il":
+            names = ("Standard", "DiffStack") if name == "rl" else ("Standard-biased", "DiffStack-biased")
+            m, s = gap_closed(res, *names)
+            table += f"\n\n{names[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {names[0]} -> GT prediction hindsight-cost gap."
+        return res, table, []
+    if name == "cost":
+        return (*run_cost_experiment(data, cfg, seeds, epochs, out_dir, log), ["cost_weights.png"])
+    if name == "closed_loop":
+        if data.val_scenes is None:
+            raise ValueError("closed_loop: the data has no validation scene logs")
+        return (*run_closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, out_dir, log), ["closed_loop.png", "stack_example.png"])
+    return (*run_ablation_experiment(data, cfg, seeds, epochs, out_dir, log), [])
+
+
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
-    """Tables 1-3: train, evaluate, write results/<name>.json and results/<name>.md."""
-    seeds = tuple(seeds)
-    t0 = time.time()
-    if name == "rl":
-        res = open_loop_experiment(data, cfg, "rl", TABLE1_METHODS, seeds, epochs, log=log)
-        setting = "rl"
-    elif name == "biased":
-        methods = (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1])
-        res = open_loop_experiment(data, cfg, "rl", methods, seeds, epochs, pred_offset=1.0, log=log)
-        setting = "rl"
-    else:
-        methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-        res = open_loop_experiment(data, cfg, "il", methods, seeds, epochs, log=log)
-        setting = "il"
-    table = format_table(res, setting)
-    if name in ("rl", "biased"):
-        names = ("Standard", "DiffStack") if name == "rl" else ("Standard-biased", "DiffStack-biased")
-        m, s = gap_closed(res, *names)
-        table += f"\n\n{names[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {names[0]} -> GT prediction hindsight-cost gap."
-    meta = dict(experiment=name, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
-                date=time.strftime("%Y-%m-%d"), machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-                f"{torch.get_num_threads()} threads", train=len(data.train), val=len(data.val))
-    out = pathlib.Path(out_dir)
+    """Run one experiment (or 'all'), writing results/<name>.json and .md (and for 'all', results/report.md)."""
+    seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(dict(meta=meta, results=res), indent=1))
-    (out / f"{name}.md").write_text(f"# {name}\n\n`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f}s)\n\n{table}\n")
-    log("\n" + table)
-    return res
+    sections = []
+    for one in EXPERIMENTS if name == "all" else (name,):
+        t0 = time.time()
+        res, table, figures = _run_one(one, data, cfg, seeds, epochs, out, log)
+        meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+                    date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
+                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads")
+        to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
+        (out / f"{one}.json").write_text(json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
+        md = f"`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f} s)\n\n{table}\n"
+        (out / f"{one}.md").write_text(f"# {TITLES[one]}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in figures))
+        sections.append((TITLES[one], md, figures))
+        log(f"\n{TITLES[one]}\n{table}")
+    if name == "all":
+        log(f"report: {write_report(out, sections)}")
+    return sections
 
 
 if __name__ == "__main__":
