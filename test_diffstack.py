@@ -1419,3 +1419,27 @@ def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
     res = json.loads((tmp_path / "out" / "closed_loop.json").read_text())
     assert res["meta"]["experiment"] == "closed_loop" and (tmp_path / "out" / "closed_loop.png").exists()
     assert "Trajectory" in (tmp_path / "out" / "closed_loop.md").read_text()
+
+
+# ---------------------------------------------------------------------------------------------
+# The tutorial notebook
+# ---------------------------------------------------------------------------------------------
+
+def test_tutorial_notebook_runs_in_quick_mode(monkeypatch):
+    """tutorial.ipynb executes top to bottom from a fresh kernel in quick mode (cwd = the repository) with no error,
+    and every checkpoint it prints agrees with its expected value. About a minute on 2 cores."""
+    import pathlib
+
+    import nbclient
+    import nbformat
+
+    repo = pathlib.Path(__file__).resolve().parent
+    nb = nbformat.read(repo / "tutorial.ipynb", as_version=4)
+    monkeypatch.setenv("DIFFSTACK_QUICK", "1")  # the notebook's parameters cell reads it; the kernel inherits it
+    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(repo)}})
+    client.execute()  # raises CellExecutionError (naming the cell) on the first error
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
+    assert "QUICK = True" in text
+    checks = [line for line in text.splitlines() if line.startswith("CHECKPOINT")]
+    assert len(checks) >= 8, checks
+    assert not [line for line in checks if line.endswith("MISMATCH")], checks
