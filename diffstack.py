@@ -910,7 +910,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 # BiLSTM starts from zeros (Trajectron++: from the current state), v0 is the tracked speed, and every GMM
 # component gets a 5 cm position std floor (at v = 0 the controls cannot move the agent sideways).
 #
-#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 training + weighted baselines    6.6 plot    6.7 bench
+#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 weighted baselines    6.6 plot    6.7 bench
 
 
 
@@ -1281,7 +1281,7 @@ def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 10
 
 
 # --------------------------------------------------------------------------------------------
-# 6.5 Training: Standard, Distance weighted and grad-Cost weighted (§4.1)
+# 6.5 The planning-aware weights of L_pred: Distance weighted and grad-Cost weighted (§4.1; training: section 8)
 # --------------------------------------------------------------------------------------------
 
 
@@ -1757,24 +1757,25 @@ def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> d
 
 def bench(threads=(1, 2), reps=7, log=print) -> dict:
     """`--bench`: medians (ms) of the controller on the tracking benchmark (B = 256, T = 6, dt 0.5, up to 5
-    iterations, tol 0.01), the planner's candidates, and a DiffStack training step (RL, B = 256) split across
-    the modules. mpc.pytorch on the same benchmark: bench_mpc.py."""
+    iterations, tol 0.01), the planner's candidates, a predictor training step (Standard), and a DiffStack
+    training step (RL) split across the modules, all at B = 256. mpc.pytorch on the same benchmark: bench_mpc.py."""
     import data_synth
 
     cfg = Config()
     batch = data_synth.load_or_generate(2000, seed=0, cache_dir=DATA_CACHE).train[:cfg.batch_size]
     cols = ["threads", "iLQR fwd f64", "KKT bwd f64", "iLQR fwd f32", "KKT bwd f32", "converged f32", "candidates",
-            "step: predict", "plan", "control", "backward", "total"]
+            "predictor step", "DiffStack step: predict", "plan", "control", "backward", "total"]
     log("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     out = {}
     for nt in threads:
         torch.set_num_threads(nt)
         c64, c32 = bench_controller(256, torch.float64, reps=reps), bench_controller(256, torch.float32, reps=reps)
         cand = _median_ms(lambda: plan_candidates(batch.ego_hist[:, -1], batch.goal, batch.lanes, batch.lanes_mask, cfg), reps)
+        pred = bench_predictor(batch, cfg, iters=reps, threads=nt)
         step = bench_stack_step(batch, cfg, reps=max(3, reps // 2))
-        out[nt] = dict(controller_f64=c64, controller_f32=c32, candidates_ms=cand, step=step)
+        out[nt] = dict(controller_f64=c64, controller_f32=c32, candidates_ms=cand, predictor=pred, step=step)
         row = [c64["forward_ms"], c64["backward_ms"], c32["forward_ms"], c32["backward_ms"]]
-        row = [str(nt)] + [f"{v:.0f}" for v in row] + [f"{c32['converged']:.2f}", f"{cand:.0f}"]
+        row = [str(nt)] + [f"{v:.0f}" for v in row] + [f"{c32['converged']:.2f}", f"{cand:.0f}", f"{pred['train_wall_ms']:.0f}"]
         row += [f"{step[k]:.0f}" for k in ("predict", "plan", "control", "backward", "step")]
         log("| " + " | ".join(row) + " |")
     return out
