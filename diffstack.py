@@ -1758,7 +1758,8 @@ def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> d
 def bench(threads=(1, 2), reps=7, log=print) -> dict:
     """`--bench`: medians (ms) of the controller on the tracking benchmark (B = 256, T = 6, dt 0.5, up to 5
     iterations, tol 0.01), the planner's candidates, a predictor training step (Standard), and a DiffStack
-    training step (RL) split across the modules, all at B = 256. mpc.pytorch on the same benchmark: bench_mpc.py."""
+    training step (RL) split across the modules, all at B = 256; then closed-loop log replay of 100 scenes x 10 s
+    (seconds, one thread). mpc.pytorch on the same benchmark: bench_mpc.py."""
     import data_synth
 
     cfg = Config()
@@ -1778,6 +1779,8 @@ def bench(threads=(1, 2), reps=7, log=print) -> dict:
         row = [str(nt)] + [f"{v:.0f}" for v in row] + [f"{c32['converged']:.2f}", f"{cand:.0f}", f"{pred['train_wall_ms']:.0f}"]
         row += [f"{step[k]:.0f}" for k in ("predict", "plan", "control", "backward", "step")]
         log("| " + " | ".join(row) + " |")
+    scenes = data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE).val_scenes
+    out["closed_loop_s"] = bench_closed_loop(scenes, cfg, n=100, sim_time=10.0, reps=3, log=log)
     return out
 
 
