@@ -9,7 +9,7 @@ frame at the current time t0, with one predicted vehicle, other agents, the lane
 
 Map of the module (the order the data flows):
     1. Config            SynthConfig: every knob of the generator and of the sample cutting, documented
-    2. Batches           Scenarios (planning samples, INTERFACES.md) and Scenes (20 s world-frame logs)
+    2. Batches           Scenarios (planning samples, the fields diffstack.py consumes) and Scenes (20 s world-frame logs)
     3. Geometry          arcline paths (the nuScenes map primitive: arcs and straights), poses along them,
                          2 m discretisation, the road's Frenet frame, backward-difference speeds
     4. Synthetic scenes  map layout -> scripted agents (one predicted vehicle with paired behaviours) ->
@@ -207,7 +207,7 @@ def _np_index(idx):
 @dataclass
 class Scenarios(_Batch):
     """A batch of planning samples, every coordinate in the EGO FRAME AT t0 (ego at the origin, heading +x).
-    Exactly the fields of INTERFACES.md; padding is 0 / False, never NaN."""
+    These are the fields diffstack.py consumes; padding is 0 / False, never NaN."""
 
     ego_hist: torch.Tensor  # (B, 9, 4)   ego states t-8..t0; ego_hist[:, -1] = (0, 0, 0, v)
     ego_fut: torch.Tensor  # (B, 6, 4)    ego GT future t1..t6 (the expert's plan)

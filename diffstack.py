@@ -1372,7 +1372,7 @@ def bench_predictor(batch=None, cfg: Config | None = None, iters: int = 10, thre
         if it >= 2:
             for k, v in zip(times, (w1 - w0, c1 - c0, w2 - w1, c2 - c1)):
                 times[k].append(1e3 * v)
-    med = {k + "_ms": sorted(v)[len(v) // 2] for k, v in times.items()}
+    med = {k + "_ms": statistics.median(v) for k, v in times.items()}
     print(f"predictor bench: B={len(batch)} K={cfg.pred_modes} decoder {cfg.pred_dec_hidden}, "
           f"torch.set_num_threads({torch.get_num_threads()}), medians of {iters}: training iteration "
           f"{med['train_wall_ms']:.0f} ms wall / {med['train_cpu_ms']:.0f} ms CPU, eval forward "

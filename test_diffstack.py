@@ -14,6 +14,15 @@ import diffstack as ds
 DT = 0.5
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models gain nothing from threads, and two threads on a busy 2-core machine can run 10x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def rk4_reference(s, u, dt, substeps=2000):
     """An independent integrator of the unicycle ODE, to check the exact step against."""
     def f(x):
@@ -356,17 +365,10 @@ def test_planner_bad_input_names_the_argument():
 # Predictor
 # ---------------------------------------------------------------------------------------------
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models gain nothing from threads, and two threads on a busy 2-core machine can run 10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 # ---------------------------------------------------------------------------------------------
-# A stand-in for data_synth.Scenarios: the exact field names and shapes of INTERFACES.md, with
+# A stand-in for data_synth.Scenarios: the exact field names and shapes of data_synth.Scenarios, with
 # plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at it).
 # ---------------------------------------------------------------------------------------------
 
@@ -852,7 +854,7 @@ def scenes_mixed():
 
 
 # --------------------------------------------------------------------------------------------------------------
-# shapes and conventions (INTERFACES.md)
+# shapes and conventions (the fields of data_synth.Scenarios)
 
 
 def test_scenarios_shapes_and_frame(small):
