@@ -1432,19 +1432,47 @@ class StackOutput:
     pred: object = None  # the predictor's output
 
 
-def _contexts(batch, preds, probs, pred_mask, plan_others=True):
+def upsample(now: torch.Tensor, fut: torch.Tensor, S: int) -> torch.Tensor:
+    """A future on a clock S times finer, by linear interpolation from the present.
+
+    now (..., D) the value at t0, fut (..., T, D) at t1..T -> (..., T*S, D) at the fine steps 1..T*S
+    (every S-th is a knot of fut). S = 1 returns fut itself."""
+    if S == 1:
+        return fut
+    knots = torch.cat([now[..., None, :], fut], -2)  # (..., T+1, D)
+    a, b = knots[..., :-1, None, :], knots[..., 1:, None, :]  # (..., T, 1, D)
+    f = torch.arange(1, S + 1, dtype=fut.dtype)[:, None] / S  # (S, 1) the fractions of a step
+    return (a + (b - a) * f).flatten(-3, -2)
+
+
+def _substeps(cfg: Config, plan_dt) -> int:
+    """How many planner/controller steps of plan_dt make one prediction step cfg.dt (1 for plan_dt None)."""
+    if plan_dt is None:
+        return 1
+    S = round(cfg.dt / plan_dt) if plan_dt > 0 else 0
+    if S < 1 or abs(S * plan_dt - cfg.dt) > 1e-9:
+        raise ValueError(f"plan_dt: must divide the prediction step dt = {cfg.dt} s into whole steps, got {plan_dt}")
+    return S
+
+
+def _contexts(batch, preds, probs, pred_mask, plan_others=True, S=1):
     """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
-    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. E)."""
+    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. E).
+    S: planner steps per prediction step; the futures (preds included) must already be on the planner's clock,
+    the batch's are interpolated to it here."""
     others_mask = batch.others_mask.to(preds.dtype)
-    common = dict(others=batch.others_fut[..., :2], goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
+    others = upsample(batch.others_hist[:, :, -1, :2], batch.others_fut[..., :2], S)  # (B, A, T*S, 2)
+    common = dict(others=others, goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
     ctx = CostContext(preds, probs, pred_mask, others_mask=others_mask * plan_others, **common)
     ones = torch.ones_like(pred_mask)
-    hctx = CostContext(batch.agent_fut[:, None, :, :2], ones[:, None], ones, others_mask=others_mask, **common)
+    agent = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], S)  # (B, T*S, 2)
+    hctx = CostContext(agent[:, None], ones[:, None], ones, others_mask=others_mask, **common)
     return ctx, hctx
 
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
-              w=None, planner=True, controller=True, plan_others=True, pred_target=None, timings=None) -> StackOutput:
+              w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
+              timings=None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
@@ -1453,6 +1481,11 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     planner=False: iLQR starts from zero controls (ablation); controller=False: the plan is final.
     plan_others=False: planner and controller ignore the other agents (they still count in hindsight).
     pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
+    plan_dt: the planner's and controller's time step (ablation: 0.1 s) when finer than the predictor's cfg.dt.
+        Both then plan T*S steps (S = cfg.dt / plan_dt); the predicted modes and every GT future are linearly
+        interpolated to that clock; L_pred stays on the prediction's clock; MSE is taken at the logged steps; and
+        the per-step cost terms (all but the goal's) are scaled by 1/S, so that eq. (2) sums the same costs per
+        second as at cfg.dt and only the resolution changes.
     timings: a dict that receives the seconds spent predicting, planning and controlling.
     """
     clock = [time.perf_counter()]
@@ -1462,28 +1495,33 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
             clock.append(time.perf_counter())
             timings[name] = clock[-1] - clock[-2]
 
-    B, T, dt = len(batch), cfg.horizon, cfg.dt
+    S = _substeps(cfg, plan_dt)
+    B, T, dt = len(batch), cfg.horizon * S, cfg.dt / S  # the planner's and the controller's clock
     dtype = batch.ego_hist.dtype
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    w_fixed = cost_weights(cfg, dtype)
-    w = w_fixed if w is None else w
+    per_step = torch.tensor([1 / S, 1, 1 / S, 1 / S, 1 / S], dtype=dtype)  # the goal term is terminal
+    w_fixed = cost_weights(cfg, dtype) * per_step
+    w = w_fixed if w is None else w * per_step
     # --- predict ---
     pred, l_pred = None, torch.zeros(B, dtype=dtype)
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step)
-        preds, probs, pred_mask = pred.states[..., :2], pred.probs, torch.ones(B, dtype=dtype)  # (B, K, T, 2), (B, K)
+        now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)
+        preds, probs, pred_mask = upsample(now, pred.states[..., :2], S), pred.probs, torch.ones(B, dtype=dtype)  # (B, K, T, 2), (B, K)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
             l_pred, _ = pred_loss(pred, target, step, cfg)
     elif method.predictor == "gt":
-        preds, probs, pred_mask = batch.agent_fut[:, None, :, :2], torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
+        preds = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], S)[:, None]  # (B, 1, T, 2)
+        probs, pred_mask = torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
-    ctx, hctx = _contexts(batch, preds, probs, pred_mask, plan_others)
-    gt_pos = batch.ego_fut[..., :2]  # (B, T, 2)
+    ctx, hctx = _contexts(batch, preds, probs, pred_mask, plan_others, S)
+    gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], S)  # (B, T, 2)
     lap("predict")
     # --- plan, eq. (1): costs of all candidates, with predictions and in hindsight ---
-    cands = plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)
+    pcfg = cfg if S == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
+    cands = plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, pcfg)
     terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
     cost = (terms * w).sum(-1)  # (B, N)
     h_terms = torch.cat([collision_term(cands.x[..., 1:, :2], hctx, cfg.rbf_var)[..., None], terms[..., 1:]], -1)
@@ -1513,7 +1551,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     else:
         x, u = cands.x[idx, best], cands.u[idx, best]
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
-    mse = ((x[:, 1:, :2] - gt_pos) ** 2).sum((-1, -2))  # (B,)
+    mse = ((x[:, S::S, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
     lap("control")
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
@@ -1645,11 +1683,12 @@ def mean_se(xs):
 
 
 def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                         pred_offset=0.0, log=print, **stack_kw) -> dict:
+                         pred_offset=0.0, log=print, models=None, **stack_kw) -> dict:
     """Train every method for every seed on data.train, evaluate on data.val (Tables 1-3, ablations).
 
     Returns {method name: [metrics dict per seed]}, with the planning metrics also relative to No
     prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables).
+    models: a dict of trained predictors shared between calls (see trained_predictor).
     """
     results = {}
     for m in methods:
@@ -1658,9 +1697,7 @@ def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS
             t0 = time.time()
             model = None
             if m.predictor == "learned":
-                torch.manual_seed(seed)  # the predictor's initialisation
-                model = Predictor(cfg)
-                train_stack(model, data.train, m, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+                model = trained_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, models, **stack_kw)
             r = evaluate_stack(model, data.val, m, cfg, setting, **stack_kw)
             r["seconds"] = time.time() - t0
             runs.append(r)
@@ -1674,6 +1711,32 @@ def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS
                 if base is not None:
                     r["rel_" + key] = (r[key] - base[key]) / scale
     return results
+
+
+def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
+                      **stack_kw):
+    """Method m's predictor trained with `seed` (train_stack). models: None, or a dict shared by the experiments
+    of one run: a predictor already trained the same way is taken from it instead of retrained (the same seed
+    gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs and
+    target offset -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
+    options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
+    and every ablation section."""
+    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
+    if a[1:] == (0, 0):
+        kw, runs_stack = {}, False
+    elif a[2] == 0:
+        kw.pop("controller", None)
+    key = (a, m.weighting, seed, epochs, pred_offset, setting if runs_stack else None, tuple(sorted(kw.items())))
+    if models is not None and key in models:
+        if log:
+            log(f"  [{m.name}] seed {seed}: trained above, reused")
+        return models[key]
+    torch.manual_seed(seed)  # the predictor's initialisation
+    model = Predictor(cfg)
+    train_stack(model, data.train, m, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+    if models is not None:
+        models[key] = model
+    return model
 
 
 def format_table(results: dict, setting="rl") -> str:
@@ -1884,7 +1947,7 @@ def train_cost_weights(weights: CostWeights, model, data, cfg: Config, epochs=1.
     return history
 
 
-def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print) -> dict:
+def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
     """Table 4: per seed, train a Standard predictor (train_stack), then the cost weights with it frozen;
     evaluate both the hand-tuned and the learned weights on data.val in the IL setting.
 
@@ -1892,9 +1955,7 @@ def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=prin
     weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
     res = {"Hand-tuned": [], "Learned": []}
     for seed in seeds:
-        torch.manual_seed(seed)
-        model = Predictor(cfg)
-        train_stack(model, data.train, Method("Standard"), cfg, "il", epochs, seed, log)
+        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models)
         weights = CostWeights(cfg)
         for name in res:
             if name == "Learned":
@@ -2057,7 +2118,7 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
     return scenes[(scenes.pred_idx[:, scfg.hist:scfg.hist + N] >= 0).all(1)]
 
 
-def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print):
+def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None):
     """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
     validation scene. Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
     {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
@@ -2068,9 +2129,7 @@ def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
             t0, model = time.time(), None
             if m.predictor == "learned":
-                torch.manual_seed(seed)
-                model = Predictor(cfg)
-                train_stack(model, data.train, m, cfg, "rl", epochs, seed, log)
+                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models)
             t1 = time.time()
             roll = simulate(scenes, stack_policy(model, m, cfg), cfg, sim_time)
             per_scene = closed_loop_metrics(scenes, roll, cfg)
@@ -2130,10 +2189,13 @@ def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, r
 # GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
 # alphas (1, 100, 1000), so losses (1, 5, 5) are alphas (1, 500, 5000).
 #
-# dt = 0.1 s is not run: it needs the stack at 0.1 s (T = 30) while the predictor stays at the data's
-# 0.5 s, its modes and the GT futures interpolated, and L_pred computed on the 0.5 s prediction. run_stack
-# has one Config for both; faking it by interpolating the prediction inside a wrapper would count L_pred
-# over 30 interpolated steps (5x its weight) -- not the paper's experiment.
+# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the
+# same 3 s (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The
+# paper's table shows "--" for L_ctr in that section; its text says planning AND control change resolution,
+# which is what we run, with all three losses.
+#
+# A predictor is trained once per (losses, seed, what its training sees of the stack) and shared between the
+# sections: Standard (L_pred only) never sees the stack, and without L_ctr the controller is irrelevant.
 
 ABLATION_SECTIONS = (
     ("Loss weights", {}, (
@@ -2144,17 +2206,19 @@ ABLATION_SECTIONS = (
         Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
     ("No controller (the plan is final)", dict(controller=False), (
         Method("Standard"), Method("DiffStack", losses=(1, 1, 0)))),
+    ("dt = 0.1 s for planning and control", dict(plan_dt=0.1), (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)))),
 )
 
 
-def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print) -> dict:
+def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
     """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
-    res = {}
+    res, models = {}, {} if models is None else models
     for title, stack_kw, methods in ABLATION_SECTIONS:
         if log:
             log(f"--- ablation: {title}")
         res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
-                                          tuple(seeds), epochs, log=log, **stack_kw)
+                                          tuple(seeds), epochs, log=log, models=models, **stack_kw)
     return res
 
 
@@ -2179,7 +2243,6 @@ def format_ablation_table(results: dict) -> str:
                 loss[2] = "--"
             plan_cell = "--" if no_plan else cell("rel_plan_loss")
             lines.append("| " + " | ".join([name, *loss, cell("ade"), cell("nll"), plan_cell, cell("rel_hindsight")]) + " |")
-    lines.append("| **dt = 0.1 s** | not run: see the note |" + " |" * (len(head) - 2))
     return "\n".join(lines)
 
 
@@ -2256,8 +2319,17 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
     pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
     lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
     tt = (frames - f0).double() * dt  # (N+1,) seconds
+    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
+    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
     aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
-    fig, axes = plt.subplots(len(rollouts), 1, figsize=(11, len(rollouts) * (10 * aspect + 0.5)), sharex=True)
+    cols = 2 if len(rollouts) > 1 else 1
+    rows = math.ceil(len(rollouts) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
+                             sharey=True, layout="constrained", squeeze=False)
+    axes = axes.ravel()
+    for ax in axes[len(rollouts):]:
+        ax.set_axis_off()
+    axes = axes[:len(rollouts)]
     for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
         for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
             ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
@@ -2277,7 +2349,7 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
     axes[0].legend(loc="upper left", fontsize=7, ncol=3)
-    fig.colorbar(sc, ax=axes, shrink=0.6, label="time (s)")
+    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
     fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
@@ -2311,35 +2383,33 @@ def figure_cost_weights(results: dict, path):
 # --------------------------------------------------------------------------------------------
 
 
-def run_cost_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
+def run_cost_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
     """Table 4 and its bar chart (cost_weights.png). Returns (results, markdown table)."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    res = cost_learning_experiment(data, cfg, tuple(seeds), epochs, log)
+    res = cost_learning_experiment(data, cfg, tuple(seeds), epochs, log, models)
     figure_cost_weights(res, out / "cost_weights.png")
     return res, format_cost_table(res)
 
 
-def run_closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
-    """Table 5, the closed-loop figure (closed_loop.png) and Fig. 3 (stack_example.png, with predictors
-    trained for it). Returns (results, markdown table)."""
+def run_closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print,
+                               models=None):
+    """Table 5, the closed-loop figure (closed_loop.png) and Fig. 3 (stack_example.png, with the first seed's
+    Standard and DiffStack). Returns (results, markdown table)."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    res, rollouts, scenes = closed_loop_experiment(data, val_scenes, cfg, tuple(seeds), epochs, log=log)
+    models = {} if models is None else models
+    res, rollouts, scenes = closed_loop_experiment(data, val_scenes, cfg, tuple(seeds), epochs, log=log, models=models)
     figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-    models = {}
-    for m in CLOSED_LOOP_METHODS[1:3]:  # Standard, DiffStack, first seed
-        torch.manual_seed(seeds[0])
-        models[m.name] = Predictor(cfg)
-        train_stack(models[m.name], data.train, m, cfg, "rl", epochs, seeds[0], log=None)
-    figure_stack_example(data, models, cfg, out / "stack_example.png")
+    pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models) for m in CLOSED_LOOP_METHODS[1:3]}
+    figure_stack_example(data, pair, cfg, out / "stack_example.png")
     return res, format_closed_loop_table(res)
 
 
-def run_ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print):
+def run_ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
     """The ablation table of App. A.1. Returns (results, markdown table)."""
     pathlib.Path(out_dir).mkdir(parents=True, exist_ok=True)
-    res = ablation_experiment(data, cfg, tuple(seeds), epochs, log)
+    res = ablation_experiment(data, cfg, tuple(seeds), epochs, log, models)
     return res, format_ablation_table(res)
 
 
@@ -2463,8 +2533,9 @@ TITLES = {"rl": "Table 1: reinforcement learning (hindsight cost)", "biased": "T
           "closed_loop": "Table 5: closed-loop log replay", "ablation": "Ablations (App. A.1)"}
 
 
-def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log):
-    """One experiment: (results, markdown table, figure file names)."""
+def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log, models=None):
+    """One experiment: (results, markdown table, figure file names). models: trained predictors shared between
+    the experiments of one run (trained_predictor)."""
     if name in ("rl", "biased", "il"):
         methods = TABLE1_METHODS
         if name == "biased":
@@ -2472,7 +2543,8 @@ def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log):
         elif name == "il":
             methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
         setting = "il" if name == "il" else "rl"
-        res = open_loop_experiment(data, cfg, setting, methods, seeds, epochs, pred_offset=1.0 if name == "biased" else 0.0, log=log)
+        res = open_loop_experiment(data, cfg, setting, methods, seeds, epochs, pred_offset=1.0 if name == "biased" else 0.0,
+                                   log=log, models=models)
         table = format_table(res, setting)
         if name != "il":
             names = ("Standard", "DiffStack") if name == "rl" else ("Standard-biased", "DiffStack-biased")
@@ -2480,22 +2552,24 @@ def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log):
             table += f"\n\n{names[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {names[0]} -> GT prediction hindsight-cost gap."
         return res, table, []
     if name == "cost":
-        return (*run_cost_experiment(data, cfg, seeds, epochs, out_dir, log), ["cost_weights.png"])
+        return (*run_cost_experiment(data, cfg, seeds, epochs, out_dir, log, models), ["cost_weights.png"])
     if name == "closed_loop":
         if data.val_scenes is None:
             raise ValueError("closed_loop: the data has no validation scene logs")
-        return (*run_closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, out_dir, log), ["closed_loop.png", "stack_example.png"])
-    return (*run_ablation_experiment(data, cfg, seeds, epochs, out_dir, log), [])
+        return (*run_closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, out_dir, log, models),
+                ["closed_loop.png", "stack_example.png"])
+    return (*run_ablation_experiment(data, cfg, seeds, epochs, out_dir, log, models), [])
 
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
-    """Run one experiment (or 'all'), writing results/<name>.json and .md (and for 'all', results/report.md)."""
+    """Run one experiment (or 'all'), writing results/<name>.json and .md (and for 'all', results/report.md).
+    'all' trains each predictor once and shares it between the tables that use it (trained_predictor)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sections = []
+    sections, models = [], {}
     for one in EXPERIMENTS if name == "all" else (name,):
         t0 = time.time()
-        res, table, figures = _run_one(one, data, cfg, seeds, epochs, out, log)
+        res, table, figures = _run_one(one, data, cfg, seeds, epochs, out, log, models)
         meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                     date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
                     machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads")

@@ -1166,9 +1166,11 @@ def synth_small():
     return data_synth.make_dataset(300, seed=1)
 
 
-def test_end_to_end_gradient_matches_finite_differences(synth_small):
-    """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central differences."""
-    cfg = ds.Config(**TINY, ilqr_iters=40, ilqr_tol=1e-10)
+@pytest.mark.parametrize("plan_dt", [None, 0.1])
+def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
+    """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central differences;
+    plan_dt = 0.1: also through the interpolation of the predicted modes to the planner's 0.1 s clock."""
+    cfg = ds.Config(**TINY, ilqr_iters=40 if plan_dt is None else 100, ilqr_tol=1e-10)  # 30 steps converge slower
     batch = synth_small.train[:6].to(torch.float64)
     torch.manual_seed(0)
     model = ds.Predictor(cfg).double()
@@ -1177,7 +1179,7 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small):
 
     def loss():
         torch.manual_seed(1)  # the decoder samples its next inputs in training mode
-        out = ds.run_stack(batch, model, method, cfg, "rl", step=500, train=True)
+        out = ds.run_stack(batch, model, method, cfg, "rl", step=500, train=True, plan_dt=plan_dt)
         assert out.converged.all() and out.plannable.all()
         return a1 * out.l_pred.mean() + a2 * out.l_plan.mean() + a3 * out.l_ctr.mean()
 
@@ -1196,6 +1198,39 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small):
             fd.append((up - down) / (2 * h))
             analytic.append(grads[i][idx])
     assert rel_err(torch.stack(analytic), torch.stack(fd)) < 1e-4
+
+
+def test_upsample_keeps_the_knots_and_interpolates_linearly():
+    g = torch.Generator().manual_seed(0)
+    now, fut = torch.randn(3, 2, generator=g, dtype=torch.float64), torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
+    assert ds.upsample(now, fut, 1) is fut
+    fine = ds.upsample(now, fut, 5)  # (3, 30, 2)
+    assert fine.shape == (3, 30, 2) and torch.allclose(fine[:, 4::5], fut, rtol=0, atol=1e-15)
+    assert torch.allclose(fine[:, 0], 0.8 * now + 0.2 * fut[:, 0]) and torch.allclose(fine[:, 7], 0.4 * fut[:, 0] + 0.6 * fut[:, 1])
+
+
+@pytest.mark.parametrize("plan_dt", [0.3, 0.0, -0.1, 1.0])
+def test_plan_dt_that_does_not_divide_dt_is_refused(synth_small, plan_dt):
+    with pytest.raises(ValueError, match="plan_dt"):
+        ds.run_stack(synth_small.val[:4], None, ds.Method("GT prediction", "gt"), ds.Config(), plan_dt=plan_dt)
+
+
+def test_plan_dt_changes_the_resolution_not_the_problem(synth_small):
+    """plan_dt = dt is the default stack exactly; at 0.1 s the same 3 s are planned in 30 steps and, with the
+    per-step terms scaled by 1/5, the costs and the trajectory at the logged steps stay close to the 0.5 s ones
+    (unscaled, control effort and lane terms would count 5x and the goal 1x)."""
+    cfg, batch, gt = ds.Config(), synth_small.train[:64].to(torch.float64), ds.Method("GT prediction", "gt")
+    base = ds.run_stack(batch, None, gt, cfg)
+    same = ds.run_stack(batch, None, gt, cfg, plan_dt=0.5)
+    assert torch.equal(base.x, same.x) and torch.equal(base.hindsight, same.hindsight)
+    fine = ds.run_stack(batch, None, gt, cfg, plan_dt=0.1)
+    assert fine.x.shape == (64, 31, 4) and fine.u.shape == (64, 30, 2)
+    k = base.plannable & fine.plannable & base.converged & fine.converged
+    assert k.sum() > 30
+    assert abs(fine.hindsight[k].mean() / base.hindsight[k].mean() - 1) < 0.03
+    assert (fine.x[k, 5::5, :2] - base.x[k, 1:, :2]).norm(dim=-1).mean() < 0.3
+    # the model moves the ego by the unicycle at 0.1 s
+    assert torch.allclose(ds.unicycle_rollout(fine.x[:, 0], fine.u, 0.1), fine.x, atol=1e-8)
 
 
 def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_small):
@@ -1404,13 +1439,43 @@ def test_experiments_end_to_end_tiny(clean, tmp_path):
 def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkeypatch):
     (data, _), cfg = clean, ds.Config(**TINY10)
     small = ds.SimpleData(data.train[:32], data.val[:16])
-    monkeypatch.setattr(ds, "ABLATION_SECTIONS", (ds.ABLATION_SECTIONS[1],))  # the shortest section
+    no_planner, dt01 = ds.ABLATION_SECTIONS[1], ds.ABLATION_SECTIONS[-1]
+    monkeypatch.setattr(ds, "ABLATION_SECTIONS", (no_planner, dt01))  # the shortest section and dt = 0.1 s
+    trained = []
+    train = ds.train_stack
+    monkeypatch.setattr(ds, "train_stack", lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[1])
     res, table = ds.run_ablation_experiment(small, cfg, (0,), 1.0, tmp_path, log=None)
-    (title, rows), = res.items()
-    assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
+    assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
+    for rows in res.values():
+        assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
+    assert trained == [(1, 0, 0), (1, 0, 1), (1, 1, 1)]  # Standard never sees the stack: trained once, shared
+    assert res[dt01[0]]["Standard"][0]["ade"] == res[no_planner[0]]["Standard"][0]["ade"]
     line = next(ln for ln in table.splitlines() if ln.startswith("| DiffStack"))
     assert line.split("|")[1:4] == [" DiffStack ", " 1 ", " -- "]  # no planner: L_plan does not apply
-    assert "dt = 0.1 s" in table
+
+
+def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypatch):
+    """--experiment all: a predictor trained the same way is trained once and reused by every table (Standard:
+    Tables 1, 3, 4, 5 and each ablation section); the report links every figure."""
+    (data, _), cfg = clean, ds.Config(**TINY10)
+    small = ds.SimpleData(data.train[:32], data.val[:16], data.val_scenes[:2])
+    trained = []
+    train = ds.train_stack
+
+    def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, **kw):
+        trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset, tuple(sorted(kw.items()))))
+        return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, **kw)
+
+    monkeypatch.setattr(ds, "train_stack", counting)
+    ds.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
+    assert len(trained) == len(set(trained))
+    assert trained.count(((1, 0, 0), "standard", None, 0.0, ())) == 1
+    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),)) in trained  # the dt = 0.1 s section
+    report = (tmp_path / "report.md").read_text()
+    for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
+        assert f"({f})" in report and (tmp_path / f).exists()
+    for name in ds.EXPERIMENTS:
+        assert json.loads((tmp_path / f"{name}.json").read_text())["meta"]["experiment"] == name
 
 
 def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
