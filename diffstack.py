@@ -1506,8 +1506,9 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     pred, l_pred = None, torch.zeros(B, dtype=dtype)
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step)
-        now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)
-        preds, probs, pred_mask = upsample(now, pred.states[..., :2], S), pred.probs, torch.ones(B, dtype=dtype)  # (B, K, T, 2), (B, K)
+        now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
+        preds = upsample(now, pred.states[..., :2], S)  # (B, K, T, 2) on the planner's clock
+        probs, pred_mask = pred.probs, torch.ones(B, dtype=dtype)  # (B, K), (B,)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
             l_pred, _ = pred_loss(pred, target, step, cfg)
