@@ -915,14 +915,11 @@ predictors trained above at 0.5 s are *evaluated* at 0.1 s; the ablation proper 
 code(r"""
 # Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s quick, ~30 s full.
 t0 = time.time()
-fine, outs01 = {}, {}
-for name, model, method in (("No prediction", None, ds.Method("No prediction", "none")), ("Standard", model_std, ds.Method("Standard")),
-                            ("DiffStack", model_ds, ds.Method("DiffStack", losses=(1, 1, 1))), ("GT prediction", None, ds.Method("GT prediction", "gt"))):
-    fine[name] = [ds.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
-    if model is not None:
-        model.eval()
-    with torch.no_grad():
-        outs01[name] = ds.run_stack(data.val, model, method, cfg, "rl", plan_dt=0.1)
+stacks = {"No prediction": (None, ds.Method("No prediction", "none")), "Standard": (model_std, ds.Method("Standard")),
+          "DiffStack": (model_ds, ds.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, ds.Method("GT prediction", "gt"))}
+fine = {name: [ds.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
+with torch.no_grad():  # the two stacks drawn below (evaluate_stack has put the models in eval mode)
+    outs01 = {name: ds.run_stack(data.val, *stacks[name], cfg, "rl", plan_dt=0.1) for name in ("Standard", "DiffStack")}
 for runs in fine.values():  # relative to No prediction, as open_loop_experiment reports
     for key, scale, _ in ds.SETTING_COLUMNS["rl"]:
         runs[0]["rel_" + key] = (runs[0][key] - fine["No prediction"][0][key]) / scale
