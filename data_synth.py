@@ -2,7 +2,7 @@
 
 The stack (diffstack.py) trains on *planning samples*: 4 s of history and 3 s of future at 2 Hz, in the ego
 frame at the current time t0, with one predicted vehicle, other agents, the lanes near the ego and a goal
-(paper §4.1, App. E). This module makes them in two ways and writes/reads the real on-disk format:
+(paper §4.1, App. D). This module makes them in two ways and writes/reads the real on-disk format:
 
     synthetic scenes --(sample_at)--> Scenarios  <--(sample_at)-- Scenes <-- load_nuscenes(any v1.0 folder)
            \\------------------- write_nuscenes ------------------------------------^
@@ -16,7 +16,7 @@ Map of the module (the order the data flows):
                          the expert ego (lane keeping, IDM car following, yielding; it sees the TRUE futures)
                          -> collision filter -> tracking noise
     5. Planning samples  sample_at: cut a batch at frame t0 (optionally with a simulated ego state)
-    6. Dataset           train/val split by scene, disk cache, load_or_generate
+    6. Dataset           train/val split by scene, disk cache, load_or_generate, load_data (synthetic or a nuScenes folder)
     7. Statistics        speeds, accelerations, yaw rates, behaviour mix, interaction rate
     8. Plot              plot_scenario(ax, batch, i)
     9. nuScenes writer   13 tables, key frames for CAM_FRONT and LIDAR_TOP, map expansion 1.3, prediction split
@@ -1035,9 +1035,11 @@ _CACHE_FORMAT = 1  # bump when the generator's output changes, so old caches are
 
 
 class Dataset(NamedTuple):
+    """A training and a validation set of planning samples, and the validation scenes' logs."""
+
     train: Scenarios
     val: Scenarios
-    val_scenes: Scenes  # the validation scenes, for closed-loop log replay
+    val_scenes: Scenes | None = None  # the validation scenes, for closed-loop log replay
 
 
 def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Dataset:
@@ -1083,6 +1085,34 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
     torch.save(blob, tmp)
     os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
     return data
+
+
+def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> Dataset:
+    """Training and validation samples for the stack: synthetic (load_or_generate, cached in cache_dir), or
+    read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene: the official
+    v1.0-mini validation scenes, or else the last 15 % of the scenes by name."""
+    if path is None:
+        return load_or_generate(n, seed=seed, cache_dir=cache_dir)
+    root = Path(path)
+    if not root.is_dir():
+        raise ValueError(f"--data: {path} is not a folder")
+    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
+    if not versions:
+        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
+    scenes, report = load_nuscenes(root, versions[0])
+    if len(scenes) < 2:
+        raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
+    # the official v1.0-mini validation scenes where present, else the last 15 % of the scenes by name
+    is_val = torch.tensor([name in MINI_VAL for name in scenes.names])
+    if not is_val.any() or is_val.all():
+        order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
+        is_val = torch.zeros(len(scenes), dtype=torch.bool)
+        is_val[order[-max(1, round(0.15 * len(order))):]] = True
+    rng = np.random.default_rng(seed)
+    train, _ = cut_samples(scenes[~is_val], None, rng)
+    val, _ = cut_samples(scenes[is_val], None, rng)
+    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
+    return Dataset(train, val, scenes[is_val])
 
 
 # ============================================================================================

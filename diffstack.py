@@ -1,26 +1,29 @@
-"""DiffStack: a differentiable and modular autonomous-vehicle stack, in one readable module.
+"""DiffStack: a differentiable and modular autonomous-vehicle stack, the method in one readable module.
 
 Karkus, Ivanovic, Mannor, Pavone, "DiffStack: A Differentiable and Modular Control Stack for
-Autonomous Vehicles", CoRL 2022. The stack predicts the future of a nearby vehicle, plans with a
-sampling planner, and refines the plan with a box-constrained iLQR controller. Planner and
-controller are differentiable, so the predictor can be trained with the planning and control losses.
+Autonomous Vehicles", CoRL 2022. The stack predicts the future of a nearby vehicle (eq. 1), plans with a
+sampling planner (eq. 2) that minimises a hand-crafted cost (eq. 3), and refines the plan with a
+box-constrained iLQR controller (eq. 4). Planner and controller are differentiable, so the predictor can
+be trained with the planning and control losses.
 
 Map of the module (the order the data flows):
     1. Config                 every default of the paper, in one dataclass
     2. Dynamics               the dynamically-extended unicycle (exact integration)
-    3. Cost                   eq. (2): collision, goal, lane, heading, control effort
-    4. Planner                eq. (1): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
-    5. Controller             eq. (3): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
-    6. Predictor              Trajectron++-style CVAE over controls
+    3. Cost                   eq. (3): collision, goal, lane, heading, control effort
+    4. Planner                eq. (2): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
+    5. Controller             eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
+    6. Predictor              eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack                  predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
-    8. Training, evaluation   the methods of Table 1 and their metrics
-    9. Experiments            Tables 1-3 (open loop), the benchmarks
-   10. Beyond open loop       cost learning (Table 4), closed loop (Table 5), ablations, figures
-   11. Command line           --quick, --experiment, --bench
+    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics
+    9. Command line           python diffstack.py --quick
+
+The paper's experiments (Tables 1-5, the ablations, figures, the report) are in experiments.py, every
+benchmark in bench.py, the data in data_synth.py, the course in tutorial.py / tutorial.ipynb.
 
 Shape letters used in comments:
     B scenarios (batch)   A other agents   K prediction modes   N planner candidates
     T time steps          L lanes          P points per lane    n = 4 state dims, m = 2 control dims
+    ...  extra batch dims a function broadcasts over (the candidates N, or the line search's step sizes)
 A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceleration a).
 """
 from __future__ import annotations
@@ -35,6 +38,7 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -47,7 +51,8 @@ import torch.nn as nn
 
 @dataclass
 class Config:
-    """Every default of the paper (REFERENCE.md); where the authors' code differs, a comment says so."""
+    """Every default of the paper (its App. C and D, Trajectron++ for the predictor); where the authors'
+    released code differs, a comment says so."""
 
     # --- time ---
     dt: float = 0.5
@@ -57,7 +62,7 @@ class Config:
     horizon: int = 6
     """planning / prediction horizon T in steps (3 s)"""
 
-    # --- cost, eq. (2) ---
+    # --- cost, eq. (3) ---
     w_coll: float = 5.0
     """collision weight w1 (authors' code: 20)"""
     w_goal: float = 0.5
@@ -71,7 +76,7 @@ class Config:
     rbf_var: float = 2.0
     """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; authors' code: exp(-d^2/4))"""
 
-    # --- planner, eq. (1), App. D ---
+    # --- planner, eq. (2), App. C ---
     goal_lane_dist: float = 4.5
     """a goal lane passes within this distance (m) of the goal"""
     goal_lane_heading: float = math.pi / 2
@@ -90,7 +95,7 @@ class Config:
     feas_yaw_per_speed: float = 0.5
     """feasible |w| <= this * |v| (1/m), authors' code"""
 
-    # --- controller, eq. (3), App. D ---
+    # --- controller, eq. (4), App. C ---
     u_lower: tuple = (-0.7, -5.0)
     """control lower bounds (yaw rate rad/s, acceleration m/s^2), authors' code"""
     u_upper: tuple = (0.7, 4.0)
@@ -104,7 +109,7 @@ class Config:
     line_search_decay: float = 5.0
     """divide the step by this on failure"""
 
-    # --- predictor, §3.1, REFERENCE §6 (Trajectron++ defaults) ---
+    # --- predictor, eq. (1), §3.1 (Trajectron++'s defaults, Salzmann et al. 2020) ---
     pred_modes: int = 25
     """K, the number of values of the discrete latent z (= GMM components = trajectories for the planner)"""
     pred_enc_hidden: int = 32
@@ -136,7 +141,7 @@ class Config:
     pred_grad_clip: float = 1.0
     """gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)"""
 
-    # --- training, §3.2, App. E ---
+    # --- training, §3.2, App. D ---
     alpha_rl: tuple = (1.0, 100.0, 1000.0)
     """loss weights (L_pred, L_plan, L_ctr) in the RL setting"""
     alpha_il: tuple = (1.0, 10.0, 1000.0)
@@ -309,7 +314,7 @@ class Unicycle:
 
 
 # ============================================================================================
-# 3. Cost, eq. (2) and App. D
+# 3. Cost, eq. (3) and App. C
 # ============================================================================================
 #
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
@@ -341,18 +346,18 @@ def wrap_angle(a: torch.Tensor) -> torch.Tensor:
 
 
 def lane_segments(p, lanes, lanes_mask):
-    """Project points on every lane segment. p (B, *S, 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
+    """Project points on every lane segment. p (B, ..., 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
 
-    Returns, per segment (B, *S, L, P-1): the fraction along it of the closest point, the squared
+    Returns, per segment (B, ..., L, P-1): the fraction along it of the closest point, the squared
     distance to it, the lane heading there (interpolated between the ends), and segment validity.
     """
     B = lanes.shape[0]
-    view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over *S
+    view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over ...
     a, b = view(lanes[:, :, :-1]), view(lanes[:, :, 1:])  # segment ends (B, 1.., L, P-1, 3)
     seg_ok = view(lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:])
-    p = p[..., None, None, :]  # (B, *S, 1, 1, 2)
+    p = p[..., None, None, :]  # (B, ..., 1, 1, 2)
     d = b[..., :2] - a[..., :2]
-    frac = (((p - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)  # (B, *S, L, P-1)
+    frac = (((p - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)  # (B, ..., L, P-1)
     d2 = ((p - a[..., :2] - frac[..., None] * d) ** 2).sum(-1)
     lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
     return frac, d2, lane_h, seg_ok.expand_as(d2)
@@ -361,13 +366,13 @@ def lane_segments(p, lanes, lanes_mask):
 def project_to_lanes(pos, heading, lanes, lanes_mask):
     """The lane point closest to each state: squared lateral distance and heading error.
 
-    pos (B, *S, 2), heading (B, *S); lanes (B, L, P, 3), lanes_mask (B, L, P). Only lane points whose
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). Only lane points whose
     heading is within 90 degrees of the state's count, so an oncoming lane is never 'closest'.
     Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the
     exact projection on the two segments that meet there. The search ranks points by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
     so a lane pointing the other way counts as 10 m further away: one batched matrix product.
-    Returns d2, heading error and has_lane, each (B, *S); where no lane matches, d2 = error = 0.
+    Returns d2, heading error and has_lane, each (B, ...); where no lane matches, d2 = error = 0.
     """
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
@@ -403,7 +408,7 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
 
 
 def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
-    """C_coll per trajectory: pos (B, *S, T, 2) positions t1..T -> (B, *S).
+    """C_coll per trajectory: pos (B, ..., T, 2) positions t1..T -> (B, ...).
 
     C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
     The expected squared distance splits into the distance to the modes' mean and their spread:
@@ -411,25 +416,25 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     so the planner sees a prediction only through its per-step mean and spread.
     """
     B = pos.shape[0]
-    view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over *S
+    view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
     spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
-    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, *S, T)
+    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, ..., T)
     coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
-    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, *S, A, T)
+    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, ..., A, T)
     coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
     return coll.sum(-1)
 
 
 def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
-    """The five unweighted terms of eq. (2), per trajectory.
+    """The five unweighted terms of eq. (3), per trajectory.
 
-    x (B, *S, T+1, 4) states with s0 first, u (B, *S, T, 2); *S are extra dims such as candidates N.
-    Returns (B, *S, 5): (C_coll, C_goal, C_lat, C_head, C_u).
+    x (B, ..., T+1, 4) states with s0 first, u (B, ..., T, 2); ... are extra dims such as the candidates N.
+    Returns (B, ..., 5): (C_coll, C_goal, C_lat, C_head, C_u).
     """
     B = x.shape[0]
-    view = lambda t: t.reshape(B, *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over *S
-    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, *S, T, 2), (B, *S, T): the cost skips t0
+    view = lambda t: t.reshape(B, *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
+    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
     coll = collision_term(pos, ctx, rbf_var)
     # C_goal = ||s_T - g||^2
     goal = ((pos[..., -1, :] - view(ctx.goal)) ** 2).sum(-1)
@@ -441,19 +446,23 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
 
 
 def cost_weights(cfg: Config, dtype=torch.float32) -> torch.Tensor:
-    """The hand-tuned weights (w1..w5) of App. D."""
+    """The hand-tuned weights (w1..w5) of App. C."""
     return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype)
 
 
-def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
-    """Eq. (2): C = sum_i w_i C_i. x (B, *S, T+1, 4), u (B, *S, T, 2), w (5,) or (B, 5) -> (B, *S)."""
-    terms = cost_terms(x, u, ctx, rbf_var)
+def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Eq. (3): C = sum_i w_i C_i. terms (B, ..., 5), w (5,) or per scenario (B, 5) -> (B, ...)."""
     w = w if w.dim() == 1 else w.reshape(w.shape[0], *([1] * (terms.dim() - 2)), 5)
     return (terms * w).sum(-1)
 
 
+def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
+    """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
+    return weigh(cost_terms(x, u, ctx, rbf_var), w)
+
+
 # ============================================================================================
-# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (1) and App. D
+# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C
 # ============================================================================================
 
 
@@ -507,7 +516,7 @@ def _hermite(p0, m0, p1, m1, tau):
 
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
-    """Candidate trajectories (App. D): for up to `max_goal_lanes` goal lanes, 8 accelerations x 3
+    """Candidate trajectories (App. C): for up to `max_goal_lanes` goal lanes, 8 accelerations x 3
     lateral offsets give 24 terminal states each; a cubic spline joins s0 to each.
 
     s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
@@ -584,26 +593,37 @@ def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid, values, math.inf).argmin(-1)
 
 
-def plan(s0, ctx: CostContext, goal_state, w, cfg: Config):
-    """Eq. (1): the candidates, their costs C_n (B, N), the argmin plan index (B,), and whether the
-    scenario can be planned at all (at least 2 valid candidates; others are flagged, not crashed on)."""
+class Plan(NamedTuple):
+    """The planner's output for a batch."""
+
+    cands: Candidates
+    cost: torch.Tensor  # (B, N)       C_n, eq. (3) with the given weights
+    best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
+    plannable: torch.Tensor  # (B,)    bool: at least 2 valid candidates (others are flagged, not crashed on)
+    terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
+
+
+def plan(s0, ctx: CostContext, goal_state, w, cfg: Config) -> Plan:
+    """Eq. (2): the candidates, their costs C_n, and the argmin. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5).
+    Unpacks as (cands, cost, best, plannable, terms)."""
     B = check_tensor("s0", s0, (None, 4)).shape[0]
     check_tensor("goal_state", goal_state, (B, 4), s0.dtype)
     check_tensor("lanes", ctx.lanes, (B, None, None, 3), s0.dtype)
     cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
-    cost = total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var)  # (B, N)
+    terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+    cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
-    return cands, cost, masked_argmin(cost, cands.valid), plannable
+    return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
 
 
 # ============================================================================================
-# 5. Controller: box-constrained iLQR, eq. (3) and App. D, and its exact KKT backward
+# 5. Controller: box-constrained iLQR, eq. (4) and App. C, and its exact KKT backward
 # ============================================================================================
 #
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
 #
-# The solver is general: `cost_fn(x, u, *params) -> (B, *S)` is any twice-differentiable cost that is
-# a sum of per-step terms (x (B, *S, T+1, n) with x_0 first, u (B, *S, T, m); *S are extra dims, used
+# The solver is general: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable cost that is
+# a sum of per-step terms (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m); ... are extra dims, used
 # to line-search several step sizes at once), `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable
 # step. Gradients reach every tensor in `params` and x_init.
 #
@@ -686,13 +706,14 @@ def _make_pd(Q, eps):
     return Q + (eps - lam).clamp_min(0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype)
 
 
-def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
+def riccati_backward(A, B, H, g, n, stage):
     """The Riccati recursion of a time-varying LQR with quadratic cost blocks H (B, T+1, n+m, n+m) and
     linear terms g (B, T+1, n+m), dynamics dx_{t+1} = A_t dx_t + B_t du_t.
 
-    Forward pass of iLQR (lo, hi given): the control step of each stage solves a box QP with Quu made
-    positive definite. KKT backward (u_free given): the fixed controls are held at 0 and the exact Quu
-    is used. Returns feedback k (B, T, m), gains K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n).
+    stage(t, Quu, qu) -> (Quu', k, free) decides each stage's feed-forward control step k (B, m), which
+    controls stay free (B, m) bool, and the Quu' the free controls' gains are solved with; its two uses
+    are the two functions below. Returns feed-forward k (B, T, m), gains K (B, T, m, n), free (B, T, m)
+    and p_0 = dV_0/dx_0 (B, n).
     """
     T = A.shape[1]
     P, p = H[:, T, :n, :n], g[:, T, :n]  # V_T(dx) = 1/2 dx'P dx + p'dx
@@ -704,13 +725,8 @@ def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
         FT = F.transpose(-1, -2)
         Q = H[:, t] + FT @ P @ F  # (B, n+m, n+m)
         q = g[:, t] + (FT @ p[..., None])[..., 0]  # (B, n+m)
-        Qux, Quu, qu = Q[:, n:, :n], Q[:, n:, n:], q[:, n:]
-        if u_free is None:  # iLQR step: the box QP on du, then the gain of the free controls
-            Quu = _make_pd(Quu, pd_eps)
-            k, free = box_qp(Quu, qu, lo[:, t], hi[:, t])
-        else:  # KKT backward: active controls fixed at du = 0
-            free = u_free[:, t]
-            k = _solve_masked(Quu, torch.where(free, -qu, 0.0)[..., None], free)[..., 0]
+        Qux, qu = Q[:, n:, :n], q[:, n:]
+        Quu, k, free = stage(t, Q[:, n:, n:], qu)
         K = _solve_masked(Quu, torch.where(free[..., None], -Qux, 0.0), free)  # (B, m, n); 0 on clamped rows
         # V_t(dx) = Q_t(dx, k + K dx): with G = [I; K] and g0 = [0; k],
         #   P = G'Q G,   p = G'(q + Q g0)
@@ -724,6 +740,30 @@ def lqr_backward(A, B, H, g, n, u_free=None, lo=None, hi=None, pd_eps=None):
     return flip(ks), flip(Ks), flip(frees), p
 
 
+def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
+    """iLQR's backward pass (the forward solve): each stage's control step solves the box QP
+    min 1/2 du'Quu du + qu'du s.t. lo_t <= du <= hi_t, with Quu shifted to be positive definite
+    (smallest eigenvalue >= pd_eps) so that the step is a descent direction. lo, hi (B, T, m)."""
+
+    def stage(t, Quu, qu):
+        Quu = _make_pd(Quu, pd_eps)
+        k, free = box_qp(Quu, qu, lo[:, t], hi[:, t])
+        return Quu, k, free
+
+    return riccati_backward(A, B, H, g, n, stage)
+
+
+def lqr_backward_fixed(A, B, H, g, n, free):
+    """The KKT backward's LQR: the controls that were at a bound in the solution (free False, (B, T, m))
+    are held at du = 0, the others solve the exact (unshifted) Quu."""
+
+    def stage(t, Quu, qu):
+        k = _solve_masked(Quu, torch.where(free[:, t], -qu, 0.0)[..., None], free[:, t])[..., 0]
+        return Quu, k, free[:, t]
+
+    return riccati_backward(A, B, H, g, n, stage)
+
+
 @dataclass
 class ILQRInfo:
     """What the solver reports per scenario."""
@@ -735,7 +775,7 @@ class ILQRInfo:
 
 
 def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0):
-    """iLQR with box controls (App. D). Differentiable if the inputs are (autograd through the
+    """iLQR with box controls (App. C). Differentiable if the inputs are (autograd through the
     unrolled iterations; `ILQR` below gives the cheap exact gradient instead).
 
     x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
@@ -752,7 +792,7 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     cost = cost_fn(x, u, *params)
     eps = torch.finfo(x.dtype).eps
     pd_eps = 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
-    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype)  # (S,) 1, 1/5, ...
+    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype)  # (ls_steps,) 1, 1/5, ...
     active = torch.ones(Bsz, dtype=torch.bool)
     step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype)
     n_iter = torch.zeros(Bsz, dtype=torch.long)
@@ -760,16 +800,16 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     for _ in range(iters):
         g, H = cost_expansion(cost_fn, x, u, params)
         A, Bm = dynamics_jacobians(dynamics, x, u)
-        k, K, _, _ = lqr_backward(A, Bm, H, g, n, lo=lo - u, hi=hi - u, pd_eps=pd_eps)
+        k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo - u, hi - u, pd_eps)
         # closed-loop rollouts of every step scale at once: u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t))
         xs = [x_init[:, None].expand(Bsz, ls_steps, n)]
         us = []
         for t in range(T):
             du = scales[:, None] * k[:, None, t] + (K[:, None, t] @ (xs[-1] - x[:, None, t])[..., None])[..., 0]
-            us.append((u[:, None, t] + du).clamp(lo[:, None, t], hi[:, None, t]))  # (B, S, m)
+            us.append((u[:, None, t] + du).clamp(lo[:, None, t], hi[:, None, t]))  # (B, ls_steps, m)
             xs.append(dynamics(xs[-1], us[-1]))
-        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (B, S, T+1, n), (B, S, T, m)
-        c_try = cost_fn(x_try, u_try, *params)  # (B, S)
+        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (B, ls_steps, T+1, n), (B, ls_steps, T, m)
+        c_try = cost_fn(x_try, u_try, *params)  # (B, ls_steps)
         ok = c_try <= cost[:, None] + 100 * eps * (1 + cost.abs()[:, None])  # no increase, up to rounding
         first = torch.where(ok, torch.arange(ls_steps), ls_steps).min(-1).values  # largest accepted scale
         accept = active & (first < ls_steps)
@@ -820,7 +860,7 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
             Hf = _stagewise_jacobian(torch.func.grad(lam_f), z)
         H = H + torch.cat([Hf, torch.zeros_like(H[:, :1])], 1)
     rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
-    k, K, _, p0 = lqr_backward(A, Bm, H, rhs, n, u_free=free)
+    k, K, _, p0 = lqr_backward_fixed(A, Bm, H, rhs, n, free)
     dx, du = [torch.zeros_like(x[:, 0])], []
     for t in range(T):
         du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
@@ -865,7 +905,7 @@ class ILQR(torch.autograd.Function):
 
 
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True):
-    """The differentiable controller, eq. (3): x (B, T+1, n), u (B, T, m), converged (B,).
+    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,).
 
     Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
     """
@@ -922,7 +962,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
     """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (no observed predecessor) copy d_{first+1}.
 
-    Backward, never central: a central difference at t0 would read x_{t1}, the future (REFERENCE §6).
+    Backward, never central: a central difference at t0 would read x_{t1}, the future.
     first (...,) int64 is the index of the first observed step.
     """
     H = x.shape[-2]
@@ -1313,72 +1353,6 @@ def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------------------------
-# 6.6 Plot
-# --------------------------------------------------------------------------------------------
-
-
-def plot_prediction(ax, pred: Prediction, i: int, color: str = "tab:red", cov: bool = True,
-                    label: str | None = "prediction"):
-    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with the mode's
-    probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode. Meant to go over plot_scenario."""
-    p = pred.probs[i].detach().cpu()  # (K,)
-    xy = torch.cat([pred.s0[i, None, None, :2].expand(len(p), 1, 2), pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
-    rel = p / p.max()
-    for k in torch.argsort(p).tolist():  # the likely modes drawn last, on top
-        ax.plot(xy[k, :, 0], xy[k, :, 1], color=color, alpha=0.1 + 0.9 * rel[k].item(), lw=0.5 + 2.5 * rel[k].item(),
-                label=label if k == int(p.argmax()) else None)
-    if cov:
-        k = int(p.argmax())
-        theta = torch.linspace(0, 2 * math.pi, 40, dtype=pred.pos_cov.dtype)
-        circle = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (40, 2)
-        for t in range(pred.pos_cov.shape[2]):
-            L = torch.linalg.cholesky(pred.pos_cov[i, k, t].detach().cpu())  # (2, 2)
-            ell = xy[k, t + 1] + circle @ L.T  # (40, 2)
-            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
-
-
-# --------------------------------------------------------------------------------------------
-# 6.7 Benchmark
-# --------------------------------------------------------------------------------------------
-
-
-def bench_predictor(batch=None, cfg: Config | None = None, iters: int = 10, threads: int | None = 1) -> dict:
-    """Medians (ms) of a training iteration (forward + loss + backward + Adam step) and of an eval forward on a
-    batch (default: cfg.batch_size synthetic scenarios), as wall clock and as process CPU time (with one thread on
-    a busy machine, the CPU time is closer to what an idle machine's wall clock would show). Prints them."""
-    cfg = cfg or Config()
-    if batch is None:
-        import data_synth
-
-        batch = data_synth.make_dataset(2 * cfg.batch_size, seed=0).train[: cfg.batch_size]
-    if threads is not None:
-        torch.set_num_threads(threads)
-    torch.manual_seed(0)
-    model = Predictor(cfg).to(batch.agent_hist.dtype)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    times = {k: [] for k in ("train_wall", "train_cpu", "eval_wall", "eval_cpu")}
-    for it in range(iters + 2):  # 2 warm-up iterations
-        w0, c0 = time.perf_counter(), time.process_time()
-        model.train()
-        loss, _ = pred_loss(model(batch, use_posterior=True, step=it), batch, it, cfg)
-        opt.zero_grad()
-        loss.mean().backward()
-        opt.step()
-        w1, c1 = time.perf_counter(), time.process_time()
-        model.eval()
-        with torch.no_grad():
-            model(batch, use_posterior=False)
-        w2, c2 = time.perf_counter(), time.process_time()
-        if it >= 2:
-            for k, v in zip(times, (w1 - w0, c1 - c0, w2 - w1, c2 - c1)):
-                times[k].append(1e3 * v)
-    med = {k + "_ms": statistics.median(v) for k, v in times.items()}
-    print(f"predictor bench: B={len(batch)} K={cfg.pred_modes} decoder {cfg.pred_dec_hidden}, "
-          f"torch.set_num_threads({torch.get_num_threads()}), medians of {iters}: training iteration "
-          f"{med['train_wall_ms']:.0f} ms wall / {med['train_cpu_ms']:.0f} ms CPU, eval forward "
-          f"{med['eval_wall_ms']:.0f} ms wall / {med['eval_cpu_ms']:.0f} ms CPU")
-    return med
-
 
 # ============================================================================================
 # 7. The stack: predict -> plan -> control, §3.2
@@ -1432,40 +1406,40 @@ class StackOutput:
     pred: object = None  # the predictor's output
 
 
-def upsample(now: torch.Tensor, fut: torch.Tensor, S: int) -> torch.Tensor:
-    """A future on a clock S times finer, by linear interpolation from the present.
+def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
+    """A future on a clock `substeps` times finer, by linear interpolation from the present.
 
-    now (..., D) the value at t0, fut (..., T, D) at t1..T -> (..., T*S, D) at the fine steps 1..T*S
-    (every S-th is a knot of fut). S = 1 returns fut itself."""
-    if S == 1:
+    now (..., D) the value at t0, fut (..., T, D) at t1..T -> (..., T * substeps, D) at the fine steps
+    (every substeps-th is a knot of fut). substeps = 1 returns fut itself."""
+    if substeps == 1:
         return fut
     knots = torch.cat([now[..., None, :], fut], -2)  # (..., T+1, D)
     a, b = knots[..., :-1, None, :], knots[..., 1:, None, :]  # (..., T, 1, D)
-    f = torch.arange(1, S + 1, dtype=fut.dtype)[:, None] / S  # (S, 1) the fractions of a step
+    f = torch.arange(1, substeps + 1, dtype=fut.dtype)[:, None] / substeps  # (substeps, 1) the fractions of a step
     return (a + (b - a) * f).flatten(-3, -2)
 
 
-def _substeps(cfg: Config, plan_dt) -> int:
+def planner_substeps(cfg: Config, plan_dt) -> int:
     """How many planner/controller steps of plan_dt make one prediction step cfg.dt (1 for plan_dt None)."""
     if plan_dt is None:
         return 1
-    S = round(cfg.dt / plan_dt) if plan_dt > 0 else 0
-    if S < 1 or abs(S * plan_dt - cfg.dt) > 1e-9:
+    substeps = round(cfg.dt / plan_dt) if plan_dt > 0 else 0
+    if substeps < 1 or abs(substeps * plan_dt - cfg.dt) > 1e-9:
         raise ValueError(f"plan_dt: must divide the prediction step dt = {cfg.dt} s into whole steps, got {plan_dt}")
-    return S
+    return substeps
 
 
-def _contexts(batch, preds, probs, pred_mask, plan_others=True, S=1):
+def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1):
     """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
-    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. E).
-    S: planner steps per prediction step; the futures (preds included) must already be on the planner's clock,
-    the batch's are interpolated to it here."""
+    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. D.3).
+    substeps: planner steps per prediction step; the futures (preds included) must already be on the planner's
+    clock, the batch's are interpolated to it here."""
     others_mask = batch.others_mask.to(preds.dtype)
-    others = upsample(batch.others_hist[:, :, -1, :2], batch.others_fut[..., :2], S)  # (B, A, T*S, 2)
+    others = upsample(batch.others_hist[:, :, -1, :2], batch.others_fut[..., :2], substeps)  # (B, A, T, 2)
     common = dict(others=others, goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
     ctx = CostContext(preds, probs, pred_mask, others_mask=others_mask * plan_others, **common)
     ones = torch.ones_like(pred_mask)
-    agent = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], S)  # (B, T*S, 2)
+    agent = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], substeps)  # (B, T, 2)
     hctx = CostContext(agent[:, None], ones[:, None], ones, others_mask=others_mask, **common)
     return ctx, hctx
 
@@ -1482,10 +1456,10 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     plan_others=False: planner and controller ignore the other agents (they still count in hindsight).
     pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
     plan_dt: the planner's and controller's time step (ablation: 0.1 s) when finer than the predictor's cfg.dt.
-        Both then plan T*S steps (S = cfg.dt / plan_dt); the predicted modes and every GT future are linearly
-        interpolated to that clock; L_pred stays on the prediction's clock; MSE is taken at the logged steps; and
-        the per-step cost terms (all but the goal's) are scaled by 1/S, so that eq. (2) sums the same costs per
-        second as at cfg.dt and only the resolution changes.
+        Both then plan T * substeps steps (substeps = cfg.dt / plan_dt); the predicted modes and every GT future
+        are linearly interpolated to that clock; L_pred stays on the prediction's clock; MSE is taken at the
+        logged steps; and the per-step cost terms (all but the goal's) are scaled by 1/substeps, so that eq. (3)
+        sums the same costs per second as at cfg.dt and only the resolution changes.
     timings: a dict that receives the seconds spent predicting, planning and controlling.
     """
     clock = [time.perf_counter()]
@@ -1495,49 +1469,46 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
             clock.append(time.perf_counter())
             timings[name] = clock[-1] - clock[-2]
 
-    S = _substeps(cfg, plan_dt)
-    B, T, dt = len(batch), cfg.horizon * S, cfg.dt / S  # the planner's and the controller's clock
+    sub = planner_substeps(cfg, plan_dt)
+    B, T, dt = len(batch), cfg.horizon * sub, cfg.dt / sub  # the planner's and the controller's clock
     dtype = batch.ego_hist.dtype
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    per_step = torch.tensor([1 / S, 1, 1 / S, 1 / S, 1 / S], dtype=dtype)  # the goal term is terminal
+    per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], dtype=dtype)  # the goal term is terminal
     w_fixed = cost_weights(cfg, dtype) * per_step
     w = w_fixed if w is None else w * per_step
-    # --- predict ---
+    # --- predict, eq. (1) ---
     pred, l_pred = None, torch.zeros(B, dtype=dtype)
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
-        preds = upsample(now, pred.states[..., :2], S)  # (B, K, T, 2) on the planner's clock
+        preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
         probs, pred_mask = pred.probs, torch.ones(B, dtype=dtype)  # (B, K), (B,)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
             l_pred, _ = pred_loss(pred, target, step, cfg)
     elif method.predictor == "gt":
-        preds = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], S)[:, None]  # (B, 1, T, 2)
+        preds = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], sub)[:, None]  # (B, 1, T, 2)
         probs, pred_mask = torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
-    ctx, hctx = _contexts(batch, preds, probs, pred_mask, plan_others, S)
-    gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], S)  # (B, T, 2)
+    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub)
+    gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     lap("predict")
-    # --- plan, eq. (1): costs of all candidates, with predictions and in hindsight ---
-    pcfg = cfg if S == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
-    cands = plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, pcfg)
-    terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
-    cost = (terms * w).sum(-1)  # (B, N)
-    h_terms = torch.cat([collision_term(cands.x[..., 1:, :2], hctx, cfg.rbf_var)[..., None], terms[..., 1:]], -1)
-    h_cost = (h_terms.detach() * w_fixed).sum(-1)  # (B, N)
+    # --- plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin ---
+    pcfg = cfg if sub == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
+    cands, cost, best, plannable, terms = plan(s0, ctx, batch.goal, w, pcfg)  # (B, N) costs, (B,) plan
+    # the planner's target n*: RL, the candidate cheapest in hindsight (the agent's GT future in the collision
+    # term, the other terms as planned); IL, the candidate closest to the GT ego trajectory
     if setting == "rl":
-        target = masked_argmin(h_cost, cands.valid)
+        h_terms = torch.cat([collision_term(cands.x[..., 1:, :2], hctx, cfg.rbf_var)[..., None], terms[..., 1:]], -1)
+        target = masked_argmin((h_terms.detach() * w_fixed).sum(-1), cands.valid)
     else:
         target = masked_argmin(((cands.x[..., 1:, :2] - gt_pos[:, None]) ** 2).sum(-1).mean(-1), cands.valid)
-    plannable = cands.valid.sum(-1) >= 2
     valid = cands.valid | ~plannable[:, None]  # keep the softmax finite where nothing can be planned
     l_plan = torch.where(plannable, plan_loss(cost, valid, target, cfg.beta), 0.0)
-    best = masked_argmin(cost.detach(), cands.valid)  # (B,) the plan
     idx = torch.arange(B)
     lap("plan")
-    # --- control, eq. (3): iLQR from the plan, gradients by the KKT backward ---
+    # --- control, eq. (4): iLQR from the plan, gradients by the KKT backward ---
     converged = torch.ones(B, dtype=torch.bool)
     if controller:
         u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
@@ -1552,15 +1523,20 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     else:
         x, u = cands.x[idx, best], cands.u[idx, best]
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
-    mse = ((x[:, S::S, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
+    mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
     lap("control")
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
 
 
 # ============================================================================================
-# 8. Training and evaluation, §3.2, §4.1, App. E
+# 8. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
 # ============================================================================================
+#
+#   L = a1 L_pred + a2 L_plan + a3 L_ctr
+#
+# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
+# method and setting, or (Table 4) the cost weights w of eq. (3) with the predictor frozen.
 
 
 def alphas(method: Method, setting: str, cfg: Config):
@@ -1575,66 +1551,11 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
     fut = batch.agent_fut[..., :2].detach().clone().requires_grad_(True)  # (B, T, 2)
     B = len(batch)
     ones = torch.ones(B, dtype=fut.dtype)
-    ctx, _ = _contexts(batch, fut[:, None], ones[:, None], ones)
+    ctx, _ = cost_contexts(batch, fut[:, None], ones[:, None], ones)
     x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
     with torch.enable_grad():
         (g,) = torch.autograd.grad(collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut)
     return g.flatten(1).norm(dim=-1)
-
-
-def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
-                pred_offset=0.0, **stack_kw):
-    """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, §App. E).
-
-    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
-    a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
-    pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
-    Returns the per-step log (list of dicts).
-    """
-    torch.manual_seed(seed)  # the decoder's sampled controls
-    g = torch.Generator().manual_seed(seed)  # the order of the scenarios
-    a1, a2, a3 = alphas(method, setting, cfg)
-    downstream = a2 > 0 or a3 > 0
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
-    n = len(data)
-    steps_per_epoch = max(1, n // cfg.batch_size)
-    total = max(1, round(epochs * steps_per_epoch))
-    history, t0, step = [], time.time(), 0
-    model.train()
-    while step < total:
-        perm = torch.randperm(n, generator=g)
-        for i in range(steps_per_epoch):
-            if step >= total:
-                break
-            batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
-            target = offset_targets(batch, pred_offset) if pred_offset else None
-            if downstream:
-                out = run_stack(batch, model, method, cfg, setting, step=step, train=True, pred_target=target, **stack_kw)
-                keep = out.plannable.to(out.l_plan.dtype)
-                m = keep.sum().clamp_min(1)
-                l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg) * keep).sum() / m
-                l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
-                conv = out.converged[out.plannable].float().mean().item()
-            else:
-                pred = model(batch, use_posterior=True, step=step)
-                l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
-                l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg)).mean()
-                l_plan = l_ctr = torch.zeros(())
-                conv = float("nan")
-            loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_value_(model.parameters(), cfg.pred_grad_clip)
-            opt.step()
-            sched.step()
-            step += 1
-            history.append(dict(step=step, loss=loss.item(), l_pred=l_pred.item(), l_plan=l_plan.item(), l_ctr=l_ctr.item(), converged=conv))
-            if log and (step % max(1, total // 10) == 0 or step == total):
-                el = time.time() - t0
-                log(f"  [{method.name}] step {step}/{total}  loss {loss.item():9.3f}  L_pred {l_pred.item():7.3f}  "
-                    f"L_plan {l_plan.item():6.3f}  L_ctr {l_ctr.item():7.4f}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
-    return history
 
 
 def offset_targets(batch, offset: float) -> torch.Tensor:
@@ -1646,244 +1567,8 @@ def offset_targets(batch, offset: float) -> torch.Tensor:
     return fut
 
 
-def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, **stack_kw) -> dict:
-    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
-    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate."""
-    if model is not None:
-        model.eval()
-    sums, n, n_all = {}, 0, 0
-    for i in range(0, len(data), batch_size):
-        batch = data[i:i + batch_size]
-        out = run_stack(batch, model, method, cfg, setting, **stack_kw)
-        keep = out.plannable
-        vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
-        if out.pred is not None:
-            vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
-        for k, v in vals.items():
-            sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
-        n, n_all = n + keep.sum().item(), n_all + len(batch)
-    out = {k: v / max(n, 1) for k, v in sums.items()}
-    out.update(n=n, skipped=n_all - n)
-    return out
-
-
-# ============================================================================================
-# 9. Experiments: Tables 1-3, and the benchmarks
-# ============================================================================================
-
-SETTING_COLUMNS = {  # (metric, scale of the relative column, header)
-    "rl": (("plan_loss", 1e-2, "Planning loss (x1e-2)"), ("hindsight", 1e-2, "Hindsight cost (x1e-2)")),
-    "il": (("plan_loss", 1e-3, "Planning loss (x1e-3)"), ("mse", 1e-2, "MSE (x1e-2)")),
-}
-
-
-def mean_se(xs):
-    """Mean and standard error of a list of numbers."""
-    m = statistics.fmean(xs)
-    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
-
-
-def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                         pred_offset=0.0, log=print, models=None, **stack_kw) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1-3, ablations).
-
-    Returns {method name: [metrics dict per seed]}, with the planning metrics also relative to No
-    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables).
-    models: a dict of trained predictors shared between calls (see trained_predictor).
-    """
-    results = {}
-    for m in methods:
-        runs = []
-        for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            t0 = time.time()
-            model = None
-            if m.predictor == "learned":
-                model = trained_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, models, **stack_kw)
-            r = evaluate_stack(model, data.val, m, cfg, setting, **stack_kw)
-            r["seconds"] = time.time() - t0
-            runs.append(r)
-            if log:
-                log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
-        results[m.name] = runs
-    base = results["No prediction"][0] if "No prediction" in results else None
-    for runs in results.values():
-        for r in runs:
-            for key, scale, _ in SETTING_COLUMNS[setting]:
-                if base is not None:
-                    r["rel_" + key] = (r[key] - base[key]) / scale
-    return results
-
-
-def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
-                      **stack_kw):
-    """Method m's predictor trained with `seed` (train_stack). models: None, or a dict shared by the experiments
-    of one run: a predictor already trained the same way is taken from it instead of retrained (the same seed
-    gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs and
-    target offset -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
-    options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
-    and every ablation section."""
-    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
-    if a[1:] == (0, 0):
-        kw, runs_stack = {}, False
-    elif a[2] == 0:
-        kw.pop("controller", None)
-    key = (a, m.weighting, seed, epochs, pred_offset, setting if runs_stack else None, tuple(sorted(kw.items())))
-    if models is not None and key in models:
-        if log:
-            log(f"  [{m.name}] seed {seed}: trained above, reused")
-        return models[key]
-    torch.manual_seed(seed)  # the predictor's initialisation
-    model = Predictor(cfg)
-    train_stack(model, data.train, m, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
-    if models is not None:
-        models[key] = model
-    return model
-
-
-def format_table(results: dict, setting="rl") -> str:
-    """A markdown table like the paper's: means +- standard errors over seeds."""
-    cols = SETTING_COLUMNS[setting]
-    head = ["Method", "ADE (m)", "NLL (nats)"] + [c[2] for c in cols] + ["iLQR converged"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-
-    def cell(runs, key, fmt="{:.2f}"):
-        if key not in runs[0]:
-            return "--"
-        m, s = mean_se([r[key] for r in runs])
-        return f"{fmt.format(m)} ± {fmt.format(s)}"
-
-    for name, runs in results.items():
-        row = [name, cell(runs, "ade"), cell(runs, "nll")] + [cell(runs, "rel_" + c[0]) for c in cols]
-        lines.append("| " + " | ".join(row + [cell(runs, "converged", "{:.3f}")]) + " |")
-    return "\n".join(lines)
-
-
-def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
-    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e."""
-    gt = results["GT prediction"][0][metric]
-    shares = [(s[metric] - d[metric]) / (s[metric] - gt) for s, d in zip(results[standard], results[diffstack])]
-    return mean_se(shares)
-
-
-# --- benchmarks (printed figures, never timed tests) -----------------------------------------
-
-
-def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
-    """B unicycle tracking problems, the benchmark shared with mpc.pytorch (bench_mpc.py):
-        min sum_t 1/2 (s_t - r_t)' Q (s_t - r_t) + 1/2 (u_t - ur_t)' R (u_t - ur_t),  box controls,
-    the reference rolled out from smooth random controls (some outside the box), the start perturbed."""
-    g = torch.Generator().manual_seed(seed)
-    U = lambda lo, hi, *shape: lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)  # noqa: E731
-    x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-math.pi, math.pi, B), U(2.0, 15.0, B)], -1)
-    tt = torch.arange(T, dtype=dtype) / (T - 1)
-    u_ref = torch.stack([U(-0.5, 0.5, B, 1) + U(-0.6, 0.6, B, 1) * tt, U(-3.0, 2.5, B, 1) + U(-3.5, 3.5, B, 1) * tt], -1)
-    x_ref = unicycle_rollout(x0, u_ref, 0.5)  # (B, T+1, 4)
-    x_init = x0 + torch.randn(B, 4, generator=g, dtype=dtype) * torch.tensor([1.0, 1.0, 0.15, 1.0], dtype=dtype)
-    Q, R = torch.tensor([1.0, 1.0, 1.0, 0.2], dtype=dtype), torch.tensor([0.5, 0.1], dtype=dtype)
-    cfg = Config()
-    lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
-    return dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi))
-
-
-def tracking_cost(x, u, x_ref, u_ref, Q, R):
-    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S)."""
-    view = lambda t: t.reshape(t.shape[0], *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731
-    return 0.5 * ((x - view(x_ref)) ** 2 * Q).sum((-1, -2)) + 0.5 * ((u - view(u_ref)) ** 2 * R).sum((-1, -2))
-
-
-def _median_ms(fn, reps=7, warmup=2):
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return 1e3 * statistics.median(times)
-
-
-def bench_controller(B=256, dtype=torch.float64, iters=5, tol=0.01, reps=7) -> dict:
-    """Median iLQR forward and KKT backward (ms) on the tracking benchmark, and the converged share."""
-    P = tracking_problem(B, dtype=dtype)
-    params = (P["x_ref"], P["u_ref"], P["Q"], P["R"])
-    solve = lambda x_init, params: ilqr_solve(tracking_cost, Unicycle(0.5), x_init, P["u_init"], params,  # noqa: E731
-                                              P["lo"], P["hi"], iters=iters, tol=tol)
-    fwd = _median_ms(lambda: solve(P["x_init"], params), reps)
-    bwd = []
-    for _ in range(reps + 1):
-        x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
-        x, u, converged = solve(x_init, (x_ref, *params[1:]))
-        t = time.perf_counter()
-        x.sum().backward()
-        bwd.append(time.perf_counter() - t)
-    return dict(forward_ms=fwd, backward_ms=1e3 * statistics.median(bwd[1:]), converged=converged.float().mean().item())
-
-
-def bench(threads=(1, 2), reps=7, log=print) -> dict:
-    """`--bench`: medians (ms) of the controller on the tracking benchmark (B = 256, T = 6, dt 0.5, up to 5
-    iterations, tol 0.01), the planner's candidates, a predictor training step (Standard), and a DiffStack
-    training step (RL) split across the modules, all at B = 256; then closed-loop log replay of 100 scenes x 10 s
-    (seconds, one thread). mpc.pytorch on the same benchmark: bench_mpc.py."""
-    import data_synth
-
-    cfg = Config()
-    batch = data_synth.load_or_generate(2000, seed=0, cache_dir=DATA_CACHE).train[:cfg.batch_size]
-    cols = ["threads", "iLQR fwd f64", "KKT bwd f64", "iLQR fwd f32", "KKT bwd f32", "converged f32", "candidates",
-            "predictor step", "DiffStack step: predict", "plan", "control", "backward", "total"]
-    log("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    out = {}
-    for nt in threads:
-        torch.set_num_threads(nt)
-        c64, c32 = bench_controller(256, torch.float64, reps=reps), bench_controller(256, torch.float32, reps=reps)
-        cand = _median_ms(lambda: plan_candidates(batch.ego_hist[:, -1], batch.goal, batch.lanes, batch.lanes_mask, cfg), reps)
-        pred = bench_predictor(batch, cfg, iters=reps, threads=nt)
-        step = bench_stack_step(batch, cfg, reps=max(3, reps // 2))
-        out[nt] = dict(controller_f64=c64, controller_f32=c32, candidates_ms=cand, predictor=pred, step=step)
-        row = [c64["forward_ms"], c64["backward_ms"], c32["forward_ms"], c32["backward_ms"]]
-        row = [str(nt)] + [f"{v:.0f}" for v in row] + [f"{c32['converged']:.2f}", f"{cand:.0f}", f"{pred['train_wall_ms']:.0f}"]
-        row += [f"{step[k]:.0f}" for k in ("predict", "plan", "control", "backward", "step")]
-        log("| " + " | ".join(row) + " |")
-    scenes = data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE).val_scenes
-    out["closed_loop_s"] = bench_closed_loop(scenes, cfg, n=100, sim_time=10.0, reps=3, log=log)
-    return out
-
-
-def bench_stack_step(batch, cfg: Config, reps=3) -> dict:
-    """Median time (ms) of one DiffStack training step (RL, B = len(batch)) and its parts."""
-    torch.manual_seed(0)
-    model = Predictor(cfg)
-    method = Method("DiffStack", losses=(1, 1, 1))
-    a1, a2, a3 = alphas(method, "rl", cfg)
-    runs = []
-    for _ in range(reps + 1):  # the first is a warm-up
-        t = {}
-        out = run_stack(batch, model, method, cfg, "rl", step=0, train=True, timings=t)
-        t0 = time.perf_counter()
-        (a1 * out.l_pred.mean() + a2 * out.l_plan.mean() + a3 * out.l_ctr.mean()).backward()
-        t["backward"] = time.perf_counter() - t0
-        t["step"] = sum(t.values())
-        runs.append(t)
-    return {k: 1e3 * statistics.median(r[k] for r in runs[1:]) for k in runs[0]}
-
-
-# ============================================================================================
-# 10. Beyond open loop: cost learning (Table 4), closed loop (Table 5), ablations (App. A.1), figures
-# ============================================================================================
-#
-#   10.1 cost learning    w_i = alpha c softmax(psi)_i, learned from L_ctr = MSE through the KKT backward
-#   10.2 closed loop      log replay: the ego driven by the stack's first control, the others replay the log
-#   10.3 ablations        loss weights, no L_plan / L_ctr, no planner, no controller (dt = 0.1 s: see the note)
-#   10.4 figures          Fig. 3 (Standard vs DiffStack on one scenario), a closed-loop rollout, learned weights
-#   10.5 report           every table and figure in one markdown file
-
-
-# --------------------------------------------------------------------------------------------
-# 10.1 Cost learning (§4.2, Table 4, App. A.2)
-# --------------------------------------------------------------------------------------------
-
-
 class CostWeights(nn.Module):
-    """The cost weights of eq. (2), reparameterised as in App. A.2:
+    """The cost weights of eq. (3), reparameterised as in App. A.2:
 
         w_i = alpha w'_i,   w'_i = c exp(psi_i) / sum_j exp(psi_j),   i = 1..5
 
@@ -1909,576 +1594,185 @@ class CostWeights(nn.Module):
         return self.alpha * self.normalised()
 
 
-def _plannable_mean(v: torch.Tensor, out: StackOutput) -> torch.Tensor:
-    """Mean of a per-scenario value (B,) over the plannable scenarios of a batch."""
-    keep = out.plannable.to(v.dtype)
-    return (v * keep).sum() / keep.sum().clamp_min(1)
+def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
+                pred_offset=0.0, weights: CostWeights | None = None, **stack_kw):
+    """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
+    given `weights`, learn the cost weights instead (App. A.2, Table 4; method Method(..., losses=(0, 0, 1)) in
+    the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
+    dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem), and the lr is constant.
 
-
-def train_cost_weights(weights: CostWeights, model, data, cfg: Config, epochs=1.0, seed=0, log=print):
-    """Learn the cost weights in the IL setting (App. A.2): L = a3 L_ctr, L_ctr = MSE of the controller's
-    trajectory to the GT ego, no L_plan; the gradient dL/dw comes from the controller's KKT backward (w is
-    a parameter of the iLQR problem). The predictor is frozen (the paper: "similar results"), weighting its
-    modes by p(z|x), as at evaluation. Adam, lr cfg.lr, gradient value clipping, batch cfg.batch_size.
-    Returns the per-step log."""
-    torch.manual_seed(seed)
-    g = torch.Generator().manual_seed(seed)
-    model.eval().requires_grad_(False)
-    method = Method("Standard")  # a learned predictor; its losses do not matter here
-    a3 = cfg.alpha_il[2]
-    opt = torch.optim.Adam(weights.parameters(), lr=cfg.lr)
-    steps_per_epoch = max(1, len(data) // cfg.batch_size)
+    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
+    a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
+    pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
+    Returns the per-step log (list of dicts).
+    """
+    torch.manual_seed(seed)  # the decoder's sampled controls
+    g = torch.Generator().manual_seed(seed)  # the order of the scenarios
+    a1, a2, a3 = alphas(method, setting, cfg)
+    downstream = a2 > 0 or a3 > 0
+    learn_cost = weights is not None
+    if learn_cost:
+        model.eval().requires_grad_(False)
+        params = list(weights.parameters())
+    else:
+        model.train()
+        params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
+    n = len(data)
+    steps_per_epoch = max(1, n // cfg.batch_size)
     total = max(1, round(epochs * steps_per_epoch))
-    history, t0 = [], time.time()
-    for step in range(total):
-        if step % steps_per_epoch == 0:
-            perm = torch.randperm(len(data), generator=g)
-        i = step % steps_per_epoch
-        batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
-        out = run_stack(batch, model, method, cfg, "il", w=weights())
-        loss = a3 * _plannable_mean(out.l_ctr, out)  # L = a3 L_ctr,  L_ctr = sum_t ||s_ctr,t - s_gt,t||^2
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_value_(weights.parameters(), cfg.pred_grad_clip)
-        opt.step()
-        history.append(dict(step=step + 1, loss=loss.item(), w=weights().tolist()))
-        if log and ((step + 1) % max(1, total // 5) == 0 or step + 1 == total):
-            log(f"  [cost weights] step {step + 1}/{total}  L_ctr {loss.item() / a3:.4f}  w "
-                + " ".join(f"{v:.3f}" for v in weights().tolist()) + f"  {time.time() - t0:4.0f}s")
+    history, t0, step = [], time.time(), 0
+    while step < total:
+        perm = torch.randperm(n, generator=g)
+        for i in range(steps_per_epoch):
+            if step >= total:
+                break
+            batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
+            target = offset_targets(batch, pred_offset) if pred_offset else None
+            if downstream:
+                out = run_stack(batch, model, method, cfg, setting, step=None if learn_cost else step, train=not learn_cost,
+                                w=weights() if learn_cost else None, pred_target=target, **stack_kw)
+                keep = out.plannable.to(out.l_plan.dtype)
+                m = keep.sum().clamp_min(1)
+                l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg) * keep).sum() / m
+                l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
+                conv = out.converged[out.plannable].float().mean().item()
+            else:
+                pred = model(batch, use_posterior=True, step=step)
+                l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
+                l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg)).mean()
+                l_plan = l_ctr = torch.zeros(())
+                conv = float("nan")
+            loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)
+            opt.step()
+            if sched is not None:
+                sched.step()
+            step += 1
+            history.append(dict(step=step, loss=loss.item(), l_pred=l_pred.item(), l_plan=l_plan.item(), l_ctr=l_ctr.item(), converged=conv))
+            if learn_cost:
+                history[-1]["w"] = weights().tolist()
+            if log and (step % max(1, total // 10) == 0 or step == total):
+                el = time.time() - t0
+                w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
+                log(f"  [{method.name}] step {step}/{total}  loss {loss.item():9.3f}  L_pred {l_pred.item():7.3f}  "
+                    f"L_plan {l_plan.item():6.3f}  L_ctr {l_ctr.item():7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
     return history
 
 
-def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
-    """Table 4: per seed, train a Standard predictor (train_stack), then the cost weights with it frozen;
-    evaluate both the hand-tuned and the learned weights on data.val in the IL setting.
-
-    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised
-    weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
-    res = {"Hand-tuned": [], "Learned": []}
-    for seed in seeds:
-        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models)
-        weights = CostWeights(cfg)
-        for name in res:
-            if name == "Learned":
-                train_cost_weights(weights, model, data.train, cfg, epochs, seed, log)
-            with torch.no_grad():
-                w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
-            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w)
-            r.update(w=w_norm.tolist(), alpha=alpha)
-            res[name].append(r)
-            if log:
-                log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
-                    + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
-    return res
+def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
+                    **stack_kw) -> Predictor:
+    """A fresh predictor, initialised from `seed`, trained on data.train by train_stack."""
+    torch.manual_seed(seed)  # the predictor's initialisation
+    model = Predictor(cfg)
+    train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+    return model
 
 
-def format_cost_table(results: dict) -> str:
-    """Table 4 as markdown: the normalised weights w', alpha, planning loss and MSE (means +- s.e. over seeds)."""
-    head = ["Cost weights", "w'1 (coll)", "w'2 (goal)", "w'3 (lane)", "w'4 (heading)", "w'5 (control)", "alpha",
-            "Planning loss", "MSE (m^2)"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name, runs in results.items():
-        cell = lambda xs: "{:.3f} ± {:.3f}".format(*mean_se(xs))  # noqa: E731
-        row = [name] + [cell([r["w"][i] for r in runs]) for i in range(5)]
-        row += [cell([r["alpha"] for r in runs]), cell([r["plan_loss"] for r in runs]), cell([r["mse"] for r in runs])]
-        lines.append("| " + " | ".join(row) + " |")
-    return "\n".join(lines)
-
-
-# --------------------------------------------------------------------------------------------
-# 10.2 Closed loop: log replay (§4.3, Table 5, App. E)
-# --------------------------------------------------------------------------------------------
-#
-# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego
-# (data_synth.sample_at with its simulated 4 s history), run the stack, move the ego by the first control
-# of the controller's trajectory through the known unicycle; the other agents replay their logs, and the goal
-# and lanes come from the logged ego (sample_at). As in the paper (App. E), the stack plans with the
-# predicted agent only (the other agents are dropped from the planning cost, they stay the predictor's
-# neighbours); the metrics count every agent. The simulation starts at the first frame with a full history,
-# so 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
-
-
-@dataclass
-class Rollout:
-    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
-
-    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
-    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
-    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
-    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 2, GT futures)
-    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
-    start_frame: int  # f0
-
-
-def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
-    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
-    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
-    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
-    c, s = torch.cos(h0), torch.sin(h0)
-    x, y = states[..., 0], states[..., 1]
-    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
-
-
-def stack_policy(model, method: Method, cfg: Config):
-    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
-    the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
-
-    The planner and controller see the predicted agent only (App. E); the predictor still sees every
-    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls."""
+def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, **stack_kw) -> dict:
+    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
+    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate."""
     if model is not None:
         model.eval()
-
-    def policy(batch):
-        with torch.no_grad():
-            out = run_stack(batch, model, method, cfg, plan_others=False)
-        return out.x, out.u, out.hindsight, out.plannable
-
-    return policy
-
-
-def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
-             dtype=torch.float32) -> Rollout:
-    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first
-    frame with a full history). policy(batch) -> (x, u, hindsight, plannable) as stack_policy's; the ego
-    moves by u[:, 0] through the unicycle (eq. of §2), the agents replay the log. scfg: the data's
-    SynthConfig (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
-    import data_synth
-
-    scfg = scfg or data_synth.SynthConfig()
-    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
-    if abs(cfg.dt - scfg.dt) > 1e-9:
-        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
-                         f"got {cfg.dt}")
-    steps = sim_time / cfg.dt
-    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
-        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
-    N = round(steps)
-    f0 = H if start_frame is None else start_frame
-    if f0 < H or f0 + N - 1 + T > F - 1:
-        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
-                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
-    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
-    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
-    for k in range(N):  # a loop over simulation steps; every scene at once
-        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
-        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
-        s = hist[:, -1]  # (S, 4)
-        u0 = u[:, 0].to(s.dtype)  # (S, 2)
-        # s_{k+1} = f(s_k, u_0): the known dynamics, in the world frame (controls do not depend on the frame)
-        s_next = unicycle_step(s, u0, cfg.dt)
-        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
-        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
-        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s.dtype), s))
-        open_loop.append(hindsight.to(s.dtype)), plannable.append(ok)
-    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
-    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
-
-
-def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
-    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
-
-      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 2, w hand-tuned)
-      collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
-      lane             1/N sum_t (w3 C_lat + w4 C_head)
-      control effort   1/N sum_t w5 ||u_t||^2
-      open-loop cost   mean of each step's hindsight cost C_H (over the plannable steps)
-      deviation        1/N sum_t ||s_t - s_log,t|| (m)
-    """
-    N, f0 = roll.controls.shape[1], roll.start_frame
-    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
-    frames = slice(f0 + 1, f0 + N + 1)
-    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
-    # C_coll = sum_a phi(||s_t - s_a,t||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
-    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N)
-    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
-    # C_lat, C_head against the map's lanes (world frame)
-    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype)
-    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
-    out = {k: v.mean(-1) for k, v in parts.items()}
-    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
-    keep = roll.plannable.to(x.dtype)
-    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
-    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
-    out["plannable"] = keep.mean(-1)
+    sums, n, n_all = {}, 0, 0
+    for i in range(0, len(data), batch_size):
+        batch = data[i:i + batch_size]
+        out = run_stack(batch, model, method, cfg, setting, **stack_kw)
+        keep = out.plannable
+        vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
+        if out.pred is not None:
+            vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
+        for k, v in vals.items():
+            sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
+        n, n_all = n + keep.sum().item(), n_all + len(batch)
+    out = {k: v / max(n, 1) for k, v in sums.items()}
+    out.update(n=n, skipped=n_all - n)
     return out
 
 
-CLOSED_LOOP_COLUMNS = (("trajectory", "Trajectory cost"), ("open_loop", "Open-loop cost"), ("collision", "Collision cost"),
-                       ("lane", "Lane keep cost"), ("control", "Control effort"), ("deviation", "Deviation (m)"))
-CLOSED_LOOP_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
+# The planning metrics of Tables 1-3 are differences to No prediction on the same scenarios, in the units
+# of the paper's columns (x1e-2 or x1e-3).
+RELATIVE_SCALE = {"rl": {"plan_loss": 1e-2, "hindsight": 1e-2}, "il": {"plan_loss": 1e-3, "mse": 1e-2}}
 
 
-def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
-    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one)."""
-    import data_synth
+def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
+                    pred_offset=0.0, log=print, train=train_predictor, **stack_kw) -> dict:
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1-3 and the ablations).
 
-    scfg = scfg or data_synth.SynthConfig()
-    N = round(sim_time / cfg.dt)
-    return scenes[(scenes.pred_idx[:, scfg.hist:scfg.hist + N] >= 0).all(1)]
-
-
-def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None):
-    """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
-    validation scene. Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
-    {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
-    scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
-    results, rollouts = {}, {}
-    for m in CLOSED_LOOP_METHODS:
+    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
+    same validation set ('rel_<metric>', scaled as in the paper's tables, RELATIVE_SCALE). train(method, data,
+    cfg, setting, epochs, seed, log, pred_offset, **stack_kw) -> a trained predictor (experiments.py passes one
+    that shares predictors between tables).
+    """
+    results = {}
+    for m in methods:
         runs = []
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            t0, model = time.time(), None
+            t0 = time.time()
+            model = None
             if m.predictor == "learned":
-                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models)
-            t1 = time.time()
-            roll = simulate(scenes, stack_policy(model, m, cfg), cfg, sim_time)
-            per_scene = closed_loop_metrics(scenes, roll, cfg)
-            r = {k: v.mean().item() for k, v in per_scene.items()}
-            r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
+                model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+            r = evaluate_stack(model, data.val, m, cfg, setting, **stack_kw)
+            r["seconds"] = time.time() - t0
             runs.append(r)
-            rollouts.setdefault(m.name, (roll, per_scene))
             if log:
-                log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+                log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
         results[m.name] = runs
-    base = results["No prediction"][0]
+    base = results["No prediction"][0] if "No prediction" in results else None
     for runs in results.values():
         for r in runs:
-            for k, _ in CLOSED_LOOP_COLUMNS:
-                r["rel_" + k] = (r[k] - base[k]) / 1e-2
-    return results, rollouts, scenes
+            for key, scale in RELATIVE_SCALE[setting].items():
+                if base is not None:
+                    r["rel_" + key] = (r[key] - base[key]) / scale
+    return results
 
 
-def format_closed_loop_table(results: dict) -> str:
-    """Table 5 as markdown: differences to No prediction (x1e-2), means +- s.e. over seeds, and the absolute
-    trajectory cost of No prediction for scale."""
-    head = ["Method"] + [f"{h} (x1e-2)" for _, h in CLOSED_LOOP_COLUMNS] + ["Plannable steps"]
+def mean_se(xs):
+    """Mean and standard error of a list of numbers."""
+    m = statistics.fmean(xs)
+    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
+
+
+def cell(values, fmt="{:.2f}") -> str:
+    """'mean ± s.e.' of the per-seed values of one table cell; '--' for none."""
+    return "--" if not values else "{} ± {}".format(*(fmt.format(v) for v in mean_se(values)))
+
+
+def markdown_table(head, rows) -> str:
+    """A markdown table: head [str], rows [[str]]. The only table formatter of the project."""
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
+# ============================================================================================
+# 9. The command line: python diffstack.py --quick
+# ============================================================================================
+
+QUICK = dict(n=3000, epochs=8.0)
+QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
+
+
+def open_loop_table(results: dict, setting="rl") -> str:
+    """Tables 1 and 3's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics relative to No
+    prediction, iLQR's convergence; means ± standard errors over seeds."""
+    rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
+    scales = RELATIVE_SCALE[setting]
+    head = ["Method", "ADE (m)", "NLL (nats)"] + [f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()]
+    rows = []
     for name, runs in results.items():
-        cell = lambda k, f="{:.2f}": "{} ± {}".format(*(f.format(v) for v in mean_se([r[k] for r in runs])))  # noqa: E731
-        lines.append("| " + " | ".join([name] + [cell("rel_" + k) for k, _ in CLOSED_LOOP_COLUMNS]
-                                       + [cell("plannable", "{:.3f}")]) + " |")
-    base = results["No prediction"][0]
-    lines.append(f"\nNo prediction, absolute: trajectory cost {base['trajectory']:.4f}, open-loop cost "
-                 f"{base['open_loop']:.4f}, deviation {base['deviation']:.3f} m ({base['scenes']} scenes).")
-    return "\n".join(lines)
+        get = lambda key: [r[key] for r in runs] if key in runs[0] else []  # noqa: E731
+        rows.append([name, cell(get("ade")), cell(get("nll"))] + [cell(get("rel_" + k)) for k in scales]
+                    + [cell(get("converged"), "{:.3f}")])
+    return markdown_table(head + ["iLQR converged"], rows)
 
 
-def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, reps=3, log=print) -> dict:
-    """Median wall time (s) of simulating n scenes for sim_time with each stack (an untrained predictor: the
-    time does not depend on the weights), one thread."""
-    cfg = cfg or Config()
-    torch.set_num_threads(1)
-    scenes = closed_loop_scenes(scenes, cfg, sim_time)[:n]
-    torch.manual_seed(0)
-    model = Predictor(cfg)
-    out = {}
-    for m in CLOSED_LOOP_METHODS:
-        policy = stack_policy(model if m.predictor == "learned" else None, m, cfg)
-        out[m.name] = _median_ms(lambda: simulate(scenes, policy, cfg, sim_time), reps, warmup=1) / 1e3
-    if log:
-        log(f"closed loop, {len(scenes)} scenes x {sim_time:.0f} s ({round(sim_time / cfg.dt)} replanning steps), "
-            f"median of {reps}, torch.set_num_threads(1): " + "  ".join(f"{k} {v:.1f}s" for k, v in out.items()))
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# 10.3 Ablations (App. A.1)
-# --------------------------------------------------------------------------------------------
-#
-# Each section compares methods under one configuration of the stack, with its own No prediction and
-# GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
-# alphas (1, 100, 1000), so losses (1, 5, 5) are alphas (1, 500, 5000).
-#
-# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the
-# same 3 s (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The
-# paper's table shows "--" for L_ctr in that section; its text says planning AND control change resolution,
-# which is what we run, with all three losses.
-#
-# A predictor is trained once per (losses, seed, what its training sees of the stack) and shared between the
-# sections: Standard (L_pred only) never sees the stack, and without L_ctr the controller is irrelevant.
-
-ABLATION_SECTIONS = (
-    ("Loss weights", {}, (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)), Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
-        Method("DiffStack (no L_ctr)", losses=(1, 1, 0)), Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
-        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)))),
-    ("No planner (iLQR from zero controls)", dict(planner=False), (
-        Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
-    ("No controller (the plan is final)", dict(controller=False), (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 0)))),
-    ("dt = 0.1 s for planning and control", dict(plan_dt=0.1), (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)))),
-)
-
-
-def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
-    """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
-    res, models = {}, {} if models is None else models
-    for title, stack_kw, methods in ABLATION_SECTIONS:
-        if log:
-            log(f"--- ablation: {title}")
-        res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
-                                          tuple(seeds), epochs, log=log, models=models, **stack_kw)
-    return res
-
-
-def format_ablation_table(results: dict) -> str:
-    """The ablation table as markdown: the loss multipliers (x1, x1e2, x1e3 as in the paper), ADE, NLL and the
-    planning metrics relative to the section's No prediction (x1e-2); '--' where a loss or metric does not apply."""
-    methods = {title: {m.name: m for m in ms} for title, _, ms in ABLATION_SECTIONS}
-    kw = {title: k for title, k, _ in ABLATION_SECTIONS}
-    head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3", "ADE (m)", "NLL (nats)", "Planning loss (x1e-2)",
-            "Hindsight cost (x1e-2)"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for title, res in results.items():
-        lines.append(f"| **{title}** |" + " |" * (len(head) - 1))
-        no_plan, no_ctrl = kw[title].get("planner") is False, kw[title].get("controller") is False
-        for name, runs in res.items():
-            cell = lambda k: "{:.2f} ± {:.2f}".format(*mean_se([r[k] for r in runs])) if k in runs[0] else "--"  # noqa: E731
-            m = methods[title].get(name)
-            loss = ["", "", ""] if m is None else [f"{v:g}" for v in m.losses]
-            if no_plan:
-                loss[1] = "--"
-            if no_ctrl:
-                loss[2] = "--"
-            plan_cell = "--" if no_plan else cell("rel_plan_loss")
-            lines.append("| " + " | ".join([name, *loss, cell("ade"), cell("nll"), plan_cell, cell("rel_hindsight")]) + " |")
-    return "\n".join(lines)
-
-
-# --------------------------------------------------------------------------------------------
-# 10.4 Figures
-# --------------------------------------------------------------------------------------------
-
-
-def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | None = None, extent=(-10, 45, -12, 14)):
-    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted modes (alpha
-    by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the plan (argmin) and the
-    controller's trajectory."""
-    import matplotlib.pyplot as plt
-    import data_synth
-
-    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
-    if out.pred is not None:
-        plot_prediction(ax, out.pred, i, cov=False)
-    valid = out.cands.valid[i]  # (N,)
-    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (1) relaxed
-    xs = out.cands.x[i].detach()  # (N, T+1, 4)
-    cmap = plt.get_cmap("Greens")
-    for n in torch.argsort(p).tolist():  # the likely candidates on top
-        if valid[n]:
-            ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
-    best = int(p.argmax())
-    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.6, zorder=7, label="plan (argmin)")
-    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=2.2, zorder=8, label="controller")
-    return ax
-
-
-def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
-    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
-    the one among the first n_search where the first model's hindsight cost exceeds the second's the most."""
-    import matplotlib.pyplot as plt
-
-    batch = data.val[:n_search]
-    outs = {}
-    with torch.no_grad():
-        for name, model in models.items():
-            model.eval()
-            outs[name] = run_stack(batch, model, Method(name), cfg, "rl")
-    (a, oa), (b, ob) = list(outs.items())[:2]
-    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
-    i = int(gap.argmax())
-    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
-    for ax, (name, out) in zip(axes, outs.items()):
-        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
-        ax.legend(loc="lower left", fontsize=7)
-    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
-    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
-                 ticks=[0, 0.25, 0.5, 0.75, 1])
-    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
-                 fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return i
-
-
-def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
-    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
-    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
-    Standard's trajectory cost exceeds DiffStack's the most."""
-    import matplotlib.pyplot as plt
-
-    if scene is None:
-        scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
-    s = scene
-    any_roll = next(iter(rollouts.values()))[0]
-    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
-    frames = torch.arange(f0, f0 + N + 1)
-    pred = int(scenes.pred_idx[s, f0])
-    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
-    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
-    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
-    tt = (frames - f0).double() * dt  # (N+1,) seconds
-    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
-    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
-    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
-    cols = 2 if len(rollouts) > 1 else 1
-    rows = math.ceil(len(rollouts) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
-                             sharey=True, layout="constrained", squeeze=False)
-    axes = axes.ravel()
-    for ax in axes[len(rollouts):]:
-        ax.set_axis_off()
-    axes = axes[:len(rollouts)]
-    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
-        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
-            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
-        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
-            if a != pred and scenes.agents_mask[s, a, frames].any():
-                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
-                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
-        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
-        for k in range(0, N, 4):
-            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
-        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
-        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
-        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
-                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
-    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
-    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return s
-
-
-def figure_cost_weights(results: dict, path):
-    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds."""
-    import matplotlib.pyplot as plt
-
-    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    x = np.arange(len(names))
-    for j, (label, runs) in enumerate(results.items()):
-        vals = [[*r["w"], r["alpha"]] for r in runs]
-        ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
-        ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
-    ax.set_xticks(x, names, fontsize=8)
-    ax.set_yscale("log")
-    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
-    ax.minorticks_off()
-    ax.set_ylabel("weight (log scale)")
-    ax.legend(fontsize=8)
-    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)", fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------------
-# 10.5 Entry points and the report
-# --------------------------------------------------------------------------------------------
-
-
-def run_cost_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
-    """Table 4 and its bar chart (cost_weights.png). Returns (results, markdown table)."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    res = cost_learning_experiment(data, cfg, tuple(seeds), epochs, log, models)
-    figure_cost_weights(res, out / "cost_weights.png")
-    return res, format_cost_table(res)
-
-
-def run_closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print,
-                               models=None):
-    """Table 5, the closed-loop figure (closed_loop.png) and Fig. 3 (stack_example.png, with the first seed's
-    Standard and DiffStack). Returns (results, markdown table)."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    models = {} if models is None else models
-    res, rollouts, scenes = closed_loop_experiment(data, val_scenes, cfg, tuple(seeds), epochs, log=log, models=models)
-    figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-    pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models) for m in CLOSED_LOOP_METHODS[1:3]}
-    figure_stack_example(data, pair, cfg, out / "stack_example.png")
-    return res, format_closed_loop_table(res)
-
-
-def run_ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
-    """The ablation table of App. A.1. Returns (results, markdown table)."""
-    pathlib.Path(out_dir).mkdir(parents=True, exist_ok=True)
-    res = ablation_experiment(data, cfg, tuple(seeds), epochs, log, models)
-    return res, format_ablation_table(res)
-
-
-def write_report(out_dir, sections) -> pathlib.Path:
-    """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
-    out_dir]); each figure is linked below its section's table."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
-             f"torch {torch.__version__}, {torch.get_num_threads()} threads\n"]
-    for title, md, figures in sections:
-        parts.append(f"## {title}\n\n{md}\n")
-        parts += [f"![{f}]({f})\n" for f in figures]
-    path = out / "report.md"
-    path.write_text("\n".join(parts))
-    return path
-
-
-# ============================================================================================
-# 11. The command line
-# ============================================================================================
-
-DATA_CACHE = "data_cache"
-EXPERIMENTS = ("rl", "biased", "il", "cost", "closed_loop", "ablation")
-
-
-@dataclass
-class SimpleData:
-    """A training and a validation set of Scenarios, and the validation scenes' logs (closed loop)."""
-
-    train: object
-    val: object
-    val_scenes: object = None
-
-
-def load_data(path=None, n=4000, seed=0, cache_dir=DATA_CACHE, log=print):
-    """Training and validation Scenarios: synthetic (cached in cache_dir), or read from a nuScenes folder at
-    `path` (real, or written by data_synth.py), split by scene: the official v1.0-mini validation scenes, or
-    else the last 15 % of the scenes by name."""
-    import data_synth
-
-    if path is None:
-        d = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-        return SimpleData(d.train, d.val, d.val_scenes)
-    root = pathlib.Path(path)
-    if not root.is_dir():
-        raise ValueError(f"--data: {path} is not a folder")
-    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
-    if not versions:
-        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
-    scenes, report = data_synth.load_nuscenes(root, versions[0])
-    if len(scenes) < 2:
-        raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
-    # the official v1.0-mini validation scenes where present, else the last 15 % of the scenes by name
-    is_val = torch.tensor([name in data_synth.MINI_VAL for name in scenes.names])
-    if not is_val.any() or is_val.all():
-        order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
-        is_val = torch.zeros(len(scenes), dtype=torch.bool)
-        is_val[order[-max(1, round(0.15 * len(order))):]] = True
-    rng = np.random.default_rng(seed)
-    train, _ = data_synth.cut_samples(scenes[~is_val], None, rng)
-    val, _ = data_synth.cut_samples(scenes[is_val], None, rng)
-    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
-    return SimpleData(train, val, scenes[is_val])
-
-
-def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir=DATA_CACHE, log=print):
+def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print):
     """`--quick`: a Table-1-style comparison on synthetic data in about a minute."""
+    import data_synth
+
     torch.set_num_threads(threads)
     cfg = cfg or Config()
     n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
@@ -2486,103 +1780,70 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir=DATA_CACHE, log=pr
         f"DiffStack trained for {epochs:g} epochs (RL setting) and evaluated with No prediction and GT prediction beside\n"
         "them. About a minute on 2 cores.")
     t0 = time.time()
-    data = load_data(n=n, cache_dir=cache_dir)
+    data = data_synth.load_data(n=n, cache_dir=cache_dir)
     log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
-    methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-    res = open_loop_experiment(data, cfg, "rl", methods, seeds=(0,), epochs=epochs, log=log)
-    log("\n" + format_table(res, "rl") + f"\n\ntotal {time.time() - t0:.0f}s")
+    res = compare_methods(data, cfg, "rl", QUICK_METHODS, seeds=(0,), epochs=epochs, log=log)
+    log("\n" + open_loop_table(res, "rl") + f"\n\ntotal {time.time() - t0:.0f}s")
     return res
 
 
-QUICK = dict(n=3000, epochs=8.0)
+def config_with(cfg: Config, assignments) -> Config:
+    """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the field's
+    type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key when it is not a
+    Config field or the value does not parse."""
+    fields = {f.name: f for f in dataclasses.fields(Config)}
+    changes = {}
+    for item in assignments or ():
+        key, eq, text = item.partition("=")
+        key, text = key.strip(), text.strip()
+        if not eq or key not in fields:
+            raise ValueError(f"--set {item}: unknown Config field {key!r} (known: {', '.join(fields)})" if eq else
+                             f"--set {item}: expected key=value")
+        default = getattr(cfg, key)
+        try:
+            if isinstance(default, tuple):
+                parts = [p for p in text.strip("()[] ").split(",") if p.strip()]
+                value = tuple(type(d)(float(p)) if isinstance(d, float) else type(d)(p) for d, p in
+                              zip(default if len(parts) == len(default) else [default[0]] * len(parts), parts))
+            elif isinstance(default, bool):
+                value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
+            else:
+                value = type(default)(text)
+        except (ValueError, KeyError, IndexError):
+            raise ValueError(f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
+                             f"could not parse {text!r}") from None
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"--set {item}: {key} must be finite")
+        changes[key] = value
+    return dataclasses.replace(cfg, **changes)
 
 
 def main(argv=None):
     import argparse
 
-    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022), the readable reference.")
-    ap.add_argument("--quick", action="store_true", help="a Table-1-style run on synthetic data in about a minute")
-    ap.add_argument("--bench", action="store_true", help="print benchmark medians (1 and 2 threads)")
-    ap.add_argument("--experiment", choices=EXPERIMENTS + ("all",),
-                    help="run a table of the paper (results/<name>.json, .md, figures); all: every one, and results/report.md")
-    ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
-    ap.add_argument("--epochs", type=float, default=4.0, help="training epochs per method (default 4; fractions allowed)")
-    ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
-    ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
+    ap = argparse.ArgumentParser(
+        description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run of it.",
+        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.")
+    ap.add_argument("--quick", action="store_true",
+                    help="Standard vs DiffStack (with No prediction and GT prediction beside) on synthetic data, ~1 min")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    ap.add_argument("--out", default="results", help="where experiments write (default results/)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    for moved in ("--experiment", "--bench"):
+        if any(a == moved or a.startswith(moved + "=") for a in argv):
+            ap.error(f"{moved} moved: " + ("python experiments.py --experiment NAME" if moved == "--experiment"
+                                           else "python bench.py"))
     args = ap.parse_args(argv)
-    if not (args.quick or args.bench or args.experiment):
-        ap.error("choose one of --quick, --bench, --experiment")
-    if args.seeds < 1 or args.epochs <= 0 or args.n < 10:
-        ap.error("--seeds must be >= 1, --epochs > 0, --n >= 10")
-    if args.quick:
-        return quick(args.threads)
-    if args.bench:
-        return bench()
-    torch.set_num_threads(args.threads)
+    if not args.quick:
+        ap.error("choose --quick (the paper's tables: python experiments.py --experiment NAME)")
+    if args.threads < 1:
+        ap.error("--threads must be >= 1")
     try:
-        data = load_data(args.data, args.n)
+        cfg = config_with(Config(), args.set)
     except ValueError as e:
         ap.error(str(e))
-    return run_experiment(args.experiment, data, Config(), range(args.seeds), args.epochs, args.out,
-                          " ".join(["python diffstack.py", *(argv if argv is not None else sys.argv[1:])]))
-
-
-TITLES = {"rl": "Table 1: reinforcement learning (hindsight cost)", "biased": "Table 2: a 1 m offset on the prediction targets",
-          "il": "Table 3: imitation learning", "cost": "Table 4: learned cost weights (IL)",
-          "closed_loop": "Table 5: closed-loop log replay", "ablation": "Ablations (App. A.1)"}
-
-
-def _run_one(name, data, cfg: Config, seeds, epochs, out_dir, log, models=None):
-    """One experiment: (results, markdown table, figure file names). models: trained predictors shared between
-    the experiments of one run (trained_predictor)."""
-    if name in ("rl", "biased", "il"):
-        methods = TABLE1_METHODS
-        if name == "biased":
-            methods = (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1])
-        elif name == "il":
-            methods = [m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-        setting = "il" if name == "il" else "rl"
-        res = open_loop_experiment(data, cfg, setting, methods, seeds, epochs, pred_offset=1.0 if name == "biased" else 0.0,
-                                   log=log, models=models)
-        table = format_table(res, setting)
-        if name != "il":
-            names = ("Standard", "DiffStack") if name == "rl" else ("Standard-biased", "DiffStack-biased")
-            m, s = gap_closed(res, *names)
-            table += f"\n\n{names[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {names[0]} -> GT prediction hindsight-cost gap."
-        return res, table, []
-    if name == "cost":
-        return (*run_cost_experiment(data, cfg, seeds, epochs, out_dir, log, models), ["cost_weights.png"])
-    if name == "closed_loop":
-        if data.val_scenes is None:
-            raise ValueError("closed_loop: the data has no validation scene logs")
-        return (*run_closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, out_dir, log, models),
-                ["closed_loop.png", "stack_example.png"])
-    return (*run_ablation_experiment(data, cfg, seeds, epochs, out_dir, log, models), [])
-
-
-def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
-    """Run one experiment (or 'all'), writing results/<name>.json and .md (and for 'all', results/report.md).
-    'all' trains each predictor once and shares it between the tables that use it (trained_predictor)."""
-    seeds, out = tuple(seeds), pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    sections, models = [], {}
-    for one in EXPERIMENTS if name == "all" else (name,):
-        t0 = time.time()
-        res, table, figures = _run_one(one, data, cfg, seeds, epochs, out, log, models)
-        meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
-                    date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
-                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads")
-        to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
-        (out / f"{one}.json").write_text(json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
-        md = f"`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f} s)\n\n{table}\n"
-        (out / f"{one}.md").write_text(f"# {TITLES[one]}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in figures))
-        sections.append((TITLES[one], md, figures))
-        log(f"\n{TITLES[one]}\n{table}")
-    if name == "all":
-        log(f"report: {write_report(out, sections)}")
-    return sections
+    return quick(args.threads, cfg=cfg)
 
 
 if __name__ == "__main__":

@@ -1,71 +1,49 @@
-"""Generate tutorial.ipynb from the cells below and execute it from a fresh kernel (nbclient).
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
 
-    python build_notebook.py [--quick | --full] [--repo .] [--no-exec]
+# %% [markdown]
+# # DiffStack, walked through on a CPU
+#
+# Karkus, Ivanovic, Mannor, Pavone, *DiffStack: A Differentiable and Modular Control Stack for Autonomous
+# Vehicles*, CoRL 2022. This notebook follows the paper section by section. Every piece of code here **imports**
+# from [`diffstack.py`](diffstack.py) (the method), [`experiments.py`](experiments.py) (the paper's tables) and
+# [`data_synth.py`](data_synth.py) (the data); nothing is
+# copied into cells, so what you read below is what the module runs.
+#
+# | § | what | paper |
+# |---|---|---|
+# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 |
+# | 2 | the data: synthetic nuScenes-like scenarios, and the same scenes through the nuScenes writer and loader | §4.1 |
+# | 3 | dynamics and cost: the unicycle, the five cost terms over a scenario | eq. (3), App. C |
+# | 4 | the planner: spline candidates, the relaxed argmin and its temperature β | eq. (2), §3.1 |
+# | 5 | the controller: box-constrained iLQR and its KKT backward, checked live against finite differences | eq. (4), App. C |
+# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way, against constant velocity | §3.1 |
+# | 7 | end-to-end training: DiffStack against Standard, Table 1, an example where they differ | §4.2 |
+# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), planning and control at 0.1 s | §4.2, §4.3, App. A |
+#
+# Three **exercises** (the collision term, the relaxed planner's loss, one step of the Riccati recursion) check
+# themselves against the module. Their solutions are in the cell right after each exercise (collapsed in
+# JupyterLab); replace a solution's body with your own code and run the check below it.
+#
+# **Running it.** `pip install -r requirements.txt`, then open this file in Jupyter (`jupyter lab tutorial.ipynb`)
+# or VS Code and *Run All*. `QUICK = True` runs everything on small data in about 1 minute on 2 CPU cores;
+# `QUICK = False` is the run whose outputs are stored in this file (about 9 minutes). Each heavy cell says how
+# long it takes. Numbers from this short CPU training are **not** the paper's (4 GPUs, 20 epochs on nuScenes):
+# the tables have the paper's shape, and the checkpoint cells say what value to expect on this machine class.
 
-The notebook is written as a list of (kind, source) cells, so it can be regenerated cleanly. Executing sets
-DIFFSTACK_QUICK in the kernel's environment (the notebook's parameters cell reads it), runs every cell in order
-with cwd = the repository, and writes the outputs into <repo>/tutorial.ipynb.
-"""
-import argparse
-import os
-import pathlib
-import time
-
-import nbformat
-from nbclient import NotebookClient
-
-MD, CODE, SOLUTION = "md", "code", "solution"
-
-CELLS = []
-
-
-def md(s):
-    CELLS.append((MD, s.strip("\n")))
-
-
-def code(s):
-    CELLS.append((CODE, s.strip("\n")))
-
-
-def solution(s):
-    CELLS.append((SOLUTION, s.strip("\n")))
-
-
-# =====================================================================================================
-# 0. Title, parameters, setup
-# =====================================================================================================
-
-md(r"""
-# DiffStack, walked through on a CPU
-
-Karkus, Ivanovic, Mannor, Pavone, *DiffStack: A Differentiable and Modular Control Stack for Autonomous
-Vehicles*, CoRL 2022. This notebook follows the paper section by section. Every piece of code here **imports**
-from [`diffstack.py`](diffstack.py) (the stack) and [`data_synth.py`](data_synth.py) (the data); nothing is
-copied into cells, so what you read below is what the module runs.
-
-| § | what | paper |
-|---|---|---|
-| 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 |
-| 2 | the data: synthetic nuScenes-like scenarios, and the same scenes through the nuScenes writer and loader | §4.1 |
-| 3 | dynamics and cost: the unicycle, the five cost terms over a scenario | eq. (2), App. D |
-| 4 | the planner: spline candidates, the relaxed argmin and its temperature β | eq. (1), §3.1 |
-| 5 | the controller: box-constrained iLQR and its KKT backward, checked live against finite differences | eq. (3), App. D |
-| 6 | the predictor: a Trajectron++-style CVAE trained the standard way, against constant velocity | §3.1 |
-| 7 | end-to-end training: DiffStack against Standard, Table 1, an example where they differ | §4.2 |
-| 8 | a biased predictor (Table 2), imitation learning (Table 3), cost learning (Table 4), closed loop (Table 5), planning and control at 0.1 s | §4.2, §4.3, App. A |
-
-Three **exercises** (the collision term, the relaxed planner's loss, one step of the Riccati recursion) check
-themselves against the module. Their solutions are in the cell right after each exercise (collapsed in
-JupyterLab); replace a solution's body with your own code and run the check below it.
-
-**Running it.** `pip install -r requirements.txt`, then open this file in Jupyter (`jupyter lab tutorial.ipynb`)
-or VS Code and *Run All*. `QUICK = True` runs everything on small data in about 1 minute on 2 CPU cores;
-`QUICK = False` is the run whose outputs are stored in this file (about 9 minutes). Each heavy cell says how
-long it takes. Numbers from this short CPU training are **not** the paper's (4 GPUs, 20 epochs on nuScenes):
-the tables have the paper's shape, and the checkpoint cells say what value to expect on this machine class.
-""")
-
-code(r"""
+# %% tags=["parameters"]
 # Parameters
 import os
 
@@ -73,11 +51,10 @@ QUICK = True     # True: small data, short training (about 1 min on 2 CPU cores)
 SEED = 0         # every experiment cell seeds itself from this: re-running one cell reproduces its output
 DEVICE = "cpu"   # the module runs on the CPU (float32 training, float64 gradient checks)
 
-QUICK = os.environ.get("DIFFSTACK_QUICK", str(int(QUICK))) == "1"  # the test suite and the build script set this
+QUICK = os.environ.get("DIFFSTACK_QUICK", str(int(QUICK))) == "1"  # the test suite sets this
 print(f"QUICK = {QUICK}  ({'quick' if QUICK else 'full'} mode), SEED = {SEED}, DEVICE = {DEVICE!r}")
-""")
 
-code(r"""
+# %%
 import dataclasses
 import math
 import tempfile
@@ -91,6 +68,7 @@ from IPython.display import Image, Markdown, display
 
 import data_synth
 import diffstack as ds
+import experiments as xp
 
 assert DEVICE == "cpu", "diffstack.py is a CPU teaching implementation"
 torch.set_num_threads(1)  # one thread: reproducible numbers, and the machine stays usable
@@ -116,36 +94,30 @@ TRAIN_STEPS = 16 if QUICK else 100        # optimiser steps per trained predicto
 N_CLOSED_LOOP = 8 if QUICK else 60        # validation scenes simulated in closed loop (Table 5)
 cfg = ds.Config(batch_size=64 if QUICK else 256)
 print(f"{N_DATA} samples, {TRAIN_STEPS} training steps of batch {cfg.batch_size} per method")
-""")
 
-# =====================================================================================================
-# 1. The problem and the stack
-# =====================================================================================================
+# %% [markdown]
+# ## 1. The problem and the stack
+#
+# An autonomous vehicle (the *ego*) has to drive among other agents whose futures it does not know. DiffStack keeps
+# the classic modular stack, and makes every module differentiable:
+#
+# * the **predictor** (a Trajectron++-style CVAE, learned) turns 4 s of history into $K$ weighted futures
+#   $\{\hat s_{k,t}, \pi_k\}$ of a nearby vehicle;
+# * the **planner** scores spline candidates $n = 1..N$ with the cost $C(\cdot;\hat s, \pi)$ of eq. (3) and picks
+#   $\arg\min_n C_n$ (eq. 1);
+# * the **controller** refines the plan with a box-constrained iLQR (eq. 3).
+#
+# Planner and controller are not learned here, but they are differentiable, so the losses downstream of the
+# predictor can train it:
+#
+# $$\mathcal L \;=\; \alpha_1\,\mathcal L_\text{pred} + \alpha_2\,\mathcal L_\text{plan} + \alpha_3\,\mathcal L_\text{ctr},$$
+#
+# with $\mathcal L_\text{pred}$ the predictor's own (InfoVAE) loss, $\mathcal L_\text{plan} = -\log p_{n^*}$ the
+# cross-entropy of a softmax-relaxed planner with the best candidate in hindsight, and $\mathcal L_\text{ctr}$ the
+# hindsight cost of the controller's trajectory (RL setting; $\alpha = (1, 100, 1000)$) or its squared error to
+# the expert (IL setting; $\alpha = (1, 10, 1000)$). *Standard* training uses $\mathcal L_\text{pred}$ alone.
 
-md(r"""
-## 1. The problem and the stack
-
-An autonomous vehicle (the *ego*) has to drive among other agents whose futures it does not know. DiffStack keeps
-the classic modular stack, and makes every module differentiable:
-
-* the **predictor** (a Trajectron++-style CVAE, learned) turns 4 s of history into $K$ weighted futures
-  $\{\hat s_{k,t}, \pi_k\}$ of a nearby vehicle;
-* the **planner** scores spline candidates $n = 1..N$ with the cost $C(\cdot;\hat s, \pi)$ of eq. (2) and picks
-  $\arg\min_n C_n$ (eq. 1);
-* the **controller** refines the plan with a box-constrained iLQR (eq. 3).
-
-Planner and controller are not learned here, but they are differentiable, so the losses downstream of the
-predictor can train it:
-
-$$\mathcal L \;=\; \alpha_1\,\mathcal L_\text{pred} + \alpha_2\,\mathcal L_\text{plan} + \alpha_3\,\mathcal L_\text{ctr},$$
-
-with $\mathcal L_\text{pred}$ the predictor's own (InfoVAE) loss, $\mathcal L_\text{plan} = -\log p_{n^*}$ the
-cross-entropy of a softmax-relaxed planner with the best candidate in hindsight, and $\mathcal L_\text{ctr}$ the
-hindsight cost of the controller's trajectory (RL setting; $\alpha = (1, 100, 1000)$) or its squared error to
-the expert (IL setting; $\alpha = (1, 10, 1000)$). *Standard* training uses $\mathcal L_\text{pred}$ alone.
-""")
-
-code(r"""
+# %%
 # Figure: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack (red, dashed).
 from matplotlib.patches import FancyBboxPatch
 
@@ -176,28 +148,22 @@ ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", 
 ax.text(5.0, -0.4, "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the iLQR "
         "solution (KKT, §5); both reach θ through the predictions", ha="center", fontsize=8.5, color="tab:red")
 plt.show()
-""")
 
-# =====================================================================================================
-# 2. Data
-# =====================================================================================================
+# %% [markdown]
+# ## 2. The data: synthetic scenarios, and the nuScenes format
+#
+# The paper trains on nuScenes *planning samples*: at a time $t_0$, 4 s of history (9 states at 2 Hz) and 3 s of
+# future (6 steps) of the ego, of one **predicted vehicle** (the moving vehicle that comes closest to the ego) and
+# of the other agents, plus the lanes near the ego and a **goal** $g$ = the ego's ground-truth (GT) state at
+# $T$. Everything is in the ego frame at $t_0$ (ego at the origin, heading $+x$).
+#
+# nuScenes itself needs a licence and a download, so `data_synth.py` generates nuScenes-like scenes: roads and
+# intersections built from the map's own primitive (arcline paths), one predicted vehicle whose manoeuvre comes in
+# *pairs* that share a set-up (cut in / keep lane, brake / cruise, turn across / go straight, ...), so that its
+# history only partly tells which will happen, and an expert ego that reacts to the true future.
+# `load_or_generate` caches them in `data_cache/`.
 
-md(r"""
-## 2. The data: synthetic scenarios, and the nuScenes format
-
-The paper trains on nuScenes *planning samples*: at a time $t_0$, 4 s of history (9 states at 2 Hz) and 3 s of
-future (6 steps) of the ego, of one **predicted vehicle** (the moving vehicle that comes closest to the ego) and
-of the other agents, plus the lanes near the ego and a **goal** $g$ = the ego's ground-truth (GT) state at
-$T$. Everything is in the ego frame at $t_0$ (ego at the origin, heading $+x$).
-
-nuScenes itself needs a licence and a download, so `data_synth.py` generates nuScenes-like scenes: roads and
-intersections built from the map's own primitive (arcline paths), one predicted vehicle whose manoeuvre comes in
-*pairs* that share a set-up (cut in / keep lane, brake / cruise, turn across / go straight, ...), so that its
-history only partly tells which will happen, and an expert ego that reacts to the true future.
-`load_or_generate` caches them in `data_cache/`.
-""")
-
-code(r"""
+# %%
 # Data: generated once (a few seconds), then read from data_cache/.
 t0 = time.time()
 data = data_synth.load_or_generate(N_DATA, seed=SEED, cache_dir="data_cache")
@@ -208,9 +174,8 @@ b = data.val
 print("shapes: ego_hist", tuple(b.ego_hist.shape), " agent_fut", tuple(b.agent_fut.shape), " others_fut",
       tuple(b.others_fut.shape), " lanes", tuple(b.lanes.shape), " goal", tuple(b.goal.shape))
 print(data_synth.format_statistics(data_synth.statistics(data.val)))
-""")
 
-code(r"""
+# %%
 # One validation sample of each pair of behaviours: ego blue (GT future dashed, goal = star), predicted vehicle
 # orange, other vehicles grey, pedestrians green; dotted = history, solid = GT future.
 show = ["cut_in", "keep_lane", "lead_brake", "turn_across", "cross_go", "cross_yield"]
@@ -220,16 +185,14 @@ for ax, name in zip(axes.flat, show):
     data_synth.plot_scenario(ax, data.val, i, title=f"{name} (val sample {i})")
 fig.tight_layout()
 plt.show()
-""")
 
-md(r"""
-**The same scenes through the nuScenes format.** `write_nuscenes` writes scenes as a nuScenes v1.0 folder (the 13
-JSON tables, the ego as `ego_pose` of key-frame `sample_data`, the map expansion with lanes as arcline paths, the
-prediction split); `load_nuscenes` reads any v1.0 folder — this one or the real v1.0-mini — back into world-frame
-`Scenes`, from which `sample_at` / `cut_samples` cut planning samples. The round trip is exact.
-""")
+# %% [markdown]
+# **The same scenes through the nuScenes format.** `write_nuscenes` writes scenes as a nuScenes v1.0 folder (the 13
+# JSON tables, the ego as `ego_pose` of key-frame `sample_data`, the map expansion with lanes as arcline paths, the
+# prediction split); `load_nuscenes` reads any v1.0 folder — this one or the real v1.0-mini — back into world-frame
+# `Scenes`, from which `sample_at` / `cut_samples` cut planning samples. The round trip is exact.
 
-code(r"""
+# %%
 scenes = data.val_scenes[:4]
 with tempfile.TemporaryDirectory() as tmp:
     data_synth.write_nuscenes(scenes, tmp, "v1.0-mini")
@@ -247,29 +210,23 @@ data_synth.plot_scenario(axes[0], a.to(torch.float32), 0, title=f"generated: {sc
 data_synth.plot_scenario(axes[1], b.to(torch.float32), 0, title=f"written to nuScenes v1.0 and read back: {loaded.names[0]}")
 fig.tight_layout()
 plt.show()
-""")
 
-# =====================================================================================================
-# 3. Dynamics and cost
-# =====================================================================================================
+# %% [markdown]
+# ## 3. Dynamics and cost
+#
+# **Dynamics.** Every vehicle — the ego in the planner and controller, the predicted vehicle in the predictor —
+# is a dynamically-extended unicycle, state $s = (x, y, h, v)$, control $u = (\omega, a)$, integrated exactly for
+# constant controls over $\Delta t = 0.5$ s:
+#
+# $$h' = h + \omega\Delta t,\quad v' = v + a\Delta t,\quad
+# x' = x + \frac{v'\sin h' - v\sin h}{\omega} + \frac{a(\cos h' - \cos h)}{\omega^2},\quad
+# y' = y - \frac{v'\cos h' - v\cos h}{\omega} + \frac{a(\sin h' - \sin h)}{\omega^2}.$$
+#
+# `unicycle_step` evaluates this with a series near $\omega = 0$ (dividing by a tiny $\omega$ inside `torch.where`
+# would still put NaN into the gradient), and `unicycle_jacobians` gives $\partial f/\partial s$,
+# $\partial f/\partial u$ in closed form for the controller.
 
-md(r"""
-## 3. Dynamics and cost
-
-**Dynamics.** Every vehicle — the ego in the planner and controller, the predicted vehicle in the predictor —
-is a dynamically-extended unicycle, state $s = (x, y, h, v)$, control $u = (\omega, a)$, integrated exactly for
-constant controls over $\Delta t = 0.5$ s:
-
-$$h' = h + \omega\Delta t,\quad v' = v + a\Delta t,\quad
-x' = x + \frac{v'\sin h' - v\sin h}{\omega} + \frac{a(\cos h' - \cos h)}{\omega^2},\quad
-y' = y - \frac{v'\cos h' - v\cos h}{\omega} + \frac{a(\sin h' - \sin h)}{\omega^2}.$$
-
-`unicycle_step` evaluates this with a series near $\omega = 0$ (dividing by a tiny $\omega$ inside `torch.where`
-would still put NaN into the gradient), and `unicycle_jacobians` gives $\partial f/\partial s$,
-$\partial f/\partial u$ in closed form for the controller.
-""")
-
-code(r"""
+# %%
 # Constant controls from (0, 0, 0, 8 m/s): a fan of yaw rates, three accelerations; and the closed-form Jacobians
 # against autograd.
 w = torch.linspace(-0.7, 0.7, 9, dtype=torch.float64)
@@ -285,28 +242,27 @@ s, u = torch.randn(5, 4, dtype=torch.float64), torch.randn(5, 2, dtype=torch.flo
 A, B = ds.unicycle_jacobians(s, u, 0.5)
 J = torch.func.vmap(torch.func.jacrev(lambda s, u: ds.unicycle_step(s, u, 0.5), argnums=(0, 1)))(s, u)
 checkpoint("max |closed-form Jacobians - autograd|", max((A - J[0]).abs().max().item(), (B - J[1]).abs().max().item()), 0.0, 1e-12)
-""")
 
-md(r"""
-**Cost, eq. (2).** The planner and the controller minimise the same cost, a weighted sum of five terms over the
-steps $t = 1..T$:
 
-$$C = w_1 C_\text{coll} + w_2 C_\text{goal} + w_3 C_\text{lat} + w_4 C_\text{head} + w_5 C_u,\qquad w = (5, 0.5, 0.3, 0.3, 1),$$
+# %% [markdown]
+# **Cost, eq. (3).** The planner and the controller minimise the same cost, a weighted sum of five terms over the
+# steps $t = 1..T$:
+#
+# $$C = w_1 C_\text{coll} + w_2 C_\text{goal} + w_3 C_\text{lat} + w_4 C_\text{head} + w_5 C_u,\qquad w = (5, 0.5, 0.3, 0.3, 1),$$
+#
+# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) + \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),
+# \qquad \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
+#
+# $$C_\text{goal} = \lVert s_T - g\rVert^2,\quad C_\text{lat} = \sum_t \lVert s_t - s_{\ell,\perp}\rVert^2,\quad
+# C_\text{head} = \sum_t \operatorname{wrap}(h_t - h_\ell)^2,\quad C_u = \sum_t \omega_t^2 + a_t^2 .$$
+#
+# The predicted vehicle enters through its $K$ modes $\hat s_{k,t}$ and weights $\pi_k$, the other agents through
+# their GT futures ($a$), the lanes through the closest lane point $s_{\ell,\perp}$ and its heading $h_\ell$. Below,
+# each term as a function of the ego's position over a scenario (a single step; $C_\text{coll}$ at $t = 3$, i.e.
+# 1.5 s ahead, with the GT future as the prediction; $C_\text{head}$ for heading $0$). $C_u$ depends on the
+# controls only.
 
-$$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) + \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),
-\qquad \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
-
-$$C_\text{goal} = \lVert s_T - g\rVert^2,\quad C_\text{lat} = \sum_t \lVert s_t - s_{\ell,\perp}\rVert^2,\quad
-C_\text{head} = \sum_t \operatorname{wrap}(h_t - h_\ell)^2,\quad C_u = \sum_t \omega_t^2 + a_t^2 .$$
-
-The predicted vehicle enters through its $K$ modes $\hat s_{k,t}$ and weights $\pi_k$, the other agents through
-their GT futures ($a$), the lanes through the closest lane point $s_{\ell,\perp}$ and its heading $h_\ell$. Below,
-each term as a function of the ego's position over a scenario (a single step; $C_\text{coll}$ at $t = 3$, i.e.
-1.5 s ahead, with the GT future as the prediction; $C_\text{head}$ for heading $0$). $C_u$ depends on the
-controls only.
-""")
-
-code(r"""
+# %%
 def gt_context(batch):
     # The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT prediction").
     B = len(batch)
@@ -336,23 +292,22 @@ for ax, (name, val) in zip(axes.flat, terms.items()):
     fig.colorbar(im, ax=ax, shrink=0.8)
 fig.tight_layout()
 plt.show()
-""")
 
-md(r"""
-### Exercise 1: the collision term
 
-Write `my_collision(pos, ctx, rbf_var)`: for ego positions `pos` (B, N, T, 2) (steps $t_1..t_T$, $N$ trajectories
-per scenario), return (B, N) with
+# %% [markdown]
+# ### Exercise 1: the collision term
+#
+# Write `my_collision(pos, ctx, rbf_var)`: for ego positions `pos` (B, N, T, 2) (steps $t_1..t_T$, $N$ trajectories
+# per scenario), return (B, N) with
+#
+# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) \cdot m_\text{pred}
+# + \sum_a m_a \sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad \phi(d^2) = e^{-d^2/(2\,\text{rbf\_var})},$$
+#
+# where `ctx.preds` (B, K, T, 2), `ctx.probs` (B, K), `ctx.pred_mask` (B,), `ctx.others` (B, A, T, 2),
+# `ctx.others_mask` (B, A). Compute the expectation over modes directly (the module uses an equivalent
+# mean + spread form: can you see why it is equal?). The check below compares with `ds.collision_term`.
 
-$$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) \cdot m_\text{pred}
-+ \sum_a m_a \sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad \phi(d^2) = e^{-d^2/(2\,\text{rbf\_var})},$$
-
-where `ctx.preds` (B, K, T, 2), `ctx.probs` (B, K), `ctx.pred_mask` (B,), `ctx.others` (B, A, T, 2),
-`ctx.others_mask` (B, A). Compute the expectation over modes directly (the module uses an equivalent
-mean + spread form: can you see why it is equal?). The check below compares with `ds.collision_term`.
-""")
-
-solution(r"""
+# %% jupyter={"source_hidden": true} tags=["solution"]
 # Solution (replace the body with your own code to try the exercise)
 def my_collision(pos, ctx, rbf_var):
     phi = lambda d2: torch.exp(-d2 / (2 * rbf_var))
@@ -363,9 +318,9 @@ def my_collision(pos, ctx, rbf_var):
     d2_others = ((pos[:, :, None] - ctx.others[:, None]) ** 2).sum(-1)        # (B, N, A, T)
     others_term = (ctx.others_mask[:, None] * phi(d2_others).sum(-1)).sum(-1)  # (B, N)
     return pred_term + others_term
-""")
 
-code(r"""
+
+# %%
 # Check exercise 1 against the module on random positions and a learned-like multi-mode prediction.
 g = torch.Generator().manual_seed(SEED)
 batch = data.val[:8]
@@ -377,36 +332,30 @@ pos = batch.ego_fut[:, None, :, :2] + 3 * torch.randn(8, 7, 6, 2, generator=g)  
 mine, theirs = my_collision(pos, c, cfg.rbf_var), ds.collision_term(pos, c, cfg.rbf_var)
 assert mine.shape == theirs.shape == (8, 7), mine.shape
 checkpoint("exercise 1: max |my_collision - ds.collision_term|", (mine - theirs).abs().max().item(), 0.0, 1e-5)
-""")
 
-# =====================================================================================================
-# 4. Planner
-# =====================================================================================================
+# %% [markdown]
+# ## 4. The planner: candidates, argmin and its relaxation
+#
+# For each of up to two *goal lanes* (lanes passing within 4.5 m of the goal, heading within 90°), 8 terminal
+# accelerations × 3 lateral offsets give 24 terminal states; a cubic spline joins the current state to each, and
+# the controls follow from the spline. Infeasible candidates (outside the control box, too much lateral
+# acceleration) are dropped. The plan is the cheapest candidate, eq. (2):
+#
+# $$n_\text{plan} = \arg\min_n C(s^{(n)}, u^{(n)};\ \hat s, \pi).$$
+#
+# An argmin has no useful gradient, so for training the planner is relaxed into a softmax over candidates, and
+# the loss is the cross-entropy with the target candidate $n^*$ (RL: lowest *hindsight* cost, i.e. the cost with
+# the GT future in place of the prediction; IL: closest to the expert):
+#
+# $$p_n = \frac{\exp(-\beta C_n)}{\sum_{n'} \exp(-\beta C_{n'})},\qquad \mathcal L_\text{plan} = -\log p_{n^*}.$$
+#
+# $\beta$ (1 in the paper) sets how sharp the relaxation is: as $\beta \to \infty$ it becomes the argmin (and
+# $\mathcal L_\text{plan}$ either 0 or huge); as $\beta \to 0$ it is uniform and carries no signal.
 
-md(r"""
-## 4. The planner: candidates, argmin and its relaxation
-
-For each of up to two *goal lanes* (lanes passing within 4.5 m of the goal, heading within 90°), 8 terminal
-accelerations × 3 lateral offsets give 24 terminal states; a cubic spline joins the current state to each, and
-the controls follow from the spline. Infeasible candidates (outside the control box, too much lateral
-acceleration) are dropped. The plan is the cheapest candidate, eq. (1):
-
-$$n_\text{plan} = \arg\min_n C(s^{(n)}, u^{(n)};\ \hat s, \pi).$$
-
-An argmin has no useful gradient, so for training the planner is relaxed into a softmax over candidates, and
-the loss is the cross-entropy with the target candidate $n^*$ (RL: lowest *hindsight* cost, i.e. the cost with
-the GT future in place of the prediction; IL: closest to the expert):
-
-$$p_n = \frac{\exp(-\beta C_n)}{\sum_{n'} \exp(-\beta C_{n'})},\qquad \mathcal L_\text{plan} = -\log p_{n^*}.$$
-
-$\beta$ (1 in the paper) sets how sharp the relaxation is: as $\beta \to \infty$ it becomes the argmin (and
-$\mathcal L_\text{plan}$ either 0 or huge); as $\beta \to 0$ it is uniform and carries no signal.
-""")
-
-code(r"""
+# %%
 # Candidates of one scenario coloured by p_n, for three temperatures. Prediction: the GT future (oracle).
 w_hand = ds.cost_weights(cfg)
-cands, cost, best, plannable = ds.plan(ex.ego_hist[:, -1], ctx, ex.goal, w_hand, cfg)
+cands, cost, best, plannable, _ = ds.plan(ex.ego_hist[:, -1], ctx, ex.goal, w_hand, cfg)
 print(f"N = {cands.x.shape[1]} candidates, {int(cands.valid.sum())} valid; plan = candidate {int(best)}, "
       f"cost {cost[0, best].item():.2f} (costs of valid ones: {cost[cands.valid].min():.2f} .. {cost[cands.valid].max():.2f})")
 fig, axes = plt.subplots(1, 3, figsize=(14, 3.4), layout="constrained")
@@ -420,15 +369,14 @@ for ax, beta in zip(axes, (0.1, 1.0, 10.0)):
     ax.set_title(f"β = {beta}\nmax p_n = {p.max():.2f}, entropy {-(p[p > 0] * p[p > 0].log()).sum():.2f} nats")
 fig.colorbar(plt.cm.ScalarMappable(cmap="viridis"), ax=axes, shrink=0.9, label="p_n / max p_n")
 plt.show()
-""")
 
-code(r"""
+# %%
 # How beta shapes L_plan over the validation set: planner with the GT prediction (target = its own argmin)
 # and with no prediction at all (the predicted vehicle ignored, so the target is often not the argmin).
 val = data.val
 ctx_gt = gt_context(val)
 ctx_none = dataclasses.replace(ctx_gt, pred_mask=torch.zeros(len(val)))
-cands, cost_gt, _, plannable = ds.plan(val.ego_hist[:, -1], ctx_gt, val.goal, w_hand, cfg)
+cands, cost_gt, _, plannable, _ = ds.plan(val.ego_hist[:, -1], ctx_gt, val.goal, w_hand, cfg)
 cost_none = ds.total_cost(cands.x, cands.u, ctx_none, w_hand, cfg.rbf_var)
 target = ds.masked_argmin(cost_gt, cands.valid)  # n* = lowest hindsight cost
 betas = torch.logspace(-2, 2, 17)
@@ -438,26 +386,25 @@ for c_, name in ((cost_gt, "GT prediction"), (cost_none, "No prediction")):
 ax.set_xscale("log"); ax.set_xlabel("β"); ax.set_ylabel("mean L_plan"); ax.axvline(cfg.beta, color="0.6", ls=":")
 ax.legend(); ax.set_title(f"L_plan over {int(plannable.sum())} plannable validation samples")
 plt.show()
-""")
 
-md(r"""
-### Exercise 2: the relaxed planner's loss
 
-Write `my_plan_loss(cost, valid, target, beta)`: `cost` (B, N) candidate costs, `valid` (B, N) bool, `target`
-(B,) the index $n^*$; return (B,) $-\log p_{n^*}$ with $p$ the softmax of $-\beta C$ over the **valid**
-candidates only. Mind numerical stability (costs can be in the thousands). The check compares with
-`ds.plan_loss`, values and gradients.
-""")
+# %% [markdown]
+# ### Exercise 2: the relaxed planner's loss
+#
+# Write `my_plan_loss(cost, valid, target, beta)`: `cost` (B, N) candidate costs, `valid` (B, N) bool, `target`
+# (B,) the index $n^*$; return (B,) $-\log p_{n^*}$ with $p$ the softmax of $-\beta C$ over the **valid**
+# candidates only. Mind numerical stability (costs can be in the thousands). The check compares with
+# `ds.plan_loss`, values and gradients.
 
-solution(r"""
+# %% jupyter={"source_hidden": true} tags=["solution"]
 # Solution (replace the body with your own code to try the exercise)
 def my_plan_loss(cost, valid, target, beta):
     logits = torch.where(valid, -beta * cost, torch.tensor(-math.inf))         # invalid candidates get p = 0
     logp = logits - torch.logsumexp(logits, -1, keepdim=True)                 # (B, N), stable log-softmax
     return -logp.gather(-1, target[:, None])[:, 0]
-""")
 
-code(r"""
+
+# %%
 # Check exercise 2: values and gradients wrt the costs, on the validation set's candidates.
 c1 = cost_none.detach().clone().requires_grad_()
 c2 = cost_none.detach().clone().requires_grad_()
@@ -466,42 +413,36 @@ mine, theirs = my_plan_loss(c1, cands.valid, target, 1.0)[keep], ds.plan_loss(c2
 mine.sum().backward(); theirs.sum().backward()
 checkpoint("exercise 2: max |my_plan_loss - ds.plan_loss|", (mine - theirs).abs().max().item(), 0.0, 1e-4)
 checkpoint("exercise 2: max |gradient difference|", (c1.grad - c2.grad).abs().max().item(), 0.0, 1e-5)
-""")
 
-# =====================================================================================================
-# 5. iLQR and KKT backward
-# =====================================================================================================
+# %% [markdown]
+# ## 5. The controller: box-constrained iLQR, and its gradient
+#
+# The plan is a spline; the controller finds the trajectory that actually minimises the cost under the dynamics
+# and the control limits, eq. (4):
+#
+# $$\min_{s_{1:T},\,u_{0:T-1}} C(s, u)\quad\text{s.t.}\quad s_{t+1} = f(s_t, u_t),\quad
+# \underline u \le u_t \le \overline u\ \ (\omega \in [-0.7, 0.7],\ a \in [-5, 4]).$$
+#
+# **iLQR.** Around the current trajectory, expand the cost to second order ($H_t$, $g_t$) and the dynamics to
+# first ($A_t$, $B_t$), and solve the resulting LQR by the Riccati recursion, backwards from
+# $V_T(\delta s) = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ with $P = H_{T,ss}$, $p = g_{T,s}$:
+#
+# $$Q = H_t + F^\top P F,\quad q = g_t + F^\top p,\quad F = [A_t\ B_t];\qquad
+# k_t = -Q_{uu}^{-1} q_u,\quad K_t = -Q_{uu}^{-1} Q_{us};$$
+# $$P \leftarrow Q_{ss} + K_t^\top Q_{uu} K_t + K_t^\top Q_{us} + Q_{su} K_t,\qquad
+# p \leftarrow q_s + K_t^\top Q_{uu} k_t + K_t^\top q_u + Q_{su} k_t .$$
+#
+# With the box, $k_t$ solves a small box QP and the gain rows of clamped controls are zero. The new controls
+# $u_t + \alpha k_t + K_t(s'_t - s_t)$ are rolled out for the step sizes $\alpha = 1, 1/5, 1/25, \dots$ and the
+# largest one that does not raise the true cost is kept; at most 5 iterations, converged when the full step is
+# below 0.05. The controller starts from the planner's candidate.
 
-md(r"""
-## 5. The controller: box-constrained iLQR, and its gradient
-
-The plan is a spline; the controller finds the trajectory that actually minimises the cost under the dynamics
-and the control limits, eq. (3):
-
-$$\min_{s_{1:T},\,u_{0:T-1}} C(s, u)\quad\text{s.t.}\quad s_{t+1} = f(s_t, u_t),\quad
-\underline u \le u_t \le \overline u\ \ (\omega \in [-0.7, 0.7],\ a \in [-5, 4]).$$
-
-**iLQR.** Around the current trajectory, expand the cost to second order ($H_t$, $g_t$) and the dynamics to
-first ($A_t$, $B_t$), and solve the resulting LQR by the Riccati recursion, backwards from
-$V_T(\delta s) = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ with $P = H_{T,ss}$, $p = g_{T,s}$:
-
-$$Q = H_t + F^\top P F,\quad q = g_t + F^\top p,\quad F = [A_t\ B_t];\qquad
-k_t = -Q_{uu}^{-1} q_u,\quad K_t = -Q_{uu}^{-1} Q_{us};$$
-$$P \leftarrow Q_{ss} + K_t^\top Q_{uu} K_t + K_t^\top Q_{us} + Q_{su} K_t,\qquad
-p \leftarrow q_s + K_t^\top Q_{uu} k_t + K_t^\top q_u + Q_{su} k_t .$$
-
-With the box, $k_t$ solves a small box QP and the gain rows of clamped controls are zero. The new controls
-$u_t + \alpha k_t + K_t(s'_t - s_t)$ are rolled out for the step sizes $\alpha = 1, 1/5, 1/25, \dots$ and the
-largest one that does not raise the true cost is kept; at most 5 iterations, converged when the full step is
-below 0.05. The controller starts from the planner's candidate.
-""")
-
-code(r"""
+# %%
 # iLQR on 128 validation samples from the plan, with the GT prediction: the cost after each iteration.
 # (under a second)
 batch = data.val[:128]
 ctx_b = gt_context(batch)
-cands, cost_b, best_b, ok_b = ds.plan(batch.ego_hist[:, -1], ctx_b, batch.goal, w_hand, cfg)
+cands, cost_b, best_b, ok_b, _ = ds.plan(batch.ego_hist[:, -1], ctx_b, batch.goal, w_hand, cfg)
 u_plan = cands.u[torch.arange(len(batch)), best_b]  # (B, T, 2) the plan's controls
 cost_fn = lambda x, u, w: ds.total_cost(x, u, ctx_b, w, cfg.rbf_var)  # the solver's interface: cost(x, u, *params)
 t0 = time.time()
@@ -522,28 +463,26 @@ axes[1].plot(x[i, :, 0], x[i, :, 1], "-", color="purple", lw=2, zorder=9)
 fig.tight_layout()
 plt.show()
 checkpoint("mean cost after iLQR / cost of the plan", rel[:, -1].mean().item(), 0.70 if QUICK else 0.62, 0.05)
-""")
 
-md(r"""
-**The backward pass** (Amos et al. 2018). At the solution the KKT conditions hold; differentiating them
-(implicit function theorem) gives the sensitivity of the solution $d = \partial z^\star / \partial\theta$ as the
-solution of **one more LQR**, with the incoming gradient $\partial\mathcal L/\partial z$ as its linear term and the
-active control bounds held fixed:
+# %% [markdown]
+# **The backward pass** (Amos et al. 2018). At the solution the KKT conditions hold; differentiating them
+# (implicit function theorem) gives the sensitivity of the solution $d = \partial z^\star / \partial\theta$ as the
+# solution of **one more LQR**, with the incoming gradient $\partial\mathcal L/\partial z$ as its linear term and the
+# active control bounds held fixed:
+#
+# $$\min_d\ \tfrac12 d^\top \mathcal H d + (\partial\mathcal L/\partial z)^\top d\quad\text{s.t.}\quad
+# \delta s_0 = 0,\ \delta s_{t+1} = A_t\delta s_t + B_t\delta u_t,\ \delta u_\text{active} = 0,$$
+#
+# $$\mathcal H_t = \nabla^2 \ell_t + \sum_i \lambda_{t+1,i}\,\nabla^2 f_i(s_t, u_t),\qquad
+# \frac{\partial\mathcal L}{\partial\theta} = \frac{\partial}{\partial\theta}\Big[\sum_t \nabla_{z_t}\ell_t(\theta)\cdot d_t\Big].$$
+#
+# $\mathcal H$ is the Hessian of the Lagrangian: the cost's Hessian **plus the dynamics' curvature** weighted by the
+# costates $\lambda$. mpc.pytorch and the authors' code leave the curvature out (`kkt_backward(..., exact=False)`
+# here), which is exact for linear dynamics only. Below, a live check on three scenarios in float64: the gradient of
+# a random linear function of the solution with respect to the initial state, the cost weights and the predicted
+# trajectory, against central finite differences of the re-solved problem.
 
-$$\min_d\ \tfrac12 d^\top \mathcal H d + (\partial\mathcal L/\partial z)^\top d\quad\text{s.t.}\quad
-\delta s_0 = 0,\ \delta s_{t+1} = A_t\delta s_t + B_t\delta u_t,\ \delta u_\text{active} = 0,$$
-
-$$\mathcal H_t = \nabla^2 \ell_t + \sum_i \lambda_{t+1,i}\,\nabla^2 f_i(s_t, u_t),\qquad
-\frac{\partial\mathcal L}{\partial\theta} = \frac{\partial}{\partial\theta}\Big[\sum_t \nabla_{z_t}\ell_t(\theta)\cdot d_t\Big].$$
-
-$\mathcal H$ is the Hessian of the Lagrangian: the cost's Hessian **plus the dynamics' curvature** weighted by the
-costates $\lambda$. mpc.pytorch and the authors' code leave the curvature out (`kkt_backward(..., exact=False)`
-here), which is exact for linear dynamics only. Below, a live check on three scenarios in float64: the gradient of
-a random linear function of the solution with respect to the initial state, the cost weights and the predicted
-trajectory, against central finite differences of the re-solved problem.
-""")
-
-code(r"""
+# %%
 # Gradient check (about 10 s): KKT backward (exact and curvature-free) vs central finite differences.
 torch.manual_seed(SEED)
 d_min = (data.val.ego_fut[..., :2] - data.val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
@@ -592,22 +531,21 @@ for name, (i, idx) in coords.items():
     print(f"  {name:22s} relative error vs finite differences: exact KKT {e_exact:.1e}   curvature-free {e_gn:.1e}")
 print(f"({time.time() - t0:.1f}s)")
 checkpoint("largest relative error of the exact KKT gradient", max(e for e, _ in errs.values()), 0.0, 1e-4)
-checkpoint("log10 of the largest relative error of the curvature-free gradient (mpc.pytorch's; REFERENCE: 0.4-4 %)",
+checkpoint("log10 of the largest relative error of the curvature-free gradient (mpc.pytorch's: 0.4-4 % expected)",
            math.log10(max(e for _, e in errs.values())), -2.0, 1.0)
-""")
 
-md(r"""
-### Exercise 3: one step of the Riccati recursion
 
-Write `my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)` for an **unconstrained** LQR: given the value function
-$V_{t+1} = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ (P (B, n, n), p (B, n)), the stage's cost Hessian
-`H_t` (B, n+m, n+m) and gradient `g_t` (B, n+m), and the dynamics Jacobians `A_t` (B, n, n), `B_t` (B, n, m),
-return `(k, K, P_new, p_new)`: the feedforward (B, m), the gain (B, m, n) and the value function at $t$
-(formulas above the iLQR cell). The check runs it on a one-step problem and compares $k$, $K$ and $p_0$ with
-`ds.lqr_backward` (all controls free).
-""")
+# %% [markdown]
+# ### Exercise 3: one step of the Riccati recursion
+#
+# Write `my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)` for an **unconstrained** LQR: given the value function
+# $V_{t+1} = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ (P (B, n, n), p (B, n)), the stage's cost Hessian
+# `H_t` (B, n+m, n+m) and gradient `g_t` (B, n+m), and the dynamics Jacobians `A_t` (B, n, n), `B_t` (B, n, m),
+# return `(k, K, P_new, p_new)`: the feedforward (B, m), the gain (B, m, n) and the value function at $t$
+# (formulas above the iLQR cell). The check runs it on a one-step problem and compares $k$, $K$ and $p_0$ with
+# `ds.lqr_backward_fixed` (all controls free).
 
-solution(r"""
+# %% jupyter={"source_hidden": true} tags=["solution"]
 # Solution (replace the body with your own code to try the exercise)
 def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
     F = torch.cat([A_t, B_t], -1)                                  # (B, n, n+m)
@@ -621,9 +559,9 @@ def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
     P_new = Qss + KT @ Quu @ K + KT @ Qus + Qsu @ K
     p_new = qs + (KT @ Quu @ k[..., None])[..., 0] + (KT @ qu[..., None])[..., 0] + (Qsu @ k[..., None])[..., 0]
     return k, K, P_new, p_new
-""")
 
-code(r"""
+
+# %%
 # Check exercise 3 on random one-step problems (n = 4, m = 2), float64.
 g = torch.Generator().manual_seed(SEED)
 Bn, n, m = 6, 4, 2
@@ -632,37 +570,31 @@ H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=torch.float64)  # (B,
 gv = torch.randn(Bn, 2, n + m, generator=g, dtype=torch.float64)
 A_ = torch.randn(Bn, 1, n, n, generator=g, dtype=torch.float64)
 B_ = torch.randn(Bn, 1, n, m, generator=g, dtype=torch.float64)
-k_ref, K_ref, _, p0_ref = ds.lqr_backward(A_, B_, H, gv, n, u_free=torch.ones(Bn, 1, m, dtype=torch.bool))
+k_ref, K_ref, _, p0_ref = ds.lqr_backward_fixed(A_, B_, H, gv, n, torch.ones(Bn, 1, m, dtype=torch.bool))
 k, K, P0, p0 = my_riccati_step(H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A_[:, 0], B_[:, 0], n)
 err = max((k - k_ref[:, 0]).abs().max(), (K - K_ref[:, 0]).abs().max(), (p0 - p0_ref).abs().max()).item()
-checkpoint("exercise 3: max |k, K, p_0 - ds.lqr_backward's|", err, 0.0, 1e-8)
-""")
+checkpoint("exercise 3: max |k, K, p_0 - ds.lqr_backward_fixed's|", err, 0.0, 1e-8)
 
-# =====================================================================================================
-# 6. Predictor
-# =====================================================================================================
+# %% [markdown]
+# ## 6. The predictor
+#
+# A Trajectron++-style conditional VAE. It encodes the predicted vehicle's 4 s history (an LSTM over position,
+# velocity, acceleration, heading and heading rate, by *backward* differences) and its neighbours (attention), and
+# has a discrete latent $z \in \{1..K\}$, $K = 25$:
+#
+# $$p(y\mid x) = \sum_{k=1}^{K} p(z = k\mid x)\; p(y\mid x, z = k).$$
+#
+# For each $k$ a GRU emits per step a Gaussian over the controls $(\omega, a)$; the mean controls are integrated by
+# the same unicycle as the planner (the $K$ **modes** $\hat s_{k,t}$), and the control covariances are pushed through
+# its Jacobians (EKF) to a Gaussian over positions. *Standard* training maximises Trajectron++'s InfoVAE objective,
+#
+# $$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,\mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
+# \;-\; \beta\,\mathrm{KL}\big(q(z\mid x,y)\,\Vert\,p(z\mid x)\big) \;+\; I_p(x; z)\Big),$$
+#
+# with all $K$ values of $z$ enumerated. Metrics: ADE/FDE of the most likely mode, min-ADE over modes, and the
+# NLL of the GT under the position mixture, against **constant velocity**.
 
-md(r"""
-## 6. The predictor
-
-A Trajectron++-style conditional VAE. It encodes the predicted vehicle's 4 s history (an LSTM over position,
-velocity, acceleration, heading and heading rate, by *backward* differences) and its neighbours (attention), and
-has a discrete latent $z \in \{1..K\}$, $K = 25$:
-
-$$p(y\mid x) = \sum_{k=1}^{K} p(z = k\mid x)\; p(y\mid x, z = k).$$
-
-For each $k$ a GRU emits per step a Gaussian over the controls $(\omega, a)$; the mean controls are integrated by
-the same unicycle as the planner (the $K$ **modes** $\hat s_{k,t}$), and the control covariances are pushed through
-its Jacobians (EKF) to a Gaussian over positions. *Standard* training maximises Trajectron++'s InfoVAE objective,
-
-$$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,\mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
-\;-\; \beta\,\mathrm{KL}\big(q(z\mid x,y)\,\Vert\,p(z\mid x)\big) \;+\; I_p(x; z)\Big),$$
-
-with all $K$ values of $z$ enumerated. Metrics: ADE/FDE of the most likely mode, min-ADE over modes, and the
-NLL of the GT under the position mixture, against **constant velocity**.
-""")
-
-code(r"""
+# %%
 # Train the Standard predictor (L_pred only). Expected run time: ~2 s quick, ~20 s full.
 t0 = time.time()
 torch.manual_seed(SEED)                       # the initialisation (as open_loop_experiment does)
@@ -678,9 +610,8 @@ fig, ax = plt.subplots(figsize=(5, 2.6))
 ax.plot([h["l_pred"] for h in hist]); ax.set_xlabel("step"); ax.set_ylabel("L_pred"); ax.set_title("Standard training")
 plt.show()
 checkpoint("Standard min-ADE / constant-velocity ADE", m_std["min_ade"] / m_std["cv_ade"], 1.09 if QUICK else 0.70, 0.1)
-""")
 
-code(r"""
+# %%
 # The K = 25 modes over three validation samples: line width and opacity grow with p(z|x); ellipses: 1 sigma of
 # the most likely mode. The GT future of the predicted vehicle is the orange solid line.
 model_std.eval()
@@ -691,53 +622,47 @@ with torch.no_grad():
 fig, axes = plt.subplots(1, 3, figsize=(14, 3.2))
 for j, ax in enumerate(axes):
     data_synth.plot_scenario(ax, sub, j, extent=(-20, 55, -15, 15))
-    ds.plot_prediction(ax, pred, j, color="tab:red")
+    xp.plot_prediction(ax, pred, j, color="tab:red")
     ax.legend(loc="lower left", fontsize=7)
 fig.tight_layout()
 plt.show()
-""")
 
-# =====================================================================================================
-# 7. End-to-end
-# =====================================================================================================
+# %% [markdown]
+# ## 7. End-to-end training: DiffStack against Standard (Table 1)
+#
+# **DiffStack** trains the predictor with all three losses, $\alpha = (1, 100, 1000)$ in the RL setting; the
+# gradient of $\mathcal L_\text{plan}$ reaches the predictions through the candidate costs $C_n$ (the collision
+# term), and that of $\mathcal L_\text{ctr}$ (the hindsight cost of the controller's trajectory) through the KKT
+# backward of §5. The baselines of Table 1: *No prediction* (the predicted vehicle ignored), *Standard*,
+# *Distance weighted* and *∇Cost weighted* (L_pred reweighted per sample by closeness to the ego / by how much the
+# cost reacts to that agent), *DiffStack (no L_pred)*, and the oracle *GT prediction*. The planning loss and the
+# hindsight cost are reported **relative to No prediction** (negative = better), as in the paper.
+#
+# `open_loop_experiment` trains each learned method (same data, same seed, same number of steps) and evaluates all
+# of them on the validation set; `ds.open_loop_table` prints the table (± standard errors over seeds; one seed here).
 
-md(r"""
-## 7. End-to-end training: DiffStack against Standard (Table 1)
-
-**DiffStack** trains the predictor with all three losses, $\alpha = (1, 100, 1000)$ in the RL setting; the
-gradient of $\mathcal L_\text{plan}$ reaches the predictions through the candidate costs $C_n$ (the collision
-term), and that of $\mathcal L_\text{ctr}$ (the hindsight cost of the controller's trajectory) through the KKT
-backward of §5. The baselines of Table 1: *No prediction* (the predicted vehicle ignored), *Standard*,
-*Distance weighted* and *∇Cost weighted* (L_pred reweighted per sample by closeness to the ego / by how much the
-cost reacts to that agent), *DiffStack (no L_pred)*, and the oracle *GT prediction*. The planning loss and the
-hindsight cost are reported **relative to No prediction** (negative = better), as in the paper.
-
-`open_loop_experiment` trains each learned method (same data, same seed, same number of steps) and evaluates all
-of them on the validation set; `format_table` prints the table (± standard errors over seeds; one seed here).
-""")
-
-code(r"""
+# %%
 # Table 1 (RL). Expected run time: ~10 s quick (4 methods), ~3 min full (all 7 methods).
 t0 = time.time()
 methods1 = ds.TABLE1_METHODS if not QUICK else [m for m in ds.TABLE1_METHODS
                                               if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-res1 = ds.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
+res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_table(res1, "rl")))
-gap, _ = ds.gap_closed(res1)
+display(Markdown(ds.open_loop_table(res1, "rl")))
+gap, _ = xp.gap_closed(res1)
 print(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap in hindsight cost (paper: 39 %)")
 rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
 checkpoint("Table 1: DiffStack's minus Standard's relative hindsight cost (x1e-2)", rel["DiffStack"] - rel["Standard"],
            -0.95 if QUICK else -1.99, 0.5)
-""")
 
-code(r"""
+
+# %%
 def plot_table(results, setting, title):
     # Bars of the two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method.
-    cols = ds.SETTING_COLUMNS[setting]
+    cols = xp.open_loop_columns(setting)[2:4]  # the two planning columns, relative to No prediction
     names = list(results)
     fig, axes = plt.subplots(1, 3, figsize=(13, 2.8))
-    for ax, (key, scale, header) in zip(axes, [*cols, ("ade", 1, "ADE (m)")]):
+    for ax, (key, header) in zip(axes, [*((c.key.removeprefix("rel_"), c.header) for c in cols), ("ade", "ADE (m)")]):
         k = key if key == "ade" else "rel_" + key
         stats = [ds.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
         ax.barh(names, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(np.arange(len(names))))
@@ -750,17 +675,15 @@ def plot_table(results, setting, title):
 
 
 plot_table(res1, "rl", "Table 1 (RL setting): lower is better")
-""")
 
-md(r"""
-**An example where they differ.** `open_loop_experiment` returns metrics, not models, so we train DiffStack once
-more with the same seed, and run both stacks on the validation set (`train_stack` is deterministic: the
-checkpoints confirm that these models reproduce Table 1's rows; section 6's predictor *is* Table 1's Standard). Below, the sample where DiffStack's hindsight
-cost is lowest relative to Standard's (the paper's Fig. 3): predictions, candidates coloured by $p_n$, plan and
-control (`ds.plot_stack`).
-""")
+# %% [markdown]
+# **An example where they differ.** `open_loop_experiment` returns metrics, not models, so we train DiffStack once
+# more with the same seed, and run both stacks on the validation set (`train_stack` is deterministic: the
+# checkpoints confirm that these models reproduce Table 1's rows; section 6's predictor *is* Table 1's Standard). Below, the sample where DiffStack's hindsight
+# cost is lowest relative to Standard's (the paper's Fig. 3): predictions, candidates coloured by $p_n$, plan and
+# control (`xp.plot_stack`).
 
-code(r"""
+# %%
 # DiffStack trained again (same seed as in Table 1), both stacks run on the validation set.
 # Expected run time: ~5 s quick, ~1 min full.
 t0 = time.time()
@@ -784,98 +707,86 @@ print(f"sample {i} ({data_synth.BEHAVIOURS[int(data.val.behaviour[i])]}): hindsi
       f"DiffStack lower on {(delta[ok] > 0).float().mean():.0%} of the samples, higher on {(delta[ok] < 0).float().mean():.0%}")
 fig, axes = plt.subplots(1, 2, figsize=(13, 3.6), layout="constrained")
 for ax, name in zip(axes, outs):
-    ds.plot_stack(ax, data.val, i, outs[name], cfg, f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}", extent=(-15, 50, -14, 14))
+    xp.plot_stack(ax, data.val, i, outs[name], cfg, f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}", extent=(-15, 50, -14, 14))
     ax.legend(loc="lower left", fontsize=7)
 fig.suptitle("predictions (red, opacity by probability), candidates (green by p_n), plan (dashed), controller (purple)")
 plt.show()
-""")
 
-# =====================================================================================================
-# 8. Table 2, Table 3
-# =====================================================================================================
+# %% [markdown]
+# ## 8. More experiments
+#
+# **A biased predictor (Table 2).** The paper adds a 1 m offset to every GT prediction target (to the predicted
+# vehicle's left), a stand-in for an interface error between modules. Trained the standard way, the predictor
+# learns the bias and the planner pays for it; with DiffStack, the planning and control losses push the
+# predictions to where they matter for planning. `open_loop_experiment(..., pred_offset=1.0)` shifts the targets
+# of $\mathcal L_\text{pred}$ (the hindsight cost and the ADE are still measured against the true future).
 
-md(r"""
-## 8. More experiments
-
-**A biased predictor (Table 2).** The paper adds a 1 m offset to every GT prediction target (to the predicted
-vehicle's left), a stand-in for an interface error between modules. Trained the standard way, the predictor
-learns the bias and the planner pays for it; with DiffStack, the planning and control losses push the
-predictions to where they matter for planning. `open_loop_experiment(..., pred_offset=1.0)` shifts the targets
-of $\mathcal L_\text{pred}$ (the hindsight cost and the ADE are still measured against the true future).
-""")
-
-code(r"""
+# %%
 # Table 2 (biased targets, RL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
 methods2 = (ds.Method("No prediction", "none"), ds.Method("Standard-biased"), ds.Method("DiffStack-biased", losses=(1, 1, 1)),
             ds.Method("GT prediction", "gt"))
-res2 = ds.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None)
+res2 = xp.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_table(res2, "rl")))
+display(Markdown(ds.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 checkpoint("Table 2: DiffStack-biased's minus Standard-biased's relative hindsight cost (x1e-2)",
            rel["DiffStack-biased"] - rel["Standard-biased"], -10.19 if QUICK else -1.96, 2.0 if QUICK else 0.5)
 plot_table(res2, "rl", "Table 2: a 1 m bias in the prediction targets")
-""")
 
-md(r"""
-**Imitation learning (Table 3).** With a driving log but no cost to trust, the planner's target $n^*$ is the
-candidate closest to the expert's trajectory and $\mathcal L_\text{ctr} = \sum_t \lVert s_{\text{ctr},t} -
-s_{\text{gt},t}\rVert^2$, with $\alpha = (1, 10, 1000)$. The table reports the planning loss (×10⁻³) and the
-controller's squared error to the expert (×10⁻²), both relative to No prediction.
-""")
+# %% [markdown]
+# **Imitation learning (Table 4).** With a driving log but no cost to trust, the planner's target $n^*$ is the
+# candidate closest to the expert's trajectory and $\mathcal L_\text{ctr} = \sum_t \lVert s_{\text{ctr},t} -
+# s_{\text{gt},t}\rVert^2$, with $\alpha = (1, 10, 1000)$. The table reports the planning loss (×10⁻³) and the
+# controller's squared error to the expert (×10⁻²), both relative to No prediction.
 
-code(r"""
-# Table 3 (IL). Expected run time: ~5 s quick, ~75 s full.
+# %%
+# Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
 methods3 = [m for m in ds.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-res3 = ds.open_loop_experiment(data, cfg, "il", methods3, seeds=(SEED,), epochs=EPOCHS, log=None)
+res3 = xp.open_loop_experiment(data, cfg, "il", methods3, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_table(res3, "il")))
+display(Markdown(ds.open_loop_table(res3, "il")))
 rel = {n: r[0]["rel_mse"] for n, r in res3.items()}
-checkpoint("Table 3: DiffStack's minus Standard's relative MSE (x1e-2)", rel["DiffStack"] - rel["Standard"],
+checkpoint("Table 4: DiffStack's minus Standard's relative MSE (x1e-2)", rel["DiffStack"] - rel["Standard"],
            7.61 if QUICK else -13.68, 1.5 if QUICK else 3.0)
-plot_table(res3, "il", "Table 3 (IL setting): lower is better")
-""")
+plot_table(res3, "il", "Table 4 (IL setting): lower is better")
 
-md(r"""
-**Cost learning (Table 4).** The cost weights themselves can be learned through the controller: in the IL
-setting, $w_i = \alpha\,c\,e^{\psi_i} / \sum_j e^{\psi_j}$ (App. A.2), $\psi_1$ (collision) fixed, initialised to
-the hand-tuned weights; $\mathcal L = \alpha_3\,\mathcal L_\text{ctr}$, and $\partial\mathcal L/\partial w$ comes
-from the KKT backward of §5 (the weights are parameters of the iLQR problem). The predictor is a frozen Standard
-one. The table lists the normalised weights $w'$, the scale $\alpha$, and the absolute IL planning loss and MSE.
-""")
+# %% [markdown]
+# **Cost learning (Table 3).** The cost weights themselves can be learned through the controller: in the IL
+# setting, $w_i = \alpha\,c\,e^{\psi_i} / \sum_j e^{\psi_j}$ (App. A.2), $\psi_1$ (collision) fixed, initialised to
+# the hand-tuned weights; $\mathcal L = \alpha_3\,\mathcal L_\text{ctr}$, and $\partial\mathcal L/\partial w$ comes
+# from the KKT backward of §5 (the weights are parameters of the iLQR problem). The predictor is a frozen Standard
+# one. The table lists the normalised weights $w'$, the scale $\alpha$, and the absolute IL planning loss and MSE.
 
-code(r"""
-# Table 4 (cost learning). Expected run time: ~5 s quick, ~65 s full.
+# %%
+# Table 3 (cost learning). Expected run time: ~5 s quick, ~65 s full.
 t0 = time.time()
-res4 = ds.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
+res4 = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_cost_table(res4)))
+display(Markdown(xp.results_markdown(xp.TABLES["cost"], res4)))
 with tempfile.TemporaryDirectory() as tmp:
-    ds.figure_cost_weights(res4, Path(tmp) / "w.png")
+    xp.figure_cost_weights(res4, Path(tmp) / "w.png")
     display(Image(filename=str(Path(tmp) / "w.png"), width=560))
 mse = {n: r[0]["mse"] for n, r in res4.items()}
-checkpoint("Table 4: MSE with learned / with hand-tuned weights", mse["Learned"] / mse["Hand-tuned"],
+checkpoint("Table 3: MSE with learned / with hand-tuned weights", mse["Learned"] / mse["Hand-tuned"],
            0.90 if QUICK else 0.54, 0.1)
-""")
 
-md(r"""
-**Closed loop (Table 5).** Open-loop metrics score one plan against a log; in closed loop the plan is executed.
-Log replay (§4.3): every 0.5 s for 10 s the stack replans from the *simulated* ego state, the ego moves by the
-first control through the unicycle, and the other agents replay their logs (they do not react). Metrics over the
-executed trajectory: trajectory cost (eq. 2 without the goal term), open-loop cost of each step's plan, its
-collision, lane and control parts, and the deviation from the logged ego; differences to No prediction
-(×10⁻²). `closed_loop_experiment` trains Standard and DiffStack as in Table 1 and simulates every scene at once.
-""")
+# %% [markdown]
+# **Closed loop (Table 5).** Open-loop metrics score one plan against a log; in closed loop the plan is executed.
+# Log replay (§4.3): every 0.5 s for 10 s the stack replans from the *simulated* ego state, the ego moves by the
+# first control through the unicycle, and the other agents replay their logs (they do not react). Metrics over the
+# executed trajectory: trajectory cost (eq. 2 without the goal term), open-loop cost of each step's plan, its
+# collision, lane and control parts, and the deviation from the logged ego; differences to No prediction
+# (×10⁻²). `closed_loop_experiment` trains Standard and DiffStack as in Table 1 and simulates every scene at once.
 
-code(r"""
+# %%
 # Table 5 (closed loop). Expected run time: ~15 s quick, ~80 s full.
 t0 = time.time()
-res5, rollouts, cl_scenes = ds.closed_loop_experiment(data, data.val_scenes[:N_CLOSED_LOOP], cfg, seeds=(SEED,),
+res5, rollouts, cl_scenes = xp.closed_loop_experiment(data, data.val_scenes[:N_CLOSED_LOOP], cfg, seeds=(SEED,),
                                                       epochs=EPOCHS, log=None)
 print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_closed_loop_table(res5)))
+display(Markdown(xp.results_markdown(xp.TABLES["closed_loop"], res5)))
 # One scene, every method's executed trajectory (the scene where Standard's trajectory cost exceeds DiffStack's most).
 sc = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
 f0, N = rollouts["Standard"][0].start_frame, rollouts["Standard"][0].controls.shape[1]
@@ -901,18 +812,16 @@ plt.show()
 rel = {n: r[0]["rel_trajectory"] for n, r in res5.items()}
 checkpoint("Table 5: DiffStack's minus Standard's relative trajectory cost (x1e-2)", rel["DiffStack"] - rel["Standard"],
            0.075 if QUICK else -0.064, 0.3)
-""")
 
-md(r"""
-**A finer clock (the dt = 0.1 s ablation, App. A.1).** The predictor works on the data's 0.5 s steps; the planner
-and the controller can plan the same 3 s in 30 steps of 0.1 s: `run_stack(..., plan_dt=0.1)` interpolates the
-predicted modes and the GT futures linearly to that clock (`ds.upsample`, differentiable) and scales the per-step
-cost terms by 1/5, so that eq. (2) adds up the same cost per second and only the resolution changes. Here the
-predictors trained above at 0.5 s are *evaluated* at 0.1 s; the ablation proper (`python diffstack.py
---experiment ablation`) also *trains* DiffStack through the 0.1 s planner and controller (README: results).
-""")
+# %% [markdown]
+# **A finer clock (the dt = 0.1 s ablation, App. A.1).** The predictor works on the data's 0.5 s steps; the planner
+# and the controller can plan the same 3 s in 30 steps of 0.1 s: `run_stack(..., plan_dt=0.1)` interpolates the
+# predicted modes and the GT futures linearly to that clock (`ds.upsample`, differentiable) and scales the per-step
+# cost terms by 1/5, so that eq. (3) adds up the same cost per second and only the resolution changes. Here the
+# predictors trained above at 0.5 s are *evaluated* at 0.1 s; the ablation proper (`python diffstack.py
+# --experiment ablation`) also *trains* DiffStack through the 0.1 s planner and controller (README: results).
 
-code(r"""
+# %%
 # Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s quick, ~30 s full.
 t0 = time.time()
 stacks = {"No prediction": (None, ds.Method("No prediction", "none")), "Standard": (model_std, ds.Method("Standard")),
@@ -921,14 +830,14 @@ fine = {name: [ds.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1
 with torch.no_grad():  # the two stacks drawn below (evaluate_stack has put the models in eval mode)
     outs01 = {name: ds.run_stack(data.val, *stacks[name], cfg, "rl", plan_dt=0.1) for name in ("Standard", "DiffStack")}
 for runs in fine.values():  # relative to No prediction, as open_loop_experiment reports
-    for key, scale, _ in ds.SETTING_COLUMNS["rl"]:
+    for key, scale in ds.RELATIVE_SCALE["rl"].items():
         runs[0]["rel_" + key] = (runs[0][key] - fine["No prediction"][0][key]) / scale
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.format_table(fine, "rl")))
+display(Markdown(ds.open_loop_table(fine, "rl")))
 # sample i of the figure above: the controller's trajectory at 0.5 s (7 states) and at 0.1 s (31 states)
 fig, axes = plt.subplots(1, 2, figsize=(13, 3.6), layout="constrained")
 for ax, name in zip(axes, ("Standard", "DiffStack")):
-    ds.plot_stack(ax, data.val, i, outs01[name], cfg, f"{name} at 0.1 s: hindsight cost {outs01[name].hindsight[i]:.2f}",
+    xp.plot_stack(ax, data.val, i, outs01[name], cfg, f"{name} at 0.1 s: hindsight cost {outs01[name].hindsight[i]:.2f}",
                   extent=(-15, 50, -14, 14))
     ax.plot(outs[name].x[i, :, 0], outs[name].x[i, :, 1], "o", color="tab:purple", ms=4, mfc="none", zorder=9, label="controller at 0.5 s")
     ax.legend(loc="lower left", fontsize=7)
@@ -936,78 +845,19 @@ plt.show()
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
 checkpoint("dt = 0.1 s: DiffStack's minus Standard's relative hindsight cost (x1e-2)", rel01["DiffStack"] - rel01["Standard"],
            1.27 if QUICK else -1.48, 0.5)
-""")
 
-md(r"""
-## Where to go from here
+# %% [markdown]
+# ## Where to go from here
+#
+# * `python experiments.py --experiment rl --seeds 5 --epochs ...` runs Tables 1, 2 and 4 with several seeds and writes
+#   `results/<name>.md`; more steps and more data move the numbers towards the paper's shape.
+#   `--experiment ablation` runs the ablations of App. A.1, `--experiment all` every table and one report.
+# * Change `cfg` (e.g. `ds.Config(beta=10.0)`, other cost weights, `ilqr_iters`) and re-run a section: every
+#   experiment cell seeds itself.
+# * The tests (`python -m pytest -q test_diffstack.py`) check each module against an independent computation:
+#   the dynamics against RK4, the KKT gradients against finite differences, the predictor's loss by hand.
 
-* `python diffstack.py --experiment rl --seeds 5 --epochs ...` runs Tables 1–3 with several seeds and writes
-  `results/<name>.md`; more steps and more data move the numbers towards the paper's shape.
-  `--experiment ablation` runs the ablations of App. A.1, `--experiment all` every table and one report.
-* Change `cfg` (e.g. `ds.Config(beta=10.0)`, other cost weights, `ilqr_iters`) and re-run a section: every
-  experiment cell seeds itself.
-* The tests (`python -m pytest -q test_diffstack.py`) check each module against an independent computation:
-  the dynamics against RK4, the KKT gradients against finite differences, the predictor's loss by hand.
-""")
-
-code(r"""
+# %%
 # Wall clock, and the kernel's CPU time (one thread: about what the wall clock would be on an idle machine).
 print(f"notebook run time: {time.time() - T_START:.0f}s wall, {time.process_time() - CPU_START:.0f}s CPU "
       f"({'quick' if QUICK else 'full'} mode)")
-""")
-
-
-# =====================================================================================================
-# build and execute
-# =====================================================================================================
-
-
-def build() -> nbformat.NotebookNode:
-    nb = nbformat.v4.new_notebook()
-    nb.metadata["kernelspec"] = {"display_name": "Python 3", "language": "python", "name": "python3"}
-    nb.metadata["language_info"] = {"name": "python"}
-    for i, (kind, src) in enumerate(CELLS):
-        if kind == MD:
-            cell = nbformat.v4.new_markdown_cell(src)
-        else:
-            cell = nbformat.v4.new_code_cell(src)
-            if kind == SOLUTION:
-                cell.metadata["jupyter"] = {"source_hidden": True}
-                cell.metadata["tags"] = ["solution"]
-            if i == 1:
-                cell.metadata["tags"] = ["parameters"]
-        cell.id = f"cell-{i:02d}"
-        nb.cells.append(cell)
-    return nb
-
-
-def execute(nb, repo, quick: bool, timeout=1800):
-    os.environ["DIFFSTACK_QUICK"] = "1" if quick else "0"
-    client = NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": str(repo)}})
-    t0 = time.time()
-    client.execute()
-    return time.time() - t0
-
-
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--repo", default=str(pathlib.Path(__file__).resolve().parent))
-    ap.add_argument("--out", default=None, help="default <repo>/tutorial.ipynb")
-    mode = ap.add_mutually_exclusive_group()
-    mode.add_argument("--quick", action="store_true", help="execute in quick mode")
-    mode.add_argument("--full", action="store_true", help="execute in full mode (the committed outputs)")
-    ap.add_argument("--no-exec", action="store_true")
-    args = ap.parse_args()
-    repo = pathlib.Path(args.repo)
-    out = pathlib.Path(args.out) if args.out else repo / "tutorial.ipynb"
-    nb = build()
-    if not args.no_exec:
-        secs = execute(nb, repo, quick=not args.full)
-        print(f"executed in {secs:.0f}s ({'full' if args.full else 'quick'} mode)")
-    nbformat.validate(nb)
-    nbformat.write(nb, out)
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)")
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,779 @@
+"""The paper's experiments on top of diffstack.py: Tables 1-5, the ablations of App. A.1, figures, the report.
+
+    python experiments.py --experiment rl --seeds 5          # Table 1 -> results/rl.json, results/rl.md
+    python experiments.py --experiment all --seeds 5         # every table and results/report.md
+
+Each table of the paper is a declarative TableSpec (its methods, setting, loss weights, metrics and the paper's
+own numbers), and one function, run_table, runs any of them. Every result file records the full Config and the
+git commit it was made from.
+
+Map of the module:
+    1. Specs          Column, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations (App. A.1, Table 6)
+    2. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and shared by the tables
+    3. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
+    4. Closed loop    log replay (§4.3, Table 5, App. C.3)
+    5. Ablations      App. A.1
+    6. Figures        Fig. 3's kind of panel, a closed-loop rollout, the learned cost weights
+    7. Running        run_table, provenance, the report, the command line
+
+Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N simulation steps.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+import data_synth
+from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, cell, compare_methods,
+                       config_with, cost_weights, evaluate_stack, markdown_table, mean_se, project_to_lanes, run_stack,
+                       train_predictor, train_stack, unicycle_step, wrap_angle)
+
+# ============================================================================================
+# 1. Specs: the paper's tables, declared
+# ============================================================================================
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a results table: a metric of a run (a key of its dict, or a function of it)."""
+
+    header: str
+    key: str | Callable
+    fmt: str = "{:.2f}"
+
+    def values(self, runs) -> list:
+        """The column's value in every run (seed) that has it."""
+        if callable(self.key):
+            return [self.key(r) for r in runs]
+        return [r[self.key] for r in runs if self.key in r]
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A table of the paper, as run here.
+
+    kind: 'open_loop' (train every method, evaluate open loop: Tables 1, 2, 4), 'cost' (Table 3), 'closed_loop'
+    (Table 5) or 'ablation' (App. A.1, Table 6). methods: the rows; a Method's `losses` switch the setting's loss
+    weights (Config.alpha_rl or alpha_il) on and off. paper: the paper's numbers {row: {column header: value}} in
+    the units of the columns (absent: not reported)."""
+
+    name: str
+    title: str
+    kind: str
+    setting: str
+    methods: tuple
+    columns: tuple
+    paper: dict
+    pred_offset: float = 0.0
+    gap: tuple | None = None  # (Standard row, DiffStack row): the share of the Standard -> GT prediction gap closed
+    figures: tuple = ()
+    sections: tuple = ()  # ablations: (title, run_stack options, methods) per section
+
+
+def open_loop_columns(setting: str) -> tuple:
+    """Tables 1, 2 and 4: ADE, NLL, the planning metrics relative to No prediction, iLQR's convergence."""
+    if setting == "rl":
+        planning = (Column("Planning loss (x1e-2)", "rel_plan_loss"), Column("Hindsight cost (x1e-2)", "rel_hindsight"))
+    else:
+        planning = (Column("Planning loss (x1e-3)", "rel_plan_loss"), Column("MSE (x1e-2)", "rel_mse"))
+    return (Column("ADE (m)", "ade"), Column("NLL (nats)", "nll"), *planning, Column("iLQR converged", "converged", "{:.3f}"))
+
+
+FOUR_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
+CLOSED_LOOP_METHODS = FOUR_METHODS
+
+
+def _paper(columns, rows: dict) -> dict:
+    """{row: values in column order (None: not reported)} -> {row: {header: value}}."""
+    return {name: {c.header: v for c, v in zip(columns, vals) if v is not None} for name, vals in rows.items()}
+
+
+RL_COLUMNS, IL_COLUMNS = open_loop_columns("rl"), open_loop_columns("il")
+
+TABLE1 = TableSpec(
+    "rl", "Table 1: reinforcement learning (hindsight cost)", "open_loop", "rl", TABLE1_METHODS, RL_COLUMNS,
+    _paper(RL_COLUMNS, {  # ADE, NLL, planning loss, hindsight cost (paper §4.2, Table 1)
+        "No prediction": (None, None, 0.00, 0.00), "Standard": (1.32, 0.42, -3.76, -1.61),
+        "Distance weighted": (1.34, 1.19, -4.04, -1.68), "Grad-cost weighted": (1.43, -1.06, -4.29, -1.77),
+        "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87), "DiffStack": (1.27, 0.38, -5.13, -1.86),
+        "GT prediction": (None, None, -7.56, -2.25)}),
+    gap=("Standard", "DiffStack"))
+
+TABLE2 = TableSpec(
+    "biased", "Table 2: a 1 m offset on the prediction targets", "open_loop", "rl",
+    (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1]),
+    RL_COLUMNS,
+    _paper(RL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard-biased": (3.64, 8.43, 16.22, 3.13),
+                        "DiffStack-biased": (2.01, 4.20, -3.58, -1.61), "GT prediction": (None, None, -7.56, -2.25)}),
+    pred_offset=1.0, gap=("Standard-biased", "DiffStack-biased"))
+
+COST_COLUMNS = tuple(Column(f"w'{i + 1} ({t})", lambda r, i=i: r["w"][i], "{:.3f}")
+                     for i, t in enumerate(("coll", "goal", "lane", "heading", "control"))) + (
+    Column("alpha", "alpha", "{:.3f}"), Column("Planning loss", "plan_loss", "{:.3f}"), Column("MSE (m^2)", "mse", "{:.3f}"))
+
+TABLE3 = TableSpec(
+    "cost", "Table 3: learned cost weights (IL; the weights as in App. A.2, Table 7)", "cost", "il",
+    (Method("Cost weights", losses=(0, 0, 1)),), COST_COLUMNS,
+    _paper(COST_COLUMNS, {"Hand-tuned": (5.00, 0.50, 0.30, 0.30, 1.00, 1.00, 2.67, 0.38),
+                          "Learned": (5.00, 0.68, 0.36, 0.43, 0.63, 1.10, 2.41, 0.32)}),
+    figures=("cost_weights.png",))
+
+TABLE4 = TableSpec(
+    "il", "Table 4: imitation learning", "open_loop", "il", FOUR_METHODS, IL_COLUMNS,
+    _paper(IL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard": (1.25, 0.53, -0.50, 0.60),
+                        "DiffStack": (1.43, 0.30, -0.80, -1.80), "GT prediction": (None, None, -1.10, -2.80)}))
+
+CLOSED_LOOP_METRICS = {"trajectory": "Trajectory cost", "open_loop": "Open-loop cost", "collision": "Collision cost",
+                       "lane": "Lane keep cost", "control": "Control effort", "deviation": "Deviation (m)"}
+CLOSED_LOOP_COLUMNS = tuple(Column(f"{h} (x1e-2)", "rel_" + k) for k, h in CLOSED_LOOP_METRICS.items()) + (
+    Column("Plannable steps", "plannable", "{:.3f}"),)
+
+TABLE5 = TableSpec(
+    "closed_loop", "Table 5: closed-loop log replay", "closed_loop", "rl", CLOSED_LOOP_METHODS, CLOSED_LOOP_COLUMNS,
+    _paper(CLOSED_LOOP_COLUMNS, {"No prediction": (0.00,) * 6, "Standard": (0.87, 0.33, -8.21, 8.91, 0.18, 1.05),
+                                 "DiffStack": (-4.37, -2.40, -8.20, 4.84, -0.99, 0.98),
+                                 "GT prediction": (-6.30, -2.58, -8.54, 3.34, -1.08, 0.70)}),
+    figures=("closed_loop.png", "stack_example.png"))
+
+# Each section compares methods under one configuration of the stack, with its own No prediction and
+# GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
+# alphas (1, 100, 1000), so losses (1, 5, 5) are alphas (1, 500, 5000).
+#
+# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the
+# same 3 s (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The
+# paper's table shows "--" for L_ctr in that section; its text says planning AND control change resolution,
+# which is what we run, with all three losses.
+#
+# A predictor is trained once per (losses, seed, what its training sees of the stack) and shared between the
+# sections: Standard (L_pred only) never sees the stack, and without L_ctr the controller is irrelevant.
+
+ABLATION_SECTIONS = (
+    ("Loss weights", {}, (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)), Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
+        Method("DiffStack (no L_ctr)", losses=(1, 1, 0)), Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
+        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)))),
+    ("No planner (iLQR from zero controls)", dict(planner=False), (
+        Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
+    ("No controller (the plan is final)", dict(controller=False), (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 0)))),
+    ("dt = 0.1 s for planning and control", dict(plan_dt=0.1), (
+        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)))),
+)
+
+ABLATION_COLUMNS = (Column("ADE (m)", "ade"), Column("NLL (nats)", "nll"), Column("Planning loss (x1e-2)", "rel_plan_loss"),
+                    Column("Hindsight cost (x1e-2)", "rel_hindsight"))
+
+TABLE6 = TableSpec(
+    "ablation", "Ablations (App. A.1, Table 6)", "ablation", "rl", (), ABLATION_COLUMNS,
+    {  # per section, the rows in ABLATION_SECTIONS' names: ADE, NLL, planning loss, hindsight cost
+        title: _paper(ABLATION_COLUMNS, rows) for title, rows in zip((s[0] for s in ABLATION_SECTIONS), (
+            {"Standard": (1.32, 0.42, -3.76, -1.61), "DiffStack": (1.27, 0.38, -5.13, -1.86),
+             "DiffStack (no L_plan)": (1.33, 0.48, -4.98, -1.86), "DiffStack (no L_ctr)": (1.48, 0.55, -5.24, -1.85),
+             "DiffStack (1, 5, 5)": (1.64, 0.85, -5.53, -1.89), "DiffStack (1, 0.2, 0.2)": (1.28, 0.66, -4.79, -1.81),
+             "GT prediction": (None, None, -7.56, -2.25)},
+            {"Standard": (1.27, 0.31, None, -1.8), "DiffStack": (1.40, 0.19, None, -2.0), "GT prediction": (None, None, None, -2.6)},
+            {"Standard": (1.23, 0.56, -4.08, -1.1), "DiffStack": (1.46, 0.53, -5.29, -1.2),
+             "GT prediction": (None, None, -7.56, -1.5)},
+            {"Standard": (1.23, 0.56, -5.65, -2.1), "DiffStack": (1.49, 0.88, -14.01, -2.4),
+             "GT prediction": (None, None, -25.11, -2.9)}))},
+    sections=ABLATION_SECTIONS)
+
+TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6)}  # the order `all` runs them in
+EXPERIMENTS = tuple(TABLES)
+
+
+# ============================================================================================
+# 2. Training, shared between tables
+# ============================================================================================
+
+
+def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
+                      **stack_kw):
+    """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
+    experiments of one run: a predictor already trained the same way is taken from it instead of retrained (the
+    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs
+    and target offset -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
+    options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
+    and every ablation section."""
+    a, kw, runs_stack = alphas_of(m, setting, cfg), dict(stack_kw), True
+    if a[1:] == (0, 0):
+        kw, runs_stack = {}, False
+    elif a[2] == 0:
+        kw.pop("controller", None)
+    key = (a, m.weighting, seed, epochs, pred_offset, setting if runs_stack else None, tuple(sorted(kw.items())))
+    if models is not None and key in models:
+        if log:
+            log(f"  [{m.name}] seed {seed}: trained above, reused")
+        return models[key]
+    model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+    if models is not None:
+        models[key] = model
+    return model
+
+
+def alphas_of(m: Method, setting: str, cfg: Config) -> tuple:
+    base = cfg.alpha_rl if setting == "rl" else cfg.alpha_il
+    return tuple(a * on for a, on in zip(base, m.losses))
+
+
+def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
+                         pred_offset=0.0, log=print, models=None, **stack_kw) -> dict:
+    """diffstack.compare_methods with predictors shared through `models` (trained_predictor)."""
+    train = lambda m, *a, **k: trained_predictor(m, *a, models=models, **k)  # noqa: E731
+    return compare_methods(data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, **stack_kw)
+
+
+def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
+    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e."""
+    gt = results["GT prediction"][0][metric]
+    shares = [(s[metric] - d[metric]) / (s[metric] - gt) for s, d in zip(results[standard], results[diffstack])]
+    return mean_se(shares)
+
+
+# ============================================================================================
+# 3. Cost learning (§4.2, Table 3; App. A.2, Table 7)
+# ============================================================================================
+
+
+def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
+    """Table 3: per seed, train a Standard predictor, then the cost weights with it frozen (diffstack.train_stack
+    with `weights`: L = a3 L_ctr, L_ctr the MSE to the GT ego trajectory, the IL setting); evaluate both the
+    hand-tuned and the learned weights on data.val in the IL setting.
+
+    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised
+    weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
+    res = {"Hand-tuned": [], "Learned": []}
+    for seed in seeds:
+        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models)
+        weights = CostWeights(cfg)
+        for name in res:
+            if name == "Learned":
+                train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
+            with torch.no_grad():
+                w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
+            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w)
+            r.update(w=w_norm.tolist(), alpha=alpha)
+            res[name].append(r)
+            if log:
+                log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
+                    + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
+    return res
+
+
+# ============================================================================================
+# 4. Closed loop: log replay (§4.3, Table 5, App. C.3)
+# ============================================================================================
+#
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego
+# (data_synth.sample_at with its simulated 4 s history), run the stack, move the ego by the first control
+# of the controller's trajectory through the known unicycle; the other agents replay their logs, and the goal
+# and lanes come from the logged ego (sample_at). As in the paper (App. C), the stack plans with the
+# predicted agent only (the other agents are dropped from the planning cost, they stay the predictor's
+# neighbours); the metrics count every agent. The simulation starts at the first frame with a full history,
+# so 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
+
+
+@dataclass
+class Rollout:
+    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
+
+    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
+    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
+    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
+    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 2, GT futures)
+    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
+    start_frame: int  # f0
+
+
+def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
+    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
+    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
+    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
+    c, s = torch.cos(h0), torch.sin(h0)
+    x, y = states[..., 0], states[..., 1]
+    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
+
+
+def stack_policy(model, method: Method, cfg: Config):
+    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
+    the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
+
+    The planner and controller see the predicted agent only (App. C); the predictor still sees every
+    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls."""
+    if model is not None:
+        model.eval()
+
+    def policy(batch):
+        with torch.no_grad():
+            out = run_stack(batch, model, method, cfg, plan_others=False)
+        return out.x, out.u, out.hindsight, out.plannable
+
+    return policy
+
+
+def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
+             dtype=torch.float32) -> Rollout:
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first
+    frame with a full history). policy(batch) -> (x, u, hindsight, plannable) as stack_policy's; the ego
+    moves by u[:, 0] through the unicycle (eq. of §2), the agents replay the log. scfg: the data's
+    SynthConfig (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
+    import data_synth
+
+    scfg = scfg or data_synth.SynthConfig()
+    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
+    if abs(cfg.dt - scfg.dt) > 1e-9:
+        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
+                         f"got {cfg.dt}")
+    steps = sim_time / cfg.dt
+    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
+        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
+    N = round(steps)
+    f0 = H if start_frame is None else start_frame
+    if f0 < H or f0 + N - 1 + T > F - 1:
+        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
+                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
+    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
+    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
+    for k in range(N):  # a loop over simulation steps; every scene at once
+        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
+        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
+        s = hist[:, -1]  # (S, 4)
+        u0 = u[:, 0].to(s.dtype)  # (S, 2)
+        # s_{k+1} = f(s_k, u_0): the known dynamics, in the world frame (controls do not depend on the frame)
+        s_next = unicycle_step(s, u0, cfg.dt)
+        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
+        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
+        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s.dtype), s))
+        open_loop.append(hindsight.to(s.dtype)), plannable.append(ok)
+    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
+    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
+
+
+def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
+
+      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 2, w hand-tuned)
+      collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
+      lane             1/N sum_t (w3 C_lat + w4 C_head)
+      control effort   1/N sum_t w5 ||u_t||^2
+      open-loop cost   mean of each step's hindsight cost C_H (over the plannable steps)
+      deviation        1/N sum_t ||s_t - s_log,t|| (m)
+    """
+    N, f0 = roll.controls.shape[1], roll.start_frame
+    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
+    frames = slice(f0 + 1, f0 + N + 1)
+    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
+    # C_coll = sum_a phi(||s_t - s_a,t||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N)
+    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
+    # C_lat, C_head against the map's lanes (world frame)
+    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
+    w = cost_weights(cfg, x.dtype)
+    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
+    out = {k: v.mean(-1) for k, v in parts.items()}
+    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
+    keep = roll.plannable.to(x.dtype)
+    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
+    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
+    out["plannable"] = keep.mean(-1)
+    return out
+
+
+def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one)."""
+    import data_synth
+
+    scfg = scfg or data_synth.SynthConfig()
+    N = round(sim_time / cfg.dt)
+    return scenes[(scenes.pred_idx[:, scfg.hist:scfg.hist + N] >= 0).all(1)]
+
+
+def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None):
+    """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
+    validation scene. Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
+    {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
+    scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
+    results, rollouts = {}, {}
+    for m in CLOSED_LOOP_METHODS:
+        runs = []
+        for seed in seeds if m.predictor == "learned" else seeds[:1]:
+            t0, model = time.time(), None
+            if m.predictor == "learned":
+                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models)
+            t1 = time.time()
+            roll = simulate(scenes, stack_policy(model, m, cfg), cfg, sim_time)
+            per_scene = closed_loop_metrics(scenes, roll, cfg)
+            r = {k: v.mean().item() for k, v in per_scene.items()}
+            r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
+            runs.append(r)
+            rollouts.setdefault(m.name, (roll, per_scene))
+            if log:
+                log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+        results[m.name] = runs
+    base = results["No prediction"][0]
+    for runs in results.values():
+        for r in runs:
+            for k in CLOSED_LOOP_METRICS:
+                r["rel_" + k] = (r[k] - base[k]) / 1e-2
+    return results, rollouts, scenes
+
+
+# ============================================================================================
+# 5. Ablations (App. A.1, Table 6)
+# ============================================================================================
+
+
+def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
+    """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
+    res, models = {}, {} if models is None else models
+    for title, stack_kw, methods in ABLATION_SECTIONS:
+        if log:
+            log(f"--- ablation: {title}")
+        res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
+                                          tuple(seeds), epochs, log=log, models=models, **stack_kw)
+    return res
+
+
+def ablation_markdown(spec: TableSpec, results: dict) -> str:
+    """The ablation table: the loss multipliers (x1, x1e2, x1e3 as in the paper), ADE, NLL and the planning
+    metrics relative to the section's No prediction (x1e-2); '--' where a loss or metric does not apply."""
+    head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3"] + [c.header for c in spec.columns]
+    rows = []
+    for title, stack_kw, methods in spec.sections:
+        if title not in results:
+            continue
+        rows.append([f"**{title}**"] + [""] * (len(head) - 1))
+        no_plan, no_ctrl = stack_kw.get("planner") is False, stack_kw.get("controller") is False
+        by_name = {m.name: m for m in methods}
+        for name, runs in results[title].items():
+            m = by_name.get(name)
+            loss = ["", "", ""] if m is None else [f"{v:g}" for v in m.losses]
+            if no_plan:
+                loss[1] = "--"
+            if no_ctrl:
+                loss[2] = "--"
+            cells = [cell(c.values(runs), c.fmt) for c in spec.columns]
+            if no_plan:
+                cells[2] = "--"
+            rows.append([name, *loss, *cells])
+    return markdown_table(head, rows)
+
+
+# ============================================================================================
+# 6. Figures
+# ============================================================================================
+
+
+def plot_prediction(ax, pred: Prediction, i: int, color: str = "tab:red", cov: bool = True,
+                    label: str | None = "prediction"):
+    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with the mode's
+    probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode. Meant to go over plot_scenario."""
+    p = pred.probs[i].detach().cpu()  # (K,)
+    xy = torch.cat([pred.s0[i, None, None, :2].expand(len(p), 1, 2), pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
+    rel = p / p.max()
+    for k in torch.argsort(p).tolist():  # the likely modes drawn last, on top
+        ax.plot(xy[k, :, 0], xy[k, :, 1], color=color, alpha=0.1 + 0.9 * rel[k].item(), lw=0.5 + 2.5 * rel[k].item(),
+                label=label if k == int(p.argmax()) else None)
+    if cov:
+        k = int(p.argmax())
+        theta = torch.linspace(0, 2 * math.pi, 40, dtype=pred.pos_cov.dtype)
+        circle = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (40, 2)
+        for t in range(pred.pos_cov.shape[2]):
+            L = torch.linalg.cholesky(pred.pos_cov[i, k, t].detach().cpu())  # (2, 2)
+            ell = xy[k, t + 1] + circle @ L.T  # (40, 2)
+            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
+
+
+def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | None = None, extent=(-10, 45, -12, 14)):
+    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted modes (alpha
+    by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the plan (argmin) and the
+    controller's trajectory."""
+    import matplotlib.pyplot as plt
+    import data_synth
+
+    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
+    if out.pred is not None:
+        plot_prediction(ax, out.pred, i, cov=False)
+    valid = out.cands.valid[i]  # (N,)
+    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (3) relaxed
+    xs = out.cands.x[i].detach()  # (N, T+1, 4)
+    cmap = plt.get_cmap("Greens")
+    for n in torch.argsort(p).tolist():  # the likely candidates on top
+        if valid[n]:
+            ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
+    best = int(p.argmax())
+    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.6, zorder=7, label="plan (argmin)")
+    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=2.2, zorder=8, label="controller")
+    return ax
+
+
+def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
+    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
+    the one among the first n_search where the first model's hindsight cost exceeds the second's the most."""
+    import matplotlib.pyplot as plt
+
+    batch = data.val[:n_search]
+    outs = {}
+    with torch.no_grad():
+        for name, model in models.items():
+            model.eval()
+            outs[name] = run_stack(batch, model, Method(name), cfg, "rl")
+    (a, oa), (b, ob) = list(outs.items())[:2]
+    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
+    i = int(gap.argmax())
+    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
+    for ax, (name, out) in zip(axes, outs.items()):
+        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
+        ax.legend(loc="lower left", fontsize=7)
+    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
+    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
+                 ticks=[0, 0.25, 0.5, 0.75, 1])
+    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
+                 fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    return i
+
+
+def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
+    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
+    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
+    Standard's trajectory cost exceeds DiffStack's the most."""
+    import matplotlib.pyplot as plt
+
+    if scene is None:
+        scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
+    s = scene
+    any_roll = next(iter(rollouts.values()))[0]
+    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
+    frames = torch.arange(f0, f0 + N + 1)
+    pred = int(scenes.pred_idx[s, f0])
+    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
+    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
+    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
+    tt = (frames - f0).double() * dt  # (N+1,) seconds
+    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
+    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
+    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
+    cols = 2 if len(rollouts) > 1 else 1
+    rows = math.ceil(len(rollouts) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
+                             sharey=True, layout="constrained", squeeze=False)
+    axes = axes.ravel()
+    for ax in axes[len(rollouts):]:
+        ax.set_axis_off()
+    axes = axes[:len(rollouts)]
+    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
+        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
+            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
+        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
+            if a != pred and scenes.agents_mask[s, a, frames].any():
+                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
+                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
+        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
+        for k in range(0, N, 4):
+            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
+        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
+        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
+        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
+                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
+    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
+    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    return s
+
+
+def figure_cost_weights(results: dict, path):
+    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds."""
+    import matplotlib.pyplot as plt
+
+    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    x = np.arange(len(names))
+    for j, (label, runs) in enumerate(results.items()):
+        vals = [[*r["w"], r["alpha"]] for r in runs]
+        ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
+        ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
+    ax.set_xticks(x, names, fontsize=8)
+    ax.set_yscale("log")
+    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
+    ax.minorticks_off()
+    ax.set_ylabel("weight (log scale)")
+    ax.legend(fontsize=8)
+    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)", fontsize=10)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+
+
+# ============================================================================================
+# 7. Running a spec, provenance, the report, the command line
+# ============================================================================================
+
+
+def results_markdown(spec: TableSpec, results: dict) -> str:
+    """A results table of a spec: one row per method, 'mean ± s.e.' over seeds in every column."""
+    if spec.kind == "ablation":
+        return ablation_markdown(spec, results)
+    rows = [[name] + [cell(c.values(runs), c.fmt) for c in spec.columns] for name, runs in results.items()]
+    md = markdown_table(["Method"] + [c.header for c in spec.columns], rows)
+    if spec.gap:
+        m, s = gap_closed(results, *spec.gap)
+        md += f"\n\n{spec.gap[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {spec.gap[0]} -> GT prediction hindsight-cost gap."
+    if spec.kind == "closed_loop":
+        base = results["No prediction"][0]
+        md += (f"\n\nNo prediction, absolute: trajectory cost {base['trajectory']:.4f}, open-loop cost "
+               f"{base['open_loop']:.4f}, deviation {base['deviation']:.3f} m ({base['scenes']} scenes).")
+    return md
+
+
+def paper_markdown(spec: TableSpec) -> str:
+    """The paper's numbers for the same columns ('--': not reported)."""
+    def rows(paper):
+        return [[name] + [("{:.2f}".format(vals[c.header]) if c.header in vals else "--") for c in spec.columns]
+                for name, vals in paper.items()]
+    head = ["Method (paper)"] + [c.header for c in spec.columns]
+    if spec.kind == "ablation":
+        out = []
+        for title, paper in spec.paper.items():
+            out.append(markdown_table([f"{title} (paper)"] + head[1:], rows(paper)))
+        return "\n\n".join(out)
+    return markdown_table(head, rows(spec.paper))
+
+
+def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
+    """Run one table of the paper: train and evaluate what its spec declares, write its figures to out_dir.
+    models: trained predictors shared between the tables of one run (trained_predictor).
+    Returns (results, markdown table)."""
+    seeds, out = tuple(seeds), pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    models = {} if models is None else models
+    if spec.kind == "open_loop":
+        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, spec.pred_offset, log, models)
+    elif spec.kind == "cost":
+        res = cost_learning_experiment(data, cfg, seeds, epochs, log, models)
+        figure_cost_weights(res, out / "cost_weights.png")
+    elif spec.kind == "closed_loop":
+        if data.val_scenes is None:
+            raise ValueError("closed_loop: the data has no validation scene logs")
+        res, rollouts, scenes = closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, log=log, models=models)
+        figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
+        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models)
+                for m in CLOSED_LOOP_METHODS[1:3]}
+        figure_stack_example(data, pair, cfg, out / "stack_example.png")
+    elif spec.kind == "ablation":
+        res = ablation_experiment(data, cfg, seeds, epochs, log, models)
+    else:
+        raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+    return res, results_markdown(spec, res)
+
+
+def git_commit() -> str | None:
+    """The commit the code was run from, '+dirty' when the work tree differs from it; None outside git."""
+    here = pathlib.Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+                               text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def write_atomic(path: pathlib.Path, text: str) -> None:
+    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_report(out_dir, sections) -> pathlib.Path:
+    """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
+    out_dir]); each figure is linked below its section's table."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
+             f"torch {torch.__version__}, {torch.get_num_threads()} threads\n"]
+    for title, md, figures in sections:
+        parts.append(f"## {title}\n\n{md}\n")
+        parts += [f"![{f}]({f})\n" for f in figures]
+    path = out / "report.md"
+    path.write_text("\n".join(parts))
+    return path
+
+
+def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
+    """Run one table (or 'all'), writing out_dir/<name>.json (results, the full Config, the git commit) and .md
+    (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between the tables."""
+    seeds, out = tuple(seeds), pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sections, models = [], {}
+    for one in EXPERIMENTS if name == "all" else (name,):
+        spec, t0 = TABLES[one], time.time()
+        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models)
+        meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+                    date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
+                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads",
+                    git_commit=git_commit(), config=dataclasses.asdict(cfg))
+        to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
+        write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
+        md = (f"`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f} s, commit {meta['git_commit']})"
+              f"\n\n{table}\n\nThe paper's numbers:\n\n{paper_markdown(spec)}\n")
+        write_atomic(out / f"{one}.md", f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures))
+        sections.append((spec.title, md, list(spec.figures)))
+        log(f"\n{spec.title}\n{table}")
+    if name == "all":
+        log(f"report: {write_report(out, sections)}")
+    return sections
+
+
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine.")
+    ap.add_argument("--experiment", choices=EXPERIMENTS + ("all",), required=True,
+                    help="a table of the paper (results/<name>.json, .md, figures); all: every one, and results/report.md")
+    ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
+    ap.add_argument("--epochs", type=float, default=4.0, help="training epochs per method (default 4; fractions allowed)")
+    ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
+    ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    ap.add_argument("--out", default="results", help="where the results go (default results/)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a Config field, e.g. --set beta=2 (repeatable)")
+    args = ap.parse_args(argv)
+    if args.seeds < 1 or not args.epochs > 0 or args.n < 10 or args.threads < 1:
+        ap.error("--seeds must be >= 1, --epochs > 0, --n >= 10, --threads >= 1")
+    try:
+        cfg = config_with(Config(), args.set)
+    except ValueError as e:
+        ap.error(str(e))
+    torch.set_num_threads(args.threads)
+    try:
+        data = data_synth.load_data(args.data, args.n)
+    except ValueError as e:
+        ap.error(str(e))
+    return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
+                          " ".join(["python experiments.py", *(argv if argv is not None else sys.argv[1:])]))
+
+
+if __name__ == "__main__":
+    main()

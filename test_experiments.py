@@ -1,0 +1,257 @@
+"""Tests of experiments.py: the paper's tables as specs, cost learning, the closed loop, the ablations, the report
+and the command line. Every test runs on one thread."""
+import json
+import math
+
+import pytest
+import torch
+
+import data_synth
+import diffstack as ds
+import experiments as ex
+
+TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# ---------------------------------------------------------------------------------------------
+# The command line
+# ---------------------------------------------------------------------------------------------
+
+def test_nuscenes_folder_trains_through_the_cli(tmp_path):
+    scenes = data_synth.generate_scenes(4, seed=3)
+    data_synth.write_nuscenes(scenes, tmp_path / "nusc")
+    ex.main(["--experiment", "il", "--data", str(tmp_path / "nusc"), "--seeds", "1", "--epochs", "1",
+             "--threads", "1", "--out", str(tmp_path / "out")])
+    res = json.loads((tmp_path / "out" / "il.json").read_text())
+    assert set(res["results"]) == {"No prediction", "Standard", "DiffStack", "GT prediction"}
+    assert "MSE" in (tmp_path / "out" / "il.md").read_text()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--experiment", "nonsense"], "invalid choice"),
+    (["--experiment", "rl", "--data", "/no/such/folder"], "is not a folder"),
+    ([], "--experiment"),
+    (["--experiment", "rl", "--seeds", "0"], "--seeds"),
+    (["--experiment", "rl", "--set", "no_such_field=1"], "no_such_field"),
+    (["--experiment", "rl", "--set", "beta=warm"], "beta"),
+])
+def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        ex.main(argv)
+    assert e.value.code != 0 and message in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Cost learning, closed loop, ablations, figures
+# ---------------------------------------------------------------------------------------------
+
+TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    """A small dataset whose logs carry no tracking noise: 30 scenes, the last 5 for validation."""
+    scfg = data_synth.SynthConfig(pos_noise=0.0, yaw_noise=0.0)
+    return data_synth.make_dataset(120, scfg, seed=3), scfg
+
+
+# ---------------------------------------------------------------------------------------------
+# Cost learning
+# ---------------------------------------------------------------------------------------------
+
+def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
+    cfg = ds.Config()
+    cw = ds.CostWeights(cfg)
+    assert torch.allclose(cw(), ds.cost_weights(cfg), rtol=1e-6, atol=0)
+    assert cw.alpha.item() == 1.0
+    assert {n for n, _ in cw.named_parameters()} == {"psi", "alpha"}  # psi_1 is a buffer
+    (cw() * torch.tensor([1.0, 2.0, -1.0, 3.0, 0.5])).sum().backward()
+    assert cw.psi_coll.grad is None
+    assert cw.psi.grad.abs().min() > 0 and cw.alpha.grad.abs() > 0
+    with torch.no_grad():  # the normalised weights keep their sum c whatever psi is
+        cw.psi.add_(torch.tensor([0.3, -0.2, 0.1, -0.4]))
+    assert torch.allclose(cw.normalised().sum(), ds.cost_weights(cfg).sum())
+
+
+def test_controller_gradient_reaches_the_cost_weights(clean):
+    (data, _), cfg = clean, ds.Config()
+    cw = ds.CostWeights(cfg)
+    out = ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=cw())
+    keep = out.plannable.to(out.l_ctr.dtype)
+    ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()  # the plannable mean, as in training
+    assert torch.isfinite(cw.psi.grad).all() and cw.psi.grad.abs().sum() > 0 and cw.alpha.grad.abs() > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Closed loop
+# ---------------------------------------------------------------------------------------------
+
+def test_frame_round_trip():
+    g = torch.Generator().manual_seed(0)
+    origin = torch.randn(3, 4, generator=g, dtype=torch.float64) * 10
+    world = torch.randn(3, 5, 4, generator=g, dtype=torch.float64) * 10
+    back = ex.from_frame(data_synth._to_frame(world, origin), origin)
+    assert torch.allclose(back[..., :2], world[..., :2], atol=1e-10)
+    assert torch.allclose(torch.cos(back[..., 2] - world[..., 2]), torch.ones(3, 5, dtype=torch.float64))
+
+
+def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
+    """A fixed control policy on noise-free logs: every step's sample, mapped back to the world, shows the
+    logged agents exactly, the simulated ego history and the logged goal; the ego moves by the unicycle."""
+    (data, scfg), cfg = clean, ds.Config()
+    scenes = data.val_scenes
+    S, T = len(scenes), cfg.horizon
+    u_fix = torch.stack([torch.linspace(-0.03, 0.03, S), torch.linspace(-0.3, 0.3, S)], -1).double()  # (S, 2)
+    seen = []
+
+    def policy(batch):
+        seen.append(batch)
+        u = u_fix[:, None] + 0.01 * torch.arange(T, dtype=torch.float64)[:, None]  # (S, T, 2): only u[:, 0] is applied
+        return ds.unicycle_rollout(batch.ego_hist[:, -1], u, cfg.dt), u, torch.zeros(S), torch.ones(S, dtype=torch.bool)
+
+    roll = ex.simulate(scenes, policy, cfg, 10.0, scfg=scfg, dtype=torch.float64)
+    N, f0, H = 20, roll.start_frame, scfg.hist
+    assert roll.ego.shape == (S, N + 1, 4) and len(seen) == N and f0 == H
+    # the ego: the unicycle driven by the fixed controls from the logged state at f0
+    ref = ds.unicycle_rollout(scenes.ego[:, f0], u_fix[:, None].expand(S, N, 2), cfg.dt)  # (S, N+1, 4)
+    assert torch.allclose(roll.ego[..., :2], ref[..., :2], atol=1e-8)
+    assert torch.allclose(torch.cos(roll.ego[..., 2] - ref[..., 2]), torch.ones(S, N + 1, dtype=torch.float64))
+    assert torch.allclose(roll.controls, u_fix[:, None].expand(S, N, 2))
+    pred = scenes.pred_idx[:, f0]
+    ar = torch.arange(S)
+    for k, b in enumerate(seen):
+        origin = roll.ego[:, k]
+        win = torch.arange(f0 + k - H, f0 + k + T + 1)  # the sample's frames
+        agent = torch.cat([b.agent_hist, b.agent_fut], 1)
+        assert torch.allclose(ex.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9)
+        others = ex.from_frame(b.others_hist[:, :, -1], origin)[..., :2]  # (S, A, 2) each a logged agent at t0
+        d = (others[:, :, None] - scenes.agents[:, None, :, f0 + k, :2]).norm(dim=-1).min(-1).values  # (S, A)
+        assert (d[b.others_mask] < 1e-9).all()
+        sim_hist = torch.cat([scenes.ego[:, f0 + k - H:f0], roll.ego[:, :k + 1]], 1)[:, -H - 1:]  # (S, H+1, 4)
+        assert torch.allclose(ex.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9)
+        assert torch.allclose(ex.from_frame(b.goal[:, None], origin)[:, 0, :2], scenes.ego[:, f0 + k + T, :2], atol=1e-9)
+
+
+def test_gt_prediction_closed_loop_stays_near_the_log(clean):
+    (data, scfg), cfg = clean, ds.Config()
+    scenes = data.val_scenes
+    roll = ex.simulate(scenes, ex.stack_policy(None, ds.Method("GT prediction", "gt"), cfg), cfg, 10.0, scfg=scfg)
+    m = ex.closed_loop_metrics(scenes, roll, cfg)
+    assert all(torch.isfinite(v).all() for v in m.values())
+    assert (m["deviation"] < 2.0).all() and (m["plannable"] > 0.9).all()
+    assert torch.allclose(m["trajectory"], m["collision"] + m["lane"] + m["control"])
+    # the applied control is the first of the controller's trajectory, so the ego lies on each step's plan
+    assert torch.allclose(roll.plans[:, :, 1, :2], roll.ego[:, 1:, :2], atol=1e-3)
+
+
+def test_metrics_on_the_logged_trajectory_have_zero_deviation(clean):
+    (data, _), cfg = clean, ds.Config()
+    scenes = data.val_scenes
+    S, N, f0 = len(scenes), 4, 8
+    ego = scenes.ego[:, f0:f0 + N + 1]
+    roll = ex.Rollout(ego, torch.zeros(S, N, 2, dtype=torch.float64), torch.zeros(S, N, 7, 4, dtype=torch.float64),
+                      torch.ones(S, N, dtype=torch.float64), torch.ones(S, N, dtype=torch.bool), f0)
+    m = ex.closed_loop_metrics(scenes, roll, cfg)
+    assert torch.allclose(m["deviation"], torch.zeros(S, dtype=torch.float64))
+    assert (m["control"] == 0).all() and torch.allclose(m["open_loop"], torch.ones(S, dtype=torch.float64))
+    # one agent placed on the ego at every step adds exactly w1 phi(0) = w1 to the collision cost per step
+    on_ego = dict(scenes.tensors(), names=scenes.names)
+    on_ego["agents"] = scenes.agents.clone()
+    on_ego["agents"][:, 0, f0 + 1:f0 + N + 1] = ego[:, 1:]
+    on_ego["agents_mask"] = scenes.agents_mask.clone()
+    on_ego["agents_mask"][:, 0] = True
+    m2 = ex.closed_loop_metrics(data_synth.Scenes(**on_ego), roll, cfg)
+    moved_away = scenes.agents_mask[:, 0, f0 + 1:f0 + N + 1].double() * torch.exp(
+        -((ego[:, 1:, :2] - scenes.agents[:, 0, f0 + 1:f0 + N + 1, :2]) ** 2).sum(-1) / (2 * cfg.rbf_var))
+    assert torch.allclose(m2["collision"] - m["collision"], cfg.w_coll * (1 - moved_away.mean(-1)))
+
+
+@pytest.mark.parametrize("kw, match", [(dict(sim_time=-1.0), "sim_time"), (dict(sim_time=0.0), "sim_time"),
+                                       (dict(sim_time=1.2), "sim_time"), (dict(sim_time=20.0), "start_frame"),
+                                       (dict(start_frame=3), "start_frame"), (dict(dt=0.1), "dt")])
+def test_simulate_bad_input_names_the_argument(clean, kw, match):
+    (data, scfg) = clean
+    cfg = ds.Config(dt=kw.pop("dt", 0.5))
+    never = lambda b: pytest.fail("the policy must not run on bad input")  # noqa: E731
+    with pytest.raises(ValueError, match=match):
+        ex.simulate(data.val_scenes, never, cfg, scfg=scfg, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Experiments end to end, tiny
+# ---------------------------------------------------------------------------------------------
+
+def test_experiments_end_to_end_tiny(clean, tmp_path):
+    (data, scfg), cfg = clean, ds.Config(**TINY10)
+    small = data_synth.Dataset(data.train[:64], data.val[:32], data.val_scenes[:3])
+    res, table = ex.run_table(ex.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    assert set(res) == {"Hand-tuned", "Learned"} and "Learned" in table
+    assert res["Hand-tuned"][0]["w"] == pytest.approx([5.0, 0.5, 0.3, 0.3, 1.0], rel=1e-5)
+    assert res["Learned"][0]["w"] != res["Hand-tuned"][0]["w"]
+    res, table = ex.run_table(ex.TABLES["closed_loop"], small, cfg, (0,), 0.5, tmp_path, log=None)
+    assert list(res) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
+    assert res["No prediction"][0]["rel_trajectory"] == 0 and math.isfinite(res["DiffStack"][0]["rel_trajectory"])
+    report = ex.write_report(tmp_path, [("Closed loop", table, ["closed_loop.png", "stack_example.png"])])
+    for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
+        assert (tmp_path / f).stat().st_size > 10_000
+    assert "![closed_loop.png](closed_loop.png)" in report.read_text()
+
+
+def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkeypatch):
+    (data, _), cfg = clean, ds.Config(**TINY10)
+    small = data_synth.Dataset(data.train[:32], data.val[:16])
+    no_planner, dt01 = ex.ABLATION_SECTIONS[1], ex.ABLATION_SECTIONS[-1]
+    monkeypatch.setattr(ex, "ABLATION_SECTIONS", (no_planner, dt01))  # the shortest section and dt = 0.1 s
+    trained = []
+    train = ds.train_stack
+    monkeypatch.setattr(ds, "train_stack", lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[1])
+    res, table = ex.run_table(ex.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
+    for rows in res.values():
+        assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
+    assert trained == [(1, 0, 0), (1, 0, 1), (1, 1, 1)]  # Standard never sees the stack: trained once, shared
+    assert res[dt01[0]]["Standard"][0]["ade"] == res[no_planner[0]]["Standard"][0]["ade"]
+    line = next(ln for ln in table.splitlines() if ln.startswith("| DiffStack"))
+    assert line.split("|")[1:4] == [" DiffStack ", " 1 ", " -- "]  # no planner: L_plan does not apply
+
+
+def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypatch):
+    """--experiment all: a predictor trained the same way is trained once and reused by every table (Standard:
+    Tables 1, 3, 4, 5 and each ablation section); the report links every figure."""
+    (data, _), cfg = clean, ds.Config(**TINY10)
+    small = data_synth.Dataset(data.train[:32], data.val[:16], data.val_scenes[:2])
+    trained = []
+    train = ds.train_stack
+
+    def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, **kw):
+        trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset, tuple(sorted(kw.items()))))
+        return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, **kw)
+
+    monkeypatch.setattr(ds, "train_stack", counting)
+    ex.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
+    assert len(trained) == len(set(trained))
+    assert trained.count(((1, 0, 0), "standard", None, 0.0, ())) == 1
+    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),)) in trained  # the dt = 0.1 s section
+    report = (tmp_path / "report.md").read_text()
+    for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
+        assert f"({f})" in report and (tmp_path / f).exists()
+    for name in ex.EXPERIMENTS:
+        assert json.loads((tmp_path / f"{name}.json").read_text())["meta"]["experiment"] == name
+
+
+def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the synthetic data cache goes to tmp_path/data_cache
+    tiny = ds.Config(**TINY)
+    monkeypatch.setattr(ex, "Config", lambda: tiny)  # what main() builds
+    ex.main(["--experiment", "closed_loop", "--n", "60", "--seeds", "1", "--epochs", "1", "--threads", "1", "--out", "out"])
+    res = json.loads((tmp_path / "out" / "closed_loop.json").read_text())
+    assert res["meta"]["experiment"] == "closed_loop" and (tmp_path / "out" / "closed_loop.png").exists()
+    assert "Trajectory" in (tmp_path / "out" / "closed_loop.md").read_text()
