@@ -70,7 +70,7 @@ _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yie
 class SynthConfig:
     """Knobs of the synthetic generator and of cutting planning samples (used for real nuScenes too)."""
 
-    # --- time (REFERENCE.md §1) ---
+    # --- time (paper App. D.1: nuScenes at 2 Hz, 4 s of history, 3 s of future) ---
     dt: float = 0.5
     """frame period (s): nuScenes key frames are 2 Hz"""
     frames: int = 41
@@ -263,9 +263,13 @@ _SHAPE_SIGNS = {"LSL": (1, 0, 1), "LSR": (1, 0, -1), "RSL": (-1, 0, 1), "RSR": (
                 "LRL": (1, -1, 1), "RLR": (-1, 1, -1)}  # the devkit's compute_segment_sign
 
 
-def wrap(a):
-    """Angle to [-pi, pi)."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
+def wrap_angle(a):
+    """Angle to (-pi, pi], for numpy arrays and torch tensors alike: the one angle-wrapping function of the
+    project (diffstack.py imports it). atan2(sin a, cos a) rather than a modulo: it is smooth wherever it is
+    used (away from +-pi) and its gradient is 1."""
+    if torch.is_tensor(a):
+        return torch.atan2(torch.sin(a), torch.cos(a))
+    return np.arctan2(np.sin(a), np.cos(a))
 
 
 def _arc(kappa, u):
@@ -330,7 +334,7 @@ def discretize(segs, spacing: float):
     u = np.broadcast_to(np.arange(P) * spacing, (*total.shape, P))
     mask = (u <= total[..., None] + 1e-9) & (total[..., None] > 0)  # an empty route has no points
     pts, _ = pose_along(segs, u)
-    pts[..., 2] = wrap(pts[..., 2])
+    pts[..., 2] = wrap_angle(pts[..., 2])
     return np.where(mask[..., None], pts, 0.0), mask
 
 
@@ -856,8 +860,8 @@ def _simulate_chunk(S, cfg, rng):
     noisy = others.copy()
     for ch, sigma in [(0, cfg.pos_noise), (1, cfg.pos_noise), (2, cfg.yaw_noise)]:
         noisy[..., ch] += _ar1_noise((S, M, F), sigma, cfg.noise_corr, rng)
-    noisy[..., 2] = wrap(noisy[..., 2])
-    ego[..., 2] = wrap(ego[..., 2])
+    noisy[..., 2] = wrap_angle(noisy[..., 2])
+    ego[..., 2] = wrap_angle(ego[..., 2])
     tf = np.arange(F) * cfg.dt
     mask = np.broadcast_to(p["exists"][..., None], (S, M, F))
     noisy[..., 3] = backward_speed(noisy[..., :2], mask, tf) * mask
@@ -901,10 +905,6 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
 # ============================================================================================
 
 
-def _twrap(a):
-    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
-
-
 def _to_frame(states, origin):
     """World states (S, ..., >=3) -> the frame of origin (S, 4): positions rotated by -h0, headings - h0."""
     shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
@@ -912,7 +912,7 @@ def _to_frame(states, origin):
     c, s = torch.cos(h0), torch.sin(h0)
     dx, dy = states[..., 0] - x0, states[..., 1] - y0
     out = states.clone()
-    out[..., 0], out[..., 1], out[..., 2] = c * dx + s * dy, -s * dx + c * dy, _twrap(states[..., 2] - h0)
+    out[..., 0], out[..., 1], out[..., 2] = c * dx + s * dy, -s * dx + c * dy, wrap_angle(states[..., 2] - h0)
     return out
 
 
@@ -1031,7 +1031,7 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
 # 6. Dataset: train/val split by scene, disk cache
 # ============================================================================================
 
-_CACHE_FORMAT = 1  # bump when the generator's output changes, so old caches are not reused
+_CACHE_FORMAT = 2  # bump when the generator's output changes, so old caches are not reused
 
 
 class Dataset(NamedTuple):
@@ -1130,7 +1130,7 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
     def kin(states, mask):  # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
         v, h = states[..., 3], states[..., 2]
         acc = (v[..., 1:] - v[..., :-1]) / dt
-        yaw = _twrap(h[..., 1:] - h[..., :-1]) / dt
+        yaw = wrap_angle(h[..., 1:] - h[..., :-1]) / dt
         moving = (v[..., 1:] > 2.0) & mask[..., None]  # headings of (near) stopped vehicles mean little
         return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
 
@@ -1278,7 +1278,7 @@ def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
 # 9. nuScenes v1.0 writer
 # ============================================================================================
 #
-# REFERENCE.md §8. A dataset folder holds <version>/ with 13 JSON tables, maps/expansion/<location>.json
+# The nuScenes v1.0 format (Caesar et al. 2020; the nuscenes-devkit schema). A dataset folder holds <version>/ with 13 JSON tables, maps/expansion/<location>.json
 # (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and connectivity), the map
 # PNGs named by map.json, and maps/prediction/prediction_scenes.json. The ego is not an annotation: it is the
 # ego_pose of the key-frame sample_data (CAM_FRONT and LIDAR_TOP, both at the sample's timestamp, so that ego
@@ -1469,7 +1469,7 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
         end = _segment_pose(segs[q, 2], lengths[2])
         exp["arcline_path_3"][t] = [{
             "start_pose": [float(x + ox), float(y + oy), float(yaw)],
-            "end_pose": [float(end[0] + ox), float(end[1] + oy), float(wrap(end[2]))],
+            "end_pose": [float(end[0] + ox), float(end[1] + oy), float(wrap_angle(end[2]))],
             "shape": _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])], "radius": float(radius),
             "segment_length": [float(v) for v in lengths]}]
         exp["connectivity"][t] = links[q]
@@ -1666,7 +1666,7 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
             raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
         with _Blame(file("ego_pose")):
             ego = np.array([[*ego_of[k]["translation"][:2], _yaw(ego_of[k]["rotation"]), 0.0] for k in tokens])
-        ego[:, 2] = wrap(ego[:, 2])
+        ego[:, 2] = wrap_angle(ego[:, 2])
         ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
         # agent tracks, in order of first appearance
         with _Blame(file("sample_annotation")):
@@ -1680,7 +1680,7 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
         mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
         agents, amask = np.zeros((M, F, 4)), np.zeros((M, F), bool)
         agents[mi, fi, :3], amask[mi, fi] = rows[:, 2:5], True
-        agents[..., 2] = wrap(agents[..., 2])
+        agents[..., 2] = wrap_angle(agents[..., 2])
         agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
         size = np.zeros((M, 3))
         size[mi] = rows[:, 5:8]

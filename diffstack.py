@@ -29,20 +29,17 @@ A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceler
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
-import pathlib
-import platform
 import statistics
 import sys
 import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numpy as np
 import torch
 import torch.nn as nn
+
+from data_synth import wrap_angle  # angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi
 
 # ============================================================================================
 # 1. Config
@@ -117,7 +114,7 @@ class Config:
     pred_latent_hidden: int = 32
     """hidden width of the p(z|x) and q(z|x,y) MLPs"""
     pred_dec_hidden: int = 64
-    """decoder GRU width (Trajectron++: 128; 64 trains 2-3x faster on CPU)"""
+    """decoder GRU width (Trajectron++: 128; halved so that CPU training fits a teaching session)"""
     pred_radius: float = 30.0
     """neighbours within this distance (m) of the predicted agent at t0 are attended to"""
     pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)
@@ -314,7 +311,7 @@ class Unicycle:
 
 
 # ============================================================================================
-# 3. Cost, eq. (3) and App. C
+# 3. Cost, eq. (3) and App. C.3
 # ============================================================================================
 #
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
@@ -338,11 +335,6 @@ class CostContext:
 
     def tensors(self):
         return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes, self.lanes_mask)
-
-
-def wrap_angle(a: torch.Tensor) -> torch.Tensor:
-    """Angle to (-pi, pi], smooth everywhere it is used (away from +-pi)."""
-    return torch.atan2(torch.sin(a), torch.cos(a))
 
 
 def lane_segments(p, lanes, lanes_mask):
@@ -462,7 +454,7 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
 
 
 # ============================================================================================
-# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C
+# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C.1
 # ============================================================================================
 
 
@@ -617,7 +609,7 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config) -> Plan:
 
 
 # ============================================================================================
-# 5. Controller: box-constrained iLQR, eq. (4) and App. C, and its exact KKT backward
+# 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward
 # ============================================================================================
 #
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
@@ -924,7 +916,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 
 
 # ============================================================================================
-# 6. Predictor: a Trajectron++-style CVAE over controls (paper §3.1, Salzmann et al. 2020)
+# 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020)
 # ============================================================================================
 #
 # The predictor sees 4 s of history of the predicted vehicle and of its neighbours (the other agents
@@ -940,8 +932,8 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 # evaluation; either way the modes are the integrated MEAN controls. The planner gets the modes weighted by
 # q(z|x,y) in training (as the authors' code) and by p(z|x) at evaluation.
 #
-# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128;
-# 64 trains 2-3x faster on CPU). The decoder runs all B K = 6400 (scenario, mode) rows at once; the input
+# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128; halved
+# for CPU training). The decoder runs all B K = 6400 (scenario, mode) rows at once; the input
 # projection of the one-hot z is a column lookup, so the rows only pay for h @ W_hh and the gate arithmetic.
 #
 # Left out of Trajectron++ (the paper uses no map and no ego-future conditioning): the map CNN, the robot-future
@@ -950,7 +942,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 # BiLSTM starts from zeros (Trajectron++: from the current state), v0 is the tracked speed, and every GMM
 # component gets a 5 cm position std floor (at v = 0 the controls cannot move the agent sideways).
 #
-#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 weighted baselines    6.6 plot    6.7 bench
+#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 weighted baselines (plots: experiments.py)
 
 
 
@@ -1199,8 +1191,8 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
     (..., T, 2, 2).
     """
     A, Bm = unicycle_jacobians(s, u, cfg.dt)  # (..., T, 4, 4), (..., T, 4, 2)
-    # Batched matmuls of 4x4 matrices are slow on CPU; with the matrix indices first and the rows last, a product is
-    # a broadcast and a sum over contiguous rows, about twice as fast: (i, j, ...) x (j, k, ...) -> (i, k, ...).
+    # Why this layout: a batched matmul of 4x4 matrices pays a per-matrix overhead on CPU; with the matrix indices
+    # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
     mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
     # (..., T, i, j) -> (T, i, j, ...)
     rows_last = lambda m: m.movedim(-3, 0).movedim((-2, -1), (1, 2)).contiguous()  # noqa: E731
@@ -1352,14 +1344,12 @@ def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
     return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
-# --------------------------------------------------------------------------------------------
-
 # ============================================================================================
 # 7. The stack: predict -> plan -> control, §3.2
 # ============================================================================================
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
-#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 2 with GT futures, fixed weights),
+#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights),
 #       planner target n* = argmin_n C_H(candidate n)
 #   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
 

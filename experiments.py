@@ -11,7 +11,7 @@ Map of the module:
     1. Specs          Column, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations (App. A.1, Table 6)
     2. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and shared by the tables
     3. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
-    4. Closed loop    log replay (§4.3, Table 5, App. C.3)
+    4. Closed loop    log replay (§4.3, Table 5, App. D.3)
     5. Ablations      App. A.1
     6. Figures        Fig. 3's kind of panel, a closed-loop rollout, the learned cost weights
     7. Running        run_table, provenance, the report, the command line
@@ -36,9 +36,9 @@ import numpy as np
 import torch
 
 import data_synth
-from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, cell, compare_methods,
-                       config_with, cost_weights, evaluate_stack, markdown_table, mean_se, project_to_lanes, run_stack,
-                       train_predictor, train_stack, unicycle_step, wrap_angle)
+from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, cell,
+                       compare_methods, config_with, cost_weights, evaluate_stack, markdown_table, mean_se,
+                       project_to_lanes, run_stack, train_predictor, train_stack, unicycle_step, wrap_angle)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -207,7 +207,7 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
     and target offset -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
     options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
     and every ablation section."""
-    a, kw, runs_stack = alphas_of(m, setting, cfg), dict(stack_kw), True
+    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
     if a[1:] == (0, 0):
         kw, runs_stack = {}, False
     elif a[2] == 0:
@@ -221,11 +221,6 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
     if models is not None:
         models[key] = model
     return model
-
-
-def alphas_of(m: Method, setting: str, cfg: Config) -> tuple:
-    base = cfg.alpha_rl if setting == "rl" else cfg.alpha_il
-    return tuple(a * on for a, on in zip(base, m.losses))
 
 
 def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
@@ -273,13 +268,13 @@ def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=prin
 
 
 # ============================================================================================
-# 4. Closed loop: log replay (§4.3, Table 5, App. C.3)
+# 4. Closed loop: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
 #
 # Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego
 # (data_synth.sample_at with its simulated 4 s history), run the stack, move the ego by the first control
 # of the controller's trajectory through the known unicycle; the other agents replay their logs, and the goal
-# and lanes come from the logged ego (sample_at). As in the paper (App. C), the stack plans with the
+# and lanes come from the logged ego (sample_at). As in the paper (App. D.3), the stack plans with the
 # predicted agent only (the other agents are dropped from the planning cost, they stay the predictor's
 # neighbours); the metrics count every agent. The simulation starts at the first frame with a full history,
 # so 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
@@ -292,7 +287,7 @@ class Rollout:
     ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
     controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
     plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
-    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 2, GT futures)
+    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
     plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
     start_frame: int  # f0
 
@@ -311,7 +306,7 @@ def stack_policy(model, method: Method, cfg: Config):
     """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
     the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
 
-    The planner and controller see the predicted agent only (App. C); the predictor still sees every
+    The planner and controller see the predicted agent only (App. D.3); the predictor still sees every
     neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls."""
     if model is not None:
         model.eval()
@@ -328,7 +323,7 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
              dtype=torch.float32) -> Rollout:
     """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first
     frame with a full history). policy(batch) -> (x, u, hindsight, plannable) as stack_policy's; the ego
-    moves by u[:, 0] through the unicycle (eq. of §2), the agents replay the log. scfg: the data's
+    moves by u[:, 0] through the unicycle (diffstack.unicycle_step), the agents replay the log. scfg: the data's
     SynthConfig (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
     import data_synth
 
@@ -365,7 +360,7 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
 def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
 
-      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 2, w hand-tuned)
+      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 3, w hand-tuned)
       collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
       lane             1/N sum_t (w3 C_lat + w4 C_head)
       control effort   1/N sum_t w5 ||u_t||^2
@@ -508,7 +503,7 @@ def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | No
     if out.pred is not None:
         plot_prediction(ax, out.pred, i, cov=False)
     valid = out.cands.valid[i]  # (N,)
-    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (3) relaxed
+    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (2) relaxed
     xs = out.cands.x[i].detach()  # (N, T+1, 4)
     cmap = plt.get_cmap("Greens")
     for n in torch.argsort(p).tolist():  # the likely candidates on top

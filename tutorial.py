@@ -104,8 +104,8 @@ print(f"{N_DATA} samples, {TRAIN_STEPS} training steps of batch {cfg.batch_size}
 # * the **predictor** (a Trajectron++-style CVAE, learned) turns 4 s of history into $K$ weighted futures
 #   $\{\hat s_{k,t}, \pi_k\}$ of a nearby vehicle;
 # * the **planner** scores spline candidates $n = 1..N$ with the cost $C(\cdot;\hat s, \pi)$ of eq. (3) and picks
-#   $\arg\min_n C_n$ (eq. 1);
-# * the **controller** refines the plan with a box-constrained iLQR (eq. 3).
+#   $\arg\min_n C_n$ (eq. 2);
+# * the **controller** refines the plan with a box-constrained iLQR (eq. 4).
 #
 # Planner and controller are not learned here, but they are differentiable, so the losses downstream of the
 # predictor can train it:
@@ -776,7 +776,7 @@ checkpoint("Table 3: MSE with learned / with hand-tuned weights", mse["Learned"]
 # **Closed loop (Table 5).** Open-loop metrics score one plan against a log; in closed loop the plan is executed.
 # Log replay (§4.3): every 0.5 s for 10 s the stack replans from the *simulated* ego state, the ego moves by the
 # first control through the unicycle, and the other agents replay their logs (they do not react). Metrics over the
-# executed trajectory: trajectory cost (eq. 2 without the goal term), open-loop cost of each step's plan, its
+# executed trajectory: trajectory cost (eq. 3 without the goal term), open-loop cost of each step's plan, its
 # collision, lane and control parts, and the deviation from the logged ego; differences to No prediction
 # (×10⁻²). `closed_loop_experiment` trains Standard and DiffStack as in Table 1 and simulates every scene at once.
 
