@@ -1,0 +1,95 @@
+"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's hint.
+
+    python -m pytest -q test_bench.py        # about half a minute on 2 cores
+
+No test asserts a timing: they check that the figures exist, are positive and are written where promised.
+"""
+import importlib.util
+import json
+import math
+import sys
+
+import pytest
+import torch
+
+import bench
+
+HINT = "pip install --no-deps mpc==0.0.6"
+
+
+def installed(name):
+    return importlib.util.find_spec(name) is not None
+
+
+def test_quick_run_writes_json(tmp_path, capsys):
+    path = tmp_path / "b.json"
+    threads_before = torch.get_num_threads()
+    doc = bench.main(["--quick", "--threads", "1", "--json", str(path), "--skip-closed-loop"])
+    out = capsys.readouterr().out
+    assert torch.get_num_threads() == threads_before  # main() leaves the process as it found it
+    on_disk = json.loads(path.read_text())
+    assert on_disk["figures"] == json.loads(json.dumps(doc["figures"]))
+    assert not [p for p in tmp_path.iterdir() if p.name != "b.json"]  # the temporary file was renamed away
+    # the headline keys
+    step = on_disk["stack_step_ms_1thread"]
+    assert isinstance(step, float) and math.isfinite(step) and step > 0
+    for peer, key in (("mpc", "speedup_vs_mpc_pytorch"), ("pypose", "speedup_vs_pypose")):
+        assert key in on_disk
+        if not installed(peer):
+            assert on_disk[key] is None
+    if installed("mpc"):
+        assert isinstance(on_disk["speedup_vs_mpc_pytorch"], float) and on_disk["speedup_vs_mpc_pytorch"] > 0
+    else:
+        assert on_disk["mpc_pytorch"] is None
+        assert out.count(HINT) == 1
+    # every figure: positive, at the one thread asked for, nothing from the skipped closed loop
+    keys = {f["key"] for f in on_disk["figures"]}
+    assert {"ilqr_forward_f64", "kkt_backward_f64", "ilqr_forward_f32", "kkt_backward_f32", "candidates",
+            "predictor_train", "predictor_eval", "stack_step", "stack_predict", "stack_plan", "stack_control",
+            "stack_backward"} <= keys
+    assert not any(k.startswith("closed_loop") for k in keys)
+    for f in on_disk["figures"]:
+        assert f["threads"] == 1 and f["runs"] >= 1 and f["median_ms"] > 0 and f["iqr_ms"] >= 0, f
+    assert [f["median_ms"] for f in on_disk["figures"] if f["key"] == "stack_step"] == [step]
+    assert on_disk["meta"]["batch"] == bench.QUICK["batch"] and on_disk["meta"]["threads"] == [1]
+    # one markdown table of our figures, one row per figure
+    assert sum(line.startswith("| benchmark |") for line in out.splitlines()) == 1
+    assert sum(line.startswith("| ") and "perf_counter lap" in line for line in out.splitlines()) == 4
+    assert "Traceback" not in out
+
+
+@pytest.mark.parametrize("args, name", [
+    (["--batch", "0"], "--batch"),
+    (["--threads", "0"], "--threads"),
+    (["--threads", "1", "-2"], "--threads"),
+    (["--reps", "-1"], "--reps"),
+    (["--reps", "two"], "--reps"),
+])
+def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--quick", "--skip-closed-loop", *args])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert f"argument {name}" in last and "Traceback" not in err
+
+
+def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
+    # None in sys.modules makes `import mpc` raise ImportError, installed or not
+    monkeypatch.setitem(sys.modules, "mpc", None)
+    monkeypatch.setitem(sys.modules, "mpc.mpc", None)
+    assert bench.compare_mpc(B=4, threads=(1,), reps=1) is None
+    captured = capsys.readouterr()
+    lines = captured.out.strip().splitlines()
+    assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python bench.py" in lines[0]
+    assert "Traceback" not in captured.out + captured.err
+
+
+def test_tracking_problem_is_reproducible():
+    a, b, c = bench.tracking_problem(8, seed=3), bench.tracking_problem(8, seed=3), bench.tracking_problem(8, seed=4)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not torch.equal(a["x_init"], c["x_init"])
+    # the reference is a rollout of its controls, and costs nothing to track
+    assert a["x_ref"].shape == (8, 7, 4) and a["u_ref"].shape == (8, 6, 2)
+    zero = bench.tracking_cost(a["x_ref"], a["u_ref"], a["x_ref"], a["u_ref"], a["Q"], a["R"])
+    assert torch.equal(zero, torch.zeros(8, dtype=torch.float64))
