@@ -326,10 +326,30 @@ def pose_along(segs, u):
     return _segment_pose(seg, u - np.take_along_axis(starts, k, -1)), seg[..., 3]
 
 
+MAX_LANE_POINTS = 20_000
+"""Most points one lane or route may be discretised into: 40 km at the 2 m spacing. Generated paths are at most
+~430 m long (215 points) and real nuScenes lanes are far shorter than a kilometre, so this only stops a corrupt
+length (say 1e9 m) from allocating gigabytes; the loader names the lane token instead (see _read_map)."""
+
+
+def _lane_points(length: float, spacing: float):
+    """Number of points discretize gives a polyline of this length (m); math.inf if that overflows."""
+    q = float(length) / spacing + 1e-9
+    return int(np.floor(q)) + 1 if math.isfinite(q) else math.inf
+
+
 def discretize(segs, spacing: float):
     """Points every `spacing` metres from the start of chained segments (..., G, 5):
-    (..., P, 3) poses (yaw wrapped) and (..., P) mask, P from the longest; invalid points are 0."""
+    (..., P, 3) poses (yaw wrapped) and (..., P) mask, P from the longest; invalid points are 0.
+    A ValueError before allocating if spacing is not > 0, a length is not finite, or P > MAX_LANE_POINTS."""
     total = segs[..., 4].sum(-1)  # (...)
+    if not (spacing > 0 and math.isfinite(spacing)):
+        raise ValueError(f"discretize: spacing must be a finite number > 0 (m), got {spacing!r}")
+    if total.size and not np.isfinite(total).all():
+        raise ValueError("discretize: a segment length is not finite")
+    if total.size and _lane_points(total.max(), spacing) > MAX_LANE_POINTS:
+        raise ValueError(f"discretize: a polyline of {total.max():.6g} m needs {_lane_points(total.max(), spacing)} "
+                         f"points at {spacing} m spacing, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
     P = int(np.floor(total.max() / spacing + 1e-9)) + 1 if total.size else 1
     u = np.broadcast_to(np.arange(P) * spacing, (*total.shape, P))
     mask = (u <= total[..., None] + 1e-9) & (total[..., None] > 0)  # an empty route has no points
@@ -874,10 +894,31 @@ def _simulate_chunk(S, cfg, rng):
                 paths=keep(paths), paths_is_connector=keep(conn), routes=keep(routes))
 
 
+MAX_SCENES = 500_000
+"""Most scenes generate_scenes makes in one call (and write-nuscenes writes): MAX_SAMPLES at the default 4 samples
+per scene. About 35 GB of float64 logs; a bound against typos such as 1e9, not a memory guarantee."""
+
+
+def _check_count(where: str, name: str, n, cap: int):
+    """n must be a whole number in 1..cap (bool is not a number here); else a ValueError naming name, n and cap."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= cap:
+        raise ValueError(f"{where}: {name} must be a whole number from 1 to {cap:,}, got {n!r}")
+
+
+def _check_seed(where: str, seed):
+    """A seed for np.random.default_rng: a whole number >= 0."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"{where}: seed must be a whole number >= 0, got {seed!r}")
+
+
 def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512) -> Scenes:
     """n synthetic scenes of cfg.frames frames, deterministic for (cfg, seed). Candidates where any two bodies
     touch are dropped and replaced (about 4 % with the defaults, mostly intersection scenes where the crossing
-    vehicle meets background traffic), simulated in chunks of `chunk` scenes to bound memory."""
+    vehicle meets background traffic), simulated in chunks of `chunk` scenes to bound memory.
+    n is bounded by MAX_SCENES (a ValueError naming n and the cap)."""
+    _check_count("generate_scenes", "n (scenes)", n, MAX_SCENES)
+    _check_count("generate_scenes", "chunk", chunk, MAX_SCENES)
+    _check_seed("generate_scenes", seed)
     cfg = cfg or SynthConfig()
     rng = np.random.default_rng(seed)
     parts, have = [], 0
@@ -1033,6 +1074,10 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
 
 _CACHE_FORMAT = 2  # bump when the generator's output changes, so old caches are not reused
 
+MAX_SAMPLES = 2_000_000
+"""Most planning samples make_dataset / load_or_generate make (about 20 GB as float32): generous for real use
+(all of nuScenes has about 40 000 key frames), a bound against typos such as 1e9. A ValueError names n and it."""
+
 
 class Dataset(NamedTuple):
     """A training and a validation set of planning samples, and the validation scenes' logs."""
@@ -1044,9 +1089,15 @@ class Dataset(NamedTuple):
 
 def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Dataset:
     """n planning samples (train + val) from ceil(n / samples_per_scene) synthetic scenes; the last
-    val_fraction of the scenes are validation, so no scene gives samples to both."""
+    val_fraction of the scenes are validation, so no scene gives samples to both. n <= MAX_SAMPLES."""
+    _check_count("make_dataset", "n (samples)", n, MAX_SAMPLES)
+    _check_seed("make_dataset", seed)
     cfg = cfg or SynthConfig()
+    _check_count("make_dataset", "cfg.samples_per_scene", cfg.samples_per_scene, MAX_SAMPLES)
     n_scenes = max(2, math.ceil(n / cfg.samples_per_scene))
+    if n_scenes > MAX_SCENES:
+        raise ValueError(f"make_dataset: n = {n:,} samples at {cfg.samples_per_scene} per scene needs {n_scenes:,} "
+                         f"scenes, more than MAX_SCENES = {MAX_SCENES:,}")
     scenes = generate_scenes(n_scenes, cfg, seed)
     n_val = min(max(1, round(cfg.val_fraction * n_scenes)), n_scenes - 1)
     rng = np.random.default_rng([seed, 1])  # frame choice: its own stream, derived from the seed
@@ -1065,7 +1116,10 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
     """The Dataset for (n, seed, cfg): loaded from cache_dir if it is there, else generated and saved.
 
     The file name carries a hash of everything that determines the data; a file of that name that is not
-    a cache of this module is an error (it is never overwritten)."""
+    a cache of this module is an error (it is never overwritten). n <= MAX_SAMPLES."""
+    _check_count("load_or_generate", "n (samples)", n, MAX_SAMPLES)
+    _check_seed("load_or_generate", seed)
+    n, seed = int(n), int(seed)  # numpy integers -> int, for the cache key's json
     cfg = cfg or SynthConfig()
     path, key = _cache_path(n, seed, cfg, cache_dir)
     if path.exists():
@@ -1087,12 +1141,35 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
     return data
 
 
+def _split_scenes(names: list, version: str) -> tuple:
+    """(is_val (S,) bool tensor, the rule used) for the scenes of a nuScenes folder, see load_data."""
+    by_name = lambda idx: set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))):])  # noqa: E731
+    if version == "v1.0-trainval":
+        listed = [i for i, nm in enumerate(names) if nm in NUSC_TRAIN or nm in NUSC_VAL]
+        others = [i for i, nm in enumerate(names) if nm not in NUSC_TRAIN and nm not in NUSC_VAL]
+        val = {i for i in listed if names[i] in NUSC_VAL} | (by_name(others) if listed and others else set())
+        rule = "the official v1.0-trainval val scenes" + (" (+ the last 15 % by name of the others)" if others else "")
+    else:
+        listed = val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
+        rule = "the official v1.0-mini val scenes"
+    if not listed or not val or len(val) == len(names):
+        val, rule = by_name(list(range(len(names)))), "the last 15 % of the scenes by name"
+    return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
+
+
 def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> Dataset:
     """Training and validation samples for the stack: synthetic (load_or_generate, cached in cache_dir), or
-    read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene: the official
-    v1.0-mini validation scenes, or else the last 15 % of the scenes by name."""
+    read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene:
+      v1.0-mini      the official mini_val scenes (MINI_VAL) are validation, the rest training;
+      v1.0-trainval  the official split of the devkit: the folder's scenes in NUSC_VAL are validation, those in
+                     NUSC_TRAIN training; scenes in neither list (generated folders name scenes past the tenth
+                     scene-9xxx) are split by the fallback rule among themselves;
+      fallback       if no scene of the folder is in the official lists, or the rule leaves the training or the
+                     validation side empty: the last 15 % of the scenes by name are validation.
+    The rule used is logged."""
     if path is None:
         return load_or_generate(n, seed=seed, cache_dir=cache_dir)
+    _check_seed("load_data", seed)
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"--data: {path} is not a folder")
@@ -1102,16 +1179,12 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> D
     scenes, report = load_nuscenes(root, versions[0])
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
-    # the official v1.0-mini validation scenes where present, else the last 15 % of the scenes by name
-    is_val = torch.tensor([name in MINI_VAL for name in scenes.names])
-    if not is_val.any() or is_val.all():
-        order = sorted(range(len(scenes)), key=lambda i: scenes.names[i])
-        is_val = torch.zeros(len(scenes), dtype=torch.bool)
-        is_val[order[-max(1, round(0.15 * len(order))):]] = True
+    is_val, rule = _split_scenes(scenes.names, versions[0])
     rng = np.random.default_rng(seed)
     train, _ = cut_samples(scenes[~is_val], None, rng)
     val, _ = cut_samples(scenes[is_val], None, rng)
-    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples; {report}")
+    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples "
+        f"(validation: {rule}); {report}")
     return Dataset(train, val, scenes[is_val])
 
 
@@ -1296,6 +1369,31 @@ MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-07
 (the v1.0-mini scenes); later ones are named scene-9xxx."""
 MINI_VAL = ("scene-0103", "scene-0916")
 """The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
+
+
+def _scene_range_names(ranges: str) -> frozenset:
+    """'1-2 4 7-9' -> {'scene-0001', 'scene-0002', 'scene-0004', 'scene-0007', 'scene-0008', 'scene-0009'}."""
+    out = set()
+    for part in ranges.split():
+        lo, _, hi = part.partition("-")
+        out.update(f"scene-{k:04d}" for k in range(int(lo), int(hi or lo) + 1))
+    return frozenset(out)
+
+
+# The official v1.0-trainval split of the nuScenes devkit (nuscenes/utils/splits.py, v1.2.0: `train`, the union of
+# train_detect and train_track, 700 scenes; `val`, 150 scenes), as runs of consecutive scene numbers.
+NUSC_TRAIN = _scene_range_names("""
+    1-2 4-11 19-34 41-76 120-135 138-139 149-152 154-155 157-168 170-185 187-188 190-196 199-200 202-204 206-214
+    218-220 222 224-264 283-306 315-318 321 323-324 328 347-386 388-403 405-408 410-459 461-465 467-469 471-472
+    474-480 499-502 504-515 517-518 525-539 541-546 566 568 570-578 580 582-600 639-679 681 683-689 695-698 700-701
+    703-719 726-728 730-731 733-741 744 746-747 749-752 757-765 767-769 786-787 789-792 803-806 808-813 815-817
+    819-822 847-856 858 860-866 868-873 875-878 880 882-903 945 947 949 952-953 955-961 975-984 988-992 994-1025
+    1044-1058 1074-1102 1104-1110""")
+"""The 700 official training scenes of v1.0-trainval."""
+NUSC_VAL = _scene_range_names("""
+    3 12-18 35-36 38-39 92-110 221 268-278 329-332 344-346 519-524 552-565 625-627 629-630 632-638 770-771 775
+    777-778 780-784 794-800 802 904-917 919-931 962-963 966-969 971-972 1059-1073""")
+"""The 150 official validation scenes of v1.0-trainval."""
 _SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
 
@@ -1517,14 +1615,76 @@ class NuScenesFormatError(ValueError):
     """A nuScenes folder that cannot be read; the message starts with the offending file."""
 
 
+QUAT_TOL = 1e-3
+"""A rotation [w, x, y, z] must have norm 1 within this (the nuScenes schema stores unit quaternions; a zero or
+unnormalised one is an error, never a silently wrong heading)."""
+
+
 def _read_json(path: Path):
     if not path.is_file():
         raise NuScenesFormatError(f"{path}: missing")
     try:
         with open(path) as f:
             return json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError, an int of > 4300 digits
         raise NuScenesFormatError(f"{path}: malformed JSON ({e})") from e
+    except OSError as e:
+        raise NuScenesFormatError(f"{path}: cannot be read ({e})") from e
+
+
+def _short(v, n: int = 60) -> str:
+    r = repr(v)
+    return r if len(r) <= n else r[:n] + "..."
+
+
+def _unique(path: Path, tokens: list, what: str = "token"):
+    """Tokens are primary keys in the nuScenes schema: a repeated one is an error naming it."""
+    if len(set(tokens)) != len(tokens):
+        seen = {}
+        for i, t in enumerate(tokens):
+            if t in seen:
+                raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {seen[t]} and {i}); "
+                                          f"tokens must be unique")
+            seen[t] = i
+
+
+def _table(path: Path) -> list:
+    """A nuScenes table: a JSON list of records (objects), each with a string token, the tokens unique."""
+    recs = _read_json(path)
+    if not isinstance(recs, list):
+        raise NuScenesFormatError(f"{path}: a table must be a JSON list of records, got a {type(recs).__name__}")
+    for i, r in enumerate(recs):
+        if not isinstance(r, dict) or not isinstance(r.get("token"), str):
+            raise NuScenesFormatError(f"{path}: record {i} is not an object with a string token: {_short(r)}")
+    _unique(path, [r["token"] for r in recs])
+    return recs
+
+
+_BIG_INT = 10**300  # JSON integers beyond this would overflow float64 arithmetic
+
+
+def _is_number(x) -> bool:
+    """A finite JSON number: not a bool, a string, null, NaN or +-Infinity (Python's json module reads the last two,
+    which JSON (RFC 8259) does not allow), nor an integer beyond float range."""
+    return (type(x) is float and math.isfinite(x)) or (type(x) is int and abs(x) < _BIG_INT)
+
+
+def _numbers(path: Path, rec: dict, key: str, n: int, who: str | None = None) -> list:
+    """rec[key] as a list of n floats; else a NuScenesFormatError naming the file, the record and the field."""
+    v = rec.get(key)
+    if not (isinstance(v, list) and len(v) == n and all(map(_is_number, v))):
+        raise NuScenesFormatError(f"{path}: {key} of {who or repr(rec.get('token'))} must be {n} finite numbers, "
+                                  f"got {_short(v)}")
+    return [float(x) for x in v]
+
+
+def _number(path: Path, rec: dict, key: str, who: str, lo: float = -math.inf) -> float:
+    """rec[key] as a finite float >= lo; else a NuScenesFormatError naming the file, the record and the field."""
+    v = rec.get(key)
+    if not (_is_number(v) and v >= lo):
+        bound = f" >= {lo}" if lo > -math.inf else ""
+        raise NuScenesFormatError(f"{path}: {key} of {who} must be a finite number{bound}, got {_short(v)}")
+    return float(v)
 
 
 class _Blame:
@@ -1537,32 +1697,78 @@ class _Blame:
         return self
 
     def __exit__(self, kind, err, tb):
-        if kind in (KeyError, TypeError, IndexError, ValueError) and not isinstance(err, NuScenesFormatError):
+        if kind in (KeyError, TypeError, IndexError, ValueError, AttributeError) and \
+                not isinstance(err, NuScenesFormatError):
             raise NuScenesFormatError(f"{self.path}: unexpected content ({kind.__name__}: {err})") from err
 
 
-def _yaw(q) -> float:
-    w, x, y, z = q
+def _yaw(path: Path, rec: dict) -> float:
+    """The heading of rec's rotation quaternion [w, x, y, z], checked to be a unit quaternion (QUAT_TOL)."""
+    w, x, y, z = q = _numbers(path, rec, "rotation", 4)
+    norm = math.sqrt(sum(c * c for c in q))
+    if not abs(norm - 1.0) <= QUAT_TOL:
+        raise NuScenesFormatError(f"{path}: rotation of {rec.get('token')!r} is not a unit quaternion "
+                                  f"(norm {norm:.6g}, allowed 1 +- {QUAT_TOL})")
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
-def _read_map(root: Path, location: str, cfg: SynthConfig) -> dict:
+def _map_path(root: Path, location, log_file: Path, token: str) -> Path:
+    """maps/expansion/<location>.json, confined to the dataset folder: nuScenes locations are plain map names
+    (boston-seaport, singapore-onenorth, ...), so a name with a path separator or '..' is an error, and so is a
+    path that does not normalise to a file under <root>/maps (symbolic links inside the folder are followed
+    like any file, so maps/expansion may be a link to where the map expansion was unpacked)."""
+    plain = isinstance(location, str) and location and ".." not in location and "\0" not in location and \
+        not any(sep and sep in location for sep in ("/", "\\", os.sep, os.altsep))
+    maps = Path(os.path.abspath(root / "maps"))
+    path = Path(os.path.abspath(maps / "expansion" / f"{location}.json")) if plain else None
+    if not plain or maps not in path.parents:
+        raise NuScenesFormatError(f"{log_file}: location {_short(location)} of log {token!r} is not a plain map name "
+                                  f"(no path separators or '..'): the map must be maps/expansion/<location>.json "
+                                  f"inside {root}")
+    return path
+
+
+def _arcline(path: Path, lane: str, a) -> list:
+    """One arcline path of the map expansion (start_pose, radius, segment_length, shape) as a row of 10."""
+    who = f"an arcline path of lane {lane!r}"
+    if not isinstance(a, dict):
+        raise NuScenesFormatError(f"{path}: {who} is not an object: {_short(a)}")
+    start = _numbers(path, a, "start_pose", 3, who)
+    radius = _number(path, a, "radius", who, lo=0.0)
+    lengths = _numbers(path, a, "segment_length", 3, who)
+    if min(lengths) < 0:
+        raise NuScenesFormatError(f"{path}: segment_length of {who} must be >= 0, got {lengths}")
+    if not isinstance(a.get("shape"), str) or a["shape"] not in _SHAPE_SIGNS:
+        raise NuScenesFormatError(f"{path}: shape of {who} must be one of {sorted(_SHAPE_SIGNS)}, "
+                                  f"got {_short(a.get('shape'))}")
+    return [*start, radius, *lengths, *_SHAPE_SIGNS[a["shape"]]]
+
+
+def _read_map(path: Path, cfg: SynthConfig) -> dict:
     """A map expansion's lanes and lane connectors: their arcline paths (n, 10) each, points every 2 m for the
-    proximity test, and the connectivity as index lists."""
-    path = root / "maps" / "expansion" / f"{location}.json"
+    proximity test, and the connectivity as index lists. A lane longer than MAX_LANE_POINTS points is an error
+    naming it, before anything is allocated for it."""
     js = _read_json(path)
     with _Blame(path):
+        if not isinstance(js, dict):
+            raise NuScenesFormatError(f"{path}: a map expansion must be a JSON object, got a {type(js).__name__}")
         if str(js.get("version", "1.0")) < "1.3":
             raise NuScenesFormatError(f"{path}: map expansion version {js.get('version', '1.0')}; 1.3 or later needed "
                                       f"(arcline paths and connectivity)")
         records = [(r["token"], False) for r in js["lane"]] + [(r["token"], True) for r in js["lane_connector"]]
         tokens = [t for t, _ in records]
+        _unique(path, tokens, "lane / lane_connector token")
         index = {t: k for k, t in enumerate(tokens)}
-        lane_paths = []
+        lane_paths, lengths = [], []
         for t in tokens:
             arcs = js["arcline_path_3"].get(t, [])
-            lane_paths.append(np.array([[*a["start_pose"], a["radius"], *a["segment_length"], *_SHAPE_SIGNS[a["shape"]]]
-                                        for a in arcs], dtype=np.float64).reshape(-1, 10))
+            lane_paths.append(np.array([_arcline(path, t, a) for a in arcs], dtype=np.float64).reshape(-1, 10))
+            lengths.append(float(lane_paths[-1][:, 4:7].sum()))
+            n_pts = _lane_points(lengths[-1], cfg.lane_spacing)
+            if n_pts > MAX_LANE_POINTS:
+                raise NuScenesFormatError(f"{path}: lane {t!r} is {lengths[-1]:.6g} m long: {n_pts} points at "
+                                          f"{cfg.lane_spacing} m spacing, more than MAX_LANE_POINTS = "
+                                          f"{MAX_LANE_POINTS}")
         conn = js["connectivity"]
         nxt = [[index[o] for o in conn.get(t, {}).get("outgoing", []) if o in index] for t in tokens]
         prv = [[index[o] for o in conn.get(t, {}).get("incoming", []) if o in index] for t in tokens]
@@ -1582,7 +1788,7 @@ def _read_map(root: Path, location: str, cfg: SynthConfig) -> dict:
     pts = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))])
     mask = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)])
     return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
-                next=nxt, prev=prv, pts=pts, mask=mask)
+                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, path=path)
 
 
 def _routes(lmap: dict, near: list, max_routes: int = 256):
@@ -1607,8 +1813,48 @@ def _routes(lmap: dict, near: list, max_routes: int = 256):
     return routes
 
 
+def _sample_chain(sample_file: Path, scene_file: Path, samples: dict, name: str, first) -> tuple:
+    """(tokens, timestamps) of a scene's samples, following `next` from its first_sample_token. Each sample's
+    `prev` must be the sample before it ("" for the first), the chain must not loop, the timestamps (us) must
+    increase: a NuScenesFormatError names the scene and the sample otherwise."""
+    tokens, times, seen, prev, tok = [], [], set(), "", first
+    while tok:
+        if not isinstance(tok, str) or tok not in samples:
+            raise NuScenesFormatError(
+                f"{sample_file}: sample {prev!r} of scene {name!r} links next to {_short(tok)}, which is not a sample "
+                f"token" if prev else
+                f"{scene_file}: first_sample_token {_short(tok)} of scene {name!r} is not a token of "
+                f"{sample_file.name}")
+        if tok in seen:
+            raise NuScenesFormatError(f"{sample_file}: the next links of scene {name!r} loop: sample {prev!r} links "
+                                      f"back to {tok!r}")
+        s = samples[tok]
+        if s.get("prev") != prev:
+            raise NuScenesFormatError(f"{sample_file}: sample {tok!r} of scene {name!r} has prev "
+                                      f"{_short(s.get('prev'))} but follows {prev!r} in the next links")
+        ts = s.get("timestamp")
+        if not _is_number(ts):
+            raise NuScenesFormatError(f"{sample_file}: timestamp of {tok!r} must be a finite number (microseconds), "
+                                      f"got {_short(ts)}")
+        if times and not ts > times[-1]:
+            raise NuScenesFormatError(f"{sample_file}: timestamp of sample {tok!r} ({ts}) is not after that of the "
+                                      f"sample before it, {prev!r} ({times[-1]}), in scene {name!r}: the time step "
+                                      f"between samples must be > 0")
+        seen.add(tok)
+        tokens.append(tok)
+        times.append(ts)
+        prev, tok = tok, s["next"]
+    return tokens, times
+
+
 def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
-    """Read a nuScenes v1.0 folder into Scenes (world frame) and a report of what was read and skipped."""
+    """Read a nuScenes v1.0 folder into Scenes (world frame) and a report of what was read and skipped.
+
+    Bad input is a NuScenesFormatError (a ValueError) whose message starts with the offending file and names the
+    record and field: a missing or malformed table or map, a missing key or a wrong type, a repeated token, a
+    number that is not finite (Python's json reads NaN and Infinity), a rotation that is not a unit quaternion,
+    a sample chain that loops, breaks its prev links or does not move forward in time, a log location that is not
+    a plain map name, a lane or route of more than MAX_LANE_POINTS points."""
     cfg = cfg or SynthConfig()
     root = Path(root)
     tdir = root / version
@@ -1617,8 +1863,8 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
     if not tdir.is_dir():
         found = sorted(p.name for p in root.glob("v1.0-*")) if root.is_dir() else []
         raise NuScenesFormatError(f"{tdir}: no such version folder (found: {found or 'none'})")
-    tab = {t: _read_json(tdir / f"{t}.json") for t in NUSC_TABLES}
     file = lambda t: tdir / f"{t}.json"  # noqa: E731
+    tab = {t: _table(file(t)) for t in NUSC_TABLES}
     with _Blame(file("calibrated_sensor")):
         channel = {s["token"]: s["channel"] for s in tab["sensor"]}
         cs_channel = {c["token"]: channel[c["sensor_token"]] for c in tab["calibrated_sensor"]}
@@ -1627,8 +1873,13 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
     with _Blame(file("sample_data")):
         ego_of = {sd["sample_token"]: poses[sd["ego_pose_token"]] for sd in tab["sample_data"]
                   if sd["is_key_frame"] and cs_channel[sd["calibrated_sensor_token"]] == "CAM_FRONT"}
-    with _Blame(file("instance")):
+    with _Blame(file("category")):
         cat_name = {c["token"]: c["name"] for c in tab["category"]}
+        bad = next((c for c in tab["category"] if not isinstance(c["name"], str)), None)
+        if bad is not None:
+            raise NuScenesFormatError(f"{file('category')}: name of {bad['token']!r} must be a string, "
+                                      f"got {_short(bad['name'])}")
+    with _Blame(file("instance")):
         inst_cat = {i["token"]: cat_name[i["category_token"]] for i in tab["instance"]}
     with _Blame(file("sample_annotation")):
         anns = {}
@@ -1638,11 +1889,14 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
                 anns.setdefault(a["sample_token"], []).append(a)
     with _Blame(file("sample")):
         samples = {s["token"]: s for s in tab["sample"]}
-    with _Blame(file("log")):
-        location = {lg["token"]: lg["location"] for lg in tab["log"]}
+    with _Blame(file("log")):  # every log's map file, confined to the folder, before any work
+        map_file = {lg["token"]: _map_path(root, lg["location"], file("log"), lg["token"]) for lg in tab["log"]}
     split_path = root / "maps" / "prediction" / "prediction_scenes.json"
     split = _read_json(split_path) if split_path.exists() else {}
     with _Blame(split_path):
+        if not isinstance(split, dict):
+            raise NuScenesFormatError(f"{split_path}: must be a JSON object (scene name -> list of "
+                                      f"'<instance>_<sample>'), got a {type(split).__name__}")
         listed = {tuple(s.split("_")) for entries in split.values() for s in entries}
 
     H, T = cfg.hist, cfg.fut
@@ -1650,31 +1904,40 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
     maps, out = {}, []
     for sc in tab["scene"]:
         with _Blame(file("scene")):
-            tokens, tok = [], sc["first_sample_token"]
-            while tok and len(tokens) <= len(samples):
-                tokens.append(tok)
-                tok = samples[tok]["next"]
-            loc = location[sc["log_token"]]
+            name, first, mpath = sc["name"], sc["first_sample_token"], map_file[sc["log_token"]]
+            if not isinstance(name, str):
+                raise NuScenesFormatError(f"{file('scene')}: name of {sc['token']!r} must be a string, "
+                                          f"got {_short(name)}")
+        with _Blame(file("sample")):
+            tokens, times = _sample_chain(file("sample"), file("scene"), samples, name, first)
         F = len(tokens)
         if F < H + T + 1:
             report["skipped_short"] += 1
             continue
-        t = np.array([samples[k]["timestamp"] for k in tokens], np.float64)
+        t = np.array(times, np.float64)
         t = (t - t[0]) * 1e-6  # (F,) seconds
         missing = [k for k in tokens if k not in ego_of]
         if missing:
             raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
-        with _Blame(file("ego_pose")):
-            ego = np.array([[*ego_of[k]["translation"][:2], _yaw(ego_of[k]["rotation"]), 0.0] for k in tokens])
+        pfile = file("ego_pose")
+        with _Blame(pfile):
+            ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3)[:2], _yaw(pfile, ego_of[k]), 0.0]
+                            for k in tokens])
         ego[:, 2] = wrap_angle(ego[:, 2])
         ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
         # agent tracks, in order of first appearance
-        with _Blame(file("sample_annotation")):
-            slot, rows = {}, []
+        afile = file("sample_annotation")
+        with _Blame(afile):
+            slot, rows, seen = {}, [], {}
             for f, k in enumerate(tokens):
                 for a in anns.get(k, []):
                     m = slot.setdefault(a["instance_token"], len(slot))
-                    rows.append((m, f, a["translation"][0], a["translation"][1], _yaw(a["rotation"]), *a["size"]))
+                    if (m, f) in seen:
+                        raise NuScenesFormatError(f"{afile}: instance {a['instance_token']!r} is annotated twice in "
+                                                  f"sample {k!r} ({seen[m, f]!r} and {a['token']!r})")
+                    seen[m, f] = a["token"]
+                    x, y, _ = _numbers(afile, a, "translation", 3)
+                    rows.append((m, f, x, y, _yaw(afile, a), *_numbers(afile, a, "size", 3)))
         M = len(slot)
         rows = np.array(rows, np.float64).reshape(-1, 8)
         mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
@@ -1687,20 +1950,25 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
         inst = list(slot)
         is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
         # lanes near the ego's path
-        if loc not in maps:
-            maps[loc] = _read_map(root, loc, cfg)
-        lmap = maps[loc]
+        if mpath not in maps:
+            maps[mpath] = _read_map(mpath, cfg)
+        lmap = maps[mpath]
         near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
         routes = _routes(lmap, near)
         if not routes:
             report["skipped_no_lanes"] += 1
             continue
         # the predicted vehicle per frame
-        pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, sc["name"] in split, listed, cfg)
+        pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, name in split, listed, cfg)
         if (pred < 0).all():
             report["skipped_no_agent"] += 1
             continue
-        out.append(_scene_arrays(sc["name"], ego, agents, amask, is_ped, size, pred, lmap, routes, cfg))
+        scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
+        bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
+            raise NuScenesFormatError(f"{tdir}: scene {name!r} gives non-finite {', '.join(bad)} (coordinates or "
+                                      f"timestamps out of range)")
+        out.append(scene)
         report["loaded"] += 1
     if not out:
         raise NuScenesFormatError(f"{tdir}: no usable scene ({report})")
@@ -1740,7 +2008,15 @@ def _choose_predicted(ego, agents, amask, is_ped, inst, tokens, scene_listed, li
 
 
 def _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg) -> Scenes:
-    """One loaded scene as a Scenes of length 1 (paths: those of the lanes its routes use)."""
+    """One loaded scene as a Scenes of length 1 (paths: those of the lanes its routes use). A route of more than
+    MAX_LANE_POINTS points is an error naming the map file, the scene and the route's lanes."""
+    for r in routes:
+        length = sum(lmap["length"][i] for i in r)
+        n_pts = _lane_points(length, cfg.lane_spacing)
+        if n_pts > MAX_LANE_POINTS:
+            raise NuScenesFormatError(f"{lmap['path']}: the route of scene {name!r} through lanes "
+                                      f"{lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r} is {length:.6g} m long: "
+                                      f"{n_pts} points, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
     used = sorted({i for r in routes for i in r})
     first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path index of each used lane
     where = {i: k for k, i in enumerate(used)}
@@ -1796,6 +2072,26 @@ def _bench():
           f"{pystats.median(times):.2f} s over {runs} runs (target < 10 s)  {['%.2f' % x for x in times]}")
 
 
+MAX_RENDER = 400
+"""Most samples `render` draws: 100 rows of 4 panels make a PNG about 29 000 pixels tall; Agg draws at most 2^16
+pixels a side."""
+
+
+def _whole(lo: int, hi: int | None = None, unit: str = ""):
+    """An argparse type: a whole number in lo..hi (argparse adds the argument's name to the message)."""
+    span = f"from {lo:,} to {hi:,}" if hi is not None else f">= {lo:,}"
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number {span}{unit}, got {text!r}") from None
+        if v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"must be {span}{unit}, got {v:,}")
+        return v
+    return parse
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description="DiffStack scenario data: synthetic nuScenes-like scenes, the nuScenes "
                                              "v1.0 format written and read.")
@@ -1803,13 +2099,13 @@ def main(argv=None):
                                                          "v1.0-mini-sized folder; print the medians of 3 runs")
     sub = ap.add_subparsers(dest="cmd")
     g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
-    g.add_argument("--n", type=int, default=10_000)
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=10_000)
+    g.add_argument("--seed", type=_whole(0), default=0)
     g.add_argument("--cache-dir", default="data_cache")
     w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
     w.add_argument("out")
-    w.add_argument("--scenes", type=int, default=10)
-    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--scenes", type=_whole(1, MAX_SCENES, " (MAX_SCENES)"), default=10)
+    w.add_argument("--seed", type=_whole(0), default=0)
     w.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
     w.add_argument("--overwrite", action="store_true", help="replace the files of an existing folder")
     r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
@@ -1817,17 +2113,19 @@ def main(argv=None):
     r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
     p = sub.add_parser("render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)")
     p.add_argument("out")
-    p.add_argument("--n", type=int, default=12)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
+    p.add_argument("--seed", type=_whole(0), default=0)
     p.add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
     p.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
     s = sub.add_parser("stats", help="statistics of a generated set against plausible ranges")
-    s.add_argument("--n", type=int, default=4000)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=4000)
+    s.add_argument("--seed", type=_whole(0), default=0)
     args = ap.parse_args(argv)
     try:
         _run(ap, args)
-    except (NuScenesFormatError, FileExistsError) as e:  # bad input: the message names the file
+    except (ValueError, OSError) as e:
+        # bad input (a NuScenesFormatError, a foreign cache, an existing or unwritable file): the message names
+        # the file; exit code 2 like argparse's own errors
         ap.exit(2, f"data_synth: error: {e}\n")
 
 

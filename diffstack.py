@@ -148,6 +148,38 @@ class Config:
     batch_size: int = 256
     """scenarios per training step"""
 
+    def __post_init__(self):
+        """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
+        counts = ("hist_len", "horizon", "max_goal_lanes", "ilqr_iters", "line_search_steps", "pred_modes",
+                  "pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden", "batch_size")
+        positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel",
+                    "feas_yaw_per_speed", "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
+        non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
+        lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
+                       pred_logit_clip=4, alpha_rl=3, alpha_il=3)
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name in counts:
+                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                    raise ValueError(f"Config.{f.name}: must be a whole number >= 1, got {v!r}")
+            elif f.name in lengths:
+                n = lengths[f.name]
+                if (not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
+                        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
+                    raise ValueError(f"Config.{f.name}: must be a tuple of {n or 'one or more'} finite numbers, got {v!r}")
+            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"Config.{f.name}: must be a finite number, got {v!r}")
+            elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
+                raise ValueError(f"Config.{f.name}: must be {'> 0' if f.name in positive else '>= 0'}, got {v!r}")
+        if any(lo >= hi for lo, hi in zip(self.u_lower, self.u_upper)):
+            raise ValueError(f"Config.u_lower: must be below u_upper, got {self.u_lower} and {self.u_upper}")
+        if any(x <= 0 for x in self.pred_scales) or any(x < 0 for x in self.alpha_rl + self.alpha_il):
+            raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
+        if not self.line_search_decay > 1:
+            raise ValueError(f"Config.line_search_decay: must be > 1, got {self.line_search_decay}")
+        if not 0 < self.pred_lr_decay <= 1:
+            raise ValueError(f"Config.pred_lr_decay: must be in (0, 1], got {self.pred_lr_decay}")
+
 
 def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
     """Raise ValueError naming `name` unless t is a floating tensor of the given shape (None: any size
@@ -159,9 +191,30 @@ def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
         raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
     if dtype is not None and t.dtype != dtype:
         raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
-    if finite and t.is_floating_point() and not torch.isfinite(t).all():
+    if finite and t.is_floating_point() and not _all_finite(t):
         raise ValueError(f"{name}: contains NaN or inf")
     return t
+
+
+def check_positive(name: str, value) -> float:
+    """ValueError naming `name` unless value is a finite number > 0 (a time step, a variance)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    return value
+
+
+def check_points(name: str, t, n: int, dtype=None):
+    """check_tensor for a tensor of points (..., n)."""
+    if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
+        raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
+    return check_tensor(name, t, dtype=dtype)
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    try:
+        return bool(torch.isfinite(t).all())
+    except RuntimeError:  # inside torch.func.vmap a value cannot steer Python: the caller's entry point checked it
+        return True
 
 
 # ============================================================================================
@@ -216,7 +269,14 @@ def _moments(w, tau, jmax):
 
 
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
-    """One exact step of the unicycle. s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4)."""
+    """One exact step of the unicycle. s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4).
+    Checks its input; the solver's inner loops call the same math unchecked (_unicycle_step)."""
+    check_points("s", s, 4)
+    check_points("u", u, 2, s.dtype)
+    return _unicycle_step(s, u, check_positive("dt", dt))
+
+
+def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     x, y, h, v = s.unbind(-1)
     w, a = u.unbind(-1)
     (c0, c1), (s0, s1) = _moments(w, dt, 1)
@@ -298,10 +358,10 @@ class Unicycle:
     """The unicycle as the controller sees it: a step function with closed-form Jacobians."""
 
     def __init__(self, dt: float):
-        self.dt = dt
+        self.dt = check_positive("dt", dt)
 
     def __call__(self, s, u):
-        return unicycle_step(s, u, self.dt)
+        return _unicycle_step(s, u, self.dt)
 
     def jacobians(self, s, u):
         return unicycle_jacobians(s, u, self.dt)
@@ -449,8 +509,28 @@ def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
-    """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
+    """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...).
+    Checks its input (the stack's inner loops call weigh(cost_terms(...)) unchecked)."""
+    check_cost_inputs(x, u, ctx, w, rbf_var)
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
+
+
+def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
+    """ValueError naming the argument when the cost's inputs do not fit together or are not finite."""
+    check_tensor("x", x)
+    B, T = x.shape[0], x.shape[-2] - 1
+    if x.dim() < 3 or x.shape[-1] != 4 or T < 1:
+        raise ValueError(f"x: expected states (B, ..., T+1, 4) with T >= 1, got {tuple(x.shape)}")
+    check_tensor("u", u, (B, *x.shape[1:-2], T, 2), x.dtype)
+    check_tensor("w", w, dtype=x.dtype)
+    if tuple(w.shape) not in ((5,), (B, 5)):
+        raise ValueError(f"w: expected the 5 weights of eq. (3), shape (5,) or ({B}, 5), got {tuple(w.shape)}")
+    check_tensor("ctx.preds", ctx.preds, (B, None, T, 2), x.dtype)
+    check_tensor("ctx.probs", ctx.probs, (B, ctx.preds.shape[1]), x.dtype)
+    check_tensor("ctx.others", ctx.others, (B, None, T, 2), x.dtype)
+    check_tensor("ctx.goal", ctx.goal, (B, 2), x.dtype)
+    check_tensor("ctx.lanes", ctx.lanes, (B, None, None, 3), x.dtype)
+    check_positive("rbf_var", rbf_var)
 
 
 # ============================================================================================
@@ -513,7 +593,13 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
 
     s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
     """
-    B, T, dt = s0.shape[0], cfg.horizon, cfg.dt
+    B = check_tensor("s0", s0, (None, 4)).shape[0]
+    if B == 0:
+        raise ValueError("s0: no scenarios (a batch of size 0)")
+    check_tensor("goal", goal, (B, 4), s0.dtype)
+    check_tensor("lanes", lanes, (B, None, None, 3), s0.dtype)
+    check_tensor("lanes_mask", lanes_mask, (B, *lanes.shape[1:3]), torch.bool)
+    T, dt = cfg.horizon, cfg.dt
     dur = T * dt
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
     # goal lanes: within goal_lane_dist of the goal, heading within goal_lane_heading of the goal's
@@ -600,8 +686,8 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config) -> Plan:
     Unpacks as (cands, cost, best, plannable, terms)."""
     B = check_tensor("s0", s0, (None, 4)).shape[0]
     check_tensor("goal_state", goal_state, (B, 4), s0.dtype)
-    check_tensor("lanes", ctx.lanes, (B, None, None, 3), s0.dtype)
     cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
+    check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
     terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
     cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
@@ -982,18 +1068,28 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
     )  # (..., H, 8)
 
 
-def check_batch(batch, cfg: Config, need_future: bool) -> None:
-    """ValueError naming the field when a batch has the wrong history/future length or NaN states."""
+def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
+    """ValueError naming the field when a batch is empty, has the wrong history/future length, or non-finite
+    values. need_future: the agent's GT future is used (training); stack: every field the stack reads is checked
+    (the ego's future, the other agents, the goal and the lanes)."""
+    if len(batch) == 0:
+        raise ValueError("batch: no scenarios (a batch of size 0)")
     H, T = cfg.hist_len + 1, cfg.horizon
     expect = {"agent_hist": (H, 4), "ego_hist": (H, 4), "others_hist": (H, 4)}
-    if need_future:
+    if need_future or stack:
         expect["agent_fut"] = (T, 4)
+    if stack:
+        expect.update(ego_fut=(T, 4), others_fut=(T, 4))
     for name, tail in expect.items():
         x = getattr(batch, name)
         if tuple(x.shape[-2:]) != tail:
             raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
-        if torch.isnan(x).any():
-            raise ValueError(f"{name} contains NaN")
+        if not torch.isfinite(x).all():
+            raise ValueError(f"{name} contains NaN or inf")
+    if stack:
+        B = len(batch)
+        check_tensor("goal", batch.goal, (B, 4), batch.ego_hist.dtype)
+        check_tensor("lanes", batch.lanes, (B, None, None, 3), batch.ego_hist.dtype)
     m = batch.agent_hist_mask
     if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
         raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
@@ -1364,7 +1460,25 @@ class Method:
     losses: tuple = (1, 0, 0)
     """which of (L_pred, L_plan, L_ctr) train the predictor; multiplied by the setting's alphas"""
     weighting: str = "standard"
-    """per-scenario weights of L_pred: 'standard', 'distance' or 'grad_cost' (§4.1)"""
+    """per-scenario weights of L_pred: 'standard', 'distance' or 'grad_cost' (§4.1), or a callable batch -> (B,)"""
+
+    def __post_init__(self):
+        if self.predictor not in PREDICTORS:
+            raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {self.predictor!r}")
+        if (not isinstance(self.losses, tuple) or len(self.losses) != 3
+                or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in self.losses)):
+            raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}")
+        if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
+            raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}")
+
+
+PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
+
+
+def check_setting(setting) -> str:
+    if setting not in SETTINGS:
+        raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
+    return setting
 
 
 TABLE1_METHODS = (
@@ -1459,6 +1573,8 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
             clock.append(time.perf_counter())
             timings[name] = clock[-1] - clock[-2]
 
+    check_setting(setting)
+    check_batch(batch, cfg, need_future=train, stack=True)
     sub = planner_substeps(cfg, plan_dt)
     B, T, dt = len(batch), cfg.horizon * sub, cfg.dt / sub  # the planner's and the controller's clock
     dtype = batch.ego_hist.dtype
@@ -1503,9 +1619,9 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     if controller:
         u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
 
-        def cost_fn(x, u, w, preds, probs):
+        def cost_fn(x, u, w, preds, probs):  # eq. (3) as the solver sees it: a function of (x, u) and its parameters
             c = CostContext(preds, probs, ctx.pred_mask, ctx.others, ctx.others_mask, ctx.goal, ctx.lanes, ctx.lanes_mask)
-            return total_cost(x, u, c, w, cfg.rbf_var)
+            return weigh(cost_terms(x, u, c, cfg.rbf_var), w)
 
         x, u, converged = ilqr_solve(cost_fn, Unicycle(dt), s0, u_init, (w, preds, probs), cfg.u_lower, cfg.u_upper,
                                      iters=cfg.ilqr_iters, tol=cfg.ilqr_tol, ls_steps=cfg.line_search_steps,
@@ -1531,7 +1647,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
 
 def alphas(method: Method, setting: str, cfg: Config):
     """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
-    base = cfg.alpha_rl if setting == "rl" else cfg.alpha_il
+    base = cfg.alpha_rl if check_setting(setting) == "rl" else cfg.alpha_il
     return tuple(a * on for a, on in zip(base, method.losses))
 
 
@@ -1746,7 +1862,7 @@ QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "
 
 
 def open_loop_table(results: dict, setting="rl") -> str:
-    """Tables 1 and 3's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics relative to No
+    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics relative to No
     prediction, iLQR's convergence; means ± standard errors over seeds."""
     rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
     scales = RELATIVE_SCALE[setting]
@@ -1777,6 +1893,36 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     return res
 
 
+def check_writable(folder, what: str) -> None:
+    """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and takes files."""
+    import pathlib
+    import tempfile
+
+    try:
+        pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        raise ValueError(f"{what}: {folder} is not a writable folder ({e.strerror or e})") from None
+
+
+def bounded(kind, lo, hi, name):
+    """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi (lo excluded for floats)."""
+    import argparse
+
+    def parse(text):
+        try:
+            x = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
+        if not math.isfinite(x) or x > hi or (x <= lo if kind is float else x < lo):
+            raise argparse.ArgumentTypeError(f"{name} must be {'>' if kind is float else '>='} {lo:g} and <= {hi:g}, "
+                                             f"got {text!r}")
+        return x
+
+    return parse
+
+
 def config_with(cfg: Config, assignments) -> Config:
     """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the field's
     type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key when it is not a
@@ -1792,9 +1938,7 @@ def config_with(cfg: Config, assignments) -> Config:
         default = getattr(cfg, key)
         try:
             if isinstance(default, tuple):
-                parts = [p for p in text.strip("()[] ").split(",") if p.strip()]
-                value = tuple(type(d)(float(p)) if isinstance(d, float) else type(d)(p) for d, p in
-                              zip(default if len(parts) == len(default) else [default[0]] * len(parts), parts))
+                value = tuple(float(p) for p in text.strip("()[] ").split(",") if p.strip())  # every tuple field holds floats
             elif isinstance(default, bool):
                 value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
             else:
@@ -1816,7 +1960,7 @@ def main(argv=None):
         epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.")
     ap.add_argument("--quick", action="store_true",
                     help="Standard vs DiffStack (with No prediction and GT prediction beside) on synthetic data, ~1 min")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2, at most 256)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -1827,10 +1971,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if not args.quick:
         ap.error("choose --quick (the paper's tables: python experiments.py --experiment NAME)")
-    if args.threads < 1:
-        ap.error("--threads must be >= 1")
     try:
         cfg = config_with(Config(), args.set)
+        check_writable("data_cache", "the data cache (./data_cache)")
     except ValueError as e:
         ap.error(str(e))
     return quick(args.threads, cfg=cfg)

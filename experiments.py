@@ -36,9 +36,9 @@ import numpy as np
 import torch
 
 import data_synth
-from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, cell,
-                       compare_methods, config_with, cost_weights, evaluate_stack, markdown_table, mean_se,
-                       project_to_lanes, run_stack, train_predictor, train_stack, unicycle_step, wrap_angle)
+from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, bounded, cell,
+                       check_writable, compare_methods, config_with, cost_weights, evaluate_stack, markdown_table,
+                       mean_se, project_to_lanes, run_stack, train_predictor, train_stack, unicycle_step, wrap_angle)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -388,12 +388,20 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
 
 
 def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
-    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one)."""
-    import data_synth
-
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one).
+    ValueError saying how long a scene the closed loop needs and what the data has, when none qualifies."""
     scfg = scfg or data_synth.SynthConfig()
-    N = round(sim_time / cfg.dt)
-    return scenes[(scenes.pred_idx[:, scfg.hist:scfg.hist + N] >= 0).all(1)]
+    H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
+    window = scenes.pred_idx[:, H:H + N] >= 0  # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    ok = (window.all(1) & (window.shape[1] == N)) if len(scenes) else torch.zeros(0, dtype=torch.bool)
+    if not ok.any():
+        run = (window.int().cumprod(1).sum(1).max().item() if window.numel() else 0)
+        raise ValueError(
+            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at each of its {N} frames "
+            f"after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} frames ({(H + N + T - 1) * cfg.dt:g} s at "
+            f"{1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s horizon included); the data has {len(scenes)} validation scene(s) "
+            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}")
+    return scenes[ok]
 
 
 def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None):
@@ -538,8 +546,7 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
                  ticks=[0, 0.25, 0.5, 0.75, 1])
     fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
                  fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, path)
     return i
 
 
@@ -592,8 +599,7 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
     axes[0].legend(loc="upper left", fontsize=7, ncol=3)
     fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
     fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, path)
     return s
 
 
@@ -615,8 +621,7 @@ def figure_cost_weights(results: dict, path):
     ax.set_ylabel("weight (log scale)")
     ax.legend(fontsize=8)
     ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)", fontsize=10)
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 # ============================================================================================
@@ -695,9 +700,40 @@ def git_commit() -> str | None:
 
 def write_atomic(path: pathlib.Path, text: str) -> None:
     """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact."""
+    path = pathlib.Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def save_figure(fig, path) -> None:
+    """fig.savefig, atomically (a temporary file and a rename), at 130 dpi; closes the figure."""
+    import matplotlib.pyplot as plt
+
+    path = pathlib.Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=130, bbox_inches="tight")
+    os.replace(tmp, path)
+    plt.close(fig)
+
+
+def planned_outputs(names, out_dir) -> list:
+    """Every file a run of these tables writes in out_dir (results, tables, figures, and the report for 'all')."""
+    out = pathlib.Path(out_dir)
+    files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
+    files += [out / f for n in names for f in TABLES[n].figures]
+    return files + ([out / "report.md"] if len(names) > 1 else [])
+
+
+def check_outputs(names, out_dir, overwrite: bool) -> None:
+    """Before any work: out_dir must be writable, and no file this run would write may exist already unless
+    overwrite (a run never replaces a result it did not make). ValueError naming the folder or the files."""
+    check_writable(out_dir, "--out")
+    existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists()]
+    if existing and not overwrite:
+        raise ValueError(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
+                         f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to replace "
+                         f"them, or choose another --out")
 
 
 def write_report(out_dir, sections) -> pathlib.Path:
@@ -711,17 +747,19 @@ def write_report(out_dir, sections) -> pathlib.Path:
         parts.append(f"## {title}\n\n{md}\n")
         parts += [f"![{f}]({f})\n" for f in figures]
     path = out / "report.md"
-    path.write_text("\n".join(parts))
+    write_atomic(path, "\n".join(parts))
     return path
 
 
-def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print):
+def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False):
     """Run one table (or 'all'), writing out_dir/<name>.json (results, the full Config, the git commit) and .md
-    (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between the tables."""
+    (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between the tables.
+    Refuses to start (ValueError) when a file it would write exists already, unless overwrite."""
+    names = EXPERIMENTS if name == "all" else (name,)
+    check_outputs(names, out_dir, overwrite)
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     sections, models = [], {}
-    for one in EXPERIMENTS if name == "all" else (name,):
+    for one in names:
         spec, t0 = TABLES[one], time.time()
         res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models)
         meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
@@ -746,28 +784,40 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine.")
     ap.add_argument("--experiment", choices=EXPERIMENTS + ("all",), required=True,
                     help="a table of the paper (results/<name>.json, .md, figures); all: every one, and results/report.md")
-    ap.add_argument("--seeds", type=int, default=5, help="training seeds per method (default 5)")
-    ap.add_argument("--epochs", type=float, default=4.0, help="training epochs per method (default 4; fractions allowed)")
-    ap.add_argument("--n", type=int, default=10000, help="synthetic scenarios (train + val, default 10000)")
+    ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
+                    help="training seeds per method (default 5, at most 100)")
+    ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=4.0,
+                    help="training epochs per method (default 4; fractions allowed; at most 1000)")
+    ap.add_argument("--n", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
+                    help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,})")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
-    ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
     ap.add_argument("--out", default="results", help="where the results go (default results/)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace result files that exist already in --out (without it, the run refuses to start)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
-    if args.seeds < 1 or not args.epochs > 0 or args.n < 10 or args.threads < 1:
-        ap.error("--seeds must be >= 1, --epochs > 0, --n >= 10, --threads >= 1")
-    try:
+    names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
+    try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
+        check_outputs(names, args.out, args.overwrite)
+        if args.data is None:
+            check_writable("data_cache", "the data cache (./data_cache)")
     except ValueError as e:
         ap.error(str(e))
     torch.set_num_threads(args.threads)
     try:
         data = data_synth.load_data(args.data, args.n)
+        if "closed_loop" in names:
+            if data.val_scenes is None:
+                raise ValueError("closed_loop: the data has no validation scene logs")
+            closed_loop_scenes(data.val_scenes, cfg)
     except ValueError as e:
         ap.error(str(e))
     return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
-                          " ".join(["python experiments.py", *(argv if argv is not None else sys.argv[1:])]))
+                          " ".join(["python experiments.py", *(argv if argv is not None else sys.argv[1:])]),
+                          overwrite=args.overwrite)
 
 
 if __name__ == "__main__":

@@ -43,9 +43,9 @@ def test_nuscenes_folder_trains_through_the_cli(tmp_path):
     (["--experiment", "rl", "--set", "no_such_field=1"], "no_such_field"),
     (["--experiment", "rl", "--set", "beta=warm"], "beta"),
 ])
-def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
+def test_bad_cli_input_exits_with_a_message(argv, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
-        ex.main(argv)
+        ex.main(argv + (["--out", str(tmp_path)] if argv else []))  # a fresh --out: results/ holds committed results
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 

@@ -5,7 +5,6 @@ import pathlib
 import jupytext
 import nbclient
 import nbformat
-import pytest
 
 REPO = pathlib.Path(__file__).resolve().parent
 

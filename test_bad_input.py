@@ -1,0 +1,241 @@
+"""Bad input gets a clear error that names the culprit, and no result is ever lost (diffstack.py, experiments.py).
+
+One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that the message
+names the argument, field or file. The nuScenes loader and the data CLI have their own file, test_data_bad_input.py.
+"""
+import json
+import math
+import os
+import pathlib
+
+import pytest
+import torch
+
+import data_synth
+import diffstack as ds
+import experiments as ex
+from test_diffstack import TINY, toy_scene
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    return data_synth.make_dataset(120, seed=5).val[:8]
+
+
+def cli_error(main, argv, capsys) -> str:
+    """Run a CLI that must refuse argv: exit code 2, and the message on stderr."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    return capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Nothing lost: experiments refuse to replace results, check --out and the cache first, write atomically
+# ---------------------------------------------------------------------------------------------
+
+def test_existing_results_are_never_replaced_without_overwrite(tmp_path, capsys):
+    (tmp_path / "rl.json").write_text('{"mine": 1}')
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), "--n", "10"], capsys)
+    assert "rl.json" in err and "--overwrite" in err
+    assert (tmp_path / "rl.json").read_text() == '{"mine": 1}'
+    # 'all' also protects the report and the figures
+    (tmp_path / "rl.json").unlink()
+    (tmp_path / "closed_loop.png").write_bytes(b"png")
+    with pytest.raises(ValueError, match="closed_loop.png"):
+        ex.check_outputs(ex.EXPERIMENTS, tmp_path, overwrite=False)
+    ex.check_outputs(ex.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
+    ex.check_outputs(("rl",), tmp_path, overwrite=False)  # an unrelated file does not block another table
+
+
+def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
+    (tmp_path / "il.md").write_text("# mine")
+    monkeypatch.setattr(ex, "run_table", lambda *a, **k: pytest.fail("no work may start"))
+    with pytest.raises(ValueError, match="il.md"):
+        ex.run_experiment("il", None, ds.Config(), (0,), 1.0, tmp_path)
+
+
+def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(blocker / "out")], capsys)
+    assert "--out" in err and "a_file" in err
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data_cache").write_text("a file where the cache folder should be")
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
+    assert "data cache" in err
+    err = cli_error(ds.main, ["--quick"], capsys)
+    assert "data cache" in err
+
+
+def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
+    path = tmp_path / "rl.json"
+    path.write_text("old")
+
+    def killed(src, dst):
+        raise KeyboardInterrupt  # the process dies between writing the temporary file and the rename
+
+    monkeypatch.setattr(os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        ex.write_atomic(path, json.dumps({"new": 1}))
+    assert path.read_text() == "old"
+
+
+# ---------------------------------------------------------------------------------------------
+# The command lines: numbers finite, positive and bounded; --quick takes no flag it would ignore
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("argv, culprit", [
+    (["--epochs", "nan"], "--epochs"), (["--epochs", "inf"], "--epochs"), (["--epochs", "0"], "--epochs"),
+    (["--epochs", "1e9"], "--epochs"), (["--threads", "0"], "--threads"), (["--seeds", "0"], "--seeds"),
+    (["--seeds", "1000"], "--seeds"), (["--n", "5"], "--n"), (["--n", "100000000"], "--n"), (["--n", "1e8"], "--n"),
+    (["--set", "dt=0"], "dt"), (["--set", "horizon=-1"], "horizon"), (["--set", "nope=1"], "nope"),
+])
+def test_experiments_cli_numbers(argv, culprit, capsys, tmp_path):
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), *argv], capsys)
+    assert culprit in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("flag", [["--data", "x"], ["--n", "100"], ["--epochs", "2"], ["--out", "x"], ["--seeds", "2"]])
+def test_quick_rejects_the_flags_it_does_not_take(flag, capsys):
+    err = cli_error(ds.main, ["--quick", *flag], capsys)
+    assert flag[0] in err
+
+
+def test_quick_threads_bounds(capsys):
+    assert "--threads" in cli_error(ds.main, ["--quick", "--threads", "0"], capsys)
+    assert "--threads" in cli_error(ds.main, ["--quick", "--threads", "two"], capsys)
+
+
+# ---------------------------------------------------------------------------------------------
+# Config and Method: refused at construction, naming the field
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("field, value", [
+    ("dt", 0.0), ("dt", -0.5), ("dt", math.nan), ("horizon", 0), ("horizon", 2.5), ("hist_len", True),
+    ("rbf_var", 0.0), ("beta", math.inf), ("w_coll", -1.0), ("u_lower", (1.0, -5.0)), ("u_upper", (0.7,)),
+    ("ilqr_iters", 0), ("line_search_decay", 1.0), ("pred_modes", 0), ("batch_size", 0), ("lr", 0.0),
+    ("plan_accels", ()), ("pred_lr_decay", 1.5), ("alpha_rl", (1.0, -1.0, 1.0)), ("pred_scales", (1.0, 1.0, 1.0, 0.0)),
+])
+def test_config_refuses_values_that_would_fail_later(field, value):
+    with pytest.raises(ValueError, match=field):
+        ds.Config(**{field: value})
+
+
+def test_config_accepts_its_defaults_and_the_tests_small_models():
+    ds.Config(), ds.Config(**TINY), ds.Config(pred_pos_std_min=0.0)
+
+
+@pytest.mark.parametrize("kw, culprit", [
+    (dict(predictor="Learned"), "predictor"), (dict(predictor="oracle"), "predictor"),
+    (dict(losses=(1, 1)), "losses"), (dict(losses=(1, math.nan, 1)), "losses"), (dict(losses=(1, -1, 1)), "losses"),
+    (dict(weighting="grad-cost"), "weighting"),
+])
+def test_method_refuses_unknown_names(kw, culprit):
+    with pytest.raises(ValueError, match=culprit):
+        ds.Method("m", **kw)
+
+
+def test_unknown_setting_is_refused(batch):
+    cfg = ds.Config()
+    for call in (lambda: ds.run_stack(batch, None, ds.Method("GT", "gt"), cfg, "xx"),
+                 lambda: ds.alphas(ds.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
+                 lambda: ds.evaluate_stack(None, batch, ds.Method("GT", "gt"), cfg, "Il")):
+        with pytest.raises(ValueError, match="setting"):
+            call()
+
+
+# ---------------------------------------------------------------------------------------------
+# The low-level API: never a silent NaN
+# ---------------------------------------------------------------------------------------------
+
+def test_unicycle_step_checks_its_input():
+    s, u = torch.zeros(3, 4, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64)
+    assert torch.isfinite(ds.unicycle_step(s, u, 0.5)).all()  # the valid input passes
+    for bad_s, bad_u, dt, culprit in ((s.clone().fill_(math.nan), u, 0.5, "s"), (s, u.clone().fill_(math.inf), 0.5, "u"),
+                                      (s, u, 0.0, "dt"), (s, u, math.nan, "dt"), (s[:, :3], u, 0.5, "s"),
+                                      (s, u.float(), 0.5, "u"), (s, u[:, :1], 0.5, "u")):
+        with pytest.raises(ValueError, match=f"^{culprit}"):
+            ds.unicycle_step(bad_s, bad_u, dt)
+
+
+def test_total_cost_checks_its_input():
+    s0, goal, ctx = toy_scene()
+    cfg = ds.Config()
+    w = ds.cost_weights(cfg, torch.float64)
+    x = ds.unicycle_rollout(s0, torch.zeros(3, 6, 2, dtype=torch.float64), cfg.dt)
+    u = torch.zeros(3, 6, 2, dtype=torch.float64)
+    assert torch.isfinite(ds.total_cost(x, u, ctx, w)).all()
+    nan_x = x.clone()
+    nan_x[1, 2, 0] = math.nan
+    cases = [(dict(x=nan_x), "x"), (dict(u=u[:, :5]), "u"), (dict(w=w[:4]), "w"), (dict(w=w.float()), "w"),
+             (dict(ctx=ds.CostContext(ctx.preds * math.nan, *ctx.tensors()[1:])), "ctx.preds"),
+             (dict(ctx=ds.CostContext(*ctx.tensors()[:5], ctx.goal[:, :1], *ctx.tensors()[6:])), "ctx.goal"),
+             (dict(rbf_var=0.0), "rbf_var")]
+    for kw, culprit in cases:
+        args = dict(x=x, u=u, ctx=ctx, w=w, rbf_var=2.0) | kw
+        with pytest.raises(ValueError, match=culprit):
+            ds.total_cost(args["x"], args["u"], args["ctx"], args["w"], args["rbf_var"])
+
+
+def test_planner_checks_its_input():
+    s0, goal, ctx = toy_scene()
+    cfg = ds.Config()
+    w = ds.cost_weights(cfg, torch.float64)
+    assert ds.plan(s0, ctx, goal, w, cfg).plannable.any()
+    lanes_nan = ctx.lanes.clone()
+    lanes_nan[0, 0, 3, 1] = math.nan
+    for args, culprit in (((s0 * math.nan, goal, ctx.lanes, ctx.lanes_mask), "s0"),
+                          ((s0, goal[:, :3], ctx.lanes, ctx.lanes_mask), "goal"),
+                          ((s0, goal, lanes_nan, ctx.lanes_mask), "lanes"),
+                          ((s0, goal, ctx.lanes, ctx.lanes_mask.float()), "lanes_mask"),
+                          ((s0[:0], goal[:0], ctx.lanes[:0], ctx.lanes_mask[:0]), "s0")):
+        with pytest.raises(ValueError, match=culprit):
+            ds.plan_candidates(*args, cfg)
+    with pytest.raises(ValueError, match="ctx.probs"):
+        ds.plan(s0, ds.CostContext(ctx.preds, ctx.probs * math.inf, *ctx.tensors()[2:]), goal, w, cfg)
+    with pytest.raises(ValueError, match="w"):
+        ds.plan(s0, ctx, goal, w[:3], cfg)
+
+
+def test_batches_with_inf_or_no_scenarios_are_refused(batch):
+    cfg = ds.Config(**TINY)
+    model = ds.Predictor(cfg).double() if batch.agent_hist.dtype == torch.float64 else ds.Predictor(cfg)
+    import dataclasses
+
+    for field in ("agent_hist", "others_hist", "ego_fut", "others_fut", "goal", "lanes"):
+        bad = getattr(batch, field).clone()
+        bad.view(-1)[0] = math.inf
+        with pytest.raises(ValueError, match=field):
+            ds.run_stack(dataclasses.replace(batch, **{field: bad}), model, ds.Method("DiffStack", losses=(1, 1, 1)),
+                         cfg, train=True, step=0)
+    with pytest.raises(ValueError, match="batch"):
+        ds.run_stack(batch[:0], None, ds.Method("GT", "gt"), cfg)
+    with pytest.raises(ValueError, match="batch"):
+        model(batch[:0], use_posterior=False)
+    ds.run_stack(batch, model, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)  # the valid batch runs
+
+
+# ---------------------------------------------------------------------------------------------
+# The closed loop says how long a scene it needs and what the data has
+# ---------------------------------------------------------------------------------------------
+
+def test_closed_loop_needs_long_enough_scenes():
+    scenes = data_synth.make_dataset(120, seed=5).val_scenes
+    assert len(ex.closed_loop_scenes(scenes, ds.Config())) == len(scenes)
+    cut = {k: (v[:, :20] if k in ("ego", "pred_idx") else v[:, :, :20] if k in ("agents", "agents_mask") else v)
+           for k, v in scenes.tensors().items()}
+    short = data_synth.Scenes(**cut, names=scenes.names)
+    with pytest.raises(ValueError, match=r"at least 34 frames .* the data has \d+ validation scene\(s\) of 20 frames"):
+        ex.closed_loop_scenes(short, ds.Config())
+    with pytest.raises(ValueError, match="of 0 .*|0 validation"):
+        ex.closed_loop_scenes(scenes[:0], ds.Config())
