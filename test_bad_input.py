@@ -6,7 +6,6 @@ names the argument, field or file. The nuScenes loader and the data CLI have the
 import json
 import math
 import os
-import pathlib
 
 import pytest
 import torch
