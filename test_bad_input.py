@@ -16,14 +16,6 @@ import experiments as ex
 from test_diffstack import TINY, toy_scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def batch():
     return data_synth.make_dataset(120, seed=5).val[:8]

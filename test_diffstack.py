@@ -1,4 +1,4 @@
-"""Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread.
+"""Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread (conftest.py).
 experiments.py, bench.py and the notebook have test files of their own."""
 import json
 import math
@@ -13,15 +13,6 @@ import data_synth
 import diffstack as ds
 
 DT = 0.5
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models gain nothing from threads, and two threads on a busy 2-core machine can run 10x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def rk4_reference(s, u, dt, substeps=2000):
