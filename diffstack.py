@@ -73,13 +73,13 @@ class Config:
     rbf_var: float = 2.0
     """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; authors' code: exp(-d^2/4))"""
 
-    # --- planner, eq. (2), App. C ---
+    # --- planner, eq. (2), App. C.1 ---
     goal_lane_dist: float = 4.5
     """a goal lane passes within this distance (m) of the goal"""
     goal_lane_heading: float = math.pi / 2
     """... and its heading differs from the goal's by less than this (rad) (authors' code: pi/4)"""
     max_goal_lanes: int = 2
-    """candidate lanes kept per scenario (the closest to the goal); N = 24 * max_goal_lanes"""
+    """candidate lanes kept per scenario (the closest to the goal); N = len(plan_accels) * len(plan_offsets) * max_goal_lanes"""
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
     """terminal accelerations (m/s^2)"""
     plan_offsets: tuple = (-0.5, 0.0, 0.5)
@@ -92,7 +92,7 @@ class Config:
     feas_yaw_per_speed: float = 0.5
     """feasible |w| <= this * |v| (1/m), authors' code"""
 
-    # --- controller, eq. (4), App. C ---
+    # --- controller, eq. (4), App. C.2 ---
     u_lower: tuple = (-0.7, -5.0)
     """control lower bounds (yaw rate rad/s, acceleration m/s^2), authors' code"""
     u_upper: tuple = (0.7, 4.0)
@@ -498,7 +498,7 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
 
 
 def cost_weights(cfg: Config, dtype=torch.float32) -> torch.Tensor:
-    """The hand-tuned weights (w1..w5) of App. C."""
+    """The hand-tuned weights (w1..w5) of App. C.3."""
     return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype)
 
 
@@ -518,9 +518,9 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
     """ValueError naming the argument when the cost's inputs do not fit together or are not finite."""
     check_tensor("x", x)
-    B, T = x.shape[0], x.shape[-2] - 1
-    if x.dim() < 3 or x.shape[-1] != 4 or T < 1:
+    if x.dim() < 3 or x.shape[-1] != 4 or x.shape[-2] < 2:
         raise ValueError(f"x: expected states (B, ..., T+1, 4) with T >= 1, got {tuple(x.shape)}")
+    B, T = x.shape[0], x.shape[-2] - 1
     check_tensor("u", u, (B, *x.shape[1:-2], T, 2), x.dtype)
     check_tensor("w", w, dtype=x.dtype)
     if tuple(w.shape) not in ((5,), (B, 5)):
@@ -588,8 +588,8 @@ def _hermite(p0, m0, p1, m1, tau):
 
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
-    """Candidate trajectories (App. C): for up to `max_goal_lanes` goal lanes, 8 accelerations x 3
-    lateral offsets give 24 terminal states each; a cubic spline joins s0 to each.
+    """Candidate trajectories (App. C.1): for up to `max_goal_lanes` goal lanes, the terminal accelerations
+    (8 by default) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each.
 
     s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
     """
@@ -613,20 +613,20 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     g_mask = lanes_mask.gather(1, lane_idx[:, :, None].expand(B, G, lanes_mask.shape[-1]))
     _, s_ego, _ = _project_each_lane(s0[:, :2], g_lanes, g_mask, g_cum)  # (B, G) ego's arc length on each
     # terminal states: v_f = max(v0 + a T dt, 0), distance (v0 + v_f) / 2 * T dt along the lane, then offset
-    acc = s0.new_tensor(cfg.plan_accels)  # (8,)
+    acc = s0.new_tensor(cfg.plan_accels)  # (n_acc,) 8 by default
     off = s0.new_tensor(cfg.plan_offsets)  # (3,)
     v0 = s0[:, 3:4]  # (B, 1)
-    v_f = (v0 + acc * dur).clamp_min(0)  # (B, 8)
-    s_end = s_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, 8)
+    v_f = (v0 + acc * dur).clamp_min(0)  # (B, n_acc)
+    s_end = s_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, n_acc)
     on_lane = s_end <= g_cum[..., -1:]  # the terminal lies on the lane
-    lp = _point_at_arclength(g_lanes, g_cum, s_end)  # (B, G, 8, 3)
-    normal = torch.stack([-torch.sin(lp[..., 2]), torch.cos(lp[..., 2])], -1)  # (B, G, 8, 2)
-    p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, 8, 3, 2)
-    h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, 8, 3)
+    lp = _point_at_arclength(g_lanes, g_cum, s_end)  # (B, G, n_acc, 3)
+    normal = torch.stack([-torch.sin(lp[..., 2]), torch.cos(lp[..., 2])], -1)  # (B, G, n_acc, 2)
+    p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, n_acc, n_off, 2)
+    h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, n_acc, n_off)
     v1 = v_f[:, None, :, None].expand_as(h1)
-    p1, h1, v1 = p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1)  # N = G * 24
+    p1, h1, v1 = p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1)  # N = G * n_acc * n_off (48 by default)
     N = p1.shape[1]
-    valid = (lane_ok[:, :, None] & on_lane)[..., None].expand(B, G, 8, len(off)).reshape(B, N)
+    valid = (lane_ok[:, :, None] & on_lane)[..., None].expand(B, G, len(acc), len(off)).reshape(B, N)
     # cubic Hermite x(t), y(t): position and velocity matched at both ends, sampled at the T+1 steps
     heading_vec = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
     p0 = s0[:, None, :2].expand(B, N, 2)
@@ -819,7 +819,7 @@ def riccati_backward(A, B, H, g, n, stage):
 
 
 def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
-    """iLQR's backward pass (the forward solve): each stage's control step solves the box QP
+    """The Riccati pass inside iLQR's forward solve: each stage's control step solves the box QP
     min 1/2 du'Quu du + qu'du s.t. lo_t <= du <= hi_t, with Quu shifted to be positive definite
     (smallest eigenvalue >= pd_eps) so that the step is a descent direction. lo, hi (B, T, m)."""
 
@@ -853,7 +853,7 @@ class ILQRInfo:
 
 
 def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0):
-    """iLQR with box controls (App. C). Differentiable if the inputs are (autograd through the
+    """iLQR with box controls (App. C.2). Differentiable if the inputs are (autograd through the
     unrolled iterations; `ILQR` below gives the cheap exact gradient instead).
 
     x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
@@ -1070,7 +1070,7 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
 
 def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
     """ValueError naming the field when a batch is empty, has the wrong history/future length, or non-finite
-    values. need_future: the agent's GT future is used (training); stack: every field the stack reads is checked
+    values. need_future: the agent's GT future is used (training); stack: the stack's other inputs are checked too
     (the ego's future, the other agents, the goal and the lanes)."""
     if len(batch) == 0:
         raise ValueError("batch: no scenarios (a batch of size 0)")
@@ -1642,7 +1642,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
 #
 # One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
-# method and setting, or (Table 4) the cost weights w of eq. (3) with the predictor frozen.
+# method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor frozen.
 
 
 def alphas(method: Method, setting: str, cfg: Config):
@@ -1692,7 +1692,7 @@ class CostWeights(nn.Module):
         self.alpha = nn.Parameter(torch.ones(()))
 
     def normalised(self) -> torch.Tensor:
-        """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 4)."""
+        """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 7, App. A.2)."""
         return self.c * torch.softmax(torch.cat([self.psi_coll, self.psi]), 0)
 
     def forward(self) -> torch.Tensor:
@@ -1703,7 +1703,7 @@ class CostWeights(nn.Module):
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
                 pred_offset=0.0, weights: CostWeights | None = None, **stack_kw):
     """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
-    given `weights`, learn the cost weights instead (App. A.2, Table 4; method Method(..., losses=(0, 0, 1)) in
+    given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
     the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
     dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem), and the lr is constant.
 
@@ -1799,14 +1799,14 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
     return out
 
 
-# The planning metrics of Tables 1-3 are differences to No prediction on the same scenarios, in the units
+# The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios, in the units
 # of the paper's columns (x1e-2 or x1e-3).
 RELATIVE_SCALE = {"rl": {"plan_loss": 1e-2, "hindsight": 1e-2}, "il": {"plan_loss": 1e-3, "mse": 1e-2}}
 
 
 def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
                     pred_offset=0.0, log=print, train=train_predictor, **stack_kw) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1-3 and the ablations).
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the ablations).
 
     Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
     same validation set ('rel_<metric>', scaled as in the paper's tables, RELATIVE_SCALE). train(method, data,

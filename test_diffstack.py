@@ -163,6 +163,21 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
     assert far.valid.sum() < c.valid.sum()
 
 
+def test_planner_takes_any_number_of_accelerations_and_offsets():
+    """A Config with 3 accelerations and 1 offset (e.g. --set plan_accels=-1,0,1 --set plan_offsets=0) gives exactly
+    the default planner's candidates for those terminal states."""
+    s0, goal, ctx = toy_scene()
+    full_cfg = ds.Config()
+    small_cfg = ds.Config(plan_accels=(-1.0, 0.0, 1.0), plan_offsets=(0.0,))
+    full = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, full_cfg)
+    small = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, small_cfg)
+    G = full.x.shape[1] // 24
+    assert small.x.shape[1] == G * 3
+    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(3, G * 3, 7, 4)  # accel -1, 0, 1; offset 0
+    assert torch.allclose(small.x, pick)
+    assert torch.equal(small.valid, full.valid.reshape(3, G, 8, 3)[:, :, [2, 4, 6], 1].reshape(3, G * 3))
+
+
 def test_plan_is_argmin_and_flags_unplannable():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()

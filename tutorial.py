@@ -633,7 +633,7 @@ plt.show()
 # **DiffStack** trains the predictor with all three losses, $\alpha = (1, 100, 1000)$ in the RL setting; the
 # gradient of $\mathcal L_\text{plan}$ reaches the predictions through the candidate costs $C_n$ (the collision
 # term), and that of $\mathcal L_\text{ctr}$ (the hindsight cost of the controller's trajectory) through the KKT
-# backward of §5. The baselines of Table 1: *No prediction* (the predicted vehicle ignored), *Standard*,
+# backward of section 5 above. The baselines of Table 1: *No prediction* (the predicted vehicle ignored), *Standard*,
 # *Distance weighted* and *∇Cost weighted* (L_pred reweighted per sample by closeness to the ego / by how much the
 # cost reacts to that agent), *DiffStack (no L_pred)*, and the oracle *GT prediction*. The planning loss and the
 # hindsight cost are reported **relative to No prediction** (negative = better), as in the paper.
@@ -749,32 +749,32 @@ plot_table(res2, "rl", "Table 2: a 1 m bias in the prediction targets")
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
-methods3 = [m for m in ds.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-res3 = xp.open_loop_experiment(data, cfg, "il", methods3, seeds=(SEED,), epochs=EPOCHS, log=None)
+methods_il = [m for m in ds.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+res_il = xp.open_loop_experiment(data, cfg, "il", methods_il, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.open_loop_table(res3, "il")))
-rel = {n: r[0]["rel_mse"] for n, r in res3.items()}
+display(Markdown(ds.open_loop_table(res_il, "il")))
+rel = {n: r[0]["rel_mse"] for n, r in res_il.items()}
 checkpoint("Table 4: DiffStack's minus Standard's relative MSE (x1e-2)", rel["DiffStack"] - rel["Standard"],
            7.61 if QUICK else -13.68, 1.5 if QUICK else 3.0)
-plot_table(res3, "il", "Table 4 (IL setting): lower is better")
+plot_table(res_il, "il", "Table 4 (IL setting): lower is better")
 
 # %% [markdown]
 # **Cost learning (Table 3).** The cost weights themselves can be learned through the controller: in the IL
 # setting, $w_i = \alpha\,c\,e^{\psi_i} / \sum_j e^{\psi_j}$ (App. A.2), $\psi_1$ (collision) fixed, initialised to
 # the hand-tuned weights; $\mathcal L = \alpha_3\,\mathcal L_\text{ctr}$, and $\partial\mathcal L/\partial w$ comes
-# from the KKT backward of §5 (the weights are parameters of the iLQR problem). The predictor is a frozen Standard
+# from the KKT backward of section 5 above (the weights are parameters of the iLQR problem). The predictor is a frozen Standard
 # one. The table lists the normalised weights $w'$, the scale $\alpha$, and the absolute IL planning loss and MSE.
 
 # %%
 # Table 3 (cost learning). Expected run time: ~5 s quick, ~65 s full.
 t0 = time.time()
-res4 = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
+res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(xp.results_markdown(xp.TABLES["cost"], res4)))
+display(Markdown(xp.results_markdown(xp.TABLES["cost"], res_cost)))
 with tempfile.TemporaryDirectory() as tmp:
-    xp.figure_cost_weights(res4, Path(tmp) / "w.png")
+    xp.figure_cost_weights(res_cost, Path(tmp) / "w.png")
     display(Image(filename=str(Path(tmp) / "w.png"), width=560))
-mse = {n: r[0]["mse"] for n, r in res4.items()}
+mse = {n: r[0]["mse"] for n, r in res_cost.items()}
 checkpoint("Table 3: MSE with learned / with hand-tuned weights", mse["Learned"] / mse["Hand-tuned"],
            0.90 if QUICK else 0.54, 0.1)
 
@@ -855,8 +855,8 @@ checkpoint("dt = 0.1 s: DiffStack's minus Standard's relative hindsight cost (x1
 # %% [markdown]
 # ## Where to go from here
 #
-# * `python experiments.py --experiment rl --seeds 5 --epochs ...` runs Tables 1, 2 and 4 with several seeds and writes
-#   `results/<name>.md`; more steps and more data move the numbers towards the paper's shape.
+# * `python experiments.py --experiment rl --seeds 5 --out runs` runs Table 1 with several seeds (`biased`, `cost`, `il`,
+#   `closed_loop`: Tables 2-5) and writes `runs/<name>.md`; more steps and more data move the numbers towards the paper's shape.
 #   `--experiment ablation` runs the ablations of App. A.1, `--experiment all` every table and one report.
 # * Change `cfg` (e.g. `ds.Config(beta=10.0)`, other cost weights, `ilqr_iters`) and re-run a section: every
 #   experiment cell seeds itself.
