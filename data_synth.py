@@ -1004,6 +1004,9 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     ag = scenes.agents[ar, pred][ar[:, None], win]  # (S, 15, 4)
     ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
     ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
+    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real track can be
+    # occluded for a frame; differences across the gap would not be velocities, so steps before it count as missing)
+    hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
 
     # the others: present at t0, near, closest first
     M = scenes.agents.shape[1]
@@ -1034,7 +1037,7 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
 
     out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
-                    agent_hist_mask=ag_mask[:, : H + 1], agent_fut=ag[:, H + 1:],
+                    agent_hist_mask=hist_mask, agent_fut=ag[:, H + 1:],
                     others_hist=o[:, :, : H + 1], others_fut=o[:, :, H + 1:], others_mask=o_mask,
                     others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
                     lanes=lane_pts * lane_mask[..., None], lanes_mask=lane_mask, goal=ego[:, -1].clone(),

@@ -13,6 +13,7 @@ import data_synth
 import diffstack as ds
 
 DT = 0.5
+TINY_PRED = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
 
 def rk4_reference(s, u, dt, substeps=2000):
@@ -1104,6 +1105,26 @@ def test_sample_at_with_a_simulated_ego(scenes_mixed):
         data_synth.sample_at(scenes, 20, ego_state=state[:, :3], cfg=cfg)
     with pytest.raises(ValueError, match="frames must be in"):
         data_synth.sample_at(scenes, 35, cfg=cfg)
+
+
+def test_an_occluded_history_frame_leaves_a_usable_sample(scenes_mixed):
+    """A real track can miss a frame in the middle of the history: the sample keeps the unbroken run of observed
+    steps that ends at t0 (a prefix mask, as check_batch requires), and the predictor runs on it."""
+    scenes, cfg = scenes_mixed
+    f0 = 20
+    pred = scenes.pred_idx[:, f0]
+    mask = scenes.agents_mask.clone()
+    ar = torch.arange(len(scenes))
+    mask[ar, pred, f0 - 3] = False  # occluded 1.5 s before t0
+    gap = data_synth.Scenes(**{**scenes.tensors(), "agents_mask": mask, "names": scenes.names})
+    b = data_synth.sample_at(gap, f0, cfg=cfg)
+    H = cfg.hist
+    want = torch.zeros(len(scenes), H + 1, dtype=torch.bool)
+    want[:, H - 2:] = True  # the 3 steps after the gap (t0 - 1 s .. t0)
+    assert torch.equal(b.agent_hist_mask, want & scenes.agents_mask[ar, pred, f0 - H:f0 + 1])
+    model = ds.Predictor(ds.Config(**TINY_PRED))
+    pred_out = model.eval()(b, use_posterior=False)
+    assert torch.isfinite(pred_out.states).all()
 
 
 def test_cache_round_trip_and_foreign_file(tmp_path):
