@@ -50,7 +50,6 @@ import pathlib
 import platform
 import statistics
 import sys
-import tempfile
 import time
 import warnings
 
@@ -58,9 +57,9 @@ import torch
 import torch.utils.benchmark as benchmark
 
 import data_synth
-from diffstack import (Config, Method, Predictor, Unicycle, alphas, ilqr, ilqr_solve, plan_candidates, pred_loss,
+from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
                        run_stack, unicycle_jacobians, unicycle_rollout)
-from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy
+from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy, write_atomic
 
 DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
 
@@ -362,7 +361,7 @@ def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
             errors[name] = dict(median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx))
     log(f"mpc.pytorch side by side: B = {B} unicycle tracking problems, T = 6, dt 0.5, float64, box controls; "
         f"median (IQR) of {reps} alternating runs")
-    log(markdown(head, lines))
+    log(markdown_table(head, lines))
     for name, e in errors.items():
         log(f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: median {e['median']:.1e}, "
             f"90th percentile {e['p90']:.1e}, max {e['max']:.1e}")
@@ -376,16 +375,10 @@ def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
 QUICK = dict(batch=16, reps=2, scenes=2, sim_time=2.0)  # --quick: seconds, not minutes
 
 
-def markdown(head, rows) -> str:
-    """A markdown table: head [str], rows [[str]]."""
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
-
-
 def results_table(rows) -> str:
     """The figures as one markdown table."""
     num = lambda v: f"{v:.1f}" if v < 100 else f"{v:.0f}"  # noqa: E731
-    return markdown(["benchmark", "B", "dtype", "threads", "median (ms)", "IQR (ms)", "runs", "note"],
+    return markdown_table(["benchmark", "B", "dtype", "threads", "median (ms)", "IQR (ms)", "runs", "note"],
                     [[r["benchmark"], "" if r["batch"] is None else str(r["batch"]), r["dtype"], str(r["threads"]),
                       num(r["median_ms"]), num(r["iqr_ms"]), str(r["runs"]), r["note"]] for r in rows])
 
@@ -431,36 +424,12 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
     )
 
 
-def write_json_atomic(path: pathlib.Path, doc: dict) -> None:
-    """A temporary file in the same folder, then a rename: a kill mid-write leaves no half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (argparse names the argument in its error)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
                                              "predictor, a training step, the closed loop, and mpc.pytorch side by side.")
-    ap.add_argument("--threads", type=positive_int, nargs="+", default=[1, 2], help="torch thread counts (default 1 2)")
-    ap.add_argument("--reps", type=positive_int, help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
-    ap.add_argument("--batch", type=positive_int, help="scenarios / problems per batch (default 256; --quick 16)")
+    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), nargs="+", default=[1, 2], help="torch thread counts (default 1 2)")
+    ap.add_argument("--reps", type=bounded(int, 1, 10_000, "--reps"), help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
+    ap.add_argument("--batch", type=bounded(int, 1, 1_000_000, "--batch"), help="scenarios / problems per batch (default 256; --quick 16)")
     ap.add_argument("--json", type=pathlib.Path, metavar="PATH", help="also write every figure to this JSON file")
     ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
@@ -477,7 +446,8 @@ def main(argv=None) -> dict:
         torch.set_num_threads(before)  # main() may run inside another process (the tests)
     doc["meta"]["command"] = " ".join(["python bench.py", *(sys.argv[1:] if argv is None else argv)])
     if args.json is not None:
-        write_json_atomic(args.json, doc)
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(args.json, json.dumps(doc, indent=1))
         print(f"\nwrote {args.json}")
     return doc
 

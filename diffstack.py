@@ -1916,8 +1916,8 @@ def bounded(kind, lo, hi, name):
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
         if not math.isfinite(x) or x > hi or (x <= lo if kind is float else x < lo):
-            raise argparse.ArgumentTypeError(f"{name} must be {'>' if kind is float else '>='} {lo:g} and <= {hi:g}, "
-                                             f"got {text!r}")
+            bounds = f"> {lo:g} and <= {hi:g}" if kind is float else f"from {lo:,} to {hi:,}"
+            raise argparse.ArgumentTypeError(f"{name} must be {bounds}, got {text!r}")
         return x
 
     return parse

@@ -28,6 +28,7 @@ import pathlib
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -699,11 +700,17 @@ def git_commit() -> str | None:
 
 
 def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact."""
+    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact,
+    and a failed write leaves no temporary file behind."""
     path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
 
 
 def save_figure(fig, path) -> None:

@@ -79,6 +79,7 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         ex.write_atomic(path, json.dumps({"new": 1}))
     assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]  # and no half-written temporary file is left
 
 
 # ---------------------------------------------------------------------------------------------
