@@ -392,6 +392,13 @@ class CostContext:
     goal: torch.Tensor  # (B, 2)         goal position at T
     lanes: torch.Tensor  # (B, L, P, 3)  lane centre lines (x, y, heading)
     lanes_mask: torch.Tensor  # (B, L, P)
+    # the lanes' features for the nearest-point search of project_to_lanes (B, 5, L*P): derived from the lanes,
+    # computed once here because a training step evaluates the cost about 20 times on the same lanes
+    lane_search: torch.Tensor | None = None
+
+    def __post_init__(self):
+        if self.lane_search is None:
+            self.lane_search = lane_search_features(self.lanes, self.lanes_mask)
 
     def tensors(self):
         return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes, self.lanes_mask)
@@ -415,11 +422,25 @@ def lane_segments(p, lanes, lanes_mask):
     return frac, d2, lane_h, seg_ok.expand_as(d2)
 
 
-def project_to_lanes(pos, heading, lanes, lanes_mask):
+_SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as if it were 10 m further away
+
+
+def lane_search_features(lanes, lanes_mask):
+    """The lane points' side of project_to_lanes' search product, [p, u(h_p), |p|^2 + lam] (1e30 for padding):
+    lanes (B, L, P, 3), lanes_mask (B, L, P) -> (B, 5, L*P). No gradient: the search only picks an index."""
+    B, L, P, _ = lanes.shape
+    pts = lanes.detach().reshape(B, L * P, 3)
+    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pts[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
+    feat = torch.cat([pts[..., :2], torch.cos(pts[..., 2:]), torch.sin(pts[..., 2:]), p_norm[..., None]], -1)
+    return feat.transpose(1, 2).contiguous()  # (B, 5, L*P)
+
+
+def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
     """The lane point closest to each state: squared lateral distance and heading error.
 
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). Only lane points whose
-    heading is within 90 degrees of the state's count, so an oncoming lane is never 'closest'.
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
+    lane_search_features (computed here if not given). Only lane points whose heading is within 90 degrees
+    of the state's count, so an oncoming lane is never 'closest'.
     Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the
     exact projection on the two segments that meet there. The search ranks points by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
@@ -429,16 +450,14 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
     pts = lanes.reshape(B, L * P, 3)
-    unit = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
+    search = lane_search_features(lanes, lanes_mask) if search is None else search  # (B, 5, L*P)
     # 1. nearest point: |q|^2 is the same for every p and drops out of the ranking, and the rest is one
-    #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]  (1e30 for padding points)
-    lam, qd, pd = 50.0, q.detach(), pts.detach()
-    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pd[..., :2] ** 2).sum(-1) + lam, 1e30)  # (B, L*P)
-    feat_q = torch.cat([-2 * qd, -lam * unit(hq.detach()), torch.ones_like(qd[..., :1])], -1)  # (B, Q, 5)
-    feat_p = torch.cat([pd[..., :2], unit(pd[..., 2]), p_norm[..., None]], -1)  # (B, L*P, 5)
-    j = (feat_q @ feat_p.transpose(1, 2)).argmin(-1)  # (B, Q)
+    #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]
+    qd, hd = q.detach(), hq.detach()
+    feat_q = torch.cat([-2 * qd, -_SEARCH_LAM * torch.stack([torch.cos(hd), torch.sin(hd)], -1), torch.ones_like(qd[..., :1])], -1)
+    j = (feat_q @ search).min(-1).indices  # (B, Q); min's indices: argmin's (the first minimum), at half the time
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
-    has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hq.detach() - near[..., 2].detach()) > 0)
+    has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hd - near[..., 2].detach()) > 0)
     # 2. exact projection on the segments before and after that point (a lane's valid points are a prefix)
     lane, i = j // P, j % P
     n_valid = lanes_mask.sum(-1).gather(1, lane)  # (B, Q)
@@ -491,7 +510,7 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     # C_goal = ||s_T - g||^2
     goal = ((pos[..., -1, :] - view(ctx.goal)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
-    lat, head_err, _ = project_to_lanes(pos, head, ctx.lanes, ctx.lanes_mask)
+    lat, head_err, _ = project_to_lanes(pos, head, ctx.lanes, ctx.lanes_mask, ctx.lane_search)
     # C_u = sum_t w_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
     return torch.stack([coll, goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
@@ -1620,7 +1639,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
 
         def cost_fn(x, u, w, preds, probs):  # eq. (3) as the solver sees it: a function of (x, u) and its parameters
-            c = CostContext(preds, probs, ctx.pred_mask, ctx.others, ctx.others_mask, ctx.goal, ctx.lanes, ctx.lanes_mask)
+            c = dataclasses.replace(ctx, preds=preds, probs=probs)  # the lanes' search features come along
             return weigh(cost_terms(x, u, c, cfg.rbf_var), w)
 
         x, u, converged = ilqr_solve(cost_fn, Unicycle(dt), s0, u_init, (w, preds, probs), cfg.u_lower, cfg.u_upper,
