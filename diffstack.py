@@ -401,7 +401,8 @@ class CostContext:
             self.lane_search = lane_search_features(self.lanes, self.lanes_mask)
 
     def tensors(self):
-        return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes, self.lanes_mask)
+        return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes,
+                self.lanes_mask, self.lane_search)
 
 
 def lane_segments(p, lanes, lanes_mask):
@@ -435,17 +436,17 @@ def lane_search_features(lanes, lanes_mask):
     return feat.transpose(1, 2).contiguous()  # (B, 5, L*P)
 
 
-def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
-    """The lane point closest to each state: squared lateral distance and heading error.
+def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
+    """The lane segment closest to each state, and whether there is one.
 
     pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
     lane_search_features (computed here if not given). Only lane points whose heading is within 90 degrees
     of the state's count, so an oncoming lane is never 'closest'.
-    Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the
-    exact projection on the two segments that meet there. The search ranks points by
+    Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the closer
+    of the two segments that meet there. The search ranks points by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
     so a lane pointing the other way counts as 10 m further away: one batched matrix product.
-    Returns d2, heading error and has_lane, each (B, ...); where no lane matches, d2 = error = 0.
+    Returns the segment's ends a, b (B, Q, 3) (Q: the states, flattened) and has_lane (B, Q).
     """
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
@@ -458,23 +459,42 @@ def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
     j = (feat_q @ search).min(-1).indices  # (B, Q); min's indices: argmin's (the first minimum), at half the time
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
     has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hd - near[..., 2].detach()) > 0)
-    # 2. exact projection on the segments before and after that point (a lane's valid points are a prefix)
+    # 2. the closer of the segments before and after that point (a lane's valid points are a prefix)
     lane, i = j // P, j % P
     n_valid = lanes_mask.sum(-1).gather(1, lane)  # (B, Q)
     point = lambda k: pts.gather(1, (lane * P + k)[..., None].expand(B, -1, 3))  # noqa: E731  (B, Q, 3)
     prev, here, nxt = point((i - 1).clamp_min(0)), point(i), point(torch.minimum(i + 1, (n_valid - 1).clamp_min(0)))
-    best = None
-    for a, b in ((prev, here), (here, nxt)):
-        d = b[..., :2] - a[..., :2]
-        frac = (((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)
-        dist2 = ((q - a[..., :2] - frac[..., None] * d) ** 2).sum(-1)
-        lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
-        if best is None:
-            best = (dist2, lane_h)
-        else:
-            closer = dist2 < best[0]
-            best = (torch.where(closer, dist2, best[0]), torch.where(closer, lane_h, best[1]))
-    d2, err = torch.where(has_lane, best[0], 0.0), torch.where(has_lane, wrap_angle(hq - best[1]), 0.0)
+    closer = segment_projection(qd, here.detach(), nxt.detach())[1].square().sum(-1) < \
+        segment_projection(qd, prev.detach(), here.detach())[1].square().sum(-1)  # (B, Q)
+    return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
+
+
+def segment_projection(q, a, b):
+    """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
+    frac (...,) the fraction along the segment (clamped to [0, 1]), r = q - closest point (..., 2), the
+    lane heading there (...,) (interpolated between the ends), and dfrac/dq (..., 2) (0 where clamped)."""
+    d = b[..., :2] - a[..., :2]  # (..., 2)
+    dd = (d * d).sum(-1).clamp_min(1e-9)
+    raw = ((q - a[..., :2]) * d).sum(-1) / dd
+    frac = raw.clamp(0, 1)
+    r = q - a[..., :2] - frac[..., None] * d
+    lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
+    dfrac = torch.where(((raw >= 0) & (raw <= 1))[..., None], d / dd[..., None], 0.0)  # as clamp's gradient
+    return frac, r, lane_h, dfrac
+
+
+def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
+    """The lane point closest to each state: squared lateral distance and heading error.
+
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
+    lane_search_features (optional). The closest point lies on nearest_lane_segment's segment.
+    Returns d2, heading error and has_lane, each (B, ...); where no lane matches, d2 = error = 0.
+    """
+    B = lanes.shape[0]
+    a, b, has_lane = nearest_lane_segment(pos, heading, lanes, lanes_mask, search)  # (B, Q, 3) x 2, (B, Q)
+    _, r, lane_h, _ = segment_projection(pos.reshape(B, -1, 2), a, b)
+    d2 = torch.where(has_lane, (r**2).sum(-1), 0.0)
+    err = torch.where(has_lane, wrap_angle(heading.reshape(B, -1) - lane_h), 0.0)
     return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
 
 
@@ -532,6 +552,78 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
     Checks its input (the stack's inner loops call weigh(cost_terms(...)) unchecked)."""
     check_cost_inputs(x, u, ctx, w, rbf_var)
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
+
+
+def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
+    """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in z_t = (x, y, h, v, w, a), step by
+    step (x_0 costs nothing; u_T = 0 pads the last step), in closed form: what cost_expansion computes by
+    autodiff, at a fraction of its cost. x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
+
+    With p, h a state's position and heading (sigma^2 = rbf_var):
+      C_coll   phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t (c = exp(-spread / 2 sigma^2)) and
+               per other agent:  grad = -phi (p - m) / sigma^2,  Hess = phi ((p - m)(p - m)' / sigma^4 - I / sigma^2)
+      C_goal   |p_T - g|^2:  grad = 2 (p_T - g),  Hess = 2 I
+      C_lat    |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b (d = b - a), f the
+               fraction along it:  dr/dp = J = I - d df',  grad = 2 J'r,  Hess = 2 J'J   (f is linear in p: df
+               = d / |d|^2, or 0 where f is clamped)
+      C_head   e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,  de/dp = -(h_b - h_a) df,
+               grad = 2 e de,  Hess = 2 de de'
+      C_u      w^2 + a^2:  grad = 2 u,  Hess = 2 I
+    """
+    B, T = u.shape[:2]
+    dtype, dev = x.dtype, x.device
+    wc, wg, wl, wh, wu = w.expand(B, 5)[:, :, None].unbind(1)  # (B, 1) each: broadcast over the steps
+    p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
+    eye = torch.eye(2, dtype=dtype, device=dev)
+    outer = lambda a, b: a[..., :, None] * b[..., None, :]  # noqa: E731
+    # C_coll: the predicted mean first, then the other agents
+    mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
+    spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
+    diff = p[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
+    offset = torch.cat([spread[:, None], torch.zeros_like(ctx.others[..., 0])], 1)  # (B, 1+A, T)
+    mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
+    phi = mask * torch.exp(-((diff**2).sum(-1) + offset) / (2 * rbf_var))  # (B, 1+A, T)
+    g_coll = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
+    H_coll = (phi[..., None, None] * (outer(diff, diff) / rbf_var**2 - eye / rbf_var)).sum(1)  # (B, T, 2, 2)
+    # C_lat and C_head, on the nearest lane segment
+    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask, ctx.lane_search)  # (B, T, 3) x 2, (B, T)
+    _, r, lane_h, df = segment_projection(p, a, b)  # (B, T, 2), (B, T), (B, T, 2)
+    on = has_lane.to(dtype)  # (B, T)
+    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2)
+    g_lat = 2 * (J.transpose(-1, -2) @ r[..., None])[..., 0] * on[..., None]
+    H_lat = 2 * J.transpose(-1, -2) @ J * on[..., None, None]
+    e = wrap_angle(h - lane_h) * on  # (B, T)
+    de = torch.cat([-wrap_angle(b[..., 2] - a[..., 2])[..., None] * df, torch.ones_like(e)[..., None]], -1)  # (B, T, 3)
+    g_head = 2 * e[..., None] * de  # (B, T, 3): d/d(p, h)
+    H_head = 2 * outer(de, de) * on[..., None, None]  # (B, T, 3, 3)
+    # assemble per step: the states t1..T in rows 1..T, the controls t0..T-1 in rows 0..T-1
+    g = torch.zeros(B, T + 1, 6, dtype=dtype, device=dev)
+    H = torch.zeros(B, T + 1, 6, 6, dtype=dtype, device=dev)
+    g[:, 1:, :2] = wc[..., None] * g_coll + wl[..., None] * g_lat
+    g[:, 1:, :3] += wh[..., None] * g_head
+    g[:, T, :2] += 2 * wg * (p[:, -1] - ctx.goal)
+    g[:, :T, 4:] = 2 * wu[..., None] * u
+    H[:, 1:, :2, :2] = wc[..., None, None] * H_coll + wl[..., None, None] * H_lat
+    H[:, 1:, :3, :3] += wh[..., None, None] * H_head
+    H[:, T, :2, :2] += 2 * wg[..., None] * eye
+    H[:, :T, 4:, 4:] = 2 * wu[..., None, None] * eye
+    return g, H
+
+
+class StackCost:
+    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every argument per scenario.
+    Its `expansion` is the closed form above, which the solver takes instead of autodiff (as it takes the
+    unicycle's closed-form Jacobians): forward-mode autodiff over a reverse pass costs some 30 ms a call
+    whatever the batch size, and a training step expands the cost six times or more."""
+
+    def __init__(self, rbf_var: float):
+        self.rbf_var = rbf_var
+
+    def __call__(self, x, u, w, *context):
+        return weigh(cost_terms(x, u, CostContext(*context), self.rbf_var), w)
+
+    def expansion(self, x, u, w, *context):
+        return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
 
 
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
@@ -743,7 +835,10 @@ def _split(z, n, T):
 
 
 def cost_expansion(cost_fn, x, u, params):
-    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
+    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step.
+    Closed form where the cost provides it (StackCost), forward-over-reverse autodiff otherwise."""
+    if hasattr(cost_fn, "expansion"):
+        return cost_fn.expansion(x, u, *params)
     n, T = x.shape[-1], u.shape[1]
     z = torch.cat([x, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m)
     grad = torch.func.grad(lambda z: cost_fn(*_split(z, n, T), *params).sum())
@@ -871,7 +966,8 @@ class ILQRInfo:
     costs: torch.Tensor  # (B, I+1) true cost after each iteration (the first: at u_init)
 
 
-def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0):
+def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0,
+         batched_params=False):
     """iLQR with box controls (App. C.2). Differentiable if the inputs are (autograd through the
     unrolled iterations; `ILQR` below gives the cheap exact gradient instead).
 
@@ -879,6 +975,8 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     and the dynamics to first order, solve the box-constrained LQR, line-search the step scale
     1, 1/5, 1/25, ... per scenario (all scales rolled out at once) and keep the largest that does not
     raise the true cost. A scenario whose full step is below tol has converged and stops moving.
+    batched_params: every tensor in params is per scenario, (B, ...); the iterations then work on the
+    scenarios still moving only (most converge in one or two of the five), otherwise on all of them.
     Returns x (B, T+1, n), u (B, T, m), ILQRInfo.
     """
     Bsz, T, m = u_init.shape
@@ -889,40 +987,46 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     cost = cost_fn(x, u, *params)
     eps = torch.finfo(x.dtype).eps
     pd_eps = 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
-    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype)  # (ls_steps,) 1, 1/5, ...
-    active = torch.ones(Bsz, dtype=torch.bool)
-    step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype)
-    n_iter = torch.zeros(Bsz, dtype=torch.long)
+    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # (ls_steps,) 1, 1/5, ...
+    active = torch.ones(Bsz, dtype=torch.bool, device=x.device)
+    step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype, device=x.device)
+    n_iter = torch.zeros(Bsz, dtype=torch.long, device=x.device)
     costs = [cost]
     for _ in range(iters):
-        g, H = cost_expansion(cost_fn, x, u, params)
-        A, Bm = dynamics_jacobians(dynamics, x, u)
-        k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo - u, hi - u, pd_eps)
+        # the scenarios this iteration works on (b of them): those still moving, or all
+        i = active.nonzero()[:, 0] if batched_params else torch.arange(Bsz, device=x.device)  # (b,)
+        xi, ui, ci, lo_i, hi_i = x[i], u[i], cost[i], lo[i], hi[i]
+        pi = tuple(p[i] if torch.is_tensor(p) else p for p in params) if batched_params else params
+        g, H = cost_expansion(cost_fn, xi, ui, pi)
+        A, Bm = dynamics_jacobians(dynamics, xi, ui)
+        k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo_i - ui, hi_i - ui, pd_eps)
         # closed-loop rollouts of every step scale at once: u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t))
-        xs = [x_init[:, None].expand(Bsz, ls_steps, n)]
+        b = len(xi)
+        xs = [xi[:, None, 0].expand(b, ls_steps, n)]
         us = []
         for t in range(T):
-            du = scales[:, None] * k[:, None, t] + (K[:, None, t] @ (xs[-1] - x[:, None, t])[..., None])[..., 0]
-            us.append((u[:, None, t] + du).clamp(lo[:, None, t], hi[:, None, t]))  # (B, ls_steps, m)
+            du = scales[:, None] * k[:, None, t] + (K[:, None, t] @ (xs[-1] - xi[:, None, t])[..., None])[..., 0]
+            us.append((ui[:, None, t] + du).clamp(lo_i[:, None, t], hi_i[:, None, t]))  # (b, ls_steps, m)
             xs.append(dynamics(xs[-1], us[-1]))
-        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (B, ls_steps, T+1, n), (B, ls_steps, T, m)
-        c_try = cost_fn(x_try, u_try, *params)  # (B, ls_steps)
-        ok = c_try <= cost[:, None] + 100 * eps * (1 + cost.abs()[:, None])  # no increase, up to rounding
-        first = torch.where(ok, torch.arange(ls_steps), ls_steps).min(-1).values  # largest accepted scale
-        accept = active & (first < ls_steps)
+        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (b, ls_steps, T+1, n), (b, ls_steps, T, m)
+        c_try = cost_fn(x_try, u_try, *pi)  # (b, ls_steps)
+        ok = c_try <= ci[:, None] + 100 * eps * (1 + ci.abs()[:, None])  # no increase, up to rounding
+        first = torch.where(ok, torch.arange(ls_steps, device=x.device), ls_steps).min(-1).values  # largest accepted
+        accept = active[i] & (first < ls_steps)
         pick = first.clamp(max=ls_steps - 1)
-        idx = torch.arange(Bsz)
-        full_step = (u_try[:, 0] - u).flatten(1).norm(dim=-1)  # the full LQR step, scale 1
-        step_norm = torch.where(active, full_step, step_norm)
-        n_iter = n_iter + active.long()
+        rows = torch.arange(b, device=x.device)
+        full_step = (u_try[:, 0] - ui).flatten(1).norm(dim=-1)  # the full LQR step, scale 1
+        step_norm = step_norm.index_put((i,), torch.where(active[i], full_step, step_norm[i]))
+        n_iter = n_iter.index_put((i,), n_iter[i] + active[i].long())
         sel = lambda new, old: torch.where(accept.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
-        x, u, cost = sel(x_try[idx, pick], x), sel(u_try[idx, pick], u), sel(c_try[idx, pick], cost)
+        x = x.index_put((i,), sel(x_try[rows, pick], xi))
+        u = u.index_put((i,), sel(u_try[rows, pick], ui))
+        cost = cost.index_put((i,), sel(c_try[rows, pick], ci))
         costs.append(cost)
         active = active & (step_norm >= tol)
         if not active.any():
             break
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
-
 
 
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
@@ -1001,10 +1105,12 @@ class ILQR(torch.autograd.Function):
         return (None, None, None, None, p0, None, *grads)
 
 
-def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True):
+def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True,
+               batched_params=False):
     """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,).
 
     Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
+    batched_params: every tensor in params is per scenario, (B, ...) (then the solver skips converged scenarios).
     """
     check_tensor("x_init", x_init, (None, None))
     B, n = x_init.shape
@@ -1016,7 +1122,9 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     for i, p in enumerate(params):
         if torch.is_tensor(p) and p.is_floating_point():
             check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
-    settings = dict(lo=lo, hi=hi, iters=iters, tol=tol, ls_steps=ls_steps, ls_decay=ls_decay)
+        if batched_params and torch.is_tensor(p) and (p.dim() == 0 or p.shape[0] != B):
+            raise ValueError(f"params[{i}]: batched_params needs per-scenario tensors ({B}, ...), got {tuple(p.shape)}")
+    settings = dict(lo=lo, hi=hi, iters=iters, tol=tol, ls_steps=ls_steps, ls_decay=ls_decay, batched_params=batched_params)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
 
@@ -1638,13 +1746,11 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     if controller:
         u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
 
-        def cost_fn(x, u, w, preds, probs):  # eq. (3) as the solver sees it: a function of (x, u) and its parameters
-            c = dataclasses.replace(ctx, preds=preds, probs=probs)  # the lanes' search features come along
-            return weigh(cost_terms(x, u, c, cfg.rbf_var), w)
-
-        x, u, converged = ilqr_solve(cost_fn, Unicycle(dt), s0, u_init, (w, preds, probs), cfg.u_lower, cfg.u_upper,
+        # every parameter per scenario (w (5,) too, as a view), so that the solver can set converged scenarios aside
+        params = (w.expand(B, 5), *ctx.tensors())
+        x, u, converged = ilqr_solve(StackCost(cfg.rbf_var), Unicycle(dt), s0, u_init, params, cfg.u_lower, cfg.u_upper,
                                      iters=cfg.ilqr_iters, tol=cfg.ilqr_tol, ls_steps=cfg.line_search_steps,
-                                     ls_decay=cfg.line_search_decay)
+                                     ls_decay=cfg.line_search_decay, batched_params=True)
     else:
         x, u = cands.x[idx, best], cands.u[idx, best]
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)

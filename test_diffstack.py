@@ -1,5 +1,6 @@
 """Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread (conftest.py).
 experiments.py, bench.py and the notebook have test files of their own."""
+import dataclasses
 import json
 import math
 import os
@@ -315,6 +316,58 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
     for a, b in zip(unrolled, kkt):
         if b.abs().sum() > 0:
             assert rel_err(a, b) < 1e-8
+
+
+def _cast(batch, dtype):
+    fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(batch)}
+    return dataclasses.replace(batch, **{k: v.to(dtype) for k, v in fields.items() if torch.is_tensor(v) and v.is_floating_point()})
+
+
+def test_closed_form_cost_expansion_matches_autodiff(small):
+    """StackCost.expansion (the closed form the controller uses) equals forward-over-reverse autodiff of the same
+    cost, on synthetic scenes with states on lanes, past a lane's end (clamped projection) and with no lane."""
+    cfg = ds.Config()
+    b = _cast(small.train[:64], torch.float64)
+    b = dataclasses.replace(b, lanes_mask=b.lanes_mask.clone())
+    b.lanes_mask[:3] = False  # three scenarios without lanes
+    B = len(b)
+    g = torch.Generator().manual_seed(0)
+    preds = b.agent_fut[:, None, :, :2] + torch.randn(B, 3, 6, 2, generator=g, dtype=torch.float64)
+    probs = torch.softmax(torch.randn(B, 3, generator=g, dtype=torch.float64), -1)
+    ctx, _ = ds.cost_contexts(b, preds, probs, (torch.arange(B) % 3 > 0).to(torch.float64))  # some without a prediction
+    u = torch.randn(B, 6, 2, generator=g, dtype=torch.float64) * torch.tensor([0.6, 2.0], dtype=torch.float64)
+    x = ds.unicycle_rollout(b.ego_hist[:, -1], u, cfg.dt)
+    w = ds.cost_weights(cfg, torch.float64) * torch.rand(B, 5, generator=g, dtype=torch.float64)  # per-scenario weights
+    params = (w, *ctx.tensors())
+    cost = ds.StackCost(cfg.rbf_var)
+    g1, H1 = ds.cost_expansion(cost, x, u, params)  # closed form
+    g2, H2 = ds.cost_expansion(lambda x, u, *p: cost(x, u, *p), x, u, params)  # a plain function: autodiff
+    assert rel_err(g1, g2) < 1e-12 and rel_err(H1, H2) < 1e-12
+    # the check covers every case of the lane projection
+    a, bb, has_lane = ds.nearest_lane_segment(x[:, 1:, :2], x[:, 1:, 2], ctx.lanes, ctx.lanes_mask)
+    frac = ds.segment_projection(x[:, 1:, :2], a, bb)[0]
+    assert (~has_lane).sum() >= 5 and (has_lane & ((frac == 0) | (frac == 1))).sum() >= 3
+    assert (has_lane & (frac > 0) & (frac < 1)).sum() >= 100
+
+
+def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicycle_problem):
+    """The KKT gradients through StackCost (closed-form expansion, per-scenario parameters, converged scenarios
+    set aside) equal those through the same cost expanded by autodiff, whose gradients the test above checks
+    against finite differences."""
+    P = unicycle_problem
+    s0, goal, ctx = toy_scene()
+    cost = ds.StackCost(2.0)
+    B = len(s0)
+    base = (P["params"][0].expand(B, 5), *ctx.tensors())
+    grads = []
+    for fn, batched in ((cost, True), (lambda x, u, *p: cost(x, u, *p), False)):
+        leaves = [s0.clone().requires_grad_(), *[p.clone().requires_grad_() if p.is_floating_point() else p for p in base]]
+        x, u, _ = ds.ilqr_solve(fn, ds.Unicycle(DT), leaves[0], torch.zeros(B, 6, 2, dtype=torch.float64),
+                                tuple(leaves[1:]), P["lo"], P["hi"], iters=30, tol=1e-11, batched_params=batched)
+        loss = (x * P["wx"]).sum() + (u * P["wu"]).sum()
+        grads.append(torch.autograd.grad(loss, [leaves[i] for i in (0, 1, 2, 3, 7)]))  # x0, w, preds, probs, lanes
+    for a, b in zip(*grads):
+        assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
