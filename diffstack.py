@@ -856,6 +856,18 @@ def dynamics_jacobians(dynamics, x, u):
     return J[..., :n], J[..., n:]
 
 
+def _solve_small(M, rhs):
+    """M^-1 rhs for a batch of small matrices M (..., m, m), rhs (..., m, r). For m = 2 (the unicycle's
+    controls) by the closed-form inverse [[d, -b], [-c, a]] / (ad - bc), in elementwise ops: a batched LU
+    pays one library call per matrix on CPU, which was most of the controller's cost per problem."""
+    if M.shape[-1] != 2:
+        return torch.linalg.solve(M, rhs)
+    a, b, c, d = M[..., 0, 0, None], M[..., 0, 1, None], M[..., 1, 0, None], M[..., 1, 1, None]  # (..., 1) each
+    r0, r1 = rhs[..., 0, :], rhs[..., 1, :]  # (..., r)
+    det = a * d - b * c
+    return torch.stack([(d * r0 - b * r1) / det, (a * r1 - c * r0) / det], -2)
+
+
 def _solve_masked(Q, rhs, free):
     """Solve the rows of Q y = rhs that are free, with y = rhs on the others.
 
@@ -864,7 +876,7 @@ def _solve_masked(Q, rhs, free):
     """
     F = free.to(Q.dtype)
     M = F[..., :, None] * Q * F[..., None, :] + torch.diag_embed(1 - F)
-    return torch.linalg.solve(M, rhs)
+    return _solve_small(M, rhs)
 
 
 def box_qp(Q, q, lo, hi):
@@ -892,10 +904,21 @@ def box_qp(Q, q, lo, hi):
     return d[idx, best], free.expand(len(q), -1, -1)[idx, best]
 
 
+def _smallest_eigenvalue(Q):
+    """The smallest eigenvalue of symmetric matrices Q (B, m, m). For m = 2 in closed form,
+    lam = mean -+ sqrt(((a - c) / 2)^2 + b^2), the root nearer zero taken as det / (the other) when the
+    mean is positive so that it does not cancel; eigvalsh otherwise."""
+    if Q.shape[-1] != 2:
+        return torch.linalg.eigvalsh(Q)[..., 0]
+    a, b, c = Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 1]
+    mean, radius = (a + c) / 2, torch.hypot((a - c) / 2, b)
+    return torch.where(mean > 0, (a * c - b * b) / (mean + radius), mean - radius)
+
+
 def _make_pd(Q, eps):
     """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
-    lam = torch.linalg.eigvalsh(Q)[..., 0]
-    return Q + (eps - lam).clamp_min(0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype)
+    lam = _smallest_eigenvalue(Q)
+    return Q + (eps - lam).clamp_min(0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
 
 
 def riccati_backward(A, B, H, g, n, stage):

@@ -370,6 +370,29 @@ def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicy
         assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
+def test_closed_form_2x2_solve_and_eigenvalue_match_linalg():
+    """The controller's 2x2 closed forms (inverse, smallest eigenvalue) against torch.linalg, on well- and
+    ill-conditioned, indefinite and masked matrices; the general path (m = 3) is linalg itself."""
+    g = torch.Generator().manual_seed(0)
+    L = torch.randn(500, 2, 2, generator=g, dtype=torch.float64)
+    Q = L @ L.transpose(-1, -2) + torch.randn(500, 1, 1, generator=g, dtype=torch.float64) * torch.eye(2, dtype=torch.float64)
+    Q[:50] = torch.diag_embed(torch.tensor([1e6, 1e-3], dtype=torch.float64)).expand(50, 2, 2)  # ill-conditioned
+    Q[50:100, 0, 0] = -Q[50:100, 0, 0].abs()  # indefinite
+    lam = torch.linalg.eigvalsh(Q)[..., 0]
+    assert ((ds._smallest_eigenvalue(Q) - lam).abs() <= 1e-12 * torch.linalg.matrix_norm(Q, 2)).all()
+    # where the small eigenvalue is known exactly (diagonal), to its own relative precision: no cancellation
+    assert rel_err(ds._smallest_eigenvalue(Q[:50]), torch.full((50,), 1e-3, dtype=torch.float64)) < 1e-14
+    rhs = torch.randn(500, 2, 4, generator=g, dtype=torch.float64)
+    assert rel_err(ds._solve_small(Q, rhs), torch.linalg.solve(Q, rhs)) < 1e-10
+    free = torch.rand(500, 2, generator=g) > 0.3
+    y = ds._solve_masked(Q, rhs, free)
+    assert rel_err(y[~free], rhs[~free]) < 1e-14  # fixed rows keep the right-hand side
+    both = free.all(-1)
+    assert rel_err(y[both], torch.linalg.solve(Q[both], rhs[both])) < 1e-10
+    Q3 = Q[:10, :1, :1] * torch.eye(3, dtype=torch.float64) + 1
+    assert torch.equal(ds._smallest_eigenvalue(Q3), torch.linalg.eigvalsh(Q3)[..., 0])
+
+
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
