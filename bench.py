@@ -242,8 +242,8 @@ def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, r
 # line search (decay 1/5, 5 steps) and box; runs alternate in one process. mpc.pytorch's T = 7 convention adds a
 # 7th control that drives nothing: it gets weight R and reference 0, so it stays 0 and costs nothing.
 
-PEER_VENV = ("python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt && "
-             "/tmp/peers/bin/pip install --no-deps mpc==0.0.6")
+PEER_BASE = "python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt"
+PEER_VENV = f"{PEER_BASE} && /tmp/peers/bin/pip install --no-deps mpc==0.0.6"
 
 
 def import_peer(name: str):
@@ -406,7 +406,7 @@ _PYPOSE_CLASSES = {}
 
 def pypose_hint(why: str) -> str:
     """The one line printed instead of the PyPose comparison."""
-    return (f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_VENV} && {PYPOSE_VENV} "
+    return (f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_BASE} && {PYPOSE_VENV} "
             "then /tmp/peers/bin/python bench.py")
 
 
