@@ -14,7 +14,9 @@ What is timed (B = --batch scenarios or problems, default 256):
                   its parts predict / plan / control / backward are run_stack's `timings` laps (perf_counter)
     closed loop   log replay of 100 scenes x 10 s (20 replanning steps) with each stack of Table 5, one thread
     peers         the controller side by side with mpc.pytorch on the same problems, with the same solver settings,
-                  and both gradients against finite differences; PyPose: not implemented yet (a later issue)
+                  and with PyPose's MPC (pp.module.MPC) on the same problems with the box widened until inactive
+                  (PyPose has no bounds), one thread, B = 64 ... 4096, after checking that both reach the same
+                  solution; every peer's gradient against finite differences
 
 How: every figure is a torch.utils.benchmark.Timer measurement at a stated torch thread count (Timer's num_threads):
 the median and the interquartile range (IQR) of --reps timed runs. Each timed run follows an untimed run of the same
@@ -23,19 +25,22 @@ and the benchmarks measured together take turns, so that a change in the machine
 
 --json PATH writes (atomically) stack_step_ms_1thread (the whole DiffStack step at one thread; null when --threads
 leaves out 1), speedup_vs_mpc_pytorch (mpc.pytorch time / ours, iLQR forward + backward, 5 iterations, float64, box
-controls, at the fewest threads; null without mpc), speedup_vs_pypose (null: not implemented yet), meta, figures
-(every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms, runs, note) and mpc_pytorch.
+controls, at the fewest threads; null without mpc), speedup_vs_pypose (PyPose time / ours, forward + backward, 5
+iterations, float64, no bound active, one thread, B = 256 (--quick: its B); null without pypose), meta, figures
+(every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms, runs, note), mpc_pytorch and
+pypose (its figures, the per-B table, the agreement check and the gradient errors).
 
 Peers are no dependencies of the project. Without one, its part is skipped with a one-line hint; to compare, install
 it in a throwaway venv (--no-deps keeps the torch of requirements.txt):
     python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt && /tmp/peers/bin/pip install --no-deps mpc==0.0.6
+    /tmp/peers/bin/pip install --no-deps pypose==0.9.5
     /tmp/peers/bin/python bench.py
 
 Map of the module:
     1. Measuring     measure(): Timer measurements taking turns; figure(): one row of the results
     2. The problem   tracking_problem, tracking_cost: the controller's benchmark, shared with the peers
     3. Our modules   controller, planner, predictor, a DiffStack training step, the closed loop
-    4. Peers         mpc.pytorch side by side (skipped with a hint when it is not installed)
+    4. Peers         mpc.pytorch, then PyPose, side by side (each skipped with a hint when it is not installed)
     5. Running       run(), the tables, the JSON file, the command line
 """
 from __future__ import annotations
@@ -230,16 +235,15 @@ def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, r
 
 
 # ============================================================================================
-# 4. Peers: mpc.pytorch (locuslab, `mpc` 0.0.6), side by side
+# 4. Peers: mpc.pytorch (locuslab, `mpc` 0.0.6) and PyPose (`pypose` 0.9.x), side by side
 # ============================================================================================
 #
-# The same problems (tracking_problem, float64), the same initial controls, iterations, tolerance, line search
-# (decay 1/5, 5 steps) and box; runs alternate in one process. mpc.pytorch's T = 7 convention adds a 7th control
-# that drives nothing: it gets weight R and reference 0, so it stays 0 and costs nothing.
+# 4a. mpc.pytorch: the same problems (tracking_problem, float64), the same initial controls, iterations, tolerance,
+# line search (decay 1/5, 5 steps) and box; runs alternate in one process. mpc.pytorch's T = 7 convention adds a
+# 7th control that drives nothing: it gets weight R and reference 0, so it stays 0 and costs nothing.
 
-PEER_VENV = ("python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt && "
-             "/tmp/peers/bin/pip install --no-deps mpc==0.0.6")
-PYPOSE_NOTE = "pypose: skipped, the PyPose comparison is not implemented yet (speedup_vs_pypose: null)"
+PEER_BASE = "python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt"
+PEER_VENV = f"{PEER_BASE} && /tmp/peers/bin/pip install --no-deps mpc==0.0.6"
 
 
 def import_peer(name: str):
@@ -368,6 +372,199 @@ def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
     return dict(rows=rows, speedup=speedup, gradient_error=errors)
 
 
+# --------------------------------------------------------------------------------------------
+# 4b. PyPose (`pypose` 0.9.x, pp.module.MPC), side by side
+# --------------------------------------------------------------------------------------------
+#
+# PyPose's MPC is iLQR with full steps: no control bounds and no line search. So both solve the same tracking
+# problems with the box widened to +-WIDE, which no control comes near (checked on every solution). Its horizon
+# convention is mpc.pytorch's: T' = 7 stages tau_t = (x_t, u_t), t = 0..6, each costing 1/2 tau' Q tau + p' tau,
+# with x_7 = f(x_6, u_6) uncosted. So Q_t = diag(Q, R) and p_t = (-Q r_t, -R ur_t), with the idle 7th control's
+# reference 0 (it stays 0 and costs nothing); the cost it reports lacks the constant 1/2 r'Q r + 1/2 ur'R ur.
+# Stock PyPose cannot run this benchmark as it is; what changed, and nothing else (PyPoseUnicycle, PyPoseMPC):
+#   1. Jacobians: NLS.A/B are torch.autograd.functional.jacobian of the whole batch, (B, 4, B, 4) for B > 1,
+#      which LQR cannot use. set_refpoint computes diffstack's closed-form unicycle_jacobians (B, 4, 4) and
+#      (B, 4, 2) instead (the same Jacobians mpc.pytorch and ours get), detached as autograd's jacobian returns
+#      them (create_graph=False); it skips NLS's f and g at the reference point, which LQR never reads.
+#   2. The state transition is diffstack's unchecked unicycle step (ours uses the same) on a clone of the state,
+#      as PyPose's own LTI does: runsys and lqr_forward write the states in place into one tensor, which the
+#      step's saved views would otherwise break in the backward.
+#   3. Stopping: ReduceToBason(iters, tol=-inf, decreasing=-inf), so that it runs exactly `iters` LQR passes
+#      (iters - 1 without grad, then one with grad) like our `iters` iterations. Its default tol 1e-5 stops after
+#      the first pass whenever every cost is negative, which the constant-less tracking cost is.
+#   4. The best iterate, per problem: MPC.forward compares the batch's costs with `cost < best` (an error for
+#      B > 1); PyPoseMPC keeps each problem's best u, a new one winning ties up to the rounding allowance of our
+#      line search (100 eps (1 + |cost|)); a strict `<` keeps a stale iterate whose cost differs by rounding only
+#      (1.7e-7 from the optimum in u, B = 256). The last pass starts from the best u, as MPC.forward does.
+
+WIDE = 1e3  # the box of the PyPose comparison, +-WIDE: never active
+PYPOSE_BATCHES = (64, 256, 1024, 4096)  # the full run's batch sizes; --quick: its --batch only
+PYPOSE_SPEEDUP_BATCH = 256  # speedup_vs_pypose: PyPose time / ours, forward + backward, at this B
+PYPOSE_VENV = "/tmp/peers/bin/pip install --no-deps pypose==0.9.5"  # it imports only torch
+_PYPOSE_CLASSES = {}
+
+
+def pypose_hint(why: str) -> str:
+    """The one line printed instead of the PyPose comparison."""
+    return (f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_BASE} && {PYPOSE_VENV} "
+            "then /tmp/peers/bin/python bench.py")
+
+
+def pypose_classes(pp):
+    """(PyPoseUnicycle, PyPoseMPC): subclasses of pp.module.NLS and pp.module.MPC with the changes 1-4 above."""
+    if _PYPOSE_CLASSES.get("pp") is not pp:
+        class PyPoseUnicycle(pp.module.NLS):
+            """The unicycle as a PyPose system, with closed-form Jacobians (changes 1 and 2)."""
+
+            def __init__(self, dt):
+                super().__init__()
+                self.step = Unicycle(dt)
+
+            def state_transition(self, state, input, t=None):
+                return self.step(state.clone(), input)
+
+            def observation(self, state, input, t=None):
+                return state
+
+            def set_refpoint(self, state=None, input=None, t=None):
+                self._ref_state, self._ref_input, self._ref_t = state, input, t
+                self._A, self._B = self.step.jacobians(state.detach(), input.detach())
+                return self
+
+            @property
+            def A(self):
+                return self._A
+
+            @property
+            def B(self):
+                return self._B
+
+        class PyPoseMPC(pp.module.MPC):
+            """pp.module.MPC keeping each problem's best iterate (change 4); the rest is MPC.forward's."""
+
+            def forward(self, dt, x_init, u_init=None, u_lower=None, u_upper=None, du=None):
+                u, best_u, best = u_init, u_init, None
+                self.stepper.reset()
+                with torch.no_grad():
+                    while self.stepper.continual():
+                        x, u, cost = self.lqr(x_init, dt, u)
+                        self.stepper.step(cost)
+                        if best is None:
+                            best_u, best = u, cost
+                        else:
+                            win = cost <= best + 100 * torch.finfo(cost.dtype).eps * (1 + best.abs())
+                            best_u, best = torch.where(win[:, None, None], u, best_u), torch.where(win, cost, best)
+                return self.lqr(x_init, dt, u_traj=best_u)
+
+        _PYPOSE_CLASSES.update(pp=pp, classes=(PyPoseUnicycle, PyPoseMPC))
+    return _PYPOSE_CLASSES["classes"]
+
+
+def unconstrained(P: dict) -> dict:
+    """The tracking problems with the box widened to +-WIDE (the initial controls: the reference's, unclipped)."""
+    lo, hi = torch.full_like(P["lo"], -WIDE), torch.full_like(P["hi"], WIDE)
+    return dict(P, lo=lo, hi=hi, u_init=P["u_ref"].clamp(lo, hi))
+
+
+def pypose_solve(P, x_init, x_ref, iters, eps):
+    """One PyPose MPC solve of the (unconstrained) tracking problem: x (B, T+1, 4), u (B, T, 2). Exactly `iters`
+    LQR passes; eps is unused (PyPose has no step tolerance, its stepper's tol is -inf: change 3)."""
+    import pypose as pp
+    from pypose.utils.stepper import ReduceToBason
+
+    system, MPC = pypose_classes(pp)
+    B, T1, _ = x_ref.shape
+    Q = torch.diag(torch.cat([P["Q"], P["R"]])).expand(B, T1, 6, 6)
+    u_ref = torch.cat([P["u_ref"], torch.zeros_like(P["u_ref"][:, :1])], 1)  # (B, T+1, 2) the idle 7th control
+    p = torch.cat([-P["Q"] * x_ref, -P["R"] * u_ref], -1)  # (B, T+1, 6)
+    u0 = torch.cat([P["u_init"], torch.zeros_like(P["u_init"][:, :1])], 1)  # (B, T+1, 2)
+    stepper = ReduceToBason(iters, tol=-math.inf, decreasing=-math.inf)  # MPC runs iters - 1 passes, then 1 more
+    x, u, _ = MPC(system(0.5), Q, p, T1, stepper=stepper)(0.5, x_init, u_init=u0)  # (B, T+2, 4), (B, T+1, 2)
+    return x[:, :T1], u[:, :T1 - 1]
+
+
+def pypose_agreement(P, iters=50) -> dict:
+    """Both solvers on the unconstrained problems P, to convergence (iters, tol 1e-12): the largest difference in
+    u and x, and the largest |u| (against WIDE: no bound active)."""
+    xo, uo = ours_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
+    xp, up = pypose_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
+    return dict(iters=iters, problems=len(uo), max_du=(up - uo).abs().max().item(), max_dx=(xp - xo).abs().max().item(),
+                max_abs_u=max(uo.abs().max().item(), up.abs().max().item()))
+
+
+def time_pypose(B, reps, iters, tol):
+    """One B of the PyPose comparison: (figures, the table's entry, the printed row). Both solvers take turns on
+    forward and backward (one thread); the entry also says how many iterations ours ran and that no bound was
+    near the solutions of the timed settings."""
+    P = unconstrained(tracking_problem(B, dtype=torch.float64))
+    fns = {}
+    for name, solve in (("pypose", pypose_solve), ("ours", ours_solve)):
+        fns[name + " fwd"], fns[name + " bwd"] = solver_runs(P, solve, iters, tol)
+    _, uo, info = ilqr(tracking_cost, Unicycle(0.5), P["x_init"], P["u_init"], (P["x_ref"], P["u_ref"], P["Q"], P["R"]),
+                       P["lo"], P["hi"], iters=iters, tol=tol)
+    _, up = pypose_solve(P, P["x_init"], P["x_ref"], iters, tol)
+    m = measure(fns, reps, 1, f"iLQR vs PyPose, B = {B}")
+    med = {k: 1e3 * v.median for k, v in m.items()}
+    total = (med["pypose fwd"] + med["pypose bwd"]) / (med["ours fwd"] + med["ours bwd"])
+    rows = [figure(f"{k.replace(' ', '_')}_{iters}it_unconstrained",
+                   f"{k}, {iters} iterations, tol {tol}, box +-{WIDE:g}", v.times, 1, "f64", B) for k, v in m.items()]
+    entry = dict(batch=B, **{k.replace(" ", "_") + "_ms": v for k, v in med.items()}, speedup=total,
+                 ours_iterations=int(info.iters.max()), ours_converged=info.converged.double().mean().item(),
+                 max_du=(up - uo).abs().max().item(),  # at these settings (ours stops moving a problem below tol)
+                 bounds_inactive=max(uo.abs().max().item(), up.abs().max().item()) < WIDE / 2)
+    ms = lambda k: f"{1e3 * m[k].median:.1f} (±{1e3 * m[k].iqr:.1f})"  # noqa: E731
+    line = [str(B), f"{ms('pypose fwd')} / {ms('pypose bwd')}", f"{ms('ours fwd')} / {ms('ours bwd')}",
+            str(entry["ours_iterations"]), f"{med['pypose fwd'] / med['ours fwd']:.2f}x / {total:.2f}x"]
+    return rows, entry, line
+
+
+def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01, log=print) -> dict | None:
+    """diffstack's iLQR against PyPose's MPC on tracking_problem(B) with the box widened (no bound active),
+    float64, one thread, `iters` iterations (ours: tol too), forward + backward of a loss on the solution to x_init
+    and the reference, at each B in batches. First both solvers to convergence at the smallest B (they must agree),
+    then the timings, then both gradients against finite differences (16 problems). Returns {rows, table, speedup
+    (PyPose time / ours at PYPOSE_SPEEDUP_BATCH, or at the largest B below it, or the smallest), speedup_batch,
+    agreement, gradient_error}, or None after one line of hint when pypose cannot be imported."""
+    pp, why = import_peer("pypose")
+    if pp is None:
+        log(pypose_hint(why))
+        return None
+    batches = sorted(set(batches))
+    rows, table, lines, errors = [], [], [], {}
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # the untimed set-up too; the Timers set it for every run
+    try:
+        P = unconstrained(tracking_problem(batches[0], dtype=torch.float64))
+        agree = pypose_agreement(P)
+        for B in batches:
+            r, entry, line = time_pypose(B, reps, iters, tol)
+            rows, table, lines = rows + r, table + [entry], lines + [line]
+        idx = torch.arange(0, len(P["x_init"]), max(1, len(P["x_init"]) // 16))[:16]
+        for name, solve in (("PyPose", pypose_solve), ("diffstack", ours_solve)):
+            err = gradient_errors(P, solve, idx, 100)
+            q = err.quantile(torch.tensor([0.5, 0.9], dtype=err.dtype))
+            errors[name] = dict(median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx))
+    finally:
+        torch.set_num_threads(before)
+    at = [t for t in table if t["batch"] <= PYPOSE_SPEEDUP_BATCH] or table[:1]
+    log(f"PyPose side by side: unicycle tracking problems, T = 6, dt 0.5, float64, box widened to ±{WIDE:g} (PyPose "
+        f"has no bounds), one thread, {iters} iterations (ours: tol {tol}; PyPose: exactly {iters} LQR passes); "
+        f"median (IQR) of {reps} alternating runs")
+    same = agree["max_du"] < 1e-8
+    log(f"same solution: {'yes' if same else 'NO'}, both to convergence ({agree['iters']} iterations, tol 1e-12) on "
+        f"{agree['problems']} problems: max |u_pypose - u_ours| {agree['max_du']:.1e}, max |x difference| "
+        f"{agree['max_dx']:.1e}; largest |u| {agree['max_abs_u']:.2f}, far inside ±{WIDE:g}: no bound active")
+    if agree["max_abs_u"] >= WIDE / 2 or not all(t["bounds_inactive"] for t in table):
+        log(f"WARNING: a control came within {WIDE / 2:g} of the box: the comparison is not of the same problem")
+    log(markdown_table(["B", "PyPose fwd / bwd (ms)", "diffstack fwd / bwd (ms)", "our iterations",
+                        "speed-up fwd / fwd+bwd"], lines))
+    for name, e in errors.items():
+        log(f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: median "
+            f"{e['median']:.1e}, 90th percentile {e['p90']:.1e}, max {e['max']:.1e}")
+    return dict(rows=rows, table=table, speedup=at[-1]["speedup"], speedup_batch=at[-1]["batch"], agreement=agree,
+                gradient_error=errors)
+
+
 # ============================================================================================
 # 5. Running, the tables, the JSON file, the command line
 # ============================================================================================
@@ -411,22 +608,27 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
     log(results_table(rows) + "\n")
     progress("peers: mpc.pytorch side by side")
     mpc_res = compare_mpc(batch_size, threads, reps, log=log)
-    log(PYPOSE_NOTE)
+    pp_batches = (batch_size,) if quick else PYPOSE_BATCHES
+    progress(f"peers: PyPose side by side, B in {pp_batches}, one thread")
+    pp_res = compare_pypose(pp_batches, reps, log=log)
     step_1 = [r["median_ms"] for r in rows if r["key"] == "stack_step" and r["threads"] == 1]
     return dict(
         stack_step_ms_1thread=step_1[0] if step_1 else None,  # None when --threads leaves out 1
         speedup_vs_mpc_pytorch=None if mpc_res is None else mpc_res["speedup"],
-        speedup_vs_pypose=None,  # not implemented yet
+        speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],  # at B = 256 (--quick: its B)
         meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=platform.machine(), cores=os.cpu_count(),
                   torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick),
         figures=rows,
         mpc_pytorch=None if mpc_res is None else dict(figures=mpc_res["rows"], gradient_error=mpc_res["gradient_error"]),
+        pypose=None if pp_res is None else dict(figures=pp_res["rows"], table=pp_res["table"],
+                                                speedup_batch=pp_res["speedup_batch"], agreement=pp_res["agreement"],
+                                                gradient_error=pp_res["gradient_error"]),
     )
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
-                                             "predictor, a training step, the closed loop, and mpc.pytorch side by side.")
+                                             "predictor, a training step, the closed loop, and mpc.pytorch and PyPose side by side.")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), nargs="+", default=[1, 2], help="torch thread counts (default 1 2)")
     ap.add_argument("--reps", type=bounded(int, 1, 10_000, "--reps"), help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
     ap.add_argument("--batch", type=bounded(int, 1, 1_000_000, "--batch"), help="scenarios / problems per batch (default 256; --quick 16)")

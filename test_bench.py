@@ -1,4 +1,5 @@
-"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's hint.
+"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's hint, and
+PyPose's agreement with our controller where pypose is installed (skipped otherwise).
 
     python -m pytest -q test_bench.py        # about half a minute on 2 cores
 
@@ -15,6 +16,7 @@ import torch
 import bench
 
 HINT = "pip install --no-deps mpc==0.0.6"
+PYPOSE_HINT = "pip install --no-deps pypose==0.9.5"
 
 
 def installed(name):
@@ -42,6 +44,15 @@ def test_quick_run_writes_json(tmp_path, capsys):
     else:
         assert on_disk["mpc_pytorch"] is None
         assert out.count(HINT) == 1
+    if installed("pypose"):
+        assert isinstance(on_disk["speedup_vs_pypose"], float) and on_disk["speedup_vs_pypose"] > 0
+        pp = on_disk["pypose"]
+        assert [t["batch"] for t in pp["table"]] == [bench.QUICK["batch"]] == [pp["speedup_batch"]]
+        assert pp["agreement"]["max_du"] < 1e-8 and all(t["bounds_inactive"] for t in pp["table"])
+        assert "same solution: yes" in out
+    else:
+        assert on_disk["pypose"] is None
+        assert out.count(PYPOSE_HINT) == 1
     # every figure: positive, at the one thread asked for, nothing from the skipped closed loop
     keys = {f["key"] for f in on_disk["figures"]}
     assert {"ilqr_forward_f64", "kkt_backward_f64", "ilqr_forward_f32", "kkt_backward_f32", "candidates",
@@ -60,9 +71,11 @@ def test_quick_run_writes_json(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, name", [
     (["--batch", "0"], "--batch"),
+    (["--batch", "-3"], "--batch"),
     (["--threads", "0"], "--threads"),
     (["--threads", "1", "-2"], "--threads"),
     (["--reps", "-1"], "--reps"),
+    (["--reps", "0"], "--reps"),
     (["--reps", "two"], "--reps"),
 ])
 def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
@@ -83,6 +96,30 @@ def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
     lines = captured.out.strip().splitlines()
     assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python bench.py" in lines[0]
     assert "Traceback" not in captured.out + captured.err
+
+
+def test_missing_pypose_is_a_skipped_row_with_a_hint(monkeypatch, capsys):
+    monkeypatch.setattr(bench, "import_peer", lambda name: (None, "not installed"))
+    assert bench.compare_pypose(batches=(4,), reps=1) is None
+    captured = capsys.readouterr()
+    lines = captured.out.strip().splitlines()
+    assert len(lines) == 1 and PYPOSE_HINT in lines[0] and "speedup_vs_pypose: null" in lines[0]
+    assert "Traceback" not in captured.out + captured.err
+
+
+@pytest.mark.skipif(not installed("pypose"), reason="pypose is not installed (a peer, never a dependency)")
+def test_pypose_reaches_our_solution_with_no_bound_active():
+    P = bench.unconstrained(bench.tracking_problem(8))
+    agree = bench.pypose_agreement(P, iters=40)
+    assert agree["max_du"] < 1e-8 and agree["max_dx"] < 1e-8
+    assert agree["max_abs_u"] < bench.WIDE / 2  # the widened box is never active
+    # at the timed settings both give a gradient to x_init and the reference, finite everywhere
+    for solve in (bench.pypose_solve, bench.ours_solve):
+        x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
+        x, u = solve(P, x_init, x_ref, 5, 0.01)
+        assert x.shape == (8, 7, 4) and u.shape == (8, 6, 2)
+        x[:, -1, :2].sum().backward()
+        assert torch.isfinite(x_init.grad).all() and torch.isfinite(x_ref.grad).all() and x_ref.grad.abs().sum() > 0
 
 
 def test_tracking_problem_is_reproducible():
