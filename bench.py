@@ -120,9 +120,36 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
 
 
 def tracking_cost(x, u, x_ref, u_ref, Q, R):
-    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S)."""
+    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S); Q (4,) and R (2,) shared
+    or per problem, (B, 4) and (B, 2)."""
     view = lambda t: t.reshape(t.shape[0], *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731
+    if Q.dim() == 2:  # per problem: broadcast over *S and the steps
+        Q, R = (w.reshape(len(w), *([1] * (x.dim() - 2)), w.shape[-1]) for w in (Q, R))
     return 0.5 * ((x - view(x_ref)) ** 2 * Q).sum((-1, -2)) + 0.5 * ((u - view(u_ref)) ** 2 * R).sum((-1, -2))
+
+
+class TrackingCost:
+    """tracking_cost as our controller takes it: with its expansion in closed form (the cost is quadratic:
+    gradient Q (x - x_ref) and R (u - u_ref), Hessian diag(Q, R) at every step), as mpc.pytorch and PyPose are
+    handed the quadratic directly; parameters per problem (ours_params), so that the solver sets converged
+    problems aside."""
+
+    def __call__(self, x, u, x_ref, u_ref, Q, R):
+        return tracking_cost(x, u, x_ref, u_ref, Q, R)
+
+    def expansion(self, x, u, x_ref, u_ref, Q, R):
+        """Gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6), the last step's control a zero pad."""
+        B, T = u.shape[:2]
+        pad = lambda t: torch.cat([t, torch.zeros_like(t[:, :1])], 1)  # noqa: E731  (B, T, 2) -> (B, T+1, 2)
+        g = torch.cat([(x - x_ref) * Q[:, None], pad((u - u_ref) * R[:, None])], -1)
+        H = torch.cat([Q[:, None].expand(B, T + 1, 4), pad(R[:, None].expand(B, T, 2))], -1)
+        return g, torch.diag_embed(H)
+
+
+def ours_params(P, x_ref=None):
+    """Our solver's parameters for the tracking problems P: (x_ref, u_ref, Q, R), each per problem (a view)."""
+    B = len(P["x_init"])
+    return (P["x_ref"] if x_ref is None else x_ref, P["u_ref"], P["Q"].expand(B, 4), P["R"].expand(B, 2))
 
 
 # ============================================================================================
@@ -133,11 +160,11 @@ def tracking_cost(x, u, x_ref, u_ref, Q, R):
 def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol=0.01) -> list:
     """iLQR forward and KKT backward on the tracking problem; the note gives the converged share."""
     P = tracking_problem(B, dtype=dtype)
-    params = (P["x_ref"], P["u_ref"], P["Q"], P["R"])
+    params = ours_params(P)
 
     def solve(x_init, params):
-        return ilqr_solve(tracking_cost, Unicycle(0.5), x_init, P["u_init"], params, P["lo"], P["hi"],
-                          iters=iters, tol=tol)
+        return ilqr_solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], params, P["lo"], P["hi"],
+                          iters=iters, tol=tol, batched_params=True)
 
     # the backward alone: one solve with x_init and x_ref requiring grad builds the graph, each run walks it
     # again (retain_graph keeps ILQR's saved tensors; the gradients accumulating in .grad cost a few additions)
@@ -291,8 +318,8 @@ def mpc_solve(P, x_init, x_ref, iters, eps):
 
 def ours_solve(P, x_init, x_ref, iters, eps):
     """The same solve with diffstack's controller: x (B, T+1, 4), u (B, T, 2)."""
-    x, u, _ = ilqr_solve(tracking_cost, Unicycle(0.5), x_init, P["u_init"], (x_ref, P["u_ref"], P["Q"], P["R"]),
-                         P["lo"], P["hi"], iters=iters, tol=eps)
+    x, u, _ = ilqr_solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], ours_params(P, x_ref),
+                         P["lo"], P["hi"], iters=iters, tol=eps, batched_params=True)
     return x, u
 
 

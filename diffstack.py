@@ -884,23 +884,25 @@ def box_qp(Q, q, lo, hi):
 
     Each control is free, at its lower bound or at its upper bound: 3^m active sets (9 for m = 2).
     For each, the free coordinates minimise the quadratic with the others fixed; the best of the
-    feasible ones is the optimum (Q positive definite). Batched over everything, no iterations.
+    feasible ones is the optimum (Q positive definite). Batched over everything, no iterations. The
+    products with Q are sums over Q's m columns: a batched matmul of 2x2 matrices, or a torch reduction
+    over a dim of size 2, pays per matrix on CPU.
     Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool.
     """
     m = q.shape[-1]
     assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
-    sets = torch.cartesian_prod(*[torch.arange(3)] * m).reshape(-1, m)  # (3^m, m): 0 free, 1 lower, 2 upper
+    sets = torch.cartesian_prod(*[torch.arange(3, device=q.device)] * m).reshape(-1, m)  # (3^m, m): 0 free, 1 lower, 2 upper
     free = sets == 0
     fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
-    Qs, qs = Q[:, None], q[:, None]
-    Fv = free.to(Q.dtype)
+    Qs, qs = Q[:, None], q[:, None]  # (B, 1, m, m), (B, 1, m)
+    Qv = lambda v: sum(Qs[..., j] * v[..., j, None] for j in range(m))  # noqa: E731  Q v for v (B, 3^m, m)
     # free rows: Q_ff d_f = -(q_f + Q_fc d_c); fixed rows: d_c = fixed value
-    rhs = torch.where(free, -(qs + (Qs @ ((1 - Fv) * fixed_val)[..., None])[..., 0]), fixed_val)
+    rhs = torch.where(free, -(qs + Qv(torch.where(free, 0.0, fixed_val))), fixed_val)
     d = _solve_masked(Qs.expand(-1, len(sets), m, m), rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
     feasible = ((d >= lo[:, None] - 1e-9) & (d <= hi[:, None] + 1e-9)).all(-1)
-    obj = 0.5 * (d[..., None, :] @ Qs @ d[..., None])[..., 0, 0] + (qs * d).sum(-1)
+    obj = sum(((0.5 * Qv(d) + qs) * d).unbind(-1))  # (B, 3^m) = 1/2 d'Q d + q'd
     best = torch.where(feasible, obj, math.inf).argmin(-1)  # (B,)
-    idx = torch.arange(len(q))
+    idx = torch.arange(len(q), device=q.device)
     return d[idx, best], free.expand(len(q), -1, -1)[idx, best]
 
 
