@@ -1598,7 +1598,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     like = dict(dtype=dtype, device=device)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
     per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], **like)  # the goal term is terminal
-    w_fixed = cost_weights(cfg, dtype).to(device) * per_step
+    w_fixed = cost_weights(cfg, dtype).to(device) * per_step  # (cost_weights, section 3, takes no device yet)
     w = w_fixed if w is None else w * per_step
     # --- predict, eq. (1) ---
     pred, l_pred = None, torch.zeros(B, **like)

@@ -205,10 +205,10 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
                       device="cpu", **stack_kw):
     """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
     experiments of one run: a predictor already trained the same way is taken from it instead of retrained (the
-    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs
-    and target offset, on the same device -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
-    options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
-    and every ablation section."""
+    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs,
+    target offset and device -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and
+    stack options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4,
+    5 and every ablation section."""
     a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
     if a[1:] == (0, 0):
         kw, runs_stack = {}, False
@@ -382,7 +382,7 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
     # C_lat, C_head against the map's lanes (world frame)
     lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype)
+    w = cost_weights(cfg, x.dtype).to(x.device)  # (cost_weights takes no device yet)
     parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]
@@ -413,8 +413,9 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None,
                            device="cpu"):
     """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
-    validation scene (the simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
-    {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
+    validation scene (the simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed:
+    metric means over scenes, 'rel_*' x1e-2 vs No prediction]}, {method: (Rollout, per-scene metrics) of the first
+    seed}, the scenes)."""
     scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
     results, rollouts = {}, {}
     for m in CLOSED_LOOP_METHODS:
