@@ -1755,7 +1755,7 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
         for i in range(steps_per_epoch):
             if step >= total:
                 break
-            batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]].to(device=device)
+            batch = to_device(data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]], device)
             target = offset_targets(batch, pred_offset) if pred_offset else None
             if downstream:
                 out = run_stack(batch, model, method, cfg, setting, step=None if learn_cost else step, train=not learn_cost,
@@ -1810,7 +1810,7 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
         model.eval()
     sums, n, n_all = {}, 0, 0
     for i in range(0, len(data), batch_size):
-        batch = data[i:i + batch_size].to(device=device)
+        batch = to_device(data[i:i + batch_size], device)
         out = run_stack(batch, model, method, cfg, setting, **stack_kw)
         keep = out.plannable
         vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))

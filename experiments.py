@@ -318,7 +318,7 @@ def stack_policy(model, method: Method, cfg: Config, device=None):
 
     def policy(batch):
         with torch.no_grad():
-            out = run_stack(batch.to(device=device), model, method, cfg, plan_others=False)
+            out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
         home = batch.ego_hist.device
         return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
 
@@ -543,7 +543,7 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
         for name, model in models.items():
             model.eval()
             device = next(model.parameters()).device
-            outs[name] = to_device(run_stack(batch.to(device=device), model, Method(name), cfg, "rl"), "cpu")
+            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
     (a, oa), (b, ob) = list(outs.items())[:2]
     gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
     i = int(gap.argmax())
