@@ -201,7 +201,7 @@ class _Batch:
 
 
 def _np_index(idx):
-    return idx.numpy() if isinstance(idx, torch.Tensor) else idx
+    return idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx
 
 
 @dataclass
@@ -960,7 +960,7 @@ def _to_frame(states, origin):
 def _fill_gaps(x, mask):
     """Missing steps (mask False) of x (..., T, C) take the previous observed step, or else the next one."""
     T = mask.shape[-1]
-    ar = torch.arange(T)
+    ar = torch.arange(T, device=mask.device)
     prev = torch.cummax(torch.where(mask, ar, -1), -1).values
     nxt = torch.flip(torch.cummin(torch.flip(torch.where(mask, ar, T), [-1]), -1).values, [-1])
     src = torch.where(prev >= 0, prev, nxt).clamp(max=T - 1)
@@ -980,14 +980,15 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     cfg = cfg or SynthConfig()
     S, F = scenes.ego.shape[:2]
     H, T, P = cfg.hist, cfg.fut, cfg.lane_points
-    frame = torch.as_tensor(frame, dtype=torch.int64).expand(S)
+    dev = scenes.ego.device  # every index made here lives with the scenes (the CPU, for the closed loop)
+    frame = torch.as_tensor(frame, dtype=torch.int64, device=dev).expand(S)
     if ((frame < H) | (frame > F - T - 1)).any():
         raise ValueError(f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), got {frame}")
-    ar = torch.arange(S)
-    win = frame[:, None] + torch.arange(-H, T + 1)  # (S, 15) the sample's frames
+    ar = torch.arange(S, device=dev)
+    win = frame[:, None] + torch.arange(-H, T + 1, device=dev)  # (S, 15) the sample's frames
     ego = scenes.ego[ar[:, None], win]  # (S, 15, 4) world
     if ego_state is not None:
-        es = torch.as_tensor(ego_state, dtype=ego.dtype)
+        es = torch.as_tensor(ego_state, dtype=ego.dtype, device=dev)
         if es.shape == (S, 4):
             ego[:, H] = es
         elif es.shape == (S, H + 1, 4):
@@ -1012,7 +1013,7 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     M = scenes.agents.shape[1]
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
-    cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M) != pred[:, None]) & (dist < cfg.others_radius)
+    cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M, device=dev) != pred[:, None]) & (dist < cfg.others_radius)
     A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
     order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
     o_mask = torch.gather(cand, 1, order)  # (S, A)
@@ -1029,7 +1030,7 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
     lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
     Pw = scenes.lanes.shape[2]
-    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P)  # (S, L, P)
+    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P, device=dev)  # (S, L, P)
     inside = pidx < Pw
     pidx = pidx.clamp(max=Pw - 1)
     pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
@@ -1288,7 +1289,7 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
     pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle (orange), the ego (blue,
     GT future dashed) and its goal (star). Returns ax; callers overlay predictions and plans with ax.plot."""
     from matplotlib.patches import Rectangle
-    b = batch[torch.tensor([i])].to(torch.float64)
+    b = batch[torch.tensor([i])].to(torch.float64, device="cpu")  # plotted on the CPU, wherever the batch is
     for lane, m in zip(b.lanes[0], b.lanes_mask[0]):
         pts = lane[m].numpy()
         if len(pts):

@@ -251,11 +251,11 @@ def _moments(w, tau, jmax):
     small = th.abs() < _SERIES_SWITCH
     # series, all moments at once by Horner's rule in th^2: (..., 2 (jmax+1))
     thz = torch.where(small, th, torch.zeros_like(th))[..., None]
-    coef = torch.tensor(_series_coefficients(jmax), dtype=w.dtype)
+    coef = torch.tensor(_series_coefficients(jmax), dtype=w.dtype, device=w.device)
     series = coef[-1].expand(*th.shape, -1)
     for c in coef.flip(0)[1:]:
         series = series * thz**2 + c
-    j = torch.arange(jmax + 1, dtype=w.dtype)
+    j = torch.arange(jmax + 1, dtype=w.dtype, device=w.device)
     series = series * torch.cat([tau ** (j + 1) * torch.ones_like(thz), tau ** (j + 1) * thz], -1)
     # closed forms, by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (j c_{j-1} - tau^j cos) / w; w = 1 where small
     ws = torch.where(small, torch.ones_like(w), w)
@@ -332,7 +332,7 @@ def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: 
     dd = {"v": (c0, s0), "w": (-(v * s1 + a * s2), v * c1 + a * c2), "a": (c1, s1)}  # first derivatives of d
     d2 = {("v", "w"): (-s1, c1), ("w", "a"): (-s2, c2), ("w", "w"): (-(v * c2 + a * c3), -(v * s2 + a * s3))}
     index = {"h": 2, "v": 3, "w": 4, "a": 5}  # positions in z = (x, y, h, v, w, a)
-    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype)
+    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
     H[..., 2, 2] = -dot(d)
     for q, e in dd.items():
         H[..., 2, index[q]] = H[..., index[q], 2] = dot_j(e)
@@ -1662,6 +1662,23 @@ class StackOutput:
     pred: object = None  # the predictor's output
 
 
+def to_device(obj, device):
+    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple, list or dict
+    holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g. results to the CPU to plot."""
+    if torch.is_tensor(obj):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
+                                           for f in dataclasses.fields(obj) if f.init})
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(to_device(v, device) for v in obj))
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(to_device(v, device) for v in obj)
+    if isinstance(obj, dict):
+        return {k: to_device(v, device) for k, v in obj.items()}
+    return obj
+
+
 def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
     """A future on a clock `substeps` times finer, by linear interpolation from the present.
 
@@ -1671,7 +1688,7 @@ def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tenso
         return fut
     knots = torch.cat([now[..., None, :], fut], -2)  # (..., T+1, D)
     a, b = knots[..., :-1, None, :], knots[..., 1:, None, :]  # (..., T, 1, D)
-    f = torch.arange(1, substeps + 1, dtype=fut.dtype)[:, None] / substeps  # (substeps, 1) the fractions of a step
+    f = torch.arange(1, substeps + 1, dtype=fut.dtype, device=fut.device)[:, None] / substeps  # (substeps, 1) the fractions of a step
     return (a + (b - a) * f).flatten(-3, -2)
 
 
@@ -1729,26 +1746,27 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     check_batch(batch, cfg, need_future=train, stack=True)
     sub = planner_substeps(cfg, plan_dt)
     B, T, dt = len(batch), cfg.horizon * sub, cfg.dt / sub  # the planner's and the controller's clock
-    dtype = batch.ego_hist.dtype
+    dtype, device = batch.ego_hist.dtype, batch.ego_hist.device  # every tensor made here: the batch's dtype and device
+    like = dict(dtype=dtype, device=device)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], dtype=dtype)  # the goal term is terminal
-    w_fixed = cost_weights(cfg, dtype) * per_step
+    per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], **like)  # the goal term is terminal
+    w_fixed = cost_weights(cfg, dtype).to(device) * per_step  # (cost_weights, section 3, takes no device yet)
     w = w_fixed if w is None else w * per_step
     # --- predict, eq. (1) ---
-    pred, l_pred = None, torch.zeros(B, dtype=dtype)
+    pred, l_pred = None, torch.zeros(B, **like)
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
         preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
-        probs, pred_mask = pred.probs, torch.ones(B, dtype=dtype)  # (B, K), (B,)
+        probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K), (B,)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
             l_pred, _ = pred_loss(pred, target, step, cfg)
     elif method.predictor == "gt":
         preds = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], sub)[:, None]  # (B, 1, T, 2)
-        probs, pred_mask = torch.ones(B, 1, dtype=dtype), torch.ones(B, dtype=dtype)
+        probs, pred_mask = torch.ones(B, 1, **like), torch.ones(B, **like)
     else:
-        preds, probs, pred_mask = torch.zeros(B, 1, T, 2, dtype=dtype), torch.ones(B, 1, dtype=dtype), torch.zeros(B, dtype=dtype)
+        preds, probs, pred_mask = torch.zeros(B, 1, T, 2, **like), torch.ones(B, 1, **like), torch.zeros(B, **like)
     ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub)
     gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     lap("predict")
@@ -1764,12 +1782,12 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         target = masked_argmin(((cands.x[..., 1:, :2] - gt_pos[:, None]) ** 2).sum(-1).mean(-1), cands.valid)
     valid = cands.valid | ~plannable[:, None]  # keep the softmax finite where nothing can be planned
     l_plan = torch.where(plannable, plan_loss(cost, valid, target, cfg.beta), 0.0)
-    idx = torch.arange(B)
+    idx = torch.arange(B, device=device)
     lap("plan")
     # --- control, eq. (4): iLQR from the plan, gradients by the KKT backward ---
-    converged = torch.ones(B, dtype=torch.bool)
+    converged = torch.ones(B, dtype=torch.bool, device=device)
     if controller:
-        u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, dtype=dtype)
+        u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, **like)
 
         # every parameter per scenario (w (5,) too, as a view), so that the solver can set converged scenarios aside
         params = (w.expand(B, 5), *ctx.tensors())
@@ -1806,7 +1824,7 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
     trajectory, i.e. how much the planning cost reacts to this agent. (B,)"""
     fut = batch.agent_fut[..., :2].detach().clone().requires_grad_(True)  # (B, T, 2)
     B = len(batch)
-    ones = torch.ones(B, dtype=fut.dtype)
+    ones = torch.ones(B, dtype=fut.dtype, device=fut.device)
     ctx, _ = cost_contexts(batch, fut[:, None], ones[:, None], ones)
     x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
     with torch.enable_grad():
@@ -1839,7 +1857,7 @@ class CostWeights(nn.Module):
         self.register_buffer("c", w0.sum())
         self.register_buffer("psi_coll", w0[:1].log())  # (1,) fixed, not a parameter
         self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
-        self.alpha = nn.Parameter(torch.ones(()))
+        self.alpha = nn.Parameter(torch.ones((), dtype=w0.dtype, device=w0.device))
 
     def normalised(self) -> torch.Tensor:
         """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 7, App. A.2)."""
@@ -1860,10 +1878,13 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
     a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
     pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
+    Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU), each batch is
+    moved to the model's device as it is drawn.
     Returns the per-step log (list of dicts).
     """
-    torch.manual_seed(seed)  # the decoder's sampled controls
-    g = torch.Generator().manual_seed(seed)  # the order of the scenarios
+    device = next(model.parameters()).device
+    torch.manual_seed(seed)  # the decoder's sampled controls (seeds the CPU's and every GPU's generator)
+    g = torch.Generator().manual_seed(seed)  # the order of the scenarios, drawn on the CPU whatever the device
     a1, a2, a3 = alphas(method, setting, cfg)
     downstream = a2 > 0 or a3 > 0
     learn_cost = weights is not None
@@ -1880,11 +1901,11 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     total = max(1, round(epochs * steps_per_epoch))
     history, t0, step = [], time.time(), 0
     while step < total:
-        perm = torch.randperm(n, generator=g)
+        perm = torch.randperm(n, generator=g, device="cpu")
         for i in range(steps_per_epoch):
             if step >= total:
                 break
-            batch = data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]]
+            batch = to_device(data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]], device)
             target = offset_targets(batch, pred_offset) if pred_offset else None
             if downstream:
                 out = run_stack(batch, model, method, cfg, setting, step=None if learn_cost else step, train=not learn_cost,
@@ -1898,7 +1919,7 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                 pred = model(batch, use_posterior=True, step=step)
                 l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
                 l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg)).mean()
-                l_plan = l_ctr = torch.zeros(())
+                l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
                 conv = float("nan")
             loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
             opt.zero_grad()
@@ -1920,22 +1941,26 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
 
 
 def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
-                    **stack_kw) -> Predictor:
-    """A fresh predictor, initialised from `seed`, trained on data.train by train_stack."""
+                    device="cpu", **stack_kw) -> Predictor:
+    """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
+    moved to `device` and trained there on data.train by train_stack."""
     torch.manual_seed(seed)  # the predictor's initialisation
-    model = Predictor(cfg)
+    model = Predictor(cfg).to(device)
     train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
     return model
 
 
-def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, **stack_kw) -> dict:
+def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, device=None, **stack_kw) -> dict:
     """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
-    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate."""
+    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate.
+    Each batch runs on `device` (default: the model's; the CPU without a model)."""
+    if device is None:
+        device = next(model.parameters()).device if model is not None else "cpu"
     if model is not None:
         model.eval()
     sums, n, n_all = {}, 0, 0
     for i in range(0, len(data), batch_size):
-        batch = data[i:i + batch_size]
+        batch = to_device(data[i:i + batch_size], device)
         out = run_stack(batch, model, method, cfg, setting, **stack_kw)
         keep = out.plannable
         vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
@@ -1955,13 +1980,14 @@ RELATIVE_SCALE = {"rl": {"plan_loss": 1e-2, "hindsight": 1e-2}, "il": {"plan_los
 
 
 def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                    pred_offset=0.0, log=print, train=train_predictor, **stack_kw) -> dict:
+                    pred_offset=0.0, log=print, train=train_predictor, device="cpu", **stack_kw) -> dict:
     """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the ablations).
 
     Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
     same validation set ('rel_<metric>', scaled as in the paper's tables, RELATIVE_SCALE). train(method, data,
-    cfg, setting, epochs, seed, log, pred_offset, **stack_kw) -> a trained predictor (experiments.py passes one
-    that shares predictors between tables).
+    cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw) -> a trained predictor on `device`
+    (experiments.py passes one that shares predictors between tables). Training and evaluation run on `device`;
+    the data stays on the CPU and the metrics come back as Python numbers.
     """
     results = {}
     for m in methods:
@@ -1970,8 +1996,8 @@ def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, see
             t0 = time.time()
             model = None
             if m.predictor == "learned":
-                model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
-            r = evaluate_stack(model, data.val, m, cfg, setting, **stack_kw)
+                model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
+            r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
             r["seconds"] = time.time() - t0
             runs.append(r)
             if log:
@@ -2025,8 +2051,9 @@ def open_loop_table(results: dict, setting="rl") -> str:
     return markdown_table(head + ["iLQR converged"], rows)
 
 
-def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print):
-    """`--quick`: a Table-1-style comparison on synthetic data in about a minute."""
+def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print, device="cpu"):
+    """`--quick`: a Table-1-style comparison on synthetic data in about a minute (data made and cached on the CPU,
+    training and evaluation on `device`)."""
     import data_synth
 
     torch.set_num_threads(threads)
@@ -2038,7 +2065,7 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     t0 = time.time()
     data = data_synth.load_data(n=n, cache_dir=cache_dir)
     log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
-    res = compare_methods(data, cfg, "rl", QUICK_METHODS, seeds=(0,), epochs=epochs, log=log)
+    res = compare_methods(data, cfg, "rl", QUICK_METHODS, seeds=(0,), epochs=epochs, log=log, device=device)
     log("\n" + open_loop_table(res, "rl") + f"\n\ntotal {time.time() - t0:.0f}s")
     return res
 
@@ -2071,6 +2098,29 @@ def bounded(kind, lo, hi, name):
         return x
 
     return parse
+
+
+def device_arg(text):
+    """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps), checked
+    before any work; a name torch does not know, or a GPU that is not there, is a one-line argparse error."""
+    import argparse
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"--device takes a torch device (cpu, cuda, cuda:N or mps), got {text!r}") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise argparse.ArgumentTypeError(f"--device {text}: no CUDA device here (torch.cuda.is_available() is False)")
+        if device.index is not None and device.index >= count:
+            raise argparse.ArgumentTypeError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise argparse.ArgumentTypeError(f"--device {text}: no MPS device here (torch.backends.mps.is_available() is False)")
+    elif device.type != "cpu":
+        raise argparse.ArgumentTypeError(f"--device {text}: the stack runs on cpu, cuda, cuda:N or mps, not {device.type}")
+    return device
 
 
 def config_with(cfg: Config, assignments) -> Config:
@@ -2111,6 +2161,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true",
                     help="Standard vs DiffStack (with No prediction and GT prediction beside) on synthetic data, ~1 min")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2, at most 256)")
+    ap.add_argument("--device", type=device_arg, default="cpu",
+                    help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is made on the CPU")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -2126,7 +2178,7 @@ def main(argv=None):
         check_writable("data_cache", "the data cache (./data_cache)")
     except ValueError as e:
         ap.error(str(e))
-    return quick(args.threads, cfg=cfg)
+    return quick(args.threads, cfg=cfg, device=args.device)
 
 
 if __name__ == "__main__":

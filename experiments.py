@@ -38,8 +38,9 @@ import torch
 
 import data_synth
 from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, bounded, cell,
-                       check_writable, compare_methods, config_with, cost_weights, evaluate_stack, markdown_table,
-                       mean_se, project_to_lanes, run_stack, train_predictor, train_stack, unicycle_step, wrap_angle)
+                       check_writable, compare_methods, config_with, cost_weights, device_arg, evaluate_stack,
+                       markdown_table, mean_se, project_to_lanes, run_stack, to_device, train_predictor, train_stack,
+                       unicycle_step, wrap_angle)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -201,34 +202,34 @@ EXPERIMENTS = tuple(TABLES)
 
 
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
-                      **stack_kw):
+                      device="cpu", **stack_kw):
     """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
     experiments of one run: a predictor already trained the same way is taken from it instead of retrained (the
-    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs
-    and target offset -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and stack
-    options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4, 5
-    and every ablation section."""
+    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs,
+    target offset and device -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and
+    stack options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4,
+    5 and every ablation section."""
     a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
     if a[1:] == (0, 0):
         kw, runs_stack = {}, False
     elif a[2] == 0:
         kw.pop("controller", None)
-    key = (a, m.weighting, seed, epochs, pred_offset, setting if runs_stack else None, tuple(sorted(kw.items())))
+    key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
     if models is not None and key in models:
         if log:
             log(f"  [{m.name}] seed {seed}: trained above, reused")
         return models[key]
-    model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+    model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
     if models is not None:
         models[key] = model
     return model
 
 
 def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                         pred_offset=0.0, log=print, models=None, **stack_kw) -> dict:
-    """diffstack.compare_methods with predictors shared through `models` (trained_predictor)."""
+                         pred_offset=0.0, log=print, models=None, device="cpu", **stack_kw) -> dict:
+    """diffstack.compare_methods with predictors shared through `models` (trained_predictor), run on `device`."""
     train = lambda m, *a, **k: trained_predictor(m, *a, models=models, **k)  # noqa: E731
-    return compare_methods(data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, **stack_kw)
+    return compare_methods(data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, device, **stack_kw)
 
 
 def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
@@ -243,7 +244,7 @@ def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric
 # ============================================================================================
 
 
-def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
+def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
     """Table 3: per seed, train a Standard predictor, then the cost weights with it frozen (diffstack.train_stack
     with `weights`: L = a3 L_ctr, L_ctr the MSE to the GT ego trajectory, the IL setting); evaluate both the
     hand-tuned and the learned weights on data.val in the IL setting.
@@ -252,14 +253,14 @@ def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=prin
     weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
     res = {"Hand-tuned": [], "Learned": []}
     for seed in seeds:
-        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models)
-        weights = CostWeights(cfg)
+        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models, device=device)
+        weights = CostWeights(cfg).to(device)
         for name in res:
             if name == "Learned":
                 train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
             with torch.no_grad():
                 w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
-            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w)
+            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
             r.update(w=w_norm.tolist(), alpha=alpha)
             res[name].append(r)
             if log:
@@ -303,19 +304,23 @@ def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
 
 
-def stack_policy(model, method: Method, cfg: Config):
+def stack_policy(model, method: Method, cfg: Config, device=None):
     """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
     the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
 
     The planner and controller see the predicted agent only (App. D.3); the predictor still sees every
-    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls."""
+    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls. The stack runs on `device`
+    (default: the model's; the CPU without a model); what it returns is on the batch's device."""
     if model is not None:
         model.eval()
+    if device is None:
+        device = next(model.parameters()).device if model is not None else "cpu"
 
     def policy(batch):
         with torch.no_grad():
-            out = run_stack(batch, model, method, cfg, plan_others=False)
-        return out.x, out.u, out.hindsight, out.plannable
+            out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
+        home = batch.ego_hist.device
+        return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
 
     return policy
 
@@ -347,13 +352,13 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
         batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
         x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
         s = hist[:, -1]  # (S, 4)
-        u0 = u[:, 0].to(s.dtype)  # (S, 2)
+        u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
         # s_{k+1} = f(s_k, u_0): the known dynamics, in the world frame (controls do not depend on the frame)
         s_next = unicycle_step(s, u0, cfg.dt)
         s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
         hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
-        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s.dtype), s))
-        open_loop.append(hindsight.to(s.dtype)), plannable.append(ok)
+        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
+        open_loop.append(hindsight.to(s)), plannable.append(ok.to(s.device))
     st = lambda xs: torch.stack(xs, 1)  # noqa: E731
     return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
 
@@ -377,7 +382,7 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
     # C_lat, C_head against the map's lanes (world frame)
     lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype)
+    w = cost_weights(cfg, x.dtype).to(x.device)  # (cost_weights takes no device yet)
     parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]
@@ -405,10 +410,12 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
     return scenes[ok]
 
 
-def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None):
+def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None,
+                           device="cpu"):
     """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
-    validation scene. Returns ({method: [per seed: metric means over scenes, 'rel_*' x1e-2 vs No prediction]},
-    {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
+    validation scene (the simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed:
+    metric means over scenes, 'rel_*' x1e-2 vs No prediction]}, {method: (Rollout, per-scene metrics) of the first
+    seed}, the scenes)."""
     scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
     results, rollouts = {}, {}
     for m in CLOSED_LOOP_METHODS:
@@ -416,9 +423,9 @@ def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
             t0, model = time.time(), None
             if m.predictor == "learned":
-                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models)
+                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models, device=device)
             t1 = time.time()
-            roll = simulate(scenes, stack_policy(model, m, cfg), cfg, sim_time)
+            roll = simulate(scenes, stack_policy(model, m, cfg, device), cfg, sim_time)
             per_scene = closed_loop_metrics(scenes, roll, cfg)
             r = {k: v.mean().item() for k, v in per_scene.items()}
             r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
@@ -440,14 +447,14 @@ def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0
 # ============================================================================================
 
 
-def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None) -> dict:
+def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
     """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
     res, models = {}, {} if models is None else models
     for title, stack_kw, methods in ABLATION_SECTIONS:
         if log:
             log(f"--- ablation: {title}")
         res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
-                                          tuple(seeds), epochs, log=log, models=models, **stack_kw)
+                                          tuple(seeds), epochs, log=log, models=models, device=device, **stack_kw)
     return res
 
 
@@ -526,7 +533,8 @@ def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | No
 
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
-    the one among the first n_search where the first model's hindsight cost exceeds the second's the most."""
+    the one among the first n_search where the first model's hindsight cost exceeds the second's the most.
+    The stack runs on each model's device; the plot, on the CPU."""
     import matplotlib.pyplot as plt
 
     batch = data.val[:n_search]
@@ -534,7 +542,8 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     with torch.no_grad():
         for name, model in models.items():
             model.eval()
-            outs[name] = run_stack(batch, model, Method(name), cfg, "rl")
+            device = next(model.parameters()).device
+            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
     (a, oa), (b, ob) = list(outs.items())[:2]
     gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
     i = int(gap.argmax())
@@ -660,28 +669,31 @@ def paper_markdown(spec: TableSpec) -> str:
     return markdown_table(head, rows(spec.paper))
 
 
-def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None):
-    """Run one table of the paper: train and evaluate what its spec declares, write its figures to out_dir.
-    models: trained predictors shared between the tables of one run (trained_predictor).
+def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
+              device="cpu"):
+    """Run one table of the paper: train and evaluate what its spec declares on `device`, write its figures to
+    out_dir. models: trained predictors shared between the tables of one run (trained_predictor).
     Returns (results, markdown table)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = {} if models is None else models
     if spec.kind == "open_loop":
-        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, spec.pred_offset, log, models)
+        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, spec.pred_offset, log, models,
+                                   device)
     elif spec.kind == "cost":
-        res = cost_learning_experiment(data, cfg, seeds, epochs, log, models)
+        res = cost_learning_experiment(data, cfg, seeds, epochs, log, models, device)
         figure_cost_weights(res, out / "cost_weights.png")
     elif spec.kind == "closed_loop":
         if data.val_scenes is None:
             raise ValueError("closed_loop: the data has no validation scene logs")
-        res, rollouts, scenes = closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, log=log, models=models)
+        res, rollouts, scenes = closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, log=log, models=models,
+                                                       device=device)
         figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models)
+        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
                 for m in CLOSED_LOOP_METHODS[1:3]}
         figure_stack_example(data, pair, cfg, out / "stack_example.png")
     elif spec.kind == "ablation":
-        res = ablation_experiment(data, cfg, seeds, epochs, log, models)
+        res = ablation_experiment(data, cfg, seeds, epochs, log, models, device)
     else:
         raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
     return res, results_markdown(spec, res)
@@ -758,9 +770,11 @@ def write_report(out_dir, sections) -> pathlib.Path:
     return path
 
 
-def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False):
-    """Run one table (or 'all'), writing out_dir/<name>.json (results, the full Config, the git commit) and .md
-    (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between the tables.
+def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
+                   device="cpu"):
+    """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
+    git commit) and .md (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between
+    the tables.
     Refuses to start (ValueError) when a file it would write exists already, unless overwrite."""
     names = EXPERIMENTS if name == "all" else (name,)
     check_outputs(names, out_dir, overwrite)
@@ -768,14 +782,15 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     sections, models = [], {}
     for one in names:
         spec, t0 = TABLES[one], time.time()
-        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models)
+        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device)
         meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                     date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
                     machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads",
-                    git_commit=git_commit(), config=dataclasses.asdict(cfg))
+                    device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
         to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
         write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
-        md = (f"`{command}` ({meta['date']}, {meta['machine']}, {meta['seconds']:.0f} s, commit {meta['git_commit']})"
+        md = (f"`{command}` ({meta['date']}, {meta['machine']}, device {meta['device']}, {meta['seconds']:.0f} s, "
+              f"commit {meta['git_commit']})"
               f"\n\n{table}\n\nThe paper's numbers:\n\n{paper_markdown(spec)}\n")
         write_atomic(out / f"{one}.md", f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures))
         sections.append((spec.title, md, list(spec.figures)))
@@ -799,6 +814,9 @@ def main(argv=None):
                     help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,})")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
+    ap.add_argument("--device", type=device_arg, default="cpu",
+                    help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; the data "
+                         "is made and cached on the CPU")
     ap.add_argument("--out", default="results", help="where the results go (default results/)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace result files that exist already in --out (without it, the run refuses to start)")
@@ -824,7 +842,7 @@ def main(argv=None):
         ap.error(str(e))
     return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
                           " ".join(["python experiments.py", *(argv if argv is not None else sys.argv[1:])]),
-                          overwrite=args.overwrite)
+                          overwrite=args.overwrite, device=args.device)
 
 
 if __name__ == "__main__":
