@@ -536,9 +536,9 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     return torch.stack([coll, goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
 
-def cost_weights(cfg: Config, dtype=torch.float32) -> torch.Tensor:
+def cost_weights(cfg: Config, dtype=torch.float32, device=None) -> torch.Tensor:
     """The hand-tuned weights (w1..w5) of App. C.3."""
-    return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype)
+    return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype, device=device)
 
 
 def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -743,7 +743,7 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     p0 = s0[:, None, :2].expand(B, N, 2)
     m0 = (s0[:, 3:4] * heading_vec(s0[:, 2]))[:, None].expand(B, N, 2) * dur  # tangents scale with the duration
     m1 = v1[..., None] * heading_vec(h1) * dur
-    tau = torch.linspace(0, 1, T + 1, dtype=s0.dtype)
+    tau = torch.linspace(0, 1, T + 1, dtype=s0.dtype, device=s0.device)
     pos, dpos, ddpos = _hermite(p0, m0, p1, m1, tau)  # (B, N, T+1, 2) each
     vel, accel = dpos / dur, ddpos / dur**2
     speed = vel.norm(dim=-1)  # (B, N, T+1)
@@ -947,7 +947,7 @@ def riccati_backward(A, B, H, g, n, stage):
         K = _solve_masked(Quu, torch.where(free[..., None], -Qux, 0.0), free)  # (B, m, n); 0 on clamped rows
         # V_t(dx) = Q_t(dx, k + K dx): with G = [I; K] and g0 = [0; k],
         #   P = G'Q G,   p = G'(q + Q g0)
-        G = torch.cat([torch.eye(n, dtype=K.dtype).expand(len(K), n, n), K], 1)  # (B, n+m, n)
+        G = torch.cat([torch.eye(n, dtype=K.dtype, device=K.device).expand(len(K), n, n), K], 1)  # (B, n+m, n)
         GT = G.transpose(-1, -2)
         P = GT @ Q @ G
         P = (P + P.transpose(-1, -2)) / 2
@@ -1140,7 +1140,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     check_tensor("x_init", x_init, (None, None))
     B, n = x_init.shape
     check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
-    lo, hi = torch.as_tensor(lo, dtype=x_init.dtype), torch.as_tensor(hi, dtype=x_init.dtype)
+    lo, hi = (torch.as_tensor(b, dtype=x_init.dtype, device=x_init.device) for b in (lo, hi))
     check_tensor("lo", lo), check_tensor("hi", hi)
     if (lo > hi).any():
         raise ValueError("lo: a lower control bound is above its upper bound")
@@ -1525,7 +1525,7 @@ def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.
     y = batch.agent_fut[..., :2]  # (B, T, 2)
     err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
     best = pred.probs.argmax(-1)  # (B,)
-    err_ml = err[torch.arange(len(best)), best]  # (B, T)
+    err_ml = err[torch.arange(len(best), device=best.device), best]  # (B, T)
     nll = -gmm_log_prob(pred, y, pred.probs.log()).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
     err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
     return {
@@ -1578,7 +1578,7 @@ def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
     `grad_cost_weights` in section 8, which needs the cost) or a callable batch -> (B,) raw weights.
     """
     if weighting == "standard":
-        return torch.ones(len(batch), dtype=batch.agent_fut.dtype)
+        return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
     if weighting == "distance":
         raw = distance_weights(batch)
     elif weighting == "grad_cost":
@@ -1750,7 +1750,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     like = dict(dtype=dtype, device=device)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
     per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], **like)  # the goal term is terminal
-    w_fixed = cost_weights(cfg, dtype).to(device) * per_step  # (cost_weights, section 3, takes no device yet)
+    w_fixed = cost_weights(cfg, dtype, device) * per_step
     w = w_fixed if w is None else w * per_step
     # --- predict, eq. (1) ---
     pred, l_pred = None, torch.zeros(B, **like)

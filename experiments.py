@@ -382,7 +382,7 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
     # C_lat, C_head against the map's lanes (world frame)
     lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype).to(x.device)  # (cost_weights takes no device yet)
+    w = cost_weights(cfg, x.dtype, x.device)
     parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]

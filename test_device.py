@@ -186,7 +186,7 @@ def test_dynamics_make_every_tensor_on_their_inputs_device():
         run_dynamics()
 
 
-@pytest.mark.xfail(strict=False, reason=SPEED_WORK)
+
 @pytest.mark.parametrize("run", EVERYTHING, ids=lambda f: f.__name__)
 def test_the_stack_makes_every_tensor_on_its_inputs_device(run, setup):
     """Through sections 3-6 (not ours here): fails until the speed work gives them device= too."""
@@ -216,7 +216,7 @@ def test_no_factory_without_device_outside_sections_3_to_6(audit):
     assert not ours, "tensor factories without device=: " + "; ".join(f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in ours)
 
 
-@pytest.mark.xfail(strict=False, reason=SPEED_WORK)
+
 def test_no_factory_without_device_in_sections_3_to_6(audit):
     theirs = sorted(c for c in audit if c[0] == "diffstack.py" and c[1] in section_lines())
     assert not theirs, "tensor factories without device=: " + "; ".join(f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in theirs)
