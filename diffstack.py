@@ -424,6 +424,7 @@ def lane_segments(p, lanes, lanes_mask):
 
 
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as if it were 10 m further away
+_SEARCH_BLOCK = 2**21  # ranks per block of the nearest-point search (8 MB in float32)
 
 
 def lane_search_features(lanes, lanes_mask):
@@ -456,7 +457,12 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]
     qd, hd = q.detach(), hq.detach()
     feat_q = torch.cat([-2 * qd, -_SEARCH_LAM * torch.stack([torch.cos(hd), torch.sin(hd)], -1), torch.ones_like(qd[..., :1])], -1)
-    j = (feat_q @ search).min(-1).indices  # (B, Q); min's indices: argmin's (the first minimum), at half the time
+    #    The ranks are made in blocks of queries, each at most _SEARCH_BLOCK entries: memory of that size comes back
+    #    from the allocator's cache, while one (B, Q, L*P) block (the planner's: 100 MB) is fresh memory every call,
+    #    whose page faults cost more than the product itself.
+    chunk = max(1, _SEARCH_BLOCK // (B * L * P))
+    j = torch.cat([(feat_q[:, i : i + chunk] @ search).min(-1).indices for i in range(0, feat_q.shape[1], chunk)], 1)
+    # (B, Q); min's indices are argmin's (the first minimum), at half the time
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
     has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hd - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points are a prefix)
