@@ -504,6 +504,12 @@ def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
     return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
 
 
+def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
+    """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26: nothing, at the cost's precision).
+    Far agents would otherwise send exp into its underflow path, 10 to 25 times slower on CPU."""
+    return torch.exp((-d2 / (2 * rbf_var)).clamp_min(-60.0))
+
+
 def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
     """C_coll per trajectory: pos (B, ..., T, 2) positions t1..T -> (B, ...).
 
@@ -517,9 +523,9 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
     spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
     d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, ..., T)
-    coll = view(ctx.pred_mask)[..., None] * torch.exp(-d2_pred / (2 * rbf_var))
+    coll = view(ctx.pred_mask)[..., None] * rbf(d2_pred, rbf_var)
     d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, ..., A, T)
-    coll = coll + (view(ctx.others_mask)[..., None] * torch.exp(-d2_others / (2 * rbf_var))).sum(-2)
+    coll = coll + (view(ctx.others_mask)[..., None] * rbf(d2_others, rbf_var)).sum(-2)
     return coll.sum(-1)
 
 
@@ -588,7 +594,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     diff = p[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
     offset = torch.cat([spread[:, None], torch.zeros_like(ctx.others[..., 0])], 1)  # (B, 1+A, T)
     mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
-    phi = mask * torch.exp(-((diff**2).sum(-1) + offset) / (2 * rbf_var))  # (B, 1+A, T)
+    phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
     g_coll = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
     H_coll = (phi[..., None, None] * (outer(diff, diff) / rbf_var**2 - eye / rbf_var)).sum(1)  # (B, T, 2, 2)
     # C_lat and C_head, on the nearest lane segment
