@@ -7,7 +7,9 @@
 
 What is timed (B = --batch scenarios or problems, default 256):
     controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its KKT backward on
-                  tracking_problem (B unicycle tracking problems, T = 6, dt 0.5), in float64 and float32
+                  tracking_problem (B unicycle tracking problems, T = 6, dt 0.5), in float64 and float32; the cost is
+                  TrackingCost (its quadratic expansion in closed form, as the peers are handed it); and in float64
+                  at B = 1024 and 4096 (--quick: B and 2 B), whose slope is the cost of one more problem
     planner       plan_candidates: the planner's spline candidates (48 per scenario)
     predictor     a training iteration (forward, InfoVAE loss, backward, Adam step) and an eval forward (K = 25)
     stack         one DiffStack training step (RL): run_stack and the backward of L = a1 L_pred + a2 L_plan + a3 L_ctr;
@@ -26,7 +28,9 @@ and the benchmarks measured together take turns, so that a change in the machine
 --json PATH writes (atomically) stack_step_ms_1thread (the whole DiffStack step at one thread; null when --threads
 leaves out 1), speedup_vs_mpc_pytorch (mpc.pytorch time / ours, iLQR forward + backward, 5 iterations, float64, box
 controls, at the fewest threads; null without mpc), speedup_vs_pypose (PyPose time / ours, forward + backward, 5
-iterations, float64, no bound active, one thread, B = 256 (--quick: its B); null without pypose), meta, figures
+iterations, float64, no bound active, one thread, B = 256 (--quick: its B); null without pypose),
+controller_ms_per_problem (ms per problem of iLQR forward + KKT backward, float64, box, one thread: the slope from
+B = 1024 to 4096), meta, figures
 (every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms, runs, note), mpc_pytorch and
 pypose (its figures, the per-B table, the agreement check and the gradient errors).
 
@@ -177,6 +181,21 @@ def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol
     return [figure(f"ilqr_forward_{dt}", f"iLQR forward ({iters} iterations, tol {tol})", m["forward"].times, threads,
                    dt, B, conv),
             figure(f"kkt_backward_{dt}", "KKT backward", m["backward"].times, threads, dt, B)]
+
+
+def bench_controller_scaling(batches=(1024, 4096), reps=3, iters=5, tol=0.01) -> tuple[list, float]:
+    """The controller's cost per problem: iLQR forward + KKT backward (float64, box, one thread) at two batch sizes;
+    the slope between them (ms per problem) is what a problem costs once the per-op overhead is paid."""
+    rows, med = [], {}
+    for B in batches:
+        fwd, bwd = solver_runs(tracking_problem(B), ours_solve, iters, tol)
+        m = measure({"forward": fwd, "backward": bwd}, reps, 1, f"controller, B = {B}")
+        med[B] = 1e3 * (m["forward"].median + m["backward"].median)
+        rows += [figure(f"ilqr_forward_f64_B{B}", f"iLQR forward ({iters} iterations, tol {tol})", m["forward"].times,
+                        1, "f64", B),
+                 figure(f"kkt_backward_f64_B{B}", "KKT backward", m["backward"].times, 1, "f64", B)]
+    lo, hi = batches
+    return rows, (med[hi] - med[lo]) / (hi - lo)
 
 
 def bench_candidates(batch, cfg: Config, reps=5, threads=1) -> list:
@@ -625,6 +644,10 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
             rows += bench_controller(batch_size, dtype, reps, nt)
         rows += bench_candidates(batch, cfg, reps, nt) + bench_predictor(batch, cfg, reps, nt)
         rows += bench_stack_step(batch, cfg, reps, nt)
+    progress("controller scaling: B = " + ("%d and %d" % ((batch_size, 2 * batch_size) if quick else (1024, 4096))))
+    scaling, per_problem = bench_controller_scaling((batch_size, 2 * batch_size) if quick else (1024, 4096),
+                                                    min(reps, 3))
+    rows += scaling
     if closed_loop:
         n, sim_time, cl_reps = (QUICK["scenes"], QUICK["sim_time"], 1) if quick else (100, 10.0, min(reps, 3))
         progress(f"closed loop: {n} scenes x {sim_time:g} s, one thread, {cl_reps} timed run(s) per stack")
@@ -643,6 +666,7 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
         stack_step_ms_1thread=step_1[0] if step_1 else None,  # None when --threads leaves out 1
         speedup_vs_mpc_pytorch=None if mpc_res is None else mpc_res["speedup"],
         speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],  # at B = 256 (--quick: its B)
+        controller_ms_per_problem=per_problem,  # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
         meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=platform.machine(), cores=os.cpu_count(),
                   torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick),
         figures=rows,

@@ -35,6 +35,8 @@ def test_quick_run_writes_json(tmp_path, capsys):
     # the headline keys
     step = on_disk["stack_step_ms_1thread"]
     assert isinstance(step, float) and math.isfinite(step) and step > 0
+    assert isinstance(on_disk["controller_ms_per_problem"], float)  # a slope: noise at --quick sizes may make it < 0
+    assert {"ilqr_forward_f64_B%d" % (bench.QUICK["batch"] * k) for k in (1, 2)} <= {f["key"] for f in on_disk["figures"]}
     for peer, key in (("mpc", "speedup_vs_mpc_pytorch"), ("pypose", "speedup_vs_pypose")):
         assert key in on_disk
         if not installed(peer):
