@@ -701,13 +701,17 @@ def _point_at_arclength(lanes, cum, s):
 
 def _hermite(p0, m0, p1, m1, tau):
     """Cubic Hermite curve through p0 -> p1 with end tangents m0, m1 at tau in [0, 1] (Q,):
-    value, first and second derivative wrt tau. p0, m0, p1, m1 (..., 2) -> each (..., Q, 2)."""
-    t = tau[:, None]
+    value, first and second derivative wrt tau. p0, m0, p1, m1 (..., 2) -> each (..., Q, 2).
+    All curves at once as one matrix product: the basis functions at tau (3 Q, 4) times the control points
+    (4, everything else)."""
+    t = tau[:, None]  # (Q, 1)
     h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
     dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
     ddh = [12 * t - 6, 6 * t - 4, -12 * t + 6, 6 * t - 2]
-    pts = [c[..., None, :] for c in (p0, m0, p1, m1)]
-    return [sum(c * p for c, p in zip(coef, pts)) for coef in (h, dh, ddh)]
+    basis = torch.cat([torch.cat(b, 1) for b in (h, dh, ddh)], 0)  # (3 Q, 4)
+    ctrl = torch.stack([p0, m0, p1, m1]).reshape(4, -1)  # (4, ... * 2)
+    out = (basis @ ctrl).reshape(3, len(tau), *p0.shape)  # (3, Q, ..., 2)
+    return list(out.movedim(1, -2))  # value, first, second derivative, each (..., Q, 2)
 
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
