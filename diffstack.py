@@ -461,8 +461,9 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     #    from the allocator's cache, while one (B, Q, L*P) block (the planner's: 100 MB) is fresh memory every call,
     #    whose page faults cost more than the product itself.
     chunk = max(1, _SEARCH_BLOCK // (B * L * P))
-    j = torch.cat([(feat_q[:, i : i + chunk] @ search).min(-1).indices for i in range(0, feat_q.shape[1], chunk)], 1)
-    # (B, Q); min's indices are argmin's (the first minimum), at half the time
+    ranks = lambda i: feat_q[:, i : i + chunk] @ search  # noqa: E731  (B, chunk, L*P), queries i, i+1, ...
+    # (B, Q): min's indices are argmin's (the first minimum), at half the time
+    j = torch.cat([ranks(i).min(-1).indices for i in range(0, feat_q.shape[1], chunk)], 1)
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
     has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hd - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points are a prefix)
