@@ -29,6 +29,7 @@ A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceler
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import statistics
 import sys
@@ -238,11 +239,14 @@ _SERIES_TERMS = 7
 _SERIES_SWITCH = 0.3
 
 
-def _series_coefficients(jmax):
-    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2: (terms, 2 (jmax+1))."""
+@functools.lru_cache(maxsize=None)
+def _series_coefficients(jmax, dtype, device):
+    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first:
+    (terms, 2 (jmax+1)). Made once per (jmax, dtype, device): the dynamics run in every inner loop."""
     f = math.factorial
-    return [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
+    coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
+    return torch.tensor(coef[::-1], dtype=dtype, device=device)
 
 
 def _moments(w, tau, jmax):
@@ -251,10 +255,11 @@ def _moments(w, tau, jmax):
     small = th.abs() < _SERIES_SWITCH
     # series, all moments at once by Horner's rule in th^2: (..., 2 (jmax+1))
     thz = torch.where(small, th, torch.zeros_like(th))[..., None]
-    coef = torch.tensor(_series_coefficients(jmax), dtype=w.dtype, device=w.device)
-    series = coef[-1].expand(*th.shape, -1)
-    for c in coef.flip(0)[1:]:
-        series = series * thz**2 + c
+    th2 = thz**2
+    coef = _series_coefficients(jmax, w.dtype, w.device)  # (terms, 2 (jmax+1)), highest power first
+    series = coef[0].expand(*th.shape, -1)
+    for c in coef[1:]:
+        series = series * th2 + c
     j = torch.arange(jmax + 1, dtype=w.dtype, device=w.device)
     series = series * torch.cat([tau ** (j + 1) * torch.ones_like(thz), tau ** (j + 1) * thz], -1)
     # closed forms, by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (j c_{j-1} - tau^j cos) / w; w = 1 where small
