@@ -1028,8 +1028,7 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
 
     x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
     and the dynamics to first order, solve the box-constrained LQR, line-search the step scale
-    1, 1/5, 1/25, ... per scenario (all scales rolled out at once) and keep the largest that does not
-    raise the true cost. A scenario whose full step is below tol has converged and stops moving.
+    1, 1/5, 1/25, ... per scenario (_line_search) and keep the largest that does not raise the true cost. A scenario whose full step is below tol has converged and stops moving.
     batched_params: every tensor in params is per scenario, (B, ...); the iterations then work on the
     scenarios still moving only (most converge in one or two of the five), otherwise on all of them.
     Returns x (B, T+1, n), u (B, T, m), ILQRInfo.
@@ -1040,7 +1039,6 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     u = u_init.clamp(lo, hi)
     x = rollout(dynamics, x_init, u)
     cost = cost_fn(x, u, *params)
-    eps = torch.finfo(x.dtype).eps
     pd_eps = 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
     scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # (ls_steps,) 1, 1/5, ...
     active = torch.ones(Bsz, dtype=torch.bool, device=x.device)
@@ -1055,33 +1053,56 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
         g, H = cost_expansion(cost_fn, xi, ui, pi)
         A, Bm = dynamics_jacobians(dynamics, xi, ui)
         k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo_i - ui, hi_i - ui, pd_eps)
-        # closed-loop rollouts of every step scale at once: u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t))
-        b = len(xi)
-        xs = [xi[:, None, 0].expand(b, ls_steps, n)]
-        us = []
-        for t in range(T):
-            du = scales[:, None] * k[:, None, t] + (K[:, None, t] @ (xs[-1] - xi[:, None, t])[..., None])[..., 0]
-            us.append((ui[:, None, t] + du).clamp(lo_i[:, None, t], hi_i[:, None, t]))  # (b, ls_steps, m)
-            xs.append(dynamics(xs[-1], us[-1]))
-        x_try, u_try = torch.stack(xs, 2), torch.stack(us, 2)  # (b, ls_steps, T+1, n), (b, ls_steps, T, m)
-        c_try = cost_fn(x_try, u_try, *pi)  # (b, ls_steps)
-        ok = c_try <= ci[:, None] + 100 * eps * (1 + ci.abs()[:, None])  # no increase, up to rounding
-        first = torch.where(ok, torch.arange(ls_steps, device=x.device), ls_steps).min(-1).values  # largest accepted
-        accept = active[i] & (first < ls_steps)
-        pick = first.clamp(max=ls_steps - 1)
-        rows = torch.arange(b, device=x.device)
-        full_step = (u_try[:, 0] - ui).flatten(1).norm(dim=-1)  # the full LQR step, scale 1
+        x_new, u_new, c_new, accept, full_step = _line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi,
+                                                              scales, batched_params)
+        accept = active[i] & accept
         step_norm = step_norm.index_put((i,), torch.where(active[i], full_step, step_norm[i]))
         n_iter = n_iter.index_put((i,), n_iter[i] + active[i].long())
         sel = lambda new, old: torch.where(accept.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
-        x = x.index_put((i,), sel(x_try[rows, pick], xi))
-        u = u.index_put((i,), sel(u_try[rows, pick], ui))
-        cost = cost.index_put((i,), sel(c_try[rows, pick], ci))
+        x, u, cost = x.index_put((i,), sel(x_new, xi)), u.index_put((i,), sel(u_new, ui)), cost.index_put((i,), sel(c_new, ci))
         costs.append(cost)
         active = active & (step_norm >= tol)
         if not active.any():
             break
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
+
+
+def _line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, batched_params):
+    """An iLQR iteration's step: the largest scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
+        u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
+    does not raise the true cost. The full step first, for every scenario; the smaller scales, all at once,
+    only where it failed (for all scenarios without batched_params: the parameters cannot be split).
+    x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n), cost (b,). Returns the new x, u, cost, whether a
+    scale was accepted (b,) and the norm of the full step (b,)."""
+    eps = torch.finfo(x.dtype).eps
+    no_increase = lambda c, c0: c <= c0 + 100 * eps * (1 + c0.abs())  # noqa: E731  up to rounding
+
+    def rollouts(r, s):  # scenarios r, scales s (S,) -> x' (len(r), S, T+1, n), u' (len(r), S, T, m), all at once
+        xs, us = [x[r, None, 0].expand(len(r), len(s), x.shape[-1])], []
+        for t in range(u.shape[1]):
+            du = s[:, None] * k[r, None, t] + (K[r, None, t] @ (xs[-1] - x[r, None, t])[..., None])[..., 0]
+            us.append((u[r, None, t] + du).clamp(lo[r, None, t], hi[r, None, t]))  # (len(r), S, m)
+            xs.append(dynamics(xs[-1], us[-1]))
+        return torch.stack(xs, 2), torch.stack(us, 2)
+
+    every = torch.arange(len(x), device=x.device)
+    x1, u1 = rollouts(every, scales[:1])
+    x_new, u_new, c_new = x1[:, 0], u1[:, 0], cost_fn(x1, u1, *params)[:, 0]
+    accept = no_increase(c_new, cost)  # (b,)
+    r = (~accept).nonzero()[:, 0] if batched_params else every[: 0 if accept.all() else len(x)]
+    if len(scales) > 1 and len(r):
+        xs, us = rollouts(r, scales[1:])
+        cs = cost_fn(xs, us, *(tuple(p[r] if torch.is_tensor(p) else p for p in params) if batched_params else params))
+        ok = no_increase(cs, cost[r, None])  # (len(r), S-1)
+        first = torch.where(ok, torch.arange(ok.shape[1], device=x.device), ok.shape[1]).min(-1).values  # largest ok
+        use = (first < ok.shape[1]) & ~accept[r]  # a smaller scale where the full step failed
+        pick, rows = first.clamp(max=ok.shape[1] - 1), torch.arange(len(r), device=x.device)
+        sel = lambda new, old: torch.where(use.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
+        x_new = x_new.index_put((r,), sel(xs[rows, pick], x_new[r]))
+        u_new = u_new.index_put((r,), sel(us[rows, pick], u_new[r]))
+        c_new = c_new.index_put((r,), sel(cs[rows, pick], c_new[r]))
+        accept = accept.index_put((r,), accept[r] | use)
+    return x_new, u_new, c_new, accept, (u1[:, 0] - u).flatten(1).norm(dim=-1)
 
 
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):

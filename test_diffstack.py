@@ -393,6 +393,33 @@ def test_closed_form_2x2_solve_and_eigenvalue_match_linalg():
     assert torch.equal(ds._smallest_eigenvalue(Q3), torch.linalg.eigvalsh(Q3)[..., 0])
 
 
+def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
+    """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the
+    full step failed) gives what the solver gives on every scenario every iteration, on a problem where both
+    shortcuts are taken: some scenarios converge early and some reject full steps."""
+    cfg = ds.Config()
+    s0, goal, ctx = toy_scene()
+    lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+    cost = ds.StackCost(2.0)
+    w = ds.cost_weights(cfg, torch.float64) * torch.tensor([10.0, 1, 1, 1, 1], dtype=torch.float64)  # collisions matter
+    params = (w.expand(3, 5), *ctx.tensors())
+    u0 = torch.tensor([0.7, 4.0], dtype=torch.float64).expand(3, 6, 2)  # a hard left at full throttle
+    seen = []
+
+    def recording(x, u, *p):  # records (scenarios, step scales) of every line-search evaluation
+        seen.append(tuple(x.shape[:2]) if x.dim() == 4 else None)
+        return cost(x, u, *p)
+
+    recording.expansion = cost.expansion
+    runs = [ds.ilqr(recording, ds.Unicycle(DT), s0, u0, params, lo, hi, iters=8, tol=1e-3, batched_params=b)
+            for b in (False, True)]
+    (xa, ua, ia), (xb, ub, ib) = runs
+    assert torch.allclose(xa, xb, rtol=0, atol=1e-12) and torch.allclose(ua, ub, rtol=0, atol=1e-12)
+    assert torch.equal(ia.iters, ib.iters) and torch.equal(ia.converged, ib.converged)
+    assert ia.iters.min() < ia.iters.max()  # some scenarios stopped early
+    assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
+
+
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
