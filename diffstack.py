@@ -1210,41 +1210,53 @@ class Predictor(nn.Module):
     def decode(self, x: torch.Tensor, f0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
 
-        All K values of z at once, as B*K rows. The GRU is written out (Cho et al. 2014) so that the input
-        projection of cat(z, x) is computed once: W [z; x] = W_z[:, k] + W_x x, a column lookup plus a (B, 2E) matmul.
+        All K values of z at once, as B*K rows. The GRU (Cho et al. 2014) is written out gate by gate:
+            r = sigma(W_ir [z; x; u] + b_ir + W_hr h + b_hr),   z_gate likewise,
+            n = tanh(W_in [z; x; u] + b_in + r * (W_hn h + b_hn)),   h' = (1 - z_gate) n + z_gate h.
+        The part of W_i [z; x; u] from (z, x) is the same at every step: W_z[:, k] + W_x x, a column lookup plus a
+        (B, 2E) matmul, computed once. Per step each gate is then ONE matmul of [h; u_prev] (B*K, Hd + 2) added onto
+        that constant (addmm), with W_h and W_u side by side; n keeps W_in u and W_hn h apart (r multiplies the latter).
+        Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits -- the splits' backward
+        concatenates the gradients, and a big fresh tensor per step is mostly memory traffic on a CPU.
         The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
         """
         cfg = self.cfg
         K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
         B, X = x.shape
-        W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,)
+        W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,); rows: gates r, z, n
         gi_zx = ((x @ W[:, K : K + X].T + b)[:, None] + W[:, :K].T).reshape(B * K, 3 * Hd)  # W [one_hot(k); x] + b
-        W_u = W[:, K + X :]  # (3Hd, 2)
         W0 = self.dec_h0.weight  # (Hd, K+X)
         h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T).reshape(B * K, Hd)  # h_0 = Linear([z; x])
+        # per gate g in (r, z, n): the constant input part, and the weights of [h; u_prev]
+        W_u, W_h, b_h = W[:, K + X :], self.dec_hh.weight, self.dec_hh.bias  # (3Hd, 2), (3Hd, Hd), (3Hd,)
+        (c_r, c_z, c_n), (b_hr, b_hz, b_hn) = gi_zx.split(Hd, 1), b_h.split(Hd)  # (B*K, Hd) each, (Hd,) each
+        Wr, Wz = (torch.cat([Wh_g, Wu_g], 1).T for Wh_g, Wu_g in zip(W_h[: 2 * Hd].split(Hd), W_u[: 2 * Hd].split(Hd)))
+        c_r, c_z = c_r + b_hr, c_z + b_hz  # (B*K, Hd): both biases of r (and of z) are plain sums
+        W_un, W_hn = W_u[2 * Hd :].T, W_h[2 * Hd :].T  # (2, Hd), (Hd, Hd)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
-        mus, covs = [], []
+        outs = []
         for t in range(T):
-            gi = torch.addmm(gi_zx, u_prev, W_u.T)  # (B*K, 3Hd) = W [z; x; u_prev] + b
-            gh = self.dec_hh(h)  # (B*K, 3Hd)
-            # (split, not slicing: the backward of a slice writes into a zero tensor of the full size, 6400 x 192)
-            (i_rz, i_n), (h_rz, h_n) = gi.split([2 * Hd, Hd], 1), gh.split([2 * Hd, Hd], 1)
-            # r, z = sigma(W_r x + U_r h), sigma(W_z x + U_z h);  n = tanh(W_n x + r * U_n h);  h' = (1 - z) n + z h
-            r, z = torch.sigmoid(i_rz + h_rz).chunk(2, 1)  # (B*K, Hd) each
-            h = torch.lerp(torch.tanh(i_n + r * h_n), h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
-            mu, log_s, rho = self.dec_out(h).split([2, 2, 1], 1)  # (B*K, 2), (B*K, 2), (B*K, 1)
-            s_w, s_a = log_s.exp().unbind(1)  # (B*K,) each
-            rho = torch.tanh(rho[:, 0])  # (B*K,)
-            # Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
-            c = rho * s_w * s_a  # (B*K,)
-            covs.append(torch.stack([s_w**2, c, c, s_a**2], -1))  # (B*K, 4)
-            mus.append(mu)
+            hu = torch.cat([h, u_prev], 1)  # (B*K, Hd+2)
+            r = torch.sigmoid(torch.addmm(c_r, hu, Wr))  # (B*K, Hd)
+            z = torch.sigmoid(torch.addmm(c_z, hu, Wz))  # (B*K, Hd)
+            n = torch.tanh(torch.addmm(c_n, u_prev, W_un) + r * torch.addmm(b_hn, h, W_hn))  # (B*K, Hd)
+            h = torch.lerp(n, h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
+            out = self.dec_out(h)  # (B*K, 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh)
+            outs.append(out)
+            mu = out[:, :2]  # (B*K, 2)
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
+                s_w, s_a = out[:, 2:4].exp().unbind(1)  # (B*K,) each
+                rho = torch.tanh(out[:, 4])  # (B*K,)
                 e1, e2 = torch.randn_like(mu).unbind(1)  # (B*K,) each
                 u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
             else:
                 u_prev = mu
-        return torch.stack(mus, 1).reshape(B, K, T, 2), torch.stack(covs, 1).reshape(B, K, T, 2, 2)
+        # all steps at once: (B*K, T, 5) -> means and Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
+        mu, log_s, rho = torch.stack(outs, 1).split([2, 2, 1], -1)  # (B*K, T, 2), (B*K, T, 2), (B*K, T, 1)
+        s_w, s_a = log_s.exp().unbind(-1)  # (B*K, T) each
+        c = torch.tanh(rho[..., 0]) * s_w * s_a  # (B*K, T)
+        cov = torch.stack([s_w**2, c, c, s_a**2], -1)  # (B*K, T, 4)
+        return mu.reshape(B, K, T, 2), cov.reshape(B, K, T, 2, 2)
 
     def initial_state(self, batch, x: torch.Tensor) -> torch.Tensor:
         """s0 = (x0, y0, heading, v0) (B, 4): heading = velocity direction + a learned correction in (-1, 1) rad."""
