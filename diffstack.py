@@ -1297,21 +1297,29 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
     Sigma_0 = 0 (the current state is known); Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,
     A = df/ds, B = df/du at the mean. Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I,
     (..., T, 2, 2).
+
+    Unrolled, all steps at once (no loop over t, and a short backward). The unicycle's A is a shear,
+    A_t = [[I, M_t], [0, I]] with M_t = d(x, y)/d(h, v) (nothing but the controls moves h and v), and shears
+    compose by adding their corners: A_t ... A_{r+1} = [[I, C_t - C_r], [0, I]], C_t = M_0 + ... + M_t. With
+    B_r = [[N_r], [dt I]] (N_r = d(x, y)/du) the recursion unrolls to the position block
+        P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
+    (G_tr: how the control u_r moves (x, y)_{t+1}). Expanding the product, each sum over r <= t is a cumsum:
+        P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T.
     """
-    A, Bm = unicycle_jacobians(s, u, cfg.dt)  # (..., T, 4, 4), (..., T, 4, 2)
-    # Why this layout: a batched matmul of 4x4 matrices pays a per-matrix overhead on CPU; with the matrix indices
+    dt = cfg.dt
+    A, Bm = unicycle_jacobians(s, u, dt)  # (..., T, 4, 4), (..., T, 4, 2)
+    # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
     # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
     mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
-    # (..., T, i, j) -> (T, i, j, ...)
-    rows_last = lambda m: m.movedim(-3, 0).movedim((-2, -1), (1, 2)).contiguous()  # noqa: E731
-    A, Bm, Su = rows_last(A), rows_last(Bm), rows_last(cov_u)  # (T, 4, 4, ...), (T, 4, 2, ...), (T, 2, 2, ...)
-    Sigma = torch.zeros_like(A[0])  # (4, 4, ...)
-    out = []
-    for t in range(s.shape[-2]):
-        Sigma = mm(mm(A[t], Sigma), A[t].transpose(0, 1)) + mm(mm(Bm[t], Su[t]), Bm[t].transpose(0, 1))  # (4, 4, ...)
-        out.append(Sigma[:2, :2])
-    P = torch.stack(out).movedim((1, 2), (-2, -1)).movedim(0, -3)  # (..., T, 2, 2)
-    return P + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=s.dtype, device=s.device)
+    tr = lambda X: X.transpose(0, 1)  # noqa: E731
+    rows_last = lambda m: m.movedim((-2, -1), (0, 1)).contiguous()  # noqa: E731  (..., T, i, j) -> (i, j, ..., T)
+    M, N, Su = rows_last(A[..., :2, 2:]), rows_last(Bm[..., :2, :]), rows_last(cov_u)  # (2, 2, ..., T) each
+    C = M.cumsum(-1)  # (2, 2, ..., T)
+    D = N - dt * C  # (2, 2, ..., T)
+    DSu = mm(D, Su)  # (2, 2, ..., T)
+    P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
+         + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
+    return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=s.dtype, device=s.device)
 
 
 # --------------------------------------------------------------------------------------------
