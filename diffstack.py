@@ -1237,9 +1237,11 @@ class Predictor(nn.Module):
         outs = []
         for t in range(T):
             hu = torch.cat([h, u_prev], 1)  # (B*K, Hd+2)
-            r = torch.sigmoid(torch.addmm(c_r, hu, Wr))  # (B*K, Hd)
-            z = torch.sigmoid(torch.addmm(c_z, hu, Wz))  # (B*K, Hd)
-            n = torch.tanh(torch.addmm(c_n, u_prev, W_un) + r * torch.addmm(b_hn, h, W_hn))  # (B*K, Hd)
+            # in place on each fresh addmm result (as torch's own gru_cell): fewer (B*K, Hd) tensors to allocate,
+            # and autograd allows it -- addmm's and addcmul's backward do not read their output
+            r = torch.addmm(c_r, hu, Wr).sigmoid_()  # (B*K, Hd)
+            z = torch.addmm(c_z, hu, Wz).sigmoid_()  # (B*K, Hd)
+            n = torch.addmm(c_n, u_prev, W_un).addcmul_(r, torch.addmm(b_hn, h, W_hn)).tanh_()  # (B*K, Hd)
             h = torch.lerp(n, h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
             out = self.dec_out(h)  # (B*K, 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh)
             outs.append(out)
