@@ -1230,17 +1230,15 @@ class Predictor(nn.Module):
         # per gate g in (r, z, n): the constant input part, and the weights of [h; u_prev]
         W_u, W_h, b_h = W[:, K + X :], self.dec_hh.weight, self.dec_hh.bias  # (3Hd, 2), (3Hd, Hd), (3Hd,)
         (c_r, c_z, c_n), (b_hr, b_hz, b_hn) = gi_zx.split(Hd, 1), b_h.split(Hd)  # (B*K, Hd) each, (Hd,) each
-        Wr, Wz = (torch.cat([Wh_g, Wu_g], 1).T for Wh_g, Wu_g in zip(W_h[: 2 * Hd].split(Hd), W_u[: 2 * Hd].split(Hd)))
+        (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
         c_r, c_z = c_r + b_hr, c_z + b_hz  # (B*K, Hd): both biases of r (and of z) are plain sums
-        W_un, W_hn = W_u[2 * Hd :].T, W_h[2 * Hd :].T  # (2, Hd), (Hd, Hd)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
         outs = []
         for t in range(T):
-            hu = torch.cat([h, u_prev], 1)  # (B*K, Hd+2)
             # in place on each fresh addmm result (as torch's own gru_cell): fewer (B*K, Hd) tensors to allocate,
             # and autograd allows it -- addmm's and addcmul's backward do not read their output
-            r = torch.addmm(c_r, hu, Wr).sigmoid_()  # (B*K, Hd)
-            z = torch.addmm(c_z, hu, Wz).sigmoid_()  # (B*K, Hd)
+            r = torch.addmm(c_r, h, W_hr).addmm_(u_prev, W_ur).sigmoid_()  # (B*K, Hd)
+            z = torch.addmm(c_z, h, W_hz).addmm_(u_prev, W_uz).sigmoid_()  # (B*K, Hd)
             n = torch.addmm(c_n, u_prev, W_un).addcmul_(r, torch.addmm(b_hn, h, W_hn)).tanh_()  # (B*K, Hd)
             h = torch.lerp(n, h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
             out = self.dec_out(h)  # (B*K, 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh)
