@@ -1283,11 +1283,44 @@ class Predictor(nn.Module):
         log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
         s0 = self.initial_state(batch, x)  # (B, 4)
         mu, cov_u = self.decode(x, f[:, -1])  # (B, K, T, 2), (B, K, T, 2, 2)
-        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t)
-        traj = unicycle_rollout(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cfg.dt)  # (B, K, T+1, 4), s0 first
-        pos_cov = propagate_covariance(traj[:, :, :-1], mu, cov_u, cfg)  # (B, K, T, 2, 2)
+        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t), and their EKF covariances
+        # (unicycle_rollout(s0, mu) and propagate_covariance along it, all steps at once)
+        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
+        # traj (B, K, T+1, 4) with s0 first, pos_cov (B, K, T, 2, 2)
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
+
+
+def _position_jacobians(h, v, w, a, dt: float):
+    """One unicycle step from headings h, speeds v (...) under controls w, a (...): its displacement (dx, dy) and
+    the position rows of its Jacobians, M = d(x, y)'/d(h, v) and N = d(x, y)'/d(w, a), each (2, 2, ...), matrix
+    indices first. The formulas of unicycle_step / unicycle_jacobians (section 2), from one _moments call."""
+    (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
+    dx, dy = rot(v * c0 + a * c1, v * s0 + a * s1)  # the displacement
+    xv, yv = rot(c0, s0)  # d/dv
+    xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
+    xa, ya = rot(c1, s1)  # d/da
+    M = torch.stack([torch.stack([-dy, xv]), torch.stack([dx, yv])])  # (2, 2, ...); d/dh of R(h) d is J R(h) d
+    N = torch.stack([torch.stack([xw, xa]), torch.stack([yw, ya])])  # (2, 2, ...)
+    return dx, dy, M, N
+
+
+def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg: Config) -> torch.Tensor:
+    """The EKF position covariances from the position Jacobians M, N and control covariances Su, each (2, 2, ..., T)
+    (matrix indices first): (..., T, 2, 2) plus pred_pos_std_min^2 I. See propagate_covariance."""
+    dt = cfg.dt
+    # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
+    # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
+    mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
+    tr = lambda X: X.transpose(0, 1)  # noqa: E731
+    C = M.cumsum(-1)  # (2, 2, ..., T)
+    D = N - dt * C  # (2, 2, ..., T)
+    DSu = mm(D, Su)  # (2, 2, ..., T)
+    P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
+         + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
+    return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
 
 
 def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> torch.Tensor:
@@ -1306,20 +1339,25 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
     (G_tr: how the control u_r moves (x, y)_{t+1}). Expanding the product, each sum over r <= t is a cumsum:
         P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T.
     """
+    _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), cfg.dt)  # (2, 2, ..., T) each
+    return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
+
+
+def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config):
+    """unicycle_rollout of the mean controls and propagate_covariance along it, together and all steps at once.
+
+    s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances
+    (..., T, 2, 2). Heading and speed are cumulative sums of the controls; each step's displacement then depends
+    on that step alone, so the positions are cumulative sums too -- and the same moments give the Jacobians.
+    """
     dt = cfg.dt
-    A, Bm = unicycle_jacobians(s, u, dt)  # (..., T, 4, 4), (..., T, 4, 2)
-    # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
-    # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
-    mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
-    tr = lambda X: X.transpose(0, 1)  # noqa: E731
-    rows_last = lambda m: m.movedim((-2, -1), (0, 1)).contiguous()  # noqa: E731  (..., T, i, j) -> (i, j, ..., T)
-    M, N, Su = rows_last(A[..., :2, 2:]), rows_last(Bm[..., :2, :]), rows_last(cov_u)  # (2, 2, ..., T) each
-    C = M.cumsum(-1)  # (2, 2, ..., T)
-    D = N - dt * C  # (2, 2, ..., T)
-    DSu = mm(D, Su)  # (2, 2, ..., T)
-    P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
-         + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
-    return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=s.dtype, device=s.device)
+    w, a = u.unbind(-1)  # (..., T) each
+    h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (w * dt).cumsum(-1)], -1)  # (..., T+1): h_{t+1} = h_t + w_t dt
+    v = torch.cat([s0[..., 3:4], s0[..., 3:4] + (a * dt).cumsum(-1)], -1)  # (..., T+1): v_{t+1} = v_t + a_t dt
+    dx, dy, M, N = _position_jacobians(h[..., :-1], v[..., :-1], w, a, dt)  # (..., T), (..., T), (2, 2, ..., T) x2
+    x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
+    y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
+    return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
 
 
 # --------------------------------------------------------------------------------------------
