@@ -1312,8 +1312,8 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
     (matrix indices first): (..., T, 2, 2) plus pred_pos_std_min^2 I. See propagate_covariance."""
     dt = cfg.dt
     # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
-    # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
-    mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
+    # first and the rows last, a product is two broadcasts over contiguous rows: (XY)_ik = X_i0 Y_0k + X_i1 Y_1k.
+    mm = lambda X, Y: X[:, :1] * Y[:1] + X[:, 1:] * Y[1:]  # noqa: E731  (i, 1, ...) (1, k, ...) -> (i, k, ...)
     tr = lambda X: X.transpose(0, 1)  # noqa: E731
     C = M.cumsum(-1)  # (2, 2, ..., T)
     D = N - dt * C  # (2, 2, ..., T)
