@@ -1214,24 +1214,28 @@ class Predictor(nn.Module):
             r = sigma(W_ir [z; x; u] + b_ir + W_hr h + b_hr),   z_gate likewise,
             n = tanh(W_in [z; x; u] + b_in + r * (W_hn h + b_hn)),   h' = (1 - z_gate) n + z_gate h.
         The part of W_i [z; x; u] from (z, x) is the same at every step: W_z[:, k] + W_x x, a column lookup plus a
-        (B, 2E) matmul, computed once. Per step each gate is then ONE matmul of [h; u_prev] (B*K, Hd + 2) added onto
-        that constant (addmm), with W_h and W_u side by side; n keeps W_in u and W_hn h apart (r multiplies the latter).
-        Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits -- the splits' backward
-        concatenates the gradients, and a big fresh tensor per step is mostly memory traffic on a CPU.
+        (B, 2E) matmul, computed once. Per step a gate is then that constant plus W_h h (one (B*K, Hd) x (Hd, Hd)
+        matmul, addmm) plus W_u u_prev (an in-place rank-2 update); n keeps W_in u and W_hn h apart (r multiplies
+        the latter). Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits (whose backward
+        concatenates the gradients) -- at B*K = 6400 rows the decoder is memory traffic, every fresh tensor counts.
         The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
         """
         cfg = self.cfg
         K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
         B, X = x.shape
         W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,); rows: gates r, z, n
-        gi_zx = ((x @ W[:, K : K + X].T + b)[:, None] + W[:, :K].T).reshape(B * K, 3 * Hd)  # W [one_hot(k); x] + b
-        W0 = self.dec_h0.weight  # (Hd, K+X)
-        h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T).reshape(B * K, Hd)  # h_0 = Linear([z; x])
-        # per gate g in (r, z, n): the constant input part, and the weights of [h; u_prev]
         W_u, W_h, b_h = W[:, K + X :], self.dec_hh.weight, self.dec_hh.bias  # (3Hd, 2), (3Hd, Hd), (3Hd,)
-        (c_r, c_z, c_n), (b_hr, b_hz, b_hn) = gi_zx.split(Hd, 1), b_h.split(Hd)  # (B*K, Hd) each, (Hd,) each
+        # the constant part of each gate's input, W [one_hot(k); x] + b, with b_hr and b_hz added in (the biases of r
+        # and of z are plain sums; b_hn stays inside r * (W_hn h + b_hn)). The (K, .) column blocks are made
+        # contiguous so that the broadcast sums come out row-major and the reshapes are views, not copies.
+        b_i = b + torch.cat([b_h[: 2 * Hd], b_h.new_zeros(Hd)])  # (3Hd,)
+        gi_zx = ((x @ W[:, K : K + X].T + b_i)[:, None] + W[:, :K].T.contiguous()).reshape(B * K, 3 * Hd)
+        W0 = self.dec_h0.weight  # (Hd, K+X)
+        h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T.contiguous()).reshape(B * K, Hd)
+        # h (B*K, Hd) = h_0 = Linear([one_hot(k); x]), the same column lookup
+        c_r, c_z, c_n = gi_zx.split(Hd, 1)  # (B*K, Hd) each
         (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
-        c_r, c_z = c_r + b_hr, c_z + b_hz  # (B*K, Hd): both biases of r (and of z) are plain sums
+        b_hn = b_h[2 * Hd :]  # (Hd,)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
         outs = []
         for t in range(T):
