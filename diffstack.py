@@ -1174,12 +1174,18 @@ class Predictor(nn.Module):
         first = (~mask).sum(-1)  # (B,) index of the first observed step (missing steps are a prefix)
         origin = hist[:, -1, :2]  # (B, 2) the agent's current position
         f = state_features(hist, origin, first, cfg)  # (B, H, 8)
-        # history LSTM; unobserved steps leave its state untouched
-        h = c = f.new_zeros(B, cfg.pred_enc_hidden)  # (B, E)
-        for t in range(H):
-            h_new, c_new = self.hist_lstm(f[:, t], (h, c))
-            keep = mask[:, t, None]  # (B, 1)
-            h, c = torch.where(keep, h_new, h), torch.where(keep, c_new, c)  # (B, E)
+        # history LSTM; unobserved steps leave its state untouched. They are a prefix (check_batch), so the state stays
+        # zero through them and h is the LSTM's output at the last step of a run from zeros over f[first:]. Hence one
+        # fused LSTM call over all steps instead of a loop of LSTMCell steps: shift each history left so that its
+        # observed steps come first (the tail repeats the current step and is computed but never read), and read the
+        # output at step H-1-first. torch.lstm is the kernel nn.LSTM calls, here given hist_lstm's own weights.
+        t = torch.arange(H, device=f.device)
+        f_obs = f.take_along_dim((t + first[:, None]).clamp(max=H - 1)[..., None], 1)  # (B, H, 8) observed first
+        zero = f.new_zeros(1, B, cfg.pred_enc_hidden)  # (1, B, E) h_0 = c_0 = 0
+        cell = self.hist_lstm
+        out, _, _ = torch.lstm(f_obs, (zero, zero), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
+                               True, 1, 0.0, self.training, False, True)  # (B, H, E): has biases, 1 layer, batch first
+        h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
         nbr_valid = torch.cat([batch.others_mask, mask.new_ones(B, 1)], 1)  # (B, A+1)
