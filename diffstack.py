@@ -1322,8 +1322,12 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
     (matrix indices first): (..., T, 2, 2) plus pred_pos_std_min^2 I. See propagate_covariance."""
     dt = cfg.dt
     # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
-    # first and the rows last, a product is two broadcasts over contiguous rows: (XY)_ik = X_i0 Y_0k + X_i1 Y_1k.
-    mm = lambda X, Y: X[:, :1] * Y[:1] + X[:, 1:] * Y[1:]  # noqa: E731  (i, 1, ...) (1, k, ...) -> (i, k, ...)
+    # first and the rows last, a product is four sums of two products of whole contiguous (...) tensors.
+    def mm(X, Y):  # (2, 2, ...) x (2, 2, ...) -> (2, 2, ...)
+        (x00, x01), (x10, x11) = (row.unbind(0) for row in X.unbind(0))
+        (y00, y01), (y10, y11) = (row.unbind(0) for row in Y.unbind(0))
+        return torch.stack([torch.stack([x00 * y00 + x01 * y10, x00 * y01 + x01 * y11]),
+                            torch.stack([x10 * y00 + x11 * y10, x10 * y01 + x11 * y11])])
     tr = lambda X: X.transpose(0, 1)  # noqa: E731
     C = M.cumsum(-1)  # (2, 2, ..., T)
     D = N - dt * C  # (2, 2, ..., T)
