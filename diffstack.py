@@ -1357,7 +1357,8 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
     return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
 
 
-def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config):
+def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
+                    cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
     """unicycle_rollout of the mean controls and propagate_covariance along it, together and all steps at once.
 
     s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances
