@@ -1377,12 +1377,18 @@ class Predictor(nn.Module):
         first = (~mask).sum(-1)  # (B,) index of the first observed step (missing steps are a prefix)
         origin = hist[:, -1, :2]  # (B, 2) the agent's current position
         f = state_features(hist, origin, first, cfg)  # (B, H, 8)
-        # history LSTM; unobserved steps leave its state untouched
-        h = c = f.new_zeros(B, cfg.pred_enc_hidden)  # (B, E)
-        for t in range(H):
-            h_new, c_new = self.hist_lstm(f[:, t], (h, c))
-            keep = mask[:, t, None]  # (B, 1)
-            h, c = torch.where(keep, h_new, h), torch.where(keep, c_new, c)  # (B, E)
+        # history LSTM; unobserved steps leave its state untouched. They are a prefix (check_batch), so the state stays
+        # zero through them and h is the LSTM's output at the last step of a run from zeros over f[first:]. Hence one
+        # fused LSTM call over all steps instead of a loop of LSTMCell steps: shift each history left so that its
+        # observed steps come first (the tail repeats the current step and is computed but never read), and read the
+        # output at step H-1-first. torch.lstm is the kernel nn.LSTM calls, here given hist_lstm's own weights.
+        t = torch.arange(H, device=f.device)
+        f_obs = f.take_along_dim((t + first[:, None]).clamp(max=H - 1)[..., None], 1)  # (B, H, 8) observed first
+        zero = f.new_zeros(1, B, cfg.pred_enc_hidden)  # (1, B, E) h_0 = c_0 = 0
+        cell = self.hist_lstm
+        out, _, _ = torch.lstm(f_obs, (zero, zero), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
+                               True, 1, 0.0, self.training, False, True)  # (B, H, E): has biases, 1 layer, batch first
+        h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
         nbr_valid = torch.cat([batch.others_mask, mask.new_ones(B, 1)], 1)  # (B, A+1)
@@ -1413,41 +1419,57 @@ class Predictor(nn.Module):
     def decode(self, x: torch.Tensor, f0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
 
-        All K values of z at once, as B*K rows. The GRU is written out (Cho et al. 2014) so that the input
-        projection of cat(z, x) is computed once: W [z; x] = W_z[:, k] + W_x x, a column lookup plus a (B, 2E) matmul.
+        All K values of z at once, as B*K rows. The GRU (Cho et al. 2014) is written out gate by gate:
+            r = sigma(W_ir [z; x; u] + b_ir + W_hr h + b_hr),   z_gate likewise,
+            n = tanh(W_in [z; x; u] + b_in + r * (W_hn h + b_hn)),   h' = (1 - z_gate) n + z_gate h.
+        The part of W_i [z; x; u] from (z, x) is the same at every step: W_z[:, k] + W_x x, a column lookup plus a
+        (B, 2E) matmul, computed once. Per step a gate is then that constant plus W_h h (one (B*K, Hd) x (Hd, Hd)
+        matmul, addmm) plus W_u u_prev (an in-place rank-2 update); n keeps W_in u and W_hn h apart (r multiplies
+        the latter). Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits (whose backward
+        concatenates the gradients) -- at B*K = 6400 rows the decoder is memory traffic, every fresh tensor counts.
         The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
         """
         cfg = self.cfg
         K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
         B, X = x.shape
-        W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,)
-        gi_zx = ((x @ W[:, K : K + X].T + b)[:, None] + W[:, :K].T).reshape(B * K, 3 * Hd)  # W [one_hot(k); x] + b
-        W_u = W[:, K + X :]  # (3Hd, 2)
+        W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,); rows: gates r, z, n
+        W_u, W_h, b_h = W[:, K + X :], self.dec_hh.weight, self.dec_hh.bias  # (3Hd, 2), (3Hd, Hd), (3Hd,)
+        # the constant part of each gate's input, W [one_hot(k); x] + b, with b_hr and b_hz added in (the biases of r
+        # and of z are plain sums; b_hn stays inside r * (W_hn h + b_hn)). The (K, .) column blocks are made
+        # contiguous so that the broadcast sums come out row-major and the reshapes are views, not copies.
+        b_i = b + torch.cat([b_h[: 2 * Hd], b_h.new_zeros(Hd)])  # (3Hd,)
+        gi_zx = ((x @ W[:, K : K + X].T + b_i)[:, None] + W[:, :K].T.contiguous()).reshape(B * K, 3 * Hd)
         W0 = self.dec_h0.weight  # (Hd, K+X)
-        h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T).reshape(B * K, Hd)  # h_0 = Linear([z; x])
+        h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T.contiguous()).reshape(B * K, Hd)
+        # h (B*K, Hd) = h_0 = Linear([one_hot(k); x]), the same column lookup
+        c_r, c_z, c_n = gi_zx.split(Hd, 1)  # (B*K, Hd) each
+        (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
+        b_hn = b_h[2 * Hd :]  # (Hd,)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
-        mus, covs = [], []
+        outs = []
         for t in range(T):
-            gi = torch.addmm(gi_zx, u_prev, W_u.T)  # (B*K, 3Hd) = W [z; x; u_prev] + b
-            gh = self.dec_hh(h)  # (B*K, 3Hd)
-            # (split, not slicing: the backward of a slice writes into a zero tensor of the full size, 6400 x 192)
-            (i_rz, i_n), (h_rz, h_n) = gi.split([2 * Hd, Hd], 1), gh.split([2 * Hd, Hd], 1)
-            # r, z = sigma(W_r x + U_r h), sigma(W_z x + U_z h);  n = tanh(W_n x + r * U_n h);  h' = (1 - z) n + z h
-            r, z = torch.sigmoid(i_rz + h_rz).chunk(2, 1)  # (B*K, Hd) each
-            h = torch.lerp(torch.tanh(i_n + r * h_n), h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
-            mu, log_s, rho = self.dec_out(h).split([2, 2, 1], 1)  # (B*K, 2), (B*K, 2), (B*K, 1)
-            s_w, s_a = log_s.exp().unbind(1)  # (B*K,) each
-            rho = torch.tanh(rho[:, 0])  # (B*K,)
-            # Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
-            c = rho * s_w * s_a  # (B*K,)
-            covs.append(torch.stack([s_w**2, c, c, s_a**2], -1))  # (B*K, 4)
-            mus.append(mu)
+            # in place on each fresh addmm result (as torch's own gru_cell): fewer (B*K, Hd) tensors to allocate,
+            # and autograd allows it -- addmm's and addcmul's backward do not read their output
+            r = torch.addmm(c_r, h, W_hr).addmm_(u_prev, W_ur).sigmoid_()  # (B*K, Hd)
+            z = torch.addmm(c_z, h, W_hz).addmm_(u_prev, W_uz).sigmoid_()  # (B*K, Hd)
+            n = torch.addmm(c_n, u_prev, W_un).addcmul_(r, torch.addmm(b_hn, h, W_hn)).tanh_()  # (B*K, Hd)
+            h = torch.lerp(n, h, z)  # (B*K, Hd); lerp(n, h, z) = n + z (h - n)
+            out = self.dec_out(h)  # (B*K, 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh)
+            outs.append(out)
+            mu = out[:, :2]  # (B*K, 2)
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
+                s_w, s_a = out[:, 2:4].exp().unbind(1)  # (B*K,) each
+                rho = torch.tanh(out[:, 4])  # (B*K,)
                 e1, e2 = torch.randn_like(mu).unbind(1)  # (B*K,) each
                 u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
             else:
                 u_prev = mu
-        return torch.stack(mus, 1).reshape(B, K, T, 2), torch.stack(covs, 1).reshape(B, K, T, 2, 2)
+        # all steps at once: (B*K, T, 5) -> means and Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
+        mu, log_s, rho = torch.stack(outs, 1).split([2, 2, 1], -1)  # (B*K, T, 2), (B*K, T, 2), (B*K, T, 1)
+        s_w, s_a = log_s.exp().unbind(-1)  # (B*K, T) each
+        c = torch.tanh(rho[..., 0]) * s_w * s_a  # (B*K, T)
+        cov = torch.stack([s_w**2, c, c, s_a**2], -1)  # (B*K, T, 4)
+        return mu.reshape(B, K, T, 2), cov.reshape(B, K, T, 2, 2)
 
     def initial_state(self, batch, x: torch.Tensor) -> torch.Tensor:
         """s0 = (x0, y0, heading, v0) (B, 4): heading = velocity direction + a learned correction in (-1, 1) rad."""
@@ -1474,11 +1496,48 @@ class Predictor(nn.Module):
         log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
         s0 = self.initial_state(batch, x)  # (B, 4)
         mu, cov_u = self.decode(x, f[:, -1])  # (B, K, T, 2), (B, K, T, 2, 2)
-        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t)
-        traj = unicycle_rollout(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cfg.dt)  # (B, K, T+1, 4), s0 first
-        pos_cov = propagate_covariance(traj[:, :, :-1], mu, cov_u, cfg)  # (B, K, T, 2, 2)
+        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t), and their EKF covariances
+        # (unicycle_rollout(s0, mu) and propagate_covariance along it, all steps at once)
+        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
+        # traj (B, K, T+1, 4) with s0 first, pos_cov (B, K, T, 2, 2)
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
+
+
+def _position_jacobians(h, v, w, a, dt: float):
+    """One unicycle step from headings h, speeds v (...) under controls w, a (...): its displacement (dx, dy) and
+    the position rows of its Jacobians, M = d(x, y)'/d(h, v) and N = d(x, y)'/d(w, a), each (2, 2, ...), matrix
+    indices first. The formulas of unicycle_step / unicycle_jacobians (section 2), from one _moments call."""
+    (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
+    dx, dy = rot(v * c0 + a * c1, v * s0 + a * s1)  # the displacement
+    xv, yv = rot(c0, s0)  # d/dv
+    xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
+    xa, ya = rot(c1, s1)  # d/da
+    M = torch.stack([torch.stack([-dy, xv]), torch.stack([dx, yv])])  # (2, 2, ...); d/dh of R(h) d is J R(h) d
+    N = torch.stack([torch.stack([xw, xa]), torch.stack([yw, ya])])  # (2, 2, ...)
+    return dx, dy, M, N
+
+
+def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg: Config) -> torch.Tensor:
+    """The EKF position covariances from the position Jacobians M, N and control covariances Su, each (2, 2, ..., T)
+    (matrix indices first): (..., T, 2, 2) plus pred_pos_std_min^2 I. See propagate_covariance."""
+    dt = cfg.dt
+    # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
+    # first and the rows last, a product is four sums of two products of whole contiguous (...) tensors.
+    def mm(X, Y):  # (2, 2, ...) x (2, 2, ...) -> (2, 2, ...)
+        (x00, x01), (x10, x11) = (row.unbind(0) for row in X.unbind(0))
+        (y00, y01), (y10, y11) = (row.unbind(0) for row in Y.unbind(0))
+        return torch.stack([torch.stack([x00 * y00 + x01 * y10, x00 * y01 + x01 * y11]),
+                            torch.stack([x10 * y00 + x11 * y10, x10 * y01 + x11 * y11])])
+    tr = lambda X: X.transpose(0, 1)  # noqa: E731
+    C = M.cumsum(-1)  # (2, 2, ..., T)
+    D = N - dt * C  # (2, 2, ..., T)
+    DSu = mm(D, Su)  # (2, 2, ..., T)
+    P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
+         + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
+    return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
 
 
 def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> torch.Tensor:
@@ -1488,21 +1547,35 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
     Sigma_0 = 0 (the current state is known); Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,
     A = df/ds, B = df/du at the mean. Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I,
     (..., T, 2, 2).
+
+    Unrolled, all steps at once (no loop over t, and a short backward). The unicycle's A is a shear,
+    A_t = [[I, M_t], [0, I]] with M_t = d(x, y)/d(h, v) (nothing but the controls moves h and v), and shears
+    compose by adding their corners: A_t ... A_{r+1} = [[I, C_t - C_r], [0, I]], C_t = M_0 + ... + M_t. With
+    B_r = [[N_r], [dt I]] (N_r = d(x, y)/du) the recursion unrolls to the position block
+        P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
+    (G_tr: how the control u_r moves (x, y)_{t+1}). Expanding the product, each sum over r <= t is a cumsum:
+        P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T.
     """
-    A, Bm = unicycle_jacobians(s, u, cfg.dt)  # (..., T, 4, 4), (..., T, 4, 2)
-    # Why this layout: a batched matmul of 4x4 matrices pays a per-matrix overhead on CPU; with the matrix indices
-    # first and the rows last, a product is a broadcast and a sum over contiguous rows: (i, j, ...) x (j, k, ...).
-    mm = lambda X, Y: (X[:, :, None] * Y[None]).sum(1)  # noqa: E731
-    # (..., T, i, j) -> (T, i, j, ...)
-    rows_last = lambda m: m.movedim(-3, 0).movedim((-2, -1), (1, 2)).contiguous()  # noqa: E731
-    A, Bm, Su = rows_last(A), rows_last(Bm), rows_last(cov_u)  # (T, 4, 4, ...), (T, 4, 2, ...), (T, 2, 2, ...)
-    Sigma = torch.zeros_like(A[0])  # (4, 4, ...)
-    out = []
-    for t in range(s.shape[-2]):
-        Sigma = mm(mm(A[t], Sigma), A[t].transpose(0, 1)) + mm(mm(Bm[t], Su[t]), Bm[t].transpose(0, 1))  # (4, 4, ...)
-        out.append(Sigma[:2, :2])
-    P = torch.stack(out).movedim((1, 2), (-2, -1)).movedim(0, -3)  # (..., T, 2, 2)
-    return P + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=s.dtype, device=s.device)
+    _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), cfg.dt)  # (2, 2, ..., T) each
+    return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
+
+
+def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
+                    cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
+    """unicycle_rollout of the mean controls and propagate_covariance along it, together and all steps at once.
+
+    s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances
+    (..., T, 2, 2). Heading and speed are cumulative sums of the controls; each step's displacement then depends
+    on that step alone, so the positions are cumulative sums too -- and the same moments give the Jacobians.
+    """
+    dt = cfg.dt
+    w, a = u.unbind(-1)  # (..., T) each
+    h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (w * dt).cumsum(-1)], -1)  # (..., T+1): h_{t+1} = h_t + w_t dt
+    v = torch.cat([s0[..., 3:4], s0[..., 3:4] + (a * dt).cumsum(-1)], -1)  # (..., T+1): v_{t+1} = v_t + a_t dt
+    dx, dy, M, N = _position_jacobians(h[..., :-1], v[..., :-1], w, a, dt)  # (..., T), (..., T), (2, 2, ..., T) x2
+    x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
+    y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
+    return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
 
 
 # --------------------------------------------------------------------------------------------
