@@ -1394,8 +1394,9 @@ class Predictor(nn.Module):
         f_obs = f.take_along_dim((t + first[:, None]).clamp(max=H - 1)[..., None], 1)  # (B, H, 8) observed first
         zero = f.new_zeros(1, B, cfg.pred_enc_hidden)  # (1, B, E) h_0 = c_0 = 0
         cell = self.hist_lstm
-        out, _, _ = torch.lstm(f_obs, (zero, zero), [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh],
-                               True, 1, 0.0, self.training, False, True)  # (B, H, E): has biases, 1 layer, batch first
+        weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
+        # torch.lstm(input, (h_0, c_0), weights, has_biases, num_layers, dropout, train, bidirectional, batch_first)
+        out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
         h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
