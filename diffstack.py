@@ -242,13 +242,15 @@ _SERIES_SWITCH = 0.3
 
 
 @functools.lru_cache(maxsize=None)
-def _series_coefficients(jmax, dtype, device):
-    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first:
-    (terms, 2 (jmax+1)). Made once per (jmax, dtype, device): the dynamics run in every inner loop."""
+def _series_coefficients(jmax, tau, dtype, device):
+    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first
+    (terms, 2 (jmax+1)), and tau^(j+1) (jmax+1,). Made once per (jmax, tau, dtype, device): the dynamics run in
+    every inner loop."""
     f = math.factorial
     coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
-    return torch.tensor(coef[::-1], dtype=dtype, device=device)
+    tau_pow = torch.tensor(tau, dtype=dtype, device=device) ** torch.arange(1, jmax + 2, dtype=dtype, device=device)
+    return torch.tensor(coef[::-1], dtype=dtype, device=device), tau_pow
 
 
 def _moments(w, tau, jmax):
@@ -258,12 +260,11 @@ def _moments(w, tau, jmax):
     # series, all moments at once by Horner's rule in th^2: (..., 2 (jmax+1))
     thz = torch.where(small, th, torch.zeros_like(th))[..., None]
     th2 = thz**2
-    coef = _series_coefficients(jmax, w.dtype, w.device)  # (terms, 2 (jmax+1)), highest power first
+    coef, tau_pow = _series_coefficients(jmax, tau, w.dtype, w.device)  # (terms, 2 (jmax+1)), (jmax+1,) tau^(j+1)
     series = coef[0].expand(*th.shape, -1)
     for c in coef[1:]:
         series = series * th2 + c
-    j = torch.arange(jmax + 1, dtype=w.dtype, device=w.device)
-    series = series * torch.cat([tau ** (j + 1) * torch.ones_like(thz), tau ** (j + 1) * thz], -1)
+    series = series * torch.cat([tau_pow.expand(*th.shape, -1), tau_pow * thz], -1)
     # closed forms, by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (j c_{j-1} - tau^j cos) / w; w = 1 where small
     ws = torch.where(small, torch.ones_like(w), w)
     sin, cos = torch.sin(ws * tau), torch.cos(ws * tau)
@@ -478,22 +479,29 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     n_valid = lanes_mask.sum(-1).gather(1, lane)  # (B, Q)
     point = lambda k: pts.gather(1, (lane * P + k)[..., None].expand(B, -1, 3))  # noqa: E731  (B, Q, 3)
     prev, here, nxt = point((i - 1).clamp_min(0)), point(i), point(torch.minimum(i + 1, (n_valid - 1).clamp_min(0)))
-    closer = segment_projection(qd, here.detach(), nxt.detach())[1].square().sum(-1) < \
-        segment_projection(qd, prev.detach(), here.detach())[1].square().sum(-1)  # (B, Q)
+    d2 = lambda a, b: segment_offset(qd, a.detach(), b.detach())[0].square().sum(-1)  # noqa: E731  (B, Q)
+    closer = d2(here, nxt) < d2(prev, here)  # (B, Q)
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
+
+
+def segment_offset(q, a, b):
+    """The offset r = q - p (..., 2) of q (..., 2) from its closest point p on the segment a -> b (..., 2 or 3),
+    p = a + frac (b - a); also frac (clamped to [0, 1]) and the unclamped fraction (...,)."""
+    d = b[..., :2] - a[..., :2]  # (..., 2)
+    raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
+    frac = raw.clamp(0, 1)
+    return q - a[..., :2] - frac[..., None] * d, frac, raw
 
 
 def segment_projection(q, a, b):
     """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
     frac (...,) the fraction along the segment (clamped to [0, 1]), r = q - closest point (..., 2), the
     lane heading there (...,) (interpolated between the ends), and dfrac/dq (..., 2) (0 where clamped)."""
+    r, frac, raw = segment_offset(q, a, b)
     d = b[..., :2] - a[..., :2]  # (..., 2)
-    dd = (d * d).sum(-1).clamp_min(1e-9)
-    raw = ((q - a[..., :2]) * d).sum(-1) / dd
-    frac = raw.clamp(0, 1)
-    r = q - a[..., :2] - frac[..., None] * d
     lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
-    dfrac = torch.where(((raw >= 0) & (raw <= 1))[..., None], d / dd[..., None], 0.0)  # as clamp's gradient
+    on_segment = ((raw >= 0) & (raw <= 1))[..., None]
+    dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
     return frac, r, lane_h, dfrac
 
 
@@ -917,6 +925,12 @@ def _solve_masked(Q, rhs, free):
     return _solve_small(M, rhs)
 
 
+@functools.lru_cache(maxsize=None)
+def _active_sets(m, device):
+    """Every active set of m box-constrained controls, (3^m, m): 0 free, 1 at the lower bound, 2 at the upper."""
+    return torch.cartesian_prod(*[torch.arange(3, device=device)] * m).reshape(-1, m)
+
+
 def box_qp(Q, q, lo, hi):
     """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m.
 
@@ -929,7 +943,7 @@ def box_qp(Q, q, lo, hi):
     """
     m = q.shape[-1]
     assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
-    sets = torch.cartesian_prod(*[torch.arange(3, device=q.device)] * m).reshape(-1, m)  # (3^m, m): 0 free, 1 lower, 2 upper
+    sets = _active_sets(m, q.device)  # (3^m, m): 0 free, 1 lower, 2 upper
     free = sets == 0
     fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
     Qs, qs = Q[:, None], q[:, None]  # (B, 1, m, m), (B, 1, m)
