@@ -2413,13 +2413,19 @@ WAYMO_CANDIDATE_LANES = 48
 def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg: SynthConfig | None = None, log=print):
     """The Waymo scenes as planning samples at every usable frame (fetched first if needed): (Scenarios, report).
     Samples with no lane near the ego are dropped (cut_samples); of the WAYMO_CANDIDATE_LANES nearest lanes,
-    distinct_lanes keeps cfg.max_lanes that are not copies of a nearer one. float32, like every other batch."""
+    distinct_lanes keeps cfg.max_lanes that are not copies of a nearer one. float32, like every other batch.
+    The samples come scene by scene, in the order of report['samples_per_scene'] ({scene name: count})."""
     cfg = cfg or SynthConfig()
     scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
     wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
-    batch, no_lanes = cut_samples(scenes, None, np.random.default_rng(0), wide)
-    batch = distinct_lanes(batch, cfg.max_lanes)
-    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes)
+    parts, no_lanes = [], 0
+    for s in range(len(scenes)):  # scene by scene (a few), so that the samples come grouped by scene, in order
+        part, dropped = cut_samples(scenes[s:s + 1], None, np.random.default_rng(0), wide)
+        parts.append(part)
+        no_lanes += dropped
+    batch = distinct_lanes(Scenarios.cat(parts), cfg.max_lanes)
+    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes,
+                  samples_per_scene={name: len(part) for name, part in zip(scenes.names, parts)})
     return batch, report
 
 
