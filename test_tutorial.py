@@ -28,14 +28,18 @@ def test_the_comparison_catches_a_changed_cell():
 
 
 def test_tutorial_notebook_runs_in_quick_mode(monkeypatch):
-    """tutorial.py executes top to bottom from a fresh kernel in quick mode (cwd = the repository) with no error,
-    and every checkpoint it prints agrees with its expected value. About a minute on 2 cores."""
+    """The student notebook (tutorial.py) with solutions.py injected executes top to bottom from a fresh kernel in
+    quick mode (cwd = the repository) with no error, every exercise check passes, and every checkpoint it prints
+    agrees with its expected value. About 2 minutes on 2 shared cores."""
     nb = jupytext.read(REPO / "tutorial.py")
     monkeypatch.setenv("DIFFSTACK_QUICK", "1")  # the notebook's parameters cell reads it; the kernel inherits it
+    monkeypatch.setenv("DIFFSTACK_SOLUTIONS", "1")  # the exercises use solutions.py's answers
     client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(REPO)}})
     client.execute()  # raises CellExecutionError (naming the cell) on the first error
     text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
-    assert "QUICK = True" in text
+    assert "QUICK = True" in text and "solutions.py injected" in text
+    for number in SOLUTIONS:
+        assert f"EXERCISE {number}: PASS" in text, f"exercise {number} did not pass in the notebook"
     checks = [line for line in text.splitlines() if line.startswith("CHECKPOINT")]
     assert len(checks) >= 8, checks
     assert not [line for line in checks if line.endswith("MISMATCH")], checks

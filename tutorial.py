@@ -944,10 +944,10 @@ results_table("rl")
 #   $\alpha = (1, 100, 1000)$ the downstream losses dominate; the ablation $\alpha = (1, 0.2, 0.2)$ in
 #   `results/ablation.md` keeps the ADE at 1.60 ± 0.07 m with a hindsight cost of −0.93 ± 0.02.
 # * **A surprise: Standard is worse than ignoring the vehicle** (+0.19 ± 0.06; the paper: −1.61). The per-behaviour
-#   table under the next figure is the evidence: Standard's excess comes from a few behaviours where it predicts the
-#   wrong manoeuvre with confidence (a vehicle that stays in its lane predicted to come over, a turn predicted where
-#   the vehicle goes straight, or the reverse), and the plan reacts to a vehicle that is not there. Most samples cost
-#   the same with or without its prediction.
+#   table under the learning curves is the evidence. Most samples cost the same with or without Standard's
+#   prediction; its excess comes from a few behaviours (in the full run: *keep_lane*, *turn_across*, *cross_go*),
+#   those whose twin manoeuvre shares the set-up (§2). Predicting the twin makes the plan react to a vehicle that is
+#   not where it is predicted, and these errors cost more than the good predictions save.
 # * The planning-aware reweightings (Distance, Grad-cost) do not land between Standard and DiffStack: +0.48 ± 0.07 and
 #   +0.84 ± 0.50. Reweighting $\mathcal L_\text{pred}$ does not tell the model *which* errors hurt the plan; the
 #   gradient of §4 does.
