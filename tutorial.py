@@ -32,18 +32,20 @@
 #
 # | § | what | paper | quick | full |
 # |---|---|---|---|---|
-# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 | TIME_1 | TIME_F1 |
-# | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | TIME_2 | TIME_F2 |
-# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | TIME_3 | TIME_F3 |
-# | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1, Fig. 3 | TIME_4 | TIME_F4 |
-# | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | TIME_5 | TIME_F5 |
-# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | TIME_6 | TIME_F6 |
-# | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | TIME_7 | TIME_F7 |
-# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), dt = 0.1 s | §4.2, §4.3, App. A | TIME_8 | TIME_F8 |
-# | | **whole notebook** | | TIME_ALL | TIME_FALL |
+# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 | < 1 s | < 1 s |
+# | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
+# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 3 s | 2 s |
+# | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1, Fig. 3 | 2 s | 2 s |
+# | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 11 s | 7 s |
+# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 3 s | 41 s |
+# | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 11 s | 251 s |
+# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), dt = 0.1 s | §4.2, §4.3, App. A | 29 s | 245 s |
+# | | **whole notebook** | | 61 s (1 min) | 550 s (9.2 min) |
 #
-# Times: measured run times of each section on a 2-core x86_64 machine shared with other jobs (so upper bounds), one
-# torch thread; add the time you spend reading and on the exercises (budget 20-40 min per exercise).
+# Times: the wall time of each section as measured by the notebook itself (`section_done`), 2026-11-23, on a 2-core
+# x86_64 machine shared with other engineers' jobs (so upper bounds), one torch thread, data already cached (the first
+# run generates it: a few more seconds). Add the time you spend reading and on the exercises (plan 20-40 minutes
+# per exercise, 2.5-4 hours for the whole course).
 #
 # **Exercises.** Four functions to fill in (`raise NotImplementedError` until you do). The cell after each runs a
 # check that builds its own test problems and compares your answer with the module, autograd or a closed form: it
@@ -854,31 +856,36 @@ checkpoint("Standard min-ADE / constant-velocity ADE", m_std["min_ade"] / m_std[
 
 # %%
 # Figure: what the Standard predictor says, with its probabilities. Three validation samples; each of the K = 25
-# modes coloured by p(z = k | x) (log scale), the three most likely labelled with their probability; ellipses: 1σ of
-# the most likely mode; the vehicle's true future in orange. Zoomed on the predicted vehicle.
+# modes coloured and widened by p(z = k | x) (one colour scale for the three panels), the most likely labelled;
+# the three largest probabilities in each title; ellipses: 1σ of the most likely mode; the vehicle's true future
+# in orange. Zoomed on the predicted vehicle.
 model_std.eval()
 idx = torch.tensor([int((data.val.behaviour == data_synth.BEHAVIOURS.index(n)).nonzero()[0]) for n in ("cut_in", "lead_brake", "turn_across")])
 sub = data.val[idx]
 with torch.no_grad():
     pred = model_std(sub, use_posterior=False)
-norm_p = plt.matplotlib.colors.LogNorm(1e-3, 1)
-fig, axes = plt.subplots(1, 3, figsize=(14, 4.6), layout="constrained")
+norm_p = plt.Normalize(0, pred.probs.max().item())
+fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), layout="constrained")
 for j, ax in enumerate(axes):
     P = torch.cat([pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
     pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, :, :2], sub.ego_hist[j, -1:, :2]])
     c, half = (pts.max(0).values + pts.min(0).values) / 2, (pts.max(0).values - pts.min(0).values) / 2 + 3
     hx, hy = max(half[0].item(), 0.75 * half[1].item()), max(half[1].item(), 0.45 * half[0].item())  # not too flat, not too tall
+    top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
     data_synth.plot_scenario(ax, sub, j, extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
-                             title=data_synth.BEHAVIOURS[int(sub.behaviour[j])])
+                             title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
+                                   + ", ".join(f"{q:.2f}" for q in top3))
     xp.plot_prediction(ax, pred, j, color="tab:red", label=None)  # the 1σ ellipses (and faint modes)
-    for rank, k in enumerate(torch.argsort(pred.probs[j]).tolist()):
+    for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
         pk = pred.probs[j, k].item()
-        ax.plot(P[k, :, 0], P[k, :, 1], color=plt.cm.plasma_r(norm_p(max(pk, 1e-3))), lw=0.8 + 3 * pk ** 0.5, zorder=8)
-        if rank >= pred.probs.shape[1] - 3:  # the three most likely
-            ax.annotate(f"p = {pk:.2f}", P[k, -1].tolist(), xytext=(4, 0), textcoords="offset points", fontsize=8,
-                        zorder=10, bbox=dict(fc="white", ec="none", alpha=0.7, pad=0.5))
-fig.colorbar(plt.cm.ScalarMappable(cmap="plasma_r", norm=norm_p), ax=axes, shrink=0.8, label="mode probability p(z = k | x)")
-fig.suptitle("Standard predictor: 25 modes with their probabilities (orange: the true future)", fontsize=10)
+        ax.plot(P[k, :, 0], P[k, :, 1], color=plt.cm.viridis_r(norm_p(pk)), lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
+    k = int(pred.probs[j].argmax())
+    ax.annotate(f"most likely, p = {pred.probs[j, k]:.2f}", P[k, -1].tolist(), xytext=(0, 14), textcoords="offset points",
+                fontsize=8, ha="center", zorder=10, arrowprops=dict(arrowstyle="-", lw=0.6),
+                bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1))
+fig.colorbar(plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p), ax=axes, shrink=0.8, label="mode probability p(z = k | x)")
+fig.suptitle(f"Standard predictor: 25 modes with their probabilities (orange: the true future). After {TRAIN_STEPS} steps no "
+             "mode stands out: the probability is spread over many similar modes", fontsize=10)
 plt.show()
 
 # %%
@@ -954,19 +961,20 @@ results_table("rl")
 
 # %%
 def plot_table(results, setting, title):
-    # Bars of the two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method.
+    # Bars of the two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method; the three panels
+    # share their rows (a method without a prediction has no ADE bar).
     cols = xp.open_loop_columns(setting)[2:4]  # the two planning columns, relative to No prediction
     names = list(results)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 2.8))
+    fig, axes = plt.subplots(1, 3, figsize=(13, 0.45 * len(names) + 1.2), sharey=True, layout="constrained")
+    y = np.arange(len(names))
     for ax, (key, header) in zip(axes, [*((c.key.removeprefix("rel_"), c.header) for c in cols), ("ade", "ADE (m)")]):
         k = key if key == "ade" else "rel_" + key
         stats = [ds.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
-        ax.barh(names, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(np.arange(len(names))))
+        ax.barh(y, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(y))
         ax.axvline(0, color="k", lw=0.8); ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
-        ax.invert_yaxis()
-        if ax is not axes[0]:
-            ax.set_yticklabels([])
-    fig.suptitle(title, y=1.02); fig.tight_layout()
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(y, names); axes[0].set_ylim(len(names) - 0.5, -0.5)  # first method on top, every row kept
+    fig.suptitle(title)
     plt.show()
 
 
