@@ -837,7 +837,8 @@ section_done("§5")
 # $$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,\mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
 # \;-\; \eta\,\mathrm{KL}\big(q(z\mid x,y)\,\Vert\,p(z\mid x)\big) \;+\; I_p(x; z)\Big),$$
 #
-# with all $K$ values of $z$ enumerated. Metrics: ADE/FDE of the most likely mode, min-ADE over modes, and the
+# with all $K$ values of $z$ enumerated and $\eta$ the KL weight, annealed over training (`kl_beta` in the code; the
+# letter $\beta$ is kept for the planner's temperature). Metrics: ADE/FDE of the most likely mode, min-ADE over modes, and the
 # NLL of the GT under the position mixture, against **constant velocity**.
 
 # %%
