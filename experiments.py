@@ -538,8 +538,11 @@ def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | No
         if valid[n]:
             ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
     best = int(p.argmax())
-    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.6, zorder=7, label="plan (argmin)")
-    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=2.2, zorder=8, label="controller")
+    # the controller's trajectory wide and translucent, the plan thin and dashed on top of it: both stay visible
+    # where they overlap (the controller usually moves the plan by centimetres to a few metres)
+    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=4, alpha=0.55, zorder=8,
+            solid_capstyle="round", label="controller")
+    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.4, marker="o", ms=3, zorder=9, label="plan (argmin)")
     return ax
 
 
