@@ -247,3 +247,14 @@ def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
     res = json.loads((tmp_path / "out" / "closed_loop.json").read_text())
     assert res["meta"]["experiment"] == "closed_loop" and (tmp_path / "out" / "closed_loop.png").exists()
     assert "Trajectory" in (tmp_path / "out" / "closed_loop.md").read_text()
+
+
+def test_gap_closed_share_and_no_gap():
+    """The share of the Standard -> GT gap DiffStack closes, per seed; undefined (nan, and the table says so) when
+    Standard already costs what GT prediction does."""
+    res = {"GT prediction": [{"rel_hindsight": -2.0}], "Standard": [{"rel_hindsight": 0.0}, {"rel_hindsight": 2.0}],
+           "DiffStack": [{"rel_hindsight": -1.0}, {"rel_hindsight": 0.0}]}
+    m, s = ex.gap_closed(res)
+    assert m == pytest.approx(0.5) and s == pytest.approx(0.0)  # both seeds close half of their gap
+    res["Standard"] = [{"rel_hindsight": -2.0}]
+    assert all(math.isnan(v) for v in ex.gap_closed(res))
