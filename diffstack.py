@@ -14,7 +14,8 @@ Map of the module (the order the data flows):
     5. Controller             eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
     6. Predictor              eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack                  predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
-    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics
+    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics;
+                              8.1 the same loop on many processes (DistributedDataParallel, torchrun)
     9. Command line           python diffstack.py --quick
 
 The paper's experiments (Tables 1-5, the ablations, figures, the report) are in experiments.py, every
@@ -39,7 +40,6 @@ from typing import NamedTuple
 
 import torch
 import torch.distributed as dist
-import torch.distributed.nn.functional as dist_nn
 import torch.nn as nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
@@ -2051,11 +2051,28 @@ class CostWeights(nn.Module):
 #     means over the *plannable* scenarios, whose number differs from rank to rank: the global count is all-reduced;
 #   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean p(z|x)) and the
 #     scenario weights' normaliser are taken over the global batch, by an all_reduce that autograd differentiates
-#     through (torch.distributed.nn: its backward sums the ranks' gradients), so each rank's parameters also get the
-#     other ranks' share of the gradient of those statistics.
+#     through (AllReduceSum: its backward sums the ranks' gradients), so each rank's parameters also get the other
+#     ranks' share of the gradient of those statistics.
 # With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the ranks' losses
 # (each a function of every rank's rows): here W x share / W = the single-process loss.
 # The gradients are then the same on every rank, so gradient clipping, Adam and the lr schedule stay in step.
+
+
+class AllReduceSum(torch.autograd.Function):
+    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every rank's loss, so
+    dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the same all_reduce. (What
+    torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it for a private module.)"""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
+        ctx.group = group
+        y = x.clone(memory_format=torch.contiguous_format)
+        dist.all_reduce(y, group=group)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad_y: torch.Tensor):
+        return AllReduceSum.apply(grad_y, ctx.group), None
 
 
 @dataclass(frozen=True)
@@ -2079,7 +2096,7 @@ class Shard:
         """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows); autograd-aware."""
         if self.world == 1:
             return x.mean(0)
-        return dist_nn.all_reduce(x.sum(0), group=self.group) / (self.world * len(x))
+        return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
 
     def total(self, x: torch.Tensor) -> torch.Tensor:
         """x (b, ...) -> (...) its sum over the global batch, without gradient (counts, logged values)."""

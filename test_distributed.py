@@ -7,8 +7,10 @@ information's mean p(z|x), taken over the global batch), Distance weighted (the 
 different numbers of them) and the learned cost weights (DDP around CostWeights). Two steps each, so that Adam's
 state and the lr schedule are exercised too, and the second step draws from the permutation's next batch.
 """
+import contextlib
 import dataclasses
 import datetime
+import json
 import math
 import os
 import socket
@@ -21,6 +23,7 @@ import torch.multiprocessing as mp
 
 import data_synth
 import diffstack as ds
+import experiments
 
 WORLD = 2
 GLOBAL_BATCH = 8  # 4 scenarios per rank
@@ -75,13 +78,24 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_ddp(path) -> dict:
-    """train_all on WORLD processes; every worker is ended (killed if need be) before this returns or raises."""
+def _cli_worker(rank: int, port: int, argv: list, log_dir: str) -> None:
+    """One rank of `torchrun --nproc_per_node WORLD experiments.py ARGV`: torchrun's environment, then main(argv),
+    its output (stdout and stderr) to log_dir/rank<rank>.log."""
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(WORLD), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    with open(os.path.join(log_dir, f"rank{rank}.log"), "w") as f, contextlib.redirect_stdout(f), \
+            contextlib.redirect_stderr(f):
+        experiments.main(argv)
+
+
+def spawn(worker, *args) -> None:
+    """worker(rank, free port, *args) on WORLD processes; every one is ended (killed if need be) before this returns
+    or raises."""
     env = {"GLOO_SOCKET_IFNAME": "lo"} if sys.platform.startswith("linux") else {}
     old = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # spawned workers inherit it: gloo on the loopback interface
     try:
-        ctx = mp.start_processes(_worker, args=(free_port(), str(path)), nprocs=WORLD, join=False, start_method="spawn")
+        ctx = mp.start_processes(worker, args=(free_port(), *args), nprocs=WORLD, join=False, start_method="spawn")
     finally:
         for k, v in old.items():
             os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
@@ -95,6 +109,11 @@ def run_ddp(path) -> dict:
             if p.is_alive():
                 p.kill()
             p.join(5)
+
+
+def run_ddp(path) -> dict:
+    """train_all on WORLD processes."""
+    spawn(_worker, str(path))
     return torch.load(path, weights_only=False)
 
 
@@ -146,3 +165,21 @@ def test_batch_size_must_split_over_the_ranks():
             ds.train_stack(ds.Predictor(cfg).double(), data, ds.Method("Standard"), cfg, log=None)
     finally:
         ds.Shard.of_process_group = original
+
+
+def test_experiments_cli_on_two_processes(tmp_path):
+    """experiments.py as torchrun starts it, on 2 processes: one training step per method (float32) gives the
+    single-process table to float32 rounding; only rank 0 writes files and prints, and the command is recorded."""
+    argv = ["--experiment", "rl", "--seeds", "1", "--epochs", "0.02", "--n", "600", "--threads", "1"]
+    experiments.main(argv + ["--out", str(tmp_path / "one")])
+    spawn(_cli_worker, argv + ["--out", str(tmp_path / "two")], str(tmp_path))
+    one, two = (json.loads((tmp_path / d / "rl.json").read_text()) for d in ("one", "two"))
+    assert two["meta"]["command"].startswith(f"torchrun --nproc_per_node {WORLD} experiments.py")
+    assert f"{WORLD} processes (DDP)" in two["meta"]["machine"]
+    for method, runs in one["results"].items():
+        for key, value in runs[0].items():
+            if key != "seconds" and isinstance(value, float):
+                assert two["results"][method][0][key] == pytest.approx(value, rel=1e-4, abs=1e-6), (method, key)
+    assert "Table 1" in (tmp_path / "rank0.log").read_text()
+    assert (tmp_path / "rank1.log").read_text() == "", "rank 1 printed"
+    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == ["rl.json", "rl.md"]
