@@ -965,8 +965,7 @@ def main(argv=None):
             raise ValueError(f"--set batch_size={cfg.batch_size}: a training batch must split evenly over the "
                              f"{world} processes torchrun started; choose a multiple of {world}")
         check_outputs(names, args.out, args.overwrite)
-        if args.data is None or args.experiment == REAL.name:
-            check_writable("data_cache", "the data cache (./data_cache)")
+        check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
         device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
         ap.error(str(e))
