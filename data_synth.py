@@ -1795,8 +1795,11 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
     P = max([p.shape[1] for p in pts] + [1])
     pts = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))])
     mask = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)])
+    # each lane's bounding box (lo_x, lo_y, hi_x, hi_y) of its points, for _lanes_near's first cut (a lane without
+    # points gets an empty box: +inf to -inf)
+    box = np.concatenate([np.where(mask[..., None], pts, np.inf).min(1), np.where(mask[..., None], pts, -np.inf).max(1)], 1)
     return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
-                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, path=path)
+                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, box=box, path=path)
 
 
 def _routes(lmap: dict, near: list, max_routes: int = 256):
@@ -2068,9 +2071,14 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
     """Indices of the lanes with a point within radius of any of the positions path_xy (F, 2)."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
+    # a cheap bounding-box test first: the lanes whose box meets the path's (4 numbers a lane; a real map has ~10^4
+    # lanes, a scene uses a few dozen), then those of them with a point inside it -- the lanes a test of every point
+    # of the map would find
+    b = lmap["box"]  # (n, 4)
+    cand = np.nonzero((b[:, 2] >= lo[0]) & (b[:, 0] <= hi[0]) & (b[:, 3] >= lo[1]) & (b[:, 1] <= hi[1]))[0]
+    p, m = lmap["pts"][cand], lmap["mask"][cand]
+    cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
     p, m = lmap["pts"], lmap["mask"]
-    box = (m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)  # a cheap bounding-box test first
-    cand = np.nonzero(box)[0]
     d = np.linalg.norm(p[cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
     ok = (np.where(m[cand][..., None], d, np.inf) < radius).any((1, 2))
     return cand[ok].tolist()
