@@ -2119,7 +2119,7 @@ class Shard:
         """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ... (DistributedSampler
         without its shuffling; the ordering, a permutation drawn the same on every rank, is the shuffle)."""
         return torch.tensor(list(DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)),
-                            dtype=torch.long)
+                            dtype=torch.long, device="cpu")  # they index the permutation, drawn on the CPU
 
     def close(self) -> None:
         """Release the loss's process group (train_stack makes one per call)."""
