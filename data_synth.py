@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import hashlib
 import json
 import math
@@ -1163,7 +1164,7 @@ def _split_scenes(names: list, version: str) -> tuple:
     return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
 
 
-def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> Dataset:
+def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers: int | None = None) -> Dataset:
     """Training and validation samples for the stack: synthetic (load_or_generate, cached in cache_dir), or
     read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene:
       v1.0-mini      the official mini_val scenes (MINI_VAL) are validation, the rest training;
@@ -1172,7 +1173,8 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> D
                      scene-9xxx) are split by the fallback rule among themselves;
       fallback       if no scene of the folder is in the official lists, or the rule leaves the training or the
                      validation side empty: the last 15 % of the scenes by name are validation.
-    The rule used is logged."""
+    The rule used is logged. A folder's parse is cached in cache_dir, keyed by the checksums of its files
+    (load_nuscenes_cached); parsing uses a pool of `workers` processes (default: the cores, parse_workers())."""
     if path is None:
         return load_or_generate(n, seed=seed, cache_dir=cache_dir)
     _check_seed("load_data", seed)
@@ -1182,7 +1184,7 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print) -> D
     versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
     if not versions:
         raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
-    scenes, report = load_nuscenes(root, versions[0])
+    scenes, report = load_nuscenes_cached(root, versions[0], cache_dir=cache_dir, workers=workers, log=log)
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
     is_val, rule = _split_scenes(scenes.names, versions[0])
@@ -1793,8 +1795,11 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
     P = max([p.shape[1] for p in pts] + [1])
     pts = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))])
     mask = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)])
+    # each lane's bounding box (lo_x, lo_y, hi_x, hi_y) of its points, for _lanes_near's first cut (a lane without
+    # points gets an empty box: +inf to -inf)
+    box = np.concatenate([np.where(mask[..., None], pts, np.inf).min(1), np.where(mask[..., None], pts, -np.inf).max(1)], 1)
     return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
-                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, path=path)
+                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, box=box, path=path)
 
 
 def _routes(lmap: dict, near: list, max_routes: int = 256):
@@ -1853,8 +1858,13 @@ def _sample_chain(sample_file: Path, scene_file: Path, samples: dict, name: str,
     return tokens, times
 
 
-def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
+def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
+                  workers: int | None = None) -> tuple[Scenes, dict]:
     """Read a nuScenes v1.0 folder into Scenes (world frame) and a report of what was read and skipped.
+
+    The tables are read in this process; the scenes, independent of each other once the tables are indexed, are
+    parsed by a pool of `workers` processes (default: the cores this process may use, parse_workers()), at most one
+    per PARSE_CHUNK scenes, so a small folder is read in this process. The result does not depend on `workers`.
 
     Bad input is a NuScenesFormatError (a ValueError) whose message starts with the offending file and names the
     record and field: a missing or malformed table or map, a missing key or a wrong type, a repeated token, a
@@ -1907,7 +1917,9 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
 
     H, T = cfg.hist, cfg.fut
     report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
-    maps, out = {}, []
+    # 1. in this process, in order: every scene's sample chain (cheap; the first broken one is the error), the
+    #    scenes too short for a sample skipped, and the maps of the others read once
+    jobs, maps = [], {}
     for sc in tab["scene"]:
         with _Blame(file("scene")):
             name, first, mpath = sc["name"], sc["first_sample_token"], map_file[sc["log_token"]]
@@ -1916,77 +1928,157 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
                                           f"got {_short(name)}")
         with _Blame(file("sample")):
             tokens, times = _sample_chain(file("sample"), file("scene"), samples, name, first)
-        F = len(tokens)
-        if F < H + T + 1:
+        if len(tokens) < H + T + 1:
             report["skipped_short"] += 1
             continue
-        t = np.array(times, np.float64)
-        t = (t - t[0]) * 1e-6  # (F,) seconds
-        missing = [k for k in tokens if k not in ego_of]
-        if missing:
-            raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
-        pfile = file("ego_pose")
-        with _Blame(pfile):
-            ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3)[:2], _yaw(pfile, ego_of[k]), 0.0]
-                            for k in tokens])
-        ego[:, 2] = wrap_angle(ego[:, 2])
-        ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
-        # agent tracks, in order of first appearance
-        afile = file("sample_annotation")
-        with _Blame(afile):
-            slot, rows, seen = {}, [], {}
-            for f, k in enumerate(tokens):
-                for a in anns.get(k, []):
-                    m = slot.setdefault(a["instance_token"], len(slot))
-                    if (m, f) in seen:
-                        raise NuScenesFormatError(f"{afile}: instance {a['instance_token']!r} is annotated twice in "
-                                                  f"sample {k!r} ({seen[m, f]!r} and {a['token']!r})")
-                    seen[m, f] = a["token"]
-                    x, y, _ = _numbers(afile, a, "translation", 3)
-                    rows.append((m, f, x, y, _yaw(afile, a), *_numbers(afile, a, "size", 3)))
-        M = len(slot)
-        rows = np.array(rows, np.float64).reshape(-1, 8)
-        mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
-        agents, amask = np.zeros((M, F, 4)), np.zeros((M, F), bool)
-        agents[mi, fi, :3], amask[mi, fi] = rows[:, 2:5], True
-        agents[..., 2] = wrap_angle(agents[..., 2])
-        agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
-        size = np.zeros((M, 3))
-        size[mi] = rows[:, 5:8]
-        inst = list(slot)
-        is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
-        # lanes near the ego's path
         if mpath not in maps:
             maps[mpath] = _read_map(mpath, cfg)
-        lmap = maps[mpath]
-        near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
-        routes = _routes(lmap, near)
-        if not routes:
-            report["skipped_no_lanes"] += 1
-            continue
-        # the predicted vehicle per frame
-        pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, name in split, listed, cfg)
-        if (pred < 0).all():
-            report["skipped_no_agent"] += 1
-            continue
-        scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
-        bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
-        if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
-            raise NuScenesFormatError(f"{tdir}: scene {name!r} gives non-finite {', '.join(bad)} (coordinates or "
-                                      f"timestamps out of range)")
-        out.append(scene)
-        report["loaded"] += 1
+        jobs.append((name, mpath, tokens, times))
+    # 2. each scene's ego poses, agent tracks, lanes and predicted vehicle: independent of the other scenes, so
+    #    spread over a process pool
+    ctx = _SceneContext(tdir, cfg, ego_of, anns, inst_cat, maps, frozenset(split), listed)
+    out = []
+    for outcome, arrays in _map_scenes(jobs, ctx, parse_workers() if workers is None else workers):
+        report[outcome] += 1
+        if outcome == "loaded":
+            out.append(Scenes(**{k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"},
+                              names=arrays["names"]))
     if not out:
         raise NuScenesFormatError(f"{tdir}: no usable scene ({report})")
     return Scenes.cat(out), report
 
 
+PARSE_CHUNK = 16
+"""Scenes a pool worker parses per task, and the fewest scenes per worker: a worker costs about a tenth of a second to
+start, a scene of a real log about 30 ms to parse."""
+
+
+def parse_workers() -> int:
+    """The default size of load_nuscenes's process pool: the cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+class _SceneContext(NamedTuple):
+    """What parsing one scene reads: the folder's indexed tables and its maps (shared by every scene)."""
+
+    tdir: Path
+    cfg: SynthConfig
+    ego_of: dict  # sample token -> its CAM_FRONT key-frame ego_pose record
+    anns: dict  # sample token -> its vehicle and pedestrian annotations
+    inst_cat: dict  # instance token -> category name
+    maps: dict  # map file -> _read_map's lanes
+    split_scenes: frozenset  # scenes listed in prediction_scenes.json
+    listed: set  # (instance, sample) pairs listed there
+
+
+_WORKER_CONTEXT: _SceneContext | None = None  # a pool worker's context, set once by _start_worker
+
+
+def _start_worker(ctx: _SceneContext) -> None:
+    global _WORKER_CONTEXT
+    _WORKER_CONTEXT = ctx
+    torch.set_num_threads(1)  # the pool is the parallelism
+
+
+def _parse_in_worker(job):
+    return _parse_scene(job, _WORKER_CONTEXT)
+
+
+def _map_scenes(jobs: list, ctx: _SceneContext, workers: int) -> list:
+    """[_parse_scene(job, ctx) for job in jobs], in order, on a pool of up to `workers` processes (at most one per
+    PARSE_CHUNK scenes; with one, in this process). The pool forks where it can, so the workers inherit ctx (the
+    tables, hundreds of MB for v1.0-trainval) instead of receiving a copy; elsewhere ctx is pickled to each."""
+    import multiprocessing
+
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"load_nuscenes: workers must be a whole number >= 1, got {workers!r}")
+    workers = min(workers, math.ceil(len(jobs) / PARSE_CHUNK))
+    if workers <= 1:
+        return [_parse_scene(job, ctx) for job in jobs]
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    # gc.freeze: the forked workers' garbage collector then leaves the inherited objects alone, instead of touching
+    # (and so copying, page by page) every one of the tables' millions of objects
+    gc.freeze()
+    try:
+        with multiprocessing.get_context(method).Pool(workers, _start_worker, (ctx,)) as pool:
+            return pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK)
+    finally:
+        gc.unfreeze()
+
+
+def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
+    """One scene of a nuScenes folder: ('loaded', its Scenes of length 1 as numpy arrays and names) or
+    ('skipped_no_lanes' | 'skipped_no_agent', None). Numpy, not tensors, crosses the pool's pipes: torch would send
+    every tensor as a shared-memory file descriptor."""
+    name, mpath, tokens, times = job
+    tdir, cfg, ego_of, anns, inst_cat = ctx.tdir, ctx.cfg, ctx.ego_of, ctx.anns, ctx.inst_cat
+    file = lambda t: tdir / f"{t}.json"  # noqa: E731
+    split, listed = ctx.split_scenes, ctx.listed
+    F = len(tokens)
+    t = np.array(times, np.float64)
+    t = (t - t[0]) * 1e-6  # (F,) seconds
+    missing = [k for k in tokens if k not in ego_of]
+    if missing:
+        raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
+    pfile = file("ego_pose")
+    with _Blame(pfile):
+        ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3)[:2], _yaw(pfile, ego_of[k]), 0.0]
+                        for k in tokens])
+    ego[:, 2] = wrap_angle(ego[:, 2])
+    ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
+    # agent tracks, in order of first appearance
+    afile = file("sample_annotation")
+    with _Blame(afile):
+        slot, rows, seen = {}, [], {}
+        for f, k in enumerate(tokens):
+            for a in anns.get(k, []):
+                m = slot.setdefault(a["instance_token"], len(slot))
+                if (m, f) in seen:
+                    raise NuScenesFormatError(f"{afile}: instance {a['instance_token']!r} is annotated twice in "
+                                              f"sample {k!r} ({seen[m, f]!r} and {a['token']!r})")
+                seen[m, f] = a["token"]
+                x, y, _ = _numbers(afile, a, "translation", 3)
+                rows.append((m, f, x, y, _yaw(afile, a), *_numbers(afile, a, "size", 3)))
+    M = len(slot)
+    rows = np.array(rows, np.float64).reshape(-1, 8)
+    mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
+    agents, amask = np.zeros((M, F, 4)), np.zeros((M, F), bool)
+    agents[mi, fi, :3], amask[mi, fi] = rows[:, 2:5], True
+    agents[..., 2] = wrap_angle(agents[..., 2])
+    agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
+    size = np.zeros((M, 3))
+    size[mi] = rows[:, 5:8]
+    inst = list(slot)
+    is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
+    # lanes near the ego's path
+    lmap = ctx.maps[mpath]
+    near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
+    routes = _routes(lmap, near)
+    if not routes:
+        return "skipped_no_lanes", None
+    # the predicted vehicle per frame
+    pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, name in split, listed, cfg)
+    if (pred < 0).all():
+        return "skipped_no_agent", None
+    scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
+    bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
+        raise NuScenesFormatError(f"{tdir}: scene {name!r} gives non-finite {', '.join(bad)} (coordinates or "
+                                  f"timestamps out of range)")
+    return "loaded", {**{k: v.numpy() for k, v in scene.tensors().items()}, "names": scene.names}
+
+
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
     """Indices of the lanes with a point within radius of any of the positions path_xy (F, 2)."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
+    # a cheap bounding-box test first: the lanes whose box meets the path's (4 numbers a lane; a real map has ~10^4
+    # lanes, a scene uses a few dozen), then those of them with a point inside it -- the lanes a test of every point
+    # of the map would find
+    b = lmap["box"]  # (n, 4)
+    cand = np.nonzero((b[:, 2] >= lo[0]) & (b[:, 0] <= hi[0]) & (b[:, 3] >= lo[1]) & (b[:, 1] <= hi[1]))[0]
+    p, m = lmap["pts"][cand], lmap["mask"][cand]
+    cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
     p, m = lmap["pts"], lmap["mask"]
-    box = (m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)  # a cheap bounding-box test first
-    cand = np.nonzero(box)[0]
     d = np.linalg.norm(p[cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
     ok = (np.where(m[cand][..., None], d, np.inf) < radius).any((1, 2))
     return cand[ok].tolist()
@@ -2039,9 +2131,80 @@ def _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cf
                   paths_is_connector=T(conn), routes=T(route_arr).long(), names=[name])
 
 
-def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None):
-    """Read a nuScenes folder straight into planning samples at every usable frame: (Scenarios, report)."""
-    scenes, report = load_nuscenes(root, version, cfg)
+_NUSC_CACHE_FORMAT = 1  # bump when load_nuscenes's output changes, so old caches are not reused
+
+
+def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
+    """{file: sha256} of every file load_nuscenes reads (paths relative to root): the version's 13 tables, the map
+    expansions, maps/prediction/prediction_scenes.json. Files that are not there are left out (load_nuscenes names
+    them). What the parse cache is keyed by: any change to any of them, even a byte, is a new key. (Sizes and
+    modification times would be cheaper, but a copy or an edit within the same second could keep them.)"""
+    root = Path(root)
+    files = [root / version / f"{t}.json" for t in NUSC_TABLES] + sorted((root / "maps" / "expansion").glob("*.json"))
+    files.append(root / "maps" / "prediction" / "prediction_scenes.json")
+    return {f.relative_to(root).as_posix(): _sha256(f) for f in files if f.is_file()}
+
+
+def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
+    """Where the parse of the folder root/version is cached: one file per folder (named by its absolute path), replaced
+    when the folder changes."""
+    where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
+    return Path(cache_dir) / f"nuscenes-{version}-{where}.pt"
+
+
+def load_nuscenes_cached(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
+                         cache_dir: str | os.PathLike = "data_cache", workers: int | None = None,
+                         log=print) -> tuple[Scenes, dict]:
+    """load_nuscenes, through a cache in cache_dir: the parsed Scenes and report are saved keyed by the sha256 of
+    every file the parse reads (nuscenes_checksums), the SynthConfig and the cache format; a later call whose key
+    matches reads them back (seconds: hashing and loading) instead of parsing (minutes for v1.0-trainval). A key that
+    does not match (any file changed) parses again and replaces the cache. The cache is written atomically (a
+    temporary file, then a rename); a file of the cache's name that is not a cache of this module is an error (it
+    is never overwritten)."""
+    cfg = cfg or SynthConfig()
+    t0 = time.perf_counter()
+    sums = nuscenes_checksums(root, version)
+    key = json.dumps({"version": version, "files": sums, "cfg": dataclasses.asdict(cfg), "format": _NUSC_CACHE_FORMAT},
+                     sort_keys=True)
+    path = nuscenes_cache_path(root, version, cache_dir)
+    if path.exists():
+        try:
+            blob = torch.load(path, weights_only=True)
+            stored = blob["key"]
+        except Exception as e:  # noqa: BLE001  (any failure means: not our cache)
+            raise ValueError(f"{path}: not a readable data_synth nuScenes cache ({e}); move it away or use another "
+                             f"cache_dir") from e
+        if stored == key:
+            scenes = Scenes(**blob["scenes"])
+            log(f"{root}/{version}: parsed scenes read from the cache {path} (sha256 of {len(sums)} files match; "
+                f"{time.perf_counter() - t0:.1f} s)")
+            return scenes, blob["report"]
+        before = json.loads(stored)["files"]
+        changed = sorted(f for f in set(sums) | set(before) if sums.get(f) != before.get(f)) or ["the settings"]
+        log(f"{root}/{version}: the cache {path} is out of date ({', '.join(changed[:3])}"
+            f"{' ...' if len(changed) > 3 else ''} changed); parsing again")
+    scenes, report = load_nuscenes(root, version, cfg, workers)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    try:
+        torch.save(blob, tmp)
+        os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    log(f"{root}/{version}: parsed in {time.perf_counter() - t0:.1f} s, cached in {path}")
+    return scenes, report
+
+
+def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
+                            workers: int | None = None, cache_dir=None, log=print):
+    """Read a nuScenes folder straight into planning samples at every usable frame: (Scenarios, report).
+    workers: load_nuscenes's process pool; cache_dir: cache the parse there (load_nuscenes_cached), None: no cache."""
+    if cache_dir is None:
+        scenes, report = load_nuscenes(root, version, cfg, workers)
+    else:
+        scenes, report = load_nuscenes_cached(root, version, cfg, cache_dir, workers, log)
     batch, no_lanes = cut_samples(scenes, None, np.random.default_rng(0), cfg)
     report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes)
     return batch, report
@@ -2499,6 +2662,11 @@ def main(argv=None):
     r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
     r.add_argument("root")
     r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    r.add_argument("--workers", type=_whole(1, 1024), default=None,
+                   help="processes that parse the scenes (default: the cores, %d here)" % parse_workers())
+    r.add_argument("--cache-dir", default=None,
+                   help="cache the parse there, keyed by the sha256 of the folder's files (training, load_data, uses "
+                        "data_cache/); default: no cache")
     wy = sub.add_parser("fetch-waymo", help="download (once) the three Waymo scenes of the metadrive-simulator "
                                             "0.3.0.1 wheel into the cache, verify, load and summarise them")
     wy.add_argument("--cache-dir", default="data_cache")
@@ -2537,7 +2705,8 @@ def _run(ap, args):
         print(f"wrote {args.scenes} scenes to {args.out}/{args.version} (+ maps/expansion, maps/prediction)")
     elif args.cmd == "read-nuscenes":
         t = time.perf_counter()
-        batch, report = load_nuscenes_scenarios(args.root, args.version)
+        batch, report = load_nuscenes_scenarios(args.root, args.version, workers=args.workers,
+                                                cache_dir=args.cache_dir)
         print(f"read {args.root}/{args.version} in {time.perf_counter() - t:.2f} s")
         for k, v in report.items():
             print(f"  {k:26s} {v}")

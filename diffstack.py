@@ -14,7 +14,8 @@ Map of the module (the order the data flows):
     5. Controller             eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
     6. Predictor              eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack                  predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
-    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics
+    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics;
+                              8.1 the same loop on many processes (DistributedDataParallel, torchrun)
     9. Command line           python diffstack.py --quick
 
 The paper's experiments (Tables 1-5, the ablations, figures, the report) are in experiments.py, every
@@ -38,7 +39,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.distributed as dist
 import torch.nn as nn
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data.distributed import DistributedSampler
 
 from data_synth import wrap_angle  # angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi
 
@@ -1439,7 +1443,7 @@ class Predictor(nn.Module):
 
     # ---- decoder -------------------------------------------------------------------------
 
-    def decode(self, x: torch.Tensor, f0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode(self, x: torch.Tensor, f0: torch.Tensor, shard: Shard | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
 
         All K values of z at once, as B*K rows. The GRU (Cho et al. 2014) is written out gate by gate:
@@ -1451,6 +1455,8 @@ class Predictor(nn.Module):
         the latter). Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits (whose backward
         concatenates the gradients) -- at B*K = 6400 rows the decoder is memory traffic, every fresh tensor counts.
         The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
+        shard: under DDP (section 8.1), the noise of the samples is drawn for the global batch and this rank keeps its
+        rows, so that a scenario gets the same sample whichever rank holds it.
         """
         cfg = self.cfg
         K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
@@ -1483,7 +1489,8 @@ class Predictor(nn.Module):
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
                 s_w, s_a = out[:, 2:4].exp().unbind(1)  # (B*K,) each
                 rho = torch.tanh(out[:, 4])  # (B*K,)
-                e1, e2 = torch.randn_like(mu).unbind(1)  # (B*K,) each
+                eps = torch.randn_like(mu) if shard is None else shard.randn_rows(mu, K)  # (B*K, 2)
+                e1, e2 = eps.unbind(1)  # (B*K,) each
                 u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
             else:
                 u_prev = mu
@@ -1505,12 +1512,13 @@ class Predictor(nn.Module):
 
     # ---- the whole forward pass ----------------------------------------------------------
 
-    def forward(self, batch, use_posterior: bool, step: int | None = None) -> Prediction:
+    def forward(self, batch, use_posterior: bool, step: int | None = None, shard: Shard | None = None) -> Prediction:
         """K mode trajectories with their probabilities and the position GMM.
 
         use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut; training) instead of p(z|x).
         step: the training iteration; when given, the z logits are clipped by its schedule (Trajectron++).
         Training mode (self.training) feeds sampled controls back into the GRU; eval mode feeds the means.
+        shard: which rows of a global batch this process holds, under DDP (section 8.1); None: all of them.
         """
         cfg = self.cfg
         check_batch(batch, cfg, need_future=use_posterior)
@@ -1518,7 +1526,7 @@ class Predictor(nn.Module):
         log_p = torch.log_softmax(clip_logits(self.p_z(x), step, cfg), -1)  # (B, K)
         log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
         s0 = self.initial_state(batch, x)  # (B, 4)
-        mu, cov_u = self.decode(x, f[:, -1])  # (B, K, T, 2), (B, K, T, 2, 2)
+        mu, cov_u = self.decode(x, f[:, -1], shard)  # (B, K, T, 2), (B, K, T, 2, 2)
         # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t), and their EKF covariances
         # (unicycle_rollout(s0, mu) and propagate_covariance along it, all steps at once)
         traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
@@ -1628,13 +1636,20 @@ def kl_beta(step: int, cfg: Config) -> float:
     return b0 / (1 + math.exp(-(step - centre) / width))
 
 
-def pred_loss(pred: Prediction, batch, step: int, cfg: Config) -> tuple[torch.Tensor, dict]:
+def batch_mean(x: torch.Tensor, shard: Shard | None = None) -> torch.Tensor:
+    """x (B, ...) averaged over the batch (...): this process's batch, or under DDP (shard, section 8.1) the global
+    batch of all processes, differentiably (Shard.mean)."""
+    return x.mean(0) if shard is None else shard.mean(x)
+
+
+def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard: Shard | None = None) -> tuple[torch.Tensor, dict]:
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging.
 
     L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
     LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
     KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
     I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p, a batch quantity
+    shard: under DDP (section 8.1), the batch of these means is the global batch of all processes (batch_mean).
     """
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
@@ -1642,10 +1657,10 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config) -> tuple[torch.Te
     ll = gmm_log_prob(pred, y, pred.log_q).clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
     q = pred.log_q.exp()  # (B, K)
     kl = (q * (pred.log_q - pred.log_p)).sum(-1)  # (B,)
-    kl_fb = torch.where(kl.mean() > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
+    kl_fb = torch.where(batch_mean(kl, shard) > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
     p = pred.log_p.exp()  # (B, K)
-    p_bar = p.mean(0)  # (K,)
-    mi = -(p_bar * torch.log(p_bar)).sum() + (p * pred.log_p).sum(-1).mean()  # scalar
+    p_bar = batch_mean(p, shard)  # (K,)
+    mi = -(p_bar * torch.log(p_bar)).sum() + batch_mean((p * pred.log_p).sum(-1), shard)  # scalar
     beta = kl_beta(step, cfg)
     loss = -(ll - beta * kl_fb + mi)  # (B,)
     parts = {"loss": loss.mean().item(), "ll": ll.mean().item(), "kl": kl.mean().item(), "mi": mi.item(), "beta": beta}
@@ -1718,8 +1733,9 @@ def distance_weights(batch) -> torch.Tensor:
     return 1.0 / d.clamp(min=1.0)
 
 
-def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
-    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch.
+def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
+    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
+    batch of all processes, section 8.1).
 
     weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
     `grad_cost_weights` in section 8, which needs the cost) or a callable batch -> (B,) raw weights.
@@ -1735,7 +1751,7 @@ def scenario_weights(batch, weighting, cfg: Config) -> torch.Tensor:
     raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
     if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
         raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
-    mean = raw.mean()
+    mean = batch_mean(raw, shard)
     return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
@@ -1866,7 +1882,7 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1):
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
-              timings=None) -> StackOutput:
+              timings=None, shard: Shard | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
@@ -1881,6 +1897,8 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         logged steps; and the per-step cost terms (all but the goal's) are scaled by 1/substeps, so that eq. (3)
         sums the same costs per second as at cfg.dt and only the resolution changes.
     timings: a dict that receives the seconds spent predicting, planning and controlling.
+    shard: under DDP, which rows of the global batch this process holds (section 8.1); the predictor's samples and
+        L_pred's batch statistics are then those of the global batch.
     """
     clock = [time.perf_counter()]
 
@@ -1902,13 +1920,13 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     # --- predict, eq. (1) ---
     pred, l_pred = None, torch.zeros(B, **like)
     if method.predictor == "learned":
-        pred = model(batch, use_posterior=train, step=step)
+        pred = model(batch, use_posterior=train, step=step, shard=shard)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
         preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
         probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K), (B,)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
-            l_pred, _ = pred_loss(pred, target, step, cfg)
+            l_pred, _ = pred_loss(pred, target, step, cfg, shard)
     elif method.predictor == "gt":
         preds = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], sub)[:, None]  # (B, 1, T, 2)
         probs, pred_mask = torch.ones(B, 1, **like), torch.ones(B, **like)
@@ -2015,6 +2033,101 @@ class CostWeights(nn.Module):
         return self.alpha * self.normalised()
 
 
+# --------------------------------------------------------------------------------------------
+# 8.1 Many processes: DistributedDataParallel (torchrun)
+# --------------------------------------------------------------------------------------------
+#
+# Under torchrun every process (a rank) runs the same program. train_stack then splits each global batch of
+# cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps the module it trains in
+# DistributedDataParallel (DDP), which averages the ranks' gradients during backward. That average is exactly the
+# gradient of the single-process loss on the global batch (up to the order floats are summed in) because:
+#   - the ranks' batches together are the single-process batch: every rank draws the same permutation of the data
+#     (same seed) and takes positions rank, rank + W, rank + 2W, ... of it (DistributedSampler, without its own
+#     shuffling), so step i's shards together are perm[i B:(i + 1) B], the single-process batch i;
+#   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B rows on every
+#     rank (same seed) and each keeps its own rows (Shard.randn_rows);
+#   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks' gradients, so the
+#     rank's sum over its scenarios is divided by (global count / W), never by its own count. L_plan and L_ctr are
+#     means over the *plannable* scenarios, whose number differs from rank to rank: the global count is all-reduced;
+#   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean p(z|x)) and the
+#     scenario weights' normaliser are taken over the global batch, by an all_reduce that autograd differentiates
+#     through (AllReduceSum: its backward sums the ranks' gradients), so each rank's parameters also get the other
+#     ranks' share of the gradient of those statistics.
+# With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the ranks' losses
+# (each a function of every rank's rows): here W x share / W = the single-process loss.
+# The gradients are then the same on every rank, so gradient clipping, Adam and the lr schedule stay in step.
+
+
+class AllReduceSum(torch.autograd.Function):
+    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every rank's loss, so
+    dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the same all_reduce. (What
+    torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it for a private module.)"""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
+        ctx.group = group
+        y = x.clone(memory_format=torch.contiguous_format)
+        dist.all_reduce(y, group=group)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad_y: torch.Tensor):
+        return AllReduceSum.apply(grad_y, ctx.group), None
+
+
+@dataclass(frozen=True)
+class Shard:
+    """The rows of a global batch this process holds: positions rank, rank + world, ... (DistributedSampler's).
+    Shard() is one process holding the whole batch; batch statistics then use the plain single-process expressions.
+    group: the process group of the loss's all_reduces, kept apart from DDP's own so that the two never interleave."""
+
+    rank: int = 0
+    world: int = 1
+    group: object = None
+
+    @staticmethod
+    def of_process_group() -> "Shard":
+        """This process's shard under torch.distributed (torchrun): Shard() when it is not initialised or has one rank."""
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return Shard()
+        return Shard(dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend()))
+
+    def mean(self, x: torch.Tensor) -> torch.Tensor:
+        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows); autograd-aware."""
+        if self.world == 1:
+            return x.mean(0)
+        return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
+
+    def total(self, x: torch.Tensor) -> torch.Tensor:
+        """x (b, ...) -> (...) its sum over the global batch, without gradient (counts, logged values)."""
+        s = x.detach().sum(0)
+        if self.world > 1:
+            dist.all_reduce(s, group=self.group)
+        return s
+
+    def randn_rows(self, like: torch.Tensor, per_row: int) -> torch.Tensor:
+        """Standard normal noise shaped like `like` (b * per_row, ...): this rank's rows of the draw the whole global
+        batch (world * b scenarios of per_row rows each, in global order) would get."""
+        if self.world == 1:
+            return torch.randn_like(like)
+        b = like.shape[0] // per_row
+        noise = torch.randn(b * self.world * per_row, *like.shape[1:], dtype=like.dtype, device=like.device)
+        # global scenario rank + world j is this rank's scenario j: view the draw as (b, world, per_row, ...)
+        return noise.view(b, self.world, per_row, *like.shape[1:])[:, self.rank].reshape(like.shape)
+
+    def positions(self, n: int) -> torch.Tensor:
+        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ... (DistributedSampler
+        without its shuffling; the ordering, a permutation drawn the same on every rank, is the shuffle)."""
+        return torch.tensor(list(DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)),
+                            dtype=torch.long, device="cpu")  # they index the permutation, drawn on the CPU
+
+    def close(self) -> None:
+        """Release the loss's process group (train_stack makes one per call)."""
+        if self.group is not None:
+            dist.destroy_process_group(self.group)
+
+
+
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
                 pred_offset=0.0, weights: CostWeights | None = None, **stack_kw):
     """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
@@ -2027,10 +2140,21 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
     Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU), each batch is
     moved to the model's device as it is drawn.
+    Under torchrun (torch.distributed initialised, world > 1) it trains with DistributedDataParallel, each rank on
+    its cfg.batch_size / world scenarios of every global batch, with the gradient of the single-process loss on the
+    global batch (section 8.1); only rank 0 logs. Every rank returns the same per-step log (global values).
     Returns the per-step log (list of dicts).
     """
     device = next(model.parameters()).device
-    torch.manual_seed(seed)  # the decoder's sampled controls (seeds the CPU's and every GPU's generator)
+    shard = Shard.of_process_group()  # Shard(): one process; under torchrun, this rank's rows of every batch (8.1)
+    if cfg.batch_size % shard.world:
+        raise ValueError(f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
+                         f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count")
+    b = cfg.batch_size // shard.world  # scenarios per step on this rank
+    log = log if shard.rank == 0 else None  # the other ranks stay quiet
+    # The same seed on every rank: the data order and the decoder's sampled controls are drawn for the global batch,
+    # whichever rank uses them (8.1). manual_seed seeds the CPU's and every GPU's generator.
+    torch.manual_seed(seed)  # the decoder's sampled controls
     g = torch.Generator().manual_seed(seed)  # the order of the scenarios, drawn on the CPU whatever the device
     a1, a2, a3 = alphas(method, setting, cfg)
     downstream = a2 > 0 or a3 > 0
@@ -2041,49 +2165,73 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     else:
         model.train()
         params = list(model.parameters())
+    # What the forward pass calls: the modules themselves, or under DDP a DistributedDataParallel around the one
+    # being trained (it broadcasts rank 0's parameters now and averages the ranks' gradients in every backward).
+    predictor, cost_w = model, weights
+    if shard.world > 1:
+        if learn_cost:
+            cost_w = DistributedDataParallel(weights)
+        else:
+            predictor = DistributedDataParallel(model)
     opt = torch.optim.Adam(params, lr=cfg.lr)
     sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
     n = len(data)
     steps_per_epoch = max(1, n // cfg.batch_size)
     total = max(1, round(epochs * steps_per_epoch))
+    mine = shard.positions(n)  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
     history, t0, step = [], time.time(), 0
-    while step < total:
-        perm = torch.randperm(n, generator=g, device="cpu")
-        for i in range(steps_per_epoch):
-            if step >= total:
-                break
-            batch = to_device(data[perm[i * cfg.batch_size:(i + 1) * cfg.batch_size]], device)
-            target = offset_targets(batch, pred_offset) if pred_offset else None
-            if downstream:
-                out = run_stack(batch, model, method, cfg, setting, step=None if learn_cost else step, train=not learn_cost,
-                                w=weights() if learn_cost else None, pred_target=target, **stack_kw)
-                keep = out.plannable.to(out.l_plan.dtype)
-                m = keep.sum().clamp_min(1)
-                l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg) * keep).sum() / m
-                l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
-                conv = out.converged[out.plannable].float().mean().item()
-            else:
-                pred = model(batch, use_posterior=True, step=step)
-                l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target), step, cfg)
-                l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg)).mean()
-                l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
-                conv = float("nan")
-            loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)
-            opt.step()
-            if sched is not None:
-                sched.step()
-            step += 1
-            history.append(dict(step=step, loss=loss.item(), l_pred=l_pred.item(), l_plan=l_plan.item(), l_ctr=l_ctr.item(), converged=conv))
-            if learn_cost:
-                history[-1]["w"] = weights().tolist()
-            if log and (step % max(1, total // 10) == 0 or step == total):
-                el = time.time() - t0
-                w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
-                log(f"  [{method.name}] step {step}/{total}  loss {loss.item():9.3f}  L_pred {l_pred.item():7.3f}  "
-                    f"L_plan {l_plan.item():6.3f}  L_ctr {l_ctr.item():7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
+    try:
+        while step < total:
+            perm = torch.randperm(n, generator=g, device="cpu")  # the epoch's order, the same on every rank
+            for i in range(steps_per_epoch):
+                if step >= total:
+                    break
+                batch = to_device(data[perm[mine[i * b:(i + 1) * b]]], device)  # one process: perm[i B:(i + 1) B]
+                target = offset_targets(batch, pred_offset) if pred_offset else None
+                if downstream:
+                    out = run_stack(batch, predictor, method, cfg, setting, step=None if learn_cost else step,
+                                    train=not learn_cost, w=cost_w() if learn_cost else None, pred_target=target,
+                                    shard=shard, **stack_kw)
+                    keep = out.plannable.to(out.l_plan.dtype)
+                    # Each rank divides its sums by the global number of plannable scenarios / world (never by its own
+                    # number): DDP's mean over the ranks then makes (global sum) / (global count). One process: keep.sum().
+                    m = shard.total(keep).clamp_min(1) / shard.world
+                    l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep).sum() / m
+                    l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
+                    if shard.world == 1:
+                        conv = out.converged[out.plannable].float().mean().item()
+                    else:  # converged among the plannable scenarios of the global batch
+                        conv = (shard.total((out.converged & out.plannable).to(keep.dtype)) / shard.total(keep)).item()
+                else:
+                    pred = predictor(batch, use_posterior=True, step=step, shard=shard)
+                    l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target),
+                                            step, cfg, shard)
+                    # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over the ranks is the
+                    # mean over the global batch
+                    l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)).mean()
+                    l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
+                    conv = float("nan")
+                loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr  # this rank's loss; DDP averages its gradient over the ranks
+                opt.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
+                opt.step()
+                if sched is not None:
+                    sched.step()
+                step += 1
+                # the logged values of the global batch: the mean over the ranks of theirs (one process: its own)
+                loss_v, l_pred_v, l_plan_v, l_ctr_v = shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None]).div(
+                    shard.world).tolist()
+                history.append(dict(step=step, loss=loss_v, l_pred=l_pred_v, l_plan=l_plan_v, l_ctr=l_ctr_v, converged=conv))
+                if learn_cost:
+                    history[-1]["w"] = weights().tolist()
+                if log and (step % max(1, total // 10) == 0 or step == total):
+                    el = time.time() - t0
+                    w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
+                    log(f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred {l_pred_v:7.3f}  "
+                        f"L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
+    finally:
+        shard.close()
     return history
 
 

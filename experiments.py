@@ -35,6 +35,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 import data_synth
 from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, bounded, cell,
@@ -738,9 +739,10 @@ def paper_markdown(spec: TableSpec) -> str:
 
 
 def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
-              device="cpu"):
+              device="cpu", write=True):
     """Run one table of the paper: train and evaluate what its spec declares on `device`, write its figures to
-    out_dir. models: trained predictors shared between the tables of one run (trained_predictor).
+    out_dir (unless not `write`: the ranks other than 0 under torchrun). models: trained predictors shared between
+    the tables of one run (trained_predictor).
     Returns (results, markdown table)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -750,24 +752,27 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
                                    device)
     elif spec.kind == "cost":
         res = cost_learning_experiment(data, cfg, seeds, epochs, log, models, device)
-        figure_cost_weights(res, out / "cost_weights.png")
+        if write:
+            figure_cost_weights(res, out / "cost_weights.png")
     elif spec.kind == "closed_loop":
         if data.val_scenes is None:
             raise ValueError("closed_loop: the data has no validation scene logs")
         res, rollouts, scenes = closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, log=log, models=models,
                                                        device=device)
-        figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
-                for m in CLOSED_LOOP_METHODS[1:3]}
-        figure_stack_example(data, pair, cfg, out / "stack_example.png")
+        if write:
+            figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
+            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
+                    for m in CLOSED_LOOP_METHODS[1:3]}
+            figure_stack_example(data, pair, cfg, out / "stack_example.png")
     elif spec.kind == "ablation":
         res = ablation_experiment(data, cfg, seeds, epochs, log, models, device)
     elif spec.kind == "real":
         res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, log=log, models=models,
                                    device=device)
-        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
-                for m in FOUR_METHODS[1:3]}
-        figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
+        if write:
+            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
+                    for m in FOUR_METHODS[1:3]}
+            figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
     else:
         raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
     return res, results_markdown(spec, res)
@@ -850,22 +855,28 @@ def write_report(out_dir, sections) -> pathlib.Path:
 
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
-                   device="cpu"):
+                   device="cpu", write=True):
     """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
     git commit) and .md (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between
-    the tables.
+    the tables. write=False: compute everything, write nothing (the ranks other than 0 under torchrun, which train
+    with rank 0 and evaluate alongside it).
     Refuses to start (ValueError) when a file it would write exists already, unless overwrite."""
     names = EXPERIMENTS if name == "all" else (name,)
     check_outputs(names, out_dir, overwrite)
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
+    processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
     sections, models = [], {}
     for one in names:
         spec, t0 = SPECS[one], time.time()
-        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device)
+        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write)
         meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                     date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
-                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads",
+                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads"
+                            + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
                     device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
+        if not write:
+            sections.append((spec.title, table, list(spec.figures)))
+            continue
         to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
         write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
         md = (f"`{command}` ({meta['date']}, {meta['machine']}, device {meta['device']}, {meta['seconds']:.0f} s, "
@@ -875,7 +886,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         write_atomic(out / f"{one}.md", f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures))
         sections.append((spec.title, md, list(spec.figures)))
         log(f"\n{spec.title}\n{table}")
-    if name == "all":
+    if name == "all" and write:
         log(f"report: {write_report(out, sections)}")
     return sections
 
@@ -898,10 +909,35 @@ def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
     return RealData(data.train, real, None, report["samples_per_scene"])
 
 
+def start_distributed(device: torch.device) -> torch.device:
+    """Join torchrun's process group (its environment names this rank, the world size and rank 0's address):
+    gloo for training on CPUs, nccl on GPUs, each rank on its own GPU, cuda:LOCAL_RANK. Returns this rank's device.
+    train_stack then trains with DistributedDataParallel (diffstack.py section 8.1)."""
+    if device.type == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", 0))
+        if local >= torch.cuda.device_count():
+            raise ValueError(f"--device {device}: rank {local} of this machine needs cuda:{local}, but there are "
+                             f"{torch.cuda.device_count()} CUDA devices; start at most that many processes per machine")
+        device = torch.device("cuda", local)
+        torch.cuda.set_device(device)
+        dist.init_process_group("nccl", device_id=device)
+    elif device.type == "cpu":
+        dist.init_process_group("gloo")
+    else:
+        raise ValueError(f"--device {device}: torchrun trains on cpu (gloo) or cuda (nccl), not {device.type}")
+    return device
+
+
 def main(argv=None):
     import argparse
 
-    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine.")
+    # Under torchrun (torchrun --nproc_per_node N experiments.py ...) every process runs main; its environment says
+    # which one this is. All ranks train together (DDP) and evaluate alike; only rank 0 prints and writes files.
+    rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
+    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
+                                             "Under torchrun, on N processes: training with DistributedDataParallel.")
+    if rank != 0:  # the same errors come up on every rank: rank 0 says what they are, the others exit alike
+        ap.error = lambda message: sys.exit(2)
     ap.add_argument("--experiment", choices=EXPERIMENTS + (REAL.name, "all"), required=True,
                     help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
                          f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
@@ -912,8 +948,9 @@ def main(argv=None):
                     help="training seeds per method (default 5, at most 100)")
     ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=4.0,
                     help="training epochs per method (default 4; fractions allowed; at most 1000)")
-    ap.add_argument("--n", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
-                    help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,})")
+    ap.add_argument("--n", "--samples", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
+                    help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,}); under "
+                         f"torchrun write --samples (torchrun's own parser takes --n for an abbreviation of its options)")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
     ap.add_argument("--device", type=device_arg, default="cpu",
@@ -930,25 +967,56 @@ def main(argv=None):
         args.out = REAL_OUT if args.experiment == REAL.name else "results"
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
+        if cfg.batch_size % world:
+            raise ValueError(f"--set batch_size={cfg.batch_size}: a training batch must split evenly over the "
+                             f"{world} processes torchrun started; choose a multiple of {world}")
         check_outputs(names, args.out, args.overwrite)
-        if args.data is None or args.experiment == REAL.name:
-            check_writable("data_cache", "the data cache (./data_cache)")
+        check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
+        device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
         ap.error(str(e))
     torch.set_num_threads(args.threads)
-    try:
-        data = data_synth.load_data(args.data, args.n)
+    log = print if rank == 0 else (lambda *a, **k: None)
+
+    def load():
+        data = data_synth.load_data(args.data, args.n, log=log)
         if args.experiment == REAL.name:
-            data = real_data(data, range(args.phases))
+            data = real_data(data, range(args.phases), log=log)
         if "closed_loop" in names:
             if data.val_scenes is None:
                 raise ValueError("closed_loop: the data has no validation scene logs")
             closed_loop_scenes(data.val_scenes, cfg)
-    except ValueError as e:
-        ap.error(str(e))
-    return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
-                          " ".join(["python experiments.py", *(argv if argv is not None else sys.argv[1:])]),
-                          overwrite=args.overwrite, device=args.device)
+        return data
+
+    # Rank 0 makes (or reads) the data caches first, the others then read them: one process generates or parses,
+    # and if it fails the others hear of it (a broadcast) instead of waiting for it at the first training step.
+    data, error = None, None
+    if rank == 0:
+        try:
+            data = load()
+        except ValueError as e:
+            error = str(e)
+    if world > 1:
+        verdict = [error]
+        dist.broadcast_object_list(verdict, src=0)
+        error = verdict[0]
+        if rank != 0 and error is None:
+            try:
+                data = load()
+            except ValueError as e:
+                error = str(e)
+    if error is not None:
+        if world > 1:
+            dist.destroy_process_group()
+        ap.error(error)
+    launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
+    try:
+        return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
+                              " ".join([launcher, *(argv if argv is not None else sys.argv[1:])]),
+                              log=log, overwrite=args.overwrite, device=device, write=rank == 0)
+    finally:
+        if world > 1:
+            dist.destroy_process_group()
 
 
 if __name__ == "__main__":
