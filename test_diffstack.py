@@ -420,6 +420,25 @@ def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
     assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
 
 
+@pytest.mark.parametrize("bound", [0.2, 100.0])  # bounds active in many problems; in none (the shortcut)
+def test_box_qp_meets_the_kkt_conditions(bound):
+    """box_qp's answer is the optimum of the convex box QP: feasible, zero gradient on the free controls, the
+    gradient pushing outwards on the clamped ones (the KKT conditions, which only the optimum meets)."""
+    g = torch.Generator().manual_seed(1)
+    L = torch.randn(400, 2, 2, generator=g, dtype=torch.float64)
+    Q = L @ L.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
+    q = torch.randn(400, 2, generator=g, dtype=torch.float64)
+    lo, hi = (s * bound * (1 + torch.rand(400, 2, generator=g, dtype=torch.float64)) for s in (-1, 1))
+    d, free = ds.box_qp(Q, q, lo, hi)
+    grad = (Q @ d[..., None])[..., 0] + q
+    at_lo, at_hi = ~free & ((d - lo).abs() < 1e-12), ~free & ((d - hi).abs() < 1e-12)
+    assert ((d >= lo - 1e-12) & (d <= hi + 1e-12)).all()
+    assert (free | at_lo | at_hi).all()  # a control is free or at one of its bounds
+    assert grad[free].abs().max() < 1e-10
+    assert (grad[at_lo] >= -1e-10).all() and (grad[at_hi] <= 1e-10).all()
+    assert (~free).any() == (bound < 1)  # the test covers both paths
+
+
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
