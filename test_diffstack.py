@@ -127,6 +127,14 @@ def test_collision_mean_spread_identity():
     assert torch.allclose(terms[:, 1], ((pos[:, -1] - ctx.goal) ** 2).sum(-1))
 
 
+def test_rbf_is_the_gaussian_kernel_down_to_its_floor():
+    d2 = torch.tensor([0.0, 1.0, 50.0, 239.9, 240.1, 1e6], dtype=torch.float64)
+    phi = ds.rbf(d2, 2.0)  # exp(-d2 / 4), floored at exp(-60): d2 = 240
+    assert torch.equal(phi[:4], torch.exp(-d2[:4] / 4))
+    assert torch.equal(phi[4:], torch.full((2,), math.exp(-60.0), dtype=torch.float64))
+    assert torch.isfinite(torch.autograd.functional.jacobian(lambda d: ds.rbf(d, 2.0), d2)).all()
+
+
 def test_lane_projection_ignores_oncoming_lanes():
     lanes = torch.zeros(1, 2, 10, 3, dtype=torch.float64)
     lanes[..., 0] = torch.arange(10.0)
