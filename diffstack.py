@@ -1361,6 +1361,19 @@ class Prediction:
         return self.states[..., :2]
 
 
+RHO_MARGIN = 1e-5
+"""The decoder's correlation rho = tanh(.) is kept this far inside (-1, 1) (Trajectron++ clamps the same): at |rho| = 1
+the covariance is singular and the training sample's sqrt(1 - rho^2) has an infinite derivative (NaN gradients)."""
+
+
+def bounded_correlation(pre_tanh: torch.Tensor) -> torch.Tensor:
+    """rho = tanh(pre_tanh) clamped to [-1 + RHO_MARGIN, 1 - RHO_MARGIN].
+
+    tanh reaches +-1 in floating point already at |pre_tanh| ~ 9 (float32) or ~ 19 (float64). Within the bounds the
+    clamp is the identity, values and gradients bit for bit, so ordinary inputs give exactly what tanh alone gives."""
+    return torch.tanh(pre_tanh).clamp(-1 + RHO_MARGIN, 1 - RHO_MARGIN)
+
+
 def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Tensor:
     """Trajectron++'s z-logit clipping, in training only: zero-mean logits clamped to +-c(step)."""
     if step is None:
@@ -1493,7 +1506,7 @@ class Predictor(nn.Module):
             mu = out[:, :2]  # (B*K, 2)
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
                 s_w, s_a = out[:, 2:4].exp().unbind(1)  # (B*K,) each
-                rho = torch.tanh(out[:, 4])  # (B*K,)
+                rho = bounded_correlation(out[:, 4])  # (B*K,) inside (-1, 1): the sqrt below stays finite
                 eps = torch.randn_like(mu) if shard is None else shard.randn_rows(mu, K)  # (B*K, 2)
                 e1, e2 = eps.unbind(1)  # (B*K,) each
                 u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
@@ -1502,7 +1515,7 @@ class Predictor(nn.Module):
         # all steps at once: (B*K, T, 5) -> means and Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
         mu, log_s, rho = torch.stack(outs, 1).split([2, 2, 1], -1)  # (B*K, T, 2), (B*K, T, 2), (B*K, T, 1)
         s_w, s_a = log_s.exp().unbind(-1)  # (B*K, T) each
-        c = torch.tanh(rho[..., 0]) * s_w * s_a  # (B*K, T)
+        c = bounded_correlation(rho[..., 0]) * s_w * s_a  # (B*K, T); the same rho as the sample's
         cov = torch.stack([s_w**2, c, c, s_a**2], -1)  # (B*K, T, 4)
         return mu.reshape(B, K, T, 2), cov.reshape(B, K, T, 2, 2)
 

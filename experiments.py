@@ -26,6 +26,7 @@ import math
 import os
 import pathlib
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -64,6 +65,17 @@ class Column:
 
 
 @dataclass(frozen=True)
+class Claim:
+    """A finding of the paper that `method` beats `baseline` on one column of the table: a LOWER value (every
+    metric claimed on here is a cost or a loss). section: the ablation section the two rows are in (None elsewhere)."""
+
+    method: str
+    baseline: str
+    column: str  # a header of the table's columns
+    section: str | None = None
+
+
+@dataclass(frozen=True)
 class TableSpec:
     """A table of the paper, as run here.
 
@@ -83,6 +95,7 @@ class TableSpec:
     gap: tuple | None = None  # (Standard row, DiffStack row): the share of the Standard -> GT prediction gap closed
     figures: tuple = ()
     sections: tuple = ()  # ablations: (title, run_stack options, methods) per section
+    claims: tuple = ()  # the paper's "method beats baseline" findings, each tested by its paired difference over seeds
 
 
 def open_loop_columns(setting: str) -> tuple:
@@ -112,7 +125,8 @@ TABLE1 = TableSpec(
         "Distance weighted": (1.34, 1.19, -4.04, -1.68), "Grad-cost weighted": (1.43, -1.06, -4.29, -1.77),
         "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87), "DiffStack": (1.27, 0.38, -5.13, -1.86),
         "GT prediction": (None, None, -7.56, -2.25)}),
-    gap=("Standard", "DiffStack"))
+    gap=("Standard", "DiffStack"),
+    claims=(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"), Claim("DiffStack", "Standard", "Planning loss (x1e-2)")))
 
 TABLE2 = TableSpec(
     "biased", "Table 2: a 1 m offset on the prediction targets", "open_loop", "rl",
@@ -120,7 +134,9 @@ TABLE2 = TableSpec(
     RL_COLUMNS,
     _paper(RL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard-biased": (3.64, 8.43, 16.22, 3.13),
                         "DiffStack-biased": (2.01, 4.20, -3.58, -1.61), "GT prediction": (None, None, -7.56, -2.25)}),
-    pred_offset=1.0, gap=("Standard-biased", "DiffStack-biased"))
+    pred_offset=1.0, gap=("Standard-biased", "DiffStack-biased"),
+    claims=(Claim("DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)"),
+            Claim("DiffStack-biased", "Standard-biased", "Planning loss (x1e-2)")))
 
 COST_COLUMNS = tuple(Column(f"w'{i + 1} ({t})", lambda r, i=i: r["w"][i], "{:.3f}")
                      for i, t in enumerate(("coll", "goal", "lane", "heading", "control"))) + (
@@ -131,12 +147,15 @@ TABLE3 = TableSpec(
     (Method("Cost weights", losses=(0, 0, 1)),), COST_COLUMNS,
     _paper(COST_COLUMNS, {"Hand-tuned": (5.00, 0.50, 0.30, 0.30, 1.00, 1.00, 2.67, 0.38),
                           "Learned": (5.00, 0.68, 0.36, 0.43, 0.63, 1.10, 2.41, 0.32)}),
-    figures=("cost_weights.png",))
+    figures=("cost_weights.png",),
+    # the weights are learned on L_ctr, the MSE to the expert (IL); the paper reports the planning loss falling too
+    claims=(Claim("Learned", "Hand-tuned", "MSE (m^2)"), Claim("Learned", "Hand-tuned", "Planning loss")))
 
 TABLE4 = TableSpec(
     "il", "Table 4: imitation learning", "open_loop", "il", FOUR_METHODS, IL_COLUMNS,
     _paper(IL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard": (1.25, 0.53, -0.50, 0.60),
-                        "DiffStack": (1.43, 0.30, -0.80, -1.80), "GT prediction": (None, None, -1.10, -2.80)}))
+                        "DiffStack": (1.43, 0.30, -0.80, -1.80), "GT prediction": (None, None, -1.10, -2.80)}),
+    claims=(Claim("DiffStack", "Standard", "MSE (x1e-2)"),))
 
 CLOSED_LOOP_METRICS = {"trajectory": "Trajectory cost", "open_loop": "Open-loop cost", "collision": "Collision cost",
                        "lane": "Lane keep cost", "control": "Control effort", "deviation": "Deviation (m)"}
@@ -148,7 +167,8 @@ TABLE5 = TableSpec(
     _paper(CLOSED_LOOP_COLUMNS, {"No prediction": (0.00,) * 6, "Standard": (0.87, 0.33, -8.21, 8.91, 0.18, 1.05),
                                  "DiffStack": (-4.37, -2.40, -8.20, 4.84, -0.99, 0.98),
                                  "GT prediction": (-6.30, -2.58, -8.54, 3.34, -1.08, 0.70)}),
-    figures=("closed_loop.png", "stack_example.png"))
+    figures=("closed_loop.png", "stack_example.png"),
+    claims=(Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"),))
 
 # Each section compares methods under one configuration of the stack, with its own No prediction and
 # GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
@@ -191,7 +211,8 @@ TABLE6 = TableSpec(
              "GT prediction": (None, None, -7.56, -1.5)},
             {"Standard": (1.23, 0.56, -5.65, -2.1), "DiffStack": (1.49, 0.88, -14.01, -2.4),
              "GT prediction": (None, None, -25.11, -2.9)}))},
-    sections=ABLATION_SECTIONS)
+    sections=ABLATION_SECTIONS,
+    claims=tuple(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)", title) for title, _, _ in ABLATION_SECTIONS))
 
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6)}  # the order `all` runs them in
 EXPERIMENTS = tuple(TABLES)
@@ -252,6 +273,70 @@ def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric
     gt = results["GT prediction"][0][metric]
     pairs = [(s[metric], d[metric]) for s, d in zip(results[standard], results[diffstack]) if s[metric] != gt]
     return mean_se([(s - d) / (s - gt) for s, d in pairs]) if pairs else (math.nan, math.nan)
+
+
+class PairedDifference(NamedTuple):
+    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., and
+    in how many of the n seeds the method is lower (better, for a cost) or higher (worse)."""
+
+    mean: float
+    se: float
+    t: float
+    better: int
+    worse: int
+    n: int
+
+
+def paired_difference(baseline: list, method: list) -> PairedDifference:
+    """The paired difference of a metric, method[i] - baseline[i] for seed i (the two lists align by seed).
+
+    Pairing removes what the two share in a seed (the same data order and evaluation set), so the spread left is
+    that of the difference itself. t is the paired t statistic (n - 1 degrees of freedom). With one seed the s.e. is
+    unknown (nan); with no spread at all it is 0 and t is -inf / +inf (or nan for a zero difference)."""
+    if len(baseline) != len(method):
+        raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
+    if not baseline:
+        raise ValueError("baseline: no seeds to compare")
+    d = [b - a for a, b in zip(baseline, method)]
+    n = len(d)
+    m = statistics.fmean(d)
+    se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
+    t = m / se if se > 0 else (math.copysign(math.inf, m) if m != 0 and se == 0 else math.nan)
+    return PairedDifference(m, se, t, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
+
+
+def claim_verdict(p: PairedDifference) -> str:
+    """'reproduced' only when the method is lower by more than two standard errors of the paired difference."""
+    if not p.se >= 0:  # nan: one seed
+        return "untested (one seed: no standard error)"
+    if p.mean < -2 * p.se:
+        return "reproduced (clears 2 s.e.)"
+    if p.mean > 2 * p.se:
+        return "not reproduced (the other way, beyond 2 s.e.)"
+    return "not reproduced (within 2 s.e.)"
+
+
+def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
+    """One line per claim: the paired difference (method - baseline, in the column's units), t, the seeds, the verdict.
+    results: the table's results (for an ablation, its section's)."""
+    col = next((c for c in spec.columns if c.header == claim.column), None)
+    if col is None:
+        raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
+    p = paired_difference(col.values(results[claim.baseline]), col.values(results[claim.method]))
+    name = claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
+    t = f"t = {p.t:.1f}" if math.isfinite(p.t) else ("no spread over seeds" if p.se == 0 else "one seed")
+    seeds = f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "")
+    where = f"{claim.section}: " if claim.section else ""
+    return (f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference {col.fmt.format(p.mean)} ± "
+            f"{col.fmt.format(p.se)} ({t}, {seeds}): {claim_verdict(p)}")
+
+
+def claims_markdown(spec: TableSpec, results: dict) -> str:
+    """The claim lines of a table, a markdown list; '' when it makes no claim (or its rows were not run)."""
+    def runs(c):  # the results the claim's rows are in: the table's, or its ablation section's
+        return results.get(c.section, {}) if c.section else results
+    lines = [claim_line(c, spec, runs(c)) for c in spec.claims if c.method in runs(c) and c.baseline in runs(c)]
+    return "\n".join(f"- {line}" for line in lines)
 
 
 # ============================================================================================
@@ -708,9 +793,16 @@ def figure_cost_weights(results: dict, path):
 
 
 def results_markdown(spec: TableSpec, results: dict) -> str:
-    """A results table of a spec: one row per method, 'mean ± s.e.' over seeds in every column."""
-    if spec.kind == "ablation":
-        return ablation_markdown(spec, results)
+    """A results table of a spec: one row per method, 'mean ± s.e.' over seeds in every column; below it, one line
+    per claim of the paper with its paired difference over seeds and whether it clears two standard errors."""
+    md = ablation_markdown(spec, results) if spec.kind == "ablation" else table_markdown(spec, results)
+    claims = claims_markdown(spec, results)
+    return md + (f"\n\nThe paper's claims, as paired differences over seeds (reproduced only beyond 2 s.e.):\n\n{claims}"
+                 if claims else "")
+
+
+def table_markdown(spec: TableSpec, results: dict) -> str:
+    """The table of a non-ablation spec, with the gap closed and the closed loop's absolute baseline below it."""
     rows = [[name] + [cell(c.values(runs), c.fmt) for c in spec.columns] for name, runs in results.items()]
     md = markdown_table(["Method"] + [c.header for c in spec.columns], rows)
     if spec.gap:
@@ -854,6 +946,36 @@ def write_report(out_dir, sections) -> pathlib.Path:
     return path
 
 
+def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
+    """A table's provenance line (its command, date, machine, device, seconds, commit, and a note if the run has
+    one), the table, and the paper's numbers: the text of its .md file and of its section of the report."""
+    where = [meta["date"], meta["machine"]] + ([f"device {meta['device']}"] if "device" in meta else [])
+    where += [f"{meta['seconds']:.0f} s"] + ([f"commit {meta['git_commit']}"] if meta.get("git_commit") else [])
+    note = f"; {meta['note']}" if meta.get("note") else ""
+    return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
+            + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else f"{data_synth.WAYMO_LICENCE}.\n"))
+
+
+def table_file_markdown(spec: TableSpec, md: str) -> str:
+    """out_dir/<name>.md: the title, section_markdown's text and links to the table's figures."""
+    return f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures)
+
+
+def render_markdown(name: str, out_dir="results") -> pathlib.Path:
+    """Re-write out_dir/<name>.md from out_dir/<name>.json, running nothing: for when the way a table is written
+    changes (e.g. the claim lines) but its numbers do not. Returns the path written."""
+    if name not in SPECS:
+        raise ValueError(f"name: {name!r} is not an experiment ({', '.join(SPECS)})")
+    src = pathlib.Path(out_dir) / f"{name}.json"
+    if not src.exists():
+        raise ValueError(f"out_dir: no {src} to render {name} from")
+    saved = json.loads(src.read_text())
+    spec = SPECS[name]
+    path = pathlib.Path(out_dir) / f"{name}.md"
+    write_atomic(path, table_file_markdown(spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))))
+    return path
+
+
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
                    device="cpu", write=True):
     """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
@@ -879,11 +1001,8 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             continue
         to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
         write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
-        md = (f"`{command}` ({meta['date']}, {meta['machine']}, device {meta['device']}, {meta['seconds']:.0f} s, "
-              f"commit {meta['git_commit']})"
-              f"\n\n{table}\n\n" + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
-                                      f"{data_synth.WAYMO_LICENCE}.\n"))
-        write_atomic(out / f"{one}.md", f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures))
+        md = section_markdown(spec, meta, table)
+        write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
         sections.append((spec.title, md, list(spec.figures)))
         log(f"\n{spec.title}\n{table}")
     if name == "all" and write:

@@ -683,6 +683,48 @@ def test_no_neighbours_no_nan():
     assert all(torch.isfinite(q.grad).all() for q in model.parameters() if q.grad is not None)
 
 
+def _drive_rho_to_the_edge(model, pre_tanh):
+    """Every step's rho output (dec_out's last row) set to the constant pre_tanh, whatever the hidden state."""
+    with torch.no_grad():
+        model.dec_out.weight[4].zero_()
+        model.dec_out.bias[4] = pre_tanh
+
+
+def _training_step_is_finite(model, b, cfg):
+    model.zero_grad()
+    p = model(b, use_posterior=True, step=0)  # training mode: the sample u = mu + L eps uses sqrt(1 - rho^2)
+    loss, _ = ds.pred_loss(p, b, 0, cfg)  # the GMM likelihood inverts Sigma_u's propagation (rho s_w s_a off-diagonal)
+    loss.mean().backward()
+    grads = [q.grad for q in model.parameters() if q.grad is not None]
+    return (torch.isfinite(p.states).all() and torch.isfinite(p.pos_cov).all() and torch.isfinite(loss).all()
+            and all(torch.isfinite(g).all() for g in grads))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("pre_tanh", [50.0, -50.0])
+def test_decoder_correlation_at_the_edge_stays_finite(dtype, pre_tanh, monkeypatch):
+    """tanh(+-50) is +-1 exactly in floating point: the clamp of bounded_correlation keeps the training forward, the
+    loss and the backward finite. With plain tanh (the code before the clamp) the same model gives NaN."""
+    cfg = small_cfg()
+    model, b = make_model(cfg).to(dtype), make_batch(8, dtype=dtype)
+    _drive_rho_to_the_edge(model, pre_tanh)
+    assert abs(ds.bounded_correlation(torch.tensor(pre_tanh, dtype=dtype))) == 1 - ds.RHO_MARGIN
+    assert _training_step_is_finite(model, b, cfg)
+    monkeypatch.setattr(ds, "bounded_correlation", torch.tanh)  # no clamp: the test would catch its removal
+    assert not _training_step_is_finite(model, b, cfg)
+
+
+def test_bounded_correlation_is_tanh_inside_the_bounds():
+    """Ordinary pre-tanh values: the same values and gradients as tanh, bit for bit (same seed, same numbers)."""
+    for dtype in (torch.float32, torch.float64):
+        x = torch.linspace(-5, 5, 101, dtype=dtype, requires_grad=True)
+        y = torch.tanh(x)
+        (gx,) = torch.autograd.grad(y.sum(), x)
+        y2 = ds.bounded_correlation(x)
+        (gx2,) = torch.autograd.grad(y2.sum(), x)
+        assert torch.equal(y, y2) and torch.equal(gx, gx2)
+
+
 def test_stationary_agent_is_finite():
     cfg = small_cfg()
     model, b = make_model(cfg), make_batch(4)

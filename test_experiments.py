@@ -258,3 +258,59 @@ def test_gap_closed_share_and_no_gap():
     assert m == pytest.approx(0.5) and s == pytest.approx(0.0)  # both seeds close half of their gap
     res["Standard"] = [{"rel_hindsight": -2.0}]
     assert all(math.isnan(v) for v in ex.gap_closed(res))
+
+
+# ---------------------------------------------------------------------------------------------
+# The paper's claims: paired differences over seeds
+# ---------------------------------------------------------------------------------------------
+
+def test_paired_difference_clears_two_standard_errors():
+    """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025), s.e. sqrt(0.025 / 5) = 0.0707, t = -14.1."""
+    p = ex.paired_difference([2.0, 2.0, 2.0, 2.0, 2.0], [1.0, 0.8, 1.2, 0.9, 1.1])
+    assert p.mean == pytest.approx(-1.0) and p.se == pytest.approx(math.sqrt(0.025 / 5))
+    assert p.t == pytest.approx(-1.0 / math.sqrt(0.025 / 5)) and (p.better, p.worse, p.n) == (5, 0, 5)
+    assert ex.claim_verdict(p) == "reproduced (clears 2 s.e.)"
+
+
+def test_paired_difference_within_two_standard_errors():
+    """Table 4's case: better on average, worse in two seeds. Differences -3, -3, -3, +1, +1: mean -1.4,
+    s.d. sqrt(4.8), s.e. 0.980, t = -1.43 -- the unpaired means would look apart, the paired test says no."""
+    p = ex.paired_difference([0.0] * 5, [-3.0, -3.0, -3.0, 1.0, 1.0])
+    assert p.mean == pytest.approx(-1.4) and p.se == pytest.approx(math.sqrt(4.8 / 5))
+    assert p.t == pytest.approx(-1.4 / math.sqrt(4.8 / 5)) and (p.better, p.worse) == (3, 2)
+    assert ex.claim_verdict(p) == "not reproduced (within 2 s.e.)"
+    assert ex.claim_verdict(ex.paired_difference([0.0] * 3, [1.0, 1.1, 0.9])) == "not reproduced (the other way, beyond 2 s.e.)"
+
+
+def test_paired_difference_without_spread_and_bad_input():
+    # the same difference in every seed: s.e. 0, t = -inf, reproduced; no difference at all: t undefined, not
+    p = ex.paired_difference([1.0, 2.0, 3.0], [0.5, 1.5, 2.5])
+    assert p.se == 0 and p.t == -math.inf and ex.claim_verdict(p) == "reproduced (clears 2 s.e.)"
+    p = ex.paired_difference([1.0, 2.0], [1.0, 2.0])
+    assert p.se == 0 and math.isnan(p.t) and (p.better, p.worse) == (0, 0)
+    assert ex.claim_verdict(p) == "not reproduced (within 2 s.e.)"
+    assert ex.claim_verdict(ex.paired_difference([1.0], [0.0])).startswith("untested")  # one seed: no s.e.
+    with pytest.raises(ValueError, match="method: 2 seeds, but baseline has 3"):
+        ex.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0])
+
+
+def test_table_markdown_carries_the_claim_lines(tmp_path):
+    """A table's markdown (and render_markdown's file, re-made from its JSON) has one line per claim of the paper."""
+    runs = lambda *v: [{"rel_hindsight": x, "rel_plan_loss": x, "ade": 1.0, "nll": 1.0, "converged": 1.0} for x in v]  # noqa: E731
+    res = {"No prediction": runs(0, 0, 0), "Standard": runs(1.0, 2.0, 3.0), "DiffStack": runs(0.0, 0.9, 2.1),
+           "GT prediction": runs(-2, -2, -2)}
+    md = ex.results_markdown(ex.TABLE1, res)
+    assert ("DiffStack vs Standard, hindsight cost (x1e-2): paired difference -1.00 ± 0.06 (t = -17.3, 3 of 3 seeds "
+            "better): reproduced (clears 2 s.e.)") in md
+    assert "DiffStack vs Standard, planning loss (x1e-2): paired difference" in md
+    meta = dict(command="python experiments.py --experiment rl", date="2026-01-01", machine="m", seconds=1.0)
+    (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=res)))
+    text = ex.render_markdown("rl", tmp_path).read_text()
+    assert text.startswith("# Table 1") and md in text and "`python experiments.py --experiment rl` (2026-01-01, m, 1 s)" in text
+    # an ablation: one line per section, named
+    abl = {title: {"Standard": runs(1.0, 2.0), "DiffStack": runs(1.5, 2.5)} for title, _, _ in ex.ABLATION_SECTIONS}
+    md = ex.results_markdown(ex.TABLE6, abl)
+    assert md.count("DiffStack vs Standard, hindsight cost") == len(ex.ABLATION_SECTIONS)
+    assert "Loss weights: DiffStack vs Standard, hindsight cost (x1e-2): paired difference 0.50 ± 0.00" in md
+    with pytest.raises(ValueError, match="name: 'nope'"):
+        ex.render_markdown("nope", tmp_path)
