@@ -6,7 +6,6 @@ with what differs and a hint; a stub that still raises NotImplementedError is re
 *Run All* goes on past an exercise the student has not tried yet. test_tutorial.py feeds every check known-wrong
 answers and asserts that it catches each one.
 """
-import math
 
 import torch
 
