@@ -152,6 +152,9 @@ class Config:
     """Adam learning rate"""
     batch_size: int = 256
     """scenarios per training step"""
+    train_plan_weights: str = "posterior"
+    """the mode probabilities the planner and controller see in training: 'posterior', q(z|x,y), as the authors'
+    code (so L_plan and L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation"""
 
     def __post_init__(self):
         """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
@@ -162,9 +165,13 @@ class Config:
         non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
         lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
                        pred_logit_clip=4, alpha_rl=3, alpha_il=3)
+        choices = dict(train_plan_weights=("posterior", "prior"))
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name in counts:
+            if f.name in choices:
+                if v not in choices[f.name]:
+                    raise ValueError(f"Config.{f.name}: must be one of {choices[f.name]}, got {v!r}")
+            elif f.name in counts:
                 if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                     raise ValueError(f"Config.{f.name}: must be a whole number >= 1, got {v!r}")
             elif f.name in lengths:
@@ -1941,7 +1948,9 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         pred = model(batch, use_posterior=train, step=step, shard=shard)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
         preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
-        probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K), (B,)
+        probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K) q(z|x,y) in training, p(z|x) otherwise; (B,)
+        if train and cfg.train_plan_weights == "prior":
+            probs = pred.log_p.exp()  # the planner sees what it will see at evaluation, and its losses reach p(z|x)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
             l_pred, _ = pred_loss(pred, target, step, cfg, shard)

@@ -951,6 +951,24 @@ def test_collision_cost_gradient_reaches_all_decoder_parameters():
         assert grad is not None and grad.abs().sum() > 0, name
 
 
+@pytest.mark.parametrize("weights", ["posterior", "prior"])
+def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weights):
+    """In training the planner weighs the modes by q(z|x,y) (the authors' code, the default), so L_plan and L_ctr
+    never reach p(z|x) -- the network evaluation uses: its gradient is exactly zero. With
+    train_plan_weights='prior' the planner sees p(z|x), as at evaluation, and the losses train it."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, train_plan_weights=weights)
+    b = _cast(small.train[:32], torch.float64)
+    model = make_model(cfg)
+    out = ds.run_stack(b, model, ds.Method("DiffStack"), cfg, "rl", step=0, train=True)
+    (out.l_plan.mean() + out.l_ctr.mean()).backward()
+    grads = dict(model.named_parameters())
+    prior = sum(float(p.grad.abs().sum()) for n, p in grads.items() if n.startswith("p_z.") and p.grad is not None)
+    assert (prior > 0) == (weights == "prior")
+    assert grads["dec_out.weight"].grad.abs().sum() > 0  # the decoder is trained either way
+    with pytest.raises(ValueError, match="train_plan_weights"):
+        ds.Config(train_plan_weights="both")
+
+
 # ---------------------------------------------------------------------------------------------
 # Metrics and plot
 # ---------------------------------------------------------------------------------------------
