@@ -634,6 +634,18 @@ def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | No
     return ax
 
 
+def stack_outputs(batch, models: dict, cfg: Config) -> dict:
+    """{name: StackOutput}: the stack of each (name -> predictor) in models on a batch, in evaluation mode (RL), run on
+    the predictor's device and brought back to the CPU for plotting."""
+    outs = {}
+    with torch.no_grad():
+        for name, model in models.items():
+            model.eval()
+            device = next(model.parameters()).device
+            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
+    return outs
+
+
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
     the one among the first n_search where the first model's hindsight cost exceeds the second's the most.
@@ -641,12 +653,7 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     import matplotlib.pyplot as plt
 
     batch = data.val[:n_search]
-    outs = {}
-    with torch.no_grad():
-        for name, model in models.items():
-            model.eval()
-            device = next(model.parameters()).device
-            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
+    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
     gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
     i = int(gap.argmax())
@@ -672,12 +679,7 @@ def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, ap
     and hindsight cost over the whole batch. Returns the indices drawn."""
     import matplotlib.pyplot as plt
 
-    outs = {}
-    with torch.no_grad():
-        for name, model in models.items():
-            model.eval()
-            device = next(model.parameters()).device
-            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
+    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
     plannable = oa.plannable & ob.plannable  # (B,)
     score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # (B,) lowest: the first model's worst
