@@ -1341,12 +1341,14 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             if store.root is not None:
                 record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
             sections.append((spec.title, md, list(spec.figures)))
-            log(f"\n{spec.title}\n{table}")
+            if log:
+                log(f"\n{spec.title}\n{table}")
     if name == "all" and write:
         report = write_report(out, sections)
         if store.root is not None:
             record_outputs(manifest, [report])
-        log(f"report: {report}")
+        if log:
+            log(f"report: {report}")
     return sections
 
 
