@@ -1310,9 +1310,12 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
     # under torchrun every rank must train the same pieces together: nothing is kept or resumed there
-    store = RunStore(out / RUNS_DIR if write and processes == 1 else None, run_key(data, cfg, epochs, device))
+    root = out / RUNS_DIR if write and processes == 1 else None
+    if root is None or not (root / "outputs").is_dir():  # no run wrote outputs here: check before hashing the data
+        check_outputs(names, out_dir, overwrite)
+    store = RunStore(root, run_key(data, cfg, epochs, device))
     manifest = outputs_manifest(out, name, seeds, store.key)
-    check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if store.root is not None else ())
+    check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
     jobs = max(1, min(jobs, len(seeds))) if write and processes == 1 else 1
     sections, models = [], {}
     all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], seeds)]
