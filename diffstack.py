@@ -2325,6 +2325,12 @@ def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, see
             if log:
                 log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
         results[m.name] = runs
+    return add_relative(results, setting)
+
+
+def add_relative(results: dict, setting: str) -> dict:
+    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as RELATIVE_SCALE) to
+    every run of {method name: [metrics dict per seed]}, in place; nothing without a No prediction row. Returns it."""
     base = results["No prediction"][0] if "No prediction" in results else None
     for runs in results.values():
         for r in runs:

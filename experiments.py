@@ -21,15 +21,18 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
 import pathlib
 import platform
+import re
 import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
@@ -39,8 +42,8 @@ import torch
 import torch.distributed as dist
 
 import data_synth
-from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, StackOutput, alphas, bounded, cell,
-                       check_writable, compare_methods, config_with, cost_weights, device_arg, evaluate_stack,
+from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, add_relative,
+                       alphas, bounded, cell, check_writable, compare_methods, config_with, cost_weights, device_arg, evaluate_stack,
                        markdown_table, mean_se, project_to_lanes, run_stack, to_device, train_predictor, train_stack,
                        unicycle_step, wrap_angle)
 
@@ -236,13 +239,15 @@ REAL_OUT = "runs/real"
 
 
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
-                      device="cpu", **stack_kw):
+                      device="cpu", store=None, **stack_kw):
     """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
     experiments of one run: a predictor already trained the same way is taken from it instead of retrained (the
     same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs,
     target offset and device -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and
     stack options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4,
-    5 and every ablation section."""
+    5 and every ablation section. store: a RunStore, or None: a predictor is also saved there (its state_dict) when
+    trained, and loaded from there when a run of the same run key (config, data, code, ...) trained it before -- so a
+    resumed run, or a worker process, has every predictor an earlier piece trained without training it again."""
     a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
     if a[1:] == (0, 0):
         kw, runs_stack = {}, False
@@ -253,7 +258,16 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
         if log:
             log(f"  [{m.name}] seed {seed}: trained above, reused")
         return models[key]
-    model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
+    path = store.model_path(key) if store is not None else None
+    if path is not None and path.exists():
+        model = Predictor(cfg).to(device)
+        model.load_state_dict(torch.load(path, map_location=device, weights_only=True))
+        if log:
+            log(f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from {path}")
+    else:
+        model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
+        if path is not None:
+            save_atomic(model.state_dict(), path)
     if models is not None:
         models[key] = model
     return model
@@ -353,19 +367,28 @@ def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=prin
     weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
     res = {"Hand-tuned": [], "Learned": []}
     for seed in seeds:
-        model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models, device=device)
-        weights = CostWeights(cfg).to(device)
-        for name in res:
-            if name == "Learned":
-                train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
-            with torch.no_grad():
-                w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
-            r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
-            r.update(w=w_norm.tolist(), alpha=alpha)
+        for name, r in cost_learning_seed(data, cfg, seed, epochs, log, models, device).items():
             res[name].append(r)
-            if log:
-                log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
-                    + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
+    return res
+
+
+def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=None, device="cpu", store=None) -> dict:
+    """One seed of Table 3: {'Hand-tuned': metrics, 'Learned': metrics} (cost_learning_experiment)."""
+    res = {}
+    model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models, device=device,
+                              store=store)
+    weights = CostWeights(cfg).to(device)
+    for name in ("Hand-tuned", "Learned"):
+        if name == "Learned":
+            train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
+        with torch.no_grad():
+            w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
+        r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
+        r.update(w=w_norm.tolist(), alpha=alpha)
+        res[name] = r
+        if log:
+            log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
+                + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
     return res
 
 
@@ -521,25 +544,37 @@ def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0
     for m in CLOSED_LOOP_METHODS:
         runs = []
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            t0, model = time.time(), None
-            if m.predictor == "learned":
-                model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models, device=device)
-            t1 = time.time()
-            roll = simulate(scenes, stack_policy(model, m, cfg, device), cfg, sim_time)
-            per_scene = closed_loop_metrics(scenes, roll, cfg)
-            r = {k: v.mean().item() for k, v in per_scene.items()}
-            r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
+            r, roll, per_scene = closed_loop_run(m, seed, scenes, data, cfg, epochs, sim_time, log, models, device)
             runs.append(r)
             rollouts.setdefault(m.name, (roll, per_scene))
-            if log:
-                log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
         results[m.name] = runs
+    return closed_loop_relative(results), rollouts, scenes
+
+
+def closed_loop_run(m: Method, seed, scenes, data, cfg: Config, epochs=1.0, sim_time=10.0, log=print, models=None,
+                    device="cpu", store=None):
+    """One method and seed of Table 5 on the closed-loop scenes: (metric means over scenes, Rollout, per-scene metrics)."""
+    t0, model = time.time(), None
+    if m.predictor == "learned":
+        model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models, device=device, store=store)
+    t1 = time.time()
+    roll = simulate(scenes, stack_policy(model, m, cfg, device), cfg, sim_time)
+    per_scene = closed_loop_metrics(scenes, roll, cfg)
+    r = {k: v.mean().item() for k, v in per_scene.items()}
+    r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
+    if log:
+        log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+    return r, roll, per_scene
+
+
+def closed_loop_relative(results: dict) -> dict:
+    """Add 'rel_<metric>' (x1e-2 vs No prediction's first run) to every run of {method: [per seed]}, in place."""
     base = results["No prediction"][0]
     for runs in results.values():
         for r in runs:
             for k in CLOSED_LOOP_METRICS:
                 r["rel_" + k] = (r[k] - base[k]) / 1e-2
-    return results, rollouts, scenes
+    return results
 
 
 # ============================================================================================
@@ -832,43 +867,324 @@ def paper_markdown(spec: TableSpec) -> str:
     return markdown_table(head, rows(spec.paper))
 
 
+# --------------------------------------------------------------------------------------------
+# 7.1 Pieces: each (table, method, seed) result on disk as soon as it is made; resuming; worker processes
+# --------------------------------------------------------------------------------------------
+#
+# A run's pieces live next to its outputs, in <out>/.runs/<table>/<table key>/<piece>.json (the closed loop's also a
+# .pt with the rollout its figure draws), written atomically the moment the piece is evaluated. The table key is a
+# hash of everything that determines the numbers: the Config, the epochs, the data (a hash of its tensors), the code
+# (the git commit; for a work tree with changes, a hash of its tracked .py files), the device and the table's name.
+# Re-running the same command loads the finished pieces and computes only the missing ones; any change to the config,
+# data or code is another key, so nothing of another run is mixed in. The seeds are not part of the key (a piece is
+# one seed): a 5-seed run reuses the 3 seeds of an earlier one. Neither is the thread count (it moves only the last
+# digits, README Usage). Trained predictors are saved in <out>/.runs/models/<run key>/ (trained_predictor), so a
+# table that needs a predictor whose piece was reused (or trained in a worker process) loads it instead of training.
+
+RUNS_DIR = ".runs"
+
+
+class Piece(NamedTuple):
+    """One result of a table: a method (Table 3: its one row, both weightings) and a seed; section: the ablation
+    section's title (None elsewhere)."""
+
+    method: str
+    seed: int
+    section: str | None = None
+
+    @property
+    def stem(self) -> str:
+        slug = lambda text: re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")  # noqa: E731
+        return (f"{slug(self.section)}--" if self.section is not None else "") + f"{slug(self.method)}-seed{self.seed}"
+
+
+def _rows(methods, seeds, section=None) -> list:
+    """The pieces of some methods: every seed of a learned one, the first seed only of the others (no training)."""
+    return [Piece(m.name, s, section) for m in methods for s in (seeds if m.predictor == "learned" else seeds[:1])]
+
+
+def _ablation_methods(methods) -> tuple:
+    return (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1])
+
+
+def table_pieces(spec: TableSpec, seeds) -> list:
+    """Every piece of a table, in the order a one-process run makes them."""
+    seeds = tuple(seeds)
+    if spec.kind == "cost":
+        return [Piece(spec.methods[0].name, s) for s in seeds]
+    if spec.kind == "ablation":
+        return [p for title, _, methods in ABLATION_SECTIONS for p in _rows(_ablation_methods(methods), seeds, title)]
+    return _rows(CLOSED_LOOP_METHODS if spec.kind == "closed_loop" else spec.methods, seeds)
+
+
+def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
+                  store=None):
+    """Train (or take from models / store) and evaluate one piece: (its result, a dict of tensors to keep beside
+    it or None). The result is what the table's experiment function gives for that method and seed, before the
+    values relative to No prediction (assemble adds them)."""
+    def one_open_loop(methods, setting, pred_offset=0.0, **stack_kw):
+        m = next(m for m in methods if m.name == piece.method)
+        train = lambda m, *a, **k: trained_predictor(m, *a, models=models, store=store, **k)  # noqa: E731
+        return compare_methods(data, cfg, setting, (m,), (piece.seed,), epochs, pred_offset, log, train, device,
+                               **stack_kw)[m.name][0]
+
+    if spec.kind in ("open_loop", "real"):
+        return one_open_loop(spec.methods, spec.setting, spec.pred_offset), None
+    if spec.kind == "ablation":
+        _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
+        return one_open_loop(_ablation_methods(methods), "rl", **stack_kw), None
+    if spec.kind == "cost":
+        return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
+    if spec.kind == "closed_loop":
+        if data.val_scenes is None:
+            raise ValueError("closed_loop: the data has no validation scene logs")
+        m = next(m for m in CLOSED_LOOP_METHODS if m.name == piece.method)
+        scenes = closed_loop_scenes(data.val_scenes, cfg)
+        r, roll, per_scene = closed_loop_run(m, piece.seed, scenes, data, cfg, epochs, log=log, models=models,
+                                             device=device, store=store)
+        return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
+    raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+
+
+def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
+    """A table's results from its pieces {Piece: result}, as its experiment function returns them in one run."""
+    seeds = tuple(seeds)
+
+    def rows(methods, section=None):
+        return {m.name: [json.loads(json.dumps(pieces[Piece(m.name, s, section)]))  # a copy: the relative values are added
+                         for s in (seeds if m.predictor == "learned" else seeds[:1])] for m in methods}
+
+    if spec.kind in ("open_loop", "real"):
+        return add_relative(rows(spec.methods), spec.setting)
+    if spec.kind == "ablation":
+        return {title: add_relative(rows(_ablation_methods(methods), title), "rl") for title, _, methods in ABLATION_SECTIONS}
+    if spec.kind == "cost":
+        return {name: [pieces[Piece(spec.methods[0].name, s)][name] for s in seeds] for name in ("Hand-tuned", "Learned")}
+    if spec.kind == "closed_loop":
+        return closed_loop_relative(rows(CLOSED_LOOP_METHODS))
+    raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+
+
+def _sha(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def code_version() -> str:
+    """The code a run's numbers come from: the git commit; for a work tree with changes, '+dirty:' and a hash of the
+    content of every tracked .py file (so any change to the code is a new run); outside git, a hash of *.py here."""
+    here = pathlib.Path(__file__).resolve().parent
+    commit = git_commit()
+    if commit is not None and not commit.endswith("+dirty"):
+        return commit
+    try:
+        files = subprocess.run(["git", "ls-files", "*.py"], cwd=here, capture_output=True, text=True,
+                               check=True).stdout.split()
+    except (OSError, subprocess.CalledProcessError):
+        files = sorted(p.name for p in here.glob("*.py"))
+    h = hashlib.sha256()
+    for name in sorted(files):
+        if (here / name).exists():
+            h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
+    return f"{commit or 'no git'}:{h.hexdigest()[:16]}"
+
+
+def data_fingerprint(data) -> str:
+    """A hash of the data's tensors (train, val, the validation scenes; a real run's scene groups): the same samples
+    give the same fingerprint whichever file or folder they came from. About 0.1 s for 10 000 samples."""
+    h = hashlib.sha256()
+    for part in data:
+        if part is None or isinstance(part, dict):
+            h.update(json.dumps(part, sort_keys=True).encode())
+            continue
+        for name, t in sorted(part.tensors().items()):
+            h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def run_key(data, cfg: Config, epochs, device="cpu") -> str:
+    """The key of a run: the same key, the same numbers (at the same thread count). The tables' keys derive from it."""
+    return _sha(dict(config=dataclasses.asdict(cfg), epochs=float(epochs), data=data_fingerprint(data),
+                     code=code_version(), device=str(device)))
+
+
+def save_atomic(obj, path) -> None:
+    """torch.save through a temporary file and a rename (as write_atomic)."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+class RunStore:
+    """A run's pieces and predictors: under root (<out>/.runs) on disk, or in memory when root is None (the ranks
+    of a torchrun run, and run_table called without one: nothing is resumed)."""
+
+    def __init__(self, root, key: str):
+        self.root, self.key, self.memory = (pathlib.Path(root) if root is not None else None), key, {}
+
+    def table_dir(self, table: str) -> pathlib.Path:
+        return self.root / table / _sha(self.key, table)[:16]
+
+    def path(self, table: str, piece: Piece) -> pathlib.Path:
+        return self.table_dir(table) / f"{piece.stem}.json"
+
+    def has(self, table: str, piece: Piece) -> bool:
+        return (table, piece) in self.memory if self.root is None else self.path(table, piece).exists()
+
+    def load(self, table: str, piece: Piece):
+        """(result, extra) of a finished piece, or None."""
+        if self.root is None:
+            return self.memory.get((table, piece))
+        path = self.path(table, piece)
+        if not path.exists():
+            return None
+        saved = json.loads(path.read_text())
+        extra = torch.load(path.with_suffix(".pt"), weights_only=True) if saved["extra"] else None
+        return saved["result"], extra
+
+    def save(self, table: str, piece: Piece, result: dict, extra=None, about=None) -> None:
+        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically; about: what the key
+        stands for, written once per table folder (run.json)."""
+        if self.root is None:
+            self.memory[(table, piece)] = (json.loads(json.dumps(result, default=_to_json)), extra)
+            return
+        path = self.path(table, piece)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if about is not None and not (path.parent / "run.json").exists():
+            write_atomic(path.parent / "run.json", json.dumps(about, indent=1, default=str))
+        if extra is not None:
+            save_atomic(extra, path.with_suffix(".pt"))
+        write_atomic(path, json.dumps(dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None,
+                                           result=result), indent=1, default=_to_json))
+
+    def model_path(self, train_key) -> pathlib.Path | None:
+        """Where trained_predictor keeps a predictor trained the way train_key says (None: in memory only)."""
+        return None if self.root is None else self.root / "models" / self.key[:16] / f"{_sha(repr(train_key))[:16]}.pt"
+
+
+def _to_json(o):
+    return o.tolist() if torch.is_tensor(o) else str(o)
+
+
+def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device, root: str, key: str, about: dict,
+                 verbose: bool) -> int:
+    """A worker process (--jobs): compute and save some pieces of one seed, on one thread. Returns how many."""
+    torch.set_num_threads(1)
+    store, spec, models = RunStore(root, key), SPECS[spec_name], {}
+    log = (lambda text: print(f"[{spec_name} seed {pieces[0].seed}] {text}", flush=True)) if verbose else None
+    for piece in pieces:
+        result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
+        store.save(spec_name, piece, result, extra, about)
+    return len(pieces)
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class Progress:
+    """A line 'progress: done/total pieces (reused), elapsed, ETA' every `every` seconds from a timer thread, and on
+    demand (line()). The ETA assumes the remaining pieces take as long as this run's so far."""
+
+    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0):
+        self.store, self.pieces, self.log, self.every = store, pieces, log, every
+        self.t0, self.reused = time.time(), self.done()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def done(self) -> int:
+        return sum(self.store.has(t, p) for t, p in self.pieces)
+
+    def line(self) -> str:
+        done, el = self.done(), time.time() - self.t0
+        new, left = done - self.reused, len(self.pieces) - done
+        eta = _clock(el / new * left) if new else "unknown (no piece finished yet)"
+        return f"progress: {done}/{len(self.pieces)} pieces ({self.reused} reused), {_clock(el)} elapsed, ETA {eta}"
+
+    def _run(self):
+        while not self._stop.wait(self.every):
+            self.log(self.line())
+
+    def __enter__(self):
+        if self.log:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+
 def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
-              device="cpu", write=True):
+              device="cpu", write=True, store=None, jobs=1):
     """Run one table of the paper: train and evaluate what its spec declares on `device`, write its figures to
     out_dir (unless not `write`: the ranks other than 0 under torchrun). models: trained predictors shared between
-    the tables of one run (trained_predictor).
+    the tables of one run (trained_predictor). store: a RunStore that keeps every piece (method, seed) as it is made
+    and gives back the finished ones (None: one in memory, nothing resumed). jobs > 1 (a store on disk): the seeds'
+    pieces in that many worker processes of one thread each.
     Returns (results, markdown table)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = {} if models is None else models
-    if spec.kind == "open_loop":
-        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, spec.pred_offset, log, models,
-                                   device)
-    elif spec.kind == "cost":
-        res = cost_learning_experiment(data, cfg, seeds, epochs, log, models, device)
-        if write:
-            figure_cost_weights(res, out / "cost_weights.png")
-    elif spec.kind == "closed_loop":
-        if data.val_scenes is None:
-            raise ValueError("closed_loop: the data has no validation scene logs")
-        res, rollouts, scenes = closed_loop_experiment(data, data.val_scenes, cfg, seeds, epochs, log=log, models=models,
-                                                       device=device)
-        if write:
-            figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
-                    for m in CLOSED_LOOP_METHODS[1:3]}
-            figure_stack_example(data, pair, cfg, out / "stack_example.png")
-    elif spec.kind == "ablation":
-        res = ablation_experiment(data, cfg, seeds, epochs, log, models, device)
-    elif spec.kind == "real":
-        res = open_loop_experiment(data, cfg, spec.setting, spec.methods, seeds, epochs, log=log, models=models,
-                                   device=device)
-        if write:
-            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device)
-                    for m in FOUR_METHODS[1:3]}
-            figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
+    store = RunStore(None, "") if store is None else store
+    if spec.kind == "closed_loop" and data.val_scenes is None:
+        raise ValueError("closed_loop: the data has no validation scene logs")
+    about = dict(table=spec.name, run_key=store.key, config=dataclasses.asdict(cfg), epochs=epochs,
+                 code=code_version() if store.root is not None else None, device=str(device),
+                 train=len(data.train), val=len(data.val))
+    pieces = table_pieces(spec, seeds)
+    missing = [p for p in pieces if not store.has(spec.name, p)]
+    if log and len(missing) < len(pieces):
+        reused = [p.stem for p in pieces if p not in missing]
+        log(f"{spec.name}: {len(reused)} of {len(pieces)} pieces done by an earlier run of the same key, reused from "
+            f"{store.table_dir(spec.name) if store.root is not None else 'memory'}: {', '.join(reused)}")
+    by_seed = {}
+    for p in missing:
+        by_seed.setdefault(p.seed, []).append(p)
+    if jobs > 1 and store.root is not None and len(by_seed) > 1:
+        from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+        workers = min(jobs, len(by_seed))
+        if log:
+            log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {workers} worker processes, one thread each")
+        with ProcessPoolExecutor(workers, mp_context=torch.multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_seed_worker, spec.name, ps, data, cfg, epochs, device, str(store.root), store.key,
+                                   about, log is not None) for ps in by_seed.values()]
+            finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+            for f in finished:
+                if f.exception() is not None:
+                    pool.shutdown(cancel_futures=True)
+                    raise f.exception()
     else:
-        raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+        for p in missing:
+            result, extra = compute_piece(spec, p, data, cfg, epochs, log, models, device, store)
+            store.save(spec.name, p, result, extra, about)
+    loaded = {p: store.load(spec.name, p) for p in pieces}
+    res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
+    if write and spec.kind == "cost":
+        figure_cost_weights(res, out / "cost_weights.png")
+    elif write and spec.kind == "closed_loop":
+        rollouts = {}
+        for p, (_, extra) in loaded.items():  # the first seed's rollout of each method, as closed_loop_experiment's
+            if p.seed == seeds[0]:
+                rollouts[p.method] = (Rollout(**extra["rollout"]), extra["per_scene"])
+        figure_closed_loop(closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt)
+        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
+                                          store=store) for m in CLOSED_LOOP_METHODS[1:3]}
+        figure_stack_example(data, pair, cfg, out / "stack_example.png")
+    elif write and spec.kind == "real":
+        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
+                                          store=store) for m in FOUR_METHODS[1:3]}
+        figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
     return res, results_markdown(spec, res)
 
 
@@ -917,16 +1233,17 @@ def planned_outputs(names, out_dir) -> list:
     return files + ([out / "report.md"] if len(names) > 1 else [])
 
 
-def check_outputs(names, out_dir, overwrite: bool) -> None:
+def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     """Before any work: out_dir must be writable, and no file this run would write may exist already unless
-    overwrite (a run never replaces a result it did not make). ValueError naming the folder or the files."""
+    overwrite (a run never replaces a result it did not make) or it is in ours (files this same run wrote before it
+    was interrupted, unchanged since: ours_files). ValueError naming the folder or the files."""
     check_writable(out_dir, "--out")
     here = pathlib.Path(__file__).resolve().parent
     if REAL.name in names and pathlib.Path(out_dir).resolve() == here / "results":
         raise ValueError(f"--out: the real-scene results derive from the Waymo Open Dataset, whose licence forbids "
                          f"committing them; results/ is committed, so write them elsewhere (default {REAL_OUT}/, "
                          f"git-ignored)")
-    existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists()]
+    existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists() and f not in set(ours)]
     if existing and not overwrite:
         raise ValueError(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
                          f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to replace "
@@ -979,37 +1296,94 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
 
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
-                   device="cpu", write=True):
+                   device="cpu", write=True, jobs=1, progress_every=30.0):
     """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
     git commit) and .md (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between
     the tables. write=False: compute everything, write nothing (the ranks other than 0 under torchrun, which train
     with rank 0 and evaluate alongside it).
-    Refuses to start (ValueError) when a file it would write exists already, unless overwrite."""
+
+    Every piece (table, method, seed) is written to out_dir/.runs/ as it is made, and a run with the same key
+    (RunStore: config, data, code, ...) reuses the finished ones: re-running an interrupted command resumes it.
+    jobs > 1: the seeds of a table in that many worker processes, one thread each. A progress line (pieces done,
+    elapsed, ETA) every progress_every seconds.
+    Refuses to start (ValueError) when a file it would write exists already, unless overwrite or this same run
+    (the same command's key and seeds) wrote it and it is unchanged since (an interrupted run of 'all')."""
     names = EXPERIMENTS if name == "all" else (name,)
-    check_outputs(names, out_dir, overwrite)
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+    # under torchrun every rank must train the same pieces together: nothing is kept or resumed there
+    root = out / RUNS_DIR if write and processes == 1 else None
+    if root is None or not (root / "outputs").is_dir():  # no run wrote outputs here: check before hashing the data
+        check_outputs(names, out_dir, overwrite)
+    store = RunStore(root, run_key(data, cfg, epochs, device))
+    manifest = outputs_manifest(out, name, seeds, store.key)
+    check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
+    jobs = max(1, min(jobs, len(seeds))) if write and processes == 1 else 1
     sections, models = [], {}
-    for one in names:
-        spec, t0 = SPECS[one], time.time()
-        res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write)
-        meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
-                    date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
-                    machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {torch.get_num_threads()} threads"
-                            + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
-                    device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
-        if not write:
-            sections.append((spec.title, table, list(spec.figures)))
-            continue
-        to_json = lambda o: o.tolist() if torch.is_tensor(o) else str(o)  # noqa: E731
-        write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
-        md = section_markdown(spec, meta, table)
-        write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
-        sections.append((spec.title, md, list(spec.figures)))
-        log(f"\n{spec.title}\n{table}")
+    all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], seeds)]
+    if store.root is not None and log:
+        log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
+            f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
+    with Progress(store, all_pieces, log, progress_every) as progress:
+        for one in names:
+            spec, t0 = SPECS[one], time.time()
+            res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
+            threads = (f"{torch.get_num_threads()} threads" if jobs == 1 else
+                       f"1 thread per process, {jobs} worker processes (--jobs)")
+            meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+                        date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
+                        machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {threads}"
+                                + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
+                        device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
+            if log:
+                log(progress.line())
+            if not write:
+                sections.append((spec.title, table, list(spec.figures)))
+                continue
+            write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=_to_json))
+            md = section_markdown(spec, meta, table)
+            write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
+            if store.root is not None:
+                record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
+            sections.append((spec.title, md, list(spec.figures)))
+            if log:
+                log(f"\n{spec.title}\n{table}")
     if name == "all" and write:
-        log(f"report: {write_report(out, sections)}")
+        report = write_report(out, sections)
+        if store.root is not None:
+            record_outputs(manifest, [report])
+        if log:
+            log(f"report: {report}")
     return sections
+
+
+def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
+    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with their sha256."""
+    return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{_sha(name, list(seeds), key)[:16]}.json"
+
+
+def _file_sha(path) -> str:
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def record_outputs(manifest: pathlib.Path, files) -> None:
+    """Add files (as they are now) to a run's manifest of the outputs it wrote."""
+    made = json.loads(manifest.read_text()) if manifest.exists() else {}
+    made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
+    manifest.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(manifest, json.dumps(made, indent=1, sort_keys=True))
+
+
+def ours_files(out_dir, manifests) -> set:
+    """The files of out_dir that one of these manifests lists and that are unchanged since that run wrote them."""
+    ours = set()
+    for manifest in manifests:
+        made = json.loads(pathlib.Path(manifest).read_text()) if pathlib.Path(manifest).exists() else {}
+        for fname, sha in made.items():
+            f = pathlib.Path(out_dir) / fname
+            if f.exists() and _file_sha(f) == sha:
+                ours.add(f)
+    return ours
 
 
 class RealData(NamedTuple):
@@ -1074,6 +1448,9 @@ def main(argv=None):
                          f"torchrun write --samples (torchrun's own parser takes --n for an abbreviation of its options)")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
+    ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
+                    help=f"worker processes, one thread each, running a table's seeds in parallel (default: the "
+                         f"machine's cores, here {os.cpu_count()}; 1: one process with --threads threads; 1 under torchrun)")
     ap.add_argument("--device", type=device_arg, default="cpu",
                     help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; the data "
                          "is made and cached on the CPU")
@@ -1091,7 +1468,12 @@ def main(argv=None):
         if cfg.batch_size % world:
             raise ValueError(f"--set batch_size={cfg.batch_size}: a training batch must split evenly over the "
                              f"{world} processes torchrun started; choose a multiple of {world}")
-        check_outputs(names, args.out, args.overwrite)
+        if args.jobs is not None and args.jobs > 1 and world > 1:
+            raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
+        # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
+        # run_experiment decides once the data, and so the run's key, is known
+        check_outputs(names, args.out, args.overwrite,
+                      ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")))
         check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
         device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
@@ -1134,7 +1516,8 @@ def main(argv=None):
     try:
         return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
                               " ".join([launcher, *(argv if argv is not None else sys.argv[1:])]),
-                              log=log, overwrite=args.overwrite, device=device, write=rank == 0)
+                              log=log, overwrite=args.overwrite, device=device, write=rank == 0,
+                              jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
     finally:
         if world > 1:
             dist.destroy_process_group()

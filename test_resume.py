@@ -1,0 +1,133 @@
+"""Runs that survive: every (table, method, seed) piece is kept in <out>/.runs/ as it finishes, a re-run of the same
+command resumes (and a changed config is a new run), --jobs N runs the seeds in worker processes with the numbers of
+one process, and a progress line with an ETA comes at least every `progress_every` seconds. Tiny models and data."""
+import dataclasses
+import json
+import time
+
+import pytest
+
+import data_synth
+import diffstack as ds
+import experiments as ex
+
+TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
+
+
+@pytest.fixture(scope="module")
+def small():
+    data = data_synth.make_dataset(120, data_synth.SynthConfig(pos_noise=0.0, yaw_noise=0.0), seed=3)
+    return data_synth.Dataset(data.train[:64], data.val[:16], data.val_scenes[:2])
+
+
+@pytest.fixture
+def trainings(monkeypatch):
+    """Count the predictors trained ((method, seed) per call); trainings.fail_at = k: the k-th training raises."""
+    calls = []
+    train = ds.train_stack
+
+    def counting(model, data, m, cfg, setting, epochs, seed, *a, **k):
+        if k.get("weights") is None:
+            if len(calls) + 1 == counting.fail_at:
+                raise RuntimeError("killed")
+            calls.append((m.name, seed))
+        return train(model, data, m, cfg, setting, epochs, seed, *a, **k)
+
+    counting.fail_at, counting.calls = None, calls
+    monkeypatch.setattr(ds, "train_stack", counting)
+    return counting
+
+
+def numbers(out, name="il") -> dict:
+    """A result file's results without the wall-clock times (they differ from run to run)."""
+    res = json.loads((out / f"{name}.json").read_text())["results"]
+    return {m: [{k: v for k, v in r.items() if "seconds" not in k} for r in runs] for m, runs in res.items()}
+
+
+def table_of(out, name="il") -> str:
+    """The .md file less its provenance line (which has the run's seconds)."""
+    return "\n".join(ln for ln in (out / f"{name}.md").read_text().splitlines() if not ln.startswith("`"))
+
+
+def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, trainings):
+    cfg = ds.Config(**TINY10)
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "whole", "test", log=None)
+    assert sorted(trainings.calls) == [("DiffStack", 0), ("DiffStack", 1), ("Standard", 0), ("Standard", 1)]
+    trainings.calls.clear()
+    trainings.fail_at = 3  # Standard seeds 0 and 1 train, then the run dies while training DiffStack seed 0
+    with pytest.raises(RuntimeError, match="killed"):
+        ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=None)
+    kept = sorted(p.name for p in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json"))
+    assert kept == ["No_prediction-seed0.json", "Standard-seed0.json", "Standard-seed1.json"]
+    assert not (tmp_path / "cut" / "il.json").exists()
+    trainings.calls.clear()
+    trainings.fail_at = None
+    lines = []
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=lines.append)
+    assert trainings.calls == [("DiffStack", 0), ("DiffStack", 1)]  # only what was missing
+    assert any("3 of 6 pieces done by an earlier run" in ln and "Standard-seed1" in ln for ln in lines)
+    assert numbers(tmp_path / "cut") == numbers(tmp_path / "whole")
+    assert table_of(tmp_path / "cut") == table_of(tmp_path / "whole")
+
+
+def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces(small, tmp_path, trainings):
+    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    assert len(trainings.calls) == 2
+    before = numbers(out)
+    # the same command again: its own outputs may be replaced, nothing is trained, the same numbers come out
+    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    assert len(trainings.calls) == 2 and numbers(out) == before
+    # another config is another run: its outputs are not ours (refused without --overwrite), and all is retrained
+    other = dataclasses.replace(cfg, beta=2 * cfg.beta)
+    with pytest.raises(ValueError, match="--overwrite"):
+        ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+    ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None, overwrite=True)
+    assert len(trainings.calls) == 4 and len(list((out / ".runs" / "il").iterdir())) == 2
+    assert numbers(out) != before
+    # an output edited by hand is no longer the run's own: refused
+    (out / "il.md").write_text("edited")
+    with pytest.raises(ValueError, match="il.md"):
+        ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+
+
+def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(small, tmp_path, trainings, monkeypatch):
+    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
+    before = numbers(out, "closed_loop")
+    (out / "closed_loop.png").unlink()
+    monkeypatch.setattr(ex, "simulate", lambda *a, **k: pytest.fail("every piece is kept: nothing is simulated"))
+    ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
+    assert len(trainings.calls) == 2  # Standard and DiffStack, once; the figure's predictors are loaded
+    assert numbers(out, "closed_loop") == before and (out / "closed_loop.png").stat().st_size > 10_000
+
+
+def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
+    cfg = ds.Config(**TINY10)
+    t0 = time.time()
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "one", "test", log=None, jobs=1)
+    t1 = time.time()
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "two", "test", log=None, jobs=2)
+    print(f"--jobs 1: {t1 - t0:.1f} s, --jobs 2: {time.time() - t1:.1f} s")
+    assert numbers(tmp_path / "two") == numbers(tmp_path / "one")
+    assert "2 worker processes (--jobs)" in json.loads((tmp_path / "two" / "il.json").read_text())["meta"]["machine"]
+
+
+@pytest.mark.parametrize("jobs", ["0", "-1", "x", "2.5"])
+def test_bad_jobs_is_a_one_line_error_naming_it(jobs, capsys, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        ex.main(["--experiment", "rl", "--jobs", jobs, "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "--jobs" in err[-1] and err[-1].startswith("usage") is False
+
+
+def test_progress_prints_done_total_elapsed_and_eta():
+    store, lines = ex.RunStore(None, "k"), []
+    pieces = [("il", ex.Piece("Standard", s)) for s in range(4)]
+    store.save("il", pieces[0][1], {"ade": 1.0})
+    with ex.Progress(store, pieces, lines.append, every=0.05) as progress:
+        time.sleep(0.2)
+        store.save("il", pieces[1][1], {"ade": 1.0})
+        line = progress.line()
+    assert lines and lines[0].startswith("progress: 1/4 pieces (1 reused)") and "ETA unknown" in lines[0]
+    assert line.startswith("progress: 2/4 pieces (1 reused), 0:00:00 elapsed, ETA 0:00:")
