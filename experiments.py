@@ -1233,19 +1233,26 @@ def planned_outputs(names, out_dir) -> list:
     return files + ([out / "report.md"] if len(names) > 1 else [])
 
 
+class OutputRefused(ValueError):
+    """check_outputs' refusal: a bad --out, or result files this run would replace. The CLI prints it as one line."""
+
+
 def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     """Before any work: out_dir must be writable, and no file this run would write may exist already unless
     overwrite (a run never replaces a result it did not make) or it is in ours (files this same run wrote before it
     was interrupted, unchanged since: ours_files). ValueError naming the folder or the files."""
-    check_writable(out_dir, "--out")
+    try:
+        check_writable(out_dir, "--out")
+    except ValueError as e:
+        raise OutputRefused(str(e)) from None
     here = pathlib.Path(__file__).resolve().parent
     if REAL.name in names and pathlib.Path(out_dir).resolve() == here / "results":
-        raise ValueError(f"--out: the real-scene results derive from the Waymo Open Dataset, whose licence forbids "
+        raise OutputRefused(f"--out: the real-scene results derive from the Waymo Open Dataset, whose licence forbids "
                          f"committing them; results/ is committed, so write them elsewhere (default {REAL_OUT}/, "
                          f"git-ignored)")
     existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists() and f not in set(ours)]
     if existing and not overwrite:
-        raise ValueError(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
+        raise OutputRefused(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
                          f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to replace "
                          f"them, or choose another --out")
 
@@ -1518,6 +1525,8 @@ def main(argv=None):
                               " ".join([launcher, *(argv if argv is not None else sys.argv[1:])]),
                               log=log, overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
+    except OutputRefused as e:  # found once the data (and so the run's key) is known: still before any training
+        ap.error(str(e))
     finally:
         if world > 1:
             dist.destroy_process_group()

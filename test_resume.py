@@ -131,3 +131,16 @@ def test_progress_prints_done_total_elapsed_and_eta():
         line = progress.line()
     assert lines and lines[0].startswith("progress: 1/4 pieces (1 reused)") and "ETA unknown" in lines[0]
     assert line.startswith("progress: 2/4 pieces (1 reused), 0:00:00 elapsed, ETA 0:00:")
+
+
+def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
+    """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
+    args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--threads", "1", "--jobs", "1",
+            "--out", str(tmp_path), "--set", "pred_modes=5", "--set", "pred_dec_hidden=16"]
+    ex.main(args)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        ex.main(args + ["--set", "beta=2"])  # another config: the files of the first run are kept
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "error: --out:" in err[-1] and "--overwrite" in err[-1]
+    assert not any("Traceback" in line for line in err)
