@@ -424,6 +424,27 @@ class CostContext:
                 self.lanes_mask, self.lane_search)
 
 
+def segment_offset(q, a, b):
+    """The offset r = q - p (..., 2) of q (..., 2) from its closest point p on the segment a -> b (..., 2 or 3),
+    p = a + frac (b - a); also frac (clamped to [0, 1]) and the unclamped fraction (...,)."""
+    d = b[..., :2] - a[..., :2]  # (..., 2)
+    raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
+    frac = raw.clamp(0, 1)
+    return q - a[..., :2] - frac[..., None] * d, frac, raw
+
+
+def segment_projection(q, a, b):
+    """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
+    frac (...,) the fraction along the segment (clamped to [0, 1]), r = q - closest point (..., 2), the
+    lane heading there (...,) (interpolated between the ends), and dfrac/dq (..., 2) (0 where clamped)."""
+    r, frac, raw = segment_offset(q, a, b)
+    d = b[..., :2] - a[..., :2]  # (..., 2)
+    lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
+    on_segment = ((raw >= 0) & (raw <= 1))[..., None]
+    dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
+    return frac, r, lane_h, dfrac
+
+
 def lane_segments(p, lanes, lanes_mask):
     """Project points on every lane segment. p (B, ..., 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
 
@@ -434,11 +455,8 @@ def lane_segments(p, lanes, lanes_mask):
     view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over ...
     a, b = view(lanes[:, :, :-1]), view(lanes[:, :, 1:])  # segment ends (B, 1.., L, P-1, 3)
     seg_ok = view(lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:])
-    p = p[..., None, None, :]  # (B, ..., 1, 1, 2)
-    d = b[..., :2] - a[..., :2]
-    frac = (((p - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)).clamp(0, 1)  # (B, ..., L, P-1)
-    d2 = ((p - a[..., :2] - frac[..., None] * d) ** 2).sum(-1)
-    lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
+    frac, r, lane_h, _ = segment_projection(p[..., None, None, :], a, b)  # (B, ..., L, P-1), (.., 2), (..)
+    d2 = (r**2).sum(-1)
     return frac, d2, lane_h, seg_ok.expand_as(d2)
 
 
@@ -493,27 +511,6 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     d2 = lambda a, b: segment_offset(qd, a.detach(), b.detach())[0].square().sum(-1)  # noqa: E731  (B, Q)
     closer = d2(here, nxt) < d2(prev, here)  # (B, Q)
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
-
-
-def segment_offset(q, a, b):
-    """The offset r = q - p (..., 2) of q (..., 2) from its closest point p on the segment a -> b (..., 2 or 3),
-    p = a + frac (b - a); also frac (clamped to [0, 1]) and the unclamped fraction (...,)."""
-    d = b[..., :2] - a[..., :2]  # (..., 2)
-    raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
-    frac = raw.clamp(0, 1)
-    return q - a[..., :2] - frac[..., None] * d, frac, raw
-
-
-def segment_projection(q, a, b):
-    """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
-    frac (...,) the fraction along the segment (clamped to [0, 1]), r = q - closest point (..., 2), the
-    lane heading there (...,) (interpolated between the ends), and dfrac/dq (..., 2) (0 where clamped)."""
-    r, frac, raw = segment_offset(q, a, b)
-    d = b[..., :2] - a[..., :2]  # (..., 2)
-    lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
-    on_segment = ((raw >= 0) & (raw <= 1))[..., None]
-    dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
-    return frac, r, lane_h, dfrac
 
 
 def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):

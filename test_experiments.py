@@ -182,7 +182,7 @@ def test_simulate_bad_input_names_the_argument(clean, kw, match):
 # ---------------------------------------------------------------------------------------------
 
 def test_experiments_end_to_end_tiny(clean, tmp_path):
-    (data, scfg), cfg = clean, ds.Config(**TINY10)
+    (data, _), cfg = clean, ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:32], data.val_scenes[:3])
     res, table = ex.run_table(ex.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert set(res) == {"Hand-tuned", "Learned"} and "Learned" in table
