@@ -44,6 +44,7 @@ import torch.nn as nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
 
+from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from data_synth import wrap_angle  # angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi
 
 # ============================================================================================
@@ -79,6 +80,11 @@ class Config:
     """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; authors' code: exp(-d^2/4))"""
 
     # --- planner, eq. (2), App. C.1 ---
+    goal: str = "logged"
+    """the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "the goal matches the ground-truth ego
+    trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a goal that, unlike
+    the logged one, does not already contain the driver's reaction to the others (the paper's "alternative goal
+    definitions"; see route_goal)"""
     goal_lane_dist: float = 4.5
     """a goal lane passes within this distance (m) of the goal"""
     goal_lane_heading: float = math.pi / 2
@@ -165,7 +171,7 @@ class Config:
         non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
         lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
                        pred_logit_clip=4, alpha_rl=3, alpha_il=3)
-        choices = dict(train_plan_weights=("posterior", "prior"))
+        choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.name in choices:
@@ -812,6 +818,26 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
         & (u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3)
     ).all(-1)
     return Candidates(x, u, valid & feasible)
+
+
+def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
+    """The 'route' goal (Config.goal): the point of the ego's lane (the nearest lane heading its way, within 40
+    degrees) that the ego reaches at T keeping its current speed, with the lane's heading and that speed.
+    The logged goal, the GT ego state at T, already holds the driver's reaction to a car cutting in or braking
+    ahead, so a planner without predictions brakes too; this one does not. s0 (B, 4) -> goal (B, 4)."""
+    B = s0.shape[0]
+    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
+    d2, s_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
+    heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
+    lane = torch.where(heading_ok, d2, torch.full_like(d2, math.inf)).min(-1).indices  # (B,) nearest such lane
+    rows = torch.arange(B, device=s0.device)
+    ahead = s_on[rows, lane] + s0[:, 3] * cfg.horizon * cfg.dt  # arc length at T
+    p = _point_at_arclength(lanes[rows, lane][:, None], cum[rows, lane][:, None], ahead[:, None, None])[:, 0, 0]
+    route = torch.cat([p, s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
+    # no lane heading the ego's way (real data can lack one): straight ahead at its speed
+    straight = s0 + torch.stack([torch.cos(s0[:, 2]), torch.sin(s0[:, 2]), torch.zeros_like(s0[:, 2]),
+                                 torch.zeros_like(s0[:, 2])], -1) * (s0[:, 3:4] * cfg.horizon * cfg.dt)
+    return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
 
 
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
@@ -1798,6 +1824,8 @@ class Method:
     """which of (L_pred, L_plan, L_ctr) train the predictor; multiplied by the setting's alphas"""
     weighting: str = "standard"
     """per-scenario weights of L_pred: 'standard', 'distance' or 'grad_cost' (§4.1), or a callable batch -> (B,)"""
+    train_plan_weights: str | None = None
+    """the mode probabilities the planner sees in training, as Config.train_plan_weights; None: the Config's"""
 
     def __post_init__(self):
         if self.predictor not in PREDICTORS:
@@ -1807,6 +1835,8 @@ class Method:
             raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}")
         if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
             raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}")
+        if self.train_plan_weights not in (None, "posterior", "prior"):
+            raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}")
 
 
 PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
@@ -1887,14 +1917,15 @@ def planner_substeps(cfg: Config, plan_dt) -> int:
     return substeps
 
 
-def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1):
+def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, goal=None):
     """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
     plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. D.3).
     substeps: planner steps per prediction step; the futures (preds included) must already be on the planner's
-    clock, the batch's are interpolated to it here."""
+    clock, the batch's are interpolated to it here. goal: (B, 4) the goal g (default the batch's, the logged one)."""
     others_mask = batch.others_mask.to(preds.dtype)
     others = upsample(batch.others_hist[:, :, -1, :2], batch.others_fut[..., :2], substeps)  # (B, A, T, 2)
-    common = dict(others=others, goal=batch.goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
+    goal = batch.goal if goal is None else goal
+    common = dict(others=others, goal=goal[:, :2], lanes=batch.lanes, lanes_mask=batch.lanes_mask)
     ctx = CostContext(preds, probs, pred_mask, others_mask=others_mask * plan_others, **common)
     ones = torch.ones_like(pred_mask)
     agent = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], substeps)  # (B, T, 2)
@@ -1946,7 +1977,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
         preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
         probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K) q(z|x,y) in training, p(z|x) otherwise; (B,)
-        if train and cfg.train_plan_weights == "prior":
+        if train and (method.train_plan_weights or cfg.train_plan_weights) == "prior":
             probs = pred.log_p.exp()  # the planner sees what it will see at evaluation, and its losses reach p(z|x)
         if train:
             target = batch if pred_target is None else dataclasses.replace(batch, agent_fut=pred_target)
@@ -1956,12 +1987,13 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         probs, pred_mask = torch.ones(B, 1, **like), torch.ones(B, **like)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, **like), torch.ones(B, 1, **like), torch.zeros(B, **like)
-    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub)
+    goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)  # (B, 4)
+    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, goal)
     gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     lap("predict")
     # --- plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin ---
     pcfg = cfg if sub == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
-    cands, cost, best, plannable, terms = plan(s0, ctx, batch.goal, w, pcfg)  # (B, N) costs, (B,) plan
+    cands, cost, best, plannable, terms = plan(s0, ctx, goal, w, pcfg)  # (B, N) costs, (B,) plan
     # the planner's target n*: RL, the candidate cheapest in hindsight (the agent's GT future in the collision
     # term, the other terms as planned); IL, the candidate closest to the GT ego trajectory
     if setting == "rl":
@@ -2153,7 +2185,7 @@ class Shard:
 
 
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
-                pred_offset=0.0, weights: CostWeights | None = None, **stack_kw):
+                pred_offset=0.0, weights: CostWeights | None = None, on_epoch=None, **stack_kw):
     """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
     given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
     the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
@@ -2167,6 +2199,9 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     Under torchrun (torch.distributed initialised, world > 1) it trains with DistributedDataParallel, each rank on
     its cfg.batch_size / world scenarios of every global batch, with the gradient of the single-process loss on the
     global batch (section 8.1); only rank 0 logs. Every rank returns the same per-step log (global values).
+    on_epoch: None, or a function of (epochs done, steps done) called before the first step and after every epoch
+    (and after the last step of a fractional one), e.g. to evaluate the model for a learning curve; it runs in a
+    fork of the random state, so that training draws the same numbers with it or without it.
     Returns the per-step log (list of dicts).
     """
     device = next(model.parameters()).device
@@ -2204,6 +2239,14 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     total = max(1, round(epochs * steps_per_epoch))
     mine = shard.positions(n)  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
     history, t0, step = [], time.time(), 0
+
+    def epoch_done():
+        if on_epoch is not None:
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                on_epoch(step / steps_per_epoch, step)
+            model.train(not learn_cost)
+
+    epoch_done()
     try:
         while step < total:
             perm = torch.randperm(n, generator=g, device="cpu")  # the epoch's order, the same on every rank
@@ -2249,6 +2292,8 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                 history.append(dict(step=step, loss=loss_v, l_pred=l_pred_v, l_plan=l_plan_v, l_ctr=l_ctr_v, converged=conv))
                 if learn_cost:
                     history[-1]["w"] = weights().tolist()
+                if step % steps_per_epoch == 0 or step == total:
+                    epoch_done()
                 if log and (step % max(1, total // 10) == 0 or step == total):
                     el = time.time() - t0
                     w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
@@ -2260,12 +2305,21 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
 
 
 def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
-                    device="cpu", **stack_kw) -> Predictor:
+                    device="cpu", curve_samples=0, **stack_kw) -> Predictor:
     """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
-    moved to `device` and trained there on data.train by train_stack."""
+    moved to `device` and trained there on data.train by train_stack.
+    curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples validation scenarios before
+    training and after every epoch, is kept in model.learning_curve (a list of {epoch, step, metrics})."""
     torch.manual_seed(seed)  # the predictor's initialisation
     model = Predictor(cfg).to(device)
-    train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, **stack_kw)
+    curve, on_epoch = [], None
+    if curve_samples > 0:
+        subset = data.val[:curve_samples]
+        on_epoch = lambda epoch, step: curve.append(dict(  # noqa: E731
+            epoch=epoch, step=step, **evaluate_stack(model, subset, method, cfg, setting, device=device, **stack_kw)))
+    train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **stack_kw)
+    if curve_samples > 0:
+        model.learning_curve = curve
     return model
 
 
@@ -2277,7 +2331,7 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
         device = next(model.parameters()).device if model is not None else "cpu"
     if model is not None:
         model.eval()
-    sums, n, n_all = {}, 0, 0
+    sums, n, n_all, by_behaviour = {}, 0, 0, {}
     for i in range(0, len(data), batch_size):
         batch = to_device(data[i:i + batch_size], device)
         out = run_stack(batch, model, method, cfg, setting, **stack_kw)
@@ -2287,9 +2341,20 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
             vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
         for k, v in vals.items():
             sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
+        # the same sums per behaviour of the predicted agent (synthetic data; real data is labelled -1)
+        for b in batch.behaviour[keep].unique().tolist():
+            if b >= 0:
+                rows = keep & (batch.behaviour == b)
+                acc = by_behaviour.setdefault(BEHAVIOURS[b], dict(n=0))
+                acc["n"] += rows.sum().item()
+                for k in ("hindsight", "mse", "plan_loss"):
+                    acc[k] = acc.get(k, 0.0) + vals[k].detach()[rows].sum().item()
         n, n_all = n + keep.sum().item(), n_all + len(batch)
     out = {k: v / max(n, 1) for k, v in sums.items()}
     out.update(n=n, skipped=n_all - n)
+    if by_behaviour:  # means per behaviour, and how many scenarios each has
+        out["by_behaviour"] = {name: {k: (v if k == "n" else v / acc["n"]) for k, v in acc.items()}
+                               for name, acc in sorted(by_behaviour.items())}
     return out
 
 
@@ -2318,6 +2383,8 @@ def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, see
                 model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
             r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
             r["seconds"] = time.time() - t0
+            if getattr(model, "learning_curve", None) is not None:
+                r["curve"] = model.learning_curve
             runs.append(r)
             if log:
                 log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))

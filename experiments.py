@@ -189,7 +189,12 @@ ABLATION_SECTIONS = (
     ("Loss weights", {}, (
         Method("Standard"), Method("DiffStack", losses=(1, 1, 1)), Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
         Method("DiffStack (no L_ctr)", losses=(1, 1, 0)), Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
-        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)))),
+        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)),
+        # the planner weighs the modes by p(z|x) in training too (Config.train_plan_weights): L_plan and L_ctr then
+        # reach the prior that evaluation uses, which the default q(z|x,y) never trains (without L_pred: nothing does)
+        Method("DiffStack (prior weights)", losses=(1, 1, 1), train_plan_weights="prior"),
+        Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+        Method("DiffStack (no L_pred, prior weights)", losses=(0, 1, 1), train_plan_weights="prior"))),
     ("No planner (iLQR from zero controls)", dict(planner=False), (
         Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
     ("No controller (the plan is final)", dict(controller=False), (
@@ -238,6 +243,10 @@ REAL_OUT = "runs/real"
 # ============================================================================================
 
 
+CURVE_SAMPLES = 512  # every trained predictor's learning curve: the stack evaluated on this many validation scenarios
+                    # before training and after every epoch (about 1 s each on one thread)
+
+
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
                       device="cpu", store=None, **stack_kw):
     """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
@@ -253,7 +262,10 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
         kw, runs_stack = {}, False
     elif a[2] == 0:
         kw.pop("controller", None)
+    plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
     key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
+    if plan_weights == "prior":  # (the posterior's keys stay as they were before this choice existed)
+        key += (plan_weights,)
     if models is not None and key in models:
         if log:
             log(f"  [{m.name}] seed {seed}: trained above, reused")
@@ -262,11 +274,16 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
     if path is not None and path.exists():
         model = Predictor(cfg).to(device)
         model.load_state_dict(torch.load(path, map_location=device, weights_only=True))
+        if path.with_suffix(".curve.json").exists():
+            model.learning_curve = json.loads(path.with_suffix(".curve.json").read_text())
         if log:
             log(f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from {path}")
     else:
-        model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
-        if path is not None:
+        model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device,
+                                curve_samples=CURVE_SAMPLES, **stack_kw)
+        if path is not None:  # the curve first: a model file on disk always has its curve beside it
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(path.with_suffix(".curve.json"), json.dumps(model.learning_curve))
             save_atomic(model.state_dict(), path)
     if models is not None:
         models[key] = model
@@ -969,23 +986,17 @@ def _sha(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
+NUMBER_MODULES = ("diffstack.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
+
+
 def code_version() -> str:
-    """The code a run's numbers come from: the git commit; for a work tree with changes, '+dirty:' and a hash of the
-    content of every tracked .py file (so any change to the code is a new run); outside git, a hash of *.py here."""
+    """The code a run's numbers come from: a hash of the content of the modules that make them (NUMBER_MODULES),
+    so that any change to them is a new run, while a commit of the README, the tests or the notebook is not."""
     here = pathlib.Path(__file__).resolve().parent
-    commit = git_commit()
-    if commit is not None and not commit.endswith("+dirty"):
-        return commit
-    try:
-        files = subprocess.run(["git", "ls-files", "*.py"], cwd=here, capture_output=True, text=True,
-                               check=True).stdout.split()
-    except (OSError, subprocess.CalledProcessError):
-        files = sorted(p.name for p in here.glob("*.py"))
     h = hashlib.sha256()
-    for name in sorted(files):
-        if (here / name).exists():
-            h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
-    return f"{commit or 'no git'}:{h.hexdigest()[:16]}"
+    for name in NUMBER_MODULES:
+        h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
+    return f"sha256:{h.hexdigest()[:16]}"
 
 
 def data_fingerprint(data) -> str:
@@ -1085,6 +1096,44 @@ def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device
     return len(pieces)
 
 
+def run_about(spec: TableSpec, store: RunStore, cfg: Config, epochs, device, data) -> dict:
+    """What a table's run key stands for (run.json in its folder of pieces)."""
+    return dict(table=spec.name, run_key=store.key, config=dataclasses.asdict(cfg), epochs=epochs,
+                code=code_version() if store.root is not None else None, device=str(device),
+                train=len(data.train), val=len(data.val))
+
+
+def compute_in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, jobs: int, verbose=True):
+    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of one thread each,
+    in the order given; each piece is saved in `store` as it finishes. Raises the first worker's error."""
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+    with ProcessPoolExecutor(min(jobs, len(units)), mp_context=torch.multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_seed_worker, name, ps, data, cfg, epochs, device, str(store.root), store.key,
+                               run_about(SPECS[name], store, cfg, epochs, device, data), verbose) for name, ps in units]
+        finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        for f in finished:
+            if f.exception() is not None:
+                pool.shutdown(cancel_futures=True)
+                raise f.exception()
+
+
+def work_units(names, seeds, store: RunStore) -> list:
+    """The missing pieces of several tables as units for compute_in_workers: one per (table, ablation section,
+    seed). The longest (the ablation's) go first, so that the short ones fill the workers at the end; within a
+    table, the seeds alternate, so that two workers never train the same predictor (a predictor shared between
+    tables is trained by the first unit of its seed and loaded from the store by the later ones)."""
+    units = []
+    for name in sorted(names, key=lambda n: SPECS[n].kind != "ablation"):
+        pieces = [p for p in table_pieces(SPECS[name], seeds) if not store.has(name, p)]
+        for section in dict.fromkeys(p.section for p in pieces):
+            for seed in seeds:
+                unit = [p for p in pieces if p.section == section and p.seed == seed]
+                if unit:
+                    units.append((name, unit))
+    return units
+
+
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
@@ -1138,9 +1187,7 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     store = RunStore(None, "") if store is None else store
     if spec.kind == "closed_loop" and data.val_scenes is None:
         raise ValueError("closed_loop: the data has no validation scene logs")
-    about = dict(table=spec.name, run_key=store.key, config=dataclasses.asdict(cfg), epochs=epochs,
-                 code=code_version() if store.root is not None else None, device=str(device),
-                 train=len(data.train), val=len(data.val))
+    about = run_about(spec, store, cfg, epochs, device, data)
     pieces = table_pieces(spec, seeds)
     missing = [p for p in pieces if not store.has(spec.name, p)]
     if log and len(missing) < len(pieces):
@@ -1151,19 +1198,11 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     for p in missing:
         by_seed.setdefault(p.seed, []).append(p)
     if jobs > 1 and store.root is not None and len(by_seed) > 1:
-        from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
-
-        workers = min(jobs, len(by_seed))
         if log:
-            log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {workers} worker processes, one thread each")
-        with ProcessPoolExecutor(workers, mp_context=torch.multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_seed_worker, spec.name, ps, data, cfg, epochs, device, str(store.root), store.key,
-                                   about, log is not None) for ps in by_seed.values()]
-            finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
-            for f in finished:
-                if f.exception() is not None:
-                    pool.shutdown(cancel_futures=True)
-                    raise f.exception()
+            log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {min(jobs, len(by_seed))} worker "
+                f"processes, one thread each")
+        compute_in_workers([(spec.name, ps) for ps in by_seed.values()], data, cfg, epochs, device, store, jobs,
+                           log is not None)
     else:
         for p in missing:
             result, extra = compute_piece(spec, p, data, cfg, epochs, log, models, device, store)
@@ -1332,6 +1371,12 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
     with Progress(store, all_pieces, log, progress_every) as progress:
+        units = work_units(names, seeds, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
+        if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
+            if log:
+                log(f"{sum(len(u) for _, u in units)} pieces in {len(units)} units (table, seed) over {jobs} worker "
+                    f"processes, one thread each")
+            compute_in_workers(units, data, cfg, epochs, device, store, jobs, log is not None)
         for one in names:
             spec, t0 = SPECS[one], time.time()
             res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
@@ -1448,8 +1493,8 @@ def main(argv=None):
                     help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
     ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
                     help="training seeds per method (default 5, at most 100)")
-    ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=4.0,
-                    help="training epochs per method (default 4; fractions allowed; at most 1000)")
+    ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=20.0,
+                    help="training epochs per method (default 20, the paper's; fractions allowed; at most 1000)")
     ap.add_argument("--n", "--samples", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
                     help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,}); under "
                          f"torchrun write --samples (torchrun's own parser takes --n for an abbreviation of its options)")

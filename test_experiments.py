@@ -223,15 +223,18 @@ def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypat
     trained = []
     train = ds.train_stack
 
-    def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, **kw):
-        trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset, tuple(sorted(kw.items()))))
-        return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, **kw)
+    def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, on_epoch=None, **kw):
+        trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset,
+                        tuple(sorted(kw.items())), m.train_plan_weights))
+        return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **kw)
 
     monkeypatch.setattr(ds, "train_stack", counting)
     ex.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
     assert len(trained) == len(set(trained))
-    assert trained.count(((1, 0, 0), "standard", None, 0.0, ())) == 1
-    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),)) in trained  # the dt = 0.1 s section
+    assert trained.count(((1, 0, 0), "standard", None, 0.0, (), None)) == 1
+    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),), None) in trained  # the dt = 0.1 s section
+    assert ((1, 1, 1), "standard", "rl", 0.0, (), "prior") in trained  # the ablation's prior-weights row
+    assert trained.count(((0, 1, 1), "standard", "rl", 0.0, (), None)) == 1  # no L_pred: Table 1 and the ablation
     report = (tmp_path / "report.md").read_text()
     for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
         assert f"({f})" in report and (tmp_path / f).exists()
