@@ -43,9 +43,9 @@ import torch.distributed as dist
 
 import data_synth
 from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, add_relative,
-                       alphas, bounded, cell, check_writable, compare_methods, config_with, cost_weights, device_arg, evaluate_stack,
-                       markdown_table, mean_se, project_to_lanes, run_stack, to_device, train_predictor, train_stack,
-                       unicycle_step, wrap_angle)
+                       alphas, bounded, cell, check_writable, compare_methods, config_with, cost_contexts, cost_terms,
+                       cost_weights, device_arg, evaluate_stack, markdown_table, mean_se, project_to_lanes, route_goal,
+                       run_stack, to_device, train_predictor, train_stack, unicycle_step, wrap_angle)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -128,7 +128,7 @@ TABLE1 = TableSpec(
         "Distance weighted": (1.34, 1.19, -4.04, -1.68), "Grad-cost weighted": (1.43, -1.06, -4.29, -1.77),
         "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87), "DiffStack": (1.27, 0.38, -5.13, -1.86),
         "GT prediction": (None, None, -7.56, -2.25)}),
-    gap=("Standard", "DiffStack"),
+    gap=("Standard", "DiffStack"), figures=("learning_curves.png",),
     claims=(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"), Claim("DiffStack", "Standard", "Planning loss (x1e-2)")))
 
 TABLE2 = TableSpec(
@@ -222,7 +222,15 @@ TABLE6 = TableSpec(
     sections=ABLATION_SECTIONS,
     claims=tuple(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)", title) for title, _, _ in ABLATION_SECTIONS))
 
-TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6)}  # the order `all` runs them in
+# Not a table of the paper: why a prediction is worth little to the planner in most scenes. No prediction and GT
+# prediction (the best any predictor can do) by behaviour of the predicted vehicle, under the paper's goal (the GT
+# ego state at T, which already holds the driver's reaction) and under a route goal (Config.goal = 'route').
+GOALS = ("logged", "route")
+GOAL_TABLE = TableSpec(
+    "goal", "Where a perfect prediction is worth something: hindsight cost by behaviour, the paper's goal vs a route goal",
+    "goal", "rl", (TABLE1_METHODS[0], TABLE1_METHODS[-1]), (), {})
+
+TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}  # the order `all` runs them in
 EXPERIMENTS = tuple(TABLES)
 
 # Real driving scenes: the three Waymo logs of data_synth.fetch_waymo, evaluated with predictors trained on synthetic
@@ -635,6 +643,69 @@ def ablation_markdown(spec: TableSpec, results: dict) -> str:
     return markdown_table(head, rows)
 
 
+CLOSE = 5.0  # m, centre to centre: a car's length (goal_breakdown)
+
+
+def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) -> dict:
+    """Method m (No prediction or GT prediction: nothing trained) on the validation set under cfg.goal, by behaviour
+    of the predicted vehicle: scenes, hindsight cost, its weighted terms (collision, goal, lane, heading, control
+    effort) and the share of scenes where the final ego trajectory comes within CLOSE metres (centre to centre, about
+    a car's length) of the predicted vehicle's GT future. The evidence of why a prediction matters in some behaviours
+    and not in others."""
+    sums, dists = {}, {}
+    w = cost_weights(cfg, torch.float32, device)
+    for i in range(0, len(val), batch_size):
+        batch = to_device(val[i:i + batch_size], device)
+        out = run_stack(batch, None, m, cfg, "rl")
+        s0 = batch.ego_hist[:, -1]
+        goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
+        ones = torch.ones(len(batch), device=device)
+        _, hctx = cost_contexts(batch, torch.zeros(len(batch), 1, cfg.horizon, 2, device=device), ones[:, None], ones,
+                                goal=goal)
+        terms = cost_terms(out.x, out.u, hctx, cfg.rbf_var) * w  # (B, 5) weighted, as they add up to the hindsight cost
+        closest = (out.x[:, 1:, :2] - batch.agent_fut[..., :2]).norm(dim=-1).min(-1).values  # (B,)
+        for b in batch.behaviour[out.plannable].unique().tolist():
+            rows = out.plannable & (batch.behaviour == b)
+            name = data_synth.BEHAVIOURS[b] if b >= 0 else "real"
+            acc = sums.setdefault(name, dict(n=0, hindsight=0.0, terms=torch.zeros(5, dtype=torch.float64)))
+            acc["n"] += rows.sum().item()
+            acc["hindsight"] += out.hindsight[rows].sum().item()
+            acc["terms"] += terms[rows].sum(0).double().cpu()
+            dists.setdefault(name, []).append(closest[rows].cpu())
+    by = {name: dict(n=a["n"], hindsight=a["hindsight"] / a["n"], terms=(a["terms"] / a["n"]).tolist(),
+                     close=(torch.cat(dists[name]) < CLOSE).float().mean().item()) for name, a in sums.items()}
+    n = sum(a["n"] for a in by.values())
+    return dict(n=n, hindsight=sum(a["hindsight"] * a["n"] for a in by.values()) / n, by_behaviour=by)
+
+
+def goal_markdown(results: dict) -> str:
+    """The goal table: per goal, per behaviour, No prediction's hindsight cost and what it is made of, and what a
+    perfect prediction saves (GT prediction minus No prediction, x1e-2, and its share of the whole saving)."""
+    parts = []
+    for goal, rows in results.items():
+        none, gt = rows["No prediction"][0], rows["GT prediction"][0]
+        saved_all = (gt["hindsight"] - none["hindsight"]) * none["n"]
+        table = []
+        for b in [b for b in data_synth.BEHAVIOURS if b in none["by_behaviour"]]:
+            a, g = none["by_behaviour"][b], gt["by_behaviour"][b]
+            t = a["terms"]
+            saved = g["hindsight"] - a["hindsight"]
+            table.append([f"{b} ({a['n']})", f"{a['hindsight']:.3f}", f"{t[0]:.3f}", f"{t[1]:.3f}", f"{t[4]:.3f}",
+                          f"{g['terms'][0]:.3f}", f"{100 * a['close']:.0f} % / {100 * g['close']:.0f} %",
+                          f"{saved / 1e-2:+.2f}",
+                          f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--"])
+        table.append([f"all ({none['n']})", f"{none['hindsight']:.3f}", "", "", "", "", "",
+                      f"{(gt['hindsight'] - none['hindsight']) / 1e-2:+.2f}", "1.00"])
+        what = ("the paper's: the GT ego state at T" if goal == "logged" else
+                "a route goal: where the ego would be at T keeping its speed along its lane (Config.goal = 'route')")
+        parts.append(f"**Goal: {what}.**\n\n" + markdown_table(
+            ["Behaviour (scenes)", "No prediction: hindsight cost", "of which collision", "goal", "control effort",
+             "GT prediction: collision", f"within {CLOSE:g} m of the vehicle (No prediction / GT)",
+             "GT minus No prediction (x1e-2)",
+             "share of GT's saving"], table))
+    return "\n\n".join(parts)
+
+
 # ============================================================================================
 # 6. Figures
 # ============================================================================================
@@ -820,6 +891,46 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
     return s
 
 
+LEARNING_CURVES_CAPTION = "Learning curves (validation)"
+
+
+def figure_learning_curves(results: dict, path, reference: dict | None = None, methods=("Standard", "DiffStack"),
+                           title=LEARNING_CURVES_CAPTION):
+    """Validation ADE and hindsight cost after every epoch (CURVE_SAMPLES scenes), mean and s.e. band over seeds, of
+    the methods whose runs have a learning curve. reference: {name: hindsight cost on the same scenes}, drawn as
+    horizontal lines (No prediction, GT prediction)."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
+    colors = dict(Standard="tab:blue", DiffStack="tab:red")
+    for m in methods:
+        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
+        if not curves:
+            continue
+        n = min(len(c) for c in curves)
+        epoch = np.array([c["epoch"] for c in curves[0][:n]])
+        for ax, key in zip(axes, ("ade", "hindsight")):
+            v = np.array([[c[i][key] for i in range(n)] for c in curves])  # (seeds, epochs)
+            mean, se = v.mean(0), (v.std(0, ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0 * v[0])
+            ax.plot(epoch, mean, color=colors.get(m), label=f"{m} ({len(v)} seeds)")
+            ax.fill_between(epoch, mean - se, mean + se, color=colors.get(m), alpha=0.25, lw=0)
+    for name, value in (reference or {}).items():
+        axes[1].axhline(value, color="0.3", ls="--" if name == "No prediction" else ":", lw=1, label=name)
+    axes[0].set(xlabel="epoch", ylabel="ADE (m)", title="Prediction: ADE")
+    axes[1].set(xlabel="epoch", ylabel="hindsight cost", title="Planning: hindsight cost (lower is better)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    fig.suptitle(title, fontsize=10)
+    save_figure(fig, path)
+
+
+def learning_curve_reference(data, cfg: Config) -> dict:
+    """No prediction's and GT prediction's hindsight cost on the learning curves' scenes (figure_learning_curves)."""
+    subset = data.val[:CURVE_SAMPLES]
+    return {m.name: evaluate_stack(None, subset, m, cfg, "rl")["hindsight"] for m in (TABLE1_METHODS[0], TABLE1_METHODS[-1])}
+
+
 def figure_cost_weights(results: dict, path):
     """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds."""
     import matplotlib.pyplot as plt
@@ -848,11 +959,39 @@ def figure_cost_weights(results: dict, path):
 
 def results_markdown(spec: TableSpec, results: dict) -> str:
     """A results table of a spec: one row per method, 'mean ± s.e.' over seeds in every column; below it, one line
-    per claim of the paper with its paired difference over seeds and whether it clears two standard errors."""
+    per claim of the paper with its paired difference over seeds and whether it clears two standard errors; for the
+    open-loop tables, the planning metric by behaviour of the predicted vehicle (behaviour_markdown)."""
+    if spec.kind == "goal":
+        return goal_markdown(results)
     md = ablation_markdown(spec, results) if spec.kind == "ablation" else table_markdown(spec, results)
     claims = claims_markdown(spec, results)
-    return md + (f"\n\nThe paper's claims, as paired differences over seeds (reproduced only beyond 2 s.e.):\n\n{claims}"
-                 if claims else "")
+    md += (f"\n\nThe paper's claims, as paired differences over seeds (reproduced only beyond 2 s.e.):\n\n{claims}"
+           if claims else "")
+    by = behaviour_markdown(spec, results) if spec.kind == "open_loop" else ""
+    return md + (f"\n\n{by}" if by else "")
+
+
+def behaviour_markdown(spec: TableSpec, results: dict) -> str:
+    """The setting's planning metric (RL: hindsight cost, IL: MSE) relative to No prediction, x1e-2, per behaviour of
+    the predicted vehicle (data_synth.BEHAVIOURS; the scenes of that behaviour), mean ± s.e. over seeds: where in
+    the data a method's predictions help the planner and where they hurt it. '' without the breakdown (real data,
+    or results from before it existed)."""
+    key = "hindsight" if spec.setting == "rl" else "mse"
+    base = results.get("No prediction", [{}])[0].get("by_behaviour")
+    if not base:
+        return ""
+    names = [b for b in data_synth.BEHAVIOURS if b in base]
+    methods = [m for m, runs in results.items() if m != "No prediction" and all("by_behaviour" in r for r in runs)]
+    rows = []
+    for b in names:
+        rel = lambda runs: [(r["by_behaviour"][b][key] - base[b][key]) / 1e-2 for r in runs]  # noqa: E731
+        rows.append([f"{b} ({base[b]['n']})"] + [cell(rel(results[m])) for m in methods])
+    rows.append([f"all ({results['No prediction'][0]['n']})"]
+                + [cell([(r[key] - results["No prediction"][0][key]) / 1e-2 for r in results[m]]) for m in methods])
+    what = "Hindsight cost" if key == "hindsight" else "MSE"
+    return (f"{what} relative to No prediction (x1e-2) by behaviour of the predicted vehicle (scenes), mean ± s.e. over "
+            f"seeds; a behaviour's row is the mean over its scenes, 'all' over every scene:\n\n"
+            + markdown_table(["Behaviour (scenes)"] + methods, rows))
 
 
 def table_markdown(spec: TableSpec, results: dict) -> str:
@@ -931,6 +1070,8 @@ def table_pieces(spec: TableSpec, seeds) -> list:
         return [Piece(spec.methods[0].name, s) for s in seeds]
     if spec.kind == "ablation":
         return [p for title, _, methods in ABLATION_SECTIONS for p in _rows(_ablation_methods(methods), seeds, title)]
+    if spec.kind == "goal":
+        return [p for goal in GOALS for p in _rows(spec.methods, seeds, goal)]
     return _rows(CLOSED_LOOP_METHODS if spec.kind == "closed_loop" else spec.methods, seeds)
 
 
@@ -952,6 +1093,9 @@ def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=
         return one_open_loop(_ablation_methods(methods), "rl", **stack_kw), None
     if spec.kind == "cost":
         return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
+    if spec.kind == "goal":
+        m = next(m for m in spec.methods if m.name == piece.method)
+        return goal_breakdown(data.val, m, dataclasses.replace(cfg, goal=piece.section), device), None
     if spec.kind == "closed_loop":
         if data.val_scenes is None:
             raise ValueError("closed_loop: the data has no validation scene logs")
@@ -977,6 +1121,8 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
         return {title: add_relative(rows(_ablation_methods(methods), title), "rl") for title, _, methods in ABLATION_SECTIONS}
     if spec.kind == "cost":
         return {name: [pieces[Piece(spec.methods[0].name, s)][name] for s in seeds] for name in ("Hand-tuned", "Learned")}
+    if spec.kind == "goal":
+        return {goal: rows(spec.methods, goal) for goal in GOALS}
     if spec.kind == "closed_loop":
         return closed_loop_relative(rows(CLOSED_LOOP_METHODS))
     raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
@@ -1211,6 +1357,8 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
     if write and spec.kind == "cost":
         figure_cost_weights(res, out / "cost_weights.png")
+    elif write and "learning_curves.png" in spec.figures:
+        figure_learning_curves(res, out / "learning_curves.png", learning_curve_reference(data, cfg))
     elif write and spec.kind == "closed_loop":
         rollouts = {}
         for p, (_, extra) in loaded.items():  # the first seed's rollout of each method, as closed_loop_experiment's
@@ -1318,7 +1466,8 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     where += [f"{meta['seconds']:.0f} s"] + ([f"commit {meta['git_commit']}"] if meta.get("git_commit") else [])
     note = f"; {meta['note']}" if meta.get("note") else ""
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
-            + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else f"{data_synth.WAYMO_LICENCE}.\n"))
+            + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
+               f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
 
 
 def table_file_markdown(spec: TableSpec, md: str) -> str:
@@ -1339,6 +1488,31 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
     path = pathlib.Path(out_dir) / f"{name}.md"
     write_atomic(path, table_file_markdown(spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))))
     return path
+
+
+def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None = None, log=print) -> list:
+    """Re-write the outputs of an earlier run of `name` ('all': every table and the report) from its JSON files in
+    out_dir, training nothing: the .md files (render_markdown), the learning curves' figure (with its reference
+    lines when `data` is given) and, for 'all', report.md. The figures that need the trained models (the closed
+    loop's, the cost weights') are kept as they are. Returns the paths written."""
+    names = EXPERIMENTS if name == "all" else (name,)
+    out, written, sections = pathlib.Path(out_dir), [], []
+    for one in names:
+        spec = SPECS[one]
+        written.append(render_markdown(one, out))
+        saved = json.loads((out / f"{one}.json").read_text())
+        if "learning_curves.png" in spec.figures:
+            cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
+            ref = learning_curve_reference(data, cfg_run) if data is not None else None
+            figure_learning_curves(saved["results"], out / "learning_curves.png", ref)
+            written.append(out / "learning_curves.png")
+        sections.append((spec.title, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
+                         [f for f in spec.figures if (out / f).exists()]))
+    if name == "all":
+        written.append(write_report(out, sections))
+    if log:
+        log("rendered: " + ", ".join(str(p) for p in written))
+    return written
 
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
@@ -1509,12 +1683,20 @@ def main(argv=None):
     ap.add_argument("--out", help=f"where the results go (default results/; for real, {REAL_OUT}/)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace result files that exist already in --out (without it, the run refuses to start)")
+    ap.add_argument("--render", action="store_true",
+                    help="train nothing: re-write the .md files, the report and the learning curves of an earlier run "
+                         "from its JSON files in --out (after a change to how results are written)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     if args.out is None:
         args.out = REAL_OUT if args.experiment == REAL.name else "results"
+    if args.render:  # derived files only, from the JSON an earlier run wrote: nothing it made is lost
+        missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
+        if missing:
+            ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
+        return render_outputs(args.experiment, args.out, data_synth.load_data(args.data, args.n, log=print))
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         if cfg.batch_size % world:
