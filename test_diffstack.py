@@ -969,6 +969,73 @@ def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weigh
         ds.Config(train_plan_weights="both")
 
 
+def test_a_method_chooses_its_own_planner_weights(small):
+    """Method.train_plan_weights overrides the Config's for that method only (the ablation's prior-weights rows)."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16)  # posterior by default
+    b = _cast(small.train[:32], torch.float64)
+    for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
+        model = make_model(cfg)
+        out = ds.run_stack(b, model, ds.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights), cfg, "rl",
+                           step=0, train=True)
+        (out.l_plan.mean() + out.l_ctr.mean()).backward()
+        prior = sum(float(p.grad.abs().sum()) for n, p in model.named_parameters() if n.startswith("p_z.") and p.grad is not None)
+        assert (prior > 0) == reaches, weights
+    with pytest.raises(ValueError, match="Method.train_plan_weights"):
+        ds.Method("DiffStack", train_plan_weights="both")
+
+
+def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
+    """Config.goal = 'route': the goal is on the ego's lane (near its centre line, with its heading), the distance
+    the ego covers in T steps at its current speed ahead along it; run_stack plans towards it, not the logged goal."""
+    cfg = ds.Config(goal="route")
+    b = small.val[:40]
+    s0 = b.ego_hist[:, -1]
+    g = ds.route_goal(s0, b.lanes, b.lanes_mask, cfg)
+    lat, head, _ = ds.project_to_lanes(g[:, None, :2], g[:, None, 2], b.lanes, b.lanes_mask)
+    assert lat.max() < 0.05 and head.abs().max() < 0.05  # on a lane's centre line, along it (squared m, rad)
+    assert torch.allclose(g[:, 3], s0[:, 3])
+    ahead = s0[:, 3] * cfg.horizon * cfg.dt
+    # on straight and gently curved roads the chord is the arc length to within a few cm (and the ego sits
+    # within 0.2 m of its lane's centre)
+    chord = (g[:, :2] - s0[:, :2]).norm(dim=-1)
+    assert torch.allclose(chord, ahead, atol=0.3), (chord - ahead).abs().max()
+    out_route = ds.run_stack(b, None, ds.Method("No prediction", "none"), cfg, "rl")
+    out_logged = ds.run_stack(b, None, ds.Method("No prediction", "none"), ds.Config(), "rl")
+    end = lambda out: out.x[:, -1, :2]  # noqa: E731
+    closer = ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1)).float().mean()
+    assert closer > 0.7  # planning towards the route goal ends nearer to it than planning towards the logged one
+    with pytest.raises(ValueError, match="Config.goal"):
+        ds.Config(goal="anywhere")
+
+
+def test_a_learning_curve_does_not_change_the_training(small):
+    """train_predictor(curve_samples=n): the model evaluated before training and after every epoch, in a fork of
+    the random state: the trained weights are those of a run without the curve."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=32)
+    data = data_synth.Dataset(small.train[:64], small.val[:16], None)
+    m = ds.Method("DiffStack", losses=(1, 1, 1))
+    plain = ds.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
+    curved = ds.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
+    assert not hasattr(plain, "learning_curve")
+    assert [c["epoch"] for c in curved.learning_curve] == [0.0, 1.0, 2.0]
+    assert all(c["n"] + c["skipped"] == 8 for c in curved.learning_curve)
+    for (name, a), b in zip(plain.state_dict().items(), curved.state_dict().values()):
+        assert torch.equal(a, b), name
+    assert curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]  # it measured a model that changed
+
+
+def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
+    """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their counts, are the
+    overall means."""
+    r = ds.evaluate_stack(None, small.val, ds.Method("GT prediction", "gt"), ds.Config(), "rl")
+    by = r["by_behaviour"]
+    assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
+    for key in ("hindsight", "mse", "plan_loss"):
+        assert sum(v[key] * v["n"] for v in by.values()) / r["n"] == pytest.approx(r[key], rel=1e-5)
+    counts = {data_synth.BEHAVIOURS[b]: int(n) for b, n in zip(*small.val.behaviour.unique(return_counts=True))}
+    assert all(by[name]["n"] <= counts[name] for name in by)
+
+
 # ---------------------------------------------------------------------------------------------
 # Metrics and plot
 # ---------------------------------------------------------------------------------------------

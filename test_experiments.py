@@ -317,3 +317,87 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
     assert "Loss weights: DiffStack vs Standard, hindsight cost (x1e-2): paired difference 0.50 ± 0.00" in md
     with pytest.raises(ValueError, match="name: 'nope'"):
         ex.render_markdown("nope", tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# The breakdown by behaviour, the goal table, learning curves, re-rendering
+# ---------------------------------------------------------------------------------------------
+
+def _by(**hindsight):
+    return {b: dict(n=10, hindsight=h, mse=h, plan_loss=h) for b, h in hindsight.items()}
+
+
+def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
+    res = {"No prediction": [dict(n=20, hindsight=1.0, by_behaviour=_by(cut_in=1.5, keep_lane=0.5))],
+           "Standard": [dict(n=20, hindsight=0.99, by_behaviour=_by(cut_in=1.49, keep_lane=0.49)),
+                        dict(n=20, hindsight=1.01, by_behaviour=_by(cut_in=1.47, keep_lane=0.55))],
+           "GT prediction": [dict(n=20, hindsight=0.9, by_behaviour=_by(cut_in=1.5, keep_lane=0.3))]}
+    md = ex.behaviour_markdown(ex.TABLE1, res)
+    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]] for ln in md.splitlines() if ln.startswith("| ")}
+    assert rows["Behaviour (scenes)"] == ["Standard", "GT prediction"]
+    assert rows["cut_in (10)"] == ["-2.00 ± 1.00", "0.00 ± 0.00"]
+    assert rows["keep_lane (10)"] == ["2.00 ± 3.00", "-20.00 ± 0.00"]
+    assert rows["all (20)"] == ["0.00 ± 1.00", "-10.00 ± 0.00"]
+    assert ex.behaviour_markdown(ex.TABLE1, {"No prediction": [dict(n=1, hindsight=1.0)]}) == ""  # real data: none
+
+
+def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
+    store = ex.RunStore(tmp_path, "k")
+    names = ("rl", "ablation", "il")
+    units = ex.work_units(names, (0, 1, 2), store)
+    assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
+    assert all(len({p.seed for p in ps}) == 1 for _, ps in units)  # one seed per unit
+    seeds = [ps[0].seed for _, ps in units]
+    assert all(a != b for a, b in zip(seeds, seeds[1:]))  # two workers never start the same seed side by side
+    every = [(n, p) for n in names for p in ex.table_pieces(ex.SPECS[n], (0, 1, 2))]
+    assert sorted((n, p) for n, ps in units for p in ps) == sorted(every)
+    done = units[0][1][0]
+    store.save("ablation", done, {"x": 1})
+    assert ("ablation", done) not in [(n, p) for n, ps in ex.work_units(names, (0, 1, 2), store) for p in ps]
+
+
+def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
+    assert set(ex.NUMBER_MODULES) == {"diffstack.py", "data_synth.py", "experiments.py"}
+    for name in ex.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
+        (tmp_path / name).write_text(f"# {name}\n")
+    monkeypatch.setattr(ex, "__file__", str(tmp_path / "experiments.py"))
+    versions = {ex.code_version()}
+    for name in ("README.md", "test_x.py", "tutorial.py"):  # the tests, the docs, the notebook: the same run
+        (tmp_path / name).write_text("# edited\n")
+        assert ex.code_version() in versions
+    for name in ex.NUMBER_MODULES:  # each module that makes numbers: a new run
+        (tmp_path / name).write_text(f"# {name}, edited\n")
+        versions.add(ex.code_version())
+    assert len(versions) == 1 + len(ex.NUMBER_MODULES)
+
+
+def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp_path):
+    """The goal table runs No and GT prediction under both goals; the cost terms add up to the hindsight cost."""
+    (data, _), cfg = clean, ds.Config()
+    res, md = ex.run_table(ex.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
+    assert list(res) == list(ex.GOALS) and all(list(rows) == ["No prediction", "GT prediction"] for rows in res.values())
+    for rows in res.values():
+        for runs in rows.values():
+            assert len(runs) == 1  # nothing trained: one run
+            for b in runs[0]["by_behaviour"].values():
+                assert sum(b["terms"]) == pytest.approx(b["hindsight"], rel=1e-4) and 0 <= b["close"] <= 1
+        gt, none = rows["GT prediction"][0]["hindsight"], rows["No prediction"][0]["hindsight"]
+        assert gt <= none + 1e-6  # with the GT future, the plan is the best candidate in hindsight
+    assert md.count("**Goal:") == 2 and "share of GT's saving" in md
+
+
+def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
+    """--render: the .md files, the learning curves and the report again from the JSON, nothing trained."""
+    (data, _), cfg = clean, ds.Config(**TINY10)
+    small = data_synth.Dataset(data.train[:64], data.val[:16], data.val_scenes[:2])
+    ex.run_experiment("rl", small, cfg, (0, 1), 1.0, tmp_path, "test", log=None)
+    assert (tmp_path / "learning_curves.png").exists()
+    res = json.loads((tmp_path / "rl.json").read_text())["results"]
+    assert [c["epoch"] for c in res["DiffStack"][0]["curve"]] == [0.0, 1.0]
+    md = (tmp_path / "rl.md").read_text()
+    for f in ("rl.md", "learning_curves.png"):
+        (tmp_path / f).unlink()
+    with pytest.raises(SystemExit):  # nothing to render from
+        ex.main(["--experiment", "all", "--render", "--out", str(tmp_path)])
+    ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100"])
+    assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
