@@ -1538,12 +1538,51 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
 def test_quick_runs_and_same_seed_same_table(tmp_path):
     cfg = ds.Config(**TINY)
     lines = []
-    first = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lines.append)
-    table = lines[-1]
-    assert "| DiffStack |" in table and "| Standard |" in table and "GT prediction" in table
-    second = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lambda s: None)
+    first = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=tmp_path / "none")
+    text = "\n".join(lines)
+    assert "| DiffStack (1 epochs) |" in text and "| Standard (1 epochs) |" in text and "| GT prediction |" in text
+    assert "Standard: no pre-trained predictor" in text  # none shipped here: said, and its row left out
+    second = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lambda s: None, pretrained=tmp_path / "none")
     strip = lambda res: {k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs] for k, runs in res.items()}  # noqa: E731
-    assert strip(first) == strip(second)
+    assert [strip(r) for r in first] == [strip(r) for r in second]
+
+
+def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path):
+    """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
+    shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
+    cfg, out = ds.Config(**TINY), tmp_path / "pre"
+    about = ds.pretrain(out, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=None)
+    assert sorted(about["files"]) == ["diffstack-seed0.pt", "standard-seed0.pt"] and about["threads"] == 1
+    with pytest.raises(ValueError, match="--overwrite"):
+        ds.pretrain(out, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=None)
+    model, prov = ds.load_pretrained(ds.Method("DiffStack"), cfg, out)
+    again = ds.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_synth.load_data(n=300, cache_dir=tmp_path),
+                               cfg, "rl", 0.5, 0, None)
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), again.state_dict().values()))
+    assert ds.load_pretrained(ds.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
+    lines = []
+    res, _ = ds.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
+    assert "Standard (0.5 epochs)" in res and "DiffStack (0.5 epochs)" in res
+    assert "\nHindsight cost: " in "\n".join(lines)
+    with open(out / "standard-seed0.pt", "ab") as f:
+        f.write(b"tampered")
+    with pytest.raises(ValueError, match="standard-seed0.pt.*sha256"):
+        ds.load_pretrained(ds.Method("Standard"), cfg, out)
+
+
+def test_quick_story_states_only_what_its_numbers_show():
+    row = lambda h, ade=1.0: [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]  # noqa: E731
+    by = lambda **v: {b: dict(n=10, hindsight=x) for b, x in v.items()}  # noqa: E731
+    res = {"No prediction": [dict(row(0.0)[0], by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
+           "Standard (20 epochs)": row(-0.5), "DiffStack (20 epochs)": row(-1.5, 1.2),
+           "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))]}
+    lines = ds.quick_story(res, "no/such/folder")
+    assert lines[0] == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
+    assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
+    assert "75 % of it in keep_lane scenes" in lines[2]
+    res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
+    assert ds.quick_story(res, "no/such/folder")[0].startswith(
+        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order")
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -40,14 +40,53 @@ def test_tutorial_notebook_runs_in_quick_mode(monkeypatch):
     assert "QUICK = True" in text and "solutions.py injected" in text
     for number in SOLUTIONS:
         assert f"EXERCISE {number}: PASS" in text, f"exercise {number} did not pass in the notebook"
-    checks = [line for line in text.splitlines() if line.startswith("CHECKPOINT")]
-    assert len(checks) >= 8, checks
-    assert not [line for line in checks if line.endswith("MISMATCH")], checks
+    checks = [line for line in text.splitlines() if line.startswith(("CHECKPOINT", "CHECK ", "CLAIM "))]
+    assert len(checks) >= 14, checks
+    assert all(line.endswith("OK") for line in checks), checks  # (a failed one raises: the cell errors first)
+
+
+def tutorial_checks():
+    """The notebook's check functions (checkpoint, check_order, check_claim), taken from tutorial.py's source."""
+    import json
+    from pathlib import Path
+
+    import experiments as xp
+
+    tree = ast.parse((REPO / "tutorial.py").read_text())
+    names = {"CheckpointError", "checkpoint", "check_order", "check_claim"}
+    body = [node for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name in names]
+    assert {node.name for node in body} == names
+    ns = dict(json=json, Path=Path, xp=xp)
+    exec(compile(ast.Module(body=body, type_ignores=[]), "tutorial.py", "exec"), ns)
+    return ns
+
+
+def test_the_notebook_checks_stop_on_a_wrong_value(tmp_path, monkeypatch, capsys):
+    """A checkpoint off its value, an ordering the other way round, a claim whose verdict the text gets wrong: each
+    raises (the notebook stops at that cell), each right one passes."""
+    t = tutorial_checks()
+    t["checkpoint"]("x", 1.0, 1.0, 1e-9)
+    with pytest.raises(t["CheckpointError"], match="measured 1.1"):
+        t["checkpoint"]("x", 1.1, 1.0, 0.05)
+    t["check_order"]("o", {"GT": -2.0, "none": 0.0}, ["GT", "none"])
+    with pytest.raises(t["CheckpointError"], match="GT -2 is not below none -2.5"):
+        t["check_order"]("o", {"GT": -2.0, "none": -2.5}, ["GT", "none"])
+    with pytest.raises(t["CheckpointError"], match="margin 0.1"):
+        t["check_order"]("o", {"a": 1.0, "b": 1.05}, ["a", "b"], margin=0.1)
+    runs = lambda *v: [{"rel_mse": x, "ade": 1.0, "nll": 1.0, "converged": 1.0, "rel_plan_loss": 0.0} for x in v]  # noqa: E731
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "il.json").write_text(json.dumps(dict(results=dict(
+        Standard=runs(1.0, 2.0, 3.0), DiffStack=runs(0.0, 1.1, 1.9)))))
+    monkeypatch.chdir(tmp_path)
+    t["check_claim"]("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
+    with pytest.raises(t["CheckpointError"], match="update the text"):
+        t["check_claim"]("il", "DiffStack", "Standard", "MSE (x1e-2)", "not reproduced")
 
 
 # --- the exercises: solutions pass their checks, known-wrong answers fail them ----------------------------------
 
 import ast
+import json
 import math
 
 import pytest

@@ -76,6 +76,7 @@ print(f"QUICK = {QUICK}  ({'quick' if QUICK else 'full'} mode), SEED = {SEED}, D
 
 # %%
 import dataclasses
+import json
 import math
 import tempfile
 import time
@@ -105,15 +106,44 @@ def section_done(name):
     print(f"{name}: {SECTION_TIMES[name]:.0f} s")
 
 
+class CheckpointError(AssertionError):
+    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and going on."""
+
+
 def checkpoint(name, measured, expected, tol, rel=False, hint="re-run the section's cells in order from a fresh kernel"):
-    # Print a measured value, the value expected on this machine class, and whether they agree within tol;
-    # on a mismatch, say what it means and what to look at.
+    # For what is deterministic (no training: gradient errors, a file's round trip, a solver on fixed data): the
+    # measured value, the expected one, whether they agree within tol; a disagreement stops the notebook.
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
     ok = err <= tol
     print(f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
-          f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'MISMATCH'}")
+          f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}")
     if not ok:
-        print(f"    MISMATCH: the value is outside the range this machine class gives; {hint}.")
+        raise CheckpointError(f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
+                              f"{'%g%%' % (100 * tol) if rel else tol}; {hint}")
+
+
+def check_order(name, values, order, margin=0.0):
+    # For what training makes (it differs in the last digits between machines and thread counts, and a short
+    # training can go either way): only an ordering that holds on any machine, lowest first, each value at least
+    # `margin` below the next. A wrong order stops the notebook.
+    print(f"CHECK {name}: " + " < ".join(f"{k} {values[k]:.4g}" for k in order), end=" -> ")
+    bad = [(a, b) for a, b in zip(order, order[1:]) if not values[a] + margin <= values[b]]
+    print("OK" if not bad else "FAILED")
+    if bad:
+        raise CheckpointError(f"{name}: expected {' < '.join(order)} (margin {margin:g}); "
+                              + ", ".join(f"{a} {values[a]:.4g} is not below {b} {values[b]:.4g}" for a, b in bad))
+
+
+def check_claim(table, method, baseline, column, expect, section=None):
+    # A finding this notebook states, checked on the committed 5-seed table results/<table>.json: its paired
+    # difference over seeds and the verdict (reproduced only beyond 2 standard errors) must be what the text says.
+    # If a re-run of the tables changes the verdict, this stops the notebook until the text is changed with it.
+    spec, saved = xp.TABLES[table], json.loads((Path("results") / f"{table}.json").read_text())["results"]
+    line = xp.claim_line(xp.Claim(method, baseline, column, section), spec, saved[section] if section else saved)
+    verdict = line.rsplit("): ", 1)[-1]
+    print(f"CLAIM {line} -> {'OK' if verdict.startswith(expect) else 'FAILED'}")
+    if not verdict.startswith(expect):
+        raise CheckpointError(f"results/{table}.json says {verdict!r}, the text says {expect!r}: update the text")
 
 
 def results_table(name):
@@ -853,7 +883,9 @@ print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curve
 print("          ADE    FDE    min-ADE  NLL")
 print(f"Standard  {m_std['ade']:.2f}   {m_std['fde']:.2f}   {m_std['min_ade']:.2f}     {m_std['nll']:.2f}")
 print(f"const vel {m_std['cv_ade']:.2f}   {m_std['cv_fde']:.2f}   --       {m_std['cv_nll']:.2f}  (cv NLL: variance fit to this set)")
-checkpoint("Standard min-ADE / constant-velocity ADE", m_std["min_ade"] / m_std["cv_ade"], 1.09 if QUICK else 0.70, 0.1)
+if not QUICK:  # 16 quick steps leave it near constant velocity; 100 steps put its best mode well below it
+    check_order("best mode's ADE vs constant velocity's (m)", dict(Standard=m_std["min_ade"], CV=m_std["cv_ade"]),
+                ["Standard", "CV"], margin=0.1)
 
 # %%
 # Figure: what the Standard predictor says, with its probabilities. Three validation samples; each of the K = 25
@@ -934,13 +966,15 @@ display(Markdown(ds.open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
 print(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap in hindsight cost (paper: 39 %)")
 rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
-checkpoint("Table 1: DiffStack's minus Standard's relative hindsight cost (x1e-2)", rel["DiffStack"] - rel["Standard"],
-           -0.95 if QUICK else -1.99, 0.5)
+# one seed of a short training: whether DiffStack beats Standard here varies between machines, so it is not checked;
+# what a perfect prediction is worth needs no training and is (GT prediction below No prediction)
+check_order("Table 1, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 if QUICK:
     print(f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}. DiffStack's ADE here is {res1['DiffStack'][0]['ade']:.2f} m "
           f"(constant velocity: {m_std['cv_ade']:.2f} m): the predictors are barely trained, so these numbers test that "
           f"the code runs and reproduces, not the paper's findings. Read the 5-seed table below.")
 results_table("rl")
+check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced")
 
 
 # %% [markdown]
@@ -1113,12 +1147,11 @@ res2 = xp.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(ds.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
-# one seed of this training is chaotic (see below): the full-mode checkpoint checks the sign and the order of magnitude
-checkpoint("Table 2: DiffStack-biased's minus Standard-biased's relative hindsight cost (x1e-2)",
-           rel["DiffStack-biased"] - rel["Standard-biased"], -10.19 if QUICK else -3.0, 2.0 if QUICK else 2.5,
-           hint="one seed of the biased training varies between runs; only a positive value is a real disagreement")
+# one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
+check_order("Table 2, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 plot_table(res2, "rl", "Table 2: a 1 m bias in the prediction targets")
 results_table("biased")
+check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
 # %% [markdown]
 # **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+3.94 ± 1.30 ×10⁻²), and
@@ -1152,10 +1185,11 @@ res_il = xp.open_loop_experiment(data, cfg, "il", methods_il, seeds=(SEED,), epo
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(ds.open_loop_table(res_il, "il")))
 rel = {n: r[0]["rel_mse"] for n, r in res_il.items()}
-checkpoint("Table 4: DiffStack's minus Standard's relative MSE (x1e-2)", rel["DiffStack"] - rel["Standard"],
-           7.61 if QUICK else -13.68, 1.5 if QUICK else 3.0)
+# one seed of a short training again: nothing here is checked but the 5-seed claim under the table (even a perfect
+# prediction need not bring the plan closer to the expert's: on the quick data GT prediction's MSE is above No prediction's)
 plot_table(res_il, "il", "Table 4 (IL setting): lower is better")
 results_table("il")
+check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "not reproduced")
 
 # %% [markdown]
 # **Cost learning (Table 3).** The cost weights themselves can be learned through the controller: in the IL
@@ -1174,9 +1208,9 @@ with tempfile.TemporaryDirectory() as tmp:
     xp.figure_cost_weights(res_cost, Path(tmp) / "w.png")
     display(Image(filename=str(Path(tmp) / "w.png"), width=560))
 mse = {n: r[0]["mse"] for n, r in res_cost.items()}
-checkpoint("Table 3: MSE with learned / with hand-tuned weights", mse["Learned"] / mse["Hand-tuned"],
-           0.90 if QUICK else 0.54, 0.1)
+check_order("Table 3, MSE (m^2): the weights learned on it lower it", mse, ["Learned", "Hand-tuned"])
 results_table("cost")
+check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %% [markdown]
 # **Closed loop (Table 5).** Open-loop metrics score one plan against a log; in closed loop the plan is executed.
@@ -1194,6 +1228,7 @@ res5, rollouts, cl_scenes = xp.closed_loop_experiment(data, data.val_scenes[:N_C
 print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
 display(Markdown(xp.results_markdown(xp.TABLES["closed_loop"], res5)))
 results_table("closed_loop")
+check_claim("closed_loop", "DiffStack", "Standard", "Trajectory cost (x1e-2)", "reproduced")
 # Figure: one scene, every method's executed ego trajectory, zoomed on the ego (the scene where Standard's trajectory
 # cost exceeds DiffStack's most). Left: the map around the egos, stretched across (lateral axis not to scale) so that
 # the metres between the trajectories show; right: distance to the predicted vehicle and speed over time.
@@ -1225,8 +1260,7 @@ ax_v.set_xlabel("time (s)"); ax_v.set_ylabel("ego speed (m/s)"); ax_v.grid(alpha
 ax_v.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
 plt.show()
 rel = {n: r[0]["rel_trajectory"] for n, r in res5.items()}
-checkpoint("Table 5: DiffStack's minus Standard's relative trajectory cost (x1e-2)", rel["DiffStack"] - rel["Standard"],
-           0.075 if QUICK else -0.064, 0.3)
+check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 
 # %% [markdown]
 # **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.03 ± 0.01 and
@@ -1268,8 +1302,7 @@ for ax, name in zip(axes, ("Standard", "DiffStack")):
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
 plt.show()
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
-checkpoint("dt = 0.1 s: DiffStack's minus Standard's relative hindsight cost (x1e-2)", rel01["DiffStack"] - rel01["Standard"],
-           1.27 if QUICK else -1.48, 0.5)
+check_order("dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"])
 
 # %%
 section_done("§8")
