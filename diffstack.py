@@ -2565,14 +2565,15 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios (the 20-epoch rows above took ~6 minutes):")
     live = compare_methods(part, cfg, "rl", (QUICK_METHODS[0], *learned), seeds=(0,), epochs=epochs, log=log, device=device)
     log("\n" + open_loop_table({f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()}, "rl"))
-    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"))))
+    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov if isinstance(prov, dict) else None)))
     log(f"\ntotal {time.time() - t0:.0f}s")
     return res, live
 
 
-def quick_story(res: dict, results_dir) -> list:
+def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
     """The lines --quick prints under its table: what the numbers show (each statement checked on them, never
-    assumed), why Standard is where it is beside No prediction, and the 5-seed tables' numbers beside them."""
+    assumed), why Standard is where it is beside No prediction, and the 5-seed tables' numbers beside them
+    (provenance: the shipped predictors', to say whether they are that table's seed 0)."""
     import json
 
     shipped = lambda name: next((runs[0] for k, runs in res.items() if k.startswith(name + " (")), None)  # noqa: E731
@@ -2594,7 +2595,7 @@ def quick_story(res: dict, results_dir) -> list:
         saved = {b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none}
         total = sum(saved.values())
         top = min(saved, key=saved.get)
-        lines.append(f"Why Standard stays near No prediction: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
+        lines.append(f"Why Standard gains little over No prediction: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
                      f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
                      f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
                      f"the future adds little (results/goal.md).")
@@ -2604,9 +2605,14 @@ def quick_story(res: dict, results_dir) -> list:
         runs = saved["results"]
         cells = ", ".join(f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}" for m in ("Standard", "DiffStack", "GT prediction")
                           if m in runs)
-        lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(saved['meta']['seeds'])} seeds, "
-                     f"{saved['meta']['epochs']:g} epochs), hindsight cost x1e-2: {cells}; the shipped predictors above are "
-                     f"its seed 0 (python diffstack.py --pretrain).")
+        meta = saved["meta"]
+        same = (provenance is not None and meta.get("epochs") == provenance["epochs"]
+                and meta.get("config") == provenance["config"] and provenance["seed"] in meta.get("seeds", []))
+        lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
+                     f"hindsight cost x1e-2: {cells}; " + (
+                         f"the shipped predictors above are its seed {provenance['seed']}." if same else
+                         "made by another run than the shipped predictors (other epochs or Config), so its numbers "
+                         "and the ones above are not the same experiment."))
     return lines
 
 

@@ -1580,9 +1580,23 @@ def test_quick_story_states_only_what_its_numbers_show():
     assert lines[0] == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
     assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
     assert "75 % of it in keep_lane scenes" in lines[2]
+    assert len(lines) == 3  # no results/rl.json there: no line about it
     res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
     assert ds.quick_story(res, "no/such/folder")[0].startswith(
         "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order")
+
+
+def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tmp_path):
+    runs = lambda h: [dict(rel_hindsight=h)]  # noqa: E731
+    res = {"No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)], "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)]}
+    cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
+    prov = dict(epochs=20.0, seed=0, config=cfg)
+    for epochs, same in ((20.0, True), (4.0, False)):
+        (tmp_path / "rl.json").write_text(json.dumps(dict(meta=dict(seeds=[0, 1], epochs=epochs, config=cfg), results=dict(
+            Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}))))
+        line = ds.quick_story(res, tmp_path, prov)[-1]
+        assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
+        assert ("are its seed 0" in line) == same and ("not the same experiment" in line) == (not same)
 
 
 @pytest.mark.parametrize("argv, message", [
