@@ -1538,9 +1538,10 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     store = RunStore(root, run_key(data, cfg, epochs, device))
     manifest = outputs_manifest(out, name, seeds, store.key)
     check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
-    jobs = max(1, min(jobs, len(seeds))) if write and processes == 1 else 1
     sections, models = [], {}
     all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], seeds)]
+    # worker processes only where there are seeds to share out (the goal table has one run per row)
+    jobs = max(1, min(jobs, len({p.seed for _, p in all_pieces}))) if write and processes == 1 else 1
     if store.root is not None and log:
         log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
