@@ -2588,8 +2588,8 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
                                                       f"NOT the paper's order ({paper} in its Table 1)."))
         gap = (std["hindsight"] - dif["hindsight"]) / (std["hindsight"] - gt["hindsight"])
         lines.append(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
-                     f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): it trades "
-                     f"accuracy where the planner does not look for accuracy where it does.")
+                     f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): trained for the "
+                     f"plan, not for the average position error.")
     by_none, by_gt = none.get("by_behaviour"), gt.get("by_behaviour")
     if by_none and by_gt:
         saved = {b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none}
