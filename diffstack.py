@@ -2549,23 +2549,26 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     for m in QUICK_METHODS:
         model = None
         if m.predictor == "learned":
-            model, prov = load_pretrained(m, cfg, pretrained, device)
+            model, about = load_pretrained(m, cfg, pretrained, device)
             if model is None:
-                log(f"{m.name}: no pre-trained predictor ({prov}): its row is left out")
+                log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
                 continue
+            prov = about
         label = m.name if model is None else f"{m.name} ({prov['epochs']:g} epochs)"
         res[label] = [evaluate_stack(model, data.val, m, cfg, "rl", device=device)]
     add_relative(res, "rl")
-    if isinstance(prov, dict):
+    if prov is not None:
         log(f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
             f"epochs, seed {prov['seed']}, {prov['threads']} thread), on the {len(data.val)} validation scenarios:")
     log("\n" + open_loop_table(res, "rl"))
     # live: a few epochs on part of the training data, to watch the three losses fall
     part = data_synth.Dataset(data.train[:QUICK["live_train"]], data.val, None)
-    log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios (the 20-epoch rows above took ~6 minutes):")
+    took = (f" (the shipped rows above took {sum(f['seconds'] for f in prov['files'].values()) / 60:.0f} minutes to "
+            f"train on {prov['threads']} thread)" if prov is not None else "")
+    log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios{took}:")
     live = compare_methods(part, cfg, "rl", (QUICK_METHODS[0], *learned), seeds=(0,), epochs=epochs, log=log, device=device)
     log("\n" + open_loop_table({f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()}, "rl"))
-    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov if isinstance(prov, dict) else None)))
+    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov)))
     log(f"\ntotal {time.time() - t0:.0f}s")
     return res, live
 

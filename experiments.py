@@ -653,10 +653,10 @@ def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) ->
     a car's length) of the predicted vehicle's GT future. The evidence of why a prediction matters in some behaviours
     and not in others."""
     sums, dists = {}, {}
-    w = cost_weights(cfg, torch.float32, device)
     for i in range(0, len(val), batch_size):
         batch = to_device(val[i:i + batch_size], device)
         out = run_stack(batch, None, m, cfg, "rl")
+        w = cost_weights(cfg, out.x.dtype, device)
         s0 = batch.ego_hist[:, -1]
         goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
         ones = torch.ones(len(batch), device=device)
@@ -1030,7 +1030,7 @@ def paper_markdown(spec: TableSpec) -> str:
 # A run's pieces live next to its outputs, in <out>/.runs/<table>/<table key>/<piece>.json (the closed loop's also a
 # .pt with the rollout its figure draws), written atomically the moment the piece is evaluated. The table key is a
 # hash of everything that determines the numbers: the Config, the epochs, the data (a hash of its tensors), the code
-# (the git commit; for a work tree with changes, a hash of its tracked .py files), the device and the table's name.
+# (a hash of the modules that make numbers, code_version), the device and the table's name.
 # Re-running the same command loads the finished pieces and computes only the missing ones; any change to the config,
 # data or code is another key, so nothing of another run is mixed in. The seeds are not part of the key (a piece is
 # one seed): a 5-seed run reuses the 3 seeds of an earlier one. Neither is the thread count (it moves only the last
