@@ -21,6 +21,7 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -1714,7 +1715,8 @@ def main(argv=None):
     except ValueError as e:
         ap.error(str(e))
     torch.set_num_threads(args.threads)
-    log = print if rank == 0 else (lambda *a, **k: None)
+    # flushed line by line: a run's log is often a file (a long run in the background), read while it runs
+    log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)
 
     def load():
         data = data_synth.load_data(args.data, args.n, log=log)
