@@ -926,6 +926,29 @@ def figure_learning_curves(results: dict, path, reference: dict | None = None, m
     save_figure(fig, path)
 
 
+def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: float = 5.0) -> str:
+    """Whether training has flattened: per method, the change of ADE and hindsight cost over the last `last` epochs
+    of the learning curves, mean ± s.e. over seeds; 'still falling' where the fall clears two standard errors and
+    1 % of the value, else 'flat'. '' without curves."""
+    lines = []
+    for m in methods:
+        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
+        if not curves:
+            continue
+        parts = []
+        for key, unit in (("ade", " m"), ("hindsight", "")):
+            end = [c[-1][key] for c in curves]
+            before = [min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves]
+            mean, se = mean_se([a - b for a, b in zip(end, before)])
+            level = statistics.fmean(end)
+            falling = mean < -2 * se and mean < -0.01 * abs(level)
+            parts.append(f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
+                         f"({'still falling' if falling else 'flat'})")
+        lines.append(f"- {m}, over the last {last:g} of {curves[0][-1]['epoch']:g} epochs ({len(curves)} seeds, "
+                     f"{CURVE_SAMPLES} validation scenes): " + "; ".join(parts))
+    return "Learning curves (learning_curves.png):\n\n" + "\n".join(lines) if lines else ""
+
+
 def learning_curve_reference(data, cfg: Config) -> dict:
     """No prediction's and GT prediction's hindsight cost on the learning curves' scenes (figure_learning_curves)."""
     subset = data.val[:CURVE_SAMPLES]
@@ -969,7 +992,8 @@ def results_markdown(spec: TableSpec, results: dict) -> str:
     md += (f"\n\nThe paper's claims, as paired differences over seeds (reproduced only beyond 2 s.e.):\n\n{claims}"
            if claims else "")
     by = behaviour_markdown(spec, results) if spec.kind == "open_loop" else ""
-    return md + (f"\n\n{by}" if by else "")
+    curves = plateau_markdown(results) if "learning_curves.png" in spec.figures else ""
+    return md + "".join(f"\n\n{part}" for part in (by, curves) if part)
 
 
 def behaviour_markdown(spec: TableSpec, results: dict) -> str:

@@ -401,3 +401,14 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
         ex.main(["--experiment", "all", "--render", "--out", str(tmp_path)])
     ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100"])
     assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
+
+
+def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
+    def runs(*slopes):  # one seed per slope: the metric falls by `slope` per epoch over 10 epochs, plus seed noise
+        return [dict(curve=[dict(epoch=float(e), ade=2.0 - s * e + 0.001 * i, hindsight=1.9 - s * e / 10)
+                            for e in range(11)]) for i, s in enumerate(slopes)]
+    md = ex.plateau_markdown({"Standard": runs(0.0, 0.0, 0.0), "DiffStack": runs(0.05, 0.04, 0.06)}, last=5)
+    std, dif = [ln for ln in md.splitlines() if ln.startswith("- ")]
+    assert std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds") and std.count("(flat)") == 2
+    assert "ADE -0.250 ± 0.029 m (still falling)" in dif
+    assert ex.plateau_markdown({"Standard": [dict(ade=1.0)]}) == ""
