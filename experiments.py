@@ -892,17 +892,37 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
     return s
 
 
-LEARNING_CURVES_CAPTION = "Learning curves (validation)"
+def _mean_curve(runs, key):
+    """(epochs, mean over seeds) of the learning curves of some runs, on their common epochs."""
+    curves = [r["curve"] for r in runs if r.get("curve")]
+    n = min(len(c) for c in curves)
+    return np.array([c["epoch"] for c in curves[0][:n]]), np.array([[c[i][key] for i in range(n)] for c in curves])
+
+
+def learning_curves_caption(results: dict) -> str:
+    """The point the learning curves make, read off them: from which epoch on DiffStack's mean hindsight cost stays
+    below Standard's, and where each ADE curve ends relative to the other."""
+    if not all(any(r.get("curve") for r in results.get(m, [])) for m in ("Standard", "DiffStack")):
+        return "Learning curves (validation)"
+    epoch, std = _mean_curve(results["Standard"], "hindsight")
+    _, dif = _mean_curve(results["DiffStack"], "hindsight")
+    n = min(std.shape[1], dif.shape[1])
+    below = dif.mean(0)[:n] < std.mean(0)[:n]
+    first = next((i for i in range(n) if below[i:].all()), None)
+    ade_std, ade_dif = _mean_curve(results["Standard"], "ade")[1].mean(0)[-1], _mean_curve(results["DiffStack"], "ade")[1].mean(0)[-1]
+    plans = (f"DiffStack plans better than Standard from epoch {epoch[first]:g} on" if first is not None else
+             "DiffStack does not stay below Standard in hindsight cost")
+    return f"{plans} (right), with a {'higher' if ade_dif > ade_std else 'lower'} ADE at the end (left)"
 
 
 def figure_learning_curves(results: dict, path, reference: dict | None = None, methods=("Standard", "DiffStack"),
-                           title=LEARNING_CURVES_CAPTION):
+                           title=None):
     """Validation ADE and hindsight cost after every epoch (CURVE_SAMPLES scenes), mean and s.e. band over seeds, of
     the methods whose runs have a learning curve. reference: {name: hindsight cost on the same scenes}, drawn as
-    horizontal lines (No prediction, GT prediction)."""
+    horizontal lines (No prediction, GT prediction). title: default learning_curves_caption's."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110, layout="constrained")
     colors = dict(Standard="tab:blue", DiffStack="tab:red")
     for m in methods:
         curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
@@ -922,7 +942,7 @@ def figure_learning_curves(results: dict, path, reference: dict | None = None, m
     for ax in axes:
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title or learning_curves_caption(results), fontsize=10)
     save_figure(fig, path)
 
 

@@ -412,3 +412,14 @@ def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
     assert std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds") and std.count("(flat)") == 2
     assert "ADE -0.250 ± 0.029 m (still falling)" in dif
     assert ex.plateau_markdown({"Standard": [dict(ade=1.0)]}) == ""
+
+
+def test_the_learning_curves_caption_is_read_off_the_curves():
+    def runs(level, ade):
+        return [dict(curve=[dict(epoch=float(e), hindsight=level(e), ade=ade) for e in range(6)])]
+    res = {"Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1), "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3)}
+    assert ex.learning_curves_caption(res) == ("DiffStack plans better than Standard from epoch 2 on (right), with a "
+                                                "higher ADE at the end (left)")
+    res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)  # above Standard at the end
+    assert ex.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
+    assert ex.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
