@@ -1041,6 +1041,14 @@ print(f"cut_in under the paper's goal, No prediction: hindsight cost {cut['hinds
 # cost? Would a learned predictor's errors cost more or less under the route goal than under the logged one?
 
 # %%
+# The learned predictors of Table 1, behaviour by behaviour (results/rl.json, 5 seeds, mean ± s.e.): where their
+# predictions help the planner (negative) and where they cost it (positive), beside GT prediction's column.
+table1 = json.loads(Path("results/rl.json").read_text())["results"]
+breakdown = xp.behaviour_markdown(xp.TABLES["rl"], table1)
+display(Markdown(breakdown) if breakdown else
+        Markdown("*results/rl.json predates the breakdown by behaviour: re-run Table 1 to see it.*"))
+
+# %%
 def plot_table(results, setting, title):
     # Bars of the two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method; the three panels
     # share their rows (a method without a prediction has no ADE bar).
