@@ -231,3 +231,17 @@ def test_closed_loop_needs_long_enough_scenes():
         ex.closed_loop_scenes(short, ds.Config())
     with pytest.raises(ValueError, match="of 0 .*|0 validation"):
         ex.closed_loop_scenes(scenes[:0], ds.Config())
+
+
+def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken_provenance(tmp_path, monkeypatch, capsys):
+    """--pretrain never replaces pretrained/ without --overwrite (a one-line error before any data is made); a
+    provenance file that is not one is an error naming it, not a traceback from inside json or torch."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pretrained").mkdir()
+    (tmp_path / "pretrained" / "provenance.json").write_text("{}")
+    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    err = cli_error(ds.main, ["--pretrain"], capsys)
+    assert "--overwrite" in err and "pretrained" in err
+    with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
+        ds.load_pretrained(ds.Method("Standard"), ds.Config(), tmp_path / "pretrained")
+    assert "--quick or --pretrain" in cli_error(ds.main, ["--quick", "--pretrain"], capsys)
