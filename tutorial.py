@@ -58,8 +58,10 @@
 # stored in this file. Numbers from this short CPU training are **not** the paper's (4 GPUs, 20 epochs on nuScenes);
 # for the findings, each section quotes the 5-seed tables of [`results/`](results/) (mean ± standard error over
 # seeds). Quick mode trains 16 steps: its numbers test that the code runs and reproduces, not the paper's findings.
-# Checkpoint cells print a measured value, the value expected on this machine class and whether they agree; a
-# `MISMATCH` line says what to look at.
+# Three kinds of check print a line and stop the notebook when it fails: `CHECKPOINT`, a value that involves no
+# training (a gradient error, a round trip) against the one expected; `CHECK`, an ordering that holds on any machine
+# (training moves the last digits between machines, and one short run can go either way); `CLAIM`, a 5-seed finding
+# of `results/` against what the text says of it.
 
 # %% tags=["parameters"]
 # Parameters
