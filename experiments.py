@@ -892,6 +892,11 @@ def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int
     return s
 
 
+def has_curves(results: dict) -> bool:
+    """Whether a table's results carry learning curves (runs from before they existed do not)."""
+    return any(r.get("curve") for runs in results.values() if isinstance(runs, list) for r in runs)
+
+
 def _mean_curve(runs, key):
     """(epochs, mean over seeds) of the learning curves of some runs, on their common epochs."""
     curves = [r["curve"] for r in runs if r.get("curve")]
@@ -1402,7 +1407,7 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
     if write and spec.kind == "cost":
         figure_cost_weights(res, out / "cost_weights.png")
-    elif write and "learning_curves.png" in spec.figures:
+    elif write and "learning_curves.png" in spec.figures and has_curves(res):
         figure_learning_curves(res, out / "learning_curves.png", learning_curve_reference(data, cfg))
     elif write and spec.kind == "closed_loop":
         rollouts = {}
@@ -1546,7 +1551,7 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
         spec = SPECS[one]
         written.append(render_markdown(one, out))
         saved = json.loads((out / f"{one}.json").read_text())
-        if "learning_curves.png" in spec.figures:
+        if "learning_curves.png" in spec.figures and has_curves(saved["results"]):  # (none in older runs)
             cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
             ref = learning_curve_reference(data, cfg_run) if data is not None else None
             figure_learning_curves(saved["results"], out / "learning_curves.png", ref)

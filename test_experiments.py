@@ -401,6 +401,15 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
         ex.main(["--experiment", "all", "--render", "--out", str(tmp_path)])
     ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100"])
     assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
+    # results from before the curves existed: their tables re-rendered, no empty figure drawn
+    saved = json.loads((tmp_path / "rl.json").read_text())
+    for runs in saved["results"].values():
+        for r in runs:
+            r.pop("curve", None)
+    (tmp_path / "rl.json").write_text(json.dumps(saved))
+    (tmp_path / "learning_curves.png").unlink()
+    ex.render_outputs("rl", tmp_path, log=None)
+    assert not (tmp_path / "learning_curves.png").exists() and "Learning curves" not in (tmp_path / "rl.md").read_text()
 
 
 def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
