@@ -1664,19 +1664,23 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
 # --------------------------------------------------------------------------------------------
 
 
-def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """log N(y; mean, cov) for 2-D Gaussians, broadcasting: y, mean (..., 2), cov (..., 2, 2) -> (...)."""
+def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
+    """log N(y; mean, cov) for 2-D Gaussians, broadcasting: y, mean (..., 2), cov (..., 2, 2) -> (...).
+    min_var: cov is known to be some positive semi-definite P0 plus min_var I (the predictor's floor)."""
     d = y - mean  # (..., 2)
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    det = a * c - b * b  # (...)
+    # det(P0 + s I) = det P0 + s tr P0 + s^2 >= s (a + c) - s^2. For a long thin ellipse (a variance ~1e5 m^2 along
+    # a line, the floor across it) a c - b^2 cancels to 0 or below in float32 and the log gives NaN (seen in
+    # training); the bound restores the floor. Where it is inactive, the value is a c - b^2 exactly as before.
+    det = torch.maximum(a * c - b * b, min_var * (a + c) - min_var**2)  # (...)
     # d^T Sigma^-1 d with Sigma^-1 = [[c, -b], [-b, a]] / det
     maha = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
     return -0.5 * maha - 0.5 * torch.log(det) - math.log(2 * math.pi)
 
 
-def gmm_log_prob(pred: Prediction, y: torch.Tensor, log_w: torch.Tensor) -> torch.Tensor:
+def gmm_log_prob(pred: Prediction, y: torch.Tensor, log_w: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
     """log sum_k w_k N(y_t; mu_kt, Sigma_kt) per step: y (B, T, 2), log_w (B, K) -> (B, T)."""
-    log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov)  # (B, K, T)
+    log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov, min_var)  # (B, K, T)
     return torch.logsumexp(log_w[..., None] + log_n, 1)  # (B, T)
 
 
@@ -1704,7 +1708,7 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard: Shard | No
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
     y = batch.agent_fut[..., :2]  # (B, T, 2)
-    ll = gmm_log_prob(pred, y, pred.log_q).clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
+    ll = gmm_log_prob(pred, y, pred.log_q, cfg.pred_pos_std_min**2).clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
     q = pred.log_q.exp()  # (B, K)
     kl = (q * (pred.log_q - pred.log_p)).sum(-1)  # (B,)
     kl_fb = torch.where(batch_mean(kl, shard) > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
@@ -1738,7 +1742,7 @@ def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.
     err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
     best = pred.probs.argmax(-1)  # (B,)
     err_ml = err[torch.arange(len(best), device=best.device), best]  # (B, T)
-    nll = -gmm_log_prob(pred, y, pred.probs.log()).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
+    nll = -gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
     err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
     return {
         "ade": err_ml.mean(-1), "fde": err_ml[:, -1],
@@ -2186,6 +2190,10 @@ class Shard:
 
 
 
+class TrainingDiverged(ValueError):
+    """A training whose loss became NaN or infinite (train_stack stops before the parameters do)."""
+
+
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
                 pred_offset=0.0, weights: CostWeights | None = None, on_epoch=None, **stack_kw):
     """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
@@ -2281,6 +2289,13 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                     l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
                     conv = float("nan")
                 loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr  # this rank's loss; DDP averages its gradient over the ranks
+                # a non-finite loss would make every parameter NaN at this step: stop here, saying where (every rank
+                # sees the flags of all: they stop together)
+                bad = shard.total((~torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))).to(loss.dtype)[None])  # (3,)
+                if bad.any():
+                    which = ", ".join(n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b)
+                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
+                                           f"{total}: {which} is not finite")
                 opt.zero_grad()
                 loss.backward()
                 torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
@@ -2401,7 +2416,7 @@ def add_relative(results: dict, setting: str) -> dict:
     for runs in results.values():
         for r in runs:
             for key, scale in RELATIVE_SCALE[setting].items():
-                if base is not None:
+                if base is not None and key in r:  # (a diverged training's run has no metrics)
                     r["rel_" + key] = (r[key] - base[key]) / scale
     return results
 

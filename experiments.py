@@ -43,7 +43,8 @@ import torch
 import torch.distributed as dist
 
 import data_synth
-from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, add_relative,
+from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, TrainingDiverged,
+                       add_relative,
                        alphas, bounded, cell, check_writable, compare_methods, config_with, cost_contexts, cost_terms,
                        cost_weights, device_arg, evaluate_stack, markdown_table, mean_se, project_to_lanes, route_goal,
                        run_stack, to_device, train_predictor, train_stack, unicycle_step, wrap_angle)
@@ -311,7 +312,8 @@ def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric
     seeds where there is a gap; (nan, nan) where Standard is as good as GT prediction in every seed (on a handful
     of scenarios where the predicted vehicle never comes near the ego, all three cost the same)."""
     gt = results["GT prediction"][0][metric]
-    pairs = [(s[metric], d[metric]) for s, d in zip(results[standard], results[diffstack]) if s[metric] != gt]
+    pairs = [(s[metric], d[metric]) for s, d in zip(results[standard], results[diffstack])
+             if metric in s and metric in d and s[metric] != gt]  # (a diverged seed has no metrics)
     return mean_se([(s - d) / (s - gt) for s, d in pairs]) if pairs else (math.nan, math.nan)
 
 
@@ -362,10 +364,14 @@ def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
     col = next((c for c in spec.columns if c.header == claim.column), None)
     if col is None:
         raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
-    p = paired_difference(col.values(results[claim.baseline]), col.values(results[claim.method]))
+    pairs = [(b[0], m[0]) for b, m in ((col.values([rb]), col.values([rm]))  # seed by seed; a diverged one is left out
+                                       for rb, rm in zip(results[claim.baseline], results[claim.method])) if b and m]
+    p = paired_difference([b for b, _ in pairs], [m for _, m in pairs])
     name = claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
     t = f"t = {p.t:.1f}" if math.isfinite(p.t) else ("no spread over seeds" if p.se == 0 else "one seed")
     seeds = f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "")
+    diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
+    seeds += f"; {diverged} diverged, left out" if diverged else ""
     where = f"{claim.section}: " if claim.section else ""
     return (f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference {col.fmt.format(p.mean)} ± "
             f"{col.fmt.format(p.se)} ({t}, {seeds}): {claim_verdict(p)}")
@@ -599,7 +605,8 @@ def closed_loop_relative(results: dict) -> dict:
     for runs in results.values():
         for r in runs:
             for k in CLOSED_LOOP_METRICS:
-                r["rel_" + k] = (r[k] - base[k]) / 1e-2
+                if k in r:  # (a diverged seed has no metrics)
+                    r["rel_" + k] = (r[k] - base[k]) / 1e-2
     return results
 
 
@@ -1018,7 +1025,20 @@ def results_markdown(spec: TableSpec, results: dict) -> str:
            if claims else "")
     by = behaviour_markdown(spec, results) if spec.kind == "open_loop" else ""
     curves = plateau_markdown(results) if "learning_curves.png" in spec.figures else ""
-    return md + "".join(f"\n\n{part}" for part in (by, curves) if part)
+    return md + "".join(f"\n\n{part}" for part in (diverged_markdown(results), by, curves) if part)
+
+
+def diverged_markdown(results: dict) -> str:
+    """One line per training that diverged (its seed is left out of the means and the paired differences)."""
+    found, stack = [], [results]
+    while stack:  # tables nest {method: [runs]} in sections, and Table 3 has {row: [runs]}
+        item = stack.pop()
+        for v in (item.values() if isinstance(item, dict) else item):
+            if isinstance(v, dict) and "diverged" in v:
+                found.append(v["diverged"])
+            elif isinstance(v, (dict, list)):
+                stack.append(v)
+    return "Diverged, left out of the means: " + "; ".join(sorted(set(found))) if found else ""
 
 
 def behaviour_markdown(spec: TableSpec, results: dict) -> str:
@@ -1127,6 +1147,18 @@ def table_pieces(spec: TableSpec, seeds) -> list:
 
 def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
                   store=None):
+    """_compute_piece, where a training that diverges is a result too ({'diverged': what}, kept like any piece:
+    a resumed run does not retrain it, and the table says which seed of which method is left out)."""
+    try:
+        return _compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
+    except TrainingDiverged as e:
+        if log:
+            log(f"  {piece.stem}: {e}")
+        return dict(diverged=str(e)), None
+
+
+def _compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
+                   store=None):
     """Train (or take from models / store) and evaluate one piece: (its result, a dict of tensors to keep beside
     it or None). The result is what the table's experiment function gives for that method and seed, before the
     values relative to No prediction (assemble adds them)."""
@@ -1170,7 +1202,8 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
     if spec.kind == "ablation":
         return {title: add_relative(rows(_ablation_methods(methods), title), "rl") for title, _, methods in ABLATION_SECTIONS}
     if spec.kind == "cost":
-        return {name: [pieces[Piece(spec.methods[0].name, s)][name] for s in seeds] for name in ("Hand-tuned", "Learned")}
+        runs = [pieces[Piece(spec.methods[0].name, s)] for s in seeds]
+        return {name: [r[name] if name in r else r for r in runs] for name in ("Hand-tuned", "Learned")}
     if spec.kind == "goal":
         return {goal: rows(spec.methods, goal) for goal in GOALS}
     if spec.kind == "closed_loop":
@@ -1412,12 +1445,16 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     elif write and spec.kind == "closed_loop":
         rollouts = {}
         for p, (_, extra) in loaded.items():  # the first seed's rollout of each method, as closed_loop_experiment's
-            if p.seed == seeds[0]:
+            if p.seed == seeds[0] and extra is not None:  # (a diverged training has no rollout)
                 rollouts[p.method] = (Rollout(**extra["rollout"]), extra["per_scene"])
         figure_closed_loop(closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt)
-        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
-                                          store=store) for m in CLOSED_LOOP_METHODS[1:3]}
-        figure_stack_example(data, pair, cfg, out / "stack_example.png")
+        try:
+            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
+                                              store=store) for m in CLOSED_LOOP_METHODS[1:3]}
+            figure_stack_example(data, pair, cfg, out / "stack_example.png")
+        except TrainingDiverged as e:  # the figure needs seed 0's two predictors
+            if log:
+                log(f"stack_example.png not drawn: {e}")
     elif write and spec.kind == "real":
         pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
                                           store=store) for m in FOUR_METHODS[1:3]}

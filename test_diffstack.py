@@ -826,6 +826,24 @@ def test_gaussian_log_prob_matches_torch_distributions():
     mean, y = torch.randn(5, 2, generator=g, dtype=torch.float64), torch.randn(5, 2, generator=g, dtype=torch.float64)
     ref = torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(y)
     assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov), ref)
+    assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov, min_var=0.1), ref)  # the floor's bound: inactive here
+
+
+def test_gaussian_log_prob_survives_a_long_thin_covariance_in_float32():
+    """A covariance the predictor produced in training (20-epoch DiffStack (1, 5, 5), seed 4, step 461): variances
+    ~1e5 m^2 along a line, the 0.05 m floor across it. In float32 a c - b^2 cancels to 0 and the log-likelihood was
+    NaN; with the floor's bound it is finite and close to the float64 density of the same matrix with its floor."""
+    s2 = ds.Config().pred_pos_std_min ** 2
+    cov = torch.tensor([[22144.466796875, 47221.01171875], [47221.01171875, 100694.40625]])
+    y, mean = torch.tensor([3.0, 7.0]), torch.tensor([0.0, 0.0])
+    assert not torch.isfinite(ds.gaussian2_log_prob(y, mean, cov))  # what training met
+    got = ds.gaussian2_log_prob(y, mean, cov, min_var=s2)
+    # float64: the propagated part made exactly singular (its smallest eigenvalue removed), then the floor added
+    c64 = cov.double() - s2 * torch.eye(2, dtype=torch.float64)
+    lam, vec = torch.linalg.eigh(c64)
+    c64 = vec @ torch.diag(lam.clamp_min(0)) @ vec.T + s2 * torch.eye(2, dtype=torch.float64)
+    ref = torch.distributions.MultivariateNormal(mean.double(), covariance_matrix=c64).log_prob(y.double())
+    assert torch.isfinite(got) and abs(got.double() - ref) < 0.05 * abs(ref), (got, ref)
 
 
 def test_gradients_through_the_covariance_propagation():

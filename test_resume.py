@@ -6,6 +6,7 @@ import json
 import time
 
 import pytest
+import torch
 
 import data_synth
 import diffstack as ds
@@ -144,3 +145,46 @@ def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and "error: --out:" in err[-1] and "--overwrite" in err[-1]
     assert not any("Traceback" in line for line in err)
+
+
+def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(small, tmp_path, monkeypatch):
+    """A training whose loss turns NaN stops with TrainingDiverged (method, seed, step); the run keeps going, keeps
+    that piece as 'diverged' (a resumed run does not retrain it), and the table leaves the seed out and says so."""
+    cfg = ds.Config(**TINY10)
+    train, calls = ds.train_stack, []
+
+    def diverging(model, data, m, cfg_, setting, epochs, seed, *a, **k):
+        calls.append((m.name, seed))
+        if (m.name, seed) == ("DiffStack", 1):
+            raise ds.TrainingDiverged(f"{m.name}, seed {seed}: training diverged at step 3 of 4: L_pred is not finite")
+        return train(model, data, m, cfg_, setting, epochs, seed, *a, **k)
+
+    monkeypatch.setattr(ds, "train_stack", diverging)
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
+    res = json.loads((tmp_path / "il.json").read_text())["results"]
+    assert res["DiffStack"][1] == {"diverged": "DiffStack, seed 1: training diverged at step 3 of 4: L_pred is not finite"}
+    md = (tmp_path / "il.md").read_text()
+    assert "Diverged, left out of the means: DiffStack, seed 1: training diverged at step 3" in md
+    assert "1 of 1 seeds better" in md or "0 of 1 seeds better" in md
+    assert "1 diverged, left out" in md
+    calls.clear()
+    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
+    assert calls == []  # every piece kept, the diverged one too
+
+
+def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatch):
+    cfg = ds.Config(**TINY10)
+    data = small.train[:64]
+    orig, seen = ds.pred_loss, []
+
+    def nan_at_step_2(pred, batch, step, cfg_, shard=None):
+        loss, parts = orig(pred, batch, step, cfg_, shard)
+        seen.append(step)
+        return (loss * float("nan") if step == 2 else loss), parts
+
+    monkeypatch.setattr(ds, "pred_loss", nan_at_step_2)
+    torch.manual_seed(0)
+    model = ds.Predictor(cfg)
+    with pytest.raises(ds.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
+        ds.train_stack(model, data, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
+    assert seen == [0, 1, 2] and all(torch.isfinite(p).all() for p in model.parameters())
