@@ -2445,7 +2445,7 @@ def markdown_table(head, rows) -> str:
 QUICK = dict(n=10000, live_train=2560, epochs=8.0)  # the tables' data; the live runs train on a part of it
 QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
 PRETRAINED = "pretrained"  # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
-PRETRAIN = dict(n=10000, epochs=20.0, seed=0)  # = Table 1's seed 0 (python experiments.py --experiment all)
+PRETRAIN = dict(n=10000, epochs=20.0, seeds=(0, 1, 2, 3, 4))  # = Table 1's five seeds (experiments.py --experiment all)
 
 
 def open_loop_table(results: dict, setting="rl") -> str:
@@ -2466,27 +2466,42 @@ def _slug(name: str) -> str:
     return name.lower().replace(" ", "-")
 
 
-def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seed=PRETRAIN["seed"],
+def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int):
+    """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
+    threads, and evaluated on the validation set. Returns (state_dict, metrics, seconds)."""
+    import data_synth
+
+    torch.set_num_threads(threads)
+    t0 = time.time()
+    data = data_synth.load_data(n=n, cache_dir=cache_dir)
+    model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
+    metrics = evaluate_stack(model, data.val, method, cfg, "rl")
+    return model.state_dict(), {k: metrics[k] for k in ("ade", "nll", "hindsight")}, time.time() - t0
+
+
+def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seeds=PRETRAIN["seeds"], jobs=1,
              cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain"):
-    """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data at the paper's 20 epochs and
-    write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command, date, commit, data,
-    config, the files' sha256). On one thread, these are the predictors of Table 1's seed 0 to the bit (the tables
-    train each seed on one thread). --quick evaluates them (load_pretrained). About 6 minutes on one core."""
+    """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data at the paper's 20 epochs, one
+    predictor per seed, and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command,
+    date, commit, data, config, each file's sha256 and validation metrics). On one thread each, these are Table 1's
+    predictors of the same seeds to the bit (the tables train each seed on one thread). `jobs` worker processes
+    train them side by side. --quick evaluates them (load_pretrained). About 4 minutes a seed on one core."""
     import hashlib
     import json
     import platform
     import subprocess
+    from concurrent.futures import ProcessPoolExecutor
 
     import data_synth
 
-    out, cfg = pathlib.Path(out), cfg or Config()
-    files = [out / f"{_slug(m.name)}-seed{seed}.pt" for m in QUICK_METHODS if m.predictor == "learned"]
-    if not overwrite and any(f.exists() for f in files + [out / "provenance.json"]):
+    out, cfg, seeds = pathlib.Path(out), cfg or Config(), tuple(seeds)
+    learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
+    work = [(m, seed, out / f"{_slug(m.name)}-seed{seed}.pt") for seed in seeds for m in learned]
+    if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
         raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
     check_writable(out, f"the pre-trained predictors' folder ({out})")
-    torch.set_num_threads(threads)
-    data = data_synth.load_data(n=n, cache_dir=cache_dir)
-    about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seed=seed, setting="rl",
+    data_synth.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
+    about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
                  threads=threads, torch=torch.__version__, machine=f"{platform.machine()}, {os.cpu_count()} cores",
                  config=dataclasses.asdict(cfg), files={})
     try:
@@ -2494,18 +2509,25 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
                                          cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         about["commit"] = None
-    for m, path in zip([m for m in QUICK_METHODS if m.predictor == "learned"], files):
-        t0 = time.time()
-        model = train_predictor(m, data, cfg, "rl", epochs, seed, log)
-        metrics = evaluate_stack(model, data.val, m, cfg, "rl")
-        tmp = path.with_suffix(".tmp")
-        torch.save(model.state_dict(), tmp)
-        os.replace(tmp, path)
-        about["files"][path.name] = dict(method=m.name, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                                         seconds=round(time.time() - t0), **{k: metrics[k] for k in ("ade", "nll", "hindsight")})
-        if log:
-            log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
-                f"{metrics['hindsight']:.4f} ({time.time() - t0:.0f} s)")
+    args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
+    if jobs > 1:
+        pool = ProcessPoolExecutor(min(jobs, len(work)), mp_context=torch.multiprocessing.get_context("spawn"))
+        finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
+    else:
+        pool, finished = None, (_pretrain_one(*a) for a in args)
+    try:
+        for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
+            tmp = path.with_suffix(".tmp")
+            torch.save(state, tmp)
+            os.replace(tmp, path)
+            about["files"][path.name] = dict(method=m.name, seed=seed, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                                             seconds=round(seconds), **metrics)
+            if log:
+                log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
+                    f"{metrics['hindsight']:.4f} ({seconds:.0f} s)")
+    finally:
+        if pool is not None:
+            pool.shutdown()
     tmp = out / "provenance.json.tmp"
     tmp.write_text(json.dumps(about, indent=1))
     os.replace(tmp, out / "provenance.json")
@@ -2513,8 +2535,9 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
 
 
 def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
-    """A predictor that `pretrain` wrote, checked against its provenance (the file's sha256, the Config it was
-    trained with) and loaded with weights_only=True. Returns (model, provenance) or (None, why not)."""
+    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the provenance (the
+    file's sha256, the Config it was trained with) and loaded with weights_only=True. Returns ({seed: model},
+    provenance) or (None, why not)."""
     import hashlib
     import json
 
@@ -2524,30 +2547,39 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
         return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
     try:
         prov = json.loads(prov_path.read_text())
-        entry = next(((name, e) for name, e in prov["files"].items() if e["method"] == method.name), None)
+        entries = sorted(((e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name))
+        trained_with = {k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()}
     except (ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})") from None
-    if entry is None:
+    if not entries:
         return None, f"{prov_path} lists no {method.name} predictor"
-    path = folder / entry[0]
-    if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != entry[1]["sha256"]:
-        raise ValueError(f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
-                         f"re-make it with python diffstack.py --pretrain --overwrite")
-    trained_with = {k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()}
     if trained_with != dataclasses.asdict(cfg):
         changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
-        return None, f"{path} was trained with the default Config, not with {', '.join(changed)} as set here"
-    model = Predictor(cfg)
-    model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-    return model.to(device), prov
+        return None, f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set here"
+    models = {}
+    for seed, name, entry in entries:
+        path = folder / name
+        if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
+            raise ValueError(f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
+                             f"re-make it with python diffstack.py --pretrain --overwrite")
+        models[seed] = Predictor(cfg)
+        models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        models[seed].to(device)
+    return models, prov
+
+
+def _seed_list(seeds) -> str:
+    seeds = list(seeds)
+    return f"seeds {seeds[0]}-{seeds[-1]}" if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[-1] + 1)) else \
+        f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}"
 
 
 def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print, device="cpu",
           pretrained=PRETRAINED):
     """`--quick`, about a minute on 2 cores: Table 1's story on the tables' synthetic validation data. Standard
-    and DiffStack trained at the paper's 20 epochs (shipped in pretrained/, seed 0 of the tables) beside No
-    prediction and GT prediction; then both trained live for a few epochs so that the losses are seen to fall;
-    then what the numbers say, checked, and how they relate to the 5-seed tables in results/."""
+    and DiffStack trained at the paper's 20 epochs (shipped in pretrained/: Table 1's five seeds, so the rows are
+    that table's, mean ± s.e.) beside No prediction and GT prediction; then both trained live for a few epochs so
+    that the losses are seen to fall; then what the numbers say, checked, and how they relate to results/."""
     import data_synth
 
     torch.set_num_threads(threads)
@@ -2562,24 +2594,26 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
     res, prov = {}, None
     for m in QUICK_METHODS:
-        model = None
-        if m.predictor == "learned":
-            model, about = load_pretrained(m, cfg, pretrained, device)
-            if model is None:
-                log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
-                continue
-            prov = about
-        label = m.name if model is None else f"{m.name} ({prov['epochs']:g} epochs)"
-        res[label] = [evaluate_stack(model, data.val, m, cfg, "rl", device=device)]
+        if m.predictor != "learned":
+            res[m.name] = [evaluate_stack(None, data.val, m, cfg, "rl", device=device)]
+            continue
+        models, about = load_pretrained(m, cfg, pretrained, device)
+        if models is None:
+            log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
+            continue
+        prov = about
+        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [evaluate_stack(model, data.val, m, cfg, "rl", device=device)
+                                                        for model in models.values()]  # one run per seed
     add_relative(res, "rl")
     if prov is not None:
         log(f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
-            f"epochs, seed {prov['seed']}, {prov['threads']} thread), on the {len(data.val)} validation scenarios:")
+            f"epochs, {_seed_list(prov['seeds'])}, {prov['threads']} thread each), on the {len(data.val)} validation "
+            f"scenarios; mean ± s.e. over the seeds:")
     log("\n" + open_loop_table(res, "rl"))
     # live: a few epochs on part of the training data, to watch the three losses fall
     part = data_synth.Dataset(data.train[:QUICK["live_train"]], data.val, None)
     took = (f" (the shipped rows above took {sum(f['seconds'] for f in prov['files'].values()) / 60:.0f} minutes to "
-            f"train on {prov['threads']} thread)" if prov is not None else "")
+            f"train, one after another on {prov['threads']} thread)" if prov is not None else "")
     log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios{took}:")
     live = compare_methods(part, cfg, "rl", (QUICK_METHODS[0], *learned), seeds=(0,), epochs=epochs, log=log, device=device)
     log("\n" + open_loop_table({f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()}, "rl"))
@@ -2591,10 +2625,14 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
 def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
     """The lines --quick prints under its table: what the numbers show (each statement checked on them, never
     assumed), why Standard is where it is beside No prediction, and the 5-seed tables' numbers beside them
-    (provenance: the shipped predictors', to say whether they are that table's seed 0)."""
+    (provenance: the shipped predictors', to say whether they are that table's seeds). A shipped method's rows
+    (one per seed) are read by their mean."""
     import json
 
-    shipped = lambda name: next((runs[0] for k, runs in res.items() if k.startswith(name + " (")), None)  # noqa: E731
+    def shipped(name):  # the mean over seeds of a shipped predictor's metrics (one run per seed), or None
+        runs = next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
+        return None if runs is None else {k: statistics.fmean(r[k] for r in runs) for k in ("rel_hindsight", "hindsight", "ade")}
+
     std, dif = shipped("Standard"), shipped("DiffStack")
     none, gt = res["No prediction"][0], res["GT prediction"][0]
     lines = []
@@ -2625,10 +2663,10 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
                           if m in runs)
         meta = saved["meta"]
         same = (provenance is not None and meta.get("epochs") == provenance["epochs"]
-                and meta.get("config") == provenance["config"] and provenance["seed"] in meta.get("seeds", []))
+                and meta.get("config") == provenance["config"] and set(provenance["seeds"]) <= set(meta.get("seeds", [])))
         lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
                      f"hindsight cost x1e-2: {cells}; " + (
-                         f"the shipped predictors above are its seed {provenance['seed']}." if same else
+                         f"the shipped predictors above are its {_seed_list(provenance['seeds'])}." if same else
                          "made by another run than the shipped predictors (other epochs or Config), so its numbers "
                          "and the ones above are not the same experiment."))
     return lines
@@ -2726,7 +2764,10 @@ def main(argv=None):
                          "prediction and GT prediction, then both trained live for a few epochs")
     ap.add_argument("--pretrain", action="store_true",
                     help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} epochs, "
-                         f"seed {PRETRAIN['seed']}, one thread: Table 1's seed 0) into {PRETRAINED}/, ~6 min")
+                         f"{_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
+                         f"~20 min on 2 cores")
+    ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
+                    help="--pretrain: worker processes training side by side, one thread each (default: the machine's cores)")
     ap.add_argument("--overwrite", action="store_true", help=f"--pretrain: replace the predictors in {PRETRAINED}/")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=None,
                     help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at most 256)")
@@ -2742,11 +2783,13 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick == args.pretrain:
         ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)")
+    if args.jobs is not None and not args.pretrain:
+        ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
     try:
         cfg = config_with(Config(), args.set)
         check_writable("data_cache", "the data cache (./data_cache)")
         if args.pretrain:
-            return pretrain(threads=args.threads or 1, cfg=cfg, overwrite=args.overwrite,
+            return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
                             command="python diffstack.py " + " ".join(argv))
     except ValueError as e:
         ap.error(str(e))

@@ -1569,22 +1569,28 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
     shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
     cfg, out = ds.Config(**TINY), tmp_path / "pre"
-    about = ds.pretrain(out, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=None)
-    assert sorted(about["files"]) == ["diffstack-seed0.pt", "standard-seed0.pt"] and about["threads"] == 1
+    about = ds.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+    assert sorted(about["files"]) == ["diffstack-seed0.pt", "diffstack-seed1.pt", "standard-seed0.pt", "standard-seed1.pt"]
+    assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
-        ds.pretrain(out, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=None)
-    model, prov = ds.load_pretrained(ds.Method("DiffStack"), cfg, out)
+        ds.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+    models, prov = ds.load_pretrained(ds.Method("DiffStack"), cfg, out)
+    assert sorted(models) == [0, 1]
     again = ds.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_synth.load_data(n=300, cache_dir=tmp_path),
-                               cfg, "rl", 0.5, 0, None)
-    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), again.state_dict().values()))
+                               cfg, "rl", 0.5, 1, None)  # seed 1, trained here: the shipped seed 1 to the bit
+    assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
+    assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))
+    # two worker processes make the same files, byte for byte
+    pooled = ds.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None)
+    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {k: v["sha256"] for k, v in about["files"].items()}
     assert ds.load_pretrained(ds.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
     lines = []
     res, _ = ds.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
-    assert "Standard (0.5 epochs)" in res and "DiffStack (0.5 epochs)" in res
-    assert "\nHindsight cost: " in "\n".join(lines)
-    with open(out / "standard-seed0.pt", "ab") as f:
+    assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2  # a row per seed
+    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(lines)
+    with open(out / "standard-seed1.pt", "ab") as f:
         f.write(b"tampered")
-    with pytest.raises(ValueError, match="standard-seed0.pt.*sha256"):
+    with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
         ds.load_pretrained(ds.Method("Standard"), cfg, out)
 
 
@@ -1608,13 +1614,25 @@ def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tm
     runs = lambda h: [dict(rel_hindsight=h)]  # noqa: E731
     res = {"No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)], "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)]}
     cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
-    prov = dict(epochs=20.0, seed=0, config=cfg)
-    for epochs, same in ((20.0, True), (4.0, False)):
+    for epochs, shipped, same in ((20.0, [0, 1], True), (4.0, [0, 1], False), (20.0, [0, 1, 2], False)):
+        prov = dict(epochs=20.0, seeds=shipped, config=cfg)
         (tmp_path / "rl.json").write_text(json.dumps(dict(meta=dict(seeds=[0, 1], epochs=epochs, config=cfg), results=dict(
             Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}))))
         line = ds.quick_story(res, tmp_path, prov)[-1]
         assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
-        assert ("are its seed 0" in line) == same and ("not the same experiment" in line) == (not same)
+        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (not same)
+
+
+def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
+    # two seeds of DiffStack, one better and one worse than Standard: the story follows their mean, not the first
+    one = lambda h, ade: dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)  # noqa: E731
+    res = {"No prediction": [one(0.0, 1.0)], "GT prediction": [one(-2.0, 1.0)], "Standard (20 epochs)": [one(-0.5, 1.0)],
+           "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)]}
+    lines = ds.quick_story(res, "no/such/folder")
+    assert lines[0].startswith("Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order")
+    assert "its ADE is +30 % against Standard's" in lines[1]
+    res["DiffStack (20 epochs)"] = [one(-0.4, 1.5), one(-0.5, 1.1)]  # mean -0.45: above Standard's -0.5
+    assert "NOT the paper's order" in ds.quick_story(res, "no/such/folder")[0]
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -1623,6 +1641,8 @@ def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tm
     (["--experiment", "rl"], "experiments.py"),
     (["--bench"], "bench.py"),
     (["--quick", "--threads", "0"], "--threads"),
+    (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
+    (["--pretrain", "--jobs", "0"], "--jobs"),
     (["--quick", "--set", "no_such_field=1"], "no_such_field"),
 ])
 def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
