@@ -2652,10 +2652,20 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
         saved = {b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none}
         total = sum(saved.values())
         top = min(saved, key=saved.get)
-        lines.append(f"Why Standard gains little over No prediction: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
+        lines.append(f"Why Standard's gain over No prediction is small: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
                      f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
                      f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
                      f"the future adds little (results/goal.md).")
+        runs = next((runs for k, runs in res.items() if k.startswith("Standard (")), None)
+        if runs and all("by_behaviour" in r for r in runs):  # Standard's part of the all-scene mean, by behaviour
+            part = {b: statistics.fmean(r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs)
+                    * by_none[b]["n"] / none["n"] / 1e-2 for b in by_none}
+            lost = sorted((b for b in part if part[b] > 0.005), key=part.get, reverse=True)
+            won = sorted((b for b in part if part[b] < -0.005), key=part.get)
+            if lost:
+                lines.append(f"And Standard gives part of it back: it gains {-sum(part[b] for b in won):.2f}e-2 in "
+                             f"{', '.join(won)}, and loses {sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where "
+                             f"it predicts the wrong one of two manoeuvres that start alike (results/rl.md, by behaviour).")
     table = pathlib.Path(results_dir) / "rl.json"
     if table.exists():
         saved = json.loads(table.read_text())

@@ -1597,14 +1597,19 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
 def test_quick_story_states_only_what_its_numbers_show():
     row = lambda h, ade=1.0: [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]  # noqa: E731
     by = lambda **v: {b: dict(n=10, hindsight=x) for b, x in v.items()}  # noqa: E731
-    res = {"No prediction": [dict(row(0.0)[0], by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
+    res = {"No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
            "Standard (20 epochs)": row(-0.5), "DiffStack (20 epochs)": row(-1.5, 1.2),
            "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))]}
     lines = ds.quick_story(res, "no/such/folder")
     assert lines[0] == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
     assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
     assert "75 % of it in keep_lane scenes" in lines[2]
-    assert len(lines) == 3  # no results/rl.json there: no line about it
+    assert len(lines) == 3  # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
+    # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back where
+    res["Standard (20 epochs)"] = [dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
+                                   dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0))]
+    line = ds.quick_story(res, "no/such/folder")[3]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
+    assert line.startswith("And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in cut_in")
     res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
     assert ds.quick_story(res, "no/such/folder")[0].startswith(
         "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order")
