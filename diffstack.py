@@ -2630,8 +2630,11 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
     (one per seed) are read by their mean."""
     import json
 
-    def shipped(name):  # the mean over seeds of a shipped predictor's metrics (one run per seed), or None
-        runs = next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
+    def runs_of(name):  # a shipped predictor's runs (one per seed), or None
+        return next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
+
+    def shipped(name):  # the mean over seeds of a shipped predictor's metrics, or None
+        runs = runs_of(name)
         return None if runs is None else {k: statistics.fmean(r[k] for r in runs) for k in ("rel_hindsight", "hindsight", "ade")}
 
     std, dif = shipped("Standard"), shipped("DiffStack")
@@ -2656,7 +2659,7 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
                      f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
                      f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
                      f"the future adds little (results/goal.md).")
-        runs = next((runs for k, runs in res.items() if k.startswith("Standard (")), None)
+        runs = runs_of("Standard")
         if runs and all("by_behaviour" in r for r in runs):  # Standard's part of the all-scene mean, by behaviour
             part = {b: statistics.fmean(r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs)
                     * by_none[b]["n"] / none["n"] / 1e-2 for b in by_none}
