@@ -988,24 +988,33 @@ def learning_curve_reference(data, cfg: Config) -> dict:
 
 
 def figure_cost_weights(results: dict, path):
-    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds."""
+    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds. A mean that is
+    not positive has no bar on the log scale: it is written in its place instead (returned too), never dropped."""
     import matplotlib.pyplot as plt
 
     names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
     fig, ax = plt.subplots(figsize=(7, 3.2))
     x = np.arange(len(names))
+    notes = []
     for j, (label, runs) in enumerate(results.items()):
         vals = [[*r["w"], r["alpha"]] for r in runs]
         ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
         ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
+        for i, (m, _) in enumerate(ms):
+            if m <= 0:  # a log axis cannot draw it: say it where the bar would be
+                notes.append(f"{label} {names[i]} = {m:.3f}")
+                ax.text(x[i] + (j - 0.5) * 0.38, 0.22, f"{m:.3f}\n(< 0)", color="tab:red", ha="center", va="bottom",
+                        fontsize=8)
     ax.set_xticks(x, names, fontsize=8)
     ax.set_yscale("log")
     ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
     ax.minorticks_off()
     ax.set_ylabel("weight (log scale)")
     ax.legend(fontsize=8)
-    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)", fontsize=10)
+    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)" + (
+        "; not positive, written not drawn: " + ", ".join(notes) if notes else ""), fontsize=10 if not notes else 8)
     save_figure(fig, path)
+    return notes
 
 
 # ============================================================================================

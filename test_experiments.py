@@ -432,3 +432,15 @@ def test_the_learning_curves_caption_is_read_off_the_curves():
     res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)  # above Standard at the end
     assert ex.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
     assert ex.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
+
+
+def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
+    # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say so, not drop it
+    run = lambda w, a: dict(w=w, alpha=a)  # noqa: E731
+    hand = [run([5.0, 0.5, 0.3, 0.3, 1.0], 1.0)] * 2
+    assert ex.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], 0.5)] * 2},
+                                  tmp_path / "a.png") == []
+    notes = ex.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], -0.04),
+                                                                    run([4.0, 1.3, 0.8, 0.8, 0.2], -0.05)]},
+                                   tmp_path / "b.png")
+    assert notes == ["Learned alpha = -0.045"] and (tmp_path / "b.png").exists()
