@@ -1003,7 +1003,7 @@ def figure_cost_weights(results: dict, path):
         for i, (m, _) in enumerate(ms):
             if m <= 0:  # a log axis cannot draw it: say it where the bar would be
                 notes.append(f"{label} {names[i]} = {m:.3f}")
-                ax.text(x[i] + (j - 0.5) * 0.38, 0.22, f"{m:.3f}\n(< 0)", color="tab:red", ha="center", va="bottom",
+                ax.text(x[i] + (j - 0.5) * 0.38, 0.22, f"{m:.3f}\n(not > 0)", color="tab:red", ha="center", va="bottom",
                         fontsize=8)
     ax.set_xticks(x, names, fontsize=8)
     ax.set_yscale("log")
