@@ -2076,6 +2076,12 @@ class CostWeights(nn.Module):
     alpha and psi_2..5 are trained; psi_1 (collision) is fixed "to ensure safety" and c is a constant.
     At initialisation c = sum of the hand-tuned weights, psi = log w, alpha = 1 recover them exactly.
     (With psi_1 fixed, w'_1 still moves a little through the normaliser sum_j exp(psi_j).)
+
+    alpha is trained as log alpha, so it stays positive: the paper only says it is trainable, and a cost times
+    a negative alpha is a cost to maximise. Note what alpha cannot do: the minimiser of alpha C is the same for
+    every alpha > 0, so the loss does not depend on it; its gradient comes only from iLQR stopping short of the
+    exact minimum (at tol), where the KKT backward sees a residual gradient of C. Trained unconstrained, that
+    drift carried alpha through zero by 20 epochs, after which the controller maximised the cost.
     """
 
     def __init__(self, cfg: Config):
@@ -2084,7 +2090,12 @@ class CostWeights(nn.Module):
         self.register_buffer("c", w0.sum())
         self.register_buffer("psi_coll", w0[:1].log())  # (1,) fixed, not a parameter
         self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
-        self.alpha = nn.Parameter(torch.ones((), dtype=w0.dtype, device=w0.device))
+        self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))  # alpha = exp(0) = 1
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        """The scale alpha = exp(log alpha) > 0 ()."""
+        return self.log_alpha.exp()
 
     def normalised(self) -> torch.Tensor:
         """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 7, App. A.2)."""

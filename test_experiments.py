@@ -64,10 +64,10 @@ def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
     cw = ds.CostWeights(cfg)
     assert torch.allclose(cw(), ds.cost_weights(cfg), rtol=1e-6, atol=0)
     assert cw.alpha.item() == 1.0
-    assert {n for n, _ in cw.named_parameters()} == {"psi", "alpha"}  # psi_1 is a buffer
+    assert {n for n, _ in cw.named_parameters()} == {"psi", "log_alpha"}  # psi_1 is a buffer
     (cw() * torch.tensor([1.0, 2.0, -1.0, 3.0, 0.5])).sum().backward()
     assert cw.psi_coll.grad is None
-    assert cw.psi.grad.abs().min() > 0 and cw.alpha.grad.abs() > 0
+    assert cw.psi.grad.abs().min() > 0 and cw.log_alpha.grad.abs() > 0
     with torch.no_grad():  # the normalised weights keep their sum c whatever psi is
         cw.psi.add_(torch.tensor([0.3, -0.2, 0.1, -0.4]))
     assert torch.allclose(cw.normalised().sum(), ds.cost_weights(cfg).sum())
@@ -79,7 +79,28 @@ def test_controller_gradient_reaches_the_cost_weights(clean):
     out = ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=cw())
     keep = out.plannable.to(out.l_ctr.dtype)
     ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()  # the plannable mean, as in training
-    assert torch.isfinite(cw.psi.grad).all() and cw.psi.grad.abs().sum() > 0 and cw.alpha.grad.abs() > 0
+    assert torch.isfinite(cw.psi.grad).all() and cw.psi.grad.abs().sum() > 0 and cw.log_alpha.grad.abs() > 0
+
+
+def test_cost_scale_stays_positive_when_driven_toward_zero():
+    # the loss sum(w) pushes alpha down at every step; an unconstrained alpha would pass zero in ~1 step of lr 1
+    cw = ds.CostWeights(ds.Config())
+    opt = torch.optim.SGD(cw.parameters(), lr=1.0)
+    for _ in range(50):
+        opt.zero_grad()
+        cw().sum().backward()
+        opt.step()
+    assert 0 < cw.alpha.item() < 1e-3 and (cw() > 0).all()
+
+
+def test_controller_solution_does_not_depend_on_the_cost_scale(clean):
+    # why alpha is not identified (CostWeights): argmin alpha C is the same for every alpha > 0
+    (data, _), cfg = clean, ds.Config()
+    w = ds.cost_weights(cfg)
+    out = [ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=s * w) for s in (1.0, 0.3)]
+    assert out[0].plannable.any()
+    assert torch.allclose(out[0].u, out[1].u, rtol=0, atol=1e-5)
+    assert not torch.allclose(out[0].cand_cost, out[1].cand_cost)  # the costs themselves do scale
 
 
 # ---------------------------------------------------------------------------------------------
