@@ -263,13 +263,13 @@ _SERIES_SWITCH = 0.3
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, tau, dtype, device):
     """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first
-    (terms, 2 (jmax+1)), and tau^(j+1) (jmax+1,). Made once per (jmax, tau, dtype, device): the dynamics run in
-    every inner loop."""
+    (a tuple of `terms` rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,). Made once per (jmax, tau, dtype, device):
+    the dynamics run in every inner loop."""
     f = math.factorial
     coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
     tau_pow = torch.tensor(tau, dtype=dtype, device=device) ** torch.arange(1, jmax + 2, dtype=dtype, device=device)
-    return torch.tensor(coef[::-1], dtype=dtype, device=device), tau_pow
+    return tuple(torch.tensor(coef[::-1], dtype=dtype, device=device).unbind(0)), tau_pow
 
 
 def _moments(w, tau, jmax):
@@ -277,20 +277,21 @@ def _moments(w, tau, jmax):
     th = w * tau
     small = th.abs() < _SERIES_SWITCH
     # series, all moments at once by Horner's rule in th^2: (..., 2 (jmax+1))
-    thz = torch.where(small, th, torch.zeros_like(th))[..., None]
-    th2 = thz**2
-    coef, tau_pow = _series_coefficients(jmax, tau, w.dtype, w.device)  # (terms, 2 (jmax+1)), (jmax+1,) tau^(j+1)
-    series = coef[0].expand(*th.shape, -1)
+    thz = torch.where(small, th, 0.0)[..., None]
+    th2 = thz * thz
+    coef, tau_pow = _series_coefficients(jmax, tau, w.dtype, w.device)  # terms x (2 (jmax+1),), (jmax+1,) tau^(j+1)
+    series = coef[0]
     for c in coef[1:]:
-        series = series * th2 + c
+        series = torch.addcmul(c, series, th2)  # series th^2 + c
     series = series * torch.cat([tau_pow.expand(*th.shape, -1), tau_pow * thz], -1)
     # closed forms, by parts: c_j = (tau^j sin - j s_{j-1}) / w,  s_j = (j c_{j-1} - tau^j cos) / w; w = 1 where small
-    ws = torch.where(small, torch.ones_like(w), w)
-    sin, cos = torch.sin(ws * tau), torch.cos(ws * tau)
-    c, s = [sin / ws], [(1 - cos) / ws]
-    for jj in range(1, jmax + 1):
-        c.append((tau**jj * sin - jj * s[-1]) / ws)
-        s.append((jj * c[-2] - tau**jj * cos) / ws)
+    ws = torch.where(small, 1.0, w)
+    ths = ws * tau
+    sin, cos = torch.sin(ths), torch.cos(ths)
+    c, s = [sin / ws], [(1.0 - cos) / ws]
+    for j in range(1, jmax + 1):
+        c.append((tau**j * sin - float(j) * s[-1]) / ws)
+        s.append((float(j) * c[-2] - tau**j * cos) / ws)
     moments = torch.where(small[..., None], series, torch.stack(c + s, -1)).unbind(-1)
     return moments[: jmax + 1], moments[jmax + 1 :]
 
@@ -307,11 +308,11 @@ def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     x, y, h, v = s.unbind(-1)
     w, a = u.unbind(-1)
     (c0, c1), (s0, s1) = _moments(w, dt, 1)
-    along, lateral = v * c0 + a * c1, v * s0 + a * s1
+    along, lateral = torch.addcmul(v * c0, a, c1), torch.addcmul(v * s0, a, s1)  # v c0 + a c1, v s0 + a s1
     cos_h, sin_h = torch.cos(h), torch.sin(h)
-    return torch.stack(
-        [x + cos_h * along - sin_h * lateral, y + sin_h * along + cos_h * lateral, h + w * dt, v + a * dt], -1
-    )
+    return torch.stack([x.addcmul(cos_h, along).addcmul(sin_h, lateral, value=-1.0),  # x + cos along - sin lateral
+                        y.addcmul(sin_h, along).addcmul(cos_h, lateral),  # y + sin along + cos lateral
+                        h.add(w, alpha=dt), v.add(a, alpha=dt)], -1)  # h + w dt, v + a dt
 
 
 def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
@@ -899,9 +900,11 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config) -> Plan:
 # batch size; the tests hold each closed form to its autodiff counterpart.
 #
 # Speed. At these sizes (4 states, 2 controls, 6 steps) a problem is a few thousand flops, so what costs
-# is the number of tensor ops and any op that pays per matrix: the 2x2 control block is inverted in closed
-# form, products with it are written out over its columns, and with batched_params the iterations work
-# on the scenarios still moving only.
+# is the number of tensor ops and any op that pays per matrix (torch's batched products of tiny matrices
+# cost about a nanosecond per multiply-add on CPU): the 2x2 control block is inverted and its box QP solved
+# in closed form, the Riccati recursion works in homogeneous coordinates (five small products a stage, the
+# linear terms riding along), the line search rolls out every step scale at once on small batches, and with
+# batched_params the iterations work on the scenarios still moving only.
 
 
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
@@ -940,25 +943,25 @@ def dynamics_jacobians(dynamics, x, u):
 
 def _solve_small(M, rhs):
     """M^-1 rhs for a batch of small matrices M (..., m, m), rhs (..., m, r). For m = 2 (the unicycle's
-    controls) by the closed-form inverse [[d, -b], [-c, a]] / (ad - bc), in elementwise ops: a batched LU
-    pays one library call per matrix on CPU, which was most of the controller's cost per problem."""
+    controls) by the closed-form inverse adj(M) / det(M), adj [[a, b], [c, d]] = [[d, -b], [-c, a]]: a batched
+    LU pays one library call per matrix on CPU, which was most of the controller's cost per problem."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
-    a, b, c, d = M[..., 0, 0, None], M[..., 0, 1, None], M[..., 1, 0, None], M[..., 1, 1, None]  # (..., 1) each
-    r0, r1 = rhs[..., 0, :], rhs[..., 1, :]  # (..., r)
-    det = a * d - b * c
-    return torch.stack([(d * r0 - b * r1) / det, (a * r1 - c * r0) / det], -2)
+    a, b, c, d = M.reshape(*M.shape[:-2], 4).unbind(-1)  # (...,) each
+    adj = torch.stack([d, -b, -c, a], -1).reshape(M.shape)  # (..., 2, 2)
+    adj_rhs = torch.bmm(adj, rhs) if M.dim() == 3 else adj @ rhs  # bmm: no broadcasting to prepare
+    return adj_rhs / (a * d - b * c)[..., None, None]
 
 
 def _solve_masked(Q, rhs, free):
     """Solve the rows of Q y = rhs that are free, with y = rhs on the others.
 
-    Q (..., m, m), rhs (..., m, r), free (..., m) bool. The matrix with identity rows on the fixed
-    coordinates, M = F Q F + (I - F), is what eliminating the fixed coordinates leaves.
-    """
-    F = free.to(Q.dtype)
-    M = F[..., :, None] * Q * F[..., None, :] + torch.diag_embed(1 - F)
-    return _solve_small(M, rhs)
+    Q (..., m, m), rhs (..., m, r), free (..., m) bool. Eliminating the fixed coordinates leaves the matrix
+    with Q's entries between free coordinates and the identity's elsewhere."""
+    if free.all():
+        return _solve_small(Q, rhs)
+    eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
+    return _solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
 
 
 @functools.lru_cache(maxsize=None)
@@ -968,32 +971,57 @@ def _active_sets(m, device):
 
 
 def box_qp(Q, q, lo, hi):
-    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m.
+    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m (Q positive definite).
 
-    Each control is free, at its lower bound or at its upper bound: 3^m active sets (9 for m = 2).
-    For each, the free coordinates minimise the quadratic with the others fixed; the best of the
-    feasible ones is the optimum (Q positive definite). Batched over everything, no iterations. The
-    products with Q are sums over Q's m columns: a batched matmul of 2x2 matrices, or a torch reduction
-    over a dim of size 2, pays per matrix on CPU.
-    Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool.
+    Where the unconstrained minimiser -Q^-1 q is inside the box it is the answer (most of the stack's stages);
+    elsewhere the optimum lies on the box's boundary, found in closed form for m = 2 (_box_qp_edges) and by
+    enumerating the active sets otherwise (_box_qp_enumerate). Batched over everything, no iterations.
+    Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool: the controls not held at a bound.
     """
     m = q.shape[-1]
-    assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
-    # Where the unconstrained step lies inside the box for every scenario (most of the stack's stages), it is the
-    # answer, and the enumeration below would pick it too: the global minimum, with the all-free set first.
     d = _solve_small(Q, -q[..., None])[..., 0]  # (B, m)
-    if ((d >= lo) & (d <= hi)).all():
+    inside = ((d >= lo) & (d <= hi)).all(-1)  # (B,)
+    if inside.all():
         return d, torch.ones_like(d, dtype=torch.bool)
+    d_edge, free = (_box_qp_edges if m == 2 else _box_qp_enumerate)(Q, q, lo, hi)
+    return torch.where(inside[:, None], d, d_edge), free | inside[:, None]
+
+
+def _box_qp_edges(Q, q, lo, hi):
+    """box_qp for m = 2 where the unconstrained minimiser is outside the box: the optimum is then on one of the
+    box's four edges, where one control sits at a bound and the other minimises the 1-D quadratic left,
+        d_j = clamp(-(q_j + Q_ji d_i) / Q_jj, lo_j, hi_j),
+    and the best of the four is the answer. Q (B, 2, 2), q, lo, hi (B, 2) -> d (B, 2), free (B, 2)."""
+    bounds = torch.stack([lo, hi], -1)  # (B, 2, 2): control i's two bounds in row i
+    q0, q1 = q[:, :1], q[:, 1:]  # (B, 1) each
+    Q00, Q01, Q11 = Q[:, 0, :1], Q[:, 0, 1:], Q[:, 1, 1:]  # (B, 1) each
+    d1 = (-(q1 + Q01 * bounds[:, 0]) / Q11).clamp(lo[:, 1:], hi[:, 1:])  # (B, 2): control 0 at lo_0, at hi_0
+    d0 = (-(q0 + Q01 * bounds[:, 1]) / Q00).clamp(lo[:, :1], hi[:, :1])  # (B, 2): control 1 at lo_1, at hi_1
+    D = torch.stack([torch.cat([bounds[:, 0], d0], -1), torch.cat([d1, bounds[:, 1]], -1)], -1)  # (B, 4 edges, 2)
+    obj = ((0.5 * D @ Q + q[:, None]) * D).sum(-1)  # (B, 4) = 1/2 d'Q d + q'd  (Q symmetric)
+    best = obj.argmin(-1)  # (B,)
+    d = D.gather(1, best[:, None, None].expand(-1, 1, 2))[:, 0]  # (B, 2)
+    on_bound_0 = best < 2  # the edges with control 0 held at a bound
+    free = torch.stack([~on_bound_0, on_bound_0], -1) & (d > lo) & (d < hi)
+    return d, free
+
+
+def _box_qp_enumerate(Q, q, lo, hi):
+    """box_qp for any small m: each control is free, at its lower bound or at its upper bound, 3^m active sets.
+    For each, the free coordinates minimise the quadratic with the others fixed; the best of the feasible ones
+    is the optimum. Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m)."""
+    m = q.shape[-1]
+    assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
     sets = _active_sets(m, q.device)  # (3^m, m): 0 free, 1 lower, 2 upper
     free = sets == 0
     fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
     Qs, qs = Q[:, None], q[:, None]  # (B, 1, m, m), (B, 1, m)
-    Qv = lambda v: sum(Qs[..., j] * v[..., j, None] for j in range(m))  # noqa: E731  Q v for v (B, 3^m, m)
+    Qv = lambda v: (Qs @ v[..., None])[..., 0]  # noqa: E731  Q v for v (B, 3^m, m)
     # free rows: Q_ff d_f = -(q_f + Q_fc d_c); fixed rows: d_c = fixed value
     rhs = torch.where(free, -(qs + Qv(torch.where(free, 0.0, fixed_val))), fixed_val)
     d = _solve_masked(Qs.expand(-1, len(sets), m, m), rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
     feasible = ((d >= lo[:, None] - 1e-9) & (d <= hi[:, None] + 1e-9)).all(-1)
-    obj = sum(((0.5 * Qv(d) + qs) * d).unbind(-1))  # (B, 3^m) = 1/2 d'Q d + q'd
+    obj = ((0.5 * Qv(d) + qs) * d).sum(-1)  # (B, 3^m) = 1/2 d'Q d + q'd
     best = torch.where(feasible, obj, math.inf).argmin(-1)  # (B,)
     idx = torch.arange(len(q), device=q.device)
     return d[idx, best], free.expand(len(q), -1, -1)[idx, best]
@@ -1005,71 +1033,75 @@ def _smallest_eigenvalue(Q):
     mean is positive so that it does not cancel; eigvalsh otherwise."""
     if Q.shape[-1] != 2:
         return torch.linalg.eigvalsh(Q)[..., 0]
-    a, b, c = Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 1]
-    mean, radius = (a + c) / 2, torch.hypot((a - c) / 2, b)
-    return torch.where(mean > 0, (a * c - b * b) / (mean + radius), mean - radius)
+    a, b, _, c = Q.reshape(-1, 4).unbind(-1)
+    mean, radius = (a + c) / 2.0, torch.hypot((a - c) / 2.0, b)
+    return torch.where(mean > 0.0, (a * c - b * b) / (mean + radius), mean - radius)
 
 
 def _make_pd(Q, eps):
     """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
     lam = _smallest_eigenvalue(Q)
-    return Q + (eps - lam).clamp_min(0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
+    return Q + (eps - lam).clamp_min(0.0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
 
 
 def riccati_backward(A, B, H, g, n, stage):
     """The Riccati recursion of a time-varying LQR with quadratic cost blocks H (B, T+1, n+m, n+m) and
     linear terms g (B, T+1, n+m), dynamics dx_{t+1} = A_t dx_t + B_t du_t.
 
-    stage(t, Quu, qu) -> (Quu', k, free) decides each stage's feed-forward control step k (B, m), which
-    controls stay free (B, m) bool, and the Quu' the free controls' gains are solved with; its two uses
-    are the two functions below. Returns feed-forward k (B, T, m), gains K (B, T, m, n), free (B, T, m)
-    and p_0 = dV_0/dx_0 (B, n).
+    In homogeneous coordinates [1; z] a quadratic with a linear term is one matrix,
+        1/2 z'H z + g'z = 1/2 [1; z]' Ht [1; z],   Ht = [[0, g'], [g, H]],
+    so the value function V_t(dx) = 1/2 dx'P dx + p'dx + const is one matrix Pt = [[., p'], [p, P]] over
+    X = [1; dx], the dynamics are [1; dx'] = Ft [1; dx; du] with Ft = [[1, 0, 0], [0, A, B]], and the policy
+    du = k + K dx = W X with W = [k K]. A stage is then
+        Qt = Ht_t + Ft' Pt_{t+1} Ft                      (Q = H_t + F'PF and q = g_t + F'p, F = [A B], at once)
+        W  from Qt's control rows [Q_uX Q_uu]            (stage: W = -Q_uu^-1 Q_uX where nothing is clamped)
+        Pt_t = Q_XX + Q_Xu W + W'(Q_uX + Q_uu W)          (V_t(dx) = Q_t(dx, k + K dx): P and p at once)
+    stage(t, Q_uu (B, m, m), Q_uX (B, m, 1+n)) -> (W (B, m, 1+n), free (B, m) bool) decides each stage's
+    policy and which controls stay free; its two uses are the two functions below. Returns feed-forward k
+    (B, T, m), gains K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n).
     """
-    T = A.shape[1]
-    P, p = H[:, T, :n, :n], g[:, T, :n]  # V_T(dx) = 1/2 dx'P dx + p'dx
-    ks, Ks, frees = [], [], []
+    Bsz, T, _, m = B.shape
+    X = 1 + n  # [1; dx]; the controls follow
+    Ht = H.new_zeros(Bsz, T + 1, X + m, X + m)
+    Ht[..., 1:, 1:], Ht[..., 1:, 0], Ht[..., 0, 1:] = H, g, g
+    Ft = H.new_zeros(Bsz, T, X, X + m)
+    Ft[..., 0, 0], Ft[..., 1:, 1:X], Ft[..., 1:, X:] = 1.0, A, B
+    Pt = Ht[:, T, :X, :X]  # V_T = l_T, which has no control
+    Ws, frees = [], []
     for t in reversed(range(T)):
-        # Q_t(dx, du) = l_t(dx, du) + V_{t+1}(A dx + B du): with F = [A B], its Hessian and gradient are
-        #   Q = H_t + F'P F,   q = g_t + F'p
-        F = torch.cat([A[:, t], B[:, t]], -1)  # (B, n, n+m)
-        FT = F.transpose(-1, -2)
-        Q = H[:, t] + FT @ P @ F  # (B, n+m, n+m)
-        q = g[:, t] + (FT @ p[..., None])[..., 0]  # (B, n+m)
-        Qux, qu = Q[:, n:, :n], q[:, n:]
-        Quu, k, free = stage(t, Q[:, n:, n:], qu)
-        K = _solve_masked(Quu, torch.where(free[..., None], -Qux, 0.0), free)  # (B, m, n); 0 on clamped rows
-        # V_t(dx) = Q_t(dx, k + K dx): with G = [I; K] and g0 = [0; k],
-        #   P = G'Q G,   p = G'(q + Q g0)
-        G = torch.cat([torch.eye(n, dtype=K.dtype, device=K.device).expand(len(K), n, n), K], 1)  # (B, n+m, n)
-        GT = G.transpose(-1, -2)
-        P = GT @ Q @ G
-        P = (P + P.transpose(-1, -2)) / 2
-        p = (GT @ (q + (Q[:, :, n:] @ k[..., None])[..., 0])[..., None])[..., 0]
-        ks.append(k), Ks.append(K), frees.append(free)
-    flip = lambda xs: torch.stack(xs[::-1], 1)  # noqa: E731
-    return flip(ks), flip(Ks), flip(frees), p
+        Ft_t = Ft[:, t]
+        Qt = Ht[:, t] + torch.bmm(Ft_t.mT, torch.bmm(Pt, Ft_t))  # (B, X+m, X+m)
+        Q_uu, Q_uX = Qt[:, X:, X:], Qt[:, X:, :X]
+        W, free = stage(t, Q_uu, Q_uX)  # (B, m, X)
+        Pt = Qt[:, :X, :X] + torch.bmm(Qt[:, :X, X:], W) + torch.bmm(W.mT, Q_uX + torch.bmm(Q_uu, W))  # (B, X, X)
+        Pt = (Pt + Pt.mT) * 0.5  # symmetric up to rounding; kept exactly symmetric
+        Ws.append(W), frees.append(free)
+    W, free = torch.stack(Ws[::-1], 1), torch.stack(frees[::-1], 1)  # (B, T, m, X), (B, T, m)
+    return W[..., 0], W[..., 1:], free, Pt[:, 1:, 0]
 
 
 def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
     """The Riccati pass inside iLQR's forward solve: each stage's control step solves the box QP
     min 1/2 du'Quu du + qu'du s.t. lo_t <= du <= hi_t, with Quu shifted to be positive definite
-    (smallest eigenvalue >= pd_eps) so that the step is a descent direction. lo, hi (B, T, m)."""
+    (smallest eigenvalue >= pd_eps) so that the step is a descent direction; the gains of the free controls
+    solve the same shifted Quu, the clamped ones get none. lo, hi (B, T, m)."""
 
-    def stage(t, Quu, qu):
-        Quu = _make_pd(Quu, pd_eps)
-        k, free = box_qp(Quu, qu, lo[:, t], hi[:, t])
-        return Quu, k, free
+    def stage(t, Q_uu, Q_uX):
+        Q_uu = _make_pd(Q_uu, pd_eps)
+        k, free = box_qp(Q_uu, Q_uX[..., 0], lo[:, t], hi[:, t])
+        K = _solve_masked(Q_uu, torch.where(free[..., None], -Q_uX[..., 1:], 0.0), free)  # (B, m, n); 0 on clamped rows
+        return torch.cat([k[..., None], K], -1), free
 
     return riccati_backward(A, B, H, g, n, stage)
 
 
 def lqr_backward_fixed(A, B, H, g, n, free):
     """The KKT backward's LQR: the controls that were at a bound in the solution (free False, (B, T, m))
-    are held at du = 0, the others solve the exact (unshifted) Quu."""
+    are held at du = 0, the others solve the exact (unshifted) Quu: [k K]_f = -Quu_ff^-1 [qu Qux]_f."""
 
-    def stage(t, Quu, qu):
-        k = _solve_masked(Quu, torch.where(free[:, t], -qu, 0.0)[..., None], free[:, t])[..., 0]
-        return Quu, k, free[:, t]
+    def stage(t, Q_uu, Q_uX):
+        f = free[:, t]
+        return _solve_masked(Q_uu, torch.where(f[..., None], -Q_uX, 0.0), f), f
 
     return riccati_backward(A, B, H, g, n, stage)
 
@@ -1109,20 +1141,24 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     n_iter = torch.zeros(Bsz, dtype=torch.long, device=x.device)
     costs = [cost]
     for _ in range(iters):
-        # the scenarios this iteration works on (b of them): those still moving, or all
-        i = active.nonzero()[:, 0] if batched_params else torch.arange(Bsz, device=x.device)  # (b,)
-        xi, ui, ci, lo_i, hi_i = x[i], u[i], cost[i], lo[i], hi[i]
-        pi = tuple(p[i] if torch.is_tensor(p) else p for p in params) if batched_params else params
+        # the scenarios this iteration works on (b of them): those still moving, or all of them (no gathers)
+        if batched_params and not active.all():
+            i = active.nonzero()[:, 0]  # (b,)
+            take, put = (lambda t: t[i]), (lambda full, part: full.index_put((i,), part))  # noqa: E731
+            pi = tuple(p[i] if torch.is_tensor(p) else p for p in params)
+        else:
+            take, put, pi = (lambda t: t), (lambda full, part: part), params  # noqa: E731
+        xi, ui, ci, lo_i, hi_i, act = (take(t) for t in (x, u, cost, lo, hi, active))
         g, H = cost_expansion(cost_fn, xi, ui, pi)
         A, Bm = dynamics_jacobians(dynamics, xi, ui)
         k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo_i - ui, hi_i - ui, pd_eps)
         x_new, u_new, c_new, accept, full_step = _line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi,
                                                               scales, batched_params)
-        accept = active[i] & accept
-        step_norm = step_norm.index_put((i,), torch.where(active[i], full_step, step_norm[i]))
-        n_iter = n_iter.index_put((i,), n_iter[i] + active[i].long())
+        accept = act & accept  # (b,)
+        step_norm = put(step_norm, torch.where(act, full_step, take(step_norm)))
+        n_iter = put(n_iter, take(n_iter) + act.long())
         sel = lambda new, old: torch.where(accept.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
-        x, u, cost = x.index_put((i,), sel(x_new, xi)), u.index_put((i,), sel(u_new, ui)), cost.index_put((i,), sel(c_new, ci))
+        x, u, cost = put(x, sel(x_new, xi)), put(u, sel(u_new, ui)), put(cost, sel(c_new, ci))
         costs.append(cost)
         active = active & (step_norm >= tol)
         if not active.any():
@@ -1130,26 +1166,43 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
 
 
+_LS_ONE_PASS = 2048  # rows (scenarios x step scales) up to which the line search rolls out every scale at once
+
+
 def _line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, batched_params):
     """An iLQR iteration's step: the largest scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
         u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
-    does not raise the true cost. The full step first, for every scenario; the smaller scales, all at once,
-    only where it failed (for all scenarios without batched_params: the parameters cannot be split).
+    does not raise the true cost. A small batch (b x S rows at most _LS_ONE_PASS) rolls out every scale at once:
+    an op costs about the same on 5 rows as on 1. A larger one rolls out the full step first, for every scenario,
+    and the smaller scales, all at once, only where it failed (for all scenarios without batched_params: the
+    parameters cannot be split). Both pick the same scale.
     x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n), cost (b,). Returns the new x, u, cost, whether a
     scale was accepted (b,) and the norm of the full step (b,)."""
     eps = torch.finfo(x.dtype).eps
     no_increase = lambda c, c0: c <= c0 + 100 * eps * (1 + c0.abs())  # noqa: E731  up to rounding
+    largest_ok = lambda ok: torch.where(ok, torch.arange(ok.shape[1], device=ok.device), ok.shape[1]).min(-1).values  # noqa: E731
 
-    def rollouts(r, s):  # scenarios r, scales s (S,) -> x' (len(r), S, T+1, n), u' (len(r), S, T, m), all at once
-        xs, us = [x[r, None, 0].expand(len(r), len(s), x.shape[-1])], []
+    def rollouts(r, s):  # scenarios r (None: all), scales s (S,) -> x' (b, S, T+1, n), u' (b, S, T, m), all at once
+        xr, ur, kr, Kr, lor, hir = (t if r is None else t[r] for t in (x, u, k, K, lo, hi))  # (b, ...)
+        # each step's slices, taken at once: T x (b, S or 1, ...)
+        u_ff = (ur[:, None] + s[:, None, None] * kr[:, None]).unbind(2)  # T x (b, S, m): u_t + s k_t, the open loop
+        x_ref, K_T = xr[:, None].unbind(2), Kr.mT.unbind(1)  # T+1 x (b, 1, n), T x (b, n, m)
+        lo_t, hi_t = lor[:, None].unbind(2), hir[:, None].unbind(2)  # T x (b, 1, m)
+        xs, us = [x_ref[0].expand(-1, len(s), -1)], []  # (b, S, n)
         for t in range(u.shape[1]):
-            du = s[:, None] * k[r, None, t] + (K[r, None, t] @ (xs[-1] - x[r, None, t])[..., None])[..., 0]
-            us.append((u[r, None, t] + du).clamp(lo[r, None, t], hi[r, None, t]))  # (len(r), S, m)
+            du_fb = torch.bmm(xs[-1] - x_ref[t], K_T[t])  # (b, S, m): K_t (x_t' - x_t), as row vectors
+            us.append((u_ff[t] + du_fb).clamp(lo_t[t], hi_t[t]))  # (b, S, m)
             xs.append(dynamics(xs[-1], us[-1]))
         return torch.stack(xs, 2), torch.stack(us, 2)
 
     every = torch.arange(len(x), device=x.device)
-    x1, u1 = rollouts(every, scales[:1])
+    if len(x) * len(scales) <= _LS_ONE_PASS:
+        xs, us = rollouts(None, scales)
+        cs = cost_fn(xs, us, *params)  # (b, S)
+        first = largest_ok(no_increase(cs, cost[:, None]))  # (b,): S where no scale is accepted
+        pick = first.clamp(max=len(scales) - 1)
+        return xs[every, pick], us[every, pick], cs[every, pick], first < len(scales), (us[:, 0] - u).flatten(1).norm(dim=-1)
+    x1, u1 = rollouts(None, scales[:1])
     x_new, u_new, c_new = x1[:, 0], u1[:, 0], cost_fn(x1, u1, *params)[:, 0]
     accept = no_increase(c_new, cost)  # (b,)
     r = (~accept).nonzero()[:, 0] if batched_params else every[: 0 if accept.all() else len(x)]
@@ -1157,7 +1210,7 @@ def _line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, ba
         xs, us = rollouts(r, scales[1:])
         cs = cost_fn(xs, us, *(tuple(p[r] if torch.is_tensor(p) else p for p in params) if batched_params else params))
         ok = no_increase(cs, cost[r, None])  # (len(r), S-1)
-        first = torch.where(ok, torch.arange(ok.shape[1], device=x.device), ok.shape[1]).min(-1).values  # largest ok
+        first = largest_ok(ok)  # (len(r),)
         use = (first < ok.shape[1]) & ~accept[r]  # a smaller scale where the full step failed
         pick, rows = first.clamp(max=ok.shape[1] - 1), torch.arange(len(r), device=x.device)
         sel = lambda new, old: torch.where(use.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731

@@ -401,10 +401,14 @@ def test_closed_form_2x2_solve_and_eigenvalue_match_linalg():
     assert torch.equal(ds._smallest_eigenvalue(Q3), torch.linalg.eigvalsh(Q3)[..., 0])
 
 
-def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
+@pytest.mark.parametrize("one_pass", [0, 10**6])  # line search rows up to which every scale is rolled out at once
+def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution(one_pass, monkeypatch):
     """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the
     full step failed) gives what the solver gives on every scenario every iteration, on a problem where both
-    shortcuts are taken: some scenarios converge early and some reject full steps."""
+    shortcuts are taken: some scenarios converge early and some reject full steps; and the line search that rolls
+    out every scale at once (small batches) gives the same as the one that rolls out the smaller ones only where
+    needed."""
+    monkeypatch.setattr(ds, "_LS_ONE_PASS", one_pass)
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
     lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
@@ -425,7 +429,13 @@ def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
     assert torch.allclose(xa, xb, rtol=0, atol=1e-12) and torch.allclose(ua, ub, rtol=0, atol=1e-12)
     assert torch.equal(ia.iters, ib.iters) and torch.equal(ia.converged, ib.converged)
     assert ia.iters.min() < ia.iters.max()  # some scenarios stopped early
-    assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
+    if one_pass:
+        assert all(s is None or s[1] == 5 for s in seen)  # every scale at once
+        monkeypatch.setattr(ds, "_LS_ONE_PASS", 0)
+        xc, uc, ic = ds.ilqr(cost, ds.Unicycle(DT), s0, u0, params, lo, hi, iters=8, tol=1e-3, batched_params=True)
+        assert torch.equal(xc, xb) and torch.equal(uc, ub) and torch.equal(ic.iters, ib.iters)
+    else:
+        assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
 
 
 @pytest.mark.parametrize("bound", [0.2, 100.0])  # bounds active in many problems; in none (the shortcut)
@@ -445,6 +455,23 @@ def test_box_qp_meets_the_kkt_conditions(bound):
     assert grad[free].abs().max() < 1e-10
     assert (grad[at_lo] >= -1e-10).all() and (grad[at_hi] <= 1e-10).all()
     assert (~free).any() == (bound < 1)  # the test covers both paths
+
+
+def test_box_qp_edges_match_the_enumeration_of_active_sets():
+    """m = 2's closed form (the best of the four edges' clamped 1-D minimisers) against the 3^m enumeration of
+    active sets, the general path, on problems whose unconstrained minimiser is outside the box."""
+    g = torch.Generator().manual_seed(2)
+    L = torch.randn(2000, 2, 2, generator=g, dtype=torch.float64)
+    Q = L @ L.transpose(-1, -2) + 0.05 * torch.eye(2, dtype=torch.float64)
+    q = 3 * torch.randn(2000, 2, generator=g, dtype=torch.float64)
+    lo = -torch.rand(2000, 2, generator=g, dtype=torch.float64) - torch.rand(2000, 1, generator=g, dtype=torch.float64)
+    hi = lo + 0.1 + 2 * torch.rand(2000, 2, generator=g, dtype=torch.float64)  # boxes that may not hold 0
+    d, free = ds._box_qp_edges(Q, q, lo, hi)
+    d_ref, free_ref = ds._box_qp_enumerate(Q, q, lo, hi)
+    outside = ~((torch.linalg.solve(Q, -q[..., None])[..., 0] >= lo) & (torch.linalg.solve(Q, -q[..., None])[..., 0] <= hi)).all(-1)
+    assert outside.sum() > 1500 and (free_ref[outside].any(-1)).sum() > 500  # edges and corners both occur
+    assert rel_err(d[outside], d_ref[outside]) < 1e-12
+    assert torch.equal(free[outside], free_ref[outside])
 
 
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
