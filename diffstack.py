@@ -947,10 +947,9 @@ def _solve_small(M, rhs):
     LU pays one library call per matrix on CPU, which was most of the controller's cost per problem."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
-    a, b, c, d = M.reshape(*M.shape[:-2], 4).unbind(-1)  # (...,) each
-    adj = torch.stack([d, -b, -c, a], -1).reshape(M.shape)  # (..., 2, 2)
-    adj_rhs = torch.bmm(adj, rhs) if M.dim() == 3 else adj @ rhs  # bmm: no broadcasting to prepare
-    return adj_rhs / (a * d - b * c)[..., None, None]
+    a, b, c, d = M.reshape(*M.shape[:-2], 4, 1).unbind(-2)  # (..., 1) each
+    r0, r1 = rhs.unbind(-2)  # (..., r) each
+    return torch.stack([d * r0 - b * r1, a * r1 - c * r0], -2) / (a * d - b * c)[..., None]
 
 
 def _solve_masked(Q, rhs, free):
@@ -1062,15 +1061,13 @@ def riccati_backward(A, B, H, g, n, stage):
     """
     Bsz, T, _, m = B.shape
     X = 1 + n  # [1; dx]; the controls follow
-    Ht = H.new_zeros(Bsz, T + 1, X + m, X + m)
-    Ht[..., 1:, 1:], Ht[..., 1:, 0], Ht[..., 0, 1:] = H, g, g
-    Ft = H.new_zeros(Bsz, T, X, X + m)
-    Ft[..., 0, 0], Ft[..., 1:, 1:X], Ft[..., 1:, X:] = 1.0, A, B
-    Pt = Ht[:, T, :X, :X]  # V_T = l_T, which has no control
+    Ht_0, Ht_z = nn.functional.pad(g, (1, 0))[..., None, :], torch.cat([g[..., None], H], -1)  # Ht's first row, the others
+    F = torch.cat([A, B], -1)  # (B, T, n, n+m): Ft = [[1, 0], [0, F]], whose first row and column the products skip
+    Pt = torch.cat([Ht_0[:, T], Ht_z[:, T, :n]], 1)[..., :X]  # (B, X, X): V_T = l_T, which has no control
     Ws, frees = [], []
     for t in reversed(range(T)):
-        Ft_t = Ft[:, t]
-        Qt = Ht[:, t] + torch.bmm(Ft_t.mT, torch.bmm(Pt, Ft_t))  # (B, X+m, X+m)
+        PF = torch.cat([Pt[:, :, :1], torch.bmm(Pt[:, :, 1:], F[:, t])], -1)  # (B, X, X+m) = Pt Ft
+        Qt = torch.cat([Ht_0[:, t] + PF[:, :1], Ht_z[:, t] + torch.bmm(F[:, t].mT, PF[:, 1:])], 1)  # Ht_t + Ft' Pt Ft
         Q_uu, Q_uX = Qt[:, X:, X:], Qt[:, X:, :X]
         W, free = stage(t, Q_uu, Q_uX)  # (B, m, X)
         Pt = Qt[:, :X, :X] + torch.bmm(Qt[:, :X, X:], W) + torch.bmm(W.mT, Q_uX + torch.bmm(Q_uu, W))  # (B, X, X)
