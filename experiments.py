@@ -1298,9 +1298,16 @@ class RunStore:
         extra = torch.load(path.with_suffix(".pt"), weights_only=True) if saved["extra"] else None
         return saved["result"], extra
 
-    def save(self, table: str, piece: Piece, result: dict, extra=None, about=None) -> None:
+    def timing(self, table: str, piece: Piece) -> dict | None:
+        """How long a finished piece took to compute ({'seconds': wall, 'cpu_seconds': its process's CPU}), or None
+        (not finished, in memory, or kept by an older version that did not record it)."""
+        if self.root is None or not self.path(table, piece).exists():
+            return None
+        return json.loads(self.path(table, piece).read_text()).get("timing")
+
+    def save(self, table: str, piece: Piece, result: dict, extra=None, about=None, timing=None) -> None:
         """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically; about: what the key
-        stands for, written once per table folder (run.json)."""
+        stands for, written once per table folder (run.json); timing: how long it took (see `timing`)."""
         if self.root is None:
             self.memory[(table, piece)] = (json.loads(json.dumps(result, default=_to_json)), extra)
             return
@@ -1311,7 +1318,7 @@ class RunStore:
         if extra is not None:
             save_atomic(extra, path.with_suffix(".pt"))
         write_atomic(path, json.dumps(dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None,
-                                           result=result), indent=1, default=_to_json))
+                                           timing=timing, result=result), indent=1, default=_to_json))
 
     def model_path(self, train_key) -> pathlib.Path | None:
         """Where trained_predictor keeps a predictor trained the way train_key says (None: in memory only)."""
@@ -1322,6 +1329,13 @@ def _to_json(o):
     return o.tolist() if torch.is_tensor(o) else str(o)
 
 
+def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
+    """compute_piece, and how long it took: (result, extra, {'seconds': wall, 'cpu_seconds': this process's CPU})."""
+    t0, c0 = time.time(), time.process_time()
+    result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
+    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0)
+
+
 def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device, root: str, key: str, about: dict,
                  verbose: bool) -> int:
     """A worker process (--jobs): compute and save some pieces of one seed, on one thread. Returns how many."""
@@ -1329,8 +1343,8 @@ def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device
     store, spec, models = RunStore(root, key), SPECS[spec_name], {}
     log = (lambda text: print(f"[{spec_name} seed {pieces[0].seed}] {text}", flush=True)) if verbose else None
     for piece in pieces:
-        result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
-        store.save(spec_name, piece, result, extra, about)
+        result, extra, timing = timed_piece(spec, piece, data, cfg, epochs, log, models, device, store)
+        store.save(spec_name, piece, result, extra, about, timing)
     return len(pieces)
 
 
@@ -1443,8 +1457,8 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
                            log is not None)
     else:
         for p in missing:
-            result, extra = compute_piece(spec, p, data, cfg, epochs, log, models, device, store)
-            store.save(spec.name, p, result, extra, about)
+            result, extra, timing = timed_piece(spec, p, data, cfg, epochs, log, models, device, store)
+            store.save(spec.name, p, result, extra, about, timing)
     loaded = {p: store.load(spec.name, p) for p in pieces}
     res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
     if write and spec.kind == "cost":
@@ -1559,7 +1573,12 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     """A table's provenance line (its command, date, machine, device, seconds, commit, and a note if the run has
     one), the table, and the paper's numbers: the text of its .md file and of its section of the report."""
     where = [meta["date"], meta["machine"]] + ([f"device {meta['device']}"] if "device" in meta else [])
-    where += [f"{meta['seconds']:.0f} s"] + ([f"commit {meta['git_commit']}"] if meta.get("git_commit") else [])
+    if "piece_seconds" in meta:  # the run may have been resumed: its own seconds are only what was left
+        where += [f"{meta['piece_seconds']:.0f} s of computing summed over its {meta['pieces']} pieces "
+                  f"({meta['piece_cpu_seconds']:.0f} CPU s)"]
+    else:
+        where += [f"{meta['seconds']:.0f} s"]
+    where += [f"commit {meta['git_commit']}"] if meta.get("git_commit") else []
     note = f"; {meta['note']}" if meta.get("note") else ""
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
@@ -1653,7 +1672,14 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
             threads = (f"{torch.get_num_threads()} threads" if jobs == 1 else
                        f"1 thread per process, {jobs} worker processes (--jobs)")
+            timings = [store.timing(one, p) for p in table_pieces(spec, seeds)]
+            if timings and all(timings):  # the table's computing time, summed over its pieces, whenever they ran
+                piece_time = dict(piece_seconds=sum(t["seconds"] for t in timings),
+                                  piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
+            else:
+                piece_time = {}
             meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+                        **piece_time,
                         date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
                         machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {threads}"
                                 + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
@@ -1671,6 +1697,11 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             sections.append((spec.title, md, list(spec.figures)))
             if log:
                 log(f"\n{spec.title}\n{table}")
+    timings = [store.timing(one, p) for one, p in all_pieces] if store.root is not None else []
+    if log and timings and all(timings):
+        total = sum(t["seconds"] for t in timings)
+        log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {_clock(total)}"
+            + (f", {_clock(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
     if name == "all" and write:
         report = write_report(out, sections)
         if store.root is not None:

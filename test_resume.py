@@ -67,6 +67,13 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=lines.append)
     assert trainings.calls == [("DiffStack", 0), ("DiffStack", 1)]  # only what was missing
     assert any("3 of 6 pieces done by an earlier run" in ln and "Standard-seed1" in ln for ln in lines)
+    # the table's computing time is its pieces', the interrupted run's three included (its own seconds are not)
+    kept = [json.loads(f.read_text())["timing"] for f in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json")]
+    meta = json.loads((tmp_path / "cut" / "il.json").read_text())["meta"]
+    assert len(kept) == meta["pieces"] == 6 and all(t["seconds"] > 0 and t["cpu_seconds"] > 0 for t in kept)
+    assert meta["piece_seconds"] == pytest.approx(sum(t["seconds"] for t in kept)) and meta["piece_seconds"] > meta["seconds"]
+    assert "s of computing summed over its 6 pieces" in (tmp_path / "cut" / "il.md").read_text()
+    assert any("computing time summed over the 6 pieces" in ln for ln in lines)
     assert numbers(tmp_path / "cut") == numbers(tmp_path / "whole")
     assert table_of(tmp_path / "cut") == table_of(tmp_path / "whole")
 
