@@ -378,6 +378,47 @@ def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicy
         assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
+def test_riccati_recursion_solves_the_lqr_exactly():
+    """riccati_backward (homogeneous coordinates) against the LQR solved as one dense problem: the controls as the
+    only unknowns (the states rolled out from them), the optimum by one Newton step on that quadratic. Its policy
+    du_t = k_t + K_t dx_t rolled out from a random dx_0 gives the optimal controls, and p_0 is dV/d dx_0 at 0."""
+    g = torch.Generator().manual_seed(4)
+    Bsz, T, n, m = 3, 4, 4, 2
+    R = torch.randn(Bsz, T + 1, n + m, n + m, generator=g, dtype=torch.float64)
+    H = R @ R.transpose(-1, -2) / (n + m) + 0.3 * torch.eye(n + m, dtype=torch.float64)
+    H[:, T, n:], H[:, T, :, n:] = 0.0, 0.0  # the last step has no control
+    gv = torch.randn(Bsz, T + 1, n + m, generator=g, dtype=torch.float64)
+    gv[:, T, n:] = 0.0
+    A = torch.eye(n, dtype=torch.float64) + 0.3 * torch.randn(Bsz, T, n, n, generator=g, dtype=torch.float64)
+    Bm = torch.randn(Bsz, T, n, m, generator=g, dtype=torch.float64)
+    k, K, free, p0 = ds.lqr_backward_fixed(A, Bm, H, gv, n, torch.ones(Bsz, T, m, dtype=torch.bool))
+    assert free.all()
+
+    def cost(du, dx0, b):  # du (T, m): the LQR's cost of the controls du from dx0, scenario b
+        dx, total = dx0, 0.0
+        for t in range(T):
+            z = torch.cat([dx, du[t]])
+            total = total + 0.5 * z @ H[b, t] @ z + gv[b, t] @ z
+            dx = A[b, t] @ dx + Bm[b, t] @ du[t]
+        return total + 0.5 * dx @ H[b, T, :n, :n] @ dx + gv[b, T, :n] @ dx
+
+    dx0 = torch.randn(Bsz, n, generator=g, dtype=torch.float64)
+    for b in range(Bsz):
+        du0 = torch.zeros(T, m, dtype=torch.float64)
+        for start in (dx0[b], torch.zeros(n, dtype=torch.float64)):
+            Hd = torch.autograd.functional.hessian(lambda du: cost(du, start, b), du0).reshape(T * m, T * m)
+            gd = torch.autograd.functional.jacobian(lambda du: cost(du, start, b), du0).reshape(T * m)
+            best = -torch.linalg.solve(Hd, gd).reshape(T, m)  # the exact optimum: cost is quadratic in du
+            dx, policy = start, []
+            for t in range(T):
+                policy.append(k[b, t] + K[b, t] @ dx)
+                dx = A[b, t] @ dx + Bm[b, t] @ policy[-1]
+            assert rel_err(torch.stack(policy), best) < 1e-10
+        # V(dx0) = cost(du*(dx0), dx0): by the envelope theorem dV/d dx0 = d cost / d dx0 at du*(0)
+        grad = torch.autograd.functional.jacobian(lambda x: cost(best, x, b), torch.zeros(n, dtype=torch.float64))
+        assert rel_err(p0[b], grad) < 1e-10
+
+
 def test_closed_form_2x2_solve_and_eigenvalue_match_linalg():
     """The controller's 2x2 closed forms (inverse, smallest eigenvalue) against torch.linalg, on well- and
     ill-conditioned, indefinite and masked matrices; the general path (m = 3) is linalg itself."""
