@@ -957,7 +957,7 @@ def _solve_masked(Q, rhs, free):
 
     Q (..., m, m), rhs (..., m, r), free (..., m) bool. Eliminating the fixed coordinates leaves the matrix
     with Q's entries between free coordinates and the identity's elsewhere."""
-    if free.all():
+    if Q.device.type == "cpu" and free.all():  # (on a GPU the test is a host sync that costs more than it saves)
         return _solve_small(Q, rhs)
     eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
     return _solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
@@ -1032,7 +1032,7 @@ def _smallest_eigenvalue(Q):
     mean is positive so that it does not cancel; eigvalsh otherwise."""
     if Q.shape[-1] != 2:
         return torch.linalg.eigvalsh(Q)[..., 0]
-    a, b, _, c = Q.reshape(-1, 4).unbind(-1)
+    a, b, _, c = Q.reshape(*Q.shape[:-2], 4).unbind(-1)
     mean, radius = (a + c) / 2.0, torch.hypot((a - c) / 2.0, b)
     return torch.where(mean > 0.0, (a * c - b * b) / (mean + radius), mean - radius)
 
@@ -1059,18 +1059,17 @@ def riccati_backward(A, B, H, g, n, stage):
     policy and which controls stay free; its two uses are the two functions below. Returns feed-forward k
     (B, T, m), gains K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n).
     """
-    Bsz, T, _, m = B.shape
-    X = 1 + n  # [1; dx]; the controls follow
+    T, nX = A.shape[1], 1 + n  # nX: the size of [1; dx]; the controls follow it
     Ht_0, Ht_z = nn.functional.pad(g, (1, 0))[..., None, :], torch.cat([g[..., None], H], -1)  # Ht's first row, the others
     F = torch.cat([A, B], -1)  # (B, T, n, n+m): Ft = [[1, 0], [0, F]], whose first row and column the products skip
-    Pt = torch.cat([Ht_0[:, T], Ht_z[:, T, :n]], 1)[..., :X]  # (B, X, X): V_T = l_T, which has no control
+    Pt = torch.cat([Ht_0[:, T], Ht_z[:, T, :n]], 1)[..., :nX]  # (B, 1+n, 1+n): V_T = l_T, which has no control
     Ws, frees = [], []
     for t in reversed(range(T)):
-        PF = torch.cat([Pt[:, :, :1], torch.bmm(Pt[:, :, 1:], F[:, t])], -1)  # (B, X, X+m) = Pt Ft
+        PF = torch.cat([Pt[:, :, :1], torch.bmm(Pt[:, :, 1:], F[:, t])], -1)  # (B, 1+n, 1+n+m) = Pt Ft
         Qt = torch.cat([Ht_0[:, t] + PF[:, :1], Ht_z[:, t] + torch.bmm(F[:, t].mT, PF[:, 1:])], 1)  # Ht_t + Ft' Pt Ft
-        Q_uu, Q_uX = Qt[:, X:, X:], Qt[:, X:, :X]
-        W, free = stage(t, Q_uu, Q_uX)  # (B, m, X)
-        Pt = Qt[:, :X, :X] + torch.bmm(Qt[:, :X, X:], W) + torch.bmm(W.mT, Q_uX + torch.bmm(Q_uu, W))  # (B, X, X)
+        Q_uu, Q_uX = Qt[:, nX:, nX:], Qt[:, nX:, :nX]
+        W, free = stage(t, Q_uu, Q_uX)  # (B, m, 1+n)
+        Pt = Qt[:, :nX, :nX] + torch.bmm(Qt[:, :nX, nX:], W) + torch.bmm(W.mT, Q_uX + torch.bmm(Q_uu, W))  # (B, 1+n, 1+n)
         Pt = (Pt + Pt.mT) * 0.5  # symmetric up to rounding; kept exactly symmetric
         Ws.append(W), frees.append(free)
     W, free = torch.stack(Ws[::-1], 1), torch.stack(frees[::-1], 1)  # (B, T, m, X), (B, T, m)
@@ -1197,8 +1196,9 @@ def _line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, ba
         xs, us = rollouts(None, scales)
         cs = cost_fn(xs, us, *params)  # (b, S)
         first = largest_ok(no_increase(cs, cost[:, None]))  # (b,): S where no scale is accepted
-        pick = first.clamp(max=len(scales) - 1)
-        return xs[every, pick], us[every, pick], cs[every, pick], first < len(scales), (us[:, 0] - u).flatten(1).norm(dim=-1)
+        accept = first < len(scales)
+        pick = torch.where(accept, first, 0)  # where no scale is accepted: the full step, as below
+        return xs[every, pick], us[every, pick], cs[every, pick], accept, (us[:, 0] - u).flatten(1).norm(dim=-1)
     x1, u1 = rollouts(None, scales[:1])
     x_new, u_new, c_new = x1[:, 0], u1[:, 0], cost_fn(x1, u1, *params)[:, 0]
     accept = no_increase(c_new, cost)  # (b,)
@@ -2144,7 +2144,7 @@ class CostWeights(nn.Module):
 
     @property
     def alpha(self) -> torch.Tensor:
-        """The scale alpha = exp(log alpha) > 0 ()."""
+        """The scale alpha = exp(log alpha) > 0 (a 0-dim tensor)."""
         return self.log_alpha.exp()
 
     def normalised(self) -> torch.Tensor:

@@ -1573,11 +1573,10 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     """A table's provenance line (its command, date, machine, device, seconds, commit, and a note if the run has
     one), the table, and the paper's numbers: the text of its .md file and of its section of the report."""
     where = [meta["date"], meta["machine"]] + ([f"device {meta['device']}"] if "device" in meta else [])
-    if "piece_seconds" in meta:  # the run may have been resumed: its own seconds are only what was left
-        where += [f"{meta['piece_seconds']:.0f} s of computing summed over its {meta['pieces']} pieces "
-                  f"({meta['piece_cpu_seconds']:.0f} CPU s)"]
-    else:
-        where += [f"{meta['seconds']:.0f} s"]
+    where += [f"{meta['seconds']:.0f} s"]
+    if "piece_seconds" in meta:  # a resumed run's own seconds are only what was left; workers overlap
+        where[-1] += (f" wall in this command, {meta['piece_seconds']:.0f} s of computing summed over its "
+                      f"{meta['pieces']} pieces ({meta['piece_cpu_seconds']:.0f} CPU s)")
     where += [f"commit {meta['git_commit']}"] if meta.get("git_commit") else []
     note = f"; {meta['note']}" if meta.get("note") else ""
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"

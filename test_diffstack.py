@@ -378,10 +378,13 @@ def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicy
         assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
-def test_riccati_recursion_solves_the_lqr_exactly():
+@pytest.mark.parametrize("all_free", [True, False])
+def test_riccati_recursion_solves_the_lqr_exactly(all_free):
     """riccati_backward (homogeneous coordinates) against the LQR solved as one dense problem: the controls as the
     only unknowns (the states rolled out from them), the optimum by one Newton step on that quadratic. Its policy
-    du_t = k_t + K_t dx_t rolled out from a random dx_0 gives the optimal controls, and p_0 is dV/d dx_0 at 0."""
+    du_t = k_t + K_t dx_t rolled out from a random dx_0 gives the optimal controls, and p_0 is dV/d dx_0 at 0.
+    all_free False: some controls are held at 0 (the KKT backward's clamped controls); the dense problem then
+    optimises the others only."""
     g = torch.Generator().manual_seed(4)
     Bsz, T, n, m = 3, 4, 4, 2
     R = torch.randn(Bsz, T + 1, n + m, n + m, generator=g, dtype=torch.float64)
@@ -391,8 +394,11 @@ def test_riccati_recursion_solves_the_lqr_exactly():
     gv[:, T, n:] = 0.0
     A = torch.eye(n, dtype=torch.float64) + 0.3 * torch.randn(Bsz, T, n, n, generator=g, dtype=torch.float64)
     Bm = torch.randn(Bsz, T, n, m, generator=g, dtype=torch.float64)
-    k, K, free, p0 = ds.lqr_backward_fixed(A, Bm, H, gv, n, torch.ones(Bsz, T, m, dtype=torch.bool))
-    assert free.all()
+    held = torch.zeros(Bsz, T, m, dtype=torch.bool)
+    if not all_free:
+        held[0, 1, 0] = held[1, 0, :] = held[2, 3, 1] = True
+    k, K, free, p0 = ds.lqr_backward_fixed(A, Bm, H, gv, n, ~held)
+    assert torch.equal(free, ~held)
 
     def cost(du, dx0, b):  # du (T, m): the LQR's cost of the controls du from dx0, scenario b
         dx, total = dx0, 0.0
@@ -408,7 +414,10 @@ def test_riccati_recursion_solves_the_lqr_exactly():
         for start in (dx0[b], torch.zeros(n, dtype=torch.float64)):
             Hd = torch.autograd.functional.hessian(lambda du: cost(du, start, b), du0).reshape(T * m, T * m)
             gd = torch.autograd.functional.jacobian(lambda du: cost(du, start, b), du0).reshape(T * m)
-            best = -torch.linalg.solve(Hd, gd).reshape(T, m)  # the exact optimum: cost is quadratic in du
+            f = ~held[b].reshape(-1)  # the exact optimum over the free controls (cost is quadratic in du)
+            best = torch.zeros(T * m, dtype=torch.float64)
+            best[f] = -torch.linalg.solve(Hd[f][:, f], gd[f])
+            best = best.reshape(T, m)
             dx, policy = start, []
             for t in range(T):
                 policy.append(k[b, t] + K[b, t] @ dx)
@@ -510,7 +519,8 @@ def test_box_qp_edges_match_the_enumeration_of_active_sets():
     d, free = ds._box_qp_edges(Q, q, lo, hi)
     d_ref, free_ref = ds._box_qp_enumerate(Q, q, lo, hi)
     outside = ~((torch.linalg.solve(Q, -q[..., None])[..., 0] >= lo) & (torch.linalg.solve(Q, -q[..., None])[..., 0] <= hi)).all(-1)
-    assert outside.sum() > 1500 and (free_ref[outside].any(-1)).sum() > 500  # edges and corners both occur
+    assert outside.sum() > 1500 and (free_ref[outside].any(-1)).sum() > 500  # edges (one control free) occur
+    assert (~free_ref[outside].any(-1)).sum() > 100  # and corners (both at a bound)
     assert rel_err(d[outside], d_ref[outside]) < 1e-12
     assert torch.equal(free[outside], free_ref[outside])
 

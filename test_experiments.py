@@ -90,7 +90,7 @@ def test_cost_scale_stays_positive_when_driven_toward_zero():
         opt.zero_grad()
         cw().sum().backward()
         opt.step()
-    assert 0 < cw.alpha.item() < 1e-3 and (cw() > 0).all()
+    assert 0 < cw.alpha.item() < 0.05 and (cw() > 0).all()
 
 
 def test_controller_solution_does_not_depend_on_the_cost_scale(clean):

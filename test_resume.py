@@ -71,7 +71,8 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     kept = [json.loads(f.read_text())["timing"] for f in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json")]
     meta = json.loads((tmp_path / "cut" / "il.json").read_text())["meta"]
     assert len(kept) == meta["pieces"] == 6 and all(t["seconds"] > 0 and t["cpu_seconds"] > 0 for t in kept)
-    assert meta["piece_seconds"] == pytest.approx(sum(t["seconds"] for t in kept)) and meta["piece_seconds"] > meta["seconds"]
+    assert meta["piece_seconds"] == pytest.approx(sum(t["seconds"] for t in kept))
+    assert "s wall in this command" in (tmp_path / "cut" / "il.md").read_text()
     assert "s of computing summed over its 6 pieces" in (tmp_path / "cut" / "il.md").read_text()
     assert any("computing time summed over the 6 pieces" in ln for ln in lines)
     assert numbers(tmp_path / "cut") == numbers(tmp_path / "whole")
