@@ -683,6 +683,11 @@ section_done("§4")
 # sizes $\varepsilon = 1, 1/5, 1/25, \dots$ and the
 # largest one that does not raise the true cost is kept; at most 5 iterations, converged when the full step is
 # below 0.05. The controller starts from the planner's candidate.
+#
+# (`ds.riccati_backward` computes exactly these formulas in homogeneous coordinates: with $[1; s; u]$ as the
+# variable, $H_t$ and $g_t$ are one matrix $\begin{bmatrix}0 & g_t^\top\\ g_t & H_t\end{bmatrix}$, and so are $P$
+# and $p$, so that $Q$ and $q$ come from one product and the two updates above from one. Exercise 3 below asks for
+# the formulas as written.)
 
 # %%
 # iLQR on 128 validation samples from the plan, with the GT prediction: the cost after each iteration.
