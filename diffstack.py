@@ -1072,7 +1072,7 @@ def riccati_backward(A, B, H, g, n, stage):
         Pt = Qt[:, :nX, :nX] + torch.bmm(Qt[:, :nX, nX:], W) + torch.bmm(W.mT, Q_uX + torch.bmm(Q_uu, W))  # (B, 1+n, 1+n)
         Pt = (Pt + Pt.mT) * 0.5  # symmetric up to rounding; kept exactly symmetric
         Ws.append(W), frees.append(free)
-    W, free = torch.stack(Ws[::-1], 1), torch.stack(frees[::-1], 1)  # (B, T, m, X), (B, T, m)
+    W, free = torch.stack(Ws[::-1], 1), torch.stack(frees[::-1], 1)  # (B, T, m, 1+n), (B, T, m)
     return W[..., 0], W[..., 1:], free, Pt[:, 1:, 0]
 
 
