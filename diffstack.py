@@ -568,23 +568,32 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     return coll.sum(-1)
 
 
-def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
-    """The five unweighted terms of eq. (3), per trajectory.
+def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask,
+                search=None) -> torch.Tensor:
+    """The four terms of eq. (3) that depend on the scene alone, never on a prediction, per trajectory.
 
-    x (B, ..., T+1, 4) states with s0 first, u (B, ..., T, 2); ... are extra dims such as the candidates N.
-    Returns (B, ..., 5): (C_coll, C_goal, C_lat, C_head, C_u).
+    pos (B, ..., T, 2), head (B, ..., T) the positions and headings t1..T (the cost skips t0), u (B, ..., T, 2);
+    ... are extra dims such as the candidates N. goal (B, 2); lanes (B, L, P, 3), lanes_mask (B, L, P); search:
+    their lane_search_features (optional). Returns (B, ..., 4): (C_goal, C_lat, C_head, C_u).
     """
-    B = x.shape[0]
-    view = lambda t: t.reshape(B, *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
-    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
-    coll = collision_term(pos, ctx, rbf_var)
+    B = pos.shape[0]
+    view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     # C_goal = ||s_T - g||^2
-    goal = ((pos[..., -1, :] - view(ctx.goal)) ** 2).sum(-1)
+    to_goal = ((pos[..., -1, :] - view(goal)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
-    lat, head_err, _ = project_to_lanes(pos, head, ctx.lanes, ctx.lanes_mask, ctx.lane_search)
+    lat, head_err, _ = project_to_lanes(pos, head, lanes, lanes_mask, search)
     # C_u = sum_t w_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
-    return torch.stack([coll, goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
+    return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
+
+
+def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
+    """The five unweighted terms of eq. (3), per trajectory: x (B, ..., T+1, 4) states with s0 first, u (B, ..., T, 2)
+    -> (B, ..., 5), (C_coll, C_goal, C_lat, C_head, C_u). A prediction enters through C_coll alone."""
+    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
+    coll = collision_term(pos, ctx, rbf_var)  # (B, ...)
+    rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask, ctx.lane_search)  # (B, ..., 4)
+    return torch.cat([coll[..., None], rest], -1)
 
 
 def cost_weights(cfg: Config, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -867,14 +876,37 @@ class Plan(NamedTuple):
     terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
 
 
-def plan(s0, ctx: CostContext, goal_state, w, cfg: Config) -> Plan:
+@dataclass
+class ScenePlan:
+    """What the planner computes from the scene alone, never from a prediction: the goal g, the candidates, and
+    every term of eq. (3) but C_coll for each of them. A prediction reaches the plan only through C_coll, so
+    training computes these once for its data (scene_plans) instead of at every step of every epoch."""
+
+    goal: torch.Tensor  # (B, 4)       the goal state
+    cands: Candidates
+    terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
+
+    def __getitem__(self, rows):
+        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
+        c = self.cands
+        return ScenePlan(self.goal[rows], Candidates(c.x[rows], c.u[rows], c.valid[rows]), self.terms[rows])
+
+
+def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
     """Eq. (2): the candidates, their costs C_n, and the argmin. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5).
+    scene: the candidates and their prediction-free terms if already computed (for this s0, goal and ctx's lanes).
     Unpacks as (cands, cost, best, plannable, terms)."""
     B = check_tensor("s0", s0, (None, 4)).shape[0]
     check_tensor("goal_state", goal_state, (B, 4), s0.dtype)
-    cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
-    check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
-    terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+    if scene is None:
+        cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
+        check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
+        terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+    else:
+        cands = scene.cands
+        check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
+        coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N): the one term a prediction moves
+        terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
     cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
     return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
@@ -1989,9 +2021,34 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, 
     return ctx, hctx
 
 
+def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
+    """A batch's ScenePlan, on the planner's clock (plan_dt as in run_stack): the goal (the logged one or the
+    route's, Config.goal), the candidates and their prediction-free terms of eq. (3)."""
+    sub = planner_substeps(cfg, plan_dt)
+    s0 = batch.ego_hist[:, -1]  # (B, 4)
+    goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)  # (B, 4)
+    pcfg = cfg if sub == 1 else dataclasses.replace(cfg, dt=cfg.dt / sub, horizon=cfg.horizon * sub)
+    cands = plan_candidates(s0, goal, batch.lanes, batch.lanes_mask, pcfg)
+    terms = scene_terms(cands.x[..., 1:, :2], cands.x[..., 1:, 2], cands.u, goal[:, :2], batch.lanes, batch.lanes_mask)
+    return ScenePlan(goal, cands, terms)
+
+
+def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
+    """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the set is:
+    scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one scenario's own)."""
+    parts = []
+    for i in range(0, len(data), chunk):
+        batch = data[i:i + chunk]
+        check_batch(batch, cfg, need_future=True, stack=True)
+        parts.append(scene_plan(batch, cfg, plan_dt))
+    cat = lambda get: torch.cat([get(p) for p in parts])  # noqa: E731
+    return ScenePlan(cat(lambda p: p.goal), Candidates(cat(lambda p: p.cands.x), cat(lambda p: p.cands.u),
+                                                       cat(lambda p: p.cands.valid)), cat(lambda p: p.terms))
+
+
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
-              timings=None, shard: Shard | None = None) -> StackOutput:
+              timings=None, shard: Shard | None = None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
@@ -2008,6 +2065,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     timings: a dict that receives the seconds spent predicting, planning and controlling.
     shard: under DDP, which rows of the global batch this process holds (section 8.1); the predictor's samples and
         L_pred's batch statistics are then those of the global batch.
+    scene: the batch's scene_plan (same cfg and plan_dt), if already computed (train_stack's, once per data set).
     """
     clock = [time.perf_counter()]
 
@@ -2043,13 +2101,14 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         probs, pred_mask = torch.ones(B, 1, **like), torch.ones(B, **like)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, **like), torch.ones(B, 1, **like), torch.zeros(B, **like)
-    goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)  # (B, 4)
-    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, goal)
-    gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     lap("predict")
     # --- plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin ---
+    scene = scene_plan(batch, cfg, plan_dt) if scene is None else scene  # goal, candidates: the scene's alone
+    goal = scene.goal  # (B, 4)
+    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, goal)
+    gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     pcfg = cfg if sub == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
-    cands, cost, best, plannable, terms = plan(s0, ctx, goal, w, pcfg)  # (B, N) costs, (B,) plan
+    cands, cost, best, plannable, terms = plan(s0, ctx, goal, w, pcfg, scene)  # (B, N) costs, (B,) plan
     # the planner's target n*: RL, the candidate cheapest in hindsight (the agent's GT future in the collision
     # term, the other terms as planned); IL, the candidate closest to the GT ego trajectory
     if setting == "rl":
@@ -2305,6 +2364,10 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
             predictor = DistributedDataParallel(model)
     opt = torch.optim.Adam(params, lr=cfg.lr)
     sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
+    # The goal, the candidates and every term of eq. (3) but C_coll depend on the scenes alone, never on the
+    # predictor (nor on learned cost weights: they weigh the terms afterwards): computed once for the data here,
+    # not at every step of every epoch (about a sixth of a step). The same numbers either way.
+    scenes = scene_plans(data, cfg, stack_kw.get("plan_dt")) if downstream else None
     n = len(data)
     steps_per_epoch = max(1, n // cfg.batch_size)
     total = max(1, round(epochs * steps_per_epoch))
@@ -2324,12 +2387,13 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
             for i in range(steps_per_epoch):
                 if step >= total:
                     break
-                batch = to_device(data[perm[mine[i * b:(i + 1) * b]]], device)  # one process: perm[i B:(i + 1) B]
+                rows = perm[mine[i * b:(i + 1) * b]]  # one process: perm[i B:(i + 1) B]
+                batch = to_device(data[rows], device)
                 target = offset_targets(batch, pred_offset) if pred_offset else None
                 if downstream:
                     out = run_stack(batch, predictor, method, cfg, setting, step=None if learn_cost else step,
                                     train=not learn_cost, w=cost_w() if learn_cost else None, pred_target=target,
-                                    shard=shard, **stack_kw)
+                                    shard=shard, scene=to_device(scenes[rows], device), **stack_kw)
                     keep = out.plannable.to(out.l_plan.dtype)
                     # Each rank divides its sums by the global number of plannable scenarios / world (never by its own
                     # number): DDP's mean over the ranks then makes (global sum) / (global count). One process: keep.sum().

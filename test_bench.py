@@ -58,7 +58,7 @@ def test_quick_run_writes_json(tmp_path, capsys):
     # every figure: positive, at the one thread asked for, nothing from the skipped closed loop
     keys = {f["key"] for f in on_disk["figures"]}
     assert {"ilqr_forward_f64", "kkt_backward_f64", "ilqr_forward_f32", "kkt_backward_f32", "candidates",
-            "predictor_train", "predictor_eval", "stack_step", "stack_predict", "stack_plan", "stack_control",
+            "predictor_train", "predictor_eval", "stack_step", "stack_scene_plan", "stack_predict", "stack_plan", "stack_control",
             "stack_backward"} <= keys
     assert not any(k.startswith("closed_loop") for k in keys)
     for f in on_disk["figures"]:

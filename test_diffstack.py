@@ -1120,6 +1120,50 @@ def test_a_learning_curve_does_not_change_the_training(small):
     assert curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]  # it measured a model that changed
 
 
+@pytest.mark.parametrize("goal, plan_dt", [("logged", None), ("route", None), ("logged", 0.1)])
+def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
+    """train_stack computes the scene's part of the plan (goal, candidates, every term of eq. (3) but C_coll) once for
+    its data: indexed by a batch's rows it is that batch's own, bit for bit, and the stack's outputs and gradients
+    are those of a run that computes it itself. A scene plan of other rows changes them (the check can fail)."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, goal=goal)
+    data = small.train[:96]
+    scenes = ds.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
+    rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
+    own = ds.scene_plan(data[rows], cfg, plan_dt)
+    for a, b in ((scenes[rows].goal, own.goal), (scenes[rows].cands.x, own.cands.x), (scenes[rows].cands.u, own.cands.u),
+                 (scenes[rows].cands.valid, own.cands.valid), (scenes[rows].terms, own.terms)):
+        assert torch.equal(a, b)
+    model = make_model(cfg).float()
+    m = ds.Method("DiffStack", losses=(1, 1, 1))
+
+    def run(scene):
+        torch.manual_seed(1)  # the decoder's sampled controls
+        model.zero_grad()
+        out = ds.run_stack(data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene)
+        (out.l_pred + out.l_plan + out.l_ctr).sum().backward()
+        return [out.l_plan, out.l_ctr, out.x] + [p.grad.clone() for p in model.parameters()]
+
+    for a, b in zip(run(None), run(scenes[rows])):
+        assert torch.equal(a, b)
+    other = scenes[torch.roll(rows, 1)]
+    assert not all(torch.equal(a, b) for a, b in zip(run(None), run(other)))
+
+
+def test_training_refuses_bad_data_before_the_first_step(small):
+    """train_stack checks its whole data set up front (scene_plans): a non-finite lane point in a scenario the
+    first batches would not reach is refused, naming the field, before any step is taken."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=16)
+    data = small.train[:64]
+    last = torch.randperm(64, generator=torch.Generator().manual_seed(0))[-1]  # train_stack's order (seed 0): its
+    lanes = data.lanes.clone()                                                # first epoch's last batch holds it
+    lanes[last, 0, 0, 0] = math.nan
+    lines = []
+    with pytest.raises(ValueError, match="lanes"):
+        ds.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), ds.Method("DiffStack", losses=(1, 1, 1)),
+                       cfg, "rl", epochs=4.0, log=lines.append)
+    assert lines == []
+
+
 def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
     """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their counts, are the
     overall means."""
