@@ -580,14 +580,15 @@ ex4_done = course.exercise(4, course.check_plan_grad, my_plan_loss_grad)
 # %% [markdown]
 # **From the costs to the prediction (the paper's Fig. 3).** By the chain rule, $\partial\mathcal L_\text{plan}/\partial
 # \hat s_t = \sum_n (\partial\mathcal L_\text{plan}/\partial C_n)\,\partial C_n/\partial\hat s_t$, and $C_n$ depends on $\hat s$
-# only through $C_\text{coll}$. Below, a predictor that always extrapolates at constant velocity (one mode), on the
-# validation set; the target $n^*$ is the candidate cheapest in hindsight (with the true future). The red arrows are
-# $-\partial\mathcal L_\text{plan}/\partial\hat s_t$, the direction in which one gradient step would move each predicted
-# position, at one scale for all panels. **The point: the planner asks a prediction to change only where the change
-# would change its choice**: at the steps where the predicted vehicle is within a few metres of the candidates
-# ($\phi$ is 2 m wide). The table gives the numbers by behaviour; a
-# *far* vehicle's prediction may be just as wrong, but its gradient is zero to the printed digits. Standard training
-# weighs every error alike.
+# only through $C_\text{coll}$ (the other four terms, like the candidates themselves, depend on the scene alone, so
+# `train_stack` computes them once for its data set, `ds.scene_plans`, instead of at every step). Below, a predictor
+# that always extrapolates at constant velocity (one mode), on the validation set; the target $n^*$ is the candidate
+# cheapest in hindsight (with the true future). The red arrows are $-\partial\mathcal L_\text{plan}/\partial\hat s_t$,
+# the direction in which one gradient step would move each predicted position, at one scale for all panels. **The
+# point: the planner asks a prediction to change only where the change would change its choice**: at the steps
+# where the predicted vehicle is within a few metres of the candidates ($\phi$ is 2 m wide). The table gives the
+# numbers by behaviour; a *far* vehicle's prediction may be just as wrong, but its gradient is zero to the printed
+# digits. Standard training weighs every error alike.
 
 # %%
 # -dL_plan/d(prediction) for a constant-velocity prediction, on every validation sample at once; by behaviour, the
@@ -988,22 +989,22 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 # **What the numbers say.** Read the 5-seed table (each learned method trained the paper's 20 epochs, 660 steps of
 # 256, per seed):
 #
-# * DiffStack's hindsight cost is below Standard's, −1.30 ± 0.03 against −0.68 ± 0.14 (×10⁻², relative to No
-#   prediction; paired over seeds −0.62 ± 0.17, better in 5 of 5), and it closes 62 ± 6 % of the Standard → GT
+# * DiffStack's hindsight cost is below Standard's, −1.27 ± 0.09 against −0.67 ± 0.04 (×10⁻², relative to No
+#   prediction; paired over seeds −0.60 ± 0.08, better in 5 of 5), and it closes 62 ± 8 % of the Standard → GT
 #   prediction gap (the paper: 39 %).
-# * Its ADE is *worse*, 1.42 ± 0.08 m against 1.08 ± 0.03 m (+32 %; the paper: 1.27 against 1.32). With
+# * Its ADE is *worse*, 1.35 ± 0.07 m against 1.07 ± 0.04 m (+26 %; the paper: 1.27 against 1.32). With
 #   $\alpha = (1, 100, 1000)$ the downstream losses outweigh $\mathcal L_\text{pred}$; the ablation
-#   $\alpha = (1, 0.2, 0.2)$ in `results/ablation.md` keeps the ADE at 1.20 ± 0.08 m with the same hindsight cost,
-#   −1.32 ± 0.02.
-# * **Standard helps, but unevenly**: −0.68 ± 0.14, from −0.12 (seed 0) to −0.93 (seed 4), against the paper's −1.61.
+#   $\alpha = (1, 0.2, 0.2)$ in `results/ablation.md` keeps the ADE at 1.19 ± 0.04 m with the same hindsight cost,
+#   −1.27 ± 0.03.
+# * **Standard helps, but less**: −0.67 ± 0.04, from −0.58 (seed 1) to −0.81 (seed 2), against the paper's −1.61.
 #   The per-behaviour table below is the evidence: both predictors earn their gain in *keep_lane* and *cut_in*
 #   (where the vehicle beside the ego goes matters to the lateral plan), but Standard gives part of it back at
-#   intersections (*turn_across*, *cross_go*, *go_straight*) and behind a braking leader (*lead_brake*: +1.64 ± 0.29 per scene),
+#   intersections (*turn_across*, *cross_go*, *go_straight*) and behind a braking leader (*lead_brake*: +1.73 ± 0.19 per scene),
 #   the behaviours whose twin manoeuvre shares the set-up (§2): predicting the twin makes the plan react to a vehicle
-#   that is not where it is predicted. DiffStack's predictions cost almost nothing there (at most +0.14 per scene): it
-#   learned which errors hurt the plan.
+#   that is not where it is predicted. DiffStack's predictions cost nothing behind the braking leader and less at
+#   intersections (at most +0.64 ± 0.63 per scene, in *turn_across*): it learned which errors hurt the plan.
 # * The planning-aware reweightings of $\mathcal L_\text{pred}$ do not land between Standard and DiffStack as in the
-#   paper: Distance weighted −0.51 ± 0.15 (ADE 1.14 m), Grad-cost weighted +0.02 ± 0.20 (ADE 1.79 m). Reweighting
+#   paper: Distance weighted −0.58 ± 0.11 (ADE 1.11 m), Grad-cost weighted +0.28 ± 0.21 (ADE 1.75 m). Reweighting
 #   *which samples* count does not tell the model *which errors* hurt the plan; the gradient of §4 does.
 
 # %% [markdown]
@@ -1191,10 +1192,10 @@ section_done("§7")
 # %% [markdown]
 # **Summary of §7. End-to-end training.**
 #
-# * 5 seeds, 20 epochs: DiffStack's hindsight cost is −1.30 ± 0.03 (×10⁻², relative to No prediction) against
-#   Standard's −0.68 ± 0.14, while its ADE is worse (1.42 ± 0.08 vs 1.08 ± 0.03 m).
+# * 5 seeds, 20 epochs: DiffStack's hindsight cost is −1.27 ± 0.09 (×10⁻², relative to No prediction) against
+#   Standard's −0.67 ± 0.04, while its ADE is worse (1.35 ± 0.07 vs 1.07 ± 0.04 m).
 # * Standard gains in the lane-change scenes and gives part of it back where it predicts the wrong one of two
-#   manoeuvres that start alike (intersections, a braking leader); DiffStack's predictions cost nothing there.
+#   manoeuvres that start alike (intersections, a braking leader); DiffStack's predictions cost little there.
 # * DiffStack pays in $\mathcal L_\text{pred}$ (its learning curve stays above Standard's); its gain in planning is
 #   smaller than the batch-to-batch spread of the training losses and shows on a fixed set, relative to No prediction.
 #
@@ -1202,7 +1203,7 @@ section_done("§7")
 #
 # 1. DiffStack's ADE is worse and its plans are better. What would you tell the team that owns the predictor, whose
 #    dashboard shows ADE?
-# 2. The ablation $\alpha = (1, 0.2, 0.2)$ keeps the ADE at 1.20 ± 0.08 m with a hindsight cost of −1.32 ± 0.02
+# 2. The ablation $\alpha = (1, 0.2, 0.2)$ keeps the ADE at 1.19 ± 0.04 m with a hindsight cost of −1.27 ± 0.03
 #    (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
 
 # %% [markdown]
@@ -1230,11 +1231,11 @@ results_table("biased")
 check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+1.93 ± 0.86 ×10⁻²,
-# from +0.55 to +5.12 over seeds), and DiffStack-biased stays almost as good as unbiased DiffStack (−1.11 ± 0.06
-# against −1.30 ± 0.03 in Table 1): training through the planner protects the plan from the interface error. It does
-# **not** remove the bias from the predictions: the ADE of DiffStack-biased, 1.96 ± 0.15 m, is not below
-# Standard-biased's 1.56 ± 0.08 m (the paper reports it lower). The plan needs the predictions to be right where the
+# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+1.07 ± 0.25 ×10⁻²,
+# from +0.29 to +1.70 over seeds), and DiffStack-biased stays almost as good as unbiased DiffStack (−1.13 ± 0.06
+# against −1.27 ± 0.09 in Table 1): training through the planner protects the plan from the interface error. It does
+# **not** remove the bias from the predictions: the ADE of DiffStack-biased, 2.00 ± 0.09 m, is not below
+# Standard-biased's 1.45 ± 0.04 m (the paper reports it lower). The plan needs the predictions to be right where the
 # candidates are, not everywhere (§4's arrows). One seed of this short notebook training is chaotic (the same code
 # and data gave −1.66, −1.96 and −4.03 for one difference on three machines), so read its size from the 5-seed table
 # and trust only the checked orderings here.
@@ -1244,14 +1245,14 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 # s_{\text{gt},t}\rVert^2$, with $\alpha = (1, 10, 1000)$. The table reports the planning loss (×10⁻³) and the
 # controller's squared error to the expert (×10⁻²), both relative to No prediction.
 #
-# **A surprise: DiffStack beats GT prediction** in the 5-seed table, by far (MSE −15.56 ± 3.85 against −0.20 ± 0.00
-# ×10⁻²; Standard +0.77 ± 0.46). A perfect prediction cannot be beaten at *predicting*, so DiffStack must be doing
-# something else. The evidence: (1) its predictions are worse predictions, ADE 4.11 ± 0.29 m against Standard's
-# 1.08 ± 0.03 m; (2) with the hand-tuned cost the true future hardly helps to imitate the expert (GT prediction:
+# **A surprise: DiffStack beats GT prediction** in the 5-seed table, by far (MSE −13.92 ± 5.53 against −0.20 ± 0.00
+# ×10⁻²; Standard −0.90 ± 0.36). A perfect prediction cannot be beaten at *predicting*, so DiffStack must be doing
+# something else. The evidence: (1) its predictions are worse predictions, ADE 3.97 ± 0.26 m against Standard's
+# 1.07 ± 0.04 m; (2) with the hand-tuned cost the true future hardly helps to imitate the expert (GT prediction:
 # −0.20), while changing the cost does: Table 3 below learns the cost weights with the same MSE loss, and in this
 # notebook's short training that lowers the MSE (its check). In IL the predictions are an input of the cost that the MSE gradient is free to move, so DiffStack
 # bends them to steer the planner toward the expert, making up for the cost's mismatch. That lowers the MSE, and it
-# is not better prediction. (One seed of five, seed 4, found no such steering: −0.43.)
+# is not better prediction. (One seed of five, seed 0, found no such steering: +4.94, worse than Standard's −1.18.)
 
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
@@ -1290,7 +1291,7 @@ check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %% [markdown]
 # **What the numbers say: reproduced, once the scale cannot change sign.** Over 5 seeds of 20 epochs the learned
-# weights cut the MSE from 2.58 to 0.57 m² (and the planning loss from 2.60 to 0.95) in every seed, moving the way the
+# weights cut the MSE from 2.56 to 0.57 m² (and the planning loss from 2.60 to 0.95) in every seed, moving the way the
 # paper's do (goal, lane and heading up, control effort down to 0.12, the paper's 0.63). The scale $\rho$ deserves a
 # look. The minimiser of $\rho\,C$ is the same for every $\rho > 0$, so the loss does not depend on $\rho$ at all;
 # its gradient comes only from iLQR stopping at its tolerance a little short of the exact minimum, where the KKT
@@ -1350,13 +1351,13 @@ rel = {n: r[0]["rel_trajectory"] for n, r in res5.items()}
 check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 
 # %% [markdown]
-# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.09 ± 0.01 and
-# Standard's +0.29 ± 0.05 (×10⁻², relative to No prediction), GT prediction's −0.11 ± 0.00: the open-loop order, with
-# DiffStack almost at GT. Standard's plans look better in open loop (open-loop cost −1.52 ± 0.15, DiffStack
-# −1.03 ± 0.03) but cost more once executed: its control effort is +0.44 ± 0.05 against DiffStack's +0.05 ± 0.01, the
+# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.06 ± 0.02 and
+# Standard's +0.27 ± 0.07 (×10⁻², relative to No prediction), GT prediction's −0.11 ± 0.00: the open-loop order, with
+# DiffStack near GT. Standard's plans look better in open loop (open-loop cost −1.43 ± 0.09, DiffStack
+# −1.20 ± 0.08) but cost more once executed: its control effort is +0.42 ± 0.07 against DiffStack's +0.09 ± 0.02, the
 # price of replanning around predictions that change from one step to the next. The executed trajectories stay close
-# to each other: the mean deviation from the logged ego is 0.315 m for No prediction and only 1.02 ± 0.03 (Standard)
-# and 0.84 ± 0.02 (DiffStack) ×10⁻² m more for the others. Replanning every 0.5 s corrects a wrong plan before much of
+# to each other: the mean deviation from the logged ego is 0.315 m for No prediction and only 0.97 ± 0.03 (Standard)
+# and 0.82 ± 0.02 (DiffStack) ×10⁻² m more for the others. Replanning every 0.5 s corrects a wrong plan before much of
 # it is executed.
 #
 # **A finer clock (the dt = 0.1 s ablation, App. A.1).** The predictor works on the data's 0.5 s steps; the planner
@@ -1365,7 +1366,7 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # cost terms by 1/5, so that eq. (3) adds up the same cost per second and only the resolution changes. Here the
 # predictors trained above at 0.5 s are *evaluated* at 0.1 s; the ablation proper (`python experiments.py
 # --experiment ablation`) also *trains* DiffStack through the 0.1 s planner and controller. Its 5 seeds
-# (`results/ablation.md`): Standard −0.97 ± 0.05, DiffStack −1.31 ± 0.04, GT prediction −1.56 ± 0.00 (hindsight cost
+# (`results/ablation.md`): Standard −0.97 ± 0.03, DiffStack −1.28 ± 0.04, GT prediction −1.56 ± 0.00 (hindsight cost
 # ×10⁻²), the same order as at 0.5 s.
 
 # %%
@@ -1400,12 +1401,12 @@ section_done("§8")
 # %% [markdown]
 # **Summary of §8. More experiments.**
 #
-# * Biased targets (5 seeds): Standard-biased +1.93 ± 0.86, DiffStack-biased −1.11 ± 0.06: the downstream losses make
-#   the plans robust to a 1 m interface error, without bringing the ADE down (1.96 ± 0.15 vs 1.56 ± 0.08 m).
-# * Imitation: DiffStack's MSE beats even GT prediction's (−15.56 ± 3.85 vs −0.20). With the hand-tuned cost the true
-#   future hardly helps; DiffStack's predictions (ADE 4.11 ± 0.29 m) steer the plan. Learning the cost weights
-#   (Table 3) cuts the MSE from 2.58 to 0.57 m²; their scale must be kept positive, because the loss cannot see it.
-# * Closed loop (5 seeds): DiffStack −0.09 ± 0.01 against Standard's +0.29 ± 0.05, near GT's −0.11.
+# * Biased targets (5 seeds): Standard-biased +1.07 ± 0.25, DiffStack-biased −1.13 ± 0.06: the downstream losses make
+#   the plans robust to a 1 m interface error, without bringing the ADE down (2.00 ± 0.09 vs 1.45 ± 0.04 m).
+# * Imitation: DiffStack's MSE beats even GT prediction's (−13.92 ± 5.53 vs −0.20). With the hand-tuned cost the true
+#   future hardly helps; DiffStack's predictions (ADE 3.97 ± 0.26 m) steer the plan. Learning the cost weights
+#   (Table 3) cuts the MSE from 2.56 to 0.57 m²; their scale must be kept positive, because the loss cannot see it.
+# * Closed loop (5 seeds): DiffStack −0.06 ± 0.02 against Standard's +0.27 ± 0.07, near GT's −0.11.
 #
 # **For discussion.**
 #
