@@ -1603,7 +1603,8 @@ class Predictor(nn.Module):
         W0 = self.dec_h0.weight  # (Hd, K+X)
         h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T.contiguous()).reshape(B * K, Hd)
         # h (B*K, Hd) = h_0 = Linear([one_hot(k); x]), the same column lookup
-        c_r, c_z, c_n = gi_zx.split(Hd, 1)  # (B*K, Hd) each
+        # (B*K, Hd) each, made contiguous once: addmm is slower with a strided (column-block) c, six times a pass
+        c_r, c_z, c_n = (c.contiguous() for c in gi_zx.split(Hd, 1))
         (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
         b_hn = b_h[2 * Hd :]  # (Hd,)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
@@ -1619,7 +1620,7 @@ class Predictor(nn.Module):
             outs.append(out)
             mu = out[:, :2]  # (B*K, 2)
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
-                s_w, s_a = out[:, 2:4].exp().unbind(1)  # (B*K,) each
+                s_w, s_a = out[:, 2].exp(), out[:, 3].exp()  # (B*K,) each; one exp of the (B*K, 2) slice: 16x slower
                 rho = bounded_correlation(out[:, 4])  # (B*K,) inside (-1, 1): the sqrt below stays finite
                 eps = torch.randn_like(mu) if shard is None else shard.randn_rows(mu, K)  # (B*K, 2)
                 e1, e2 = eps.unbind(1)  # (B*K,) each
@@ -1628,7 +1629,7 @@ class Predictor(nn.Module):
                 u_prev = mu
         # all steps at once: (B*K, T, 5) -> means and Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
         mu, log_s, rho = torch.stack(outs, 1).split([2, 2, 1], -1)  # (B*K, T, 2), (B*K, T, 2), (B*K, T, 1)
-        s_w, s_a = log_s.exp().unbind(-1)  # (B*K, T) each
+        s_w, s_a = log_s[..., 0].exp(), log_s[..., 1].exp()  # (B*K, T) each; one exp of the slice: 24x slower
         c = bounded_correlation(rho[..., 0]) * s_w * s_a  # (B*K, T); the same rho as the sample's
         cov = torch.stack([s_w**2, c, c, s_a**2], -1)  # (B*K, T, 4)
         return mu.reshape(B, K, T, 2), cov.reshape(B, K, T, 2, 2)
@@ -1720,7 +1721,7 @@ def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, 
         P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T.
     """
     _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), cfg.dt)  # (2, 2, ..., T) each
-    return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
+    return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
 
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
@@ -1738,7 +1739,8 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
     dx, dy, M, N = _position_jacobians(h[..., :-1], v[..., :-1], w, a, dt)  # (..., T), (..., T), (2, 2, ..., T) x2
     x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
     y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
-    return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)), cfg)
+    # Sigma_u with its matrix indices first, copied once into that layout (a strided view slows every op after it)
+    return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
 
 # --------------------------------------------------------------------------------------------
@@ -2089,7 +2091,8 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step, shard=shard)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
-        preds = upsample(now, pred.states[..., :2], sub)  # (B, K, T, 2) on the planner's clock
+        # (B, K, T, 2) on the planner's clock, contiguous: the cost reads it some 20 times a step
+        preds = upsample(now, pred.states[..., :2], sub).contiguous()
         probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K) q(z|x,y) in training, p(z|x) otherwise; (B,)
         if train and (method.train_plan_weights or cfg.train_plan_weights) == "prior":
             probs = pred.log_p.exp()  # the planner sees what it will see at evaluation, and its losses reach p(z|x)
