@@ -1257,6 +1257,14 @@ def run_key(data, cfg: Config, epochs, device="cpu") -> str:
                      code=code_version(), device=str(device)))
 
 
+def _usual_permissions(path) -> None:
+    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its files 0600, and a
+    result only its owner can read is no use in a shared lab folder."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
 def save_atomic(obj, path) -> None:
     """torch.save through a temporary file and a rename (as write_atomic)."""
     path = pathlib.Path(path)
@@ -1265,6 +1273,7 @@ def save_atomic(obj, path) -> None:
     os.close(fd)
     try:
         torch.save(obj, tmp)
+        _usual_permissions(tmp)
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)
@@ -1505,6 +1514,7 @@ def write_atomic(path: pathlib.Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        _usual_permissions(tmp)
         os.replace(tmp, path)
     except BaseException:
         os.unlink(tmp)

@@ -82,6 +82,21 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]  # and no half-written temporary file is left
 
 
+def test_atomic_writes_give_results_the_usual_permissions(tmp_path):
+    """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would have made it
+    (0666 less the umask), so that others in a shared lab folder can read it; a plain file is the reference."""
+    old = os.umask(0o022)
+    try:
+        (tmp_path / "plain.txt").write_text("x")
+        ex.write_atomic(tmp_path / "rl.json", "{}")
+        ex.save_atomic({"w": 1}, tmp_path / "model.pt")
+    finally:
+        os.umask(old)
+    mode = lambda name: (tmp_path / name).stat().st_mode & 0o777  # noqa: E731
+    assert mode("plain.txt") == 0o644
+    assert mode("rl.json") == mode("model.pt") == mode("plain.txt")
+
+
 # ---------------------------------------------------------------------------------------------
 # The command lines: numbers finite, positive and bounded; --quick takes no flag it would ignore
 # ---------------------------------------------------------------------------------------------
