@@ -1257,12 +1257,14 @@ def run_key(data, cfg: Config, epochs, device="cpu") -> str:
                      code=code_version(), device=str(device)))
 
 
+_UMASK = os.umask(0o022)  # the process's umask, read once at import (reading it means setting it) and put back
+os.umask(_UMASK)
+
+
 def _usual_permissions(path) -> None:
     """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its files 0600, and a
     result only its owner can read is no use in a shared lab folder."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
+    os.chmod(path, 0o666 & ~_UMASK)
 
 
 def save_atomic(obj, path) -> None:

@@ -82,9 +82,10 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]  # and no half-written temporary file is left
 
 
-def test_atomic_writes_give_results_the_usual_permissions(tmp_path):
+def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch):
     """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would have made it
     (0666 less the umask), so that others in a shared lab folder can read it; a plain file is the reference."""
+    monkeypatch.setattr(ex, "_UMASK", 0o022)  # the umask experiments.py read at import, here the common one
     old = os.umask(0o022)
     try:
         (tmp_path / "plain.txt").write_text("x")
