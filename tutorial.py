@@ -986,38 +986,38 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 
 
 # %% [markdown]
-# **What the numbers say.** Read the 5-seed table (each learned method trained the paper's 20 epochs, 660 steps of
-# 256, per seed):
+# **What the numbers say.** Read the 5-seed table (each learned method trained for 40 epochs, 1 320 steps of 256,
+# per seed; the paper trains 20, but on this data Standard's ADE was still falling at 20, see the learning curves):
 #
-# * DiffStack's hindsight cost is below Standard's, −1.27 ± 0.09 against −0.67 ± 0.04 (×10⁻², relative to No
-#   prediction; paired over seeds −0.60 ± 0.08, better in 5 of 5), and it closes 62 ± 8 % of the Standard → GT
-#   prediction gap (the paper: 39 %).
-# * Its ADE is *worse*, 1.35 ± 0.07 m against 1.07 ± 0.04 m (+26 %; the paper: 1.27 against 1.32). With
+# * DiffStack's hindsight cost is below Standard's, −1.21 ± 0.04 against −0.96 ± 0.06 (×10⁻², relative to No
+#   prediction; paired over seeds −0.25 ± 0.10, t = −2.6, better in 4 of 5, seed 0 a tie), and it closes 33 ± 12 %
+#   of the Standard → GT prediction gap (the paper: 39 %).
+# * Its ADE is a little worse, 1.12 ± 0.08 m against 0.96 ± 0.03 m (+17 %; the paper: 1.27 against 1.32). With
 #   $\alpha = (1, 100, 1000)$ the downstream losses outweigh $\mathcal L_\text{pred}$; the ablation
-#   $\alpha = (1, 0.2, 0.2)$ in `results/ablation.md` keeps the ADE at 1.19 ± 0.04 m with the same hindsight cost,
-#   −1.27 ± 0.03.
-# * **Standard helps, but less**: −0.67 ± 0.04, from −0.58 (seed 1) to −0.81 (seed 2), against the paper's −1.61.
+#   $\alpha = (1, 0.2, 0.2)$ in `results/ablation.md` brings the ADE to 0.87 ± 0.03 m, below Standard's, with the
+#   same hindsight cost, −1.20 ± 0.07.
+# * **Standard helps, but less**: −0.96 ± 0.06, from −0.81 (seed 3) to −1.11 (seed 2), against the paper's −1.61.
 #   The per-behaviour table below is the evidence: both predictors earn their gain in *keep_lane* and *cut_in*
-#   (where the vehicle beside the ego goes matters to the lateral plan), but Standard gives part of it back at
-#   intersections (*turn_across*, *cross_go*, *go_straight*) and behind a braking leader (*lead_brake*: +1.73 ± 0.19 per scene),
-#   the behaviours whose twin manoeuvre shares the set-up (§2): predicting the twin makes the plan react to a vehicle
-#   that is not where it is predicted. DiffStack's predictions cost nothing behind the braking leader and less at
-#   intersections (at most +0.64 ± 0.63 per scene, in *turn_across*): it learned which errors hurt the plan.
+#   (where the vehicle beside the ego goes matters to the lateral plan), but Standard gives part of it back behind a
+#   braking leader (*lead_brake*: +0.80 ± 0.24 per scene) and at intersections (*cross_go*, *go_straight*,
+#   *turn_across*), the behaviours whose twin manoeuvre shares the set-up (§2): predicting the twin makes the plan
+#   react to a vehicle that is not where it is predicted. DiffStack's predictions cost nothing behind the braking
+#   leader or in *cross_go* and gain more in *keep_lane*: it learned which errors hurt the plan (though not in
+#   *turn_across*, +0.92 ± 0.56 against Standard's +0.55 ± 0.29).
 # * The planning-aware reweightings of $\mathcal L_\text{pred}$ do not land between Standard and DiffStack as in the
-#   paper: Distance weighted −0.58 ± 0.11 (ADE 1.11 m), Grad-cost weighted +0.28 ± 0.21 (ADE 1.75 m). Reweighting
+#   paper: Distance weighted −0.81 ± 0.13 (ADE 1.05 m), Grad-cost weighted 0.00 ± 0.13 (ADE 1.79 m). Reweighting
 #   *which samples* count does not tell the model *which errors* hurt the plan; the gradient of §4 does.
 
 # %% [markdown]
 # **The tables' learning curves** (`results/learning_curves.png`: 5 seeds, mean ± s.e., on 512 fixed validation
 # scenes after every epoch). DiffStack plans better than Standard from the first epoch on (right), at a higher ADE
-# all the way (left). Over the last 5 of the 20 epochs neither hindsight cost moves visibly (Standard and DiffStack
-# −0.001 ± 0.001), but Standard's ADE still falls (−0.08 ± 0.03 m): it has not plateaued. Trained twice as long
-# (`results/epochs40/rl.md`, 40 epochs, 5 seeds), Standard gains the most: hindsight cost −0.96 ± 0.06 against
-# DiffStack's −1.21 ± 0.04 (still reproduced, paired −0.25 ± 0.10, 4 of 5 seeds), DiffStack's ADE only 17 % above
-# Standard's, and DiffStack closes 33 ± 12 % of the gap to GT, close to the paper's 39 %. The planning order holds;
-# its margin at 20 epochs is partly Standard's under-training.
+# all the way (left). At the paper's 20 epochs Standard's ADE was still falling (−0.08 ± 0.03 m over the last 5
+# epochs): it had not plateaued, which is why the tables train 40, over whose last 5 epochs both curves are flat.
+# The 20-epoch tables (`results/epochs20/`) told the same story with a wider margin, Standard −0.67 ± 0.04 against
+# DiffStack's −1.27 ± 0.09 (62 % of the gap closed): the extra 20 epochs help Standard the most, DiffStack's
+# hindsight cost stays where it was. Part of a 20-epoch margin was Standard's under-training.
 #
-# ![Learning curves of Standard and DiffStack over 20 epochs](results/learning_curves.png)
+# ![Learning curves of Standard and DiffStack over 40 epochs](results/learning_curves.png)
 
 # %% [markdown]
 # **Where a perfect prediction is worth something (`results/goal.md`).** Before blaming Standard's predictions, ask
@@ -1195,8 +1195,8 @@ section_done("§7")
 # %% [markdown]
 # **Summary of §7. End-to-end training.**
 #
-# * 5 seeds, 20 epochs: DiffStack's hindsight cost is −1.27 ± 0.09 (×10⁻², relative to No prediction) against
-#   Standard's −0.67 ± 0.04, while its ADE is worse (1.35 ± 0.07 vs 1.07 ± 0.04 m).
+# * 5 seeds, 40 epochs: DiffStack's hindsight cost is −1.21 ± 0.04 (×10⁻², relative to No prediction) against
+#   Standard's −0.96 ± 0.06, while its ADE is a little worse (1.12 ± 0.08 vs 0.96 ± 0.03 m).
 # * Standard gains in the lane-change scenes and gives part of it back where it predicts the wrong one of two
 #   manoeuvres that start alike (intersections, a braking leader); DiffStack's predictions cost little there.
 # * DiffStack pays in $\mathcal L_\text{pred}$ (its learning curve stays above Standard's); its gain in planning is
@@ -1206,8 +1206,8 @@ section_done("§7")
 #
 # 1. DiffStack's ADE is worse and its plans are better. What would you tell the team that owns the predictor, whose
 #    dashboard shows ADE?
-# 2. The ablation $\alpha = (1, 0.2, 0.2)$ keeps the ADE at 1.19 ± 0.04 m with a hindsight cost of −1.27 ± 0.03
-#    (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
+# 2. The ablation $\alpha = (1, 0.2, 0.2)$ gives an ADE of 0.87 ± 0.03 m, below Standard's, with a hindsight cost of
+#    −1.20 ± 0.07 (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
 
 # %% [markdown]
 # ## 8. More experiments
@@ -1234,11 +1234,11 @@ results_table("biased")
 check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+1.07 ± 0.25 ×10⁻²,
-# from +0.29 to +1.70 over seeds), and DiffStack-biased stays almost as good as unbiased DiffStack (−1.13 ± 0.06
-# against −1.27 ± 0.09 in Table 1): training through the planner protects the plan from the interface error. It does
-# **not** remove the bias from the predictions: the ADE of DiffStack-biased, 2.00 ± 0.09 m, is not below
-# Standard-biased's 1.45 ± 0.04 m (the paper reports it lower). The plan needs the predictions to be right where the
+# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+1.26 ± 0.37 ×10⁻²,
+# from +0.32 to +2.43 over seeds), and DiffStack-biased stays as good as unbiased DiffStack (−1.12 ± 0.10 against
+# −1.21 ± 0.04 in Table 1): training through the planner protects the plan from the interface error. It does
+# **not** remove the bias from the predictions: the ADE of DiffStack-biased, 1.71 ± 0.10 m, is not below
+# Standard-biased's 1.40 ± 0.05 m (the paper reports it lower). The plan needs the predictions to be right where the
 # candidates are, not everywhere (§4's arrows). One seed of this short notebook training is chaotic (the same code
 # and data gave −1.66, −1.96 and −4.03 for one difference on three machines), so read its size from the 5-seed table
 # and trust only the checked orderings here.
@@ -1248,14 +1248,15 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 # s_{\text{gt},t}\rVert^2$, with $\alpha = (1, 10, 1000)$. The table reports the planning loss (×10⁻³) and the
 # controller's squared error to the expert (×10⁻²), both relative to No prediction.
 #
-# **A surprise: DiffStack beats GT prediction** in the 5-seed table, by far (MSE −13.92 ± 5.53 against −0.20 ± 0.00
-# ×10⁻²; Standard −0.90 ± 0.36). A perfect prediction cannot be beaten at *predicting*, so DiffStack must be doing
-# something else. The evidence: (1) its predictions are worse predictions, ADE 3.97 ± 0.26 m against Standard's
-# 1.07 ± 0.04 m; (2) with the hand-tuned cost the true future hardly helps to imitate the expert (GT prediction:
+# **A surprise: DiffStack beats GT prediction** in the 5-seed table, by far (MSE −23.66 ± 1.93 against −0.20 ± 0.00
+# ×10⁻²; Standard +0.35 ± 0.38). A perfect prediction cannot be beaten at *predicting*, so DiffStack must be doing
+# something else. The evidence: (1) its predictions are worse predictions, ADE 4.38 ± 0.19 m against Standard's
+# 0.96 ± 0.03 m; (2) with the hand-tuned cost the true future hardly helps to imitate the expert (GT prediction:
 # −0.20), while changing the cost does: Table 3 below learns the cost weights with the same MSE loss, and in this
 # notebook's short training that lowers the MSE (its check). In IL the predictions are an input of the cost that the MSE gradient is free to move, so DiffStack
 # bends them to steer the planner toward the expert, making up for the cost's mismatch. That lowers the MSE, and it
-# is not better prediction. (One seed of five, seed 0, found no such steering: +4.94, worse than Standard's −1.18.)
+# is not better prediction. (It does so in every seed at 40 epochs, from −17 to −29; at the paper's 20 epochs,
+# `results/epochs20/il.md`, one seed of five had not found the steering yet.)
 
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
@@ -1293,14 +1294,15 @@ results_table("cost")
 check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say: reproduced, once the scale cannot change sign.** Over 5 seeds of 20 epochs the learned
-# weights cut the MSE from 2.56 to 0.57 m² (and the planning loss from 2.60 to 0.95) in every seed, moving the way the
-# paper's do (goal, lane and heading up, control effort down to 0.12, the paper's 0.63). The scale $\rho$ deserves a
+# **What the numbers say: reproduced, once the scale cannot change sign.** Over 5 seeds of 40 epochs the learned
+# weights cut the MSE from 2.58 to 0.56 m² (and the planning loss from 2.60 to 1.11) in every seed, moving mostly the
+# way the paper's do (goal and heading up, control effort down to 0.09, the paper's 0.63), and the lane weight down
+# (0.21; the paper's rises to 0.36): with heading weighted 3.75, the lane term has less left to do. The scale $\rho$ deserves a
 # look. The minimiser of $\rho\,C$ is the same for every $\rho > 0$, so the loss does not depend on $\rho$ at all;
 # its gradient comes only from iLQR stopping at its tolerance a little short of the exact minimum, where the KKT
 # backward sees a leftover gradient of $C$. Trained as a plain number (as a first version of this code did), $\rho$
 # drifted through zero by epoch 20 (−0.041): every weight turned negative, the controller maximised the cost and the
-# MSE went to 1 540 m². Trained as $\rho = e^\lambda$ it drifts to 0.52 and changes nothing. A lesson that carries
+# MSE went to 1 540 m². Trained as $\rho = e^\lambda$ it drifts to 0.51 and changes nothing. A lesson that carries
 # over: a parameter the loss cannot see still gets a gradient from an inexact solver.
 
 # %% [markdown]
@@ -1354,13 +1356,13 @@ rel = {n: r[0]["rel_trajectory"] for n, r in res5.items()}
 check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 
 # %% [markdown]
-# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.06 ± 0.02 and
-# Standard's +0.27 ± 0.07 (×10⁻², relative to No prediction), GT prediction's −0.11 ± 0.00: the open-loop order, with
-# DiffStack near GT. Standard's plans look better in open loop (open-loop cost −1.43 ± 0.09, DiffStack
-# −1.20 ± 0.08) but cost more once executed: its control effort is +0.42 ± 0.07 against DiffStack's +0.09 ± 0.02, the
+# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.11 ± 0.01 and
+# Standard's +0.06 ± 0.07 (×10⁻², relative to No prediction), GT prediction's −0.11 ± 0.00: the open-loop order, with
+# DiffStack level with GT. Standard's plans look better in open loop (open-loop cost −1.77 ± 0.15, DiffStack
+# −0.90 ± 0.04) but cost more once executed: its control effort is +0.21 ± 0.08 against DiffStack's +0.03 ± 0.01, the
 # price of replanning around predictions that change from one step to the next. The executed trajectories stay close
-# to each other: the mean deviation from the logged ego is 0.315 m for No prediction and only 0.97 ± 0.03 (Standard)
-# and 0.82 ± 0.02 (DiffStack) ×10⁻² m more for the others. Replanning every 0.5 s corrects a wrong plan before much of
+# to each other: the mean deviation from the logged ego is 0.315 m for No prediction and only 1.02 ± 0.02 (Standard)
+# and 0.90 ± 0.03 (DiffStack) ×10⁻² m more for the others. Replanning every 0.5 s corrects a wrong plan before much of
 # it is executed.
 #
 # **A finer clock (the dt = 0.1 s ablation, App. A.1).** The predictor works on the data's 0.5 s steps; the planner
@@ -1369,7 +1371,7 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # cost terms by 1/5, so that eq. (3) adds up the same cost per second and only the resolution changes. Here the
 # predictors trained above at 0.5 s are *evaluated* at 0.1 s; the ablation proper (`python experiments.py
 # --experiment ablation`) also *trains* DiffStack through the 0.1 s planner and controller. Its 5 seeds
-# (`results/ablation.md`): Standard −0.97 ± 0.03, DiffStack −1.28 ± 0.04, GT prediction −1.56 ± 0.00 (hindsight cost
+# (`results/ablation.md`): Standard −1.11 ± 0.03, DiffStack −1.29 ± 0.02, GT prediction −1.56 ± 0.00 (hindsight cost
 # ×10⁻²), the same order as at 0.5 s.
 
 # %%
@@ -1404,12 +1406,12 @@ section_done("§8")
 # %% [markdown]
 # **Summary of §8. More experiments.**
 #
-# * Biased targets (5 seeds): Standard-biased +1.07 ± 0.25, DiffStack-biased −1.13 ± 0.06: the downstream losses make
-#   the plans robust to a 1 m interface error, without bringing the ADE down (2.00 ± 0.09 vs 1.45 ± 0.04 m).
-# * Imitation: DiffStack's MSE beats even GT prediction's (−13.92 ± 5.53 vs −0.20). With the hand-tuned cost the true
-#   future hardly helps; DiffStack's predictions (ADE 3.97 ± 0.26 m) steer the plan. Learning the cost weights
-#   (Table 3) cuts the MSE from 2.56 to 0.57 m²; their scale must be kept positive, because the loss cannot see it.
-# * Closed loop (5 seeds): DiffStack −0.06 ± 0.02 against Standard's +0.27 ± 0.07, near GT's −0.11.
+# * Biased targets (5 seeds): Standard-biased +1.26 ± 0.37, DiffStack-biased −1.12 ± 0.10: the downstream losses make
+#   the plans robust to a 1 m interface error, without bringing the ADE down (1.71 ± 0.10 vs 1.40 ± 0.05 m).
+# * Imitation: DiffStack's MSE beats even GT prediction's (−23.66 ± 1.93 vs −0.20). With the hand-tuned cost the true
+#   future hardly helps; DiffStack's predictions (ADE 4.38 ± 0.19 m) steer the plan. Learning the cost weights
+#   (Table 3) cuts the MSE from 2.58 to 0.56 m²; their scale must be kept positive, because the loss cannot see it.
+# * Closed loop (5 seeds): DiffStack −0.11 ± 0.01 against Standard's +0.06 ± 0.07, level with GT's −0.11.
 #
 # **For discussion.**
 #
