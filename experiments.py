@@ -1405,10 +1405,14 @@ def _clock(seconds: float) -> str:
 
 class Progress:
     """A line 'progress: done/total pieces (reused), elapsed, ETA' every `every` seconds from a timer thread, and on
-    demand (line()). The ETA assumes the remaining pieces take as long as this run's so far."""
+    demand (line()). The ETA adds up what the remaining pieces should cost, each at the computing time of the
+    finished pieces of the same table, section and method (its other seeds, in this run or an earlier one of the
+    same key), or else at the mean of every finished piece, shared by `workers` processes: the pieces differ by
+    a factor of a thousand (a training against a lookup of a shared predictor), so counting pieces is no estimate.
+    Without timings (a store in memory) it assumes the remaining pieces take as long as this run's so far."""
 
-    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0):
-        self.store, self.pieces, self.log, self.every = store, pieces, log, every
+    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1):
+        self.store, self.pieces, self.log, self.every, self.workers = store, pieces, log, every, workers
         self.t0, self.reused = time.time(), self.done()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -1416,10 +1420,29 @@ class Progress:
     def done(self) -> int:
         return sum(self.store.has(t, p) for t, p in self.pieces)
 
+    def remaining_seconds(self) -> float | None:
+        """The remaining pieces' computing time in seconds, estimated from the finished pieces' own (None: no
+        finished piece has a timing)."""
+        seconds, left = {}, []
+        for table, piece in self.pieces:
+            timing = self.store.timing(table, piece) if self.store.has(table, piece) else None
+            if timing is not None:
+                seconds.setdefault((table, piece.section, piece.method), []).append(timing["seconds"])
+            elif not self.store.has(table, piece):
+                left.append((table, piece.section, piece.method))
+        if not seconds:
+            return None
+        overall = statistics.mean(t for ts in seconds.values() for t in ts)
+        return sum(statistics.mean(seconds[kind]) if kind in seconds else overall for kind in left)
+
     def line(self) -> str:
         done, el = self.done(), time.time() - self.t0
         new, left = done - self.reused, len(self.pieces) - done
-        eta = _clock(el / new * left) if new else "unknown (no piece finished yet)"
+        remaining = self.remaining_seconds()
+        if remaining is not None:
+            eta = _clock(remaining / self.workers)
+        else:
+            eta = _clock(el / new * left) if new else "unknown (no piece finished yet)"
         return f"progress: {done}/{len(self.pieces)} pieces ({self.reused} reused), {_clock(el)} elapsed, ETA {eta}"
 
     def _run(self):
@@ -1672,7 +1695,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     if store.root is not None and log:
         log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
-    with Progress(store, all_pieces, log, progress_every) as progress:
+    with Progress(store, all_pieces, log, progress_every, workers=jobs) as progress:
         units = work_units(names, seeds, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
         if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
             if log:

@@ -142,6 +142,21 @@ def test_progress_prints_done_total_elapsed_and_eta():
     assert line.startswith("progress: 2/4 pieces (1 reused), 0:00:00 elapsed, ETA 0:00:")
 
 
+def test_the_eta_adds_up_each_remaining_piece_at_its_own_method_s_time(tmp_path):
+    """A training piece costs minutes, a piece whose predictor another table trained costs a second: the ETA must
+    price each remaining piece by its method's finished seeds (or the mean of all), and share it between workers."""
+    store = ex.RunStore(tmp_path, "k")
+    pieces = [("rl", ex.Piece(m, s)) for m in ("DiffStack", "Standard", "Grad-cost weighted") for s in range(4)]
+    store.save("rl", ex.Piece("DiffStack", 0), {"ade": 1.0}, timing=dict(seconds=600.0, cpu_seconds=600.0))
+    store.save("rl", ex.Piece("Standard", 0), {"ade": 1.0}, timing=dict(seconds=60.0, cpu_seconds=60.0))
+    store.save("rl", ex.Piece("Standard", 1), {"ade": 1.0}, timing=dict(seconds=20.0, cpu_seconds=20.0))
+    # left: DiffStack 3 x 600, Standard 2 x 40 (its seeds' mean), Grad-cost 4 x 226.67 (no seed of it yet: the mean)
+    progress = ex.Progress(store, pieces, log=None, workers=2)
+    assert progress.remaining_seconds() == pytest.approx(3 * 600 + 2 * 40 + 4 * 680 / 3)
+    assert progress.line().endswith(f"ETA {ex._clock((1800 + 80 + 4 * 680 / 3) / 2)}")  # 0:23:13 on 2 workers
+    assert ex.Progress(ex.RunStore(tmp_path / "none", "k"), pieces, log=None).remaining_seconds() is None
+
+
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
     """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
     args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--threads", "1", "--jobs", "1",
