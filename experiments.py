@@ -1409,11 +1409,15 @@ class Progress:
     finished pieces of the same table, section and method (its other seeds, in this run or an earlier one of the
     same key), or else at the mean of every finished piece, shared by `workers` processes: the pieces differ by
     a factor of a thousand (a training against a lookup of a shared predictor), so counting pieces is no estimate.
+    A method with no finished seed is priced at no less than the pieces still running have run so far: in the
+    first minutes only one-second lookups have finished, and their mean alone would promise the end in a minute.
     Without timings (a store in memory) it assumes the remaining pieces take as long as this run's so far."""
 
     def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1):
         self.store, self.pieces, self.log, self.every, self.workers = store, pieces, log, every, workers
-        self.t0, self.reused = time.time(), self.done()
+        self.t0 = time.time()
+        self.earlier = {(t, p) for t, p in pieces if store.has(t, p)}  # finished before this run: reused
+        self.reused = len(self.earlier)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -1423,17 +1427,21 @@ class Progress:
     def remaining_seconds(self) -> float | None:
         """The remaining pieces' computing time in seconds, estimated from the finished pieces' own (None: no
         finished piece has a timing)."""
-        seconds, left = {}, []
+        seconds, left, this_run = {}, [], 0.0
         for table, piece in self.pieces:
             timing = self.store.timing(table, piece) if self.store.has(table, piece) else None
             if timing is not None:
                 seconds.setdefault((table, piece.section, piece.method), []).append(timing["seconds"])
+                this_run += timing["seconds"] if (table, piece) not in self.earlier else 0.0
             elif not self.store.has(table, piece):
                 left.append((table, piece.section, piece.method))
         if not seconds:
             return None
         overall = statistics.mean(t for ts in seconds.values() for t in ts)
-        return sum(statistics.mean(seconds[kind]) if kind in seconds else overall for kind in left)
+        # every worker has been busy since the start: what this run computed beyond its finished pieces is the
+        # pieces in flight, each of which has run for this long on average (and will take at least that)
+        running = max(0.0, self.workers * (time.time() - self.t0) - this_run) / self.workers
+        return sum(statistics.mean(seconds[kind]) if kind in seconds else max(overall, running) for kind in left)
 
     def line(self) -> str:
         done, el = self.done(), time.time() - self.t0

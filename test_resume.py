@@ -157,6 +157,20 @@ def test_the_eta_adds_up_each_remaining_piece_at_its_own_method_s_time(tmp_path)
     assert ex.Progress(ex.RunStore(tmp_path / "none", "k"), pieces, log=None).remaining_seconds() is None
 
 
+def test_the_eta_of_a_fresh_run_is_not_the_mean_of_its_one_second_pieces(tmp_path):
+    """90 s into a run on 2 workers only a 1-second piece (No prediction) has finished: the pieces in flight have run
+    for about 90 s each, and a method with no finished seed is priced at no less than that (not at 1 s)."""
+    store = ex.RunStore(tmp_path, "k")
+    pieces = [("rl", ex.Piece("No prediction", 0))] + [("rl", ex.Piece(m, s)) for m in ("Standard", "DiffStack")
+                                                        for s in range(5)]
+    progress = ex.Progress(store, pieces, log=None, workers=2)
+    progress.t0 -= 90.0
+    store.save("rl", ex.Piece("No prediction", 0), {"ade": 1.0}, timing=dict(seconds=1.0, cpu_seconds=1.0))
+    in_flight = (2 * 90.0 - 1.0) / 2  # 179 s of computing on 2 workers, 1 s of it finished
+    assert progress.remaining_seconds() == pytest.approx(10 * in_flight, rel=1e-3)
+    assert progress.line().startswith("progress: 1/11 pieces (0 reused), 0:01:30 elapsed, ETA 0:07:2")
+
+
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
     """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
     args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--threads", "1", "--jobs", "1",
