@@ -58,7 +58,6 @@ import json
 import math
 import os
 import pathlib
-import platform
 import statistics
 import sys
 import time
@@ -68,7 +67,7 @@ import torch
 import torch.utils.benchmark as benchmark
 
 import data_synth
-from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
+from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, machine, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
                        run_stack, scene_plan, unicycle_jacobians, unicycle_rollout)
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy, write_atomic
 
@@ -674,7 +673,7 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
         speedup_vs_mpc_pytorch=None if mpc_res is None else mpc_res["speedup"],
         speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],  # at B = 256 (--quick: its B)
         controller_ms_per_problem=per_problem,  # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
-        meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=platform.machine(), cores=os.cpu_count(),
+        meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine(), cores=os.cpu_count(),
                   torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick),
         figures=rows,
         mpc_pytorch=None if mpc_res is None else dict(figures=mpc_res["rows"], gradient_error=mpc_res["gradient_error"]),

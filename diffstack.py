@@ -2594,6 +2594,22 @@ def _slug(name: str) -> str:
     return name.lower().replace(" ", "-")
 
 
+def machine() -> str:
+    """This machine in a few words, for a result's provenance: architecture, processor, the vector instruction set
+    of torch's kernels, cores. The same seed and thread count give the same numbers on the same kind of processor
+    only: oneDNN's LSTM kernels follow its instruction set (capped at AVX2 they change one epoch's weights by 3e-3
+    on an AVX-512 machine), and one rounding apart grows over a training like another seed."""
+    import platform
+
+    name = platform.processor() or "unknown processor"
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{platform.machine()}, {name}, {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores"
+
+
 def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int):
     """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
     threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
@@ -2617,7 +2633,6 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     train them side by side. --quick evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
     import hashlib
     import json
-    import platform
     import subprocess
     from concurrent.futures import ProcessPoolExecutor
 
@@ -2631,7 +2646,7 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     check_writable(out, f"the pre-trained predictors' folder ({out})")
     data_synth.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
     about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
-                 threads=threads, torch=torch.__version__, machine=f"{platform.machine()}, {os.cpu_count()} cores",
+                 threads=threads, torch=torch.__version__, machine=machine(),
                  config=dataclasses.asdict(cfg), files={})
     try:
         about["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,

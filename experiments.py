@@ -28,7 +28,6 @@ import json
 import math
 import os
 import pathlib
-import platform
 import re
 import statistics
 import subprocess
@@ -47,7 +46,7 @@ import data_synth
 from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, TrainingDiverged,
                        add_relative,
                        alphas, bounded, cell, check_writable, compare_methods, config_with, cost_contexts, cost_terms,
-                       cost_weights, device_arg, evaluate_stack, markdown_table, mean_se, project_to_lanes, route_goal,
+                       cost_weights, device_arg, evaluate_stack, machine, markdown_table, mean_se, project_to_lanes, route_goal,
                        run_stack, to_device, train_predictor, train_stack, unicycle_step, wrap_angle)
 
 # ============================================================================================
@@ -1603,7 +1602,7 @@ def write_report(out_dir, sections) -> pathlib.Path:
     out_dir]); each figure is linked below its section's table."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores, "
+    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {machine()}, "
              f"torch {torch.__version__}, {torch.get_num_threads()} threads\n"]
     for title, md, figures in sections:
         parts.append(f"## {title}\n\n{md}\n")
@@ -1724,7 +1723,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                         **piece_time,
                         date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
-                        machine=f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, {threads}"
+                        machine=f"{machine()}, torch {torch.__version__}, {threads}"
                                 + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
                         device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
             if log:
