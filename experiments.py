@@ -21,6 +21,7 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import hashlib
@@ -1341,10 +1342,12 @@ def _to_json(o):
 
 
 def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
-    """compute_piece, and how long it took: (result, extra, {'seconds': wall, 'cpu_seconds': this process's CPU})."""
+    """compute_piece, how long it took and where: (result, extra, {'seconds': wall, 'cpu_seconds': this process's
+    CPU, 'machine': diffstack.machine()}). The machine, because a run resumed on another kind of processor is still
+    one run (its key names the code, config and data), but the same seed gives other numbers there."""
     t0, c0 = time.time(), time.process_time()
     result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
-    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0)
+    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0, machine=machine())
 
 
 def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device, root: str, key: str, about: dict,
@@ -1622,6 +1625,9 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
                       f"{meta['pieces']} pieces ({meta['piece_cpu_seconds']:.0f} CPU s)")
     where += [f"commit {meta['git_commit']}"] if meta.get("git_commit") else []
     note = f"; {meta['note']}" if meta.get("note") else ""
+    if meta.get("computed_on"):  # a resumed run's pieces from several machines: the same seed differs between them
+        note += (f"; its pieces ran on {len(meta['computed_on'])} machines, and the same seed gives other numbers on "
+                 f"another kind of processor: " + ", ".join(f"{m} ({k} pieces)" for m, k in meta["computed_on"].items()))
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
                f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
@@ -1720,6 +1726,10 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
                                   piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
             else:
                 piece_time = {}
+            # where the pieces ran, when not all on one machine (a run resumed on another host, say)
+            computed_on = collections.Counter(t.get("machine", "not recorded") for t in timings if t)
+            if len(computed_on) > 1:
+                piece_time["computed_on"] = dict(computed_on)
             meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
                         **piece_time,
                         date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),

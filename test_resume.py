@@ -101,6 +101,25 @@ def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces
         ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
 
 
+def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_path, trainings):
+    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    kept = sorted((out / ".runs" / "il").glob("*/*-seed*.json"))
+    assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [ds.machine()] * 4
+    assert "computed_on" not in json.loads((out / "il.json").read_text())["meta"]  # one machine: nothing to say
+    assert "pieces ran on" not in (out / "il.md").read_text()
+    # as if Standard had been trained on another host before the run was resumed here
+    piece = json.loads(kept[-1].read_text())
+    piece["timing"]["machine"] = "x86_64, another processor, AVX2, 2 cores"
+    kept[-1].write_text(json.dumps(piece))
+    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    assert len(trainings.calls) == 2  # resumed: nothing trained again
+    meta = json.loads((out / "il.json").read_text())["meta"]
+    assert meta["computed_on"] == {ds.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
+    assert ("its pieces ran on 2 machines, and the same seed gives other numbers on another kind of processor: "
+            in (out / "il.md").read_text())
+
+
 def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(small, tmp_path, trainings, monkeypatch):
     cfg, out = ds.Config(**TINY10), tmp_path / "out"
     ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
