@@ -34,16 +34,17 @@
 # |---|---|---|---|---|
 # | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 | < 1 s | < 1 s |
 # | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
-# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 2 s |
+# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
 # | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1, Fig. 3 | 1 s | 2 s |
-# | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 7 s | 6 s |
-# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 16 s |
-# | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 158 s |
-# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), dt = 0.1 s | §4.2, §4.3, App. A | 14 s | 206 s |
-# | | **whole notebook** | | 36 s (under 1 min) | 392 s (6.5 min) |
+# | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 7 s | 5 s |
+# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 12 s |
+# | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 120 s |
+# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), dt = 0.1 s | §4.2, §4.3, App. A | 14 s | 156 s |
+# | | **whole notebook** | | 36 s (under 1 min) | 297 s (5 min) |
 #
-# Times: the wall time of each section as measured by the notebook itself (`section_done`), 2026-11-23, on a 2-core
-# x86_64 machine shared with another engineer's jobs (so upper bounds), one torch thread, data already cached (the first
+# Times: the wall time of each section as measured by the notebook itself (`section_done`): quick mode 2026-11-23 on a
+# 2-core x86_64 machine shared with another engineer's jobs (so upper bounds), full mode 2026-11-24 (the committed
+# outputs' own times), one torch thread, data already cached (the first
 # run generates it: a few more seconds). Add the time you spend reading and on the exercises (plan 20-40 minutes
 # per exercise, 2.5-4 hours for the whole course).
 #
