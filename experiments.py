@@ -258,6 +258,22 @@ CURVE_SAMPLES = 512  # every trained predictor's learning curve: the stack evalu
                     # before training and after every epoch (about 1 s each on one thread)
 
 
+def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0, device="cpu", **stack_kw) -> tuple:
+    """What tells method m's predictor apart from another (trained_predictor): its loss weights, scenario weighting,
+    seed, epochs, target offset and device, and only where training runs the stack (L_plan or L_ctr on) the
+    setting and the stack options, less the controller's when L_ctr is off."""
+    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
+    if a[1:] == (0, 0):
+        kw, runs_stack = {}, False
+    elif a[2] == 0:
+        kw.pop("controller", None)
+    plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
+    key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
+    if plan_weights == "prior":  # (the posterior's keys stay as they were before this choice existed)
+        key += (plan_weights,)
+    return key
+
+
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
                       device="cpu", store=None, **stack_kw):
     """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
@@ -268,15 +284,7 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
     5 and every ablation section. store: a RunStore, or None: a predictor is also saved there (its state_dict) when
     trained, and loaded from there when a run of the same run key (config, data, code, ...) trained it before -- so a
     resumed run, or a worker process, has every predictor an earlier piece trained without training it again."""
-    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
-    if a[1:] == (0, 0):
-        kw, runs_stack = {}, False
-    elif a[2] == 0:
-        kw.pop("controller", None)
-    plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
-    key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
-    if plan_weights == "prior":  # (the posterior's keys stay as they were before this choice existed)
-        key += (plan_weights,)
+    key = training_key(m, cfg, setting, epochs, seed, pred_offset, device, **stack_kw)
     if models is not None and key in models:
         if log:
             log(f"  [{m.name}] seed {seed}: trained above, reused")
@@ -1155,6 +1163,29 @@ def table_pieces(spec: TableSpec, seeds) -> list:
     return _rows(CLOSED_LOOP_METHODS if spec.kind == "closed_loop" else spec.methods, seeds)
 
 
+def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="cpu") -> tuple:
+    """What a piece trains unless another piece has trained it already: its predictor's training_key (Table 3
+    also its cost weights), as _compute_piece would. Empty for the pieces that train nothing (No prediction, GT
+    prediction, the goal table). Progress prices a piece that trains in minutes, one that finds its predictor
+    trained (a table's Standard after Table 1's) in seconds."""
+    def of(methods, setting, pred_offset=0.0, **stack_kw):
+        m = next(m for m in methods if m.name == piece.method)
+        if m.predictor != "learned":
+            return ()
+        return (training_key(m, cfg, setting, epochs, piece.seed, pred_offset, device, **stack_kw),)
+
+    if spec.kind in ("open_loop", "real"):
+        return of(spec.methods, spec.setting, spec.pred_offset)
+    if spec.kind == "ablation":
+        _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
+        return of(_ablation_methods(methods), "rl", **stack_kw)
+    if spec.kind == "closed_loop":
+        return of(CLOSED_LOOP_METHODS, "rl")
+    if spec.kind == "cost":
+        return (training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device), ("cost weights", piece.seed))
+    return ()
+
+
 def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
                   store=None):
     """_compute_piece, where a training that diverges is a result too ({'diverged': what}, kept like any piece:
@@ -1407,16 +1438,22 @@ def _clock(seconds: float) -> str:
 
 class Progress:
     """A line 'progress: done/total pieces (reused), elapsed, ETA' every `every` seconds from a timer thread, and on
-    demand (line()). The ETA adds up what the remaining pieces should cost, each at the computing time of the
-    finished pieces of the same table, section and method (its other seeds, in this run or an earlier one of the
-    same key), or else at the mean of every finished piece, shared by `workers` processes: the pieces differ by
-    a factor of a thousand (a training against a lookup of a shared predictor), so counting pieces is no estimate.
-    A method with no finished seed is priced at no less than the pieces still running have run so far: in the
-    first minutes only one-second lookups have finished, and their mean alone would promise the end in a minute.
-    Without timings (a store in memory) it assumes the remaining pieces take as long as this run's so far."""
+    demand (line()). The ETA adds up what the remaining pieces should cost, shared by `workers` processes. The
+    pieces differ by a factor of a thousand, so counting them is no estimate: a piece that trains a predictor
+    costs minutes, one whose predictor another piece trained (a table's Standard after Table 1's), or that has
+    none (No prediction, GT prediction), costs seconds. trainings(table, piece) says what a piece trains
+    (piece_trainings); the first remaining piece that needs a training not yet done is priced at the computing time
+    of the finished pieces of the same table, section and method that trained theirs (its other seeds, in this run
+    or an earlier one of the same key), or else at the mean of every finished piece that trained, and every other
+    piece at the mean of the finished pieces that trained nothing. A kind of piece with no finished seed is priced
+    at no less than the pieces still running have run so far: in the first minutes only one-second lookups have
+    finished. trainings None: every piece counts as training its own predictor. Without timings (a store in
+    memory) it assumes the remaining pieces take as long as this run's so far."""
 
-    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1):
+    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1,
+                 trainings=None):
         self.store, self.pieces, self.log, self.every, self.workers = store, pieces, log, every, workers
+        self.trainings = trainings or (lambda table, piece: ((table, piece),))
         self.t0 = time.time()
         self.earlier = {(t, p) for t, p in pieces if store.has(t, p)}  # finished before this run: reused
         self.reused = len(self.earlier)
@@ -1429,21 +1466,46 @@ class Progress:
     def remaining_seconds(self) -> float | None:
         """The remaining pieces' computing time in seconds, estimated from the finished pieces' own (None: no
         finished piece has a timing)."""
-        seconds, left, this_run = {}, [], 0.0
+        seconds, left, trained, this_run = {}, [], set(), 0.0
         for table, piece in self.pieces:
-            timing = self.store.timing(table, piece) if self.store.has(table, piece) else None
+            if not self.store.has(table, piece):
+                left.append((table, piece))
+                continue
+            trained.update(self.trainings(table, piece))
+            timing = self.store.timing(table, piece)
             if timing is not None:
-                seconds.setdefault((table, piece.section, piece.method), []).append(timing["seconds"])
+                seconds[table, piece] = timing["seconds"]
                 this_run += timing["seconds"] if (table, piece) not in self.earlier else 0.0
-            elif not self.store.has(table, piece):
-                left.append((table, piece.section, piece.method))
         if not seconds:
             return None
-        overall = statistics.mean(t for ts in seconds.values() for t in ts)
+        # of the finished pieces that needed a training, the slowest did it (the others found it done)
+        trainer = {}
+        for tp, s in seconds.items():
+            for key in self.trainings(*tp):
+                if key not in trainer or s > seconds[trainer[key]]:
+                    trainer[key] = tp
+        kind = lambda table, piece: (table, piece.section, piece.method)  # noqa: E731
+        training, lookup, trainers = {}, [], set(trainer.values())
+        for tp, s in seconds.items():
+            if tp in trainers:
+                training.setdefault(kind(*tp), []).append(s)
+            else:
+                lookup.append(s)
+        trains = [s for ss in training.values() for s in ss]
         # every worker has been busy since the start: what this run computed beyond its finished pieces is the
         # pieces in flight, each of which has run for this long on average (and will take at least that)
         running = max(0.0, self.workers * (time.time() - self.t0) - this_run) / self.workers
-        return sum(statistics.mean(seconds[kind]) if kind in seconds else max(overall, running) for kind in left)
+        total = 0.0
+        for tp in left:
+            new = [key for key in self.trainings(*tp) if key not in trained]
+            trained.update(new)
+            if not new:
+                total += statistics.mean(lookup) if lookup else 0.0
+            elif kind(*tp) in training:
+                total += statistics.mean(training[kind(*tp)])
+            else:
+                total += max(statistics.mean(trains) if trains else 0.0, running)
+        return total
 
     def line(self) -> str:
         done, el = self.done(), time.time() - self.t0
@@ -1708,7 +1770,8 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     if store.root is not None and log:
         log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
-    with Progress(store, all_pieces, log, progress_every, workers=jobs) as progress:
+    trainings = lambda table, piece: piece_trainings(SPECS[table], piece, cfg, epochs, device)  # noqa: E731
+    with Progress(store, all_pieces, log, progress_every, workers=jobs, trainings=trainings) as progress:
         units = work_units(names, seeds, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
         if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
             if log:

@@ -194,6 +194,47 @@ def test_the_eta_of_a_fresh_run_is_not_the_mean_of_its_one_second_pieces(tmp_pat
     assert progress.line().startswith("progress: 1/11 pieces (0 reused), 0:01:30 elapsed, ETA 0:07:2")
 
 
+def test_the_eta_prices_a_piece_whose_predictor_another_piece_trains_as_a_lookup(tmp_path):
+    """Table 4's Standard is Table 1's predictor: once that is trained (or about to be, by an earlier piece), the
+    piece costs a lookup, not a training. The mean of the finished pieces (133 s) would price it as one."""
+    store = ex.RunStore(tmp_path, "k")
+    rl = [("rl", ex.Piece(m, s)) for m in ("No prediction", "Standard", "DiffStack") for s in range(2)][1:]
+    il = [("il", ex.Piece("Standard", s)) for s in range(2)]
+    trainings = lambda table, p: () if p.method == "No prediction" else ((p.method, p.seed),)  # noqa: E731
+    for (table, piece), s in zip(rl[::2], (1.0, 100.0, 300.0)):  # No prediction, Standard seed 0, DiffStack seed 0
+        store.save(table, piece, {"ade": 1.0}, timing=dict(seconds=s, cpu_seconds=s))
+    # left: Standard seed 1 (a training: 100 s), DiffStack seed 1 (300 s), Table 4's Standard seeds 0 and 1: the
+    # first's predictor is trained, the second's is Table 1's seed 1's to train; each costs the lookups' mean, 1 s
+    progress = ex.Progress(store, rl + il, log=None, workers=2, trainings=trainings)
+    assert progress.remaining_seconds() == pytest.approx(100 + 300 + 1 + 1)
+    # without knowing what trains, each piece of a method with no finished seed costs the mean piece
+    assert ex.Progress(store, rl + il, log=None).remaining_seconds() == pytest.approx(100 + 300 + 2 * 401 / 3)
+
+
+def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypatch):
+    """Progress knows what a piece trains from piece_trainings, which must name the training_key that the piece
+    itself asks trained_predictor for, in every table (trainings replaced by untrained models: only keys count)."""
+    cfg, asked, key = ds.Config(**TINY10), [], ex.training_key
+    monkeypatch.setattr(ex, "training_key", lambda *a, **k: asked.append(key(*a, **k)) or asked[-1])
+    monkeypatch.setattr(ex, "train_predictor", lambda m, data, cfg, *a, **k: ds.Predictor(cfg))
+    monkeypatch.setattr(ex, "train_stack", lambda *a, **k: None)  # Table 3's cost weights
+    monkeypatch.setattr(ex, "CURVE_SAMPLES", 0)
+    kinds = set()
+    for name in ("rl", "biased", "il", "cost", "ablation", "closed_loop", "goal"):
+        spec = ex.SPECS[name]
+        for piece in ex.table_pieces(spec, (1,)):
+            asked.clear()
+            ex.compute_piece(spec, piece, small, cfg, 0.5, log=None)
+            used = list(asked)
+            named = ex.piece_trainings(spec, piece, cfg, 0.5)
+            assert used == [k for k in named if k[0] != "cost weights"], (name, piece)
+            assert all(k[2] == 1 for k in used)  # the piece's seed
+            kinds.update(k[:2] + k[3:] for k in used)
+    # the predictors the tables train, per seed: Table 1's five, Table 2's two, Table 4's DiffStack, the ablations' eight
+    # (Standard, DiffStack and DiffStack (no L_pred) are Table 1's; No controller's DiffStack is no L_ctr's)
+    assert len(kinds) == 5 + 2 + 1 + 8
+
+
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
     """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
     args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--threads", "1", "--jobs", "1",
