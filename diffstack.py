@@ -2597,8 +2597,9 @@ def _slug(name: str) -> str:
 def machine() -> str:
     """This machine in a few words, for a result's provenance: architecture, processor, the vector instruction set
     of torch's kernels, cores. The same seed and thread count give the same numbers on the same kind of processor
-    only: oneDNN's LSTM kernels follow its instruction set (capped at AVX2 they change one epoch's weights by 3e-3
-    on an AVX-512 machine), and one rounding apart grows over a training like another seed."""
+    only: torch's own vectorised kernels, MKL's and oneDNN's follow its instruction set (capping any one at AVX2
+    on an AVX-512 machine changes a few training steps' weights), and one rounding apart grows over a training
+    like another seed."""
     import platform
 
     name = platform.processor() or "unknown processor"
