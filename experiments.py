@@ -1342,8 +1342,8 @@ class RunStore:
         return saved["result"], extra
 
     def timing(self, table: str, piece: Piece) -> dict | None:
-        """How long a finished piece took to compute ({'seconds': wall, 'cpu_seconds': its process's CPU}), or None
-        (not finished, in memory, or kept by an older version that did not record it)."""
+        """How long a finished piece took to compute and where (timed_piece's dict), or None (not finished, or in
+        memory)."""
         if self.root is None or not self.path(table, piece).exists():
             return None
         return json.loads(self.path(table, piece).read_text()).get("timing")
@@ -1373,12 +1373,20 @@ def _to_json(o):
 
 
 def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
-    """compute_piece, how long it took and where: (result, extra, {'seconds': wall, 'cpu_seconds': this process's
-    CPU, 'machine': diffstack.machine()}). The machine, because a run resumed on another kind of processor is still
-    one run (its key names the code, config and data), but the same seed gives other numbers there."""
+    """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds': wall,
+    'cpu_seconds': this process's CPU, 'machine': diffstack.machine(), 'trained': bool}). The machine, because a run
+    resumed on another kind of processor is still one run (its key names the code, config and data), but the same
+    seed gives other numbers there; 'trained': it trained something (a predictor no piece had trained before it,
+    or Table 3's cost weights) rather than only evaluate, which Progress prices apart."""
+    def trained_before(key) -> bool:  # by an earlier piece: in this process's models, or in the store on disk
+        path = store.model_path(key) if store is not None and key[0] != "cost weights" else None
+        return key in (models or {}) or (path is not None and path.exists())
+
+    trains = not all(trained_before(key) for key in piece_trainings(spec, piece, cfg, epochs, device))
     t0, c0 = time.time(), time.process_time()
     result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
-    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0, machine=machine())
+    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0, machine=machine(),
+                               trained=trains)
 
 
 def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device, root: str, key: str, about: dict,
@@ -1441,19 +1449,20 @@ class Progress:
     demand (line()). The ETA adds up what the remaining pieces should cost, shared by `workers` processes. The
     pieces differ by a factor of a thousand, so counting them is no estimate: a piece that trains a predictor
     costs minutes, one whose predictor another piece trained (a table's Standard after Table 1's), or that has
-    none (No prediction, GT prediction), costs seconds. trainings(table, piece) says what a piece trains
-    (piece_trainings); the first remaining piece that needs a training not yet done is priced at the computing time
-    of the finished pieces of the same table, section and method that trained theirs (its other seeds, in this run
-    or an earlier one of the same key), or else at the mean of every finished piece that trained, and every other
-    piece at the mean of the finished pieces that trained nothing. A kind of piece with no finished seed is priced
-    at no less than the pieces still running have run so far: in the first minutes only one-second lookups have
-    finished. trainings None: every piece counts as training its own predictor. Without timings (a store in
-    memory) it assumes the remaining pieces take as long as this run's so far."""
+    none (No prediction, GT prediction), costs seconds. trainings(table, piece) says what a piece needs trained
+    (piece_trainings). Each remaining piece that is the first to need a training not yet done is priced at the
+    computing time of the finished pieces of the same table, section and method that trained (its other seeds, in
+    this run or an earlier one of the same key; timed_piece records whether a piece trained), or else at the mean of
+    every finished piece that trained, but at no less than the pieces still running have run so far (in the first
+    minutes only one-second lookups have finished). Every other piece is priced at the mean of its kind's finished
+    pieces that trained nothing, or of all of them. trainings None: every piece counts as training its own
+    predictor. Without timings (a store in memory) it assumes the remaining pieces take as long as this run's."""
 
     def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1,
                  trainings=None):
         self.store, self.pieces, self.log, self.every, self.workers = store, pieces, log, every, workers
         self.trainings = trainings or (lambda table, piece: ((table, piece),))
+        self.knows_trainings = trainings is not None  # else every piece counts as training, whatever it recorded
         self.t0 = time.time()
         self.earlier = {(t, p) for t, p in pieces if store.has(t, p)}  # finished before this run: reused
         self.reused = len(self.earlier)
@@ -1466,7 +1475,7 @@ class Progress:
     def remaining_seconds(self) -> float | None:
         """The remaining pieces' computing time in seconds, estimated from the finished pieces' own (None: no
         finished piece has a timing)."""
-        seconds, left, trained, this_run = {}, [], set(), 0.0
+        seconds, trained_by, left, trained, this_run = {}, {}, [], set(), 0.0
         for table, piece in self.pieces:
             if not self.store.has(table, piece):
                 left.append((table, piece))
@@ -1474,24 +1483,15 @@ class Progress:
             trained.update(self.trainings(table, piece))
             timing = self.store.timing(table, piece)
             if timing is not None:
-                seconds[table, piece] = timing["seconds"]
+                seconds[table, piece], trained_by[table, piece] = timing["seconds"], timing.get("trained", True) or not self.knows_trainings
                 this_run += timing["seconds"] if (table, piece) not in self.earlier else 0.0
         if not seconds:
             return None
-        # of the finished pieces that needed a training, the slowest did it (the others found it done)
-        trainer = {}
-        for tp, s in seconds.items():
-            for key in self.trainings(*tp):
-                if key not in trainer or s > seconds[trainer[key]]:
-                    trainer[key] = tp
         kind = lambda table, piece: (table, piece.section, piece.method)  # noqa: E731
-        training, lookup, trainers = {}, [], set(trainer.values())
+        training, lookup = {}, {}  # kind -> the seconds of its finished pieces that trained, that did not
         for tp, s in seconds.items():
-            if tp in trainers:
-                training.setdefault(kind(*tp), []).append(s)
-            else:
-                lookup.append(s)
-        trains = [s for ss in training.values() for s in ss]
+            (training if trained_by[tp] else lookup).setdefault(kind(*tp), []).append(s)
+        trains, lookups = ([s for ss in d.values() for s in ss] for d in (training, lookup))
         # every worker has been busy since the start: what this run computed beyond its finished pieces is the
         # pieces in flight, each of which has run for this long on average (and will take at least that)
         running = max(0.0, self.workers * (time.time() - self.t0) - this_run) / self.workers
@@ -1500,7 +1500,7 @@ class Progress:
             new = [key for key in self.trainings(*tp) if key not in trained]
             trained.update(new)
             if not new:
-                total += statistics.mean(lookup) if lookup else 0.0
+                total += statistics.mean(lookup.get(kind(*tp)) or lookups or [0.0])
             elif kind(*tp) in training:
                 total += statistics.mean(training[kind(*tp)])
             else:
@@ -1689,7 +1689,7 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     note = f"; {meta['note']}" if meta.get("note") else ""
     if meta.get("computed_on"):  # a resumed run's pieces from several machines: the same seed differs between them
         note += (f"; its pieces ran on {len(meta['computed_on'])} machines, and the same seed gives other numbers on "
-                 f"another kind of processor: " + ", ".join(f"{m} ({k} pieces)" for m, k in meta["computed_on"].items()))
+                 f"another kind of processor: " + ", ".join(f"{m} ({k} piece{'s' * (k > 1)})" for m, k in meta["computed_on"].items()))
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
                f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
@@ -1790,7 +1790,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             else:
                 piece_time = {}
             # where the pieces ran, when not all on one machine (a run resumed on another host, say)
-            computed_on = collections.Counter(t.get("machine", "not recorded") for t in timings if t)
+            computed_on = collections.Counter(t["machine"] for t in timings if t and "machine" in t)
             if len(computed_on) > 1:
                 piece_time["computed_on"] = dict(computed_on)
             meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,

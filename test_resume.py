@@ -196,19 +196,36 @@ def test_the_eta_of_a_fresh_run_is_not_the_mean_of_its_one_second_pieces(tmp_pat
 
 def test_the_eta_prices_a_piece_whose_predictor_another_piece_trains_as_a_lookup(tmp_path):
     """Table 4's Standard is Table 1's predictor: once that is trained (or about to be, by an earlier piece), the
-    piece costs a lookup, not a training. The mean of the finished pieces (133 s) would price it as one."""
+    piece costs a lookup, not a training. The mean of the finished pieces would price it as one."""
     store = ex.RunStore(tmp_path, "k")
     rl = [("rl", ex.Piece(m, s)) for m in ("No prediction", "Standard", "DiffStack") for s in range(2)][1:]
-    il = [("il", ex.Piece("Standard", s)) for s in range(2)]
-    trainings = lambda table, p: () if p.method == "No prediction" else ((p.method, p.seed),)  # noqa: E731
-    for (table, piece), s in zip(rl[::2], (1.0, 100.0, 300.0)):  # No prediction, Standard seed 0, DiffStack seed 0
-        store.save(table, piece, {"ade": 1.0}, timing=dict(seconds=s, cpu_seconds=s))
-    # left: Standard seed 1 (a training: 100 s), DiffStack seed 1 (300 s), Table 4's Standard seeds 0 and 1: the
-    # first's predictor is trained, the second's is Table 1's seed 1's to train; each costs the lookups' mean, 1 s
-    progress = ex.Progress(store, rl + il, log=None, workers=2, trainings=trainings)
-    assert progress.remaining_seconds() == pytest.approx(100 + 300 + 1 + 1)
+    il = [("il", ex.Piece("Standard", s)) for s in range(3)]
+    cost = [("cost", ex.Piece("Learned", s)) for s in range(2)]  # Table 3: Standard's predictor, then cost weights
+    trainings = lambda table, p: (() if p.method == "No prediction" else  # noqa: E731
+                                  (("Standard", p.seed), ("cost weights", p.seed)) if table == "cost" else
+                                  ((p.method, p.seed),))
+    finished = [(rl[0], 1.0, False), (rl[1], 100.0, True), (rl[3], 300.0, True), (il[0], 3.0, False),
+                (cost[0], 150.0, True)]  # cost seed 0 found Standard seed 0 trained, and is slower than its training
+    for (table, piece), s, trained in finished:
+        store.save(table, piece, {"ade": 1.0}, timing=dict(seconds=s, cpu_seconds=s, trained=trained))
+    # left: Standard seed 1 (a training: 100 s), DiffStack seed 1 (300 s), cost seed 1 (its cost weights: 150 s), and
+    # Table 4's Standard seeds 1 and 2: Table 1's seed 1 trains the first's predictor, so it is a lookup at its kind's
+    # 3 s; the second is the first piece to need Standard seed 2, a training of a kind not seen training: the mean
+    progress = ex.Progress(store, rl + il + cost, log=None, workers=2, trainings=trainings)
+    assert progress.remaining_seconds() == pytest.approx(100 + 300 + 150 + 3 + (100 + 300 + 150) / 3)
     # without knowing what trains, each piece of a method with no finished seed costs the mean piece
-    assert ex.Progress(store, rl + il, log=None).remaining_seconds() == pytest.approx(100 + 300 + 2 * 401 / 3)
+    assert ex.Progress(store, rl + il + cost, log=None).remaining_seconds() == pytest.approx(100 + 300 + 150 + 2 * 3)
+
+
+def test_a_piece_records_whether_it_trained(small, tmp_path):
+    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    ex.run_experiment("cost", small, cfg, (0,), 0.5, out, "test", log=None)
+    trained = {f"{f.parent.parent.name} {f.stem}": json.loads(f.read_text())["timing"]["trained"]
+               for f in (out / ".runs").glob("*/*/*-seed*.json")}
+    # Table 3 finds Table 4's Standard trained, and trains its cost weights
+    assert trained == {"il No_prediction-seed0": False, "il Standard-seed0": True, "il DiffStack-seed0": True,
+                       "il GT_prediction-seed0": False, "cost Cost_weights-seed0": True}
 
 
 def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypatch):
