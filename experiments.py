@@ -1483,7 +1483,8 @@ class Progress:
             trained.update(self.trainings(table, piece))
             timing = self.store.timing(table, piece)
             if timing is not None:
-                seconds[table, piece], trained_by[table, piece] = timing["seconds"], timing.get("trained", True) or not self.knows_trainings
+                seconds[table, piece] = timing["seconds"]
+                trained_by[table, piece] = timing.get("trained", True) or not self.knows_trainings
                 this_run += timing["seconds"] if (table, piece) not in self.earlier else 0.0
         if not seconds:
             return None
@@ -1688,8 +1689,9 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     where += [f"commit {meta['git_commit']}"] if meta.get("git_commit") else []
     note = f"; {meta['note']}" if meta.get("note") else ""
     if meta.get("computed_on"):  # a resumed run's pieces from several machines: the same seed differs between them
+        where_ran = ", ".join(f"{m} ({k} piece{'s' * (k > 1)})" for m, k in meta["computed_on"].items())
         note += (f"; its pieces ran on {len(meta['computed_on'])} machines, and the same seed gives other numbers on "
-                 f"another kind of processor: " + ", ".join(f"{m} ({k} piece{'s' * (k > 1)})" for m, k in meta["computed_on"].items()))
+                 f"another kind of processor: {where_ran}")
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
                f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
