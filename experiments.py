@@ -21,6 +21,7 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 """
 from __future__ import annotations
 
+import ast
 import collections
 import dataclasses
 import functools
@@ -1259,13 +1260,30 @@ def _sha(*parts) -> str:
 NUMBER_MODULES = ("diffstack.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
 
 
+@functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; run_about asks once per work unit
+def code_of(source: str) -> str:
+    """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
+    parsed, the docstrings (a string standing first in a module, class or function) dropped, and the tree written
+    back out by ast.unparse, so a re-wrapped line or an edited comment gives the same text; any other change does."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body and \
+                isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and \
+                isinstance(body[0].value.value, str):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.unparse(tree)
+
+
 def code_version() -> str:
-    """The code a run's numbers come from: a hash of the content of the modules that make them (NUMBER_MODULES),
-    so that any change to them is a new run, while a commit of the README, the tests or the notebook is not."""
+    """The code a run's numbers come from: a hash of the code of the modules that make them (NUMBER_MODULES, as
+    code_of reads them), so that any change to their code is a new run, while a commit of the README, the tests or
+    the notebook, or of a comment or docstring, is not. (ast.unparse is Python's own: under another Python version
+    the same code may read as new, a new run, never a mixed one.)"""
     here = pathlib.Path(__file__).resolve().parent
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
-        h.update(name.encode() + b"\0" + (here / name).read_bytes() + b"\0")
+        h.update(name.encode() + b"\0" + code_of((here / name).read_text()).encode() + b"\0")
     return f"sha256:{h.hexdigest()[:16]}"
 
 

@@ -380,16 +380,57 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
 def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
     assert set(ex.NUMBER_MODULES) == {"diffstack.py", "data_synth.py", "experiments.py"}
     for name in ex.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
-        (tmp_path / name).write_text(f"# {name}\n")
+        (tmp_path / name).write_text(f"# {name}\nx = 1\n")
     monkeypatch.setattr(ex, "__file__", str(tmp_path / "experiments.py"))
     versions = {ex.code_version()}
     for name in ("README.md", "test_x.py", "tutorial.py"):  # the tests, the docs, the notebook: the same run
-        (tmp_path / name).write_text("# edited\n")
+        (tmp_path / name).write_text("# edited\nx = 2\n")
         assert ex.code_version() in versions
     for name in ex.NUMBER_MODULES:  # each module that makes numbers: a new run
-        (tmp_path / name).write_text(f"# {name}, edited\n")
+        (tmp_path / name).write_text(f"# {name}\nx = 2\n")
         versions.add(ex.code_version())
     assert len(versions) == 1 + len(ex.NUMBER_MODULES)
+
+
+CODE = '''"""A module."""
+import math
+
+
+def f(x, scale=2.0):
+    """Twice x."""
+    return scale * math.sqrt(x)  # a comment
+'''
+
+SAME_CODE = '''"""A module, its docstring edited."""
+import math
+
+
+def f(x,
+      scale=2.0):
+    # a new comment
+    """Twice x, said otherwise."""
+    return (scale
+            * math.sqrt(x))
+'''
+
+
+def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monkeypatch):
+    """An edited comment or docstring or a re-wrapped line is the same run (hours of pieces kept); a changed
+    number, name or string is a new one. (SAME_CODE's comment stands before the docstring: the string is then
+    still the function's first statement, its docstring.)"""
+    for name in ex.NUMBER_MODULES:
+        (tmp_path / name).write_text(CODE)
+    monkeypatch.setattr(ex, "__file__", str(tmp_path / "experiments.py"))
+    before = ex.code_version()
+    (tmp_path / "diffstack.py").write_text(SAME_CODE)
+    assert ex.code_version() == before
+    for edit in (("2.0", "3.0"), ("sqrt", "exp"), ("scale *", "scale +"), ('"""Twice x."""\n', '"""Twice x."""\n    x = x\n'),
+                 ("# a comment", "+ len('a string')")):
+        (tmp_path / "diffstack.py").write_text(CODE.replace(*edit))
+        assert ex.code_version() != before, edit
+    # a string that is not a docstring is code: the tables' texts are made of such strings
+    assert ex.code_of('x = "a"\n') != ex.code_of('x = "b"\n')
+    assert ex.code_of('def g():\n    """Doc."""\n') == ex.code_of('def g():\n    pass\n')
 
 
 def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp_path):
