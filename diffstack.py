@@ -79,12 +79,13 @@ class Config:
     w_ctrl: float = 1.0
     """control effort weight w5"""
     rbf_var: float = 2.0
-    """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; authors' code: exp(-d^2/4))"""
+    """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; the default 2 gives the authors' code's
+    exp(-d^2/4))"""
 
     # --- planner, eq. (2), App. C.1 ---
     goal: str = "logged"
-    """the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "the goal matches the ground-truth ego
-    trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a goal that, unlike
+    """the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "We choose the goal g to match the
+    'ground-truth' ego trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a goal that, unlike
     the logged one, does not already contain the driver's reaction to the others (the paper's "alternative goal
     definitions"; see route_goal)"""
     goal_lane_dist: float = 4.5
@@ -92,7 +93,8 @@ class Config:
     goal_lane_heading: float = math.pi / 2
     """... and its heading differs from the goal's by less than this (rad) (authors' code: pi/4)"""
     max_goal_lanes: int = 2
-    """candidate lanes kept per scenario (the closest to the goal); N = len(plan_accels) * len(plan_offsets) * max_goal_lanes"""
+    """candidate lanes kept per scenario (the closest to the goal; the paper keeps every goal lane);
+    N = len(plan_accels) * len(plan_offsets) * max_goal_lanes"""
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
     """terminal accelerations (m/s^2)"""
     plan_offsets: tuple = (-0.5, 0.0, 0.5)
@@ -113,7 +115,8 @@ class Config:
     ilqr_iters: int = 5
     """maximum iLQR iterations"""
     ilqr_tol: float = 0.05
-    """converged when the norm of the full LQR control step is below this (paper: 0.05, authors' code: 0.01)"""
+    """converged when the norm of the full (unscaled) LQR control step is below this (paper: 0.05 on the change of the
+    controls between iterations; authors' code: 0.01)"""
     line_search_steps: int = 5
     """step scales tried: 1, 1/5, 1/25, ..."""
     line_search_decay: float = 5.0
@@ -469,7 +472,7 @@ def lane_segments(p, lanes, lanes_mask):
     return frac, d2, lane_h, seg_ok.expand_as(d2)
 
 
-_SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as if it were 10 m further away
+_SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as one at sqrt(d^2 + 100 m^2) (10 m away at d = 0)
 _SEARCH_BLOCK = 2**21  # ranks per block of the nearest-point search (8 MB in float32)
 
 
@@ -487,12 +490,15 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     """The lane segment closest to each state, and whether there is one.
 
     pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
-    lane_search_features (computed here if not given). Only lane points whose heading is within 90 degrees
-    of the state's count, so an oncoming lane is never 'closest'.
+    lane_search_features (computed here if not given). Lane points are ranked by distance plus a heading
+    penalty, so that an oncoming lane beside one of the state's own direction is not 'closest'; where the
+    winner still points more than 90 degrees away from the state's heading, the state has no lane (has_lane
+    False: no lane cost).
     Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the closer
     of the two segments that meet there. The search ranks points by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
-    so a lane pointing the other way counts as 10 m further away: one batched matrix product.
+    so a point on a lane pointing the other way at distance d ranks as one of the state's direction at
+    sqrt(d^2 + 100 m^2) (10 m at d = 0): one batched matrix product.
     Returns the segment's ends a, b (B, Q, 3) (Q: the states, flattened) and has_lane (B, Q).
     """
     B, L, P, _ = lanes.shape
@@ -764,7 +770,9 @@ def _hermite(p0, m0, p1, m1, tau):
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     """Candidate trajectories (App. C.1): for up to `max_goal_lanes` goal lanes, the terminal accelerations
-    (8 by default) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each.
+    (8 by default) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each. The
+    paper's spline "minimizes mean control effort"; here, as in the authors' code, it is the cubic Hermite curve
+    fixed by the position and velocity at both ends, so nothing is left to minimise.
 
     s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
     """
@@ -2319,7 +2327,8 @@ class TrainingDiverged(ValueError):
 
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
                 pred_offset=0.0, weights: CostWeights | None = None, on_epoch=None, **stack_kw):
-    """Train the predictor of a method (Adam, lr x0.9999 per step, gradient value clipping, App. D.2) -- or,
+    """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's x0.9999 per step and
+    clipping by value are Trajectron++'s) -- or,
     given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
     the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
     dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem), and the lr is constant.

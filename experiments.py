@@ -1260,18 +1260,23 @@ def _sha(*parts) -> str:
 NUMBER_MODULES = ("diffstack.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
 
 
+class _NoStrings(ast.NodeTransformer):
+    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring in Config."""
+
+    def visit_Expr(self, node):
+        return None if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str) else node
+
+
 @functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; run_about asks once per work unit
 def code_of(source: str) -> str:
     """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
-    parsed, the docstrings (a string standing first in a module, class or function) dropped, and the tree written
-    back out by ast.unparse, so a re-wrapped line or an edited comment gives the same text; any other change does."""
-    tree = ast.parse(source)
+    parsed, every statement that is only a string (a docstring, a Config field's docstring) dropped, and the tree
+    written back out by ast.unparse, so a re-wrapped line or an edited comment or docstring gives the same text; any
+    other change does."""
+    tree = _NoStrings().visit(ast.parse(source))
     for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body and \
-                isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) and \
-                isinstance(body[0].value.value, str):
-            node.body = body[1:] or [ast.Pass()]
+        if getattr(node, "body", None) == []:  # a function or class that held only its docstring
+            node.body = [ast.Pass()]
     return ast.unparse(tree)
 
 

@@ -431,6 +431,10 @@ def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monke
     # a string that is not a docstring is code: the tables' texts are made of such strings
     assert ex.code_of('x = "a"\n') != ex.code_of('x = "b"\n')
     assert ex.code_of('def g():\n    """Doc."""\n') == ex.code_of('def g():\n    pass\n')
+    # a dataclass field's docstring (Config's) is a string statement too; the field's default is code
+    field = 'class C:\n    x: float = 1.0\n    """The x, in m."""\n'
+    assert ex.code_of(field) == ex.code_of(field.replace("in m", "in metres"))
+    assert ex.code_of(field) != ex.code_of(field.replace("1.0", "2.0"))
 
 
 def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp_path):

@@ -32,10 +32,10 @@
 #
 # | § | what | paper | quick | full |
 # |---|---|---|---|---|
-# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 1 | < 1 s | < 1 s |
+# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 2 | < 1 s | < 1 s |
 # | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
 # | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
-# | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1, Fig. 3 | 1 s | 2 s |
+# | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1 | 1 s | 2 s |
 # | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 7 s | 5 s |
 # | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 12 s |
 # | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 120 s |
@@ -579,7 +579,7 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 ex4_done = course.exercise(4, course.check_plan_grad, my_plan_loss_grad)
 
 # %% [markdown]
-# **From the costs to the prediction (the paper's Fig. 3).** By the chain rule, $\partial\mathcal L_\text{plan}/\partial
+# **From the costs to the prediction (§3.1).** By the chain rule, $\partial\mathcal L_\text{plan}/\partial
 # \hat s_t = \sum_n (\partial\mathcal L_\text{plan}/\partial C_n)\,\partial C_n/\partial\hat s_t$, and $C_n$ depends on $\hat s$
 # only through $C_\text{coll}$ (the other four terms, like the candidates themselves, depend on the scene alone, so
 # `train_stack` computes them once for its data set, `ds.scene_plans`, instead of at every step). Below, a predictor
