@@ -1164,6 +1164,9 @@ def table_pieces(spec: TableSpec, seeds) -> list:
     return _rows(CLOSED_LOOP_METHODS if spec.kind == "closed_loop" else spec.methods, seeds)
 
 
+COST_WEIGHTS = "cost weights"  # the first item of Table 3's cost-weight training in piece_trainings' keys
+
+
 def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="cpu") -> tuple:
     """What a piece trains unless another piece has trained it already: its predictor's training_key (Table 3
     also its cost weights), as _compute_piece would. Empty for the pieces that train nothing (No prediction, GT
@@ -1183,7 +1186,7 @@ def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="
     if spec.kind == "closed_loop":
         return of(CLOSED_LOOP_METHODS, "rl")
     if spec.kind == "cost":
-        return (training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device), ("cost weights", piece.seed))
+        return (training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device), (COST_WEIGHTS, piece.seed))
     return ()
 
 
@@ -1402,7 +1405,7 @@ def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, m
     seed gives other numbers there; 'trained': it trained something (a predictor no piece had trained before it,
     or Table 3's cost weights) rather than only evaluate, which Progress prices apart."""
     def trained_before(key) -> bool:  # by an earlier piece: in this process's models, or in the store on disk
-        path = store.model_path(key) if store is not None and key[0] != "cost weights" else None
+        path = store.model_path(key) if store is not None and key[0] != COST_WEIGHTS else None
         return key in (models or {}) or (path is not None and path.exists())
 
     trains = not all(trained_before(key) for key in piece_trainings(spec, piece, cfg, epochs, device))
