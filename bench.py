@@ -4,6 +4,7 @@
     python bench.py --threads 1 --reps 3 --skip-closed-loop
     python bench.py --quick                           # tiny sizes and reps, well under a minute (test_bench.py)
     python bench.py --json results/bench.json         # also every figure, in a JSON file
+    python bench.py --device cuda --threads 1         # our modules on a GPU (the peers and closed loop left out)
 
 What is timed (B = --batch scenarios or problems, default 256):
     controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its KKT backward on
@@ -67,7 +68,7 @@ import torch
 import torch.utils.benchmark as benchmark
 
 import data_synth
-from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, machine, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
+from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, device_arg, machine, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
                        run_stack, scene_plan, unicycle_jacobians, unicycle_rollout)
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy, write_atomic
 
@@ -107,10 +108,11 @@ def figure(key: str, name: str, times, threads: int, dtype="", batch=None, note=
 # ============================================================================================
 
 
-def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
+def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
     """B unicycle tracking problems, the benchmark shared with mpc.pytorch (section 4):
         min sum_t 1/2 (s_t - r_t)' Q (s_t - r_t) + 1/2 (u_t - ur_t)' R (u_t - ur_t),  box controls,
-    the reference rolled out from smooth random controls (some outside the box), the start perturbed."""
+    the reference rolled out from smooth random controls (some outside the box), the start perturbed. Drawn on
+    the CPU (the same problems whatever the device), then moved to `device`."""
     g = torch.Generator().manual_seed(seed)
     U = lambda lo, hi, *shape: lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)  # noqa: E731
     x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-math.pi, math.pi, B), U(2.0, 15.0, B)], -1)
@@ -121,7 +123,8 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0):
     Q, R = torch.tensor([1.0, 1.0, 1.0, 0.2], dtype=dtype), torch.tensor([0.5, 0.1], dtype=dtype)
     cfg = Config()
     lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
-    return dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi))
+    P = dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi))
+    return {k: v.to(device) for k, v in P.items()}
 
 
 def tracking_cost(x, u, x_ref, u_ref, Q, R):
@@ -162,9 +165,9 @@ def ours_params(P, x_ref=None):
 # ============================================================================================
 
 
-def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol=0.01) -> list:
+def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol=0.01, device="cpu") -> list:
     """iLQR forward and KKT backward on the tracking problem; the note gives the converged share."""
-    P = tracking_problem(B, dtype=dtype)
+    P = tracking_problem(B, dtype=dtype, device=device)
     params = ours_params(P)
 
     def solve(x_init, params):
@@ -184,12 +187,12 @@ def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol
             figure(f"kkt_backward_{dt}", "KKT backward", m["backward"].times, threads, dt, B)]
 
 
-def bench_controller_scaling(batches=(1024, 4096), reps=3, iters=5, tol=0.01) -> tuple[list, float]:
+def bench_controller_scaling(batches=(1024, 4096), reps=3, iters=5, tol=0.01, device="cpu") -> tuple[list, float]:
     """The controller's cost per problem: iLQR forward + KKT backward (float64, box, one thread) at two batch sizes;
     the slope between them (ms per problem) is what a problem costs once the per-op overhead is paid."""
     rows, med = [], {}
     for B in batches:
-        fwd, bwd = solver_runs(tracking_problem(B), ours_solve, iters, tol)
+        fwd, bwd = solver_runs(tracking_problem(B, device=device), ours_solve, iters, tol)
         m = measure({"forward": fwd, "backward": bwd}, reps, 1, f"controller, B = {B}")
         med[B] = 1e3 * (m["forward"].median + m["backward"].median)
         rows += [figure(f"ilqr_forward_f64_B{B}", f"iLQR forward ({iters} iterations, tol {tol})", m["forward"].times,
@@ -210,10 +213,11 @@ def bench_candidates(batch, cfg: Config, reps=5, threads=1) -> list:
 
 
 def bench_predictor(batch, cfg: Config | None = None, reps=5, threads=1) -> list:
-    """A training iteration (forward with q(z|x,y), InfoVAE loss, backward, Adam step) and an eval forward."""
+    """A training iteration (forward with q(z|x,y), InfoVAE loss, backward, Adam step) and an eval forward, on the
+    batch's device."""
     cfg = cfg or Config()
     torch.manual_seed(0)
-    model = Predictor(cfg).to(batch.agent_hist.dtype)
+    model = Predictor(cfg).to(batch.agent_hist.dtype).to(batch.agent_hist.device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     steps = itertools.count()  # the KL and logit-clip schedules see a growing step, as in training
 
@@ -242,9 +246,10 @@ def bench_stack_step(batch, cfg: Config, reps=5, threads=1) -> list:
     (goal, candidates and their prediction-free cost terms, which train_stack computes once for its data set), then
     the backward of the weighted losses; beside it, that scene plan's own cost (scene_plan, once per scenario in
     training). The step is a Timer measurement; its parts are run_stack's perf_counter laps over the same runs (the
-    untimed ones too, all but the very first, which pays for first-call allocations)."""
+    untimed ones too, all but the very first, which pays for first-call allocations). On a GPU the laps are times
+    to launch, not to finish (run_stack does not synchronise); the step's Timer does synchronise."""
     torch.manual_seed(0)
-    model = Predictor(cfg)
+    model = Predictor(cfg).to(batch.agent_hist.device)
     method = Method("DiffStack", losses=(1, 1, 1))
     a1, a2, a3 = alphas(method, "rl", cfg)
     scene = scene_plan(batch, cfg)
@@ -624,6 +629,13 @@ def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01, log=print)
 QUICK = dict(batch=16, reps=2, scenes=2, sim_time=2.0)  # --quick: seconds, not minutes
 
 
+def device_name(device: torch.device) -> str:
+    """The device in words: 'cpu', or the GPU's name (e.g. 'cuda:0, NVIDIA H100 80GB HBM3')."""
+    if device.type == "cuda":
+        return f"{device}, {torch.cuda.get_device_name(device)}"
+    return str(device)
+
+
 def results_table(rows) -> str:
     """The figures as one markdown table."""
     num = lambda v: f"{v:.1f}" if v < 100 else f"{v:.0f}"  # noqa: E731
@@ -632,41 +644,50 @@ def results_table(rows) -> str:
                       num(r["median_ms"]), num(r["iqr_ms"]), str(r["runs"]), r["note"]] for r in rows])
 
 
-def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, log=print, progress=None) -> dict:
-    """Every benchmark; returns the JSON document (the headline keys first, then every figure)."""
+def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, log=print, progress=None,
+        device=torch.device("cpu")) -> dict:
+    """Every benchmark; returns the JSON document (the headline keys first, then every figure). On a device other
+    than the CPU our modules run there (the data drawn on the CPU and moved); the closed loop and the peers, whose
+    ratios are defined on the CPU, are left out."""
     progress = progress or (lambda s: print(s, file=sys.stderr, flush=True))
+    on_cpu = device.type == "cpu"
     cfg = Config()
     if quick:  # a small dataset in memory: nothing written to the cache
         data = data_synth.make_dataset(max(2 * batch_size, 64), seed=0)
     else:
         data = data_synth.load_or_generate(max(2000, 2 * batch_size), seed=0, cache_dir=DATA_CACHE)
     assert len(data.train) >= batch_size, "about 85 % of the samples are for training: 2 B samples are enough"
-    batch = data.train[:batch_size]
+    batch = data.train[:batch_size].to(device=device)
     rows = []
     for nt in threads:
         torch.set_num_threads(nt)  # for the untimed set-up too; the Timers set it for every run
         progress(f"threads {nt}: controller, planner, predictor, DiffStack step (B = {batch_size}, {reps} runs each)")
         for dtype in (torch.float64, torch.float32):
-            rows += bench_controller(batch_size, dtype, reps, nt)
+            rows += bench_controller(batch_size, dtype, reps, nt, device=device)
         rows += bench_candidates(batch, cfg, reps, nt) + bench_predictor(batch, cfg, reps, nt)
         rows += bench_stack_step(batch, cfg, reps, nt)
     progress("controller scaling: B = " + ("%d and %d" % ((batch_size, 2 * batch_size) if quick else (1024, 4096))))
     scaling, per_problem = bench_controller_scaling((batch_size, 2 * batch_size) if quick else (1024, 4096),
-                                                    min(reps, 3))
+                                                    min(reps, 3), device=device)
     rows += scaling
-    if closed_loop:
+    if closed_loop and on_cpu:
         n, sim_time, cl_reps = (QUICK["scenes"], QUICK["sim_time"], 1) if quick else (100, 10.0, min(reps, 3))
         progress(f"closed loop: {n} scenes x {sim_time:g} s, one thread, {cl_reps} timed run(s) per stack")
         scenes = data.val_scenes if quick else data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE).val_scenes
         rows += bench_closed_loop(scenes, cfg, n, sim_time, cl_reps)
-    log(f"\nDiffStack benchmarks: B = {batch_size}, torch {torch.__version__}, {os.cpu_count()} cores; median and IQR "
-        f"of the timed runs (torch.utils.benchmark), at the thread count of each row")
+    where = "" if on_cpu else f" on {device_name(device)}"
+    log(f"\nDiffStack benchmarks{where}: B = {batch_size}, torch {torch.__version__}, {os.cpu_count()} cores; median "
+        f"and IQR of the timed runs (torch.utils.benchmark), at the thread count of each row")
     log(results_table(rows) + "\n")
-    progress("peers: mpc.pytorch side by side")
-    mpc_res = compare_mpc(batch_size, threads, reps, log=log)
-    pp_batches = (batch_size,) if quick else PYPOSE_BATCHES
-    progress(f"peers: PyPose side by side, B in {pp_batches}, one thread")
-    pp_res = compare_pypose(pp_batches, reps, log=log)
+    mpc_res = pp_res = None
+    if on_cpu:
+        progress("peers: mpc.pytorch side by side")
+        mpc_res = compare_mpc(batch_size, threads, reps, log=log)
+        pp_batches = (batch_size,) if quick else PYPOSE_BATCHES
+        progress(f"peers: PyPose side by side, B in {pp_batches}, one thread")
+        pp_res = compare_pypose(pp_batches, reps, log=log)
+    else:
+        log(f"--device {device}: the closed loop and the peers (compared on the CPU) are left out")
     step_1 = [r["median_ms"] for r in rows if r["key"] == "stack_step" and r["threads"] == 1]
     return dict(
         stack_step_ms_1thread=step_1[0] if step_1 else None,  # None when --threads leaves out 1
@@ -674,7 +695,8 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
         speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],  # at B = 256 (--quick: its B)
         controller_ms_per_problem=per_problem,  # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
         meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine(), cores=os.cpu_count(),
-                  torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick),
+                  torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick,
+                  device=str(device), device_name=device_name(device)),
         figures=rows,
         mpc_pytorch=None if mpc_res is None else dict(figures=mpc_res["rows"], gradient_error=mpc_res["gradient_error"]),
         pypose=None if pp_res is None else dict(figures=pp_res["rows"], table=pp_res["table"],
@@ -692,6 +714,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=pathlib.Path, metavar="PATH", help="also write every figure to this JSON file")
     ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
+    ap.add_argument("--device", type=device_arg, default="cpu",
+                    help="where our modules run (cpu, cuda, cuda:N, mps; default cpu); off the CPU the closed loop "
+                         "and the peers are left out")
     args = ap.parse_args(argv)
     if args.json is not None and args.json.is_dir():
         ap.error(f"argument --json: {args.json} is a folder, expected a file path")
@@ -700,7 +725,7 @@ def main(argv=None) -> dict:
     threads = list(dict.fromkeys(args.threads))  # in the order given, once each
     before = torch.get_num_threads()
     try:
-        doc = run(threads, reps, batch_size, args.quick, not args.skip_closed_loop)
+        doc = run(threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device)
     finally:
         torch.set_num_threads(before)  # main() may run inside another process (the tests)
     doc["meta"]["command"] = " ".join(["python bench.py", *(sys.argv[1:] if argv is None else argv)])

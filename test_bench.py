@@ -65,6 +65,7 @@ def test_quick_run_writes_json(tmp_path, capsys):
         assert f["threads"] == 1 and f["runs"] >= 1 and f["median_ms"] > 0 and f["iqr_ms"] >= 0, f
     assert [f["median_ms"] for f in on_disk["figures"] if f["key"] == "stack_step"] == [step]
     assert on_disk["meta"]["batch"] == bench.QUICK["batch"] and on_disk["meta"]["threads"] == [1]
+    assert on_disk["meta"]["device"] == "cpu"
     # one markdown table of our figures, one row per figure
     assert sum(line.startswith("| benchmark |") for line in out.splitlines()) == 1
     assert sum(line.startswith("| ") and "perf_counter lap" in line for line in out.splitlines()) == 4
@@ -79,6 +80,7 @@ def test_quick_run_writes_json(tmp_path, capsys):
     (["--reps", "-1"], "--reps"),
     (["--reps", "0"], "--reps"),
     (["--reps", "two"], "--reps"),
+    (["--device", "gpu"], "--device"),
 ])
 def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
     with pytest.raises(SystemExit) as e:
@@ -87,6 +89,29 @@ def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
     err = capsys.readouterr().err
     last = err.strip().splitlines()[-1]
     assert f"argument {name}" in last and "Traceback" not in err
+
+
+def test_a_gpu_this_machine_lacks_is_refused_before_any_work(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
+    monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--quick", "--device", "cuda"])
+    assert e.value.code == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "argument --device" in last and "no CUDA device here" in last
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_quick_run_on_cuda(tmp_path, capsys):
+    doc = bench.main(["--quick", "--threads", "1", "--device", "cuda", "--json", str(tmp_path / "b.json")])
+    out = capsys.readouterr().out
+    assert doc["meta"]["device"] == "cuda" and "cuda" in doc["meta"]["device_name"]
+    keys = {f["key"] for f in doc["figures"]}
+    assert {"ilqr_forward_f64", "kkt_backward_f64", "stack_step", "predictor_train", "candidates"} <= keys
+    assert all(f["median_ms"] > 0 for f in doc["figures"])
+    # the peers and the closed loop, compared on the CPU, are left out, saying so
+    assert doc["speedup_vs_mpc_pytorch"] is None and doc["speedup_vs_pypose"] is None
+    assert not any(k.startswith("closed_loop") for k in keys) and "are left out" in out
 
 
 def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
