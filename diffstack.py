@@ -37,6 +37,7 @@ import pathlib
 import statistics
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -1554,7 +1555,9 @@ class Predictor(nn.Module):
         cell = self.hist_lstm
         weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
         # torch.lstm(input, (h_0, c_0), weights, has_biases, num_layers, dropout, train, bidirectional, batch_first)
-        out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
+        with warnings.catch_warnings():  # on a GPU, cuDNN copies the four tensors into one buffer (20 KB) per call,
+            warnings.filterwarnings("ignore", "RNN module weights are not part of single")  # and warns that it does
+            out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
         h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
