@@ -217,7 +217,7 @@ def bench_predictor(batch, cfg: Config | None = None, reps=5, threads=1) -> list
     batch's device."""
     cfg = cfg or Config()
     torch.manual_seed(0)
-    model = Predictor(cfg).to(batch.agent_hist.dtype).to(batch.agent_hist.device)
+    model = Predictor(cfg).to(batch.agent_hist.device, batch.agent_hist.dtype)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     steps = itertools.count()  # the KL and logit-clip schedules see a growing step, as in training
 
