@@ -1,5 +1,6 @@
 """The stack runs unchanged on any device: every tensor it makes is made on the device (and dtype) of its inputs.
-Checked on the CPU, without a GPU, in two ways, and the --device argument of both command lines.
+Checked on the CPU, without a GPU, in two ways (1, 2), then the --device argument of both command lines (3), and the
+stack on a GPU against the CPU where there is one (4; its body also runs on the CPU, so that it is tested without one).
 
 1. The meta trick. Inside `with torch.device("meta"):` every factory called WITHOUT device= (torch.zeros, tensor,
    arange, ones, eye, full, linspace, randn, ...) makes a meta tensor (no storage), while one called with
@@ -11,9 +12,9 @@ Checked on the CPU, without a GPU, in two ways, and the --device argument of bot
    index slips through; on CUDA it works too, with a host-to-device copy).
 2. The factory audit, which covers that blind spot and names the line: a TorchFunctionMode (the mechanism
    torch.device("meta") itself uses) records every factory called without device= directly from diffstack.py,
-   experiments.py or data_synth.py (the caller's frame), while the stack runs normally. Sections 3-6 of
-   diffstack.py (cost, planner, controller, predictor) are being given device= in the speed work: their calls are
-   reported by an xfail test and must not be there in the rest of the code.
+   experiments.py or data_synth.py (the caller's frame), while the stack runs normally: none may be left, in
+   sections 3-6 of diffstack.py (cost, planner, controller, predictor; given device= in the speed work) and in the
+   rest of the code, each reported by a test of its own.
 """
 import copy
 import pathlib
@@ -216,7 +217,6 @@ def test_no_factory_without_device_outside_sections_3_to_6(audit):
     theirs = section_lines()
     ours = sorted(c for c in audit if not (c[0] == "diffstack.py" and c[1] in theirs))
     assert not ours, "tensor factories without device=: " + "; ".join(f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in ours)
-
 
 
 def test_no_factory_without_device_in_sections_3_to_6(audit):
