@@ -192,7 +192,8 @@ def test_dynamics_make_every_tensor_on_their_inputs_device():
 def test_the_stack_makes_every_tensor_on_its_inputs_device(run, setup):
     """Every part of the stack under torch.device("meta"): a tensor made without device= lands on meta, which has no
     values, and the run fails. Torch's own code must pass too: torch 2.11's Adam makes its step counter on the
-    default device and fails here (seen on a GPU machine); requirements.txt pins 2.13, whose Adam keeps it on the CPU."""
+    default device and fails here (seen where 2.11 was installed); requirements.txt pins 2.13, whose Adam keeps it on
+    the CPU."""
     with torch.device("meta"):
         run(setup)
 
@@ -295,7 +296,7 @@ def test_the_stack_on_a_device_matches_the_cpu(device, setup):
         b = ds.run_stack(batch.to(device=device), dev_model.eval(), method, cfg)
         assert b.x.device.type == device
         assert torch.allclose(a.hindsight, b.hindsight.cpu(), atol=1e-6)
-    # training on the device: the data stays on the CPU, each batch is moved as it is drawn (in the model's dtype)
+    # training on the device: the data stays on the CPU (in the model's float64), each batch moved as it is drawn
     history = ds.train_stack(dev_model, data.train[:32].to(torch.float64), ds.Method("DiffStack", losses=(1, 1, 1)),
                              cfg, epochs=1.0, log=None)
     assert history and all(torch.isfinite(torch.tensor(h["loss"])) for h in history)
