@@ -1673,15 +1673,17 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     """Before any work: out_dir must be writable, and no file this run would write may exist already unless
     overwrite (a run never replaces a result it did not make) or it is in ours (files this same run wrote before it
     was interrupted, unchanged since: ours_files). ValueError naming the folder or the files."""
+    here = pathlib.Path(__file__).resolve().parent
+    out = pathlib.Path(out_dir).resolve()
+    inside = lambda folder: folder == out or folder in out.parents  # noqa: E731
+    if REAL.name in names and inside(here) and not inside(here / "runs"):  # before check_writable makes the folder
+        raise OutputRefused(f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose licence "
+                         f"forbids committing them; inside this repository they go under runs/ (git-ignored; default "
+                         f"{REAL_OUT}/), or write them outside it")
     try:
         check_writable(out_dir, "--out")
     except ValueError as e:
         raise OutputRefused(str(e)) from None
-    here = pathlib.Path(__file__).resolve().parent
-    if REAL.name in names and pathlib.Path(out_dir).resolve() == here / "results":
-        raise OutputRefused(f"--out: the real-scene results derive from the Waymo Open Dataset, whose licence forbids "
-                         f"committing them; results/ is committed, so write them elsewhere (default {REAL_OUT}/, "
-                         f"git-ignored)")
     existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists() and f not in set(ours)]
     if existing and not overwrite:
         raise OutputRefused(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "

@@ -291,8 +291,12 @@ def test_real_experiment_through_the_cli(tmp_path, monkeypatch, waymo_files):
 
 
 def test_real_results_never_go_to_results(tmp_path):
-    with pytest.raises(ValueError, match="licence forbids committing them"):
-        ex.check_outputs(("real",), HERE / "results", overwrite=True)
+    # nowhere in the repository that git would commit: results/, a folder under it, the root, a new folder in it
+    for out in (HERE / "results", HERE / "results" / "sub", HERE, HERE / "mine", HERE / "runs" / ".." / "results"):
+        with pytest.raises(ValueError, match="licence forbids committing them"):
+            ex.check_outputs(("real",), out, overwrite=True)
+    assert not (HERE / "results" / "sub").exists() and not (HERE / "mine").exists()  # refused before making them
     ex.check_outputs(("real",), tmp_path, overwrite=False)
+    ex.check_outputs(("real",), tmp_path / "runs" / "real", overwrite=False)  # outside the repository: anywhere
     ex.check_outputs(("rl",), HERE / "results", overwrite=True)  # the paper's tables still go there
     assert "runs/" in (HERE / ".gitignore").read_text().split()
