@@ -3,7 +3,7 @@
     python bench.py                                   # everything at 1 and 2 threads, B = 256 (a few minutes)
     python bench.py --threads 1 --reps 3 --skip-closed-loop
     python bench.py --quick                           # tiny sizes and reps, well under a minute (test_bench.py)
-    python bench.py --json results/bench.json         # also every figure, in a JSON file
+    python bench.py --json runs/bench.json            # also every figure, in a JSON file
     python bench.py --device cuda --threads 1         # our modules on a GPU (the peers and closed loop left out)
 
 What is timed (B = --batch scenarios or problems, default 256):
@@ -68,7 +68,7 @@ import torch
 import torch.utils.benchmark as benchmark
 
 import data_synth
-from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, device_arg, machine, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
+from diffstack import (Config, Method, Predictor, Unicycle, alphas, bounded, check_writable, device_arg, machine, markdown_table, ilqr, ilqr_solve, plan_candidates, pred_loss,
                        run_stack, scene_plan, unicycle_jacobians, unicycle_rollout)
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy, write_atomic
 
@@ -718,8 +718,13 @@ def main(argv=None) -> dict:
                     help="where our modules run (cpu, cuda, cuda:N, mps; default cpu); off the CPU the closed loop "
                          "and the peers are left out")
     args = ap.parse_args(argv)
-    if args.json is not None and args.json.is_dir():
-        ap.error(f"argument --json: {args.json} is a folder, expected a file path")
+    if args.json is not None:  # before the minutes of work, not after: a folder, or a place no file can go
+        if args.json.is_dir():
+            ap.error(f"argument --json: {args.json} is a folder, expected a file path")
+        try:
+            check_writable(args.json.parent, "--json")
+        except ValueError as e:
+            ap.error(f"argument {e}")
     reps = args.reps or (QUICK["reps"] if args.quick else 5)
     batch_size = args.batch or (QUICK["batch"] if args.quick else 256)
     threads = list(dict.fromkeys(args.threads))  # in the order given, once each

@@ -91,6 +91,17 @@ def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
     assert f"argument {name}" in last and "Traceback" not in err
 
 
+def test_a_json_path_no_file_can_take_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    (tmp_path / "afile").write_text("")
+    monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
+    for path in (tmp_path / "afile" / "b.json", tmp_path):  # under a file; a folder
+        with pytest.raises(SystemExit) as e:
+            bench.main(["--quick", "--json", str(path)])
+        assert e.value.code == 2
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert "argument --json" in last and str(tmp_path) in last  # naming the folder or the path
+
+
 def test_a_gpu_this_machine_lacks_is_refused_before_any_work(monkeypatch, capsys):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
     monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
