@@ -1691,13 +1691,21 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
                          f"them, or choose another --out")
 
 
-def write_report(out_dir, sections) -> pathlib.Path:
+def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
     """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
-    out_dir]); each figure is linked below its section's table."""
+    out_dir]); each figure is linked below its section's table. Its first line says when and where the tables were
+    run, from their metas (each section's provenance line has its own), and when the report was re-rendered from
+    them (--render); without metas, this process's date and machine."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    parts = [f"# DiffStack: results\n\n{time.strftime('%Y-%m-%d')}, {machine()}, "
-             f"torch {torch.__version__}, {torch.get_num_threads()} threads\n"]
+    if metas:
+        dates = sorted({m["date"] for m in metas})
+        when = dates[0] if len(dates) == 1 else f"{dates[0]} to {dates[-1]}"
+        header = f"Run {when} on {'; '.join(dict.fromkeys(m['machine'] for m in metas))}"
+        header += f" (rendered {time.strftime('%Y-%m-%d')} from their JSON files)" if rendered else ""
+    else:
+        header = f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    parts = [f"# DiffStack: results\n\n{header}\n"]
     for title, md, figures in sections:
         parts.append(f"## {title}\n\n{md}\n")
         parts += [f"![{f}]({f})\n" for f in figures]
@@ -1751,7 +1759,7 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
     lines when `data` is given) and, for 'all', report.md. The figures that need the trained models (the closed
     loop's, the cost weights') are kept as they are. Returns the paths written."""
     names = EXPERIMENTS if name == "all" else (name,)
-    out, written, sections = pathlib.Path(out_dir), [], []
+    out, written, sections, metas = pathlib.Path(out_dir), [], [], []
     for one in names:
         spec = SPECS[one]
         written.append(render_markdown(one, out))
@@ -1763,8 +1771,9 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
             written.append(out / "learning_curves.png")
         sections.append((spec.title, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
                          [f for f in spec.figures if (out / f).exists()]))
+        metas.append(saved["meta"])
     if name == "all":
-        written.append(write_report(out, sections))
+        written.append(write_report(out, sections, metas, rendered=True))
     if log:
         log("rendered: " + ", ".join(str(p) for p in written))
     return written
@@ -1793,7 +1802,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     store = RunStore(root, run_key(data, cfg, epochs, device))
     manifest = outputs_manifest(out, name, seeds, store.key)
     check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
-    sections, models = [], {}
+    sections, metas, models = [], [], {}
     all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], seeds)]
     # worker processes only where there are seeds to share out (the goal table has one run per row)
     jobs = max(1, min(jobs, len({p.seed for _, p in all_pieces}))) if write and processes == 1 else 1
@@ -1840,6 +1849,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             if store.root is not None:
                 record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
             sections.append((spec.title, md, list(spec.figures)))
+            metas.append(meta)
             if log:
                 log(f"\n{spec.title}\n{table}")
     timings = [store.timing(one, p) for one, p in all_pieces] if store.root is not None else []
@@ -1848,7 +1858,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {_clock(total)}"
             + (f", {_clock(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
     if name == "all" and write:
-        report = write_report(out, sections)
+        report = write_report(out, sections, metas)
         if store.root is not None:
             record_outputs(manifest, [report])
         if log:

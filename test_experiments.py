@@ -2,6 +2,7 @@
 and the command line. Every test runs on one thread."""
 import json
 import math
+import time
 
 import pytest
 import torch
@@ -450,6 +451,17 @@ def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp
         gt, none = rows["GT prediction"][0]["hindsight"], rows["No prediction"][0]["hindsight"]
         assert gt <= none + 1e-6  # with the GT future, the plan is the best candidate in hindsight
     assert md.count("**Goal:") == 2 and "share of GT's saving" in md
+
+
+def test_the_report_says_when_and_where_its_tables_ran_not_when_it_was_written(tmp_path):
+    metas = [dict(date="2026-11-24", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)"),
+             dict(date="2026-11-25", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)"),
+             dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads")]
+    header = ex.write_report(tmp_path, [("T", "table", [])], metas).read_text().splitlines()[2]
+    assert header == ("Run 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker processes "
+                      "(--jobs); aarch64, 8 cores, 2 threads")  # each machine once, in order
+    header = ex.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True).read_text().splitlines()[2]
+    assert header.startswith("Run 2026-11-24 on x86_64") and f"(rendered {time.strftime('%Y-%m-%d')} from" in header
 
 
 def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
