@@ -1988,6 +1988,8 @@ def main(argv=None):
                              f"{world} processes torchrun started; choose a multiple of {world}")
         if args.jobs is not None and args.jobs > 1 and world > 1:
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
+        if args.data is not None and not pathlib.Path(args.data).is_dir():  # before --out is made (load_data checks
+            raise ValueError(f"--data: {args.data} is not a folder")       # the rest of the folder later)
         # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
         # run_experiment decides once the data, and so the run's key, is known
         check_outputs(names, args.out, args.overwrite,

@@ -42,6 +42,12 @@ def test_bad_cli_input_exits_with_a_message(argv, message, capsys, tmp_path):
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 
+def test_a_missing_data_folder_is_refused_before_out_is_made(capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        ex.main(["--experiment", "rl", "--data", str(tmp_path / "no-such"), "--out", str(tmp_path / "new")])
+    assert "--data" in capsys.readouterr().err and not (tmp_path / "new").exists()
+
+
 # ---------------------------------------------------------------------------------------------
 # Cost learning, closed loop, ablations, figures
 # ---------------------------------------------------------------------------------------------
