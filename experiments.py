@@ -986,8 +986,10 @@ def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: flo
             falling = mean < -2 * se and mean < -0.01 * abs(level)
             parts.append(f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
                          f"({'still falling' if falling else 'flat'})")
-        lines.append(f"- {m}, over the last {last:g} of {curves[0][-1]['epoch']:g} epochs ({len(curves)} seeds, "
-                     f"{CURVE_SAMPLES} validation scenes): " + "; ".join(parts))
+        final = curves[0][-1]  # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
+        scenes = final.get("n", CURVE_SAMPLES) + final.get("skipped", 0)
+        lines.append(f"- {m}, over the last {min(last, final['epoch']):g} of {final['epoch']:g} epochs ({len(curves)} "
+                     f"seeds, {scenes} validation scenes): " + "; ".join(parts))
     return "Learning curves (learning_curves.png):\n\n" + "\n".join(lines) if lines else ""
 
 

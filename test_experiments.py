@@ -505,6 +505,11 @@ def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
     assert std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds") and std.count("(flat)") == 2
     assert "ADE -0.250 ± 0.029 m (still falling)" in dif
     assert ex.plateau_markdown({"Standard": [dict(ade=1.0)]}) == ""
+    assert f"{ex.CURVE_SAMPLES} validation scenes" in std  # curves without a count: the default's
+    # a short run on a small validation set says what it had: 0.5 epochs, 40 + 14 scenes
+    short = [dict(curve=[dict(epoch=e, ade=1.0, hindsight=1.0, n=40, skipped=14) for e in (0.0, 0.5)])]
+    line = ex.plateau_markdown({"Standard": short}).splitlines()[-1]
+    assert line.startswith("- Standard, over the last 0.5 of 0.5 epochs (1 seeds, 54 validation scenes)")
 
 
 def test_the_learning_curves_caption_is_read_off_the_curves():
