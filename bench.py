@@ -715,9 +715,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
     ap.add_argument("--device", type=device_arg, default="cpu",
-                    help="where our modules run (cpu, cuda, cuda:N, mps; default cpu); off the CPU the closed loop "
-                         "and the peers are left out")
+                    help="where our modules run (cpu, cuda, cuda:N; default cpu); off the CPU the closed loop and the "
+                         "peers are left out")
     args = ap.parse_args(argv)
+    if args.device.type == "mps":  # MPS has no float64: the controller's rows would fail after the set-up
+        ap.error("argument --device: mps has no float64, which the controller's benchmarks use; use cpu or cuda")
     if args.json is not None:  # before the minutes of work, not after: a folder, or a place no file can go
         if args.json.is_dir():
             ap.error(f"argument --json: {args.json} is a folder, expected a file path")

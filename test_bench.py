@@ -112,11 +112,19 @@ def test_a_gpu_this_machine_lacks_is_refused_before_any_work(monkeypatch, capsys
     assert "argument --device" in last and "no CUDA device here" in last
 
 
+def test_mps_is_refused_before_any_work(monkeypatch, capsys):
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)  # as on a Mac: there, it has no float64
+    monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--quick", "--device", "mps"])
+    assert e.value.code == 2 and "argument --device: mps has no float64" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_quick_run_on_cuda(tmp_path, capsys):
     doc = bench.main(["--quick", "--threads", "1", "--device", "cuda", "--json", str(tmp_path / "b.json")])
     out = capsys.readouterr().out
-    assert doc["meta"]["device"] == "cuda" and "cuda" in doc["meta"]["device_name"]
+    assert doc["meta"]["device"] == "cuda" and torch.cuda.get_device_name() in doc["meta"]["device_name"]
     keys = {f["key"] for f in doc["figures"]}
     assert {"ilqr_forward_f64", "kkt_backward_f64", "stack_step", "predictor_train", "candidates"} <= keys
     assert all(f["median_ms"] > 0 for f in doc["figures"])
