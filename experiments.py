@@ -1695,15 +1695,19 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
 
 def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
     """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
-    out_dir]); each figure is linked below its section's table. Its first line says when and where the tables were
-    run, from their metas (each section's provenance line has its own), and when the report was re-rendered from
-    them (--render); without metas, this process's date and machine."""
+    out_dir]); each figure is linked below its section's table. Its first line says when, where and on which device
+    the tables were made, from their metas (each section's provenance line has its own, and names the machines of a
+    run resumed on several), and when the report was re-rendered from them (--render); without metas, this
+    process's date and machine."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if metas:
         dates = sorted({m["date"] for m in metas})
         when = dates[0] if len(dates) == 1 else f"{dates[0]} to {dates[-1]}"
-        header = f"Run {when} on {'; '.join(dict.fromkeys(m['machine'] for m in metas))}"
+        header = (f"Tables made {when} on {'; '.join(dict.fromkeys(m['machine'] for m in metas))}, device "
+                  f"{', '.join(dict.fromkeys(m.get('device', 'cpu') for m in metas))}")
+        if any(m.get("computed_on") for m in metas):  # a run resumed on other machines
+            header += " (pieces computed on several machines: see the sections)"
         header += f" (rendered {time.strftime('%Y-%m-%d')} from their JSON files)" if rendered else ""
     else:
         header = f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads"

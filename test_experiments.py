@@ -460,14 +460,18 @@ def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp
 
 
 def test_the_report_says_when_and_where_its_tables_ran_not_when_it_was_written(tmp_path):
-    metas = [dict(date="2026-11-24", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)"),
-             dict(date="2026-11-25", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)"),
-             dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads")]
+    metas = [dict(date="2026-11-24", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
+                  device="cpu"),
+             dict(date="2026-11-25", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
+                  device="cpu"),
+             dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads", device="cuda")]
     header = ex.write_report(tmp_path, [("T", "table", [])], metas).read_text().splitlines()[2]
-    assert header == ("Run 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker processes "
-                      "(--jobs); aarch64, 8 cores, 2 threads")  # each machine once, in order
+    assert header == ("Tables made 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker "
+                      "processes (--jobs); aarch64, 8 cores, 2 threads, device cpu, cuda")  # each once, in order
+    metas[0]["computed_on"] = {"x86_64, AVX512": 3, "x86_64, AVX2": 2}  # a run resumed on another machine
     header = ex.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True).read_text().splitlines()[2]
-    assert header.startswith("Run 2026-11-24 on x86_64") and f"(rendered {time.strftime('%Y-%m-%d')} from" in header
+    assert header.startswith("Tables made 2026-11-24 on x86_64") and "device cpu (pieces computed on several" in header
+    assert header.endswith(f"(rendered {time.strftime('%Y-%m-%d')} from their JSON files)")
 
 
 def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
