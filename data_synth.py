@@ -1164,6 +1164,18 @@ def _split_scenes(names: list, version: str) -> tuple:
     return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
 
 
+def nuscenes_version(path) -> str:
+    """The nuScenes version a --data folder holds (v1.0-mini, else v1.0-trainval); ValueError naming --data when it
+    is not a folder or holds neither. Cheap: the CLIs call it before they make anything."""
+    root = Path(path)
+    if not root.is_dir():
+        raise ValueError(f"--data: {path} is not a folder")
+    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
+    if not versions:
+        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
+    return versions[0]
+
+
 def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers: int | None = None) -> Dataset:
     """Training and validation samples for the stack: synthetic (load_or_generate, cached in cache_dir), or
     read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene:
@@ -1178,20 +1190,15 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
     if path is None:
         return load_or_generate(n, seed=seed, cache_dir=cache_dir)
     _check_seed("load_data", seed)
-    root = Path(path)
-    if not root.is_dir():
-        raise ValueError(f"--data: {path} is not a folder")
-    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
-    if not versions:
-        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
-    scenes, report = load_nuscenes_cached(root, versions[0], cache_dir=cache_dir, workers=workers, log=log)
+    root, version = Path(path), nuscenes_version(path)
+    scenes, report = load_nuscenes_cached(root, version, cache_dir=cache_dir, workers=workers, log=log)
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
-    is_val, rule = _split_scenes(scenes.names, versions[0])
+    is_val, rule = _split_scenes(scenes.names, version)
     rng = np.random.default_rng(seed)
     train, _ = cut_samples(scenes[~is_val], None, rng)
     val, _ = cut_samples(scenes[is_val], None, rng)
-    log(f"read {path} ({versions[0]}): {len(train)} training and {len(val)} validation samples "
+    log(f"read {path} ({version}): {len(train)} training and {len(val)} validation samples "
         f"(validation: {rule}); {report}")
     return Dataset(train, val, scenes[is_val])
 

@@ -1986,6 +1986,11 @@ def main(argv=None):
         missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
         if missing:
             ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
+        if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
+            try:
+                data_synth.nuscenes_version(args.data)
+            except ValueError as e:
+                ap.error(str(e))
         return render_outputs(args.experiment, args.out, data_synth.load_data(args.data, args.n, log=print))
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
@@ -1994,8 +1999,8 @@ def main(argv=None):
                              f"{world} processes torchrun started; choose a multiple of {world}")
         if args.jobs is not None and args.jobs > 1 and world > 1:
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
-        if args.data is not None and not pathlib.Path(args.data).is_dir():  # before --out is made (load_data checks
-            raise ValueError(f"--data: {args.data} is not a folder")       # the rest of the folder later)
+        if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
+            data_synth.nuscenes_version(args.data)
         # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
         # run_experiment decides once the data, and so the run's key, is known
         check_outputs(names, args.out, args.overwrite,

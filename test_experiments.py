@@ -42,10 +42,18 @@ def test_bad_cli_input_exits_with_a_message(argv, message, capsys, tmp_path):
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 
-def test_a_missing_data_folder_is_refused_before_out_is_made(capsys, tmp_path):
+def test_a_data_folder_that_is_no_nuscenes_folder_is_refused_before_out_is_made(capsys, tmp_path):
+    (tmp_path / "empty").mkdir()
+    for data, why in (("no-such", "is not a folder"), ("empty", "holds no nuScenes version folder")):
+        with pytest.raises(SystemExit):
+            ex.main(["--experiment", "rl", "--data", str(tmp_path / data), "--out", str(tmp_path / "new")])
+        assert why in capsys.readouterr().err.strip().splitlines()[-1] and not (tmp_path / "new").exists()
+    # --render too: a one-line error, not a traceback from inside the loader
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "rl.json").write_text("{}")
     with pytest.raises(SystemExit):
-        ex.main(["--experiment", "rl", "--data", str(tmp_path / "no-such"), "--out", str(tmp_path / "new")])
-    assert "--data" in capsys.readouterr().err and not (tmp_path / "new").exists()
+        ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path / "old"), "--data", str(tmp_path / "empty")])
+    assert "holds no nuScenes version folder" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------------------
