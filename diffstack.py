@@ -34,6 +34,7 @@ import functools
 import math
 import os
 import pathlib
+import re
 import statistics
 import sys
 import time
@@ -49,6 +50,11 @@ from torch.utils.data.distributed import DistributedSampler
 
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from data_synth import wrap_angle  # angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi
+
+# On a GPU, cuDNN wants an LSTM's weights in one buffer: it copies the four tensors the history encoder hands it (an
+# LSTMCell's, 20 KB; Predictor.encode) at every call, and warns each time that it does. That warning, from this
+# module's calls only, is ignored.
+warnings.filterwarnings("ignore", "RNN module weights are not part of single", UserWarning, re.escape(__name__) + r"\Z")
 
 # ============================================================================================
 # 1. Config
@@ -1555,9 +1561,7 @@ class Predictor(nn.Module):
         cell = self.hist_lstm
         weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
         # torch.lstm(input, (h_0, c_0), weights, has_biases, num_layers, dropout, train, bidirectional, batch_first)
-        with warnings.catch_warnings():  # on a GPU, cuDNN copies the four tensors into one buffer (20 KB) per call,
-            warnings.filterwarnings("ignore", "RNN module weights are not part of single")  # and warns that it does
-            out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
+        out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
         h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
