@@ -1679,9 +1679,9 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     out = pathlib.Path(out_dir).resolve()
     inside = lambda folder: folder == out or folder in out.parents  # noqa: E731
     if REAL.name in names and inside(here) and not inside(here / "runs"):  # before check_writable makes the folder
-        raise OutputRefused(f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose licence "
-                         f"forbids committing them; inside this repository they go under runs/ (git-ignored; default "
-                         f"{REAL_OUT}/), or write them outside it")
+        raise OutputRefused(f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose "
+                            f"licence forbids committing them; inside this repository they go under runs/ (git-ignored; "
+                            f"default {REAL_OUT}/), or write them outside it")
     try:
         check_writable(out_dir, "--out")
     except ValueError as e:
@@ -1710,7 +1710,8 @@ def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
             header += " (pieces computed on several machines: see the sections)"
         header += f" (rendered {time.strftime('%Y-%m-%d')} from their JSON files)" if rendered else ""
     else:
-        header = f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+        header = (f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, "
+                  f"{torch.get_num_threads()} threads")
     parts = [f"# DiffStack: results\n\n{header}\n"]
     for title, md, figures in sections:
         parts.append(f"## {title}\n\n{md}\n")
