@@ -192,8 +192,10 @@ def test_dynamics_make_every_tensor_on_their_inputs_device():
 def test_the_stack_makes_every_tensor_on_its_inputs_device(run, setup):
     """Every part of the stack under torch.device("meta"): a tensor made without device= lands on meta, which has no
     values, and the run fails. Torch's own code must pass too: torch 2.11's Adam makes its step counter on the
-    default device and fails here (seen where 2.11 was installed); requirements.txt pins 2.13, whose Adam keeps it on
-    the CPU."""
+    default device and fails here (seen where 2.11 was installed), so training is checked from 2.13 on (pinned in
+    requirements.txt), whose Adam keeps it on the CPU; the factory audit below covers our own code on any version."""
+    if run is run_training and tuple(int(v) for v in torch.__version__.split("+")[0].split(".")[:2]) < (2, 13):
+        pytest.skip(f"torch {torch.__version__}'s Adam makes its step counter on the default device (meta here)")
     with torch.device("meta"):
         run(setup)
 
