@@ -1019,6 +1019,9 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 # The 20-epoch tables (`results/epochs20/`) told the same story with a wider margin, Standard −0.67 ± 0.04 against
 # DiffStack's −1.27 ± 0.09 (62 % of the gap closed): the extra 20 epochs help Standard the most, DiffStack's
 # hindsight cost stays where it was. Part of a 20-epoch margin was Standard's under-training.
+# Nor can a bigger step stand in for the extra epochs: at 20 epochs with the learning rate doubled (0.006),
+# Standard's hindsight cost was −0.59 ± 0.09, no better than at the paper's rate, and one DiffStack (no L_pred)
+# run diverged (`results/lr2x_epochs20/rl.md`; README, "Why 40 epochs do not fit").
 #
 # ![Learning curves of Standard and DiffStack over 40 epochs](results/learning_curves.png)
 
