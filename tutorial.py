@@ -1015,7 +1015,8 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 # all the way (left). At the paper's 20 epochs Standard's ADE was still falling (−0.08 ± 0.03 m over the last 5
 # epochs): it had not plateaued, which is why the tables train 40, over whose last 5 epochs both curves are flat
 # (an epoch here is also far fewer steps than the paper's: 33 of 256 samples, against an estimated 200 to 1 000 on
-# nuScenes; README, "Results").
+# nuScenes; README, "Results"). "Flat" is the verdict of a noisy test: in other 5-epoch windows its verdict on the
+# ADE flips, while the hindsight cost is flat from epoch 20 on.
 # The 20-epoch tables (`results/epochs20/`) told the same story with a wider margin, Standard −0.67 ± 0.04 against
 # DiffStack's −1.27 ± 0.09 (62 % of the gap closed): the extra 20 epochs help Standard the most, DiffStack's
 # hindsight cost stays where it was. Part of a 20-epoch margin was Standard's under-training.
