@@ -1021,8 +1021,9 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 # DiffStack's −1.27 ± 0.09 (62 % of the gap closed): the extra 20 epochs help Standard the most, DiffStack's
 # hindsight cost stays where it was. Part of a 20-epoch margin was Standard's under-training.
 # Nor can a bigger step stand in for the extra epochs: at 20 epochs with the learning rate doubled (0.006),
-# Standard's hindsight cost was −0.59 ± 0.09, no better than at the paper's rate, and one DiffStack (no L_pred)
-# run diverged (`results/lr2x_epochs20/rl.md`; README, "Why 40 epochs do not fit").
+# Standard's hindsight cost was −0.59 ± 0.09, no better than 20 epochs at the paper's rate (−0.67) and worse than
+# 40 (−0.96), and one DiffStack (no L_pred) run diverged (`results/lr2x_epochs20/rl.md`; README, "Why 40 epochs
+# do not fit").
 #
 # ![Learning curves of Standard and DiffStack over 40 epochs](results/learning_curves.png)
 
