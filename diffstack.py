@@ -1,25 +1,23 @@
 """DiffStack: a differentiable and modular autonomous-vehicle stack, the method in one readable module.
 
-Karkus, Ivanovic, Mannor, Pavone, "DiffStack: A Differentiable and Modular Control Stack for
-Autonomous Vehicles", CoRL 2022. The stack predicts the future of a nearby vehicle (eq. 1), plans with a
-sampling planner (eq. 2) that minimises a hand-crafted cost (eq. 3), and refines the plan with a
-box-constrained iLQR controller (eq. 4). Planner and controller are differentiable, so the predictor can
-be trained with the planning and control losses.
+Karkus, Ivanovic, Mannor, Pavone, "DiffStack: A Differentiable and Modular Control Stack for Autonomous
+Vehicles", CoRL 2022. The stack predicts the future of a nearby vehicle (eq. 1), plans with a sampling
+planner (eq. 2) that minimises a hand-crafted cost (eq. 3), and refines the plan with a box-constrained
+iLQR controller (eq. 4). Planner and controller are differentiable, so the predictor can be trained with
+the planning and control losses.
 
 Map of the module (the order the data flows):
-    1. Config                 every default of the paper, in one dataclass
-    2. Dynamics               the dynamically-extended unicycle (exact integration)
-    3. Cost                   eq. (3): collision, goal, lane, heading, control effort
-    4. Planner                eq. (2): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
-    5. Controller             eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
-    6. Predictor              eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
-    7. Stack                  predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
-    8. Training, evaluation   one training loop for every method (and for the cost weights), the metrics;
-                              8.1 the same loop on many processes (DistributedDataParallel, torchrun)
-    9. Command line           python diffstack.py --quick
+    1. Config        every default of the paper, in one dataclass
+    2. Dynamics      the dynamically-extended unicycle (exact integration)
+    3. Cost          eq. (3): collision, goal, lane, heading, control effort
+    4. Planner       eq. (2): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
+    5. Controller    eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
+    6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
+    7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
+    8. Input checks  what the public entry points refuse, in one place
 
-The paper's experiments (Tables 1-5, the ablations, figures, the report) are in experiments.py, every
-benchmark in bench.py, the data in data_synth.py, the course in tutorial.py / tutorial.ipynb.
+Training and evaluation are in train.py (`python diffstack.py --quick` hands over to it), the paper's tables
+in experiments.py, the data in data_synth.py and data_real.py.
 
 Shape letters used in comments:
     B scenarios (batch)   A other agents   K prediction modes   N planner candidates
@@ -32,29 +30,24 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
-import pathlib
 import re
-import statistics
-import sys
 import time
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
-import torch.distributed as dist
 import torch.nn as nn
-from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data.distributed import DistributedSampler
-
-from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
-from data_synth import wrap_angle  # angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi
 
 # On a GPU, cuDNN wants an LSTM's weights in one buffer: it copies the four tensors the history encoder hands it (an
 # LSTMCell's, 20 KB; Predictor.encode) at every call, and warns each time that it does. That warning, from this
 # module's calls only, is ignored.
 warnings.filterwarnings("ignore", "RNN module weights are not part of single", UserWarning, re.escape(__name__) + r"\Z")
+
+
+def wrap_angle(a):
+    """Angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi."""
+    return torch.atan2(torch.sin(a), torch.cos(a))
 
 # ============================================================================================
 # 1. Config
@@ -209,44 +202,6 @@ class Config:
             raise ValueError(f"Config.line_search_decay: must be > 1, got {self.line_search_decay}")
         if not 0 < self.pred_lr_decay <= 1:
             raise ValueError(f"Config.pred_lr_decay: must be in (0, 1], got {self.pred_lr_decay}")
-
-
-def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
-    """Raise ValueError naming `name` unless t is a floating tensor of the given shape (None: any size
-    there), dtype and finite values. Used at the public entry points, never inside the math."""
-    if not torch.is_tensor(t):
-        raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
-    if shape is not None and (t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape))):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
-    if dtype is not None and t.dtype != dtype:
-        raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
-    if finite and t.is_floating_point() and not _all_finite(t):
-        raise ValueError(f"{name}: contains NaN or inf")
-    return t
-
-
-def check_positive(name: str, value) -> float:
-    """ValueError naming `name` unless value is a finite number > 0 (a time step, a variance)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
-    return value
-
-
-def check_points(name: str, t, n: int, dtype=None):
-    """check_tensor for a tensor of points (..., n)."""
-    if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
-        raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
-    return check_tensor(name, t, dtype=dtype)
-
-
-def _all_finite(t: torch.Tensor) -> bool:
-    """Every value finite? x - x is 0 for a finite x and NaN for an inf or a NaN, and a sum keeps a NaN: two
-    fast passes, where isfinite(t).all() is 8 times slower (the stack's entry points check every input)."""
-    try:
-        return not bool(torch.isnan((t - t).sum()))
-    except RuntimeError:  # inside torch.func.vmap a value cannot steer Python: the caller's entry point checked it
-        return True
 
 
 # ============================================================================================
@@ -697,24 +652,6 @@ class StackCost:
 
     def expansion(self, x, u, w, *context):
         return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
-
-
-def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
-    """ValueError naming the argument when the cost's inputs do not fit together or are not finite."""
-    check_tensor("x", x)
-    if x.dim() < 3 or x.shape[-1] != 4 or x.shape[-2] < 2:
-        raise ValueError(f"x: expected states (B, ..., T+1, 4) with T >= 1, got {tuple(x.shape)}")
-    B, T = x.shape[0], x.shape[-2] - 1
-    check_tensor("u", u, (B, *x.shape[1:-2], T, 2), x.dtype)
-    check_tensor("w", w, dtype=x.dtype)
-    if tuple(w.shape) not in ((5,), (B, 5)):
-        raise ValueError(f"w: expected the 5 weights of eq. (3), shape (5,) or ({B}, 5), got {tuple(w.shape)}")
-    check_tensor("ctx.preds", ctx.preds, (B, None, T, 2), x.dtype)
-    check_tensor("ctx.probs", ctx.probs, (B, ctx.preds.shape[1]), x.dtype)
-    check_tensor("ctx.others", ctx.others, (B, None, T, 2), x.dtype)
-    check_tensor("ctx.goal", ctx.goal, (B, 2), x.dtype)
-    check_tensor("ctx.lanes", ctx.lanes, (B, None, None, 3), x.dtype)
-    check_positive("rbf_var", rbf_var)
 
 
 # ============================================================================================
@@ -1431,35 +1368,6 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
     )  # (..., H, 8)
 
 
-def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
-    """ValueError naming the field when a batch is empty, has the wrong history/future length, or non-finite
-    values. need_future: the agent's GT future is used (training); stack: the stack's other inputs are checked too
-    (the ego's future, the other agents, the goal and the lanes)."""
-    if len(batch) == 0:
-        raise ValueError("batch: no scenarios (a batch of size 0)")
-    H, T = cfg.hist_len + 1, cfg.horizon
-    expect = {"agent_hist": (H, 4), "ego_hist": (H, 4), "others_hist": (H, 4)}
-    if need_future or stack:
-        expect["agent_fut"] = (T, 4)
-    if stack:
-        expect.update(ego_fut=(T, 4), others_fut=(T, 4))
-    for name, tail in expect.items():
-        x = getattr(batch, name)
-        if tuple(x.shape[-2:]) != tail:
-            raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
-        if not _all_finite(x):
-            raise ValueError(f"{name} contains NaN or inf")
-    if stack:
-        B = len(batch)
-        check_tensor("goal", batch.goal, (B, 4), batch.ego_hist.dtype)
-        check_tensor("lanes", batch.lanes, (B, None, None, 3), batch.ego_hist.dtype)
-    m = batch.agent_hist_mask
-    if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
-        raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
-    if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
-        raise ValueError("agent_hist_mask: the current step must be observed and missing steps must be the earliest")
-
-
 # --------------------------------------------------------------------------------------------
 # 6.2 The model
 # --------------------------------------------------------------------------------------------
@@ -1590,7 +1498,7 @@ class Predictor(nn.Module):
 
     # ---- decoder -------------------------------------------------------------------------
 
-    def decode(self, x: torch.Tensor, f0: torch.Tensor, shard: Shard | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode(self, x: torch.Tensor, f0: torch.Tensor, shard=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
 
         All K values of z at once, as B*K rows. The GRU (Cho et al. 2014) is written out gate by gate:
@@ -1660,7 +1568,7 @@ class Predictor(nn.Module):
 
     # ---- the whole forward pass ----------------------------------------------------------
 
-    def forward(self, batch, use_posterior: bool, step: int | None = None, shard: Shard | None = None) -> Prediction:
+    def forward(self, batch, use_posterior: bool, step: int | None = None, shard=None) -> Prediction:
         """K mode trajectories with their probabilities and the position GMM.
 
         use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut; training) instead of p(z|x).
@@ -1789,13 +1697,13 @@ def kl_beta(step: int, cfg: Config) -> float:
     return b0 / (1 + math.exp(-(step - centre) / width))
 
 
-def batch_mean(x: torch.Tensor, shard: Shard | None = None) -> torch.Tensor:
+def batch_mean(x: torch.Tensor, shard=None) -> torch.Tensor:
     """x (B, ...) averaged over the batch (...): this process's batch, or under DDP (shard, section 8.1) the global
     batch of all processes, differentiably (Shard.mean)."""
     return x.mean(0) if shard is None else shard.mean(x)
 
 
-def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard: Shard | None = None) -> tuple[torch.Tensor, dict]:
+def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tuple[torch.Tensor, dict]:
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging.
 
     L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
@@ -1818,94 +1726,6 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard: Shard | No
     loss = -(ll - beta * kl_fb + mi)  # (B,)
     parts = {"loss": loss.mean().item(), "ll": ll.mean().item(), "kl": kl.mean().item(), "mi": mi.item(), "beta": beta}
     return loss, parts
-
-
-# --------------------------------------------------------------------------------------------
-# 6.4 Metrics, and the constant-velocity baseline
-# --------------------------------------------------------------------------------------------
-
-
-def constant_velocity(batch, cfg: Config) -> torch.Tensor:
-    """Positions t1..T (B, T, 2) keeping the tracked speed and heading of t0."""
-    s = batch.agent_hist[:, -1]  # (B, 4)
-    tt = cfg.dt * torch.arange(1, cfg.horizon + 1, dtype=s.dtype, device=s.device)  # (T,)
-    v = torch.stack([s[:, 3] * torch.cos(s[:, 2]), s[:, 3] * torch.sin(s[:, 2])], -1)  # (B, 2)
-    return s[:, None, :2] + tt[None, :, None] * v[:, None]  # (B, T, 2)
-
-
-def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.Tensor]:
-    """Per-scenario metrics (B,): ADE/FDE of the most likely mode (argmax of pred.probs), min-ADE/min-FDE over
-    modes, GMM NLL = -mean_t max(log p(y_t), -20) with weights pred.probs; and constant velocity's ADE/FDE.
-    Call with an eval-mode prediction and use_posterior=False for the paper's metrics (argmax p, mean controls)."""
-    y = batch.agent_fut[..., :2]  # (B, T, 2)
-    err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
-    best = pred.probs.argmax(-1)  # (B,)
-    err_ml = err[torch.arange(len(best), device=best.device), best]  # (B, T)
-    nll = -gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
-    err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
-    return {
-        "ade": err_ml.mean(-1), "fde": err_ml[:, -1],
-        "min_ade": err.mean(-1).min(-1).values, "min_fde": err[..., -1].min(-1).values,
-        "nll": nll, "cv_ade": err_cv.mean(-1), "cv_fde": err_cv[:, -1],
-    }
-
-
-@torch.no_grad()
-def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 1024) -> dict[str, float]:
-    """Mean metrics over a Scenarios set, in eval mode (prior weights, mean controls), constant velocity beside.
-
-    cv_nll is constant velocity made a distribution: an isotropic Gaussian per step whose variance is fit to this
-    very set (sigma_t^2 = mean squared error / 2), an oracle calibration that favours the baseline.
-    """
-    was_training = model.training
-    model.eval()
-    sums, cv_sq, n = {}, 0.0, 0
-    for i in range(0, len(data), batch_size):
-        batch = data[i : i + batch_size]
-        m = prediction_metrics(model(batch, use_posterior=False), batch, cfg)
-        for k, v in m.items():
-            sums[k] = sums.get(k, 0.0) + v.sum().item()
-        cv_sq = cv_sq + ((constant_velocity(batch, cfg) - batch.agent_fut[..., :2]) ** 2).sum((0, 2))  # (T,)
-        n += len(batch)
-    model.train(was_training)
-    out = {k: v / n for k, v in sums.items()}
-    var = cv_sq / (2 * n)  # (T,) ML variance per axis
-    # -mean_t log N(e_t; 0, var_t I) = mean_t [log(2 pi var_t) + E e^2 / (2 var_t)] = mean_t [log(2 pi var_t) + 1]
-    out["cv_nll"] = (torch.log(2 * math.pi * var) + 1).mean().item()  # (no per-step clamp here)
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# 6.5 The planning-aware weights of L_pred: Distance weighted and grad-Cost weighted (§4.1; training: section 8)
-# --------------------------------------------------------------------------------------------
-
-
-def distance_weights(batch) -> torch.Tensor:
-    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored at 1 m."""
-    d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
-    return 1.0 / d.clamp(min=1.0)
-
-
-def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
-    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
-    batch of all processes, section 8.1).
-
-    weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
-    `grad_cost_weights` in section 8, which needs the cost) or a callable batch -> (B,) raw weights.
-    """
-    if weighting == "standard":
-        return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
-    if weighting == "distance":
-        raw = distance_weights(batch)
-    elif weighting == "grad_cost":
-        raw = grad_cost_weights(batch, cfg)
-    else:
-        raw = weighting(batch)
-    raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
-    if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
-        raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
-    mean = batch_mean(raw, shard)
-    return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
 # ============================================================================================
@@ -1947,23 +1767,6 @@ class Method:
 PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
 
 
-def check_setting(setting) -> str:
-    if setting not in SETTINGS:
-        raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
-    return setting
-
-
-TABLE1_METHODS = (
-    Method("No prediction", "none"),
-    Method("Standard"),
-    Method("Distance weighted", weighting="distance"),
-    Method("Grad-cost weighted", weighting="grad_cost"),
-    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
-    Method("DiffStack", losses=(1, 1, 1)),
-    Method("GT prediction", "gt"),
-)
-
-
 @dataclass
 class StackOutput:
     """Per-scenario results of one pass through the stack (all (B,) unless noted)."""
@@ -1980,23 +1783,6 @@ class StackOutput:
     cands: Candidates | None = None
     cand_cost: torch.Tensor | None = None  # (B, N)
     pred: object = None  # the predictor's output
-
-
-def to_device(obj, device):
-    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple, list or dict
-    holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g. results to the CPU to plot."""
-    if torch.is_tensor(obj):
-        return obj.to(device)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
-                                           for f in dataclasses.fields(obj) if f.init})
-    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
-        return type(obj)(*(to_device(v, device) for v in obj))
-    if isinstance(obj, (tuple, list)):
-        return type(obj)(to_device(v, device) for v in obj)
-    if isinstance(obj, dict):
-        return {k: to_device(v, device) for k, v in obj.items()}
-    return obj
 
 
 def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
@@ -2065,7 +1851,7 @@ def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
-              timings=None, shard: Shard | None = None, scene: ScenePlan | None = None) -> StackOutput:
+              timings=None, shard=None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
@@ -2157,818 +1943,119 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
 
 
+
 # ============================================================================================
-# 8. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
+# 8. Input checks: what the public entry points refuse, naming the argument
 # ============================================================================================
 #
-#   L = a1 L_pred + a2 L_plan + a3 L_ctr
-#
-# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
-# method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor frozen.
+# Config and Method check themselves at construction. The entry points a user calls directly (unicycle_step,
+# total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward, run_stack) call one of these on their input;
+# the math they call is never checked again.
+
+def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
+    """Raise ValueError naming `name` unless t is a floating tensor of the given shape (None: any size
+    there), dtype and finite values. Used at the public entry points, never inside the math."""
+    if not torch.is_tensor(t):
+        raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
+    if shape is not None and (t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape))):
+        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
+    if dtype is not None and t.dtype != dtype:
+        raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
+    if finite and t.is_floating_point() and not _all_finite(t):
+        raise ValueError(f"{name}: contains NaN or inf")
+    return t
 
 
-def alphas(method: Method, setting: str, cfg: Config):
-    """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
-    base = cfg.alpha_rl if check_setting(setting) == "rl" else cfg.alpha_il
-    return tuple(a * on for a, on in zip(base, method.losses))
+def check_positive(name: str, value) -> float:
+    """ValueError naming `name` unless value is a finite number > 0 (a time step, a variance)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
+    return value
 
 
-def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
-    """Grad-cost weighting (§4.1, Ivanovic et al. 2021): ||dC/d(agent GT future)|| for the expert's (GT) ego
-    trajectory, i.e. how much the planning cost reacts to this agent. (B,)"""
-    fut = batch.agent_fut[..., :2].detach().clone().requires_grad_(True)  # (B, T, 2)
-    B = len(batch)
-    ones = torch.ones(B, dtype=fut.dtype, device=fut.device)
-    ctx, _ = cost_contexts(batch, fut[:, None], ones[:, None], ones)
-    x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
-    with torch.enable_grad():
-        (g,) = torch.autograd.grad(collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut)
-    return g.flatten(1).norm(dim=-1)
+def check_points(name: str, t, n: int, dtype=None):
+    """check_tensor for a tensor of points (..., n)."""
+    if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
+        raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
+    return check_tensor(name, t, dtype=dtype)
 
 
-def offset_targets(batch, offset: float) -> torch.Tensor:
-    """The agent's GT future shifted `offset` metres to its left (its heading at t0): Table 2's interface error."""
-    h = batch.agent_hist[:, -1, 2]  # (B,)
-    shift = offset * torch.stack([-torch.sin(h), torch.cos(h)], -1)  # (B, 2)
-    fut = batch.agent_fut.clone()
-    fut[..., :2] += shift[:, None]
-    return fut
-
-
-class CostWeights(nn.Module):
-    """The cost weights of eq. (3), reparameterised as in App. A.2:
-
-        w_i = alpha w'_i,   w'_i = c exp(psi_i) / sum_j exp(psi_j),   i = 1..5
-
-    alpha and psi_2..5 are trained; psi_1 (collision) is fixed "to ensure safety" and c is a constant.
-    At initialisation c = sum of the hand-tuned weights, psi = log w, alpha = 1 recover them exactly.
-    (With psi_1 fixed, w'_1 still moves a little through the normaliser sum_j exp(psi_j).)
-
-    alpha is trained as log alpha, so it stays positive: the paper only says it is trainable, and a cost times
-    a negative alpha is a cost to maximise. Note what alpha cannot do: the minimiser of alpha C is the same for
-    every alpha > 0, so the loss does not depend on it; its gradient comes only from iLQR stopping short of the
-    exact minimum (at tol), where the KKT backward sees a residual gradient of C. Trained unconstrained, that
-    drift carried alpha through zero by 20 epochs, after which the controller maximised the cost.
-    """
-
-    def __init__(self, cfg: Config):
-        super().__init__()
-        w0 = cost_weights(cfg, torch.float32)  # (5,)
-        self.register_buffer("c", w0.sum())
-        self.register_buffer("psi_coll", w0[:1].log())  # (1,) fixed, not a parameter
-        self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
-        self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))  # alpha = exp(0) = 1
-
-    @property
-    def alpha(self) -> torch.Tensor:
-        """The scale alpha = exp(log alpha) > 0 (a 0-dim tensor)."""
-        return self.log_alpha.exp()
-
-    def normalised(self) -> torch.Tensor:
-        """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 7, App. A.2)."""
-        return self.c * torch.softmax(torch.cat([self.psi_coll, self.psi]), 0)
-
-    def forward(self) -> torch.Tensor:
-        """w = alpha w' (5,), what the planner and the controller use."""
-        return self.alpha * self.normalised()
-
-
-# --------------------------------------------------------------------------------------------
-# 8.1 Many processes: DistributedDataParallel (torchrun)
-# --------------------------------------------------------------------------------------------
-#
-# Under torchrun every process (a rank) runs the same program. train_stack then splits each global batch of
-# cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps the module it trains in
-# DistributedDataParallel (DDP), which averages the ranks' gradients during backward. That average is exactly the
-# gradient of the single-process loss on the global batch (up to the order floats are summed in) because:
-#   - the ranks' batches together are the single-process batch: every rank draws the same permutation of the data
-#     (same seed) and takes positions rank, rank + W, rank + 2W, ... of it (DistributedSampler, without its own
-#     shuffling), so step i's shards together are perm[i B:(i + 1) B], the single-process batch i;
-#   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B rows on every
-#     rank (same seed) and each keeps its own rows (Shard.randn_rows);
-#   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks' gradients, so the
-#     rank's sum over its scenarios is divided by (global count / W), never by its own count. L_plan and L_ctr are
-#     means over the *plannable* scenarios, whose number differs from rank to rank: the global count is all-reduced;
-#   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean p(z|x)) and the
-#     scenario weights' normaliser are taken over the global batch, by an all_reduce that autograd differentiates
-#     through (AllReduceSum: its backward sums the ranks' gradients), so each rank's parameters also get the other
-#     ranks' share of the gradient of those statistics.
-# With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the ranks' losses
-# (each a function of every rank's rows): here W x share / W = the single-process loss.
-# The gradients are then the same on every rank, so gradient clipping, Adam and the lr schedule stay in step.
-
-
-class AllReduceSum(torch.autograd.Function):
-    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every rank's loss, so
-    dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the same all_reduce. (What
-    torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it for a private module.)"""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
-        ctx.group = group
-        y = x.clone(memory_format=torch.contiguous_format)
-        dist.all_reduce(y, group=group)
-        return y
-
-    @staticmethod
-    def backward(ctx, grad_y: torch.Tensor):
-        return AllReduceSum.apply(grad_y, ctx.group), None
-
-
-@dataclass(frozen=True)
-class Shard:
-    """The rows of a global batch this process holds: positions rank, rank + world, ... (DistributedSampler's).
-    Shard() is one process holding the whole batch; batch statistics then use the plain single-process expressions.
-    group: the process group of the loss's all_reduces, kept apart from DDP's own so that the two never interleave."""
-
-    rank: int = 0
-    world: int = 1
-    group: object = None
-
-    @staticmethod
-    def of_process_group() -> "Shard":
-        """This process's shard under torch.distributed (torchrun): Shard() when it is not initialised or has one rank."""
-        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
-            return Shard()
-        return Shard(dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend()))
-
-    def mean(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows); autograd-aware."""
-        if self.world == 1:
-            return x.mean(0)
-        return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
-
-    def total(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its sum over the global batch, without gradient (counts, logged values)."""
-        s = x.detach().sum(0)
-        if self.world > 1:
-            dist.all_reduce(s, group=self.group)
-        return s
-
-    def randn_rows(self, like: torch.Tensor, per_row: int) -> torch.Tensor:
-        """Standard normal noise shaped like `like` (b * per_row, ...): this rank's rows of the draw the whole global
-        batch (world * b scenarios of per_row rows each, in global order) would get."""
-        if self.world == 1:
-            return torch.randn_like(like)
-        b = like.shape[0] // per_row
-        noise = torch.randn(b * self.world * per_row, *like.shape[1:], dtype=like.dtype, device=like.device)
-        # global scenario rank + world j is this rank's scenario j: view the draw as (b, world, per_row, ...)
-        return noise.view(b, self.world, per_row, *like.shape[1:])[:, self.rank].reshape(like.shape)
-
-    def positions(self, n: int) -> torch.Tensor:
-        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ... (DistributedSampler
-        without its shuffling; the ordering, a permutation drawn the same on every rank, is the shuffle)."""
-        return torch.tensor(list(DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)),
-                            dtype=torch.long, device="cpu")  # they index the permutation, drawn on the CPU
-
-    def close(self) -> None:
-        """Release the loss's process group (train_stack makes one per call)."""
-        if self.group is not None:
-            dist.destroy_process_group(self.group)
-
-
-
-class TrainingDiverged(ValueError):
-    """A training whose loss became NaN or infinite (train_stack stops before the parameters do)."""
-
-
-def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
-                pred_offset=0.0, weights: CostWeights | None = None, on_epoch=None, **stack_kw):
-    """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's x0.9999 per step and
-    clipping by value are Trajectron++'s) -- or,
-    given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
-    the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
-    dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem), and the lr is constant.
-
-    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
-    a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
-    pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
-    Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU), each batch is
-    moved to the model's device as it is drawn.
-    Under torchrun (torch.distributed initialised, world > 1) it trains with DistributedDataParallel, each rank on
-    its cfg.batch_size / world scenarios of every global batch, with the gradient of the single-process loss on the
-    global batch (section 8.1); only rank 0 logs. Every rank returns the same per-step log (global values).
-    on_epoch: None, or a function of (epochs done, steps done) called before the first step and after every epoch
-    (and after the last step of a fractional one), e.g. to evaluate the model for a learning curve; it runs in a
-    fork of the random state, so that training draws the same numbers with it or without it.
-    Returns the per-step log (list of dicts).
-    """
-    device = next(model.parameters()).device
-    shard = Shard.of_process_group()  # Shard(): one process; under torchrun, this rank's rows of every batch (8.1)
-    if cfg.batch_size % shard.world:
-        raise ValueError(f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
-                         f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count")
-    b = cfg.batch_size // shard.world  # scenarios per step on this rank
-    log = log if shard.rank == 0 else None  # the other ranks stay quiet
-    # The same seed on every rank: the data order and the decoder's sampled controls are drawn for the global batch,
-    # whichever rank uses them (8.1). manual_seed seeds the CPU's and every GPU's generator.
-    torch.manual_seed(seed)  # the decoder's sampled controls
-    g = torch.Generator().manual_seed(seed)  # the order of the scenarios, drawn on the CPU whatever the device
-    a1, a2, a3 = alphas(method, setting, cfg)
-    downstream = a2 > 0 or a3 > 0
-    learn_cost = weights is not None
-    if learn_cost:
-        model.eval().requires_grad_(False)
-        params = list(weights.parameters())
-    else:
-        model.train()
-        params = list(model.parameters())
-    # What the forward pass calls: the modules themselves, or under DDP a DistributedDataParallel around the one
-    # being trained (it broadcasts rank 0's parameters now and averages the ranks' gradients in every backward).
-    predictor, cost_w = model, weights
-    if shard.world > 1:
-        if learn_cost:
-            cost_w = DistributedDataParallel(weights)
-        else:
-            predictor = DistributedDataParallel(model)
-    opt = torch.optim.Adam(params, lr=cfg.lr)
-    sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
-    # The goal, the candidates and every term of eq. (3) but C_coll depend on the scenes alone, never on the
-    # predictor (nor on learned cost weights: they weigh the terms afterwards): computed once for the data here,
-    # not at every step of every epoch (about a sixth of a step). The same numbers either way.
-    scenes = scene_plans(data, cfg, stack_kw.get("plan_dt")) if downstream else None
-    n = len(data)
-    steps_per_epoch = max(1, n // cfg.batch_size)
-    total = max(1, round(epochs * steps_per_epoch))
-    mine = shard.positions(n)  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
-    history, t0, step = [], time.time(), 0
-
-    def epoch_done():
-        if on_epoch is not None:
-            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-                on_epoch(step / steps_per_epoch, step)
-            model.train(not learn_cost)
-
-    epoch_done()
+def _all_finite(t: torch.Tensor) -> bool:
+    """Every value finite? x - x is 0 for a finite x and NaN for an inf or a NaN, and a sum keeps a NaN: two
+    fast passes, where isfinite(t).all() is 8 times slower (the stack's entry points check every input)."""
     try:
-        while step < total:
-            perm = torch.randperm(n, generator=g, device="cpu")  # the epoch's order, the same on every rank
-            for i in range(steps_per_epoch):
-                if step >= total:
-                    break
-                rows = perm[mine[i * b:(i + 1) * b]]  # one process: perm[i B:(i + 1) B]
-                batch = to_device(data[rows], device)
-                target = offset_targets(batch, pred_offset) if pred_offset else None
-                if downstream:
-                    out = run_stack(batch, predictor, method, cfg, setting, step=None if learn_cost else step,
-                                    train=not learn_cost, w=cost_w() if learn_cost else None, pred_target=target,
-                                    shard=shard, scene=to_device(scenes[rows], device), **stack_kw)
-                    keep = out.plannable.to(out.l_plan.dtype)
-                    # Each rank divides its sums by the global number of plannable scenarios / world (never by its own
-                    # number): DDP's mean over the ranks then makes (global sum) / (global count). One process: keep.sum().
-                    m = shard.total(keep).clamp_min(1) / shard.world
-                    l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep).sum() / m
-                    l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
-                    if shard.world == 1:
-                        conv = out.converged[out.plannable].float().mean().item()
-                    else:  # converged among the plannable scenarios of the global batch
-                        conv = (shard.total((out.converged & out.plannable).to(keep.dtype)) / shard.total(keep)).item()
-                else:
-                    pred = predictor(batch, use_posterior=True, step=step, shard=shard)
-                    l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target),
-                                            step, cfg, shard)
-                    # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over the ranks is the
-                    # mean over the global batch
-                    l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)).mean()
-                    l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
-                    conv = float("nan")
-                loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr  # this rank's loss; DDP averages its gradient over the ranks
-                # a non-finite loss would make every parameter NaN at this step: stop here, saying where (every rank
-                # sees the flags of all: they stop together)
-                bad = shard.total((~torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))).to(loss.dtype)[None])  # (3,)
-                if bad.any():
-                    which = ", ".join(n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b)
-                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
-                                           f"{total}: {which} is not finite")
-                opt.zero_grad()
-                loss.backward()
-                torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
-                opt.step()
-                if sched is not None:
-                    sched.step()
-                step += 1
-                # the logged values of the global batch: the mean over the ranks of theirs (one process: its own)
-                loss_v, l_pred_v, l_plan_v, l_ctr_v = shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None]).div(
-                    shard.world).tolist()
-                history.append(dict(step=step, loss=loss_v, l_pred=l_pred_v, l_plan=l_plan_v, l_ctr=l_ctr_v, converged=conv))
-                if learn_cost:
-                    history[-1]["w"] = weights().tolist()
-                if step % steps_per_epoch == 0 or step == total:
-                    epoch_done()
-                if log and (step % max(1, total // 10) == 0 or step == total):
-                    el = time.time() - t0
-                    w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
-                    log(f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred {l_pred_v:7.3f}  "
-                        f"L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
-    finally:
-        shard.close()
-    return history
+        return not bool(torch.isnan((t - t).sum()))
+    except RuntimeError:  # inside torch.func.vmap a value cannot steer Python: the caller's entry point checked it
+        return True
 
 
-def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
-                    device="cpu", curve_samples=0, **stack_kw) -> Predictor:
-    """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
-    moved to `device` and trained there on data.train by train_stack.
-    curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples validation scenarios before
-    training and after every epoch, is kept in model.learning_curve (a list of {epoch, step, metrics})."""
-    torch.manual_seed(seed)  # the predictor's initialisation
-    model = Predictor(cfg).to(device)
-    curve, on_epoch = [], None
-    if curve_samples > 0:
-        subset = data.val[:curve_samples]
-        on_epoch = lambda epoch, step: curve.append(dict(  # noqa: E731
-            epoch=epoch, step=step, **evaluate_stack(model, subset, method, cfg, setting, device=device, **stack_kw)))
-    train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **stack_kw)
-    if curve_samples > 0:
-        model.learning_curve = curve
-    return model
+def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
+    """ValueError naming the argument when the cost's inputs do not fit together or are not finite."""
+    check_tensor("x", x)
+    if x.dim() < 3 or x.shape[-1] != 4 or x.shape[-2] < 2:
+        raise ValueError(f"x: expected states (B, ..., T+1, 4) with T >= 1, got {tuple(x.shape)}")
+    B, T = x.shape[0], x.shape[-2] - 1
+    check_tensor("u", u, (B, *x.shape[1:-2], T, 2), x.dtype)
+    check_tensor("w", w, dtype=x.dtype)
+    if tuple(w.shape) not in ((5,), (B, 5)):
+        raise ValueError(f"w: expected the 5 weights of eq. (3), shape (5,) or ({B}, 5), got {tuple(w.shape)}")
+    check_tensor("ctx.preds", ctx.preds, (B, None, T, 2), x.dtype)
+    check_tensor("ctx.probs", ctx.probs, (B, ctx.preds.shape[1]), x.dtype)
+    check_tensor("ctx.others", ctx.others, (B, None, T, 2), x.dtype)
+    check_tensor("ctx.goal", ctx.goal, (B, 2), x.dtype)
+    check_tensor("ctx.lanes", ctx.lanes, (B, None, None, 3), x.dtype)
+    check_positive("rbf_var", rbf_var)
 
 
-def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, device=None, **stack_kw) -> dict:
-    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
-    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate.
-    Each batch runs on `device` (default: the model's; the CPU without a model)."""
-    if device is None:
-        device = next(model.parameters()).device if model is not None else "cpu"
-    if model is not None:
-        model.eval()
-    sums, n, n_all, by_behaviour = {}, 0, 0, {}
-    for i in range(0, len(data), batch_size):
-        batch = to_device(data[i:i + batch_size], device)
-        out = run_stack(batch, model, method, cfg, setting, **stack_kw)
-        keep = out.plannable
-        vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
-        if out.pred is not None:
-            vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
-        for k, v in vals.items():
-            sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
-        # the same sums per behaviour of the predicted agent (synthetic data; real data is labelled -1)
-        for b in batch.behaviour[keep].unique().tolist():
-            if b >= 0:
-                rows = keep & (batch.behaviour == b)
-                acc = by_behaviour.setdefault(BEHAVIOURS[b], dict(n=0))
-                acc["n"] += rows.sum().item()
-                for k in ("hindsight", "mse", "plan_loss"):
-                    acc[k] = acc.get(k, 0.0) + vals[k].detach()[rows].sum().item()
-        n, n_all = n + keep.sum().item(), n_all + len(batch)
-    out = {k: v / max(n, 1) for k, v in sums.items()}
-    out.update(n=n, skipped=n_all - n)
-    if by_behaviour:  # means per behaviour, and how many scenarios each has
-        out["by_behaviour"] = {name: {k: (v if k == "n" else v / acc["n"]) for k, v in acc.items()}
-                               for name, acc in sorted(by_behaviour.items())}
-    return out
+def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
+    """ValueError naming the field when a batch is empty, has the wrong history/future length, or non-finite
+    values. need_future: the agent's GT future is used (training); stack: the stack's other inputs are checked too
+    (the ego's future, the other agents, the goal and the lanes)."""
+    if len(batch) == 0:
+        raise ValueError("batch: no scenarios (a batch of size 0)")
+    H, T = cfg.hist_len + 1, cfg.horizon
+    expect = {"agent_hist": (H, 4), "ego_hist": (H, 4), "others_hist": (H, 4)}
+    if need_future or stack:
+        expect["agent_fut"] = (T, 4)
+    if stack:
+        expect.update(ego_fut=(T, 4), others_fut=(T, 4))
+    for name, tail in expect.items():
+        x = getattr(batch, name)
+        if tuple(x.shape[-2:]) != tail:
+            raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
+        if not _all_finite(x):
+            raise ValueError(f"{name} contains NaN or inf")
+    if stack:
+        B = len(batch)
+        check_tensor("goal", batch.goal, (B, 4), batch.ego_hist.dtype)
+        check_tensor("lanes", batch.lanes, (B, None, None, 3), batch.ego_hist.dtype)
+    m = batch.agent_hist_mask
+    if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
+        raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
+    if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
+        raise ValueError("agent_hist_mask: the current step must be observed and missing steps must be the earliest")
 
 
-# The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios, in the units
-# of the paper's columns (x1e-2 or x1e-3).
-RELATIVE_SCALE = {"rl": {"plan_loss": 1e-2, "hindsight": 1e-2}, "il": {"plan_loss": 1e-3, "mse": 1e-2}}
+def check_setting(setting) -> str:
+    if setting not in SETTINGS:
+        raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
+    return setting
 
 
-def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                    pred_offset=0.0, log=print, train=train_predictor, device="cpu", **stack_kw) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the ablations).
+TABLE1_METHODS = (
+    Method("No prediction", "none"),
+    Method("Standard"),
+    Method("Distance weighted", weighting="distance"),
+    Method("Grad-cost weighted", weighting="grad_cost"),
+    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+    Method("DiffStack", losses=(1, 1, 1)),
+    Method("GT prediction", "gt"),
+)
 
-    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
-    same validation set ('rel_<metric>', scaled as in the paper's tables, RELATIVE_SCALE). train(method, data,
-    cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw) -> a trained predictor on `device`
-    (experiments.py passes one that shares predictors between tables). Training and evaluation run on `device`;
-    the data stays on the CPU and the metrics come back as Python numbers.
-    """
-    results = {}
-    for m in methods:
-        runs = []
-        for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            t0 = time.time()
-            model = None
-            if m.predictor == "learned":
-                model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
-            r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
-            r["seconds"] = time.time() - t0
-            if getattr(model, "learning_curve", None) is not None:
-                r["curve"] = model.learning_curve
-            runs.append(r)
-            if log:
-                log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
-        results[m.name] = runs
-    return add_relative(results, setting)
-
-
-def add_relative(results: dict, setting: str) -> dict:
-    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as RELATIVE_SCALE) to
-    every run of {method name: [metrics dict per seed]}, in place; nothing without a No prediction row. Returns it."""
-    base = results["No prediction"][0] if "No prediction" in results else None
-    for runs in results.values():
-        for r in runs:
-            for key, scale in RELATIVE_SCALE[setting].items():
-                if base is not None and key in r:  # (a diverged training's run has no metrics)
-                    r["rel_" + key] = (r[key] - base[key]) / scale
-    return results
-
-
-def mean_se(xs):
-    """Mean and standard error of a list of numbers."""
-    m = statistics.fmean(xs)
-    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
-
-
-def cell(values, fmt="{:.2f}") -> str:
-    """'mean ± s.e.' of the per-seed values of one table cell; '--' for none."""
-    return "--" if not values else "{} ± {}".format(*(fmt.format(v) for v in mean_se(values)))
-
-
-def markdown_table(head, rows) -> str:
-    """A markdown table: head [str], rows [[str]]. The only table formatter of the project."""
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
-
-
-# ============================================================================================
-# 9. The command line: python diffstack.py --quick
-# ============================================================================================
-
-QUICK = dict(n=10000, live_train=2560, epochs=8.0)  # the tables' data; the live runs train on a part of it
-QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
-PRETRAINED = "pretrained"  # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
-PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))  # = Table 1's five seeds at the tables' length (experiments.py)
-
-
-def open_loop_table(results: dict, setting="rl") -> str:
-    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics relative to No
-    prediction, iLQR's convergence; means ± standard errors over seeds."""
-    rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
-    scales = RELATIVE_SCALE[setting]
-    head = ["Method", "ADE (m)", "NLL (nats)"] + [f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()]
-    rows = []
-    for name, runs in results.items():
-        get = lambda key: [r[key] for r in runs] if key in runs[0] else []  # noqa: E731
-        rows.append([name, cell(get("ade")), cell(get("nll"))] + [cell(get("rel_" + k)) for k in scales]
-                    + [cell(get("converged"), "{:.3f}")])
-    return markdown_table(head + ["iLQR converged"], rows)
-
-
-def _slug(name: str) -> str:
-    return name.lower().replace(" ", "-")
-
-
-def machine() -> str:
-    """This machine in a few words, for a result's provenance: architecture, processor, the vector instruction set
-    of torch's kernels, cores. The same seed and thread count give the same numbers on the same kind of processor
-    only: torch's own vectorised kernels, MKL's and oneDNN's follow its instruction set (capping any one at AVX2
-    on an AVX-512 machine changes a few training steps' weights), and one rounding apart grows over a training
-    like another seed."""
-    import platform
-
-    name = platform.processor() or "unknown processor"
-    try:
-        with open("/proc/cpuinfo") as f:
-            name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return f"{platform.machine()}, {name}, {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores"
-
-
-def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int):
-    """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
-    threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
-    clock, so that what it records does not depend on what else the machine was doing."""
-    import data_synth
-
-    torch.set_num_threads(threads)
-    t0 = time.process_time()
-    data = data_synth.load_data(n=n, cache_dir=cache_dir)
-    model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
-    metrics = evaluate_stack(model, data.val, method, cfg, "rl")
-    return model.state_dict(), {k: metrics[k] for k in ("ade", "nll", "hindsight")}, time.process_time() - t0
-
-
-def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seeds=PRETRAIN["seeds"], jobs=1,
-             cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain"):
-    """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables' 40 epochs (the
-    paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed, and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command,
-    date, commit, data, config, each file's sha256 and validation metrics). On one thread each, these are Table 1's
-    predictors of the same seeds to the bit (the tables train each seed on one thread). `jobs` worker processes
-    train them side by side. --quick evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
-    import hashlib
-    import json
-    import subprocess
-    from concurrent.futures import ProcessPoolExecutor
-
-    import data_synth
-
-    out, cfg, seeds = pathlib.Path(out), cfg or Config(), tuple(seeds)
-    learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
-    work = [(m, seed, out / f"{_slug(m.name)}-seed{seed}.pt") for seed in seeds for m in learned]
-    if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
-        raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
-    check_writable(out, f"the pre-trained predictors' folder ({out})")
-    data_synth.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
-    about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
-                 threads=threads, torch=torch.__version__, machine=machine(),
-                 config=dataclasses.asdict(cfg), files={})
-    try:
-        about["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                         cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        about["commit"] = None
-    args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
-    if jobs > 1:
-        pool = ProcessPoolExecutor(min(jobs, len(work)), mp_context=torch.multiprocessing.get_context("spawn"))
-        finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
-    else:
-        pool, finished = None, (_pretrain_one(*a) for a in args)
-    try:
-        for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
-            tmp = path.with_suffix(".tmp")
-            torch.save(state, tmp)
-            os.replace(tmp, path)
-            about["files"][path.name] = dict(method=m.name, seed=seed, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                                             cpu_seconds=round(seconds), **metrics)
-            if log:
-                log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
-                    f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)")
-    finally:
-        if pool is not None:
-            pool.shutdown()
-    tmp = out / "provenance.json.tmp"
-    tmp.write_text(json.dumps(about, indent=1))
-    os.replace(tmp, out / "provenance.json")
-    return about
-
-
-def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
-    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the provenance (the
-    file's sha256, the Config it was trained with) and loaded with weights_only=True. Returns ({seed: model},
-    provenance) or (None, why not)."""
-    import hashlib
-    import json
-
-    folder = pathlib.Path(folder)
-    prov_path = folder / "provenance.json"
-    if not prov_path.exists():
-        return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
-    try:
-        prov = json.loads(prov_path.read_text())
-        entries = sorted(((e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name))
-        trained_with = {k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()}
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})") from None
-    if not entries:
-        return None, f"{prov_path} lists no {method.name} predictor"
-    if trained_with != dataclasses.asdict(cfg):
-        changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
-        return None, f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set here"
-    models = {}
-    for seed, name, entry in entries:
-        path = folder / name
-        if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
-            raise ValueError(f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
-                             f"re-make it with python diffstack.py --pretrain --overwrite")
-        models[seed] = Predictor(cfg)
-        models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-        models[seed].to(device)
-    return models, prov
-
-
-def _seed_list(seeds) -> str:
-    seeds = list(seeds)
-    return f"seeds {seeds[0]}-{seeds[-1]}" if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[-1] + 1)) else \
-        f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}"
-
-
-def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print, device="cpu",
-          pretrained=PRETRAINED):
-    """`--quick`, about a minute on 2 cores: Table 1's story on the tables' synthetic validation data. Standard
-    and DiffStack trained for the tables' 40 epochs (shipped in pretrained/: Table 1's five seeds, so the rows are
-    that table's, mean ± s.e.) beside No prediction and GT prediction; then both trained live for a few epochs so
-    that the losses are seen to fall; then what the numbers say, checked, and how they relate to results/."""
-    import data_synth
-
-    torch.set_num_threads(threads)
-    cfg = cfg or Config()
-    n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
-    learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
-    log(f"DiffStack --quick: the tables' {n} synthetic scenarios (generated once, then cached in {cache_dir}/).\n"
-        f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in {pretrained}/), No prediction\n"
-        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores.")
-    t0 = time.time()
-    data = data_synth.load_data(n=n, cache_dir=cache_dir)
-    log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
-    res, prov = {}, None
-    for m in QUICK_METHODS:
-        if m.predictor != "learned":
-            res[m.name] = [evaluate_stack(None, data.val, m, cfg, "rl", device=device)]
-            continue
-        models, about = load_pretrained(m, cfg, pretrained, device)
-        if models is None:
-            log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
-            continue
-        prov = about
-        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [evaluate_stack(model, data.val, m, cfg, "rl", device=device)
-                                                        for model in models.values()]  # one run per seed
-    add_relative(res, "rl")
-    if prov is not None:
-        log(f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
-            f"epochs, {_seed_list(prov['seeds'])}, {prov['threads']} thread each), on the {len(data.val)} validation "
-            f"scenarios; mean ± s.e. over the seeds:")
-    log("\n" + open_loop_table(res, "rl"))
-    # live: a few epochs on part of the training data, to watch the three losses fall
-    part = data_synth.Dataset(data.train[:QUICK["live_train"]], data.val, None)
-    took = (f" (the shipped rows above took {sum(f['cpu_seconds'] for f in prov['files'].values()) / 60:.0f} minutes "
-            f"of CPU to train, {prov['threads']} thread each)" if prov is not None else "")
-    log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios{took}:")
-    live = compare_methods(part, cfg, "rl", (QUICK_METHODS[0], *learned), seeds=(0,), epochs=epochs, log=log, device=device)
-    log("\n" + open_loop_table({f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()}, "rl"))
-    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov)))
-    log(f"\ntotal {time.time() - t0:.0f}s")
-    return res, live
-
-
-def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
-    """The lines --quick prints under its table: what the numbers show (each statement checked on them, never
-    assumed), why Standard is where it is beside No prediction, and the 5-seed tables' numbers beside them
-    (provenance: the shipped predictors', to say whether they are that table's seeds). A shipped method's rows
-    (one per seed) are read by their mean."""
-    import json
-
-    def runs_of(name):  # a shipped predictor's runs (one per seed), or None
-        return next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
-
-    def shipped(name):  # the mean over seeds of a shipped predictor's metrics, or None
-        runs = runs_of(name)
-        return None if runs is None else {k: statistics.fmean(r[k] for r in runs) for k in ("rel_hindsight", "hindsight", "ade")}
-
-    std, dif = shipped("Standard"), shipped("DiffStack")
-    none, gt = res["No prediction"][0], res["GT prediction"][0]
-    lines = []
-    if std is not None and dif is not None:
-        h = {k: r["rel_hindsight"] for k, r in (("GT", gt), ("DiffStack", dif), ("Standard", std), ("No prediction", none))}
-        order = " < ".join(sorted(h, key=h.get))
-        paper = "GT < DiffStack < Standard < No prediction"
-        lines.append(f"Hindsight cost: {order}: " + ("the paper's order (its Table 1)." if order == paper else
-                                                      f"NOT the paper's order ({paper} in its Table 1)."))
-        gap = (std["hindsight"] - dif["hindsight"]) / (std["hindsight"] - gt["hindsight"])
-        lines.append(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
-                     f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): trained for the "
-                     f"plan, not for the average position error.")
-    by_none, by_gt = none.get("by_behaviour"), gt.get("by_behaviour")
-    if by_none and by_gt:
-        saved = {b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none}
-        total = sum(saved.values())
-        top = min(saved, key=saved.get)
-        lines.append(f"Why Standard's gain over No prediction is small: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
-                     f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
-                     f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
-                     f"the future adds little (results/goal.md).")
-        runs = runs_of("Standard")
-        if runs and all("by_behaviour" in r for r in runs):  # Standard's part of the all-scene mean, by behaviour
-            part = {b: statistics.fmean(r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs)
-                    * by_none[b]["n"] / none["n"] / 1e-2 for b in by_none}
-            lost = sorted((b for b in part if part[b] > 0.005), key=part.get, reverse=True)
-            won = sorted((b for b in part if part[b] < -0.005), key=part.get)
-            if lost:
-                lines.append(f"And Standard gives part of it back: it gains {-sum(part[b] for b in won):.2f}e-2 in "
-                             f"{', '.join(won)}, and loses {sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where "
-                             f"it predicts the wrong one of two manoeuvres that start alike (results/rl.md, by behaviour).")
-    table = pathlib.Path(results_dir) / "rl.json"
-    if table.exists():
-        saved = json.loads(table.read_text())
-        runs = saved["results"]
-        cells = ", ".join(f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}" for m in ("Standard", "DiffStack", "GT prediction")
-                          if m in runs)
-        meta = saved["meta"]
-        same = (provenance is not None and meta.get("epochs") == provenance["epochs"]
-                and meta.get("config") == provenance["config"] and set(provenance["seeds"]) <= set(meta.get("seeds", [])))
-        lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
-                     f"hindsight cost x1e-2: {cells}; " + (
-                         f"the shipped predictors above are its {_seed_list(provenance['seeds'])}." if same else
-                         "made by another run than the shipped predictors (other epochs or Config), so its numbers "
-                         "and the ones above are not the same experiment."))
-    return lines
-
-
-def check_writable(folder, what: str) -> None:
-    """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and takes files."""
-    import tempfile
-
-    try:
-        pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        raise ValueError(f"{what}: {folder} is not a writable folder ({e.strerror or e})") from None
-
-
-def bounded(kind, lo, hi, name):
-    """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi (lo excluded for floats)."""
-    import argparse
-
-    def parse(text):
-        try:
-            x = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
-        if not math.isfinite(x) or x > hi or (x <= lo if kind is float else x < lo):
-            bounds = f"> {lo:g} and <= {hi:g}" if kind is float else f"from {lo:,} to {hi:,}"
-            raise argparse.ArgumentTypeError(f"{name} must be {bounds}, got {text!r}")
-        return x
-
-    return parse
-
-
-def device_arg(text):
-    """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps), checked
-    before any work; a name torch does not know, or a GPU that is not there, is a one-line argparse error."""
-    import argparse
-
-    try:
-        device = torch.device(text)
-    except (RuntimeError, ValueError):
-        raise argparse.ArgumentTypeError(f"--device takes a torch device (cpu, cuda, cuda:N or mps), got {text!r}") from None
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise argparse.ArgumentTypeError(f"--device {text}: no CUDA device here (torch.cuda.is_available() is False)")
-        if device.index is not None and device.index >= count:
-            raise argparse.ArgumentTypeError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
-    elif device.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise argparse.ArgumentTypeError(f"--device {text}: no MPS device here (torch.backends.mps.is_available() is False)")
-    elif device.type != "cpu":
-        raise argparse.ArgumentTypeError(f"--device {text}: the stack runs on cpu, cuda, cuda:N or mps, not {device.type}")
-    return device
-
-
-def config_with(cfg: Config, assignments) -> Config:
-    """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the field's
-    type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key when it is not a
-    Config field or the value does not parse."""
-    fields = {f.name: f for f in dataclasses.fields(Config)}
-    changes = {}
-    for item in assignments or ():
-        key, eq, text = item.partition("=")
-        key, text = key.strip(), text.strip()
-        if not eq or key not in fields:
-            raise ValueError(f"--set {item}: unknown Config field {key!r} (known: {', '.join(fields)})" if eq else
-                             f"--set {item}: expected key=value")
-        default = getattr(cfg, key)
-        try:
-            if isinstance(default, tuple):
-                value = tuple(float(p) for p in text.strip("()[] ").split(",") if p.strip())  # every tuple field holds floats
-            elif isinstance(default, bool):
-                value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
-            else:
-                value = type(default)(text)
-        except (ValueError, KeyError, IndexError):
-            raise ValueError(f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
-                             f"could not parse {text!r}") from None
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"--set {item}: {key} must be finite")
-        changes[key] = value
-    return dataclasses.replace(cfg, **changes)
-
-
-def main(argv=None):
-    import argparse
-
-    ap = argparse.ArgumentParser(
-        description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run of it.",
-        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.")
-    ap.add_argument("--quick", action="store_true",
-                    help=f"Table 1's story in about a minute: the shipped {PRETRAIN['epochs']:g}-epoch Standard and DiffStack "
-                         "beside No prediction and GT prediction, then both trained live for a few epochs")
-    ap.add_argument("--pretrain", action="store_true",
-                    help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} epochs, "
-                         f"{_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
-                         f"~40 min on 2 cores")
-    ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
-                    help="--pretrain: worker processes training side by side, one thread each (default: the machine's cores)")
-    ap.add_argument("--overwrite", action="store_true", help=f"--pretrain: replace the predictors in {PRETRAINED}/")
-    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=None,
-                    help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at most 256)")
-    ap.add_argument("--device", type=device_arg, default="cpu",
-                    help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is made on the CPU")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)")
-    argv = sys.argv[1:] if argv is None else list(argv)
-    for moved in ("--experiment", "--bench"):
-        if any(a == moved or a.startswith(moved + "=") for a in argv):
-            ap.error(f"{moved} moved: " + ("python experiments.py --experiment NAME" if moved == "--experiment"
-                                           else "python bench.py"))
-    args = ap.parse_args(argv)
-    if args.quick == args.pretrain:
-        ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)")
-    if args.jobs is not None and not args.pretrain:
-        ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
-    try:
-        cfg = config_with(Config(), args.set)
-        check_writable("data_cache", "the data cache (./data_cache)")
-        if args.pretrain:
-            return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
-                            command="python diffstack.py " + " ".join(argv))
-    except ValueError as e:
-        ap.error(str(e))
-    return quick(args.threads or 2, cfg=cfg, device=args.device)
 
 
 if __name__ == "__main__":
-    main()
+    import train  # the method ends here; --quick (training, evaluation) is train.py's
+
+    train.main()

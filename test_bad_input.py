@@ -12,6 +12,7 @@ import torch
 
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments as ex
 from test_diffstack import TINY, toy_scene
 
@@ -64,7 +65,7 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     (tmp_path / "data_cache").write_text("a file where the cache folder should be")
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
     assert "data cache" in err
-    err = cli_error(ds.main, ["--quick"], capsys)
+    err = cli_error(tr.main, ["--quick"], capsys)
     assert "data cache" in err
 
 
@@ -115,13 +116,13 @@ def test_experiments_cli_numbers(argv, culprit, capsys, tmp_path):
 
 @pytest.mark.parametrize("flag", [["--data", "x"], ["--n", "100"], ["--epochs", "2"], ["--out", "x"], ["--seeds", "2"]])
 def test_quick_rejects_the_flags_it_does_not_take(flag, capsys):
-    err = cli_error(ds.main, ["--quick", *flag], capsys)
+    err = cli_error(tr.main, ["--quick", *flag], capsys)
     assert flag[0] in err
 
 
 def test_quick_threads_bounds(capsys):
-    assert "--threads" in cli_error(ds.main, ["--quick", "--threads", "0"], capsys)
-    assert "--threads" in cli_error(ds.main, ["--quick", "--threads", "two"], capsys)
+    assert "--threads" in cli_error(tr.main, ["--quick", "--threads", "0"], capsys)
+    assert "--threads" in cli_error(tr.main, ["--quick", "--threads", "two"], capsys)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -156,8 +157,8 @@ def test_method_refuses_unknown_names(kw, culprit):
 def test_unknown_setting_is_refused(batch):
     cfg = ds.Config()
     for call in (lambda: ds.run_stack(batch, None, ds.Method("GT", "gt"), cfg, "xx"),
-                 lambda: ds.alphas(ds.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
-                 lambda: ds.evaluate_stack(None, batch, ds.Method("GT", "gt"), cfg, "Il")):
+                 lambda: tr.alphas(ds.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
+                 lambda: tr.evaluate_stack(None, batch, ds.Method("GT", "gt"), cfg, "Il")):
         with pytest.raises(ValueError, match="setting"):
             call()
 
@@ -256,8 +257,8 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
     monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
-    err = cli_error(ds.main, ["--pretrain"], capsys)
+    err = cli_error(tr.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
-        ds.load_pretrained(ds.Method("Standard"), ds.Config(), tmp_path / "pretrained")
-    assert "--quick or --pretrain" in cli_error(ds.main, ["--quick", "--pretrain"], capsys)
+        tr.load_pretrained(ds.Method("Standard"), ds.Config(), tmp_path / "pretrained")
+    assert "--quick or --pretrain" in cli_error(tr.main, ["--quick", "--pretrain"], capsys)

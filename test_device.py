@@ -26,6 +26,7 @@ from torch.overrides import TorchFunctionMode
 
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments as ex
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8, batch_size=16)
@@ -39,7 +40,7 @@ FACTORIES = {getattr(torch, name) for name in (
     "tensor", "as_tensor", "asarray", "scalar_tensor", "zeros", "ones", "empty", "full", "arange", "linspace",
     "logspace", "eye", "rand", "randn", "randint", "randperm", "tril_indices", "triu_indices") if hasattr(torch, name)}
 HERE = pathlib.Path(__file__).resolve().parent
-AUDITED = {str(HERE / name): name for name in ("diffstack.py", "experiments.py", "data_synth.py")}  # data_synth: sample_at
+AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py")}  # data_synth: sample_at
 
 
 def section_lines() -> range:
@@ -81,7 +82,7 @@ def setup():
     data = data_synth.make_dataset(60, scfg, seed=5)
     cfg = ds.Config(**TINY)
     torch.manual_seed(0)
-    return data, cfg, ds.Predictor(cfg), scfg, ds.CostWeights(cfg)
+    return data, cfg, ds.Predictor(cfg), scfg, tr.CostWeights(cfg)
 
 
 def run_dynamics():
@@ -124,12 +125,12 @@ def run_training(setup):
     data, cfg, model, _, weights = setup
     model, weights = copy.deepcopy(model), copy.deepcopy(weights)  # training changes them (learning the cost freezes the model)
     small = data.train[:32]
-    ds.train_stack(model, small, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=1.0, log=None)
-    ds.train_stack(model, small, ds.Method("Grad-cost weighted", weighting="grad_cost"), cfg, "rl", epochs=0.5, log=None)
-    ds.train_stack(model, small, ds.Method("Cost weights", losses=(0, 0, 1)), cfg, "il", epochs=0.5, log=None,
+    tr.train_stack(model, small, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=1.0, log=None)
+    tr.train_stack(model, small, ds.Method("Grad-cost weighted", weighting="grad_cost"), cfg, "rl", epochs=0.5, log=None)
+    tr.train_stack(model, small, ds.Method("Cost weights", losses=(0, 0, 1)), cfg, "il", epochs=0.5, log=None,
                    weights=weights)
     for method in (ds.Method("No prediction", "none"), ds.Method("Standard")):
-        r = ds.evaluate_stack(model if method.predictor == "learned" else None, data.val[:16], method, cfg, "rl")
+        r = tr.evaluate_stack(model if method.predictor == "learned" else None, data.val[:16], method, cfg, "rl")
         assert isinstance(r["hindsight"], float)
 
 
@@ -244,10 +245,10 @@ def cli_error(main, argv, capsys) -> str:
 def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
     work = []
-    monkeypatch.setattr(ds, "quick", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(tr, "quick", lambda *a, **k: work.append(1))
     monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
-        err = cli_error(ds.main, ["--quick", "--device", name], capsys)
+        err = cli_error(tr.main, ["--quick", "--device", name], capsys)
     else:
         err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), "--device", name], capsys)
     last = err.strip().splitlines()[-1]
@@ -257,9 +258,9 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
 
 def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     seen = {}
-    monkeypatch.setattr(ds, "quick", lambda *a, **k: seen.update(quick=k["device"]))
-    ds.main(["--quick"])
-    ds.main(["--quick", "--device", "cpu"])
+    monkeypatch.setattr(tr, "quick", lambda *a, **k: seen.update(quick=k["device"]))
+    tr.main(["--quick"])
+    tr.main(["--quick", "--device", "cpu"])
     monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: "data")
     monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
@@ -269,12 +270,12 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
 def test_device_arg_takes_the_devices_that_are_there(monkeypatch):
     import argparse
 
-    assert ds.device_arg("cpu") == torch.device("cpu")
+    assert tr.device_arg("cpu") == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    assert ds.device_arg("cuda") == torch.device("cuda") and ds.device_arg("cuda:1") == torch.device("cuda", 1)
+    assert tr.device_arg("cuda") == torch.device("cuda") and tr.device_arg("cuda:1") == torch.device("cuda", 1)
     with pytest.raises(argparse.ArgumentTypeError, match="2 CUDA device"):
-        ds.device_arg("cuda:2")
+        tr.device_arg("cuda:2")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,6 +300,6 @@ def test_the_stack_on_a_device_matches_the_cpu(device, setup):
         assert b.x.device.type == device
         assert torch.allclose(a.hindsight, b.hindsight.cpu(), atol=1e-6)
     # training on the device: the data stays on the CPU (in the model's float64), each batch moved as it is drawn
-    history = ds.train_stack(dev_model, data.train[:32].to(torch.float64), ds.Method("DiffStack", losses=(1, 1, 1)),
+    history = tr.train_stack(dev_model, data.train[:32].to(torch.float64), ds.Method("DiffStack", losses=(1, 1, 1)),
                              cfg, epochs=1.0, log=None)
     assert history and all(torch.isfinite(torch.tensor(h["loss"])) for h in history)

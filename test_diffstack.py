@@ -13,6 +13,7 @@ import torch
 import data_synth
 import diffstack as ds
 
+import train as tr
 DT = 0.5
 TINY_PRED = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
@@ -972,7 +973,7 @@ def test_loss_decreases_on_a_small_set():
         return ds.pred_loss(model(data, use_posterior=True, step=0), data, 0, cfg)[0].mean().item()
 
     before = loss_at_step0()
-    ds.train_stack(model, data, STANDARD, cfg, epochs=30, seed=0, log=None)
+    tr.train_stack(model, data, STANDARD, cfg, epochs=30, seed=0, log=None)
     assert loss_at_step0() < before - 5.0
 
 
@@ -982,7 +983,7 @@ def test_same_seed_same_model():
     params = []
     for seed in (0, 0, 1):
         model = make_model(cfg, seed=0)
-        hist = ds.train_stack(model, data, STANDARD, cfg, epochs=2, seed=seed, log=None)
+        hist = tr.train_stack(model, data, STANDARD, cfg, epochs=2, seed=seed, log=None)
         assert len(hist) == 6  # 2 epochs of 3 batches of 16
         params.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
     assert torch.equal(params[0], params[1]) and not torch.equal(params[0], params[2])
@@ -992,14 +993,14 @@ def test_progress_lines_fractional_epochs_and_val_metrics():
     cfg = small_cfg()
     data, val = make_batch(48, seed=5), make_batch(16, seed=6)
     lines = []
-    hist = ds.train_stack(make_model(cfg), data, STANDARD, cfg, epochs=2 / 3, log=lines.append)
+    hist = tr.train_stack(make_model(cfg), data, STANDARD, cfg, epochs=2 / 3, log=lines.append)
     assert len(hist) == 2 and lines and "ETA" in lines[-1] and "L_pred" in lines[-1]
-    m = ds.evaluate_predictor(make_model(cfg), val, cfg)
+    m = tr.evaluate_predictor(make_model(cfg), val, cfg)
     assert {"ade", "min_ade", "nll", "cv_ade", "cv_nll"} <= set(m)
     # the calibrated constant-velocity NLL, by hand: sigma_t^2 = mean squared error / 2 per axis
-    err2 = ((ds.constant_velocity(val, cfg) - val.agent_fut[..., :2]) ** 2).sum(-1)  # (B, T)
+    err2 = ((tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]) ** 2).sum(-1)  # (B, T)
     var = err2.mean(0) / 2
-    e = (ds.constant_velocity(val, cfg) - val.agent_fut[..., :2]).transpose(1, 2)  # (B, 2, T)
+    e = (tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]).transpose(1, 2)  # (B, 2, T)
     by_hand = -torch.distributions.Normal(0.0, var.sqrt()).log_prob(e).sum(1).mean()
     assert math.isclose(m["cv_nll"], by_hand.item(), rel_tol=1e-6)
 
@@ -1007,19 +1008,19 @@ def test_progress_lines_fractional_epochs_and_val_metrics():
 def test_distance_and_cost_gradient_weights():
     cfg = ds.Config()
     b = make_batch(8)
-    w = ds.scenario_weights(b, "distance", cfg)
+    w = tr.scenario_weights(b, "distance", cfg)
     d = (b.ego_fut[..., :2] - b.agent_fut[..., :2]).norm(dim=-1).mean(-1)
     assert torch.isclose(w.mean(), torch.tensor(1.0, dtype=w.dtype))
     assert w[d.argmin()] == w.max() and w[d.argmax()] == w.min()
     # grad-cost: |d (w1 C_coll) / d agent future| along the ego's GT future, by hand
     diff = b.agent_fut[..., :2] - b.ego_fut[..., :2]
     by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(1).norm(dim=-1)
-    assert torch.allclose(ds.grad_cost_weights(b, cfg), by_hand)
-    assert torch.allclose(ds.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
-    zero = ds.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
+    assert torch.allclose(tr.grad_cost_weights(b, cfg), by_hand)
+    assert torch.allclose(tr.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
+    zero = tr.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
     assert torch.equal(zero, torch.ones(8, dtype=torch.float64))
     with pytest.raises(ValueError, match="weighting"):
-        ds.scenario_weights(b, lambda batch: -torch.ones(len(batch)), cfg)
+        tr.scenario_weights(b, lambda batch: -torch.ones(len(batch)), cfg)
 
 
 def test_weighting_changes_training():
@@ -1028,7 +1029,7 @@ def test_weighting_changes_training():
     out = []
     for weighting in ("standard", "distance"):
         model = make_model(cfg)
-        ds.train_stack(model, data, ds.Method("x", weighting=weighting), cfg, epochs=1, log=None)
+        tr.train_stack(model, data, ds.Method("x", weighting=weighting), cfg, epochs=1, log=None)
         out.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
     assert not torch.allclose(out[0], out[1])
 
@@ -1110,8 +1111,8 @@ def test_a_learning_curve_does_not_change_the_training(small):
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=32)
     data = data_synth.Dataset(small.train[:64], small.val[:16], None)
     m = ds.Method("DiffStack", losses=(1, 1, 1))
-    plain = ds.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
-    curved = ds.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
+    plain = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
+    curved = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
     assert not hasattr(plain, "learning_curve")
     assert [c["epoch"] for c in curved.learning_curve] == [0.0, 1.0, 2.0]
     assert all(c["n"] + c["skipped"] == 8 for c in curved.learning_curve)
@@ -1159,7 +1160,7 @@ def test_training_refuses_bad_data_before_the_first_step(small):
     lanes[last, 0, 0, 0] = math.nan
     lines = []
     with pytest.raises(ValueError, match="lanes"):
-        ds.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), ds.Method("DiffStack", losses=(1, 1, 1)),
+        tr.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), ds.Method("DiffStack", losses=(1, 1, 1)),
                        cfg, "rl", epochs=4.0, log=lines.append)
     assert lines == []
 
@@ -1167,7 +1168,7 @@ def test_training_refuses_bad_data_before_the_first_step(small):
 def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
     """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their counts, are the
     overall means."""
-    r = ds.evaluate_stack(None, small.val, ds.Method("GT prediction", "gt"), ds.Config(), "rl")
+    r = tr.evaluate_stack(None, small.val, ds.Method("GT prediction", "gt"), ds.Config(), "rl")
     by = r["by_behaviour"]
     assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
     for key in ("hindsight", "mse", "plan_loss"):
@@ -1191,20 +1192,20 @@ def test_metrics_on_a_known_prediction():
     cov = 0.25 * torch.eye(2, dtype=torch.float64).expand(4, K, 6, 2, 2)
     controls = torch.zeros(4, K, 6, 2, dtype=torch.float64)
     pred = ds.Prediction(b.agent_hist[:, -1], states, controls, cov, probs.log(), None, probs)
-    m = ds.prediction_metrics(pred, b, cfg)
+    m = tr.prediction_metrics(pred, b, cfg)
     zeros = torch.zeros(4, dtype=torch.float64)
     assert torch.allclose(m["ade"], zeros) and torch.allclose(m["min_fde"], zeros)
     nll = -math.log(0.9 / (2 * math.pi * 0.25) + 0.1 / (2 * math.pi * 0.25) * math.exp(-4 / 0.5))
     assert torch.allclose(m["nll"], torch.full((4,), nll, dtype=torch.float64))
     probs2 = probs.flip(-1)
-    m2 = ds.prediction_metrics(ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg)
+    m2 = tr.prediction_metrics(ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg)
     assert torch.allclose(m2["ade"], torch.full((4,), 2.0, dtype=torch.float64))
     assert torch.allclose(m2["min_ade"], m["min_ade"])
     # constant velocity is exact on a constant-velocity agent (behaviour 0 after its manoeuvre: w = a = 0)
     s0 = b.agent_hist[:, -1]
     cv_fut = torch.stack([s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
                           s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7)], -1)
-    m3 = ds.prediction_metrics(pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg)
+    m3 = tr.prediction_metrics(pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg)
     assert torch.allclose(m3["cv_ade"], torch.zeros(4, dtype=torch.float64), atol=1e-12)
 
 
@@ -1235,8 +1236,8 @@ def test_trained_predictor_beats_constant_velocity():
     cfg = ds.Config()
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
-    ds.train_stack(model, data.train, STANDARD, cfg, epochs=12, seed=0)
-    m = ds.evaluate_predictor(model, data.val, cfg)
+    tr.train_stack(model, data.train, STANDARD, cfg, epochs=12, seed=0)
+    m = tr.evaluate_predictor(model, data.val, cfg)
     assert m["min_ade"] < 0.7 * m["cv_ade"]  # measured: 0.82 vs 1.67 (312 steps, about 1 minute)
     assert m["nll"] < m["cv_nll"] - 1.0  # measured: 0.86 vs 3.20
 
@@ -1602,7 +1603,7 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
     torch.manual_seed(0)
     model = ds.Predictor(cfg).double()
     method = ds.Method("DiffStack", losses=(1, 1, 1))
-    a1, a2, a3 = ds.alphas(method, "rl", cfg)
+    a1, a2, a3 = tr.alphas(method, "rl", cfg)
 
     def loss():
         torch.manual_seed(1)  # the decoder samples its next inputs in training mode
@@ -1678,11 +1679,11 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
 def test_quick_runs_and_same_seed_same_table(tmp_path):
     cfg = ds.Config(**TINY)
     lines = []
-    first = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=tmp_path / "none")
+    first = tr.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=tmp_path / "none")
     text = "\n".join(lines)
     assert "| DiffStack (1 epochs) |" in text and "| Standard (1 epochs) |" in text and "| GT prediction |" in text
     assert "Standard: no pre-trained predictor" in text  # none shipped here: said, and its row left out
-    second = ds.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lambda s: None, pretrained=tmp_path / "none")
+    second = tr.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lambda s: None, pretrained=tmp_path / "none")
     strip = lambda res: {k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs] for k, runs in res.items()}  # noqa: E731
     assert [strip(r) for r in first] == [strip(r) for r in second]
 
@@ -1691,29 +1692,29 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
     shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
     cfg, out = ds.Config(**TINY), tmp_path / "pre"
-    about = ds.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+    about = tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
     assert sorted(about["files"]) == ["diffstack-seed0.pt", "diffstack-seed1.pt", "standard-seed0.pt", "standard-seed1.pt"]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
-        ds.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
-    models, prov = ds.load_pretrained(ds.Method("DiffStack"), cfg, out)
+        tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+    models, prov = tr.load_pretrained(ds.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
-    again = ds.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_synth.load_data(n=300, cache_dir=tmp_path),
+    again = tr.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_synth.load_data(n=300, cache_dir=tmp_path),
                                cfg, "rl", 0.5, 1, None)  # seed 1, trained here: the shipped seed 1 to the bit
     assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
     assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))
     # two worker processes make the same files, byte for byte
-    pooled = ds.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None)
+    pooled = tr.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None)
     assert {k: v["sha256"] for k, v in pooled["files"].items()} == {k: v["sha256"] for k, v in about["files"].items()}
-    assert ds.load_pretrained(ds.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
+    assert tr.load_pretrained(ds.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
     lines = []
-    res, _ = ds.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
+    res, _ = tr.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
     assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2  # a row per seed
     assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(lines)
     with open(out / "standard-seed1.pt", "ab") as f:
         f.write(b"tampered")
     with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
-        ds.load_pretrained(ds.Method("Standard"), cfg, out)
+        tr.load_pretrained(ds.Method("Standard"), cfg, out)
 
 
 def test_quick_story_states_only_what_its_numbers_show():
@@ -1722,7 +1723,7 @@ def test_quick_story_states_only_what_its_numbers_show():
     res = {"No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
            "Standard (20 epochs)": row(-0.5), "DiffStack (20 epochs)": row(-1.5, 1.2),
            "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))]}
-    lines = ds.quick_story(res, "no/such/folder")
+    lines = tr.quick_story(res, "no/such/folder")
     assert lines[0] == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
     assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
     assert "75 % of it in keep_lane scenes" in lines[2]
@@ -1730,10 +1731,10 @@ def test_quick_story_states_only_what_its_numbers_show():
     # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back where
     res["Standard (20 epochs)"] = [dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
                                    dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0))]
-    line = ds.quick_story(res, "no/such/folder")[3]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
+    line = tr.quick_story(res, "no/such/folder")[3]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
     assert line.startswith("And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in cut_in")
     res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
-    assert ds.quick_story(res, "no/such/folder")[0].startswith(
+    assert tr.quick_story(res, "no/such/folder")[0].startswith(
         "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order")
 
 
@@ -1745,7 +1746,7 @@ def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tm
         prov = dict(epochs=20.0, seeds=shipped, config=cfg)
         (tmp_path / "rl.json").write_text(json.dumps(dict(meta=dict(seeds=[0, 1], epochs=epochs, config=cfg), results=dict(
             Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}))))
-        line = ds.quick_story(res, tmp_path, prov)[-1]
+        line = tr.quick_story(res, tmp_path, prov)[-1]
         assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
         assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (not same)
 
@@ -1755,11 +1756,11 @@ def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
     one = lambda h, ade: dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)  # noqa: E731
     res = {"No prediction": [one(0.0, 1.0)], "GT prediction": [one(-2.0, 1.0)], "Standard (20 epochs)": [one(-0.5, 1.0)],
            "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)]}
-    lines = ds.quick_story(res, "no/such/folder")
+    lines = tr.quick_story(res, "no/such/folder")
     assert lines[0].startswith("Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order")
     assert "its ADE is +30 % against Standard's" in lines[1]
     res["DiffStack (20 epochs)"] = [one(-0.4, 1.5), one(-0.5, 1.1)]  # mean -0.45: above Standard's -0.5
-    assert "NOT the paper's order" in ds.quick_story(res, "no/such/folder")[0]
+    assert "NOT the paper's order" in tr.quick_story(res, "no/such/folder")[0]
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -1774,17 +1775,17 @@ def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
 ])
 def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
     with pytest.raises(SystemExit) as e:
-        ds.main(argv)
+        tr.main(argv)
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 
 def test_set_overrides_config_fields_with_their_types():
-    cfg = ds.config_with(ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"])
+    cfg = tr.config_with(ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"])
     assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
     assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
     assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
-    assert ds.config_with(ds.Config(), []) == ds.Config()
+    assert tr.config_with(ds.Config(), []) == ds.Config()
     for bad, culprit in (["nope=1"], "nope"), (["beta"], "beta"), (["ilqr_iters=2.5"], "ilqr_iters"), \
                         (["beta=nan"], "beta"), (["u_upper=a,b"], "u_upper"):
         with pytest.raises(ValueError, match=culprit):
-            ds.config_with(ds.Config(), bad)
+            tr.config_with(ds.Config(), bad)

@@ -23,6 +23,7 @@ import torch.multiprocessing as mp
 
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments
 
 WORLD = 2
@@ -38,7 +39,7 @@ def cases():
     lanes_mask = train.lanes_mask.clone()
     lanes_mask[5] = False  # no lanes: fewer than 2 candidates, so scenario 5 is not plannable
     train = dataclasses.replace(train, lanes_mask=lanes_mask)
-    methods = {m.name: m for m in ds.TABLE1_METHODS}
+    methods = {m.name: m for m in tr.TABLE1_METHODS}
     return [("Standard", methods["Standard"], "rl", train, cfg, False),
             ("Distance weighted", methods["Distance weighted"], "rl", train, cfg, False),
             ("DiffStack", methods["DiffStack"], "rl", train, cfg, False),
@@ -51,8 +52,8 @@ def train_all() -> dict:
     for name, method, setting, data, cfg, learn_cost in cases():
         torch.manual_seed(0)
         model = ds.Predictor(cfg).double()
-        weights = ds.CostWeights(cfg).double() if learn_cost else None
-        history = ds.train_stack(model, data, method, cfg, setting, epochs=STEPS * GLOBAL_BATCH / len(data), seed=7,
+        weights = tr.CostWeights(cfg).double() if learn_cost else None
+        history = tr.train_stack(model, data, method, cfg, setting, epochs=STEPS * GLOBAL_BATCH / len(data), seed=7,
                                  log=None, weights=weights)
         trained = weights if learn_cost else model
         out[name] = ({k: v.detach().clone() for k, v in trained.state_dict().items()}, history)
@@ -134,7 +135,7 @@ def test_ddp_step_equals_single_process_step(both, name):
         assert err <= 1e-10, f"{name}: parameter {k} differs by {err:.3g} between 1 process and {WORLD} DDP ranks"
     # the parameters moved (the comparison is not of two untouched initialisations) ...
     torch.manual_seed(0)
-    init = (ds.CostWeights(ds.Config()).double() if name == "cost weights" else ds.Predictor(ds.Config()).double()).state_dict()
+    init = (tr.CostWeights(ds.Config()).double() if name == "cost weights" else ds.Predictor(ds.Config()).double()).state_dict()
     assert any((p1[k] - init[k]).abs().max() > 1e-6 for k in p1 if p1[k].is_floating_point())
     # ... and the logged losses of the global batch are the same too
     for a, b in zip(h1, h2):
@@ -150,7 +151,7 @@ def test_the_ranks_hold_different_numbers_of_plannable_scenarios():
     perm = torch.randperm(len(data), generator=torch.Generator().manual_seed(7))  # train_stack's order, seed 7
     step = next(i for i in range(STEPS) if 5 in perm[i * GLOBAL_BATCH:(i + 1) * GLOBAL_BATCH])
     batch = perm[step * GLOBAL_BATCH:(step + 1) * GLOBAL_BATCH]
-    counts = [int((batch[ds.Shard(r, WORLD).positions(GLOBAL_BATCH)] == 5).sum()) for r in range(WORLD)]
+    counts = [int((batch[tr.Shard(r, WORLD).positions(GLOBAL_BATCH)] == 5).sum()) for r in range(WORLD)]
     assert sorted(counts) == [0, 1]
 
 
@@ -158,13 +159,13 @@ def test_batch_size_must_split_over_the_ranks():
     """An uneven split is refused by name (a Shard standing in for a 3-process world; nothing is launched)."""
     cfg = dataclasses.replace(ds.Config(), batch_size=GLOBAL_BATCH)
     data = cases()[0][3]
-    original = ds.Shard.of_process_group
-    ds.Shard.of_process_group = staticmethod(lambda: ds.Shard(0, 3))
+    original = tr.Shard.of_process_group
+    tr.Shard.of_process_group = staticmethod(lambda: tr.Shard(0, 3))
     try:
         with pytest.raises(ValueError, match="cfg.batch_size: 8 scenarios per step do not split evenly over 3"):
-            ds.train_stack(ds.Predictor(cfg).double(), data, ds.Method("Standard"), cfg, log=None)
+            tr.train_stack(ds.Predictor(cfg).double(), data, ds.Method("Standard"), cfg, log=None)
     finally:
-        ds.Shard.of_process_group = original
+        tr.Shard.of_process_group = original
 
 
 def test_experiments_cli_on_two_processes(tmp_path):

@@ -9,6 +9,7 @@ import torch
 
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments as ex
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
@@ -76,7 +77,7 @@ def clean():
 
 def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
     cfg = ds.Config()
-    cw = ds.CostWeights(cfg)
+    cw = tr.CostWeights(cfg)
     assert torch.allclose(cw(), ds.cost_weights(cfg), rtol=1e-6, atol=0)
     assert cw.alpha.item() == 1.0
     assert {n for n, _ in cw.named_parameters()} == {"psi", "log_alpha"}  # psi_1 is a buffer
@@ -90,7 +91,7 @@ def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
 
 def test_controller_gradient_reaches_the_cost_weights(clean):
     (data, _), cfg = clean, ds.Config()
-    cw = ds.CostWeights(cfg)
+    cw = tr.CostWeights(cfg)
     out = ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=cw())
     keep = out.plannable.to(out.l_ctr.dtype)
     ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()  # the plannable mean, as in training
@@ -99,7 +100,7 @@ def test_controller_gradient_reaches_the_cost_weights(clean):
 
 def test_cost_scale_stays_positive_when_driven_toward_zero():
     # the loss sum(w) pushes alpha down at every step; an unconstrained alpha would pass zero in ~1 step of lr 1
-    cw = ds.CostWeights(ds.Config())
+    cw = tr.CostWeights(ds.Config())
     opt = torch.optim.SGD(cw.parameters(), lr=1.0)
     for _ in range(50):
         opt.zero_grad()
@@ -239,8 +240,8 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
     no_planner, dt01 = ex.ABLATION_SECTIONS[1], ex.ABLATION_SECTIONS[-1]
     monkeypatch.setattr(ex, "ABLATION_SECTIONS", (no_planner, dt01))  # the shortest section and dt = 0.1 s
     trained = []
-    train = ds.train_stack
-    monkeypatch.setattr(ds, "train_stack", lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[1])
+    train = tr.train_stack
+    monkeypatch.setattr(tr, "train_stack", lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[1])
     res, table = ex.run_table(ex.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
     for rows in res.values():
@@ -257,14 +258,14 @@ def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypat
     (data, _), cfg = clean, ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:32], data.val[:16], data.val_scenes[:2])
     trained = []
-    train = ds.train_stack
+    train = tr.train_stack
 
     def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, on_epoch=None, **kw):
         trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset,
                         tuple(sorted(kw.items())), m.train_plan_weights))
         return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **kw)
 
-    monkeypatch.setattr(ds, "train_stack", counting)
+    monkeypatch.setattr(tr, "train_stack", counting)
     ex.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
     assert len(trained) == len(set(trained))
     assert trained.count(((1, 0, 0), "standard", None, 0.0, (), None)) == 1

@@ -19,6 +19,7 @@ import torch
 
 import data_synth as ds
 import diffstack
+import train
 import experiments as ex
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -271,8 +272,8 @@ def test_the_stack_runs_on_real_scenes(real):
         assert torch.isfinite(getattr(out, name)).all(), name
     assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
-    for m in (diffstack.TABLE1_METHODS[0], diffstack.TABLE1_METHODS[-1]):  # No prediction, GT prediction
-        r = diffstack.evaluate_stack(None, batch, m, cfg, "rl")
+    for m in (train.TABLE1_METHODS[0], train.TABLE1_METHODS[-1]):  # No prediction, GT prediction
+        r = train.evaluate_stack(None, batch, m, cfg, "rl")
         assert r["n"] > 70 and all(np.isfinite(v) for v in r.values())
 
 

@@ -11,6 +11,7 @@ import torch
 
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments as ex
 
 TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
@@ -26,7 +27,7 @@ def small():
 def trainings(monkeypatch):
     """Count the predictors trained ((method, seed) per call); trainings.fail_at = k: the k-th training raises."""
     calls = []
-    train = ds.train_stack
+    train = tr.train_stack
 
     def counting(model, data, m, cfg, setting, epochs, seed, *a, **k):
         if k.get("weights") is None:
@@ -36,7 +37,7 @@ def trainings(monkeypatch):
         return train(model, data, m, cfg, setting, epochs, seed, *a, **k)
 
     counting.fail_at, counting.calls = None, calls
-    monkeypatch.setattr(ds, "train_stack", counting)
+    monkeypatch.setattr(tr, "train_stack", counting)
     return counting
 
 
@@ -105,7 +106,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     cfg, out = ds.Config(**TINY10), tmp_path / "out"
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     kept = sorted((out / ".runs" / "il").glob("*/*-seed*.json"))
-    assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [ds.machine()] * 4
+    assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [tr.machine()] * 4
     assert "computed_on" not in json.loads((out / "il.json").read_text())["meta"]  # one machine: nothing to say
     assert "pieces ran on" not in (out / "il.md").read_text()
     # as if Standard had been trained on another host before the run was resumed here
@@ -115,7 +116,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2  # resumed: nothing trained again
     meta = json.loads((out / "il.json").read_text())["meta"]
-    assert meta["computed_on"] == {ds.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
+    assert meta["computed_on"] == {tr.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
     assert ("its pieces ran on 2 machines, and the same seed gives other numbers on another kind of processor: "
             in (out / "il.md").read_text())
 
@@ -141,7 +142,7 @@ def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
     assert numbers(tmp_path / "two") == numbers(tmp_path / "one")
     machine = json.loads((tmp_path / "two" / "il.json").read_text())["meta"]["machine"]
     assert "2 worker processes (--jobs)" in machine
-    # the kind of processor, on which the numbers depend (ds.machine: oneDNN's kernels follow its instruction set)
+    # the kind of processor, on which the numbers depend (tr.machine: oneDNN's kernels follow its instruction set)
     assert f", {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores, torch " in machine
 
 
@@ -269,15 +270,15 @@ def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(small, t
     """A training whose loss turns NaN stops with TrainingDiverged (method, seed, step); the run keeps going, keeps
     that piece as 'diverged' (a resumed run does not retrain it), and the table leaves the seed out and says so."""
     cfg = ds.Config(**TINY10)
-    train, calls = ds.train_stack, []
+    train, calls = tr.train_stack, []
 
     def diverging(model, data, m, cfg_, setting, epochs, seed, *a, **k):
         calls.append((m.name, seed))
         if (m.name, seed) == ("DiffStack", 1):
-            raise ds.TrainingDiverged(f"{m.name}, seed {seed}: training diverged at step 3 of 4: L_pred is not finite")
+            raise tr.TrainingDiverged(f"{m.name}, seed {seed}: training diverged at step 3 of 4: L_pred is not finite")
         return train(model, data, m, cfg_, setting, epochs, seed, *a, **k)
 
-    monkeypatch.setattr(ds, "train_stack", diverging)
+    monkeypatch.setattr(tr, "train_stack", diverging)
     ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
     res = json.loads((tmp_path / "il.json").read_text())["results"]
     assert res["DiffStack"][1] == {"diverged": "DiffStack, seed 1: training diverged at step 3 of 4: L_pred is not finite"}
@@ -303,6 +304,6 @@ def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatc
     monkeypatch.setattr(ds, "pred_loss", nan_at_step_2)
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
-    with pytest.raises(ds.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
-        ds.train_stack(model, data, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
+    with pytest.raises(tr.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
+        tr.train_stack(model, data, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
     assert seen == [0, 1, 2] and all(torch.isfinite(p).all() for p in model.parameters())

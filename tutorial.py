@@ -93,6 +93,7 @@ from IPython.display import Image, Markdown, display
 import course
 import data_synth
 import diffstack as ds
+import train as tr
 import experiments as xp
 
 assert DEVICE == "cpu", "diffstack.py is a CPU teaching implementation"
@@ -595,7 +596,7 @@ ex4_done = course.exercise(4, course.check_plan_grad, my_plan_loss_grad)
 # -dL_plan/d(prediction) for a constant-velocity prediction, on every validation sample at once; by behaviour, the
 # largest gradient over a sample's predicted steps (median and max over the samples of that behaviour).
 bg = data.val
-preds_cv = ds.constant_velocity(bg, cfg)[:, None].clone().requires_grad_()  # (B, K=1, T, 2)
+preds_cv = tr.constant_velocity(bg, cfg)[:, None].clone().requires_grad_()  # (B, K=1, T, 2)
 ctx_cv = dataclasses.replace(gt_context(bg), preds=preds_cv)
 cands_g, cost_g, best_g, ok_g, _ = ds.plan(bg.ego_hist[:, -1], ctx_cv, bg.goal, w_hand, cfg)
 target_g = ds.masked_argmin(ds.total_cost(cands_g.x, cands_g.u, gt_context(bg), w_hand, cfg.rbf_var), cands_g.valid)
@@ -612,7 +613,7 @@ for b_, name in enumerate(data_synth.BEHAVIOURS):
     if sel.any():
         rows.append([name, str(int(sel.sum())), f"{gmax[sel].median():.1e}", f"{gmax[sel].max():.1e}",
                      f"{(best_g[sel] != target_g[sel]).float().mean():.0%}"])
-display(Markdown(ds.markdown_table(["behaviour", "samples", "median of max |dL_plan/dŝ_t| (1/m)", "largest",
+display(Markdown(tr.markdown_table(["behaviour", "samples", "median of max |dL_plan/dŝ_t| (1/m)", "largest",
                                     "plan ≠ target n*"], rows)))
 
 # %%
@@ -885,9 +886,9 @@ section_done("§5")
 t0 = time.time()
 torch.manual_seed(SEED)                       # the initialisation (as open_loop_experiment does)
 model_std = ds.Predictor(cfg)
-hist_std = ds.train_stack(model_std, data.train, ds.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED,
+hist_std = tr.train_stack(model_std, data.train, ds.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED,
                       log=print if not QUICK else None)
-m_std = ds.evaluate_predictor(model_std, data.val, cfg)
+m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
 print("          ADE    FDE    min-ADE  NLL")
 print(f"Standard  {m_std['ade']:.2f}   {m_std['fde']:.2f}   {m_std['min_ade']:.2f}     {m_std['nll']:.2f}")
@@ -962,16 +963,16 @@ section_done("§6")
 # hindsight cost are reported **relative to No prediction** (negative = better), as in the paper.
 #
 # `open_loop_experiment` trains each learned method (same data, same seed, same number of steps) and evaluates all
-# of them on the validation set; `ds.open_loop_table` prints the table (± standard errors over seeds; one seed here).
+# of them on the validation set; `tr.open_loop_table` prints the table (± standard errors over seeds; one seed here).
 
 # %%
 # Table 1 (RL). Expected run time: ~10 s quick (4 methods), ~3 min full (all 7 methods).
 t0 = time.time()
-methods1 = ds.TABLE1_METHODS if not QUICK else [m for m in ds.TABLE1_METHODS
+methods1 = tr.TABLE1_METHODS if not QUICK else [m for m in tr.TABLE1_METHODS
                                               if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.open_loop_table(res1, "rl")))
+display(Markdown(tr.open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
 print(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap in hindsight cost (paper: 39 %)")
 rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
@@ -1091,7 +1092,7 @@ def plot_table(results, setting, title):
     y = np.arange(len(names))
     for ax, (key, header) in zip(axes, [*((c.key.removeprefix("rel_"), c.header) for c in cols), ("ade", "ADE (m)")]):
         k = key if key == "ade" else "rel_" + key
-        stats = [ds.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
+        stats = [tr.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
         ax.barh(y, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(y))
         ax.axvline(0, color="k", lw=0.8); ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
         ax.grid(axis="x", alpha=0.3)
@@ -1115,7 +1116,7 @@ plot_table(res1, "rl", "Table 1 (RL setting): lower is better")
 t0 = time.time()
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
-hist_ds = ds.train_stack(model_ds, data.train, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=EPOCHS,
+hist_ds = tr.train_stack(model_ds, data.train, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=EPOCHS,
                          seed=SEED, log=None)
 outs = {}
 for name, model, method in (("No prediction", None, ds.Method("No prediction", "none")),
@@ -1169,7 +1170,7 @@ for b_, name in enumerate(data_synth.BEHAVIOURS):
     if sel.any():
         d = {m: 100 * (outs[m].hindsight[sel] - outs["No prediction"].hindsight[sel]).mean().item() for m in ("Standard", "DiffStack")}
         rows.append([name, str(int(sel.sum())), f"{d['Standard']:+.2f}", f"{d['DiffStack']:+.2f}"])
-display(Markdown(ds.markdown_table(["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"], rows)))
+display(Markdown(tr.markdown_table(["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"], rows)))
 d_std = (outs["Standard"].hindsight - outs["No prediction"].hindsight)[ok]
 worst = d_std.sort(descending=True).values[: max(1, len(d_std) // 20)]  # the 5 % of samples where Standard costs most
 print(f"Standard costs more than No prediction on {(d_std > 1e-3).float().mean():.0%} of the samples, less on "
@@ -1233,7 +1234,7 @@ methods2 = (ds.Method("No prediction", "none"), ds.Method("Standard-biased"), ds
             ds.Method("GT prediction", "gt"))
 res2 = xp.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.open_loop_table(res2, "rl")))
+display(Markdown(tr.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 # one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
 check_order("Table 2, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
@@ -1269,10 +1270,10 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
-methods_il = [m for m in ds.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+methods_il = [m for m in tr.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
 res_il = xp.open_loop_experiment(data, cfg, "il", methods_il, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.open_loop_table(res_il, "il")))
+display(Markdown(tr.open_loop_table(res_il, "il")))
 rel = {n: r[0]["rel_mse"] for n, r in res_il.items()}
 # one seed of a short training again: nothing here is checked but the 5-seed claim under the table (even a perfect
 # prediction need not bring the plan closer to the expert's: on the quick data GT prediction's MSE is above No prediction's)
@@ -1387,14 +1388,14 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 t0 = time.time()
 stacks = {"No prediction": (None, ds.Method("No prediction", "none")), "Standard": (model_std, ds.Method("Standard")),
           "DiffStack": (model_ds, ds.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, ds.Method("GT prediction", "gt"))}
-fine = {name: [ds.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
+fine = {name: [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
 with torch.no_grad():  # the two stacks drawn below (evaluate_stack has put the models in eval mode)
     outs01 = {name: ds.run_stack(data.val, *stacks[name], cfg, "rl", plan_dt=0.1) for name in ("Standard", "DiffStack")}
 for runs in fine.values():  # relative to No prediction, as open_loop_experiment reports
-    for key, scale in ds.RELATIVE_SCALE["rl"].items():
+    for key, scale in tr.RELATIVE_SCALE["rl"].items():
         runs[0]["rel_" + key] = (runs[0][key] - fine["No prediction"][0][key]) / scale
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(ds.open_loop_table(fine, "rl")))
+display(Markdown(tr.open_loop_table(fine, "rl")))
 # Figure: sample i of §7's example at 0.1 s: the controller's 31 states (purple line) against its 7 states at 0.5 s
 # (open circles): the finer clock changes the trajectory little.
 fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
