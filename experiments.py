@@ -15,27 +15,23 @@ Map of the module:
     4. Closed loop    log replay (§4.3, Table 5, App. D.3)
     5. Ablations      App. A.1
     6. Figures        Fig. 3's kind of panel, a closed-loop rollout, the learned cost weights
-    7. Running        run_table, provenance, the report, the command line
+    7. Running        a table's pieces, computed and assembled (run_table), the report, the command line; the run
+                      machinery under it (resuming, provenance, worker processes, progress) is runs.py
 
 Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N simulation steps.
 """
 from __future__ import annotations
 
-import ast
 import collections
 import dataclasses
 import functools
-import hashlib
 import json
 import math
 import os
 import pathlib
 import re
 import statistics
-import subprocess
 import sys
-import tempfile
-import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
@@ -43,10 +39,14 @@ from typing import Callable, NamedTuple
 import numpy as np
 import torch
 import torch.distributed as dist
+from tqdm import tqdm
 
 import data_synth
 from diffstack import (Config, Method, Prediction, Predictor, StackOutput, cost_contexts, cost_terms, cost_weights, project_to_lanes, route_goal, run_stack, unicycle_step, wrap_angle)
 from train import (TABLE1_METHODS, CostWeights, TrainingDiverged, add_relative, alphas, bounded, cell, check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table, mean_se, to_device, train_predictor, train_stack)
+from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit,
+                  ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key,
+                  save_atomic, to_json, write_atomic)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -267,7 +267,7 @@ def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0,
         kw.pop("controller", None)
     plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
     key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
-    if plan_weights == "prior":  # (the posterior's keys stay as they were before this choice existed)
+    if plan_weights == "prior":  # (the default, the posterior, adds nothing to the key)
         key += (plan_weights,)
     return key
 
@@ -1027,7 +1027,7 @@ def figure_cost_weights(results: dict, path):
 
 
 # ============================================================================================
-# 7. Running a spec, provenance, the report, the command line
+# 7. Running a spec, the report, the command line
 # ============================================================================================
 
 
@@ -1112,20 +1112,12 @@ def paper_markdown(spec: TableSpec) -> str:
 
 
 # --------------------------------------------------------------------------------------------
-# 7.1 Pieces: each (table, method, seed) result on disk as soon as it is made; resuming; worker processes
+# 7.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
 # --------------------------------------------------------------------------------------------
 #
-# A run's pieces live next to its outputs, in <out>/.runs/<table>/<table key>/<piece>.json (the closed loop's also a
-# .pt with the rollout its figure draws), written atomically the moment the piece is evaluated. The table key is a
-# hash of everything that determines the numbers: the Config, the epochs, the data (a hash of its tensors), the code
-# (a hash of the modules that make numbers, code_version), the device and the table's name.
-# Re-running the same command loads the finished pieces and computes only the missing ones; any change to the config,
-# data or code is another key, so nothing of another run is mixed in. The seeds are not part of the key (a piece is
-# one seed): a 5-seed run reuses the 3 seeds of an earlier one. Neither is the thread count (it moves only the last
-# digits, README Usage). Trained predictors are saved in <out>/.runs/models/<run key>/ (trained_predictor), so a
-# table that needs a predictor whose piece was reused (or trained in a worker process) loads it instead of training.
-
-RUNS_DIR = ".runs"
+# A table's pieces are kept and resumed by runs.RunStore (runs.py says where and under which key). Trained predictors
+# are kept there too (trained_predictor), so a table that needs a predictor whose piece was reused (or trained in a
+# worker process) loads it instead of training.
 
 
 class Piece(NamedTuple):
@@ -1169,8 +1161,7 @@ COST_WEIGHTS = "cost weights"  # the first item of Table 3's cost-weight trainin
 def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="cpu") -> tuple:
     """What a piece trains unless another piece has trained it already: its predictor's training_key (Table 3
     also its cost weights), as _compute_piece would. Empty for the pieces that train nothing (No prediction, GT
-    prediction, the goal table). Progress prices a piece that trains in minutes, one that finds its predictor
-    trained (a table's Standard after Table 1's) in seconds."""
+    prediction, the goal table). timed_piece records from it whether a piece trained."""
     def of(methods, setting, pred_offset=0.0, **stack_kw):
         m = next(m for m in methods if m.name == piece.method)
         if m.predictor != "learned":
@@ -1255,154 +1246,12 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
     raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
 
 
-def _sha(*parts) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
-
-
-NUMBER_MODULES = ("diffstack.py", "train.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
-
-
-class _NoStrings(ast.NodeTransformer):
-    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring in Config."""
-
-    def visit_Expr(self, node):
-        return None if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str) else node
-
-
-@functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; run_about asks once per work unit
-def code_of(source: str) -> str:
-    """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
-    parsed, every statement that is only a string (a docstring, a Config field's docstring) dropped, and the tree
-    written back out by ast.unparse, so a re-wrapped line or an edited comment or docstring gives the same text; any
-    other change does."""
-    tree = _NoStrings().visit(ast.parse(source))
-    for node in ast.walk(tree):
-        if getattr(node, "body", None) == []:  # a function or class that held only its docstring
-            node.body = [ast.Pass()]
-    return ast.unparse(tree)
-
-
-def code_version() -> str:
-    """The code a run's numbers come from: a hash of the code of the modules that make them (NUMBER_MODULES, as
-    code_of reads them), so that any change to their code is a new run, while a commit of the README, the tests or
-    the notebook, or of a comment or docstring, is not. (ast.unparse is Python's own: under another Python version
-    the same code may read as new, a new run, never a mixed one.)"""
-    here = pathlib.Path(__file__).resolve().parent
-    h = hashlib.sha256()
-    for name in NUMBER_MODULES:
-        h.update(name.encode() + b"\0" + code_of((here / name).read_text()).encode() + b"\0")
-    return f"sha256:{h.hexdigest()[:16]}"
-
-
-def data_fingerprint(data) -> str:
-    """A hash of the data's tensors (train, val, the validation scenes; a real run's scene groups): the same samples
-    give the same fingerprint whichever file or folder they came from. About 0.1 s for 10 000 samples."""
-    h = hashlib.sha256()
-    for part in data:
-        if part is None or isinstance(part, dict):
-            h.update(json.dumps(part, sort_keys=True).encode())
-            continue
-        for name, t in sorted(part.tensors().items()):
-            h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
-            h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
-
-
-def run_key(data, cfg: Config, epochs, device="cpu") -> str:
-    """The key of a run: the same key, the same numbers (at the same thread count). The tables' keys derive from it."""
-    return _sha(dict(config=dataclasses.asdict(cfg), epochs=float(epochs), data=data_fingerprint(data),
-                     code=code_version(), device=str(device)))
-
-
-_UMASK = os.umask(0o022)  # the process's umask, read once at import (reading it means setting it) and put back
-os.umask(_UMASK)
-
-
-def _usual_permissions(path) -> None:
-    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its files 0600, and a
-    result only its owner can read is no use in a shared lab folder."""
-    os.chmod(path, 0o666 & ~_UMASK)
-
-
-def save_atomic(obj, path) -> None:
-    """torch.save through a temporary file and a rename (as write_atomic)."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        _usual_permissions(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
-class RunStore:
-    """A run's pieces and predictors: under root (<out>/.runs) on disk, or in memory when root is None (the ranks
-    of a torchrun run, and run_table called without one: nothing is resumed)."""
-
-    def __init__(self, root, key: str):
-        self.root, self.key, self.memory = (pathlib.Path(root) if root is not None else None), key, {}
-
-    def table_dir(self, table: str) -> pathlib.Path:
-        return self.root / table / _sha(self.key, table)[:16]
-
-    def path(self, table: str, piece: Piece) -> pathlib.Path:
-        return self.table_dir(table) / f"{piece.stem}.json"
-
-    def has(self, table: str, piece: Piece) -> bool:
-        return (table, piece) in self.memory if self.root is None else self.path(table, piece).exists()
-
-    def load(self, table: str, piece: Piece):
-        """(result, extra) of a finished piece, or None."""
-        if self.root is None:
-            return self.memory.get((table, piece))
-        path = self.path(table, piece)
-        if not path.exists():
-            return None
-        saved = json.loads(path.read_text())
-        extra = torch.load(path.with_suffix(".pt"), weights_only=True) if saved["extra"] else None
-        return saved["result"], extra
-
-    def timing(self, table: str, piece: Piece) -> dict | None:
-        """How long a finished piece took to compute and where (timed_piece's dict), or None (not finished, or in
-        memory)."""
-        if self.root is None or not self.path(table, piece).exists():
-            return None
-        return json.loads(self.path(table, piece).read_text()).get("timing")
-
-    def save(self, table: str, piece: Piece, result: dict, extra=None, about=None, timing=None) -> None:
-        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically; about: what the key
-        stands for, written once per table folder (run.json); timing: how long it took (see `timing`)."""
-        if self.root is None:
-            self.memory[(table, piece)] = (json.loads(json.dumps(result, default=_to_json)), extra)
-            return
-        path = self.path(table, piece)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if about is not None and not (path.parent / "run.json").exists():
-            write_atomic(path.parent / "run.json", json.dumps(about, indent=1, default=str))
-        if extra is not None:
-            save_atomic(extra, path.with_suffix(".pt"))
-        write_atomic(path, json.dumps(dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None,
-                                           timing=timing, result=result), indent=1, default=_to_json))
-
-    def model_path(self, train_key) -> pathlib.Path | None:
-        """Where trained_predictor keeps a predictor trained the way train_key says (None: in memory only)."""
-        return None if self.root is None else self.root / "models" / self.key[:16] / f"{_sha(repr(train_key))[:16]}.pt"
-
-
-def _to_json(o):
-    return o.tolist() if torch.is_tensor(o) else str(o)
-
-
 def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
     """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds': wall,
     'cpu_seconds': this process's CPU, 'machine': diffstack.machine(), 'trained': bool}). The machine, because a run
     resumed on another kind of processor is still one run (its key names the code, config and data), but the same
     seed gives other numbers there; 'trained': it trained something (a predictor no piece had trained before it,
-    or Table 3's cost weights) rather than only evaluate, which Progress prices apart."""
+    or Table 3's cost weights) rather than only evaluate."""
     def trained_before(key) -> bool:  # by an earlier piece: in this process's models, or in the store on disk
         path = store.model_path(key) if store is not None and key[0] != COST_WEIGHTS else None
         return key in (models or {}) or (path is not None and path.exists())
@@ -1414,18 +1263,6 @@ def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, m
                                trained=trains)
 
 
-def _seed_worker(spec_name: str, pieces: list, data, cfg: Config, epochs, device, root: str, key: str, about: dict,
-                 verbose: bool) -> int:
-    """A worker process (--jobs): compute and save some pieces of one seed, on one thread. Returns how many."""
-    torch.set_num_threads(1)
-    store, spec, models = RunStore(root, key), SPECS[spec_name], {}
-    log = (lambda text: print(f"[{spec_name} seed {pieces[0].seed}] {text}", flush=True)) if verbose else None
-    for piece in pieces:
-        result, extra, timing = timed_piece(spec, piece, data, cfg, epochs, log, models, device, store)
-        store.save(spec_name, piece, result, extra, about, timing)
-    return len(pieces)
-
-
 def run_about(spec: TableSpec, store: RunStore, cfg: Config, epochs, device, data) -> dict:
     """What a table's run key stands for (run.json in its folder of pieces)."""
     return dict(table=spec.name, run_key=store.key, config=dataclasses.asdict(cfg), epochs=epochs,
@@ -1433,23 +1270,20 @@ def run_about(spec: TableSpec, store: RunStore, cfg: Config, epochs, device, dat
                 train=len(data.train), val=len(data.val))
 
 
-def compute_in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, jobs: int, verbose=True):
-    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of one thread each,
-    in the order given; each piece is saved in `store` as it finishes. Raises the first worker's error."""
-    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+def _compute(table: str, piece: Piece, log, models, store, data=None, cfg=None, epochs=1.0, device="cpu"):
+    """timed_piece of the table named `table`: what a worker process computes (in_workers)."""
+    return timed_piece(SPECS[table], piece, data, cfg, epochs, log, models, device, store)
 
-    with ProcessPoolExecutor(min(jobs, len(units)), mp_context=torch.multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_seed_worker, name, ps, data, cfg, epochs, device, str(store.root), store.key,
-                               run_about(SPECS[name], store, cfg, epochs, device, data), verbose) for name, ps in units]
-        finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
-        for f in finished:
-            if f.exception() is not None:
-                pool.shutdown(cancel_futures=True)
-                raise f.exception()
+
+def in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, jobs: int, verbose=True):
+    """runs.compute_in_workers of units (table name, pieces of one seed), computed by timed_piece."""
+    compute = functools.partial(_compute, data=data, cfg=cfg, epochs=epochs, device=device)
+    abouts = {name: run_about(SPECS[name], store, cfg, epochs, device, data) for name, _ in units}
+    compute_in_workers(compute, units, store, jobs, abouts, verbose)
 
 
 def work_units(names, seeds, store: RunStore) -> list:
-    """The missing pieces of several tables as units for compute_in_workers: one per (table, ablation section,
+    """The missing pieces of several tables as units for in_workers: one per (table, ablation section,
     seed). The longest (the ablation's) go first, so that the short ones fill the workers at the end; within a
     table, the seeds alternate, so that two workers never train the same predictor (a predictor shared between
     tables is trained by the first unit of its seed and loaded from the store by the later ones)."""
@@ -1462,100 +1296,6 @@ def work_units(names, seeds, store: RunStore) -> list:
                 if unit:
                     units.append((name, unit))
     return units
-
-
-def _clock(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
-
-
-class Progress:
-    """A line 'progress: done/total pieces (reused), elapsed, ETA' every `every` seconds from a timer thread, and on
-    demand (line()). The ETA adds up what the remaining pieces should cost, shared by `workers` processes. The
-    pieces differ by a factor of a thousand, so counting them is no estimate: a piece that trains a predictor
-    costs minutes, one whose predictor another piece trained (a table's Standard after Table 1's), or that has
-    none (No prediction, GT prediction), costs seconds. trainings(table, piece) says what a piece needs trained
-    (piece_trainings). Each remaining piece that is the first to need a training not yet done is priced at the
-    computing time of the finished pieces of the same table, section and method that trained (its other seeds, in
-    this run or an earlier one of the same key; timed_piece records whether a piece trained), or else at the mean of
-    every finished piece that trained, but at no less than the pieces still running have run so far (in the first
-    minutes only one-second lookups have finished). Every other piece is priced at the mean of its kind's finished
-    pieces that trained nothing, or of all of them. trainings None: every piece counts as training its own
-    predictor. Without timings (a store in memory) it assumes the remaining pieces take as long as this run's."""
-
-    def __init__(self, store: RunStore, pieces: list, log=print, every: float = 30.0, workers: int = 1,
-                 trainings=None):
-        self.store, self.pieces, self.log, self.every, self.workers = store, pieces, log, every, workers
-        self.trainings = trainings or (lambda table, piece: ((table, piece),))
-        self.knows_trainings = trainings is not None  # else every piece counts as training, whatever it recorded
-        self.t0 = time.time()
-        self.earlier = {(t, p) for t, p in pieces if store.has(t, p)}  # finished before this run: reused
-        self.reused = len(self.earlier)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def done(self) -> int:
-        return sum(self.store.has(t, p) for t, p in self.pieces)
-
-    def remaining_seconds(self) -> float | None:
-        """The remaining pieces' computing time in seconds, estimated from the finished pieces' own (None: no
-        finished piece has a timing)."""
-        seconds, trained_by, left, trained, this_run = {}, {}, [], set(), 0.0
-        for table, piece in self.pieces:
-            if not self.store.has(table, piece):
-                left.append((table, piece))
-                continue
-            trained.update(self.trainings(table, piece))
-            timing = self.store.timing(table, piece)
-            if timing is not None:
-                seconds[table, piece] = timing["seconds"]
-                trained_by[table, piece] = timing.get("trained", True) or not self.knows_trainings
-                this_run += timing["seconds"] if (table, piece) not in self.earlier else 0.0
-        if not seconds:
-            return None
-        kind = lambda table, piece: (table, piece.section, piece.method)  # noqa: E731
-        training, lookup = {}, {}  # kind -> the seconds of its finished pieces that trained, that did not
-        for tp, s in seconds.items():
-            (training if trained_by[tp] else lookup).setdefault(kind(*tp), []).append(s)
-        trains, lookups = ([s for ss in d.values() for s in ss] for d in (training, lookup))
-        # every worker has been busy since the start: what this run computed beyond its finished pieces is the
-        # pieces in flight, each of which has run for this long on average (and will take at least that)
-        running = max(0.0, self.workers * (time.time() - self.t0) - this_run) / self.workers
-        total = 0.0
-        for tp in left:
-            new = [key for key in self.trainings(*tp) if key not in trained]
-            trained.update(new)
-            if not new:
-                total += statistics.mean(lookup.get(kind(*tp)) or lookups or [0.0])
-            elif kind(*tp) in training:
-                total += statistics.mean(training[kind(*tp)])
-            else:
-                total += max(statistics.mean(trains) if trains else 0.0, running)
-        return total
-
-    def line(self) -> str:
-        done, el = self.done(), time.time() - self.t0
-        new, left = done - self.reused, len(self.pieces) - done
-        remaining = self.remaining_seconds()
-        if remaining is not None:
-            eta = _clock(remaining / self.workers)
-        else:
-            eta = _clock(el / new * left) if new else "unknown (no piece finished yet)"
-        return f"progress: {done}/{len(self.pieces)} pieces ({self.reused} reused), {_clock(el)} elapsed, ETA {eta}"
-
-    def _run(self):
-        while not self._stop.wait(self.every):
-            self.log(self.line())
-
-    def __enter__(self):
-        if self.log:
-            self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join()
 
 
 def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
@@ -1586,8 +1326,8 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
         if log:
             log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {min(jobs, len(by_seed))} worker "
                 f"processes, one thread each")
-        compute_in_workers([(spec.name, ps) for ps in by_seed.values()], data, cfg, epochs, device, store, jobs,
-                           log is not None)
+        in_workers([(spec.name, ps) for ps in by_seed.values()], data, cfg, epochs, device, store, jobs,
+                   log is not None)
     else:
         for p in missing:
             result, extra, timing = timed_piece(spec, p, data, cfg, epochs, log, models, device, store)
@@ -1618,33 +1358,6 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     return res, results_markdown(spec, res)
 
 
-def git_commit() -> str | None:
-    """The commit the code was run from, '+dirty' when the work tree differs from it; None outside git."""
-    here = pathlib.Path(__file__).resolve().parent
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
-                               text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return head + ("+dirty" if dirty else "")
-
-
-def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact,
-    and a failed write leaves no temporary file behind."""
-    path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        _usual_permissions(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
 def save_figure(fig, path) -> None:
     """fig.savefig, atomically (a temporary file and a rename), at 130 dpi; closes the figure."""
     import matplotlib.pyplot as plt
@@ -1656,22 +1369,9 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
-def planned_outputs(names, out_dir) -> list:
-    """Every file a run of these tables writes in out_dir (results, tables, figures, and the report for 'all')."""
-    out = pathlib.Path(out_dir)
-    files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
-    files += [out / f for n in names for f in SPECS[n].figures]
-    return files + ([out / "report.md"] if len(names) > 1 else [])
-
-
-class OutputRefused(ValueError):
-    """check_outputs' refusal: a bad --out, or result files this run would replace. The CLI prints it as one line."""
-
-
 def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
-    """Before any work: out_dir must be writable, and no file this run would write may exist already unless
-    overwrite (a run never replaces a result it did not make) or it is in ours (files this same run wrote before it
-    was interrupted, unchanged since: ours_files). ValueError naming the folder or the files."""
+    """Before any work: out_dir must be writable, and no file a run of these tables would write may exist already
+    unless overwrite or it is in ours (runs.refuse_existing). OutputRefused naming the folder or the files."""
     here = pathlib.Path(__file__).resolve().parent
     out = pathlib.Path(out_dir).resolve()
     inside = lambda folder: folder == out or folder in out.parents  # noqa: E731
@@ -1683,11 +1383,7 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
         check_writable(out_dir, "--out")
     except ValueError as e:
         raise OutputRefused(str(e)) from None
-    existing = [str(f) for f in planned_outputs(names, out_dir) if f.exists() and f not in set(ours)]
-    if existing and not overwrite:
-        raise OutputRefused(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
-                         f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to replace "
-                         f"them, or choose another --out")
+    refuse_existing(planned_outputs(out_dir, {n: SPECS[n].figures for n in names}), overwrite, ours)
 
 
 def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
@@ -1784,7 +1480,7 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
 
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
-                   device="cpu", write=True, jobs=1, progress_every=30.0):
+                   device="cpu", write=True, jobs=1, progress_every=2.0):
     """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
     git commit) and .md (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between
     the tables. write=False: compute everything, write nothing (the ranks other than 0 under torchrun, which train
@@ -1792,8 +1488,8 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
 
     Every piece (table, method, seed) is written to out_dir/.runs/ as it is made, and a run with the same key
     (RunStore: config, data, code, ...) reuses the finished ones: re-running an interrupted command resumes it.
-    jobs > 1: the seeds of a table in that many worker processes, one thread each. A progress line (pieces done,
-    elapsed, ETA) every progress_every seconds.
+    jobs > 1: the seeds of a table in that many worker processes, one thread each. A progress bar of the pieces
+    (runs.progress, updated every progress_every seconds) while log is set and write.
     Refuses to start (ValueError) when a file it would write exists already, unless overwrite or this same run
     (the same command's key and seeds) wrote it and it is unchanged since (an interrupted run of 'all')."""
     names = EXPERIMENTS if name == "all" else (name,)
@@ -1813,14 +1509,14 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     if store.root is not None and log:
         log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
-    trainings = lambda table, piece: piece_trainings(SPECS[table], piece, cfg, epochs, device)  # noqa: E731
-    with Progress(store, all_pieces, log, progress_every, workers=jobs, trainings=trainings) as progress:
+    with progress(store, all_pieces, progress_every, disable=not (log and write)) as bar:
+        log = above(bar, log) if log else log
         units = work_units(names, seeds, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
         if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
             if log:
                 log(f"{sum(len(u) for _, u in units)} pieces in {len(units)} units (table, seed) over {jobs} worker "
                     f"processes, one thread each")
-            compute_in_workers(units, data, cfg, epochs, device, store, jobs, log is not None)
+            in_workers(units, data, cfg, epochs, device, store, jobs, log is not None)
         for one in names:
             spec, t0 = SPECS[one], time.time()
             res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
@@ -1842,12 +1538,10 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
                         machine=f"{machine()}, torch {torch.__version__}, {threads}"
                                 + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
                         device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
-            if log:
-                log(progress.line())
             if not write:
                 sections.append((spec.title, table, list(spec.figures)))
                 continue
-            write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=_to_json))
+            write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
             md = section_markdown(spec, meta, table)
             write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
             if store.root is not None:
@@ -1859,8 +1553,8 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     timings = [store.timing(one, p) for one, p in all_pieces] if store.root is not None else []
     if log and timings and all(timings):
         total = sum(t["seconds"] for t in timings)
-        log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {_clock(total)}"
-            + (f", {_clock(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
+        log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {tqdm.format_interval(total)}"
+            + (f", {tqdm.format_interval(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
     if name == "all" and write:
         report = write_report(out, sections, metas)
         if store.root is not None:
@@ -1868,35 +1562,6 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         if log:
             log(f"report: {report}")
     return sections
-
-
-def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
-    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with their sha256."""
-    return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{_sha(name, list(seeds), key)[:16]}.json"
-
-
-def _file_sha(path) -> str:
-    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
-
-
-def record_outputs(manifest: pathlib.Path, files) -> None:
-    """Add files (as they are now) to a run's manifest of the outputs it wrote."""
-    made = json.loads(manifest.read_text()) if manifest.exists() else {}
-    made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
-    manifest.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(manifest, json.dumps(made, indent=1, sort_keys=True))
-
-
-def ours_files(out_dir, manifests) -> set:
-    """The files of out_dir that one of these manifests lists and that are unchanged since that run wrote them."""
-    ours = set()
-    for manifest in manifests:
-        made = json.loads(pathlib.Path(manifest).read_text()) if pathlib.Path(manifest).exists() else {}
-        for fname, sha in made.items():
-            f = pathlib.Path(out_dir) / fname
-            if f.exists() and _file_sha(f) == sha:
-                ours.add(f)
-    return ours
 
 
 class RealData(NamedTuple):

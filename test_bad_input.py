@@ -14,6 +14,7 @@ import data_synth
 import diffstack as ds
 import train as tr
 import experiments as ex
+import runs
 from test_diffstack import TINY, toy_scene
 
 
@@ -78,7 +79,7 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "replace", killed)
     with pytest.raises(KeyboardInterrupt):
-        ex.write_atomic(path, json.dumps({"new": 1}))
+        runs.write_atomic(path, json.dumps({"new": 1}))
     assert path.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]  # and no half-written temporary file is left
 
@@ -86,12 +87,12 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
 def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch):
     """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would have made it
     (0666 less the umask), so that others in a shared lab folder can read it; a plain file is the reference."""
-    monkeypatch.setattr(ex, "_UMASK", 0o022)  # the umask experiments.py read at import, here the common one
+    monkeypatch.setattr(runs, "_UMASK", 0o022)  # the umask runs.py read at import, here the common one
     old = os.umask(0o022)
     try:
         (tmp_path / "plain.txt").write_text("x")
-        ex.write_atomic(tmp_path / "rl.json", "{}")
-        ex.save_atomic({"w": 1}, tmp_path / "model.pt")
+        runs.write_atomic(tmp_path / "rl.json", "{}")
+        runs.save_atomic({"w": 1}, tmp_path / "model.pt")
     finally:
         os.umask(old)
     mode = lambda name: (tmp_path / name).stat().st_mode & 0o777  # noqa: E731

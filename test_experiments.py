@@ -11,6 +11,7 @@ import data_synth
 import diffstack as ds
 import train as tr
 import experiments as ex
+import runs
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
@@ -379,7 +380,7 @@ def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
 
 
 def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
-    store = ex.RunStore(tmp_path, "k")
+    store = runs.RunStore(tmp_path, "k")
     names = ("rl", "ablation", "il")
     units = ex.work_units(names, (0, 1, 2), store)
     assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
@@ -394,18 +395,18 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
 
 
 def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
-    assert set(ex.NUMBER_MODULES) == {"diffstack.py", "data_synth.py", "experiments.py"}
-    for name in ex.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
+    assert set(runs.NUMBER_MODULES) == {"diffstack.py", "data_synth.py", "experiments.py"}
+    for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
         (tmp_path / name).write_text(f"# {name}\nx = 1\n")
-    monkeypatch.setattr(ex, "__file__", str(tmp_path / "experiments.py"))
-    versions = {ex.code_version()}
+    monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
+    versions = {runs.code_version()}
     for name in ("README.md", "test_x.py", "tutorial.py"):  # the tests, the docs, the notebook: the same run
         (tmp_path / name).write_text("# edited\nx = 2\n")
-        assert ex.code_version() in versions
-    for name in ex.NUMBER_MODULES:  # each module that makes numbers: a new run
+        assert runs.code_version() in versions
+    for name in runs.NUMBER_MODULES:  # each module that makes numbers: a new run
         (tmp_path / name).write_text(f"# {name}\nx = 2\n")
-        versions.add(ex.code_version())
-    assert len(versions) == 1 + len(ex.NUMBER_MODULES)
+        versions.add(runs.code_version())
+    assert len(versions) == 1 + len(runs.NUMBER_MODULES)
 
 
 CODE = '''"""A module."""
@@ -434,23 +435,23 @@ def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monke
     """An edited comment or docstring or a re-wrapped line is the same run (hours of pieces kept); a changed
     number, name or string is a new one. (SAME_CODE's comment stands before the docstring: the string is then
     still the function's first statement, its docstring.)"""
-    for name in ex.NUMBER_MODULES:
+    for name in runs.NUMBER_MODULES:
         (tmp_path / name).write_text(CODE)
-    monkeypatch.setattr(ex, "__file__", str(tmp_path / "experiments.py"))
-    before = ex.code_version()
+    monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
+    before = runs.code_version()
     (tmp_path / "diffstack.py").write_text(SAME_CODE)
-    assert ex.code_version() == before
+    assert runs.code_version() == before
     for edit in (("2.0", "3.0"), ("sqrt", "exp"), ("scale *", "scale +"), ('"""Twice x."""\n', '"""Twice x."""\n    x = x\n'),
                  ("# a comment", "+ len('a string')")):
         (tmp_path / "diffstack.py").write_text(CODE.replace(*edit))
-        assert ex.code_version() != before, edit
+        assert runs.code_version() != before, edit
     # a string that is not a docstring is code: the tables' texts are made of such strings
-    assert ex.code_of('x = "a"\n') != ex.code_of('x = "b"\n')
-    assert ex.code_of('def g():\n    """Doc."""\n') == ex.code_of('def g():\n    pass\n')
+    assert runs.code_of('x = "a"\n') != runs.code_of('x = "b"\n')
+    assert runs.code_of('def g():\n    """Doc."""\n') == runs.code_of('def g():\n    pass\n')
     # a dataclass field's docstring (Config's) is a string statement too; the field's default is code
     field = 'class C:\n    x: float = 1.0\n    """The x, in m."""\n'
-    assert ex.code_of(field) == ex.code_of(field.replace("in m", "in metres"))
-    assert ex.code_of(field) != ex.code_of(field.replace("1.0", "2.0"))
+    assert runs.code_of(field) == runs.code_of(field.replace("in m", "in metres"))
+    assert runs.code_of(field) != runs.code_of(field.replace("1.0", "2.0"))
 
 
 def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp_path):
@@ -459,9 +460,9 @@ def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp
     res, md = ex.run_table(ex.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
     assert list(res) == list(ex.GOALS) and all(list(rows) == ["No prediction", "GT prediction"] for rows in res.values())
     for rows in res.values():
-        for runs in rows.values():
-            assert len(runs) == 1  # nothing trained: one run
-            for b in runs[0]["by_behaviour"].values():
+        for per_seed in rows.values():
+            assert len(per_seed) == 1  # nothing trained: one run
+            for b in per_seed[0]["by_behaviour"].values():
                 assert sum(b["terms"]) == pytest.approx(b["hindsight"], rel=1e-4) and 0 <= b["close"] <= 1
         gt, none = rows["GT prediction"][0]["hindsight"], rows["No prediction"][0]["hindsight"]
         assert gt <= none + 1e-6  # with the GT future, the plan is the best candidate in hindsight
@@ -500,8 +501,8 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
     assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
     # results from before the curves existed: their tables re-rendered, no empty figure drawn
     saved = json.loads((tmp_path / "rl.json").read_text())
-    for runs in saved["results"].values():
-        for r in runs:
+    for per_seed in saved["results"].values():
+        for r in per_seed:
             r.pop("curve", None)
     (tmp_path / "rl.json").write_text(json.dumps(saved))
     (tmp_path / "learning_curves.png").unlink()

@@ -1,9 +1,10 @@
 """Runs that survive: every (table, method, seed) piece is kept in <out>/.runs/ as it finishes, a re-run of the same
 command resumes (and a changed config is a new run), --jobs N runs the seeds in worker processes with the numbers of
-one process, and a progress line with an ETA comes at least every `progress_every` seconds. Tiny models and data."""
+one process, and a progress bar counts the pieces done. Tiny models and data."""
 import dataclasses
 import json
 import os
+import threading
 import time
 
 import pytest
@@ -13,6 +14,7 @@ import data_synth
 import diffstack as ds
 import train as tr
 import experiments as ex
+import runs
 
 TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
 
@@ -154,68 +156,23 @@ def test_bad_jobs_is_a_one_line_error_naming_it(jobs, capsys, tmp_path):
     assert e.value.code == 2 and "--jobs" in err[-1] and err[-1].startswith("usage") is False
 
 
-def test_progress_prints_done_total_elapsed_and_eta():
-    store, lines = ex.RunStore(None, "k"), []
+def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_those_finished_elsewhere_up_to_the_total(tmp_path):
+    """Pieces saved to the store by another process (here a thread, as a worker process would) are counted as they
+    appear: the bar starts at those finished before it, and reaches the total while the run is still in its with
+    block, not only at the end."""
+    store = runs.RunStore(tmp_path, "k")
     pieces = [("il", ex.Piece("Standard", s)) for s in range(4)]
     store.save("il", pieces[0][1], {"ade": 1.0})
-    with ex.Progress(store, pieces, lines.append, every=0.05) as progress:
-        time.sleep(0.2)
-        store.save("il", pieces[1][1], {"ade": 1.0})
-        line = progress.line()
-    assert lines and lines[0].startswith("progress: 1/4 pieces (1 reused)") and "ETA unknown" in lines[0]
-    assert line.startswith("progress: 2/4 pieces (1 reused), 0:00:00 elapsed, ETA 0:00:")
-
-
-def test_the_eta_adds_up_each_remaining_piece_at_its_own_method_s_time(tmp_path):
-    """A training piece costs minutes, a piece whose predictor another table trained costs a second: the ETA must
-    price each remaining piece by its method's finished seeds (or the mean of all), and share it between workers."""
-    store = ex.RunStore(tmp_path, "k")
-    pieces = [("rl", ex.Piece(m, s)) for m in ("DiffStack", "Standard", "Grad-cost weighted") for s in range(4)]
-    store.save("rl", ex.Piece("DiffStack", 0), {"ade": 1.0}, timing=dict(seconds=600.0, cpu_seconds=600.0))
-    store.save("rl", ex.Piece("Standard", 0), {"ade": 1.0}, timing=dict(seconds=60.0, cpu_seconds=60.0))
-    store.save("rl", ex.Piece("Standard", 1), {"ade": 1.0}, timing=dict(seconds=20.0, cpu_seconds=20.0))
-    # left: DiffStack 3 x 600, Standard 2 x 40 (its seeds' mean), Grad-cost 4 x 226.67 (no seed of it yet: the mean)
-    progress = ex.Progress(store, pieces, log=None, workers=2)
-    assert progress.remaining_seconds() == pytest.approx(3 * 600 + 2 * 40 + 4 * 680 / 3)
-    assert progress.line().endswith(f"ETA {ex._clock((1800 + 80 + 4 * 680 / 3) / 2)}")  # 0:23:13 on 2 workers
-    assert ex.Progress(ex.RunStore(tmp_path / "none", "k"), pieces, log=None).remaining_seconds() is None
-
-
-def test_the_eta_of_a_fresh_run_is_not_the_mean_of_its_one_second_pieces(tmp_path):
-    """90 s into a run on 2 workers only a 1-second piece (No prediction) has finished: the pieces in flight have run
-    for about 90 s each, and a method with no finished seed is priced at no less than that (not at 1 s)."""
-    store = ex.RunStore(tmp_path, "k")
-    pieces = [("rl", ex.Piece("No prediction", 0))] + [("rl", ex.Piece(m, s)) for m in ("Standard", "DiffStack")
-                                                        for s in range(5)]
-    progress = ex.Progress(store, pieces, log=None, workers=2)
-    progress.t0 -= 90.0
-    store.save("rl", ex.Piece("No prediction", 0), {"ade": 1.0}, timing=dict(seconds=1.0, cpu_seconds=1.0))
-    in_flight = (2 * 90.0 - 1.0) / 2  # 179 s of computing on 2 workers, 1 s of it finished
-    assert progress.remaining_seconds() == pytest.approx(10 * in_flight, rel=1e-3)
-    assert progress.line().startswith("progress: 1/11 pieces (0 reused), 0:01:30 elapsed, ETA 0:07:2")
-
-
-def test_the_eta_prices_a_piece_whose_predictor_another_piece_trains_as_a_lookup(tmp_path):
-    """Table 4's Standard is Table 1's predictor: once that is trained (or about to be, by an earlier piece), the
-    piece costs a lookup, not a training. The mean of the finished pieces would price it as one."""
-    store = ex.RunStore(tmp_path, "k")
-    rl = [("rl", ex.Piece(m, s)) for m in ("No prediction", "Standard", "DiffStack") for s in range(2)][1:]
-    il = [("il", ex.Piece("Standard", s)) for s in range(3)]
-    cost = [("cost", ex.Piece("Learned", s)) for s in range(2)]  # Table 3: Standard's predictor, then cost weights
-    trainings = lambda table, p: (() if p.method == "No prediction" else  # noqa: E731
-                                  (("Standard", p.seed), ("cost weights", p.seed)) if table == "cost" else
-                                  ((p.method, p.seed),))
-    finished = [(rl[0], 1.0, False), (rl[1], 100.0, True), (rl[3], 300.0, True), (il[0], 3.0, False),
-                (cost[0], 150.0, True)]  # cost seed 0 found Standard seed 0 trained, and is slower than its training
-    for (table, piece), s, trained in finished:
-        store.save(table, piece, {"ade": 1.0}, timing=dict(seconds=s, cpu_seconds=s, trained=trained))
-    # left: Standard seed 1 (a training: 100 s), DiffStack seed 1 (300 s), cost seed 1 (its cost weights: 150 s), and
-    # Table 4's Standard seeds 1 and 2: Table 1's seed 1 trains the first's predictor, so it is a lookup at its kind's
-    # 3 s; the second is the first piece to need Standard seed 2, a training of a kind not seen training: the mean
-    progress = ex.Progress(store, rl + il + cost, log=None, workers=2, trainings=trainings)
-    assert progress.remaining_seconds() == pytest.approx(100 + 300 + 150 + 3 + (100 + 300 + 150) / 3)
-    # without knowing what trains, each piece of a method with no finished seed costs the mean piece
-    assert ex.Progress(store, rl + il + cost, log=None).remaining_seconds() == pytest.approx(100 + 300 + 150 + 2 * 3)
+    with runs.progress(store, pieces, every=0.01) as bar:
+        assert (bar.initial, bar.n, bar.total) == (1, 1, 4)
+        worker = threading.Thread(target=lambda: [store.save("il", p, {"ade": 1.0}) for _, p in pieces[1:]])
+        worker.start()
+        worker.join()
+        deadline = time.time() + 5.0
+        while bar.n < 4 and time.time() < deadline:
+            time.sleep(0.01)
+        assert bar.n == 4
+    assert bar.n == bar.total == 4
 
 
 def test_a_piece_records_whether_it_trained(small, tmp_path):
@@ -230,7 +187,7 @@ def test_a_piece_records_whether_it_trained(small, tmp_path):
 
 
 def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypatch):
-    """Progress knows what a piece trains from piece_trainings, which must name the training_key that the piece
+    """timed_piece knows what a piece trains from piece_trainings, which must name the training_key that the piece
     itself asks trained_predictor for, in every table (trainings replaced by untrained models: only keys count)."""
     cfg, asked, key = ds.Config(**TINY10), [], ex.training_key
     monkeypatch.setattr(ex, "training_key", lambda *a, **k: asked.append(key(*a, **k)) or asked[-1])

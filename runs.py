@@ -1,0 +1,349 @@
+"""The run machinery under experiments.py, ignorant of tables: a run's pieces kept on disk as they finish and
+resumed (RunStore), atomic writes, provenance (the run key: config, data, code, device; the git commit), refusing
+to overwrite outputs a run did not make, the worker pool, and the progress bar.
+
+A piece is one result of a run under a name (a table): anything with a `stem` (its file name) and `_asdict()`
+(a NamedTuple; experiments.Piece). A run's pieces live next to its outputs, in
+<out>/.runs/<name>/<name key>/<piece stem>.json (with a .pt of tensors beside it where it has some), written
+atomically the moment the piece is made. The name key is a hash of the run key and the name; the run key, of
+everything that determines the numbers: the Config, the epochs, the data (a hash of its tensors), the code (a hash
+of the modules that make numbers, code_version) and the device. Re-running the same command loads the finished
+pieces and computes only the missing ones; any change to the config, data or code is another key, so nothing of
+another run is mixed in. The seeds are not part of the key (a piece is one seed), nor is the thread count (it moves
+only the last digits, README Usage). Trained models go in <out>/.runs/models/<run key>/ (RunStore.model_path).
+"""
+from __future__ import annotations
+
+import ast
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+import pathlib
+import subprocess
+import tempfile
+import threading
+
+import torch
+from tqdm import tqdm
+
+RUNS_DIR = ".runs"
+
+
+def sha(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def to_json(o):
+    """json.dumps' default for results: a tensor as a list, anything else as its str."""
+    return o.tolist() if torch.is_tensor(o) else str(o)
+
+
+# ============================================================================================
+# Atomic writes
+# ============================================================================================
+
+
+_UMASK = os.umask(0o022)  # the process's umask, read once at import (reading it means setting it) and put back
+os.umask(_UMASK)
+
+
+def _usual_permissions(path) -> None:
+    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its files 0600, and a
+    result only its owner can read is no use in a shared lab folder."""
+    os.chmod(path, 0o666 & ~_UMASK)
+
+
+def write_atomic(path: pathlib.Path, text: str) -> None:
+    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact,
+    and a failed write leaves no temporary file behind."""
+    path = pathlib.Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        _usual_permissions(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def save_atomic(obj, path) -> None:
+    """torch.save through a temporary file and a rename (as write_atomic)."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        _usual_permissions(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+# ============================================================================================
+# Provenance: the run key, the git commit
+# ============================================================================================
+
+
+NUMBER_MODULES = ("diffstack.py", "train.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
+
+
+class _NoStrings(ast.NodeTransformer):
+    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring in Config."""
+
+    def visit_Expr(self, node):
+        return None if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str) else node
+
+
+@functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; a run asks once per work unit
+def code_of(source: str) -> str:
+    """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
+    parsed, every statement that is only a string (a docstring, a Config field's docstring) dropped, and the tree
+    written back out by ast.unparse, so a re-wrapped line or an edited comment or docstring gives the same text; any
+    other change does."""
+    tree = _NoStrings().visit(ast.parse(source))
+    for node in ast.walk(tree):
+        if getattr(node, "body", None) == []:  # a function or class that held only its docstring
+            node.body = [ast.Pass()]
+    return ast.unparse(tree)
+
+
+def code_version() -> str:
+    """The code a run's numbers come from: a hash of the code of the modules that make them (NUMBER_MODULES, as
+    code_of reads them), so that any change to their code is a new run, while a commit of the README, the tests or
+    the notebook, or of a comment or docstring, is not. (ast.unparse is Python's own: under another Python version
+    the same code may read as new, a new run, never a mixed one.)"""
+    here = pathlib.Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for name in NUMBER_MODULES:
+        h.update(name.encode() + b"\0" + code_of((here / name).read_text()).encode() + b"\0")
+    return f"sha256:{h.hexdigest()[:16]}"
+
+
+def data_fingerprint(data) -> str:
+    """A hash of the data's tensors (each part of `data` with a tensors() dict; a part that is a dict or None, as
+    JSON): the same samples give the same fingerprint whichever file or folder they came from. About 0.1 s for
+    10 000 samples."""
+    h = hashlib.sha256()
+    for part in data:
+        if part is None or isinstance(part, dict):
+            h.update(json.dumps(part, sort_keys=True).encode())
+            continue
+        for name, t in sorted(part.tensors().items()):
+            h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def run_key(data, cfg, epochs, device="cpu") -> str:
+    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same thread count)."""
+    return sha(dict(config=dataclasses.asdict(cfg), epochs=float(epochs), data=data_fingerprint(data),
+                    code=code_version(), device=str(device)))
+
+
+def git_commit() -> str | None:
+    """The commit the code was run from, '+dirty' when the work tree differs from it; None outside git."""
+    here = pathlib.Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+                               text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+# ============================================================================================
+# The store of a run's pieces
+# ============================================================================================
+
+
+class RunStore:
+    """A run's pieces and models: under root (<out>/.runs) on disk, or in memory when root is None (nothing is
+    resumed)."""
+
+    def __init__(self, root, key: str):
+        self.root, self.key, self.memory = (pathlib.Path(root) if root is not None else None), key, {}
+
+    def table_dir(self, table: str) -> pathlib.Path:
+        return self.root / table / sha(self.key, table)[:16]
+
+    def path(self, table: str, piece) -> pathlib.Path:
+        return self.table_dir(table) / f"{piece.stem}.json"
+
+    def has(self, table: str, piece) -> bool:
+        return (table, piece) in self.memory if self.root is None else self.path(table, piece).exists()
+
+    def load(self, table: str, piece):
+        """(result, extra) of a finished piece, or None."""
+        if self.root is None:
+            return self.memory.get((table, piece))
+        path = self.path(table, piece)
+        if not path.exists():
+            return None
+        saved = json.loads(path.read_text())
+        extra = torch.load(path.with_suffix(".pt"), weights_only=True) if saved["extra"] else None
+        return saved["result"], extra
+
+    def timing(self, table: str, piece) -> dict | None:
+        """How long a finished piece took to compute and where (the timing it was saved with), or None (not
+        finished, or in memory)."""
+        if self.root is None or not self.path(table, piece).exists():
+            return None
+        return json.loads(self.path(table, piece).read_text()).get("timing")
+
+    def save(self, table: str, piece, result: dict, extra=None, about=None, timing=None) -> None:
+        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically; about: what the key
+        stands for, written once per table folder (run.json); timing: how long it took (see `timing`)."""
+        if self.root is None:
+            self.memory[(table, piece)] = (json.loads(json.dumps(result, default=to_json)), extra)
+            return
+        path = self.path(table, piece)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if about is not None and not (path.parent / "run.json").exists():
+            write_atomic(path.parent / "run.json", json.dumps(about, indent=1, default=str))
+        if extra is not None:
+            save_atomic(extra, path.with_suffix(".pt"))
+        write_atomic(path, json.dumps(dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None,
+                                           timing=timing, result=result), indent=1, default=to_json))
+
+    def model_path(self, train_key) -> pathlib.Path | None:
+        """Where a model trained the way train_key says is kept (None: in memory only)."""
+        return None if self.root is None else self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
+
+
+# ============================================================================================
+# Worker processes, progress
+# ============================================================================================
+
+
+def _worker(compute, table: str, pieces: list, root: str, key: str, about, verbose: bool) -> int:
+    """A worker process: compute and save some pieces of one table, on one thread. Returns how many."""
+    torch.set_num_threads(1)
+    store, models = RunStore(root, key), {}
+    log = (lambda text: print(f"[{table} seed {pieces[0].seed}] {text}", flush=True)) if verbose else None
+    for piece in pieces:
+        result, extra, timing = compute(table, piece, log, models, store)
+        store.save(table, piece, result, extra, about, timing)
+    return len(pieces)
+
+
+def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=None, verbose=True):
+    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of one thread each,
+    in the order given; each piece is saved in `store` (on disk) as it finishes. compute(table, piece, log, models,
+    store) -> (result, extra, timing) makes a piece: a picklable callable (a module's function, or a
+    functools.partial of one), `models` a dict the pieces of one unit share. abouts: {table: what its key stands
+    for} (RunStore.save). Raises the first worker's error."""
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+    abouts = abouts or {}
+    with ProcessPoolExecutor(min(jobs, len(units)), mp_context=torch.multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose)
+                   for name, ps in units]
+        finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        for f in finished:
+            if f.exception() is not None:
+                pool.shutdown(cancel_futures=True)
+                raise f.exception()
+
+
+@contextlib.contextmanager
+def progress(store: RunStore, pieces: list, every: float = 2.0, disable: bool = False, **bar_kw):
+    """A tqdm bar over pieces [(table, piece)], for the length of the with block: those the store has at the start
+    count as done (reused), and the store is polled every `every` seconds (and at the end) for those finished
+    since, in this process or in worker processes. Yields the bar."""
+    done = lambda: sum(store.has(t, p) for t, p in pieces)  # noqa: E731
+    reused = done()
+    bar = tqdm(total=len(pieces), initial=reused, unit="piece", desc=f"pieces ({reused} reused)", disable=disable,
+               **bar_kw)
+    stop = threading.Event()
+
+    def poll():
+        if not bar.disable:
+            bar.update(done() - bar.n)
+
+    def run():
+        while not stop.wait(every):
+            poll()
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield bar
+    finally:
+        stop.set()
+        thread.join()
+        poll()
+        bar.close()
+
+
+def above(bar, log):
+    """log, writing above the bar: the bar is cleared first and drawn again after (tqdm.external_write_mode)."""
+    def write(*a, **k):
+        with bar.external_write_mode():
+            log(*a, **k)
+    return write
+
+
+# ============================================================================================
+# Outputs: refusing to replace a file a run did not write
+# ============================================================================================
+
+
+class OutputRefused(ValueError):
+    """A run's refusal to start: a bad --out, or result files it would replace. The CLI prints it as one line."""
+
+
+def planned_outputs(out_dir, figures: dict) -> list:
+    """Every file a run of some tables writes in out_dir: figures {table name: its figure file names}; each table's
+    <name>.json and .md, its figures, and report.md where there are several tables."""
+    out = pathlib.Path(out_dir)
+    files = [out / f"{n}{ext}" for n in figures for ext in (".json", ".md")]
+    files += [out / f for fs in figures.values() for f in fs]
+    return files + ([out / "report.md"] if len(figures) > 1 else [])
+
+
+def refuse_existing(files, overwrite: bool, ours=()) -> None:
+    """OutputRefused naming them if any of files exists already, unless overwrite (a run never replaces a result it
+    did not make) or it is in ours (files this same run wrote before it was interrupted, unchanged since:
+    ours_files)."""
+    existing = [str(f) for f in files if f.exists() and f not in set(ours)]
+    if existing and not overwrite:
+        raise OutputRefused(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
+                            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
+                            f"replace them, or choose another --out")
+
+
+def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
+    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with their sha256."""
+    return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{sha(name, list(seeds), key)[:16]}.json"
+
+
+def _file_sha(path) -> str:
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def record_outputs(manifest: pathlib.Path, files) -> None:
+    """Add files (as they are now) to a run's manifest of the outputs it wrote."""
+    made = json.loads(manifest.read_text()) if manifest.exists() else {}
+    made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
+    manifest.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(manifest, json.dumps(made, indent=1, sort_keys=True))
+
+
+def ours_files(out_dir, manifests) -> set:
+    """The files of out_dir that one of these manifests lists and that are unchanged since that run wrote them."""
+    ours = set()
+    for manifest in manifests:
+        made = json.loads(pathlib.Path(manifest).read_text()) if pathlib.Path(manifest).exists() else {}
+        for fname, sha_ in made.items():
+            f = pathlib.Path(out_dir) / fname
+            if f.exists() and _file_sha(f) == sha_:
+                ours.add(f)
+    return ours
