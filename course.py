@@ -1,4 +1,10 @@
-"""The checks of tutorial.ipynb's exercises.
+"""The course's harness for tutorial.ipynb, and the checks of its exercises.
+
+The harness: the section clock (start, section_done, report_times), the notebook's checks (checkpoint, check_order,
+check_claim: each prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
+the committed 5-seed tables (results_table), the helpers that several cells use (gt_context, first_of,
+behaviour_rows, plot_table), and the notebook's larger figures (figure_*: drawing only, each cell computes what it
+shows).
 
 Each check_* builds its own small problems (seeded, float64), runs the student's function on them and compares with
 an independent answer (the module's function, autograd, or a closed form). A wrong answer raises AssertionError
@@ -7,11 +13,427 @@ with what differs and a hint; a stub that still raises NotImplementedError is re
 answers and asserts that it catches each one.
 """
 
+import json
+import time
+from pathlib import Path
+
+import numpy as np
 import torch
 
+import data_synth
 import diffstack as ds
 
+import train as tr
 F64 = torch.float64
+
+
+# --- the harness: section clock -----------------------------------------------------------------------------------
+
+SECTION_TIMES = {}
+_CLOCK = {}
+
+
+def start():
+    """One torch thread (reproducible numbers, and the machine stays usable), the figures' style, and the clock
+    that section_done and report_times read."""
+    import matplotlib.pyplot as plt
+
+    torch.set_num_threads(1)
+    plt.rcParams.update({"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8})
+    SECTION_TIMES.clear()
+    _CLOCK.update(wall=time.time(), cpu=time.process_time(), section=time.time())
+
+
+def section_done(name):
+    """Record and print the wall time since the previous section ended (the notebook's first table quotes these)."""
+    SECTION_TIMES[name] = time.time() - _CLOCK["section"]
+    _CLOCK["section"] = time.time()
+    print(f"{name}: {SECTION_TIMES[name]:.0f} s")
+
+
+def report_times(quick):
+    """Wall clock per section and in all, and the kernel's CPU time (one thread: about the wall clock when idle)."""
+    print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
+    print(f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, {time.process_time() - _CLOCK['cpu']:.0f}s CPU "
+          f"({'quick' if quick else 'full'} mode)")
+
+
+# --- the harness: the notebook's checks ---------------------------------------------------------------------------
+
+
+class CheckpointError(AssertionError):
+    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and going on."""
+
+
+def checkpoint(name, measured, expected, tol, rel=False, hint="re-run the section's cells in order from a fresh kernel"):
+    """For what is deterministic (no training: gradient errors, a file's round trip, a solver on fixed data): the
+    measured value, the expected one, whether they agree within tol; a disagreement stops the notebook."""
+    err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
+    ok = err <= tol
+    print(f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
+          f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}")
+    if not ok:
+        raise CheckpointError(f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
+                              f"{'%g%%' % (100 * tol) if rel else tol}; {hint}")
+
+
+def check_order(name, values, order, margin=0.0):
+    """For what training makes (it differs in the last digits between machines and thread counts, and a short
+    training can go either way): only an ordering that holds on any machine, lowest first, each value at least
+    `margin` below the next. A wrong order stops the notebook."""
+    print(f"CHECK {name}: " + " < ".join(f"{k} {values[k]:.4g}" for k in order), end=" -> ")
+    bad = [(a, b) for a, b in zip(order, order[1:]) if not values[a] + margin <= values[b]]
+    print("OK" if not bad else "FAILED")
+    if bad:
+        raise CheckpointError(f"{name}: expected {' < '.join(order)} (margin {margin:g}); "
+                              + ", ".join(f"{a} {values[a]:.4g} is not below {b} {values[b]:.4g}" for a, b in bad))
+
+
+def check_claim(table, method, baseline, column, expect, section=None):
+    """A finding the notebook states, checked on the committed 5-seed table results/<table>.json: its paired
+    difference over seeds and the verdict (reproduced only beyond 2 standard errors) must be what the text says.
+    If a re-run of the tables changes the verdict, this stops the notebook until the text is changed with it."""
+    import experiments as xp
+
+    spec, saved = xp.TABLES[table], json.loads((Path("results") / f"{table}.json").read_text())["results"]
+    line = xp.claim_line(xp.Claim(method, baseline, column, section), spec, saved[section] if section else saved)
+    verdict = line.rsplit("): ", 1)[-1]
+    print(f"CLAIM {line} -> {'OK' if verdict.startswith(expect) else 'FAILED'}")
+    if not verdict.startswith(expect):
+        raise CheckpointError(f"results/{table}.json says {verdict!r}, the text says {expect!r}: update the text")
+
+
+def results_table(name):
+    """Display the committed 5-seed table of results/<name>.md (mean ± standard error over 5 seeds)."""
+    from IPython.display import Markdown, display
+
+    text = (Path("results") / f"{name}.md").read_text()
+    body = text.split("\n", 1)[1].split("![")[0].strip()  # without the title line and the figure links
+    display(Markdown("**5 seeds, from `results/" + name + ".md`:** " + body))
+
+
+def rel_err(a, b):
+    return ((a - b).norm() / b.norm()).item()
+
+
+# --- the harness: helpers that several cells use -----------------------------------------------------------------
+
+
+def gt_context(batch):
+    """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT prediction")."""
+    B = len(batch)
+    one = torch.ones(B, dtype=batch.ego_hist.dtype)
+    return ds.CostContext(batch.agent_fut[:, None, :, :2], one[:, None], one, batch.others_fut[..., :2],
+                          batch.others_mask.to(one.dtype), batch.goal[:, :2], batch.lanes, batch.lanes_mask)
+
+
+def first_of(batch, behaviour, where=None):
+    """The index of the first sample of `batch` whose predicted vehicle does `behaviour` (and `where` holds)."""
+    sel = batch.behaviour == data_synth.BEHAVIOURS.index(behaviour)
+    return int((sel if where is None else sel & where).nonzero()[0])
+
+
+def smooth(v, n=10):
+    """An n-step moving average (the whole series when it is shorter than n)."""
+    v = np.asarray(v, dtype=float)
+    return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
+
+
+def plot_table(results, setting, title):
+    """Bars of an open-loop table's two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method;
+    the three panels share their rows (a method without a prediction has no ADE bar)."""
+    import matplotlib.pyplot as plt
+
+    import experiments as xp
+
+    cols = xp.open_loop_columns(setting)[2:4]  # the two planning columns, relative to No prediction
+    names = list(results)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 0.45 * len(names) + 1.2), sharey=True, layout="constrained")
+    y = np.arange(len(names))
+    for ax, (key, header) in zip(axes, [*((c.key.removeprefix("rel_"), c.header) for c in cols), ("ade", "ADE (m)")]):
+        k = key if key == "ade" else "rel_" + key
+        stats = [tr.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
+        ax.barh(y, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(y))
+        ax.axvline(0, color="k", lw=0.8); ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(y, names); axes[0].set_ylim(len(names) - 0.5, -0.5)  # first method on top, every row kept
+    fig.suptitle(title)
+    plt.show()
+
+
+# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ----------------------
+
+
+def behaviour_rows(behaviour, mask, row):
+    """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that behaviour's mask."""
+    rows = []
+    for b, name in enumerate(data_synth.BEHAVIOURS):
+        sel = mask & (behaviour == b)
+        if sel.any():
+            rows.append([name, str(int(sel.sum())), *row(sel)])
+    return rows
+
+
+def _legend_right(ax):
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+
+
+def figure_stack():
+    """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack (red, dashed)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyBboxPatch
+
+    _, ax = plt.subplots(figsize=(10, 4.2))
+    ax.set_xlim(0, 10); ax.set_ylim(-0.55, 4.45); ax.axis("off")
+    boxes = {"inputs": (0.1, 1.7, "history of all agents\nlanes, goal"), "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
+             "plan": (4.8, 1.7, "Planner\nsplines + argmin"), "ctrl": (7.15, 1.7, "Controller\nbox-iLQR")}
+    for key, (x, y, text) in boxes.items():
+        color = "#e8e8e8" if key == "inputs" else ("#ffd9b3" if key == "pred" else "#cfe2f3")
+        ax.add_patch(FancyBboxPatch((x, y), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k"))
+        ax.text(x + 0.95, y + 0.5, text, ha="center", va="center", fontsize=9)
+    arrow = lambda x0, y0, x1, y1, **kw: ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
+    for x0, x1, label in ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$")):
+        arrow(x0, 2.2, x1, 2.2, lw=1.5)
+        ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
+    arrow(9.05, 2.2, 9.6, 2.2, lw=1.5); ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
+    # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
+    for x, text in ((3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
+                    (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
+                    (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)")):
+        ax.text(x, 0.45, text, ha="center", va="center", fontsize=9, bbox=dict(fc="white", ec="tab:red"))
+        arrow(x, 1.65, x, 0.9, lw=1)
+    red = dict(color="tab:red", lw=1.8, ls="--")
+    ax.annotate("", (3.55, 2.8), (5.75, 2.8), arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.45", **red))
+    ax.annotate("", (3.25, 2.8), (8.1, 2.8), arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.35", **red))
+    ax.text(4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$", color="tab:red", ha="center", fontsize=9)
+    ax.text(6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)", color="tab:red", ha="center", fontsize=9)
+    ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
+    ax.text(5.0, -0.4, "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the iLQR "
+            "solution (KKT, §5); both reach θ through the predictions", ha="center", fontsize=8.5, color="tab:red")
+    plt.show()
+
+
+def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
+    """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan (argmin) black dashed,
+    axes zoomed on the candidates."""
+    import math
+
+    import matplotlib.pyplot as plt
+
+    xy = cands.x[0][cands.valid[0]][..., :2]  # (N_valid, T+1, 2)
+    box = (xy[..., 0].min().item() - 3, xy[..., 0].max().item() + 6, xy[..., 1].min().item() - 3, xy[..., 1].max().item() + 3)
+    norm = plt.matplotlib.colors.LogNorm(1e-4, 1)
+    fig, axes = plt.subplots(len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
+    for ax, beta in zip(axes, betas):
+        p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
+        data_synth.plot_scenario(ax, ex, 0, extent=box)
+        for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
+            if cands.valid[0, n]:
+                ax.plot(cands.x[0, n, :, 0], cands.x[0, n, :, 1], color=plt.cm.viridis(norm(max(p[n].item(), 1e-4))),
+                        lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
+        ax.plot(cands.x[0, best[0], :, 0], cands.x[0, best[0], :, 1], "k--", lw=1.5, zorder=8, label="plan (argmin)")
+        ax.set_title(f"β = {beta}: max p_n = {p.max():.2f}, entropy {-(p[p > 0] * p[p > 0].log()).sum():.2f} nats "
+                     f"(uniform over {int(cands.valid.sum())}: {math.log(int(cands.valid.sum())):.2f})", fontsize=9)
+        _legend_right(ax)
+    fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=norm), ax=axes, shrink=0.6, label="p_n (log scale)")
+    plt.show()
+
+
+def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
+    """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show` (three), with the
+    prediction, the target n* and the plan."""
+    import matplotlib.pyplot as plt
+
+    scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
+    fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
+    for ax, j in zip(axd.values(), show):
+        P = preds[j, 0].detach()
+        pts = torch.cat([P, bg.agent_fut[j, :, :2], cands.x[j, target[j], :, :2], bg.ego_hist[j, -1:, :2]])
+        lo, hi = pts.min(0).values, pts.max(0).values
+        data_synth.plot_scenario(ax, bg, j, extent=(lo[0].item() - 6, hi[0].item() + 6, lo[1].item() - 5, hi[1].item() + 5), title=(
+            f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = {l_plan[j]:.2f},\nlargest "
+            f"|dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan {'=' if best[j] == target[j] else '≠'} target n*"))
+        ax.plot(P[:, 0], P[:, 1], "o-", color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
+        ax.quiver(P[:, 0], P[:, 1], -scale * grad[j, 0, :, 0], -scale * grad[j, 0, :, 1], color="tab:red",
+                  angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9, label="-dL_plan/dŝ_t (one scale)")
+        ax.plot(cands.x[j, target[j], :, 0], cands.x[j, target[j], :, 1], "g-", lw=3, alpha=0.6, zorder=7,
+                label="target n* (cheapest in hindsight)")
+        ax.plot(cands.x[j, best[j], :, 0], cands.x[j, best[j], :, 1], "k--", lw=1.5, zorder=7, label="plan with this prediction")
+    axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
+    fig.suptitle("Which prediction errors the planner cares about: -dL_plan/d(prediction) on a constant-velocity "
+                 "prediction\n(orange: the vehicle's true future; red arrows: where a gradient step moves each predicted "
+                 "position)", fontsize=10)
+    plt.show()
+
+
+def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
+    """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the mean); right,
+    sample i: the plan's and the controller's trajectories, the states at the same time joined, and the controls
+    over time (the plan's dashed, the controller's solid; grey band: the box)."""
+    import matplotlib.pyplot as plt
+
+    _, axd = plt.subplot_mosaic([["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained")
+    ax = axd["cost"]
+    ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
+    ax.plot(rel.mean(0), color="k", lw=2, label="mean")
+    ax.set_xlabel("iteration"); ax.set_ylabel("cost / cost of the plan"); ax.legend(loc="lower left"); ax.grid(alpha=0.3)
+    ax.set_title("iLQR: the true cost never rises (line search)")
+    ax = axd["map"]
+    pts = torch.cat([plan_x[:, :2], ctrl_x[:, :2]])
+    data_synth.plot_scenario(ax, batch, i, extent=(pts[:, 0].min().item() - 4, pts[:, 0].max().item() + 4,
+                                                   pts[:, 1].min().item() - 4, pts[:, 1].max().item() + 4),
+                             title=f"sample {i}: plan (green) → iLQR (purple), the states at the same times joined")
+    ax.plot(plan_x[:, 0], plan_x[:, 1], "o--", color="tab:green", lw=2, ms=5, zorder=8, label="plan (candidate)")
+    ax.plot(ctrl_x[:, 0], ctrl_x[:, 1], "o-", color="purple", lw=2, ms=5, zorder=9, label="controller (iLQR)")
+    for t in range(1, len(plan_x)):
+        ax.annotate("", ctrl_x[t, :2].tolist(), plan_x[t, :2].tolist(), arrowprops=dict(arrowstyle="->", color="k", lw=0.8), zorder=10)
+    _legend_right(ax)
+    tt_u = cfg.dt * torch.arange(len(plan_u))
+    for key, j, label in (("w", 0, "yaw rate ω (rad/s)"), ("a", 1, "acceleration a (m/s²)")):
+        ax = axd[key]
+        ax.axhspan(cfg.u_lower[j], cfg.u_upper[j], color="0.93", zorder=0)
+        ax.step(tt_u, plan_u[:, j], "--", where="post", color="tab:green", lw=2, label="plan")
+        ax.step(tt_u, ctrl_u[:, j], "-", where="post", color="purple", lw=2, label="controller")
+        lim = max(plan_u[:, j].abs().max().item(), ctrl_u[:, j].abs().max().item()) * 1.3 + 0.05
+        ax.set_ylim(-lim, lim); ax.set_xlabel("time (s)"); ax.set_ylabel(label); ax.grid(alpha=0.3)
+    axd["w"].legend(loc="best")
+    plt.show()
+
+
+def figure_modes(sub, pred, train_steps):
+    """§6: a predictor's K modes on the samples of `sub`, coloured and widened by p(z = k | x) (one colour scale),
+    the most likely labelled, the three largest probabilities in each title, 1σ ellipses of the most likely mode;
+    zoomed on the predicted vehicle."""
+    import matplotlib.pyplot as plt
+
+    import experiments as xp
+
+    norm_p = plt.Normalize(0, pred.probs.max().item())
+    fig, axes = plt.subplots(1, len(sub), figsize=(14, 4.4), layout="constrained")
+    for j, ax in enumerate(axes):
+        P = torch.cat([pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
+        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, :, :2], sub.ego_hist[j, -1:, :2]])
+        c, half = (pts.max(0).values + pts.min(0).values) / 2, (pts.max(0).values - pts.min(0).values) / 2 + 3
+        hx, hy = max(half[0].item(), 0.75 * half[1].item()), max(half[1].item(), 0.45 * half[0].item())  # not too flat, not too tall
+        top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
+        data_synth.plot_scenario(ax, sub, j, extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
+                                 title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
+                                       + ", ".join(f"{q:.2f}" for q in top3))
+        xp.plot_prediction(ax, pred, j, color="tab:red", label=None)  # the 1σ ellipses (and faint modes)
+        for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
+            pk = pred.probs[j, k].item()
+            ax.plot(P[k, :, 0], P[k, :, 1], color=plt.cm.viridis_r(norm_p(pk)), lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
+        k = int(pred.probs[j].argmax())
+        ax.annotate(f"most likely, p = {pred.probs[j, k]:.2f}", P[k, -1].tolist(), xytext=(0, 14), textcoords="offset points",
+                    fontsize=8, ha="center", zorder=10, arrowprops=dict(arrowstyle="-", lw=0.6),
+                    bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1))
+    fig.colorbar(plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p), ax=axes, shrink=0.8, label="mode probability p(z = k | x)")
+    fig.suptitle(f"Standard predictor: 25 modes with their probabilities (orange: the true future). After {train_steps} steps no "
+                 "mode stands out: the probability is spread over many similar modes", fontsize=10)
+    plt.show()
+
+
+def figure_goal(goal_res):
+    """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene mean), the paper's
+    goal against a route goal, from results/goal.json."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)  # one scale: compare the sizes
+    behaviours = [b for b in data_synth.BEHAVIOURS if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]]
+    for ax, goal in zip(axes, ("logged", "route")):
+        none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
+        saved = [(gt["by_behaviour"][b]["hindsight"] - none["by_behaviour"][b]["hindsight"]) * none["by_behaviour"][b]["n"]
+                 / none["n"] / 1e-2 for b in behaviours]  # each behaviour's part of the all-scene mean
+        ax.barh(behaviours, saved, color=["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours])
+        ax.axvline(0, color="k", lw=0.8)
+        name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
+        ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
+        ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].invert_yaxis()
+    fig.suptitle("Under the paper's goal a perfect prediction pays little, mostly in keep_lane;\nunder a route goal five "
+                 "times more, mostly in cut-ins and behind braking leaders (red)", fontsize=10)
+    plt.tight_layout()
+    plt.show()
+
+
+def figure_learning_curves(histories):
+    """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean (solid); a method
+    that does not run the stack in training (no l_plan) has only an L_pred curve."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4), layout="constrained")
+    for key, ax, label in (("l_pred", axes[0], "L_pred (nats)"), ("l_plan", axes[1], "L_plan (nats)"),
+                           ("l_ctr", axes[2], "L_ctr = hindsight cost")):
+        for name, (h, color) in histories.items():
+            if key != "l_pred" and name == "Standard":
+                continue
+            v = [r[key] for r in h]
+            ax.plot(range(1, len(v) + 1), v, color=color, alpha=0.25, lw=0.8)
+            sm = smooth(v)
+            ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
+        ax.set_xlabel("training step"); ax.set_ylabel(label); ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+    fig.suptitle("Learning curves on the training batches (faint: per batch; solid: 10-step mean)", fontsize=10)
+    plt.show()
+
+
+def figure_stacks(batch, i, outs, cfg, at="", also=None):
+    """§7, §8: sample i through the Standard and the DiffStack stacks (xp.plot_stack: predictions, candidates
+    coloured by p_n, plan, controller); `also` (outs of another run) adds that run's controller states as circles."""
+    import matplotlib.pyplot as plt
+
+    import experiments as xp
+
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
+    for ax, name in zip(axes, ("Standard", "DiffStack")):
+        xp.plot_stack(ax, batch, i, outs[name], cfg, f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
+                      extent=(-12, 48, -10, 10))
+        if also is not None:
+            ax.plot(also[name].x[i, :, 0], also[name].x[i, :, 1], "o", color="tab:purple", ms=6, mfc="none", zorder=10,
+                    label="controller at 0.5 s")
+        _legend_right(ax)
+    if also is None:
+        fig.colorbar(plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1)), ax=axes, shrink=0.5,
+                     label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
+    plt.show()
+
+
+def figure_closed_loop(rollouts, cl_scenes, sc):
+    """§8: closed-loop scene sc, every method's executed ego trajectory, zoomed on the egos (the map stretched across,
+    so that the metres between the trajectories show); distance to the predicted vehicle and speed over time."""
+    import matplotlib.pyplot as plt
+
+    f0, N = rollouts["Standard"][0].start_frame, rollouts["Standard"][0].controls.shape[1]
+    frames = slice(f0, f0 + N + 1)
+    agent = cl_scenes.agents[sc, int(cl_scenes.pred_idx[sc, f0]), frames]  # (N+1, 4) the predicted agent's log
+    _, axd = plt.subplot_mosaic([["map", "dist"], ["map", "speed"]], figsize=(13, 6), layout="constrained",
+                                  width_ratios=(1.6, 1))
+    ax, ax_d, ax_v = axd["map"], axd["dist"], axd["speed"]
+    egos = torch.cat([r.ego[sc, :, :2] for r, _ in rollouts.values()] + [cl_scenes.ego[sc, frames, :2]])  # every ego position
+    lo_, hi_ = egos.min(0).values - 3, egos.max(0).values + 3
+    for lane, m in zip(cl_scenes.lanes[sc], cl_scenes.lanes_mask[sc]):
+        ax.plot(lane[m, 0], lane[m, 1], color="0.85", lw=0.8)
+    ax.plot(cl_scenes.ego[sc, frames, 0], cl_scenes.ego[sc, frames, 1], "k--", lw=1.2, label="logged ego")
+    ax.plot(agent[:, 0], agent[:, 1], "s-", color="tab:orange", ms=3, lw=0.8, label="predicted vehicle (log)")
+    tt = 0.5 * torch.arange(N + 1)
+    for (name, (roll, per)), color in zip(rollouts.items(), ("tab:gray", "tab:red", "tab:green", "tab:blue")):
+        ax.plot(roll.ego[sc, :, 0], roll.ego[sc, :, 1], "o-", color=color, ms=2.5, lw=1.2,
+                label=f"{name} (cost {per['trajectory'][sc]:.3f})")
+        ax_d.plot(tt, (roll.ego[sc, :, :2] - agent[:, :2]).norm(dim=-1), color=color, label=name)
+        ax_v.plot(tt, roll.ego[sc, :, 3], color=color, label=name)
+    ax_v.plot(tt, cl_scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
+    ax.set_xlim(lo_[0], hi_[0]); ax.set_ylim(lo_[1], hi_[1]); ax.grid(alpha=0.3)
+    ax.set_xlabel("x (m)"); ax.set_ylabel("y (m), stretched")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
+    ax.set_title(f"closed loop, scene {cl_scenes.names[sc]}: executed ego trajectories (trajectory cost)")
+    ax_d.set_ylabel("distance to the predicted vehicle (m)"); ax_d.grid(alpha=0.3)
+    ax_v.set_xlabel("time (s)"); ax_v.set_ylabel("ego speed (m/s)"); ax_v.grid(alpha=0.3)
+    _legend_right(ax_v)
+    plt.show()
+
+
+# --- the exercises' checks -------------------------------------------------------------------------------------
 
 
 def _close(name, mine, ref, tol, hint):
