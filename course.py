@@ -22,8 +22,8 @@ import torch
 
 import data_synth
 import diffstack as ds
-
 import train as tr
+
 F64 = torch.float64
 
 

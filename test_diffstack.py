@@ -12,8 +12,8 @@ import torch
 
 import data_synth
 import diffstack as ds
-
 import train as tr
+
 DT = 0.5
 TINY_PRED = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
