@@ -880,15 +880,8 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # and differentiating therefore gives column i of every block together: n + m forward-mode passes
 # (torch.func.jacfwd over a shared perturbation d) give all blocks of all steps and all scenarios.
 # That is the general path. The stack's cost (StackCost) and the unicycle bring closed forms instead
-# (`expansion`, `jacobians`, `curvature`), because autodiff pays some 30 ms a call in dispatch whatever the
-# batch size; the tests hold each closed form to its autodiff counterpart.
-#
-# Speed. At these sizes (4 states, 2 controls, 6 steps) a problem is a few thousand flops, so what costs
-# is the number of tensor ops and any op that pays per matrix (torch's batched products of tiny matrices
-# cost about a nanosecond per multiply-add on CPU): the 2x2 control block is inverted and its box QP solved
-# in closed form, the Riccati recursion works in homogeneous coordinates (five small products a stage, the
-# linear terms riding along), the line search rolls out every step scale at once on small batches, and with
-# batched_params the iterations work on the scenarios still moving only.
+# (`expansion`, `jacobians`, `curvature`); the tests hold each closed form to its autodiff counterpart.
+# With batched_params, the iterations work on the scenarios still moving only.
 
 
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
@@ -925,105 +918,49 @@ def dynamics_jacobians(dynamics, x, u):
     return J[..., :n], J[..., n:]
 
 
-def _solve_small(M, rhs):
-    """M^-1 rhs for a batch of small matrices M (..., m, m), rhs (..., m, r). For m = 2 (the unicycle's
-    controls) by the closed-form inverse adj(M) / det(M), adj [[a, b], [c, d]] = [[d, -b], [-c, a]]: a batched
-    LU pays one library call per matrix on CPU, which was most of the controller's cost per problem."""
-    if M.shape[-1] != 2:
-        return torch.linalg.solve(M, rhs)
-    a, b, c, d = M.reshape(*M.shape[:-2], 4, 1).unbind(-2)  # (..., 1) each
-    r0, r1 = rhs.unbind(-2)  # (..., r) each
-    return torch.stack([d * r0 - b * r1, a * r1 - c * r0], -2) / (a * d - b * c)[..., None]
-
-
-def _solve_masked(Q, rhs, free):
+def solve_masked(Q, rhs, free):
     """Solve the rows of Q y = rhs that are free, with y = rhs on the others.
 
     Q (..., m, m), rhs (..., m, r), free (..., m) bool. Eliminating the fixed coordinates leaves the matrix
     with Q's entries between free coordinates and the identity's elsewhere."""
-    if Q.device.type == "cpu" and free.all():  # (on a GPU the test is a host sync that costs more than it saves)
-        return _solve_small(Q, rhs)
     eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-    return _solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
-
-
-@functools.lru_cache(maxsize=None)
-def _active_sets(m, device):
-    """Every active set of m box-constrained controls, (3^m, m): 0 free, 1 at the lower bound, 2 at the upper."""
-    return torch.cartesian_prod(*[torch.arange(3, device=device)] * m).reshape(-1, m)
+    return torch.linalg.solve(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
 
 
 def box_qp(Q, q, lo, hi):
     """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m (Q positive definite).
 
-    Where the unconstrained minimiser -Q^-1 q is inside the box it is the answer (most of the stack's stages);
-    elsewhere the optimum lies on the box's boundary, found in closed form for m = 2 (_box_qp_edges) and by
-    enumerating the active sets otherwise (_box_qp_enumerate). Batched over everything, no iterations.
+    Where the unconstrained minimiser -Q^-1 q is inside the box it is the answer (most of the stack's stages).
+    Elsewhere each control is free, at its lower bound or at its upper bound: 3^m active sets. For each, the free
+    coordinates minimise the quadratic with the others fixed, Q_ff d_f = -(q_f + Q_fc d_c); the best feasible one
+    is the optimum. Batched over everything, no iterations.
     Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool: the controls not held at a bound.
     """
-    m = q.shape[-1]
-    d = _solve_small(Q, -q[..., None])[..., 0]  # (B, m)
+    B, m = q.shape
+    d = torch.linalg.solve(Q, -q)  # (B, m)
     inside = ((d >= lo) & (d <= hi)).all(-1)  # (B,)
     if inside.all():
         return d, torch.ones_like(d, dtype=torch.bool)
-    d_edge, free = (_box_qp_edges if m == 2 else _box_qp_enumerate)(Q, q, lo, hi)
-    return torch.where(inside[:, None], d, d_edge), free | inside[:, None]
-
-
-def _box_qp_edges(Q, q, lo, hi):
-    """box_qp for m = 2 where the unconstrained minimiser is outside the box: the optimum is then on one of the
-    box's four edges, where one control sits at a bound and the other minimises the 1-D quadratic left,
-        d_j = clamp(-(q_j + Q_ji d_i) / Q_jj, lo_j, hi_j),
-    and the best of the four is the answer. Q (B, 2, 2), q, lo, hi (B, 2) -> d (B, 2), free (B, 2)."""
-    bounds = torch.stack([lo, hi], -1)  # (B, 2, 2): control i's two bounds in row i
-    q0, q1 = q[:, :1], q[:, 1:]  # (B, 1) each
-    Q00, Q01, Q11 = Q[:, 0, :1], Q[:, 0, 1:], Q[:, 1, 1:]  # (B, 1) each
-    d1 = (-(q1 + Q01 * bounds[:, 0]) / Q11).clamp(lo[:, 1:], hi[:, 1:])  # (B, 2): control 0 at lo_0, at hi_0
-    d0 = (-(q0 + Q01 * bounds[:, 1]) / Q00).clamp(lo[:, :1], hi[:, :1])  # (B, 2): control 1 at lo_1, at hi_1
-    D = torch.stack([torch.cat([bounds[:, 0], d0], -1), torch.cat([d1, bounds[:, 1]], -1)], -1)  # (B, 4 edges, 2)
-    obj = ((0.5 * D @ Q + q[:, None]) * D).sum(-1)  # (B, 4) = 1/2 d'Q d + q'd  (Q symmetric)
-    best = obj.argmin(-1)  # (B,)
-    d = D.gather(1, best[:, None, None].expand(-1, 1, 2))[:, 0]  # (B, 2)
-    on_bound_0 = best < 2  # the edges with control 0 held at a bound
-    free = torch.stack([~on_bound_0, on_bound_0], -1) & (d > lo) & (d < hi)
-    return d, free
-
-
-def _box_qp_enumerate(Q, q, lo, hi):
-    """box_qp for any small m: each control is free, at its lower bound or at its upper bound, 3^m active sets.
-    For each, the free coordinates minimise the quadratic with the others fixed; the best of the feasible ones
-    is the optimum. Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m)."""
-    m = q.shape[-1]
     assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
-    sets = _active_sets(m, q.device)  # (3^m, m): 0 free, 1 lower, 2 upper
+    sets = torch.cartesian_prod(*[torch.arange(3, device=q.device)] * m).reshape(-1, m)  # (3^m, m): free, lo, hi
     free = sets == 0
     fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
     Qs, qs = Q[:, None], q[:, None]  # (B, 1, m, m), (B, 1, m)
     Qv = lambda v: (Qs @ v[..., None])[..., 0]  # noqa: E731  Q v for v (B, 3^m, m)
     # free rows: Q_ff d_f = -(q_f + Q_fc d_c); fixed rows: d_c = fixed value
     rhs = torch.where(free, -(qs + Qv(torch.where(free, 0.0, fixed_val))), fixed_val)
-    d = _solve_masked(Qs.expand(-1, len(sets), m, m), rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
-    feasible = ((d >= lo[:, None] - 1e-9) & (d <= hi[:, None] + 1e-9)).all(-1)
-    obj = ((0.5 * Qv(d) + qs) * d).sum(-1)  # (B, 3^m) = 1/2 d'Q d + q'd
+    ds = solve_masked(Qs.expand(-1, len(sets), m, m), rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
+    feasible = ((ds >= lo[:, None] - 1e-9) & (ds <= hi[:, None] + 1e-9)).all(-1)
+    obj = ((0.5 * Qv(ds) + qs) * ds).sum(-1)  # (B, 3^m) = 1/2 d'Q d + q'd
     best = torch.where(feasible, obj, math.inf).argmin(-1)  # (B,)
-    idx = torch.arange(len(q), device=q.device)
-    return d[idx, best], free.expand(len(q), -1, -1)[idx, best]
+    rows = torch.arange(B, device=q.device)
+    d_box, free_box = ds[rows, best], free.expand(B, -1, -1)[rows, best]
+    return torch.where(inside[:, None], d, d_box), free_box | inside[:, None]
 
 
-def _smallest_eigenvalue(Q):
-    """The smallest eigenvalue of symmetric matrices Q (B, m, m). For m = 2 in closed form,
-    lam = mean -+ sqrt(((a - c) / 2)^2 + b^2), the root nearer zero taken as det / (the other) when the
-    mean is positive so that it does not cancel; eigvalsh otherwise."""
-    if Q.shape[-1] != 2:
-        return torch.linalg.eigvalsh(Q)[..., 0]
-    a, b, _, c = Q.reshape(*Q.shape[:-2], 4).unbind(-1)
-    mean, radius = (a + c) / 2.0, torch.hypot((a - c) / 2.0, b)
-    return torch.where(mean > 0.0, (a * c - b * b) / (mean + radius), mean - radius)
-
-
-def _make_pd(Q, eps):
+def make_pd(Q, eps):
     """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
-    lam = _smallest_eigenvalue(Q)
+    lam = torch.linalg.eigvalsh(Q)[..., 0]  # (B,)
     return Q + (eps - lam).clamp_min(0.0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
 
 
@@ -1067,9 +1004,9 @@ def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
     solve the same shifted Quu, the clamped ones get none. lo, hi (B, T, m)."""
 
     def stage(t, Q_uu, Q_uX):
-        Q_uu = _make_pd(Q_uu, pd_eps)
+        Q_uu = make_pd(Q_uu, pd_eps)
         k, free = box_qp(Q_uu, Q_uX[..., 0], lo[:, t], hi[:, t])
-        K = _solve_masked(Q_uu, torch.where(free[..., None], -Q_uX[..., 1:], 0.0), free)  # (B, m, n); 0 on clamped rows
+        K = solve_masked(Q_uu, torch.where(free[..., None], -Q_uX[..., 1:], 0.0), free)  # (B, m, n); 0 on clamped rows
         return torch.cat([k[..., None], K], -1), free
 
     return riccati_backward(A, B, H, g, n, stage)
@@ -1081,7 +1018,7 @@ def lqr_backward_fixed(A, B, H, g, n, free):
 
     def stage(t, Q_uu, Q_uX):
         f = free[:, t]
-        return _solve_masked(Q_uu, torch.where(f[..., None], -Q_uX, 0.0), f), f
+        return solve_masked(Q_uu, torch.where(f[..., None], -Q_uX, 0.0), f), f
 
     return riccati_backward(A, B, H, g, n, stage)
 
@@ -1103,7 +1040,8 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
 
     x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
     and the dynamics to first order, solve the box-constrained LQR, line-search the step scale
-    1, 1/5, 1/25, ... per scenario (_line_search) and keep the largest that does not raise the true cost. A scenario whose full step is below tol has converged and stops moving.
+    1, 1/5, 1/25, ... per scenario (line_search) and keep the largest that does not raise the true cost. A
+    scenario whose full step is below tol has converged and stops moving.
     batched_params: every tensor in params is per scenario, (B, ...); the iterations then work on the
     scenarios still moving only (most converge in one or two of the five), otherwise on all of them.
     Returns x (B, T+1, n), u (B, T, m), ILQRInfo.
@@ -1132,8 +1070,7 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
         g, H = cost_expansion(cost_fn, xi, ui, pi)
         A, Bm = dynamics_jacobians(dynamics, xi, ui)
         k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo_i - ui, hi_i - ui, pd_eps)
-        x_new, u_new, c_new, accept, full_step = _line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi,
-                                                              scales, batched_params)
+        x_new, u_new, c_new, accept, full_step = line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi, scales)
         accept = act & accept  # (b,)
         step_norm = put(step_norm, torch.where(act, full_step, take(step_norm)))
         n_iter = put(n_iter, take(n_iter) + act.long())
@@ -1146,60 +1083,27 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
 
 
-_LS_ONE_PASS = 2048  # rows (scenarios x step scales) up to which the line search rolls out every scale at once
-
-
-def _line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, batched_params):
+def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
     """An iLQR iteration's step: the largest scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
         u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
-    does not raise the true cost. A small batch (b x S rows at most _LS_ONE_PASS) rolls out every scale at once:
-    an op costs about the same on 5 rows as on 1. A larger one rolls out the full step first, for every scenario,
-    and the smaller scales, all at once, only where it failed (for all scenarios without batched_params: the
-    parameters cannot be split). Both pick the same scale.
+    does not raise the true cost; every scale is rolled out at once, as an extra batch dim S.
     x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n), cost (b,). Returns the new x, u, cost, whether a
     scale was accepted (b,) and the norm of the full step (b,)."""
     eps = torch.finfo(x.dtype).eps
-    no_increase = lambda c, c0: c <= c0 + 100 * eps * (1 + c0.abs())  # noqa: E731  up to rounding
-    largest_ok = lambda ok: torch.where(ok, torch.arange(ok.shape[1], device=ok.device), ok.shape[1]).min(-1).values  # noqa: E731
-
-    def rollouts(r, s):  # scenarios r (None: all), scales s (S,) -> x' (b, S, T+1, n), u' (b, S, T, m), all at once
-        xr, ur, kr, Kr, lor, hir = (t if r is None else t[r] for t in (x, u, k, K, lo, hi))  # (b, ...)
-        # each step's slices, taken at once: T x (b, S or 1, ...)
-        u_ff = (ur[:, None] + s[:, None, None] * kr[:, None]).unbind(2)  # T x (b, S, m): u_t + s k_t, the open loop
-        x_ref, K_T = xr[:, None].unbind(2), Kr.mT.unbind(1)  # T+1 x (b, 1, n), T x (b, n, m)
-        lo_t, hi_t = lor[:, None].unbind(2), hir[:, None].unbind(2)  # T x (b, 1, m)
-        xs, us = [x_ref[0].expand(-1, len(s), -1)], []  # (b, S, n)
-        for t in range(u.shape[1]):
-            du_fb = torch.bmm(xs[-1] - x_ref[t], K_T[t])  # (b, S, m): K_t (x_t' - x_t), as row vectors
-            us.append((u_ff[t] + du_fb).clamp(lo_t[t], hi_t[t]))  # (b, S, m)
-            xs.append(dynamics(xs[-1], us[-1]))
-        return torch.stack(xs, 2), torch.stack(us, 2)
-
-    every = torch.arange(len(x), device=x.device)
-    if len(x) * len(scales) <= _LS_ONE_PASS:
-        xs, us = rollouts(None, scales)
-        cs = cost_fn(xs, us, *params)  # (b, S)
-        first = largest_ok(no_increase(cs, cost[:, None]))  # (b,): S where no scale is accepted
-        accept = first < len(scales)
-        pick = torch.where(accept, first, 0)  # where no scale is accepted: the full step, as below
-        return xs[every, pick], us[every, pick], cs[every, pick], accept, (us[:, 0] - u).flatten(1).norm(dim=-1)
-    x1, u1 = rollouts(None, scales[:1])
-    x_new, u_new, c_new = x1[:, 0], u1[:, 0], cost_fn(x1, u1, *params)[:, 0]
-    accept = no_increase(c_new, cost)  # (b,)
-    r = (~accept).nonzero()[:, 0] if batched_params else every[: 0 if accept.all() else len(x)]
-    if len(scales) > 1 and len(r):
-        xs, us = rollouts(r, scales[1:])
-        cs = cost_fn(xs, us, *(tuple(p[r] if torch.is_tensor(p) else p for p in params) if batched_params else params))
-        ok = no_increase(cs, cost[r, None])  # (len(r), S-1)
-        first = largest_ok(ok)  # (len(r),)
-        use = (first < ok.shape[1]) & ~accept[r]  # a smaller scale where the full step failed
-        pick, rows = first.clamp(max=ok.shape[1] - 1), torch.arange(len(r), device=x.device)
-        sel = lambda new, old: torch.where(use.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
-        x_new = x_new.index_put((r,), sel(xs[rows, pick], x_new[r]))
-        u_new = u_new.index_put((r,), sel(us[rows, pick], u_new[r]))
-        c_new = c_new.index_put((r,), sel(cs[rows, pick], c_new[r]))
-        accept = accept.index_put((r,), accept[r] | use)
-    return x_new, u_new, c_new, accept, (u1[:, 0] - u).flatten(1).norm(dim=-1)
+    S = len(scales)
+    xs, us = [x[:, None, 0].expand(-1, S, -1)], []  # (b, S, n)
+    for t in range(u.shape[1]):
+        du_fb = torch.bmm(xs[-1] - x[:, None, t], K[:, t].mT)  # (b, S, m): K_t (x_t' - x_t), as row vectors
+        us.append((u[:, None, t] + scales[:, None] * k[:, None, t] + du_fb).clamp(lo[:, None, t], hi[:, None, t]))
+        xs.append(dynamics(xs[-1], us[-1]))
+    xs, us = torch.stack(xs, 2), torch.stack(us, 2)  # (b, S, T+1, n), (b, S, T, m)
+    cs = cost_fn(xs, us, *params)  # (b, S)
+    ok = cs <= cost[:, None] + 100 * eps * (1 + cost[:, None].abs())  # no increase, up to rounding
+    first = torch.where(ok, torch.arange(S, device=x.device), S).min(-1).values  # (b,): S where no scale is accepted
+    accept = first < S
+    pick = torch.where(accept, first, 0)  # where no scale is accepted: the full step (rejected by the caller)
+    rows = torch.arange(len(x), device=x.device)
+    return xs[rows, pick], us[rows, pick], cs[rows, pick], accept, (us[:, 0] - u).flatten(1).norm(dim=-1)
 
 
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
@@ -1510,7 +1414,7 @@ class Predictor(nn.Module):
         the latter). Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits (whose backward
         concatenates the gradients) -- at B*K = 6400 rows the decoder is memory traffic, every fresh tensor counts.
         The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
-        shard: under DDP (section 8.1), the noise of the samples is drawn for the global batch and this rank keeps its
+        shard: under DDP (train.Shard), the noise of the samples is drawn for the global batch and this rank keeps its
         rows, so that a scenario gets the same sample whichever rank holds it.
         """
         cfg = self.cfg
@@ -1574,7 +1478,7 @@ class Predictor(nn.Module):
         use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut; training) instead of p(z|x).
         step: the training iteration; when given, the z logits are clipped by its schedule (Trajectron++).
         Training mode (self.training) feeds sampled controls back into the GRU; eval mode feeds the means.
-        shard: which rows of a global batch this process holds, under DDP (section 8.1); None: all of them.
+        shard: under DDP, the rows of a global batch this process holds (train.Shard); None: all of them.
         """
         cfg = self.cfg
         check_batch(batch, cfg, need_future=use_posterior)
@@ -1698,7 +1602,7 @@ def kl_beta(step: int, cfg: Config) -> float:
 
 
 def batch_mean(x: torch.Tensor, shard=None) -> torch.Tensor:
-    """x (B, ...) averaged over the batch (...): this process's batch, or under DDP (shard, section 8.1) the global
+    """x (B, ...) averaged over the batch (...): this process's batch, or under DDP (shard, train.Shard) the global
     batch of all processes, differentiably (Shard.mean)."""
     return x.mean(0) if shard is None else shard.mean(x)
 
@@ -1710,7 +1614,7 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tu
     LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
     KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
     I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p, a batch quantity
-    shard: under DDP (section 8.1), the batch of these means is the global batch of all processes (batch_mean).
+    shard: under DDP (train.Shard), the batch of these means is the global batch of all processes (batch_mean).
     """
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
@@ -1866,7 +1770,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         logged steps; and the per-step cost terms (all but the goal's) are scaled by 1/substeps, so that eq. (3)
         sums the same costs per second as at cfg.dt and only the resolution changes.
     timings: a dict that receives the seconds spent predicting, planning and controlling.
-    shard: under DDP, which rows of the global batch this process holds (section 8.1); the predictor's samples and
+    shard: under DDP, which rows of the global batch this process holds (train.Shard); the predictor's samples and
         L_pred's batch statistics are then those of the global batch.
     scene: the batch's scene_plan (same cfg and plan_dt), if already computed (train_stack's, once per data set).
     """
@@ -2042,16 +1946,6 @@ def check_setting(setting) -> str:
         raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
     return setting
 
-
-TABLE1_METHODS = (
-    Method("No prediction", "none"),
-    Method("Standard"),
-    Method("Distance weighted", weighting="distance"),
-    Method("Grad-cost weighted", weighting="grad_cost"),
-    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
-    Method("DiffStack", losses=(1, 1, 1)),
-    Method("GT prediction", "gt"),
-)
 
 
 

@@ -429,37 +429,24 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
         assert rel_err(p0[b], grad) < 1e-10
 
 
-def test_closed_form_2x2_solve_and_eigenvalue_match_linalg():
-    """The controller's 2x2 closed forms (inverse, smallest eigenvalue) against torch.linalg, on well- and
-    ill-conditioned, indefinite and masked matrices; the general path (m = 3) is linalg itself."""
+def test_solve_masked_keeps_the_fixed_rows_and_solves_the_free_ones():
     g = torch.Generator().manual_seed(0)
     L = torch.randn(500, 2, 2, generator=g, dtype=torch.float64)
-    Q = L @ L.transpose(-1, -2) + torch.randn(500, 1, 1, generator=g, dtype=torch.float64) * torch.eye(2, dtype=torch.float64)
-    Q[:50] = torch.diag_embed(torch.tensor([1e6, 1e-3], dtype=torch.float64)).expand(50, 2, 2)  # ill-conditioned
-    Q[50:100, 0, 0] = -Q[50:100, 0, 0].abs()  # indefinite
-    lam = torch.linalg.eigvalsh(Q)[..., 0]
-    assert ((ds._smallest_eigenvalue(Q) - lam).abs() <= 1e-12 * torch.linalg.matrix_norm(Q, 2)).all()
-    # where the small eigenvalue is known exactly (diagonal), to its own relative precision: no cancellation
-    assert rel_err(ds._smallest_eigenvalue(Q[:50]), torch.full((50,), 1e-3, dtype=torch.float64)) < 1e-14
+    Q = L @ L.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
     rhs = torch.randn(500, 2, 4, generator=g, dtype=torch.float64)
-    assert rel_err(ds._solve_small(Q, rhs), torch.linalg.solve(Q, rhs)) < 1e-10
     free = torch.rand(500, 2, generator=g) > 0.3
-    y = ds._solve_masked(Q, rhs, free)
+    y = ds.solve_masked(Q, rhs, free)
     assert rel_err(y[~free], rhs[~free]) < 1e-14  # fixed rows keep the right-hand side
     both = free.all(-1)
     assert rel_err(y[both], torch.linalg.solve(Q[both], rhs[both])) < 1e-10
-    Q3 = Q[:10, :1, :1] * torch.eye(3, dtype=torch.float64) + 1
-    assert torch.equal(ds._smallest_eigenvalue(Q3), torch.linalg.eigvalsh(Q3)[..., 0])
+    one = free[:, 0] & ~free[:, 1]  # control 0 free, 1 fixed: Q_00 y_0 = rhs_0 (the caller moved Q_01 d_1 over)
+    assert rel_err(y[one, 0], rhs[one, 0] / Q[one, 0, 0, None]) < 1e-10
 
 
-@pytest.mark.parametrize("one_pass", [0, 10**6])  # line search rows up to which every scale is rolled out at once
-def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution(one_pass, monkeypatch):
-    """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the
-    full step failed) gives what the solver gives on every scenario every iteration, on a problem where both
-    shortcuts are taken: some scenarios converge early and some reject full steps; and the line search that rolls
-    out every scale at once (small batches) gives the same as the one that rolls out the smaller ones only where
-    needed."""
-    monkeypatch.setattr(ds, "_LS_ONE_PASS", one_pass)
+def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
+    """batched_params (iterations on the scenarios still moving) gives what the solver gives on every scenario every
+    iteration, on a problem where some scenarios converge early and some reject full steps; the line search rolls out
+    every step scale at once."""
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
     lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
@@ -480,13 +467,7 @@ def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution(one_pass, mo
     assert torch.allclose(xa, xb, rtol=0, atol=1e-12) and torch.allclose(ua, ub, rtol=0, atol=1e-12)
     assert torch.equal(ia.iters, ib.iters) and torch.equal(ia.converged, ib.converged)
     assert ia.iters.min() < ia.iters.max()  # some scenarios stopped early
-    if one_pass:
-        assert all(s is None or s[1] == 5 for s in seen)  # every scale at once
-        monkeypatch.setattr(ds, "_LS_ONE_PASS", 0)
-        xc, uc, ic = ds.ilqr(cost, ds.Unicycle(DT), s0, u0, params, lo, hi, iters=8, tol=1e-3, batched_params=True)
-        assert torch.equal(xc, xb) and torch.equal(uc, ub) and torch.equal(ic.iters, ib.iters)
-    else:
-        assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
+    assert all(s is None or s[1] == 5 for s in seen)  # every scale at once
 
 
 @pytest.mark.parametrize("bound", [0.2, 100.0])  # bounds active in many problems; in none (the shortcut)
@@ -506,24 +487,6 @@ def test_box_qp_meets_the_kkt_conditions(bound):
     assert grad[free].abs().max() < 1e-10
     assert (grad[at_lo] >= -1e-10).all() and (grad[at_hi] <= 1e-10).all()
     assert (~free).any() == (bound < 1)  # the test covers both paths
-
-
-def test_box_qp_edges_match_the_enumeration_of_active_sets():
-    """m = 2's closed form (the best of the four edges' clamped 1-D minimisers) against the 3^m enumeration of
-    active sets, the general path, on problems whose unconstrained minimiser is outside the box."""
-    g = torch.Generator().manual_seed(2)
-    L = torch.randn(2000, 2, 2, generator=g, dtype=torch.float64)
-    Q = L @ L.transpose(-1, -2) + 0.05 * torch.eye(2, dtype=torch.float64)
-    q = 3 * torch.randn(2000, 2, generator=g, dtype=torch.float64)
-    lo = -torch.rand(2000, 2, generator=g, dtype=torch.float64) - torch.rand(2000, 1, generator=g, dtype=torch.float64)
-    hi = lo + 0.1 + 2 * torch.rand(2000, 2, generator=g, dtype=torch.float64)  # boxes that may not hold 0
-    d, free = ds._box_qp_edges(Q, q, lo, hi)
-    d_ref, free_ref = ds._box_qp_enumerate(Q, q, lo, hi)
-    outside = ~((torch.linalg.solve(Q, -q[..., None])[..., 0] >= lo) & (torch.linalg.solve(Q, -q[..., None])[..., 0] <= hi)).all(-1)
-    assert outside.sum() > 1500 and (free_ref[outside].any(-1)).sum() > 500  # edges (one control free) occur
-    assert (~free_ref[outside].any(-1)).sum() > 100  # and corners (both at a bound)
-    assert rel_err(d[outside], d_ref[outside]) < 1e-12
-    assert torch.equal(free[outside], free_ref[outside])
 
 
 def test_ilqr_descends_respects_bounds_and_flags_convergence():

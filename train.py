@@ -30,7 +30,7 @@ from diffstack import (Config, Method, Prediction, Predictor, check_setting, col
                        cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plans)
 
 # --------------------------------------------------------------------------------------------
-# 6.4 Metrics, and the constant-velocity baseline
+# 1. Metrics, and the constant-velocity baseline
 # --------------------------------------------------------------------------------------------
 
 
@@ -85,7 +85,7 @@ def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 10
 
 
 # --------------------------------------------------------------------------------------------
-# 6.5 The planning-aware weights of L_pred: Distance weighted and grad-Cost weighted (§4.1; training: section 8)
+# 2. The planning-aware weights of L_pred: Distance weighted and grad-Cost weighted (§4.1)
 # --------------------------------------------------------------------------------------------
 
 
@@ -97,10 +97,10 @@ def distance_weights(batch) -> torch.Tensor:
 
 def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
     """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
-    batch of all processes, section 8.1).
+    batch of all processes, section 3).
 
     weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
-    `grad_cost_weights` in section 8, which needs the cost) or a callable batch -> (B,) raw weights.
+    `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
     """
     if weighting == "standard":
         return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
@@ -145,7 +145,7 @@ def to_device(obj, device):
 
 
 # ============================================================================================
-# 8. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
+# 4. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
 # ============================================================================================
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
@@ -221,7 +221,7 @@ class CostWeights(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------
-# 8.1 Many processes: DistributedDataParallel (torchrun)
+# 3. Many processes: DistributedDataParallel (torchrun)
 # --------------------------------------------------------------------------------------------
 #
 # Under torchrun every process (a rank) runs the same program. train_stack then splits each global batch of
@@ -334,21 +334,21 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     moved to the model's device as it is drawn.
     Under torchrun (torch.distributed initialised, world > 1) it trains with DistributedDataParallel, each rank on
     its cfg.batch_size / world scenarios of every global batch, with the gradient of the single-process loss on the
-    global batch (section 8.1); only rank 0 logs. Every rank returns the same per-step log (global values).
+    global batch (section 3); only rank 0 logs. Every rank returns the same per-step log (global values).
     on_epoch: None, or a function of (epochs done, steps done) called before the first step and after every epoch
     (and after the last step of a fractional one), e.g. to evaluate the model for a learning curve; it runs in a
     fork of the random state, so that training draws the same numbers with it or without it.
     Returns the per-step log (list of dicts).
     """
     device = next(model.parameters()).device
-    shard = Shard.of_process_group()  # Shard(): one process; under torchrun, this rank's rows of every batch (8.1)
+    shard = Shard.of_process_group()  # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
     if cfg.batch_size % shard.world:
         raise ValueError(f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
                          f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count")
     b = cfg.batch_size // shard.world  # scenarios per step on this rank
     log = log if shard.rank == 0 else None  # the other ranks stay quiet
     # The same seed on every rank: the data order and the decoder's sampled controls are drawn for the global batch,
-    # whichever rank uses them (8.1). manual_seed seeds the CPU's and every GPU's generator.
+    # whichever rank uses them (section 3). manual_seed seeds the CPU's and every GPU's generator.
     torch.manual_seed(seed)  # the decoder's sampled controls
     g = torch.Generator().manual_seed(seed)  # the order of the scenarios, drawn on the CPU whatever the device
     a1, a2, a3 = alphas(method, setting, cfg)
@@ -570,7 +570,7 @@ def markdown_table(head, rows) -> str:
 
 
 # ============================================================================================
-# 9. The command line: python diffstack.py --quick
+# 5. The shipped predictors, --quick and the command line
 # ============================================================================================
 
 QUICK = dict(n=10000, live_train=2560, epochs=8.0)  # the tables' data; the live runs train on a part of it
