@@ -44,6 +44,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+import data_real
 import data_synth
 from diffstack import (TABLE1_METHODS, Config, CostWeights, Method, Prediction, Predictor, StackOutput, TrainingDiverged,
                        add_relative,
@@ -237,7 +238,7 @@ GOAL_TABLE = TableSpec(
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}  # the order `all` runs them in
 EXPERIMENTS = tuple(TABLES)
 
-# Real driving scenes: the three Waymo logs of data_synth.fetch_waymo, evaluated with predictors trained on synthetic
+# Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors trained on synthetic
 # data (the data's train side is synthetic, its val side the real samples). Not a table of the paper, so not in
 # `all`; its outputs derive from data under a non-commercial licence that forbids committing them, so they go to
 # REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
@@ -1262,7 +1263,7 @@ def _sha(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
-NUMBER_MODULES = ("diffstack.py", "data_synth.py", "experiments.py")  # the code a table's numbers come from
+NUMBER_MODULES = ("diffstack.py", "data_synth.py", "data_real.py", "experiments.py")  # the code a table's numbers come from
 
 
 class _NoStrings(ast.NodeTransformer):
@@ -1272,7 +1273,7 @@ class _NoStrings(ast.NodeTransformer):
         return None if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str) else node
 
 
-@functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; run_about asks once per work unit
+@functools.lru_cache(maxsize=8)  # parsing the modules takes about 0.4 s; run_about asks once per work unit
 def code_of(source: str) -> str:
     """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
     parsed, every statement that is only a string (a docstring, a Config field's docstring) dropped, and the tree
@@ -1737,7 +1738,7 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
                  f"another kind of processor: {where_ran}")
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
-               f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
+               f"{data_real.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
 
 
 def table_file_markdown(spec: TableSpec, md: str) -> str:
@@ -1912,11 +1913,11 @@ class RealData(NamedTuple):
 
 
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
-    """data's (synthetic) training side, and the Waymo samples (data_synth.load_waymo_scenarios, fetched on the
+    """data's (synthetic) training side, and the Waymo samples (data_real.load_waymo_scenarios, fetched on the
     first call) as the validation side."""
-    real, report = data_synth.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
-        f"training on {len(data.train)} synthetic samples. {data_synth.WAYMO_LICENCE}")
+        f"training on {len(data.train)} synthetic samples. {data_real.WAYMO_LICENCE}")
     return RealData(data.train, real, None, report["samples_per_scene"])
 
 
@@ -1953,7 +1954,7 @@ def main(argv=None):
                     help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
                          f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
                          f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
-    ap.add_argument("--phases", type=bounded(int, 1, data_synth.WAYMO_PHASES, "--phases"), default=1,
+    ap.add_argument("--phases", type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"), default=1,
                     help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
     ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
                     help="training seeds per method (default 5, at most 100)")
@@ -1989,10 +1990,10 @@ def main(argv=None):
             ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
         if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
             try:
-                data_synth.nuscenes_version(args.data)
+                data_real.nuscenes_version(args.data)
             except ValueError as e:
                 ap.error(str(e))
-        return render_outputs(args.experiment, args.out, data_synth.load_data(args.data, args.n, log=print))
+        return render_outputs(args.experiment, args.out, data_real.load_data(args.data, args.n, log=print))
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         if cfg.batch_size % world:
@@ -2001,7 +2002,7 @@ def main(argv=None):
         if args.jobs is not None and args.jobs > 1 and world > 1:
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
-            data_synth.nuscenes_version(args.data)
+            data_real.nuscenes_version(args.data)
         # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
         # run_experiment decides once the data, and so the run's key, is known
         check_outputs(names, args.out, args.overwrite,
@@ -2015,7 +2016,7 @@ def main(argv=None):
     log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)
 
     def load():
-        data = data_synth.load_data(args.data, args.n, log=log)
+        data = data_real.load_data(args.data, args.n, log=log)
         if args.experiment == REAL.name:
             data = real_data(data, range(args.phases), log=log)
         if "closed_loop" in names:

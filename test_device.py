@@ -24,6 +24,7 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
+import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
@@ -245,7 +246,7 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
     work = []
     monkeypatch.setattr(ds, "quick", lambda *a, **k: work.append(1))
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
         err = cli_error(ds.main, ["--quick", "--device", name], capsys)
     else:
@@ -260,7 +261,7 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(ds, "quick", lambda *a, **k: seen.update(quick=k["device"]))
     ds.main(["--quick"])
     ds.main(["--quick", "--device", "cpu"])
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: "data")
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: "data")
     monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
     assert seen == {"quick": torch.device("cpu"), "experiment": torch.device("cpu")}

@@ -18,8 +18,9 @@
 #
 # Karkus, Ivanovic, Mannor, Pavone, *DiffStack: A Differentiable and Modular Control Stack for Autonomous
 # Vehicles*, CoRL 2022. This notebook follows the paper section by section. Every piece of code here **imports**
-# from [`diffstack.py`](diffstack.py) (the method), [`experiments.py`](experiments.py) (the paper's tables) and
-# [`data_synth.py`](data_synth.py) (the data); nothing is copied into cells, so what you read is what the module runs.
+# from [`diffstack.py`](diffstack.py) (the method), [`experiments.py`](experiments.py) (the paper's tables),
+# [`data_synth.py`](data_synth.py) (the synthetic data) and [`data_real.py`](data_real.py) (the readers of real data);
+# nothing is copied into cells, so what you read is what the module runs.
 #
 # **Learning goals.** After this notebook you can (1) write the planning cost of eq. (3) and see which of its terms
 # a prediction enters; (2) explain why an argmin planner gives no gradient and how the softmax relaxation of eq. (2)
@@ -91,6 +92,7 @@ import torch
 from IPython.display import Image, Markdown, display
 
 import course
+import data_real
 import data_synth
 import diffstack as ds
 import experiments as xp
@@ -282,7 +284,7 @@ plt.show()
 # %% [markdown]
 # **The same scenes through the nuScenes format.** `write_nuscenes` writes scenes as a nuScenes v1.0 folder (the 13
 # JSON tables, the ego as `ego_pose` of key-frame `sample_data`, the map expansion with lanes as arcline paths, the
-# prediction split); `load_nuscenes` reads any v1.0 folder — this one or the real v1.0-mini — back into world-frame
+# prediction split); `data_real.load_nuscenes` reads any v1.0 folder — this one or the real v1.0-mini — back into world-frame
 # `Scenes`, from which `sample_at` / `cut_samples` cut planning samples. The round trip is exact.
 
 # %%
@@ -291,7 +293,7 @@ with tempfile.TemporaryDirectory() as tmp:
     data_synth.write_nuscenes(scenes, tmp, "v1.0-mini")
     files = sorted(str(p.relative_to(tmp)) for p in Path(tmp).rglob("*.json"))
     print(f"{len(files)} JSON files, e.g.", files[:3], "...", files[-3:])
-    loaded, report = data_synth.load_nuscenes(tmp, "v1.0-mini")
+    loaded, report = data_real.load_nuscenes(tmp, "v1.0-mini")
 print("loader report:", report)
 frame = (scenes.event_frame - 2).clamp(8, 34)  # a frame per scene, just before the manoeuvre
 a = data_synth.sample_at(scenes, frame, dtype=torch.float64)
