@@ -9,12 +9,14 @@ Map of the module:
                          keyed by the folder's checksums
     2. Waymo scenes      fetched from the wheel, checked, safely unpickled, converted
     3. load_data         a Dataset from a nuScenes folder (split by scene) or the synthetic data
-    4. CLI               data_synth's commands, plus read-nuscenes, fetch-waymo and render --nuscenes
+    4. CLI               the data's command line: generate, write-nuscenes, read-nuscenes, fetch-waymo, render,
+                         stats, --bench (here, not in data_synth.py, as half of it reads)
 Shape letters and conventions as in data_synth.py. This module imports data_synth, never the reverse.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import gc
 import hashlib
@@ -35,10 +37,7 @@ from data_synth import (MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSIONS, _SHAPE_SIGN
                         SynthConfig, _check_seed, _lane_points, arcline_segments, backward_speed, cut_samples,
                         discretize, load_or_generate, route_segments, wrap_angle)
 
-# ============================================================================================
-# 1. nuScenes v1.0 reader (json + numpy; no devkit)
-# ============================================================================================
-#
+# === 1. nuScenes v1.0 reader (json + numpy; no devkit) ======================================
 # Any v1.0 folder (written by data_synth.write_nuscenes, or the real v1.0-mini / v1.0-trainval with the map
 # expansion) -> Scenes:
 #   ego      the CAM_FRONT key-frame ego_pose of every sample; speed by backward differences
@@ -643,10 +642,7 @@ def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig |
     return batch, report
 
 
-# ============================================================================================
-# 2. Waymo scenes: three real logs from a public wheel
-# ============================================================================================
-#
+# === 2. Waymo scenes: three real logs from a public wheel ===================================
 # The metadrive-simulator 0.3.0.1 wheel on PyPI ships three scenarios of the Waymo Open Motion Dataset with their
 # lane maps (metadrive/assets/waymo/{0,1,2}.pkl). fetch_waymo downloads the wheel with `pip download --no-deps`
 # (never installed: it pins an old numpy and a game engine), checks its sha256, extracts only the three pickles
@@ -1025,9 +1021,7 @@ def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg: SynthConfig |
     return batch, report
 
 
-# ============================================================================================
-# 3. load_data: a Dataset from a nuScenes folder (split by scene) or the synthetic data
-# ============================================================================================
+# === 3. load_data: a Dataset from a nuScenes folder (split by scene) or the synthetic data ===
 
 MINI_VAL = ("scene-0103", "scene-0916")
 """The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
@@ -1055,6 +1049,7 @@ NUSC_TRAIN = _scene_range_names("""
 NUSC_VAL = _scene_range_names("""
     3 12-18 35-36 38-39 92-110 221 268-278 329-332 344-346 519-524 552-565 625-627 629-630 632-638 770-771 775
     777-778 780-784 794-800 802 904-917 919-931 962-963 966-969 971-972 1059-1073""")
+"""The 150 official validation scenes of v1.0-trainval."""
 
 
 def _split_scenes(names: list, version: str) -> tuple:
@@ -1112,18 +1107,25 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
     return Dataset(train, val, scenes[is_val])
 
 
-# ============================================================================================
-# 4. CLI: data_synth's commands, plus the readers'
-# ============================================================================================
+# === 4. CLI: the data's command line, synthetic and real (here, as the readers' commands need data_real) ===
 
+MAX_RENDER = 400
+"""Most samples `render` draws: 100 rows of 4 panels make a PNG about 29 000 pixels tall; Agg draws at most 2^16
+pixels a side."""
 BENCH_MINI = dict(n_vehicles=22, n_parked=14, n_peds=26)
 """Agents per scene for the read benchmark: 10 scenes then carry about as many annotations as v1.0-mini (18 538)."""
 
 
 def _bench():
     import tempfile
-    data_synth._bench()
     runs = 3
+    times = []
+    for r in range(runs):
+        t = time.perf_counter()
+        data = data_synth.make_dataset(10_000, SynthConfig(), seed=r)
+        times.append(time.perf_counter() - t)
+    print(f"generate 10 000 samples ({len(data.train)} train + {len(data.val)} val): median "
+          f"{pystats.median(times):.2f} s over {runs} runs (target < 30 s)  {['%.2f' % x for x in times]}")
     cfg = SynthConfig(**BENCH_MINI)
     with tempfile.TemporaryDirectory() as tmp:
         data_synth.write_nuscenes(data_synth.generate_scenes(10, cfg, seed=0), tmp, cfg=cfg)
@@ -1137,6 +1139,85 @@ def _bench():
           f"{pystats.median(times):.2f} s over {runs} runs (target < 10 s)  {['%.2f' % x for x in times]}")
 
 
+def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
+    """Save the first n samples of batch as a grid of data_synth.plot_scenario panels (PNG): the `render` command."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    n = min(n, len(batch))
+    fig, axes = plt.subplots(math.ceil(n / cols), cols, figsize=(4 * cols, 2.6 * math.ceil(n / cols)), squeeze=False)
+    for k, ax in enumerate(axes.flat):
+        if k < n:
+            data_synth.plot_scenario(ax, batch, k)
+        else:
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _whole(lo: int, hi: int | None = None, unit: str = ""):
+    """An argparse type: a whole number in lo..hi (argparse adds the argument's name to the message)."""
+    span = f"from {lo:,} to {hi:,}" if hi is not None else f">= {lo:,}"
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number {span}{unit}, got {text!r}") from None
+        if v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"must be {span}{unit}, got {v:,}")
+        return v
+    return parse
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description="DiffStack scenario data: synthetic nuScenes-like scenes (data_synth.py), "
+                                             "the nuScenes v1.0 format written and read, three Waymo logs.")
+    ap.add_argument("--bench", action="store_true", help="time generating 10 000 samples and reading a "
+                                                         "v1.0-mini-sized folder; print the medians of 3 runs")
+    sub = ap.add_subparsers(dest="cmd")
+    g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
+    g.add_argument("--n", type=_whole(1, data_synth.MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=10_000)
+    g.add_argument("--seed", type=_whole(0), default=0)
+    g.add_argument("--cache-dir", default="data_cache")
+    w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
+    w.add_argument("out")
+    w.add_argument("--scenes", type=_whole(1, data_synth.MAX_SCENES, " (MAX_SCENES)"), default=10)
+    w.add_argument("--seed", type=_whole(0), default=0)
+    w.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    w.add_argument("--overwrite", action="store_true", help="replace the files of an existing folder")
+    r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
+    r.add_argument("root")
+    r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    r.add_argument("--workers", type=_whole(1, 1024), default=None,
+                   help="processes that parse the scenes (default: the cores, %d here)" % parse_workers())
+    r.add_argument("--cache-dir", default=None,
+                   help="cache the parse there, keyed by the sha256 of the folder's files (training, load_data, uses "
+                        "data_cache/); default: no cache")
+    wy = sub.add_parser("fetch-waymo", help="download (once) the three Waymo scenes of the metadrive-simulator "
+                                            "0.3.0.1 wheel into the cache, verify, load and summarise them")
+    wy.add_argument("--cache-dir", default="data_cache")
+    wy.add_argument("--phases", type=_whole(1, WAYMO_PHASES, " (2 Hz clocks per 10 Hz log)"), default=1,
+                    help="how many of the five 2 Hz clocks of each 10 Hz log to cut samples from (default 1)")
+    p = sub.add_parser("render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)")
+    p.add_argument("out")
+    p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
+    p.add_argument("--seed", type=_whole(0), default=0)
+    p.add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
+    p.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
+    s = sub.add_parser("stats", help="statistics of a generated set against plausible ranges")
+    s.add_argument("--n", type=_whole(1, data_synth.MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=4000)
+    s.add_argument("--seed", type=_whole(0), default=0)
+    args = ap.parse_args(argv)
+    try:
+        _run(ap, args)
+    except (ValueError, OSError) as e:
+        # bad input (a NuScenesFormatError, a foreign cache, an existing or unwritable file): the message names
+        # the file; exit code 2 like argparse's own errors
+        ap.exit(2, f"data_real: error: {e}\n")
+
+
 def _summary(batch: Scenarios, report: dict):
     for k, v in report.items():
         print(f"  {k:26s} {v}")
@@ -1144,10 +1225,19 @@ def _summary(batch: Scenarios, report: dict):
     print(data_synth.format_statistics(data_synth.statistics(batch)))
 
 
-def _run(args) -> bool:
-    """The readers' commands (True), else False: data_synth's own."""
+def _run(ap, args):
     if args.bench:
         _bench()
+    elif args.cmd == "generate":
+        t = time.perf_counter()
+        data = load_or_generate(args.n, args.seed, args.cache_dir)
+        path, _ = data_synth._cache_path(args.n, args.seed, SynthConfig(), args.cache_dir)
+        print(f"{len(data.train)} train + {len(data.val)} val samples ({len(data.val_scenes)} val scenes) in "
+              f"{time.perf_counter() - t:.1f} s: {path}")
+    elif args.cmd == "write-nuscenes":
+        scenes = data_synth.generate_scenes(args.scenes, SynthConfig(), args.seed)
+        data_synth.write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
+        print(f"wrote {args.scenes} scenes to {args.out}/{args.version} (+ maps/expansion, maps/prediction)")
     elif args.cmd == "read-nuscenes":
         t = time.perf_counter()
         batch, report = load_nuscenes_scenarios(args.root, args.version, workers=args.workers,
@@ -1160,37 +1250,19 @@ def _run(args) -> bool:
         print(f"read {len(waymo_paths(args.cache_dir))} Waymo scenes in {time.perf_counter() - t:.2f} s: "
               f"{WAYMO_LICENCE}")
         _summary(batch, report)
-    elif args.cmd == "render" and args.nuscenes:
-        batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
-        data_synth.render_grid(batch, args.out, args.n)
+    elif args.cmd == "render":
+        if args.nuscenes:
+            batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
+        else:
+            batch, _ = cut_samples(data_synth.generate_scenes(math.ceil(args.n / 4) + 1, seed=args.seed), 4,
+                                   np.random.default_rng(args.seed))
+        render_grid(batch, args.out, args.n)
         print(f"wrote {min(args.n, len(batch))} samples to {args.out}")
+    elif args.cmd == "stats":
+        data = data_synth.make_dataset(args.n, SynthConfig(), args.seed)
+        print(data_synth.format_statistics(data_synth.statistics(Scenarios.cat([data.train, data.val]))))
     else:
-        return False
-    return True
-
-
-def main(argv=None):
-    ap, sub, cmds = data_synth.cli_parser(
-        "DiffStack scenario data: synthetic nuScenes-like scenes, the nuScenes v1.0 format written and read, three "
-        "Waymo logs.",
-        "time generating 10 000 samples and reading a v1.0-mini-sized folder; print the medians of 3 runs")
-    whole = data_synth._whole
-    r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
-    r.add_argument("root")
-    r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    r.add_argument("--workers", type=whole(1, 1024), default=None,
-                   help="processes that parse the scenes (default: the cores, %d here)" % parse_workers())
-    r.add_argument("--cache-dir", default=None,
-                   help="cache the parse there, keyed by the sha256 of the folder's files (training, load_data, uses "
-                        "data_cache/); default: no cache")
-    wy = sub.add_parser("fetch-waymo", help="download (once) the three Waymo scenes of the metadrive-simulator "
-                                            "0.3.0.1 wheel into the cache, verify, load and summarise them")
-    wy.add_argument("--cache-dir", default="data_cache")
-    wy.add_argument("--phases", type=whole(1, WAYMO_PHASES, " (2 Hz clocks per 10 Hz log)"), default=1,
-                    help="how many of the five 2 Hz clocks of each 10 Hz log to cut samples from (default 1)")
-    cmds["render"].add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
-    cmds["render"].add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    data_synth.cli_run(ap, ap.parse_args(argv), "data_real", _run)
+        ap.print_help()
 
 
 if __name__ == "__main__":

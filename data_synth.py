@@ -1,44 +1,21 @@
-"""Synthetic scenario data for DiffStack: nuScenes-like driving, and the nuScenes v1.0 format written.
+"""Synthetic scenario data for DiffStack: nuScenes-like driving scenes, and the nuScenes v1.0 format written.
 
-The stack (diffstack.py) trains on *planning samples*: 4 s of history and 3 s of future at 2 Hz, in the ego
-frame at the current time t0, with one predicted vehicle, other agents, the lanes near the ego and a goal
-(paper §4.1, App. D). This module generates them; data_real.py reads real data into the same batches:
+The stack (diffstack.py) trains on *planning samples* (paper §4.1, App. D): 4 s of history and 3 s of future at
+2 Hz in the ego frame at t0, with one predicted vehicle, the other agents, the lanes near the ego and a goal.
+Scenes, generated here or read by data_real.py, give Scenarios through sample_at; write_nuscenes stores scenes as a
+nuScenes folder that data_real.load_nuscenes reads back exactly. The command line is data_real.py's.
 
-    synthetic scenes --(sample_at)--> Scenarios  <--(sample_at)-- Scenes <-- data_real.load_nuscenes(any v1.0 folder)
-           \\------------------- write_nuscenes -----------------------------------------------^
-
-Map of the module (the order the data flows):
-    1. Config            SynthConfig: every knob of the generator and of the sample cutting, documented
-    2. Batches           Scenarios (planning samples, the fields diffstack.py consumes) and Scenes (20 s world-frame logs)
-    3. Geometry          arcline paths (the nuScenes map primitive: arcs and straights), poses along them,
-                         2 m discretisation, the road's Frenet frame, backward-difference speeds
-    4. Synthetic scenes  map layout -> scripted agents (one predicted vehicle with paired behaviours) ->
-                         the expert ego (lane keeping, IDM car following, yielding; it sees the TRUE futures)
-                         -> collision filter -> tracking noise
-    5. Planning samples  sample_at: cut a batch at frame t0 (optionally with a simulated ego state)
-    6. Dataset           train/val split by scene, disk cache, load_or_generate (data_real.load_data: or a folder)
-    7. Statistics        speeds, accelerations, yaw rates, behaviour mix, interaction rate
-    8. Plot              plot_scenario(ax, batch, i)
-    9. nuScenes writer   13 tables, key frames for CAM_FRONT and LIDAR_TOP, map expansion 1.3, prediction split
-   10. CLI               generate, write-nuscenes, render, stats, --bench (data_real.py's adds the readers)
-
-Shape letters:  S scenes   F frames (41 = 20 s at 2 Hz)   M agents per scene   B samples   A other agents
-                L lanes    P points per lane   Q arcline paths per scene   R paths per lane (a route)
-                N fine simulation steps (sim_dt)   9 = history incl. t0   6 = future steps
-A state is s = (x, y, heading h, speed v). Speeds are backward differences of positions everywhere (central
-differences would leak the future into the inputs); accelerations and yaw rates are left to the consumer.
-Everything random takes a numpy Generator made from a seed: no global RNG.
-"""
+Shapes: S scenes, F frames (41 = 20 s at 2 Hz), M agents per scene, B samples, A other agents, L lanes, P points
+per lane, Q arcline paths per scene, R paths per lane (a route), N fine simulation steps; 9 = history with t0,
+6 = future steps. A state is (x, y, heading h, speed v). Speeds are backward differences of positions (central
+ones would leak the future into the inputs). Everything random takes a numpy Generator from a seed."""
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 import json
 import math
 import os
-import statistics as pystats
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -46,9 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-# ============================================================================================
-# 1. Config
-# ============================================================================================
+# === 1. Config ==============================================================================
 
 BEHAVIOURS = ("cut_in", "keep_lane", "lead_brake", "lead_cruise", "turn_across", "go_straight",
               "cross_go", "cross_yield", "far", "behind")
@@ -59,8 +34,7 @@ and differ in what happens at the event time, so the history only partly tells t
     turn_across / go_straight an oncoming vehicle turns left across the ego's lane at an intersection, or not
     cross_go / cross_yield   a vehicle on the crossing road (from the ego's right) crosses in front, or stops
     far                      a vehicle 35-60 m ahead in the next lane that changes lanes or not: errors don't matter
-    behind                   a vehicle behind in the next lane that merges behind the ego or not: errors don't matter
-"""
+    behind                   a vehicle behind in the next lane that merges behind the ego or not: errors don't matter"""
 _B = {name: i for i, name in enumerate(BEHAVIOURS)}
 _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yield")
 
@@ -68,84 +42,46 @@ _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yie
 @dataclass
 class SynthConfig:
     """Knobs of the synthetic generator and of cutting planning samples (used for real nuScenes too)."""
-
     # --- time (paper App. D.1: nuScenes at 2 Hz, 4 s of history, 3 s of future) ---
-    dt: float = 0.5
-    """frame period (s): nuScenes key frames are 2 Hz"""
-    frames: int = 41
-    """frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit"""
-    hist: int = 8
-    """past steps of a sample's history (the current state makes 9)"""
-    fut: int = 6
-    """future steps of a sample (3 s)"""
-    sim_dt: float = 0.25
-    """step of the generator's simulation (s); frames are every dt / sim_dt steps"""
-
+    dt: float = 0.5  # frame period (s): nuScenes key frames are 2 Hz
+    frames: int = 41  # frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit
+    hist: int = 8  # past steps of a sample's history (the current state makes 9)
+    fut: int = 6  # future steps of a sample (3 s)
+    sim_dt: float = 0.25  # step of the generator's simulation (s); frames are every dt / sim_dt steps
     # --- behaviour mix ---
-    mix: dict = field(default_factory=lambda: {
+    mix: dict = field(default_factory=lambda: {  # weight of each behaviour (BEHAVIOURS); normalised, a missing one is 0
         "cut_in": 0.15, "keep_lane": 0.13, "lead_brake": 0.12, "lead_cruise": 0.10, "turn_across": 0.09,
         "go_straight": 0.08, "cross_go": 0.09, "cross_yield": 0.08, "far": 0.08, "behind": 0.08})
-    """relative weight of each predicted-agent behaviour (BEHAVIOURS); normalised, missing names are 0"""
-    cue_prob: float = 0.7
-    """probability that an active manoeuvre is announced in the history (drift to the lane line, early slowing)"""
-    false_cue_prob: float = 0.3
-    """probability that a passive twin shows the same cue and then does not act (keeps lane, resumes speed)"""
-    intersection_prob: float = 0.25
-    """probability of an intersection in scenes whose behaviour does not need one"""
-    curved_prob: float = 0.5
-    """probability that a road without intersection is a constant-curvature arc (else straight)"""
-    min_radius: float = 150.0
-    """smallest road radius (m); the arc's curvature is uniform in [1/1000, 1/min_radius] with a random sign"""
-
+    cue_prob: float = 0.7  # P(an active manoeuvre is announced in the history: a drift to the line, early slowing)
+    false_cue_prob: float = 0.3  # P(a passive twin shows the same cue, then does not act: keeps lane, resumes speed)
+    intersection_prob: float = 0.25  # probability of an intersection in scenes whose behaviour does not need one
+    curved_prob: float = 0.5  # probability that a road without intersection is a constant-curvature arc (else straight)
+    min_radius: float = 150.0  # smallest road radius (m); curvature uniform in [1/1000, 1/min_radius], random sign
     # --- agents ---
-    ego_speed: tuple = (6.0, 14.0)
-    """range of the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15 m/s"""
-    n_vehicles: int = 6
-    """most moving background vehicles per scene (a uniform count from half of it)"""
-    n_parked: int = 2
-    """most parked vehicles on the kerb per scene"""
-    n_peds: int = 4
-    """most pedestrians on the sidewalks per scene"""
-    lane_width: float = 3.5
-    """lane width W (m)"""
-
+    ego_speed: tuple = (6.0, 14.0)  # the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15
+    n_vehicles: int = 6  # most moving background vehicles per scene (a uniform count from half of it)
+    n_parked: int = 2  # most parked vehicles on the kerb per scene
+    n_peds: int = 4  # most pedestrians on the sidewalks per scene
+    lane_width: float = 3.5  # lane width W (m)
     # --- tracking noise on the other agents' logged tracks (ego poses are exact, as from localisation) ---
-    pos_noise: float = 0.08
-    """std of the AR(1) position noise (m); applied to history AND future, like real annotations"""
-    yaw_noise: float = 0.01
-    """std of the AR(1) heading noise (rad)"""
-    noise_corr: float = 0.9
-    """AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)"""
-
+    pos_noise: float = 0.08  # std of the AR(1) position noise (m); applied to history AND future, like real annotations
+    yaw_noise: float = 0.01  # std of the AR(1) heading noise (rad)
+    noise_corr: float = 0.9  # AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)
     # --- cutting samples (synthetic and real) ---
-    samples_per_scene: int = 4
-    """samples cut from a synthetic scene, at random frames of event_window"""
-    event_window: tuple = (-5, 1)
-    """frames around the predicted agent's event where synthetic samples are cut: t0 from 2.5 s before the
-    event (it happens within the 3 s future) to 0.5 s after (it has just begun, visible in the history)"""
-    lane_points: int = 40
-    """P: points per lane in a sample (2 m apart: 80 m)"""
-    lane_spacing: float = 2.0
-    """distance between lane points (m)"""
-    lane_behind: int = 2
-    """a sample's lane starts this many points behind the point closest to the ego"""
-    max_lanes: int = 12
-    """L: at most this many lanes per sample, the closest to the ego"""
-    lane_radius: float = 30.0
-    """a lane is near the ego when one of its points is within this distance (m)"""
-    max_others: int = 16
-    """A: at most this many other agents per sample, the closest to the ego"""
-    others_radius: float = 50.0
-    """other agents farther than this from the ego at t0 are left out (m)"""
-    map_radius: float = 60.0
-    """loader: map lanes within this distance of the ego's logged path form the scene's lane graph (m)"""
-    val_fraction: float = 0.15
-    """fraction of scenes (not samples) held out for validation"""
+    samples_per_scene: int = 4  # samples cut from a synthetic scene, at random frames of event_window
+    event_window: tuple = (-5, 1)  # synthetic t0s: 2.5 s before the event (in the 3 s future) to 0.5 s after (seen)
+    lane_points: int = 40  # P: points per lane in a sample (2 m apart: 80 m)
+    lane_spacing: float = 2.0  # distance between lane points (m)
+    lane_behind: int = 2  # a sample's lane starts this many points behind the point closest to the ego
+    max_lanes: int = 12  # L: at most this many lanes per sample, the closest to the ego
+    lane_radius: float = 30.0  # a lane is near the ego when one of its points is within this distance (m)
+    max_others: int = 16  # A: at most this many other agents per sample, the closest to the ego
+    others_radius: float = 50.0  # other agents farther than this from the ego at t0 are left out (m)
+    map_radius: float = 60.0  # reader: map lanes this near the ego's logged path (m) form the scene's lane graph
+    val_fraction: float = 0.15  # fraction of scenes (not samples) held out for validation
 
 
-# ============================================================================================
-# 2. Batches: Scenarios (planning samples) and Scenes (world-frame logs)
-# ============================================================================================
+# === 2. Batches: Scenarios (planning samples) and Scenes (world-frame logs) =================
 
 
 class _Batch:
@@ -158,26 +94,20 @@ class _Batch:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if isinstance(getattr(self, f.name), torch.Tensor)}
 
+    def _map(self, tensor, other=None):
+        """The same class with tensor(v) for each tensor field v, other(v) for the others (a list of names)."""
+        return type(self)(**{f.name: tensor(v) if isinstance(v := getattr(self, f.name), torch.Tensor) else
+                             other(v) if other else v for f in dataclasses.fields(self)})
+
     def __getitem__(self, idx):
-        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows."""
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                out[f.name] = v[idx]
-            else:  # a list (scene names): index it like the tensors
-                out[f.name] = list(np.asarray(v, dtype=object)[np.arange(len(v))[_np_index(idx)]])
-        return type(self)(**out)
+        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows (names too)."""
+        rows = lambda v: np.arange(len(v))[idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx]  # noqa: E731
+        return self._map(lambda v: v[idx], lambda v: list(np.asarray(v, dtype=object)[rows(v)]))
 
     def to(self, dtype=None, device=None):
         """Floating tensors to dtype (bool/int stay), everything to device."""
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
-            out[f.name] = v
-        return type(self)(**out)
+        return self._map(lambda v: v.to(device=device, dtype=dtype if dtype is not None and v.is_floating_point()
+                                        else None))
 
     @classmethod
     def cat(cls, items: list):
@@ -189,8 +119,7 @@ class _Batch:
                 out[f.name] = [x for v in vs for x in v]
                 continue
             shape = [max(v.shape[d] for v in vs) for d in range(1, vs[0].dim())]
-            fill = -1 if vs[0].dtype == torch.int64 else 0
-            padded = []
+            fill, padded = -1 if vs[0].dtype == torch.int64 else 0, []
             for v in vs:
                 p = torch.full((v.shape[0], *shape), fill, dtype=v.dtype)
                 p[tuple(slice(0, n) for n in v.shape)] = v
@@ -199,15 +128,10 @@ class _Batch:
         return cls(**out)
 
 
-def _np_index(idx):
-    return idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx
-
-
 @dataclass
 class Scenarios(_Batch):
     """A batch of planning samples, every coordinate in the EGO FRAME AT t0 (ego at the origin, heading +x).
     These are the fields diffstack.py consumes; padding is 0 / False, never NaN."""
-
     ego_hist: torch.Tensor  # (B, 9, 4)   ego states t-8..t0; ego_hist[:, -1] = (0, 0, 0, v)
     ego_fut: torch.Tensor  # (B, 6, 4)    ego GT future t1..t6 (the expert's plan)
     agent_hist: torch.Tensor  # (B, 9, 4)  the predicted vehicle's history
@@ -225,11 +149,9 @@ class Scenarios(_Batch):
 
 @dataclass
 class Scenes(_Batch):
-    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres).
-
-    The map is kept twice: as arcline paths with the lanes' routes through them (what the nuScenes map
-    expansion stores; the writer needs it) and as the routes discretised every 2 m (what sample_at crops)."""
-
+    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres). The map is kept
+    twice: as arcline paths with the lanes' routes through them (what the nuScenes map expansion stores; the writer
+    needs it) and as the routes discretised every 2 m (what sample_at crops)."""
     ego: torch.Tensor  # (S, F, 4)  ego states (x, y, h, v)
     agents: torch.Tensor  # (S, M, F, 4)  other agents' logged states (tracking noise included)
     agents_mask: torch.Tensor  # (S, M, F) bool  annotated at that frame
@@ -246,15 +168,10 @@ class Scenes(_Batch):
     names: list  # S scene names
 
 
-# ============================================================================================
-# 3. Geometry: arcline paths, poses along them, discretisation, the road frame
-# ============================================================================================
-#
-# The nuScenes map expansion stores a lane as arcline paths. One path = a start pose and three pieces of
-# constant curvature sign_k / radius and length l_k (shape LSR = left arc, straight, right arc, ...). We use
-# the same primitive for the generator's roads, so that a map written to disk and read back gives back the
-# same lanes bit for bit. A *segment* below is one piece with its start pose: [x0, y0, yaw0, kappa, length].
-# Along a segment, at arc length u (kappa -> 0 is the straight line; a Taylor series keeps it exact there):
+# === 3. Geometry: arcline paths, poses along them, discretisation, the road frame ===========
+# A nuScenes lane is arcline paths: a start pose and three pieces of curvature sign_k / radius, length l_k (shape
+# LSR = left arc, straight, right arc, ...). The generator's roads use them too, so a map written and read back gives
+# the same lanes bit for bit. A *segment* is one piece, [x0, y0, yaw0, kappa, length]; at arc length u along it:
 #     x = x0 + cos(yaw0) A - sin(yaw0) C,   y = y0 + sin(yaw0) A + cos(yaw0) C,   yaw = yaw0 + kappa u,
 #     A = sin(kappa u) / kappa,   C = (1 - cos(kappa u)) / kappa.
 
@@ -263,9 +180,8 @@ _SHAPE_SIGNS = {"LSL": (1, 0, 1), "LSR": (1, 0, -1), "RSL": (-1, 0, 1), "RSR": (
 
 
 def wrap_angle(a):
-    """Angle to (-pi, pi], for numpy arrays and torch tensors alike: the one angle-wrapping function of the
-    project (diffstack.py imports it). atan2(sin a, cos a) rather than a modulo: it is smooth wherever it is
-    used (away from +-pi) and its gradient is 1."""
+    """Angle to (-pi, pi] (numpy or torch), the project's one wrapping function: atan2(sin a, cos a), not a modulo,
+    so that it is smooth away from +-pi with gradient 1."""
     if torch.is_tensor(a):
         return torch.atan2(torch.sin(a), torch.cos(a))
     return np.arctan2(np.sin(a), np.cos(a))
@@ -276,8 +192,7 @@ def _arc(kappa, u):
     ku = kappa * u
     small = np.abs(ku) < 1e-4
     ks = np.where(small, 1.0, kappa)
-    a = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks)
-    c = np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
+    a, c = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks), np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
     return a, c
 
 
@@ -310,13 +225,10 @@ def route_segments(paths, routes):
 
 
 def pose_along(segs, u):
-    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments (..., G, 5).
-
-    Each segment keeps its own start pose (no drift across joints); before the start and past the end the
-    first / last segment is extended, so agents can drive off a path's ends smoothly."""
+    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments (..., G, 5). Each
+    segment keeps its own start pose (no drift across joints); the first / last one extends past the ends."""
     lengths = segs[..., 4]  # (..., G)
-    starts = np.cumsum(lengths, -1) - lengths
-    G = lengths.shape[-1]
+    starts, G = np.cumsum(lengths, -1) - lengths, lengths.shape[-1]
     first = np.argmax(lengths > 0, -1)[..., None]  # (..., 1)
     k = np.broadcast_to(first, u.shape).copy()  # (..., N) the segment each u falls on
     for g in range(G):  # G is small: a loop over segments, vectorised over everything else
@@ -326,9 +238,8 @@ def pose_along(segs, u):
 
 
 MAX_LANE_POINTS = 20_000
-"""Most points one lane or route may be discretised into: 40 km at the 2 m spacing. Generated paths are at most
-~430 m long (215 points) and real nuScenes lanes are far shorter than a kilometre, so this only stops a corrupt
-length (say 1e9 m) from allocating gigabytes; the loader names the lane token instead (see _read_map)."""
+"""Most points of one discretised lane or route (40 km at 2 m; generated paths are ~430 m, real lanes under 1 km):
+it stops a corrupt length (say 1e9 m) from allocating gigabytes."""
 
 
 def _lane_points(length: float, spacing: float):
@@ -367,8 +278,7 @@ def frenet_to_xy(s, d, kappa):
 def xy_to_frenet(x, y, kappa):
     """Inverse of frenet_to_xy (closed form; d = (2y - kappa (x^2 + y^2)) / (1 + r) avoids 1/kappa)."""
     r = np.sqrt((kappa * x) ** 2 + (1 - kappa * y) ** 2)
-    d = (2 * y - kappa * (x**2 + y**2)) / (1 + r)
-    ks = np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
+    d, ks = (2 * y - kappa * (x**2 + y**2)) / (1 + r), np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
     s = np.where(np.abs(kappa) < 1e-12, x, np.arctan2(kappa * x, 1 - kappa * y) / ks)
     return s, d
 
@@ -376,16 +286,12 @@ def xy_to_frenet(x, y, kappa):
 def backward_speed(xy, mask, t):
     """Speed by backward differences: |p_t - p_prev| / (t - t_prev), prev = the previous observed frame.
     xy (..., F, 2), mask (..., F), t (..., F) seconds -> (..., F); a track's first frame copies its second."""
-    F = xy.shape[-2]
-    t = np.broadcast_to(t, mask.shape)
+    F, t = xy.shape[-2], np.broadcast_to(t, mask.shape)
     idx = np.where(mask, np.arange(F), -1)
     prev = np.maximum.accumulate(np.concatenate([np.full(idx.shape[:-1] + (1,), -1), idx[..., :-1]], -1), -1)
-    has_prev = mask & (prev >= 0)
-    p = np.maximum(prev, 0)
-    dp = xy - np.take_along_axis(xy, p[..., None], -2)
-    dt = t - np.take_along_axis(t, p, -1)
+    has_prev, p = mask & (prev >= 0), np.maximum(prev, 0)
+    dp, dt = xy - np.take_along_axis(xy, p[..., None], -2), t - np.take_along_axis(t, p, -1)
     v = np.where(has_prev, np.linalg.norm(dp, axis=-1) / np.where(has_prev, dt, 1.0), 0.0)
-    # the first observed frame of a track has no past: it copies the speed of the next observed frame
     obs = np.where(mask, np.arange(F), F)
     after = np.minimum.accumulate(obs[..., ::-1], -1)[..., ::-1]  # first observed frame >= f
     nxt = np.concatenate([after[..., 1:], np.full(idx.shape[:-1] + (1,), F)], -1)  # first observed frame > f
@@ -393,20 +299,13 @@ def backward_speed(xy, mask, t):
     return np.where(first, np.take_along_axis(v, np.minimum(nxt, F - 1), -1), v)
 
 
-# ============================================================================================
-# 4. Synthetic scenes
-# ============================================================================================
-#
-# One scene = one road (main road with n_fwd lanes in the ego's direction and n_opp oncoming lanes,
-# straight or a constant-curvature arc), sometimes crossed by a two-lane road at an intersection at road
-# position s = 0. Every agent drives along an arcline *path* (its lane, or a turn through the intersection)
-# with a scripted speed program and a lateral offset (lane changes); agents do not react to each other and
-# are placed so that they rarely collide. The ego is simulated last, with an expert policy that reacts to
-# the TRUE futures of everybody, so its logged trajectory is a sensible plan to imitate. Scenes where
-# anything still collides are dropped (and regenerated).
-#
-# Road frame: s along the main road's reference line (its centre divider), d to the left. Forward lane i
-# (0 = next to the divider) is at d = -(i + 1/2) W, oncoming lane j at d = +(j + 1/2) W (right-hand traffic).
+# === 4. Synthetic scenes ====================================================================
+# One scene = one road (n_fwd lanes in the ego's direction, n_opp oncoming; straight or an arc), sometimes crossed
+# by a two-lane road at an intersection at s = 0. Every agent follows an arcline *path* (its lane, or a turn) with a
+# scripted speed program and lateral offset; agents do not react to each other and are placed to rarely collide.
+# The ego is simulated last by an expert that sees everybody's TRUE future, so its log is a sensible plan to
+# imitate; scenes where anything still collides are regenerated. Road frame: s along the centre divider, d to the
+# left; forward lane i (0 next to the divider) at d = -(i + 1/2) W, oncoming lane j at +(j + 1/2) W.
 
 _CAR = (1.9, 4.6, 1.6)  # width, length, height (m)
 _PED = (0.6, 0.6, 1.75)
@@ -438,8 +337,7 @@ def _arc_path(x, y, yaw, radius, sign, l_arc, l_straight, ones):
 
 def _lane_path(d, kappa, forward):
     """The open-ended path of the lane at road offset d, u = 0 at s = 0: segments (..., 3, 5)."""
-    one = np.ones_like(d * kappa)
-    k_lane = kappa / (1 - kappa * d)
+    one, k_lane = np.ones_like(d * kappa), kappa / (1 - kappa * d)
     seg0 = np.stack([0 * one, d * one, np.where(forward, 0.0, np.pi) * one,
                      np.where(forward, k_lane, -k_lane) * one, _LONG * one], -1)
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
@@ -447,8 +345,7 @@ def _lane_path(d, kappa, forward):
 
 def _draw_layout(S, cfg, rng):
     """Per-scene road, behaviour, timing and ego speed: a dict of (S,) arrays."""
-    unknown = set(cfg.mix) - set(BEHAVIOURS)
-    if unknown:
+    if unknown := set(cfg.mix) - set(BEHAVIOURS):
         raise ValueError(f"SynthConfig.mix: unknown behaviours {sorted(unknown)}; known: {BEHAVIOURS}")
     w = np.array([float(cfg.mix.get(b, 0.0)) for b in BEHAVIOURS])
     if (w < 0).any() or w.sum() <= 0:
@@ -458,8 +355,7 @@ def _draw_layout(S, cfg, rng):
     n_fwd, n_opp = rng.integers(2, 4, S), rng.integers(1, 3, S)
     curv = rng.uniform(1 / 1000, 1 / cfg.min_radius, S) * rng.choice([-1.0, 1.0], S)
     kappa = np.where(~inter & (rng.random(S) < cfg.curved_prob), curv, 0.0)
-    ego_lane = np.floor(rng.random(S) * n_fwd).astype(int)
-    side = np.where(rng.random(S) < 0.5, -1, 1)
+    ego_lane, side = np.floor(rng.random(S) * n_fwd).astype(int), np.where(rng.random(S) < 0.5, -1, 1)
     side = np.where((ego_lane + side < 0) | (ego_lane + side >= n_fwd), -side, side)
     v_e0 = rng.uniform(*cfg.ego_speed, S)
     v_des = np.minimum(np.minimum(v_e0 * rng.uniform(1.0, 1.1, S), 15.0), np.sqrt(2.5 / np.maximum(abs(kappa), 1e-9)))
@@ -468,10 +364,9 @@ def _draw_layout(S, cfg, rng):
 
 
 def _script_agents(lay, cfg, rng):
-    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0.
-
-    A program: path segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2 (from t2) tracked
-    with |decel| <= dec1 / dec2; an optional stop at u_stop held until t_go; a lateral offset
+    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0. A program: path
+    segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2 (from t2) tracked with |decel| <= dec1
+    / dec2; an optional stop at u_stop held until t_go; a lateral offset
         d(t) = d0 + D S((t - t_lc)/T_lc) + c (S((t - t_up)/T_up) - S((t - t_dn)/T_dn))
     (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift and back).
     Agents with a finite anchor_t are shifted after simulation so that they are at anchor_u at anchor_t."""
@@ -488,34 +383,28 @@ def _script_agents(lay, cfg, rng):
              T_dn=np.full((S, M), 1.5), anchor_u=np.zeros((S, M)), exists=np.zeros((S, M), bool),
              is_ped=np.zeros((S, M), bool), segs=np.zeros((S, M, 3, 5)))
     p["size"] = np.broadcast_to(np.array(_CAR), (S, M, 3)).copy()
-
     d_f = lambda i: -(i + 0.5) * W  # noqa: E731  forward lane offsets
     d_o = lambda j: (j + 0.5) * W  # noqa: E731  oncoming lane offsets
     de, dj = d_f(lay["ego_lane"]), d_f(lay["adj_lane"])
     bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
     y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
     R_left = bx + W / 2  # radius of the oncoming left turn
-
     # --- slot 0, the predicted vehicle ------------------------------------------------------------------
     p["exists"][:, 0] = True
     p["size"][:, 0, 0], p["size"][:, 0, 1] = U(1.8, 2.0), U(4.3, 4.9)
     cue, false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
-
     # (a) an agent in the adjacent forward lane: cut_in / keep_lane / far / behind.
     #     Its lane change starts 1 s before the event (so the event is when it reaches the ego's lane); in the
     #     middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
-    adj = is_("cut_in", "keep_lane", "far", "behind")
-    T_lc = U(2.5, 4.0)
+    adj, T_lc = is_("cut_in", "keep_lane", "far", "behind"), U(2.5, 4.0)
     t_lc = t_e - 1.0
     t_ref = t_lc + T_lc / 2
     gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(4, 10), U(35, 60)], U(-25, -10))
     v_adj = np.select([is_("cut_in", "keep_lane"), is_("far")], [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
                       v_e0 + U(-2, 0.5)).clip(5.0, 20.0)
-    changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
-    toward = np.sign(de - dj)
+    changes, toward = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5)), np.sign(de - dj)
     # (b) the vehicle ahead in the ego's lane: lead_brake / lead_cruise
-    lead = is_("lead_brake", "lead_cruise")
-    v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
+    lead, v_lead = is_("lead_brake", "lead_cruise"), np.maximum(v_e0 + U(-1, 0.5), 4.0)
     g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
     # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the ego's
     #     lane at the event time; it is at the box edge R acos(h / R) / v_turn earlier (h: see below).
@@ -527,16 +416,13 @@ def _script_agents(lay, cfg, rng):
     cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
     v_cross = U(6, 9)
     t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
-
     # --- the ego's start (road s). Intersection situations: its front reaches the conflict point delta after
     #     the other vehicle's centre (the expert then yields); the same delta for both twins, so nothing leaks.
     #     Other scenes: 4-16 s before the intersection if there is one, else at s = 0.
-    delta = U(-0.5, 1.0)
-    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
+    delta, x_turn_conflict = U(-0.5, 1.0), bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
     s_e0 = np.select([onc, cross, lay["inter"]],
                      [x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
                       W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta), -v_e0 * U(4, 16)], 0.0)
-
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
         [_lane_path(dj, kappa, True), _lane_path(de, kappa, True), _turn_path(S, W, bx, R_left, lay["n_fwd"]),
@@ -564,11 +450,9 @@ def _script_agents(lay, cfg, rng):
     # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and harder);
     # a go_straight vehicle with the false cue slows the same way, then speeds up again at the box
     gentle = np.where(turn, cue, false_cue)
-    dec = np.where(gentle, 1.5, 3.0)
-    slows = turn | (onc & false_cue)
+    dec, slows = np.where(gentle, 1.5, 3.0), turn | (onc & false_cue)
     p["t1"][:, 0] = np.where(onc & slows, t_box - (v_onc - v_turn) / dec - 1.0, p["t1"][:, 0])
-    p["v1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0])
-    p["dec1"][:, 0] = np.where(onc, dec, p["dec1"][:, 0])
+    p["v1"][:, 0], p["dec1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0]), np.where(onc, dec, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(turn, t_box + 3.0, np.where(onc & slows, t_box, p["t2"][:, 0]))
     p["v2"][:, 0] = np.where(onc, v_onc, p["v2"][:, 0])
     # crossing: cross_go is at the box edge at t_box (a false cue: it slows to half speed first);
@@ -579,23 +463,16 @@ def _script_agents(lay, cfg, rng):
     p["dec1"][:, 0] = np.where(go_slow, 1.5, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(go_slow, t_box - 1.0, p["t2"][:, 0])
     p["v2"][:, 0] = np.where(cross, v_cross, p["v2"][:, 0])
-    b_stop = np.where(cue, 1.2, 3.0)
-    u_stop = _FAR - 1.0 - p["size"][:, 0, 1] / 2
-    p["u_stop"][:, 0] = np.where(yields, u_stop, inf)
-    p["b_stop"][:, 0] = b_stop
+    b_stop, u_stop = np.where(cue, 1.2, 3.0), _FAR - 1.0 - p["size"][:, 0, 1] / 2
+    p["u_stop"][:, 0], p["b_stop"][:, 0] = np.where(yields, u_stop, inf), b_stop
     p["u_start"][:, 0] = np.where(yields, u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
                                   p["u_start"][:, 0])
     p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)  # the ego has passed
-    p["anchor_t"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf)
-    p["anchor_u"][:, 0] = _FAR
-
-
+    p["anchor_t"][:, 0], p["anchor_u"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf), _FAR
     # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) -----------
-    p["exists"][:, 1] = ~lead & (rng.random(S) < 0.5)
-    p["segs"][:, 1] = _lane_path(de, kappa, True)
+    p["exists"][:, 1], p["segs"][:, 1] = ~lead & (rng.random(S) < 0.5), _lane_path(de, kappa, True)
     p["u_start"][:, 1] = (s_e0 + U(55, 90)) * (1 - kappa * de)
     p["v0"][:, 1] = np.minimum(lay["v_des"] + U(1, 3), 20.0)
-
     # --- background traffic on the lanes nobody else uses, each lane at its own speed, spaced 25-45 m ------
     lane_d = np.stack([d_f(0) * one, d_f(1) * one, d_f(2) * one, d_o(0) * one, d_o(1) * one], 1)  # (S, 5)
     lane_fwd = np.array([True, True, True, False, False])
@@ -617,9 +494,7 @@ def _script_agents(lay, cfg, rng):
         d, fwd = take(lane_d), lane_fwd[choice]
         p["exists"][:, bg] = np.arange(nb) < rng.integers((nb + 1) // 2, nb + 1, S)[:, None]
         p["segs"][:, bg] = _lane_path(d, kappa[:, None], fwd)
-        p["u_start"][:, bg] = np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d)
-        p["v0"][:, bg] = take(lane_v)
-
+        p["u_start"][:, bg], p["v0"][:, bg] = np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d), take(lane_v)
     # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ---------------------
     pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + cfg.n_parked)
     d_out = d_f(lay["n_fwd"] - 1)[:, None]
@@ -629,18 +504,15 @@ def _script_agents(lay, cfg, rng):
     p["segs"][:, pk] = _lane_path(d_out, kappa[:, None], True)
     p["u_start"][:, pk] = s_pk * (1 - kappa[:, None] * d_out)
     p["d0"][:, pk] = -(W / 2 + 1.0)  # centre 1 m outside the lane's edge
-
     # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) -----------------
-    pd = slice(M - cfg.n_peds, M)
-    left = rng.random((S, cfg.n_peds)) < 0.5
+    pd, left = slice(M - cfg.n_peds, M), rng.random((S, cfg.n_peds)) < 0.5
     walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)  # each pedestrian its own line: they never walk into each other
     d_sw = np.where(left, lay["n_opp"][:, None] * W + walkway, -lay["n_fwd"][:, None] * W - walkway)
     s_pd = s_e0[:, None] + rng.uniform(-30, 200, (S, cfg.n_peds))
     s_pd = np.where(lay["inter"][:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
     fwd = np.where(lay["inter"][:, None], s_pd > 0, rng.random((S, cfg.n_peds)) < 0.5)
     p["exists"][:, pd] = np.arange(cfg.n_peds) < rng.integers((cfg.n_peds + 1) // 2, cfg.n_peds + 1, S)[:, None]
-    p["is_ped"][:, pd] = True
-    p["size"][:, pd] = _PED
+    p["is_ped"][:, pd], p["size"][:, pd] = True, _PED
     p["segs"][:, pd] = _lane_path(d_sw, kappa[:, None], fwd)
     p["u_start"][:, pd] = np.where(fwd, s_pd, -s_pd) * (1 - kappa[:, None] * d_sw)
     p["v0"][:, pd] = rng.uniform(0.8, 1.6, (S, cfg.n_peds))
@@ -679,8 +551,7 @@ def _run_programs(p, n_steps, sim_dt):
         dec = np.where(t < p["t1"], 2.0, np.where(t < p["t2"], p["dec1"], p["dec2"]))
         a = np.clip(2.0 * (v_ref - v), -dec, 1.5)
         # stopping at u_stop until t_go: brake at the constant deceleration v^2 / (2 gap) once it exceeds b_stop
-        gap = p["u_stop"] - u
-        stopping = t < p["t_go"]
+        gap, stopping = p["u_stop"] - u, t < p["t_go"]
         need = v**2 / (2 * np.maximum(gap, 0.05))
         a = np.where(stopping & (need > p["b_stop"]), -np.minimum(need, 4.0), a)
         hold = stopping & (gap < 0.5) & (v < 0.5)
@@ -702,24 +573,19 @@ def _agent_states(p, us, vs, t):
     d_dot = D * ds_lc / p["T_lc"][..., None] + c * (ds_up / p["T_up"][..., None] - ds_dn / p["T_dn"][..., None])
     pose, kappa = pose_along(p["segs"], us)  # (S, M, N, 3), (S, M, N)
     along = vs * (1 - kappa * d)
-    x = pose[..., 0] - d * np.sin(pose[..., 2])
-    y = pose[..., 1] + d * np.cos(pose[..., 2])
+    x, y = pose[..., 0] - d * np.sin(pose[..., 2]), pose[..., 1] + d * np.cos(pose[..., 2])
     return np.stack([x, y, pose[..., 2] + np.arctan2(d_dot, along), np.hypot(along, d_dot)], -1)
 
 
 def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
-    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields.
-
-    It sees the others' TRUE futures: an agent that will be in its lane corridor within the next 3 s is an
-    obstacle at the road position it will have then, if it drives along the road (a leader, a car merging in)
-    or if it is still there at most 0.6 s before the ego would reach that position at its current speed (a car
-    crossing or turning through the ego's lane: the ego yields, or passes just after it has cleared);
-    never if the ego at constant speed would already be past it. IDM
-    (Treiber et al. 2000):  a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
-                            s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))),  a in [-4, a_max]."""
+    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields. An agent that will
+    be in its lane corridor within 3 s (TRUE futures) is an obstacle at its road position then, if it drives along
+    the road (a leader, a car merging in) or is still there at most 0.6 s before the ego would reach it at its
+    current speed (crossing or turning: the ego yields, or passes just after); never if the ego at constant speed
+    would already be past it. IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
+    s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))), a in [-4, a_max]."""
     S, N, W = len(s_e0), len(t), cfg.lane_width
-    kappa = lay["kappa"]
-    de = -(lay["ego_lane"] + 0.5) * W
+    kappa, de = lay["kappa"], -(lay["ego_lane"] + 0.5) * W
     # the others in the road frame: position, longitudinal speed, half-extents along and across the road
     s_a, d_a = xy_to_frenet(others[..., 0], others[..., 1], kappa[:, None, None])  # (S, M, N)
     rel = others[..., 2] - kappa[:, None, None] * s_a
@@ -755,28 +621,24 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     off = amp[:, None] * np.sin(2 * np.pi * us / lam[:, None] + phase[:, None])  # (S, N)
     doff_du = amp[:, None] * 2 * np.pi / lam[:, None] * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
-    x = pose[..., 0] - off * np.sin(pose[..., 2])
-    y = pose[..., 1] + off * np.cos(pose[..., 2])
+    x, y = pose[..., 0] - off * np.sin(pose[..., 2]), pose[..., 1] + off * np.cos(pose[..., 2])
     ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)  # (S, N, 4)
     return ego, us / (1 - kappa * de)[:, None]
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
-    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3).
-
-    Path slots: forward lane i -> 3i..3i+2 (before / through / after the intersection; one path without it),
-    oncoming lane j -> 9+3j.., southbound crossing lane 15..17, northbound 18..20, the ego side's right turn 21,
-    the oncoming left turn 22. Routes: forward 0-2, oncoming 3-4, south 5, north 6, right turn 7, left turn 8;
-    they are exactly the maximal chains of the graph, which is what the loader rebuilds from the connectivity."""
+    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3). Path slots: forward
+    lane i -> 3i..3i+2 (before / through / after the intersection; one path without it), oncoming lane j -> 9+3j..,
+    southbound crossing lane 15..17, northbound 18..20, the ego side's right turn 21, the oncoming left turn 22.
+    Routes: forward 0-2, oncoming 3-4, south 5, north 6, right turn 7, left turn 8; they are exactly the maximal
+    chains of the graph, which is what the loader rebuilds from the connectivity."""
     S, W, kappa, inter = len(s_lo), cfg.lane_width, lay["kappa"], lay["inter"]
     n_fwd, n_opp = lay["n_fwd"], lay["n_opp"]
     one = np.ones(S)
     bx, y_top, y_bot = W + _BOX_MARGIN, n_opp * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
     Y = 60.0  # the crossing road's lanes reach this far from the main road
-    paths = np.zeros((S, 23, 10))
-    valid = np.zeros((S, 23), bool)
-    conn = np.zeros((S, 23), bool)
-    routes = np.full((S, 9, 3), -1)
+    paths, valid = np.zeros((S, 23, 10)), np.zeros((S, 23), bool)
+    conn, routes = np.zeros((S, 23), bool), np.full((S, 9, 3), -1)
     for i in range(3):
         for d, fwd in [(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]:
             if not fwd and i > 1:
@@ -837,13 +699,11 @@ def _collides(ego, agents, sizes, is_ped, exists):
     S, M, F, _ = agents.shape
     states = np.concatenate([ego[:, None], agents], 1)  # (S, 1+M, F, 4)
     sz = np.concatenate([np.broadcast_to(np.array([_EGO_W, _EGO_L, 1.6]), (S, 1, 3)), sizes], 1)
-    ped = np.concatenate([np.zeros((S, 1), bool), is_ped], 1)
-    ex = np.concatenate([np.ones((S, 1), bool), exists], 1)
+    ped, ex = np.concatenate([np.zeros((S, 1), bool), is_ped], 1), np.concatenate([np.ones((S, 1), bool), exists], 1)
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
     # only pairs whose centres come within reach (two car lengths) need the disc test
-    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1)
-    near &= ex[:, iu] & ex[:, ju]
+    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1) & ex[:, iu] & ex[:, ju]
     s, k = np.nonzero(near)
     ci, cj = c[s, iu[k]], c[s, ju[k]]  # (n, F, 3, 2)
     dist = np.linalg.norm(ci[:, :, :, None] - cj[:, :, None], axis=-1)  # (n, F, 3, 3)
@@ -853,8 +713,7 @@ def _collides(ego, agents, sizes, is_ped, exists):
 
 def _ar1_noise(shape, sigma, rho, rng):
     """Stationary AR(1) noise along the last axis: e_f = rho e_(f-1) + sqrt(1 - rho^2) sigma xi_f."""
-    xi = rng.standard_normal(shape) * sigma
-    e = np.empty(shape)
+    xi, e = rng.standard_normal(shape) * sigma, np.empty(shape)
     e[..., 0] = xi[..., 0]
     for f in range(1, shape[-1]):
         e[..., f] = rho * e[..., f - 1] + math.sqrt(1 - rho**2) * xi[..., f]
@@ -875,14 +734,11 @@ def _simulate_chunk(S, cfg, rng):
     # the map spans the ego's drive: 40 m behind its start, 90 m past its end (the crop needs 80 m ahead)
     paths, conn, routes = _build_map(lay, s_ego[:, 0] - 40.0, s_ego[:, -1] + 90.0, cfg)
     # tracking noise on the others' logs (history and future alike), then speeds by backward differences
-    M, F = others.shape[1], others.shape[2]
-    noisy = others.copy()
+    M, F, noisy = others.shape[1], others.shape[2], others.copy()
     for ch, sigma in [(0, cfg.pos_noise), (1, cfg.pos_noise), (2, cfg.yaw_noise)]:
         noisy[..., ch] += _ar1_noise((S, M, F), sigma, cfg.noise_corr, rng)
-    noisy[..., 2] = wrap_angle(noisy[..., 2])
-    ego[..., 2] = wrap_angle(ego[..., 2])
-    tf = np.arange(F) * cfg.dt
-    mask = np.broadcast_to(p["exists"][..., None], (S, M, F))
+    noisy[..., 2], ego[..., 2] = wrap_angle(noisy[..., 2]), wrap_angle(ego[..., 2])
+    tf, mask = np.arange(F) * cfg.dt, np.broadcast_to(p["exists"][..., None], (S, M, F))
     noisy[..., 3] = backward_speed(noisy[..., :2], mask, tf) * mask
     ego[..., 3] = backward_speed(ego[..., :2], np.ones((S, F), bool), tf)
     noisy *= mask[..., None]
@@ -894,32 +750,26 @@ def _simulate_chunk(S, cfg, rng):
 
 
 MAX_SCENES = 500_000
-"""Most scenes generate_scenes makes in one call (and write-nuscenes writes): MAX_SAMPLES at the default 4 samples
-per scene. About 35 GB of float64 logs; a bound against typos such as 1e9, not a memory guarantee."""
+"""Most scenes per generate_scenes call: MAX_SAMPLES at 4 per scene (~35 GB of float64), a bound against typos."""
 
 
 def _check_count(where: str, name: str, n, cap: int):
-    """n must be a whole number in 1..cap (bool is not a number here); else a ValueError naming name, n and cap."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= cap:
         raise ValueError(f"{where}: {name} must be a whole number from 1 to {cap:,}, got {n!r}")
 
 
 def _check_seed(where: str, seed):
-    """A seed for np.random.default_rng: a whole number >= 0."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"{where}: seed must be a whole number >= 0, got {seed!r}")
 
 
 def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512) -> Scenes:
-    """n synthetic scenes of cfg.frames frames, deterministic for (cfg, seed). Candidates where any two bodies
-    touch are dropped and replaced (about 4 % with the defaults, mostly intersection scenes where the crossing
-    vehicle meets background traffic), simulated in chunks of `chunk` scenes to bound memory.
-    n is bounded by MAX_SCENES (a ValueError naming n and the cap)."""
+    """n <= MAX_SCENES synthetic scenes, deterministic for (cfg, seed). Candidates where two bodies touch are
+    replaced (~4 % by default, mostly crossing vehicles meeting traffic); simulated `chunk` scenes at a time."""
     _check_count("generate_scenes", "n (scenes)", n, MAX_SCENES)
     _check_count("generate_scenes", "chunk", chunk, MAX_SCENES)
     _check_seed("generate_scenes", seed)
-    cfg = cfg or SynthConfig()
-    rng = np.random.default_rng(seed)
+    cfg, rng = cfg or SynthConfig(), np.random.default_rng(seed)
     parts, have = [], 0
     while have < n:
         parts.append(_simulate_chunk(min(chunk, int((n - have) * 1.1) + 4), cfg, rng))
@@ -930,19 +780,12 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
     F = cfg.frames
     valid_t0 = (np.arange(F) >= cfg.hist) & (np.arange(F) < F - cfg.fut)
     pred_idx = np.where(valid_t0, 0, -1)[None].repeat(n, 0)
-    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
-    scenes = Scenes(ego=T(arr["ego"]), agents=T(arr["agents"]), agents_mask=T(arr["agents_mask"]),
-                    agents_is_ped=T(arr["agents_is_ped"]), agents_size=T(arr["agents_size"]),
-                    pred_idx=T(pred_idx).long(), event_frame=T(arr["event_frame"]).long(),
-                    behaviour=T(arr["behaviour"]).long(), lanes=T(lanes), lanes_mask=T(lanes_mask),
-                    paths=T(arr["paths"]), paths_is_connector=T(arr["paths_is_connector"]),
-                    routes=T(arr["routes"]).long(), names=[f"synth-{seed}-{i:06d}" for i in range(n)])
-    return scenes
+    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731  (the integer arrays are int64)
+    return Scenes(**{k: T(v) for k, v in arr.items()}, pred_idx=T(pred_idx), lanes=T(lanes), lanes_mask=T(lanes_mask),
+                  names=[f"synth-{seed}-{i:06d}" for i in range(n)])
 
 
-# ============================================================================================
-# 5. Planning samples: cut a batch out of scenes at frame t0
-# ============================================================================================
+# === 5. Planning samples: cut a batch out of scenes at frame t0 =============================
 
 
 def _to_frame(states, origin):
@@ -968,14 +811,10 @@ def _fill_gaps(x, mask):
 
 def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = None,
               dtype=torch.float32) -> Scenarios:
-    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0.
-
-    ego_state replaces the logged ego for closed-loop log replay: (S, 4) the current world state only, or
-    (S, 9, 4) the whole history. The frame, the history and the others follow it; the ego's GT future, the
-    goal and the lanes stay those of the logged ego (paper §4.3). The predicted agent is scenes.pred_idx;
-    the others are the agents present at t0 within cfg.others_radius (closest first, at most max_others);
-    the lanes are the cfg.max_lanes routes that come within cfg.lane_radius, cropped to P points from
-    cfg.lane_behind points behind the one closest to the ego."""
+    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0: the predicted agent
+    scenes.pred_idx, the nearest others and lanes (cfg). ego_state, for closed-loop log replay, replaces the logged ego:
+    (S, 4) its current world state, or (S, 9, 4) its history; the frame, the history and the others follow it, while
+    the GT future, the goal and the lanes stay the logged ego's (paper §4.3)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.ego.shape[:2]
     H, T, P = cfg.hist, cfg.fut, cfg.lane_points
@@ -999,17 +838,12 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
         raise ValueError(f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames")
     origin = ego[:, H].clone()  # (S, 4)
     ego = _to_frame(ego, origin)
-
-    # the predicted vehicle
-    ag = scenes.agents[ar, pred][ar[:, None], win]  # (S, 15, 4)
-    ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
+    ag, ag_mask = scenes.agents[ar, pred][ar[:, None], win], scenes.agents_mask[ar, pred][ar[:, None], win]
     ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
     # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real track can be
     # occluded for a frame; differences across the gap would not be velocities, so steps before it count as missing)
     hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
-
-    # the others: present at t0, near, closest first
-    M = scenes.agents.shape[1]
+    M = scenes.agents.shape[1]  # the others: present at t0, near, closest first
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
     cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M, device=dev) != pred[:, None]) & (dist < cfg.others_radius)
@@ -1019,10 +853,8 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     pick = (ar[:, None, None], order[..., None], win[:, None, :])  # -> (S, A, 15)
     o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
-
     # the lanes near the ego (distances in the world frame; only the crop is transformed)
-    dx = scenes.lanes[..., 0] - origin[:, 0, None, None]
-    dy = scenes.lanes[..., 1] - origin[:, 1, None, None]
+    dx, dy = scenes.lanes[..., 0] - origin[:, 0, None, None], scenes.lanes[..., 1] - origin[:, 1, None, None]
     d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
@@ -1030,12 +862,10 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
     Pw = scenes.lanes.shape[2]
     pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P, device=dev)  # (S, L, P)
-    inside = pidx < Pw
-    pidx = pidx.clamp(max=Pw - 1)
+    inside, pidx = pidx < Pw, pidx.clamp(max=Pw - 1)
     pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
     lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
-
     out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
                     agent_hist_mask=hist_mask, agent_fut=ag[:, H + 1:],
                     others_hist=o[:, :, : H + 1], others_fut=o[:, :, H + 1:], others_mask=o_mask,
@@ -1052,16 +882,13 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
     Samples with no lane near the ego are dropped; returns (samples, number dropped)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.pred_idx.shape
-    f = torch.arange(F)
-    e = scenes.event_frame[:, None]
-    lo, hi = cfg.event_window
+    f, e, (lo, hi) = torch.arange(F), scenes.event_frame[:, None], cfg.event_window
     cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e + lo) & (f <= e + hi)))  # (S, F)
     k = per_scene if per_scene is not None else int(cand.sum(1).max())
     score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene is not None else -f.double(),
                         -math.inf)
     frames = torch.argsort(score, 1, descending=True)[:, :k]  # (S, k)
-    ok = torch.gather(cand, 1, frames)
-    parts = []
+    ok, parts = torch.gather(cand, 1, frames), []
     for r in range(k):  # k rounds over all scenes at once
         sel = ok[:, r]
         if sel.any():
@@ -1071,20 +898,15 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
     return batch[has_lane], int((~has_lane).sum())
 
 
-# ============================================================================================
-# 6. Dataset: train/val split by scene, disk cache
-# ============================================================================================
+# === 6. Dataset: train/val split by scene, disk cache =======================================
 
 _CACHE_FORMAT = 2  # bump when the generator's output changes, so old caches are not reused
-
 MAX_SAMPLES = 2_000_000
-"""Most planning samples make_dataset / load_or_generate make (about 20 GB as float32): generous for real use
-(all of nuScenes has about 40 000 key frames), a bound against typos such as 1e9. A ValueError names n and it."""
+"""Most samples make_dataset / load_or_generate make (~20 GB as float32; all of nuScenes has ~40 000 key frames)."""
 
 
 class Dataset(NamedTuple):
     """A training and a validation set of planning samples, and the validation scenes' logs."""
-
     train: Scenarios
     val: Scenarios
     val_scenes: Scenes | None = None  # the validation scenes, for closed-loop log replay
@@ -1116,14 +938,11 @@ def _cache_path(n, seed, cfg, cache_dir):
 
 def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data_cache",
                      cfg: SynthConfig | None = None) -> Dataset:
-    """The Dataset for (n, seed, cfg): loaded from cache_dir if it is there, else generated and saved.
-
-    The file name carries a hash of everything that determines the data; a file of that name that is not
-    a cache of this module is an error (it is never overwritten). n <= MAX_SAMPLES."""
+    """The Dataset for (n, seed, cfg): from cache_dir if there, else generated and saved. The file name hashes
+    everything that determines the data; a file of that name that is not such a cache is an error, never replaced."""
     _check_count("load_or_generate", "n (samples)", n, MAX_SAMPLES)
     _check_seed("load_or_generate", seed)
-    n, seed = int(n), int(seed)  # numpy integers -> int, for the cache key's json
-    cfg = cfg or SynthConfig()
+    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()  # numpy integers -> int, for the cache key's json
     path, key = _cache_path(n, seed, cfg, cache_dir)
     if path.exists():
         try:
@@ -1144,9 +963,7 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
     return data
 
 
-# ============================================================================================
-# 7. Statistics
-# ============================================================================================
+# === 7. Statistics ==========================================================================
 
 PLAUSIBLE = {"speed_max": 20.5, "accel_p99": 4.0, "yaw_rate_p99": 0.7}
 """Urban driving at 2 Hz: speeds up to 20 m/s, 99 % of |accelerations| below 4 m/s^2 and of vehicle |yaw rates|
@@ -1156,10 +973,10 @@ below 0.7 rad/s (derived from the states by backward differences, tracking noise
 def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
     """Kinematics (from the states, by backward differences), the behaviour mix and how close the predicted
     vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a few metres)."""
+
     def kin(states, mask):  # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
         v, h = states[..., 3], states[..., 2]
-        acc = (v[..., 1:] - v[..., :-1]) / dt
-        yaw = wrap_angle(h[..., 1:] - h[..., :-1]) / dt
+        acc, yaw = (v[..., 1:] - v[..., :-1]) / dt, wrap_angle(h[..., 1:] - h[..., :-1]) / dt
         moving = (v[..., 1:] > 2.0) & mask[..., None]  # headings of (near) stopped vehicles mean little
         return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
 
@@ -1191,10 +1008,8 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
                          "no_brake_conflict": overlap[m].float().mean().item()}
     out["behaviour"] = mix
     vehicles = [out[g] for g in groups]
-    out["plausible"] = {
-        "speed_max": max(g["speed"].get("max", 0) for g in vehicles) <= PLAUSIBLE["speed_max"],
-        "accel_p99": max(g["|accel|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["accel_p99"],
-        "yaw_rate_p99": max(g["|yaw rate|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["yaw_rate_p99"]}
+    checks = (("speed_max", "speed", "max"), ("accel_p99", "|accel|", "p99"), ("yaw_rate_p99", "|yaw rate|", "p99"))
+    out["plausible"] = {k: max(g[q].get(stat, 0) for g in vehicles) <= PLAUSIBLE[k] for k, q, stat in checks}
     return out
 
 
@@ -1207,8 +1022,7 @@ def _no_brake_plan(batch: Scenarios, dt: float):
     cum = torch.cat([torch.zeros(len(path), 1, dtype=path.dtype), seg_len.cumsum(1)], 1)  # (B, 7)
     want = batch.ego_hist[:, -1, 3:4] * dt * torch.arange(1, 7, dtype=path.dtype)  # (B, 6)
     k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)  # segment index (last extends)
-    frac = (want - cum.gather(1, k)) / seg_len.gather(1, k)
-    k2 = k[..., None].expand(-1, -1, 2)
+    frac, k2 = (want - cum.gather(1, k)) / seg_len.gather(1, k), k[..., None].expand(-1, -1, 2)
     return path.gather(1, k2) + frac[..., None] * seg.gather(1, k2)
 
 
@@ -1217,8 +1031,7 @@ def format_statistics(st: dict) -> str:
              f"p99 |accel| <= {PLAUSIBLE['accel_p99']} m/s^2, p99 |yaw rate| <= {PLAUSIBLE['yaw_rate_p99']} rad/s"]
     for g in ("ego", "predicted", "other vehicles"):
         for q, unit in (("speed", "m/s"), ("|accel|", "m/s^2"), ("|yaw rate|", "rad/s")):
-            s = st[g][q]
-            if s:
+            if s := st[g][q]:
                 lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  "
                              f"max {s['max']:6.2f} {unit}")
     lines.append("  behaviour      share | predicted vehicle vs the ego's GT future: median min distance, share < 5 m"
@@ -1231,9 +1044,7 @@ def format_statistics(st: dict) -> str:
     return "\n".join(lines)
 
 
-# ============================================================================================
-# 8. Plot
-# ============================================================================================
+# === 8. Plot ================================================================================
 
 
 def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)):
@@ -1251,8 +1062,7 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
                         arrowprops=dict(arrowstyle="->", color="0.6", lw=0.8), zorder=1)
 
     def box(state, size, color, z):
-        x, y, h = state[:3].tolist()
-        w, length = size
+        (x, y, h), (w, length) = state[:3].tolist(), size
         back_right = -np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
         corner = np.array([x, y]) + back_right
         ax.add_patch(Rectangle(corner, length, w, angle=math.degrees(h), rotation_point="xy", fc=color, ec="k",
@@ -1278,40 +1088,16 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
     ax.plot(*b.goal[0, :2].tolist(), "*", color="tab:blue", ms=12, mec="k", zorder=6)
     beh = int(b.behaviour[0])
     ax.set_title(title if title is not None else (BEHAVIOURS[beh] if beh >= 0 else f"sample {i}"), fontsize=9)
-    ax.set_xlim(*extent[:2])
-    ax.set_ylim(*extent[2:])
-    ax.set_aspect("equal")
+    ax.set(xlim=extent[:2], ylim=extent[2:], aspect="equal")
     ax.tick_params(labelsize=7)
     return ax
 
 
-def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
-    """Save the first n samples of batch as a grid of plot_scenario panels (PNG)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    n = min(n, len(batch))
-    rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
-    for k, ax in enumerate(axes.flat):
-        if k < n:
-            plot_scenario(ax, batch, k)
-        else:
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-# ============================================================================================
-# 9. nuScenes v1.0 writer
-# ============================================================================================
-#
-# The nuScenes v1.0 format (Caesar et al. 2020; the nuscenes-devkit schema). A dataset folder holds <version>/ with 13 JSON tables, maps/expansion/<location>.json
-# (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and connectivity), the map
-# PNGs named by map.json, and maps/prediction/prediction_scenes.json. The ego is not an annotation: it is the
-# ego_pose of the key-frame sample_data (CAM_FRONT and LIDAR_TOP, both at the sample's timestamp, so that ego
-# and annotations are exactly simultaneous and the round trip is exact).
+# === 9. nuScenes v1.0 writer ================================================================
+# The nuScenes v1.0 format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
+# maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and
+# connectivity), the map PNGs named by map.json, maps/prediction/prediction_scenes.json. The ego is the ego_pose of
+# the key-frame sample_data (CAM_FRONT, LIDAR_TOP) at the sample's timestamp: simultaneous with the annotations.
 
 NUSC_VERSIONS = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
 NUSC_TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
@@ -1321,9 +1107,8 @@ MAP_LAYERS = ("polygon", "line", "node", "drivable_area", "road_segment", "road_
               "walkway", "stop_line", "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
 MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-0916",
                "scene-1077", "scene-1094", "scene-1100")
-"""The devkit's prediction split only knows official scene names: the first 10 written scenes take these
-(the v1.0-mini scenes); later ones are named scene-9xxx."""
-"""The 150 official validation scenes of v1.0-trainval."""
+"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only those); later ones
+are scene-9xxx."""
 _SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
 
@@ -1346,10 +1131,9 @@ def _dump(obj, path: Path):
 
 def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
                    overwrite: bool = False) -> Path:
-    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root.
-
-    Scenes go round-robin to the four map locations and sit side by side (300 m apart) in their map's canvas.
-    Refuses to replace existing files unless overwrite=True."""
+    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. Scenes go round-robin to the four map
+    locations and sit side by side (300 m apart) in their map's canvas. Refuses to replace existing files unless
+    overwrite=True."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -1362,11 +1146,9 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         raise FileExistsError(f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
                               f"pass overwrite=True (CLI: --overwrite)")
     S, F = scenes.ego.shape[:2]
-    ego, agents, amask = scenes.ego.numpy(), scenes.agents.numpy(), scenes.agents_mask.numpy()
-    paths = scenes.paths.numpy()
+    ego, agents, amask, paths = (x.numpy() for x in (scenes.ego, scenes.agents, scenes.agents_mask, scenes.paths))
     path_valid = paths[..., 4:7].sum(-1) > 0
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
-
     # placement: a translation per scene that puts it, with 300 m around it, next to the previous one
     offsets = np.zeros((S, 2))
     cursor, height = dict.fromkeys(NUSC_LOCATIONS, 300.0), dict.fromkeys(NUSC_LOCATIONS, 300.0)
@@ -1378,8 +1160,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         offsets[i] = (cursor[locs[i]] - lo[0], 300.0 - lo[1])
         cursor[locs[i]] += hi[0] - lo[0] + 300.0
         height[locs[i]] = max(height[locs[i]], hi[1] - lo[1] + 600.0)
-
-    # fixed tables
     cat = {False: _token("category", "vehicle.car"), True: _token("category", "human.pedestrian.adult")}
     tables = {t: [] for t in NUSC_TABLES}
     tables["category"] = [
@@ -1399,11 +1179,10 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "translation": trans,
                                             "sensor_token": _token("sensor", ch), "rotation": rot,
                                             "camera_intrinsic": intr})
-
     # scenes: log, samples, key-frame sample_data with their ego poses, instances and annotations
     split = {}
     for i in range(S):
-        name, (ox, oy) = names[i], offsets[i]
+        name, (ox, oy), b = names[i], offsets[i], int(scenes.behaviour[i])
         log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
         tables["log"].append({"token": log_tok, "logfile": f"synthetic-{scenes.names[i]}", "vehicle": "synthetic",
                               "date_captured": "2026-01-01", "location": locs[i]})
@@ -1411,7 +1190,7 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         sample_tok = [_token(name, "sample", f) for f in range(F)]
         tables["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": F,
                                 "first_sample_token": sample_tok[0], "last_sample_token": sample_tok[-1],
-                                "name": name, "description": f"synthetic; {_behaviour_name(int(scenes.behaviour[i]))}"})
+                                "name": name, "description": f"synthetic; {BEHAVIOURS[b] if b >= 0 else 'real'}"})
         for f in range(F):
             prev, nxt = _links(sample_tok, f)
             tables["sample"].append({"token": sample_tok[f], "timestamp": ts[f], "scene_token": scene_tok,
@@ -1429,18 +1208,15 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
                     "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
                     "prev": sd_toks[0] if f else "", "next": sd_toks[2] if f < F - 1 else ""})
         for m in np.nonzero(amask[i].any(-1))[0]:
-            frames = np.nonzero(amask[i, m])[0]
-            inst = _token(name, "instance", m)
-            ann = [_token(name, "annotation", m, f) for f in frames]
-            ped = bool(scenes.agents_is_ped[i, m])
+            frames, inst = np.nonzero(amask[i, m])[0], _token(name, "instance", m)
+            ann, ped = [_token(name, "annotation", m, f) for f in frames], bool(scenes.agents_is_ped[i, m])
             tables["instance"].append({"token": inst, "category_token": cat[ped], "nbr_annotations": len(frames),
                                        "first_annotation_token": ann[0], "last_annotation_token": ann[-1]})
             w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
             for k, f in enumerate(frames):
                 x, y, h, v = (float(q) for q in agents[i, m, f])
-                moving = v > 0.5
-                a = ("pedestrian." if ped else "vehicle.") + (("moving" if moving else "standing") if ped
-                                                                  else ("moving" if moving else "stopped"))
+                a = f"pedestrian.{'moving' if v > 0.5 else 'standing'}" if ped else \
+                    f"vehicle.{'moving' if v > 0.5 else 'stopped'}"
                 tables["sample_annotation"].append({
                     "token": ann[k], "sample_token": sample_tok[f], "instance_token": inst, "visibility_token": "4",
                     "attribute_tokens": [attr[a]], "translation": [x + ox, y + oy, hgt / 2], "size": [w, length, hgt],
@@ -1449,7 +1225,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         pred = scenes.pred_idx[i].numpy()
         split[name] = [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in range(F)
                        if pred[f] >= 0 and amask[i, pred[f], f]]
-
     # maps: one record per location (with its logs and a tiny PNG), and the expansion json per location
     import matplotlib.image
     for loc in NUSC_LOCATIONS:
@@ -1473,10 +1248,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
 def _links(tokens: list, k: int) -> tuple:
     """(prev, next) tokens of item k of a chain ("" at the ends)."""
     return tokens[k - 1] if k else "", tokens[k + 1] if k < len(tokens) - 1 else ""
-
-
-def _behaviour_name(b: int) -> str:
-    return BEHAVIOURS[b] if b >= 0 else "real"
 
 
 def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset, cfg):
@@ -1525,110 +1296,5 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
     exp["drivable_area"].append({"token": _token(name, "drivable_area"), "polygon_tokens": polys})
 
 
-# ============================================================================================
-# 10. CLI (the readers' commands, read-nuscenes, fetch-waymo and render --nuscenes, are data_real.py's)
-# ============================================================================================
-
-MAX_RENDER = 400
-"""Most samples `render` draws: 100 rows of 4 panels make a PNG about 29 000 pixels tall; Agg draws at most 2^16
-pixels a side."""
-
-
-def _bench():
-    runs = 3
-    times = []
-    for r in range(runs):
-        t = time.perf_counter()
-        data = make_dataset(10_000, SynthConfig(), seed=r)
-        times.append(time.perf_counter() - t)
-    print(f"generate 10 000 samples ({len(data.train)} train + {len(data.val)} val): median "
-          f"{pystats.median(times):.2f} s over {runs} runs (target < 30 s)  {['%.2f' % x for x in times]}")
-
-
-def _whole(lo: int, hi: int | None = None, unit: str = ""):
-    """An argparse type: a whole number in lo..hi (argparse adds the argument's name to the message)."""
-    span = f"from {lo:,} to {hi:,}" if hi is not None else f">= {lo:,}"
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number {span}{unit}, got {text!r}") from None
-        if v < lo or (hi is not None and v > hi):
-            raise argparse.ArgumentTypeError(f"must be {span}{unit}, got {v:,}")
-        return v
-    return parse
-
-
-def cli_parser(description: str = "DiffStack synthetic scenario data: generate nuScenes-like scenes, write them as "
-               "a nuScenes v1.0 folder (reading folders and Waymo scenes: python data_real.py)",
-               bench: str = "time generating 10 000 samples; print the median of 3 runs"):
-    """(the parser, its subparsers, {command: its parser}) of the synthetic data's commands; data_real.main adds the
-    readers'."""
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("--bench", action="store_true", help=bench)
-    sub = ap.add_subparsers(dest="cmd")
-    g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
-    g.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=10_000)
-    g.add_argument("--seed", type=_whole(0), default=0)
-    g.add_argument("--cache-dir", default="data_cache")
-    w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
-    w.add_argument("out")
-    w.add_argument("--scenes", type=_whole(1, MAX_SCENES, " (MAX_SCENES)"), default=10)
-    w.add_argument("--seed", type=_whole(0), default=0)
-    w.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    w.add_argument("--overwrite", action="store_true", help="replace the files of an existing folder")
-    p = sub.add_parser("render", help="draw synthetic samples to a PNG grid (data_real.py's: or from a nuScenes "
-                                      "folder, --nuscenes)")
-    p.add_argument("out")
-    p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
-    p.add_argument("--seed", type=_whole(0), default=0)
-    s = sub.add_parser("stats", help="statistics of a generated set against plausible ranges")
-    s.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=4000)
-    s.add_argument("--seed", type=_whole(0), default=0)
-    return ap, sub, {"generate": g, "write-nuscenes": w, "render": p, "stats": s}
-
-
-def cli_run(ap, args, prog: str = "data_synth", run=None):
-    """Run the parsed command (run(args) first where given: True when it handled it); bad input (a
-    NuScenesFormatError, a foreign cache, an existing or unwritable file) exits 2 with a message naming the file,
-    like argparse's own errors."""
-    try:
-        if not (run and run(args)):
-            _run(ap, args)
-    except (ValueError, OSError) as e:
-        ap.exit(2, f"{prog}: error: {e}\n")
-
-
-def main(argv=None):
-    ap, _, _ = cli_parser()
-    cli_run(ap, ap.parse_args(argv))
-
-
-def _run(ap, args):
-    if args.bench:
-        _bench()
-    elif args.cmd == "generate":
-        t = time.perf_counter()
-        data = load_or_generate(args.n, args.seed, args.cache_dir)
-        path, _ = _cache_path(args.n, args.seed, SynthConfig(), args.cache_dir)
-        print(f"{len(data.train)} train + {len(data.val)} val samples ({len(data.val_scenes)} val scenes) in "
-              f"{time.perf_counter() - t:.1f} s: {path}")
-    elif args.cmd == "write-nuscenes":
-        scenes = generate_scenes(args.scenes, SynthConfig(), args.seed)
-        write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
-        print(f"wrote {args.scenes} scenes to {args.out}/{args.version} (+ maps/expansion, maps/prediction)")
-    elif args.cmd == "render":
-        batch, _ = cut_samples(generate_scenes(math.ceil(args.n / 4) + 1, seed=args.seed), 4,
-                               np.random.default_rng(args.seed))
-        render_grid(batch, args.out, args.n)
-        print(f"wrote {min(args.n, len(batch))} samples to {args.out}")
-    elif args.cmd == "stats":
-        data = make_dataset(args.n, SynthConfig(), args.seed)
-        print(format_statistics(statistics(Scenarios.cat([data.train, data.val]))))
-    else:
-        ap.print_help()
-
-
 if __name__ == "__main__":
-    main()
+    raise SystemExit("the data's command line is data_real.py's: python data_real.py --help")
