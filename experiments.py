@@ -42,6 +42,8 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 import data_synth
+
+import data_real
 from diffstack import (Config, Method, Prediction, Predictor, StackOutput, cost_contexts, cost_terms, cost_weights, project_to_lanes, route_goal, run_stack, unicycle_step, wrap_angle)
 from train import (TABLE1_METHODS, CostWeights, TrainingDiverged, add_relative, alphas, bounded, cell, check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table, mean_se, to_device, train_predictor, train_stack)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit,
@@ -234,7 +236,7 @@ GOAL_TABLE = TableSpec(
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}  # the order `all` runs them in
 EXPERIMENTS = tuple(TABLES)
 
-# Real driving scenes: the three Waymo logs of data_synth.fetch_waymo, evaluated with predictors trained on synthetic
+# Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors trained on synthetic
 # data (the data's train side is synthetic, its val side the real samples). Not a table of the paper, so not in
 # `all`; its outputs derive from data under a non-commercial licence that forbids committing them, so they go to
 # REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
@@ -1430,7 +1432,7 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
                  f"another kind of processor: {where_ran}")
     return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
             + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
-               f"{data_synth.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
+               f"{data_real.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
 
 
 def table_file_markdown(spec: TableSpec, md: str) -> str:
@@ -1574,11 +1576,11 @@ class RealData(NamedTuple):
 
 
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
-    """data's (synthetic) training side, and the Waymo samples (data_synth.load_waymo_scenarios, fetched on the
+    """data's (synthetic) training side, and the Waymo samples (data_real.load_waymo_scenarios, fetched on the
     first call) as the validation side."""
-    real, report = data_synth.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
-        f"training on {len(data.train)} synthetic samples. {data_synth.WAYMO_LICENCE}")
+        f"training on {len(data.train)} synthetic samples. {data_real.WAYMO_LICENCE}")
     return RealData(data.train, real, None, report["samples_per_scene"])
 
 
@@ -1615,7 +1617,7 @@ def main(argv=None):
                     help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
                          f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
                          f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
-    ap.add_argument("--phases", type=bounded(int, 1, data_synth.WAYMO_PHASES, "--phases"), default=1,
+    ap.add_argument("--phases", type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"), default=1,
                     help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
     ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
                     help="training seeds per method (default 5, at most 100)")
@@ -1651,10 +1653,10 @@ def main(argv=None):
             ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
         if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
             try:
-                data_synth.nuscenes_version(args.data)
+                data_real.nuscenes_version(args.data)
             except ValueError as e:
                 ap.error(str(e))
-        return render_outputs(args.experiment, args.out, data_synth.load_data(args.data, args.n, log=print))
+        return render_outputs(args.experiment, args.out, data_real.load_data(args.data, args.n, log=print))
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         if cfg.batch_size % world:
@@ -1663,7 +1665,7 @@ def main(argv=None):
         if args.jobs is not None and args.jobs > 1 and world > 1:
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
-            data_synth.nuscenes_version(args.data)
+            data_real.nuscenes_version(args.data)
         # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
         # run_experiment decides once the data, and so the run's key, is known
         check_outputs(names, args.out, args.overwrite,
@@ -1677,7 +1679,7 @@ def main(argv=None):
     log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)
 
     def load():
-        data = data_synth.load_data(args.data, args.n, log=log)
+        data = data_real.load_data(args.data, args.n, log=log)
         if args.experiment == REAL.name:
             data = real_data(data, range(args.phases), log=log)
         if "closed_loop" in names:

@@ -11,6 +11,8 @@ import pytest
 import torch
 
 import data_synth
+
+import data_real
 import diffstack as ds
 import train as tr
 import experiments as ex
@@ -59,7 +61,7 @@ def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
 def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(blocker / "out")], capsys)
     assert "--out" in err and "a_file" in err
     monkeypatch.chdir(tmp_path)
@@ -257,7 +259,7 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
     err = cli_error(tr.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):

@@ -1,4 +1,5 @@
-"""Bad input to data_synth.py gets a clear error naming the culprit, raised before any work where possible.
+"""Bad input to data_synth.py and data_real.py gets a clear error naming the culprit, raised before any work where
+possible.
 
 The nuScenes loader (NaN / Infinity, time steps, sample chains, quaternions, duplicate tokens, map locations,
 malformed tables), the memory bounds (lane points, numbers of samples and scenes), the command line, the official
@@ -18,9 +19,10 @@ import numpy as np
 import pytest
 import torch
 
+import data_real
 import data_synth
 
-FormatError = data_synth.NuScenesFormatError
+FormatError = data_real.NuScenesFormatError
 TABLE_DIR = "v1.0-mini"
 
 
@@ -71,7 +73,7 @@ def a_map(root):
 
 
 def test_valid_folder_loads(valid):
-    scenes, report = data_synth.load_nuscenes(valid)
+    scenes, report = data_real.load_nuscenes(valid)
     assert report["loaded"] == 3 and len(scenes) == 3
     assert all(torch.isfinite(v).all() for v in scenes.tensors().values() if v.is_floating_point())
 
@@ -98,23 +100,23 @@ def test_non_finite_numbers_name_file_field_and_token(folder, name, index, field
     doc = edit(table(folder, name), put)
     assert ("NaN" if bad != bad else "Infinity") in table(folder, name).read_text()  # the literal is on disk
     with pytest.raises(FormatError, match=rf"{name}\.json: {field} of (sample )?'{doc[index]['token']}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_non_finite_numbers_in_the_map_name_the_lane(folder):
     path, lane = a_map(folder)
     edit(path, lambda js: js["arcline_path_3"][lane][0].update(radius=float("nan")))
     with pytest.raises(FormatError, match=rf"{path.name}: radius of an arcline path of lane '{lane}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
     edit(path, lambda js: js["arcline_path_3"][lane][0].update(radius=10.0, segment_length=[0.0, float("inf"), 0.0]))
     with pytest.raises(FormatError, match=rf"{path.name}: segment_length of an arcline path of lane '{lane}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_numbers_in_fields_the_loader_does_not_read_are_left_alone(folder):
     edit(table(folder, "calibrated_sensor"), lambda d: d[0]["camera_intrinsic"][0].__setitem__(0, float("nan")))
     edit(table(folder, "ego_pose"), lambda d: d[1]["translation"].__setitem__(0, float("nan")))  # a LIDAR_TOP pose
-    assert data_synth.load_nuscenes(folder)[1]["loaded"] == 3
+    assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
 
 
 @pytest.mark.parametrize("step", [0, -500_000], ids=["zero", "negative"])
@@ -123,7 +125,7 @@ def test_time_step_between_samples_must_be_positive(folder, step):
     samples[5]["timestamp"] = samples[4]["timestamp"] + step
     table(folder, "sample").write_text(json.dumps(samples))
     with pytest.raises(FormatError, match=rf"sample\.json: timestamp of sample '{samples[5]['token']}' .* must be > 0"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("back_to", [0, 17, 40], ids=["to-first", "to-middle", "to-itself"])
@@ -133,7 +135,7 @@ def test_cyclic_sample_chain(folder, back_to):
     table(folder, "sample").write_text(json.dumps(samples))
     with pytest.raises(FormatError, match=rf"sample\.json: the next links of scene 'scene-0061' loop: sample "
                                           rf"'{samples[40]['token']}' links back to '{samples[back_to]['token']}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_broken_prev_link_and_dangling_next(folder):
@@ -142,18 +144,18 @@ def test_broken_prev_link_and_dangling_next(folder):
     table(folder, "sample").write_text(json.dumps(samples))
     with pytest.raises(FormatError, match=rf"sample\.json: sample '{samples[6]['token']}' of scene 'scene-0061' has "
                                           rf"prev '{samples[3]['token']}' but follows '{samples[5]['token']}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
     samples[6]["prev"], samples[6]["next"] = samples[5]["token"], "f" * 32
     table(folder, "sample").write_text(json.dumps(samples))
     with pytest.raises(FormatError, match=rf"sample\.json: sample '{samples[6]['token']}' .* links next to 'f{{32}}'"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_sample_annotation_chains_are_not_followed(folder):
     # the loader groups annotations by sample and instance; a cyclic prev/next chain among them cannot hang it
     anns = edit(table(folder, "sample_annotation"), lambda d: d[3].update(next=d[0]["token"]))
     assert anns[3]["next"] == anns[0]["token"]
-    assert data_synth.load_nuscenes(folder)[1]["loaded"] == 3
+    assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
 
 
 def test_one_instance_annotated_twice_in_a_sample(folder):
@@ -161,7 +163,7 @@ def test_one_instance_annotated_twice_in_a_sample(folder):
         d.append({**d[0], "token": "e" * 32})
     edit(table(folder, "sample_annotation"), twin)
     with pytest.raises(FormatError, match=r"sample_annotation\.json: instance '.*' is annotated twice in sample"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("name, index", [("ego_pose", 4), ("sample_annotation", 9)])
@@ -170,11 +172,11 @@ def test_one_instance_annotated_twice_in_a_sample(folder):
 def test_quaternion_norm(folder, name, index, q, ok):
     doc = edit(table(folder, name), lambda d: d[index].update(rotation=q))
     if ok:
-        assert data_synth.load_nuscenes(folder)[1]["loaded"] == 3
+        assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
     else:
         with pytest.raises(FormatError, match=rf"{name}\.json: rotation of '{doc[index]['token']}' is not a unit "
                                               rf"quaternion \(norm"):
-            data_synth.load_nuscenes(folder)
+            data_real.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("name", data_synth.NUSC_TABLES)
@@ -182,14 +184,14 @@ def test_duplicate_tokens(folder, name):
     doc = edit(table(folder, name), lambda d: d.append(dict(d[-1])))
     with pytest.raises(FormatError, match=rf"{name}\.json: token '{doc[-1]['token']}' appears twice \(records "
                                           rf"{len(doc) - 2} and {len(doc) - 1}\)"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_duplicate_lane_tokens_in_the_map(folder):
     path, lane = a_map(folder)
     edit(path, lambda js: js["lane"].append(dict(js["lane"][0])))
     with pytest.raises(FormatError, match=rf"{path.name}: lane / lane_connector token '{lane}' appears twice"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("location", ["../../x", "/etc/passwd", "a/b", "..", "a\\b", "", 7, None])
@@ -198,13 +200,13 @@ def test_log_location_must_be_a_plain_map_name(folder, location):
     doc = edit(table(folder, "log"), lambda d: d[1].update(location=location))
     with pytest.raises(FormatError, match=rf"log\.json: location {re.escape(repr(location))} of log "
                                           rf"'{doc[1]['token']}' is not a plain map name"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_log_location_of_a_map_that_is_not_there(folder):
     edit(table(folder, "log"), lambda d: d[0].update(location="atlantis"))
     with pytest.raises(FormatError, match=r"expansion/atlantis\.json: missing"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 # one test per class of malformed table: (file, how to break it, what the message must name)
@@ -251,7 +253,7 @@ def test_malformed_tables_name_the_file(folder, case):
     name, corrupt, message = MALFORMED[case]
     corrupt(table(folder, name) if name in data_synth.NUSC_TABLES else folder / name)
     with pytest.raises(FormatError, match=message):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -264,7 +266,7 @@ def test_lane_longer_than_the_point_limit_names_the_lane(folder):
     t = time.perf_counter()
     with pytest.raises(FormatError, match=rf"{path.name}: lane '{lane}' is 1e\+09 m long: 500000001 points at 2\.0 m "
                                           rf"spacing, more than MAX_LANE_POINTS = {data_synth.MAX_LANE_POINTS}"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
     assert time.perf_counter() - t < 5  # refused before allocating, not after
 
 
@@ -275,7 +277,7 @@ def test_route_longer_than_the_point_limit_names_the_lanes(folder):
                            for a in arcs])
     with pytest.raises(FormatError, match=rf"{path.name}: the route of scene 'scene-0061' through lanes '\w+' \.\. "
                                           rf"'\w+' is \d+ m long: \d+ points, more than MAX_LANE_POINTS = 20000"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_discretize_refuses_too_many_points_and_bad_spacing():
@@ -352,7 +354,7 @@ def test_generator_seed_chunk_and_samples_per_scene(tmp_path):
 def test_cli_bad_arguments_exit_2_naming_the_argument(argv, culprit, tmp_path, capsys):
     argv = [str(tmp_path / "out") if a == "OUT" else a for a in argv]
     with pytest.raises(SystemExit) as e:
-        data_synth.main(argv)
+        data_real.main(argv)
     assert e.value.code == 2 and culprit in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing was written
 
@@ -360,15 +362,15 @@ def test_cli_bad_arguments_exit_2_naming_the_argument(argv, culprit, tmp_path, c
 def test_cli_bad_folder_exits_2_naming_the_file(folder, capsys):
     edit(table(folder, "ego_pose"), lambda d: d[0]["rotation"].__setitem__(0, float("nan")))
     with pytest.raises(SystemExit) as e:
-        data_synth.main(["read-nuscenes", str(folder)])
+        data_real.main(["read-nuscenes", str(folder)])
     assert e.value.code == 2 and "ego_pose.json: rotation of" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
-        data_synth.main(["write-nuscenes", str(folder), "--scenes", "1"])  # would replace the folder's files
+        data_real.main(["write-nuscenes", str(folder), "--scenes", "1"])  # would replace the folder's files
     assert e.value.code == 2 and "category.json exists (18 files would be replaced)" in capsys.readouterr().err
 
 
 def test_cli_valid_folder_reads(valid, capsys):
-    data_synth.main(["read-nuscenes", str(valid)])  # returns normally: exit 0
+    data_real.main(["read-nuscenes", str(valid)])  # returns normally: exit 0
     assert "loaded" in capsys.readouterr().out
 
 
@@ -377,33 +379,33 @@ def test_cli_valid_folder_reads(valid, capsys):
 
 
 def test_official_split_literal():
-    train, val = data_synth.NUSC_TRAIN, data_synth.NUSC_VAL
+    train, val = data_real.NUSC_TRAIN, data_real.NUSC_VAL
     assert len(train) == 700 and len(val) == 150 and not train & val
     # sha1 of the sorted names of the devkit's lists (nuscenes-devkit 1.2.0, nuscenes/utils/splits.py)
     digest = lambda names: hashlib.sha1(" ".join(sorted(names)).encode()).hexdigest()  # noqa: E731
     assert digest(train) == "d7e56861c837c75cca7136407ccb19992993fd3d"
     assert digest(val) == "524f82564ff01212a323a339182cca808ac68fc6"
     assert {"scene-0001", "scene-1110", "scene-0061"} <= train and {"scene-0003", "scene-1073", "scene-0103"} <= val
-    assert data_synth.MINI_VAL == ("scene-0103", "scene-0916")  # the devkit's mini_val
+    assert data_real.MINI_VAL == ("scene-0103", "scene-0916")  # the devkit's mini_val
 
 
 def test_load_data_uses_the_official_split(tmp_path):
     scenes = data_synth.generate_scenes(3, seed=1)  # written as scene-0061 (train), scene-0103, scene-0553 (val)
     lines = []
     data_synth.write_nuscenes(scenes, tmp_path / "tv", "v1.0-trainval")
-    d = data_synth.load_data(tmp_path / "tv", log=lines.append)
+    d = data_real.load_data(tmp_path / "tv", log=lines.append)
     assert sorted(d.val_scenes.names) == ["scene-0103", "scene-0553"]
     assert "validation: the official v1.0-trainval val scenes" in lines[-1]
     data_synth.write_nuscenes(scenes, tmp_path / "mini", "v1.0-mini")
-    d = data_synth.load_data(tmp_path / "mini", log=lines.append)
+    d = data_real.load_data(tmp_path / "mini", log=lines.append)
     assert d.val_scenes.names == ["scene-0103"] and "official v1.0-mini val" in lines[-1]
     # names in neither list: the fallback, the last 15 % of the scenes by name (at least one)
     edit(tmp_path / "tv" / "v1.0-trainval" / "scene.json",
          lambda d: [r.update(name=f"mine-{k}") for k, r in enumerate(d)])
-    d = data_synth.load_data(tmp_path / "tv", log=lines.append)
+    d = data_real.load_data(tmp_path / "tv", log=lines.append)
     assert d.val_scenes.names == ["mine-2"] and "the last 15 % of the scenes by name" in lines[-1]
     with pytest.raises(ValueError, match="load_data: seed must be"):
-        data_synth.load_data(tmp_path / "tv", seed=-2)
+        data_real.load_data(tmp_path / "tv", seed=-2)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -593,7 +595,7 @@ def test_random_corruptions_load_or_fail_cleanly(valid, tmp_path):
         shutil.copytree(valid, root)
         what = corrupt(rng, root)
         try:
-            scenes, _ = data_synth.load_nuscenes(root)
+            scenes, _ = data_real.load_nuscenes(root)
         except (ValueError, FileNotFoundError) as e:
             outcome = type(e).__name__
             if not str(e).startswith(str(root)) or not re.search(r"\.json|v1\.0-mini", str(e).split(":")[0]):

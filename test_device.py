@@ -25,6 +25,8 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 import data_synth
+
+import data_real
 import diffstack as ds
 import train as tr
 import experiments as ex
@@ -40,7 +42,7 @@ FACTORIES = {getattr(torch, name) for name in (
     "tensor", "as_tensor", "asarray", "scalar_tensor", "zeros", "ones", "empty", "full", "arange", "linspace",
     "logspace", "eye", "rand", "randn", "randint", "randperm", "tril_indices", "triu_indices") if hasattr(torch, name)}
 HERE = pathlib.Path(__file__).resolve().parent
-AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py")}  # data_synth: sample_at
+AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "data_real.py")}  # data_synth: sample_at
 
 
 def section_lines() -> range:
@@ -246,7 +248,7 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
     work = []
     monkeypatch.setattr(tr, "quick", lambda *a, **k: work.append(1))
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
         err = cli_error(tr.main, ["--quick", "--device", name], capsys)
     else:
@@ -261,7 +263,7 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(tr, "quick", lambda *a, **k: seen.update(quick=k["device"]))
     tr.main(["--quick"])
     tr.main(["--quick", "--device", "cpu"])
-    monkeypatch.setattr(data_synth, "load_data", lambda *a, **k: "data")
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: "data")
     monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
     assert seen == {"quick": torch.device("cpu"), "experiment": torch.device("cpu")}

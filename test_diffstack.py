@@ -11,6 +11,8 @@ import pytest
 import torch
 
 import data_synth
+
+import data_real
 import diffstack as ds
 import train as tr
 
@@ -1313,7 +1315,7 @@ def _same_lanes(a, am, b, bm, tol):
 def test_nuscenes_round_trip(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
-    loaded, report = data_synth.load_nuscenes(tmp_path, "v1.0-mini", cfg)
+    loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
     assert report == dict(scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
     assert torch.equal(loaded.pred_idx >= 0, scenes.pred_idx >= 0)
     for frame in (8, 21, 34):
@@ -1350,14 +1352,14 @@ def folder(tmp_path, scenes_mixed):
 
 def test_bad_input_names_the_file(folder):
     (folder / "v1.0-mini" / "sample.json").unlink()
-    with pytest.raises(data_synth.NuScenesFormatError, match=r"sample\.json: missing"):
-        data_synth.load_nuscenes(folder)
+    with pytest.raises(data_real.NuScenesFormatError, match=r"sample\.json: missing"):
+        data_real.load_nuscenes(folder)
 
 
 def test_malformed_json_names_the_file(folder):
     (folder / "v1.0-mini" / "scene.json").write_text('[{"token": "x", ')
     with pytest.raises(ValueError, match=r"scene\.json: malformed JSON"):
-        data_synth.load_nuscenes(folder)
+        data_real.load_nuscenes(folder)
 
 
 def test_missing_key_names_the_file(folder):
@@ -1365,22 +1367,22 @@ def test_missing_key_names_the_file(folder):
     poses = json.loads(path.read_text())
     del poses[4]["translation"]  # a CAM_FRONT pose (the writer alternates CAM_FRONT, LIDAR_TOP)
     path.write_text(json.dumps(poses))
-    with pytest.raises(data_synth.NuScenesFormatError, match=r"ego_pose\.json"):
-        data_synth.load_nuscenes(folder)
+    with pytest.raises(data_real.NuScenesFormatError, match=r"ego_pose\.json"):
+        data_real.load_nuscenes(folder)
 
 
 def test_missing_map_expansion_names_the_file(folder):
     loc = json.loads((folder / "v1.0-mini" / "log.json").read_text())[0]["location"]
     (folder / "maps" / "expansion" / f"{loc}.json").unlink()
-    with pytest.raises(data_synth.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
-        data_synth.load_nuscenes(folder)
+    with pytest.raises(data_real.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
+        data_real.load_nuscenes(folder)
 
 
 def test_unknown_or_missing_version_folder(folder):
-    with pytest.raises(data_synth.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
-        data_synth.load_nuscenes(folder, "v2.0-beta")
-    with pytest.raises(data_synth.NuScenesFormatError, match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini"):
-        data_synth.load_nuscenes(folder, "v1.0-trainval")
+    with pytest.raises(data_real.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
+        data_real.load_nuscenes(folder, "v2.0-beta")
+    with pytest.raises(data_real.NuScenesFormatError, match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini"):
+        data_real.load_nuscenes(folder, "v1.0-trainval")
 
 
 def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
@@ -1397,10 +1399,10 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
         rec = next(r for r in samples if r["token"] == rec["next"])
     rec["next"] = ""
     path.write_text(json.dumps(samples))
-    loaded, report = data_synth.load_nuscenes(tmp_path, cfg=cfg)
+    loaded, report = data_real.load_nuscenes(tmp_path, cfg=cfg)
     assert report == dict(scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1)
     assert loaded.names == [data_synth.MINI_SCENES[3]]
-    batch, report = data_synth.load_nuscenes_scenarios(tmp_path, cfg=cfg)
+    batch, report = data_real.load_nuscenes_scenarios(tmp_path, cfg=cfg)
     assert report["samples"] == len(batch) == 27 and report["samples_skipped_no_lanes"] == 0
 
 
@@ -1408,7 +1410,7 @@ def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_
     scenes, cfg = scenes_mixed
     data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
     (tmp_path / "maps" / "prediction" / "prediction_scenes.json").unlink()
-    loaded, _ = data_synth.load_nuscenes(tmp_path, cfg=cfg)
+    loaded, _ = data_real.load_nuscenes(tmp_path, cfg=cfg)
     for i in range(2):
         for f in range(8, 35):
             p = int(loaded.pred_idx[i, f])
@@ -1662,7 +1664,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
     models, prov = tr.load_pretrained(ds.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
-    again = tr.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_synth.load_data(n=300, cache_dir=tmp_path),
+    again = tr.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_real.load_data(n=300, cache_dir=tmp_path),
                                cfg, "rl", 0.5, 1, None)  # seed 1, trained here: the shipped seed 1 to the bit
     assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
     assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))

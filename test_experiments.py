@@ -395,7 +395,7 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
 
 
 def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
-    assert set(runs.NUMBER_MODULES) == {"diffstack.py", "train.py", "data_synth.py", "experiments.py"}
+    assert set(runs.NUMBER_MODULES) == {"diffstack.py", "train.py", "data_synth.py", "data_real.py", "experiments.py"}
     for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
         (tmp_path / name).write_text(f"# {name}\nx = 1\n")
     monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))

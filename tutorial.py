@@ -85,6 +85,7 @@ from IPython.display import Image, Markdown, display
 
 import course
 import data_synth
+import data_real
 import diffstack as ds
 import train as tr
 import experiments as xp
@@ -183,7 +184,7 @@ with tempfile.TemporaryDirectory() as tmp:
     data_synth.write_nuscenes(scenes, tmp, "v1.0-mini")
     files = sorted(str(p.relative_to(tmp)) for p in Path(tmp).rglob("*.json"))
     print(f"{len(files)} JSON files, e.g.", files[:3], "...", files[-3:])
-    loaded, report = data_synth.load_nuscenes(tmp, "v1.0-mini")
+    loaded, report = data_real.load_nuscenes(tmp, "v1.0-mini")
 print("loader report:", report)
 frame = (scenes.event_frame - 2).clamp(8, 34)  # a frame per scene, just before the manoeuvre
 a = data_synth.sample_at(scenes, frame, dtype=torch.float64)
