@@ -30,20 +30,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import re
 import time
-import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 import torch.nn as nn
-
-# On a GPU, cuDNN wants an LSTM's weights in one buffer: it copies the four tensors the history encoder hands it (an
-# LSTMCell's, 20 KB; Predictor.encode) at every call, and warns each time that it does. That warning, from this
-# module's calls only, is ignored.
-warnings.filterwarnings("ignore", "RNN module weights are not part of single", UserWarning, re.escape(__name__) + r"\Z")
-
 
 def wrap_angle(a):
     """Angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi."""
@@ -435,7 +427,6 @@ def lane_segments(p, lanes, lanes_mask):
 
 
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as one at sqrt(d^2 + 100 m^2) (10 m away at d = 0)
-_SEARCH_BLOCK = 2**21  # ranks per block of the nearest-point search (8 MB in float32)
 
 
 def lane_search_features(lanes, lanes_mask):
@@ -471,13 +462,7 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]
     qd, hd = q.detach(), hq.detach()
     feat_q = torch.cat([-2 * qd, -_SEARCH_LAM * torch.stack([torch.cos(hd), torch.sin(hd)], -1), torch.ones_like(qd[..., :1])], -1)
-    #    The ranks are made in blocks of queries, each at most _SEARCH_BLOCK entries: memory of that size comes back
-    #    from the allocator's cache, while one (B, Q, L*P) block (the planner's: 100 MB) is fresh memory every call,
-    #    whose page faults cost more than the product itself.
-    chunk = max(1, _SEARCH_BLOCK // (B * L * P))
-    ranks = lambda i: feat_q[:, i : i + chunk] @ search  # noqa: E731  (B, chunk, L*P), queries i, i+1, ...
-    # (B, Q): min's indices are argmin's (the first minimum), at half the time
-    j = torch.cat([ranks(i).min(-1).indices for i in range(0, feat_q.shape[1], chunk)], 1)
+    j = (feat_q @ search).min(-1).indices  # (B, Q): min's indices are argmin's (the first minimum)
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
     has_lane = lanes_mask.reshape(B, L * P).gather(1, j) & (torch.cos(hd - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points are a prefix)
@@ -1362,19 +1347,12 @@ class Predictor(nn.Module):
         first = (~mask).sum(-1)  # (B,) index of the first observed step (missing steps are a prefix)
         origin = hist[:, -1, :2]  # (B, 2) the agent's current position
         f = state_features(hist, origin, first, cfg)  # (B, H, 8)
-        # history LSTM; unobserved steps leave its state untouched. They are a prefix (check_batch), so the state stays
-        # zero through them and h is the LSTM's output at the last step of a run from zeros over f[first:]. Hence one
-        # fused LSTM call over all steps instead of a loop of LSTMCell steps: shift each history left so that its
-        # observed steps come first (the tail repeats the current step and is computed but never read), and read the
-        # output at step H-1-first. torch.lstm is the kernel nn.LSTM calls, here given hist_lstm's own weights.
-        t = torch.arange(H, device=f.device)
-        f_obs = f.take_along_dim((t + first[:, None]).clamp(max=H - 1)[..., None], 1)  # (B, H, 8) observed first
-        zero = f.new_zeros(1, B, cfg.pred_enc_hidden)  # (1, B, E) h_0 = c_0 = 0
-        cell = self.hist_lstm
-        weights = [cell.weight_ih, cell.weight_hh, cell.bias_ih, cell.bias_hh]
-        # torch.lstm(input, (h_0, c_0), weights, has_biases, num_layers, dropout, train, bidirectional, batch_first)
-        out, _, _ = torch.lstm(f_obs, (zero, zero), weights, True, 1, 0.0, self.training, False, True)  # (B, H, E)
-        h = out.take_along_dim((H - 1 - first)[:, None, None], 1)[:, 0]  # (B, E) at the current step t0
+        # history LSTM over the 9 steps; an unobserved step leaves its state untouched
+        h = c = f.new_zeros(B, cfg.pred_enc_hidden)  # (B, E)
+        for t in range(H):
+            h_t, c_t = self.hist_lstm(f[:, t], (h, c))
+            seen = mask[:, t, None]  # (B, 1)
+            h, c = torch.where(seen, h_t, h), torch.where(seen, c_t, c)
         # neighbours = other agents + the ego, with (is pedestrian, is ego) flags
         nbr = torch.cat([batch.others_hist, batch.ego_hist[:, None]], 1)  # (B, A+1, H, 4)
         nbr_valid = torch.cat([batch.others_mask, mask.new_ones(B, 1)], 1)  # (B, A+1)
