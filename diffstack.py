@@ -377,17 +377,10 @@ class CostContext:
     goal: torch.Tensor  # (B, 2)         goal position at T
     lanes: torch.Tensor  # (B, L, P, 3)  lane centre lines (x, y, heading)
     lanes_mask: torch.Tensor  # (B, L, P)
-    # the lanes' features for the nearest-point search of project_to_lanes (B, 5, L*P): derived from the lanes,
-    # computed once here because a training step evaluates the cost about 20 times on the same lanes
-    lane_search: torch.Tensor | None = None
-
-    def __post_init__(self):
-        if self.lane_search is None:
-            self.lane_search = lane_search_features(self.lanes, self.lanes_mask)
 
     def tensors(self):
         return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes,
-                self.lanes_mask, self.lane_search)
+                self.lanes_mask)
 
 
 def segment_offset(q, a, b):
@@ -429,21 +422,10 @@ def lane_segments(p, lanes, lanes_mask):
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as one at sqrt(d^2 + 100 m^2) (10 m away at d = 0)
 
 
-def lane_search_features(lanes, lanes_mask):
-    """The lane points' side of project_to_lanes' search product, [p, u(h_p), |p|^2 + lam] (1e30 for padding):
-    lanes (B, L, P, 3), lanes_mask (B, L, P) -> (B, 5, L*P). No gradient: the search only picks an index."""
-    B, L, P, _ = lanes.shape
-    pts = lanes.detach().reshape(B, L * P, 3)
-    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pts[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
-    feat = torch.cat([pts[..., :2], torch.cos(pts[..., 2:]), torch.sin(pts[..., 2:]), p_norm[..., None]], -1)
-    return feat.transpose(1, 2).contiguous()  # (B, 5, L*P)
-
-
-def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
+def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     """The lane segment closest to each state, and whether there is one.
 
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
-    lane_search_features (computed here if not given). Lane points are ranked by distance plus a heading
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). Lane points are ranked by distance plus a heading
     penalty, so that an oncoming lane beside one of the state's own direction is not 'closest'; where the
     winner still points more than 90 degrees away from the state's heading, the state has no lane (has_lane
     False: no lane cost).
@@ -457,10 +439,11 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
     pts = lanes.reshape(B, L * P, 3)
-    search = lane_search_features(lanes, lanes_mask) if search is None else search  # (B, 5, L*P)
     # 1. nearest point: |q|^2 is the same for every p and drops out of the ranking, and the rest is one
-    #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam]
-    qd, hd = q.detach(), hq.detach()
+    #    product of features: [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam] (|p|^2 = 1e30 for padding)
+    qd, hd, pd = q.detach(), hq.detach(), pts.detach()
+    p_norm = torch.where(lanes_mask.reshape(B, L * P), (pd[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
+    search = torch.cat([pd[..., :2], torch.cos(pd[..., 2:]), torch.sin(pd[..., 2:]), p_norm[..., None]], -1).mT  # (B, 5, L*P)
     feat_q = torch.cat([-2 * qd, -_SEARCH_LAM * torch.stack([torch.cos(hd), torch.sin(hd)], -1), torch.ones_like(qd[..., :1])], -1)
     j = (feat_q @ search).min(-1).indices  # (B, Q): min's indices are argmin's (the first minimum)
     near = pts.gather(1, j[..., None].expand(B, -1, 3))
@@ -475,25 +458,19 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask, search=None):
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
 
 
-def project_to_lanes(pos, heading, lanes, lanes_mask, search=None):
+def project_to_lanes(pos, heading, lanes, lanes_mask):
     """The lane point closest to each state: squared lateral distance and heading error.
 
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P); search: their
-    lane_search_features (optional). The closest point lies on nearest_lane_segment's segment.
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). The closest point lies on
+    nearest_lane_segment's segment.
     Returns d2, heading error and has_lane, each (B, ...); where no lane matches, d2 = error = 0.
     """
     B = lanes.shape[0]
-    a, b, has_lane = nearest_lane_segment(pos, heading, lanes, lanes_mask, search)  # (B, Q, 3) x 2, (B, Q)
+    a, b, has_lane = nearest_lane_segment(pos, heading, lanes, lanes_mask)  # (B, Q, 3) x 2, (B, Q)
     _, r, lane_h, _ = segment_projection(pos.reshape(B, -1, 2), a, b)
     d2 = torch.where(has_lane, (r**2).sum(-1), 0.0)
     err = torch.where(has_lane, wrap_angle(heading.reshape(B, -1) - lane_h), 0.0)
     return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
-
-
-def sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """|a - b|^2 of 2-D points, broadcasting: (..., 2), (..., 2) -> (...). Written out: torch reduces a dim of
-    size 2 slowly, and the collision term does this over every candidate, step and agent."""
-    return (a[..., 0] - b[..., 0]) ** 2 + (a[..., 1] - b[..., 1]) ** 2
 
 
 def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
@@ -514,27 +491,26 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
     spread = (ctx.probs[:, :, None] * ((ctx.preds - mu[:, None]) ** 2).sum(-1)).sum(1)  # (B, T)
-    d2_pred = sq_dist(pos, view(mu)) + view(spread)  # (B, ..., T)
+    d2_pred = ((pos - view(mu)) ** 2).sum(-1) + view(spread)  # (B, ..., T)
     coll = view(ctx.pred_mask)[..., None] * rbf(d2_pred, rbf_var)
-    d2_others = sq_dist(pos[..., None, :, :], view(ctx.others))  # (B, ..., A, T)
+    d2_others = ((pos[..., None, :, :] - view(ctx.others)) ** 2).sum(-1)  # (B, ..., A, T)
     coll = coll + (view(ctx.others_mask)[..., None] * rbf(d2_others, rbf_var)).sum(-2)
     return coll.sum(-1)
 
 
-def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask,
-                search=None) -> torch.Tensor:
+def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask) -> torch.Tensor:
     """The four terms of eq. (3) that depend on the scene alone, never on a prediction, per trajectory.
 
     pos (B, ..., T, 2), head (B, ..., T) the positions and headings t1..T (the cost skips t0), u (B, ..., T, 2);
-    ... are extra dims such as the candidates N. goal (B, 2); lanes (B, L, P, 3), lanes_mask (B, L, P); search:
-    their lane_search_features (optional). Returns (B, ..., 4): (C_goal, C_lat, C_head, C_u).
+    ... are extra dims such as the candidates N. goal (B, 2); lanes (B, L, P, 3), lanes_mask (B, L, P).
+    Returns (B, ..., 4): (C_goal, C_lat, C_head, C_u).
     """
     B = pos.shape[0]
     view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     # C_goal = ||s_T - g||^2
     to_goal = ((pos[..., -1, :] - view(goal)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
-    lat, head_err, _ = project_to_lanes(pos, head, lanes, lanes_mask, search)
+    lat, head_err, _ = project_to_lanes(pos, head, lanes, lanes_mask)
     # C_u = sum_t w_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
@@ -545,7 +521,7 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     -> (B, ..., 5), (C_coll, C_goal, C_lat, C_head, C_u). A prediction enters through C_coll alone."""
     pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
     coll = collision_term(pos, ctx, rbf_var)  # (B, ...)
-    rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask, ctx.lane_search)  # (B, ..., 4)
+    rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask)  # (B, ..., 4)
     return torch.cat([coll[..., None], rest], -1)
 
 
@@ -599,7 +575,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     g_coll = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
     H_coll = (phi[..., None, None] * (outer(diff, diff) / rbf_var**2 - eye / rbf_var)).sum(1)  # (B, T, 2, 2)
     # C_lat and C_head, on the nearest lane segment
-    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask, ctx.lane_search)  # (B, T, 3) x 2, (B, T)
+    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2, (B, T)
     _, r, lane_h, df = segment_projection(p, a, b)  # (B, T, 2), (B, T), (B, T, 2)
     on = has_lane.to(dtype)  # (B, T)
     J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2)
@@ -1844,7 +1820,11 @@ def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
         raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
     if dtype is not None and t.dtype != dtype:
         raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
-    if finite and t.is_floating_point() and not _all_finite(t):
+    try:
+        bad = finite and t.is_floating_point() and not torch.isfinite(t).all()
+    except RuntimeError:  # inside torch.func's transforms a value cannot steer Python: checked outside them
+        bad = False
+    if bad:
         raise ValueError(f"{name}: contains NaN or inf")
     return t
 
@@ -1861,15 +1841,6 @@ def check_points(name: str, t, n: int, dtype=None):
     if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
         raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
     return check_tensor(name, t, dtype=dtype)
-
-
-def _all_finite(t: torch.Tensor) -> bool:
-    """Every value finite? x - x is 0 for a finite x and NaN for an inf or a NaN, and a sum keeps a NaN: two
-    fast passes, where isfinite(t).all() is 8 times slower (the stack's entry points check every input)."""
-    try:
-        return not bool(torch.isnan((t - t).sum()))
-    except RuntimeError:  # inside torch.func.vmap a value cannot steer Python: the caller's entry point checked it
-        return True
 
 
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
@@ -1906,7 +1877,7 @@ def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> N
         x = getattr(batch, name)
         if tuple(x.shape[-2:]) != tail:
             raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
-        if not _all_finite(x):
+        if not torch.isfinite(x).all():
             raise ValueError(f"{name} contains NaN or inf")
     if stack:
         B = len(batch)
