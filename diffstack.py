@@ -52,112 +52,83 @@ class Config:
     released code differs, a comment says so."""
 
     # --- time ---
-    dt: float = 0.5
-    """time step (s); nuScenes key frames are 2 Hz"""
-    hist_len: int = 8
-    """past steps of history (4 s); the current state makes 9"""
-    horizon: int = 6
-    """planning / prediction horizon T in steps (3 s)"""
+    dt: float = 0.5  # time step (s); nuScenes key frames are 2 Hz
+    hist_len: int = 8  # past steps of history (4 s); the current state makes 9
+    horizon: int = 6  # planning / prediction horizon T in steps (3 s)
 
     # --- cost, eq. (3) ---
-    w_coll: float = 5.0
-    """collision weight w1 (authors' code: 20)"""
-    w_goal: float = 0.5
-    """goal weight w2 (authors' code: 0.05)"""
-    w_lat: float = 0.3
-    """lateral lane deviation weight w3"""
-    w_head: float = 0.3
-    """lane heading deviation weight w4"""
-    w_ctrl: float = 1.0
-    """control effort weight w5"""
+    w_coll: float = 5.0  # collision weight w1 (authors' code: 20)
+    w_goal: float = 0.5  # goal weight w2 (authors' code: 0.05)
+    w_lat: float = 0.3  # lateral lane deviation weight w3
+    w_head: float = 0.3  # lane heading deviation weight w4
+    w_ctrl: float = 1.0  # control effort weight w5
+    # sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; the default 2 gives the authors' code's
+    # exp(-d^2/4))
     rbf_var: float = 2.0
-    """sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; the default 2 gives the authors' code's
-    exp(-d^2/4))"""
 
     # --- planner, eq. (2), App. C.1 ---
+    # the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "We choose the goal g to match the
+    # 'ground-truth' ego trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a
+    # goal that, unlike the logged one, does not already contain the driver's reaction to the others (the paper's
+    # "alternative goal definitions"; see route_goal)
     goal: str = "logged"
-    """the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "We choose the goal g to match the
-    'ground-truth' ego trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a goal that, unlike
-    the logged one, does not already contain the driver's reaction to the others (the paper's "alternative goal
-    definitions"; see route_goal)"""
-    goal_lane_dist: float = 4.5
-    """a goal lane passes within this distance (m) of the goal"""
+    goal_lane_dist: float = 4.5  # a goal lane passes within this distance (m) of the goal
+    # ... and its heading differs from the goal's by less than this (rad) (authors' code: pi/4)
     goal_lane_heading: float = math.pi / 2
-    """... and its heading differs from the goal's by less than this (rad) (authors' code: pi/4)"""
+    # candidate lanes kept per scenario (the closest to the goal; the paper keeps every goal lane); N =
+    # len(plan_accels) * len(plan_offsets) * max_goal_lanes
     max_goal_lanes: int = 2
-    """candidate lanes kept per scenario (the closest to the goal; the paper keeps every goal lane);
-    N = len(plan_accels) * len(plan_offsets) * max_goal_lanes"""
-    plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
-    """terminal accelerations (m/s^2)"""
-    plan_offsets: tuple = (-0.5, 0.0, 0.5)
-    """terminal lateral offsets from the lane centre (m)"""
-    beta: float = 1.0
-    """temperature of the relaxed argmin p_n = softmax(-beta C_n)"""
+    plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # terminal accelerations (m/s^2)
+    plan_offsets: tuple = (-0.5, 0.0, 0.5)  # terminal lateral offsets from the lane centre (m)
+    beta: float = 1.0  # temperature of the relaxed argmin p_n = softmax(-beta C_n)
+    # feasible |w v| (m/s^2), authors' code; candidates must also respect the controller's box u_lower..u_upper
+    # (authors' code: acceleration in [-6, 4])
     feas_lat_accel: float = 8.0
-    """feasible |w v| (m/s^2), authors' code; candidates must also respect the controller's box u_lower..u_upper
-    (authors' code: acceleration in [-6, 4])"""
-    feas_yaw_per_speed: float = 0.5
-    """feasible |w| <= this * |v| (1/m), authors' code"""
+    feas_yaw_per_speed: float = 0.5  # feasible |w| <= this * |v| (1/m), authors' code
 
     # --- controller, eq. (4), App. C.2 ---
-    u_lower: tuple = (-0.7, -5.0)
-    """control lower bounds (yaw rate rad/s, acceleration m/s^2), authors' code"""
-    u_upper: tuple = (0.7, 4.0)
-    """control upper bounds"""
-    ilqr_iters: int = 5
-    """maximum iLQR iterations"""
+    u_lower: tuple = (-0.7, -5.0)  # control lower bounds (yaw rate rad/s, acceleration m/s^2), authors' code
+    u_upper: tuple = (0.7, 4.0)  # control upper bounds
+    ilqr_iters: int = 5  # maximum iLQR iterations
+    # converged when the norm of the full (unscaled) LQR control step is below this (paper: 0.05 on the change of the
+    # controls between iterations; authors' code: 0.01)
     ilqr_tol: float = 0.05
-    """converged when the norm of the full (unscaled) LQR control step is below this (paper: 0.05 on the change of the
-    controls between iterations; authors' code: 0.01)"""
-    line_search_steps: int = 5
-    """step scales tried: 1, 1/5, 1/25, ..."""
-    line_search_decay: float = 5.0
-    """divide the step by this on failure"""
+    line_search_steps: int = 5  # step scales tried: 1, 1/5, 1/25, ...
+    line_search_decay: float = 5.0  # divide the step by this on failure
 
     # --- predictor, eq. (1), §3.1 (Trajectron++'s defaults, Salzmann et al. 2020) ---
+    # K, the number of values of the discrete latent z (= GMM components = trajectories for the planner)
     pred_modes: int = 25
-    """K, the number of values of the discrete latent z (= GMM components = trajectories for the planner)"""
+    # width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM
     pred_enc_hidden: int = 32
-    """width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM"""
-    pred_latent_hidden: int = 32
-    """hidden width of the p(z|x) and q(z|x,y) MLPs"""
+    pred_latent_hidden: int = 32  # hidden width of the p(z|x) and q(z|x,y) MLPs
+    # decoder GRU width (Trajectron++: 128; halved so that CPU training fits a teaching session)
     pred_dec_hidden: int = 64
-    """decoder GRU width (Trajectron++: 128; halved so that CPU training fits a teaching session)"""
-    pred_radius: float = 30.0
-    """neighbours within this distance (m) of the predicted agent at t0 are attended to"""
+    pred_radius: float = 30.0  # neighbours within this distance (m) of the predicted agent at t0 are attended to
+    # input scales: position (m), velocity (m/s), acceleration (m/s^2), heading (rad) and heading rate (rad/s)
     pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)
-    """input scales: position (m), velocity (m/s), acceleration (m/s^2), heading (rad) and heading rate (rad/s)"""
+    # below this speed (m/s) the velocity direction is unreliable: the tracked heading replaces it at t0
     pred_min_speed: float = 0.5
-    """below this speed (m/s) the velocity direction is unreliable: the tracked heading replaces it at t0"""
+    # std (m) added to every GMM component: at v = 0 the controls cannot move the agent sideways
     pred_pos_std_min: float = 0.05
-    """std (m) added to every GMM component: at v = 0 the controls cannot move the agent sideways"""
+    # the per-step log-likelihood in the loss is clamped above at this (Trajectron++ log_p_yt_xz_max)
     pred_log_p_max: float = 6.0
-    """the per-step log-likelihood in the loss is clamped above at this (Trajectron++ log_p_yt_xz_max)"""
-    pred_kl_min: float = 0.07
-    """free bits: the batch-mean KL(q || p) is clamped below at this"""
-    pred_beta: tuple = (100.0, 400.0, 100.0)
-    """KL weight beta(step) = b0 sigmoid((step - b1) / b2)"""
+    pred_kl_min: float = 0.07  # free bits: the batch-mean KL(q || p) is clamped below at this
+    pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight beta(step) = b0 sigmoid((step - b1) / b2)
+    # logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3), applied in training
     pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
-    """logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3), applied in training"""
-    pred_nll_min: float = -20.0
-    """the NLL metric clamps each step's log p(y_t) below at this"""
-    pred_lr_decay: float = 0.9999
-    """learning rate multiplied by this after every iteration"""
-    pred_grad_clip: float = 1.0
-    """gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)"""
+    pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(y_t) below at this
+    pred_lr_decay: float = 0.9999  # learning rate multiplied by this after every iteration
+    pred_grad_clip: float = 1.0  # gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)
 
     # --- training, §3.2, App. D ---
-    alpha_rl: tuple = (1.0, 100.0, 1000.0)
-    """loss weights (L_pred, L_plan, L_ctr) in the RL setting"""
-    alpha_il: tuple = (1.0, 10.0, 1000.0)
-    """loss weights in the IL setting"""
-    lr: float = 3e-3
-    """Adam learning rate"""
-    batch_size: int = 256
-    """scenarios per training step"""
+    alpha_rl: tuple = (1.0, 100.0, 1000.0)  # loss weights (L_pred, L_plan, L_ctr) in the RL setting
+    alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
+    lr: float = 3e-3  # Adam learning rate
+    batch_size: int = 256  # scenarios per training step
+    # the mode probabilities the planner and controller see in training: 'posterior', q(z|x,y), as the authors' code
+    # (so L_plan and L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation
     train_plan_weights: str = "posterior"
-    """the mode probabilities the planner and controller see in training: 'posterior', q(z|x,y), as the authors'
-    code (so L_plan and L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation"""
 
     def __post_init__(self):
         """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
@@ -1242,20 +1213,16 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
 class Prediction:
     """What the predictor hands to the planner (and to its loss and metrics). All differentiable in theta."""
 
+    # (B, 4) the agent's state at t0 the modes start from (heading = velocity direction + learned correction)
     s0: torch.Tensor
-    """(B, 4) the agent's state at t0 the modes start from (heading = velocity direction + learned correction)"""
+    # (B, K, T, 4) mode trajectories t1..T: the mean controls of each mode integrated by the unicycle
     states: torch.Tensor
-    """(B, K, T, 4) mode trajectories t1..T: the mean controls of each mode integrated by the unicycle"""
-    controls: torch.Tensor
-    """(B, K, T, 2) mean controls (yaw rate, acceleration) of each mode"""
-    pos_cov: torch.Tensor
-    """(B, K, T, 2, 2) position covariance of each GMM component (EKF propagation + a small floor)"""
-    log_p: torch.Tensor
-    """(B, K) log p(z|x) (logits clipped when a training step is given)"""
-    log_q: torch.Tensor | None
-    """(B, K) log q(z|x,y), or None when the future was not used"""
+    controls: torch.Tensor  # (B, K, T, 2) mean controls (yaw rate, acceleration) of each mode
+    pos_cov: torch.Tensor  # (B, K, T, 2, 2) position covariance of each GMM component (EKF propagation + a small floor)
+    log_p: torch.Tensor  # (B, K) log p(z|x) (logits clipped when a training step is given)
+    log_q: torch.Tensor | None  # (B, K) log q(z|x,y), or None when the future was not used
+    # (B, K) the mode weights: q(z|x,y) with use_posterior (training, as the authors' code), p(z|x) otherwise
     probs: torch.Tensor
-    """(B, K) the mode weights: q(z|x,y) with use_posterior (training, as the authors' code), p(z|x) otherwise"""
 
     @property
     def means(self) -> torch.Tensor:
