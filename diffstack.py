@@ -1,12 +1,9 @@
-"""DiffStack: a differentiable and modular autonomous-vehicle stack, the method in one readable module.
+"""DiffStack (Karkus, Ivanovic, Mannor, Pavone, CoRL 2022): the method in one readable module.
 
-Karkus, Ivanovic, Mannor, Pavone, "DiffStack: A Differentiable and Modular Control Stack for Autonomous
-Vehicles", CoRL 2022. The stack predicts the future of a nearby vehicle (eq. 1), plans with a sampling
-planner (eq. 2) that minimises a hand-crafted cost (eq. 3), and refines the plan with a box-constrained
-iLQR controller (eq. 4). Planner and controller are differentiable, so the predictor can be trained with
-the planning and control losses.
+The stack predicts the future of a nearby vehicle (eq. 1), plans with a sampling planner (eq. 2) that minimises a
+hand-crafted cost (eq. 3), and refines the plan with a box-constrained iLQR controller (eq. 4). Planner and
+controller are differentiable, so the predictor can be trained with the planning and control losses.
 
-Map of the module (the order the data flows):
     1. Config        every default of the paper, in one dataclass
     2. Dynamics      the dynamically-extended unicycle (exact integration)
     3. Cost          eq. (3): collision, goal, lane, heading, control effort
@@ -15,14 +12,10 @@ Map of the module (the order the data flows):
     6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
     8. Input checks  what the public entry points refuse, in one place
+Training and evaluation are in train.py (`python diffstack.py --quick` hands over to it).
 
-Training and evaluation are in train.py (`python diffstack.py --quick` hands over to it), the paper's tables
-in experiments.py, the data in data_synth.py and data_real.py.
-
-Shape letters used in comments:
-    B scenarios (batch)   A other agents   K prediction modes   N planner candidates
-    T time steps          L lanes          P points per lane    n = 4 state dims, m = 2 control dims
-    ...  extra batch dims a function broadcasts over (the candidates N, or the line search's step sizes)
+Shapes in comments: B scenarios, A other agents, K prediction modes, N planner candidates, T time steps, L lanes,
+P points per lane, n = 4 state and m = 2 control dims; ... extra batch dims a function broadcasts over.
 A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceleration a).
 """
 from __future__ import annotations
@@ -141,30 +134,29 @@ class Config:
                        pred_logit_clip=4, alpha_rl=3, alpha_il=3)
         choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
         for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
+            v, name, bad = getattr(self, f.name), f"Config.{f.name}", None
             if f.name in choices:
-                if v not in choices[f.name]:
-                    raise ValueError(f"Config.{f.name}: must be one of {choices[f.name]}, got {v!r}")
+                bad = v not in choices[f.name] and f"one of {choices[f.name]}"
             elif f.name in counts:
-                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                    raise ValueError(f"Config.{f.name}: must be a whole number >= 1, got {v!r}")
+                bad = (isinstance(v, bool) or not isinstance(v, int) or v < 1) and "a whole number >= 1"
             elif f.name in lengths:
                 n = lengths[f.name]
-                if (not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
-                        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
-                    raise ValueError(f"Config.{f.name}: must be a tuple of {n or 'one or more'} finite numbers, got {v!r}")
+                bad = ((not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
+                        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v))
+                       and f"a tuple of {n or 'one or more'} finite numbers")
             elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"Config.{f.name}: must be a finite number, got {v!r}")
+                bad = "a finite number"
             elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
-                raise ValueError(f"Config.{f.name}: must be {'> 0' if f.name in positive else '>= 0'}, got {v!r}")
+                bad = "> 0" if f.name in positive else ">= 0"
+            if bad:
+                raise ValueError(f"{name}: must be {bad}, got {v!r}")
         if any(lo >= hi for lo, hi in zip(self.u_lower, self.u_upper)):
             raise ValueError(f"Config.u_lower: must be below u_upper, got {self.u_lower} and {self.u_upper}")
         if any(x <= 0 for x in self.pred_scales) or any(x < 0 for x in self.alpha_rl + self.alpha_il):
             raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
-        if not self.line_search_decay > 1:
-            raise ValueError(f"Config.line_search_decay: must be > 1, got {self.line_search_decay}")
-        if not 0 < self.pred_lr_decay <= 1:
-            raise ValueError(f"Config.pred_lr_decay: must be in (0, 1], got {self.pred_lr_decay}")
+        if not self.line_search_decay > 1 or not 0 < self.pred_lr_decay <= 1:
+            raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
+                             f"{self.line_search_decay} and {self.pred_lr_decay}")
 
 
 # ============================================================================================
@@ -176,13 +168,11 @@ class Config:
 #     [x', y'] = [x, y] + R(h) [along, lateral],
 #     along   = int_0^tau (v + a s) cos(w s) ds = v c_0 + a c_1,
 #     lateral = int_0^tau (v + a s) sin(w s) ds = v s_0 + a s_1,
-# with the moments c_j = int_0^tau s^j cos(w s) ds and s_j = int_0^tau s^j sin(w s) ds. Their
-# derivatives are moments again, d c_j / dw = -s_{j+1} and d s_j / dw = c_{j+1}: that gives the
-# Jacobians the controller needs in closed form too.
-# The closed forms of c_j, s_j divide by w^(j+1). For |th| = |w tau| < 0.3 we use their Taylor series
+# with the moments c_j = int_0^tau s^j cos(w s) ds and s_j = int_0^tau s^j sin(w s) ds, whose derivatives are
+# moments again, d c_j / dw = -s_{j+1} and d s_j / dw = c_{j+1}: the Jacobians in closed form too.
+# The closed forms divide by w^(j+1); for |th| = |w tau| < 0.3 the Taylor series (seven terms, error < 1e-16)
 #     c_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),  s_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2))
-# (seven terms: error < 1e-16), and feed the closed forms a safe w = 1 there: dividing by a tiny w
-# inside torch.where would still put NaN into the gradient of the branch that is not selected.
+# replaces them, and they get a safe w = 1 there (a tiny w inside torch.where would put NaN into the gradient).
 
 _SERIES_TERMS = 7
 _SERIES_SWITCH = 0.3
@@ -191,8 +181,7 @@ _SERIES_SWITCH = 0.3
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, tau, dtype, device):
     """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first
-    (a tuple of `terms` rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,). Made once per (jmax, tau, dtype, device):
-    the dynamics run in every inner loop."""
+    (_SERIES_TERMS rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,)."""
     f = math.factorial
     coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
@@ -225,8 +214,7 @@ def _moments(w, tau, jmax):
 
 
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
-    """One exact step of the unicycle. s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4).
-    Checks its input; the solver's inner loops call the same math unchecked (_unicycle_step)."""
+    """One exact step of the unicycle: s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4)."""
     check_points("s", s, 4)
     check_points("u", u, 2, s.dtype)
     return _unicycle_step(s, u, check_positive("dt", dt))
@@ -255,16 +243,9 @@ def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     xv, yv = rot(c0, s0)  # d/dv
     xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
     xa, ya = rot(c1, s1)  # d/da
-    A = torch.stack([
-        torch.stack([one, zero, -dy, xv], -1),
-        torch.stack([zero, one, dx, yv], -1),
-        torch.stack([zero, zero, one, zero], -1),
-        torch.stack([zero, zero, zero, one], -1)], -2)
-    B = torch.stack([
-        torch.stack([xw, xa], -1),
-        torch.stack([yw, ya], -1),
-        torch.stack([dt * one, zero], -1),
-        torch.stack([zero, dt * one], -1)], -2)
+    rows = lambda *r: torch.stack([torch.stack(row, -1) for row in r], -2)  # noqa: E731
+    A = rows([one, zero, -dy, xv], [zero, one, dx, yv], [zero, zero, one, zero], [zero, zero, zero, one])
+    B = rows([xw, xa], [yw, ya], [dt * one, zero], [zero, dt * one])
     return A, B
 
 
@@ -300,7 +281,7 @@ def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: 
 def rollout(dynamics, x0, u):
     """Integrate controls u (..., T, m) from x0 (..., n) with a step function: x (..., T+1, n), x0 first."""
     xs = [x0]
-    for t in range(u.shape[-2]):  # T is 6: a loop over time, never over scenarios
+    for t in range(u.shape[-2]):
         xs.append(dynamics(xs[-1], u[..., t, :]))
     return torch.stack(xs, -2)
 
@@ -311,7 +292,7 @@ def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tens
 
 
 class Unicycle:
-    """The unicycle as the controller sees it: a step function with closed-form Jacobians."""
+    """The unicycle as the controller sees it: a step function with closed-form derivatives."""
 
     def __init__(self, dt: float):
         self.dt = check_positive("dt", dt)
@@ -332,8 +313,8 @@ class Unicycle:
 #
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
 #
-# The cost is a sum of per-step terms (each step's term depends on that step's state and control
-# only). The controller relies on this: it is what makes the cost's Hessian block-diagonal in time.
+# A sum of per-step terms, each of one step's state and control: the controller relies on the cost's Hessian
+# being block-diagonal in time.
 
 
 @dataclass
@@ -390,23 +371,17 @@ def lane_segments(p, lanes, lanes_mask):
     return frac, d2, lane_h, seg_ok.expand_as(d2)
 
 
-_SEARCH_LAM = 50.0  # m^2: a lane point heading the other way ranks as one at sqrt(d^2 + 100 m^2) (10 m away at d = 0)
+_SEARCH_LAM = 50.0  # m^2: a lane point heading the other way at distance d ranks as one at sqrt(d^2 + 100 m^2)
 
 
 def nearest_lane_segment(pos, heading, lanes, lanes_mask):
-    """The lane segment closest to each state, and whether there is one.
+    """The lane segment closest to each state, and whether there is one (has_lane: no lane cost where not).
 
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). Lane points are ranked by distance plus a heading
-    penalty, so that an oncoming lane beside one of the state's own direction is not 'closest'; where the
-    winner still points more than 90 degrees away from the state's heading, the state has no lane (has_lane
-    False: no lane cost).
-    Two stages: a search for the nearest lane point (no gradient: it only picks an index), then the closer
-    of the two segments that meet there. The search ranks points by
-        |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2,
-    so a point on a lane pointing the other way at distance d ranks as one of the state's direction at
-    sqrt(d^2 + 100 m^2) (10 m at d = 0): one batched matrix product.
-    Returns the segment's ends a, b (B, Q, 3) (Q: the states, flattened) and has_lane (B, Q).
-    """
+    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). First the nearest lane point (no
+    gradient: it only picks an index), ranked by |q - p|^2 + lam (1 - cos(h_q - h_p)), lam = 50 m^2, so that an
+    oncoming lane beside the state's own is not 'closest' (a state with no lane within 90 degrees has none); then
+    the closer of the two segments that meet there. Returns their ends a, b (B, Q, 3) (Q: the states, flattened)
+    and has_lane (B, Q)."""
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
     pts = lanes.reshape(B, L * P, 3)
@@ -445,8 +420,8 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
 
 
 def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
-    """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26: nothing, at the cost's precision).
-    Far agents would otherwise send exp into its underflow path, 10 to 25 times slower on CPU."""
+    """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26, nothing at the cost's precision;
+    docs/performance.md says why)."""
     return torch.exp((-d2 / (2 * rbf_var)).clamp_min(-60.0))
 
 
@@ -470,12 +445,9 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
 
 
 def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask) -> torch.Tensor:
-    """The four terms of eq. (3) that depend on the scene alone, never on a prediction, per trajectory.
-
-    pos (B, ..., T, 2), head (B, ..., T) the positions and headings t1..T (the cost skips t0), u (B, ..., T, 2);
-    ... are extra dims such as the candidates N. goal (B, 2); lanes (B, L, P, 3), lanes_mask (B, L, P).
-    Returns (B, ..., 4): (C_goal, C_lat, C_head, C_u).
-    """
+    """The four terms of eq. (3) that never see a prediction, per trajectory: positions pos (B, ..., T, 2) and
+    headings head (B, ..., T) at t1..T (the cost skips t0), u (B, ..., T, 2), goal (B, 2), lanes (B, L, P, 3),
+    lanes_mask (B, L, P) -> (B, ..., 4): (C_goal, C_lat, C_head, C_u)."""
     B = pos.shape[0]
     view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     # C_goal = ||s_T - g||^2
@@ -508,8 +480,7 @@ def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
-    """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...).
-    Checks its input (the stack's inner loops call weigh(cost_terms(...)) unchecked)."""
+    """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
     check_cost_inputs(x, u, ctx, w, rbf_var)
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
 
@@ -517,7 +488,7 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
 def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in z_t = (x, y, h, v, w, a), step by
     step (x_0 costs nothing; u_T = 0 pads the last step), in closed form: what cost_expansion computes by
-    autodiff, at a fraction of its cost. x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
+    autodiff (the tests hold the two together). x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
 
     With p, h a state's position and heading (sigma^2 = rbf_var):
       C_coll   phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t (c = exp(-spread / 2 sigma^2)) and
@@ -571,10 +542,8 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
 
 
 class StackCost:
-    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every argument per scenario.
-    Its `expansion` is the closed form above, which the solver takes instead of autodiff (as it takes the
-    unicycle's closed-form Jacobians): forward-mode autodiff over a reverse pass costs some 30 ms a call
-    whatever the batch size, and a training step expands the cost six times or more."""
+    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every argument per scenario,
+    with its closed-form `expansion`, which the solver takes instead of autodiff."""
 
     def __init__(self, rbf_var: float):
         self.rbf_var = rbf_var
@@ -646,18 +615,11 @@ def _hermite(p0, m0, p1, m1, tau):
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     """Candidate trajectories (App. C.1): for up to `max_goal_lanes` goal lanes, the terminal accelerations
-    (8 by default) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each. The
-    paper's spline "minimizes mean control effort"; here, as in the authors' code, it is the cubic Hermite curve
-    fixed by the position and velocity at both ends, so nothing is left to minimise.
-
-    s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask (B, L, P).
-    """
-    B = check_tensor("s0", s0, (None, 4)).shape[0]
-    if B == 0:
-        raise ValueError("s0: no scenarios (a batch of size 0)")
-    check_tensor("goal", goal, (B, 4), s0.dtype)
-    check_tensor("lanes", lanes, (B, None, None, 3), s0.dtype)
-    check_tensor("lanes_mask", lanes_mask, (B, *lanes.shape[1:3]), torch.bool)
+    (8) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each. The paper's spline
+    "minimizes mean control effort"; here, as in the authors' code, it is the cubic Hermite curve fixed by the
+    position and velocity at both ends. s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask
+    (B, L, P)."""
+    B = check_plan_inputs(s0, goal, lanes, lanes_mask)
     T, dt = cfg.horizon, cfg.dt
     dur = T * dt
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
@@ -717,10 +679,9 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
 
 
 def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
-    """The 'route' goal (Config.goal): the point of the ego's lane (the nearest lane heading its way, within 40
-    degrees) that the ego reaches at T keeping its current speed, with the lane's heading and that speed.
-    The logged goal, the GT ego state at T, already holds the driver's reaction to a car cutting in or braking
-    ahead, so a planner without predictions brakes too; this one does not. s0 (B, 4) -> goal (B, 4)."""
+    """The 'route' goal (Config.goal): where the ego reaches at T keeping its speed along its lane (the nearest
+    heading its way, within 40 degrees), with the lane's heading and that speed. Unlike the logged goal it holds
+    no reaction of the driver to the others. s0 (B, 4) -> goal (B, 4)."""
     B = s0.shape[0]
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
     d2, s_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
@@ -762,9 +723,8 @@ class Plan(NamedTuple):
 
 @dataclass
 class ScenePlan:
-    """What the planner computes from the scene alone, never from a prediction: the goal g, the candidates, and
-    every term of eq. (3) but C_coll for each of them. A prediction reaches the plan only through C_coll, so
-    training computes these once for its data (scene_plans) instead of at every step of every epoch."""
+    """What the planner computes from the scene alone: the goal g, the candidates and every term of eq. (3) but
+    C_coll for each. A prediction reaches the plan through C_coll only, so training computes these once."""
 
     goal: torch.Tensor  # (B, 4)       the goal state
     cands: Candidates
@@ -780,15 +740,12 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
     """Eq. (2): the candidates, their costs C_n, and the argmin. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5).
     scene: the candidates and their prediction-free terms if already computed (for this s0, goal and ctx's lanes).
     Unpacks as (cands, cost, best, plannable, terms)."""
-    B = check_tensor("s0", s0, (None, 4)).shape[0]
-    check_tensor("goal_state", goal_state, (B, 4), s0.dtype)
+    check_plan_inputs(s0, goal_state, ctx.lanes, ctx.lanes_mask, "goal_state")
+    cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg) if scene is None else scene.cands
+    check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
     if scene is None:
-        cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
-        check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
         terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
     else:
-        cands = scene.cands
-        check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
         coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N): the one term a prediction moves
         terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
     cost = weigh(terms, w)  # (B, N)
@@ -802,23 +759,15 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 #
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
 #
-# The solver is general: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable cost that is
-# a sum of per-step terms (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m); ... are extra dims, used
-# to line-search several step sizes at once), `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable
-# step. Gradients reach every tensor in `params` and x_init.
-#
-# Derivatives. A step's term depends on that step's (x_t, u_t) only, so the cost Hessian is block-
-# diagonal in time, and so are the dynamics Jacobians. Perturbing coordinate i of *every* step at once
-# and differentiating therefore gives column i of every block together: n + m forward-mode passes
-# (torch.func.jacfwd over a shared perturbation d) give all blocks of all steps and all scenarios.
-# That is the general path. The stack's cost (StackCost) and the unicycle bring closed forms instead
-# (`expansion`, `jacobians`, `curvature`); the tests hold each closed form to its autodiff counterpart.
-# With batched_params, the iterations work on the scenarios still moving only.
+# General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms (x (B, ..., T+1, n)
+# with x_0 first, u (B, ..., T, m); ... are extra dims), `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable
+# step. Gradients reach x_init and every tensor in `params`. Closed forms where the cost or dynamics bring them
+# (`expansion`, `jacobians`, `curvature`: StackCost, Unicycle; the tests hold each to autodiff), autodiff otherwise.
 
 
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
-    """d fn(z)[..., t, :] / d z[..., t, :] for every step t, for fn acting step by step.
-    z (B, T, k) -> (B, T, out, k); with_value: also fn(z), from the same pass."""
+    """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z) with_value).
+    Step t's output depends on step t's input only, so one perturbation d shared by all steps gives every block."""
     jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
     return jac if with_value else jac[0]
 
@@ -829,8 +778,7 @@ def _split(z, n, T):
 
 
 def cost_expansion(cost_fn, x, u, params):
-    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step.
-    Closed form where the cost provides it (StackCost), forward-over-reverse autodiff otherwise."""
+    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
     if hasattr(cost_fn, "expansion"):
         return cost_fn.expansion(x, u, *params)
     n, T = x.shape[-1], u.shape[1]
@@ -841,8 +789,7 @@ def cost_expansion(cost_fn, x, u, params):
 
 
 def dynamics_jacobians(dynamics, x, u):
-    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m).
-    Closed form where the dynamics provide it (Unicycle), forward-mode autodiff otherwise."""
+    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m)."""
     if hasattr(dynamics, "jacobians"):
         return dynamics.jacobians(x[:, :-1], u)
     n = x.shape[-1]
@@ -851,23 +798,15 @@ def dynamics_jacobians(dynamics, x, u):
 
 
 def solve_masked(Q, rhs, free):
-    """Solve the rows of Q y = rhs that are free, with y = rhs on the others.
-
-    Q (..., m, m), rhs (..., m, r), free (..., m) bool. Eliminating the fixed coordinates leaves the matrix
-    with Q's entries between free coordinates and the identity's elsewhere."""
+    """Solve the free rows of Q y = rhs, with y = rhs on the others: Q (..., m, m), rhs (..., m, r), free (..., m)."""
     eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
     return torch.linalg.solve(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
 
 
 def box_qp(Q, q, lo, hi):
-    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m (Q positive definite).
-
-    Where the unconstrained minimiser -Q^-1 q is inside the box it is the answer (most of the stack's stages).
-    Elsewhere each control is free, at its lower bound or at its upper bound: 3^m active sets. For each, the free
-    coordinates minimise the quadratic with the others fixed, Q_ff d_f = -(q_f + Q_fc d_c); the best feasible one
-    is the optimum. Batched over everything, no iterations.
-    Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool: the controls not held at a bound.
-    """
+    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m and Q positive definite: the unconstrained
+    minimiser where it is inside the box, else the best feasible one of the 3^m active sets (each control free, at
+    lo or at hi). Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool: the controls not held at a bound."""
     B, m = q.shape
     d = torch.linalg.solve(Q, -q)  # (B, m)
     inside = ((d >= lo) & (d <= hi)).all(-1)  # (B,)
@@ -897,24 +836,21 @@ def make_pd(Q, eps):
 
 
 def riccati_backward(A, B, H, g, n, stage):
-    """The Riccati recursion of a time-varying LQR with quadratic cost blocks H (B, T+1, n+m, n+m) and
-    linear terms g (B, T+1, n+m), dynamics dx_{t+1} = A_t dx_t + B_t du_t.
+    """The Riccati recursion of a time-varying LQR: cost blocks H (B, T+1, n+m, n+m), linear terms g (B, T+1, n+m),
+    dynamics dx_{t+1} = A_t dx_t + B_t du_t.
 
-    In homogeneous coordinates [1; z] a quadratic with a linear term is one matrix,
+    In homogeneous coordinates a quadratic with a linear term is one matrix,
         1/2 z'H z + g'z = 1/2 [1; z]' Ht [1; z],   Ht = [[0, g'], [g, H]],
-    so the value function V_t(dx) = 1/2 dx'P dx + p'dx + const is one matrix Pt = [[., p'], [p, P]] over
-    X = [1; dx], the dynamics are [1; dx'] = Ft [1; dx; du] with Ft = [[1, 0, 0], [0, A, B]], and the policy
-    du = k + K dx = W X with W = [k K]. A stage is then
-        Qt = Ht_t + Ft' Pt_{t+1} Ft                      (Q = H_t + F'PF and q = g_t + F'p, F = [A B], at once)
-        W  from Qt's control rows [Q_uX Q_uu]            (stage: W = -Q_uu^-1 Q_uX where nothing is clamped)
+    so V_t(dx) = 1/2 dx'P dx + p'dx + const is Pt = [[., p'], [p, P]] over X = [1; dx], the dynamics are
+    [1; dx'] = Ft [1; dx; du] with Ft = [[1, 0, 0], [0, A, B]], and the policy is du = k + K dx = W X, W = [k K]:
+        Qt = Ht_t + Ft' Pt_{t+1} Ft                      (Q = H_t + F'PF and q = g_t + F'p at once, F = [A B])
+        W  from Qt's control rows [Q_uX Q_uu]            (W = -Q_uu^-1 Q_uX where nothing is clamped)
         Pt_t = Q_XX + Q_Xu W + W'(Q_uX + Q_uu W)          (V_t(dx) = Q_t(dx, k + K dx): P and p at once)
-    stage(t, Q_uu (B, m, m), Q_uX (B, m, 1+n)) -> (W (B, m, 1+n), free (B, m) bool) decides each stage's
-    policy and which controls stay free; its two uses are the two functions below. Returns feed-forward k
-    (B, T, m), gains K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n).
-    """
+    stage(t, Q_uu (B, m, m), Q_uX (B, m, 1+n)) -> (W (B, m, 1+n), free (B, m) bool) picks the policy. Returns
+    k (B, T, m), K (B, T, m, n), free (B, T, m) and p_0 = dV_0/dx_0 (B, n)."""
     T, nX = A.shape[1], 1 + n  # nX: the size of [1; dx]; the controls follow it
     Ht_0, Ht_z = nn.functional.pad(g, (1, 0))[..., None, :], torch.cat([g[..., None], H], -1)  # Ht's first row, the others
-    F = torch.cat([A, B], -1)  # (B, T, n, n+m): Ft = [[1, 0], [0, F]], whose first row and column the products skip
+    F = torch.cat([A, B], -1)  # (B, T, n, n+m); the products skip Ft's first row and column
     Pt = torch.cat([Ht_0[:, T], Ht_z[:, T, :n]], 1)[..., :nX]  # (B, 1+n, 1+n): V_T = l_T, which has no control
     Ws, frees = [], []
     for t in reversed(range(T)):
@@ -930,35 +866,28 @@ def riccati_backward(A, B, H, g, n, stage):
 
 
 def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
-    """The Riccati pass inside iLQR's forward solve: each stage's control step solves the box QP
-    min 1/2 du'Quu du + qu'du s.t. lo_t <= du <= hi_t, with Quu shifted to be positive definite
-    (smallest eigenvalue >= pd_eps) so that the step is a descent direction; the gains of the free controls
-    solve the same shifted Quu, the clamped ones get none. lo, hi (B, T, m)."""
-
+    """iLQR's Riccati pass: k solves the box QP with Quu shifted to eigenvalues >= pd_eps (a descent direction),
+    K solves the same Quu on the free controls and is 0 on the clamped ones. lo, hi (B, T, m) bound du."""
     def stage(t, Q_uu, Q_uX):
         Q_uu = make_pd(Q_uu, pd_eps)
         k, free = box_qp(Q_uu, Q_uX[..., 0], lo[:, t], hi[:, t])
-        K = solve_masked(Q_uu, torch.where(free[..., None], -Q_uX[..., 1:], 0.0), free)  # (B, m, n); 0 on clamped rows
+        K = solve_masked(Q_uu, torch.where(free[..., None], -Q_uX[..., 1:], 0.0), free)  # (B, m, n)
         return torch.cat([k[..., None], K], -1), free
-
     return riccati_backward(A, B, H, g, n, stage)
 
 
 def lqr_backward_fixed(A, B, H, g, n, free):
-    """The KKT backward's LQR: the controls that were at a bound in the solution (free False, (B, T, m))
-    are held at du = 0, the others solve the exact (unshifted) Quu: [k K]_f = -Quu_ff^-1 [qu Qux]_f."""
-
+    """The KKT backward's LQR: controls at a bound in the solution (free False, (B, T, m)) are held at du = 0,
+    the others solve the exact Quu: [k K]_f = -Quu_ff^-1 [qu Qux]_f."""
     def stage(t, Q_uu, Q_uX):
         f = free[:, t]
         return solve_masked(Q_uu, torch.where(f[..., None], -Q_uX, 0.0), f), f
-
     return riccati_backward(A, B, H, g, n, stage)
 
 
 @dataclass
 class ILQRInfo:
     """What the solver reports per scenario."""
-
     converged: torch.Tensor  # (B,) bool: the last full LQR step was below tol
     step_norm: torch.Tensor  # (B,) norm of the last full LQR control step
     iters: torch.Tensor  # (B,) iterations run
@@ -967,17 +896,12 @@ class ILQRInfo:
 
 def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0,
          batched_params=False):
-    """iLQR with box controls (App. C.2). Differentiable if the inputs are (autograd through the
-    unrolled iterations; `ILQR` below gives the cheap exact gradient instead).
+    """iLQR with box controls (App. C.2); differentiable by unrolling (`ILQR` gives the exact KKT gradient instead).
 
-    x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m). Each iteration: expand the cost to second
-    and the dynamics to first order, solve the box-constrained LQR, line-search the step scale
-    1, 1/5, 1/25, ... per scenario (line_search) and keep the largest that does not raise the true cost. A
-    scenario whose full step is below tol has converged and stops moving.
-    batched_params: every tensor in params is per scenario, (B, ...); the iterations then work on the
-    scenarios still moving only (most converge in one or two of the five), otherwise on all of them.
-    Returns x (B, T+1, n), u (B, T, m), ILQRInfo.
-    """
+    x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m) -> x (B, T+1, n), u (B, T, m), ILQRInfo. Each iteration
+    expands the cost to second and the dynamics to first order, solves the box-constrained LQR and line-searches
+    the step; a scenario whose full step is below tol has converged and stops moving. batched_params: every tensor
+    in params is per scenario, (B, ...), and the iterations work on the scenarios still moving only."""
     Bsz, T, m = u_init.shape
     n = x_init.shape[-1]
     lo, hi = lo.expand(Bsz, T, m), hi.expand(Bsz, T, m)
@@ -1016,11 +940,10 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
 
 
 def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
-    """An iLQR iteration's step: the largest scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
+    """The largest step scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
         u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
-    does not raise the true cost; every scale is rolled out at once, as an extra batch dim S.
-    x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n), cost (b,). Returns the new x, u, cost, whether a
-    scale was accepted (b,) and the norm of the full step (b,)."""
+    does not raise the true cost, all scales at once (dim S). x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n),
+    cost (b,) -> the new x, u, cost, whether a scale was accepted (b,), the norm of the full step (b,)."""
     eps = torch.finfo(x.dtype).eps
     S = len(scales)
     xs, us = [x[:, None, 0].expand(-1, S, -1)], []  # (b, S, n)
@@ -1041,19 +964,17 @@ def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
     """Gradients of a loss on the solution (x, u) wrt x_init and params (Amos et al. 2018).
 
-    At the solution, the KKT conditions F(x, u, lambda; params) = 0 hold. By the implicit function
-    theorem, dloss/dparams = d' dF/dparams, where d solves the KKT system with the incoming gradient
-    as right-hand side: that is an LQR problem,
+    At the solution the KKT conditions F(x, u, lambda; params) = 0 hold; by the implicit function theorem
+    dloss/dparams = d' dF/dparams, where d solves the KKT system with the incoming gradient as right-hand side,
+    an LQR problem:
         min_d 1/2 d' H d + (dloss/dz)' d   s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t, du_active = 0,
-    with H the Hessian of the Lagrangian L = C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
+    H the Hessian of the Lagrangian L = C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
         H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(x_t, u_t)      (the dynamics' curvature)
-    The costates follow from stationarity in x: lambda_T = dl_T/dx_T, lambda_t = dl_t/dx_t + A_t' lambda_{t+1}.
-    mpc.pytorch and the authors' code drop the curvature term (exact=False here): exact on linear
-    dynamics only. Then
+    with costates from stationarity in x: lambda_T = dl_T/dx_T, lambda_t = dl_t/dx_t + A_t' lambda_{t+1}.
+    mpc.pytorch and the authors' code drop the curvature (exact=False): exact on linear dynamics only. Then
         dloss/dparams = d/dparams [ sum_t dl_t/dz_t(params) . d_t ]     (d fixed)
         dloss/dx_init = p_0, the gradient at dx_0 = 0 of the LQR's value function.
-    x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u.
-    """
+    x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u."""
     n, T = x.shape[-1], u.shape[1]
     g, H = cost_expansion(cost_fn, x, u, params)
     A, Bm = dynamics_jacobians(dynamics, x, u)
@@ -1076,7 +997,6 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
         du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
         dx.append((A[:, t] @ dx[-1][..., None] + Bm[:, t] @ du[-1][..., None])[..., 0])
     dx, du = torch.stack(dx, 1), torch.stack(du, 1)
-    # dloss/dparams = d/dparams < dC/dz (params), d >
     needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
     grads = [None] * len(params)
     if needs:
@@ -1116,11 +1036,8 @@ class ILQR(torch.autograd.Function):
 
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True,
                batched_params=False):
-    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,).
-
-    Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad.
-    batched_params: every tensor in params is per scenario, (B, ...) (then the solver skips converged scenarios).
-    """
+    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,); see `ilqr`.
+    Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad."""
     check_tensor("x_init", x_init, (None, None))
     B, n = x_init.shape
     check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
@@ -1141,44 +1058,28 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 # 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020)
 # ============================================================================================
 #
-# The predictor sees 4 s of history of the predicted vehicle and of its neighbours (the other agents
-# and the ego) and outputs K = 25 futures, one per value of a discrete latent z:
-#     p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
-# For each k a GRU emits, per step, a bivariate Gaussian over the controls u = (yaw rate w, accel a);
-# the mean controls are integrated through the same unicycle as the planner and controller, and the
-# control covariances are pushed through its Jacobians (EKF), so every step gets a K-component GMM
-# over positions. Training maximises Trajectron++'s InfoVAE objective with q(z | x, y) from a
-# bidirectional LSTM over the ground-truth future; all K values of z are enumerated, none sampled.
+# From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego), K = 25 futures,
+# one per value of a discrete latent z:   p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
+# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate w, accel a); the mean
+# controls are integrated by the planner's unicycle and the control covariances pushed through its Jacobians (EKF):
+# a K-component GMM over positions per step. Training maximises Trajectron++'s InfoVAE objective, q(z | x, y) from
+# a bidirectional LSTM over the true future; all K values of z are enumerated, none sampled. The GRU's next input
+# is the reparameterised sample of u_t in training (Trajectron++), the mean at evaluation; the modes are the
+# integrated mean controls either way, weighted by q(z|x,y) in training (the authors' code), p(z|x) at evaluation.
 #
-# The GRU's next input is the reparameterised sample of u_t in training (as Trajectron++) and the mean at
-# evaluation; either way the modes are the integrated MEAN controls. The planner gets the modes weighted by
-# q(z|x,y) in training (as the authors' code) and by p(z|x) at evaluation.
-#
-# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128; halved
-# for CPU training). The decoder runs all B K = 6400 (scenario, mode) rows at once; the input
-# projection of the one-hot z is a column lookup, so the rows only pay for h @ W_hh and the gate arithmetic.
-#
+# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128).
 # Left out of Trajectron++ (the paper uses no map and no ego-future conditioning): the map CNN, the robot-future
 # encoder, dropout, and the LSTM over summed neighbours of each edge type with attention over the types (here a
 # per-neighbour MLP, type as a feature, and masked attention over the neighbours themselves). Changed: the future
 # BiLSTM starts from zeros (Trajectron++: from the current state), v0 is the tracked speed, and every GMM
 # component gets a 5 cm position std floor (at v = 0 the controls cannot move the agent sideways).
-#
-#   6.1 inputs    6.2 model    6.3 loss    6.4 metrics    6.5 weighted baselines (plots: experiments.py)
 
-
-
-# --------------------------------------------------------------------------------------------
-# 6.1 Inputs: the 8-D state history, by backward differences
-# --------------------------------------------------------------------------------------------
+# ---- 6.1 Inputs: the 8-D state history, by backward differences ---------------------------
 
 
 def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
-    """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (no observed predecessor) copy d_{first+1}.
-
-    Backward, never central: a central difference at t0 would read x_{t1}, the future.
-    first (...,) int64 is the index of the first observed step.
-    """
+    """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (...,) (the first observed step) copy
+    d_{first+1}. Backward, never central: a central difference at t0 would read x_{t1}, the future."""
     H = x.shape[-2]
     d = torch.cat([torch.zeros_like(x[..., :1, :]), (x[..., 1:, :] - x[..., :-1, :]) / dt], -2)  # (..., H, D)
     idx = (first + 1).clamp(max=H - 1)[..., None, None]  # (..., 1, 1)
@@ -1188,10 +1089,8 @@ def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tens
 
 
 def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor, cfg: Config) -> torch.Tensor:
-    """Trajectron++'s 8-D input state from (x, y, h, v) tracks: hist (..., H, 4), origin (..., 2) -> (..., H, 8).
-
-    (position - origin, velocity, acceleration, heading, heading rate), scaled by 30 m, 15 m/s, 4 m/s^2, pi.
-    """
+    """Trajectron++'s 8-D state (position - origin, velocity, acceleration, heading, heading rate), scaled by
+    30 m, 15 m/s, 4 m/s^2, pi, from (x, y, h, v) tracks: hist (..., H, 4), origin (..., 2) -> (..., H, 8)."""
     sp, sv, sa, sh = cfg.pred_scales
     pos = hist[..., :2]  # (..., H, 2)
     vel = backward_diff(pos, first, cfg.dt)  # (..., H, 2)
@@ -1204,25 +1103,19 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
     )  # (..., H, 8)
 
 
-# --------------------------------------------------------------------------------------------
-# 6.2 The model
-# --------------------------------------------------------------------------------------------
+# ---- 6.2 The model ------------------------------------------------------------------------
 
 
 @dataclass
 class Prediction:
-    """What the predictor hands to the planner (and to its loss and metrics). All differentiable in theta."""
-
-    # (B, 4) the agent's state at t0 the modes start from (heading = velocity direction + learned correction)
-    s0: torch.Tensor
-    # (B, K, T, 4) mode trajectories t1..T: the mean controls of each mode integrated by the unicycle
-    states: torch.Tensor
+    """What the predictor hands to the planner, its loss and metrics; all differentiable in theta."""
+    s0: torch.Tensor  # (B, 4) the agent's state at t0, the modes' start (see Predictor.initial_state)
+    states: torch.Tensor  # (B, K, T, 4) mode trajectories t1..T: each mode's mean controls integrated
     controls: torch.Tensor  # (B, K, T, 2) mean controls (yaw rate, acceleration) of each mode
-    pos_cov: torch.Tensor  # (B, K, T, 2, 2) position covariance of each GMM component (EKF propagation + a small floor)
+    pos_cov: torch.Tensor  # (B, K, T, 2, 2) position covariance of each GMM component
     log_p: torch.Tensor  # (B, K) log p(z|x) (logits clipped when a training step is given)
     log_q: torch.Tensor | None  # (B, K) log q(z|x,y), or None when the future was not used
-    # (B, K) the mode weights: q(z|x,y) with use_posterior (training, as the authors' code), p(z|x) otherwise
-    probs: torch.Tensor
+    probs: torch.Tensor  # (B, K) the mode weights: q(z|x,y) with use_posterior, p(z|x) otherwise
 
     @property
     def means(self) -> torch.Tensor:
@@ -1236,10 +1129,8 @@ the covariance is singular and the training sample's sqrt(1 - rho^2) has an infi
 
 
 def bounded_correlation(pre_tanh: torch.Tensor) -> torch.Tensor:
-    """rho = tanh(pre_tanh) clamped to [-1 + RHO_MARGIN, 1 - RHO_MARGIN].
-
-    tanh reaches +-1 in floating point already at |pre_tanh| ~ 9 (float32) or ~ 19 (float64). Within the bounds the
-    clamp is the identity, values and gradients bit for bit, so ordinary inputs give exactly what tanh alone gives."""
+    """rho = tanh(pre_tanh) clamped to [-1 + RHO_MARGIN, 1 - RHO_MARGIN]: tanh reaches +-1 in floating point at
+    |pre_tanh| ~ 9 (float32) or ~ 19 (float64); within the bounds the clamp is the identity, gradients included."""
     return torch.tanh(pre_tanh).clamp(-1 + RHO_MARGIN, 1 - RHO_MARGIN)
 
 
@@ -1262,25 +1153,19 @@ class Predictor(nn.Module):
         E, Hd, K, Z = cfg.pred_enc_hidden, cfg.pred_dec_hidden, cfg.pred_modes, cfg.pred_latent_hidden
         X = 2 * E  # x = (history encoding, neighbour context)
         n_hist = cfg.hist_len + 1
-        # encoders
         self.hist_lstm = nn.LSTMCell(8, E)
         self.nbr_mlp = nn.Sequential(nn.Linear(n_hist * 8 + 2, E), nn.ReLU(), nn.Linear(E, E))
         self.att_q, self.att_k = nn.Linear(E, E, bias=False), nn.Linear(E, E, bias=False)
         self.fut_lstm = nn.LSTM(8, E, batch_first=True, bidirectional=True)
-        # latent
         self.p_z = nn.Sequential(nn.Linear(X, Z), nn.ReLU(), nn.Linear(Z, K))
         self.q_z = nn.Sequential(nn.Linear(X + 2 * E, Z), nn.ReLU(), nn.Linear(Z, K))
-        # decoder: a GRU over input cat(z, x, u_prev), h_0 = Linear(cat(z, x));
-        # per step it emits (mu_w, mu_a, log s_w, log s_a, rho) through dec_out
+        # the decoder GRU: input cat(z, x, u_prev) (dec_in), h_0 = dec_h0(cat(z, x)); see decode
         self.dec_h0 = nn.Linear(K + X, Hd)
         self.dec_u0 = nn.Linear(8, 2)  # u_prev at t0 from the current state (Trajectron++'s state_action)
         self.dec_in = nn.Linear(K + X + 2, 3 * Hd)
         self.dec_hh = nn.Linear(Hd, 3 * Hd)
         self.dec_out = nn.Linear(Hd, 5)
-        # heading at t0 = velocity direction + tanh(Linear(x, direction))  (Trajectron++'s Unicycle p0_model)
-        self.heading_fix = nn.Linear(X + 1, 1)
-
-    # ---- encoders ------------------------------------------------------------------------
+        self.heading_fix = nn.Linear(X + 1, 1)  # Trajectron++'s Unicycle p0_model, see initial_state
 
     def encode(self, batch) -> tuple[torch.Tensor, torch.Tensor]:
         """x (B, 2E) = (history LSTM state, attention over neighbours), and the agent's features (B, H, 8)."""
@@ -1321,45 +1206,32 @@ class Predictor(nn.Module):
         y_enc = torch.cat([h_n[0], h_n[1]], -1)  # (B, 2E)
         return self.q_z(torch.cat([x, y_enc], -1))  # (B, K)
 
-    # ---- decoder -------------------------------------------------------------------------
-
     def decode(self, x: torch.Tensor, f0: torch.Tensor, shard=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances (B, K, T, 2, 2).
 
-        All K values of z at once, as B*K rows. The GRU (Cho et al. 2014) is written out gate by gate:
+        All K values of z at once, as B*K rows, by a GRU (Cho et al. 2014) written out gate by gate:
             r = sigma(W_ir [z; x; u] + b_ir + W_hr h + b_hr),   z_gate likewise,
             n = tanh(W_in [z; x; u] + b_in + r * (W_hn h + b_hn)),   h' = (1 - z_gate) n + z_gate h.
-        The part of W_i [z; x; u] from (z, x) is the same at every step: W_z[:, k] + W_x x, a column lookup plus a
-        (B, 2E) matmul, computed once. Per step a gate is then that constant plus W_h h (one (B*K, Hd) x (Hd, Hd)
-        matmul, addmm) plus W_u u_prev (an in-place rank-2 update); n keeps W_in u and W_hn h apart (r multiplies
-        the latter). Why gate by gate: (B*K, Hd) tensors instead of a (B*K, 3 Hd) one and its splits (whose backward
-        concatenates the gradients) -- at B*K = 6400 rows the decoder is memory traffic, every fresh tensor counts.
-        The next input is the reparameterised sample of u_t in training (Trajectron++), its mean at evaluation.
-        shard: under DDP (train.Shard), the noise of the samples is drawn for the global batch and this rank keeps its
-        rows, so that a scenario gets the same sample whichever rank holds it.
-        """
+        The (z, x) part of the input, W_z[:, k] + W_x x + b, is the same at every step (a column lookup plus a (B, 2E)
+        matmul), computed once. shard: under DDP (train.Shard) the samples' noise is drawn for the global batch and
+        this rank keeps its rows, so a scenario gets the same sample whichever rank holds it."""
         cfg = self.cfg
         K, T, Hd = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden
         B, X = x.shape
         W, b = self.dec_in.weight, self.dec_in.bias  # (3Hd, K+X+2), (3Hd,); rows: gates r, z, n
         W_u, W_h, b_h = W[:, K + X :], self.dec_hh.weight, self.dec_hh.bias  # (3Hd, 2), (3Hd, Hd), (3Hd,)
-        # the constant part of each gate's input, W [one_hot(k); x] + b, with b_hr and b_hz added in (the biases of r
-        # and of z are plain sums; b_hn stays inside r * (W_hn h + b_hn)). The (K, .) column blocks are made
-        # contiguous so that the broadcast sums come out row-major and the reshapes are views, not copies.
+        # W [one_hot(k); x] + b_i + b_h for r and z (plain sums); b_hn stays inside r * (W_hn h + b_hn)
         b_i = b + torch.cat([b_h[: 2 * Hd], b_h.new_zeros(Hd)])  # (3Hd,)
         gi_zx = ((x @ W[:, K : K + X].T + b_i)[:, None] + W[:, :K].T.contiguous()).reshape(B * K, 3 * Hd)
         W0 = self.dec_h0.weight  # (Hd, K+X)
+        # h_0 = dec_h0([one_hot(k); x]), the same column lookup
         h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T.contiguous()).reshape(B * K, Hd)
-        # h (B*K, Hd) = h_0 = Linear([one_hot(k); x]), the same column lookup
-        # (B*K, Hd) each, made contiguous once: addmm is slower with a strided (column-block) c, six times a pass
-        c_r, c_z, c_n = (c.contiguous() for c in gi_zx.split(Hd, 1))
+        c_r, c_z, c_n = (c.contiguous() for c in gi_zx.split(Hd, 1))  # (B*K, Hd) each
         (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
         b_hn = b_h[2 * Hd :]  # (Hd,)
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
         outs = []
         for t in range(T):
-            # in place on each fresh addmm result (as torch's own gru_cell): fewer (B*K, Hd) tensors to allocate,
-            # and autograd allows it -- addmm's and addcmul's backward do not read their output
             r = torch.addmm(c_r, h, W_hr).addmm_(u_prev, W_ur).sigmoid_()  # (B*K, Hd)
             z = torch.addmm(c_z, h, W_hz).addmm_(u_prev, W_uz).sigmoid_()  # (B*K, Hd)
             n = torch.addmm(c_n, u_prev, W_un).addcmul_(r, torch.addmm(b_hn, h, W_hn)).tanh_()  # (B*K, Hd)
@@ -1368,16 +1240,16 @@ class Predictor(nn.Module):
             outs.append(out)
             mu = out[:, :2]  # (B*K, 2)
             if self.training:  # u_t = mu + L eps, L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor
-                s_w, s_a = out[:, 2].exp(), out[:, 3].exp()  # (B*K,) each; one exp of the (B*K, 2) slice: 16x slower
+                s_w, s_a = out[:, 2].exp(), out[:, 3].exp()  # (B*K,) each
                 rho = bounded_correlation(out[:, 4])  # (B*K,) inside (-1, 1): the sqrt below stays finite
                 eps = torch.randn_like(mu) if shard is None else shard.randn_rows(mu, K)  # (B*K, 2)
                 e1, e2 = eps.unbind(1)  # (B*K,) each
                 u_prev = mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)  # (B*K, 2)
             else:
                 u_prev = mu
-        # all steps at once: (B*K, T, 5) -> means and Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
+        # Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]]
         mu, log_s, rho = torch.stack(outs, 1).split([2, 2, 1], -1)  # (B*K, T, 2), (B*K, T, 2), (B*K, T, 1)
-        s_w, s_a = log_s[..., 0].exp(), log_s[..., 1].exp()  # (B*K, T) each; one exp of the slice: 24x slower
+        s_w, s_a = log_s[..., 0].exp(), log_s[..., 1].exp()  # (B*K, T) each
         c = bounded_correlation(rho[..., 0]) * s_w * s_a  # (B*K, T); the same rho as the sample's
         cov = torch.stack([s_w**2, c, c, s_a**2], -1)  # (B*K, T, 4)
         return mu.reshape(B, K, T, 2), cov.reshape(B, K, T, 2, 2)
@@ -1391,16 +1263,9 @@ class Predictor(nn.Module):
         phi = phi + torch.tanh(self.heading_fix(torch.cat([x, phi[:, None]], -1)))[:, 0]  # (B,)
         return torch.stack([hist[:, -1, 0], hist[:, -1, 1], phi, hist[:, -1, 3]], -1)  # (B, 4); tracked speed
 
-    # ---- the whole forward pass ----------------------------------------------------------
-
     def forward(self, batch, use_posterior: bool, step: int | None = None, shard=None) -> Prediction:
-        """K mode trajectories with their probabilities and the position GMM.
-
-        use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut; training) instead of p(z|x).
-        step: the training iteration; when given, the z logits are clipped by its schedule (Trajectron++).
-        Training mode (self.training) feeds sampled controls back into the GRU; eval mode feeds the means.
-        shard: under DDP, the rows of a global batch this process holds (train.Shard); None: all of them.
-        """
+        """K mode trajectories, their probabilities and the position GMM. use_posterior: weigh the modes by q(z|x,y)
+        (needs batch.agent_fut) instead of p(z|x). step: the training iteration, for clip_logits. shard: see decode."""
         cfg = self.cfg
         check_batch(batch, cfg, need_future=use_posterior)
         x, f = self.encode(batch)  # (B, 2E), (B, H, 8)
@@ -1408,18 +1273,15 @@ class Predictor(nn.Module):
         log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
         s0 = self.initial_state(batch, x)  # (B, 4)
         mu, cov_u = self.decode(x, f[:, -1], shard)  # (B, K, T, 2), (B, K, T, 2, 2)
-        # the modes: the mean controls integrated by the unicycle, s_{t+1} = f(s_t, mu_t), and their EKF covariances
-        # (unicycle_rollout(s0, mu) and propagate_covariance along it, all steps at once)
-        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
         # traj (B, K, T+1, 4) with s0 first, pos_cov (B, K, T, 2, 2)
+        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
 
 
 def _position_jacobians(h, v, w, a, dt: float):
-    """One unicycle step from headings h, speeds v (...) under controls w, a (...): its displacement (dx, dy) and
-    the position rows of its Jacobians, M = d(x, y)'/d(h, v) and N = d(x, y)'/d(w, a), each (2, 2, ...), matrix
-    indices first. The formulas of unicycle_step / unicycle_jacobians (section 2), from one _moments call."""
+    """One unicycle step (unicycle_step's formulas) from h, v under w, a (...): its displacement dx, dy (...) and the
+    position rows of its Jacobians, M = d(x, y)/d(h, v), N = d(x, y)/d(w, a), (2, 2, ...), matrix indices first."""
     (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
@@ -1433,11 +1295,16 @@ def _position_jacobians(h, v, w, a, dt: float):
 
 
 def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg: Config) -> torch.Tensor:
-    """The EKF position covariances from the position Jacobians M, N and control covariances Su, each (2, 2, ..., T)
-    (matrix indices first): (..., T, 2, 2) plus pred_pos_std_min^2 I. See propagate_covariance."""
+    """propagate_covariance's position blocks (..., T, 2, 2), plus pred_pos_std_min^2 I, from the position Jacobians
+    M, N and the control covariances Su, each (2, 2, ..., T), matrix indices first.
+
+    Unrolled, all steps at once. The unicycle's A is a shear, A_t = [[I, M_t], [0, I]] (only the controls move h
+    and v), and shears compose by adding their corners: A_t ... A_{r+1} = [[I, C_t - C_r], [0, I]], C_t = M_0 + ...
+    + M_t. With B_r = [[N_r], [dt I]] the recursion unrolls to the position block
+        P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
+    (G_tr: how u_r moves (x, y)_{t+1}), and expanding the product makes each sum over r <= t a cumsum:
+        P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T."""
     dt = cfg.dt
-    # Why this layout: a batched matmul of 2x2 matrices pays a per-matrix overhead on CPU; with the matrix indices
-    # first and the rows last, a product is four sums of two products of whole contiguous (...) tensors.
     def mm(X, Y):  # (2, 2, ...) x (2, 2, ...) -> (2, 2, ...)
         (x00, x01), (x10, x11) = (row.unbind(0) for row in X.unbind(0))
         (y00, y01), (y10, y11) = (row.unbind(0) for row in Y.unbind(0))
@@ -1453,33 +1320,19 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
 
 
 def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> torch.Tensor:
-    """EKF prediction steps through the unicycle. s (..., T, 4), u (..., T, 2): mean states and controls t0..T-1;
-    cov_u (..., T, 2, 2) the control covariances.
-
-    Sigma_0 = 0 (the current state is known); Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,
-    A = df/ds, B = df/du at the mean. Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I,
-    (..., T, 2, 2).
-
-    Unrolled, all steps at once (no loop over t, and a short backward). The unicycle's A is a shear,
-    A_t = [[I, M_t], [0, I]] with M_t = d(x, y)/d(h, v) (nothing but the controls moves h and v), and shears
-    compose by adding their corners: A_t ... A_{r+1} = [[I, C_t - C_r], [0, I]], C_t = M_0 + ... + M_t. With
-    B_r = [[N_r], [dt I]] (N_r = d(x, y)/du) the recursion unrolls to the position block
-        P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
-    (G_tr: how the control u_r moves (x, y)_{t+1}). Expanding the product, each sum over r <= t is a cumsum:
-        P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T.
-    """
+    """EKF prediction through the unicycle along mean states s (..., T, 4) and controls u (..., T, 2), t0..T-1, with
+    control covariances cov_u (..., T, 2, 2): Sigma_0 = 0 (the current state is known),
+        Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,   A = df/ds, B = df/du at the mean.
+    Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I, (..., T, 2, 2) (see _covariance_unrolled)."""
     _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), cfg.dt)  # (2, 2, ..., T) each
     return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
 
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
                     cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
-    """unicycle_rollout of the mean controls and propagate_covariance along it, together and all steps at once.
-
-    s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances
-    (..., T, 2, 2). Heading and speed are cumulative sums of the controls; each step's displacement then depends
-    on that step alone, so the positions are cumulative sums too -- and the same moments give the Jacobians.
-    """
+    """unicycle_rollout(s0, u) and propagate_covariance along it, all steps at once: s0 (..., 4), u (..., T, 2),
+    cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances (..., T, 2, 2).
+    Heading and speed are cumsums of the controls; then each step's displacement is known, the positions its cumsums."""
     dt = cfg.dt
     w, a = u.unbind(-1)  # (..., T) each
     h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (w * dt).cumsum(-1)], -1)  # (..., T+1): h_{t+1} = h_t + w_t dt
@@ -1487,7 +1340,6 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
     dx, dy, M, N = _position_jacobians(h[..., :-1], v[..., :-1], w, a, dt)  # (..., T), (..., T), (2, 2, ..., T) x2
     x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
     y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
-    # Sigma_u with its matrix indices first, copied once into that layout (a strided view slows every op after it)
     return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
 
@@ -1568,14 +1420,10 @@ class Method:
     """A row of Table 1: where predictions come from and how the predictor is trained."""
 
     name: str
-    predictor: str = "learned"
-    """'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)"""
-    losses: tuple = (1, 0, 0)
-    """which of (L_pred, L_plan, L_ctr) train the predictor; multiplied by the setting's alphas"""
-    weighting: str = "standard"
-    """per-scenario weights of L_pred: 'standard', 'distance' or 'grad_cost' (§4.1), or a callable batch -> (B,)"""
-    train_plan_weights: str | None = None
-    """the mode probabilities the planner sees in training, as Config.train_plan_weights; None: the Config's"""
+    predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
+    losses: tuple = (1, 0, 0)  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
+    weighting: str = "standard"  # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
+    train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
 
     def __post_init__(self):
         if self.predictor not in PREDICTORS:
@@ -1661,39 +1509,22 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     return ScenePlan(goal, cands, terms)
 
 
-def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
-    """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the set is:
-    scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one scenario's own)."""
-    parts = []
-    for i in range(0, len(data), chunk):
-        batch = data[i:i + chunk]
-        check_batch(batch, cfg, need_future=True, stack=True)
-        parts.append(scene_plan(batch, cfg, plan_dt))
-    cat = lambda get: torch.cat([get(p) for p in parts])  # noqa: E731
-    return ScenePlan(cat(lambda p: p.goal), Candidates(cat(lambda p: p.cands.x), cat(lambda p: p.cands.u),
-                                                       cat(lambda p: p.cands.valid)), cat(lambda p: p.terms))
-
-
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
               timings=None, shard=None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
-    setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by
-    q(z|x,y) and the KL/logit schedules use `step` (as the authors' code); otherwise p(z|x).
-    w: cost weights (5,) (learnable in the cost-learning experiment), default the hand-tuned ones.
-    planner=False: iLQR starts from zero controls (ablation); controller=False: the plan is final.
+    setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by q(z|x,y) and
+    its schedules use `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,), default the hand-tuned
+    ones. planner=False: iLQR starts from zero controls; controller=False: the plan is final (ablations).
     plan_others=False: planner and controller ignore the other agents (they still count in hindsight).
-    pred_target: the future the predictor is trained towards (default the GT; the biased experiment shifts it).
-    plan_dt: the planner's and controller's time step (ablation: 0.1 s) when finer than the predictor's cfg.dt.
-        Both then plan T * substeps steps (substeps = cfg.dt / plan_dt); the predicted modes and every GT future
-        are linearly interpolated to that clock; L_pred stays on the prediction's clock; MSE is taken at the
-        logged steps; and the per-step cost terms (all but the goal's) are scaled by 1/substeps, so that eq. (3)
-        sums the same costs per second as at cfg.dt and only the resolution changes.
+    pred_target: the future the predictor is trained towards (default the GT; Table 2 shifts it).
+    plan_dt: a finer planner and controller step (ablation: 0.1 s): they plan T * substeps steps, the predicted modes
+        and GT futures are interpolated to that clock, and the per-step cost terms (all but the goal's) are scaled by
+        1/substeps, so that eq. (3) sums the same costs per second; L_pred and MSE stay on the logged steps.
     timings: a dict that receives the seconds spent predicting, planning and controlling.
-    shard: under DDP, which rows of the global batch this process holds (train.Shard); the predictor's samples and
-        L_pred's batch statistics are then those of the global batch.
-    scene: the batch's scene_plan (same cfg and plan_dt), if already computed (train_stack's, once per data set).
+    shard: under DDP, the rows of the global batch this process holds (train.Shard).
+    scene: the batch's scene_plan (same cfg and plan_dt) if already computed.
     """
     clock = [time.perf_counter()]
 
@@ -1717,7 +1548,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     if method.predictor == "learned":
         pred = model(batch, use_posterior=train, step=step, shard=shard)
         now = batch.agent_hist[:, None, -1, :2].expand(B, pred.probs.shape[1], 2)  # (B, K, 2) every mode starts here
-        # (B, K, T, 2) on the planner's clock, contiguous: the cost reads it some 20 times a step
         preds = upsample(now, pred.states[..., :2], sub).contiguous()
         probs, pred_mask = pred.probs, torch.ones(B, **like)  # (B, K) q(z|x,y) in training, p(z|x) otherwise; (B,)
         if train and (method.train_plan_weights or cfg.train_plan_weights) == "prior":
@@ -1753,7 +1583,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     converged = torch.ones(B, dtype=torch.bool, device=device)
     if controller:
         u_init = cands.u[idx, best] if planner else torch.zeros(B, T, 2, **like)
-
         # every parameter per scenario (w (5,) too, as a view), so that the solver can set converged scenarios aside
         params = (w.expand(B, 5), *ctx.tensors())
         x, u, converged = ilqr_solve(StackCost(cfg.rbf_var), Unicycle(dt), s0, u_init, params, cfg.u_lower, cfg.u_upper,
@@ -1808,6 +1637,17 @@ def check_points(name: str, t, n: int, dtype=None):
     if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
         raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
     return check_tensor(name, t, dtype=dtype)
+
+
+def check_plan_inputs(s0, goal, lanes, lanes_mask, goal_name="goal") -> int:
+    """The planner's inputs; returns the batch size B."""
+    B = check_tensor("s0", s0, (None, 4)).shape[0]
+    if B == 0:
+        raise ValueError("s0: no scenarios (a batch of size 0)")
+    check_tensor(goal_name, goal, (B, 4), s0.dtype)
+    check_tensor("lanes", lanes, (B, None, None, 3), s0.dtype)
+    check_tensor("lanes_mask", lanes_mask, (B, *lanes.shape[1:3]), torch.bool)
+    return B
 
 
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:

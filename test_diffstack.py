@@ -1093,7 +1093,7 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
     are those of a run that computes it itself. A scene plan of other rows changes them (the check can fail)."""
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, goal=goal)
     data = small.train[:96]
-    scenes = ds.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
+    scenes = tr.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
     rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
     own = ds.scene_plan(data[rows], cfg, plan_dt)
     for a, b in ((scenes[rows].goal, own.goal), (scenes[rows].cands.x, own.cands.x), (scenes[rows].cands.u, own.cands.u),

@@ -28,8 +28,8 @@ from torch.utils.data.distributed import DistributedSampler
 import data_real
 import data_synth
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
-from diffstack import (Config, Method, Prediction, Predictor, check_setting, collision_term, cost_contexts,
-                       cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plans)
+from diffstack import (Candidates, Config, Method, Prediction, Predictor, ScenePlan, check_batch, check_setting,
+                       collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
 
 # --------------------------------------------------------------------------------------------
 # 1. Metrics, and the constant-velocity baseline
@@ -315,6 +315,19 @@ class Shard:
         if self.group is not None:
             dist.destroy_process_group(self.group)
 
+
+
+def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
+    """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the set is:
+    scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one scenario's own)."""
+    parts = []
+    for i in range(0, len(data), chunk):
+        batch = data[i:i + chunk]
+        check_batch(batch, cfg, need_future=True, stack=True)
+        parts.append(scene_plan(batch, cfg, plan_dt))
+    cat = lambda get: torch.cat([get(p) for p in parts])  # noqa: E731
+    return ScenePlan(cat(lambda p: p.goal), Candidates(cat(lambda p: p.cands.x), cat(lambda p: p.cands.u),
+                                                       cat(lambda p: p.cands.valid)), cat(lambda p: p.terms))
 
 
 class TrainingDiverged(ValueError):

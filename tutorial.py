@@ -419,7 +419,7 @@ ex4_done = course.exercise(4, course.check_plan_grad, my_plan_loss_grad)
 # %% [markdown]
 # **From the costs to the prediction (§3.1).** By the chain rule, $\partial\mathcal L_\text{plan}/\partial
 # \hat s_t = \sum_n (\partial\mathcal L_\text{plan}/\partial C_n)\,\partial C_n/\partial\hat s_t$, and $C_n$ depends on $\hat s$
-# only through $C_\text{coll}$ (the other terms depend on the scene alone: `ds.scene_plans` computes them once).
+# only through $C_\text{coll}$ (the other terms depend on the scene alone: `tr.scene_plans` computes them once).
 # Below, a constant-velocity prediction (one mode) on the validation set; the red arrows are
 # $-\partial\mathcal L_\text{plan}/\partial\hat s_t$ at one scale. **The planner asks a prediction to change only
 # where the change would change its choice**: where the vehicle is within a few metres of the candidates ($\phi$ is
