@@ -772,18 +772,13 @@ def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
     return jac if with_value else jac[0]
 
 
-def _split(z, n, T):
-    """Stacked per-step variables z (B, T+1, n+m) -> x (B, T+1, n), u (B, T, m) (u_T is padding)."""
-    return z[..., :n], z[:, :T, n:]
-
-
 def cost_expansion(cost_fn, x, u, params):
     """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
     if hasattr(cost_fn, "expansion"):
         return cost_fn.expansion(x, u, *params)
     n, T = x.shape[-1], u.shape[1]
-    z = torch.cat([x, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m)
-    grad = torch.func.grad(lambda z: cost_fn(*_split(z, n, T), *params).sum())
+    z = torch.cat([x, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m); u_T is padding
+    grad = torch.func.grad(lambda z: cost_fn(z[..., :n], z[:, :T, n:], *params).sum())
     H, g = _stagewise_jacobian(grad, z, with_value=True)
     return g, H
 
@@ -1011,8 +1006,7 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
 
 
 class ILQR(torch.autograd.Function):
-    """iLQR with the KKT backward. Use through `ilqr_solve`. Scenarios that did not converge pass no
-    gradient (paper §3.1); `exact=False` drops the dynamics' curvature, as mpc.pytorch does."""
+    """iLQR with the KKT backward (use `ilqr_solve`); scenarios that did not converge pass no gradient (§3.1)."""
 
     @staticmethod
     def forward(ctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
@@ -1036,8 +1030,7 @@ class ILQR(torch.autograd.Function):
 
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True,
                batched_params=False):
-    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,); see `ilqr`.
-    Gradients of a loss on (x, u) reach x_init and every tensor in params that requires grad."""
+    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,); arguments as `ilqr`'s."""
     check_tensor("x_init", x_init, (None, None))
     B, n = x_init.shape
     check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
@@ -1343,9 +1336,7 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
     return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
 
-# --------------------------------------------------------------------------------------------
-# 6.3 Loss: Trajectron++'s InfoVAE objective
-# --------------------------------------------------------------------------------------------
+# ---- 6.3 Loss: Trajectron++'s InfoVAE objective -------------------------------------------
 
 
 def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
@@ -1353,9 +1344,8 @@ def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, m
     min_var: cov is known to be some positive semi-definite P0 plus min_var I (the predictor's floor)."""
     d = y - mean  # (..., 2)
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    # det(P0 + s I) = det P0 + s tr P0 + s^2 >= s (a + c) - s^2. For a long thin ellipse (a variance ~1e5 m^2 along
-    # a line, the floor across it) a c - b^2 cancels to 0 or below in float32 and the log gives NaN (seen in
-    # training); the bound restores the floor. Where it is inactive, the value is a c - b^2 exactly as before.
+    # det(P0 + s I) = det P0 + s tr P0 + s^2 >= s (a + c) - s^2: for a long thin ellipse a c - b^2 cancels to 0 or
+    # below in float32 (NaN log), and the bound restores the floor
     det = torch.maximum(a * c - b * b, min_var * (a + c) - min_var**2)  # (...)
     # d^T Sigma^-1 d with Sigma^-1 = [[c, -b], [-b, a]] / det
     maha = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
@@ -1375,20 +1365,17 @@ def kl_beta(step: int, cfg: Config) -> float:
 
 
 def batch_mean(x: torch.Tensor, shard=None) -> torch.Tensor:
-    """x (B, ...) averaged over the batch (...): this process's batch, or under DDP (shard, train.Shard) the global
-    batch of all processes, differentiably (Shard.mean)."""
+    """x (B, ...) averaged over the batch: this process's, or under DDP (shard: train.Shard) the global one."""
     return x.mean(0) if shard is None else shard.mean(x)
 
 
 def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tuple[torch.Tensor, dict]:
-    """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging.
-
-    L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
-    LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
-    KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
-    I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p, a batch quantity
-    shard: under DDP (train.Shard), the batch of these means is the global batch of all processes (batch_mean).
-    """
+    """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging:
+        L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
+        LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
+        KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
+        I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p
+    shard: the batch of these means is the global one (batch_mean)."""
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
     y = batch.agent_fut[..., :2]  # (B, T, 2)

@@ -1754,3 +1754,79 @@ def test_set_overrides_config_fields_with_their_types():
                         (["beta=nan"], "beta"), (["u_upper=a,b"], "u_upper"):
         with pytest.raises(ValueError, match=culprit):
             tr.config_with(ds.Config(), bad)
+
+
+def test_decoder_matches_a_plain_gru_cell():
+    """Predictor.decode's gate-by-gate GRU against torch.nn.GRUCell with the same weights, in eval mode (the mean
+    fed back) and in training mode (the reparameterised sample fed back, same seed)."""
+    cfg = small_cfg()
+    model = make_model(cfg)
+    K, T, Hd, E = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden, cfg.pred_enc_hidden
+    g = torch.Generator().manual_seed(3)
+    B = 4
+    x = torch.randn(B, 2 * E, generator=g, dtype=torch.float64)
+    f0 = torch.randn(B, 8, generator=g, dtype=torch.float64)
+    cell = torch.nn.GRUCell(K + 2 * E + 2, Hd, dtype=torch.float64)
+    with torch.no_grad():
+        cell.weight_ih.copy_(model.dec_in.weight), cell.bias_ih.copy_(model.dec_in.bias)
+        cell.weight_hh.copy_(model.dec_hh.weight), cell.bias_hh.copy_(model.dec_hh.bias)
+
+    def reference(train):  # rows b*K + k, as decode's
+        zx = torch.cat([torch.eye(K, dtype=x.dtype).expand(B, K, K), x[:, None].expand(B, K, 2 * E)], -1)
+        zx = zx.reshape(B * K, K + 2 * E)  # (B*K, K+X): (one_hot(k), x)
+        h = model.dec_h0(zx)  # (B*K, Hd)
+        u = model.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
+        mus, covs = [], []
+        for _ in range(T):
+            h = cell(torch.cat([zx, u], -1), h)
+            out = model.dec_out(h)
+            mu, s_w, s_a = out[:, :2], out[:, 2].exp(), out[:, 3].exp()
+            rho = torch.tanh(out[:, 4]).clamp(-1 + ds.RHO_MARGIN, 1 - ds.RHO_MARGIN)
+            c = rho * s_w * s_a
+            covs.append(torch.stack([torch.stack([s_w**2, c], -1), torch.stack([c, s_a**2], -1)], -2))
+            mus.append(mu)
+            if train:
+                L = torch.stack([torch.stack([s_w, 0 * s_w], -1),
+                                 torch.stack([rho * s_a, s_a * (1 - rho**2).sqrt()], -1)], -2)  # Sigma_u = L L'
+                u = mu + (L @ torch.randn_like(mu)[..., None])[..., 0]
+            else:
+                u = mu
+        return torch.stack(mus, 1).reshape(B, K, T, 2), torch.stack(covs, 1).reshape(B, K, T, 2, 2)
+
+    with torch.no_grad():
+        for train in (False, True):
+            model.train(train)
+            torch.manual_seed(7)
+            mu, cov = model.decode(x, f0)
+            torch.manual_seed(7)
+            mu_ref, cov_ref = reference(train)
+            assert torch.allclose(mu, mu_ref, rtol=0, atol=1e-10), (train, (mu - mu_ref).abs().max())
+            assert torch.allclose(cov, cov_ref, rtol=0, atol=1e-10), (train, (cov - cov_ref).abs().max())
+    assert not torch.allclose(mu, model.eval().decode(x, f0)[0], atol=1e-6)  # the sample fed back does matter
+
+
+def test_integrate_modes_matches_the_step_by_step_recursion():
+    """integrate_modes (cumulative sums, the unrolled covariance) against unicycle_step and the EKF recursion
+    Sigma_{t+1} = A Sigma A' + B Su B' over the whole 4-D state, one step at a time."""
+    cfg = ds.Config()
+    g = torch.Generator().manual_seed(5)
+    n, T = 6, cfg.horizon
+    rnd = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)  # noqa: E731
+    s0 = torch.stack([20 * rnd(n) - 10, 20 * rnd(n) - 10, 6 * rnd(n) - 3, 12 * rnd(n)], -1)  # (n, 4): x, y, h, v
+    u = torch.randn(n, T, 2, generator=g, dtype=torch.float64) * torch.tensor([0.4, 1.5], dtype=torch.float64)
+    u[0, :, 0] = 0.0  # straight: the yaw-rate series branch
+    L = torch.randn(n, T, 2, 2, generator=g, dtype=torch.float64) * 0.5
+    cov_u = L @ L.mT + 0.01 * torch.eye(2, dtype=torch.float64)
+    states, pos_cov = ds.integrate_modes(s0, u, cov_u, cfg)
+    s, Sigma = s0, torch.zeros(n, 4, 4, dtype=torch.float64)
+    ref_states, ref_cov = [s0], []
+    for t in range(T):
+        A, B = ds.unicycle_jacobians(s, u[:, t], cfg.dt)  # (n, 4, 4), (n, 4, 2)
+        Sigma = A @ Sigma @ A.mT + B @ cov_u[:, t] @ B.mT
+        s = ds.unicycle_step(s, u[:, t], cfg.dt)
+        ref_states.append(s)
+        ref_cov.append(Sigma[:, :2, :2] + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=torch.float64))
+    ref_states, ref_cov = torch.stack(ref_states, 1), torch.stack(ref_cov, 1)
+    assert torch.allclose(states, ref_states, rtol=0, atol=1e-10), (states - ref_states).abs().max()
+    assert torch.allclose(pos_cov, ref_cov, rtol=0, atol=1e-10), (pos_cov - ref_cov).abs().max()
+    assert pos_cov[:, -1].diagonal(dim1=-2, dim2=-1).max() > 1  # the covariances grow well beyond the floor
