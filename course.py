@@ -306,7 +306,7 @@ def figure_modes(sub, pred, train_steps):
     zoomed on the predicted vehicle."""
     import matplotlib.pyplot as plt
 
-    import experiments as xp
+    import figures
 
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 4.4), layout="constrained")
@@ -319,7 +319,7 @@ def figure_modes(sub, pred, train_steps):
         data_synth.plot_scenario(ax, sub, j, extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
                                  title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
                                        + ", ".join(f"{q:.2f}" for q in top3))
-        xp.plot_prediction(ax, pred, j, color="tab:red", label=None)  # the 1σ ellipses (and faint modes)
+        figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # the 1σ ellipses (and faint modes)
         for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
             pk = pred.probs[j, k].item()
             ax.plot(P[k, :, 0], P[k, :, 1], color=plt.cm.viridis_r(norm_p(pk)), lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
@@ -379,15 +379,15 @@ def figure_learning_curves(histories):
 
 
 def figure_stacks(batch, i, outs, cfg, at="", also=None):
-    """§7, §8: sample i through the Standard and the DiffStack stacks (xp.plot_stack: predictions, candidates
+    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack: predictions, candidates
     coloured by p_n, plan, controller); `also` (outs of another run) adds that run's controller states as circles."""
     import matplotlib.pyplot as plt
 
-    import experiments as xp
+    import figures
 
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
-        xp.plot_stack(ax, batch, i, outs[name], cfg, f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
+        figures.plot_stack(ax, batch, i, outs[name], cfg, f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
                       extent=(-12, 48, -10, 10))
         if also is not None:
             ax.plot(also[name].x[i, :, 0], also[name].x[i, :, 1], "o", color="tab:purple", ms=6, mfc="none", zorder=10,

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 import data_synth
-from data_synth import (MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSIONS, _SHAPE_SIGNS, Dataset, Scenarios, Scenes,
+from data_synth import (_SHAPE_SIGNS, MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSIONS, Dataset, Scenarios, Scenes,
                         SynthConfig, _check_seed, _lane_points, arcline_segments, backward_speed, cut_samples,
                         discretize, load_or_generate, route_segments, wrap_angle)
 

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 import torch.nn as nn
 
+
 def wrap_angle(a):
     """Angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi."""
     return torch.atan2(torch.sin(a), torch.cos(a))

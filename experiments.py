@@ -1,4 +1,4 @@
-"""The paper's experiments on top of diffstack.py: Tables 1-5, the ablations of App. A.1, figures, the report.
+"""The paper's experiments on top of diffstack.py: Tables 1-5, the ablations of App. A.1, the report.
 
     python experiments.py --experiment rl --seeds 5          # Table 1 -> results/rl.json, results/rl.md
     python experiments.py --experiment all --seeds 5         # every table and results/report.md (40 epochs a method)
@@ -13,10 +13,9 @@ Map of the module:
     2. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and shared by the tables
     3. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
     4. Closed loop    log replay (§4.3, Table 5, App. D.3)
-    5. Ablations      App. A.1
-    6. Figures        Fig. 3's kind of panel, a closed-loop rollout, the learned cost weights
-    7. Running        a table's pieces, computed and assembled (run_table), the report, the command line; the run
-                      machinery under it (resuming, provenance, worker processes, progress) is runs.py
+    5. Ablations      App. A.1; the goal table (what a perfect prediction is worth, by behaviour)
+    6. Running        a table's pieces, computed and assembled (run_table), the report, the command line; under it,
+                      runs.py (resuming, provenance, worker processes, progress) and figures.py
 
 Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N simulation steps.
 """
@@ -36,19 +35,21 @@ import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-import data_synth
-
 import data_real
-from diffstack import (Config, Method, Prediction, Predictor, StackOutput, cost_contexts, cost_terms, cost_weights, project_to_lanes, route_goal, run_stack, unicycle_step, wrap_angle)
-from train import (TABLE1_METHODS, CostWeights, TrainingDiverged, add_relative, alphas, bounded, cell, check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table, mean_se, to_device, train_predictor, train_stack)
-from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit,
-                  ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key,
-                  save_atomic, to_json, write_atomic)
+import data_synth
+import figures
+from diffstack import (Config, Method, Predictor, cost_contexts, cost_terms, cost_weights, project_to_lanes,
+                       route_goal, run_stack, unicycle_step, wrap_angle)
+from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit, ours_files,
+                  outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key, save_atomic,
+                  to_json, write_atomic)
+from train import (TABLE1_METHODS, CostWeights, TrainingDiverged, add_relative, alphas, bounded, cell, check_writable,
+                   compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table, mean_se,
+                   to_device, train_predictor, train_stack)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -65,9 +66,7 @@ class Column:
 
     def values(self, runs) -> list:
         """The column's value in every run (seed) that has it."""
-        if callable(self.key):
-            return [self.key(r) for r in runs]
-        return [r[self.key] for r in runs if self.key in r]
+        return [self.key(r) for r in runs] if callable(self.key) else [r[self.key] for r in runs if self.key in r]
 
 
 @dataclass(frozen=True)
@@ -83,12 +82,10 @@ class Claim:
 
 @dataclass(frozen=True)
 class TableSpec:
-    """A table of the paper, as run here.
-
-    kind: 'open_loop' (train every method, evaluate open loop: Tables 1, 2, 4), 'cost' (Table 3), 'closed_loop'
-    (Table 5) or 'ablation' (App. A.1, Table 6). methods: the rows; a Method's `losses` switch the setting's loss
-    weights (Config.alpha_rl or alpha_il) on and off. paper: the paper's numbers {row: {column header: value}} in
-    the units of the columns (absent: not reported)."""
+    """A table of the paper, as run here. kind: 'open_loop' (train every method, evaluate open loop: Tables 1, 2, 4),
+    'cost' (Table 3), 'closed_loop' (Table 5), 'ablation' (App. A.1, Table 6), 'goal' or 'real'. methods: the rows; a
+    Method's `losses` switch the setting's loss weights (Config.alpha_rl or alpha_il) on and off. paper: the paper's
+    numbers {row: {column header: value}} in the units of the columns (absent: not reported)."""
 
     name: str
     title: str
@@ -176,17 +173,11 @@ TABLE5 = TableSpec(
     figures=("closed_loop.png", "stack_example.png"),
     claims=(Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"),))
 
-# Each section compares methods under one configuration of the stack, with its own No prediction and
-# GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the RL
-# alphas (1, 100, 1000), so losses (1, 5, 5) are alphas (1, 500, 5000).
-#
-# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the
-# same 3 s (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The
-# paper's table shows "--" for L_ctr in that section; its text says planning AND control change resolution,
-# which is what we run, with all three losses.
-#
-# A predictor is trained once per (losses, seed, what its training sees of the stack) and shared between the
-# sections: Standard (L_pred only) never sees the stack, and without L_ctr the controller is irrelevant.
+# Each section compares methods under one configuration of the stack, with its own No prediction and GT prediction
+# rows (the metrics are not comparable across sections). Method.losses multiplies the RL alphas (1, 100, 1000).
+# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the same 3 s
+# (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The paper's table shows
+# "--" for L_ctr there; its text says planning AND control change resolution, which is what we run.
 
 ABLATION_SECTIONS = (
     ("Loss weights", {}, (
@@ -237,9 +228,8 @@ TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GO
 EXPERIMENTS = tuple(TABLES)
 
 # Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors trained on synthetic
-# data (the data's train side is synthetic, its val side the real samples). Not a table of the paper, so not in
-# `all`; its outputs derive from data under a non-commercial licence that forbids committing them, so they go to
-# REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
+# data (real_data). Not a table of the paper, so not in `all`; its outputs derive from data whose licence forbids
+# committing them, so they go to REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
 REAL_COLUMNS = (Column("ADE (m)", "ade"), Column("CV ADE (m)", "cv_ade"), Column("NLL (nats)", "nll"),
                 Column("Planning loss (x1e-2)", "rel_plan_loss"), Column("Hindsight cost (x1e-2)", "rel_hindsight"),
                 Column("iLQR converged", "converged", "{:.3f}"), Column("Plannable samples", "n", "{:.0f}"))
@@ -254,8 +244,7 @@ REAL_OUT = "runs/real"
 # ============================================================================================
 
 
-CURVE_SAMPLES = 512  # every trained predictor's learning curve: the stack evaluated on this many validation scenarios
-                    # before training and after every epoch (about 1 s each on one thread)
+CURVE_SAMPLES = 512  # every trained predictor's learning curve: the stack on this many validation scenarios per epoch
 
 
 def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0, device="cpu", **stack_kw) -> tuple:
@@ -269,21 +258,15 @@ def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0,
         kw.pop("controller", None)
     plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
     key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
-    if plan_weights == "prior":  # (the default, the posterior, adds nothing to the key)
-        key += (plan_weights,)
-    return key
+    return key + ((plan_weights,) if plan_weights == "prior" else ())  # (the default, the posterior, adds nothing)
 
 
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
                       device="cpu", store=None, **stack_kw):
-    """Method m's predictor trained with `seed` (diffstack.train_predictor). models: None, or a dict shared by the
-    experiments of one run: a predictor already trained the same way is taken from it instead of retrained (the
-    same seed gives the same predictor). "The same way" is the same loss weights, scenario weighting, seed, epochs,
-    target offset and device -- and, only where training runs the stack (L_plan or L_ctr on), the same setting and
-    stack options, less the controller's when L_ctr is off. So Standard is trained once per seed for Tables 1, 3, 4,
-    5 and every ablation section. store: a RunStore, or None: a predictor is also saved there (its state_dict) when
-    trained, and loaded from there when a run of the same run key (config, data, code, ...) trained it before -- so a
-    resumed run, or a worker process, has every predictor an earlier piece trained without training it again."""
+    """Method m's predictor trained with `seed` (its learning curve on CURVE_SAMPLES scenarios), or the one trained
+    before with the same training_key (so Standard is trained once per seed for Tables 1, 3, 4, 5 and the ablations):
+    from models (None, or a dict shared by the tables of one run), else from store (None, or a RunStore that keeps
+    every predictor trained: a resumed run, or a worker process, loads what an earlier piece trained)."""
     key = training_key(m, cfg, setting, epochs, seed, pred_offset, device, **stack_kw)
     if models is not None and key in models:
         if log:
@@ -311,15 +294,14 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
 
 def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
                          pred_offset=0.0, log=print, models=None, device="cpu", **stack_kw) -> dict:
-    """diffstack.compare_methods with predictors shared through `models` (trained_predictor), run on `device`."""
+    """train.compare_methods with predictors shared through `models` (trained_predictor), run on `device`."""
     train = lambda m, *a, **k: trained_predictor(m, *a, models=models, **k)  # noqa: E731
     return compare_methods(data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, device, **stack_kw)
 
 
 def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
-    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e. over the
-    seeds where there is a gap; (nan, nan) where Standard is as good as GT prediction in every seed (on a handful
-    of scenarios where the predicted vehicle never comes near the ego, all three cost the same)."""
+    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e. over the seeds
+    where there is a gap; (nan, nan) where Standard is as good as GT prediction in every seed (a few scenarios)."""
     gt = results["GT prediction"][0][metric]
     pairs = [(s[metric], d[metric]) for s, d in zip(results[standard], results[diffstack])
              if metric in s and metric in d and s[metric] != gt]  # (a diverged seed has no metrics)
@@ -339,18 +321,16 @@ class PairedDifference(NamedTuple):
 
 
 def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """The paired difference of a metric, method[i] - baseline[i] for seed i (the two lists align by seed).
-
-    Pairing removes what the two share in a seed (the same data order and evaluation set), so the spread left is
-    that of the difference itself. t is the paired t statistic (n - 1 degrees of freedom). With one seed the s.e. is
+    """The paired difference of a metric, method[i] - baseline[i] for seed i (the two lists align by seed): pairing
+    removes what the two share in a seed (the same data order and evaluation set), so the spread left is that of the
+    difference itself. t is the paired t statistic (n - 1 degrees of freedom). With one seed the s.e. is
     unknown (nan); with no spread at all it is 0 and t is -inf / +inf (or nan for a zero difference)."""
     if len(baseline) != len(method):
         raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
     if not baseline:
         raise ValueError("baseline: no seeds to compare")
     d = [b - a for a, b in zip(baseline, method)]
-    n = len(d)
-    m = statistics.fmean(d)
+    n, m = len(d), statistics.fmean(d)
     se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
     t = m / se if se > 0 else (math.copysign(math.inf, m) if m != 0 and se == 0 else math.nan)
     return PairedDifference(m, se, t, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
@@ -400,17 +380,12 @@ def claims_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
-    """Table 3: per seed, train a Standard predictor, then the cost weights with it frozen (diffstack.train_stack
-    with `weights`: L = a3 L_ctr, L_ctr the MSE to the GT ego trajectory, the IL setting); evaluate both the
-    hand-tuned and the learned weights on data.val in the IL setting.
-
-    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised
-    weights), alpha, plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
-    res = {"Hand-tuned": [], "Learned": []}
-    for seed in seeds:
-        for name, r in cost_learning_seed(data, cfg, seed, epochs, log, models, device).items():
-            res[name].append(r)
-    return res
+    """Table 3: per seed, a Standard predictor, then the cost weights learned with it frozen (train.train_stack with
+    `weights`: L = a3 L_ctr, L_ctr the MSE to the GT ego trajectory); both weightings evaluated on data.val, all IL.
+    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised weights), alpha,
+    plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
+    runs = [cost_learning_seed(data, cfg, seed, epochs, log, models, device) for seed in seeds]
+    return {name: [r[name] for r in runs] for name in ("Hand-tuned", "Learned")}
 
 
 def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=None, device="cpu", store=None) -> dict:
@@ -424,9 +399,8 @@ def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=
             train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
         with torch.no_grad():
             w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
-        r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
+        res[name] = r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
         r.update(w=w_norm.tolist(), alpha=alpha)
-        res[name] = r
         if log:
             log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
                 + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
@@ -436,14 +410,9 @@ def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=
 # ============================================================================================
 # 4. Closed loop: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
-#
-# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego
-# (data_synth.sample_at with its simulated 4 s history), run the stack, move the ego by the first control
-# of the controller's trajectory through the known unicycle; the other agents replay their logs, and the goal
-# and lanes come from the logged ego (sample_at). As in the paper (App. D.3), the stack plans with the
-# predicted agent only (the other agents are dropped from the planning cost, they stay the predictor's
-# neighbours); the metrics count every agent. The simulation starts at the first frame with a full history,
-# so 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego (its
+# simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the ego by the first control;
+# the other agents replay their logs. 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
 
 
 @dataclass
@@ -463,18 +432,15 @@ def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
     shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
     x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
-    c, s = torch.cos(h0), torch.sin(h0)
-    x, y = states[..., 0], states[..., 1]
+    c, s, x, y = torch.cos(h0), torch.sin(h0), states[..., 0], states[..., 1]
     return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
 
 
 def stack_policy(model, method: Method, cfg: Config, device=None):
-    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in
-    the sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)).
-
-    The planner and controller see the predicted agent only (App. D.3); the predictor still sees every
-    neighbour's history. Evaluation mode: modes weighted by p(z|x), mean controls. The stack runs on `device`
-    (default: the model's; the CPU without a model); what it returns is on the batch's device."""
+    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in the
+    sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)). The
+    planner and controller see the predicted agent only (App. D.3), the predictor every neighbour. Evaluation mode.
+    The stack runs on `device` (default: the model's, or the CPU); what it returns is on the batch's device."""
     if model is not None:
         model.eval()
     if device is None:
@@ -491,12 +457,9 @@ def stack_policy(model, method: Method, cfg: Config, device=None):
 
 def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
              dtype=torch.float32) -> Rollout:
-    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first
-    frame with a full history). policy(batch) -> (x, u, hindsight, plannable) as stack_policy's; the ego
-    moves by u[:, 0] through the unicycle (diffstack.unicycle_step), the agents replay the log. scfg: the data's
-    SynthConfig (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
-    import data_synth
-
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first frame
+    with a full history); policy as stack_policy's. scfg: the data's SynthConfig (frame period, history and
+    horizon); dtype: the policy's samples (the simulation is float64)."""
     scfg = scfg or data_synth.SynthConfig()
     H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
     if abs(cfg.dt - scfg.dt) > 1e-9:
@@ -517,8 +480,7 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
         x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
         s = hist[:, -1]  # (S, 4)
         u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
-        # s_{k+1} = f(s_k, u_0): the known dynamics, in the world frame (controls do not depend on the frame)
-        s_next = unicycle_step(s, u0, cfg.dt)
+        s_next = unicycle_step(s, u0, cfg.dt)  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
         s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
         hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
         ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
@@ -529,14 +491,12 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
 
 def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
-
       trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 3, w hand-tuned)
       collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
       lane             1/N sum_t (w3 C_lat + w4 C_head)
       control effort   1/N sum_t w5 ||u_t||^2
       open-loop cost   mean of each step's hindsight cost C_H (over the plannable steps)
-      deviation        1/N sum_t ||s_t - s_log,t|| (m)
-    """
+      deviation        1/N sum_t ||s_t - s_log,t|| (m)"""
     N, f0 = roll.controls.shape[1], roll.start_frame
     x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
     frames = slice(f0 + 1, f0 + N + 1)
@@ -559,7 +519,9 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
 
 def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
     """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one).
-    ValueError saying how long a scene the closed loop needs and what the data has, when none qualifies."""
+    ValueError when there are none (scenes None: the data has no scene logs), saying what the closed loop needs."""
+    if scenes is None:
+        raise ValueError("closed_loop: the data has no validation scene logs")
     scfg = scfg or data_synth.SynthConfig()
     H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
     window = scenes.pred_idx[:, H:H + N] >= 0  # (S, <=N) a predicted agent (with its 3 s future) at each frame
@@ -576,19 +538,16 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 
 def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None,
                            device="cpu"):
-    """Table 5: the methods trained by the open-loop RL procedure (train_stack), each simulated on every
-    validation scene (the simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed:
-    metric means over scenes, 'rel_*' x1e-2 vs No prediction]}, {method: (Rollout, per-scene metrics) of the first
-    seed}, the scenes)."""
+    """Table 5: the methods trained by the open-loop RL procedure, each simulated on every validation scene (the
+    simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed: closed_loop_run's metrics,
+    'rel_*' as closed_loop_relative's]}, {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
     scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
     results, rollouts = {}, {}
     for m in CLOSED_LOOP_METHODS:
-        runs = []
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
             r, roll, per_scene = closed_loop_run(m, seed, scenes, data, cfg, epochs, sim_time, log, models, device)
-            runs.append(r)
+            results.setdefault(m.name, []).append(r)
             rollouts.setdefault(m.name, (roll, per_scene))
-        results[m.name] = runs
     return closed_loop_relative(results), rollouts, scenes
 
 
@@ -611,28 +570,16 @@ def closed_loop_run(m: Method, seed, scenes, data, cfg: Config, epochs=1.0, sim_
 def closed_loop_relative(results: dict) -> dict:
     """Add 'rel_<metric>' (x1e-2 vs No prediction's first run) to every run of {method: [per seed]}, in place."""
     base = results["No prediction"][0]
-    for runs in results.values():
-        for r in runs:
-            for k in CLOSED_LOOP_METRICS:
-                if k in r:  # (a diverged seed has no metrics)
-                    r["rel_" + k] = (r[k] - base[k]) / 1e-2
+    for r in (r for runs in results.values() for r in runs):
+        for k in CLOSED_LOOP_METRICS:
+            if k in r:  # (a diverged seed has no metrics)
+                r["rel_" + k] = (r[k] - base[k]) / 1e-2
     return results
 
 
 # ============================================================================================
-# 5. Ablations (App. A.1, Table 6)
+# 5. Ablations (App. A.1, Table 6), and where a perfect prediction is worth something
 # ============================================================================================
-
-
-def ablation_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
-    """App. A.1: {section title: open_loop_experiment results} for every section of ABLATION_SECTIONS (RL)."""
-    res, models = {}, {} if models is None else models
-    for title, stack_kw, methods in ABLATION_SECTIONS:
-        if log:
-            log(f"--- ablation: {title}")
-        res[title] = open_loop_experiment(data, cfg, "rl", (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1]),
-                                          tuple(seeds), epochs, log=log, models=models, device=device, **stack_kw)
-    return res
 
 
 def ablation_markdown(spec: TableSpec, results: dict) -> str:
@@ -645,17 +592,12 @@ def ablation_markdown(spec: TableSpec, results: dict) -> str:
             continue
         rows.append([f"**{title}**"] + [""] * (len(head) - 1))
         no_plan, no_ctrl = stack_kw.get("planner") is False, stack_kw.get("controller") is False
-        by_name = {m.name: m for m in methods}
         for name, runs in results[title].items():
-            m = by_name.get(name)
+            m = next((m for m in methods if m.name == name), None)
             loss = ["", "", ""] if m is None else [f"{v:g}" for v in m.losses]
-            if no_plan:
-                loss[1] = "--"
-            if no_ctrl:
-                loss[2] = "--"
+            loss[1:] = ["--" if no_plan else loss[1], "--" if no_ctrl else loss[2]]
             cells = [cell(c.values(runs), c.fmt) for c in spec.columns]
-            if no_plan:
-                cells[2] = "--"
+            cells[2] = "--" if no_plan else cells[2]
             rows.append([name, *loss, *cells])
     return markdown_table(head, rows)
 
@@ -665,10 +607,8 @@ CLOSE = 5.0  # m, centre to centre: a car's length (goal_breakdown)
 
 def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) -> dict:
     """Method m (No prediction or GT prediction: nothing trained) on the validation set under cfg.goal, by behaviour
-    of the predicted vehicle: scenes, hindsight cost, its weighted terms (collision, goal, lane, heading, control
-    effort) and the share of scenes where the final ego trajectory comes within CLOSE metres (centre to centre, about
-    a car's length) of the predicted vehicle's GT future. The evidence of why a prediction matters in some behaviours
-    and not in others."""
+    of the predicted vehicle: scenes, hindsight cost, its weighted terms and the share of scenes where the final ego
+    trajectory comes within CLOSE of the predicted vehicle's GT future."""
     sums, dists = {}, {}
     for i in range(0, len(val), batch_size):
         batch = to_device(val[i:i + batch_size], device)
@@ -705,12 +645,10 @@ def goal_markdown(results: dict) -> str:
         table = []
         for b in [b for b in data_synth.BEHAVIOURS if b in none["by_behaviour"]]:
             a, g = none["by_behaviour"][b], gt["by_behaviour"][b]
-            t = a["terms"]
-            saved = g["hindsight"] - a["hindsight"]
+            t, saved = a["terms"], g["hindsight"] - a["hindsight"]
             table.append([f"{b} ({a['n']})", f"{a['hindsight']:.3f}", f"{t[0]:.3f}", f"{t[1]:.3f}", f"{t[4]:.3f}",
                           f"{g['terms'][0]:.3f}", f"{100 * a['close']:.0f} % / {100 * g['close']:.0f} %",
-                          f"{saved / 1e-2:+.2f}",
-                          f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--"])
+                          f"{saved / 1e-2:+.2f}", f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--"])
         table.append([f"all ({none['n']})", f"{none['hindsight']:.3f}", "", "", "", "", "",
                       f"{(gt['hindsight'] - none['hindsight']) / 1e-2:+.2f}", "1.00"])
         what = ("the paper's: the GT ego state at T" if goal == "logged" else
@@ -718,325 +656,18 @@ def goal_markdown(results: dict) -> str:
         parts.append(f"**Goal: {what}.**\n\n" + markdown_table(
             ["Behaviour (scenes)", "No prediction: hindsight cost", "of which collision", "goal", "control effort",
              "GT prediction: collision", f"within {CLOSE:g} m of the vehicle (No prediction / GT)",
-             "GT minus No prediction (x1e-2)",
-             "share of GT's saving"], table))
+             "GT minus No prediction (x1e-2)", "share of GT's saving"], table))
     return "\n\n".join(parts)
 
 
 # ============================================================================================
-# 6. Figures
-# ============================================================================================
-
-
-def plot_prediction(ax, pred: Prediction, i: int, color: str = "tab:red", cov: bool = True,
-                    label: str | None = "prediction"):
-    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with the mode's
-    probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode. Meant to go over plot_scenario."""
-    p = pred.probs[i].detach().cpu()  # (K,)
-    xy = torch.cat([pred.s0[i, None, None, :2].expand(len(p), 1, 2), pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
-    rel = p / p.max()
-    for k in torch.argsort(p).tolist():  # the likely modes drawn last, on top
-        ax.plot(xy[k, :, 0], xy[k, :, 1], color=color, alpha=0.1 + 0.9 * rel[k].item(), lw=0.5 + 2.5 * rel[k].item(),
-                label=label if k == int(p.argmax()) else None)
-    if cov:
-        k = int(p.argmax())
-        theta = torch.linspace(0, 2 * math.pi, 40, dtype=pred.pos_cov.dtype)
-        circle = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (40, 2)
-        for t in range(pred.pos_cov.shape[2]):
-            L = torch.linalg.cholesky(pred.pos_cov[i, k, t].detach().cpu())  # (2, 2)
-            ell = xy[k, t + 1] + circle @ L.T  # (40, 2)
-            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
-
-
-def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | None = None, extent=(-10, 45, -12, 14)):
-    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted modes (alpha
-    by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the plan (argmin) and the
-    controller's trajectory."""
-    import matplotlib.pyplot as plt
-    import data_synth
-
-    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
-    if out.pred is not None:
-        plot_prediction(ax, out.pred, i, cov=False)
-    valid = out.cands.valid[i]  # (N,)
-    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (2) relaxed
-    xs = out.cands.x[i].detach()  # (N, T+1, 4)
-    cmap = plt.get_cmap("Greens")
-    for n in torch.argsort(p).tolist():  # the likely candidates on top
-        if valid[n]:
-            ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
-    best = int(p.argmax())
-    # the controller's trajectory wide and translucent, the plan thin and dashed on top of it: both stay visible
-    # where they overlap (the controller usually moves the plan by centimetres to a few metres)
-    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=4, alpha=0.55, zorder=8,
-            solid_capstyle="round", label="controller")
-    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.4, marker="o", ms=3, zorder=9, label="plan (argmin)")
-    return ax
-
-
-def stack_outputs(batch, models: dict, cfg: Config) -> dict:
-    """{name: StackOutput}: the stack of each (name -> predictor) in models on a batch, in evaluation mode (RL), run on
-    the predictor's device and brought back to the CPU for plotting."""
-    outs = {}
-    with torch.no_grad():
-        for name, model in models.items():
-            model.eval()
-            device = next(model.parameters()).device
-            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
-    return outs
-
-
-def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
-    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
-    the one among the first n_search where the first model's hindsight cost exceeds the second's the most.
-    The stack runs on each model's device; the plot, on the CPU."""
-    import matplotlib.pyplot as plt
-
-    batch = data.val[:n_search]
-    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
-    (a, oa), (b, ob) = list(outs.items())[:2]
-    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
-    i = int(gap.argmax())
-    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
-    for ax, (name, out) in zip(axes, outs.items()):
-        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
-        ax.legend(loc="lower left", fontsize=7)
-    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
-    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
-                 ticks=[0, 0.25, 0.5, 0.75, 1])
-    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
-                 fontsize=10)
-    save_figure(fig, path)
-    return i
-
-
-def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
-    """A few real scenes under each (name -> predictor) in models, one row per scene, one column per model:
-    plot_stack's panel (lanes, agents, the predicted modes, the candidates, the plan and the controller's output).
-    The rows are the plannable samples where the first model's hindsight cost exceeds the second's the most (as
-    Fig. 3 picks), at least `apart` samples from each other (neighbours are the same moment 0.5 s later): the point
-    is that the more accurate predictor by ADE can make the costlier plan. The caption gives both models' mean ADE
-    and hindsight cost over the whole batch. Returns the indices drawn."""
-    import matplotlib.pyplot as plt
-
-    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
-    (a, oa), (b, ob) = list(outs.items())[:2]
-    plannable = oa.plannable & ob.plannable  # (B,)
-    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # (B,) lowest: the first model's worst
-    ade = {name: _ade(out.pred, batch) for name, out in outs.items()}  # (B,) each
-    picks = []
-    for _ in range(min(rows, int(plannable.sum()))):  # a few rows: the worst gap, then the worst away from it, ...
-        i = int(score.argmin())
-        picks.append(i)
-        score[max(0, i - apart + 1):i + apart] = math.inf
-    fig, axes = plt.subplots(len(picks), len(outs), figsize=(6.2 * len(outs), 3.5 * len(picks)), squeeze=False,
-                             layout="constrained")
-    for row, i in enumerate(picks):
-        for ax, (name, out) in zip(axes[row], outs.items()):
-            plot_stack(ax, batch, i, out, cfg, f"{name}, sample {i}: hindsight cost {out.hindsight[i].item():.3f}, "
-                                               f"ADE {ade[name][i].item():.2f} m", extent=(-15, 50, -15, 15))
-    axes[0, 0].legend(loc="lower left", fontsize=7)
-    mean = lambda name, v: v[plannable].mean().item()  # noqa: E731
-    fig.suptitle(f"Real scenes (Waymo), predictors trained on synthetic data. Where their plans' hindsight costs differ "
-                 f"most, {a} predicts one confident manoeuvre that did not happen and its plan pays for it; {b}'s wider\n"
-                 f"modes leave the plan near the logged one. Over all {int(plannable.sum())} samples {b} is the worse "
-                 f"predictor by ADE ({mean(b, ade[b]):.2f} m vs {mean(a, ade[a]):.2f} m) and the better one to plan "
-                 f"with (hindsight cost {mean(b, ob.hindsight):.3f} vs {mean(a, oa.hindsight):.3f}).\n"
-                 f"Red: predicted modes (alpha by probability); green: candidates by p_n; black dashed: plan; purple: "
-                 f"controller output; blue dashed: the logged ego; orange: the predicted vehicle's log", fontsize=9)
-    save_figure(fig, path)
-    return picks
-
-
-def _ade(pred: Prediction, batch) -> torch.Tensor:
-    """ADE of the most likely mode (B,), as diffstack.prediction_metrics computes it."""
-    best = pred.probs.argmax(-1)  # (B,)
-    means = pred.means[torch.arange(len(best)), best]  # (B, T, 2)
-    return (means - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)
-
-
-def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
-    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
-    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
-    Standard's trajectory cost exceeds DiffStack's the most."""
-    import matplotlib.pyplot as plt
-
-    if scene is None:
-        scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
-    s = scene
-    any_roll = next(iter(rollouts.values()))[0]
-    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
-    frames = torch.arange(f0, f0 + N + 1)
-    pred = int(scenes.pred_idx[s, f0])
-    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
-    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
-    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
-    tt = (frames - f0).double() * dt  # (N+1,) seconds
-    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
-    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
-    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
-    cols = 2 if len(rollouts) > 1 else 1
-    rows = math.ceil(len(rollouts) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
-                             sharey=True, layout="constrained", squeeze=False)
-    axes = axes.ravel()
-    for ax in axes[len(rollouts):]:
-        ax.set_axis_off()
-    axes = axes[:len(rollouts)]
-    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
-        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
-            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
-        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
-            if a != pred and scenes.agents_mask[s, a, frames].any():
-                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
-                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
-        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
-        for k in range(0, N, 4):
-            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
-        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
-        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
-        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
-                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
-    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
-    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
-    save_figure(fig, path)
-    return s
-
-
-def has_curves(results: dict) -> bool:
-    """Whether a table's results carry learning curves (runs from before they existed do not)."""
-    return any(r.get("curve") for runs in results.values() if isinstance(runs, list) for r in runs)
-
-
-def _mean_curve(runs, key):
-    """(epochs, mean over seeds) of the learning curves of some runs, on their common epochs."""
-    curves = [r["curve"] for r in runs if r.get("curve")]
-    n = min(len(c) for c in curves)
-    return np.array([c["epoch"] for c in curves[0][:n]]), np.array([[c[i][key] for i in range(n)] for c in curves])
-
-
-def learning_curves_caption(results: dict) -> str:
-    """The point the learning curves make, read off them: from which epoch on DiffStack's mean hindsight cost stays
-    below Standard's, and where each ADE curve ends relative to the other."""
-    if not all(any(r.get("curve") for r in results.get(m, [])) for m in ("Standard", "DiffStack")):
-        return "Learning curves (validation)"
-    epoch, std = _mean_curve(results["Standard"], "hindsight")
-    _, dif = _mean_curve(results["DiffStack"], "hindsight")
-    n = min(std.shape[1], dif.shape[1])
-    below = dif.mean(0)[:n] < std.mean(0)[:n]
-    first = next((i for i in range(n) if below[i:].all()), None)
-    ade_std, ade_dif = _mean_curve(results["Standard"], "ade")[1].mean(0)[-1], _mean_curve(results["DiffStack"], "ade")[1].mean(0)[-1]
-    plans = (f"DiffStack plans better than Standard from epoch {epoch[first]:g} on" if first is not None else
-             "DiffStack does not stay below Standard in hindsight cost")
-    return f"{plans} (right), with a {'higher' if ade_dif > ade_std else 'lower'} ADE at the end (left)"
-
-
-def figure_learning_curves(results: dict, path, reference: dict | None = None, methods=("Standard", "DiffStack"),
-                           title=None):
-    """Validation ADE and hindsight cost after every epoch (CURVE_SAMPLES scenes), mean and s.e. band over seeds, of
-    the methods whose runs have a learning curve. reference: {name: hindsight cost on the same scenes}, drawn as
-    horizontal lines (No prediction, GT prediction). title: default learning_curves_caption's."""
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110, layout="constrained")
-    colors = dict(Standard="tab:blue", DiffStack="tab:red")
-    for m in methods:
-        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
-        if not curves:
-            continue
-        n = min(len(c) for c in curves)
-        epoch = np.array([c["epoch"] for c in curves[0][:n]])
-        for ax, key in zip(axes, ("ade", "hindsight")):
-            v = np.array([[c[i][key] for i in range(n)] for c in curves])  # (seeds, epochs)
-            mean, se = v.mean(0), (v.std(0, ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0 * v[0])
-            ax.plot(epoch, mean, color=colors.get(m), label=f"{m} ({len(v)} seeds)")
-            ax.fill_between(epoch, mean - se, mean + se, color=colors.get(m), alpha=0.25, lw=0)
-    for name, value in (reference or {}).items():
-        axes[1].axhline(value, color="0.3", ls="--" if name == "No prediction" else ":", lw=1, label=name)
-    axes[0].set(xlabel="epoch", ylabel="ADE (m)", title="Prediction: ADE")
-    axes[1].set(xlabel="epoch", ylabel="hindsight cost", title="Planning: hindsight cost (lower is better)")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    fig.suptitle(title or learning_curves_caption(results), fontsize=10)
-    save_figure(fig, path)
-
-
-def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: float = 5.0) -> str:
-    """Whether training has flattened: per method, the change of ADE and hindsight cost over the last `last` epochs
-    of the learning curves, mean ± s.e. over seeds; 'still falling' where the fall clears two standard errors and
-    1 % of the value, else 'flat'. '' without curves."""
-    lines = []
-    for m in methods:
-        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
-        if not curves:
-            continue
-        parts = []
-        for key, unit in (("ade", " m"), ("hindsight", "")):
-            end = [c[-1][key] for c in curves]
-            before = [min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves]
-            mean, se = mean_se([a - b for a, b in zip(end, before)])
-            level = statistics.fmean(end)
-            falling = mean < -2 * se and mean < -0.01 * abs(level)
-            parts.append(f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
-                         f"({'still falling' if falling else 'flat'})")
-        final = curves[0][-1]  # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
-        scenes = final.get("n", CURVE_SAMPLES) + final.get("skipped", 0)
-        lines.append(f"- {m}, over the last {min(last, final['epoch']):g} of {final['epoch']:g} epochs ({len(curves)} "
-                     f"seeds, {scenes} validation scenes): " + "; ".join(parts))
-    return "Learning curves (learning_curves.png):\n\n" + "\n".join(lines) if lines else ""
-
-
-def learning_curve_reference(data, cfg: Config) -> dict:
-    """No prediction's and GT prediction's hindsight cost on the learning curves' scenes (figure_learning_curves)."""
-    subset = data.val[:CURVE_SAMPLES]
-    return {m.name: evaluate_stack(None, subset, m, cfg, "rl")["hindsight"] for m in (TABLE1_METHODS[0], TABLE1_METHODS[-1])}
-
-
-def figure_cost_weights(results: dict, path):
-    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds. A mean that is
-    not positive has no bar on the log scale: it is written in its place instead (returned too), never dropped."""
-    import matplotlib.pyplot as plt
-
-    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
-    fig, ax = plt.subplots(figsize=(7, 3.2))
-    x = np.arange(len(names))
-    notes = []
-    for j, (label, runs) in enumerate(results.items()):
-        vals = [[*r["w"], r["alpha"]] for r in runs]
-        ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
-        ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
-        for i, (m, _) in enumerate(ms):
-            if m <= 0:  # a log axis cannot draw it: say it where the bar would be
-                notes.append(f"{label} {names[i]} = {m:.3f}")
-                ax.text(x[i] + (j - 0.5) * 0.38, 0.22, f"{m:.3f}\n(not > 0)", color="tab:red", ha="center", va="bottom",
-                        fontsize=8)
-    ax.set_xticks(x, names, fontsize=8)
-    ax.set_yscale("log")
-    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
-    ax.minorticks_off()
-    ax.set_ylabel("weight (log scale)")
-    ax.legend(fontsize=8)
-    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)" + (
-        "; not positive, written not drawn: " + ", ".join(notes) if notes else ""), fontsize=10 if not notes else 8)
-    save_figure(fig, path)
-    return notes
-
-
-# ============================================================================================
-# 7. Running a spec, the report, the command line
+# 6. Running a spec, the report, the command line
 # ============================================================================================
 
 
 def results_markdown(spec: TableSpec, results: dict) -> str:
-    """A results table of a spec: one row per method, 'mean ± s.e.' over seeds in every column; below it, one line
-    per claim of the paper with its paired difference over seeds and whether it clears two standard errors; for the
-    open-loop tables, the planning metric by behaviour of the predicted vehicle (behaviour_markdown)."""
+    """A spec's results table ('mean ± s.e.' over seeds), then its claim lines (claims_markdown), the diverged
+    trainings, the breakdown by behaviour (open loop) and the learning curves' plateau (Table 1)."""
     if spec.kind == "goal":
         return goal_markdown(results)
     md = ablation_markdown(spec, results) if spec.kind == "ablation" else table_markdown(spec, results)
@@ -1062,18 +693,16 @@ def diverged_markdown(results: dict) -> str:
 
 
 def behaviour_markdown(spec: TableSpec, results: dict) -> str:
-    """The setting's planning metric (RL: hindsight cost, IL: MSE) relative to No prediction, x1e-2, per behaviour of
-    the predicted vehicle (data_synth.BEHAVIOURS; the scenes of that behaviour), mean ± s.e. over seeds: where in
-    the data a method's predictions help the planner and where they hurt it. '' without the breakdown (real data,
-    or results from before it existed)."""
+    """The setting's planning metric (RL: hindsight cost, IL: MSE) relative to No prediction per behaviour of the
+    predicted vehicle, as the table below says: where a method's predictions help the planner and where they hurt
+    it. '' without the breakdown (real data, or results from before it existed)."""
     key = "hindsight" if spec.setting == "rl" else "mse"
     base = results.get("No prediction", [{}])[0].get("by_behaviour")
     if not base:
         return ""
-    names = [b for b in data_synth.BEHAVIOURS if b in base]
     methods = [m for m, runs in results.items() if m != "No prediction" and all("by_behaviour" in r for r in runs)]
     rows = []
-    for b in names:
+    for b in [b for b in data_synth.BEHAVIOURS if b in base]:
         rel = lambda runs: [(r["by_behaviour"][b][key] - base[b][key]) / 1e-2 for r in runs]  # noqa: E731
         rows.append([f"{b} ({base[b]['n']})"] + [cell(rel(results[m])) for m in methods])
     rows.append([f"all ({results['No prediction'][0]['n']})"]
@@ -1082,6 +711,34 @@ def behaviour_markdown(spec: TableSpec, results: dict) -> str:
     return (f"{what} relative to No prediction (x1e-2) by behaviour of the predicted vehicle (scenes), mean ± s.e. over "
             f"seeds; a behaviour's row is the mean over its scenes, 'all' over every scene:\n\n"
             + markdown_table(["Behaviour (scenes)"] + methods, rows))
+
+
+def has_curves(results: dict) -> bool:
+    """Whether a table's results carry learning curves (runs from before they existed do not)."""
+    return any(r.get("curve") for runs in results.values() if isinstance(runs, list) for r in runs)
+
+
+def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: float = 5.0) -> str:
+    """Whether training has flattened: per method, the change of ADE and hindsight cost over the last `last` epochs
+    of the curves, mean ± s.e.: 'still falling' past 2 s.e. and 1 % of the value, else 'flat' ('' without curves)."""
+    lines = []
+    for m in methods:
+        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
+        if not curves:
+            continue
+        parts = []
+        for key, unit in (("ade", " m"), ("hindsight", "")):
+            end = [c[-1][key] for c in curves]
+            before = [min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves]
+            mean, se = mean_se([a - b for a, b in zip(end, before)])
+            falling = mean < -2 * se and mean < -0.01 * abs(statistics.fmean(end))
+            parts.append(f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
+                         f"({'still falling' if falling else 'flat'})")
+        final = curves[0][-1]  # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
+        scenes = final.get("n", CURVE_SAMPLES) + final.get("skipped", 0)
+        lines.append(f"- {m}, over the last {min(last, final['epoch']):g} of {final['epoch']:g} epochs ({len(curves)} "
+                     f"seeds, {scenes} validation scenes): " + "; ".join(parts))
+    return "Learning curves (learning_curves.png):\n\n" + "\n".join(lines) if lines else ""
 
 
 def table_markdown(spec: TableSpec, results: dict) -> str:
@@ -1106,25 +763,19 @@ def paper_markdown(spec: TableSpec) -> str:
                 for name, vals in paper.items()]
     head = ["Method (paper)"] + [c.header for c in spec.columns]
     if spec.kind == "ablation":
-        out = []
-        for title, paper in spec.paper.items():
-            out.append(markdown_table([f"{title} (paper)"] + head[1:], rows(paper)))
-        return "\n\n".join(out)
+        return "\n\n".join(markdown_table([f"{t} (paper)"] + head[1:], rows(paper)) for t, paper in spec.paper.items())
     return markdown_table(head, rows(spec.paper))
 
 
 # --------------------------------------------------------------------------------------------
-# 7.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
+# 6.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
 # --------------------------------------------------------------------------------------------
-#
-# A table's pieces are kept and resumed by runs.RunStore (runs.py says where and under which key). Trained predictors
-# are kept there too (trained_predictor), so a table that needs a predictor whose piece was reused (or trained in a
-# worker process) loads it instead of training.
+# A table's pieces, and its trained predictors, are kept and resumed by runs.RunStore (runs.py: where, which key).
 
 
 class Piece(NamedTuple):
     """One result of a table: a method (Table 3: its one row, both weightings) and a seed; section: the ablation
-    section's title (None elsewhere)."""
+    section's title, or the goal table's goal (None elsewhere)."""
 
     method: str
     seed: int
@@ -1154,76 +805,56 @@ def table_pieces(spec: TableSpec, seeds) -> list:
         return [p for title, _, methods in ABLATION_SECTIONS for p in _rows(_ablation_methods(methods), seeds, title)]
     if spec.kind == "goal":
         return [p for goal in GOALS for p in _rows(spec.methods, seeds, goal)]
-    return _rows(CLOSED_LOOP_METHODS if spec.kind == "closed_loop" else spec.methods, seeds)
+    return _rows(spec.methods, seeds)
+
+
+def piece_method(spec: TableSpec, piece: Piece) -> tuple:
+    """(method, setting, target offset, run_stack options) of a piece of any table but Table 3."""
+    if spec.kind == "ablation":
+        _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
+        return next(m for m in _ablation_methods(methods) if m.name == piece.method), "rl", 0.0, stack_kw
+    return next(m for m in spec.methods if m.name == piece.method), spec.setting, spec.pred_offset, {}
 
 
 COST_WEIGHTS = "cost weights"  # the first item of Table 3's cost-weight training in piece_trainings' keys
 
 
 def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="cpu") -> tuple:
-    """What a piece trains unless another piece has trained it already: its predictor's training_key (Table 3
-    also its cost weights), as _compute_piece would. Empty for the pieces that train nothing (No prediction, GT
-    prediction, the goal table). timed_piece records from it whether a piece trained."""
-    def of(methods, setting, pred_offset=0.0, **stack_kw):
-        m = next(m for m in methods if m.name == piece.method)
-        if m.predictor != "learned":
-            return ()
-        return (training_key(m, cfg, setting, epochs, piece.seed, pred_offset, device, **stack_kw),)
-
-    if spec.kind in ("open_loop", "real"):
-        return of(spec.methods, spec.setting, spec.pred_offset)
-    if spec.kind == "ablation":
-        _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
-        return of(_ablation_methods(methods), "rl", **stack_kw)
-    if spec.kind == "closed_loop":
-        return of(CLOSED_LOOP_METHODS, "rl")
+    """What a piece trains unless another piece has trained it already (timed_piece's 'trained'): its predictor's
+    training_key as compute_piece's, and Table 3's cost weights; () for No prediction, GT prediction, the goal table."""
     if spec.kind == "cost":
         return (training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device), (COST_WEIGHTS, piece.seed))
-    return ()
+    m, setting, pred_offset, stack_kw = piece_method(spec, piece)
+    if spec.kind == "goal" or m.predictor != "learned":
+        return ()
+    return (training_key(m, cfg, setting, epochs, piece.seed, pred_offset, device, **stack_kw),)
 
 
 def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
                   store=None):
-    """_compute_piece, where a training that diverges is a result too ({'diverged': what}, kept like any piece:
-    a resumed run does not retrain it, and the table says which seed of which method is left out)."""
+    """Train (or take from models / store) and evaluate one piece: (its result before the values relative to No
+    prediction, which assemble adds; a dict of tensors to keep beside it or None). A training that diverges is a
+    result too ({'diverged': what}: a resumed run does not retrain it, and the table says which seed is left out)."""
+    if spec.kind not in ("open_loop", "real", "ablation", "goal", "closed_loop", "cost"):
+        raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
     try:
-        return _compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
+        if spec.kind == "cost":
+            return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
+        m, setting, pred_offset, stack_kw = piece_method(spec, piece)
+        if spec.kind == "goal":
+            return goal_breakdown(data.val, m, dataclasses.replace(cfg, goal=piece.section), device), None
+        if spec.kind == "closed_loop":
+            scenes = closed_loop_scenes(data.val_scenes, cfg)
+            r, roll, per_scene = closed_loop_run(m, piece.seed, scenes, data, cfg, epochs, log=log, models=models,
+                                                 device=device, store=store)
+            return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
+        train = lambda m, *a, **k: trained_predictor(m, *a, models=models, store=store, **k)  # noqa: E731
+        return compare_methods(data, cfg, setting, (m,), (piece.seed,), epochs, pred_offset, log, train, device,
+                               **stack_kw)[m.name][0], None
     except TrainingDiverged as e:
         if log:
             log(f"  {piece.stem}: {e}")
         return dict(diverged=str(e)), None
-
-
-def _compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
-                   store=None):
-    """Train (or take from models / store) and evaluate one piece: (its result, a dict of tensors to keep beside
-    it or None). The result is what the table's experiment function gives for that method and seed, before the
-    values relative to No prediction (assemble adds them)."""
-    def one_open_loop(methods, setting, pred_offset=0.0, **stack_kw):
-        m = next(m for m in methods if m.name == piece.method)
-        train = lambda m, *a, **k: trained_predictor(m, *a, models=models, store=store, **k)  # noqa: E731
-        return compare_methods(data, cfg, setting, (m,), (piece.seed,), epochs, pred_offset, log, train, device,
-                               **stack_kw)[m.name][0]
-
-    if spec.kind in ("open_loop", "real"):
-        return one_open_loop(spec.methods, spec.setting, spec.pred_offset), None
-    if spec.kind == "ablation":
-        _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
-        return one_open_loop(_ablation_methods(methods), "rl", **stack_kw), None
-    if spec.kind == "cost":
-        return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
-    if spec.kind == "goal":
-        m = next(m for m in spec.methods if m.name == piece.method)
-        return goal_breakdown(data.val, m, dataclasses.replace(cfg, goal=piece.section), device), None
-    if spec.kind == "closed_loop":
-        if data.val_scenes is None:
-            raise ValueError("closed_loop: the data has no validation scene logs")
-        m = next(m for m in CLOSED_LOOP_METHODS if m.name == piece.method)
-        scenes = closed_loop_scenes(data.val_scenes, cfg)
-        r, roll, per_scene = closed_loop_run(m, piece.seed, scenes, data, cfg, epochs, log=log, models=models,
-                                             device=device, store=store)
-        return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
-    raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
 
 
 def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
@@ -1244,16 +875,14 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
     if spec.kind == "goal":
         return {goal: rows(spec.methods, goal) for goal in GOALS}
     if spec.kind == "closed_loop":
-        return closed_loop_relative(rows(CLOSED_LOOP_METHODS))
+        return closed_loop_relative(rows(spec.methods))
     raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
 
 
 def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
-    """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds': wall,
-    'cpu_seconds': this process's CPU, 'machine': diffstack.machine(), 'trained': bool}). The machine, because a run
-    resumed on another kind of processor is still one run (its key names the code, config and data), but the same
-    seed gives other numbers there; 'trained': it trained something (a predictor no piece had trained before it,
-    or Table 3's cost weights) rather than only evaluate."""
+    """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds': wall, 'cpu_seconds':
+    this process's CPU, 'machine': train.machine() (the same seed gives other numbers on another kind of processor),
+    'trained': it trained something no piece had trained before it (piece_trainings)})."""
     def trained_before(key) -> bool:  # by an earlier piece: in this process's models, or in the store on disk
         path = store.model_path(key) if store is not None and key[0] != COST_WEIGHTS else None
         return key in (models or {}) or (path is not None and path.exists())
@@ -1285,35 +914,29 @@ def in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, 
 
 
 def work_units(names, seeds, store: RunStore) -> list:
-    """The missing pieces of several tables as units for in_workers: one per (table, ablation section,
-    seed). The longest (the ablation's) go first, so that the short ones fill the workers at the end; within a
-    table, the seeds alternate, so that two workers never train the same predictor (a predictor shared between
-    tables is trained by the first unit of its seed and loaded from the store by the later ones)."""
+    """The missing pieces of several tables as units for in_workers, one per (table, ablation section, seed): the
+    longest (the ablation's) first, so that the short ones fill the workers at the end; within a table the seeds
+    alternate, so that two workers never train the same predictor (the later units load it from the store)."""
     units = []
     for name in sorted(names, key=lambda n: SPECS[n].kind != "ablation"):
         pieces = [p for p in table_pieces(SPECS[name], seeds) if not store.has(name, p)]
-        for section in dict.fromkeys(p.section for p in pieces):
-            for seed in seeds:
-                unit = [p for p in pieces if p.section == section and p.seed == seed]
-                if unit:
-                    units.append((name, unit))
+        units += [(name, unit) for section in dict.fromkeys(p.section for p in pieces) for seed in seeds
+                  if (unit := [p for p in pieces if p.section == section and p.seed == seed])]
     return units
 
 
 def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
               device="cpu", write=True, store=None, jobs=1):
-    """Run one table of the paper: train and evaluate what its spec declares on `device`, write its figures to
-    out_dir (unless not `write`: the ranks other than 0 under torchrun). models: trained predictors shared between
-    the tables of one run (trained_predictor). store: a RunStore that keeps every piece (method, seed) as it is made
-    and gives back the finished ones (None: one in memory, nothing resumed). jobs > 1 (a store on disk): the seeds'
-    pieces in that many worker processes of one thread each.
-    Returns (results, markdown table)."""
+    """Run one table: train and evaluate what its spec declares on `device`, write its figures to out_dir if `write`.
+    models: trained predictors shared by the tables of one run. store: a RunStore that keeps every piece and gives
+    back the finished ones (None: in memory). jobs > 1 (a store on disk): the seeds' pieces in that many worker
+    processes of one thread each. Returns (results, markdown table)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = {} if models is None else models
     store = RunStore(None, "") if store is None else store
-    if spec.kind == "closed_loop" and data.val_scenes is None:
-        raise ValueError("closed_loop: the data has no validation scene logs")
+    if spec.kind == "closed_loop":
+        closed_loop_scenes(data.val_scenes, cfg)
     about = run_about(spec, store, cfg, epochs, device, data)
     pieces = table_pieces(spec, seeds)
     missing = [p for p in pieces if not store.has(spec.name, p)]
@@ -1321,9 +944,7 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
         reused = [p.stem for p in pieces if p not in missing]
         log(f"{spec.name}: {len(reused)} of {len(pieces)} pieces done by an earlier run of the same key, reused from "
             f"{store.table_dir(spec.name) if store.root is not None else 'memory'}: {', '.join(reused)}")
-    by_seed = {}
-    for p in missing:
-        by_seed.setdefault(p.seed, []).append(p)
+    by_seed = {s: [p for p in missing if p.seed == s] for s in dict.fromkeys(p.seed for p in missing)}
     if jobs > 1 and store.root is not None and len(by_seed) > 1:
         if log:
             log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {min(jobs, len(by_seed))} worker "
@@ -1336,46 +957,33 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
             store.save(spec.name, p, result, extra, about, timing)
     loaded = {p: store.load(spec.name, p) for p in pieces}
     res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
+
+    def first_pair():  # the first seed's Standard and DiffStack, the predictors the figures compare
+        return {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
+                                          store=store) for m in spec.methods[1:3]}
     if write and spec.kind == "cost":
-        figure_cost_weights(res, out / "cost_weights.png")
+        figures.figure_cost_weights(res, out / "cost_weights.png")
     elif write and "learning_curves.png" in spec.figures and has_curves(res):
-        figure_learning_curves(res, out / "learning_curves.png", learning_curve_reference(data, cfg))
-    elif write and spec.kind == "closed_loop":
-        rollouts = {}
-        for p, (_, extra) in loaded.items():  # the first seed's rollout of each method, as closed_loop_experiment's
-            if p.seed == seeds[0] and extra is not None:  # (a diverged training has no rollout)
-                rollouts[p.method] = (Rollout(**extra["rollout"]), extra["per_scene"])
-        figure_closed_loop(closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt)
+        figures.figure_learning_curves(res, out / "learning_curves.png",
+                                       figures.learning_curve_reference(data, cfg, CURVE_SAMPLES))
+    elif write and spec.kind == "closed_loop":  # the first seed's rollouts (a diverged training has none)
+        rollouts = {p.method: (Rollout(**extra["rollout"]), extra["per_scene"]) for p, (_, extra) in loaded.items()
+                    if p.seed == seeds[0] and extra is not None}
+        figures.figure_closed_loop(closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt)
         try:
-            pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
-                                              store=store) for m in CLOSED_LOOP_METHODS[1:3]}
-            figure_stack_example(data, pair, cfg, out / "stack_example.png")
+            figures.figure_stack_example(data, first_pair(), cfg, out / "stack_example.png")
         except TrainingDiverged as e:  # the figure needs seed 0's two predictors
             if log:
                 log(f"stack_example.png not drawn: {e}")
     elif write and spec.kind == "real":
-        pair = {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
-                                          store=store) for m in FOUR_METHODS[1:3]}
-        figure_real_scenes(data.val, pair, cfg, out / "real_scenes.png")
+        figures.figure_real_scenes(data.val, first_pair(), cfg, out / "real_scenes.png")
     return res, results_markdown(spec, res)
-
-
-def save_figure(fig, path) -> None:
-    """fig.savefig, atomically (a temporary file and a rename), at 130 dpi; closes the figure."""
-    import matplotlib.pyplot as plt
-
-    path = pathlib.Path(path)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=130, bbox_inches="tight")
-    os.replace(tmp, path)
-    plt.close(fig)
 
 
 def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     """Before any work: out_dir must be writable, and no file a run of these tables would write may exist already
     unless overwrite or it is in ours (runs.refuse_existing). OutputRefused naming the folder or the files."""
-    here = pathlib.Path(__file__).resolve().parent
-    out = pathlib.Path(out_dir).resolve()
+    here, out = pathlib.Path(__file__).resolve().parent, pathlib.Path(out_dir).resolve()
     inside = lambda folder: folder == out or folder in out.parents  # noqa: E731
     if REAL.name in names and inside(here) and not inside(here / "runs"):  # before check_writable makes the folder
         raise OutputRefused(f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose "
@@ -1389,11 +997,9 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
 
 
 def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
-    """One markdown report (out_dir/report.md): sections is a list of (title, markdown, [figure file names in
-    out_dir]); each figure is linked below its section's table. Its first line says when, where and on which device
-    the tables were made, from their metas (each section's provenance line has its own, and names the machines of a
-    run resumed on several), and when the report was re-rendered from them (--render); without metas, this
-    process's date and machine."""
+    """out_dir/report.md: sections, a list of (title, markdown, [figure files in out_dir]), each figure linked below
+    its section. Its first line says when, where and on which device the tables were made, from their metas, and
+    when it was re-rendered from them (--render); without metas, this process's date and machine."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if metas:
@@ -1408,12 +1014,10 @@ def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
         header = (f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, "
                   f"{torch.get_num_threads()} threads")
     parts = [f"# DiffStack: results\n\n{header}\n"]
-    for title, md, figures in sections:
-        parts.append(f"## {title}\n\n{md}\n")
-        parts += [f"![{f}]({f})\n" for f in figures]
-    path = out / "report.md"
-    write_atomic(path, "\n".join(parts))
-    return path
+    for title, md, files in sections:
+        parts += [f"## {title}\n\n{md}\n"] + [f"![{f}]({f})\n" for f in files]
+    write_atomic(out / "report.md", "\n".join(parts))
+    return out / "report.md"
 
 
 def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
@@ -1448,18 +1052,15 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
     src = pathlib.Path(out_dir) / f"{name}.json"
     if not src.exists():
         raise ValueError(f"out_dir: no {src} to render {name} from")
-    saved = json.loads(src.read_text())
-    spec = SPECS[name]
-    path = pathlib.Path(out_dir) / f"{name}.md"
+    saved, spec, path = json.loads(src.read_text()), SPECS[name], src.with_suffix(".md")
     write_atomic(path, table_file_markdown(spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))))
     return path
 
 
 def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None = None, log=print) -> list:
-    """Re-write the outputs of an earlier run of `name` ('all': every table and the report) from its JSON files in
-    out_dir, training nothing: the .md files (render_markdown), the learning curves' figure (with its reference
-    lines when `data` is given) and, for 'all', report.md. The figures that need the trained models (the closed
-    loop's, the cost weights') are kept as they are. Returns the paths written."""
+    """Re-write the outputs of an earlier run of `name` ('all': every table and report.md) from its JSON files in
+    out_dir, training nothing: the .md files, the learning curves (their reference lines when `data` is given); the
+    figures that need trained models are kept as they are. Returns the paths written."""
     names = EXPERIMENTS if name == "all" else (name,)
     out, written, sections, metas = pathlib.Path(out_dir), [], [], []
     for one in names:
@@ -1468,8 +1069,8 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
         saved = json.loads((out / f"{one}.json").read_text())
         if "learning_curves.png" in spec.figures and has_curves(saved["results"]):  # (none in older runs)
             cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
-            ref = learning_curve_reference(data, cfg_run) if data is not None else None
-            figure_learning_curves(saved["results"], out / "learning_curves.png", ref)
+            ref = figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES) if data is not None else None
+            figures.figure_learning_curves(saved["results"], out / "learning_curves.png", ref)
             written.append(out / "learning_curves.png")
         sections.append((spec.title, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
                          [f for f in spec.figures if (out / f).exists()]))
@@ -1483,17 +1084,11 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
 
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
                    device="cpu", write=True, jobs=1, progress_every=2.0):
-    """Run one table (or 'all') on `device`, writing out_dir/<name>.json (results, the full Config, the device, the
-    git commit) and .md (and for 'all', out_dir/report.md). 'all' trains each predictor once and shares it between
-    the tables. write=False: compute everything, write nothing (the ranks other than 0 under torchrun, which train
-    with rank 0 and evaluate alongside it).
-
-    Every piece (table, method, seed) is written to out_dir/.runs/ as it is made, and a run with the same key
-    (RunStore: config, data, code, ...) reuses the finished ones: re-running an interrupted command resumes it.
-    jobs > 1: the seeds of a table in that many worker processes, one thread each. A progress bar of the pieces
-    (runs.progress, updated every progress_every seconds) while log is set and write.
-    Refuses to start (ValueError) when a file it would write exists already, unless overwrite or this same run
-    (the same command's key and seeds) wrote it and it is unchanged since (an interrupted run of 'all')."""
+    """Run one table (or 'all', each predictor trained once for every table) on `device`, writing out_dir/<name>.json
+    (results, the full Config, the device, the git commit), .md and the figures (for 'all', report.md too); write=False
+    (the ranks other than 0 under torchrun): none. Every piece is kept in out_dir/.runs/, so re-running an interrupted
+    command resumes it. jobs: as run_table's. A progress bar of the pieces (every progress_every seconds) while log
+    and write. OutputRefused when a file it would write exists, unless overwrite or this same run wrote it as is."""
     names = EXPERIMENTS if name == "all" else (name,)
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
@@ -1524,34 +1119,28 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
             threads = (f"{torch.get_num_threads()} threads" if jobs == 1 else
                        f"1 thread per process, {jobs} worker processes (--jobs)")
-            timings = [store.timing(one, p) for p in table_pieces(spec, seeds)]
+            timings, piece_time = [store.timing(one, p) for p in table_pieces(spec, seeds)], {}
             if timings and all(timings):  # the table's computing time, summed over its pieces, whenever they ran
                 piece_time = dict(piece_seconds=sum(t["seconds"] for t in timings),
                                   piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
-            else:
-                piece_time = {}
-            # where the pieces ran, when not all on one machine (a run resumed on another host, say)
             computed_on = collections.Counter(t["machine"] for t in timings if t and "machine" in t)
-            if len(computed_on) > 1:
+            if len(computed_on) > 1:  # not all on one machine (a run resumed on another host, say)
                 piece_time["computed_on"] = dict(computed_on)
             meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
-                        **piece_time,
-                        date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
+                        **piece_time, date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
                         machine=f"{machine()}, torch {torch.__version__}, {threads}"
                                 + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
                         device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
-            if not write:
-                sections.append((spec.title, table, list(spec.figures)))
-                continue
-            write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
-            md = section_markdown(spec, meta, table)
-            write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
-            if store.root is not None:
-                record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
+            md = section_markdown(spec, meta, table) if write else table
+            if write:
+                write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
+                write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
+                if store.root is not None:
+                    record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
+                metas.append(meta)
+                if log:
+                    log(f"\n{spec.title}\n{table}")
             sections.append((spec.title, md, list(spec.figures)))
-            metas.append(meta)
-            if log:
-                log(f"\n{spec.title}\n{table}")
     timings = [store.timing(one, p) for one, p in all_pieces] if store.root is not None else []
     if log and timings and all(timings):
         total = sum(t["seconds"] for t in timings)
@@ -1576,8 +1165,7 @@ class RealData(NamedTuple):
 
 
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
-    """data's (synthetic) training side, and the Waymo samples (data_real.load_waymo_scenarios, fetched on the
-    first call) as the validation side."""
+    """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the validation side."""
     real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
         f"training on {len(data.train)} synthetic samples. {data_real.WAYMO_LICENCE}")
@@ -1585,9 +1173,8 @@ def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
 
 
 def start_distributed(device: torch.device) -> torch.device:
-    """Join torchrun's process group (its environment names this rank, the world size and rank 0's address):
-    gloo for training on CPUs, nccl on GPUs, each rank on its own GPU, cuda:LOCAL_RANK. Returns this rank's device.
-    train_stack then trains with DistributedDataParallel (diffstack.py section 8.1)."""
+    """Join torchrun's process group (named by its environment): gloo on CPUs, nccl on GPUs, each rank on its own,
+    cuda:LOCAL_RANK. Returns this rank's device; train_stack then trains with DistributedDataParallel."""
     if device.type == "cuda":
         local = int(os.environ.get("LOCAL_RANK", 0))
         if local >= torch.cuda.device_count():
@@ -1606,8 +1193,7 @@ def start_distributed(device: torch.device) -> torch.device:
 def main(argv=None):
     import argparse
 
-    # Under torchrun (torchrun --nproc_per_node N experiments.py ...) every process runs main; its environment says
-    # which one this is. All ranks train together (DDP) and evaluate alike; only rank 0 prints and writes files.
+    # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike; rank 0 prints, writes
     rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
     ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
                                              "Under torchrun, on N processes: training with DistributedDataParallel.")
@@ -1666,8 +1252,7 @@ def main(argv=None):
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
             data_real.nuscenes_version(args.data)
-        # files an earlier run wrote (listed, unchanged, in its manifest) may be this command's own, interrupted:
-        # run_experiment decides once the data, and so the run's key, is known
+        # files an earlier run listed in its manifest may be this command's own: run_experiment decides (with the key)
         check_outputs(names, args.out, args.overwrite,
                       ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")))
         check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
@@ -1678,33 +1263,26 @@ def main(argv=None):
     # flushed line by line: a run's log is often a file (a long run in the background), read while it runs
     log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)
 
-    def load():
-        data = data_real.load_data(args.data, args.n, log=log)
-        if args.experiment == REAL.name:
-            data = real_data(data, range(args.phases), log=log)
-        if "closed_loop" in names:
-            if data.val_scenes is None:
-                raise ValueError("closed_loop: the data has no validation scene logs")
-            closed_loop_scenes(data.val_scenes, cfg)
-        return data
+    def load():  # (the data, None), or (None, why it cannot be made)
+        try:
+            data = data_real.load_data(args.data, args.n, log=log)
+            if args.experiment == REAL.name:
+                data = real_data(data, range(args.phases), log=log)
+            if "closed_loop" in names:
+                closed_loop_scenes(data.val_scenes, cfg)
+            return data, None
+        except ValueError as e:
+            return None, str(e)
 
     # Rank 0 makes (or reads) the data caches first, the others then read them: one process generates or parses,
     # and if it fails the others hear of it (a broadcast) instead of waiting for it at the first training step.
-    data, error = None, None
-    if rank == 0:
-        try:
-            data = load()
-        except ValueError as e:
-            error = str(e)
+    data, error = load() if rank == 0 else (None, None)
     if world > 1:
         verdict = [error]
         dist.broadcast_object_list(verdict, src=0)
         error = verdict[0]
         if rank != 0 and error is None:
-            try:
-                data = load()
-            except ValueError as e:
-                error = str(e)
+            data, error = load()
     if error is not None:
         if world > 1:
             dist.destroy_process_group()

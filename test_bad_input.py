@@ -10,13 +10,12 @@ import os
 import pytest
 import torch
 
-import data_synth
-
 import data_real
+import data_synth
 import diffstack as ds
-import train as tr
 import experiments as ex
 import runs
+import train as tr
 from test_diffstack import TINY, toy_scene
 
 

@@ -24,12 +24,11 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
-import data_synth
-
 import data_real
+import data_synth
 import diffstack as ds
-import train as tr
 import experiments as ex
+import train as tr
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8, batch_size=16)
 SPEED_WORK = "sections 3-6 of diffstack.py (cost, planner, controller, predictor) get device= in the speed work"

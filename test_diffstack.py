@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-import data_synth
-
 import data_real
+import data_synth
 import diffstack as ds
 import train as tr
 
@@ -1181,9 +1180,9 @@ def test_plot_prediction_draws_modes():
     cfg = small_cfg()
     model, b = make_model(cfg).eval(), make_batch(2)
     fig, ax = plt.subplots()
-    import experiments
+    import figures
 
-    experiments.plot_prediction(ax, model(b, use_posterior=False), 1)
+    figures.plot_prediction(ax, model(b, use_posterior=False), 1)
     assert len(ax.lines) == cfg.pred_modes + cfg.horizon
     widths = sorted(line.get_linewidth() for line in ax.lines[: cfg.pred_modes])
     assert widths[-1] == 3.0 and widths[0] < widths[-1]

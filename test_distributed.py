@@ -23,8 +23,8 @@ import torch.multiprocessing as mp
 
 import data_synth
 import diffstack as ds
-import train as tr
 import experiments
+import train as tr
 
 WORLD = 2
 GLOBAL_BATCH = 8  # 4 scenarios per rank

@@ -9,9 +9,10 @@ import torch
 
 import data_synth
 import diffstack as ds
-import train as tr
 import experiments as ex
+import figures
 import runs
+import train as tr
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
@@ -530,20 +531,20 @@ def test_the_learning_curves_caption_is_read_off_the_curves():
     def runs(level, ade):
         return [dict(curve=[dict(epoch=float(e), hindsight=level(e), ade=ade) for e in range(6)])]
     res = {"Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1), "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3)}
-    assert ex.learning_curves_caption(res) == ("DiffStack plans better than Standard from epoch 2 on (right), with a "
+    assert figures.learning_curves_caption(res) == ("DiffStack plans better than Standard from epoch 2 on (right), with a "
                                                 "higher ADE at the end (left)")
     res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)  # above Standard at the end
-    assert ex.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
-    assert ex.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
+    assert figures.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
+    assert figures.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
 
 
 def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
     # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say so, not drop it
     run = lambda w, a: dict(w=w, alpha=a)  # noqa: E731
     hand = [run([5.0, 0.5, 0.3, 0.3, 1.0], 1.0)] * 2
-    assert ex.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], 0.5)] * 2},
+    assert figures.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], 0.5)] * 2},
                                   tmp_path / "a.png") == []
-    notes = ex.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], -0.04),
+    notes = figures.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], -0.04),
                                                                     run([4.0, 1.3, 0.8, 0.8, 0.2], -0.05)]},
                                    tmp_path / "b.png")
     assert notes == ["Learned alpha = -0.045"] and (tmp_path / "b.png").exists()

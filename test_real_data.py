@@ -20,8 +20,8 @@ import torch
 import data_real as dr
 import data_synth as ds
 import diffstack
-import train
 import experiments as ex
+import train
 
 HERE = pathlib.Path(__file__).resolve().parent
 CACHE = HERE / "data_cache"

@@ -12,9 +12,9 @@ import torch
 
 import data_synth
 import diffstack as ds
-import train as tr
 import experiments as ex
 import runs
+import train as tr
 
 TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
 

@@ -11,13 +11,13 @@ the predictors shipped in pretrained/, and `python diffstack.py --quick` (this m
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 import math
 import os
 import pathlib
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist

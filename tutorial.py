@@ -84,13 +84,13 @@ import torch
 from IPython.display import Image, Markdown, display
 
 import course
-import data_synth
 import data_real
+import data_synth
 import diffstack as ds
-import train as tr
 import experiments as xp
-from course import (check_claim, check_order, checkpoint, first_of, gt_context, plot_table, rel_err, results_table,
-                    section_done)
+import figures
+import train as tr
+from course import check_claim, check_order, checkpoint, first_of, gt_context, plot_table, rel_err, results_table, section_done
 
 assert DEVICE == "cpu", "diffstack.py is a CPU teaching implementation"
 course.start()  # one torch thread (reproducible numbers), the figures' style, the section clock
@@ -909,7 +909,7 @@ res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, 
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(xp.results_markdown(xp.TABLES["cost"], res_cost)))
 with tempfile.TemporaryDirectory() as tmp:
-    xp.figure_cost_weights(res_cost, Path(tmp) / "w.png")
+    figures.figure_cost_weights(res_cost, Path(tmp) / "w.png")
     display(Image(filename=str(Path(tmp) / "w.png"), width=560))
 mse = {n: r[0]["mse"] for n, r in res_cost.items()}
 check_order("Table 3, MSE (m^2): the weights learned on it lower it", mse, ["Learned", "Hand-tuned"])

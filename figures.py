@@ -1,0 +1,309 @@
+"""The figures of the paper's experiments (experiments.py draws them into results/, the notebook some of them).
+
+    plot_prediction, plot_stack     panels: the predicted modes; Fig. 3's kind of panel (scene, modes, candidates, plan)
+    figure_stack_example            Fig. 3: one validation scenario under Standard and DiffStack
+    figure_real_scenes              real (Waymo) scenes where the two predictors' plans differ most
+    figure_closed_loop              a closed-loop rollout over time, one panel per method
+    figure_learning_curves          validation ADE and hindsight cost after every epoch
+    figure_cost_weights             learned vs hand-tuned cost weights (Table 3)
+
+Drawing only: the numbers drawn come from experiments.py's results (or, for a few panels, from running the stack
+on a batch), and no number written to results/ comes from here. matplotlib is imported only when drawing.
+"""
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+
+import numpy as np
+import torch
+
+import data_synth
+from diffstack import Config, Method, Prediction, StackOutput, run_stack
+from train import TABLE1_METHODS, evaluate_stack, mean_se, to_device
+
+
+def save_figure(fig, path) -> None:
+    """fig.savefig, atomically (a temporary file and a rename), at 130 dpi; closes the figure."""
+    import matplotlib.pyplot as plt
+
+    path = pathlib.Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=130, bbox_inches="tight")
+    os.replace(tmp, path)
+    plt.close(fig)
+
+
+def plot_prediction(ax, pred: Prediction, i: int, color: str = "tab:red", cov: bool = True,
+                    label: str | None = "prediction"):
+    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with the mode's
+    probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode. Meant to go over plot_scenario."""
+    p = pred.probs[i].detach().cpu()  # (K,)
+    xy = torch.cat([pred.s0[i, None, None, :2].expand(len(p), 1, 2), pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
+    rel = p / p.max()
+    for k in torch.argsort(p).tolist():  # the likely modes drawn last, on top
+        ax.plot(xy[k, :, 0], xy[k, :, 1], color=color, alpha=0.1 + 0.9 * rel[k].item(), lw=0.5 + 2.5 * rel[k].item(),
+                label=label if k == int(p.argmax()) else None)
+    if cov:
+        k = int(p.argmax())
+        theta = torch.linspace(0, 2 * math.pi, 40, dtype=pred.pos_cov.dtype)
+        circle = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (40, 2)
+        for t in range(pred.pos_cov.shape[2]):
+            L = torch.linalg.cholesky(pred.pos_cov[i, k, t].detach().cpu())  # (2, 2)
+            ell = xy[k, t + 1] + circle @ L.T  # (40, 2)
+            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
+
+
+def plot_stack(ax, batch, i: int, out: StackOutput, cfg: Config, title: str | None = None, extent=(-10, 45, -12, 14)):
+    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted modes (alpha
+    by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the plan (argmin) and the
+    controller's trajectory."""
+    import matplotlib.pyplot as plt
+
+    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
+    if out.pred is not None:
+        plot_prediction(ax, out.pred, i, cov=False)
+    valid = out.cands.valid[i]  # (N,)
+    p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)  # (N,) eq. (2) relaxed
+    xs = out.cands.x[i].detach()  # (N, T+1, 4)
+    cmap = plt.get_cmap("Greens")
+    for n in torch.argsort(p).tolist():  # the likely candidates on top
+        if valid[n]:
+            ax.plot(xs[n, :, 0], xs[n, :, 1], color=cmap(0.25 + 0.75 * p[n].item() / p.max().item()), lw=1.0, zorder=6)
+    best = int(p.argmax())
+    # the controller's trajectory wide and translucent, the plan thin and dashed on top of it: both stay visible
+    # where they overlap (the controller usually moves the plan by centimetres to a few metres)
+    ax.plot(out.x[i, :, 0].detach(), out.x[i, :, 1].detach(), color="tab:purple", lw=4, alpha=0.55, zorder=8,
+            solid_capstyle="round", label="controller")
+    ax.plot(xs[best, :, 0], xs[best, :, 1], "k--", lw=1.4, marker="o", ms=3, zorder=9, label="plan (argmin)")
+    return ax
+
+
+def stack_outputs(batch, models: dict, cfg: Config) -> dict:
+    """{name: StackOutput}: the stack of each (name -> predictor) in models on a batch, in evaluation mode (RL), run on
+    the predictor's device and brought back to the CPU for plotting."""
+    outs = {}
+    with torch.no_grad():
+        for name, model in models.items():
+            model.eval()
+            device = next(model.parameters()).device
+            outs[name] = to_device(run_stack(to_device(batch, device), model, Method(name), cfg, "rl"), "cpu")
+    return outs
+
+
+def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
+    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
+    the one among the first n_search where the first model's hindsight cost exceeds the second's the most.
+    The stack runs on each model's device; the plot, on the CPU."""
+    import matplotlib.pyplot as plt
+
+    batch = data.val[:n_search]
+    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
+    (a, oa), (b, ob) = list(outs.items())[:2]
+    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
+    i = int(gap.argmax())
+    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
+    for ax, (name, out) in zip(axes, outs.items()):
+        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
+        ax.legend(loc="lower left", fontsize=7)
+    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
+    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
+                 ticks=[0, 0.25, 0.5, 0.75, 1])
+    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
+                 fontsize=10)
+    save_figure(fig, path)
+    return i
+
+
+def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
+    """A few real scenes under each (name -> predictor) in models, one row per scene, one column per model:
+    plot_stack's panel (lanes, agents, the predicted modes, the candidates, the plan and the controller's output).
+    The rows are the plannable samples where the first model's hindsight cost exceeds the second's the most (as
+    Fig. 3 picks), at least `apart` samples from each other (neighbours are the same moment 0.5 s later): the point
+    is that the more accurate predictor by ADE can make the costlier plan. The caption gives both models' mean ADE
+    and hindsight cost over the whole batch. Returns the indices drawn."""
+    import matplotlib.pyplot as plt
+
+    outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
+    (a, oa), (b, ob) = list(outs.items())[:2]
+    plannable = oa.plannable & ob.plannable  # (B,)
+    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # (B,) lowest: the first model's worst
+    ade = {name: _ade(out.pred, batch) for name, out in outs.items()}  # (B,) each
+    picks = []
+    for _ in range(min(rows, int(plannable.sum()))):  # a few rows: the worst gap, then the worst away from it, ...
+        i = int(score.argmin())
+        picks.append(i)
+        score[max(0, i - apart + 1):i + apart] = math.inf
+    fig, axes = plt.subplots(len(picks), len(outs), figsize=(6.2 * len(outs), 3.5 * len(picks)), squeeze=False,
+                             layout="constrained")
+    for row, i in enumerate(picks):
+        for ax, (name, out) in zip(axes[row], outs.items()):
+            plot_stack(ax, batch, i, out, cfg, f"{name}, sample {i}: hindsight cost {out.hindsight[i].item():.3f}, "
+                                               f"ADE {ade[name][i].item():.2f} m", extent=(-15, 50, -15, 15))
+    axes[0, 0].legend(loc="lower left", fontsize=7)
+    mean = lambda name, v: v[plannable].mean().item()  # noqa: E731
+    fig.suptitle(f"Real scenes (Waymo), predictors trained on synthetic data. Where their plans' hindsight costs differ "
+                 f"most, {a} predicts one confident manoeuvre that did not happen and its plan pays for it; {b}'s wider\n"
+                 f"modes leave the plan near the logged one. Over all {int(plannable.sum())} samples {b} is the worse "
+                 f"predictor by ADE ({mean(b, ade[b]):.2f} m vs {mean(a, ade[a]):.2f} m) and the better one to plan "
+                 f"with (hindsight cost {mean(b, ob.hindsight):.3f} vs {mean(a, oa.hindsight):.3f}).\n"
+                 f"Red: predicted modes (alpha by probability); green: candidates by p_n; black dashed: plan; purple: "
+                 f"controller output; blue dashed: the logged ego; orange: the predicted vehicle's log", fontsize=9)
+    save_figure(fig, path)
+    return picks
+
+
+def _ade(pred: Prediction, batch) -> torch.Tensor:
+    """ADE of the most likely mode (B,), as diffstack.prediction_metrics computes it."""
+    best = pred.probs.argmax(-1)  # (B,)
+    means = pred.means[torch.arange(len(best)), best]  # (B, T, 2)
+    return (means - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)
+
+
+def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
+    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
+    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
+    Standard's trajectory cost exceeds DiffStack's the most."""
+    import matplotlib.pyplot as plt
+
+    if scene is None:
+        scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
+    s = scene
+    any_roll = next(iter(rollouts.values()))[0]
+    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
+    frames = torch.arange(f0, f0 + N + 1)
+    pred = int(scenes.pred_idx[s, f0])
+    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
+    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
+    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
+    tt = (frames - f0).double() * dt  # (N+1,) seconds
+    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
+    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
+    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
+    cols = 2 if len(rollouts) > 1 else 1
+    rows = math.ceil(len(rollouts) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
+                             sharey=True, layout="constrained", squeeze=False)
+    axes = axes.ravel()
+    for ax in axes[len(rollouts):]:
+        ax.set_axis_off()
+    axes = axes[:len(rollouts)]
+    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
+        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
+            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
+        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
+            if a != pred and scenes.agents_mask[s, a, frames].any():
+                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
+                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
+        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
+        for k in range(0, N, 4):
+            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
+        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
+        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
+        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
+                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
+    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
+    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
+    save_figure(fig, path)
+    return s
+
+
+
+
+def _mean_curve(runs, key):
+    """(epochs, mean over seeds) of the learning curves of some runs, on their common epochs."""
+    curves = [r["curve"] for r in runs if r.get("curve")]
+    n = min(len(c) for c in curves)
+    return np.array([c["epoch"] for c in curves[0][:n]]), np.array([[c[i][key] for i in range(n)] for c in curves])
+
+
+def learning_curves_caption(results: dict) -> str:
+    """The point the learning curves make, read off them: from which epoch on DiffStack's mean hindsight cost stays
+    below Standard's, and where each ADE curve ends relative to the other."""
+    if not all(any(r.get("curve") for r in results.get(m, [])) for m in ("Standard", "DiffStack")):
+        return "Learning curves (validation)"
+    epoch, std = _mean_curve(results["Standard"], "hindsight")
+    _, dif = _mean_curve(results["DiffStack"], "hindsight")
+    n = min(std.shape[1], dif.shape[1])
+    below = dif.mean(0)[:n] < std.mean(0)[:n]
+    first = next((i for i in range(n) if below[i:].all()), None)
+    ade_std, ade_dif = _mean_curve(results["Standard"], "ade")[1].mean(0)[-1], _mean_curve(results["DiffStack"], "ade")[1].mean(0)[-1]
+    plans = (f"DiffStack plans better than Standard from epoch {epoch[first]:g} on" if first is not None else
+             "DiffStack does not stay below Standard in hindsight cost")
+    return f"{plans} (right), with a {'higher' if ade_dif > ade_std else 'lower'} ADE at the end (left)"
+
+
+def figure_learning_curves(results: dict, path, reference: dict | None = None, methods=("Standard", "DiffStack"),
+                           title=None):
+    """Validation ADE and hindsight cost after every epoch (experiments.CURVE_SAMPLES scenes), mean and s.e. band over seeds, of
+    the methods whose runs have a learning curve. reference: {name: hindsight cost on the same scenes}, drawn as
+    horizontal lines (No prediction, GT prediction). title: default learning_curves_caption's."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110, layout="constrained")
+    colors = dict(Standard="tab:blue", DiffStack="tab:red")
+    for m in methods:
+        curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
+        if not curves:
+            continue
+        n = min(len(c) for c in curves)
+        epoch = np.array([c["epoch"] for c in curves[0][:n]])
+        for ax, key in zip(axes, ("ade", "hindsight")):
+            v = np.array([[c[i][key] for i in range(n)] for c in curves])  # (seeds, epochs)
+            mean, se = v.mean(0), (v.std(0, ddof=1) / np.sqrt(len(v)) if len(v) > 1 else 0 * v[0])
+            ax.plot(epoch, mean, color=colors.get(m), label=f"{m} ({len(v)} seeds)")
+            ax.fill_between(epoch, mean - se, mean + se, color=colors.get(m), alpha=0.25, lw=0)
+    for name, value in (reference or {}).items():
+        axes[1].axhline(value, color="0.3", ls="--" if name == "No prediction" else ":", lw=1, label=name)
+    axes[0].set(xlabel="epoch", ylabel="ADE (m)", title="Prediction: ADE")
+    axes[1].set(xlabel="epoch", ylabel="hindsight cost", title="Planning: hindsight cost (lower is better)")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    fig.suptitle(title or learning_curves_caption(results), fontsize=10)
+    save_figure(fig, path)
+
+
+
+
+def learning_curve_reference(data, cfg: Config, samples: int) -> dict:
+    """No prediction's and GT prediction's hindsight cost on the learning curves' scenes, the first `samples` of
+    data.val (figure_learning_curves' reference lines)."""
+    subset = data.val[:samples]
+    return {m.name: evaluate_stack(None, subset, m, cfg, "rl")["hindsight"] for m in (TABLE1_METHODS[0], TABLE1_METHODS[-1])}
+
+
+def figure_cost_weights(results: dict, path):
+    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds. A mean that is
+    not positive has no bar on the log scale: it is written in its place instead (returned too), never dropped."""
+    import matplotlib.pyplot as plt
+
+    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    x = np.arange(len(names))
+    notes = []
+    for j, (label, runs) in enumerate(results.items()):
+        vals = [[*r["w"], r["alpha"]] for r in runs]
+        ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
+        ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
+        for i, (m, _) in enumerate(ms):
+            if m <= 0:  # a log axis cannot draw it: say it where the bar would be
+                notes.append(f"{label} {names[i]} = {m:.3f}")
+                ax.text(x[i] + (j - 0.5) * 0.38, 0.22, f"{m:.3f}\n(not > 0)", color="tab:red", ha="center", va="bottom",
+                        fontsize=8)
+    ax.set_xticks(x, names, fontsize=8)
+    ax.set_yscale("log")
+    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
+    ax.minorticks_off()
+    ax.set_ylabel("weight (log scale)")
+    ax.legend(fontsize=8)
+    ax.set_title("Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)" + (
+        "; not positive, written not drawn: " + ", ".join(notes) if notes else ""), fontsize=10 if not notes else 8)
+    save_figure(fig, path)
+    return notes
