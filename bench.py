@@ -14,8 +14,8 @@ What is timed (B = --batch scenarios or problems, default 256):
     planner       plan_candidates: the planner's spline candidates (48 per scenario)
     predictor     a training iteration (forward, InfoVAE loss, backward, Adam step) and an eval forward (K = 25)
     stack         one DiffStack training step (RL) as train_stack takes it: run_stack on the batch's scene plan and the
-                  backward of L = a1 L_pred + a2 L_plan + a3 L_ctr; its parts predict / plan / control / backward are
-                  run_stack's `timings` laps (perf_counter); and scene_plan (goal, candidates, their prediction-free
+                  backward of L = a1 L_pred + a2 L_plan + a3 L_ctr; its parts predict / plan / control / backward as
+                  perf_counter laps; and scene_plan (goal, candidates, their prediction-free
                   cost terms), which train_stack computes once for its data set rather than at every step
     closed loop   log replay of 100 scenes x 10 s (20 replanning steps) with each stack of Table 5, one thread
     peers         the controller side by side with mpc.pytorch on the same problems, with the same solver settings,
@@ -68,6 +68,7 @@ import torch
 import torch.utils.benchmark as benchmark
 
 import data_synth
+import diffstack
 from diffstack import (Config, Method, Predictor, Unicycle, ilqr, ilqr_solve, plan_candidates, pred_loss, run_stack,
                        scene_plan, unicycle_jacobians, unicycle_rollout)
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy
@@ -247,22 +248,39 @@ def bench_stack_step(batch, cfg: Config, reps=5, threads=1) -> list:
     """One DiffStack training step (RL) as train_stack takes it: run_stack with train=True on the batch's scene plan
     (goal, candidates and their prediction-free cost terms, which train_stack computes once for its data set), then
     the backward of the weighted losses; beside it, that scene plan's own cost (scene_plan, once per scenario in
-    training). The step is a Timer measurement; its parts are run_stack's perf_counter laps over the same runs (the
-    untimed ones too, all but the very first, which pays for first-call allocations). On a GPU the laps are times
-    to launch, not to finish (run_stack does not synchronise); the step's Timer does synchronise."""
+    training). The step is a Timer measurement; its parts are perf_counter laps over the same runs (all but the very
+    first, which pays for first-call allocations): predict, the predictor's forward (a forward hook); plan, from there
+    to the controller's start (L_pred, the candidates' costs, L_plan; diffstack.ilqr_solve wrapped); control, the
+    controller and the hindsight cost; backward. On a GPU the laps are times to launch, not to finish; the step's
+    Timer does synchronise."""
     torch.manual_seed(0)
     model = Predictor(cfg).to(batch.agent_hist.device)
     method = Method("DiffStack", losses=(1, 1, 1))
     a1, a2, a3 = alphas(method, "rl", cfg)
     scene = scene_plan(batch, cfg)
-    laps = []
+    solve, laps = diffstack.ilqr_solve, []
 
     def step():
-        t = {}
-        out = run_stack(batch, model, method, cfg, "rl", step=0, train=True, timings=t, scene=scene)  # fills predict, plan, control
-        t0 = time.perf_counter()
+        t, clock = {}, [time.perf_counter()]
+
+        def lap(name):
+            clock.append(time.perf_counter())
+            t[name] = clock[-1] - clock[-2]
+
+        def timed_solve(*args, **kw):
+            lap("plan")
+            return solve(*args, **kw)
+
+        hook = model.register_forward_hook(lambda *_: lap("predict"))
+        diffstack.ilqr_solve = timed_solve
+        try:
+            out = run_stack(batch, model, method, cfg, "rl", step=0, train=True, scene=scene)
+        finally:
+            diffstack.ilqr_solve = solve
+            hook.remove()
+        lap("control")
         (a1 * out.l_pred.mean() + a2 * out.l_plan.mean() + a3 * out.l_ctr.mean()).backward()
-        t["backward"] = time.perf_counter() - t0
+        lap("backward")
         laps.append(t)
 
     m = measure({"step": step, "scene": lambda: scene_plan(batch, cfg)}, reps, threads, "DiffStack step")
@@ -710,8 +728,10 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
                                              "predictor, a training step, the closed loop, and mpc.pytorch and PyPose side by side.")
-    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), nargs="+", default=[1, 2], help="torch thread counts (default 1 2)")
-    ap.add_argument("--reps", type=bounded(int, 1, 10_000, "--reps"), help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
+    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), nargs="+", default=[1, 2],
+                    help="torch thread counts (default 1 2)")
+    ap.add_argument("--reps", type=bounded(int, 1, 10_000, "--reps"),
+                    help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
     ap.add_argument("--batch", type=bounded(int, 1, 1_000_000, "--batch"), help="scenarios / problems per batch (default 256; --quick 16)")
     ap.add_argument("--json", type=pathlib.Path, metavar="PATH", help="also write every figure to this JSON file")
     ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay")

@@ -23,7 +23,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -232,21 +231,28 @@ def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
                         h.add(w, alpha=dt), v.add(a, alpha=dt)], -1)  # h + w dt, v + a dt
 
 
-def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
-    """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form."""
-    h, v = s[..., 2], s[..., 3]
-    w, a = u.unbind(-1)
+def _position_jacobians(h, v, w, a, dt: float):
+    """One unicycle step (unicycle_step's formulas) from h, v under w, a (...): its displacement dx, dy (...) and the
+    position rows of its Jacobians, M = d(x, y)/d(h, v), N = d(x, y)/d(w, a), (2, 2, ...), matrix indices first."""
     (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
     dx, dy = rot(v * c0 + a * c1, v * s0 + a * s1)  # the displacement
-    one, zero = torch.ones_like(h), torch.zeros_like(h)
     xv, yv = rot(c0, s0)  # d/dv
     xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
     xa, ya = rot(c1, s1)  # d/da
+    M = torch.stack([torch.stack([-dy, xv]), torch.stack([dx, yv])])  # (2, 2, ...); d/dh of R(h) d is J R(h) d
+    N = torch.stack([torch.stack([xw, xa]), torch.stack([yw, ya])])  # (2, 2, ...)
+    return dx, dy, M, N
+
+
+def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
+    """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form."""
+    _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), dt)  # (2, 2, ...) each
+    one, zero = torch.ones_like(s[..., 2]), torch.zeros_like(s[..., 2])
     rows = lambda *r: torch.stack([torch.stack(row, -1) for row in r], -2)  # noqa: E731
-    A = rows([one, zero, -dy, xv], [zero, one, dx, yv], [zero, zero, one, zero], [zero, zero, zero, one])
-    B = rows([xw, xa], [yw, ya], [dt * one, zero], [zero, dt * one])
+    A = rows([one, zero, *M[0]], [zero, one, *M[1]], [zero, zero, one, zero], [zero, zero, zero, one])
+    B = rows([*N[0]], [*N[1]], [dt * one, zero], [zero, dt * one])
     return A, B
 
 
@@ -1273,26 +1279,11 @@ class Predictor(nn.Module):
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
 
 
-def _position_jacobians(h, v, w, a, dt: float):
-    """One unicycle step (unicycle_step's formulas) from h, v under w, a (...): its displacement dx, dy (...) and the
-    position rows of its Jacobians, M = d(x, y)/d(h, v), N = d(x, y)/d(w, a), (2, 2, ...), matrix indices first."""
-    (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
-    cos_h, sin_h = torch.cos(h), torch.sin(h)
-    rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
-    dx, dy = rot(v * c0 + a * c1, v * s0 + a * s1)  # the displacement
-    xv, yv = rot(c0, s0)  # d/dv
-    xw, yw = rot(-(v * s1 + a * s2), v * c1 + a * c2)  # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
-    xa, ya = rot(c1, s1)  # d/da
-    M = torch.stack([torch.stack([-dy, xv]), torch.stack([dx, yv])])  # (2, 2, ...); d/dh of R(h) d is J R(h) d
-    N = torch.stack([torch.stack([xw, xa]), torch.stack([yw, ya])])  # (2, 2, ...)
-    return dx, dy, M, N
-
-
 def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg: Config) -> torch.Tensor:
-    """propagate_covariance's position blocks (..., T, 2, 2), plus pred_pos_std_min^2 I, from the position Jacobians
-    M, N and the control covariances Su, each (2, 2, ..., T), matrix indices first.
-
-    Unrolled, all steps at once. The unicycle's A is a shear, A_t = [[I, M_t], [0, I]] (only the controls move h
+    """The EKF's position covariances through the unicycle (..., T, 2, 2), plus pred_pos_std_min^2 I, from the position
+    Jacobians M, N and the control covariances Su, each (2, 2, ..., T), matrix indices first. Step by step they are
+        Sigma_0 = 0,   Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Su_t B_t^T,   A = df/ds, B = df/du at the mean;
+    here unrolled, all steps at once. The unicycle's A is a shear, A_t = [[I, M_t], [0, I]] (only the controls move h
     and v), and shears compose by adding their corners: A_t ... A_{r+1} = [[I, C_t - C_r], [0, I]], C_t = M_0 + ...
     + M_t. With B_r = [[N_r], [dt I]] the recursion unrolls to the position block
         P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
@@ -1313,18 +1304,9 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
     return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
 
 
-def propagate_covariance(s: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> torch.Tensor:
-    """EKF prediction through the unicycle along mean states s (..., T, 4) and controls u (..., T, 2), t0..T-1, with
-    control covariances cov_u (..., T, 2, 2): Sigma_0 = 0 (the current state is known),
-        Sigma_{t+1} = A_t Sigma_t A_t^T + B_t Sigma_u,t B_t^T,   A = df/ds, B = df/du at the mean.
-    Returns the position blocks of Sigma_1..T plus pred_pos_std_min^2 I, (..., T, 2, 2) (see _covariance_unrolled)."""
-    _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), cfg.dt)  # (2, 2, ..., T) each
-    return _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
-
-
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
                     cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
-    """unicycle_rollout(s0, u) and propagate_covariance along it, all steps at once: s0 (..., 4), u (..., T, 2),
+    """unicycle_rollout(s0, u) and the EKF covariances along it, all steps at once: s0 (..., 4), u (..., T, 2),
     cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances (..., T, 2, 2).
     Heading and speed are cumsums of the controls; then each step's displacement is known, the positions its cumsums."""
     dt = cfg.dt
@@ -1499,7 +1481,7 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
-              timings=None, shard=None, scene: ScenePlan | None = None) -> StackOutput:
+              shard=None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
     setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by q(z|x,y) and
@@ -1510,17 +1492,9 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     plan_dt: a finer planner and controller step (ablation: 0.1 s): they plan T * substeps steps, the predicted modes
         and GT futures are interpolated to that clock, and the per-step cost terms (all but the goal's) are scaled by
         1/substeps, so that eq. (3) sums the same costs per second; L_pred and MSE stay on the logged steps.
-    timings: a dict that receives the seconds spent predicting, planning and controlling.
     shard: under DDP, the rows of the global batch this process holds (train.Shard).
     scene: the batch's scene_plan (same cfg and plan_dt) if already computed.
     """
-    clock = [time.perf_counter()]
-
-    def lap(name):
-        if timings is not None:
-            clock.append(time.perf_counter())
-            timings[name] = clock[-1] - clock[-2]
-
     check_setting(setting)
     check_batch(batch, cfg, need_future=train, stack=True)
     sub = planner_substeps(cfg, plan_dt)
@@ -1548,7 +1522,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
         probs, pred_mask = torch.ones(B, 1, **like), torch.ones(B, **like)
     else:
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, **like), torch.ones(B, 1, **like), torch.zeros(B, **like)
-    lap("predict")
     # --- plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin ---
     scene = scene_plan(batch, cfg, plan_dt) if scene is None else scene  # goal, candidates: the scene's alone
     goal = scene.goal  # (B, 4)
@@ -1566,7 +1539,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     valid = cands.valid | ~plannable[:, None]  # keep the softmax finite where nothing can be planned
     l_plan = torch.where(plannable, plan_loss(cost, valid, target, cfg.beta), 0.0)
     idx = torch.arange(B, device=device)
-    lap("plan")
     # --- control, eq. (4): iLQR from the plan, gradients by the KKT backward ---
     converged = torch.ones(B, dtype=torch.bool, device=device)
     if controller:
@@ -1581,7 +1553,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
     mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
-    lap("control")
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
 
 

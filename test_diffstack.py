@@ -25,7 +25,10 @@ def rk4_reference(s, u, dt, substeps=2000):
         return torch.stack([x[..., 3] * torch.cos(x[..., 2]), x[..., 3] * torch.sin(x[..., 2]), u[..., 0], u[..., 1]], -1)
     h, x = dt / substeps, s.clone()
     for _ in range(substeps):
-        k1 = f(x); k2 = f(x + h / 2 * k1); k3 = f(x + h / 2 * k2); k4 = f(x + h * k3)
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
         x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     return x
 
@@ -71,7 +74,7 @@ def test_unicycle_curvature_matches_autodiff(w_scale):
     s, u, lam = (torch.randn(10, k, generator=g, dtype=torch.float64) for k in (4, 2, 4))
     u[:, 0] *= w_scale  # both sides of the series switch
     H = ds.unicycle_curvature(s, u, lam, DT)
-    lagrangian = lambda z, l: (l * ds.unicycle_step(z[:4], z[4:], DT)).sum()  # noqa: E731
+    lagrangian = lambda z, mult: (mult * ds.unicycle_step(z[:4], z[4:], DT)).sum()  # noqa: E731
     expect = torch.vmap(torch.func.hessian(lagrangian))(torch.cat([s, u], -1), lam)
     assert torch.allclose(H, expect, atol=1e-12)
 
@@ -144,7 +147,8 @@ def test_lane_projection_ignores_oncoming_lanes():
     lanes[0, 1] = lanes[0, 1].flip(0)
     pos = torch.tensor([[[4.3, 0.8]]], dtype=torch.float64)
     d2, err, ok = ds.project_to_lanes(pos, torch.tensor([[0.1]], dtype=torch.float64), lanes, torch.ones(1, 2, 10, dtype=torch.bool))
-    assert ok.all() and torch.allclose(d2, torch.tensor([[0.64]], dtype=torch.float64)) and torch.allclose(err, torch.tensor([[0.1]], dtype=torch.float64))
+    assert ok.all() and torch.allclose(d2, torch.tensor([[0.64]], dtype=torch.float64))
+    assert torch.allclose(err, torch.tensor([[0.1]], dtype=torch.float64))
 
 
 def test_planner_splines_hit_terminal_states_and_reject_infeasible():
@@ -169,8 +173,11 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
     ok_box = ((c.u >= lo) & (c.u <= hi)).all(-1).all(-1)
     assert (ok_box | ~c.valid).all() and not c.valid.all()
     # a sharp turn at speed is infeasible
-    s_fast = s0.clone(); s_fast[:, 3] = 25.0
-    lanes = ctx.lanes.clone(); lanes[..., 1] = 0.05 * lanes[..., 0] ** 2; lanes[..., 2] = torch.atan(0.1 * lanes[..., 0])
+    s_fast = s0.clone()
+    s_fast[:, 3] = 25.0
+    lanes = ctx.lanes.clone()
+    lanes[..., 1] = 0.05 * lanes[..., 0] ** 2
+    lanes[..., 2] = torch.atan(0.1 * lanes[..., 0])
     far = ds.plan_candidates(s_fast, goal, lanes, ctx.lanes_mask, cfg)
     assert far.valid.sum() < c.valid.sum()
 
@@ -840,7 +847,7 @@ def test_covariance_one_step_by_hand():
     gx, gy = DT**2 / 2, v * DT**2 / 2
     cxy = gx * gy * rho * sw * sa
     expect = torch.tensor([[gx**2 * sa**2, cxy], [cxy, gy**2 * sw**2]], dtype=torch.float64)
-    got = ds.propagate_covariance(s, u, cov_u, cfg)[0, 0]
+    got = ds.integrate_modes(s[:, 0], u, cov_u, cfg)[1][0, 0]
     assert torch.allclose(got, expect, atol=1e-12)
 
 
@@ -852,7 +859,7 @@ def test_covariance_propagation_matches_monte_carlo():
     sig = torch.tensor([0.05, 0.3], dtype=torch.float64)
     cov_u = torch.diag(sig**2).expand(6, 2, 2)
     states = ds.unicycle_rollout(s0, mu, DT)  # (7, 4)
-    ekf = ds.propagate_covariance(states[:-1], mu, cov_u, cfg)  # (6, 2, 2)
+    ekf = ds.integrate_modes(s0, mu, cov_u, cfg)[1]  # (6, 2, 2)
     n = 40000
     u = mu + sig * torch.randn(n, 6, 2, generator=g, dtype=torch.float64)
     xy = ds.unicycle_rollout(s0.expand(n, 4), u, DT)[:, 1:, :2]  # (n, 6, 2)
@@ -895,7 +902,7 @@ def test_gradients_through_the_covariance_propagation():
     s = torch.tensor([[0.0, 0.0, 0.3, 4.0]], dtype=torch.float64).expand(3, 4).clone().requires_grad_(True)
     u = (0.2 * torch.randn(3, 2, generator=g, dtype=torch.float64)).requires_grad_(True)
     cu = torch.diag(torch.tensor([0.04, 0.2], dtype=torch.float64)).expand(3, 2, 2).clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda s, u, c: ds.propagate_covariance(s, u, c, cfg), (s, u, cu))
+    assert torch.autograd.gradcheck(lambda s, u, c: ds.integrate_modes(s[0], u, c, cfg)[1], (s, u, cu))
 
 
 # ---------------------------------------------------------------------------------------------
