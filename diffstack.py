@@ -124,39 +124,7 @@ class Config:
     train_plan_weights: str = "posterior"
 
     def __post_init__(self):
-        """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
-        counts = ("hist_len", "horizon", "max_goal_lanes", "ilqr_iters", "line_search_steps", "pred_modes",
-                  "pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden", "batch_size")
-        positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel",
-                    "feas_yaw_per_speed", "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
-        non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
-        lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
-                       pred_logit_clip=4, alpha_rl=3, alpha_il=3)
-        choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
-        for f in dataclasses.fields(self):
-            v, name, bad = getattr(self, f.name), f"Config.{f.name}", None
-            if f.name in choices:
-                bad = v not in choices[f.name] and f"one of {choices[f.name]}"
-            elif f.name in counts:
-                bad = (isinstance(v, bool) or not isinstance(v, int) or v < 1) and "a whole number >= 1"
-            elif f.name in lengths:
-                n = lengths[f.name]
-                bad = ((not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
-                        or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v))
-                       and f"a tuple of {n or 'one or more'} finite numbers")
-            elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                bad = "a finite number"
-            elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
-                bad = "> 0" if f.name in positive else ">= 0"
-            if bad:
-                raise ValueError(f"{name}: must be {bad}, got {v!r}")
-        if any(lo >= hi for lo, hi in zip(self.u_lower, self.u_upper)):
-            raise ValueError(f"Config.u_lower: must be below u_upper, got {self.u_lower} and {self.u_upper}")
-        if any(x <= 0 for x in self.pred_scales) or any(x < 0 for x in self.alpha_rl + self.alpha_il):
-            raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
-        if not self.line_search_decay > 1 or not 0 < self.pred_lr_decay <= 1:
-            raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
-                             f"{self.line_search_decay} and {self.pred_lr_decay}")
+        check_config(self)
 
 
 # ============================================================================================
@@ -1038,18 +1006,7 @@ class ILQR(torch.autograd.Function):
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True,
                batched_params=False):
     """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,); arguments as `ilqr`'s."""
-    check_tensor("x_init", x_init, (None, None))
-    B, n = x_init.shape
-    check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
-    lo, hi = (torch.as_tensor(b, dtype=x_init.dtype, device=x_init.device) for b in (lo, hi))
-    check_tensor("lo", lo), check_tensor("hi", hi)
-    if (lo > hi).any():
-        raise ValueError("lo: a lower control bound is above its upper bound")
-    for i, p in enumerate(params):
-        if torch.is_tensor(p) and p.is_floating_point():
-            check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
-        if batched_params and torch.is_tensor(p) and (p.dim() == 0 or p.shape[0] != B):
-            raise ValueError(f"params[{i}]: batched_params needs per-scenario tensors ({B}, ...), got {tuple(p.shape)}")
+    lo, hi = check_solver_inputs(x_init, u_init, params, lo, hi, batched_params)
     settings = dict(lo=lo, hi=hi, iters=iters, tol=tol, ls_steps=ls_steps, ls_decay=ls_decay, batched_params=batched_params)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
@@ -1396,15 +1353,7 @@ class Method:
     train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
 
     def __post_init__(self):
-        if self.predictor not in PREDICTORS:
-            raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {self.predictor!r}")
-        if (not isinstance(self.losses, tuple) or len(self.losses) != 3
-                or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in self.losses)):
-            raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}")
-        if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
-            raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}")
-        if self.train_plan_weights not in (None, "posterior", "prior"):
-            raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}")
+        check_method(self)
 
 
 PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
@@ -1558,16 +1507,69 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
 
 
 # ============================================================================================
-# 8. Input checks: what the public entry points refuse, naming the argument
+# 8. Input checks: what Config, Method and the public entry points refuse, naming the argument
 # ============================================================================================
 #
-# Config and Method check themselves at construction. The entry points a user calls directly (unicycle_step,
-# total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward, run_stack) call one of these on their input;
-# the math they call is never checked again.
+# The entry points a user calls (unicycle_step, total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward,
+# run_stack) call one of these on their input; the math inside them is not checked again.
 
-def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
-    """Raise ValueError naming `name` unless t is a floating tensor of the given shape (None: any size
-    there), dtype and finite values. Used at the public entry points, never inside the math."""
+
+def check_config(cfg: Config) -> None:
+    """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
+    counts = ("hist_len", "horizon", "max_goal_lanes", "ilqr_iters", "line_search_steps", "pred_modes",
+              "pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden", "batch_size")
+    positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel",
+                "feas_yaw_per_speed", "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
+    non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
+    lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
+                   pred_logit_clip=4, alpha_rl=3, alpha_il=3)
+    choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
+    for f in dataclasses.fields(cfg):
+        v, bad = getattr(cfg, f.name), None
+        if f.name in choices:
+            bad = v not in choices[f.name] and f"one of {choices[f.name]}"
+        elif f.name in counts:
+            bad = (isinstance(v, bool) or not isinstance(v, int) or v < 1) and "a whole number >= 1"
+        elif f.name in lengths:
+            n = lengths[f.name]
+            bad = ((not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
+                    or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v))
+                   and f"a tuple of {n or 'one or more'} finite numbers")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            bad = "a finite number"
+        elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
+            bad = "> 0" if f.name in positive else ">= 0"
+        if bad:
+            raise ValueError(f"Config.{f.name}: must be {bad}, got {v!r}")
+    if any(lo >= hi for lo, hi in zip(cfg.u_lower, cfg.u_upper)):
+        raise ValueError(f"Config.u_lower: must be below u_upper, got {cfg.u_lower} and {cfg.u_upper}")
+    if any(x <= 0 for x in cfg.pred_scales) or any(x < 0 for x in cfg.alpha_rl + cfg.alpha_il):
+        raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
+    if not cfg.line_search_decay > 1 or not 0 < cfg.pred_lr_decay <= 1:
+        raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
+                         f"{cfg.line_search_decay} and {cfg.pred_lr_decay}")
+
+
+def check_method(m: Method) -> None:
+    if m.predictor not in PREDICTORS:
+        raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {m.predictor!r}")
+    if (not isinstance(m.losses, tuple) or len(m.losses) != 3
+            or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in m.losses)):
+        raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {m.losses!r}")
+    if not callable(m.weighting) and m.weighting not in WEIGHTINGS:
+        raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {m.weighting!r}")
+    if m.train_plan_weights not in (None, "posterior", "prior"):
+        raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {m.train_plan_weights!r}")
+
+
+def check_setting(setting) -> str:
+    if setting not in SETTINGS:
+        raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
+    return setting
+
+
+def check_tensor(name: str, t, shape=None, dtype=None):
+    """ValueError naming `name` unless t is a tensor of the given shape (None: any size there) and dtype, and finite."""
     if not torch.is_tensor(t):
         raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
     if shape is not None and (t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape))):
@@ -1576,7 +1578,7 @@ def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
     if dtype is not None and t.dtype != dtype:
         raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
     try:
-        bad = finite and t.is_floating_point() and not torch.isfinite(t).all()
+        bad = t.is_floating_point() and not torch.isfinite(t).all()
     except RuntimeError:  # inside torch.func's transforms a value cannot steer Python: checked outside them
         bad = False
     if bad:
@@ -1585,14 +1587,13 @@ def check_tensor(name: str, t, shape=None, dtype=None, finite=True):
 
 
 def check_positive(name: str, value) -> float:
-    """ValueError naming `name` unless value is a finite number > 0 (a time step, a variance)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return value
 
 
 def check_points(name: str, t, n: int, dtype=None):
-    """check_tensor for a tensor of points (..., n)."""
+    """check_tensor for points (..., n)."""
     if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
         raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
     return check_tensor(name, t, dtype=dtype)
@@ -1610,58 +1611,56 @@ def check_plan_inputs(s0, goal, lanes, lanes_mask, goal_name="goal") -> int:
 
 
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
-    """ValueError naming the argument when the cost's inputs do not fit together or are not finite."""
     check_tensor("x", x)
     if x.dim() < 3 or x.shape[-1] != 4 or x.shape[-2] < 2:
         raise ValueError(f"x: expected states (B, ..., T+1, 4) with T >= 1, got {tuple(x.shape)}")
     B, T = x.shape[0], x.shape[-2] - 1
     check_tensor("u", u, (B, *x.shape[1:-2], T, 2), x.dtype)
-    check_tensor("w", w, dtype=x.dtype)
-    if tuple(w.shape) not in ((5,), (B, 5)):
+    if tuple(check_tensor("w", w, dtype=x.dtype).shape) not in ((5,), (B, 5)):
         raise ValueError(f"w: expected the 5 weights of eq. (3), shape (5,) or ({B}, 5), got {tuple(w.shape)}")
-    check_tensor("ctx.preds", ctx.preds, (B, None, T, 2), x.dtype)
-    check_tensor("ctx.probs", ctx.probs, (B, ctx.preds.shape[1]), x.dtype)
-    check_tensor("ctx.others", ctx.others, (B, None, T, 2), x.dtype)
-    check_tensor("ctx.goal", ctx.goal, (B, 2), x.dtype)
-    check_tensor("ctx.lanes", ctx.lanes, (B, None, None, 3), x.dtype)
+    for name, shape in (("preds", (B, None, T, 2)), ("probs", (B, ctx.preds.shape[1])), ("others", (B, None, T, 2)),
+                        ("goal", (B, 2)), ("lanes", (B, None, None, 3))):
+        check_tensor(f"ctx.{name}", getattr(ctx, name), shape, x.dtype)
     check_positive("rbf_var", rbf_var)
 
 
+def check_solver_inputs(x_init, u_init, params, lo, hi, batched_params):
+    """The controller's inputs; returns the bounds lo, hi as tensors."""
+    B = check_tensor("x_init", x_init, (None, None)).shape[0]
+    check_tensor("u_init", u_init, (B, None, None), x_init.dtype)
+    lo, hi = (check_tensor(n, torch.as_tensor(b, dtype=x_init.dtype, device=x_init.device)) for n, b in (("lo", lo), ("hi", hi)))
+    if (lo > hi).any():
+        raise ValueError("lo: a lower control bound is above its upper bound")
+    for i, p in enumerate(params):
+        if torch.is_tensor(p) and p.is_floating_point():
+            check_tensor(f"params[{i}]", p, dtype=x_init.dtype)
+        if batched_params and torch.is_tensor(p) and (p.dim() == 0 or p.shape[0] != B):
+            raise ValueError(f"params[{i}]: batched_params needs per-scenario tensors ({B}, ...), got {tuple(p.shape)}")
+    return lo, hi
+
+
 def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
-    """ValueError naming the field when a batch is empty, has the wrong history/future length, or non-finite
-    values. need_future: the agent's GT future is used (training); stack: the stack's other inputs are checked too
-    (the ego's future, the other agents, the goal and the lanes)."""
+    """A batch of Scenarios: not empty, the history and future lengths of cfg, finite. need_future: the agent's GT
+    future is read (training); stack: the ego's future, the other agents, the goal and the lanes too."""
     if len(batch) == 0:
         raise ValueError("batch: no scenarios (a batch of size 0)")
     H, T = cfg.hist_len + 1, cfg.horizon
-    expect = {"agent_hist": (H, 4), "ego_hist": (H, 4), "others_hist": (H, 4)}
-    if need_future or stack:
-        expect["agent_fut"] = (T, 4)
-    if stack:
-        expect.update(ego_fut=(T, 4), others_fut=(T, 4))
-    for name, tail in expect.items():
+    expect = dict(agent_hist=H, ego_hist=H, others_hist=H, **({"agent_fut": T} if need_future or stack else {}),
+                  **(dict(ego_fut=T, others_fut=T) if stack else {}))
+    for name, steps in expect.items():
         x = getattr(batch, name)
-        if tuple(x.shape[-2:]) != tail:
-            raise ValueError(f"{name}: expected shape (..., {tail[0]}, {tail[1]}), got {tuple(x.shape)}")
+        if tuple(x.shape[-2:]) != (steps, 4):
+            raise ValueError(f"{name}: expected shape (..., {steps}, 4), got {tuple(x.shape)}")
         if not torch.isfinite(x).all():
             raise ValueError(f"{name} contains NaN or inf")
     if stack:
-        B = len(batch)
-        check_tensor("goal", batch.goal, (B, 4), batch.ego_hist.dtype)
-        check_tensor("lanes", batch.lanes, (B, None, None, 3), batch.ego_hist.dtype)
+        check_tensor("goal", batch.goal, (len(batch), 4), batch.ego_hist.dtype)
+        check_tensor("lanes", batch.lanes, (len(batch), None, None, 3), batch.ego_hist.dtype)
     m = batch.agent_hist_mask
     if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
         raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
     if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
         raise ValueError("agent_hist_mask: the current step must be observed and missing steps must be the earliest")
-
-
-def check_setting(setting) -> str:
-    if setting not in SETTINGS:
-        raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
-    return setting
-
-
 
 
 if __name__ == "__main__":
