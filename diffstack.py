@@ -29,7 +29,6 @@ from typing import NamedTuple
 import torch
 import torch.nn as nn
 
-
 def wrap_angle(a):
     """Angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi."""
     return torch.atan2(torch.sin(a), torch.cos(a))
@@ -48,79 +47,55 @@ class Config:
     dt: float = 0.5  # time step (s); nuScenes key frames are 2 Hz
     hist_len: int = 8  # past steps of history (4 s); the current state makes 9
     horizon: int = 6  # planning / prediction horizon T in steps (3 s)
-
     # --- cost, eq. (3) ---
     w_coll: float = 5.0  # collision weight w1 (authors' code: 20)
     w_goal: float = 0.5  # goal weight w2 (authors' code: 0.05)
     w_lat: float = 0.3  # lateral lane deviation weight w3
     w_head: float = 0.3  # lane heading deviation weight w4
     w_ctrl: float = 1.0  # control effort weight w5
-    # sigma^2 of the collision RBF phi(d2) = exp(-d2 / (2 sigma^2)) (m^2; the default 2 gives the authors' code's
-    # exp(-d^2/4))
-    rbf_var: float = 2.0
-
+    rbf_var: float = 2.0  # sigma^2 (m^2) of the collision RBF phi(d2) = exp(-d2 / 2 sigma^2) (the authors' exp(-d^2/4))
     # --- planner, eq. (2), App. C.1 ---
-    # the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3: "We choose the goal g to match the
-    # 'ground-truth' ego trajectory"), or 'route', where the ego would be at T keeping its speed along its lane -- a
-    # goal that, unlike the logged one, does not already contain the driver's reaction to the others (the paper's
-    # "alternative goal definitions"; see route_goal)
+    # the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3), or 'route', where the ego would be at T keeping
+    # its speed along its lane, which unlike the logged goal holds no reaction to the others (see route_goal)
     goal: str = "logged"
     goal_lane_dist: float = 4.5  # a goal lane passes within this distance (m) of the goal
-    # ... and its heading differs from the goal's by less than this (rad) (authors' code: pi/4)
-    goal_lane_heading: float = math.pi / 2
-    # candidate lanes kept per scenario (the closest to the goal; the paper keeps every goal lane); N =
-    # len(plan_accels) * len(plan_offsets) * max_goal_lanes
-    max_goal_lanes: int = 2
+    goal_lane_heading: float = math.pi / 2  # ... and its heading differs from the goal's by less (authors' code: pi/4)
+    max_goal_lanes: int = 2  # lanes kept, closest to the goal first (the paper: every goal lane); N = 8 x 3 x this
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # terminal accelerations (m/s^2)
     plan_offsets: tuple = (-0.5, 0.0, 0.5)  # terminal lateral offsets from the lane centre (m)
     beta: float = 1.0  # temperature of the relaxed argmin p_n = softmax(-beta C_n)
-    # feasible |w v| (m/s^2), authors' code; candidates must also respect the controller's box u_lower..u_upper
-    # (authors' code: acceleration in [-6, 4])
-    feas_lat_accel: float = 8.0
+    feas_lat_accel: float = 8.0  # feasible |w v| (m/s^2), authors' code; and the controller's box (authors': a in [-6, 4])
     feas_yaw_per_speed: float = 0.5  # feasible |w| <= this * |v| (1/m), authors' code
-
     # --- controller, eq. (4), App. C.2 ---
     u_lower: tuple = (-0.7, -5.0)  # control lower bounds (yaw rate rad/s, acceleration m/s^2), authors' code
     u_upper: tuple = (0.7, 4.0)  # control upper bounds
     ilqr_iters: int = 5  # maximum iLQR iterations
-    # converged when the norm of the full (unscaled) LQR control step is below this (paper: 0.05 on the change of the
-    # controls between iterations; authors' code: 0.01)
-    ilqr_tol: float = 0.05
+    ilqr_tol: float = 0.05  # converged when the full LQR control step's norm is below this (authors' code: 0.01)
     line_search_steps: int = 5  # step scales tried: 1, 1/5, 1/25, ...
     line_search_decay: float = 5.0  # divide the step by this on failure
-
     # --- predictor, eq. (1), §3.1 (Trajectron++'s defaults, Salzmann et al. 2020) ---
-    # K, the number of values of the discrete latent z (= GMM components = trajectories for the planner)
-    pred_modes: int = 25
-    # width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM
-    pred_enc_hidden: int = 32
+    pred_modes: int = 25  # K, the values of the discrete latent z (= GMM components = trajectories for the planner)
+    pred_enc_hidden: int = 32  # width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM
     pred_latent_hidden: int = 32  # hidden width of the p(z|x) and q(z|x,y) MLPs
-    # decoder GRU width (Trajectron++: 128; halved so that CPU training fits a teaching session)
-    pred_dec_hidden: int = 64
+    pred_dec_hidden: int = 64  # decoder GRU width (Trajectron++: 128; halved for CPU training)
     pred_radius: float = 30.0  # neighbours within this distance (m) of the predicted agent at t0 are attended to
-    # input scales: position (m), velocity (m/s), acceleration (m/s^2), heading (rad) and heading rate (rad/s)
-    pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)
-    # below this speed (m/s) the velocity direction is unreliable: the tracked heading replaces it at t0
-    pred_min_speed: float = 0.5
-    # std (m) added to every GMM component: at v = 0 the controls cannot move the agent sideways
-    pred_pos_std_min: float = 0.05
-    # the per-step log-likelihood in the loss is clamped above at this (Trajectron++ log_p_yt_xz_max)
-    pred_log_p_max: float = 6.0
+    pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)  # input scales: position, velocity, acceleration, heading (and rate)
+    pred_min_speed: float = 0.5  # below this speed (m/s) the tracked heading replaces the velocity direction at t0
+    pred_pos_std_min: float = 0.05  # std (m) added to every GMM component: at v = 0 the controls cannot move sideways
+    pred_log_p_max: float = 6.0  # the loss's per-step log-likelihood is clamped above at this (Trajectron++)
     pred_kl_min: float = 0.07  # free bits: the batch-mean KL(q || p) is clamped below at this
     pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight beta(step) = b0 sigmoid((step - b1) / b2)
-    # logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3), applied in training
-    pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
+    pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)  # logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3)
     pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(y_t) below at this
     pred_lr_decay: float = 0.9999  # learning rate multiplied by this after every iteration
     pred_grad_clip: float = 1.0  # gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)
-
     # --- training, §3.2, App. D ---
     alpha_rl: tuple = (1.0, 100.0, 1000.0)  # loss weights (L_pred, L_plan, L_ctr) in the RL setting
     alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
     lr: float = 3e-3  # Adam learning rate
     batch_size: int = 256  # scenarios per training step
-    # the mode probabilities the planner and controller see in training: 'posterior', q(z|x,y), as the authors' code
-    # (so L_plan and L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation
+    # the mode probabilities the planner sees in training: 'posterior', q(z|x,y), as the authors' code (so L_plan and
+    # L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation
     train_plan_weights: str = "posterior"
 
     def __post_init__(self):
@@ -145,7 +120,6 @@ class Config:
 _SERIES_TERMS = 7
 _SERIES_SWITCH = 0.3
 
-
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, tau, dtype, device):
     """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first
@@ -155,7 +129,6 @@ def _series_coefficients(jmax, tau, dtype, device):
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
     tau_pow = torch.tensor(tau, dtype=dtype, device=device) ** torch.arange(1, jmax + 2, dtype=dtype, device=device)
     return tuple(torch.tensor(coef[::-1], dtype=dtype, device=device).unbind(0)), tau_pow
-
 
 def _moments(w, tau, jmax):
     """[c_0..c_jmax], [s_0..s_jmax] for yaw rates w (...,) over tau: exact and smooth at w = 0."""
@@ -180,13 +153,11 @@ def _moments(w, tau, jmax):
     moments = torch.where(small[..., None], series, torch.stack(c + s, -1)).unbind(-1)
     return moments[: jmax + 1], moments[jmax + 1 :]
 
-
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """One exact step of the unicycle: s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4)."""
     check_points("s", s, 4)
     check_points("u", u, 2, s.dtype)
     return _unicycle_step(s, u, check_positive("dt", dt))
-
 
 def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     x, y, h, v = s.unbind(-1)
@@ -197,7 +168,6 @@ def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     return torch.stack([x.addcmul(cos_h, along).addcmul(sin_h, lateral, value=-1.0),  # x + cos along - sin lateral
                         y.addcmul(sin_h, along).addcmul(cos_h, lateral),  # y + sin along + cos lateral
                         h.add(w, alpha=dt), v.add(a, alpha=dt)], -1)  # h + w dt, v + a dt
-
 
 def _position_jacobians(h, v, w, a, dt: float):
     """One unicycle step (unicycle_step's formulas) from h, v under w, a (...): its displacement dx, dy (...) and the
@@ -213,7 +183,6 @@ def _position_jacobians(h, v, w, a, dt: float):
     N = torch.stack([torch.stack([xw, xa]), torch.stack([yw, ya])])  # (2, 2, ...)
     return dx, dy, M, N
 
-
 def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form."""
     _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], *u.unbind(-1), dt)  # (2, 2, ...) each
@@ -222,7 +191,6 @@ def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     A = rows([one, zero, *M[0]], [zero, one, *M[1]], [zero, zero, one, zero], [zero, zero, zero, one])
     B = rows([*N[0]], [*N[1]], [dt * one, zero], [zero, dt * one])
     return A, B
-
 
 def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float) -> torch.Tensor:
     """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates lam (..., 4).
@@ -252,7 +220,6 @@ def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: 
         H[..., index[q], index[r]] = H[..., index[r], index[q]] = dot(e)
     return H
 
-
 def rollout(dynamics, x0, u):
     """Integrate controls u (..., T, m) from x0 (..., n) with a step function: x (..., T+1, n), x0 first."""
     xs = [x0]
@@ -260,11 +227,9 @@ def rollout(dynamics, x0, u):
         xs.append(dynamics(xs[-1], u[..., t, :]))
     return torch.stack(xs, -2)
 
-
 def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """Integrate controls u (..., T, 2) from s0 (..., 4): states (..., T+1, 4), s0 included."""
     return rollout(Unicycle(dt), s0, u)
-
 
 class Unicycle:
     """The unicycle as the controller sees it: a step function with closed-form derivatives."""
@@ -309,7 +274,6 @@ class CostContext:
         return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes,
                 self.lanes_mask)
 
-
 def segment_offset(q, a, b):
     """The offset r = q - p (..., 2) of q (..., 2) from its closest point p on the segment a -> b (..., 2 or 3),
     p = a + frac (b - a); also frac (clamped to [0, 1]) and the unclamped fraction (...,)."""
@@ -317,7 +281,6 @@ def segment_offset(q, a, b):
     raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
     frac = raw.clamp(0, 1)
     return q - a[..., :2] - frac[..., None] * d, frac, raw
-
 
 def segment_projection(q, a, b):
     """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
@@ -329,7 +292,6 @@ def segment_projection(q, a, b):
     on_segment = ((raw >= 0) & (raw <= 1))[..., None]
     dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
     return frac, r, lane_h, dfrac
-
 
 def lane_segments(p, lanes, lanes_mask):
     """Project points on every lane segment. p (B, ..., 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
@@ -345,9 +307,7 @@ def lane_segments(p, lanes, lanes_mask):
     d2 = (r**2).sum(-1)
     return frac, d2, lane_h, seg_ok.expand_as(d2)
 
-
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way at distance d ranks as one at sqrt(d^2 + 100 m^2)
-
 
 def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     """The lane segment closest to each state, and whether there is one (has_lane: no lane cost where not).
@@ -378,7 +338,6 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     closer = d2(here, nxt) < d2(prev, here)  # (B, Q)
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
 
-
 def project_to_lanes(pos, heading, lanes, lanes_mask):
     """The lane point closest to each state: squared lateral distance and heading error.
 
@@ -393,12 +352,10 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
     err = torch.where(has_lane, wrap_angle(heading.reshape(B, -1) - lane_h), 0.0)
     return d2.reshape(heading.shape), err.reshape(heading.shape), has_lane.reshape(heading.shape)
 
-
 def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
     """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26, nothing at the cost's precision;
     docs/performance.md says why)."""
     return torch.exp((-d2 / (2 * rbf_var)).clamp_min(-60.0))
-
 
 def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
     """C_coll per trajectory: pos (B, ..., T, 2) positions t1..T -> (B, ...).
@@ -418,7 +375,6 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     coll = coll + (view(ctx.others_mask)[..., None] * rbf(d2_others, rbf_var)).sum(-2)
     return coll.sum(-1)
 
-
 def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask) -> torch.Tensor:
     """The four terms of eq. (3) that never see a prediction, per trajectory: positions pos (B, ..., T, 2) and
     headings head (B, ..., T) at t1..T (the cost skips t0), u (B, ..., T, 2), goal (B, 2), lanes (B, L, P, 3),
@@ -433,7 +389,6 @@ def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: to
     effort = (u**2).sum((-1, -2))
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
-
 def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
     """The five unweighted terms of eq. (3), per trajectory: x (B, ..., T+1, 4) states with s0 first, u (B, ..., T, 2)
     -> (B, ..., 5), (C_coll, C_goal, C_lat, C_head, C_u). A prediction enters through C_coll alone."""
@@ -442,23 +397,19 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
     rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask)  # (B, ..., 4)
     return torch.cat([coll[..., None], rest], -1)
 
-
 def cost_weights(cfg: Config, dtype=torch.float32, device=None) -> torch.Tensor:
     """The hand-tuned weights (w1..w5) of App. C.3."""
     return torch.tensor([cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl], dtype=dtype, device=device)
-
 
 def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Eq. (3): C = sum_i w_i C_i. terms (B, ..., 5), w (5,) or per scenario (B, 5) -> (B, ...)."""
     w = w if w.dim() == 1 else w.reshape(w.shape[0], *([1] * (terms.dim() - 2)), 5)
     return (terms * w).sum(-1)
 
-
 def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
     """Eq. (3) of a trajectory: x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
     check_cost_inputs(x, u, ctx, w, rbf_var)
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
-
 
 def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in z_t = (x, y, h, v, w, a), step by
@@ -515,7 +466,6 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     H[:, :T, 4:, 4:] = 2 * wu[..., None, None] * eye
     return g, H
 
-
 class StackCost:
     """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every argument per scenario,
     with its closed-form `expansion`, which the solver takes instead of autodiff."""
@@ -543,13 +493,11 @@ class Candidates:
     u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
     valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
 
-
 def _lane_arclength(lanes, lanes_mask):
     """Cumulative arc length along each lane, flat past its last valid point. -> (B, L, P)."""
     seg = (lanes[:, :, 1:, :2] - lanes[:, :, :-1, :2]).norm(dim=-1)
     seg = torch.where(lanes_mask[:, :, 1:] & lanes_mask[:, :, :-1], seg, 0.0)  # (B, L, P-1)
     return torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)
-
 
 def _project_each_lane(p, lanes, lanes_mask, cum):
     """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each (B, L)."""
@@ -559,7 +507,6 @@ def _project_each_lane(p, lanes, lanes_mask, cum):
     pick = lambda t: t.gather(-1, best).squeeze(-1)  # noqa: E731
     seg_len = cum[..., 1:] - cum[..., :-1]
     return pick(d2), pick(cum[..., :-1] + frac * seg_len), pick(lane_h)
-
 
 def _point_at_arclength(lanes, cum, s):
     """Interpolate lane points at arc lengths s (B, G, Q) on lanes (B, G, P, 3) -> (B, G, Q, 3)."""
@@ -571,7 +518,6 @@ def _point_at_arclength(lanes, cum, s):
     xy = a[..., :2] + f * (b[..., :2] - a[..., :2])
     h = a[..., 2:] + f * wrap_angle(b[..., 2:] - a[..., 2:])
     return torch.cat([xy, h], -1)
-
 
 def _hermite(p0, m0, p1, m1, tau):
     """Cubic Hermite curve through p0 -> p1 with end tangents m0, m1 at tau in [0, 1] (Q,):
@@ -586,7 +532,6 @@ def _hermite(p0, m0, p1, m1, tau):
     ctrl = torch.stack([p0, m0, p1, m1]).reshape(4, -1)  # (4, ... * 2)
     out = (basis @ ctrl).reshape(3, len(tau), *p0.shape)  # (3, Q, ..., 2)
     return list(out.movedim(1, -2))  # value, first, second derivative, each (..., Q, 2)
-
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     """Candidate trajectories (App. C.1): for up to `max_goal_lanes` goal lanes, the terminal accelerations
@@ -652,7 +597,6 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     ).all(-1)
     return Candidates(x, u, valid & feasible)
 
-
 def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
     """The 'route' goal (Config.goal): where the ego reaches at T keeping its speed along its lane (the nearest
     heading its way, within 40 degrees), with the lane's heading and that speed. Unlike the logged goal it holds
@@ -671,7 +615,6 @@ def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
                                  torch.zeros_like(s0[:, 2])], -1) * (s0[:, 3:4] * cfg.horizon * cfg.dt)
     return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
 
-
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
     """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over valid candidates, L_plan = -log p_{n*}.
 
@@ -680,11 +623,9 @@ def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, bet
     logp = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
     return -logp.gather(-1, target[:, None]).squeeze(-1)
 
-
 def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """argmin over the last dim among valid entries. (B, N) -> (B,)"""
     return torch.where(valid, values, math.inf).argmin(-1)
-
 
 class Plan(NamedTuple):
     """The planner's output for a batch."""
@@ -694,7 +635,6 @@ class Plan(NamedTuple):
     best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
     plannable: torch.Tensor  # (B,)    bool: at least 2 valid candidates (others are flagged, not crashed on)
     terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
-
 
 @dataclass
 class ScenePlan:
@@ -709,7 +649,6 @@ class ScenePlan:
         """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
         c = self.cands
         return ScenePlan(self.goal[rows], Candidates(c.x[rows], c.u[rows], c.valid[rows]), self.terms[rows])
-
 
 def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
     """Eq. (2): the candidates, their costs C_n, and the argmin. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5).
@@ -746,7 +685,6 @@ def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
     jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
     return jac if with_value else jac[0]
 
-
 def cost_expansion(cost_fn, x, u, params):
     """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
     if hasattr(cost_fn, "expansion"):
@@ -757,7 +695,6 @@ def cost_expansion(cost_fn, x, u, params):
     H, g = _stagewise_jacobian(grad, z, with_value=True)
     return g, H
 
-
 def dynamics_jacobians(dynamics, x, u):
     """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along a trajectory x (B, T+1, n), u (B, T, m)."""
     if hasattr(dynamics, "jacobians"):
@@ -766,12 +703,10 @@ def dynamics_jacobians(dynamics, x, u):
     J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), torch.cat([x[:, :-1], u], -1))
     return J[..., :n], J[..., n:]
 
-
 def solve_masked(Q, rhs, free):
     """Solve the free rows of Q y = rhs, with y = rhs on the others: Q (..., m, m), rhs (..., m, r), free (..., m)."""
     eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
     return torch.linalg.solve(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
-
 
 def box_qp(Q, q, lo, hi):
     """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m and Q positive definite: the unconstrained
@@ -798,12 +733,10 @@ def box_qp(Q, q, lo, hi):
     d_box, free_box = ds[rows, best], free.expand(B, -1, -1)[rows, best]
     return torch.where(inside[:, None], d, d_box), free_box | inside[:, None]
 
-
 def make_pd(Q, eps):
     """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
     lam = torch.linalg.eigvalsh(Q)[..., 0]  # (B,)
     return Q + (eps - lam).clamp_min(0.0)[:, None, None] * torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-
 
 def riccati_backward(A, B, H, g, n, stage):
     """The Riccati recursion of a time-varying LQR: cost blocks H (B, T+1, n+m, n+m), linear terms g (B, T+1, n+m),
@@ -834,7 +767,6 @@ def riccati_backward(A, B, H, g, n, stage):
     W, free = torch.stack(Ws[::-1], 1), torch.stack(frees[::-1], 1)  # (B, T, m, 1+n), (B, T, m)
     return W[..., 0], W[..., 1:], free, Pt[:, 1:, 0]
 
-
 def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
     """iLQR's Riccati pass: k solves the box QP with Quu shifted to eigenvalues >= pd_eps (a descent direction),
     K solves the same Quu on the free controls and is 0 on the clamped ones. lo, hi (B, T, m) bound du."""
@@ -845,7 +777,6 @@ def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
         return torch.cat([k[..., None], K], -1), free
     return riccati_backward(A, B, H, g, n, stage)
 
-
 def lqr_backward_fixed(A, B, H, g, n, free):
     """The KKT backward's LQR: controls at a bound in the solution (free False, (B, T, m)) are held at du = 0,
     the others solve the exact Quu: [k K]_f = -Quu_ff^-1 [qu Qux]_f."""
@@ -854,7 +785,6 @@ def lqr_backward_fixed(A, B, H, g, n, free):
         return solve_masked(Q_uu, torch.where(f[..., None], -Q_uX, 0.0), f), f
     return riccati_backward(A, B, H, g, n, stage)
 
-
 @dataclass
 class ILQRInfo:
     """What the solver reports per scenario."""
@@ -862,7 +792,6 @@ class ILQRInfo:
     step_norm: torch.Tensor  # (B,) norm of the last full LQR control step
     iters: torch.Tensor  # (B,) iterations run
     costs: torch.Tensor  # (B, I+1) true cost after each iteration (the first: at u_init)
-
 
 def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0,
          batched_params=False):
@@ -908,7 +837,6 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
             break
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
 
-
 def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
     """The largest step scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
         u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
@@ -929,7 +857,6 @@ def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
     pick = torch.where(accept, first, 0)  # where no scale is accepted: the full step (rejected by the caller)
     rows = torch.arange(len(x), device=x.device)
     return xs[rows, pick], us[rows, pick], cs[rows, pick], accept, (us[:, 0] - u).flatten(1).norm(dim=-1)
-
 
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
     """Gradients of a loss on the solution (x, u) wrt x_init and params (Amos et al. 2018).
@@ -979,7 +906,6 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
                 grads[i] = gi
     return p0, grads
 
-
 class ILQR(torch.autograd.Function):
     """iLQR with the KKT backward (use `ilqr_solve`); scenarios that did not converge pass no gradient (§3.1)."""
 
@@ -1001,7 +927,6 @@ class ILQR(torch.autograd.Function):
         keep = converged.to(x.dtype)[:, None, None]
         p0, grads = kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact)
         return (None, None, None, None, p0, None, *grads)
-
 
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, exact=True,
                batched_params=False):
@@ -1044,7 +969,6 @@ def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tens
     t = torch.arange(H, device=x.device)
     return torch.where((t <= first[..., None])[..., None], d_first, d)  # (..., H, D)
 
-
 def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor, cfg: Config) -> torch.Tensor:
     """Trajectron++'s 8-D state (position - origin, velocity, acceleration, heading, heading rate), scaled by
     30 m, 15 m/s, 4 m/s^2, pi, from (x, y, h, v) tracks: hist (..., H, 4), origin (..., 2) -> (..., H, 8)."""
@@ -1079,17 +1003,14 @@ class Prediction:
         """(B, K, T, 2) GMM component means = mode positions."""
         return self.states[..., :2]
 
-
 RHO_MARGIN = 1e-5
 """The decoder's correlation rho = tanh(.) is kept this far inside (-1, 1) (Trajectron++ clamps the same): at |rho| = 1
 the covariance is singular and the training sample's sqrt(1 - rho^2) has an infinite derivative (NaN gradients)."""
-
 
 def bounded_correlation(pre_tanh: torch.Tensor) -> torch.Tensor:
     """rho = tanh(pre_tanh) clamped to [-1 + RHO_MARGIN, 1 - RHO_MARGIN]: tanh reaches +-1 in floating point at
     |pre_tanh| ~ 9 (float32) or ~ 19 (float64); within the bounds the clamp is the identity, gradients included."""
     return torch.tanh(pre_tanh).clamp(-1 + RHO_MARGIN, 1 - RHO_MARGIN)
-
 
 def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Tensor:
     """Trajectron++'s z-logit clipping, in training only: zero-mean logits clamped to +-c(step)."""
@@ -1099,7 +1020,6 @@ def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Te
     # c(step) = c0 + (c1 - c0) sigmoid((step - centre) / width)
     c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))
     return (logits - logits.mean(-1, keepdim=True)).clamp(-c, c)
-
 
 class Predictor(nn.Module):
     """Trajectron++-style CVAE over unicycle controls. pred = predictor(batch, use_posterior, step)."""
@@ -1235,7 +1155,6 @@ class Predictor(nn.Module):
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
 
-
 def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg: Config) -> torch.Tensor:
     """The EKF's position covariances through the unicycle (..., T, 2, 2), plus pred_pos_std_min^2 I, from the position
     Jacobians M, N and the control covariances Su, each (2, 2, ..., T), matrix indices first. Step by step they are
@@ -1259,7 +1178,6 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
     P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
          + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
     return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
-
 
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
                     cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1291,23 +1209,19 @@ def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, m
     maha = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
     return -0.5 * maha - 0.5 * torch.log(det) - math.log(2 * math.pi)
 
-
 def gmm_log_prob(pred: Prediction, y: torch.Tensor, log_w: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
     """log sum_k w_k N(y_t; mu_kt, Sigma_kt) per step: y (B, T, 2), log_w (B, K) -> (B, T)."""
     log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov, min_var)  # (B, K, T)
     return torch.logsumexp(log_w[..., None] + log_n, 1)  # (B, T)
-
 
 def kl_beta(step: int, cfg: Config) -> float:
     """beta(step) = b0 sigmoid((step - b1) / b2): the KL weight anneals from ~0 to 100 around step 400."""
     b0, centre, width = cfg.pred_beta
     return b0 / (1 + math.exp(-(step - centre) / width))
 
-
 def batch_mean(x: torch.Tensor, shard=None) -> torch.Tensor:
     """x (B, ...) averaged over the batch: this process's, or under DDP (shard: train.Shard) the global one."""
     return x.mean(0) if shard is None else shard.mean(x)
-
 
 def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tuple[torch.Tensor, dict]:
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging:
@@ -1358,7 +1272,6 @@ class Method:
 
 PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
 
-
 @dataclass
 class StackOutput:
     """Per-scenario results of one pass through the stack (all (B,) unless noted)."""
@@ -1376,7 +1289,6 @@ class StackOutput:
     cand_cost: torch.Tensor | None = None  # (B, N)
     pred: object = None  # the predictor's output
 
-
 def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
     """A future on a clock `substeps` times finer, by linear interpolation from the present.
 
@@ -1389,7 +1301,6 @@ def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tenso
     f = torch.arange(1, substeps + 1, dtype=fut.dtype, device=fut.device)[:, None] / substeps  # (substeps, 1) the fractions of a step
     return (a + (b - a) * f).flatten(-3, -2)
 
-
 def planner_substeps(cfg: Config, plan_dt) -> int:
     """How many planner/controller steps of plan_dt make one prediction step cfg.dt (1 for plan_dt None)."""
     if plan_dt is None:
@@ -1398,7 +1309,6 @@ def planner_substeps(cfg: Config, plan_dt) -> int:
     if substeps < 1 or abs(substeps * plan_dt - cfg.dt) > 1e-9:
         raise ValueError(f"plan_dt: must divide the prediction step dt = {cfg.dt} s into whole steps, got {plan_dt}")
     return substeps
-
 
 def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, goal=None):
     """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
@@ -1415,7 +1325,6 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, 
     hctx = CostContext(agent[:, None], ones[:, None], ones, others_mask=others_mask, **common)
     return ctx, hctx
 
-
 def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     """A batch's ScenePlan, on the planner's clock (plan_dt as in run_stack): the goal (the logged one or the
     route's, Config.goal), the candidates and their prediction-free terms of eq. (3)."""
@@ -1426,7 +1335,6 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     cands = plan_candidates(s0, goal, batch.lanes, batch.lanes_mask, pcfg)
     terms = scene_terms(cands.x[..., 1:, :2], cands.x[..., 1:, 2], cands.u, goal[:, :2], batch.lanes, batch.lanes_mask)
     return ScenePlan(goal, cands, terms)
-
 
 def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
@@ -1549,7 +1457,6 @@ def check_config(cfg: Config) -> None:
         raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
                          f"{cfg.line_search_decay} and {cfg.pred_lr_decay}")
 
-
 def check_method(m: Method) -> None:
     if m.predictor not in PREDICTORS:
         raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {m.predictor!r}")
@@ -1561,12 +1468,10 @@ def check_method(m: Method) -> None:
     if m.train_plan_weights not in (None, "posterior", "prior"):
         raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {m.train_plan_weights!r}")
 
-
 def check_setting(setting) -> str:
     if setting not in SETTINGS:
         raise ValueError(f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}")
     return setting
-
 
 def check_tensor(name: str, t, shape=None, dtype=None):
     """ValueError naming `name` unless t is a tensor of the given shape (None: any size there) and dtype, and finite."""
@@ -1585,19 +1490,16 @@ def check_tensor(name: str, t, shape=None, dtype=None):
         raise ValueError(f"{name}: contains NaN or inf")
     return t
 
-
 def check_positive(name: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return value
-
 
 def check_points(name: str, t, n: int, dtype=None):
     """check_tensor for points (..., n)."""
     if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
         raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
     return check_tensor(name, t, dtype=dtype)
-
 
 def check_plan_inputs(s0, goal, lanes, lanes_mask, goal_name="goal") -> int:
     """The planner's inputs; returns the batch size B."""
@@ -1608,7 +1510,6 @@ def check_plan_inputs(s0, goal, lanes, lanes_mask, goal_name="goal") -> int:
     check_tensor("lanes", lanes, (B, None, None, 3), s0.dtype)
     check_tensor("lanes_mask", lanes_mask, (B, *lanes.shape[1:3]), torch.bool)
     return B
-
 
 def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
     check_tensor("x", x)
@@ -1623,7 +1524,6 @@ def check_cost_inputs(x, u, ctx: CostContext, w, rbf_var) -> None:
         check_tensor(f"ctx.{name}", getattr(ctx, name), shape, x.dtype)
     check_positive("rbf_var", rbf_var)
 
-
 def check_solver_inputs(x_init, u_init, params, lo, hi, batched_params):
     """The controller's inputs; returns the bounds lo, hi as tensors."""
     B = check_tensor("x_init", x_init, (None, None)).shape[0]
@@ -1637,7 +1537,6 @@ def check_solver_inputs(x_init, u_init, params, lo, hi, batched_params):
         if batched_params and torch.is_tensor(p) and (p.dim() == 0 or p.shape[0] != B):
             raise ValueError(f"params[{i}]: batched_params needs per-scenario tensors ({B}, ...), got {tuple(p.shape)}")
     return lo, hi
-
 
 def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
     """A batch of Scenarios: not empty, the history and future lengths of cfg, finite. need_future: the agent's GT
@@ -1661,7 +1560,6 @@ def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> N
         raise ValueError(f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, got {tuple(m.shape)}")
     if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
         raise ValueError("agent_hist_mask: the current step must be observed and missing steps must be the earliest")
-
 
 if __name__ == "__main__":
     import train  # the method ends here; --quick (training, evaluation) is train.py's
