@@ -33,10 +33,7 @@ def wrap_angle(a):
     """Angle to (-pi, pi]: atan2(sin a, cos a), smooth away from +-pi."""
     return torch.atan2(torch.sin(a), torch.cos(a))
 
-# ============================================================================================
-# 1. Config
-# ============================================================================================
-
+# ===== 1. Config ====================================================================================================
 
 @dataclass
 class Config:
@@ -102,9 +99,7 @@ class Config:
         check_config(self)
 
 
-# ============================================================================================
-# 2. Dynamics: the dynamically-extended unicycle
-# ============================================================================================
+# ===== 2. Dynamics: the dynamically-extended unicycle ===============================================================
 #
 # With constant yaw rate w and acceleration a over one step tau = dt, starting from (x, y, h, v):
 #     h' = h + w tau,   v' = v + a tau,
@@ -122,8 +117,7 @@ _SERIES_SWITCH = 0.3
 
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, tau, dtype, device):
-    """Taylor coefficients of c_j / tau^(j+1) and s_j / (th tau^(j+1)) in powers of th^2, highest power first
-    (_SERIES_TERMS rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,)."""
+    """The series' coefficients in powers of th^2, highest first (rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,)."""
     f = math.factorial
     coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
             + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
@@ -170,8 +164,8 @@ def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
                         h.add(w, alpha=dt), v.add(a, alpha=dt)], -1)  # h + w dt, v + a dt
 
 def _position_jacobians(h, v, w, a, dt: float):
-    """One unicycle step (unicycle_step's formulas) from h, v under w, a (...): its displacement dx, dy (...) and the
-    position rows of its Jacobians, M = d(x, y)/d(h, v), N = d(x, y)/d(w, a), (2, 2, ...), matrix indices first."""
+    """A unicycle step from h, v under w, a (...): its displacement dx, dy and the position rows of its Jacobians,
+    M = d(x, y)/d(h, v) and N = d(x, y)/d(w, a), (2, 2, ...), matrix indices first."""
     (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     rot = lambda al, la: (cos_h * al - sin_h * la, sin_h * al + cos_h * la)  # noqa: E731  R(h) [al, la]
@@ -247,9 +241,7 @@ class Unicycle:
         return unicycle_curvature(s, u, lam, self.dt)
 
 
-# ============================================================================================
-# 3. Cost, eq. (3) and App. C.3
-# ============================================================================================
+# ===== 3. Cost, eq. (3) and App. C.3 ================================================================================
 #
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
 #
@@ -259,7 +251,7 @@ class Unicycle:
 
 @dataclass
 class CostContext:
-    """What the cost knows about the world. Tensors, so that gradients can reach every one of them."""
+    """What the cost knows about the world, as tensors so that gradients reach every one."""
 
     preds: torch.Tensor  # (B, K, T, 2)  predicted agent's mode positions, t1..T
     probs: torch.Tensor  # (B, K)        mode probabilities pi_k
@@ -275,17 +267,16 @@ class CostContext:
                 self.lanes_mask)
 
 def segment_offset(q, a, b):
-    """The offset r = q - p (..., 2) of q (..., 2) from its closest point p on the segment a -> b (..., 2 or 3),
-    p = a + frac (b - a); also frac (clamped to [0, 1]) and the unclamped fraction (...,)."""
+    """q (..., 2) minus its closest point a + frac (b - a) on the segment a -> b (..., 2 or 3); frac clamped to [0, 1],
+    and the unclamped fraction."""
     d = b[..., :2] - a[..., :2]  # (..., 2)
     raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
     frac = raw.clamp(0, 1)
     return q - a[..., :2] - frac[..., None] * d, frac, raw
 
 def segment_projection(q, a, b):
-    """The closest point to q (..., 2) on the segment a -> b (..., 3) (x, y, heading):
-    frac (...,) the fraction along the segment (clamped to [0, 1]), r = q - closest point (..., 2), the
-    lane heading there (...,) (interpolated between the ends), and dfrac/dq (..., 2) (0 where clamped)."""
+    """The closest point to q (..., 2) on a -> b (..., 3) (x, y, heading): frac (...,), r = q - that point (..., 2), the
+    lane heading there (interpolated between the ends) and dfrac/dq (..., 2) (0 where clamped)."""
     r, frac, raw = segment_offset(q, a, b)
     d = b[..., :2] - a[..., :2]  # (..., 2)
     lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
@@ -294,11 +285,8 @@ def segment_projection(q, a, b):
     return frac, r, lane_h, dfrac
 
 def lane_segments(p, lanes, lanes_mask):
-    """Project points on every lane segment. p (B, ..., 2), lanes (B, L, P, 3), lanes_mask (B, L, P).
-
-    Returns, per segment (B, ..., L, P-1): the fraction along it of the closest point, the squared
-    distance to it, the lane heading there (interpolated between the ends), and segment validity.
-    """
+    """p (B, ..., 2) projected on every lane segment: per segment (B, ..., L, P-1) the fraction along it, the squared
+    distance, the lane heading there and whether the segment is valid. lanes (B, L, P, 3), lanes_mask (B, L, P)."""
     B = lanes.shape[0]
     view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over ...
     a, b = view(lanes[:, :, :-1]), view(lanes[:, :, 1:])  # segment ends (B, 1.., L, P-1, 3)
@@ -310,13 +298,11 @@ def lane_segments(p, lanes, lanes_mask):
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way at distance d ranks as one at sqrt(d^2 + 100 m^2)
 
 def nearest_lane_segment(pos, heading, lanes, lanes_mask):
-    """The lane segment closest to each state, and whether there is one (has_lane: no lane cost where not).
+    """The lane segment nearest each state: its ends a, b (B, Q, 3) (Q: the states, flattened) and has_lane (B, Q).
 
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). First the nearest lane point (no
-    gradient: it only picks an index), ranked by |q - p|^2 + lam (1 - cos(h_q - h_p)), lam = 50 m^2, so that an
-    oncoming lane beside the state's own is not 'closest' (a state with no lane within 90 degrees has none); then
-    the closer of the two segments that meet there. Returns their ends a, b (B, Q, 3) (Q: the states, flattened)
-    and has_lane (B, Q)."""
+    First the nearest lane point (no gradient: it only picks an index), ranked by |q - p|^2 + lam (1 - cos(h_q - h_p)),
+    lam = 50 m^2, so that an oncoming lane beside the state's own is not 'closest' (no lane within 90 degrees: no
+    lane cost); then the closer of the two segments that meet there."""
     B, L, P, _ = lanes.shape
     q, hq = pos.reshape(B, -1, 2), heading.reshape(B, -1)  # (B, Q, 2), (B, Q)
     pts = lanes.reshape(B, L * P, 3)
@@ -339,12 +325,8 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
 
 def project_to_lanes(pos, heading, lanes, lanes_mask):
-    """The lane point closest to each state: squared lateral distance and heading error.
-
-    pos (B, ..., 2), heading (B, ...); lanes (B, L, P, 3), lanes_mask (B, L, P). The closest point lies on
-    nearest_lane_segment's segment.
-    Returns d2, heading error and has_lane, each (B, ...); where no lane matches, d2 = error = 0.
-    """
+    """Squared distance to the closest lane point and heading error there, and has_lane, each (B, ...), for states pos
+    (B, ..., 2), heading (B, ...); where no lane matches, both are 0."""
     B = lanes.shape[0]
     a, b, has_lane = nearest_lane_segment(pos, heading, lanes, lanes_mask)  # (B, Q, 3) x 2, (B, Q)
     _, r, lane_h, _ = segment_projection(pos.reshape(B, -1, 2), a, b)
@@ -376,9 +358,8 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     return coll.sum(-1)
 
 def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: torch.Tensor, lanes, lanes_mask) -> torch.Tensor:
-    """The four terms of eq. (3) that never see a prediction, per trajectory: positions pos (B, ..., T, 2) and
-    headings head (B, ..., T) at t1..T (the cost skips t0), u (B, ..., T, 2), goal (B, 2), lanes (B, L, P, 3),
-    lanes_mask (B, L, P) -> (B, ..., 4): (C_goal, C_lat, C_head, C_u)."""
+    """(C_goal, C_lat, C_head, C_u) per trajectory (B, ..., 4), the terms of eq. (3) no prediction enters: positions
+    (B, ..., T, 2) and headings (B, ..., T) at t1..T, u (B, ..., T, 2), goal (B, 2), lanes (B, L, P, 3)."""
     B = pos.shape[0]
     view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     # C_goal = ||s_T - g||^2
@@ -390,8 +371,8 @@ def scene_terms(pos: torch.Tensor, head: torch.Tensor, u: torch.Tensor, goal: to
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
 def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) -> torch.Tensor:
-    """The five unweighted terms of eq. (3), per trajectory: x (B, ..., T+1, 4) states with s0 first, u (B, ..., T, 2)
-    -> (B, ..., 5), (C_coll, C_goal, C_lat, C_head, C_u). A prediction enters through C_coll alone."""
+    """The five unweighted terms of eq. (3) (B, ..., 5) of states x (B, ..., T+1, 4) (s0 first, not costed) and
+    controls u (B, ..., T, 2): (C_coll, C_goal, C_lat, C_head, C_u)."""
     pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
     coll = collision_term(pos, ctx, rbf_var)  # (B, ...)
     rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask)  # (B, ..., 4)
@@ -480,10 +461,7 @@ class StackCost:
         return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
 
 
-# ============================================================================================
-# 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C.1
-# ============================================================================================
-
+# ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C.1 ======================
 
 @dataclass
 class Candidates:
@@ -520,10 +498,8 @@ def _point_at_arclength(lanes, cum, s):
     return torch.cat([xy, h], -1)
 
 def _hermite(p0, m0, p1, m1, tau):
-    """Cubic Hermite curve through p0 -> p1 with end tangents m0, m1 at tau in [0, 1] (Q,):
-    value, first and second derivative wrt tau. p0, m0, p1, m1 (..., 2) -> each (..., Q, 2).
-    All curves at once as one matrix product: the basis functions at tau (3 Q, 4) times the control points
-    (4, everything else)."""
+    """Cubic Hermite curves p0 -> p1 with end tangents m0, m1 (..., 2) at tau (Q,) in [0, 1]: value, first and second
+    derivative, each (..., Q, 2), as one product of the basis functions (3 Q, 4) with the control points."""
     t = tau[:, None]  # (Q, 1)
     h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
     dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
@@ -616,10 +592,8 @@ def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
     return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
 
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
-    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over valid candidates, L_plan = -log p_{n*}.
-
-    cost (B, N), valid (B, N), target (B,) index n* -> (B,).
-    """
+    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over the valid candidates, L_plan = -log p_{n*}.
+    cost (B, N), valid (B, N), target n* (B,) -> (B,)."""
     logp = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
     return -logp.gather(-1, target[:, None]).squeeze(-1)
 
@@ -651,9 +625,8 @@ class ScenePlan:
         return ScenePlan(self.goal[rows], Candidates(c.x[rows], c.u[rows], c.valid[rows]), self.terms[rows])
 
 def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
-    """Eq. (2): the candidates, their costs C_n, and the argmin. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5).
-    scene: the candidates and their prediction-free terms if already computed (for this s0, goal and ctx's lanes).
-    Unpacks as (cands, cost, best, plannable, terms)."""
+    """Eq. (2): the candidates, their costs C_n and the argmin, as Plan. s0 (B, 4), goal_state (B, 4), w (5,) or (B, 5);
+    scene: the candidates and their prediction-free terms if already computed."""
     check_plan_inputs(s0, goal_state, ctx.lanes, ctx.lanes_mask, "goal_state")
     cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg) if scene is None else scene.cands
     check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
@@ -667,9 +640,7 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
     return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
 
 
-# ============================================================================================
-# 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward
-# ============================================================================================
+# ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward ========================
 #
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
 #
@@ -768,8 +739,8 @@ def riccati_backward(A, B, H, g, n, stage):
     return W[..., 0], W[..., 1:], free, Pt[:, 1:, 0]
 
 def lqr_backward_box(A, B, H, g, n, lo, hi, pd_eps):
-    """iLQR's Riccati pass: k solves the box QP with Quu shifted to eigenvalues >= pd_eps (a descent direction),
-    K solves the same Quu on the free controls and is 0 on the clamped ones. lo, hi (B, T, m) bound du."""
+    """iLQR's Riccati pass: k solves the box QP with Quu shifted to eigenvalues >= pd_eps (a descent direction); K
+    solves the same Quu on the free controls, 0 on the clamped ones. lo, hi (B, T, m) bound du."""
     def stage(t, Q_uu, Q_uX):
         Q_uu = make_pd(Q_uu, pd_eps)
         k, free = box_qp(Q_uu, Q_uX[..., 0], lo[:, t], hi[:, t])
@@ -936,9 +907,7 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
 
-# ============================================================================================
-# 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020)
-# ============================================================================================
+# ===== 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020) ==================
 #
 # From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego), K = 25 futures,
 # one per value of a discrete latent z:   p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
@@ -1181,9 +1150,8 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
 
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
                     cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
-    """unicycle_rollout(s0, u) and the EKF covariances along it, all steps at once: s0 (..., 4), u (..., T, 2),
-    cov_u (..., T, 2, 2) -> states (..., T+1, 4) (s0 first), position covariances (..., T, 2, 2).
-    Heading and speed are cumsums of the controls; then each step's displacement is known, the positions its cumsums."""
+    """unicycle_rollout(s0, u) and the EKF covariances along it, all steps at once (headings, speeds and positions are
+    cumsums): s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4), covariances (..., T, 2, 2)."""
     dt = cfg.dt
     w, a = u.unbind(-1)  # (..., T) each
     h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (w * dt).cumsum(-1)], -1)  # (..., T+1): h_{t+1} = h_t + w_t dt
@@ -1198,8 +1166,8 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
 
 
 def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
-    """log N(y; mean, cov) for 2-D Gaussians, broadcasting: y, mean (..., 2), cov (..., 2, 2) -> (...).
-    min_var: cov is known to be some positive semi-definite P0 plus min_var I (the predictor's floor)."""
+    """log N(y; mean, cov) of 2-D Gaussians: y, mean (..., 2), cov (..., 2, 2) -> (...); cov is known to be positive
+    semi-definite plus min_var I."""
     d = y - mean  # (..., 2)
     a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
     # det(P0 + s I) = det P0 + s tr P0 + s^2 >= s (a + c) - s^2: for a long thin ellipse a c - b^2 cancels to 0 or
@@ -1246,9 +1214,7 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tu
     return loss, parts
 
 
-# ============================================================================================
-# 7. The stack: predict -> plan -> control, §3.2
-# ============================================================================================
+# ===== 7. The stack: predict -> plan -> control, §3.2 ===============================================================
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
 #   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights),
@@ -1290,10 +1256,8 @@ class StackOutput:
     pred: object = None  # the predictor's output
 
 def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
-    """A future on a clock `substeps` times finer, by linear interpolation from the present.
-
-    now (..., D) the value at t0, fut (..., T, D) at t1..T -> (..., T * substeps, D) at the fine steps
-    (every substeps-th is a knot of fut). substeps = 1 returns fut itself."""
+    """A future on a clock `substeps` times finer, by linear interpolation from the present: now (..., D) at t0, fut
+    (..., T, D) at t1..T -> (..., T * substeps, D)."""
     if substeps == 1:
         return fut
     knots = torch.cat([now[..., None, :], fut], -2)  # (..., T+1, D)
@@ -1311,10 +1275,8 @@ def planner_substeps(cfg: Config, plan_dt) -> int:
     return substeps
 
 def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, goal=None):
-    """The cost's view of a batch: with the given predictions, and in hindsight (GT future of the agent).
-    plan_others=False: the other agents count in hindsight only (the paper's closed loop, App. D.3).
-    substeps: planner steps per prediction step; the futures (preds included) must already be on the planner's
-    clock, the batch's are interpolated to it here. goal: (B, 4) the goal g (default the batch's, the logged one)."""
+    """The cost's view of a batch with the given predictions (already on the planner's clock, substeps per step), and
+    in hindsight (the agent's GT future). plan_others=False: the others count in hindsight only (App. D.3)."""
     others_mask = batch.others_mask.to(preds.dtype)
     others = upsample(batch.others_hist[:, :, -1, :2], batch.others_fut[..., :2], substeps)  # (B, A, T, 2)
     goal = batch.goal if goal is None else goal
@@ -1326,8 +1288,7 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, 
     return ctx, hctx
 
 def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
-    """A batch's ScenePlan, on the planner's clock (plan_dt as in run_stack): the goal (the logged one or the
-    route's, Config.goal), the candidates and their prediction-free terms of eq. (3)."""
+    """A batch's ScenePlan on the planner's clock: the goal (Config.goal), the candidates, their prediction-free terms."""
     sub = planner_substeps(cfg, plan_dt)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
     goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)  # (B, 4)
@@ -1341,17 +1302,13 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
               shard=None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
 
-    setting: 'rl' or 'il' (which L_ctr and planner target). train: the predictor weights its modes by q(z|x,y) and
-    its schedules use `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,), default the hand-tuned
-    ones. planner=False: iLQR starts from zero controls; controller=False: the plan is final (ablations).
-    plan_others=False: planner and controller ignore the other agents (they still count in hindsight).
-    pred_target: the future the predictor is trained towards (default the GT; Table 2 shifts it).
-    plan_dt: a finer planner and controller step (ablation: 0.1 s): they plan T * substeps steps, the predicted modes
-        and GT futures are interpolated to that clock, and the per-step cost terms (all but the goal's) are scaled by
-        1/substeps, so that eq. (3) sums the same costs per second; L_pred and MSE stay on the logged steps.
-    shard: under DDP, the rows of the global batch this process holds (train.Shard).
-    scene: the batch's scene_plan (same cfg and plan_dt) if already computed.
-    """
+    setting: 'rl' or 'il' (which L_ctr and planner target). train: the modes weighted by q(z|x,y) and the schedules at
+    `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,), default the hand-tuned ones.
+    planner=False: iLQR starts from zero controls; controller=False: the plan is final; plan_others=False: planner and
+    controller ignore the others (ablations). pred_target: what the predictor is trained towards (Table 2 shifts it).
+    plan_dt: a finer planner and controller step (ablation: 0.1 s); the per-step cost terms (all but the goal's) are
+    then scaled by 1/substeps, so that eq. (3) sums the same costs per second. shard: see Predictor.decode.
+    scene: the batch's scene_plan, if already computed."""
     check_setting(setting)
     check_batch(batch, cfg, need_future=train, stack=True)
     sub = planner_substeps(cfg, plan_dt)
@@ -1414,9 +1371,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
 
 
 
-# ============================================================================================
-# 8. Input checks: what Config, Method and the public entry points refuse, naming the argument
-# ============================================================================================
+# ===== 8. Input checks: what Config, Method and the public entry points refuse, naming the argument =================
 #
 # The entry points a user calls (unicycle_step, total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward,
 # run_stack) call one of these on their input; the math inside them is not checked again.
