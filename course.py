@@ -154,9 +154,11 @@ def plot_table(results, setting, title):
         k = key if key == "ade" else "rel_" + key
         stats = [tr.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
         ax.barh(y, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(y))
-        ax.axvline(0, color="k", lw=0.8); ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
+        ax.axvline(0, color="k", lw=0.8)
+        ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
         ax.grid(axis="x", alpha=0.3)
-    axes[0].set_yticks(y, names); axes[0].set_ylim(len(names) - 0.5, -0.5)  # first method on top, every row kept
+    axes[0].set_yticks(y, names)
+    axes[0].set_ylim(len(names) - 0.5, -0.5)  # first method on top, every row kept
     fig.suptitle(title)
     plt.show()
 
@@ -184,18 +186,21 @@ def figure_stack():
     from matplotlib.patches import FancyBboxPatch
 
     _, ax = plt.subplots(figsize=(10, 4.2))
-    ax.set_xlim(0, 10); ax.set_ylim(-0.55, 4.45); ax.axis("off")
+    ax.set(xlim=(0, 10), ylim=(-0.55, 4.45))
+    ax.axis("off")
     boxes = {"inputs": (0.1, 1.7, "history of all agents\nlanes, goal"), "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
              "plan": (4.8, 1.7, "Planner\nsplines + argmin"), "ctrl": (7.15, 1.7, "Controller\nbox-iLQR")}
     for key, (x, y, text) in boxes.items():
         color = "#e8e8e8" if key == "inputs" else ("#ffd9b3" if key == "pred" else "#cfe2f3")
         ax.add_patch(FancyBboxPatch((x, y), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k"))
         ax.text(x + 0.95, y + 0.5, text, ha="center", va="center", fontsize=9)
-    arrow = lambda x0, y0, x1, y1, **kw: ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
+    def arrow(x0, y0, x1, y1, **kw):
+        return ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
     for x0, x1, label in ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$")):
         arrow(x0, 2.2, x1, 2.2, lw=1.5)
         ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
-    arrow(9.05, 2.2, 9.6, 2.2, lw=1.5); ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
+    arrow(9.05, 2.2, 9.6, 2.2, lw=1.5)
+    ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
     # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
     for x, text in ((3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
                     (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
@@ -276,8 +281,9 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     ax = axd["cost"]
     ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
     ax.plot(rel.mean(0), color="k", lw=2, label="mean")
-    ax.set_xlabel("iteration"); ax.set_ylabel("cost / cost of the plan"); ax.legend(loc="lower left"); ax.grid(alpha=0.3)
-    ax.set_title("iLQR: the true cost never rises (line search)")
+    ax.set(xlabel="iteration", ylabel="cost / cost of the plan", title="iLQR: the true cost never rises (line search)")
+    ax.legend(loc="lower left")
+    ax.grid(alpha=0.3)
     ax = axd["map"]
     pts = torch.cat([plan_x[:, :2], ctrl_x[:, :2]])
     data_synth.plot_scenario(ax, batch, i, extent=(pts[:, 0].min().item() - 4, pts[:, 0].max().item() + 4,
@@ -295,7 +301,8 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
         ax.step(tt_u, plan_u[:, j], "--", where="post", color="tab:green", lw=2, label="plan")
         ax.step(tt_u, ctrl_u[:, j], "-", where="post", color="purple", lw=2, label="controller")
         lim = max(plan_u[:, j].abs().max().item(), ctrl_u[:, j].abs().max().item()) * 1.3 + 0.05
-        ax.set_ylim(-lim, lim); ax.set_xlabel("time (s)"); ax.set_ylabel(label); ax.grid(alpha=0.3)
+        ax.set(ylim=(-lim, lim), xlabel="time (s)", ylabel=label)
+        ax.grid(alpha=0.3)
     axd["w"].legend(loc="best")
     plt.show()
 
@@ -372,7 +379,8 @@ def figure_learning_curves(histories):
             ax.plot(range(1, len(v) + 1), v, color=color, alpha=0.25, lw=0.8)
             sm = smooth(v)
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
-        ax.set_xlabel("training step"); ax.set_ylabel(label); ax.grid(alpha=0.3)
+        ax.set(xlabel="training step", ylabel=label)
+        ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
     fig.suptitle("Learning curves on the training batches (faint: per batch; solid: 10-step mean)", fontsize=10)
     plt.show()
@@ -423,12 +431,14 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
         ax_d.plot(tt, (roll.ego[sc, :, :2] - agent[:, :2]).norm(dim=-1), color=color, label=name)
         ax_v.plot(tt, roll.ego[sc, :, 3], color=color, label=name)
     ax_v.plot(tt, cl_scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
-    ax.set_xlim(lo_[0], hi_[0]); ax.set_ylim(lo_[1], hi_[1]); ax.grid(alpha=0.3)
-    ax.set_xlabel("x (m)"); ax.set_ylabel("y (m), stretched")
+    ax.set(xlim=(lo_[0], hi_[0]), ylim=(lo_[1], hi_[1]), xlabel="x (m)", ylabel="y (m), stretched")
+    ax.grid(alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
     ax.set_title(f"closed loop, scene {cl_scenes.names[sc]}: executed ego trajectories (trajectory cost)")
-    ax_d.set_ylabel("distance to the predicted vehicle (m)"); ax_d.grid(alpha=0.3)
-    ax_v.set_xlabel("time (s)"); ax_v.set_ylabel("ego speed (m/s)"); ax_v.grid(alpha=0.3)
+    ax_d.set_ylabel("distance to the predicted vehicle (m)")
+    ax_v.set(xlabel="time (s)", ylabel="ego speed (m/s)")
+    for a in (ax_d, ax_v):
+        a.grid(alpha=0.3)
     _legend_right(ax_v)
     plt.show()
 

@@ -98,7 +98,6 @@ class Config:
     def __post_init__(self):
         check_config(self)
 
-
 # ===== 2. Dynamics: the dynamically-extended unicycle ===============================================================
 #
 # With constant yaw rate w and acceleration a over one step tau = dt, starting from (x, y, h, v):
@@ -227,7 +226,6 @@ def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tens
 
 class Unicycle:
     """The unicycle as the controller sees it: a step function with closed-form derivatives."""
-
     def __init__(self, dt: float):
         self.dt = check_positive("dt", dt)
 
@@ -240,7 +238,6 @@ class Unicycle:
     def curvature(self, s, u, lam):
         return unicycle_curvature(s, u, lam, self.dt)
 
-
 # ===== 3. Cost, eq. (3) and App. C.3 ================================================================================
 #
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
@@ -252,7 +249,6 @@ class Unicycle:
 @dataclass
 class CostContext:
     """What the cost knows about the world, as tensors so that gradients reach every one."""
-
     preds: torch.Tensor  # (B, K, T, 2)  predicted agent's mode positions, t1..T
     probs: torch.Tensor  # (B, K)        mode probabilities pi_k
     pred_mask: torch.Tensor  # (B,)      1 where the predicted agent counts (0: "No prediction")
@@ -460,13 +456,11 @@ class StackCost:
     def expansion(self, x, u, w, *context):
         return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
 
-
 # ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2) and App. C.1 ======================
 
 @dataclass
 class Candidates:
     """The planner's candidate trajectories for a batch."""
-
     x: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
     u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
     valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
@@ -603,7 +597,6 @@ def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 class Plan(NamedTuple):
     """The planner's output for a batch."""
-
     cands: Candidates
     cost: torch.Tensor  # (B, N)       C_n, eq. (3) with the given weights
     best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
@@ -638,7 +631,6 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
     cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
     return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
-
 
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward ========================
 #
@@ -906,7 +898,6 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     settings = dict(lo=lo, hi=hi, iters=iters, tol=tol, ls_steps=ls_steps, ls_decay=ls_decay, batched_params=batched_params)
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
-
 # ===== 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020) ==================
 #
 # From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego), K = 25 futures,
@@ -917,16 +908,9 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
 # a bidirectional LSTM over the true future; all K values of z are enumerated, none sampled. The GRU's next input
 # is the reparameterised sample of u_t in training (Trajectron++), the mean at evaluation; the modes are the
 # integrated mean controls either way, weighted by q(z|x,y) in training (the authors' code), p(z|x) at evaluation.
-#
-# Sizes: Trajectron++'s encoders (LSTM 32, p(z|x) MLP 64 -> 32 -> 25), decoder GRU 64 (Trajectron++: 128).
-# Left out of Trajectron++ (the paper uses no map and no ego-future conditioning): the map CNN, the robot-future
-# encoder, dropout, and the LSTM over summed neighbours of each edge type with attention over the types (here a
-# per-neighbour MLP, type as a feature, and masked attention over the neighbours themselves). Changed: the future
-# BiLSTM starts from zeros (Trajectron++: from the current state), v0 is the tracked speed, and every GMM
-# component gets a 5 cm position std floor (at v = 0 the controls cannot move the agent sideways).
+# Where this differs from Trajectron++ (no map, no ego-future conditioning, ...): docs/method.md.
 
 # ---- 6.1 Inputs: the 8-D state history, by backward differences ---------------------------
-
 
 def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
     """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (...,) (the first observed step) copy
@@ -952,10 +936,7 @@ def state_features(hist: torch.Tensor, origin: torch.Tensor, first: torch.Tensor
         [(pos - origin[..., None, :]) / sp, vel / sv, acc / sa, wrap_angle(hist[..., 2:3]) / sh, h_rate / sh], -1
     )  # (..., H, 8)
 
-
 # ---- 6.2 The model ------------------------------------------------------------------------
-
-
 @dataclass
 class Prediction:
     """What the predictor hands to the planner, its loss and metrics; all differentiable in theta."""
@@ -992,7 +973,6 @@ def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Te
 
 class Predictor(nn.Module):
     """Trajectron++-style CVAE over unicycle controls. pred = predictor(batch, use_posterior, step)."""
-
     def __init__(self, cfg: Config):
         super().__init__()
         self.cfg = cfg
@@ -1161,10 +1141,7 @@ def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
     y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
     return torch.stack([x, y, h, v], -1), _covariance_unrolled(M, N, cov_u.movedim((-2, -1), (0, 1)).contiguous(), cfg)
 
-
 # ---- 6.3 Loss: Trajectron++'s InfoVAE objective -------------------------------------------
-
-
 def gaussian2_log_prob(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, min_var: float = 0.0) -> torch.Tensor:
     """log N(y; mean, cov) of 2-D Gaussians: y, mean (..., 2), cov (..., 2, 2) -> (...); cov is known to be positive
     semi-definite plus min_var I."""
@@ -1213,7 +1190,6 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tu
     parts = {"loss": loss.mean().item(), "ll": ll.mean().item(), "kl": kl.mean().item(), "mi": mi.item(), "beta": beta}
     return loss, parts
 
-
 # ===== 7. The stack: predict -> plan -> control, §3.2 ===============================================================
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
@@ -1225,7 +1201,6 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tu
 @dataclass
 class Method:
     """A row of Table 1: where predictions come from and how the predictor is trained."""
-
     name: str
     predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
     losses: tuple = (1, 0, 0)  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
@@ -1241,7 +1216,6 @@ PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "dist
 @dataclass
 class StackOutput:
     """Per-scenario results of one pass through the stack (all (B,) unless noted)."""
-
     l_pred: torch.Tensor  # InfoVAE loss (0 without a learned predictor)
     l_plan: torch.Tensor  # cross-entropy of the relaxed planner with the target candidate
     l_ctr: torch.Tensor  # RL: hindsight cost of the controller's trajectory; IL: its squared error to the GT
@@ -1368,7 +1342,6 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
-
 
 
 # ===== 8. Input checks: what Config, Method and the public entry points refuse, naming the argument =================

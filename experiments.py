@@ -5,8 +5,7 @@
     python experiments.py --experiment all --seeds 5 --epochs 20 --out runs/epochs20   # at the paper's length
 
 Each table of the paper is a declarative TableSpec (its methods, setting, loss weights, metrics and the paper's
-own numbers), and one function, run_table, runs any of them. Every result file records the full Config and the
-git commit it was made from.
+own numbers), and one function, run_table, runs any of them (run_experiment: what each result file records).
 
 Map of the module:
     1. Specs          Column, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations (App. A.1, Table 6)
@@ -321,10 +320,9 @@ class PairedDifference(NamedTuple):
 
 
 def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """The paired difference of a metric, method[i] - baseline[i] for seed i (the two lists align by seed): pairing
-    removes what the two share in a seed (the same data order and evaluation set), so the spread left is that of the
-    difference itself. t is the paired t statistic (n - 1 degrees of freedom). With one seed the s.e. is
-    unknown (nan); with no spread at all it is 0 and t is -inf / +inf (or nan for a zero difference)."""
+    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two share in a seed (the
+    same data order and evaluation set), so the spread left is the difference's own; t has n - 1 degrees of freedom.
+    With one seed the s.e. is unknown (nan); with no spread it is 0 and t is -inf / +inf (nan for a zero difference)."""
     if len(baseline) != len(method):
         raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
     if not baseline:
@@ -348,8 +346,7 @@ def claim_verdict(p: PairedDifference) -> str:
 
 
 def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
-    """One line per claim: the paired difference (method - baseline, in the column's units), t, the seeds, the verdict.
-    results: the table's results (for an ablation, its section's)."""
+    """A claim's line (results: those its rows are in): the paired difference (method - baseline), t, the seeds, the verdict."""
     col = next((c for c in spec.columns if c.header == claim.column), None)
     if col is None:
         raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
@@ -501,10 +498,8 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
     frames = slice(f0 + 1, f0 + N + 1)
     agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
-    # C_coll = sum_a phi(||s_t - s_a,t||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
-    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
-    # C_lat, C_head against the map's lanes (world frame)
     lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
     w = cost_weights(cfg, x.dtype, x.device)
     parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each

@@ -41,7 +41,8 @@ FACTORIES = {getattr(torch, name) for name in (
     "tensor", "as_tensor", "asarray", "scalar_tensor", "zeros", "ones", "empty", "full", "arange", "linspace",
     "logspace", "eye", "rand", "randn", "randint", "randperm", "tril_indices", "triu_indices") if hasattr(torch, name)}
 HERE = pathlib.Path(__file__).resolve().parent
-AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "data_real.py")}  # data_synth: sample_at
+# data_synth: sample_at
+AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "data_real.py")}
 
 
 def section_lines() -> range:

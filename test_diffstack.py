@@ -858,7 +858,6 @@ def test_covariance_propagation_matches_monte_carlo():
     mu = torch.tensor([[0.2, 1.0], [0.1, -0.5], [-0.3, 0.0], [0.0, 0.5], [0.25, -1.0], [0.0, 0.0]], dtype=torch.float64)
     sig = torch.tensor([0.05, 0.3], dtype=torch.float64)
     cov_u = torch.diag(sig**2).expand(6, 2, 2)
-    states = ds.unicycle_rollout(s0, mu, DT)  # (7, 4)
     ekf = ds.integrate_modes(s0, mu, cov_u, cfg)[1]  # (6, 2, 2)
     n = 40000
     u = mu + sig * torch.randn(n, 6, 2, generator=g, dtype=torch.float64)

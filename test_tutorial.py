@@ -1,10 +1,18 @@
 """Tests of the course: tutorial.py (jupytext percent format) is the notebook's source, tutorial.ipynb is made from
 it, and the notebook runs top to bottom."""
+import ast
+import json
+import math
 import pathlib
 
 import jupytext
 import nbclient
 import nbformat
+import pytest
+import torch
+
+import course
+import solutions
 
 REPO = pathlib.Path(__file__).resolve().parent
 
@@ -77,16 +85,6 @@ def test_the_notebook_checks_stop_on_a_wrong_value(tmp_path, monkeypatch, capsys
 
 
 # --- the exercises: solutions pass their checks, known-wrong answers fail them ----------------------------------
-
-import ast
-import json
-import math
-
-import pytest
-import torch
-
-import course
-import solutions
 
 SOLUTIONS = {1: solutions.my_collision, 2: solutions.my_plan_loss, 3: solutions.my_riccati_step,
              4: solutions.my_plan_loss_grad}

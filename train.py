@@ -501,7 +501,8 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
         keep = out.plannable
         vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
         if out.pred is not None:
-            vals.update({k: v for k, v in prediction_metrics(out.pred, batch, cfg).items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
+            metrics = prediction_metrics(out.pred, batch, cfg)
+            vals.update({k: v for k, v in metrics.items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
         for k, v in vals.items():
             sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
         # the same sums per behaviour of the predicted agent (synthetic data; real data is labelled -1)
@@ -645,10 +646,11 @@ def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_
 def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seeds=PRETRAIN["seeds"], jobs=1,
              cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain"):
     """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables' 40 epochs (the
-    paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed, and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command,
-    date, commit, data, config, each file's sha256 and validation metrics). On one thread each, these are Table 1's
-    predictors of the same seeds to the bit (the tables train each seed on one thread). `jobs` worker processes
-    train them side by side. --quick evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
+    paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed,
+    and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command, date, commit, data,
+    config, each file's sha256 and validation metrics). On one thread each, these are Table 1's predictors of the
+    same seeds to the bit (the tables train each seed on one thread). `jobs` worker processes train them side by
+    side. --quick evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
     import hashlib
     import json
     import subprocess

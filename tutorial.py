@@ -35,11 +35,11 @@
 # | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 2 | < 1 s | < 1 s |
 # | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
 # | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
-# | 4 | the planner and its relaxed argmin; **exercises 2 and 4** (L_plan and its gradient), the gradient on a prediction | eq. (2), §3.1 | 1 s | 2 s |
+# | 4 | the planner, its relaxed argmin; **exercises 2 and 4** (L_plan, its gradient), a prediction's gradient | eq. (2), §3.1 | 1 s | 2 s |
 # | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 7 s | 5 s |
 # | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 12 s |
 # | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 120 s |
-# | 8 | a biased predictor (Table 2), imitation learning (Table 4), cost learning (Table 3), closed loop (Table 5), dt = 0.1 s | §4.2, §4.3, App. A | 14 s | 156 s |
+# | 8 | Tables 2, 4, 3, 5: biased predictor, imitation learning, cost learning, closed loop; dt = 0.1 s | §4.2-4.3, App. A | 14 s | 156 s |
 # | | **whole notebook** | | 36 s (under 1 min) | 297 s (5 min) |
 #
 # Times: wall time per section on one torch thread with the data cached (the first run generates it, a few seconds
@@ -113,8 +113,7 @@ print(f"{N_DATA} samples, {TRAIN_STEPS} training steps of batch {cfg.batch_size}
 #   $\arg\min_n C_n$ (eq. 2);
 # * the **controller** refines the plan with a box-constrained iLQR (eq. 4).
 #
-# Planner and controller are fixed, not learned, but differentiable, so the losses downstream of the predictor can
-# train it:
+# Planner and controller are fixed, not learned, but differentiable: the losses downstream of the predictor train it:
 #
 # $$\mathcal L \;=\; \alpha_1\,\mathcal L_\text{pred} + \alpha_2\,\mathcal L_\text{plan} + \alpha_3\,\mathcal L_\text{ctr},$$
 #
@@ -235,7 +234,8 @@ for a_, style in ((-3.0, ":"), (0.0, "-"), (2.0, "--")):
         ax.plot(x[k, :, 0], x[k, :, 1], style, color=plt.cm.coolwarm(k / 8), lw=1.6, marker=".", ms=4)
     ax.plot([], [], style, color="k", lw=1.6, label=f"a = {a_:+.0f} m/s²")  # the legend's line style, in black
 ax.plot(0, 0, "ks", ms=6, label="start, 8 m/s")
-ax.set_aspect("equal"); ax.set_xlabel("x (m)"); ax.set_ylabel("y (m)"); ax.grid(alpha=0.3)
+ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
+ax.grid(alpha=0.3)
 ax.legend(loc="upper left", bbox_to_anchor=(1.17, 1.0), title="acceleration (line style)")
 fig.colorbar(plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-0.7, 0.7)), ax=ax, label="yaw rate ω (rad/s)")
 ax.set_title("Unicycle rollouts over 3 s (dots every 0.5 s)")
@@ -243,7 +243,8 @@ plt.show()
 s, u = torch.randn(5, 4, dtype=torch.float64), torch.randn(5, 2, dtype=torch.float64) * 0.3
 A, B = ds.unicycle_jacobians(s, u, 0.5)
 J = torch.func.vmap(torch.func.jacrev(lambda s, u: ds.unicycle_step(s, u, 0.5), argnums=(0, 1)))(s, u)
-checkpoint("max |closed-form Jacobians - autograd|", max((A - J[0]).abs().max().item(), (B - J[1]).abs().max().item()), 0.0, 1e-12)
+checkpoint("max |closed-form Jacobians - autograd|", max((A - J[0]).abs().max().item(), (B - J[1]).abs().max().item()),
+           0.0, 1e-12)
 
 
 # %% [markdown]
@@ -251,8 +252,8 @@ checkpoint("max |closed-form Jacobians - autograd|", max((A - J[0]).abs().max().
 #
 # $$C = w_1 C_\text{coll} + w_2 C_\text{goal} + w_3 C_\text{lat} + w_4 C_\text{head} + w_5 C_u,\qquad w = (5, 0.5, 0.3, 0.3, 1),$$
 #
-# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) + \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),
-# \qquad \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
+# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) +
+# \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
 #
 # $$C_\text{goal} = \lVert s_T - g\rVert^2,\quad C_\text{lat} = \sum_t \lVert s_t - s_{\ell,\perp}\rVert^2,\quad
 # C_\text{head} = \sum_t \operatorname{wrap}(h_t - h_\ell)^2,\quad C_u = \sum_t \omega_t^2 + a_t^2 .$$
@@ -339,9 +340,8 @@ section_done("§3")
 #
 # $$n_\text{plan} = \arg\min_n C(s^{(n)}, u^{(n)};\ \hat s, \pi).$$
 #
-# An argmin has no useful gradient, so for training it is relaxed into a softmax, with the cross-entropy to the
-# target candidate $n^*$ as loss (RL: lowest *hindsight* cost, i.e. with the GT future as prediction; IL: closest to
-# the expert):
+# An argmin has no useful gradient, so for training it is relaxed into a softmax, with the cross-entropy to the target
+# candidate $n^*$ as loss (RL: lowest *hindsight* cost, i.e. with the GT future as prediction; IL: closest to the expert):
 #
 # $$p_n = \frac{\exp(-\beta C_n)}{\sum_{n'} \exp(-\beta C_{n'})},\qquad \mathcal L_\text{plan} = -\log p_{n^*}.$$
 #
@@ -368,9 +368,10 @@ betas = torch.logspace(-2, 2, 17)
 fig, ax = plt.subplots(figsize=(7.5, 3.4), layout="constrained")
 for c_, name in ((cost_gt, "GT prediction (target = its own argmin)"), (cost_none, "No prediction (vehicle ignored)")):
     ax.plot(betas, [ds.plan_loss(c_, cands.valid, target, b.item())[plannable].mean().item() for b in betas], "o-", ms=3, label=name)
-ax.set_xscale("log"); ax.set_xlabel("β"); ax.set_ylabel("mean L_plan (nats)"); ax.grid(alpha=0.3)
+ax.set(xscale="log", xlabel="β", ylabel="mean L_plan (nats)", title=f"L_plan over {int(plannable.sum())} plannable validation samples")
+ax.grid(alpha=0.3)
 ax.axvline(cfg.beta, color="0.6", ls=":", label=f"β = {cfg.beta} (the paper's)")
-ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0)); ax.set_title(f"L_plan over {int(plannable.sum())} plannable validation samples")
+ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
 plt.show()
 
 
@@ -469,8 +470,7 @@ section_done("§4")
 # %% [markdown]
 # ## 5. The controller: box-constrained iLQR, and its gradient
 #
-# The controller, started from the plan, finds the trajectory that minimises the cost under the dynamics and the
-# control limits, eq. (4):
+# The controller, started from the plan, finds the trajectory that minimises the cost under the dynamics and control limits, eq. (4):
 #
 # $$\min_{s_{1:T},\,u_{0:T-1}} C(s, u)\quad\text{s.t.}\quad s_{t+1} = f(s_t, u_t),\quad
 # \underline u \le u_t \le \overline u\ \ (\omega \in [-0.7, 0.7],\ a \in [-5, 4]).$$
@@ -491,13 +491,13 @@ section_done("§4")
 # homogeneous coordinates $[1; s; u]$; exercise 3 asks for them as written.)
 
 # %%
-# iLQR on 128 validation samples from the plan, with the GT prediction: the cost after each iteration.
-# (under a second)
+# iLQR on 128 validation samples from the plan, with the GT prediction: the cost after each iteration (under a second).
 batch = data.val[:128]
 ctx_b = gt_context(batch)
 cands, cost_b, best_b, ok_b, _ = ds.plan(batch.ego_hist[:, -1], ctx_b, batch.goal, w_hand, cfg)
 u_plan = cands.u[torch.arange(len(batch)), best_b]  # (B, T, 2) the plan's controls
-cost_fn = lambda x, u, w: ds.total_cost(x, u, ctx_b, w, cfg.rbf_var)  # the solver's interface: cost(x, u, *params)
+def cost_fn(x, u, w):  # the solver's interface: cost(x, u, *params)
+    return ds.total_cost(x, u, ctx_b, w, cfg.rbf_var)
 t0 = time.time()
 x, u, info = ds.ilqr(cost_fn, ds.Unicycle(cfg.dt), batch.ego_hist[:, -1], u_plan, (w_hand,),
                      torch.tensor(cfg.u_lower), torch.tensor(cfg.u_upper), iters=10, tol=cfg.ilqr_tol)
@@ -538,7 +538,8 @@ b64 = data.val[pick].to(torch.float64)
 ctx64 = gt_context(b64)
 w64 = ds.cost_weights(cfg, torch.float64)
 lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
-fn = lambda x, u, w, preds: ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
+def fn(x, u, w, preds):
+    return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
 s0 = b64.ego_hist[:, -1]
 _, u_star, info = ds.ilqr(fn, ds.Unicycle(cfg.dt), s0, torch.zeros(3, 6, 2, dtype=torch.float64), (w64, ctx64.preds),
                           lo, hi, iters=50, tol=1e-11)
@@ -555,13 +556,14 @@ def kkt_grads(exact):
 
 
 def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
-    ls = list(leaves); ls[i] = v
+    ls = [*leaves[:i], v, *leaves[i + 1:]]
     x, u, inf = ds.ilqr(fn, ds.Unicycle(cfg.dt), ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
     return (x * wx).sum() + (u * wu).sum()
 
 
 def central_fd(i, idx, h=1e-4):
-    e = torch.zeros_like(leaves[i]); e[idx] = h
+    e = torch.zeros_like(leaves[i])
+    e[idx] = h
     return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
 
 
@@ -770,13 +772,11 @@ display(Markdown(breakdown) if breakdown else
 plot_table(res1, "rl", "Table 1 (RL setting): lower is better")
 
 # %% [markdown]
-# **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained once more with the
-# same seed (`train_stack` is deterministic: the checkpoints confirm Table 1's rows; §6's predictor *is* Table 1's
-# Standard), and the stacks run on the validation set.
+# **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained again, same seed
+# (`train_stack` is deterministic: the checkpoints confirm Table 1's rows; §6's predictor *is* Table 1's Standard).
 
 # %%
-# DiffStack trained again (same seed as in Table 1); No prediction, Standard and DiffStack run on the validation set.
-# Expected run time: ~5 s quick, ~1 min full.
+# DiffStack trained again (Table 1's seed); No prediction, Standard and DiffStack on the validation set. ~5 s quick, ~1 min full.
 t0 = time.time()
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
