@@ -69,11 +69,11 @@ import torch.utils.benchmark as benchmark
 
 import data_synth
 import diffstack
-from diffstack import (Config, Method, Predictor, Unicycle, ilqr, ilqr_solve, plan_candidates, pred_loss, run_stack,
+from diffstack import (Config, Predictor, Unicycle, ilqr, ilqr_solve, plan_candidates, pred_loss, run_stack,
                        scene_plan, unicycle_jacobians, unicycle_rollout)
+from train import Method, alphas, bounded, check_writable, device_arg, machine, markdown_table
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy
 from runs import write_atomic
-from train import alphas, bounded, check_writable, device_arg, machine, markdown_table
 
 DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
 

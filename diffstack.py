@@ -1198,20 +1198,7 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tu
 #   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
 
 
-@dataclass
-class Method:
-    """A row of Table 1: where predictions come from and how the predictor is trained."""
-    name: str
-    predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
-    losses: tuple = (1, 0, 0)  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
-    weighting: str = "standard"  # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
-    train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
-
-    def __post_init__(self):
-        check_method(self)
-
-
-PREDICTORS, WEIGHTINGS, SETTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost"), ("rl", "il")
+SETTINGS = ("rl", "il")  # the planner target and L_ctr: hindsight cost (RL) or imitation (IL), §3.2
 
 @dataclass
 class StackOutput:
@@ -1271,7 +1258,7 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     terms = scene_terms(cands.x[..., 1:, :2], cands.x[..., 1:, 2], cands.u, goal[:, :2], batch.lanes, batch.lanes_mask)
     return ScenePlan(goal, cands, terms)
 
-def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", step=None, train=False,
+def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None, train=False,
               w=None, planner=True, controller=True, plan_others=True, pred_target=None, plan_dt=None,
               shard=None, scene: ScenePlan | None = None) -> StackOutput:
     """One pass of the stack over a batch of Scenarios.
@@ -1344,7 +1331,7 @@ def run_stack(batch, model, method: Method, cfg: Config, setting: str = "rl", st
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
 
 
-# ===== 8. Input checks: what Config, Method and the public entry points refuse, naming the argument =================
+# ===== 8. Input checks: what Config and the public entry points refuse, naming the argument ========================
 #
 # The entry points a user calls (unicycle_step, total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward,
 # run_stack) call one of these on their input; the math inside them is not checked again.
@@ -1384,17 +1371,6 @@ def check_config(cfg: Config) -> None:
     if not cfg.line_search_decay > 1 or not 0 < cfg.pred_lr_decay <= 1:
         raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
                          f"{cfg.line_search_decay} and {cfg.pred_lr_decay}")
-
-def check_method(m: Method) -> None:
-    if m.predictor not in PREDICTORS:
-        raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {m.predictor!r}")
-    if (not isinstance(m.losses, tuple) or len(m.losses) != 3
-            or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in m.losses)):
-        raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {m.losses!r}")
-    if not callable(m.weighting) and m.weighting not in WEIGHTINGS:
-        raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {m.weighting!r}")
-    if m.train_plan_weights not in (None, "posterior", "prior"):
-        raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {m.train_plan_weights!r}")
 
 def check_setting(setting) -> str:
     if setting not in SETTINGS:

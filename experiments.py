@@ -41,14 +41,14 @@ from tqdm import tqdm
 import data_real
 import data_synth
 import figures
-from diffstack import (Config, Method, Predictor, cost_contexts, cost_terms, cost_weights, project_to_lanes,
-                       route_goal, run_stack, unicycle_step, wrap_angle)
+from diffstack import (Config, Predictor, cost_contexts, cost_terms, cost_weights, project_to_lanes, route_goal,
+                       run_stack, unicycle_step, wrap_angle)
+from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
+                   check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
+                   mean_se, to_device, train_predictor, train_stack)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit, ours_files,
                   outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key, save_atomic,
                   to_json, write_atomic)
-from train import (TABLE1_METHODS, CostWeights, TrainingDiverged, add_relative, alphas, bounded, cell, check_writable,
-                   compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table, mean_se,
-                   to_device, train_predictor, train_stack)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 import data_synth
-from diffstack import Config, Method, Prediction, StackOutput, run_stack
-from train import TABLE1_METHODS, evaluate_stack, mean_se, to_device
+from diffstack import Config, Prediction, StackOutput, run_stack
+from train import Method, TABLE1_METHODS, evaluate_stack, mean_se, to_device
 
 
 def save_figure(fig, path) -> None:

@@ -153,14 +153,14 @@ def test_config_accepts_its_defaults_and_the_tests_small_models():
 ])
 def test_method_refuses_unknown_names(kw, culprit):
     with pytest.raises(ValueError, match=culprit):
-        ds.Method("m", **kw)
+        tr.Method("m", **kw)
 
 
 def test_unknown_setting_is_refused(batch):
     cfg = ds.Config()
-    for call in (lambda: ds.run_stack(batch, None, ds.Method("GT", "gt"), cfg, "xx"),
-                 lambda: tr.alphas(ds.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
-                 lambda: tr.evaluate_stack(None, batch, ds.Method("GT", "gt"), cfg, "Il")):
+    for call in (lambda: ds.run_stack(batch, None, tr.Method("GT", "gt"), cfg, "xx"),
+                 lambda: tr.alphas(tr.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
+                 lambda: tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), cfg, "Il")):
         with pytest.raises(ValueError, match="setting"):
             call()
 
@@ -227,13 +227,13 @@ def test_batches_with_inf_or_no_scenarios_are_refused(batch):
         bad = getattr(batch, field).clone()
         bad.view(-1)[0] = math.inf
         with pytest.raises(ValueError, match=field):
-            ds.run_stack(dataclasses.replace(batch, **{field: bad}), model, ds.Method("DiffStack", losses=(1, 1, 1)),
+            ds.run_stack(dataclasses.replace(batch, **{field: bad}), model, tr.Method("DiffStack", losses=(1, 1, 1)),
                          cfg, train=True, step=0)
     with pytest.raises(ValueError, match="batch"):
-        ds.run_stack(batch[:0], None, ds.Method("GT", "gt"), cfg)
+        ds.run_stack(batch[:0], None, tr.Method("GT", "gt"), cfg)
     with pytest.raises(ValueError, match="batch"):
         model(batch[:0], use_posterior=False)
-    ds.run_stack(batch, model, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)  # the valid batch runs
+    ds.run_stack(batch, model, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)  # the valid batch runs
 
 
 # ---------------------------------------------------------------------------------------------
@@ -262,5 +262,5 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     err = cli_error(tr.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
-        tr.load_pretrained(ds.Method("Standard"), ds.Config(), tmp_path / "pretrained")
+        tr.load_pretrained(tr.Method("Standard"), ds.Config(), tmp_path / "pretrained")
     assert "--quick or --pretrain" in cli_error(tr.main, ["--quick", "--pretrain"], capsys)

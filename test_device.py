@@ -109,10 +109,10 @@ def run_stack_everything(setup):
     data, cfg, model, *_ = setup
     batch = data.train[:8]
     outs = []
-    for method in (ds.Method("No prediction", "none"), ds.Method("GT prediction", "gt"), ds.Method("DiffStack", losses=(1, 1, 1))):
+    for method in (tr.Method("No prediction", "none"), tr.Method("GT prediction", "gt"), tr.Method("DiffStack", losses=(1, 1, 1))):
         out = ds.run_stack(batch, model, method, cfg, "rl", step=0, train=True)
         outs.append(out)
-    learned = ds.Method("DiffStack", losses=(1, 1, 1))
+    learned = tr.Method("DiffStack", losses=(1, 1, 1))
     outs.append(ds.run_stack(batch, model, learned, cfg, "il", planner=False, plan_others=False))
     outs.append(ds.run_stack(batch, model, learned, cfg, "rl", controller=False))
     outs.append(ds.run_stack(batch, model, learned, cfg, "rl", plan_dt=0.25))
@@ -127,11 +127,11 @@ def run_training(setup):
     data, cfg, model, _, weights = setup
     model, weights = copy.deepcopy(model), copy.deepcopy(weights)  # training changes them (learning the cost freezes the model)
     small = data.train[:32]
-    tr.train_stack(model, small, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=1.0, log=None)
-    tr.train_stack(model, small, ds.Method("Grad-cost weighted", weighting="grad_cost"), cfg, "rl", epochs=0.5, log=None)
-    tr.train_stack(model, small, ds.Method("Cost weights", losses=(0, 0, 1)), cfg, "il", epochs=0.5, log=None,
+    tr.train_stack(model, small, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=1.0, log=None)
+    tr.train_stack(model, small, tr.Method("Grad-cost weighted", weighting="grad_cost"), cfg, "rl", epochs=0.5, log=None)
+    tr.train_stack(model, small, tr.Method("Cost weights", losses=(0, 0, 1)), cfg, "il", epochs=0.5, log=None,
                    weights=weights)
-    for method in (ds.Method("No prediction", "none"), ds.Method("Standard")):
+    for method in (tr.Method("No prediction", "none"), tr.Method("Standard")):
         r = tr.evaluate_stack(model if method.predictor == "learned" else None, data.val[:16], method, cfg, "rl")
         assert isinstance(r["hindsight"], float)
 
@@ -140,7 +140,7 @@ def run_closed_loop(setup):
     """experiments.py: one closed-loop step (the simulation on the CPU, the stack on the model's device)."""
     data, cfg, model, scfg, _ = setup
     scenes = data.val_scenes[:2]
-    roll = ex.simulate(scenes, ex.stack_policy(model, ds.Method("Standard"), cfg), cfg, 0.5, scfg=scfg)
+    roll = ex.simulate(scenes, ex.stack_policy(model, tr.Method("Standard"), cfg), cfg, 0.5, scfg=scfg)
     assert roll.ego.device.type == "cpu" and roll.ego.shape[1] == 2
     m = ex.closed_loop_metrics(scenes, roll, cfg)
     assert all(v.device.type == "cpu" for v in m.values())
@@ -296,12 +296,12 @@ def test_the_stack_on_a_device_matches_the_cpu(device, setup):
     cpu_model.load_state_dict(model.state_dict())
     dev_model = ds.Predictor(cfg).double().to(device)
     dev_model.load_state_dict(model.state_dict())
-    for method in (ds.Method("No prediction", "none"), ds.Method("Standard")):
+    for method in (tr.Method("No prediction", "none"), tr.Method("Standard")):
         a = ds.run_stack(batch, cpu_model.eval(), method, cfg)
         b = ds.run_stack(batch.to(device=device), dev_model.eval(), method, cfg)
         assert b.x.device.type == device
         assert torch.allclose(a.hindsight, b.hindsight.cpu(), atol=1e-6)
     # training on the device: the data stays on the CPU (in the model's float64), each batch moved as it is drawn
-    history = tr.train_stack(dev_model, data.train[:32].to(torch.float64), ds.Method("DiffStack", losses=(1, 1, 1)),
+    history = tr.train_stack(dev_model, data.train[:32].to(torch.float64), tr.Method("DiffStack", losses=(1, 1, 1)),
                              cfg, epochs=1.0, log=None)
     assert history and all(torch.isfinite(torch.tensor(h["loss"])) for h in history)

@@ -931,7 +931,7 @@ def test_loss_matches_an_independent_computation():
         ds.pred_loss(model(b, use_posterior=False), b, 0, cfg)
 
 
-STANDARD = ds.Method("Standard")
+STANDARD = tr.Method("Standard")
 
 
 def test_loss_decreases_on_a_small_set():
@@ -999,7 +999,7 @@ def test_weighting_changes_training():
     out = []
     for weighting in ("standard", "distance"):
         model = make_model(cfg)
-        tr.train_stack(model, data, ds.Method("x", weighting=weighting), cfg, epochs=1, log=None)
+        tr.train_stack(model, data, tr.Method("x", weighting=weighting), cfg, epochs=1, log=None)
         out.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
     assert not torch.allclose(out[0], out[1])
 
@@ -1026,7 +1026,7 @@ def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weigh
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, train_plan_weights=weights)
     b = _cast(small.train[:32], torch.float64)
     model = make_model(cfg)
-    out = ds.run_stack(b, model, ds.Method("DiffStack"), cfg, "rl", step=0, train=True)
+    out = ds.run_stack(b, model, tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
     (out.l_plan.mean() + out.l_ctr.mean()).backward()
     grads = dict(model.named_parameters())
     prior = sum(float(p.grad.abs().sum()) for n, p in grads.items() if n.startswith("p_z.") and p.grad is not None)
@@ -1042,13 +1042,13 @@ def test_a_method_chooses_its_own_planner_weights(small):
     b = _cast(small.train[:32], torch.float64)
     for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
         model = make_model(cfg)
-        out = ds.run_stack(b, model, ds.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights), cfg, "rl",
+        out = ds.run_stack(b, model, tr.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights), cfg, "rl",
                            step=0, train=True)
         (out.l_plan.mean() + out.l_ctr.mean()).backward()
         prior = sum(float(p.grad.abs().sum()) for n, p in model.named_parameters() if n.startswith("p_z.") and p.grad is not None)
         assert (prior > 0) == reaches, weights
     with pytest.raises(ValueError, match="Method.train_plan_weights"):
-        ds.Method("DiffStack", train_plan_weights="both")
+        tr.Method("DiffStack", train_plan_weights="both")
 
 
 def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
@@ -1066,8 +1066,8 @@ def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
     # within 0.2 m of its lane's centre)
     chord = (g[:, :2] - s0[:, :2]).norm(dim=-1)
     assert torch.allclose(chord, ahead, atol=0.3), (chord - ahead).abs().max()
-    out_route = ds.run_stack(b, None, ds.Method("No prediction", "none"), cfg, "rl")
-    out_logged = ds.run_stack(b, None, ds.Method("No prediction", "none"), ds.Config(), "rl")
+    out_route = ds.run_stack(b, None, tr.Method("No prediction", "none"), cfg, "rl")
+    out_logged = ds.run_stack(b, None, tr.Method("No prediction", "none"), ds.Config(), "rl")
     end = lambda out: out.x[:, -1, :2]  # noqa: E731
     closer = ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1)).float().mean()
     assert closer > 0.7  # planning towards the route goal ends nearer to it than planning towards the logged one
@@ -1080,7 +1080,7 @@ def test_a_learning_curve_does_not_change_the_training(small):
     the random state: the trained weights are those of a run without the curve."""
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=32)
     data = data_synth.Dataset(small.train[:64], small.val[:16], None)
-    m = ds.Method("DiffStack", losses=(1, 1, 1))
+    m = tr.Method("DiffStack", losses=(1, 1, 1))
     plain = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
     curved = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
     assert not hasattr(plain, "learning_curve")
@@ -1105,7 +1105,7 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
                  (scenes[rows].cands.valid, own.cands.valid), (scenes[rows].terms, own.terms)):
         assert torch.equal(a, b)
     model = make_model(cfg).float()
-    m = ds.Method("DiffStack", losses=(1, 1, 1))
+    m = tr.Method("DiffStack", losses=(1, 1, 1))
 
     def run(scene):
         torch.manual_seed(1)  # the decoder's sampled controls
@@ -1130,7 +1130,7 @@ def test_training_refuses_bad_data_before_the_first_step(small):
     lanes[last, 0, 0, 0] = math.nan
     lines = []
     with pytest.raises(ValueError, match="lanes"):
-        tr.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), ds.Method("DiffStack", losses=(1, 1, 1)),
+        tr.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), tr.Method("DiffStack", losses=(1, 1, 1)),
                        cfg, "rl", epochs=4.0, log=lines.append)
     assert lines == []
 
@@ -1138,7 +1138,7 @@ def test_training_refuses_bad_data_before_the_first_step(small):
 def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
     """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their counts, are the
     overall means."""
-    r = tr.evaluate_stack(None, small.val, ds.Method("GT prediction", "gt"), ds.Config(), "rl")
+    r = tr.evaluate_stack(None, small.val, tr.Method("GT prediction", "gt"), ds.Config(), "rl")
     by = r["by_behaviour"]
     assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
     for key in ("hindsight", "mse", "plan_loss"):
@@ -1572,7 +1572,7 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
     batch = synth_small.train[:6].to(torch.float64)
     torch.manual_seed(0)
     model = ds.Predictor(cfg).double()
-    method = ds.Method("DiffStack", losses=(1, 1, 1))
+    method = tr.Method("DiffStack", losses=(1, 1, 1))
     a1, a2, a3 = tr.alphas(method, "rl", cfg)
 
     def loss():
@@ -1610,14 +1610,14 @@ def test_upsample_keeps_the_knots_and_interpolates_linearly():
 @pytest.mark.parametrize("plan_dt", [0.3, 0.0, -0.1, 1.0])
 def test_plan_dt_that_does_not_divide_dt_is_refused(synth_small, plan_dt):
     with pytest.raises(ValueError, match="plan_dt"):
-        ds.run_stack(synth_small.val[:4], None, ds.Method("GT prediction", "gt"), ds.Config(), plan_dt=plan_dt)
+        ds.run_stack(synth_small.val[:4], None, tr.Method("GT prediction", "gt"), ds.Config(), plan_dt=plan_dt)
 
 
 def test_plan_dt_changes_the_resolution_not_the_problem(synth_small):
     """plan_dt = dt is the default stack exactly; at 0.1 s the same 3 s are planned in 30 steps and, with the
     per-step terms scaled by 1/5, the costs and the trajectory at the logged steps stay close to the 0.5 s ones
     (unscaled, control effort and lane terms would count 5x and the goal 1x)."""
-    cfg, batch, gt = ds.Config(), synth_small.train[:64].to(torch.float64), ds.Method("GT prediction", "gt")
+    cfg, batch, gt = ds.Config(), synth_small.train[:64].to(torch.float64), tr.Method("GT prediction", "gt")
     base = ds.run_stack(batch, None, gt, cfg)
     same = ds.run_stack(batch, None, gt, cfg, plan_dt=0.5)
     assert torch.equal(base.x, same.x) and torch.equal(base.hindsight, same.hindsight)
@@ -1636,13 +1636,13 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
     batch = synth_small.train[:32]
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
-    out = ds.run_stack(batch, model, ds.Method("DiffStack", losses=(0, 1, 1)), cfg, "rl", step=0, train=True)
+    out = ds.run_stack(batch, model, tr.Method("DiffStack", losses=(0, 1, 1)), cfg, "rl", step=0, train=True)
     for loss in (out.l_plan.mean(), out.l_ctr.mean()):
         g = torch.autograd.grad(loss, model.dec_h0.weight, retain_graph=True)[0]
         assert g.abs().sum() > 0
     # No prediction and GT prediction need no model; GT prediction plans at least as well in hindsight on average
-    none = ds.run_stack(batch, None, ds.Method("No prediction", "none"), cfg)
-    gt = ds.run_stack(batch, None, ds.Method("GT prediction", "gt"), cfg)
+    none = ds.run_stack(batch, None, tr.Method("No prediction", "none"), cfg)
+    gt = ds.run_stack(batch, None, tr.Method("GT prediction", "gt"), cfg)
     assert torch.isfinite(none.hindsight).all() and gt.hindsight.mean() <= none.hindsight.mean() + 1e-6
 
 
@@ -1667,16 +1667,16 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
         tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
-    models, prov = tr.load_pretrained(ds.Method("DiffStack"), cfg, out)
+    models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
-    again = tr.train_predictor(ds.Method("DiffStack", losses=(1, 1, 1)), data_real.load_data(n=300, cache_dir=tmp_path),
+    again = tr.train_predictor(tr.Method("DiffStack", losses=(1, 1, 1)), data_real.load_data(n=300, cache_dir=tmp_path),
                                cfg, "rl", 0.5, 1, None)  # seed 1, trained here: the shipped seed 1 to the bit
     assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
     assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))
     # two worker processes make the same files, byte for byte
     pooled = tr.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None)
     assert {k: v["sha256"] for k, v in pooled["files"].items()} == {k: v["sha256"] for k, v in about["files"].items()}
-    assert tr.load_pretrained(ds.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
+    assert tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
     lines = []
     res, _ = tr.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
     assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2  # a row per seed
@@ -1684,7 +1684,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     with open(out / "standard-seed1.pt", "ab") as f:
         f.write(b"tampered")
     with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
-        tr.load_pretrained(ds.Method("Standard"), cfg, out)
+        tr.load_pretrained(tr.Method("Standard"), cfg, out)
 
 
 def test_quick_story_states_only_what_its_numbers_show():

@@ -43,7 +43,7 @@ def cases():
     return [("Standard", methods["Standard"], "rl", train, cfg, False),
             ("Distance weighted", methods["Distance weighted"], "rl", train, cfg, False),
             ("DiffStack", methods["DiffStack"], "rl", train, cfg, False),
-            ("cost weights", ds.Method("Cost weights", losses=(0, 0, 1)), "il", train, cfg, True)]
+            ("cost weights", tr.Method("Cost weights", losses=(0, 0, 1)), "il", train, cfg, True)]
 
 
 def train_all() -> dict:
@@ -163,7 +163,7 @@ def test_batch_size_must_split_over_the_ranks():
     tr.Shard.of_process_group = staticmethod(lambda: tr.Shard(0, 3))
     try:
         with pytest.raises(ValueError, match="cfg.batch_size: 8 scenarios per step do not split evenly over 3"):
-            tr.train_stack(ds.Predictor(cfg).double(), data, ds.Method("Standard"), cfg, log=None)
+            tr.train_stack(ds.Predictor(cfg).double(), data, tr.Method("Standard"), cfg, log=None)
     finally:
         tr.Shard.of_process_group = original
 

@@ -94,7 +94,7 @@ def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
 def test_controller_gradient_reaches_the_cost_weights(clean):
     (data, _), cfg = clean, ds.Config()
     cw = tr.CostWeights(cfg)
-    out = ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=cw())
+    out = ds.run_stack(data.val[:16], None, tr.Method("GT prediction", "gt"), cfg, "il", w=cw())
     keep = out.plannable.to(out.l_ctr.dtype)
     ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()  # the plannable mean, as in training
     assert torch.isfinite(cw.psi.grad).all() and cw.psi.grad.abs().sum() > 0 and cw.log_alpha.grad.abs() > 0
@@ -115,7 +115,7 @@ def test_controller_solution_does_not_depend_on_the_cost_scale(clean):
     # why alpha is not identified (CostWeights): argmin alpha C is the same for every alpha > 0
     (data, _), cfg = clean, ds.Config()
     w = ds.cost_weights(cfg)
-    out = [ds.run_stack(data.val[:16], None, ds.Method("GT prediction", "gt"), cfg, "il", w=s * w) for s in (1.0, 0.3)]
+    out = [ds.run_stack(data.val[:16], None, tr.Method("GT prediction", "gt"), cfg, "il", w=s * w) for s in (1.0, 0.3)]
     assert out[0].plannable.any()
     assert torch.allclose(out[0].u, out[1].u, rtol=0, atol=1e-5)
     assert not torch.allclose(out[0].cand_cost, out[1].cand_cost)  # the costs themselves do scale
@@ -174,7 +174,7 @@ def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
 def test_gt_prediction_closed_loop_stays_near_the_log(clean):
     (data, scfg), cfg = clean, ds.Config()
     scenes = data.val_scenes
-    roll = ex.simulate(scenes, ex.stack_policy(None, ds.Method("GT prediction", "gt"), cfg), cfg, 10.0, scfg=scfg)
+    roll = ex.simulate(scenes, ex.stack_policy(None, tr.Method("GT prediction", "gt"), cfg), cfg, 10.0, scfg=scfg)
     m = ex.closed_loop_metrics(scenes, roll, cfg)
     assert all(torch.isfinite(v).all() for v in m.values())
     assert (m["deviation"] < 2.0).all() and (m["plannable"] > 0.9).all()

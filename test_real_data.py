@@ -264,7 +264,7 @@ def test_the_stack_runs_on_real_scenes(real):
     cfg = diffstack.Config(**TINY)
     torch.manual_seed(0)
     model = diffstack.Predictor(cfg)
-    out = diffstack.run_stack(batch, model, diffstack.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", step=0,
+    out = diffstack.run_stack(batch, model, train.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", step=0,
                               train=True)
     loss = (out.l_pred + out.l_plan + out.l_ctr)[out.plannable].mean()
     loss.backward()

@@ -262,5 +262,5 @@ def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatc
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
     with pytest.raises(tr.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
-        tr.train_stack(model, data, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
+        tr.train_stack(model, data, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
     assert seen == [0, 1, 2] and all(torch.isfinite(p).all() for p in model.parameters())

@@ -28,7 +28,7 @@ from torch.utils.data.distributed import DistributedSampler
 import data_real
 import data_synth
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
-from diffstack import (Candidates, Config, Method, Prediction, Predictor, ScenePlan, check_batch, check_setting,
+from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
                        collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
 
 # --------------------------------------------------------------------------------------------
@@ -117,6 +117,32 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
         raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
     mean = raw.mean(0) if shard is None else shard.mean(raw)
     return raw / mean if mean > 0 else torch.ones_like(raw)
+
+
+@dataclass
+class Method:
+    """A row of Table 1: where predictions come from and how the predictor is trained (run_stack reads `predictor` and
+    `train_plan_weights`)."""
+
+    name: str
+    predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
+    losses: tuple = (1, 0, 0)  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
+    weighting: str = "standard"  # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
+    train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
+
+    def __post_init__(self):
+        if self.predictor not in PREDICTORS:
+            raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {self.predictor!r}")
+        if (not isinstance(self.losses, tuple) or len(self.losses) != 3
+                or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in self.losses)):
+            raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}")
+        if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
+            raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}")
+        if self.train_plan_weights not in (None, "posterior", "prior"):
+            raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}")
+
+
+PREDICTORS, WEIGHTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost")
 
 
 TABLE1_METHODS = (

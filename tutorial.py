@@ -644,7 +644,7 @@ section_done("§5")
 t0 = time.time()
 torch.manual_seed(SEED)                       # the initialisation (as open_loop_experiment does)
 model_std = ds.Predictor(cfg)
-hist_std = tr.train_stack(model_std, data.train, ds.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED,
+hist_std = tr.train_stack(model_std, data.train, tr.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED,
                       log=print if not QUICK else None)
 m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
@@ -780,12 +780,12 @@ plot_table(res1, "rl", "Table 1 (RL setting): lower is better")
 t0 = time.time()
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
-hist_ds = tr.train_stack(model_ds, data.train, ds.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=EPOCHS,
+hist_ds = tr.train_stack(model_ds, data.train, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=EPOCHS,
                          seed=SEED, log=None)
 outs = {}
-for name, model, method in (("No prediction", None, ds.Method("No prediction", "none")),
-                            ("Standard", model_std, ds.Method("Standard")),
-                            ("DiffStack", model_ds, ds.Method("DiffStack", losses=(1, 1, 1)))):
+for name, model, method in (("No prediction", None, tr.Method("No prediction", "none")),
+                            ("Standard", model_std, tr.Method("Standard")),
+                            ("DiffStack", model_ds, tr.Method("DiffStack", losses=(1, 1, 1)))):
     if model is not None:
         model.eval()
     with torch.no_grad():
@@ -853,8 +853,8 @@ section_done("§7")
 # %%
 # Table 2 (biased targets, RL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
-methods2 = (ds.Method("No prediction", "none"), ds.Method("Standard-biased"), ds.Method("DiffStack-biased", losses=(1, 1, 1)),
-            ds.Method("GT prediction", "gt"))
+methods2 = (tr.Method("No prediction", "none"), tr.Method("Standard-biased"), tr.Method("DiffStack-biased", losses=(1, 1, 1)),
+            tr.Method("GT prediction", "gt"))
 res2 = xp.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None)
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(res2, "rl")))
@@ -960,8 +960,8 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # %%
 # Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s quick, ~30 s full.
 t0 = time.time()
-stacks = {"No prediction": (None, ds.Method("No prediction", "none")), "Standard": (model_std, ds.Method("Standard")),
-          "DiffStack": (model_ds, ds.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, ds.Method("GT prediction", "gt"))}
+stacks = {"No prediction": (None, tr.Method("No prediction", "none")), "Standard": (model_std, tr.Method("Standard")),
+          "DiffStack": (model_ds, tr.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, tr.Method("GT prediction", "gt"))}
 fine = {name: [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
 with torch.no_grad():  # the two stacks drawn below (evaluate_stack has put the models in eval mode)
     outs01 = {name: ds.run_stack(data.val, *stacks[name], cfg, "rl", plan_dt=0.1) for name in ("Standard", "DiffStack")}
