@@ -111,15 +111,14 @@ class Config:
 #     c_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),  s_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2))
 # replaces them, and they get a safe w = 1 there (a tiny w inside torch.where would put NaN into the gradient).
 
-_SERIES_TERMS = 7
-_SERIES_SWITCH = 0.3
+_SERIES_SWITCH = 0.3  # |w tau| below which the series replaces the closed forms
 
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, tau, dtype, device):
     """The series' coefficients in powers of th^2, highest first (rows (2 (jmax+1),)), and tau^(j+1) (jmax+1,)."""
     f = math.factorial
     coef = [[(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
-            + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(_SERIES_TERMS)]
+            + [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)] for k in range(7)]
     tau_pow = torch.tensor(tau, dtype=dtype, device=device) ** torch.arange(1, jmax + 2, dtype=dtype, device=device)
     return tuple(torch.tensor(coef[::-1], dtype=dtype, device=device).unbind(0)), tau_pow
 
@@ -148,8 +147,7 @@ def _moments(w, tau, jmax):
 
 def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     """One exact step of the unicycle: s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s' (..., 4)."""
-    check_points("s", s, 4)
-    check_points("u", u, 2, s.dtype)
+    check_tensor("s", s, (..., 4)), check_tensor("u", u, (..., 2), s.dtype)
     return _unicycle_step(s, u, check_positive("dt", dt))
 
 def _unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
@@ -226,6 +224,7 @@ def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tens
 
 class Unicycle:
     """The unicycle as the controller sees it: a step function with closed-form derivatives."""
+
     def __init__(self, dt: float):
         self.dt = check_positive("dt", dt)
 
@@ -279,17 +278,6 @@ def segment_projection(q, a, b):
     on_segment = ((raw >= 0) & (raw <= 1))[..., None]
     dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
     return frac, r, lane_h, dfrac
-
-def lane_segments(p, lanes, lanes_mask):
-    """p (B, ..., 2) projected on every lane segment: per segment (B, ..., L, P-1) the fraction along it, the squared
-    distance, the lane heading there and whether the segment is valid. lanes (B, L, P, 3), lanes_mask (B, L, P)."""
-    B = lanes.shape[0]
-    view = lambda t: t.reshape(B, *([1] * (p.dim() - 2)), *t.shape[1:])  # noqa: E731  broadcast over ...
-    a, b = view(lanes[:, :, :-1]), view(lanes[:, :, 1:])  # segment ends (B, 1.., L, P-1, 3)
-    seg_ok = view(lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:])
-    frac, r, lane_h, _ = segment_projection(p[..., None, None, :], a, b)  # (B, ..., L, P-1), (.., 2), (..)
-    d2 = (r**2).sum(-1)
-    return frac, d2, lane_h, seg_ok.expand_as(d2)
 
 _SEARCH_LAM = 50.0  # m^2: a lane point heading the other way at distance d ranks as one at sqrt(d^2 + 100 m^2)
 
@@ -473,8 +461,9 @@ def _lane_arclength(lanes, lanes_mask):
 
 def _project_each_lane(p, lanes, lanes_mask, cum):
     """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each (B, L)."""
-    frac, d2, lane_h, seg_ok = lane_segments(p, lanes, lanes_mask)  # (B, L, P-1)
-    d2 = torch.where(seg_ok, d2, torch.full_like(d2, 1e9))
+    seg_ok = lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:]  # (B, L, P-1)
+    frac, r, lane_h, _ = segment_projection(p[:, None, None, :], lanes[:, :, :-1], lanes[:, :, 1:])  # (B, L, P-1)
+    d2 = torch.where(seg_ok, (r**2).sum(-1), torch.full_like(r[..., 0], 1e9))
     best = d2.argmin(-1, keepdim=True)  # (B, L, 1)
     pick = lambda t: t.gather(-1, best).squeeze(-1)  # noqa: E731
     seg_len = cum[..., 1:] - cum[..., :-1]
@@ -973,6 +962,7 @@ def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Te
 
 class Predictor(nn.Module):
     """Trajectron++-style CVAE over unicycle controls. pred = predictor(batch, use_posterior, step)."""
+
     def __init__(self, cfg: Config):
         super().__init__()
         self.cfg = cfg
@@ -1381,8 +1371,11 @@ def check_tensor(name: str, t, shape=None, dtype=None):
     """ValueError naming `name` unless t is a tensor of the given shape (None: any size there) and dtype, and finite."""
     if not torch.is_tensor(t):
         raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
-    if shape is not None and (t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape))):
-        want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+    tail = shape is not None and shape[0] is ...  # (..., n): any leading dims
+    dims = t.shape[t.dim() - len(shape) + 1:] if tail else t.shape
+    if shape is not None and (t.dim() < len(shape) - tail or len(dims) != len(shape) - tail
+                              or any(s is not None and s != d for s, d in zip(shape[tail:], dims))):
+        want = "(" + ", ".join("..." if s is ... else "*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
     if dtype is not None and t.dtype != dtype:
         raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
@@ -1398,12 +1391,6 @@ def check_positive(name: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return value
-
-def check_points(name: str, t, n: int, dtype=None):
-    """check_tensor for points (..., n)."""
-    if torch.is_tensor(t) and (t.dim() == 0 or t.shape[-1] != n):
-        raise ValueError(f"{name}: expected shape (..., {n}), got {tuple(t.shape)}")
-    return check_tensor(name, t, dtype=dtype)
 
 def check_plan_inputs(s0, goal, lanes, lanes_mask, goal_name="goal") -> int:
     """The planner's inputs; returns the batch size B."""
