@@ -1329,26 +1329,22 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
 
 def check_config(cfg: Config) -> None:
     """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
-    counts = ("hist_len", "horizon", "max_goal_lanes", "ilqr_iters", "line_search_steps", "pred_modes",
-              "pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden", "batch_size")
-    positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel",
-                "feas_yaw_per_speed", "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
+    positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel", "feas_yaw_per_speed",
+                "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
     non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
-    lengths = dict(plan_accels=None, plan_offsets=None, u_lower=2, u_upper=2, pred_scales=4, pred_beta=3,
-                   pred_logit_clip=4, alpha_rl=3, alpha_il=3)
+    sizes = dict(u_lower=2, u_upper=2, pred_scales=4, pred_beta=3, pred_logit_clip=4, alpha_rl=3, alpha_il=3)
     choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
+    finite = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)  # noqa: E731
     for f in dataclasses.fields(cfg):
-        v, bad = getattr(cfg, f.name), None
+        v, n, bad = getattr(cfg, f.name), sizes.get(f.name), None
         if f.name in choices:
             bad = v not in choices[f.name] and f"one of {choices[f.name]}"
-        elif f.name in counts:
+        elif f.type == "int":
             bad = (isinstance(v, bool) or not isinstance(v, int) or v < 1) and "a whole number >= 1"
-        elif f.name in lengths:
-            n = lengths[f.name]
-            bad = ((not isinstance(v, tuple) or not v or (n is not None and len(v) != n)
-                    or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v))
+        elif f.type == "tuple":
+            bad = ((not isinstance(v, tuple) or not v or len(v) != (n or len(v)) or not all(map(finite, v)))
                    and f"a tuple of {n or 'one or more'} finite numbers")
-        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        elif not finite(v):
             bad = "a finite number"
         elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
             bad = "> 0" if f.name in positive else ">= 0"
