@@ -258,22 +258,15 @@ class CostContext:
     lanes_mask: torch.Tensor  # (B, L, P)
 
     def tensors(self):
-        return (self.preds, self.probs, self.pred_mask, self.others, self.others_mask, self.goal, self.lanes,
-                self.lanes_mask)
-
-def segment_offset(q, a, b):
-    """q (..., 2) minus its closest point a + frac (b - a) on the segment a -> b (..., 2 or 3); frac clamped to [0, 1],
-    and the unclamped fraction."""
-    d = b[..., :2] - a[..., :2]  # (..., 2)
-    raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)
-    frac = raw.clamp(0, 1)
-    return q - a[..., :2] - frac[..., None] * d, frac, raw
+        return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
 
 def segment_projection(q, a, b):
-    """The closest point to q (..., 2) on a -> b (..., 3) (x, y, heading): frac (...,), r = q - that point (..., 2), the
-    lane heading there (interpolated between the ends) and dfrac/dq (..., 2) (0 where clamped)."""
-    r, frac, raw = segment_offset(q, a, b)
+    """The closest point to q (..., 2) on a -> b (..., 3) (x, y, heading): frac (...,) along the segment (clamped to
+    [0, 1]), r = q - that point (..., 2), the lane heading there (interpolated) and dfrac/dq (..., 2) (0 where clamped)."""
     d = b[..., :2] - a[..., :2]  # (..., 2)
+    raw = ((q - a[..., :2]) * d).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)  # the fraction before the clamp
+    frac = raw.clamp(0, 1)
+    r = q - a[..., :2] - frac[..., None] * d
     lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
     on_segment = ((raw >= 0) & (raw <= 1))[..., None]
     dfrac = torch.where(on_segment, d / (d * d).sum(-1, keepdim=True).clamp_min(1e-9), 0.0)  # as clamp's gradient
@@ -304,7 +297,7 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     n_valid = lanes_mask.sum(-1).gather(1, lane)  # (B, Q)
     point = lambda k: pts.gather(1, (lane * P + k)[..., None].expand(B, -1, 3))  # noqa: E731  (B, Q, 3)
     prev, here, nxt = point((i - 1).clamp_min(0)), point(i), point(torch.minimum(i + 1, (n_valid - 1).clamp_min(0)))
-    d2 = lambda a, b: segment_offset(qd, a.detach(), b.detach())[0].square().sum(-1)  # noqa: E731  (B, Q)
+    d2 = lambda a, b: segment_projection(qd, a.detach(), b.detach())[1].square().sum(-1)  # noqa: E731  (B, Q)
     closer = d2(here, nxt) < d2(prev, here)  # (B, Q)
     return torch.where(closer[..., None], here, prev), torch.where(closer[..., None], nxt, here), has_lane
 
