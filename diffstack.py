@@ -37,10 +37,8 @@ def wrap_angle(a):
 
 @dataclass
 class Config:
-    """Every default of the paper (its App. C and D, Trajectron++ for the predictor); where the authors'
-    released code differs, a comment says so."""
+    """Every default of the paper (App. C, D; Trajectron++'s for the predictor); comments say where the authors' code differs."""
 
-    # --- time ---
     dt: float = 0.5  # time step (s); nuScenes key frames are 2 Hz
     hist_len: int = 8  # past steps of history (4 s); the current state makes 9
     horizon: int = 6  # planning / prediction horizon T in steps (3 s)
@@ -52,9 +50,7 @@ class Config:
     w_ctrl: float = 1.0  # control effort weight w5
     rbf_var: float = 2.0  # sigma^2 (m^2) of the collision RBF phi(d2) = exp(-d2 / 2 sigma^2) (the authors' exp(-d^2/4))
     # --- planner, eq. (2), App. C.1 ---
-    # the goal g of eq. (3): 'logged', the GT ego state at T (App. C.3), or 'route', where the ego would be at T keeping
-    # its speed along its lane, which unlike the logged goal holds no reaction to the others (see route_goal)
-    goal: str = "logged"
+    goal: str = "logged"  # g of eq. (3): the GT ego state at T (App. C.3), or 'route' (see route_goal)
     goal_lane_dist: float = 4.5  # a goal lane passes within this distance (m) of the goal
     goal_lane_heading: float = math.pi / 2  # ... and its heading differs from the goal's by less (authors' code: pi/4)
     max_goal_lanes: int = 2  # lanes kept, closest to the goal first (the paper: every goal lane); N = 8 x 3 x this
@@ -91,9 +87,7 @@ class Config:
     alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
     lr: float = 3e-3  # Adam learning rate
     batch_size: int = 256  # scenarios per training step
-    # the mode probabilities the planner sees in training: 'posterior', q(z|x,y), as the authors' code (so L_plan and
-    # L_ctr never reach p(z|x), which evaluation uses), or 'prior', p(z|x), as at evaluation
-    train_plan_weights: str = "posterior"
+    train_plan_weights: str = "posterior"  # the planner's mode weights in training: q(z|x,y) (authors' code) or 'prior'
 
     def __post_init__(self):
         check_config(self)
@@ -101,8 +95,7 @@ class Config:
 # ===== 2. Dynamics: the dynamically-extended unicycle ===============================================================
 #
 # With constant yaw rate w and acceleration a over one step tau = dt, starting from (x, y, h, v):
-#     h' = h + w tau,   v' = v + a tau,
-#     [x', y'] = [x, y] + R(h) [along, lateral],
+#     h' = h + w tau,   v' = v + a tau,   [x', y'] = [x, y] + R(h) [along, lateral],
 #     along   = int_0^tau (v + a s) cos(w s) ds = v c_0 + a c_1,
 #     lateral = int_0^tau (v + a s) sin(w s) ds = v s_0 + a s_1,
 # with the moments c_j = int_0^tau s^j cos(w s) ds and s_j = int_0^tau s^j sin(w s) ds, whose derivatives are
@@ -238,12 +231,8 @@ class Unicycle:
         return unicycle_curvature(s, u, lam, self.dt)
 
 # ===== 3. Cost, eq. (3) and App. C.3 ================================================================================
-#
-#   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u
-#
-# A sum of per-step terms, each of one step's state and control: the controller relies on the cost's Hessian
-# being block-diagonal in time.
-
+#   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u, a sum of per-step terms, each of one step's state and
+#   control: the controller relies on the cost's Hessian being block-diagonal in time.
 
 @dataclass
 class CostContext:
@@ -486,11 +475,9 @@ def _hermite(p0, m0, p1, m1, tau):
     return list(out.movedim(1, -2))  # value, first, second derivative, each (..., Q, 2)
 
 def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
-    """Candidate trajectories (App. C.1): for up to `max_goal_lanes` goal lanes, the terminal accelerations
-    (8) x lateral offsets (3) give 24 terminal states each; a cubic spline joins s0 to each. The paper's spline
-    "minimizes mean control effort"; here, as in the authors' code, it is the cubic Hermite curve fixed by the
-    position and velocity at both ends. s0 (B, 4) current ego state, goal (B, 4), lanes (B, L, P, 3), lanes_mask
-    (B, L, P)."""
+    """Candidate trajectories (App. C.1) from the ego state s0 (B, 4) towards goal (B, 4): on up to max_goal_lanes goal
+    lanes, 8 terminal accelerations x 3 lateral offsets, each joined to s0 by the cubic Hermite curve fixed by position
+    and velocity at both ends (as the authors' code; the paper's spline "minimizes mean control effort")."""
     B = check_plan_inputs(s0, goal, lanes, lanes_mask)
     T, dt = cfg.horizon, cfg.dt
     dur = T * dt
@@ -550,9 +537,8 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     return Candidates(x, u, valid & feasible)
 
 def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
-    """The 'route' goal (Config.goal): where the ego reaches at T keeping its speed along its lane (the nearest
-    heading its way, within 40 degrees), with the lane's heading and that speed. Unlike the logged goal it holds
-    no reaction of the driver to the others. s0 (B, 4) -> goal (B, 4)."""
+    """The 'route' goal (Config.goal), which unlike the logged one holds no reaction of the driver to the others: where
+    the ego reaches at T keeping its speed along its lane (the nearest heading its way, within 40 degrees). (B, 4)."""
     B = s0.shape[0]
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
     d2, s_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
@@ -563,18 +549,17 @@ def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
     p = _point_at_arclength(lanes[rows, lane][:, None], cum[rows, lane][:, None], ahead[:, None, None])[:, 0, 0]
     route = torch.cat([p, s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
     # no lane heading the ego's way (real data can lack one): straight ahead at its speed
-    straight = s0 + torch.stack([torch.cos(s0[:, 2]), torch.sin(s0[:, 2]), torch.zeros_like(s0[:, 2]),
-                                 torch.zeros_like(s0[:, 2])], -1) * (s0[:, 3:4] * cfg.horizon * cfg.dt)
+    zero = torch.zeros_like(s0[:, 2])
+    straight = s0 + torch.stack([torch.cos(s0[:, 2]), torch.sin(s0[:, 2]), zero, zero], -1) * (s0[:, 3:4] * cfg.horizon * cfg.dt)
     return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
 
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float) -> torch.Tensor:
-    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over the valid candidates, L_plan = -log p_{n*}.
-    cost (B, N), valid (B, N), target n* (B,) -> (B,)."""
+    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over the valid candidates, L_plan = -log p_{n*}: (B,)."""
     logp = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
     return -logp.gather(-1, target[:, None]).squeeze(-1)
 
 def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """argmin over the last dim among valid entries. (B, N) -> (B,)"""
+    """argmin over the last dim among the valid entries: (B, N) -> (B,)."""
     return torch.where(valid, values, math.inf).argmin(-1)
 
 class Plan(NamedTuple):
@@ -589,13 +574,11 @@ class Plan(NamedTuple):
 class ScenePlan:
     """What the planner computes from the scene alone: the goal g, the candidates and every term of eq. (3) but
     C_coll for each. A prediction reaches the plan through C_coll only, so training computes these once."""
-
     goal: torch.Tensor  # (B, 4)       the goal state
     cands: Candidates
     terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
 
-    def __getitem__(self, rows):
-        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
+    def __getitem__(self, rows):  # the scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed
         c = self.cands
         return ScenePlan(self.goal[rows], Candidates(c.x[rows], c.u[rows], c.valid[rows]), self.terms[rows])
 
@@ -605,24 +588,19 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
     check_plan_inputs(s0, goal_state, ctx.lanes, ctx.lanes_mask, "goal_state")
     cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg) if scene is None else scene.cands
     check_cost_inputs(cands.x, cands.u, ctx, w, cfg.rbf_var)
-    if scene is None:
-        terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
-    else:
-        coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N): the one term a prediction moves
-        terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
+    # (B, N, 5): with the scene's terms known, C_coll is the one term a prediction moves
+    terms = (cost_terms(cands.x, cands.u, ctx, cfg.rbf_var) if scene is None else
+             torch.cat([collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)[..., None], scene.terms], -1))
     cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
     return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
 
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward ========================
-#
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),  lo <= u_t <= hi
-#
 # General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms (x (B, ..., T+1, n)
 # with x_0 first, u (B, ..., T, m); ... are extra dims), `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable
 # step. Gradients reach x_init and every tensor in `params`. Closed forms where the cost or dynamics bring them
 # (`expansion`, `jacobians`, `curvature`: StackCost, Unicycle; the tests hold each to autodiff), autodiff otherwise.
-
 
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
     """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z) with_value).
@@ -738,26 +716,21 @@ class ILQRInfo:
     iters: torch.Tensor  # (B,) iterations run
     costs: torch.Tensor  # (B, I+1) true cost after each iteration (the first: at u_init)
 
-def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0,
-         batched_params=False):
+def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0, batched_params=False):
     """iLQR with box controls (App. C.2); differentiable by unrolling (`ILQR` gives the exact KKT gradient instead).
 
     x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m) -> x (B, T+1, n), u (B, T, m), ILQRInfo. Each iteration
     expands the cost to second and the dynamics to first order, solves the box-constrained LQR and line-searches
     the step; a scenario whose full step is below tol has converged and stops moving. batched_params: every tensor
     in params is per scenario, (B, ...), and the iterations work on the scenarios still moving only."""
-    Bsz, T, m = u_init.shape
-    n = x_init.shape[-1]
+    (Bsz, T, m), n = u_init.shape, x_init.shape[-1]
     lo, hi = lo.expand(Bsz, T, m), hi.expand(Bsz, T, m)
     u = u_init.clamp(lo, hi)
     x = rollout(dynamics, x_init, u)
-    cost = cost_fn(x, u, *params)
-    pd_eps = 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
+    cost, pd_eps = cost_fn(x, u, *params), 1e-6 * (1 if x.dtype == torch.float64 else 1e3)
     scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # (ls_steps,) 1, 1/5, ...
-    active = torch.ones(Bsz, dtype=torch.bool, device=x.device)
-    step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype, device=x.device)
-    n_iter = torch.zeros(Bsz, dtype=torch.long, device=x.device)
-    costs = [cost]
+    active, n_iter = torch.ones(Bsz, dtype=torch.bool, device=x.device), torch.zeros(Bsz, dtype=torch.long, device=x.device)
+    step_norm, costs = torch.full((Bsz,), math.inf, dtype=x.dtype, device=x.device), [cost]
     for _ in range(iters):
         # the scenarios this iteration works on (b of them): those still moving, or all of them (no gathers)
         if batched_params and not active.all():
@@ -881,7 +854,6 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0
     return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
 
 # ===== 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al. 2020) ==================
-#
 # From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego), K = 25 futures,
 # one per value of a discrete latent z:   p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
 # For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate w, accel a); the mean
@@ -931,17 +903,15 @@ class Prediction:
     probs: torch.Tensor  # (B, K) the mode weights: q(z|x,y) with use_posterior, p(z|x) otherwise
 
     @property
-    def means(self) -> torch.Tensor:
-        """(B, K, T, 2) GMM component means = mode positions."""
+    def means(self) -> torch.Tensor:  # (B, K, T, 2) the GMM components' means: the modes' positions
         return self.states[..., :2]
 
+# The decoder's correlation rho = tanh(.) is kept this far inside (-1, 1), as Trajectron++: at |rho| = 1 the covariance
+# is singular and the training sample's sqrt(1 - rho^2) has an infinite derivative (NaN gradients).
 RHO_MARGIN = 1e-5
-"""The decoder's correlation rho = tanh(.) is kept this far inside (-1, 1) (Trajectron++ clamps the same): at |rho| = 1
-the covariance is singular and the training sample's sqrt(1 - rho^2) has an infinite derivative (NaN gradients)."""
 
 def bounded_correlation(pre_tanh: torch.Tensor) -> torch.Tensor:
-    """rho = tanh(pre_tanh) clamped to [-1 + RHO_MARGIN, 1 - RHO_MARGIN]: tanh reaches +-1 in floating point at
-    |pre_tanh| ~ 9 (float32) or ~ 19 (float64); within the bounds the clamp is the identity, gradients included."""
+    """tanh clamped to 1 - RHO_MARGIN, which float32 reaches at |pre_tanh| ~ 9; inside, the clamp is the identity."""
     return torch.tanh(pre_tanh).clamp(-1 + RHO_MARGIN, 1 - RHO_MARGIN)
 
 def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Tensor:
@@ -949,8 +919,7 @@ def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Te
     if step is None:
         return logits
     c0, c1, centre, width = cfg.pred_logit_clip
-    # c(step) = c0 + (c1 - c0) sigmoid((step - centre) / width)
-    c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))
+    c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))  # c(step) = c0 + (c1 - c0) sigmoid((step - b) / w)
     return (logits - logits.mean(-1, keepdim=True)).clamp(-c, c)
 
 class Predictor(nn.Module):
@@ -960,8 +929,7 @@ class Predictor(nn.Module):
         super().__init__()
         self.cfg = cfg
         E, Hd, K, Z = cfg.pred_enc_hidden, cfg.pred_dec_hidden, cfg.pred_modes, cfg.pred_latent_hidden
-        X = 2 * E  # x = (history encoding, neighbour context)
-        n_hist = cfg.hist_len + 1
+        X, n_hist = 2 * E, cfg.hist_len + 1  # x = (history encoding, neighbour context); steps of history
         self.hist_lstm = nn.LSTMCell(8, E)
         self.nbr_mlp = nn.Sequential(nn.Linear(n_hist * 8 + 2, E), nn.ReLU(), nn.Linear(E, E))
         self.att_q, self.att_k = nn.Linear(E, E, bias=False), nn.Linear(E, E, bias=False)
@@ -1111,8 +1079,7 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
          + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
     return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
 
-def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor,
-                    cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
+def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:
     """unicycle_rollout(s0, u) and the EKF covariances along it, all steps at once (headings, speeds and positions are
     cumsums): s0 (..., 4), u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4), covariances (..., T, 2, 2)."""
     dt = cfg.dt
@@ -1142,44 +1109,34 @@ def gmm_log_prob(pred: Prediction, y: torch.Tensor, log_w: torch.Tensor, min_var
     log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov, min_var)  # (B, K, T)
     return torch.logsumexp(log_w[..., None] + log_n, 1)  # (B, T)
 
-def kl_beta(step: int, cfg: Config) -> float:
-    """beta(step) = b0 sigmoid((step - b1) / b2): the KL weight anneals from ~0 to 100 around step 400."""
-    b0, centre, width = cfg.pred_beta
-    return b0 / (1 + math.exp(-(step - centre) / width))
-
-def batch_mean(x: torch.Tensor, shard=None) -> torch.Tensor:
-    """x (B, ...) averaged over the batch: this process's, or under DDP (shard: train.Shard) the global one."""
-    return x.mean(0) if shard is None else shard.mean(x)
-
 def pred_loss(pred: Prediction, batch, step: int, cfg: Config, shard=None) -> tuple[torch.Tensor, dict]:
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats) for logging:
         L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
         LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
         KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
         I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p
-    shard: the batch of these means is the global one (batch_mean)."""
+    shard: under DDP (train.Shard) the batch of these means is the global one, and beta anneals with the step."""
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior, call the predictor with use_posterior=True")
     y = batch.agent_fut[..., :2]  # (B, T, 2)
     ll = gmm_log_prob(pred, y, pred.log_q, cfg.pred_pos_std_min**2).clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
+    batch_mean = (lambda x: x.mean(0)) if shard is None else shard.mean  # noqa: E731  over the (global) batch
     q = pred.log_q.exp()  # (B, K)
     kl = (q * (pred.log_q - pred.log_p)).sum(-1)  # (B,)
-    kl_fb = torch.where(batch_mean(kl, shard) > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
+    kl_fb = torch.where(batch_mean(kl) > cfg.pred_kl_min, kl, torch.full_like(kl, cfg.pred_kl_min))  # (B,)
     p = pred.log_p.exp()  # (B, K)
-    p_bar = batch_mean(p, shard)  # (K,)
-    mi = -(p_bar * torch.log(p_bar)).sum() + batch_mean((p * pred.log_p).sum(-1), shard)  # scalar
-    beta = kl_beta(step, cfg)
+    p_bar = batch_mean(p)  # (K,)
+    mi = -(p_bar * torch.log(p_bar)).sum() + batch_mean((p * pred.log_p).sum(-1))  # scalar
+    b0, centre, width = cfg.pred_beta
+    beta = b0 / (1 + math.exp(-(step - centre) / width))  # beta(step) = b0 sigmoid((step - b1) / b2), ~0 -> 100
     loss = -(ll - beta * kl_fb + mi)  # (B,)
     parts = {"loss": loss.mean().item(), "ll": ll.mean().item(), "kl": kl.mean().item(), "mi": mi.item(), "beta": beta}
     return loss, parts
 
 # ===== 7. The stack: predict -> plan -> control, §3.2 ===============================================================
-#
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
-#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights),
-#       planner target n* = argmin_n C_H(candidate n)
+#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights), planner target argmin_n C_H
 #   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
-
 
 SETTINGS = ("rl", "il")  # the planner target and L_ctr: hindsight cost (RL) or imitation (IL), §3.2
 
@@ -1304,8 +1261,7 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
         # every parameter per scenario (w (5,) too, as a view), so that the solver can set converged scenarios aside
         params = (w.expand(B, 5), *ctx.tensors())
         x, u, converged = ilqr_solve(StackCost(cfg.rbf_var), Unicycle(dt), s0, u_init, params, cfg.u_lower, cfg.u_upper,
-                                     iters=cfg.ilqr_iters, tol=cfg.ilqr_tol, ls_steps=cfg.line_search_steps,
-                                     ls_decay=cfg.line_search_decay, batched_params=True)
+                                     cfg.ilqr_iters, cfg.ilqr_tol, cfg.line_search_steps, cfg.line_search_decay, batched_params=True)
     else:
         x, u = cands.x[idx, best], cands.u[idx, best]
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
@@ -1315,10 +1271,8 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
 
 
 # ===== 8. Input checks: what Config and the public entry points refuse, naming the argument ========================
-#
 # The entry points a user calls (unicycle_step, total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward,
 # run_stack) call one of these on their input; the math inside them is not checked again.
-
 
 def check_config(cfg: Config) -> None:
     """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
@@ -1443,5 +1397,4 @@ def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> N
 
 if __name__ == "__main__":
     import train  # the method ends here; --quick (training, evaluation) is train.py's
-
     train.main()

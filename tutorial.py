@@ -636,7 +636,7 @@ section_done("§5")
 # $$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,\mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
 # \;-\; \eta\,\mathrm{KL}\big(q(z\mid x,y)\,\Vert\,p(z\mid x)\big) \;+\; I_p(x; z)\Big),$$
 #
-# $\eta$ the annealed KL weight (`kl_beta` in the code). Metrics: ADE/FDE of the most likely mode, min-ADE over
+# $\eta$ the annealed KL weight (`pred_beta` in the Config). Metrics: ADE/FDE of the most likely mode, min-ADE over
 # modes, NLL of the GT under the mixture, against **constant velocity**.
 
 # %%
