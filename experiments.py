@@ -46,7 +46,7 @@ from diffstack import (Config, Predictor, cost_contexts, cost_terms, cost_weight
 from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
                    check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
                    mean_se, to_device, train_predictor, train_stack)
-from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, compute_in_workers, git_commit, ours_files,
+from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, git_commit, ours_files,
                   outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key, save_atomic,
                   to_json, write_atomic)
 
@@ -1285,7 +1285,7 @@ def main(argv=None):
     launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
     try:
         return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
-                              " ".join([launcher, *(argv if argv is not None else sys.argv[1:])]),
+                              command_line(launcher, argv if argv is not None else sys.argv[1:]),
                               log=log, overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
     except OutputRefused as e:  # found once the data (and so the run's key) is known: still before any training

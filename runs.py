@@ -147,6 +147,21 @@ def run_key(data, cfg, epochs, device="cpu") -> str:
                     code=code_version(), device=str(device)))
 
 
+def command_line(launcher: str, argv) -> str:
+    """The command as a result records it: absolute paths inside the repository made relative to it, so that the
+    record reads the same on every machine (`--out /home/me/diffstack/results` -> `--out results`)."""
+    root = pathlib.Path(__file__).resolve().parent
+
+    def rel(token):
+        key, eq, value = token.partition("=") if token.startswith("--") else ("", "", token)
+        path = pathlib.Path(value)
+        if path.is_absolute() and path.resolve().is_relative_to(root):
+            value = str(path.resolve().relative_to(root)) or "."
+        return key + eq + value
+
+    return " ".join([launcher, *(rel(t) for t in argv)])
+
+
 def git_commit() -> str | None:
     """The commit the code was run from, '+dirty' when the work tree differs from it; None outside git."""
     here = pathlib.Path(__file__).resolve().parent

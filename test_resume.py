@@ -4,6 +4,7 @@ one process, and a progress bar counts the pieces done. Tiny models and data."""
 import dataclasses
 import json
 import os
+import pathlib
 import threading
 import time
 
@@ -264,3 +265,12 @@ def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatc
     with pytest.raises(tr.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
         tr.train_stack(model, data, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
     assert seen == [0, 1, 2] and all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_a_recorded_command_names_paths_relative_to_the_repository(tmp_path):
+    """Results record their command with the repository's own paths relative (the same on every machine); a path
+    outside the repository is kept as given."""
+    root = pathlib.Path(runs.__file__).resolve().parent
+    cmd = runs.command_line("python experiments.py", ["--experiment", "rl", "--out", str(root / "results" / "x"),
+                                                      f"--data={root / 'data'}", "--cache", str(tmp_path)])
+    assert cmd == f"python experiments.py --experiment rl --out results/x --data=data --cache {tmp_path}"

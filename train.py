@@ -27,6 +27,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
+from runs import command_line
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
                        collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
@@ -991,7 +992,7 @@ def main(argv=None):
         check_writable("data_cache", "the data cache (./data_cache)")
         if args.pretrain:
             return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
-                            command="python diffstack.py " + " ".join(argv))
+                            command=command_line("python diffstack.py", argv))
     except ValueError as e:
         ap.error(str(e))
     return quick(args.threads or 2, cfg=cfg, device=args.device)
