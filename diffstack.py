@@ -367,9 +367,8 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
       C_coll   phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t (c = exp(-spread / 2 sigma^2)) and
                per other agent:  grad = -phi (p - m) / sigma^2,  Hess = phi ((p - m)(p - m)' / sigma^4 - I / sigma^2)
       C_goal   |p_T - g|^2:  grad = 2 (p_T - g),  Hess = 2 I
-      C_lat    |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b (d = b - a), f the
-               fraction along it:  dr/dp = J = I - d df',  grad = 2 J'r,  Hess = 2 J'J   (f is linear in p: df
-               = d / |d|^2, or 0 where f is clamped)
+      C_lat    |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b (d = b - a, f the fraction
+               along it, linear in p: df = d / |d|^2, or 0 where clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
       C_head   e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,  de/dp = -(h_b - h_a) df,
                grad = 2 e de,  Hess = 2 de de'
       C_u      w^2 + a^2:  grad = 2 u,  Hess = 2 I
@@ -479,8 +478,7 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     lanes, 8 terminal accelerations x 3 lateral offsets, each joined to s0 by the cubic Hermite curve fixed by position
     and velocity at both ends (as the authors' code; the paper's spline "minimizes mean control effort")."""
     B = check_plan_inputs(s0, goal, lanes, lanes_mask)
-    T, dt = cfg.horizon, cfg.dt
-    dur = T * dt
+    T, dur = cfg.horizon, cfg.horizon * cfg.dt
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
     # goal lanes: within goal_lane_dist of the goal, heading within goal_lane_heading of the goal's
     d2_goal, _, h_goal = _project_each_lane(goal[:, :2], lanes, lanes_mask, cum)  # (B, L)
@@ -493,9 +491,7 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     g_mask = lanes_mask.gather(1, lane_idx[:, :, None].expand(B, G, lanes_mask.shape[-1]))
     _, s_ego, _ = _project_each_lane(s0[:, :2], g_lanes, g_mask, g_cum)  # (B, G) ego's arc length on each
     # terminal states: v_f = max(v0 + a T dt, 0), distance (v0 + v_f) / 2 * T dt along the lane, then offset
-    acc = s0.new_tensor(cfg.plan_accels)  # (n_acc,) 8 by default
-    off = s0.new_tensor(cfg.plan_offsets)  # (3,)
-    v0 = s0[:, 3:4]  # (B, 1)
+    acc, off, v0 = s0.new_tensor(cfg.plan_accels), s0.new_tensor(cfg.plan_offsets), s0[:, 3:4]  # (n_acc,), (n_off,), (B, 1)
     v_f = (v0 + acc * dur).clamp_min(0)  # (B, n_acc)
     s_end = s_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, n_acc)
     on_lane = s_end <= g_cum[..., -1:]  # the terminal lies on the lane
@@ -504,8 +500,8 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, n_acc, n_off, 2)
     h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, n_acc, n_off)
     v1 = v_f[:, None, :, None].expand_as(h1)
-    p1, h1, v1 = p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1)  # N = G * n_acc * n_off (48 by default)
-    N = p1.shape[1]
+    p1, h1, v1 = p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1)
+    N = p1.shape[1]  # G * n_acc * n_off, 48 by default
     valid = (lane_ok[:, :, None] & on_lane)[..., None].expand(B, G, len(acc), len(off)).reshape(B, N)
     # cubic Hermite x(t), y(t): position and velocity matched at both ends, sampled at the T+1 steps
     heading_vec = lambda h: torch.stack([torch.cos(h), torch.sin(h)], -1)  # noqa: E731
@@ -529,11 +525,8 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     # dynamic feasibility: the controller's box, lateral acceleration, yaw rate per unit speed
     lo, hi = s0.new_tensor(cfg.u_lower), s0.new_tensor(cfg.u_upper)
     v_mid = (speed[..., 1:] + speed[..., :-1]) / 2
-    feasible = (
-        ((u >= lo) & (u <= hi)).all(-1)
-        & ((u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel)
-        & (u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3)
-    ).all(-1)
+    feasible = (((u >= lo) & (u <= hi)).all(-1) & ((u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel)
+                & (u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3)).all(-1)
     return Candidates(x, u, valid & feasible)
 
 def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
@@ -743,7 +736,7 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
         g, H = cost_expansion(cost_fn, xi, ui, pi)
         A, Bm = dynamics_jacobians(dynamics, xi, ui)
         k, K, _, _ = lqr_backward_box(A, Bm, H, g, n, lo_i - ui, hi_i - ui, pd_eps)
-        x_new, u_new, c_new, accept, full_step = line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi, scales)
+        x_new, u_new, c_new, accept, full_step = line_search(cost_fn, dynamics, xi, ui, ci, k, K, lo_i, hi_i, pi, scales, batched_params)
         accept = act & accept  # (b,)
         step_norm = put(step_norm, torch.where(act, full_step, take(step_norm)))
         n_iter = put(n_iter, take(n_iter) + act.long())
@@ -755,26 +748,38 @@ def ilqr(cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, l
             break
     return x, u, ILQRInfo(step_norm < tol, step_norm, n_iter, torch.stack(costs, 1))
 
-def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
-    """The largest step scale s of (1, 1/5, 1/25, ...) whose closed-loop rollout
-        u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)),   x_{t+1}' = f(x_t', u_t')
-    does not raise the true cost, all scales at once (dim S). x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n),
+def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales, batched_params):
+    """Backtracking on the closed-loop rollouts u_t' = clamp(u_t + s k_t + K_t (x_t' - x_t)), x_{t+1}' = f(x_t', u_t'):
+    s = 1 for every scenario, then 1/5, 1/25, ... at once (a dim S) where it raised the true cost (everywhere without
+    batched_params); the largest scale that does not is taken. x (b, T+1, n), u, k, lo, hi (b, T, m), K (b, T, m, n),
     cost (b,) -> the new x, u, cost, whether a scale was accepted (b,), the norm of the full step (b,)."""
     eps = torch.finfo(x.dtype).eps
-    S = len(scales)
-    xs, us = [x[:, None, 0].expand(-1, S, -1)], []  # (b, S, n)
-    for t in range(u.shape[1]):
-        du_fb = torch.bmm(xs[-1] - x[:, None, t], K[:, t].mT)  # (b, S, m): K_t (x_t' - x_t), as row vectors
-        us.append((u[:, None, t] + scales[:, None] * k[:, None, t] + du_fb).clamp(lo[:, None, t], hi[:, None, t]))
-        xs.append(dynamics(xs[-1], us[-1]))
-    xs, us = torch.stack(xs, 2), torch.stack(us, 2)  # (b, S, T+1, n), (b, S, T, m)
-    cs = cost_fn(xs, us, *params)  # (b, S)
-    ok = cs <= cost[:, None] + 100 * eps * (1 + cost[:, None].abs())  # no increase, up to rounding
-    first = torch.where(ok, torch.arange(S, device=x.device), S).min(-1).values  # (b,): S where no scale is accepted
-    accept = first < S
-    pick = torch.where(accept, first, 0)  # where no scale is accepted: the full step (rejected by the caller)
-    rows = torch.arange(len(x), device=x.device)
-    return xs[rows, pick], us[rows, pick], cs[rows, pick], accept, (us[:, 0] - u).flatten(1).norm(dim=-1)
+    no_rise = lambda c, c0: c <= c0 + 100 * eps * (1 + c0.abs())  # noqa: E731  up to rounding
+
+    def rollouts(r, s):  # scenarios r, scales s (S,) -> x' (b, S, T+1, n), u' (b, S, T, m), cost (b, S)
+        xr, ur, kr, Kr, lor, hir = (t[r] for t in (x, u, k, K, lo, hi))
+        xs, us = [xr[:, None, 0].expand(-1, len(s), -1)], []  # (b, S, n)
+        for t in range(u.shape[1]):
+            du_fb = torch.bmm(xs[-1] - xr[:, None, t], Kr[:, t].mT)  # (b, S, m): K_t (x_t' - x_t), as row vectors
+            us.append((ur[:, None, t] + s[:, None] * kr[:, None, t] + du_fb).clamp(lor[:, None, t], hir[:, None, t]))
+            xs.append(dynamics(xs[-1], us[-1]))
+        xs, us = torch.stack(xs, 2), torch.stack(us, 2)
+        return xs, us, cost_fn(xs, us, *(p[r] if batched_params and torch.is_tensor(p) else p for p in params))
+
+    every = torch.arange(len(x), device=x.device)
+    x1, u1, c1 = rollouts(every, scales[:1])
+    x_new, u_new, c_new, accept = x1[:, 0], u1[:, 0], c1[:, 0], no_rise(c1[:, 0], cost)
+    r = (~accept).nonzero()[:, 0] if batched_params else every[: 0 if accept.all() else len(x)]
+    if len(scales) > 1 and len(r):
+        xs, us, cs = rollouts(r, scales[1:])
+        ok = no_rise(cs, cost[r, None])  # (len(r), S-1)
+        first = torch.where(ok, torch.arange(ok.shape[1], device=x.device), ok.shape[1]).min(-1).values
+        use, pick = (first < ok.shape[1]) & ~accept[r], first.clamp(max=ok.shape[1] - 1)  # a smaller scale, where
+        sel = lambda new, old: torch.where(use.reshape(-1, *[1] * (old.dim() - 1)), new, old)  # noqa: E731
+        rows = torch.arange(len(r), device=x.device)
+        x_new, u_new, c_new = (v.index_put((r,), sel(n[rows, pick], v[r])) for v, n in ((x_new, xs), (u_new, us), (c_new, cs)))
+        accept = accept.index_put((r,), accept[r] | use)
+    return x_new, u_new, c_new, accept, (u1[:, 0] - u).flatten(1).norm(dim=-1)
 
 def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
     """Gradients of a loss on the solution (x, u) wrt x_init and params (Amos et al. 2018).
@@ -807,19 +812,18 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
         H = H + torch.cat([Hf, torch.zeros_like(H[:, :1])], 1)
     rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
     k, K, _, p0 = lqr_backward_fixed(A, Bm, H, rhs, n, free)
-    dx, du = [torch.zeros_like(x[:, 0])], []
+    dx, du = [torch.zeros_like(x[:, 0])], []  # the LQR's solution d = (dx, du)
     for t in range(T):
         du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
         dx.append((A[:, t] @ dx[-1][..., None] + Bm[:, t] @ du[-1][..., None])[..., 0])
     dx, du = torch.stack(dx, 1), torch.stack(du, 1)
-    needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
-    grads = [None] * len(params)
+    needs, grads = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad], [None] * len(params)
     if needs:
         with torch.enable_grad():
             ps = [p.detach().requires_grad_(i in needs) if torch.is_tensor(p) else p for i, p in enumerate(params)]
             xg, ug = x.detach().requires_grad_(), u.detach().requires_grad_()
             gx, gu = torch.autograd.grad(cost_fn(xg, ug, *ps).sum(), (xg, ug), create_graph=True)
-            inner = (gx * dx).sum() + (gu * du).sum()
+            inner = (gx * dx).sum() + (gu * du).sum()  # < dC/dz (params), d >
             for i, gi in zip(needs, torch.autograd.grad(inner, [ps[i] for i in needs], allow_unused=True)):
                 grads[i] = gi
     return p0, grads
@@ -832,8 +836,7 @@ class ILQR(torch.autograd.Function):
         with torch.no_grad():
             x, u, info = ilqr(cost_fn, dynamics, x_init, u_init, params, **settings)
         ctx.fns = (cost_fn, dynamics, exact)
-        lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
-        ctx.save_for_backward(x, u, info.converged, lo, hi, *params)
+        ctx.save_for_backward(x, u, info.converged, settings["lo"].expand_as(u), settings["hi"].expand_as(u), *params)
         ctx.mark_non_differentiable(info.converged)
         return x, u, info.converged
 
@@ -842,7 +845,7 @@ class ILQR(torch.autograd.Function):
         cost_fn, dynamics, exact = ctx.fns
         x, u, converged, lo, hi, *params = ctx.saved_tensors
         free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # active bounds are held fixed
-        keep = converged.to(x.dtype)[:, None, None]
+        keep = converged.to(x.dtype)[:, None, None]  # scenarios that did not converge pass no gradient
         p0, grads = kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact)
         return (None, None, None, None, p0, None, *grads)
 
@@ -1000,8 +1003,7 @@ class Predictor(nn.Module):
         # W [one_hot(k); x] + b_i + b_h for r and z (plain sums); b_hn stays inside r * (W_hn h + b_hn)
         b_i = b + torch.cat([b_h[: 2 * Hd], b_h.new_zeros(Hd)])  # (3Hd,)
         gi_zx = ((x @ W[:, K : K + X].T + b_i)[:, None] + W[:, :K].T.contiguous()).reshape(B * K, 3 * Hd)
-        W0 = self.dec_h0.weight  # (Hd, K+X)
-        # h_0 = dec_h0([one_hot(k); x]), the same column lookup
+        W0 = self.dec_h0.weight  # (Hd, K+X): h_0 = dec_h0([one_hot(k); x]), by the same column lookup
         h = ((x @ W0[:, K:].T + self.dec_h0.bias)[:, None] + W0[:, :K].T.contiguous()).reshape(B * K, Hd)
         c_r, c_z, c_n = (c.contiguous() for c in gi_zx.split(Hd, 1))  # (B*K, Hd) each
         (W_hr, W_hz, W_hn), (W_ur, W_uz, W_un) = (w.T for w in W_h.split(Hd)), (w.T for w in W_u.split(Hd))
@@ -1050,8 +1052,7 @@ class Predictor(nn.Module):
         log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1) if use_posterior else None
         s0 = self.initial_state(batch, x)  # (B, 4)
         mu, cov_u = self.decode(x, f[:, -1], shard)  # (B, K, T, 2), (B, K, T, 2, 2)
-        # traj (B, K, T+1, 4) with s0 first, pos_cov (B, K, T, 2, 2)
-        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)
+        traj, pos_cov = integrate_modes(s0[:, None].expand(-1, cfg.pred_modes, -1), mu, cov_u, cfg)  # s0 first; (B, K, T, 2, 2)
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
         return Prediction(s0, traj[:, :, 1:], mu, pos_cov, log_p, log_q, probs)
 
@@ -1065,7 +1066,6 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
         P_{t+1} = sum_{r <= t} G_tr Su_r G_tr^T,   G_tr = N_r + dt (C_t - C_r) = D_r + dt C_t,   D_r = N_r - dt C_r
     (G_tr: how u_r moves (x, y)_{t+1}), and expanding the product makes each sum over r <= t a cumsum:
         P_{t+1} = cumsum(D Su D^T)_t + dt (cumsum(D Su)_t C_t^T + C_t cumsum(Su D^T)_t) + dt^2 C_t cumsum(Su)_t C_t^T."""
-    dt = cfg.dt
     def mm(X, Y):  # (2, 2, ...) x (2, 2, ...) -> (2, 2, ...)
         (x00, x01), (x10, x11) = (row.unbind(0) for row in X.unbind(0))
         (y00, y01), (y10, y11) = (row.unbind(0) for row in Y.unbind(0))
@@ -1073,10 +1073,10 @@ def _covariance_unrolled(M: torch.Tensor, N: torch.Tensor, Su: torch.Tensor, cfg
                             torch.stack([x10 * y00 + x11 * y10, x10 * y01 + x11 * y11])])
     tr = lambda X: X.transpose(0, 1)  # noqa: E731
     C = M.cumsum(-1)  # (2, 2, ..., T)
-    D = N - dt * C  # (2, 2, ..., T)
+    D = N - cfg.dt * C  # (2, 2, ..., T)
     DSu = mm(D, Su)  # (2, 2, ..., T)
-    P = (mm(DSu, tr(D)).cumsum(-1) + dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
-         + dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
+    P = (mm(DSu, tr(D)).cumsum(-1) + cfg.dt * (mm(DSu.cumsum(-1), tr(C)) + mm(C, mm(Su, tr(D)).cumsum(-1)))
+         + cfg.dt**2 * mm(mm(C, Su.cumsum(-1)), tr(C)))  # (2, 2, ..., T)
     return P.movedim((0, 1), (-2, -1)) + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
 
 def integrate_modes(s0: torch.Tensor, u: torch.Tensor, cov_u: torch.Tensor, cfg: Config) -> tuple[torch.Tensor, torch.Tensor]:

@@ -452,9 +452,9 @@ def test_solve_masked_keeps_the_fixed_rows_and_solves_the_free_ones():
 
 
 def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
-    """batched_params (iterations on the scenarios still moving) gives what the solver gives on every scenario every
-    iteration, on a problem where some scenarios converge early and some reject full steps; the line search rolls out
-    every step scale at once."""
+    """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the full
+    step failed) gives what the solver gives on every scenario every iteration, on a problem where both shortcuts are
+    taken: some scenarios converge early and some reject full steps."""
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
     lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
@@ -475,7 +475,7 @@ def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
     assert torch.allclose(xa, xb, rtol=0, atol=1e-12) and torch.allclose(ua, ub, rtol=0, atol=1e-12)
     assert torch.equal(ia.iters, ib.iters) and torch.equal(ia.converged, ib.converged)
     assert ia.iters.min() < ia.iters.max()  # some scenarios stopped early
-    assert all(s is None or s[1] == 5 for s in seen)  # every scale at once
+    assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
 
 
 @pytest.mark.parametrize("bound", [0.2, 100.0])  # bounds active in many problems; in none (the shortcut)
