@@ -48,8 +48,8 @@ AUDITED = {str(HERE / name): name for name in ("diffstack.py", "train.py", "expe
 def section_lines() -> range:
     """The lines of sections 3-6 of diffstack.py: from the '# 3. Cost' banner to the '# 7. The stack' one."""
     lines = (HERE / "diffstack.py").read_text().splitlines()
-    start = next(i for i, s in enumerate(lines, 1) if s.startswith("# 3. Cost"))
-    end = next(i for i, s in enumerate(lines, 1) if s.startswith("# 7. The stack"))
+    start = next(i for i, s in enumerate(lines, 1) if s.startswith("# ===== 3. Cost"))
+    end = next(i for i, s in enumerate(lines, 1) if s.startswith("# ===== 7. The stack"))
     return range(start, end)
 
 
