@@ -3,7 +3,7 @@
 the predictors shipped in pretrained/, and `python diffstack.py --quick` (this module's main).
 
     1. Metrics          ADE/FDE, NLL, constant velocity; evaluation of a predictor and of the stack
-    2. Loss weights     Distance and grad-Cost weighted L_pred (§4.1), the learned cost weights (App. A.2)
+    2. Methods          Table 1's rows, their loss weights, the learned cost weights (App. A.2), weighted L_pred (§4.1)
     3. Many processes   DistributedDataParallel: Shard, the rows of a global batch a process holds
     4. Training         train_stack, train_predictor, compare_methods
     5. --quick          the shipped predictors, the quick run and its command line
@@ -88,36 +88,8 @@ def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 10
 
 
 # --------------------------------------------------------------------------------------------
-# 2. The planning-aware weights of L_pred: Distance weighted and grad-Cost weighted (§4.1)
+# 2. The methods of Table 1, their loss weights and the planning-aware weights of L_pred (§4.1, App. A.2)
 # --------------------------------------------------------------------------------------------
-
-
-def distance_weights(batch) -> torch.Tensor:
-    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored at 1 m."""
-    d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
-    return 1.0 / d.clamp(min=1.0)
-
-
-def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
-    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
-    batch of all processes, section 3).
-
-    weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
-    `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
-    """
-    if weighting == "standard":
-        return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
-    if weighting == "distance":
-        raw = distance_weights(batch)
-    elif weighting == "grad_cost":
-        raw = grad_cost_weights(batch, cfg)
-    else:
-        raw = weighting(batch)
-    raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
-    if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
-        raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
-    mean = raw.mean(0) if shard is None else shard.mean(raw)
-    return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
 @dataclass
@@ -155,33 +127,6 @@ TABLE1_METHODS = (
     Method("DiffStack", losses=(1, 1, 1)),
     Method("GT prediction", "gt"),
 )
-
-def to_device(obj, device):
-    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple, list or dict
-    holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g. results to the CPU to plot."""
-    if torch.is_tensor(obj):
-        return obj.to(device)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
-                                           for f in dataclasses.fields(obj) if f.init})
-    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
-        return type(obj)(*(to_device(v, device) for v in obj))
-    if isinstance(obj, (tuple, list)):
-        return type(obj)(to_device(v, device) for v in obj)
-    if isinstance(obj, dict):
-        return {k: to_device(v, device) for k, v in obj.items()}
-    return obj
-
-
-# ============================================================================================
-# 4. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
-# ============================================================================================
-#
-#   L = a1 L_pred + a2 L_plan + a3 L_ctr
-#
-# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
-# method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor frozen.
-
 
 def alphas(method: Method, setting: str, cfg: Config):
     """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
@@ -247,6 +192,36 @@ class CostWeights(nn.Module):
     def forward(self) -> torch.Tensor:
         """w = alpha w' (5,), what the planner and the controller use."""
         return self.alpha * self.normalised()
+
+
+
+
+def distance_weights(batch) -> torch.Tensor:
+    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored at 1 m."""
+    d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
+    return 1.0 / d.clamp(min=1.0)
+
+
+def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
+    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
+    batch of all processes, section 3).
+
+    weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
+    `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
+    """
+    if weighting == "standard":
+        return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
+    if weighting == "distance":
+        raw = distance_weights(batch)
+    elif weighting == "grad_cost":
+        raw = grad_cost_weights(batch, cfg)
+    else:
+        raw = weighting(batch)
+    raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
+    if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
+        raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
+    mean = raw.mean(0) if shard is None else shard.mean(raw)
+    return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
 # --------------------------------------------------------------------------------------------
@@ -342,6 +317,32 @@ class Shard:
         if self.group is not None:
             dist.destroy_process_group(self.group)
 
+
+# ============================================================================================
+# 4. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
+# ============================================================================================
+#
+#   L = a1 L_pred + a2 L_plan + a3 L_ctr
+#
+# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
+# method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor frozen.
+
+
+def to_device(obj, device):
+    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple, list or dict
+    holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g. results to the CPU to plot."""
+    if torch.is_tensor(obj):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
+                                           for f in dataclasses.fields(obj) if f.init})
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(to_device(v, device) for v in obj))
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(to_device(v, device) for v in obj)
+    if isinstance(obj, dict):
+        return {k: to_device(v, device) for k, v in obj.items()}
+    return obj
 
 
 def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
