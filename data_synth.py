@@ -1290,11 +1290,11 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
             exp["line"] += [{"token": edges[0], "node_tokens": [nodes[0], nodes[-1]]},
                             {"token": edges[1], "node_tokens": [nodes[n - 1], nodes[n]]}]
             exp["lane"].append({"token": t, "polygon_token": poly, "lane_type": "CAR", "from_edge_line_token": edges[0],
-                                "to_edge_line_token": edges[1], "left_lane_divider_segments": [],
-                                "right_lane_divider_segments": []})
+                                "to_edge_line_token": edges[1], "left_lane_divider_segments": [], "right_lane_divider_segments": []})
     polys = [_token(t, "polygon") for t in tok.values()]
     exp["drivable_area"].append({"token": _token(name, "drivable_area"), "polygon_tokens": polys})
 
 
-if __name__ == "__main__":
-    raise SystemExit("the data's command line is data_real.py's: python data_real.py --help")
+if __name__ == "__main__":  # the data's command line (generate, write-nuscenes, read-nuscenes, ...) is data_real.py's
+    import data_real
+    data_real.main()
