@@ -21,6 +21,7 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import json
@@ -46,9 +47,9 @@ from diffstack import (Config, Predictor, cost_contexts, cost_terms, cost_weight
 from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
                    check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
                    mean_se, to_device, train_predictor, train_stack)
-from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, git_commit, ours_files,
-                  outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing, run_key, save_atomic,
-                  to_json, write_atomic)
+from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, folder_lock,
+                  git_commit, ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing,
+                  run_key, save_atomic, to_json, write_atomic)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -263,9 +264,8 @@ def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0,
 def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
                       device="cpu", store=None, **stack_kw):
     """Method m's predictor trained with `seed` (its learning curve on CURVE_SAMPLES scenarios), or the one trained
-    before with the same training_key (so Standard is trained once per seed for Tables 1, 3, 4, 5 and the ablations):
-    from models (None, or a dict shared by the tables of one run), else from store (None, or a RunStore that keeps
-    every predictor trained: a resumed run, or a worker process, loads what an earlier piece trained)."""
+    before with the same training_key (Standard once per seed for Tables 1, 3, 4, 5 and the ablations): from models (a
+    dict the tables of one run share), else from store (a RunStore: a resumed run or a worker loads an earlier piece's)."""
     key = training_key(m, cfg, setting, epochs, seed, pred_offset, device, **stack_kw)
     if models is not None and key in models:
         if log:
@@ -377,10 +377,9 @@ def claims_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
-    """Table 3: per seed, a Standard predictor, then the cost weights learned with it frozen (train.train_stack with
-    `weights`: L = a3 L_ctr, L_ctr the MSE to the GT ego trajectory); both weightings evaluated on data.val, all IL.
-    Returns {'Hand-tuned': [per seed], 'Learned': [per seed]}, each a dict with w' (the normalised weights), alpha,
-    plan_loss (absolute, IL planning loss) and mse (absolute, m^2 summed over T)."""
+    """Table 3: per seed a Standard predictor, then the cost weights learned with it frozen (train.train_stack with
+    `weights`: L = a3 L_ctr, the MSE to the GT ego trajectory); both evaluated on data.val, IL. {'Hand-tuned': [per
+    seed], 'Learned': [...]}, each with w' (normalised weights), alpha, plan_loss and mse (absolute, m^2 over T)."""
     runs = [cost_learning_seed(data, cfg, seed, epochs, log, models, device) for seed in seeds]
     return {name: [r[name] for r in runs] for name in ("Hand-tuned", "Learned")}
 
@@ -434,10 +433,9 @@ def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
 
 
 def stack_policy(model, method: Method, cfg: Config, device=None):
-    """The stack as a closed-loop policy: batch (Scenarios) -> (x (S, T+1, 4) the controller's trajectory in the
-    sample's frame, u (S, T, 2) its controls, C_H (S,) its hindsight cost with every agent, plannable (S,)). The
-    planner and controller see the predicted agent only (App. D.3), the predictor every neighbour. Evaluation mode.
-    The stack runs on `device` (default: the model's, or the CPU); what it returns is on the batch's device."""
+    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or the CPU): batch ->
+    (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent, plannable (S,)), on the batch's
+    device. Planner and controller see the predicted agent only (App. D.3), the predictor every neighbour."""
     if model is not None:
         model.eval()
     if device is None:
@@ -487,13 +485,10 @@ def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: i
 
 
 def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
-    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
-      trajectory cost  1/N sum_t C(s_t, u_t; GT agents, map) with the goal term excluded (eq. 3, w hand-tuned)
-      collision        1/N sum_t w1 C_coll,  every logged agent present at that frame
-      lane             1/N sum_t (w3 C_lat + w4 C_head)
-      control effort   1/N sum_t w5 ||u_t||^2
-      open-loop cost   mean of each step's hindsight cost C_H (over the plannable steps)
-      deviation        1/N sum_t ||s_t - s_log,t|| (m)"""
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1: trajectory cost 1/N sum_t
+    C(s_t, u_t; GT agents, map) without the goal term (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged
+    agent present); lane 1/N sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the
+    mean hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
     N, f0 = roll.controls.shape[1], roll.start_frame
     x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
     frames = slice(f0 + 1, f0 + N + 1)
@@ -922,10 +917,9 @@ def work_units(names, seeds, store: RunStore) -> list:
 
 def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
               device="cpu", write=True, store=None, jobs=1):
-    """Run one table: train and evaluate what its spec declares on `device`, write its figures to out_dir if `write`.
-    models: trained predictors shared by the tables of one run. store: a RunStore that keeps every piece and gives
-    back the finished ones (None: in memory). jobs > 1 (a store on disk): the seeds' pieces in that many worker
-    processes of one thread each. Returns (results, markdown table)."""
+    """Train and evaluate what a table's spec declares on `device`, its figures into out_dir if `write`. models: the
+    predictors the tables of one run share; store: a RunStore keeping every piece (None: in memory); jobs > 1 (a store
+    on disk): the seeds' pieces in that many one-thread worker processes. Returns (results, markdown table)."""
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = {} if models is None else models
@@ -1053,9 +1047,8 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
 
 
 def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None = None, log=print) -> list:
-    """Re-write the outputs of an earlier run of `name` ('all': every table and report.md) from its JSON files in
-    out_dir, training nothing: the .md files, the learning curves (their reference lines when `data` is given); the
-    figures that need trained models are kept as they are. Returns the paths written."""
+    """Re-write the .md files and learning curves (their reference lines when `data` is given) of an earlier run of
+    `name` ('all': every table and report.md) from its JSON files in out_dir, training nothing. Returns the paths."""
     names = EXPERIMENTS if name == "all" else (name,)
     out, written, sections, metas = pathlib.Path(out_dir), [], [], []
     for one in names:
@@ -1080,10 +1073,10 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
 def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
                    device="cpu", write=True, jobs=1, progress_every=2.0):
     """Run one table (or 'all', each predictor trained once for every table) on `device`, writing out_dir/<name>.json
-    (results, the full Config, the device, the git commit), .md and the figures (for 'all', report.md too); write=False
-    (the ranks other than 0 under torchrun): none. Every piece is kept in out_dir/.runs/, so re-running an interrupted
-    command resumes it. jobs: as run_table's. A progress bar of the pieces (every progress_every seconds) while log
-    and write. OutputRefused when a file it would write exists, unless overwrite or this same run wrote it as is."""
+    (results, the full Config, the device, the git commit), .md and the figures (for 'all', report.md too) unless
+    write=False (torchrun's other ranks). Every piece is kept in out_dir/.runs/: re-running the command resumes it.
+    A progress bar while log and write. OutputRefused when a file it would write exists, unless overwrite or this
+    same run wrote it as is."""
     names = EXPERIMENTS if name == "all" else (name,)
     seeds, out = tuple(seeds), pathlib.Path(out_dir)
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
@@ -1228,15 +1221,23 @@ def main(argv=None):
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     if args.out is None:
         args.out = REAL_OUT if args.experiment == REAL.name else "results"
+    launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
+    command, held = command_line(launcher, argv if argv is not None else sys.argv[1:]), contextlib.ExitStack()
+    with held:  # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock)
+        return _main(ap, args, names, world, rank, command, held)
+
+
+def _main(ap, args, names, world, rank, command, held):
     if args.render:  # derived files only, from the JSON an earlier run wrote: nothing it made is lost
         missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
         if missing:
             ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
-        if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
-            try:
+        try:
+            if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
                 data_real.nuscenes_version(args.data)
-            except ValueError as e:
-                ap.error(str(e))
+            held.enter_context(folder_lock(args.out, command))
+        except ValueError as e:
+            ap.error(str(e))
         return render_outputs(args.experiment, args.out, data_real.load_data(args.data, args.n, log=print))
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
@@ -1251,6 +1252,8 @@ def main(argv=None):
         check_outputs(names, args.out, args.overwrite,
                       ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")))
         check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
+        if rank == 0:
+            held.enter_context(folder_lock(args.out, command))
         device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
         ap.error(str(e))
@@ -1282,11 +1285,9 @@ def main(argv=None):
         if world > 1:
             dist.destroy_process_group()
         ap.error(error)
-    launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
     try:
-        return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out,
-                              command_line(launcher, argv if argv is not None else sys.argv[1:]),
-                              log=log, overwrite=args.overwrite, device=device, write=rank == 0,
+        return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out, command, log=log,
+                              overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
     except OutputRefused as e:  # found once the data (and so the run's key) is known: still before any training
         ap.error(str(e))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ast
 import contextlib
 import dataclasses
+import fcntl
 import functools
 import hashlib
 import json
@@ -25,6 +26,7 @@ import pathlib
 import subprocess
 import tempfile
 import threading
+import time
 
 import torch
 from tqdm import tqdm
@@ -309,6 +311,35 @@ def above(bar, log):
 # ============================================================================================
 # Outputs: refusing to replace a file a run did not write
 # ============================================================================================
+
+
+@contextlib.contextmanager
+def folder_lock(folder, command: str):
+    """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block runs. A second run
+    on the same folder is refused with an OutputRefused naming the holder (its PID, command and start time); the
+    operating system releases a lock with the process that held it, so one left by a killed run is taken over."""
+    folder = pathlib.Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise OutputRefused(f"{folder}: cannot hold it for this run ({e.strerror or e})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        try:
+            holder = json.loads(os.read(fd, 65536) or b"{}")
+        except ValueError:
+            holder = {}
+        os.close(fd)
+        raise OutputRefused(f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, `{holder.get('command', '?')}`, "
+                            f"since {holder.get('start', '?')}); wait for it to end, or choose another --out") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(dict(pid=os.getpid(), command=command, start=time.strftime("%Y-%m-%d %H:%M:%S"))).encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # (closing the descriptor releases the lock)
 
 
 class OutputRefused(ValueError):

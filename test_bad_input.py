@@ -6,6 +6,9 @@ names the argument, field or file. The nuScenes loader and the data CLI have the
 import json
 import math
 import os
+import signal
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -69,6 +72,29 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     assert "data cache" in err
     err = cli_error(tr.main, ["--quick"], capsys)
     assert "data cache" in err
+
+
+def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(tmp_path, monkeypatch, capsys):
+    """A second run on a folder another run holds is refused before any work, naming the holder (PID, command); when
+    the holder is killed (SIGKILL), the next run takes the folder over."""
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time, runs\n"
+                               "with runs.folder_lock(sys.argv[1], 'the other run'):\n print('held', flush=True); time.sleep(60)",
+                               str(out)], cwd=os.path.dirname(runs.__file__), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+        for argv in (["--experiment", "rl", "--out", str(out), "--n", "100"], ["--experiment", "rl", "--out", str(out)]):
+            err = cli_error(ex.main, argv, capsys)
+            assert f"PID {holder.pid}" in err and "the other run" in err and str(out) in err
+        (out / "rl.json").write_text("{}")
+        err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)  # --render writes too
+        assert f"PID {holder.pid}" in err
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    with runs.folder_lock(out, "this run"):  # the killed run's lock, taken over
+        assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
 
 
 def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):

@@ -27,7 +27,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
-from runs import command_line
+from runs import command_line, folder_lock
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
                        collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
@@ -691,38 +691,39 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
         raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
     check_writable(out, f"the pre-trained predictors' folder ({out})")
-    data_real.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
-    about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
-                 threads=threads, torch=torch.__version__, machine=machine(),
-                 config=dataclasses.asdict(cfg), files={})
-    try:
-        about["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                         cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        about["commit"] = None
-    args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
-    if jobs > 1:
-        pool = ProcessPoolExecutor(min(jobs, len(work)), mp_context=torch.multiprocessing.get_context("spawn"))
-        finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
-    else:
-        pool, finished = None, (_pretrain_one(*a) for a in args)
-    try:
-        for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
-            tmp = path.with_suffix(".tmp")
-            torch.save(state, tmp)
-            os.replace(tmp, path)
-            about["files"][path.name] = dict(method=m.name, seed=seed, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                                             cpu_seconds=round(seconds), **metrics)
-            if log:
-                log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
-                    f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)")
-    finally:
-        if pool is not None:
-            pool.shutdown()
-    tmp = out / "provenance.json.tmp"
-    tmp.write_text(json.dumps(about, indent=1))
-    os.replace(tmp, out / "provenance.json")
-    return about
+    with folder_lock(out, command):  # one --pretrain into a folder at a time
+        data_real.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
+        about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
+                     threads=threads, torch=torch.__version__, machine=machine(),
+                     config=dataclasses.asdict(cfg), files={})
+        try:
+            about["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                             cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            about["commit"] = None
+        args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
+        if jobs > 1:
+            pool = ProcessPoolExecutor(min(jobs, len(work)), mp_context=torch.multiprocessing.get_context("spawn"))
+            finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
+        else:
+            pool, finished = None, (_pretrain_one(*a) for a in args)
+        try:
+            for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
+                tmp = path.with_suffix(".tmp")
+                torch.save(state, tmp)
+                os.replace(tmp, path)
+                about["files"][path.name] = dict(method=m.name, seed=seed, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                                                 cpu_seconds=round(seconds), **metrics)
+                if log:
+                    log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
+                        f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)")
+        finally:
+            if pool is not None:
+                pool.shutdown()
+        tmp = out / "provenance.json.tmp"
+        tmp.write_text(json.dumps(about, indent=1))
+        os.replace(tmp, out / "provenance.json")
+        return about
 
 
 def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
