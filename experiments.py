@@ -49,7 +49,7 @@ from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_re
                    mean_se, to_device, train_predictor, train_stack)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, folder_lock,
                   git_commit, ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing,
-                  run_key, save_atomic, to_json, write_atomic)
+                  results_json, run_key, save_atomic, write_atomic)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -1121,7 +1121,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
                         device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
             md = section_markdown(spec, meta, table) if write else table
             if write:
-                write_atomic(out / f"{one}.json", json.dumps(dict(meta=meta, results=res), indent=1, default=to_json))
+                write_atomic(out / f"{one}.json", results_json(dict(meta=meta, results=res), str(out / f"{one}.json")))
                 write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
                 if store.root is not None:
                     record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
@@ -1289,7 +1289,7 @@ def _main(ap, args, names, world, rank, command, held):
         return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out, command, log=log,
                               overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
-    except OutputRefused as e:  # found once the data (and so the run's key) is known: still before any training
+    except ValueError as e:  # OutputRefused once the data (the run's key) is known, or a result that is not finite
         ap.error(str(e))
     finally:
         if world > 1:

@@ -21,6 +21,7 @@ import fcntl
 import functools
 import hashlib
 import json
+import math
 import os
 import pathlib
 import subprocess
@@ -41,6 +42,21 @@ def sha(*parts) -> str:
 def to_json(o):
     """json.dumps' default for results: a tensor as a list, anything else as its str."""
     return o.tolist() if torch.is_tensor(o) else str(o)
+
+
+def results_json(obj, name: str) -> str:
+    """obj as the text of the result file `name`; ValueError naming the first NaN or infinity, never written."""
+    try:
+        return json.dumps(obj, indent=1, default=to_json, allow_nan=False)
+    except ValueError:
+        def where(o, path):
+            if isinstance(o, float) and not math.isfinite(o):
+                return f"{path} = {o}"
+            for k, v in o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ():
+                if (found := where(v, f"{path}[{k!r}]")) is not None:
+                    return found
+        found = where(json.loads(json.dumps(obj, default=to_json)), "")
+        raise ValueError(f"{name}: {found or 'a value'} is not finite; a result is never written with NaN or infinity") from None
 
 
 # ============================================================================================

@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import re
 import threading
 import time
 
@@ -274,3 +275,29 @@ def test_a_recorded_command_names_paths_relative_to_the_repository(tmp_path):
     cmd = runs.command_line("python experiments.py", ["--experiment", "rl", "--out", str(root / "results" / "x"),
                                                       f"--data={root / 'data'}", "--cache", str(tmp_path)])
     assert cmd == f"python experiments.py --experiment rl --out results/x --data=data --cache {tmp_path}"
+
+
+def test_a_nan_gradient_stops_training_before_it_reaches_the_parameters(small, monkeypatch):
+    """A finite loss with a NaN gradient (what a NaN inside the stack's backward gives) stops the training too."""
+    cfg = ds.Config(**TINY10)
+    torch.manual_seed(0)
+    model = ds.Predictor(cfg)
+    model.dec_out.weight.register_hook(lambda g: g * float("nan"))
+    with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 7: training diverged at step 1 of 2: a gradient is NaN"):
+        tr.train_stack(model, small.train[:64], tr.Method("Standard"), cfg, "rl", 1.0, 7, None)
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small, monkeypatch):
+    evaluate = tr.evaluate_stack
+    monkeypatch.setattr(tr, "evaluate_stack", lambda model, *a, **k: {**evaluate(model, *a, **k), "ade": float("nan")})
+    cfg = ds.Config(**TINY10)
+    with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 0: its evaluation is not finite \(ade\)"):
+        tr.compare_methods(small, cfg, "rl", (tr.Method("Standard"),), (0,), 0.5, log=None)
+
+
+def test_a_result_with_nan_or_infinity_is_never_written(tmp_path):
+    assert json.loads(runs.results_json({"a": [1.0, {"b": 2.0}]}, "x.json")) == {"a": [1.0, {"b": 2.0}]}
+    for bad, where in (({"a": [1.0, {"b": float("nan")}]}, "['a'][1]['b'] = nan"), ({"c": float("-inf")}, "['c'] = -inf")):
+        with pytest.raises(ValueError, match=re.escape(f"out/rl.json: {where} is not finite")):
+            runs.results_json(bad, "out/rl.json")

@@ -472,6 +472,10 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                                            f"{total}: {which} is not finite")
                 opt.zero_grad()
                 loss.backward()
+                # a NaN gradient under a finite loss would reach the parameters too (an infinite one is clipped below)
+                if torch.isnan(torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])):
+                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
+                                           f"a gradient is NaN")
                 torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
                 opt.step()
                 if sched is not None:
@@ -574,6 +578,9 @@ def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, see
             if m.predictor == "learned":
                 model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
             r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
+            bad = [k for k in ("ade", "fde", "min_ade", "min_fde", "nll") if k in r and not math.isfinite(r[k])]
+            if bad:  # a predictor that trained to finite losses can still predict NaN
+                raise TrainingDiverged(f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})")
             r["seconds"] = time.time() - t0
             if getattr(model, "learning_curve", None) is not None:
                 r["curve"] = model.learning_curve
