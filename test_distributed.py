@@ -183,4 +183,4 @@ def test_experiments_cli_on_two_processes(tmp_path):
                 assert two["results"][method][0][key] == pytest.approx(value, rel=1e-4, abs=1e-6), (method, key)
     assert "Table 1" in (tmp_path / "rank0.log").read_text()
     assert (tmp_path / "rank1.log").read_text() == "", "rank 1 printed"
-    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == ["learning_curves.png", "rl.json", "rl.md"]
+    assert sorted(p.name for p in (tmp_path / "two").iterdir()) == [".lock", "learning_curves.png", "rl.json", "rl.md"]
