@@ -49,7 +49,7 @@ from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_re
                    mean_se, to_device, train_predictor, train_stack)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, folder_lock,
                   git_commit, ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing,
-                  results_json, run_key, save_atomic, write_atomic)
+                  read_results, results_json, run_key, save_atomic, write_atomic)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -1041,7 +1041,7 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
     src = pathlib.Path(out_dir) / f"{name}.json"
     if not src.exists():
         raise ValueError(f"out_dir: no {src} to render {name} from")
-    saved, spec, path = json.loads(src.read_text()), SPECS[name], src.with_suffix(".md")
+    saved, spec, path = read_results(src), SPECS[name], src.with_suffix(".md")
     write_atomic(path, table_file_markdown(spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))))
     return path
 
@@ -1054,7 +1054,7 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
     for one in names:
         spec = SPECS[one]
         written.append(render_markdown(one, out))
-        saved = json.loads((out / f"{one}.json").read_text())
+        saved = read_results(out / f"{one}.json")
         if "learning_curves.png" in spec.figures and has_curves(saved["results"]):  # (none in older runs)
             cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
             ref = figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES) if data is not None else None
@@ -1224,7 +1224,10 @@ def main(argv=None):
     launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
     command, held = command_line(launcher, argv if argv is not None else sys.argv[1:]), contextlib.ExitStack()
     with held:  # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock)
-        return _main(ap, args, names, world, rank, command, held)
+        try:
+            return _main(ap, args, names, world, rank, command, held)
+        except (ValueError, OSError) as e:  # the project's errors and a file's, as one line (a NaN result, a bad JSON)
+            ap.error(str(e))
 
 
 def _main(ap, args, names, world, rank, command, held):
@@ -1248,8 +1251,7 @@ def _main(ap, args, names, world, rank, command, held):
             raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
             data_real.nuscenes_version(args.data)
-        # files an earlier run listed in its manifest may be this command's own: run_experiment decides (with the key)
-        check_outputs(names, args.out, args.overwrite,
+        check_outputs(names, args.out, args.overwrite,  # an earlier run's files may be ours: run_experiment decides
                       ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")))
         check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
         if rank == 0:
@@ -1289,8 +1291,6 @@ def _main(ap, args, names, world, rank, command, held):
         return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out, command, log=log,
                               overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
-    except ValueError as e:  # OutputRefused once the data (the run's key) is known, or a result that is not finite
-        ap.error(str(e))
     finally:
         if world > 1:
             dist.destroy_process_group()

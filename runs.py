@@ -25,6 +25,7 @@ import math
 import os
 import pathlib
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -42,6 +43,17 @@ def sha(*parts) -> str:
 def to_json(o):
     """json.dumps' default for results: a tensor as a list, anything else as its str."""
     return o.tolist() if torch.is_tensor(o) else str(o)
+
+
+def read_results(path) -> dict:
+    """A results file an earlier run wrote ({'meta': ..., 'results': ...}); ValueError naming the file otherwise."""
+    try:
+        saved = json.loads(pathlib.Path(path).read_text())
+        if isinstance(saved, dict) and {"meta", "results"} <= saved.keys():
+            return saved
+        raise ValueError("no 'meta' and 'results'")
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a results file of python experiments.py ({e})") from None
 
 
 def results_json(obj, name: str) -> str:
@@ -211,7 +223,18 @@ class RunStore:
         return self.table_dir(table) / f"{piece.stem}.json"
 
     def has(self, table: str, piece) -> bool:
-        return (table, piece) in self.memory if self.root is None else self.path(table, piece).exists()
+        """Whether the piece is finished; one whose file cannot be read (a disk error, an edit) is named on stderr, set
+        aside as <piece>.corrupt and computed again."""
+        if self.root is None:
+            return (table, piece) in self.memory
+        path = self.path(table, piece)
+        try:
+            return path.exists() and "result" in json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            print(f"{path}: not a finished piece ({e}); set aside as {path.with_suffix('.corrupt').name}, computed again",
+                  file=sys.stderr)
+            os.replace(path, path.with_suffix(".corrupt"))
+            return False
 
     def load(self, table: str, piece):
         """(result, extra) of a finished piece, or None."""

@@ -3,6 +3,7 @@
 One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that the message
 names the argument, field or file. The nuScenes loader and the data CLI have their own file, test_data_bad_input.py.
 """
+import dataclasses
 import json
 import math
 import os
@@ -290,3 +291,35 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
         tr.load_pretrained(tr.Method("Standard"), ds.Config(), tmp_path / "pretrained")
     assert "--quick or --pretrain" in cli_error(tr.main, ["--quick", "--pretrain"], capsys)
+
+
+def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatch, capsys, batch):
+    """--render of a truncated results file, and --quick over a broken shipped predictor: one line naming the file,
+    exit code 2, no traceback."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rl.json").write_text('{"meta": {"command"')  # cut off mid-write
+    err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
+    assert f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pretrained").mkdir()
+    prov = {"files": {"standard-seed0.pt": {"method": "Standard", "seed": 0, "sha256": "0"}},
+            "config": dataclasses.asdict(ds.Config())}  # the defaults: the file listed, but missing
+    (tmp_path / "pretrained" / "provenance.json").write_text(json.dumps(prov))
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5))
+    monkeypatch.setattr(tr, "evaluate_stack", lambda *a, **k: {})  # (the rows before the shipped ones)
+    monkeypatch.setattr(tr, "add_relative", lambda res, setting: res)
+    monkeypatch.setattr(tr, "open_loop_table", lambda *a, **k: "")
+    err = cli_error(tr.main, ["--quick"], capsys)
+    assert "standard-seed0.pt: missing" in err.splitlines()[-1] and "Traceback" not in err
+
+
+def test_a_corrupt_piece_of_the_resume_store_is_named_and_computed_again(tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = ex.Piece("Standard", 0, None)
+    store.save("rl", piece, {"ade": 1.0})
+    assert store.has("rl", piece)
+    store.path("rl", piece).write_text('{"table": "rl", "res')  # a disk error cut it
+    assert not store.has("rl", piece)  # computed again
+    assert f"{store.path('rl', piece)}: not a finished piece" in capsys.readouterr().err
+    assert store.path("rl", piece).with_suffix(".corrupt").exists()

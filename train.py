@@ -996,15 +996,15 @@ def main(argv=None):
         ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)")
     if args.jobs is not None and not args.pretrain:
         ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
-    try:
+    try:  # every refusal, of the arguments or of a file (the shipped predictors, a cache), is one line
         cfg = config_with(Config(), args.set)
         check_writable("data_cache", "the data cache (./data_cache)")
         if args.pretrain:
             return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
                             command=command_line("python diffstack.py", argv))
-    except ValueError as e:
+        return quick(args.threads or 2, cfg=cfg, device=args.device)
+    except (ValueError, OSError) as e:
         ap.error(str(e))
-    return quick(args.threads or 2, cfg=cfg, device=args.device)
 
 
 if __name__ == "__main__":
