@@ -279,6 +279,27 @@ class RunStore:
 # ============================================================================================
 
 
+class WorkerDied(ValueError):
+    """A worker process of the run ended without its result (killed, out of memory): the run stops, saying so."""
+
+
+def die_with_parent(parent: int) -> None:
+    """A worker process's initializer: a thread that ends the worker once its parent is gone (killed with SIGKILL, say),
+    so that no worker outlives the run it belongs to and writes pieces for nobody."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def pool(jobs: int):
+    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with this one."""
+    from concurrent.futures import ProcessPoolExecutor
+    return ProcessPoolExecutor(jobs, mp_context=torch.multiprocessing.get_context("spawn"), initializer=die_with_parent,
+                               initargs=(os.getpid(),))
+
+
 def _worker(compute, table: str, pieces: list, root: str, key: str, about, verbose: bool) -> int:
     """A worker process: compute and save some pieces of one table, on one thread. Returns how many."""
     torch.set_num_threads(1)
@@ -295,17 +316,21 @@ def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=
     in the order given; each piece is saved in `store` (on disk) as it finishes. compute(table, piece, log, models,
     store) -> (result, extra, timing) makes a piece: a picklable callable (a module's function, or a
     functools.partial of one), `models` a dict the pieces of one unit share. abouts: {table: what its key stands
-    for} (RunStore.save). Raises the first worker's error."""
-    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    for} (RunStore.save). Raises the first worker's error; WorkerDied when a worker ended without one."""
+    from concurrent.futures import FIRST_EXCEPTION, wait
+    from concurrent.futures.process import BrokenProcessPool
 
     abouts = abouts or {}
-    with ProcessPoolExecutor(min(jobs, len(units)), mp_context=torch.multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose)
+    with pool(min(jobs, len(units))) as workers:
+        futures = [workers.submit(_worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose)
                    for name, ps in units]
         finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
         for f in finished:
             if f.exception() is not None:
-                pool.shutdown(cancel_futures=True)
+                workers.shutdown(cancel_futures=True)
+                if isinstance(f.exception(), BrokenProcessPool):
+                    raise WorkerDied(f"a worker process died ({f.exception()}); the run stops here: the same command "
+                                     f"resumes it from the pieces kept in {store.root}") from None
                 raise f.exception()
 
 

@@ -301,3 +301,46 @@ def test_a_result_with_nan_or_infinity_is_never_written(tmp_path):
     for bad, where in (({"a": [1.0, {"b": float("nan")}]}, "['a'][1]['b'] = nan"), ({"c": float("-inf")}, "['c'] = -inf")):
         with pytest.raises(ValueError, match=re.escape(f"out/rl.json: {where} is not finite")):
             runs.results_json(bad, "out/rl.json")
+
+
+def _children(pid: int) -> set:
+    """The processes whose parent is `pid` (Linux /proc)."""
+    found = set()
+    for stat in pathlib.Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
+def test_a_killed_runs_workers_do_not_outlive_it(tmp_path):
+    """kill -9 of a --jobs 2 run: its worker processes end too (they watch their parent) instead of training on
+    under PID 1."""
+    import signal
+    import subprocess
+    import sys
+
+    script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
+    run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200",
+                            "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers, t0 = set(), time.time()
+    while len(workers) < 2 and time.time() - t0 < 120 and run.poll() is None:
+        workers = {p for p in _children(run.pid)
+                   if b"spawn_main" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ")}
+        time.sleep(0.2)
+    assert len(workers) == 2, "the run's two worker processes never started"
+    time.sleep(10)  # into their training (a piece here takes minutes)
+    assert all(pathlib.Path(f"/proc/{p}").exists() for p in workers)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    t0 = time.time()
+    while any(pathlib.Path(f"/proc/{p}").exists() for p in workers) and time.time() - t0 < 5:
+        time.sleep(0.2)
+    alive = [p for p in workers if pathlib.Path(f"/proc/{p}").exists()]
+    for p in alive:  # (so that a failing run leaves nothing behind)
+        os.kill(p, signal.SIGKILL)
+    assert not alive, f"workers {alive} outlived their killed parent"

@@ -17,6 +17,7 @@ import pathlib
 import statistics
 import sys
 import time
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import torch
@@ -27,7 +28,8 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
-from runs import command_line, folder_lock
+from runs import WorkerDied, command_line, folder_lock
+from runs import pool as worker_pool
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
                        collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
@@ -689,7 +691,6 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     import hashlib
     import json
     import subprocess
-    from concurrent.futures import ProcessPoolExecutor
 
 
     out, cfg, seeds = pathlib.Path(out), cfg or Config(), tuple(seeds)
@@ -710,7 +711,7 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
             about["commit"] = None
         args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
         if jobs > 1:
-            pool = ProcessPoolExecutor(min(jobs, len(work)), mp_context=torch.multiprocessing.get_context("spawn"))
+            pool = worker_pool(min(jobs, len(work)))
             finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
         else:
             pool, finished = None, (_pretrain_one(*a) for a in args)
@@ -724,6 +725,8 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
                 if log:
                     log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
                         f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)")
+        except BrokenProcessPool as e:
+            raise WorkerDied(f"a worker process died ({e}); --pretrain stops, the finished predictors are kept") from None
         finally:
             if pool is not None:
                 pool.shutdown()
