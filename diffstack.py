@@ -1275,35 +1275,35 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
 # run_stack) call one of these on their input; the math inside them is not checked again.
 
 def check_config(cfg: Config) -> None:
-    """Refuse, naming the field, any value that would later give a silent NaN or a crash deep inside."""
-    positive = ("dt", "rbf_var", "goal_lane_dist", "goal_lane_heading", "beta", "feas_lat_accel", "feas_yaw_per_speed",
-                "ilqr_tol", "pred_radius", "pred_grad_clip", "lr")
-    non_negative = ("w_coll", "w_goal", "w_lat", "w_head", "w_ctrl", "pred_min_speed", "pred_kl_min", "pred_pos_std_min")
+    """Refuse, naming the field, any value out of its range (inclusive; every number has one): no NaN or petabyte later."""
+    ranges = dict(dt=(1e-3, 10), hist_len=(1, 100), horizon=(1, 100), w_coll=(0, 1e6), w_goal=(0, 1e6), w_lat=(0, 1e6),
+                  w_head=(0, 1e6), w_ctrl=(0, 1e6), rbf_var=(1e-6, 1e6), goal_lane_dist=(1e-6, 1e4), goal_lane_heading=(1e-6, 7),
+                  max_goal_lanes=(1, 64), beta=(1e-6, 1e6), feas_lat_accel=(1e-6, 1e4), feas_yaw_per_speed=(1e-6, 1e4),
+                  ilqr_iters=(1, 1000), ilqr_tol=(1e-12, 1e6), line_search_steps=(1, 60), line_search_decay=(1.01, 1e6),
+                  pred_modes=(1, 1024), pred_enc_hidden=(1, 4096), pred_latent_hidden=(1, 4096), pred_dec_hidden=(1, 4096),
+                  pred_radius=(1e-6, 1e4), pred_min_speed=(0, 1e3), pred_pos_std_min=(0, 1e3), pred_log_p_max=(-1e6, 1e6),
+                  pred_kl_min=(0, 1e6), pred_nll_min=(-1e6, 1e6), pred_lr_decay=(1e-9, 1), pred_grad_clip=(1e-12, 1e6),
+                  lr=(1e-12, 1e3), batch_size=(1, 100_000))
     sizes = dict(u_lower=2, u_upper=2, pred_scales=4, pred_beta=3, pred_logit_clip=4, alpha_rl=3, alpha_il=3)
     choices = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
     finite = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)  # noqa: E731
     for f in dataclasses.fields(cfg):
-        v, n, bad = getattr(cfg, f.name), sizes.get(f.name), None
+        v, n, (lo, hi) = getattr(cfg, f.name), sizes.get(f.name), ranges.get(f.name, (None, None))
         if f.name in choices:
             bad = v not in choices[f.name] and f"one of {choices[f.name]}"
-        elif f.type == "int":
-            bad = (isinstance(v, bool) or not isinstance(v, int) or v < 1) and "a whole number >= 1"
         elif f.type == "tuple":
             bad = ((not isinstance(v, tuple) or not v or len(v) != (n or len(v)) or not all(map(finite, v)))
                    and f"a tuple of {n or 'one or more'} finite numbers")
-        elif not finite(v):
-            bad = "a finite number"
-        elif f.name in positive and v <= 0 or f.name in non_negative and v < 0:
-            bad = "> 0" if f.name in positive else ">= 0"
+        else:
+            whole = f.type == "int"
+            bad = ((not finite(v) or whole and not isinstance(v, int) or not lo <= v <= hi)
+                   and f"{'a whole' if whole else 'a finite'} number from {lo:g} to {hi:g}")
         if bad:
             raise ValueError(f"Config.{f.name}: must be {bad}, got {v!r}")
     if any(lo >= hi for lo, hi in zip(cfg.u_lower, cfg.u_upper)):
         raise ValueError(f"Config.u_lower: must be below u_upper, got {cfg.u_lower} and {cfg.u_upper}")
     if any(x <= 0 for x in cfg.pred_scales) or any(x < 0 for x in cfg.alpha_rl + cfg.alpha_il):
         raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
-    if not cfg.line_search_decay > 1 or not 0 < cfg.pred_lr_decay <= 1:
-        raise ValueError(f"Config.line_search_decay: must be > 1, and Config.pred_lr_decay in (0, 1], got "
-                         f"{cfg.line_search_decay} and {cfg.pred_lr_decay}")
 
 def check_setting(setting) -> str:
     if setting not in SETTINGS:

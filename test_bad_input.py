@@ -163,6 +163,7 @@ def test_quick_threads_bounds(capsys):
     ("rbf_var", 0.0), ("beta", math.inf), ("w_coll", -1.0), ("u_lower", (1.0, -5.0)), ("u_upper", (0.7,)),
     ("ilqr_iters", 0), ("line_search_decay", 1.0), ("pred_modes", 0), ("batch_size", 0), ("lr", 0.0),
     ("plan_accels", ()), ("pred_lr_decay", 1.5), ("alpha_rl", (1.0, -1.0, 1.0)), ("pred_scales", (1.0, 1.0, 1.0, 0.0)),
+    ("batch_size", 10**9), ("pred_modes", 10**6), ("dt", 1e-300), ("horizon", 10**4), ("lr", 1e9),
 ])
 def test_config_refuses_values_that_would_fail_later(field, value):
     with pytest.raises(ValueError, match=field):
@@ -171,6 +172,13 @@ def test_config_refuses_values_that_would_fail_later(field, value):
 
 def test_config_accepts_its_defaults_and_the_tests_small_models():
     ds.Config(), ds.Config(**TINY), ds.Config(pred_pos_std_min=0.0)
+
+
+def test_every_number_of_the_config_has_a_range_named_in_its_refusal():
+    for f in dataclasses.fields(ds.Config):
+        if f.type in ("int", "float"):
+            with pytest.raises(ValueError, match=rf"^Config\.{f.name}: must be a (whole|finite) number from \S+ to \S+, got"):
+                ds.Config(**{f.name: 10**12})
 
 
 @pytest.mark.parametrize("kw, culprit", [
