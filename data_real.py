@@ -109,12 +109,17 @@ def _is_number(x) -> bool:
     return (type(x) is float and math.isfinite(x)) or (type(x) is int and abs(x) < _BIG_INT)
 
 
-def _numbers(path: Path, rec: dict, key: str, n: int, who: str | None = None) -> list:
-    """rec[key] as a list of n floats; else a NuScenesFormatError naming the file, the record and the field."""
-    v = rec.get(key)
+MAX_POSITION = 1e6  # m: a translation beyond this is no place on a nuScenes map (each is a few km across)
+
+
+def _numbers(path: Path, rec: dict, key: str, n: int, who: str | None = None, limit: float = math.inf) -> list:
+    """rec[key] as a list of n floats, each at most `limit` in size; else a NuScenesFormatError naming the file, the
+    record and the field."""
+    v, who = rec.get(key), who or repr(rec.get("token"))
     if not (isinstance(v, list) and len(v) == n and all(map(_is_number, v))):
-        raise NuScenesFormatError(f"{path}: {key} of {who or repr(rec.get('token'))} must be {n} finite numbers, "
-                                  f"got {_short(v)}")
+        raise NuScenesFormatError(f"{path}: {key} of {who} must be {n} finite numbers, got {_short(v)}")
+    if any(abs(x) > limit for x in v):
+        raise NuScenesFormatError(f"{path}: {key} of {who} is {_short(v)}, beyond +-{limit:g}: no place on a map")
     return [float(x) for x in v]
 
 
@@ -287,6 +292,10 @@ def _sample_chain(sample_file: Path, scene_file: Path, samples: dict, name: str,
         tokens.append(tok)
         times.append(ts)
         prev, tok = tok, s["next"]
+    step = pystats.median(b - a for a, b in zip(times, times[1:])) / 1e6 if len(times) > 1 else 0.5  # s
+    if not 0.1 <= step <= 2.0:  # nuScenes key frames are 2 Hz: timestamps in ms (or ns) are 1000 times off
+        raise NuScenesFormatError(f"{sample_file}: the samples of scene {name!r} are {step:g} s apart (the median step of "
+                                  f"their timestamps); key frames are 2 Hz, 0.5 s apart, timestamps in microseconds")
     return tokens, times
 
 
@@ -454,7 +463,7 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
         raise NuScenesFormatError(f"{file('sample_data')}: no CAM_FRONT key frame for sample {missing[0]}")
     pfile = file("ego_pose")
     with _Blame(pfile):
-        ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3)[:2], _yaw(pfile, ego_of[k]), 0.0]
+        ego = np.array([[*_numbers(pfile, ego_of[k], "translation", 3, limit=MAX_POSITION)[:2], _yaw(pfile, ego_of[k]), 0.0]
                         for k in tokens])
     ego[:, 2] = wrap_angle(ego[:, 2])
     ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
@@ -469,7 +478,7 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
                     raise NuScenesFormatError(f"{afile}: instance {a['instance_token']!r} is annotated twice in "
                                               f"sample {k!r} ({seen[m, f]!r} and {a['token']!r})")
                 seen[m, f] = a["token"]
-                x, y, _ = _numbers(afile, a, "translation", 3)
+                x, y, _ = _numbers(afile, a, "translation", 3, limit=MAX_POSITION)
                 rows.append((m, f, x, y, _yaw(afile, a), *_numbers(afile, a, "size", 3)))
     M = len(slot)
     rows = np.array(rows, np.float64).reshape(-1, 8)

@@ -242,6 +242,10 @@ MALFORMED = {
     "map negative length": ("maps", lambda p: edit(a_map(p.parent)[0], lambda js: js["arcline_path_3"][
                                 js["lane"][0]["token"]][0].update(segment_length=[0, -5.0, 0])),
                             r"\.json: segment_length of an arcline path of lane '.*' must be >= 0"),
+    "a position no map holds": ("sample_annotation", lambda p: edit(p, lambda d: d[0]["translation"].__setitem__(0, 1e30)),
+                                r"sample_annotation\.json: translation of '.*' is \[1e\+30, .*beyond \+-1e\+06"),
+    "timestamps in milliseconds": ("sample", lambda p: edit(p, lambda d: [r.update(timestamp=r["timestamp"] // 1000) for r in d]),
+                                   r"sample\.json: the samples of scene '.*' are 0\.0005 s apart .* 2 Hz"),
     "prediction split not an object": ("prediction", lambda p: (p.parent / "maps" / "prediction" /
                                                                 "prediction_scenes.json").write_text("[1, 2]"),
                                        r"prediction_scenes\.json: must be a JSON object"),
