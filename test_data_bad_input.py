@@ -244,7 +244,8 @@ MALFORMED = {
                             r"\.json: segment_length of an arcline path of lane '.*' must be >= 0"),
     "a position no map holds": ("sample_annotation", lambda p: edit(p, lambda d: d[0]["translation"].__setitem__(0, 1e30)),
                                 r"sample_annotation\.json: translation of '.*' is \[1e\+30, .*beyond \+-1e\+06"),
-    "timestamps in milliseconds": ("sample", lambda p: edit(p, lambda d: [r.update(timestamp=r["timestamp"] // 1000) for r in d]),
+    "timestamps in milliseconds": ("sample",
+                                   lambda p: edit(p, lambda d: [r.update(timestamp=r["timestamp"] // 1000) for r in d]),
                                    r"sample\.json: the samples of scene '.*' are 0\.0005 s apart .* 2 Hz"),
     "prediction split not an object": ("prediction", lambda p: (p.parent / "maps" / "prediction" /
                                                                 "prediction_scenes.json").write_text("[1, 2]"),
@@ -622,3 +623,68 @@ def test_random_corruptions_load_or_fail_cleanly(valid, tmp_path):
     assert all(sum(c.values()) >= 1 for c in outcomes.values())  # every class was exercised
     total = sum(outcomes.values(), collections.Counter())
     assert total["loaded"] > 0 and total["NuScenesFormatError"] > N_CASES / 2  # both ends happen
+
+
+# --------------------------------------------------------------------------------------------------------------
+# fuzz: seeded random mutations of a folder and of the resume store
+# --------------------------------------------------------------------------------------------------------------
+
+MUTANTS = (None, True, "x", -1, 0, 1e30, -1e30, float("nan"), float("inf"), [], {}, [1, 2], "0" * 32)
+
+
+def test_random_mutations_of_a_folder_are_read_or_refused_by_name(valid, tmp_path):
+    """300 seeded mutations, each a random field (a numeric one more often than not) of a random record of a random
+    table set to a value of another kind or out of range: the reader either reads the folder or refuses it with a
+    NuScenesFormatError naming the file, never another exception (a traceback), and never returns a non-finite number."""
+    rng = random.Random(0)
+    names = ("sample", "sample_annotation", "ego_pose", "instance", "scene", "log", "category", "sample_data")
+    for trial in range(300):
+        root = tmp_path / f"t{trial}"
+        shutil.copytree(valid, root)
+        name = rng.choice(names)
+        path = table(root, name)
+        doc = json.loads(path.read_text())
+        rec = rng.choice(doc)
+        number = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool)  # noqa: E731
+        numeric = sorted(k for k, v in rec.items() if number(v) or isinstance(v, list) and v and all(map(number, v)))
+        key = rng.choice(numeric) if numeric and rng.random() < 0.6 else rng.choice(sorted(rec))
+        if isinstance(rec[key], list) and rec[key] and rng.random() < 0.7:  # one element of a vector
+            rec[key][rng.randrange(len(rec[key]))] = rng.choice(MUTANTS)
+        else:
+            rec[key] = rng.choice(MUTANTS)
+        path.write_text(json.dumps(doc))
+        try:
+            scenes, _ = data_real.load_nuscenes(root)
+        except FormatError as e:
+            assert f"{name}.json" in str(e) or "json" in str(e), (trial, name, key, str(e))
+        else:
+            for k, v in scenes.tensors().items():
+                assert not v.is_floating_point() or torch.isfinite(v).all(), (trial, name, key, k)
+        shutil.rmtree(root)
+
+
+def test_random_corruption_of_resume_pieces_is_named_and_recomputed(tmp_path, capsys):
+    """Seeded random truncations and byte flips of finished pieces: the store never raises, and a piece it still
+    calls finished loads."""
+    import experiments as ex
+    import runs
+
+    rng = random.Random(1)
+    store = runs.RunStore(tmp_path, "k")
+    pieces = [ex.Piece("Standard", s, None) for s in range(30)]
+    for p in pieces:
+        store.save("rl", p, {"ade": 1.0 + p.seed, "curve": [1.0, 2.0]})
+    for p in pieces:
+        raw = bytearray(store.path("rl", p).read_bytes())
+        if rng.random() < 0.5:
+            raw = raw[: rng.randrange(len(raw))]
+        else:
+            for _ in range(rng.randrange(1, 4)):
+                raw[rng.randrange(len(raw))] = rng.randrange(256)
+        store.path("rl", p).write_bytes(bytes(raw))
+        if store.has("rl", p):
+            result, _ = store.load("rl", p)
+            assert isinstance(result, dict)
+        else:
+            assert store.path("rl", p).with_suffix(".corrupt").exists()
+    assert "not a finished piece" in capsys.readouterr().err
