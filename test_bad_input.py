@@ -331,3 +331,11 @@ def test_a_corrupt_piece_of_the_resume_store_is_named_and_computed_again(tmp_pat
     assert not store.has("rl", piece)  # computed again
     assert f"{store.path('rl', piece)}: not a finished piece" in capsys.readouterr().err
     assert store.path("rl", piece).with_suffix(".corrupt").exists()
+
+
+def test_an_evaluation_with_no_plannable_scenario_is_an_error_not_a_table_of_zeros(batch):
+    import dataclasses
+    no_lanes = dataclasses.replace(batch, lanes_mask=torch.zeros_like(batch.lanes_mask))  # no goal lane anywhere
+    with pytest.raises(ValueError, match=r"GT: none of the 8 scenarios is plannable"):
+        tr.evaluate_stack(None, no_lanes, tr.Method("GT", "gt"), ds.Config())
+    assert tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), ds.Config())["n"] > 0

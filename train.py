@@ -548,7 +548,10 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
                 for k in ("hindsight", "mse", "plan_loss"):
                     acc[k] = acc.get(k, 0.0) + vals[k].detach()[rows].sum().item()
         n, n_all = n + keep.sum().item(), n_all + len(batch)
-    out = {k: v / max(n, 1) for k, v in sums.items()}
+    if n == 0:  # means over nothing would read as a table of zeros
+        raise ValueError(f"{method.name}: none of the {n_all} scenarios is plannable (fewer than 2 feasible candidates on a "
+                         f"goal lane in each): check the data's lanes and goals, or the Config's planner settings")
+    out = {k: v / n for k, v in sums.items()}
     out.update(n=n, skipped=n_all - n)
     if by_behaviour:  # means per behaviour, and how many scenarios each has
         out["by_behaviour"] = {name: {k: (v if k == "n" else v / acc["n"]) for k, v in acc.items()}
