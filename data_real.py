@@ -1101,7 +1101,13 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
     The rule used is logged. A folder's parse is cached in cache_dir, keyed by the checksums of its files
     (load_nuscenes_cached); parsing uses a pool of `workers` processes (default: the cores, parse_workers())."""
     if path is None:
-        return load_or_generate(n, seed=seed, cache_dir=cache_dir)
+        data = load_or_generate(n, seed=seed, cache_dir=cache_dir)
+        bad = [f"{part}.{k}" for part, b in zip(data._fields, data) if b is not None
+               for k, v in b.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if bad:  # (a cache edited or damaged since it was written: the generator makes none)
+            raise ValueError(f"{data_synth._cache_path(n, seed, data_synth.SynthConfig(), cache_dir)[0]}: the data cache holds "
+                             f"NaN or inf in {', '.join(bad)}; move it away to make it again")
+        return data
     _check_seed("load_data", seed)
     root, version = Path(path), nuscenes_version(path)
     scenes, report = load_nuscenes_cached(root, version, cache_dir=cache_dir, workers=workers, log=log)

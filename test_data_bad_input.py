@@ -688,3 +688,13 @@ def test_random_corruption_of_resume_pieces_is_named_and_recomputed(tmp_path, ca
         else:
             assert store.path("rl", p).with_suffix(".corrupt").exists()
     assert "not a finished piece" in capsys.readouterr().err
+
+
+def test_a_nan_inside_the_data_cache_is_refused_naming_the_cache(tmp_path):
+    data_real.load_data(n=40, seed=3, cache_dir=tmp_path)  # makes the cache
+    (path,) = tmp_path.glob("scenarios-n40-s3-*.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["train"]["agent_hist"][0, 0, 0] = float("nan")
+    torch.save(blob, path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: the data cache holds NaN or inf in train\.agent_hist"):
+        data_real.load_data(n=40, seed=3, cache_dir=tmp_path)
