@@ -17,6 +17,7 @@ Shape letters and conventions as in data_synth.py. This module imports data_synt
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import gc
 import hashlib
@@ -33,6 +34,7 @@ import numpy as np
 import torch
 
 import data_synth
+from runs import folder_lock
 from data_synth import (_SHAPE_SIGNS, MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSIONS, Dataset, Scenarios, Scenes,
                         SynthConfig, _check_seed, _lane_points, arcline_segments, backward_speed, cut_samples,
                         discretize, load_or_generate, route_segments, wrap_angle)
@@ -1101,7 +1103,13 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
     The rule used is logged. A folder's parse is cached in cache_dir, keyed by the checksums of its files
     (load_nuscenes_cached); parsing uses a pool of `workers` processes (default: the cores, parse_workers())."""
     if path is None:
-        data = load_or_generate(n, seed=seed, cache_dir=cache_dir)
+        try:  # one process makes a missing cache; another asking for it meanwhile is told who does
+            made = data_synth._cache_path(int(n), int(seed), data_synth.SynthConfig(), cache_dir)[0]
+            lock = contextlib.nullcontext() if made.exists() else folder_lock(cache_dir, f"making the data cache {made.name}")
+        except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
+            lock = contextlib.nullcontext()
+        with lock:
+            data = load_or_generate(n, seed=seed, cache_dir=cache_dir)
         bad = [f"{part}.{k}" for part, b in zip(data._fields, data) if b is not None
                for k, v in b.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
         if bad:  # (a cache edited or damaged since it was written: the generator makes none)

@@ -397,7 +397,7 @@ def folder_lock(folder, command: str):
             holder = {}
         os.close(fd)
         raise OutputRefused(f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, `{holder.get('command', '?')}`, "
-                            f"since {holder.get('start', '?')}); wait for it to end, or choose another --out") from None
+                            f"since {holder.get('start', '?')}); wait for it to end, or use another folder") from None
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(dict(pid=os.getpid(), command=command, start=time.strftime("%Y-%m-%d %H:%M:%S"))).encode(), 0)

@@ -698,3 +698,24 @@ def test_a_nan_inside_the_data_cache_is_refused_naming_the_cache(tmp_path):
     torch.save(blob, path)
     with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: the data cache holds NaN or inf in train\.agent_hist"):
         data_real.load_data(n=40, seed=3, cache_dir=tmp_path)
+
+
+def test_a_data_cache_being_made_by_another_process_is_refused_naming_it(tmp_path):
+    """While one process makes a data cache, another asking for the same missing cache is told who makes it."""
+    import os
+    import subprocess
+    import sys
+
+    import runs
+
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time, runs\n"
+                               "with runs.folder_lock(sys.argv[1], 'making the data cache'):\n print('held', flush=True); time.sleep(60)",
+                               str(tmp_path)], cwd=os.path.dirname(runs.__file__), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(ValueError, match=rf"{re.escape(str(tmp_path))}: another run is writing here \(PID {holder.pid}"):
+            data_real.load_data(n=40, seed=4, cache_dir=tmp_path)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert len(data_real.load_data(n=40, seed=4, cache_dir=tmp_path).train) > 0  # the holder gone: made here
