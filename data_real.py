@@ -112,6 +112,7 @@ def _is_number(x) -> bool:
 
 
 MAX_POSITION = 1e6  # m: a translation beyond this is no place on a nuScenes map (each is a few km across)
+MAX_SPEED = 100.0  # m/s (360 km/h): a track moving faster between two key frames is a wrong position or timestamp
 
 
 def _numbers(path: Path, rec: dict, key: str, n: int, who: str | None = None, limit: float = math.inf) -> list:
@@ -469,6 +470,9 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
                         for k in tokens])
     ego[:, 2] = wrap_angle(ego[:, 2])
     ego[:, 3] = backward_speed(ego[:, :2], np.ones(F, bool), t)
+    if abs(ego[(f := int(np.abs(ego[:, 3]).argmax())), 3]) > MAX_SPEED:
+        raise NuScenesFormatError(f"{pfile}: translation of the ego at sample {tokens[f]!r} of scene {name!r} puts it "
+                                  f"at {abs(ego[f, 3]):.3g} m/s since the sample before: no vehicle moves so fast")
     # agent tracks, in order of first appearance
     afile = file("sample_annotation")
     with _Blame(afile):
@@ -492,6 +496,10 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
     size = np.zeros((M, 3))
     size[mi] = rows[:, 5:8]
     inst = list(slot)
+    if (np.abs(agents[..., 3]) > MAX_SPEED).any():
+        m, f = np.argwhere(np.abs(agents[..., 3]) > MAX_SPEED)[0]
+        raise NuScenesFormatError(f"{afile}: translation of instance {inst[m]!r} at sample {tokens[f]!r} of scene {name!r} "
+                                  f"puts it at {abs(agents[m, f, 3]):.3g} m/s: no road user moves so fast")
     is_ped = np.array([inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
     # lanes near the ego's path
     lmap = ctx.maps[mpath]

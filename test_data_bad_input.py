@@ -244,6 +244,10 @@ MALFORMED = {
                             r"\.json: segment_length of an arcline path of lane '.*' must be >= 0"),
     "a position no map holds": ("sample_annotation", lambda p: edit(p, lambda d: d[0]["translation"].__setitem__(0, 1e30)),
                                 r"sample_annotation\.json: translation of '.*' is \[1e\+30, .*beyond \+-1e\+06"),
+    "a speed no road user reaches": ("sample_annotation", lambda p: edit(p, lambda d: d[0]["translation"].__setitem__(
+                                         0, d[0]["translation"][0] + 500.0)),
+                                     r"sample_annotation\.json: translation of instance '.*' at sample '.*' of scene "
+                                     r"'.*' puts it at \S+ m/s: no road user"),
     "timestamps in milliseconds": ("sample",
                                    lambda p: edit(p, lambda d: [r.update(timestamp=r["timestamp"] // 1000) for r in d]),
                                    r"sample\.json: the samples of scene '.*' are 0\.0005 s apart .* 2 Hz"),
