@@ -634,16 +634,16 @@ def load_nuscenes_cached(root, version: str = "v1.0-mini", cfg: SynthConfig | No
         changed = sorted(f for f in set(sums) | set(before) if sums.get(f) != before.get(f)) or ["the settings"]
         log(f"{root}/{version}: the cache {path} is out of date ({', '.join(changed[:3])}"
             f"{' ...' if len(changed) > 3 else ''} changed); parsing again")
-    scenes, report = load_nuscenes(root, version, cfg, workers)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    try:
-        torch.save(blob, tmp)
-        os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with folder_lock(path.parent, f"parsing {root}/{version} into {path.name}"):  # (it makes the folder)
+        scenes, report = load_nuscenes(root, version, cfg, workers)
+        blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        try:
+            torch.save(blob, tmp)
+            os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     log(f"{root}/{version}: parsed in {time.perf_counter() - t0:.1f} s, cached in {path}")
     return scenes, report
 

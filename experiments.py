@@ -20,6 +20,7 @@ Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S cou
 """
 from __future__ import annotations
 
+import argparse
 import collections
 import contextlib
 import dataclasses
@@ -47,9 +48,9 @@ from diffstack import (Config, Predictor, cost_contexts, cost_terms, cost_weight
 from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
                    check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
                    mean_se, to_device, train_predictor, train_stack)
-from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, folder_lock,
-                  git_commit, ours_files, outputs_manifest, planned_outputs, progress, record_outputs, refuse_existing,
-                  read_results, results_json, run_key, save_atomic, write_atomic)
+from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, die_with_parent,
+                  folder_lock, git_commit, ours_files, outputs_manifest, planned_outputs, progress, read_results,
+                  record_outputs, refuse_existing, results_json, run_key, save_atomic, write_atomic)
 
 # ============================================================================================
 # 1. Specs: the paper's tables, declared
@@ -1179,10 +1180,10 @@ def start_distributed(device: torch.device) -> torch.device:
 
 
 def main(argv=None):
-    import argparse
-
     # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike; rank 0 prints, writes
     rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
+    if world > 1:  # a rank ends with the torchrun that started it, as a --jobs worker with its run
+        die_with_parent(os.getppid())
     ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
                                              "Under torchrun, on N processes: training with DistributedDataParallel.")
     if rank != 0:  # the same errors come up on every rank: rank 0 says what they are, the others exit alike
@@ -1219,8 +1220,7 @@ def main(argv=None):
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
-    if args.out is None:
-        args.out = REAL_OUT if args.experiment == REAL.name else "results"
+    args.out = args.out or (REAL_OUT if args.experiment == REAL.name else "results")
     launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
     command, held = command_line(launcher, argv if argv is not None else sys.argv[1:]), contextlib.ExitStack()
     with held:  # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock)

@@ -9,6 +9,11 @@ import torch
 import data_real
 import data_synth
 
+
+def _files(folder):
+    """The names in `folder` but its .lock (the record of who holds it: runs.folder_lock)."""
+    return [p.name for p in folder.iterdir() if p.name != ".lock"]
+
 SCENES = 40  # 3 chunks of PARSE_CHUNK = 16: a pool of 2 workers gets more than one task each
 
 
@@ -45,7 +50,17 @@ def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
     second, report2 = data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
     assert "read from the cache" in lines[-1]
     assert report2 == report and same(fresh, first) and same(fresh, second)
-    assert [p.name for p in tmp_path.iterdir()] == [data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
+    assert _files(tmp_path) == [data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
+
+
+def test_a_second_parse_into_a_cache_being_written_is_refused(folder, tmp_path):
+    import runs
+    with runs.folder_lock(tmp_path, "another parse"):
+        with pytest.raises(runs.OutputRefused, match=r"another run is writing here .*`another parse`"):
+            data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
+    assert not list(tmp_path.glob("*.pt"))
+    data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)  # once the first has ended, it goes ahead
+    assert len(list(tmp_path.glob("*.pt"))) == 1
 
 
 def test_a_changed_table_invalidates_the_cache(folder, tmp_path):
@@ -63,7 +78,7 @@ def test_a_changed_table_invalidates_the_cache(folder, tmp_path):
     # and the replaced cache now holds the new parse
     again, _ = data_real.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
     assert "read from the cache" in lines[-1] and same(after, again)
-    assert len(list(cache.iterdir())) == 1  # one cache per folder, replaced (no temporary file left)
+    assert len(_files(cache)) == 1  # one cache per folder, replaced (no temporary file left)
 
 
 def test_a_foreign_file_under_the_cache_name_is_refused_and_kept(folder, tmp_path):
@@ -82,7 +97,7 @@ def test_a_failed_cache_write_leaves_nothing(folder, tmp_path, monkeypatch):
     monkeypatch.setattr(data_synth.torch, "save", full_disk)
     with pytest.raises(OSError, match="No space left"):
         data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lambda s: None)
-    assert list(tmp_path.iterdir()) == []
+    assert _files(tmp_path) == []
 
 
 def test_load_data_parses_once_then_reads_the_cache(folder, tmp_path):

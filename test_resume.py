@@ -344,3 +344,44 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path):
     for p in alive:  # (so that a failing run leaves nothing behind)
         os.kill(p, signal.SIGKILL)
     assert not alive, f"workers {alive} outlived their killed parent"
+
+
+def _dies(table, piece, log, models, store):
+    """A piece whose worker process dies (as one killed by the OOM killer would)."""
+    os._exit(3)
+
+
+def test_a_worker_that_dies_stops_the_run_saying_so(tmp_path):
+    store = runs.RunStore(tmp_path, "k")
+    with pytest.raises(runs.WorkerDied, match=r"a worker process died .*the same command resumes it"):
+        runs.compute_in_workers(_dies, [("rl", [ex.Piece("Standard", 0, None)])], store, jobs=1, verbose=False)
+
+
+@pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
+def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
+    """kill -9 of torchrun (its agent) mid-training: the ranks it started end too."""
+    import signal
+    import subprocess
+    import sys
+
+    script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
+    agent = subprocess.Popen([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", str(script),
+                              "--experiment", "rl", "--samples", "200", "--epochs", "300", "--threads", "1", "--out", "out"],
+                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ranks, t0 = set(), time.time()
+    while len(ranks) < 2 and time.time() - t0 < 120 and agent.poll() is None:
+        ranks = {p for p in _children(agent.pid)
+                 if b"experiments.py" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes()}
+        time.sleep(0.2)
+    assert len(ranks) == 2, "torchrun's two ranks never started"
+    time.sleep(12)  # into their training
+    assert all(pathlib.Path(f"/proc/{p}").exists() for p in ranks)
+    agent.send_signal(signal.SIGKILL)
+    agent.wait()
+    t0 = time.time()
+    while any(pathlib.Path(f"/proc/{p}").exists() for p in ranks) and time.time() - t0 < 5:
+        time.sleep(0.2)
+    alive = [p for p in ranks if pathlib.Path(f"/proc/{p}").exists()]
+    for p in alive:
+        os.kill(p, signal.SIGKILL)
+    assert not alive, f"ranks {alive} outlived their killed torchrun"
