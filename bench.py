@@ -73,7 +73,7 @@ from diffstack import (Config, Predictor, Unicycle, ilqr, ilqr_solve, plan_candi
                        scene_plan, unicycle_jacobians, unicycle_rollout)
 from train import Method, alphas, bounded, check_writable, device_arg, machine, markdown_table
 from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy
-from runs import command_line, write_atomic
+from runs import command_line, one_line, write_atomic
 
 DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
 
@@ -754,14 +754,13 @@ def main(argv=None) -> dict:
     threads = list(dict.fromkeys(args.threads))  # in the order given, once each
     before = torch.get_num_threads()
     try:  # the project's errors and a file's (the data cache, --json) as one line
-        doc = run(threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device)
-        doc["meta"]["command"] = command_line("python bench.py", sys.argv[1:] if argv is None else argv)
-        if args.json is not None:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(args.json, json.dumps(doc, indent=1))
-            print(f"\nwrote {args.json}")
-    except (ValueError, OSError) as e:
-        ap.error(str(e))
+        with one_line(ap):
+            doc = run(threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device)
+            doc["meta"]["command"] = command_line("python bench.py", sys.argv[1:] if argv is None else argv)
+            if args.json is not None:
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                write_atomic(args.json, json.dumps(doc, indent=1))
+                print(f"\nwrote {args.json}")
     finally:
         torch.set_num_threads(before)  # main() may run inside another process (the tests)
     return doc

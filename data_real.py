@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 import data_synth
-from runs import folder_lock
+from runs import folder_lock, one_line
 from data_synth import (_SHAPE_SIGNS, MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSIONS, Dataset, Scenarios, Scenes,
                         SynthConfig, _check_seed, _lane_points, arcline_segments, backward_speed, cut_samples,
                         discretize, load_or_generate, route_segments, wrap_angle)
@@ -1241,12 +1241,8 @@ def main(argv=None):
     s.add_argument("--n", type=_whole(1, data_synth.MAX_SAMPLES, " (samples; MAX_SAMPLES)"), default=4000)
     s.add_argument("--seed", type=_whole(0), default=0)
     args = ap.parse_args(argv)
-    try:
+    with one_line(ap):  # bad input (a NuScenesFormatError, a foreign cache, an existing or unwritable file), named
         _run(ap, args)
-    except (ValueError, OSError) as e:
-        # bad input (a NuScenesFormatError, a foreign cache, an existing or unwritable file): the message names
-        # the file; exit code 2 like argparse's own errors
-        ap.exit(2, f"data_real: error: {e}\n")
 
 
 def _summary(batch: Scenarios, report: dict):

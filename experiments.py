@@ -49,7 +49,7 @@ from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_re
                    check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
                    mean_se, to_device, train_predictor, train_stack)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, die_with_parent,
-                  folder_lock, git_commit, ours_files, outputs_manifest, planned_outputs, progress, read_results,
+                  folder_lock, git_commit, one_line, ours_files, outputs_manifest, planned_outputs, progress, read_results,
                   record_outputs, refuse_existing, results_json, run_key, save_atomic, write_atomic)
 
 # ============================================================================================
@@ -1223,11 +1223,10 @@ def main(argv=None):
     args.out = args.out or (REAL_OUT if args.experiment == REAL.name else "results")
     launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
     command, held = command_line(launcher, argv if argv is not None else sys.argv[1:]), contextlib.ExitStack()
-    with held:  # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock)
-        try:
-            return _main(ap, args, names, world, rank, command, held)
-        except (ValueError, OSError) as e:  # the project's errors and a file's, as one line (a NaN result, a bad JSON)
-            ap.error(str(e))
+    # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock); the project's errors and
+    # a file's (a NaN result, a bad JSON) are one line
+    with held, one_line(ap, "the pieces finished so far are kept, and the same command resumes the run"):
+        return _main(ap, args, names, world, rank, command, held)
 
 
 def _main(ap, args, names, world, rank, command, held):

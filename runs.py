@@ -406,6 +406,19 @@ def folder_lock(folder, command: str):
         os.close(fd)  # (closing the descriptor releases the lock)
 
 
+@contextlib.contextmanager
+def one_line(ap, interrupted: str = "nothing half-written is left"):
+    """A CLI's top level (ap: its argparse parser): the project's errors (all ValueError) and a file's (OSError) become
+    one line naming the argument or file, exit 2 as argparse's own; Ctrl-C one line saying what is kept, exit 130."""
+    try:
+        yield
+    except (ValueError, OSError) as e:
+        ap.error(str(e))
+    except KeyboardInterrupt:
+        print(f"{ap.prog}: interrupted (Ctrl-C); {interrupted}", file=sys.stderr)
+        sys.exit(130)
+
+
 class OutputRefused(ValueError):
     """A run's refusal to start: a bad --out, or result files it would replace. The CLI prints it as one line."""
 

@@ -317,16 +317,19 @@ def _children(pid: int) -> set:
 
 
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
-def test_a_killed_runs_workers_do_not_outlive_it(tmp_path):
-    """kill -9 of a --jobs 2 run: its worker processes end too (they watch their parent) instead of training on
-    under PID 1."""
+@pytest.mark.parametrize("how", ["kill -9", "Ctrl-C"])
+def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
+    """kill -9 of a --jobs 2 run, or Ctrl-C in its terminal (SIGINT to its process group): its worker processes end
+    too (they watch their parent) instead of training on under PID 1."""
     import signal
     import subprocess
     import sys
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
+    # (start_new_session: a process group of its own, as a terminal gives a command)
     run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200",
-                            "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                           stderr=open(tmp_path / "stderr", "wb"), start_new_session=True)
     workers, t0 = set(), time.time()
     while len(workers) < 2 and time.time() - t0 < 120 and run.poll() is None:
         workers = {p for p in _children(run.pid)
@@ -335,8 +338,17 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path):
     assert len(workers) == 2, "the run's two worker processes never started"
     time.sleep(10)  # into their training (a piece here takes minutes)
     assert all(pathlib.Path(f"/proc/{p}").exists() for p in workers)
-    run.send_signal(signal.SIGKILL)
-    run.wait()
+    if how == "kill -9":
+        run.send_signal(signal.SIGKILL)
+    else:
+        os.killpg(run.pid, signal.SIGINT)
+    try:
+        run.wait(30)
+    finally:
+        run.kill()
+    said = (tmp_path / "stderr").read_text()
+    assert run.returncode == (-signal.SIGKILL if how == "kill -9" else 130)
+    assert how == "kill -9" or ("interrupted (Ctrl-C); the pieces finished so far are kept" in said and "Traceback" not in said)
     t0 = time.time()
     while any(pathlib.Path(f"/proc/{p}").exists() for p in workers) and time.time() - t0 < 5:
         time.sleep(0.2)

@@ -28,7 +28,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
-from runs import WorkerDied, command_line, folder_lock
+from runs import WorkerDied, command_line, folder_lock, one_line
 from runs import pool as worker_pool
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
@@ -1002,15 +1002,15 @@ def main(argv=None):
         ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)")
     if args.jobs is not None and not args.pretrain:
         ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
-    try:  # every refusal, of the arguments or of a file (the shipped predictors, a cache), is one line
+    # every refusal, of the arguments or of a file (the shipped predictors, a cache), is one line
+    with one_line(ap, "the predictors written so far stay in pretrained/; --pretrain --overwrite trains them all again"
+                  if args.pretrain else "nothing half-written is left"):
         cfg = config_with(Config(), args.set)
         check_writable("data_cache", "the data cache (./data_cache)")
         if args.pretrain:
             return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
                             command=command_line("python diffstack.py", argv))
         return quick(args.threads or 2, cfg=cfg, device=args.device)
-    except (ValueError, OSError) as e:
-        ap.error(str(e))
 
 
 if __name__ == "__main__":
