@@ -179,6 +179,10 @@ def test_every_number_of_the_config_has_a_range_named_in_its_refusal():
         if f.type in ("int", "float"):
             with pytest.raises(ValueError, match=rf"^Config\.{f.name}: must be a (whole|finite) number from \S+ to \S+, got"):
                 ds.Config(**{f.name: 10**12})
+        if f.type == "int":  # a flag or a fraction is no count, though Python calls True 1
+            for v in (True, 2.5):
+                with pytest.raises(ValueError, match=rf"^Config\.{f.name}: must be a whole number"):
+                    ds.Config(**{f.name: v})
 
 
 @pytest.mark.parametrize("kw, culprit", [
