@@ -49,8 +49,10 @@ from data_synth import (_SHAPE_SIGNS, MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSION
 #            moving ones (>= 1 m over the sample's window); the one that comes closest to the ego over t0..t6
 #   lanes    the lanes and lane connectors within cfg.map_radius of the ego's logged path form a graph
 #            (connectivity); every maximal chain through it is a route, discretised every 2 m
-# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped
-# and counted.
+# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped,
+# counted, and named with the reason in report["skipped"]. A scene with entries in the prediction split is the
+# exception: the split promises a vehicle to predict, so if none of its entries is a vehicle with a complete
+# future, it is refused (the split and the annotations disagree).
 
 
 class NuScenesFormatError(ValueError):
@@ -360,7 +362,8 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
         listed = {tuple(s.split("_")) for entries in split.values() for s in entries}
 
     H, T = cfg.hist, cfg.fut
-    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
+    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0,
+                  skipped=[])
     # 1. in this process, in order: every scene's sample chain (cheap; the first broken one is the error), the
     #    scenes too short for a sample skipped, and the maps of the others read once
     jobs, maps = [], {}
@@ -374,6 +377,7 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
             tokens, times = _sample_chain(file("sample"), file("scene"), samples, name, first)
         if len(tokens) < H + T + 1:
             report["skipped_short"] += 1
+            report["skipped"].append(f"{name}: {len(tokens)} samples in {file('sample')}, a sample needs {H + T + 1}")
             continue
         if mpath not in maps:
             maps[mpath] = _read_map(mpath, cfg)
@@ -384,7 +388,9 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
     out = []
     for outcome, arrays in _map_scenes(jobs, ctx, parse_workers() if workers is None else workers):
         report[outcome] += 1
-        if outcome == "loaded":
+        if outcome != "loaded":
+            report["skipped"].append(arrays)  # (its reason)
+        else:
             out.append(Scenes(**{k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"},
                               names=arrays["names"]))
     if not out:
@@ -452,8 +458,8 @@ def _map_scenes(jobs: list, ctx: _SceneContext, workers: int) -> list:
 
 def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
     """One scene of a nuScenes folder: ('loaded', its Scenes of length 1 as numpy arrays and names) or
-    ('skipped_no_lanes' | 'skipped_no_agent', None). Numpy, not tensors, crosses the pool's pipes: torch would send
-    every tensor as a shared-memory file descriptor."""
+    ('skipped_no_lanes' | 'skipped_no_agent', the reason, naming the scene and file). Numpy, not tensors, crosses the
+    pool's pipes: torch would send every tensor as a shared-memory file descriptor."""
     name, mpath, tokens, times = job
     tdir, cfg, ego_of, anns, inst_cat = ctx.tdir, ctx.cfg, ctx.ego_of, ctx.anns, ctx.inst_cat
     file = lambda t: tdir / f"{t}.json"  # noqa: E731
@@ -506,11 +512,18 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
     near = _lanes_near(lmap, ego[:, :2], cfg.map_radius)
     routes = _routes(lmap, near)
     if not routes:
-        return "skipped_no_lanes", None
+        return "skipped_no_lanes", f"{name}: no lane of {mpath} within {cfg.map_radius:g} m of the ego's path"
     # the predicted vehicle per frame
     pred = _choose_predicted(ego, agents, amask, is_ped, inst, tokens, name in split, listed, cfg)
+    in_scene = set(tokens) if (pred < 0).all() and name in split else set()
+    entry = next((f"{i}_{k}" for i, k in sorted(listed) if k in in_scene), None)
+    if entry is not None:
+        raise NuScenesFormatError(f"{tdir.parent / 'maps' / 'prediction' / 'prediction_scenes.json'}: scene {name!r} is "
+                                  f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries "
+                                  f"observed over a whole {cfg.fut}-frame future: the split and the annotations disagree")
     if (pred < 0).all():
-        return "skipped_no_agent", None
+        return "skipped_no_agent", (f"{name}: no vehicle in {afile} moves >= 1 m with a complete "
+                                    f"{cfg.fut}-frame future")
     scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
     bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
     if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
@@ -582,7 +595,7 @@ def _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cf
                   paths_is_connector=T(conn), routes=T(route_arr).long(), names=[name])
 
 
-_NUSC_CACHE_FORMAT = 1  # bump when load_nuscenes's output changes, so old caches are not reused
+_NUSC_CACHE_FORMAT = 2  # bump when load_nuscenes's output changes, so old caches are not reused
 
 
 def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
@@ -1133,8 +1146,9 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
     rng = np.random.default_rng(seed)
     train, _ = cut_samples(scenes[~is_val], None, rng)
     val, _ = cut_samples(scenes[is_val], None, rng)
+    counts = {k: v for k, v in report.items() if k != "skipped"}
     log(f"read {path} ({version}): {len(train)} training and {len(val)} validation samples "
-        f"(validation: {rule}); {report}")
+        f"(validation: {rule}); {counts}" + "".join(f"\n  skipped {why}" for why in report.get("skipped", [])))
     return Dataset(train, val, scenes[is_val])
 
 
@@ -1247,7 +1261,10 @@ def main(argv=None):
 
 def _summary(batch: Scenarios, report: dict):
     for k, v in report.items():
-        print(f"  {k:26s} {v}")
+        if k == "skipped":
+            print("".join(f"  skipped: {why}\n" for why in v), end="")
+        else:
+            print(f"  {k:26s} {v}")
     print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
     print(data_synth.format_statistics(data_synth.statistics(batch)))
 

@@ -1270,7 +1270,7 @@ def _main(ap, args, names, world, rank, command, held):
             if "closed_loop" in names:
                 closed_loop_scenes(data.val_scenes, cfg)
             return data, None
-        except ValueError as e:
+        except (ValueError, OSError) as e:  # (OSError: a file, or the Waymo download offline)
             return None, str(e)
 
     # Rank 0 makes (or reads) the data caches first, the others then read them: one process generates or parses,

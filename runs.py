@@ -324,7 +324,13 @@ def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=
     with pool(min(jobs, len(units))) as workers:
         futures = [workers.submit(_worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose)
                    for name, ps in units]
-        finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        try:
+            finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        except BaseException:  # Ctrl-C (or SIGINT to this process alone): stop the workers now, not after their pieces
+            workers.shutdown(wait=False, cancel_futures=True)
+            for worker in torch.multiprocessing.active_children():
+                worker.terminate()
+            raise
         for f in finished:
             if f.exception() is not None:
                 workers.shutdown(cancel_futures=True)

@@ -1321,7 +1321,7 @@ def test_nuscenes_round_trip(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
     loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
-    assert report == dict(scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0)
+    assert report == dict(scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[])
     assert torch.equal(loaded.pred_idx >= 0, scenes.pred_idx >= 0)
     for frame in (8, 21, 34):
         a = data_synth.sample_at(scenes, frame, cfg=cfg, dtype=torch.float64)
@@ -1405,10 +1405,32 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     rec["next"] = ""
     path.write_text(json.dumps(samples))
     loaded, report = data_real.load_nuscenes(tmp_path, cfg=cfg)
+    why = report.pop("skipped")
     assert report == dict(scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1)
     assert loaded.names == [data_synth.MINI_SCENES[3]]
+    # each skipped scene is named with its reason and the file it comes from
+    names = data_synth.MINI_SCENES
+    assert why[0].startswith(f"{names[0]}: 11 samples in ") and "sample.json, a sample needs 15" in why[0]
+    assert why[1].startswith(f"{names[1]}: no lane of ") and "expansion" in why[1]
+    assert why[2].startswith(f"{names[2]}: no vehicle in ") and "sample_annotation.json" in why[2]
     batch, report = data_real.load_nuscenes_scenarios(tmp_path, cfg=cfg)
     assert report["samples"] == len(batch) == 27 and report["samples_skipped_no_lanes"] == 0
+
+
+def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
+    """The prediction split promises a vehicle to predict in each scene it lists: a listed scene whose entries name
+    no annotated vehicle is refused (file, scene, entry), not skipped as if it had nobody to predict."""
+    scenes, cfg = scenes_mixed
+    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
+    path = tmp_path / "maps" / "prediction" / "prediction_scenes.json"
+    split = json.loads(path.read_text())
+    name = data_synth.MINI_SCENES[1]
+    assert split[name]  # (the writer lists it)
+    split[name] = ["nosuchinstance_" + e.split("_")[1] for e in split[name]]
+    path.write_text(json.dumps(split))
+    with pytest.raises(data_real.NuScenesFormatError, match=rf"prediction_scenes\.json: scene '{name}' is listed "
+                       r"\(first entry 'nosuchinstance_\w+'\) but .*sample_annotation\.json has no vehicle"):
+        data_real.load_nuscenes(tmp_path, cfg=cfg)
 
 
 def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_mixed):

@@ -302,3 +302,21 @@ def test_real_results_never_go_to_results(tmp_path):
     ex.check_outputs(("real",), tmp_path / "runs" / "real", overwrite=False)  # outside the repository: anywhere
     ex.check_outputs(("rl",), HERE / "results", overwrite=True)  # the paper's tables still go there
     assert "runs/" in (HERE / ".gitignore").read_text().split()
+
+
+def test_the_real_scenes_experiment_offline_is_one_line_before_training(tmp_path, monkeypatch, capsys):
+    """No network: the real-scenes experiment ends in one line naming the failed download (exit 2), before any model
+    is trained and without a file in --out."""
+    monkeypatch.chdir(tmp_path)  # (an empty data_cache: the download is tried)
+
+    def offline(requirement, dest):
+        raise dr.WaymoDownloadError(f"pip download {requirement} failed (exit 1): No matching distribution found")
+
+    monkeypatch.setattr(dr, "_pip_download", offline)
+    monkeypatch.setattr(train, "train_stack", lambda *a, **k: pytest.fail("trained before the data was there"))
+    with pytest.raises(SystemExit) as e:
+        ex.main(["--experiment", "real", "--n", "200", "--seeds", "1", "--epochs", "1", "--out", str(tmp_path / "out"), "--jobs", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and f"pip download {dr.WAYMO_WHEEL} failed (exit 1)" in err[-1]
+    assert "Traceback" not in "\n".join(err)
+    assert not [f for f in (tmp_path / "out").rglob("*") if f.is_file() and f.name != ".lock"]

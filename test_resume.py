@@ -11,6 +11,7 @@ import time
 
 import pytest
 import torch
+from torch.optim.optimizer import register_optimizer_step_post_hook
 
 import data_synth
 import diffstack as ds
@@ -288,6 +289,26 @@ def test_a_nan_gradient_stops_training_before_it_reaches_the_parameters(small, m
     assert all(torch.isfinite(p).all() for p in model.parameters())
 
 
+def test_a_parameter_that_overflows_stops_training(small):
+    """A step that makes a parameter infinite under a finite loss and gradient (an overflowing update) stops the
+    training at that step; the loss would only show it at the next one, and after the last step never."""
+    cfg = ds.Config(**TINY10)
+    torch.manual_seed(0)
+    model = ds.Predictor(cfg)
+
+    def overflow(opt, args, kwargs):
+        with torch.no_grad():
+            opt.param_groups[0]["params"][0].view(-1)[0] = float("inf")
+
+    hook = register_optimizer_step_post_hook(overflow)
+    try:
+        with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 7: training diverged at step 1 of 2: a parameter "
+                                                      r"is not finite"):
+            tr.train_stack(model, small.train[:64], tr.Method("Standard"), cfg, "rl", 1.0, 7, None)
+    finally:
+        hook.remove()
+
+
 def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small, monkeypatch):
     evaluate = tr.evaluate_stack
     monkeypatch.setattr(tr, "evaluate_stack", lambda model, *a, **k: {**evaluate(model, *a, **k), "ade": float("nan")})
@@ -317,10 +338,11 @@ def _children(pid: int) -> set:
 
 
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
-@pytest.mark.parametrize("how", ["kill -9", "Ctrl-C"])
+@pytest.mark.parametrize("how", ["kill -9", "Ctrl-C", "kill -INT"])
 def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
-    """kill -9 of a --jobs 2 run, or Ctrl-C in its terminal (SIGINT to its process group): its worker processes end
-    too (they watch their parent) instead of training on under PID 1."""
+    """kill -9 of a --jobs 2 run, Ctrl-C in its terminal (SIGINT to its process group), or SIGINT to the run alone
+    (kill -INT PID): its worker processes end too (they watch their parent) instead of training on under PID 1, and
+    the run ends at once, not when its workers' pieces are done."""
     import signal
     import subprocess
     import sys
@@ -340,8 +362,10 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
     assert all(pathlib.Path(f"/proc/{p}").exists() for p in workers)
     if how == "kill -9":
         run.send_signal(signal.SIGKILL)
-    else:
+    elif how == "Ctrl-C":
         os.killpg(run.pid, signal.SIGINT)
+    else:
+        os.kill(run.pid, signal.SIGINT)
     try:
         run.wait(30)
     finally:

@@ -361,7 +361,7 @@ def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
 
 
 class TrainingDiverged(ValueError):
-    """A training whose loss became NaN or infinite (train_stack stops before the parameters do)."""
+    """A training whose loss, gradient or parameters became NaN or infinite (train_stack stops at that step)."""
 
 
 def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
@@ -480,6 +480,10 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
                                            f"a gradient is NaN")
                 torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
                 opt.step()
+                # a step that overflows (a huge learning rate) can make a parameter infinite under a finite gradient
+                if not torch.isfinite(torch.nn.utils.get_total_norm(params)):
+                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
+                                           f"a parameter is not finite")
                 if sched is not None:
                     sched.step()
                 step += 1
