@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
+import scipy.stats
 import torch
 import torch.distributed as dist
 from tqdm import tqdm
@@ -309,21 +310,28 @@ def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric
 
 
 class PairedDifference(NamedTuple):
-    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., and
-    in how many of the n seeds the method is lower (better, for a cost) or higher (worse)."""
+    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., the
+    two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how many of the n seeds the method is
+    lower (better, for a cost) or higher (worse)."""
 
     mean: float
     se: float
     t: float
+    p: float
     better: int
     worse: int
     n: int
 
 
+P_REPRODUCED = 0.05
+"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the paper's direction."""
+
+
 def paired_difference(baseline: list, method: list) -> PairedDifference:
     """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two share in a seed (the
-    same data order and evaluation set), so the spread left is the difference's own; t has n - 1 degrees of freedom.
-    With one seed the s.e. is unknown (nan); with no spread it is 0 and t is -inf / +inf (nan for a zero difference)."""
+    same data and evaluation set), so the spread left is the difference's own; the t-test is scipy.stats.ttest_1samp
+    of the differences against 0. With one seed the s.e. is unknown (t, p nan); with no spread it is 0 and t is
+    -inf / +inf, p = 0 (t and p nan for a zero difference)."""
     if len(baseline) != len(method):
         raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
     if not baseline:
@@ -331,19 +339,26 @@ def paired_difference(baseline: list, method: list) -> PairedDifference:
     d = [b - a for a, b in zip(baseline, method)]
     n, m = len(d), statistics.fmean(d)
     se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
-    t = m / se if se > 0 else (math.copysign(math.inf, m) if m != 0 and se == 0 else math.nan)
-    return PairedDifference(m, se, t, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
+    if se > 0:
+        test = scipy.stats.ttest_1samp(d, 0.0)  # two-sided
+        t, p = float(test.statistic), float(test.pvalue)
+    else:
+        t, p = (math.copysign(math.inf, m), 0.0) if m != 0 and se == 0 else (math.nan, math.nan)
+    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
 
 
 def claim_verdict(p: PairedDifference) -> str:
-    """'reproduced' only when the method is lower by more than two standard errors of the paired difference."""
+    """'reproduced' only when the paired t-test gives p < P_REPRODUCED with the method lower (the paper's direction);
+    'contradicted' when it gives p < P_REPRODUCED the other way."""
     if not p.se >= 0:  # nan: one seed
         return "untested (one seed: no standard error)"
-    if p.mean < -2 * p.se:
-        return "reproduced (clears 2 s.e.)"
-    if p.mean > 2 * p.se:
-        return "not reproduced (the other way, beyond 2 s.e.)"
-    return "not reproduced (within 2 s.e.)"
+    if p.p < P_REPRODUCED:
+        return "reproduced" if p.mean < 0 else "contradicted (the other way)"
+    return "not reproduced"
+
+
+def _p_value(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}" if p < 0.1 else f"p = {p:.2f}"
 
 
 def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
@@ -355,7 +370,8 @@ def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
                                        for rb, rm in zip(results[claim.baseline], results[claim.method])) if b and m]
     p = paired_difference([b for b, _ in pairs], [m for _, m in pairs])
     name = claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
-    t = f"t = {p.t:.1f}" if math.isfinite(p.t) else ("no spread over seeds" if p.se == 0 else "one seed")
+    t = (f"t = {p.t:.2f}, {_p_value(p.p)}" if math.isfinite(p.t)
+         else ("no spread over seeds" if p.se == 0 else "one seed"))
     seeds = f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "")
     diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
     seeds += f"; {diverged} diverged, left out" if diverged else ""
@@ -663,8 +679,8 @@ def results_markdown(spec: TableSpec, results: dict) -> str:
         return goal_markdown(results)
     md = ablation_markdown(spec, results) if spec.kind == "ablation" else table_markdown(spec, results)
     claims = claims_markdown(spec, results)
-    md += (f"\n\nThe paper's claims, as paired differences over seeds (reproduced only beyond 2 s.e.):\n\n{claims}"
-           if claims else "")
+    md += (f"\n\nThe paper's claims, as paired differences over seeds (a two-sided paired t-test; reproduced only at "
+           f"p < 0.05 in the paper's direction):\n\n{claims}" if claims else "")
     by = behaviour_markdown(spec, results) if spec.kind == "open_loop" else ""
     curves = plateau_markdown(results) if "learning_curves.png" in spec.figures else ""
     return md + "".join(f"\n\n{part}" for part in (diverged_markdown(results), by, curves) if part)

@@ -159,13 +159,14 @@ def offset_targets(batch, offset: float) -> torch.Tensor:
 
 
 class CostWeights(nn.Module):
-    """The cost weights of eq. (3), reparameterised as in App. A.2:
+    """The cost weights of eq. (3), reparameterised as in App. A.2, with the collision weight fixed:
 
-        w_i = alpha w'_i,   w'_i = c exp(psi_i) / sum_j exp(psi_j),   i = 1..5
+        w_i = alpha w'_i,   w'_1 = w_1 (collision, fixed),   w'_i = c exp(psi_i) / sum_{j=2..5} exp(psi_j),  i = 2..5
 
-    alpha and psi_2..5 are trained; psi_1 (collision) is fixed "to ensure safety" and c is a constant.
-    At initialisation c = sum of the hand-tuned weights, psi = log w, alpha = 1 recover them exactly.
-    (With psi_1 fixed, w'_1 still moves a little through the normaliser sum_j exp(psi_j).)
+    alpha and psi_2..5 are trained; c = w_2 + .. + w_5 of the hand-tuned weights. Fixing psi_1 "to ensure safety"
+    means w'_1 does not move: the softmax runs over the trainable terms only, so the paper's learned row keeps
+    w'_1 = 5.00 and w'_2..5 summing to 2.10 (0.5 + 0.3 + 0.3 + 1.0). At initialisation psi = log w and alpha = 1
+    recover the hand-tuned weights exactly.
 
     alpha is trained as log alpha, so it stays positive: the paper only says it is trainable, and a cost times
     a negative alpha is a cost to maximise. Note what alpha cannot do: the minimiser of alpha C is the same for
@@ -177,8 +178,8 @@ class CostWeights(nn.Module):
     def __init__(self, cfg: Config):
         super().__init__()
         w0 = cost_weights(cfg, torch.float32)  # (5,)
-        self.register_buffer("c", w0.sum())
-        self.register_buffer("psi_coll", w0[:1].log())  # (1,) fixed, not a parameter
+        self.register_buffer("w_coll", w0[:1].clone())  # (1,) w'_1, fixed: not a parameter
+        self.register_buffer("c", w0[1:].sum())  # the sum of w'_2..5
         self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
         self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))  # alpha = exp(0) = 1
 
@@ -188,8 +189,8 @@ class CostWeights(nn.Module):
         return self.log_alpha.exp()
 
     def normalised(self) -> torch.Tensor:
-        """w' = c softmax(psi) (5,): the weights before the scale alpha (the columns of Table 7, App. A.2)."""
-        return self.c * torch.softmax(torch.cat([self.psi_coll, self.psi]), 0)
+        """w' = [w_1, c softmax(psi_2..5)] (5,): the weights before the scale alpha (the columns of Table 3)."""
+        return torch.cat([self.w_coll, self.c * torch.softmax(self.psi, 0)])
 
     def forward(self) -> torch.Tensor:
         """w = alpha w' (5,), what the planner and the controller use."""
