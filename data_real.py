@@ -49,10 +49,9 @@ from data_synth import (_SHAPE_SIGNS, MAX_LANE_POINTS, NUSC_TABLES, NUSC_VERSION
 #            moving ones (>= 1 m over the sample's window); the one that comes closest to the ego over t0..t6
 #   lanes    the lanes and lane connectors within cfg.map_radius of the ego's logged path form a graph
 #            (connectivity); every maximal chain through it is a route, discretised every 2 m
-# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped,
-# counted, and named with the reason in report["skipped"]. A scene with entries in the prediction split is the
-# exception: the split promises a vehicle to predict, so if none of its entries is a vehicle with a complete
-# future, it is refused (the split and the annotations disagree).
+# Scenes too short for one sample, without lanes, or without a predicted vehicle at any frame are skipped and named
+# with the reason (report["skipped"]); but a scene with entries in the prediction split none of which is a vehicle
+# with a complete future is refused: the split promises one, so the split and the annotations disagree.
 
 
 class NuScenesFormatError(ValueError):
@@ -87,8 +86,7 @@ def _unique(path: Path, tokens: list, what: str = "token"):
         seen = {}
         for i, t in enumerate(tokens):
             if t in seen:
-                raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {seen[t]} and {i}); "
-                                          f"tokens must be unique")
+                raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {seen[t]} and {i}); tokens must be unique")
             seen[t] = i
 
 
@@ -173,8 +171,7 @@ def _map_path(root: Path, location, log_file: Path, token: str) -> Path:
     path = Path(os.path.abspath(maps / "expansion" / f"{location}.json")) if plain else None
     if not plain or maps not in path.parents:
         raise NuScenesFormatError(f"{log_file}: location {_short(location)} of log {token!r} is not a plain map name "
-                                  f"(no path separators or '..'): the map must be maps/expansion/<location>.json "
-                                  f"inside {root}")
+                                  f"(no path separators or '..'): the map must be maps/expansion/<location>.json inside {root}")
     return path
 
 
@@ -189,8 +186,7 @@ def _arcline(path: Path, lane: str, a) -> list:
     if min(lengths) < 0:
         raise NuScenesFormatError(f"{path}: segment_length of {who} must be >= 0, got {lengths}")
     if not isinstance(a.get("shape"), str) or a["shape"] not in _SHAPE_SIGNS:
-        raise NuScenesFormatError(f"{path}: shape of {who} must be one of {sorted(_SHAPE_SIGNS)}, "
-                                  f"got {_short(a.get('shape'))}")
+        raise NuScenesFormatError(f"{path}: shape of {who} must be one of {sorted(_SHAPE_SIGNS)}, got {_short(a.get('shape'))}")
     return [*start, radius, *lengths, *_SHAPE_SIGNS[a["shape"]]]
 
 
@@ -362,8 +358,7 @@ def load_nuscenes(root, version: str = "v1.0-mini", cfg: SynthConfig | None = No
         listed = {tuple(s.split("_")) for entries in split.values() for s in entries}
 
     H, T = cfg.hist, cfg.fut
-    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0,
-                  skipped=[])
+    report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[])
     # 1. in this process, in order: every scene's sample chain (cheap; the first broken one is the error), the
     #    scenes too short for a sample skipped, and the maps of the others read once
     jobs, maps = [], {}
@@ -522,8 +517,7 @@ def _parse_scene(job, ctx: _SceneContext) -> tuple[str, dict | None]:
                                   f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries "
                                   f"observed over a whole {cfg.fut}-frame future: the split and the annotations disagree")
     if (pred < 0).all():
-        return "skipped_no_agent", (f"{name}: no vehicle in {afile} moves >= 1 m with a complete "
-                                    f"{cfg.fut}-frame future")
+        return "skipped_no_agent", f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future"
     scene = _scene_arrays(name, ego, agents, amask, is_ped, size, pred, lmap, routes, cfg)
     bad = [k for k, v in scene.tensors().items() if v.is_floating_point() and not torch.isfinite(v).all()]
     if bad:  # finite inputs can still overflow (coordinates near 1e308): never hand on a silent inf or NaN
@@ -1163,8 +1157,7 @@ BENCH_MINI = dict(n_vehicles=22, n_parked=14, n_peds=26)
 
 def _bench():
     import tempfile
-    runs = 3
-    times = []
+    runs, times = 3, []
     for r in range(runs):
         t = time.perf_counter()
         data = data_synth.make_dataset(10_000, SynthConfig(), seed=r)
@@ -1192,10 +1185,7 @@ def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
     n = min(n, len(batch))
     fig, axes = plt.subplots(math.ceil(n / cols), cols, figsize=(4 * cols, 2.6 * math.ceil(n / cols)), squeeze=False)
     for k, ax in enumerate(axes.flat):
-        if k < n:
-            data_synth.plot_scenario(ax, batch, k)
-        else:
-            ax.axis("off")
+        data_synth.plot_scenario(ax, batch, k) if k < n else ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -1261,10 +1251,7 @@ def main(argv=None):
 
 def _summary(batch: Scenarios, report: dict):
     for k, v in report.items():
-        if k == "skipped":
-            print("".join(f"  skipped: {why}\n" for why in v), end="")
-        else:
-            print(f"  {k:26s} {v}")
+        print("".join(f"  skipped: {why}\n" for why in v), end="") if k == "skipped" else print(f"  {k:26s} {v}")
     print("  shapes: " + ", ".join(f"{k} {tuple(v.shape)}" for k, v in batch.tensors().items()))
     print(data_synth.format_statistics(data_synth.statistics(batch)))
 

@@ -206,8 +206,7 @@ def _segment_pose(seg, u):
 
 def arcline_segments(paths):
     """Arcline paths (..., 10) -> their three segments (..., 3, 5), each starting where the previous ends."""
-    start, radius, lengths, signs = paths[..., :3], paths[..., 3], paths[..., 4:7], paths[..., 7:10]
-    segs = []
+    start, radius, lengths, signs, segs = paths[..., :3], paths[..., 3], paths[..., 4:7], paths[..., 7:10], []
     for k in range(3):
         kappa = np.divide(signs[..., k], radius, out=np.zeros_like(radius), where=radius > 0)  # padding: r = 0
         segs.append(np.concatenate([start, kappa[..., None], lengths[..., k, None]], -1))
@@ -906,10 +905,14 @@ MAX_SAMPLES = 2_000_000
 
 
 class Dataset(NamedTuple):
-    """A training and a validation set of planning samples, and the validation scenes' logs."""
+    """Training and validation planning samples, the validation scenes' logs, and maybe a training draw per seed."""
     train: Scenarios
     val: Scenarios
     val_scenes: Scenes | None = None  # the validation scenes, for closed-loop log replay
+    train_draws: tuple | None = None  # Scenarios per training seed 0, 1, ..; None: every seed trains on train
+
+    def train_for(self, seed: int) -> Scenarios:
+        return self.train if self.train_draws is None else self.train_draws[seed]  # the seed's own draw, if any
 
 
 def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Dataset:
@@ -950,8 +953,7 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
             assert blob["key"] == key, "made with other settings"
             return Dataset(Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"]))
         except Exception as e:  # noqa: BLE001  (any failure means: not our cache)
-            raise ValueError(f"{path}: not a readable data_synth cache ({e}); move it away or use another "
-                             f"cache_dir") from e
+            raise ValueError(f"{path}: not a readable data_synth cache ({e}); move it away or use another cache_dir") from e
     data = make_dataset(n, cfg, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
     own = lambda batch: {k: v.clone() for k, v in batch.tensors().items()}  # noqa: E731  (slices share storage)
@@ -1032,13 +1034,11 @@ def format_statistics(st: dict) -> str:
     for g in ("ego", "predicted", "other vehicles"):
         for q, unit in (("speed", "m/s"), ("|accel|", "m/s^2"), ("|yaw rate|", "rad/s")):
             if s := st[g][q]:
-                lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  "
-                             f"max {s['max']:6.2f} {unit}")
+                lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  max {s['max']:6.2f} {unit}")
     lines.append("  behaviour      share | predicted vehicle vs the ego's GT future: median min distance, share < 5 m"
                  " | share colliding with a no-braking ego")
     for name, m in st["behaviour"].items():
-        lines.append(f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%}"
-                     f" | {m['no_brake_conflict']:7.1%}")
+        lines.append(f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%} | {m['no_brake_conflict']:7.1%}")
     verdict = (f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items())
     lines.append("  plausible: " + ", ".join(verdict))
     return "\n".join(lines)

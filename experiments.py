@@ -36,7 +36,6 @@ import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
-import scipy.stats
 import torch
 import torch.distributed as dist
 from tqdm import tqdm
@@ -44,11 +43,12 @@ from tqdm import tqdm
 import data_real
 import data_synth
 import figures
-from diffstack import (Config, Predictor, cost_contexts, cost_terms, cost_weights, project_to_lanes, route_goal,
-                       run_stack, unicycle_step, wrap_angle)
+from diffstack import Config, Predictor, cost_contexts, cost_terms, cost_weights, route_goal, run_stack
 from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
                    check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
-                   mean_se, to_device, train_predictor, train_stack)
+                   mean_se, to_device, train_predictor, train_stack, paired_difference, claim_verdict, p_value,
+                   experiment_data, VAL_N, VAL_SEED, Rollout, simulate, stack_policy, closed_loop_metrics,
+                   closed_loop_scenes)
 from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, die_with_parent,
                   folder_lock, git_commit, one_line, ours_files, outputs_manifest, planned_outputs, progress, read_results,
                   record_outputs, refuse_existing, results_json, run_key, save_atomic, write_atomic)
@@ -73,13 +73,14 @@ class Column:
 
 @dataclass(frozen=True)
 class Claim:
-    """A finding of the paper that `method` beats `baseline` on one column of the table: a LOWER value (every
-    metric claimed on here is a cost or a loss). section: the ablation section the two rows are in (None elsewhere)."""
+    """A finding of the paper on one column of a table: `method` lower than `baseline` (direction -1: it beats it, every
+    metric claimed on being a cost or a loss), or higher (+1). section: the ablation section of the rows (or None)."""
 
     method: str
     baseline: str
     column: str  # a header of the table's columns
     section: str | None = None
+    direction: int = -1
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,7 @@ class TableSpec:
     figures: tuple = ()
     sections: tuple = ()  # ablations: (title, run_stack options, methods) per section
     claims: tuple = ()  # the paper's "method beats baseline" findings, each tested by its paired difference over seeds
+    seeds: int = 5  # training seeds when the command names none (--seeds)
 
 
 def open_loop_columns(setting: str) -> tuple:
@@ -131,7 +133,10 @@ TABLE1 = TableSpec(
         "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87), "DiffStack": (1.27, 0.38, -5.13, -1.86),
         "GT prediction": (None, None, -7.56, -2.25)}),
     gap=("Standard", "DiffStack"), figures=("learning_curves.png",),
-    claims=(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"), Claim("DiffStack", "Standard", "Planning loss (x1e-2)")))
+    claims=(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"), Claim("DiffStack", "Standard", "Planning loss (x1e-2)"),
+            Claim("DiffStack", "Distance weighted", "Hindsight cost (x1e-2)"),  # "outperforms all baselines"
+            Claim("DiffStack", "Grad-cost weighted", "Hindsight cost (x1e-2)")),
+    seeds=10)  # the paper's headline claim: 10 seeds
 
 TABLE2 = TableSpec(
     "biased", "Table 2: a 1 m offset on the prediction targets", "open_loop", "rl",
@@ -173,7 +178,9 @@ TABLE5 = TableSpec(
                                  "DiffStack": (-4.37, -2.40, -8.20, 4.84, -0.99, 0.98),
                                  "GT prediction": (-6.30, -2.58, -8.54, 3.34, -1.08, 0.70)}),
     figures=("closed_loop.png", "stack_example.png"),
-    claims=(Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"),))
+    claims=(Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"), Claim("DiffStack", "Standard", "Open-loop cost (x1e-2)"),
+            Claim("DiffStack", "No prediction", "Trajectory cost (x1e-2)"),  # "substantially better than no prediction"
+            Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1)))  # "the standard stack performs worse"
 
 # Each section compares methods under one configuration of the stack, with its own No prediction and GT prediction
 # rows (the metrics are not comparable across sections). Method.losses multiplies the RL alphas (1, 100, 1000).
@@ -309,75 +316,31 @@ def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric
     return mean_se([(s - d) / (s - gt) for s, d in pairs]) if pairs else (math.nan, math.nan)
 
 
-class PairedDifference(NamedTuple):
-    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., the
-    two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how many of the n seeds the method is
-    lower (better, for a cost) or higher (worse)."""
-
-    mean: float
-    se: float
-    t: float
-    p: float
-    better: int
-    worse: int
-    n: int
-
-
-P_REPRODUCED = 0.05
-"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the paper's direction."""
-
-
-def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two share in a seed (the
-    same data and evaluation set), so the spread left is the difference's own; the t-test is scipy.stats.ttest_1samp
-    of the differences against 0. With one seed the s.e. is unknown (t, p nan); with no spread it is 0 and t is
-    -inf / +inf, p = 0 (t and p nan for a zero difference)."""
-    if len(baseline) != len(method):
-        raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
-    if not baseline:
-        raise ValueError("baseline: no seeds to compare")
-    d = [b - a for a, b in zip(baseline, method)]
-    n, m = len(d), statistics.fmean(d)
-    se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
-    if se > 0:
-        test = scipy.stats.ttest_1samp(d, 0.0)  # two-sided
-        t, p = float(test.statistic), float(test.pvalue)
-    else:
-        t, p = (math.copysign(math.inf, m), 0.0) if m != 0 and se == 0 else (math.nan, math.nan)
-    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
-
-
-def claim_verdict(p: PairedDifference) -> str:
-    """'reproduced' only when the paired t-test gives p < P_REPRODUCED with the method lower (the paper's direction);
-    'contradicted' when it gives p < P_REPRODUCED the other way."""
-    if not p.se >= 0:  # nan: one seed
-        return "untested (one seed: no standard error)"
-    if p.p < P_REPRODUCED:
-        return "reproduced" if p.mean < 0 else "contradicted (the other way)"
-    return "not reproduced"
-
-
-def _p_value(p: float) -> str:
-    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}" if p < 0.1 else f"p = {p:.2f}"
+def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
+    """(the claim's Column, the PairedDifference of its rows over the seeds); results: those its rows are in."""
+    col = next((c for c in spec.columns if c.header == claim.column), None)
+    if col is None:
+        raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
+    base = results[claim.baseline]  # (a baseline without a predictor to train has one run: it pairs with every seed)
+    base = base * len(results[claim.method]) if len(base) == 1 else base
+    pairs = [(b[0], m[0]) for b, m in ((col.values([rb]), col.values([rm]))  # seed by seed; a diverged one is left out
+                                       for rb, rm in zip(base, results[claim.method])) if b and m]
+    return col, paired_difference([b for b, _ in pairs], [m for _, m in pairs])
 
 
 def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
     """A claim's line (results: those its rows are in): the paired difference (method - baseline), t, the seeds, the verdict."""
-    col = next((c for c in spec.columns if c.header == claim.column), None)
-    if col is None:
-        raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
-    pairs = [(b[0], m[0]) for b, m in ((col.values([rb]), col.values([rm]))  # seed by seed; a diverged one is left out
-                                       for rb, rm in zip(results[claim.baseline], results[claim.method])) if b and m]
-    p = paired_difference([b for b, _ in pairs], [m for _, m in pairs])
+    col, p = claim_test(claim, spec, results)
     name = claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
-    t = (f"t = {p.t:.2f}, {_p_value(p.p)}" if math.isfinite(p.t)
+    t = (f"t = {p.t:.2f}, {p_value(p.p)}" if math.isfinite(p.t)
          else ("no spread over seeds" if p.se == 0 else "one seed"))
-    seeds = f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "")
+    seeds = (f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "") if claim.direction < 0 else
+             f"{p.worse} of {p.n} seeds higher" + (f", {p.better} lower" if p.better else ""))
     diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
     seeds += f"; {diverged} diverged, left out" if diverged else ""
     where = f"{claim.section}: " if claim.section else ""
     return (f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference {col.fmt.format(p.mean)} ± "
-            f"{col.fmt.format(p.se)} ({t}, {seeds}): {claim_verdict(p)}")
+            f"{col.fmt.format(p.se)} ({t}, {seeds}): {claim_verdict(p, claim.direction)}")
 
 
 def claims_markdown(spec: TableSpec, results: dict) -> str:
@@ -386,6 +349,29 @@ def claims_markdown(spec: TableSpec, results: dict) -> str:
         return results.get(c.section, {}) if c.section else results
     lines = [claim_line(c, spec, runs(c)) for c in spec.claims if c.method in runs(c) and c.baseline in runs(c)]
     return "\n".join(f"- {line}" for line in lines)
+
+
+def claims_card(tables: dict) -> str:
+    """The paper against this run, one row per claim of the paper: tables {table name: its results}. The paper's and
+    our values of the two rows (means over seeds), the paired test and its verdict (claim_line's)."""
+    rows = []
+    for name, results in tables.items():
+        spec = SPECS[name]
+        for c in spec.claims:
+            runs = results.get(c.section, {}) if c.section else results
+            if c.method not in runs or c.baseline not in runs:
+                continue
+            col, p = claim_test(c, spec, runs)
+            paper = spec.paper.get(c.section, {}) if c.section else spec.paper
+            was = [paper.get(row, {}).get(col.header) for row in (c.method, c.baseline)]
+            ours = [statistics.fmean(v) if (v := col.values(runs[row])) else math.nan for row in (c.method, c.baseline)]
+            test = f"t = {p.t:.2f}, {p_value(p.p)}" if math.isfinite(p.t) else "--"
+            rows.append([spec.title.split(":")[0] + (f" ({c.section})" if c.section else ""),
+                         f"{c.method} {'<' if c.direction < 0 else '>'} {c.baseline}, {col.header}",
+                         " vs ".join("--" if v is None else col.fmt.format(v) for v in was),
+                         " vs ".join(col.fmt.format(v) for v in ours),
+                         f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)}", test, claim_verdict(p, c.direction)])
+    return markdown_table(["Table", "Claim", "Paper", "Here (mean)", "Paired difference", "Test", "Verdict"], rows)
 
 
 # ============================================================================================
@@ -409,7 +395,7 @@ def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=
     weights = CostWeights(cfg).to(device)
     for name in ("Hand-tuned", "Learned"):
         if name == "Learned":
-            train_stack(model, data.train, TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
+            train_stack(model, data.train_for(seed), TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
         with torch.no_grad():
             w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
         res[name] = r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
@@ -423,124 +409,8 @@ def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=
 # ============================================================================================
 # 4. Closed loop: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
-# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego (its
-# simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the ego by the first control;
-# the other agents replay their logs. 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
-
-
-@dataclass
-class Rollout:
-    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
-
-    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
-    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
-    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
-    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
-    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
-    start_frame: int  # f0
-
-
-def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
-    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
-    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
-    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
-    c, s, x, y = torch.cos(h0), torch.sin(h0), states[..., 0], states[..., 1]
-    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
-
-
-def stack_policy(model, method: Method, cfg: Config, device=None):
-    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or the CPU): batch ->
-    (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent, plannable (S,)), on the batch's
-    device. Planner and controller see the predicted agent only (App. D.3), the predictor every neighbour."""
-    if model is not None:
-        model.eval()
-    if device is None:
-        device = next(model.parameters()).device if model is not None else "cpu"
-
-    def policy(batch):
-        with torch.no_grad():
-            out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
-        home = batch.ego_hist.device
-        return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
-
-    return policy
-
-
-def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
-             dtype=torch.float32) -> Rollout:
-    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first frame
-    with a full history); policy as stack_policy's. scfg: the data's SynthConfig (frame period, history and
-    horizon); dtype: the policy's samples (the simulation is float64)."""
-    scfg = scfg or data_synth.SynthConfig()
-    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
-    if abs(cfg.dt - scfg.dt) > 1e-9:
-        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
-                         f"got {cfg.dt}")
-    steps = sim_time / cfg.dt
-    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
-        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
-    N = round(steps)
-    f0 = H if start_frame is None else start_frame
-    if f0 < H or f0 + N - 1 + T > F - 1:
-        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
-                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
-    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
-    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
-    for k in range(N):  # a loop over simulation steps; every scene at once
-        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
-        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
-        s = hist[:, -1]  # (S, 4)
-        u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
-        s_next = unicycle_step(s, u0, cfg.dt)  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
-        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
-        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
-        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
-        open_loop.append(hindsight.to(s)), plannable.append(ok.to(s.device))
-    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
-    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
-
-
-def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
-    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1: trajectory cost 1/N sum_t
-    C(s_t, u_t; GT agents, map) without the goal term (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged
-    agent present); lane 1/N sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the
-    mean hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
-    N, f0 = roll.controls.shape[1], roll.start_frame
-    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
-    frames = slice(f0 + 1, f0 + N + 1)
-    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
-    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
-    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
-    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype, x.device)
-    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
-    out = {k: v.mean(-1) for k, v in parts.items()}
-    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
-    keep = roll.plannable.to(x.dtype)
-    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
-    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
-    out["plannable"] = keep.mean(-1)
-    return out
-
-
-def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
-    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one).
-    ValueError when there are none (scenes None: the data has no scene logs), saying what the closed loop needs."""
-    if scenes is None:
-        raise ValueError("closed_loop: the data has no validation scene logs")
-    scfg = scfg or data_synth.SynthConfig()
-    H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
-    window = scenes.pred_idx[:, H:H + N] >= 0  # (S, <=N) a predicted agent (with its 3 s future) at each frame
-    ok = (window.all(1) & (window.shape[1] == N)) if len(scenes) else torch.zeros(0, dtype=torch.bool)
-    if not ok.any():
-        run = (window.int().cumprod(1).sum(1).max().item() if window.numel() else 0)
-        raise ValueError(
-            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at each of its {N} frames "
-            f"after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} frames ({(H + N + T - 1) * cfg.dt:g} s at "
-            f"{1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s horizon included); the data has {len(scenes)} validation scene(s) "
-            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}")
-    return scenes[ok]
+# The simulation (simulate, stack_policy, closed_loop_metrics, closed_loop_scenes) is closed-loop evaluation, in
+# train.py; here, the table's runs.
 
 
 def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None,
@@ -665,6 +535,25 @@ def goal_markdown(results: dict) -> str:
              "GT prediction: collision", f"within {CLOSE:g} m of the vehicle (No prediction / GT)",
              "GT minus No prediction (x1e-2)", "share of GT's saving"], table))
     return "\n\n".join(parts)
+
+
+def validation_spread(draws=5, n=VAL_N, cache_dir="data_cache", log=print) -> str:
+    """Why the tables share one validation set of VAL_N samples: GT prediction's hindsight cost relative to No
+    prediction (x1e-2, no training) on `draws` draws of validation scenes none of the tables uses (data seeds after
+    VAL_SEED), each at the old size (the validation side of an n-sample draw: 1,500 of 10,000) and at n. A markdown
+    table: each draw's value, and the mean and standard deviation over draws."""
+    gt, no = (next(m for m in TABLE1_METHODS if m.name == name) for name in ("GT prediction", "No prediction"))
+    rows, cfg = {}, Config()
+    for seed in range(VAL_SEED + 1, VAL_SEED + 1 + draws):
+        data = data_real.load_data(None, n, seed, cache_dir, log)
+        for size, val in (("old", data.val), ("new", data_synth.Scenarios.cat([data.train, data.val]))):
+            res = add_relative({m.name: [evaluate_stack(None, val, m, cfg, "rl")] for m in (no, gt)}, "rl")
+            rows.setdefault(size, []).append((len(val), res["GT prediction"][0]["rel_hindsight"]))
+    return markdown_table(["Validation samples", *(f"data seed {s}" for s in range(VAL_SEED + 1, VAL_SEED + 1 + draws)),
+                           "mean ± s.d. over draws"],
+                          [[f"{statistics.fmean(n for n, _ in r):,.0f}", *(f"{v:.2f}" for _, v in r),
+                            f"{statistics.fmean(v for _, v in r):.2f} ± {statistics.stdev(v for _, v in r):.2f}"]
+                           for r in rows.values()])
 
 
 # ============================================================================================
@@ -803,6 +692,11 @@ def _ablation_methods(methods) -> tuple:
     return (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1])
 
 
+def table_seeds(spec: TableSpec, seeds=None) -> tuple:
+    """The training seeds of a table: those given, else the spec's own count (Table 1: 10, the others 5)."""
+    return tuple(range(spec.seeds)) if seeds is None else tuple(seeds)
+
+
 def table_pieces(spec: TableSpec, seeds) -> list:
     """Every piece of a table, in the order a one-process run makes them."""
     seeds = tuple(seeds)
@@ -920,14 +814,14 @@ def in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, 
     compute_in_workers(compute, units, store, jobs, abouts, verbose)
 
 
-def work_units(names, seeds, store: RunStore) -> list:
+def work_units(names, seeds: dict, store: RunStore) -> list:
     """The missing pieces of several tables as units for in_workers, one per (table, ablation section, seed): the
     longest (the ablation's) first, so that the short ones fill the workers at the end; within a table the seeds
     alternate, so that two workers never train the same predictor (the later units load it from the store)."""
     units = []
     for name in sorted(names, key=lambda n: SPECS[n].kind != "ablation"):
-        pieces = [p for p in table_pieces(SPECS[name], seeds) if not store.has(name, p)]
-        units += [(name, unit) for section in dict.fromkeys(p.section for p in pieces) for seed in seeds
+        pieces = [p for p in table_pieces(SPECS[name], seeds[name]) if not store.has(name, p)]
+        units += [(name, unit) for section in dict.fromkeys(p.section for p in pieces) for seed in seeds[name]
                   if (unit := [p for p in pieces if p.section == section and p.seed == seed])]
     return units
 
@@ -1002,10 +896,11 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     refuse_existing(planned_outputs(out_dir, {n: SPECS[n].figures for n in names}), overwrite, ours)
 
 
-def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
+def write_report(out_dir, sections, metas=(), rendered=False, tables=None) -> pathlib.Path:
     """out_dir/report.md: sections, a list of (title, markdown, [figure files in out_dir]), each figure linked below
-    its section. Its first line says when, where and on which device the tables were made, from their metas, and
-    when it was re-rendered from them (--render); without metas, this process's date and machine."""
+    its section, after the paper-vs-here card of tables {name: results} (claims_card). Its first line says when, where
+    and on which device the tables were made, from their metas, and when it was re-rendered from them (--render);
+    without metas, this process's date and machine."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if metas:
@@ -1020,6 +915,9 @@ def write_report(out_dir, sections, metas=(), rendered=False) -> pathlib.Path:
         header = (f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, "
                   f"{torch.get_num_threads()} threads")
     parts = [f"# DiffStack: results\n\n{header}\n"]
+    if tables:
+        parts += [f"## The paper's claims, here\n\nEach claim is a two-sided paired t-test over the seeds; reproduced "
+                  f"only at p < 0.05 in the paper's direction.\n\n{claims_card(tables)}\n"]
     for title, md, files in sections:
         parts += [f"## {title}\n\n{md}\n"] + [f"![{f}]({f})\n" for f in files]
     write_atomic(out / "report.md", "\n".join(parts))
@@ -1067,11 +965,12 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
     """Re-write the .md files and learning curves (their reference lines when `data` is given) of an earlier run of
     `name` ('all': every table and report.md) from its JSON files in out_dir, training nothing. Returns the paths."""
     names = EXPERIMENTS if name == "all" else (name,)
-    out, written, sections, metas = pathlib.Path(out_dir), [], [], []
+    out, written, sections, metas, tables = pathlib.Path(out_dir), [], [], [], {}
     for one in names:
         spec = SPECS[one]
         written.append(render_markdown(one, out))
         saved = read_results(out / f"{one}.json")
+        tables[one] = saved["results"]
         if "learning_curves.png" in spec.figures and has_curves(saved["results"]):  # (none in older runs)
             cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
             ref = figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES) if data is not None else None
@@ -1081,7 +980,7 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
                          [f for f in spec.figures if (out / f).exists()]))
         metas.append(saved["meta"])
     if name == "all":
-        written.append(write_report(out, sections, metas, rendered=True))
+        written.append(write_report(out, sections, metas, rendered=True, tables=tables))
     if log:
         log("rendered: " + ", ".join(str(p) for p in written))
     return written
@@ -1095,17 +994,18 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     A progress bar while log and write. OutputRefused when a file it would write exists, unless overwrite or this
     same run wrote it as is."""
     names = EXPERIMENTS if name == "all" else (name,)
-    seeds, out = tuple(seeds), pathlib.Path(out_dir)
+    out, per_table = pathlib.Path(out_dir), {one: table_seeds(SPECS[one], seeds) for one in names}
+    seeds = tuple(seeds) if seeds is not None else None
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
     # under torchrun every rank must train the same pieces together: nothing is kept or resumed there
     root = out / RUNS_DIR if write and processes == 1 else None
     if root is None or not (root / "outputs").is_dir():  # no run wrote outputs here: check before hashing the data
         check_outputs(names, out_dir, overwrite)
     store = RunStore(root, run_key(data, cfg, epochs, device))
-    manifest = outputs_manifest(out, name, seeds, store.key)
+    manifest = outputs_manifest(out, name, seeds or (), store.key)
     check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
-    sections, metas, models = [], [], {}
-    all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], seeds)]
+    sections, metas, models, tables = [], [], {}, {}
+    all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], per_table[one])]
     # worker processes only where there are seeds to share out (the goal table has one run per row)
     jobs = max(1, min(jobs, len({p.seed for _, p in all_pieces}))) if write and processes == 1 else 1
     if store.root is not None and log:
@@ -1113,26 +1013,28 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
             f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
     with progress(store, all_pieces, progress_every, disable=not (log and write)) as bar:
         log = above(bar, log) if log else log
-        units = work_units(names, seeds, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
+        units = work_units(names, per_table, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
         if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
             if log:
                 log(f"{sum(len(u) for _, u in units)} pieces in {len(units)} units (table, seed) over {jobs} worker "
                     f"processes, one thread each")
             in_workers(units, data, cfg, epochs, device, store, jobs, log is not None)
         for one in names:
-            spec, t0 = SPECS[one], time.time()
-            res, table = run_table(spec, data, cfg, seeds, epochs, out, log, models, device, write, store, jobs)
+            spec, t0, seeds_one = SPECS[one], time.time(), per_table[one]
+            res, table = run_table(spec, data, cfg, seeds_one, epochs, out, log, models, device, write, store, jobs)
+            tables[one] = res
             threads = (f"{torch.get_num_threads()} threads" if jobs == 1 else
                        f"1 thread per process, {jobs} worker processes (--jobs)")
-            timings, piece_time = [store.timing(one, p) for p in table_pieces(spec, seeds)], {}
+            timings, piece_time = [store.timing(one, p) for p in table_pieces(spec, seeds_one)], {}
             if timings and all(timings):  # the table's computing time, summed over its pieces, whenever they ran
                 piece_time = dict(piece_seconds=sum(t["seconds"] for t in timings),
                                   piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
             computed_on = collections.Counter(t["machine"] for t in timings if t and "machine" in t)
             if len(computed_on) > 1:  # not all on one machine (a run resumed on another host, say)
                 piece_time["computed_on"] = dict(computed_on)
-            meta = dict(experiment=one, command=command, seeds=list(seeds), epochs=epochs, seconds=time.time() - t0,
+            meta = dict(experiment=one, command=command, seeds=list(seeds_one), epochs=epochs, seconds=time.time() - t0,
                         **piece_time, date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
+                        data_seeds=list(seeds_one) if data.train_draws is not None else None,
                         machine=f"{machine()}, torch {torch.__version__}, {threads}"
                                 + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
                         device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
@@ -1152,7 +1054,7 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
         log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {tqdm.format_interval(total)}"
             + (f", {tqdm.format_interval(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
     if name == "all" and write:
-        report = write_report(out, sections, metas)
+        report = write_report(out, sections, metas, tables=tables)
         if store.root is not None:
             record_outputs(manifest, [report])
         if log:
@@ -1167,6 +1069,9 @@ class RealData(NamedTuple):
     val: data_synth.Scenarios
     val_scenes: None = None  # no closed loop on the real logs
     val_groups: dict = {}  # {scene name: number of its samples}, in the order of val
+    train_draws: tuple | None = None  # the synthetic training draws, one per seed (Dataset.train_for)
+
+    train_for = data_synth.Dataset.train_for
 
 
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
@@ -1174,7 +1079,7 @@ def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
     real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
         f"training on {len(data.train)} synthetic samples. {data_real.WAYMO_LICENCE}")
-    return RealData(data.train, real, None, report["samples_per_scene"])
+    return RealData(data.train, real, None, report["samples_per_scene"], data.train_draws)
 
 
 def start_distributed(device: torch.device) -> torch.device:
@@ -1210,14 +1115,19 @@ def main(argv=None):
                          f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
     ap.add_argument("--phases", type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"), default=1,
                     help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
-    ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=5,
-                    help="training seeds per method (default 5, at most 100)")
+    ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=None,
+                    help="training seeds per method, at most 100 (default: each table's own, 10 for Table 1 and 5 for "
+                         "the others)")
     ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=40.0,
                     help="training epochs per method (default 40, the committed tables': the paper's 20 left Standard "
                          "short of its plateau on this data, results/epochs20/; fractions allowed; at most 1000)")
     ap.add_argument("--n", "--samples", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
-                    help=f"synthetic scenarios (train + val, default 10000, at most {data_synth.MAX_SAMPLES:,}); under "
-                         f"torchrun write --samples (torchrun's own parser takes --n for an abbreviation of its options)")
+                    help=f"synthetic scenarios per training draw (each seed trains on the training scenes, 85 %%, of "
+                         f"its own draw; default 10000, at most {data_synth.MAX_SAMPLES:,}); under torchrun write "
+                         f"--samples (torchrun's own parser takes --n for an abbreviation of its options)")
+    ap.add_argument("--val", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--val"), default=VAL_N,
+                    help=f"samples of the common validation set every method and seed is evaluated on (default "
+                         f"{VAL_N:,}; scenes of data seed {VAL_SEED}, which no training draw holds)")
     ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
     ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
     ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
@@ -1232,6 +1142,9 @@ def main(argv=None):
     ap.add_argument("--render", action="store_true",
                     help="train nothing: re-write the .md files, the report and the learning curves of an earlier run "
                          "from its JSON files in --out (after a change to how results are written)")
+    ap.add_argument("--validation-spread", action="store_true",
+                    help="train nothing: print GT prediction's relative hindsight cost on 5 unseen validation draws at "
+                         "about 1,500 samples and at --val's default (validation_spread); about 2 minutes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
@@ -1246,6 +1159,9 @@ def main(argv=None):
 
 
 def _main(ap, args, names, world, rank, command, held):
+    seeds = range(args.seeds) if args.seeds is not None else None  # (None: each table's own count)
+    if args.validation_spread:
+        return print(validation_spread())
     if args.render:  # derived files only, from the JSON an earlier run wrote: nothing it made is lost
         missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
         if missing:
@@ -1256,7 +1172,9 @@ def _main(ap, args, names, world, rank, command, held):
             held.enter_context(folder_lock(args.out, command))
         except ValueError as e:
             ap.error(str(e))
-        return render_outputs(args.experiment, args.out, data_real.load_data(args.data, args.n, log=print))
+        data = (experiment_data(args.n, (0,), args.val, log=print) if args.data is None
+                else data_real.load_data(args.data, args.n, log=print))
+        return render_outputs(args.experiment, args.out, data)
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         if cfg.batch_size % world:
@@ -1280,7 +1198,9 @@ def _main(ap, args, names, world, rank, command, held):
 
     def load():  # (the data, None), or (None, why it cannot be made)
         try:
-            data = data_real.load_data(args.data, args.n, log=log)
+            most = max(len(table_seeds(SPECS[one], seeds)) for one in names)
+            data = (experiment_data(args.n, range(most), args.val, log=log) if args.data is None
+                    else data_real.load_data(args.data, args.n, log=log))
             if args.experiment == REAL.name:
                 data = real_data(data, range(args.phases), log=log)
             if "closed_loop" in names:
@@ -1303,7 +1223,7 @@ def _main(ap, args, names, world, rank, command, held):
             dist.destroy_process_group()
         ap.error(error)
     try:
-        return run_experiment(args.experiment, data, cfg, range(args.seeds), args.epochs, args.out, command, log=log,
+        return run_experiment(args.experiment, data, cfg, seeds, args.epochs, args.out, command, log=log,
                               overwrite=args.overwrite, device=device, write=rank == 0,
                               jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
     finally:

@@ -165,9 +165,10 @@ def data_fingerprint(data) -> str:
         if part is None or isinstance(part, dict):
             h.update(json.dumps(part, sort_keys=True).encode())
             continue
-        for name, t in sorted(part.tensors().items()):
-            h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
-            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+        for one in part if isinstance(part, tuple) else (part,):  # (a tuple: the training draws, one per seed)
+            for name, t in sorted(one.tensors().items()):
+                h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
+                h.update(t.detach().cpu().contiguous().numpy().tobytes())
     return h.hexdigest()
 
 

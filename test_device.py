@@ -249,6 +249,7 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     work = []
     monkeypatch.setattr(tr, "quick", lambda *a, **k: work.append(1))
     monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
         err = cli_error(tr.main, ["--quick", "--device", name], capsys)
     else:
@@ -263,7 +264,7 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(tr, "quick", lambda *a, **k: seen.update(quick=k["device"]))
     tr.main(["--quick"])
     tr.main(["--quick", "--device", "cpu"])
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: "data")
+    monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: "data")
     monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
     assert seen == {"quick": torch.device("cpu"), "experiment": torch.device("cpu")}

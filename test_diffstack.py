@@ -1684,19 +1684,20 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
     shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
     cfg, out = ds.Config(**TINY), tmp_path / "pre"
-    about = tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+    about = tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200)
     assert sorted(about["files"]) == ["diffstack-seed0.pt", "diffstack-seed1.pt", "standard-seed0.pt", "standard-seed1.pt"]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
-        tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None)
+        tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200)
     models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
-    again = tr.train_predictor(tr.Method("DiffStack", losses=(1, 1, 1)), data_real.load_data(n=300, cache_dir=tmp_path),
-                               cfg, "rl", 0.5, 1, None)  # seed 1, trained here: the shipped seed 1 to the bit
+    again = tr.train_predictor(tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
+                               tr.experiment_data(300, (0, 1), 200, tmp_path, log=None), cfg, "rl", 0.5, 1, None)
     assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
     assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))
     # two worker processes make the same files, byte for byte
-    pooled = tr.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None)
+    pooled = tr.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None,
+                         val=200)
     assert {k: v["sha256"] for k, v in pooled["files"].items()} == {k: v["sha256"] for k, v in about["files"].items()}
     assert tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
     lines = []

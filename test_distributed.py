@@ -171,7 +171,7 @@ def test_batch_size_must_split_over_the_ranks():
 def test_experiments_cli_on_two_processes(tmp_path):
     """experiments.py as torchrun starts it, on 2 processes: one training step per method (float32) gives the
     single-process table to float32 rounding; only rank 0 writes files and prints, and the command is recorded."""
-    argv = ["--experiment", "rl", "--seeds", "1", "--epochs", "0.02", "--n", "600", "--threads", "1"]
+    argv = ["--experiment", "rl", "--seeds", "1", "--epochs", "0.02", "--n", "600", "--val", "200", "--threads", "1"]
     experiments.main(argv + ["--out", str(tmp_path / "one")])
     spawn(_cli_worker, argv + ["--out", str(tmp_path / "two")], str(tmp_path))
     one, two = (json.loads((tmp_path / d / "rl.json").read_text()) for d in ("one", "two"))

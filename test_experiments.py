@@ -1,5 +1,6 @@
 """Tests of experiments.py: the paper's tables as specs, cost learning, the closed loop, the ablations, the report
 and the command line. Every test runs on one thread."""
+import dataclasses
 import json
 import math
 import statistics
@@ -8,6 +9,7 @@ import time
 import pytest
 import torch
 
+import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
@@ -75,6 +77,69 @@ def clean():
 
 
 # ---------------------------------------------------------------------------------------------
+# The tables' data: a training draw per seed, one common validation set
+# ---------------------------------------------------------------------------------------------
+
+def _samples(batch) -> set:
+    return {bytes(row.numpy()) for row in batch.ego_fut.reshape(len(batch), -1)}
+
+
+def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validation_set(tmp_path, monkeypatch):
+    data = tr.experiment_data(200, range(3), n_val=300, cache_dir=tmp_path, log=None)
+    assert len(data.train_draws) == 3 and len(data.val) == 300 and data.train is data.train_draws[0]
+    assert all(data.train_for(s) is data.train_draws[s] for s in range(3))
+    assert torch.equal(data.train_draws[2].ego_fut, data_real.load_data(None, 200, 2, tmp_path, log=None).train.ego_fut)
+    val, draws = _samples(data.val), [_samples(d) for d in data.train_draws]
+    assert len(val) == 300 and not any(d & val for d in draws)  # no validation sample comes from a training draw
+    assert not (draws[0] & draws[1]) and not (draws[1] & draws[2])  # the draws differ
+    assert all(name.startswith(f"synth-{tr.VAL_SEED}-") for name in data.val_scenes.names)  # closed loop's
+    with pytest.raises(ValueError, match=r"--seeds: training seeds must be 0\.\.999"):
+        tr.experiment_data(200, range(1001), cache_dir=tmp_path, log=None)
+    # training seed s trains on draw s (train_predictor -> train_stack)
+    seen = []
+    monkeypatch.setattr(tr, "train_stack", lambda model, train, *a, **k: seen.append(train))
+    tr.compare_methods(data._replace(val=data.val[:20]), ds.Config(**TINY10), "rl", (tr.Method("Standard"),), (0, 1, 2),
+                       0.1, log=None)
+    assert [id(t) for t in seen] == [id(d) for d in data.train_draws]
+
+
+def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes(tmp_path):
+    md = ex.validation_spread(draws=2, n=300, cache_dir=tmp_path, log=None)
+    head, _, small, large = md.splitlines()
+    assert f"data seed {tr.VAL_SEED + 1} | data seed {tr.VAL_SEED + 2} | mean" in head and large.startswith("| 300 |")
+    data = data_real.load_data(None, 300, tr.VAL_SEED + 2, tmp_path, log=None)  # the second draw, its validation side
+    gt, no = (next(m for m in tr.TABLE1_METHODS if m.name == n) for n in ("GT prediction", "No prediction"))
+    rel = tr.add_relative({m.name: [tr.evaluate_stack(None, data.val, m, ds.Config(), "rl")] for m in (no, gt)}, "rl")
+    assert small.split(" | ")[2] == f"{rel['GT prediction'][0]['rel_hindsight']:.2f}"
+
+
+def test_table_1_runs_10_seeds_and_the_others_5_unless_the_command_says(tmp_path, monkeypatch):
+    assert ex.table_seeds(ex.TABLE1) == tuple(range(10)) and ex.TABLE1.seeds == 10
+    assert {ex.table_seeds(ex.SPECS[n]) for n in ex.EXPERIMENTS if n != "rl"} == {tuple(range(5))}
+    assert ex.table_seeds(ex.TABLE1, range(3)) == (0, 1, 2)
+    asked = {}
+    data = data_synth.Dataset(None, None)
+    monkeypatch.setattr(ex, "experiment_data", lambda n, seeds, *a, **k: asked.update(draws=tuple(seeds)) or data)
+    monkeypatch.setattr(ex, "run_experiment", lambda name, data, cfg, seeds, *a, **k: asked.update(seeds=seeds))
+    monkeypatch.setattr(ex, "closed_loop_scenes", lambda *a: None)
+    ex.main(["--experiment", "all", "--out", str(tmp_path / "a")])
+    assert asked == {"draws": tuple(range(10)), "seeds": None}  # a draw for each of Table 1's seeds
+    ex.main(["--experiment", "il", "--out", str(tmp_path / "b")])
+    assert asked == {"draws": tuple(range(5)), "seeds": None}
+    ex.main(["--experiment", "all", "--seeds", "2", "--out", str(tmp_path / "c")])
+    assert asked["draws"] == (0, 1) and tuple(asked["seeds"]) == (0, 1)
+
+
+def test_a_table_records_its_validation_count_and_training_draws(clean, tmp_path):
+    (data, _), cfg = clean, ds.Config(**TINY10)
+    draws = (data.train[:32], data.train[32:64])
+    small = data_synth.Dataset(draws[0], data.val[:16], None, draws)
+    ex.run_experiment("cost", small, cfg, (0, 1), 0.25, tmp_path, "test", log=None)
+    meta = json.loads((tmp_path / "cost.json").read_text())["meta"]
+    assert meta["val"] == 16 and meta["data_seeds"] == [0, 1]
+
+
+# ---------------------------------------------------------------------------------------------
 # Cost learning
 # ---------------------------------------------------------------------------------------------
 
@@ -132,7 +197,7 @@ def test_frame_round_trip():
     g = torch.Generator().manual_seed(0)
     origin = torch.randn(3, 4, generator=g, dtype=torch.float64) * 10
     world = torch.randn(3, 5, 4, generator=g, dtype=torch.float64) * 10
-    back = ex.from_frame(data_synth._to_frame(world, origin), origin)
+    back = tr.from_frame(data_synth._to_frame(world, origin), origin)
     assert torch.allclose(back[..., :2], world[..., :2], atol=1e-10)
     assert torch.allclose(torch.cos(back[..., 2] - world[..., 2]), torch.ones(3, 5, dtype=torch.float64))
 
@@ -165,13 +230,13 @@ def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
         origin = roll.ego[:, k]
         win = torch.arange(f0 + k - H, f0 + k + T + 1)  # the sample's frames
         agent = torch.cat([b.agent_hist, b.agent_fut], 1)
-        assert torch.allclose(ex.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9)
-        others = ex.from_frame(b.others_hist[:, :, -1], origin)[..., :2]  # (S, A, 2) each a logged agent at t0
+        assert torch.allclose(tr.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9)
+        others = tr.from_frame(b.others_hist[:, :, -1], origin)[..., :2]  # (S, A, 2) each a logged agent at t0
         d = (others[:, :, None] - scenes.agents[:, None, :, f0 + k, :2]).norm(dim=-1).min(-1).values  # (S, A)
         assert (d[b.others_mask] < 1e-9).all()
         sim_hist = torch.cat([scenes.ego[:, f0 + k - H:f0], roll.ego[:, :k + 1]], 1)[:, -H - 1:]  # (S, H+1, 4)
-        assert torch.allclose(ex.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9)
-        assert torch.allclose(ex.from_frame(b.goal[:, None], origin)[:, 0, :2], scenes.ego[:, f0 + k + T, :2], atol=1e-9)
+        assert torch.allclose(tr.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9)
+        assert torch.allclose(tr.from_frame(b.goal[:, None], origin)[:, 0, :2], scenes.ego[:, f0 + k + T, :2], atol=1e-9)
 
 
 def test_gt_prediction_closed_loop_stays_near_the_log(clean):
@@ -290,7 +355,8 @@ def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the synthetic data cache goes to tmp_path/data_cache
     tiny = ds.Config(**TINY)
     monkeypatch.setattr(ex, "Config", lambda: tiny)  # what main() builds
-    ex.main(["--experiment", "closed_loop", "--n", "60", "--seeds", "1", "--epochs", "1", "--threads", "1", "--out", "out"])
+    ex.main(["--experiment", "closed_loop", "--n", "60", "--val", "200", "--seeds", "1", "--epochs", "1", "--threads", "1",
+             "--out", "out"])
     res = json.loads((tmp_path / "out" / "closed_loop.json").read_text())
     assert res["meta"]["experiment"] == "closed_loop" and (tmp_path / "out" / "closed_loop.png").exists()
     assert "Trajectory" in (tmp_path / "out" / "closed_loop.md").read_text()
@@ -365,6 +431,18 @@ def test_paired_difference_without_spread_and_bad_input():
         ex.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0])
 
 
+def test_a_claim_that_the_method_is_higher_against_a_baseline_of_one_run():
+    """Table 5's "the standard stack performs worse than no prediction": direction +1, and No prediction (nothing to
+    train, one run) pairs with every seed of Standard."""
+    p = ex.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])
+    assert ex.claim_verdict(p, direction=1) == "reproduced" and ex.claim_verdict(p) == "contradicted (the other way)"
+    res = {"No prediction": [{"rel_trajectory": 0.0}], "Standard": [{"rel_trajectory": x} for x in (1.0, 1.2, 0.8, 1.1, -0.1)]}
+    higher = ex.Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1)
+    line = ex.claim_line(higher, ex.TABLE5, res)
+    assert "4 of 5 seeds higher, 1 lower" in line and line.endswith("): reproduced"), line
+    assert ex.claim_line(dataclasses.replace(higher, direction=-1), ex.TABLE5, res).endswith("contradicted (the other way)")
+
+
 def test_table_markdown_carries_the_claim_lines(tmp_path):
     """A table's markdown (and render_markdown's file, re-made from its JSON) has one line per claim of the paper."""
     runs = lambda *v: [{"rel_hindsight": x, "rel_plan_loss": x, "ade": 1.0, "nll": 1.0, "converged": 1.0} for x in v]  # noqa: E731
@@ -412,7 +490,7 @@ def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
 def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
     store = runs.RunStore(tmp_path, "k")
     names = ("rl", "ablation", "il")
-    units = ex.work_units(names, (0, 1, 2), store)
+    units = ex.work_units(names, {n: (0, 1, 2) for n in names}, store)
     assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
     assert all(len({p.seed for p in ps}) == 1 for _, ps in units)  # one seed per unit
     seeds = [ps[0].seed for _, ps in units]
@@ -421,7 +499,7 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
     assert sorted((n, p) for n, ps in units for p in ps) == sorted(every)
     done = units[0][1][0]
     store.save("ablation", done, {"x": 1})
-    assert ("ablation", done) not in [(n, p) for n, ps in ex.work_units(names, (0, 1, 2), store) for p in ps]
+    assert ("ablation", done) not in [(n, p) for n, ps in ex.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps]
 
 
 def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
@@ -529,7 +607,7 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
         (tmp_path / f).unlink()
     with pytest.raises(SystemExit):  # nothing to render from
         ex.main(["--experiment", "all", "--render", "--out", str(tmp_path)])
-    ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100"])
+    ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100", "--val", "100"])
     assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
     # results from before the curves existed: their tables re-rendered, no empty figure drawn
     saved = json.loads((tmp_path / "rl.json").read_text())

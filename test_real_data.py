@@ -283,7 +283,7 @@ def test_real_experiment_through_the_cli(tmp_path, monkeypatch, waymo_files):
     (tmp_path / "data_cache").mkdir()
     (tmp_path / "data_cache" / "waymo").symlink_to(waymo_files[0].parent)
     monkeypatch.setattr(ex, "Config", lambda: diffstack.Config(**TINY))
-    ex.main(["--experiment", "real", "--n", "60", "--seeds", "1", "--epochs", "0.5", "--threads", "1"])
+    ex.main(["--experiment", "real", "--n", "60", "--val", "60", "--seeds", "1", "--epochs", "0.5", "--threads", "1"])
     out = tmp_path / ex.REAL_OUT  # runs/real by default: git-ignored
     res = json.loads((out / "real.json").read_text())
     assert res["meta"]["experiment"] == "real" and res["meta"]["val"] == 78
@@ -315,7 +315,8 @@ def test_the_real_scenes_experiment_offline_is_one_line_before_training(tmp_path
     monkeypatch.setattr(dr, "_pip_download", offline)
     monkeypatch.setattr(train, "train_stack", lambda *a, **k: pytest.fail("trained before the data was there"))
     with pytest.raises(SystemExit) as e:
-        ex.main(["--experiment", "real", "--n", "200", "--seeds", "1", "--epochs", "1", "--out", str(tmp_path / "out"), "--jobs", "1"])
+        ex.main(["--experiment", "real", "--n", "200", "--val", "100", "--seeds", "1", "--epochs", "1",
+                 "--out", str(tmp_path / "out"), "--jobs", "1"])
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and f"pip download {dr.WAYMO_WHEEL} failed (exit 1)" in err[-1]
     assert "Traceback" not in "\n".join(err)

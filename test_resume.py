@@ -215,7 +215,7 @@ def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypat
 
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
     """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
-    args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--threads", "1", "--jobs", "1",
+    args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--val", "120", "--threads", "1", "--jobs", "1",
             "--out", str(tmp_path), "--set", "pred_modes=5", "--set", "pred_dec_hidden=16"]
     ex.main(args)
     capsys.readouterr()
@@ -349,7 +349,7 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
     # (start_new_session: a process group of its own, as a terminal gives a command)
-    run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200",
+    run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200", "--val", "200",
                             "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL,
                            stderr=open(tmp_path / "stderr", "wb"), start_new_session=True)
     workers, t0 = set(), time.time()
@@ -402,7 +402,8 @@ def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
     agent = subprocess.Popen([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", str(script),
-                              "--experiment", "rl", "--samples", "200", "--epochs", "300", "--threads", "1", "--out", "out"],
+                              "--experiment", "rl", "--samples", "200", "--val", "200", "--epochs", "300", "--threads", "1",
+                              "--out", "out"],
                              cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ranks, t0 = set(), time.time()
     while len(ranks) < 2 and time.time() - t0 < 120 and agent.poll() is None:

@@ -19,7 +19,9 @@ import sys
 import time
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import scipy.stats
 import torch
 import torch.distributed as dist
 import torch.nn as nn
@@ -32,7 +34,8 @@ from runs import WorkerDied, command_line, folder_lock, one_line
 from runs import pool as worker_pool
 from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
-                       collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, run_stack, scene_plan)
+                       collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, project_to_lanes, run_stack,
+                       scene_plan, unicycle_step, wrap_angle)
 
 # --------------------------------------------------------------------------------------------
 # 1. Metrics, and the constant-velocity baseline
@@ -509,7 +512,7 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
 def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
                     device="cpu", curve_samples=0, **stack_kw) -> Predictor:
     """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
-    moved to `device` and trained there on data.train by train_stack.
+    moved to `device` and trained there on data.train_for(seed) (the seed's own draw) by train_stack.
     curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples validation scenarios before
     training and after every epoch, is kept in model.learning_curve (a list of {epoch, step, metrics})."""
     torch.manual_seed(seed)  # the predictor's initialisation
@@ -519,7 +522,8 @@ def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0,
         subset = data.val[:curve_samples]
         on_epoch = lambda epoch, step: curve.append(dict(  # noqa: E731
             epoch=epoch, step=step, **evaluate_stack(model, subset, method, cfg, setting, device=device, **stack_kw)))
-    train_stack(model, data.train, method, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **stack_kw)
+    train_stack(model, data.train_for(seed), method, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch,
+                **stack_kw)
     if curve_samples > 0:
         model.learning_curve = curve
     return model
@@ -619,6 +623,80 @@ def mean_se(xs):
     return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
 
 
+class PairedDifference(NamedTuple):
+    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., the
+    two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how many of the n seeds the method is
+    lower (better, for a cost) or higher (worse)."""
+
+    mean: float
+    se: float
+    t: float
+    p: float
+    better: int
+    worse: int
+    n: int
+
+
+P_REPRODUCED = 0.05
+"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the paper's direction."""
+
+
+def paired_difference(baseline: list, method: list) -> PairedDifference:
+    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two share in a seed (the
+    same data and evaluation set), so the spread left is the difference's own; the t-test is scipy.stats.ttest_1samp
+    of the differences against 0. With one seed the s.e. is unknown (t, p nan); with no spread it is 0 and t is
+    -inf / +inf, p = 0 (t and p nan for a zero difference)."""
+    if len(baseline) != len(method):
+        raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
+    if not baseline:
+        raise ValueError("baseline: no seeds to compare")
+    d = [b - a for a, b in zip(baseline, method)]
+    n, m = len(d), statistics.fmean(d)
+    se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
+    if se > 0:
+        test = scipy.stats.ttest_1samp(d, 0.0)  # two-sided
+        t, p = float(test.statistic), float(test.pvalue)
+    else:
+        t, p = (math.copysign(math.inf, m), 0.0) if m != 0 and se == 0 else (math.nan, math.nan)
+    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
+
+
+def claim_verdict(p: PairedDifference, direction: int = -1) -> str:
+    """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction (-1: the method is
+    lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other way."""
+    if not p.se >= 0:  # nan: one seed
+        return "untested (one seed: no standard error)"
+    if p.p < P_REPRODUCED:
+        return "reproduced" if p.mean * direction > 0 else "contradicted (the other way)"
+    return "not reproduced"
+
+
+def p_value(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}" if p < 0.1 else f"p = {p:.2f}"
+
+
+VAL_SEED = 1000
+"""The data seed of the tables' common validation set. Training seed s trains on the draw of data seed s, and seeds
+are 0..99 (--seeds <= 100): no training draw is this one, and distinct draws hold distinct random scenes."""
+VAL_N = 10_000
+"""Samples in the common validation set: at 1,500 which scenes land in validation decides a row of Table 1 (a few
+near-collisions among ~46 cut-in scenes carry the signal); at 10,000 the rows hold from draw to draw."""
+
+
+def experiment_data(n=10000, seeds=range(5), n_val=VAL_N, cache_dir="data_cache", log=print) -> data_synth.Dataset:
+    """The tables' synthetic data: training seed s trains on the training scenes of its own draw (load_data(n,
+    seed=s).train), and every method of every seed is evaluated on one common validation set, all n_val samples of
+    the draw of data seed VAL_SEED, whose scenes no training draw contains; that draw's validation scenes are the
+    closed loop's. Each draw is generated once, then read from cache_dir."""
+    seeds = tuple(seeds)
+    if not seeds or max(seeds) >= VAL_SEED:
+        raise ValueError(f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the validation "
+                         f"set's), got {seeds}")
+    common = data_real.load_data(None, n_val, VAL_SEED, cache_dir, log)
+    draws = tuple(data_real.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1))
+    return data_synth.Dataset(draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws)
+
+
 def cell(values, fmt="{:.2f}") -> str:
     """'mean ± s.e.' of the per-seed values of one table cell; '--' for none."""
     return "--" if not values else "{} ± {}".format(*(fmt.format(v) for v in mean_se(values)))
@@ -631,10 +709,134 @@ def markdown_table(head, rows) -> str:
 
 
 # ============================================================================================
+# 4b. Closed-loop evaluation: log replay (§4.3, Table 5, App. D.3)
+# ============================================================================================
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego (its
+# simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the ego by the first control;
+# the other agents replay their logs. 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
+
+
+@dataclass
+class Rollout:
+    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
+
+    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
+    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
+    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
+    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
+    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
+    start_frame: int  # f0
+
+
+def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
+    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
+    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
+    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
+    c, s, x, y = torch.cos(h0), torch.sin(h0), states[..., 0], states[..., 1]
+    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
+
+
+def stack_policy(model, method: Method, cfg: Config, device=None):
+    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or the CPU): batch ->
+    (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent, plannable (S,)), on the batch's
+    device. Planner and controller see the predicted agent only (App. D.3), the predictor every neighbour."""
+    if model is not None:
+        model.eval()
+    if device is None:
+        device = next(model.parameters()).device if model is not None else "cpu"
+
+    def policy(batch):
+        with torch.no_grad():
+            out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
+        home = batch.ego_hist.device
+        return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
+
+    return policy
+
+
+def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
+             dtype=torch.float32) -> Rollout:
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first frame
+    with a full history); policy as stack_policy's. scfg: the data's SynthConfig (frame period, history and
+    horizon); dtype: the policy's samples (the simulation is float64)."""
+    scfg = scfg or data_synth.SynthConfig()
+    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
+    if abs(cfg.dt - scfg.dt) > 1e-9:
+        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
+                         f"got {cfg.dt}")
+    steps = sim_time / cfg.dt
+    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
+        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
+    N = round(steps)
+    f0 = H if start_frame is None else start_frame
+    if f0 < H or f0 + N - 1 + T > F - 1:
+        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
+                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
+    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
+    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
+    for k in range(N):  # a loop over simulation steps; every scene at once
+        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
+        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
+        s = hist[:, -1]  # (S, 4)
+        u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
+        s_next = unicycle_step(s, u0, cfg.dt)  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
+        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
+        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
+        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
+        open_loop.append(hindsight.to(s)), plannable.append(ok.to(s.device))
+    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
+    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
+
+
+def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1: trajectory cost 1/N sum_t
+    C(s_t, u_t; GT agents, map) without the goal term (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged
+    agent present); lane 1/N sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the
+    mean hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
+    N, f0 = roll.controls.shape[1], roll.start_frame
+    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
+    frames = slice(f0 + 1, f0 + N + 1)
+    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
+    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
+    w = cost_weights(cfg, x.dtype, x.device)
+    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
+    out = {k: v.mean(-1) for k, v in parts.items()}
+    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
+    keep = roll.plannable.to(x.dtype)
+    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
+    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
+    out["plannable"] = keep.mean(-1)
+    return out
+
+
+def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one).
+    ValueError when there are none (scenes None: the data has no scene logs), saying what the closed loop needs."""
+    if scenes is None:
+        raise ValueError("closed_loop: the data has no validation scene logs")
+    scfg = scfg or data_synth.SynthConfig()
+    H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
+    window = scenes.pred_idx[:, H:H + N] >= 0  # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    ok = (window.all(1) & (window.shape[1] == N)) if len(scenes) else torch.zeros(0, dtype=torch.bool)
+    if not ok.any():
+        run = (window.int().cumprod(1).sum(1).max().item() if window.numel() else 0)
+        raise ValueError(
+            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at each of its {N} frames "
+            f"after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} frames ({(H + N + T - 1) * cfg.dt:g} s at "
+            f"{1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s horizon included); the data has {len(scenes)} validation scene(s) "
+            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}")
+    return scenes[ok]
+
+
+# ============================================================================================
 # 5. The shipped predictors, --quick and the command line
 # ============================================================================================
 
-QUICK = dict(n=10000, live_train=2560, epochs=8.0)  # the tables' data; the live runs train on a part of it
+QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)  # the tables' data; the live runs train on a part of it,
+# and everything is evaluated on the first 1,500 samples of the tables' common validation set (all 10,000: Table 1)
 QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
 PRETRAINED = "pretrained"  # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
 PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))  # = Table 1's five seeds at the tables' length (experiments.py)
@@ -675,21 +877,22 @@ def machine() -> str:
     return f"{platform.machine()}, {name}, {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores"
 
 
-def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int):
+def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int, val: int):
     """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
     threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
     clock, so that what it records does not depend on what else the machine was doing."""
 
     torch.set_num_threads(threads)
     t0 = time.process_time()
-    data = data_real.load_data(n=n, cache_dir=cache_dir)
+    data = experiment_data(n, range(seed + 1), val, cache_dir, log=None)  # its draw: as the tables train it
     model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
     metrics = evaluate_stack(model, data.val, method, cfg, "rl")
     return model.state_dict(), {k: metrics[k] for k in ("ade", "nll", "hindsight")}, time.process_time() - t0
 
 
 def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seeds=PRETRAIN["seeds"], jobs=1,
-             cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain"):
+             cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain",
+             val=None):
     """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables' 40 epochs (the
     paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed,
     and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command, date, commit, data,
@@ -701,15 +904,15 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     import subprocess
 
 
-    out, cfg, seeds = pathlib.Path(out), cfg or Config(), tuple(seeds)
+    out, cfg, seeds, val = pathlib.Path(out), cfg or Config(), tuple(seeds), val or VAL_N
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
     work = [(m, seed, out / f"{_slug(m.name)}-seed{seed}.pt") for seed in seeds for m in learned]
     if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
         raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
     check_writable(out, f"the pre-trained predictors' folder ({out})")
     with folder_lock(out, command):  # one --pretrain into a folder at a time
-        data_real.load_data(n=n, cache_dir=cache_dir)  # made (or checked) once, here, before the workers read it
-        about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, epochs=epochs, seeds=list(seeds), setting="rl",
+        experiment_data(n, seeds, val, cache_dir)  # made (or checked) once, here, before the workers read it
+        about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, val=val, epochs=epochs, seeds=list(seeds), setting="rl",
                      threads=threads, torch=torch.__version__, machine=machine(),
                      config=dataclasses.asdict(cfg), files={})
         try:
@@ -717,7 +920,7 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
                                              cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
         except (OSError, subprocess.CalledProcessError):
             about["commit"] = None
-        args = [(m, seed, n, epochs, cfg, cache_dir, threads) for m, seed, _ in work]
+        args = [(m, seed, n, epochs, cfg, cache_dir, threads, val) for m, seed, _ in work]
         if jobs > 1:
             pool = worker_pool(min(jobs, len(work)))
             finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
@@ -795,12 +998,15 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     cfg = cfg or Config()
     n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
-    log(f"DiffStack --quick: the tables' {n} synthetic scenarios (generated once, then cached in {cache_dir}/).\n"
+    log(f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the validation set "
+        f"(generated once, then cached in {cache_dir}/).\n"
         f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in {pretrained}/), No prediction\n"
         f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores.")
     t0 = time.time()
-    data = data_real.load_data(n=n, cache_dir=cache_dir)
-    log(f"data: {len(data.train)} training, {len(data.val)} validation scenarios ({time.time() - t0:.0f}s)")
+    data = experiment_data(n, (0,), cache_dir=cache_dir, log=log)
+    data = data._replace(val=data.val[:QUICK["val"]])
+    log(f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of the tables' "
+        f"{VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)")
     res, prov = {}, None
     for m in QUICK_METHODS:
         if m.predictor != "learned":
