@@ -3,7 +3,7 @@
 The harness: the section clock (start, section_done, report_times), the notebook's checks (checkpoint, check_order,
 check_claim: each prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
 the committed 5-seed tables (results_table), the helpers that several cells use (gt_context, first_of,
-behaviour_rows, plot_table), and the notebook's larger figures (figure_*: drawing only, each cell computes what it
+behaviour_rows), and the notebook's larger figures (figure_*: drawing only, each cell computes what it
 shows).
 
 Each check_* builds its own small problems (seeded, float64), runs the student's function on them and compares with
@@ -22,7 +22,6 @@ import torch
 
 import data_synth
 import diffstack as ds
-import train as tr
 
 F64 = torch.float64
 
@@ -138,30 +137,6 @@ def smooth(v, n=10):
     """An n-step moving average (the whole series when it is shorter than n)."""
     v = np.asarray(v, dtype=float)
     return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
-
-
-def plot_table(results, setting, title):
-    """Bars of an open-loop table's two relative columns (mean ± s.e. over seeds) and of the ADE, one bar per method;
-    the three panels share their rows (a method without a prediction has no ADE bar)."""
-    import matplotlib.pyplot as plt
-
-    import experiments as xp
-
-    cols = xp.open_loop_columns(setting)[2:4]  # the two planning columns, relative to No prediction
-    names = list(results)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 0.45 * len(names) + 1.2), sharey=True, layout="constrained")
-    y = np.arange(len(names))
-    for ax, (key, header) in zip(axes, [*((c.key.removeprefix("rel_"), c.header) for c in cols), ("ade", "ADE (m)")]):
-        k = key if key == "ade" else "rel_" + key
-        stats = [tr.mean_se([r[k] for r in results[n]]) if k in results[n][0] else (np.nan, 0) for n in names]
-        ax.barh(y, [s[0] for s in stats], xerr=[s[1] for s in stats], color=plt.cm.tab10(y))
-        ax.axvline(0, color="k", lw=0.8)
-        ax.set_title(header if key == "ade" else f"{header}, rel. to No prediction")
-        ax.grid(axis="x", alpha=0.3)
-    axes[0].set_yticks(y, names)
-    axes[0].set_ylim(len(names) - 0.5, -0.5)  # first method on top, every row kept
-    fig.suptitle(title)
-    plt.show()
 
 
 # --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ----------------------
@@ -447,15 +422,38 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
 # --- the exercises' checks -------------------------------------------------------------------------------------
 
 
-def _close(name, mine, ref, tol, hint):
-    """Assert mine ~ ref (same shape, finite, max abs difference <= tol * max(1, |ref|max))."""
-    mine = torch.as_tensor(mine)
+def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None):
+    """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max), where allowed is
+    tol for a float64 answer and grows with the answer's rounding unit otherwise (16 eps cond: a correct float32
+    answer passes, a wrong one still fails); cond: how much the problem magnifies a rounding error (its conditioning);
+    dtype: the one the answer was computed in, where that is not mine's (a gradient autograd cast back)."""
+    if not isinstance(mine, torch.Tensor):
+        try:
+            mine = torch.as_tensor(mine)
+        except (TypeError, ValueError, RuntimeError):
+            raise AssertionError(f"{name}: expected a tensor of shape {tuple(ref.shape)}, got {type(mine).__name__}. "
+                                 f"{hint}") from None
     assert mine.shape == ref.shape, f"{name}: shape {tuple(mine.shape)}, expected {tuple(ref.shape)}. {hint}"
+    assert mine.is_floating_point(), f"{name}: dtype {mine.dtype}, expected a floating-point tensor. {hint}"
     assert torch.isfinite(mine).all(), f"{name}: contains inf or NaN. {hint}"
     err = (mine.to(ref.dtype) - ref).abs().max().item()
     scale = max(1.0, ref.abs().max().item())
-    assert err <= tol * scale, f"{name}: max |yours - reference| = {err:.3g} (allowed {tol * scale:.1g}). {hint}"
+    allowed = max(tol, 16 * torch.finfo(dtype or mine.dtype).eps * cond) * scale
+    assert err <= allowed, f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}). {hint}"
     return err
+
+
+def _call(name, fn, *args, returns=""):
+    """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned into a failed check
+    that names the inputs' shapes and what it should return; NotImplementedError (a stub) passes through."""
+    try:
+        return fn(*args)
+    except NotImplementedError:
+        raise
+    except Exception as e:  # noqa: BLE001  (whatever the student's code raises is the answer's failure)
+        shapes = ", ".join(str(tuple(a.shape)) if isinstance(a, torch.Tensor) else type(a).__name__ for a in args)
+        raise AssertionError(f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
+                             f"{returns})") from None
 
 
 def exercise(number, check, fn):
@@ -498,7 +496,8 @@ def check_collision(fn):
     worst = 0.0
     for seed, rbf_var in ((0, 2.0), (1, 3.5)):
         pos, ctx = collision_problem(seed)
-        worst = max(worst, _close("my_collision", fn(pos, ctx, rbf_var), ds.collision_term(pos, ctx, rbf_var), 1e-9, hint))
+        mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
+        worst = max(worst, _close("my_collision", mine, ds.collision_term(pos, ctx, rbf_var), 1e-9, hint, cond=10))
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
 
@@ -524,12 +523,14 @@ def check_plan_loss(fn):
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c1, c2 = cost.clone().requires_grad_(), cost.clone().requires_grad_()
-        mine, ref = fn(c1, valid, target, beta), ds.plan_loss(c2, valid, target, beta)
-        worst = max(worst, _close(f"my_plan_loss (beta = {beta})", mine, ref, 1e-9, hint))
+        mine = _call("my_plan_loss", fn, c1, valid, target, beta, returns="L_plan of shape (B,)")
+        ref = ds.plan_loss(c2, valid, target, beta)
+        cond = beta * cost.abs().max().item()  # the costs' rounding, magnified by beta
+        worst = max(worst, _close(f"my_plan_loss (beta = {beta})", mine, ref, 1e-9, hint, cond))
         ref.sum().backward()
         assert mine.requires_grad, f"my_plan_loss: the result has no gradient (keep it a torch expression). {hint}"
         mine.sum().backward()
-        _close(f"gradient of my_plan_loss wrt the costs (beta = {beta})", c1.grad, c2.grad, 1e-9, hint)
+        _close(f"gradient of my_plan_loss wrt the costs (beta = {beta})", c1.grad, c2.grad, 1e-9, hint, cond, mine.dtype)
     return f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
@@ -560,10 +561,16 @@ def check_riccati(fn):
         F = torch.cat([A[:, 0], Bm[:, 0]], -1)
         Q = H[:, 0] + F.transpose(-1, -2) @ H[:, 1, :n, :n] @ F
         P_ref = Q[:, :n, :n] - Q[:, :n, n:] @ torch.linalg.solve(Q[:, n:, n:], Q[:, n:, :n])
-        k, K, P_new, p_new = fn(H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
+        args = (H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
+        out = _call("my_riccati_step", fn, *args, returns=f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))")
+        assert isinstance(out, (tuple, list)) and len(out) == 4, (
+            f"my_riccati_step: returned {type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}, "
+            f"expected the four (k, K, P_new, p_new). {hint}")
+        k, K, P_new, p_new = out
+        cond = torch.linalg.cond(Q[:, n:, n:]).max().item()  # the solves with Q_uu
         for name, mine, ref in (("k (feed-forward)", k, k_ref[:, 0]), ("K (feedback gain)", K, K_ref[:, 0]),
                                 ("P_new", P_new, P_ref), ("p_new", p_new, p0_ref)):
-            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, 1e-8, hint))
+            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, 1e-8, hint, cond))
     return f"k, K, P_new, p_new, max error {worst:.1e}"
 
 
@@ -578,8 +585,140 @@ def check_plan_grad(fn):
         cost, valid, target = plan_problem(seed)
         c = cost.clone().requires_grad_()
         (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)  # autograd's answer
-        worst = max(worst, _close(f"my_plan_loss_grad (beta = {beta})", fn(cost, valid, target, beta), ref, 1e-9, hint))
+        mine = _call("my_plan_loss_grad", fn, cost, valid, target, beta, returns="dL_plan/dC of shape (B, N)")
+        worst = max(worst, _close(f"my_plan_loss_grad (beta = {beta})", mine, ref, 1e-9, hint, beta * cost.abs().max().item()))
     return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
-CHECKS = {1: check_collision, 2: check_plan_loss, 3: check_riccati, 4: check_plan_grad}
+# --- exercise 5: the controller's gradient, the KKT backward (App. C.3) -------------------------------------------
+
+
+def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
+    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t x_t + B_t u_t from x_init,
+    the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over z_t = [x_t; u_t] (t = 0..T, the last control block unused), some
+    controls held at their bound (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
+    gen = torch.Generator().manual_seed(seed)
+    randn = lambda *shape: torch.randn(*shape, generator=gen, dtype=F64)  # noqa: E731
+    A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
+    Bm = randn(B, T, n, m)
+    R = randn(B, T + 1, n + m, n + m)
+    H = R @ R.transpose(-1, -2) / (n + m) + torch.eye(n + m, dtype=F64)
+    free = torch.rand(B, T, m, generator=gen) > 0.3
+    return A, Bm, H, randn(B, T + 1, n + m), randn(B, n), free, randn(B, T + 1, n), randn(B, T, m)
+
+
+def lqr_solve(A, Bm, H, g, x_init, free):
+    """The problem's solution (x* (B, T+1, n), u* (B, T, m)): the module's Riccati recursion, then the policy
+    u_t = k_t + K_t x_t rolled out from x_init; held controls stay at 0."""
+    k, K, _, _ = ds.lqr_backward_fixed(A, Bm, H, g, x_init.shape[-1], free)
+    x, u = [x_init], []
+    for t in range(A.shape[1]):
+        u.append(k[:, t] + (K[:, t] @ x[-1][..., None])[..., 0])
+        x.append((A[:, t] @ x[-1][..., None] + Bm[:, t] @ u[-1][..., None])[..., 0])
+    return torch.stack(x, 1), torch.stack(u, 1)
+
+
+def check_kkt(fn):
+    hint = ("the backward pass is the same LQR (A, B, H, the active set) with the incoming gradient [grad_x; grad_u] "
+            "as its linear term and dx_0 = 0: roll its policy out for d = (dx, du); dL/dg = d, dL/dx_init = p_0.")
+    worst = 0.0
+    for seed in (0, 1):
+        A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
+        B, T1, nm = g.shape
+        n = x_init.shape[-1]
+        # the reference: autograd through the module's solver, dL/dx_init and dL/dg of L = <grad_x, x*> + <grad_u, u*>
+        xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
+        loss = lambda xi, gg: sum((a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free)))  # noqa: E731
+        ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
+        # ... itself against central finite differences on a few coordinates
+        for (b, i), h in (((0, 1), 1e-6), ((2, 0), 1e-6)):
+            e = torch.zeros_like(x_init)
+            e[b, i] = h
+            assert abs((loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * h) - ref_x[b, i].item()) < 1e-6
+        out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n,
+                    returns=f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))")
+        assert isinstance(out, (tuple, list)) and len(out) == 2, (
+            f"my_kkt_backward: returned {type(out).__name__}, expected the two (dL/dx_init, dL/dg). {hint}")
+        cond = torch.linalg.cond(H).max().item()
+        worst = max(worst, _close("my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond))
+        worst = max(worst, _close("my_kkt_backward: dL/dg", out[1], ref_g, 1e-9, hint, cond))
+    return f"dL/dx_init and dL/dg against autograd through the solver (itself against finite differences), " \
+           f"max error {worst:.1e}, held controls"
+
+
+CHECKS = {1: check_collision, 2: check_plan_loss, 3: check_riccati, 4: check_plan_grad, 5: check_kkt}
+
+
+# --- the grader: every exercise's check on a student's answers ------------------------------------------------
+
+EXERCISES = {1: ("my_collision", "the collision term"), 2: ("my_plan_loss", "the relaxed planner's loss"),
+             3: ("my_riccati_step", "one step of the Riccati recursion"),
+             4: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
+             5: ("my_kkt_backward", "the controller's gradient (the KKT backward)")}
+
+
+def load_answers(path) -> dict:
+    """{exercise number: the student's function, or None} from a .py file, or from a notebook (.ipynb): its import
+    statements and the code cells that define an exercise's function (its other cells are not run). This runs the
+    student's code."""
+    path = Path(path)
+    if path.suffix == ".ipynb":
+        import ast
+
+        cells = ["".join(c["source"]) for c in json.loads(path.read_text())["cells"] if c["cell_type"] == "code"]
+        def tree(cell):  # (a cell with IPython syntax has no imports to take)
+            try:
+                return ast.parse(cell).body
+            except SyntaxError:
+                return []
+        imports = [ast.unparse(node) for c in cells for node in tree(c)  # the notebook's imports, then the cells that
+                   if isinstance(node, (ast.Import, ast.ImportFrom))]    # define answers
+        source = "\n\n".join(imports + [c for c in cells if any(f"def {name}(" in c for name, _ in EXERCISES.values())])
+    else:
+        source = path.read_text()
+    space = {"__name__": "answers", "SOLUTIONS": False}  # (the notebook's cells import solutions.py only under CI)
+    exec(compile(source, str(path), "exec"), space)  # noqa: S102  (grading runs the answers, as the notebook does)
+    return {k: space.get(name) for k, (name, _) in EXERCISES.items()}
+
+
+def grade(path, out=print) -> dict:
+    """Run every exercise's check on the answers in `path` (load_answers): one line per exercise (PASS, not done, or
+    what failed) and the score. Returns {number: True (pass) or the reason it scores nothing}."""
+    try:
+        answers = load_answers(path)
+    except Exception as e:  # noqa: BLE001  (a file that does not even run scores nothing, saying why)
+        answers, broken = {}, f"the file does not run: {type(e).__name__}: {e}"
+    result = {}
+    for k, (name, title) in EXERCISES.items():
+        fn = answers.get(k)
+        detail = ""
+        if fn is None:
+            result[k] = broken if not answers else f"no function {name}"
+        else:
+            try:
+                detail, result[k] = f" ({CHECKS[k](fn)})", True
+            except NotImplementedError:
+                result[k] = "not done (the stub still raises NotImplementedError)"
+            except AssertionError as e:
+                result[k] = f"FAIL: {e}"
+        out(f"  exercise {k} ({title}): {'PASS' + detail if result[k] is True else result[k]}")
+    out(f"{path}: score {sum(v is True for v in result.values())}/{len(EXERCISES)}")
+    return result
+
+
+if __name__ == "__main__":
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(description="Grade the course's exercises: run every exercise's check on the answers "
+                                             "in each file (a student's tutorial.ipynb, or a .py that defines the "
+                                             "my_* functions) and print a score per exercise. It runs their code.")
+    ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
+    args = ap.parse_args()
+    for f in args.files:
+        if not Path(f).is_file():
+            ap.error(f"{f}: no such file")
+    torch.set_num_threads(1)
+    graded = [grade(f) for f in args.files]
+    sys.exit(0 if all(v is True for g in graded for v in g.values()) else 1)
+

@@ -48,3 +48,19 @@ def my_plan_loss_grad(cost, valid, target, beta):
     p = torch.softmax(torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype)), -1)  # (B, N)
     onehot = torch.nn.functional.one_hot(target, cost.shape[-1]).to(cost.dtype)  # (B, N)
     return beta * (onehot - p)
+
+
+# Exercise 5: the controller's gradient. At the solution, the KKT conditions hold; differentiating them gives the
+# same LQR with the incoming gradient as its linear term (Amos et al. 2018): d = argmin 1/2 d'Hd + [grad_x; grad_u]'d
+# s.t. dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t, held controls du = 0. Then dL/dg_t = d_t and dL/dx_init = p_0.
+def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
+    import diffstack as ds
+
+    rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
+    k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, rhs, n, free)
+    dx, du = [torch.zeros_like(grad_x[:, 0])], []
+    for t in range(A.shape[1]):
+        du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
+        dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
+    du.append(torch.zeros_like(du[0]))  # the last stage has no control
+    return p0, torch.cat([torch.stack(dx, 1), torch.stack(du, 1)], -1)

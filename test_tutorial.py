@@ -1,6 +1,7 @@
 """Tests of the course: tutorial.py (jupytext percent format) is the notebook's source, tutorial.ipynb is made from
 it, and the notebook runs top to bottom."""
 import ast
+import dataclasses
 import json
 import math
 import pathlib
@@ -87,7 +88,7 @@ def test_the_notebook_checks_stop_on_a_wrong_value(tmp_path, monkeypatch, capsys
 # --- the exercises: solutions pass their checks, known-wrong answers fail them ----------------------------------
 
 SOLUTIONS = {1: solutions.my_collision, 2: solutions.my_plan_loss, 3: solutions.my_riccati_step,
-             4: solutions.my_plan_loss_grad}
+             4: solutions.my_plan_loss_grad, 5: solutions.my_kkt_backward}
 
 
 def _phi(d2, var):
@@ -152,6 +153,37 @@ def _plan_grad(mutation):
     return fn
 
 
+def _kkt(mutation):
+    """Exercise 5's answer with one plausible mistake (the rollout and the LQR call as a student would write them)."""
+    import diffstack as ds
+
+    def fn(A, B, H, grad_x, grad_u, free, n):
+        gu = torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)
+        if mutation == "grad_u left out":
+            gu = torch.zeros_like(gu)
+        elif mutation == "grad_u a step late":
+            gu = torch.cat([torch.zeros_like(grad_u[:, :1]), grad_u], 1)
+        hold = torch.ones_like(free) if mutation == "the active set ignored" else free
+        k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, torch.cat([grad_x, gu], -1), n, hold)
+        dx, du = [torch.ones_like(grad_x[:, 0]) if mutation == "dx_0 = 1" else torch.zeros_like(grad_x[:, 0])], []
+        for t in range(A.shape[1]):
+            Kt = K[:, t].transpose(-1, -2).reshape(K[:, t].shape) if mutation == "K transposed" else K[:, t]
+            du.append(k[:, t] if mutation == "feed-forward only" else k[:, t] + (Kt @ dx[-1][..., None])[..., 0])
+            dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
+        if mutation == "states a step early":
+            dx = dx[1:] + [dx[-1]]
+        du.append(torch.zeros_like(du[0]))
+        d = torch.cat([torch.stack(dx, 1), torch.stack(du, 1)], -1)
+        if mutation == "p_0 sign":
+            p0 = -p0
+        if mutation == "d sign":
+            d = -d
+        if mutation == "dL/dx_init = dx_0":
+            p0 = dx[0]
+        return p0, d
+    return fn
+
+
 WRONG = {
     "1: pred_mask ignored": (1, lambda pos, ctx, v: _coll(pos, ctx, v, use_pred_mask=False)),
     "1: others_mask ignored": (1, lambda pos, ctx, v: _coll(pos, ctx, v, use_others_mask=False)),
@@ -166,6 +198,9 @@ WRONG = {
     **{f"3: {m}": (3, _riccati(m)) for m in ("P_new = Q_ss", "P_new unchanged", "K sign",
                                              "p_new without the Q_su k term", "Q without F'PF")},
     **{f"4: {m}": (4, _plan_grad(m)) for m in ("no beta", "sign", "softmax over invalid candidates too", "one-hot only")},
+    **{f"5: {m}": (5, _kkt(m)) for m in ("grad_u left out", "grad_u a step late", "the active set ignored", "dx_0 = 1",
+                                         "K transposed", "feed-forward only", "states a step early", "p_0 sign",
+                                         "d sign", "dL/dx_init = dx_0")},
 }
 
 
@@ -180,6 +215,52 @@ def test_checks_catch_known_wrong_answers(name):
     number, wrong = WRONG[name]
     with pytest.raises(AssertionError):
         course.CHECKS[number](wrong)
+
+
+def _in_float32(fn):
+    """fn computed in float32: every floating input (a CostContext's fields too) cast down, the outputs as they come."""
+    def down(a):
+        if isinstance(a, torch.Tensor):
+            return a.float() if a.is_floating_point() else a
+        if dataclasses.is_dataclass(a):
+            return type(a)(*(down(t) for t in a.tensors()))
+        return a
+    def wrapped(*args):
+        return fn(*(down(a) for a in args))
+    wrapped.__name__ = fn.__name__
+    return wrapped
+
+
+@pytest.mark.parametrize("number", sorted(SOLUTIONS))
+def test_a_right_answer_in_float32_passes(number, capsys):
+    """The checks judge the answer, not its float type: each solution computed in float32 passes (its rounding,
+    magnified by the problem's conditioning, is allowed), while the wrong answers above fail in float64."""
+    assert course.exercise(number, course.CHECKS[number], _in_float32(SOLUTIONS[number]))
+
+
+@pytest.mark.parametrize("name", sorted(WRONG))
+def test_known_wrong_answers_fail_in_float32_too(name):
+    number, wrong = WRONG[name]
+    with pytest.raises(AssertionError):
+        course.CHECKS[number](_in_float32(wrong))
+
+
+def test_a_wrong_shape_or_an_error_inside_the_answer_is_reported_as_such():
+    def flat(pos, ctx, rbf_var):  # (B, N, 1) instead of (B, N)
+        return solutions.my_collision(pos, ctx, rbf_var)[..., None]
+    with pytest.raises(AssertionError, match=r"my_collision: shape \(6, 7, 1\), expected \(6, 7\)"):
+        course.check_collision(flat)
+
+    def broadcast_error(pos, ctx, rbf_var):  # sums the modes against the time axis: a RuntimeError inside it
+        return (pos[:, :, None] - ctx.preds[:, None].transpose(-2, -3)).sum()
+    with pytest.raises(AssertionError, match=r"my_collision raised RuntimeError: .* \(its inputs: \(6, 7, 6, 2\), "
+                                             r"CostContext, float; it should return C_coll of shape \(B, N\)\)"):
+        course.check_collision(broadcast_error)
+
+    def three(P, p, H_t, g_t, A_t, B_t, n):
+        return solutions.my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)[:3]
+    with pytest.raises(AssertionError, match=r"my_riccati_step: returned tuple of 3, expected the four"):
+        course.check_riccati(three)
 
 
 def test_a_stub_is_reported_as_not_done(capsys):
@@ -198,3 +279,48 @@ def test_the_student_notebook_holds_stubs_not_solutions():
         body = [s for s in f.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
         assert len(body) == 1 and isinstance(body[0], ast.Raise), f"{f.name} in tutorial.py is not a stub"
         assert "NotImplementedError" in ast.unparse(body[0])
+
+
+# --- the grader ---------------------------------------------------------------------------------------------------
+
+
+def test_the_grader_scores_a_notebook_and_a_file_exercise_by_exercise(tmp_path, capsys):
+    """course.py grades the committed student notebook (every exercise not done), solutions.py (5 of 5), and a
+    notebook where the student solved exercise 1 and got exercise 2 wrong (1 of 5, saying what failed)."""
+    lines = []
+    assert all(v.startswith("not done") for v in course.grade(REPO / "tutorial.ipynb", lines.append).values())
+    assert lines[-1].endswith("tutorial.ipynb: score 0/5")
+    assert all(v is True for v in course.grade(REPO / "solutions.py", lines.append).values())
+    assert lines[-1].endswith("score 5/5")
+    nb = json.loads((REPO / "tutorial.ipynb").read_text())
+    cells = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    one = next(c for c in cells if "def my_collision(" in "".join(c["source"]))
+    one["source"] = ast.get_source_segment(SOLUTIONS_SOURCE, _function("my_collision"))
+    two = next(c for c in cells if "def my_plan_loss(" in "".join(c["source"]))
+    two["source"] = ("def my_plan_loss(cost, valid, target, beta):\n"  # the valid mask left out
+                     "    return -(-beta * cost).log_softmax(-1).gather(-1, target[:, None])[:, 0]\n")
+    (tmp_path / "student.ipynb").write_text(json.dumps(nb))
+    result = course.grade(tmp_path / "student.ipynb", lines.append)
+    assert result[1] is True and result[2].startswith("FAIL: my_plan_loss (beta = 1.0): max |yours - reference|")
+    assert result[3].startswith("not done") and lines[-1].endswith("student.ipynb: score 1/5")
+    (tmp_path / "broken.py").write_text("def my_collision(:\n")
+    assert all(v.startswith("the file does not run: SyntaxError") for v in course.grade(tmp_path / "broken.py", lines.append).values())
+
+
+SOLUTIONS_SOURCE = (REPO / "solutions.py").read_text()
+
+
+def _function(name):
+    return next(f for f in ast.parse(SOLUTIONS_SOURCE).body if isinstance(f, ast.FunctionDef) and f.name == name)
+
+
+def test_the_grader_command_line(tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, str(REPO / "course.py"), str(REPO / "solutions.py")], capture_output=True,
+                         text=True, cwd=tmp_path)
+    assert run.returncode == 0 and "solutions.py: score 5/5" in run.stdout
+    run = subprocess.run([sys.executable, str(REPO / "course.py"), str(REPO / "tutorial.ipynb"), "nothere.ipynb"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 2 and run.stderr.strip().splitlines()[-1].endswith("nothere.ipynb: no such file")

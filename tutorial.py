@@ -23,7 +23,7 @@
 #
 # **Learning goals.** After this notebook you can (1) write the planning cost of eq. (3) and see which of its terms
 # a prediction enters; (2) explain why an argmin planner gives no gradient and how the softmax relaxation of eq. (2)
-# gives one, and derive that gradient; (3) run one Riccati step of iLQR and say what the KKT backward computes;
+# gives one, and derive that gradient; (3) run one Riccati step of iLQR and compute the controller's gradient;
 # (4) say when training a predictor *through* the planner helps (Tables 1, 2, 5) and when its numbers mislead (ADE,
 # imitation learning), with the evidence.
 #
@@ -36,7 +36,7 @@
 # | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
 # | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
 # | 4 | the planner, its relaxed argmin; **exercises 2 and 4** (L_plan, its gradient), a prediction's gradient | eq. (2), §3.1 | 1 s | 2 s |
-# | 5 | the controller: box-constrained iLQR and its KKT backward; **exercise 3** (one Riccati step) | eq. (4), App. C | 7 s | 5 s |
+# | 5 | the controller: box-constrained iLQR, its KKT backward; **exercises 3, 5** (Riccati step, gradient) | eq. (4), App. C | 7 s | 5 s |
 # | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 12 s |
 # | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 120 s |
 # | 8 | Tables 2, 4, 3, 5: biased predictor, imitation learning, cost learning, closed loop; dt = 0.1 s | §4.2-4.3, App. A | 14 s | 156 s |
@@ -45,15 +45,14 @@
 # Times: wall time per section on one torch thread with the data cached (the first run generates it, a few seconds
 # more). Plan 20-40 minutes per exercise, 2.5-4 hours for the whole course.
 #
-# **Exercises.** Four functions to fill in (`raise NotImplementedError` until you do). The cell after each checks
-# your answer against the module, autograd or a closed form on its own test problems: `PASS`, or a stop that says
-# what differs; a skipped exercise is reported *not done* and the notebook goes on. The answers are in
-# [`solutions.py`](solutions.py); `DIFFSTACK_SOLUTIONS=1` (what CI sets) uses them.
+# **Exercises.** Five functions to fill in (stubs until you do). A check runs each on its own test problems against
+# the module, autograd or a closed form: `PASS`, a stop that says what differs, or *not done* (the notebook goes on).
+# The answers are in [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them); `python course.py
+# tutorial.ipynb` grades a notebook's answers, exercise by exercise.
 #
-# **Running it.** `pip install -r requirements.txt`, then `jupyter lab tutorial.ipynb` and *Run All*. `QUICK = True`
-# trains 16 steps on small data (its numbers test that the code runs and reproduces); `QUICK = False` is the run whose
-# outputs are stored here. Neither is the paper's training (4 GPUs, 20 epochs on nuScenes): for the findings, each
-# section quotes the 5-seed tables of [`results/`](results/) (mean ± standard error over seeds). Three kinds of check
+# **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True`, the stored outputs (under a minute), trains
+# 16 steps on small data; `QUICK = False` trains longer (5 minutes). Neither gives the paper's findings: each section
+# quotes the 5-seed tables of [`results/`](results/) (mean ± standard error over seeds). Three kinds of check
 # stop the notebook when they fail: `CHECKPOINT`, a value that involves no training, against the one expected;
 # `CHECK`, an ordering that holds on any machine (training moves the last digits); `CLAIM`, a 5-seed finding of
 # `results/` against what the text says of it.
@@ -62,7 +61,7 @@
 # Parameters
 import os
 
-QUICK = True     # True: small data, short training; False: the stored run (times in the table above)
+QUICK = True     # True: small data, short training (the stored outputs); False: the longer run (times above)
 SEED = 0         # every experiment cell seeds itself from this: re-running one cell reproduces its output
 DEVICE = "cpu"   # the module runs on the CPU (float32 training, float64 gradient checks)
 
@@ -90,7 +89,7 @@ import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
-from course import check_claim, check_order, checkpoint, first_of, gt_context, plot_table, rel_err, results_table, section_done
+from course import check_claim, check_order, checkpoint, first_of, gt_context, rel_err, results_table, section_done
 
 assert DEVICE == "cpu", "diffstack.py is a CPU teaching implementation"
 course.start()  # one torch thread (reproducible numbers), the figures' style, the section clock
@@ -190,11 +189,6 @@ a = data_synth.sample_at(scenes, frame, dtype=torch.float64)
 b = data_synth.sample_at(loaded, frame, dtype=torch.float64)
 diff = max((getattr(a, k) - getattr(b, k)).abs().max().item() for k in ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal"))
 checkpoint("max |written-and-read - original| over ego/agent states and goals (m)", diff, 0.0, 1e-9)
-fig, axes = plt.subplots(1, 2, figsize=(10, 3.2))
-data_synth.plot_scenario(axes[0], a.to(torch.float32), 0, title=f"generated: {scenes.names[0]}")
-data_synth.plot_scenario(axes[1], b.to(torch.float32), 0, title=f"written to nuScenes v1.0 and read back: {loaded.names[0]}")
-fig.tight_layout()
-plt.show()
 
 # %%
 section_done("§2")
@@ -456,8 +450,8 @@ section_done("§4")
 
 
 # %% [markdown]
-# **Summary of §4.** $\partial\mathcal L_\text{plan}/\partial C_n = \beta(\mathbb 1[n = n^*] - p_n)$; chained through
-# $C_\text{coll}$, it moves a prediction only where the move changes which candidate is preferred.
+# **Summary of §4.** The gradient of $\mathcal L_\text{plan}$ with respect to the candidate costs (exercise 4),
+# chained through $C_\text{coll}$, moves a prediction only where the move changes which candidate is preferred.
 #
 # **For discussion.**
 #
@@ -534,8 +528,7 @@ torch.manual_seed(SEED)
 d_min = (data.val.ego_fut[..., :2] - data.val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
 pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the predicted vehicle comes within 6 m
 b64 = data.val[pick].to(torch.float64)
-ctx64 = gt_context(b64)
-w64 = ds.cost_weights(cfg, torch.float64)
+ctx64, w64 = gt_context(b64), ds.cost_weights(cfg, torch.float64)
 lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
 def fn(x, u, w, preds):
     return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
@@ -547,24 +540,20 @@ g = torch.Generator().manual_seed(SEED)
 wx, wu = torch.randn(3, 7, 4, generator=g, dtype=torch.float64), torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
 leaves = (s0, w64, ctx64.preds)
 
-
 def kkt_grads(exact):
     ls = [v.clone().requires_grad_() for v in leaves]
     x, u, _ = ds.ilqr_solve(fn, ds.Unicycle(cfg.dt), ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact)
     return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
-
 
 def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
     ls = [*leaves[:i], v, *leaves[i + 1:]]
     x, u, inf = ds.ilqr(fn, ds.Unicycle(cfg.dt), ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
     return (x * wx).sum() + (u * wu).sum()
 
-
 def central_fd(i, idx, h=1e-4):
     e = torch.zeros_like(leaves[i])
     e[idx] = h
     return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
-
 
 t0 = time.time()
 exact, gn = kkt_grads(True), kkt_grads(False)
@@ -581,6 +570,26 @@ print(f"({time.time() - t0:.1f}s)")
 checkpoint("largest relative error of the exact KKT gradient", max(e for e, _ in errs.values()), 0.0, 1e-4)
 checkpoint("log10 of the largest relative error of the curvature-free gradient (mpc.pytorch's: 0.4-4 % expected)",
            math.log10(max(e for _, e in errs.values())), -2.0, 1.0)
+
+# %% [markdown]
+# ### Exercise 5: the controller's gradient
+#
+# The backward pass on a linear-quadratic problem ($\ell_t = \tfrac12 z_t^\top H_t z_t + g_t^\top z_t$, $s_{t+1} = A_t s_t
+# + B_t u_t$ from $s_\text{init}$), its active set fixed (`free` False: held at a bound). `my_kkt_backward(A, B, H,
+# grad_x, grad_u, free, n)` gets $\partial\mathcal L/\partial z$ and returns $\partial\mathcal L/\partial s_\text{init}$ (B, n)
+# and $\partial\mathcal L/\partial g$ (B, T+1, n+m; the last stage has no control). `ds.lqr_backward_fixed(A, B, H, g, n,
+# free)` does the Riccati pass (exercise 3) and returns $(k, K, P_0, p_0)$, $p_0$ the value function's gradient.
+
+# %%
+# Exercise 5: your code here; checked against autograd through the LQR solver (itself against finite differences).
+def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
+    """A (B, T, n, n), B (B, T, n, m), H (B, T+1, n+m, n+m), grad_x (B, T+1, n), grad_u (B, T, m), free (B, T, m)
+    -> (dL/ds_init (B, n), dL/dg (B, T+1, n+m))."""
+    raise NotImplementedError("exercise 5: write my_kkt_backward")
+
+if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
+    from solutions import my_kkt_backward
+course.exercise(5, course.check_kkt, my_kkt_backward)
 
 
 # %% [markdown]
@@ -703,9 +712,8 @@ rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
 # what a perfect prediction is worth needs no training and is (GT prediction below No prediction)
 check_order("Table 1, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 if QUICK:
-    print(f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}. DiffStack's ADE here is {res1['DiffStack'][0]['ade']:.2f} m "
-          f"(constant velocity: {m_std['cv_ade']:.2f} m): the predictors are barely trained, so these numbers test that "
-          f"the code runs and reproduces, not the paper's findings. Read the 5-seed table below.")
+    print(f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}, DiffStack's ADE {res1['DiffStack'][0]['ade']:.2f} m (constant "
+          f"velocity: {m_std['cv_ade']:.2f} m): barely trained, these numbers test the code. Read the 5-seed table below.")
 results_table("rl")
 check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "not reproduced")
 
@@ -769,7 +777,6 @@ display(Markdown(breakdown) if breakdown else
         Markdown("*results/rl.json predates the breakdown by behaviour: re-run Table 1 to see it.*"))
 
 # %%
-plot_table(res1, "rl", "Table 1 (RL setting): lower is better")
 
 # %% [markdown]
 # **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained again, same seed
@@ -861,7 +868,6 @@ display(Markdown(tr.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 # one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
 check_order("Table 2, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
-plot_table(res2, "rl", "Table 2: a 1 m bias in the prediction targets")
 results_table("biased")
 check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
@@ -892,7 +898,6 @@ display(Markdown(tr.open_loop_table(res_il, "il")))
 rel = {n: r[0]["rel_mse"] for n, r in res_il.items()}
 # one seed of a short training again: nothing here is checked but the 5-seed claim under the table (even a perfect
 # prediction need not bring the plan closer to the expert's: on the quick data GT prediction's MSE is above No prediction's)
-plot_table(res_il, "il", "Table 4 (IL setting): lower is better")
 results_table("il")
 check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 
@@ -948,10 +953,9 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # %% [markdown]
 # **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.11 ± 0.01, level
 # with GT prediction's, Standard's +0.06 ± 0.07 (paired −0.17 ± 0.08, t = −2.23, p = 0.090: *not reproduced* at 5 %).
-# Standard's plans look better in open loop (−1.77 ± 0.15 against −0.90 ± 0.04; the paper's open-loop claim is
-# contradicted, p = 0.005) but cost more once executed: control effort +0.21 ± 0.08 against +0.03 ± 0.01, the price of replanning
-# around predictions that change from step to step. Replanning every 0.5 s corrects a wrong plan early, so the
-# executed trajectories stay within centimetres of each other.
+# Standard's plans look better in open loop (−1.77 ± 0.15 against −0.90 ± 0.04: the paper's claim contradicted,
+# p = 0.005) but cost more once executed (control effort +0.21 ± 0.08 against +0.03 ± 0.01). Replanning every 0.5 s
+# corrects a wrong plan early: the executed trajectories stay within centimetres of each other.
 #
 # **A finer clock (App. A.1).** Planner and controller can plan the same 3 s in 30 steps of 0.1 s: `plan_dt=0.1`
 # interpolates the predictions (`ds.upsample`) and scales the per-step cost by 1/5. Here the predictors trained at
@@ -964,15 +968,11 @@ t0 = time.time()
 stacks = {"No prediction": (None, tr.Method("No prediction", "none")), "Standard": (model_std, tr.Method("Standard")),
           "DiffStack": (model_ds, tr.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, tr.Method("GT prediction", "gt"))}
 fine = {name: [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
-with torch.no_grad():  # the two stacks drawn below (evaluate_stack has put the models in eval mode)
-    outs01 = {name: ds.run_stack(data.val, *stacks[name], cfg, "rl", plan_dt=0.1) for name in ("Standard", "DiffStack")}
 for runs in fine.values():  # relative to No prediction, as open_loop_experiment reports
     for key, scale in tr.RELATIVE_SCALE["rl"].items():
         runs[0]["rel_" + key] = (runs[0][key] - fine["No prediction"][0][key]) / scale
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(fine, "rl")))
-# Figure: §7's sample i at 0.1 s, the controller's 31 states (purple) against its 7 at 0.5 s (circles): little changes.
-course.figure_stacks(data.val, i, outs01, cfg, at=" at 0.1 s", also=outs)
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
 check_order("dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"])
 
