@@ -286,18 +286,18 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
 def figure_modes(sub, pred, train_steps):
     """§6: a predictor's K modes on the samples of `sub`, coloured and widened by p(z = k | x) (one colour scale),
     the most likely labelled, the three largest probabilities in each title, 1σ ellipses of the most likely mode;
-    zoomed on the predicted vehicle."""
+    zoomed on the predicted vehicle (its last history steps, the modes and its true future)."""
     import matplotlib.pyplot as plt
 
     import figures
 
     norm_p = plt.Normalize(0, pred.probs.max().item())
-    fig, axes = plt.subplots(1, len(sub), figsize=(14, 4.4), layout="constrained")
+    fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
         P = torch.cat([pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
-        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, :, :2], sub.ego_hist[j, -1:, :2]])
-        c, half = (pts.max(0).values + pts.min(0).values) / 2, (pts.max(0).values - pts.min(0).values) / 2 + 3
-        hx, hy = max(half[0].item(), 0.75 * half[1].item()), max(half[1].item(), 0.45 * half[0].item())  # not too flat, not too tall
+        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])  # the vehicle, not the ego
+        c, half = (pts.max(0).values + pts.min(0).values) / 2, (pts.max(0).values - pts.min(0).values) / 2 + 1.5
+        hx, hy = max(half[0].item(), 1.3 * half[1].item()), max(half[1].item(), half[0].item() / 1.3)  # the panels' shape
         top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
         data_synth.plot_scenario(ax, sub, j, extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
                                  title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
@@ -384,8 +384,9 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc, every method's executed ego trajectory, zoomed on the egos (the map stretched across,
-    so that the metres between the trajectories show); distance to the predicted vehicle and speed over time."""
+    """§8: closed-loop scene sc, every method's executed ego trajectory with the predicted vehicle where it comes near;
+    how far each executed trajectory is from No prediction's (cm) and the ego's speed over time: replanning every
+    0.5 s keeps the executed trajectories within centimetres of each other."""
     import matplotlib.pyplot as plt
 
     f0, N = rollouts["Standard"][0].start_frame, rollouts["Standard"][0].controls.shape[1]
@@ -395,23 +396,28 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
                                   width_ratios=(1.6, 1))
     ax, ax_d, ax_v = axd["map"], axd["dist"], axd["speed"]
     egos = torch.cat([r.ego[sc, :, :2] for r, _ in rollouts.values()] + [cl_scenes.ego[sc, frames, :2]])  # every ego position
-    lo_, hi_ = egos.min(0).values - 3, egos.max(0).values + 3
+    near = agent[(torch.cdist(agent[:, :2], egos).min(-1).values < 12), :2]  # the vehicle where it comes within 12 m
+    pts = torch.cat([egos, near])
+    lo_, hi_ = pts.min(0).values - 3, pts.max(0).values + 3
     for lane, m in zip(cl_scenes.lanes[sc], cl_scenes.lanes_mask[sc]):
         ax.plot(lane[m, 0], lane[m, 1], color="0.85", lw=0.8)
     ax.plot(cl_scenes.ego[sc, frames, 0], cl_scenes.ego[sc, frames, 1], "k--", lw=1.2, label="logged ego")
     ax.plot(agent[:, 0], agent[:, 1], "s-", color="tab:orange", ms=3, lw=0.8, label="predicted vehicle (log)")
     tt = 0.5 * torch.arange(N + 1)
+    base = rollouts["No prediction"][0].ego[sc, :, :2]
+    spread = max((r.ego[sc, :, :2] - base).norm(dim=-1).max().item() for r, _ in rollouts.values())
     for (name, (roll, per)), color in zip(rollouts.items(), ("tab:gray", "tab:red", "tab:green", "tab:blue")):
         ax.plot(roll.ego[sc, :, 0], roll.ego[sc, :, 1], "o-", color=color, ms=2.5, lw=1.2,
                 label=f"{name} (cost {per['trajectory'][sc]:.3f})")
-        ax_d.plot(tt, (roll.ego[sc, :, :2] - agent[:, :2]).norm(dim=-1), color=color, label=name)
+        ax_d.plot(tt, 100 * (roll.ego[sc, :, :2] - base).norm(dim=-1), color=color, label=name)
         ax_v.plot(tt, roll.ego[sc, :, 3], color=color, label=name)
     ax_v.plot(tt, cl_scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
-    ax.set(xlim=(lo_[0], hi_[0]), ylim=(lo_[1], hi_[1]), xlabel="x (m)", ylabel="y (m), stretched")
+    ax.set(xlim=(lo_[0], hi_[0]), ylim=(lo_[1], hi_[1]), xlabel="x (m)", ylabel="y (m)")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
-    ax.set_title(f"closed loop, scene {cl_scenes.names[sc]}: executed ego trajectories (trajectory cost)")
-    ax_d.set_ylabel("distance to the predicted vehicle (m)")
+    ax.set_title(f"closed loop, scene {cl_scenes.names[sc]}: the executed trajectories lie within {100 * spread:.0f} cm "
+                 f"of each other")
+    ax_d.set_ylabel("distance from No prediction's ego (cm)")
     ax_v.set(xlabel="time (s)", ylabel="ego speed (m/s)")
     for a in (ax_d, ax_v):
         a.grid(alpha=0.3)
