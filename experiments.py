@@ -1109,7 +1109,7 @@ def main(argv=None):
                                              "Under torchrun, on N processes: training with DistributedDataParallel.")
     if rank != 0:  # the same errors come up on every rank: rank 0 says what they are, the others exit alike
         ap.error = lambda message: sys.exit(2)
-    ap.add_argument("--experiment", choices=EXPERIMENTS + (REAL.name, "all"), required=True,
+    ap.add_argument("--experiment", choices=EXPERIMENTS + (REAL.name, "all"),  # (required, but by --validation-spread)
                     help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
                          f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
                          f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
@@ -1148,6 +1148,10 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field, e.g. --set beta=2 (repeatable)")
     args = ap.parse_args(argv)
+    if args.validation_spread:
+        return print(validation_spread())
+    if args.experiment is None:
+        ap.error("the following arguments are required: --experiment")
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     args.out = args.out or (REAL_OUT if args.experiment == REAL.name else "results")
     launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
@@ -1160,8 +1164,6 @@ def main(argv=None):
 
 def _main(ap, args, names, world, rank, command, held):
     seeds = range(args.seeds) if args.seeds is not None else None  # (None: each table's own count)
-    if args.validation_spread:
-        return print(validation_spread())
     if args.render:  # derived files only, from the JSON an earlier run wrote: nothing it made is lost
         missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
         if missing:

@@ -113,6 +113,15 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
     assert small.split(" | ")[2] == f"{rel['GT prediction'][0]['rel_hindsight']:.2f}"
 
 
+def test_validation_spread_needs_no_experiment_on_the_command_line(monkeypatch, capsys):
+    monkeypatch.setattr(ex, "validation_spread", lambda *a, **k: "the table")
+    ex.main(["--validation-spread"])
+    assert capsys.readouterr().out.strip() == "the table"
+    with pytest.raises(SystemExit):
+        ex.main([])
+    assert "the following arguments are required: --experiment" in capsys.readouterr().err
+
+
 def test_table_1_runs_10_seeds_and_the_others_5_unless_the_command_says(tmp_path, monkeypatch):
     assert ex.table_seeds(ex.TABLE1) == tuple(range(10)) and ex.TABLE1.seeds == 10
     assert {ex.table_seeds(ex.SPECS[n]) for n in ex.EXPERIMENTS if n != "rl"} == {tuple(range(5))}
