@@ -182,8 +182,7 @@ def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: 
     Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, w, a). With
     mu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
         d2/dh2 = -mu'd,   d2/dh dq = (J'mu)' dd/dq,   d2/dq dr = mu' d2d/dq dr,   q, r in (v, w, a),
-    and the moments' rule d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1} gives every derivative of d.
-    """
+    and the moments' rule d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1} gives every derivative of d."""
     h, v = s[..., 2], s[..., 3]
     w, a = u.unbind(-1)
     (c0, c1, c2, c3), (s0, s1, s2, s3) = _moments(w, dt, 3)
@@ -311,8 +310,7 @@ def collision_term(pos: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0) ->
     C_coll = sum_t phi( sum_k pi_k ||s_t - s^_kt||^2 ) + sum_a sum_t phi(||s_t - s_at||^2),  phi(d2) = exp(-d2 / 2 sigma^2)
     The expected squared distance splits into the distance to the modes' mean and their spread:
         sum_k pi_k ||s - s^_k||^2 = ||s - mu||^2 + sum_k pi_k ||s^_k - mu||^2,   mu = sum_k pi_k s^_k,
-    so the planner sees a prediction only through its per-step mean and spread.
-    """
+    so the planner sees a prediction only through its per-step mean and spread."""
     B = pos.shape[0]
     view = lambda t: t.reshape(B, *([1] * (pos.dim() - 3)), *t.shape[1:])  # noqa: E731  broadcast over ...
     mu = (ctx.probs[:, :, None, None] * ctx.preds).sum(1)  # (B, T, 2)
@@ -371,8 +369,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
                along it, linear in p: df = d / |d|^2, or 0 where clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
       C_head   e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,  de/dp = -(h_b - h_a) df,
                grad = 2 e de,  Hess = 2 de de'
-      C_u      w^2 + a^2:  grad = 2 u,  Hess = 2 I
-    """
+      C_u      w^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
     dtype, dev = x.dtype, x.device
     wc, wg, wl, wh, wu = w.expand(B, 5)[:, :, None].unbind(1)  # (B, 1) each: broadcast over the steps
@@ -619,17 +616,23 @@ def dynamics_jacobians(dynamics, x, u):
     J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), torch.cat([x[:, :-1], u], -1))
     return J[..., :n], J[..., n:]
 
+def solve_small(M, rhs):
+    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2 (why: docs/results.md, Table 4)."""
+    if M.shape[-1] != 2:
+        return torch.linalg.solve(M, rhs)
+    (a, b, c, d), (r0, r1) = M.reshape(*M.shape[:-2], 4, 1).unbind(-2), rhs.unbind(-2)  # (..., 1) each, (..., r) each
+    return torch.stack([d * r0 - b * r1, a * r1 - c * r0], -2) / (a * d - b * c)[..., None]
+
 def solve_masked(Q, rhs, free):
     """Solve the free rows of Q y = rhs, with y = rhs on the others: Q (..., m, m), rhs (..., m, r), free (..., m)."""
-    eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-    return torch.linalg.solve(torch.where(free[..., :, None] & free[..., None, :], Q, eye), rhs)
+    return solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, torch.eye(Q.shape[-1]).to(Q)), rhs)
 
 def box_qp(Q, q, lo, hi):
     """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m and Q positive definite: the unconstrained
     minimiser where it is inside the box, else the best feasible one of the 3^m active sets (each control free, at
     lo or at hi). Q (B, m, m), q, lo, hi (B, m) -> d (B, m), free (B, m) bool: the controls not held at a bound."""
     B, m = q.shape
-    d = torch.linalg.solve(Q, -q)  # (B, m)
+    d = solve_small(Q, -q[..., None])[..., 0]  # (B, m)
     inside = ((d >= lo) & (d <= hi)).all(-1)  # (B,)
     if inside.all():
         return d, torch.ones_like(d, dtype=torch.bool)
@@ -830,7 +833,6 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
 
 class ILQR(torch.autograd.Function):
     """iLQR with the KKT backward (use `ilqr_solve`); scenarios that did not converge pass no gradient (§3.1)."""
-
     @staticmethod
     def forward(ctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
         with torch.no_grad():
@@ -1239,11 +1241,10 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
         preds, probs, pred_mask = torch.zeros(B, 1, T, 2, **like), torch.ones(B, 1, **like), torch.zeros(B, **like)
     # --- plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin ---
     scene = scene_plan(batch, cfg, plan_dt) if scene is None else scene  # goal, candidates: the scene's alone
-    goal = scene.goal  # (B, 4)
-    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, goal)
+    ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, scene.goal)  # goal (B, 4)
     gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], sub)  # (B, T, 2)
     pcfg = cfg if sub == 1 else dataclasses.replace(cfg, dt=dt, horizon=T)
-    cands, cost, best, plannable, terms = plan(s0, ctx, goal, w, pcfg, scene)  # (B, N) costs, (B,) plan
+    cands, cost, best, plannable, terms = plan(s0, ctx, scene.goal, w, pcfg, scene)  # (B, N) costs, (B,) plan
     # the planner's target n*: RL, the candidate cheapest in hindsight (the agent's GT future in the collision
     # term, the other terms as planned); IL, the candidate closest to the GT ego trajectory
     if setting == "rl":
@@ -1268,7 +1269,6 @@ def run_stack(batch, model, method, cfg: Config, setting: str = "rl", step=None,
     mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # (B,) at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
     return StackOutput(l_pred, l_plan, l_ctr, hindsight, mse, plannable, converged, x, u, cands, cost, pred)
-
 
 # ===== 8. Input checks: what Config and the public entry points refuse, naming the argument ========================
 # The entry points a user calls (unicycle_step, total_cost, plan_candidates, plan, ilqr_solve, Predictor.forward,

@@ -451,6 +451,16 @@ def test_solve_masked_keeps_the_fixed_rows_and_solves_the_free_ones():
     assert rel_err(y[one, 0], rhs[one, 0] / Q[one, 0, 0, None]) < 1e-10
 
 
+def test_solve_small_is_the_linear_solve():
+    """Cramer's rule for 2x2 (non-symmetric, so a transpose shows) and the general solve beyond, in float64."""
+    g = torch.Generator().manual_seed(1)
+    for m in (2, 3):
+        M = torch.randn(300, m, m, generator=g, dtype=torch.float64) + 3 * torch.eye(m, dtype=torch.float64)
+        rhs = torch.randn(300, m, 5, generator=g, dtype=torch.float64)
+        assert rel_err(ds.solve_small(M, rhs), torch.linalg.solve(M, rhs)) < 1e-12
+        assert rel_err(M @ ds.solve_small(M, rhs), rhs) < 1e-12
+
+
 def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
     """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the full
     step failed) gives what the solver gives on every scenario every iteration, on a problem where both shortcuts are
