@@ -384,45 +384,11 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc, every method's executed ego trajectory with the predicted vehicle where it comes near;
-    how far each executed trajectory is from No prediction's (cm) and the ego's speed over time: replanning every
-    0.5 s keeps the executed trajectories within centimetres of each other."""
-    import matplotlib.pyplot as plt
+    """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory, how far each is
+    from No prediction's in cm, the ego's speed over time)."""
+    import figures
 
-    f0, N = rollouts["Standard"][0].start_frame, rollouts["Standard"][0].controls.shape[1]
-    frames = slice(f0, f0 + N + 1)
-    agent = cl_scenes.agents[sc, int(cl_scenes.pred_idx[sc, f0]), frames]  # (N+1, 4) the predicted agent's log
-    _, axd = plt.subplot_mosaic([["map", "dist"], ["map", "speed"]], figsize=(13, 6), layout="constrained",
-                                  width_ratios=(1.6, 1))
-    ax, ax_d, ax_v = axd["map"], axd["dist"], axd["speed"]
-    egos = torch.cat([r.ego[sc, :, :2] for r, _ in rollouts.values()] + [cl_scenes.ego[sc, frames, :2]])  # every ego position
-    near = agent[(torch.cdist(agent[:, :2], egos).min(-1).values < 12), :2]  # the vehicle where it comes within 12 m
-    pts = torch.cat([egos, near])
-    lo_, hi_ = pts.min(0).values - 3, pts.max(0).values + 3
-    for lane, m in zip(cl_scenes.lanes[sc], cl_scenes.lanes_mask[sc]):
-        ax.plot(lane[m, 0], lane[m, 1], color="0.85", lw=0.8)
-    ax.plot(cl_scenes.ego[sc, frames, 0], cl_scenes.ego[sc, frames, 1], "k--", lw=1.2, label="logged ego")
-    ax.plot(agent[:, 0], agent[:, 1], "s-", color="tab:orange", ms=3, lw=0.8, label="predicted vehicle (log)")
-    tt = 0.5 * torch.arange(N + 1)
-    base = rollouts["No prediction"][0].ego[sc, :, :2]
-    spread = max((r.ego[sc, :, :2] - base).norm(dim=-1).max().item() for r, _ in rollouts.values())
-    for (name, (roll, per)), color in zip(rollouts.items(), ("tab:gray", "tab:red", "tab:green", "tab:blue")):
-        ax.plot(roll.ego[sc, :, 0], roll.ego[sc, :, 1], "o-", color=color, ms=2.5, lw=1.2,
-                label=f"{name} (cost {per['trajectory'][sc]:.3f})")
-        ax_d.plot(tt, 100 * (roll.ego[sc, :, :2] - base).norm(dim=-1), color=color, label=name)
-        ax_v.plot(tt, roll.ego[sc, :, 3], color=color, label=name)
-    ax_v.plot(tt, cl_scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
-    ax.set(xlim=(lo_[0], hi_[0]), ylim=(lo_[1], hi_[1]), xlabel="x (m)", ylabel="y (m)")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
-    ax.set_title(f"closed loop, scene {cl_scenes.names[sc]}: the executed trajectories lie within {100 * spread:.0f} cm "
-                 f"of each other")
-    ax_d.set_ylabel("distance from No prediction's ego (cm)")
-    ax_v.set(xlabel="time (s)", ylabel="ego speed (m/s)")
-    for a in (ax_d, ax_v):
-        a.grid(alpha=0.3)
-    _legend_right(ax_v)
-    plt.show()
+    figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
 # --- the exercises' checks -------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@
     plot_prediction, plot_stack     panels: the predicted modes; Fig. 3's kind of panel (scene, modes, candidates, plan)
     figure_stack_example            Fig. 3: one validation scenario under Standard and DiffStack
     figure_real_scenes              real (Waymo) scenes where the two predictors' plans differ most
-    figure_closed_loop              a closed-loop rollout over time, one panel per method
+    figure_closed_loop              one closed-loop scene: every method's executed trajectory, their distances
     figure_learning_curves          validation ADE and hindsight cost after every epoch
     figure_cost_weights             learned vs hand-tuned cost weights (Table 3)
 
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 import data_synth
-from diffstack import Config, Prediction, StackOutput, run_stack
+from diffstack import Config, Prediction, StackOutput, masked_argmin, run_stack
 from train import Method, TABLE1_METHODS, evaluate_stack, mean_se, to_device
 
 
@@ -93,25 +93,40 @@ def stack_outputs(batch, models: dict, cfg: Config) -> dict:
 
 
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
-    """Fig. 3: the same validation scenario under each (name -> predictor) in models (Standard, DiffStack):
-    the one among the first n_search where the first model's hindsight cost exceeds the second's the most.
+    """Fig. 3: the same validation scenario under two (name -> predictor) models (Standard, DiffStack), the one of
+    the first n_search where the first's hindsight cost exceeds the second's the most. Its point: the two stacks
+    mostly plan the same candidate; the predictions reach the outcome through the controller, whose cost holds
+    them too (the bottom panel stretches the lateral scale to show how far apart the executed trajectories end).
     The stack runs on each model's device; the plot, on the CPU."""
     import matplotlib.pyplot as plt
 
     batch = data.val[:n_search]
     outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
-    gap = torch.where(oa.plannable & ob.plannable, oa.hindsight - ob.hindsight, -math.inf)  # (B,)
-    i = int(gap.argmax())
-    fig, axes = plt.subplots(1, len(outs), figsize=(6.5 * len(outs), 3.6), layout="constrained")
+    both = oa.plannable & ob.plannable  # (B,)
+    i = int(torch.where(both, oa.hindsight - ob.hindsight, -math.inf).argmax())
+    plan = {name: int(masked_argmin(o.cand_cost, o.cands.valid)[i]) for name, o in outs.items()}  # the planned candidate
+    same = int((masked_argmin(oa.cand_cost, oa.cands.valid) == masked_argmin(ob.cand_cost, ob.cands.valid))[both].sum())
+    fig, axes = plt.subplots(3, 1, figsize=(10, 9.6), layout="constrained", height_ratios=(1, 1, 0.8))
     for ax, (name, out) in zip(axes, outs.items()):
-        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}")
+        plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}", extent=(-12, 48, -10, 10))
         ax.legend(loc="lower left", fontsize=7)
     sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # the 0.25 .. 1 colours used
-    fig.colorbar(sm, ax=axes, shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
+    fig.colorbar(sm, ax=axes[:2], shrink=0.8, label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101),
                  ticks=[0, 0.25, 0.5, 0.75, 1])
-    fig.suptitle(f"Validation scenario {i}: predictions (red, alpha by probability), candidates (green by p_n), plan, controller",
-                 fontsize=10)
+    ax = axes[2]
+    for (name, out), color in zip(outs.items(), ("tab:red", "tab:green")):
+        ax.plot(out.cands.x[i, plan[name], :, 0], out.cands.x[i, plan[name], :, 1], "--", color=color, lw=1, label=f"{name}'s plan")
+        ax.plot(out.x[i, :, 0], out.x[i, :, 1], "o-", color=color, lw=2, ms=3, label=f"{name}'s controller")
+    ax.set(xlabel="x (m)", ylabel="y (m), stretched")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    apart = (oa.x[i, -1, :2] - ob.x[i, -1, :2]).norm().item()
+    ax.set_title(f"the executed trajectories end {apart:.2f} m apart"
+                 + (" from the same plan" if plan[a] == plan[b] else ""), fontsize=9)
+    fig.suptitle(f"Validation scenario {i}: {a}'s hindsight cost exceeds {b}'s by {oa.hindsight[i] - ob.hindsight[i]:.2f}"
+                 f" (the stacks plan the same candidate in {same} of {int(both.sum())} scenarios)\n(predictions red, "
+                 f"alpha by probability; candidates green by p_n; the plan black; the controller purple)", fontsize=10)
     save_figure(fig, path)
     return i
 
@@ -161,59 +176,56 @@ def _ade(pred: Prediction, batch) -> torch.Tensor:
     return (means - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)
 
 
-def figure_closed_loop(scenes, rollouts: dict, path, dt: float = 0.5, scene: int | None = None):
-    """A closed-loop rollout over time, one panel per method: the logged ego (dashed) and the simulated ego,
-    the predicted agent's log, coloured by time; every 4th step's plan thin. Default scene: the one where
-    Standard's trajectory cost exceeds DiffStack's the most."""
+def figure_closed_loop(scenes, rollouts: dict, path=None, dt: float = 0.5, scene: int | None = None):
+    """One closed-loop scene, its point: replanning every dt keeps the methods' executed trajectories within
+    centimetres of each other. Left, every method's executed ego over the logged ego and the predicted vehicle where
+    it comes near; right, each one's distance from No prediction's ego (cm) and the ego's speed over time. rollouts:
+    {method: (Rollout, per-scene metrics)}; default scene: the one where Standard's trajectory cost exceeds
+    DiffStack's the most. path None: shown (the notebook), else saved."""
     import matplotlib.pyplot as plt
 
     if scene is None:
         scene = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
-    s = scene
-    any_roll = next(iter(rollouts.values()))[0]
-    N, f0 = any_roll.controls.shape[1], any_roll.start_frame
-    frames = torch.arange(f0, f0 + N + 1)
-    pred = int(scenes.pred_idx[s, f0])
-    log_ego, agent = scenes.ego[s, frames], scenes.agents[s, pred, frames]  # (N+1, 4)
-    pts = torch.cat([log_ego[:, :2], agent[:, :2]] + [r.ego[s, :, :2] for r, _ in rollouts.values()])
-    lo, hi = pts.min(0).values - 8, pts.max(0).values + 8
-    tt = (frames - f0).double() * dt  # (N+1,) seconds
-    pad = (0.3 * (hi[0] - lo[0]) - (hi[1] - lo[1])).clamp_min(0) / 2  # no panel flatter than 0.3 : 1
-    lo[1], hi[1] = lo[1] - pad, hi[1] + pad
-    aspect = ((hi[1] - lo[1]) / (hi[0] - lo[0])).item()  # panel height / width at equal axis scales
-    cols = 2 if len(rollouts) > 1 else 1
-    rows = math.ceil(len(rollouts) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols + 1.2, rows * (6 * aspect + 0.6) + 0.6), sharex=True,
-                             sharey=True, layout="constrained", squeeze=False)
-    axes = axes.ravel()
-    for ax in axes[len(rollouts):]:
-        ax.set_axis_off()
-    axes = axes[:len(rollouts)]
-    for ax, (name, (roll, per_scene)) in zip(axes, rollouts.items()):
-        for lane, m in zip(scenes.lanes[s], scenes.lanes_mask[s]):
-            ax.plot(lane[m, 0], lane[m, 1], color="0.8", lw=0.8, zorder=1)
-        for a in range(scenes.agents.shape[1]):  # the other agents' logs, faint
-            if a != pred and scenes.agents_mask[s, a, frames].any():
-                q = scenes.agents[s, a, frames][scenes.agents_mask[s, a, frames]]
-                ax.plot(q[:, 0], q[:, 1], color="0.6", lw=0.8, alpha=0.6, zorder=2)
-        ax.plot(log_ego[:, 0], log_ego[:, 1], "--", color="tab:blue", lw=1.2, zorder=3, label="logged ego")
-        for k in range(0, N, 4):
-            ax.plot(roll.plans[s, k, :, 0], roll.plans[s, k, :, 1], color="tab:purple", lw=0.8, alpha=0.7, zorder=4)
-        ax.scatter(agent[:, 0], agent[:, 1], c=tt, cmap="autumn", s=14, marker="s", zorder=5, label="predicted agent (log)")
-        sc = ax.scatter(roll.ego[s, :, 0], roll.ego[s, :, 1], c=tt, cmap="winter", s=16, zorder=6, label="simulated ego")
-        ax.set_title(f"{name}: trajectory cost {per_scene['trajectory'][s].item():.3f}, deviation "
-                     f"{per_scene['deviation'][s].item():.2f} m", fontsize=9)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-    axes[0].legend(loc="upper left", fontsize=7, ncol=3)
-    fig.colorbar(sc, ax=axes.tolist(), shrink=0.6, label="time (s)")
-    fig.suptitle(f"Closed-loop log replay, scene {scenes.names[s]} ({N * dt:.0f} s; purple: every 4th step's plan)", fontsize=10)
-    save_figure(fig, path)
-    return s
-
-
+    sc, (first, _) = scene, next(iter(rollouts.values()))
+    f0, N = first.start_frame, first.controls.shape[1]
+    frames = slice(f0, f0 + N + 1)
+    agent = scenes.agents[sc, int(scenes.pred_idx[sc, f0]), frames]  # (N+1, 4) the predicted vehicle's log
+    fig, axd = plt.subplot_mosaic([["map", "dist"], ["map", "speed"]], figsize=(13, 6), layout="constrained",
+                                  width_ratios=(1.6, 1))
+    ax, ax_d, ax_v = axd["map"], axd["dist"], axd["speed"]
+    egos = torch.cat([r.ego[sc, :, :2] for r, _ in rollouts.values()] + [scenes.ego[sc, frames, :2]])  # (M, 2)
+    near = agent[(torch.cdist(agent[:, :2], egos).min(-1).values < 12), :2]  # the vehicle where it comes within 12 m
+    pts = torch.cat([egos, near])
+    lo, hi = pts.min(0).values - 3, pts.max(0).values + 3
+    for lane, m in zip(scenes.lanes[sc], scenes.lanes_mask[sc]):
+        ax.plot(lane[m, 0], lane[m, 1], color="0.85", lw=0.8)
+    ax.plot(scenes.ego[sc, frames, 0], scenes.ego[sc, frames, 1], "k--", lw=1.2, label="logged ego")
+    ax.plot(agent[:, 0], agent[:, 1], "s-", color="tab:orange", ms=3, lw=0.8, label="predicted vehicle (log)")
+    tt = dt * torch.arange(N + 1)  # (N+1,) seconds
+    base = rollouts.get("No prediction", (first, None))[0].ego[sc, :, :2]
+    spread = max((r.ego[sc, :, :2] - base).norm(dim=-1).max().item() for r, _ in rollouts.values())
+    colors = dict(zip(("No prediction", "Standard", "DiffStack", "GT prediction"), ("tab:gray", "tab:red", "tab:green", "tab:blue")))
+    for name, (roll, per) in rollouts.items():
+        c = colors.get(name)
+        ax.plot(roll.ego[sc, :, 0], roll.ego[sc, :, 1], "o-", color=c, ms=2.5, lw=1.2,
+                label=f"{name} (cost {per['trajectory'][sc]:.3f})")
+        ax_d.plot(tt, 100 * (roll.ego[sc, :, :2] - base).norm(dim=-1), color=c, label=name)
+        ax_v.plot(tt, roll.ego[sc, :, 3], color=c, label=name)
+    ax_v.plot(tt, scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
+    ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), xlabel="x (m)", ylabel="y (m)")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
+    fig.suptitle(f"Closed loop, scene {scenes.names[sc]} ({N * dt:.0f} s): the methods' executed trajectories lie within "
+                 f"{100 * spread:.0f} cm of each other")
+    ax_d.set_ylabel("from No prediction's ego (cm)")
+    ax_v.set(xlabel="time (s)", ylabel="ego speed (m/s)")
+    for a in (ax, ax_d, ax_v):
+        a.grid(alpha=0.3)
+    ax_v.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    if path is None:
+        plt.show()
+    else:
+        save_figure(fig, path)
+    return sc
 
 
 def _mean_curve(runs, key):
