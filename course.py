@@ -89,7 +89,7 @@ def check_order(name, values, order, margin=0.0):
 
 
 def check_claim(table, method, baseline, column, expect, section=None):
-    """A finding the notebook states, checked on the committed 5-seed table results/<table>.json: its paired
+    """A finding the notebook states, checked on the committed table results/<table>.json: its paired
     difference over seeds and the verdict (a two-sided paired t-test: reproduced only at p < 0.05 in the paper's
     direction) must be what the text says.
     If a re-run of the tables changes the verdict, this stops the notebook until the text is changed with it."""
@@ -104,12 +104,13 @@ def check_claim(table, method, baseline, column, expect, section=None):
 
 
 def results_table(name):
-    """Display the committed 5-seed table of results/<name>.md (mean ± standard error over 5 seeds)."""
+    """Display the committed table of results/<name>.md (mean ± standard error over its seeds)."""
     from IPython.display import Markdown, display
 
     text = (Path("results") / f"{name}.md").read_text()
+    seeds = len(json.loads((Path("results") / f"{name}.json").read_text())["meta"]["seeds"])
     body = text.split("\n", 1)[1].split("![")[0].strip()  # without the title line and the figure links
-    display(Markdown("**5 seeds, from `results/" + name + ".md`:** " + body))
+    display(Markdown(f"**{seeds} seeds, from `results/{name}.md`:** " + body))
 
 
 def rel_err(a, b):
