@@ -625,7 +625,7 @@ def solve_small(M, rhs):
 
 def solve_masked(Q, rhs, free):
     """Solve the free rows of Q y = rhs, with y = rhs on the others: Q (..., m, m), rhs (..., m, r), free (..., m)."""
-    return solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, torch.eye(Q.shape[-1]).to(Q)), rhs)
+    return solve_small(torch.where(free[..., :, None] & free[..., None, :], Q, torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)), rhs)
 
 def box_qp(Q, q, lo, hi):
     """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m and Q positive definite: the unconstrained

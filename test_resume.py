@@ -348,10 +348,12 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
     import sys
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
-    # (start_new_session: a process group of its own, as a terminal gives a command)
+    # (start_new_session: a process group of its own, as a terminal gives a command; SIGINT at its default, which
+    # Python turns into KeyboardInterrupt, also where the tests run in the background, whose jobs ignore SIGINT)
     run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200", "--val", "200",
                             "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL,
-                           stderr=open(tmp_path / "stderr", "wb"), start_new_session=True)
+                           stderr=open(tmp_path / "stderr", "wb"), start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     workers, t0 = set(), time.time()
     while len(workers) < 2 and time.time() - t0 < 120 and run.poll() is None:
         workers = {p for p in _children(run.pid)
