@@ -105,8 +105,8 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     (a, oa), (b, ob) = list(outs.items())[:2]
     both = oa.plannable & ob.plannable  # (B,)
     i = int(torch.where(both, oa.hindsight - ob.hindsight, -math.inf).argmax())
-    plan = {name: int(masked_argmin(o.cand_cost, o.cands.valid)[i]) for name, o in outs.items()}  # the planned candidate
-    same = int((masked_argmin(oa.cand_cost, oa.cands.valid) == masked_argmin(ob.cand_cost, ob.cands.valid))[both].sum())
+    planned = {name: masked_argmin(o.cand_cost, o.cands.valid) for name, o in outs.items()}  # (B,) the planned candidate
+    plan, same = {name: int(p[i]) for name, p in planned.items()}, int((planned[a] == planned[b])[both].sum())
     fig, axes = plt.subplots(3, 1, figsize=(10, 9.6), layout="constrained", height_ratios=(1, 1, 0.8))
     for ax, (name, out) in zip(axes, outs.items()):
         plot_stack(ax, batch, i, out, cfg, f"{name}: hindsight cost {out.hindsight[i].item():.3f}", extent=(-12, 48, -10, 10))
