@@ -1745,9 +1745,13 @@ def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tm
     runs = lambda h: [dict(rel_hindsight=h)]  # noqa: E731
     res = {"No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)], "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)]}
     cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
-    for epochs, shipped, same in ((20.0, [0, 1], True), (4.0, [0, 1], False), (20.0, [0, 1, 2], False)):
-        prov = dict(epochs=20.0, seeds=shipped, config=cfg)
-        (tmp_path / "rl.json").write_text(json.dumps(dict(meta=dict(seeds=[0, 1], epochs=epochs, config=cfg), results=dict(
+    # the same run: the same epochs, Config, validation set, and each shipped seed trained on its own draw, as pretrain
+    for epochs, shipped, val, draws, same in ((20.0, [0, 1], 100, [0, 1], True), (4.0, [0, 1], 100, [0, 1], False),
+                                              (20.0, [0, 1, 2], 100, [0, 1], False), (20.0, [0, 1], 50, [0, 1], False),
+                                              (20.0, [0, 1], 100, None, False), (20.0, [0, 1], 100, [0, 0], False)):
+        prov = dict(epochs=20.0, seeds=shipped, config=cfg, val=100)
+        meta = dict(seeds=[0, 1], epochs=epochs, config=cfg, val=val, data_seeds=draws)
+        (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=dict(
             Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}))))
         line = tr.quick_story(res, tmp_path, prov)[-1]
         assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")

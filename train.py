@@ -1090,12 +1090,14 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
         cells = ", ".join(f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}" for m in ("Standard", "DiffStack", "GT prediction")
                           if m in runs)
         meta = saved["meta"]
+        draw_of = dict(zip(meta.get("seeds", []), meta.get("data_seeds") or []))  # seed -> its training draw
         same = (provenance is not None and meta.get("epochs") == provenance["epochs"]
-                and meta.get("config") == provenance["config"] and set(provenance["seeds"]) <= set(meta.get("seeds", [])))
+                and meta.get("config") == provenance["config"] and meta.get("val") == provenance.get("val")
+                and all(draw_of.get(s) == s for s in provenance["seeds"]))  # pretrain: seed s on draw s
         lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
                      f"hindsight cost x1e-2: {cells}; " + (
                          f"the shipped predictors above are its {_seed_list(provenance['seeds'])}." if same else
-                         "made by another run than the shipped predictors (other epochs or Config), so its numbers "
+                         "made by another run than the shipped predictors (other epochs, Config or data), so its numbers "
                          "and the ones above are not the same experiment."))
     return lines
 
