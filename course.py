@@ -2,7 +2,7 @@
 
 The harness: the section clock (start, section_done, report_times), the notebook's checks (checkpoint, check_order,
 check_claim: each prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
-the committed 5-seed tables (results_table), the helpers that several cells use (gt_context, first_of,
+the committed tables over seeds (results_table), the helpers that several cells use (gt_context, first_of,
 behaviour_rows), and the notebook's larger figures (figure_*: drawing only, each cell computes what it
 shows).
 
