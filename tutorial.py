@@ -758,10 +758,10 @@ print(f"cut_in under the paper's goal, No prediction: hindsight cost {cut['hinds
       f"{cut['terms'][4]:.2f}")
 
 # %% [markdown]
-# In a cut-in, the plan *without* prediction costs 7.40, of which collision 0.11: the rest is the goal and the control
+# In a cut-in, the plan *without* prediction costs 7.26, of which collision 0.08: the rest is the goal and the control
 # effort of braking to where the logged driver ended up, because the paper's goal is the logged ego state at T. The
 # goal hands every planner the reaction, so the car's future adds little; what is left for a prediction is mostly
-# where the vehicle in the next lane will be (*keep_lane*). With a route goal the same GT futures are worth five times
+# where the vehicle in the next lane will be (*keep_lane*). With a route goal the same GT futures are worth eight times
 # more, mostly in cut-ins and behind braking leaders. The paper names this limit ("alternative goal definitions ...
 # future work", §4.2); the tables keep its goal.
 #
@@ -849,8 +849,8 @@ section_done("§7")
 #
 # 1. DiffStack's ADE is worse and its plans are better. What would you tell the team that owns the predictor, whose
 #    dashboard shows ADE?
-# 2. The ablation $\alpha = (1, 0.2, 0.2)$ gives an ADE of 0.87 ± 0.03 m, below Standard's, with a hindsight cost of
-#    −1.20 ± 0.07 (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
+# 2. The ablation $\alpha = (1, 0.2, 0.2)$ gives an ADE of 0.89 ± 0.02 m, below Standard's, with a hindsight cost of
+#    −1.04 ± 0.02 (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
 
 # %% [markdown]
 # ## 8. More experiments
@@ -874,18 +874,18 @@ results_table("biased")
 check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+1.26 ± 0.37 ×10⁻²), and
-# DiffStack-biased stays as good as unbiased DiffStack (−1.12 ± 0.10): training through the planner protects the plan.
-# It does **not** remove the bias: DiffStack-biased's ADE, 1.71 ± 0.10 m, is not below Standard-biased's 1.40 ± 0.05 m
-# (the paper reports it lower); the plan needs the predictions right only near the candidates (§4's arrows). One seed
-# of this short training is chaotic: read sizes from the 5-seed table.
+# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+0.59 ± 0.37 ×10⁻²), and
+# DiffStack-biased better in every seed (−0.81 ± 0.09, paired −1.40 ± 0.41, p = 0.028): training through the planner
+# protects the plan. Its planning loss is not reproduced (p = 0.16), nor is a lower ADE beyond the noise (1.42 ± 0.04
+# against 1.52 ± 0.15 m; paired p = 0.57): the plan needs the predictions right only near the candidates (§4's
+# arrows). One seed of this short training is chaotic: read sizes from the 5-seed table.
 #
 # **Imitation learning (Table 4).** The target $n^*$ is the candidate closest to the expert and
 # $\mathcal L_\text{ctr} = \sum_t \lVert s_{\text{ctr},t} - s_{\text{gt},t}\rVert^2$, $\alpha = (1, 10, 1000)$; planning
 # loss (×10⁻³) and MSE to the expert (×10⁻²) relative to No prediction.
 #
-# **A surprise: DiffStack beats GT prediction** (5 seeds: MSE −23.66 ± 1.93 against −0.20 ± 0.00 ×10⁻²) at an ADE of
-# 4.38 ± 0.19 m: the MSE gradient moves the predicted vehicle onto the ego's path (10.9 m behind its true position
+# **A surprise: DiffStack beats GT prediction** (5 seeds: MSE −19.77 ± 1.88 against +0.20 ± 0.00 ×10⁻²) at an ADE of
+# 5.02 ± 0.40 m: the MSE gradient moves the predicted vehicle onto the ego's path (9.7 m from its true position
 # at T), an obstacle that makes the plan slow down as the expert did (`docs/results.md`, Table 4).
 
 # %%
@@ -902,8 +902,8 @@ results_table("il")
 check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **Cost learning (Table 3).** In the IL setting the weights $w_i = \rho\,c\,e^{\psi_i} / \sum_j e^{\psi_j}$ (App. A.2;
-# $\psi_1$ fixed; the paper's scale $\alpha$ is $\rho = e^\lambda$ here) are learned with $\mathcal L = \alpha_3\,
+# **Cost learning (Table 3).** In the IL setting the weights $w_i = \rho\,w'_i$, $w'_1 = 5$ fixed, $w'_i = 2.1\,e^{\psi_i}
+# / \sum_{j \ge 2} e^{\psi_j}$ (App. A.2; the paper's scale $\alpha$ is $\rho = e^\lambda$ here) are learned with $\mathcal L = \alpha_3\,
 # \mathcal L_\text{ctr}$ through the KKT backward of §5, the predictor a frozen Standard one. The table lists the
 # normalised weights $w'$, $\rho$ (column "alpha"), and the absolute IL planning loss and MSE.
 
@@ -922,10 +922,10 @@ results_table("cost")
 check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** Over 5 seeds the learned weights cut the MSE from 2.58 to 0.56 m² in every seed, moving
-# mostly as the paper's do (goal and heading up, control effort down). The scale $\rho$: the minimiser of $\rho\,C$ is
-# the same for every $\rho > 0$, so the loss cannot see $\rho$; its gradient comes only from iLQR stopping a little
-# short of the exact minimum. Trained as a plain number, $\rho$ drifted through zero (every weight negative, the
+# **What the numbers say.** Over 5 seeds the learned weights cut the MSE from 2.73 to 0.63 m² in every seed; goal and
+# lane rise and control effort falls, as in the paper's (heading falls, where the paper's rises). The scale $\rho$:
+# the minimiser of $\rho\,C$ is the same for every $\rho > 0$, so the loss cannot see $\rho$; its gradient comes only
+# from iLQR stopping a little short of the exact minimum. Trained as a plain number, $\rho$ drifted through zero (every weight negative, the
 # controller maximising the cost); as $\rho = e^\lambda$ it stays positive and harmless. A parameter the loss cannot
 # see still gets a gradient from an inexact solver.
 
@@ -952,15 +952,15 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 
 # %% [markdown]
 # **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.11 ± 0.01, level
-# with GT prediction's, Standard's +0.06 ± 0.07 (paired −0.17 ± 0.08, t = −2.23, p = 0.090: *not reproduced* at 5 %).
-# Standard's plans look better in open loop (−1.77 ± 0.15 against −0.90 ± 0.04: the paper's claim contradicted,
-# p = 0.005) but cost more once executed (control effort +0.21 ± 0.08 against +0.03 ± 0.01). Replanning every 0.5 s
-# corrects a wrong plan early: the executed trajectories stay within centimetres of each other.
+# with GT prediction's, Standard's +0.14 ± 0.09 (paired −0.25 ± 0.09, t = −2.71, p = 0.054: *not reproduced* at 5 %).
+# Standard's plans look better in open loop (−1.71 ± 0.22 against −0.82 ± 0.03: the paper's claim contradicted,
+# p = 0.020) but cost more once executed (control effort +0.26 ± 0.08 against +0.02 ± 0.01). Replanning every 0.5 s
+# corrects a wrong plan early: the executed trajectories stay within half a metre of each other.
 #
 # **A finer clock (App. A.1).** Planner and controller can plan the same 3 s in 30 steps of 0.1 s: `plan_dt=0.1`
 # interpolates the predictions (`ds.upsample`) and scales the per-step cost by 1/5. Here the predictors trained at
 # 0.5 s are *evaluated* at 0.1 s; the ablation (`results/ablation.md`) also trains at 0.1 s and keeps the order
-# (hindsight cost: Standard −1.11 ± 0.03, DiffStack −1.29 ± 0.02, GT −1.56 ± 0.00).
+# (hindsight cost: Standard −0.89 ± 0.04, DiffStack −1.09 ± 0.02, GT −1.30 ± 0.00).
 
 # %%
 # Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s quick, ~30 s full.
