@@ -299,10 +299,11 @@ def figure_cost_weights(results: dict, path):
     names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
     fig, ax = plt.subplots(figsize=(7, 3.2))
     x = np.arange(len(names))
-    notes = []
+    notes, lowest = [], 0.2
     for j, (label, runs) in enumerate(results.items()):
         vals = [[*r["w"], r["alpha"]] for r in runs]
         ms = [mean_se([v[i] for v in vals]) for i in range(len(names))]
+        lowest = min([lowest] + [m for m, _ in ms if m > 0])
         ax.bar(x + (j - 0.5) * 0.38, [m for m, _ in ms], 0.38, yerr=[s for _, s in ms], label=label, capsize=2)
         for i, (m, _) in enumerate(ms):
             if m <= 0:  # a log axis cannot draw it: say it where the bar would be
@@ -311,7 +312,8 @@ def figure_cost_weights(results: dict, path):
                         fontsize=8)
     ax.set_xticks(x, names, fontsize=8)
     ax.set_yscale("log")
-    ax.set_yticks([0.2, 0.3, 0.5, 1, 2, 5], ["0.2", "0.3", "0.5", "1", "2", "5"])
+    ticks = [t for t in (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1, 2, 5) if t >= lowest / 2]  # down to the smallest bar
+    ax.set_yticks(ticks, [f"{t:g}" for t in ticks])
     ax.minorticks_off()
     ax.set_ylabel("weight (log scale)")
     ax.legend(fontsize=8)
