@@ -1,7 +1,7 @@
 """The paper's experiments on top of diffstack.py: Tables 1-5, the ablations of App. A.1, the report.
 
-    python experiments.py --experiment rl --seeds 5          # Table 1 -> results/rl.json, results/rl.md
-    python experiments.py --experiment all --seeds 5         # every table and results/report.md (40 epochs a method)
+    python experiments.py --experiment rl                    # Table 1 (10 seeds) -> results/rl.json, results/rl.md
+    python experiments.py --experiment all                   # every table and results/report.md (40 epochs a method)
     python experiments.py --experiment all --seeds 5 --epochs 20 --out runs/epochs20   # at the paper's length
 
 Each table of the paper is a declarative TableSpec (its methods, setting, loss weights, metrics and the paper's
