@@ -1,23 +1,30 @@
-"""The paper's experiments on top of diffstack.py: Tables 1-5, the ablations of App. A.1, the report.
+"""The paper's experiments on diffstack.py: Tables 1-5, the ablations of App. A.1, the report.
 
-    python experiments.py --experiment rl                    # Table 1 (10 seeds) -> results/rl.json, results/rl.md
-    python experiments.py --experiment all                   # every table and results/report.md (40 epochs a method)
-    python experiments.py --experiment all --seeds 5 --epochs 20 --out runs/epochs20   # at the paper's length
+    python experiments.py --experiment rl     # Table 1 (10 seeds) -> results/rl.json, results/rl.md
+    python experiments.py --experiment all    # every table, results/report.md (40 epochs a method)
+    python experiments.py --experiment all --seeds 5 --epochs 20 --out runs/epochs20
+                                              # at the paper's length
 
-Each table of the paper is a declarative TableSpec (its methods, setting, loss weights, metrics and the paper's
-own numbers), and one function, run_table, runs any of them (run_experiment: what each result file records).
+Each table of the paper is a declarative TableSpec (specs.py: its methods, setting, loss weights,
+metrics and the paper's own numbers), and one function, run_table, runs any of them (run_experiment:
+what each result file records).
 
 Map of the module:
-    1. Specs          Column, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations (App. A.1, Table 6)
-    2. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and shared by the tables
-    3. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
-    4. Closed loop    log replay (§4.3, Table 5, App. D.3)
-    5. Ablations      App. A.1; the goal table (what a perfect prediction is worth, by behaviour)
-    6. Running        a table's pieces, computed and assembled (run_table), the report, the command line; under it,
-                      runs.py (resuming, provenance, worker processes, progress) and figures.py
+    1. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and
+                      shared by the tables
+    2. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
+    3. Closed loop    log replay (§4.3, Table 5, App. D.3)
+    4. Ablations      App. A.1; the goal table (what a perfect prediction is worth, by behaviour)
+    5. Running        a table's pieces, computed and assembled (run_table), the report, the command
+                      line; under it, runs.py (resuming, provenance, worker processes, progress) and
+                      figures.py
+Over it, specs.py: Column, Claim, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations
+(App. A.1, Table 6).
 
-Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N simulation steps.
+Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N
+simulation steps.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,8 +40,7 @@ import re
 import statistics
 import sys
 import time
-from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.distributed as dist
@@ -43,238 +49,144 @@ from tqdm import tqdm
 import data_real
 import data_synth
 import figures
-from diffstack import Config, Predictor, cost_contexts, cost_terms, cost_weights, route_goal, run_stack
-from train import (CostWeights, Method, TABLE1_METHODS, TrainingDiverged, add_relative, alphas, bounded, cell,
-                   check_writable, compare_methods, config_with, device_arg, evaluate_stack, machine, markdown_table,
-                   mean_se, to_device, train_predictor, train_stack, paired_difference, claim_verdict, p_value,
-                   experiment_data, VAL_N, VAL_SEED, Rollout, simulate, stack_policy, closed_loop_metrics,
-                   closed_loop_scenes)
-from runs import (RUNS_DIR, OutputRefused, RunStore, above, code_version, command_line, compute_in_workers, die_with_parent,
-                  folder_lock, git_commit, one_line, ours_files, outputs_manifest, planned_outputs, progress, read_results,
-                  record_outputs, refuse_existing, results_json, run_key, save_atomic, write_atomic)
-
-# ============================================================================================
-# 1. Specs: the paper's tables, declared
-# ============================================================================================
-
-
-@dataclass(frozen=True)
-class Column:
-    """One column of a results table: a metric of a run (a key of its dict, or a function of it)."""
-
-    header: str
-    key: str | Callable
-    fmt: str = "{:.2f}"
-
-    def values(self, runs) -> list:
-        """The column's value in every run (seed) that has it."""
-        return [self.key(r) for r in runs] if callable(self.key) else [r[self.key] for r in runs if self.key in r]
-
-
-@dataclass(frozen=True)
-class Claim:
-    """A finding of the paper on one column of a table: `method` lower than `baseline` (direction -1: it beats it, every
-    metric claimed on being a cost or a loss), or higher (+1). section: the ablation section of the rows (or None)."""
-
-    method: str
-    baseline: str
-    column: str  # a header of the table's columns
-    section: str | None = None
-    direction: int = -1
-
-
-@dataclass(frozen=True)
-class TableSpec:
-    """A table of the paper, as run here. kind: 'open_loop' (train every method, evaluate open loop: Tables 1, 2, 4),
-    'cost' (Table 3), 'closed_loop' (Table 5), 'ablation' (App. A.1, Table 6), 'goal' or 'real'. methods: the rows; a
-    Method's `losses` switch the setting's loss weights (Config.alpha_rl or alpha_il) on and off. paper: the paper's
-    numbers {row: {column header: value}} in the units of the columns (absent: not reported)."""
-
-    name: str
-    title: str
-    kind: str
-    setting: str
-    methods: tuple
-    columns: tuple
-    paper: dict
-    pred_offset: float = 0.0
-    gap: tuple | None = None  # (Standard row, DiffStack row): the share of the Standard -> GT prediction gap closed
-    figures: tuple = ()
-    sections: tuple = ()  # ablations: (title, run_stack options, methods) per section
-    claims: tuple = ()  # the paper's "method beats baseline" findings, each tested by its paired difference over seeds
-    seeds: int = 5  # training seeds when the command names none (--seeds)
-
-
-def open_loop_columns(setting: str) -> tuple:
-    """Tables 1, 2 and 4: ADE, NLL, the planning metrics relative to No prediction, iLQR's convergence."""
-    if setting == "rl":
-        planning = (Column("Planning loss (x1e-2)", "rel_plan_loss"), Column("Hindsight cost (x1e-2)", "rel_hindsight"))
-    else:
-        planning = (Column("Planning loss (x1e-3)", "rel_plan_loss"), Column("MSE (x1e-2)", "rel_mse"))
-    return (Column("ADE (m)", "ade"), Column("NLL (nats)", "nll"), *planning, Column("iLQR converged", "converged", "{:.3f}"))
-
-
-FOUR_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
-CLOSED_LOOP_METHODS = FOUR_METHODS
-
-
-def _paper(columns, rows: dict) -> dict:
-    """{row: values in column order (None: not reported)} -> {row: {header: value}}."""
-    return {name: {c.header: v for c, v in zip(columns, vals) if v is not None} for name, vals in rows.items()}
-
-
-RL_COLUMNS, IL_COLUMNS = open_loop_columns("rl"), open_loop_columns("il")
-
-TABLE1 = TableSpec(
-    "rl", "Table 1: reinforcement learning (hindsight cost)", "open_loop", "rl", TABLE1_METHODS, RL_COLUMNS,
-    _paper(RL_COLUMNS, {  # ADE, NLL, planning loss, hindsight cost (paper §4.2, Table 1)
-        "No prediction": (None, None, 0.00, 0.00), "Standard": (1.32, 0.42, -3.76, -1.61),
-        "Distance weighted": (1.34, 1.19, -4.04, -1.68), "Grad-cost weighted": (1.43, -1.06, -4.29, -1.77),
-        "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87), "DiffStack": (1.27, 0.38, -5.13, -1.86),
-        "GT prediction": (None, None, -7.56, -2.25)}),
-    gap=("Standard", "DiffStack"), figures=("learning_curves.png",),
-    claims=(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"), Claim("DiffStack", "Standard", "Planning loss (x1e-2)"),
-            Claim("DiffStack", "Distance weighted", "Hindsight cost (x1e-2)"),  # "outperforms all baselines"
-            Claim("DiffStack", "Grad-cost weighted", "Hindsight cost (x1e-2)")),
-    seeds=10)  # the paper's headline claim: 10 seeds
-
-TABLE2 = TableSpec(
-    "biased", "Table 2: a 1 m offset on the prediction targets", "open_loop", "rl",
-    (TABLE1_METHODS[0], Method("Standard-biased"), Method("DiffStack-biased", losses=(1, 1, 1)), TABLE1_METHODS[-1]),
-    RL_COLUMNS,
-    _paper(RL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard-biased": (3.64, 8.43, 16.22, 3.13),
-                        "DiffStack-biased": (2.01, 4.20, -3.58, -1.61), "GT prediction": (None, None, -7.56, -2.25)}),
-    pred_offset=1.0, gap=("Standard-biased", "DiffStack-biased"),
-    claims=(Claim("DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)"),
-            Claim("DiffStack-biased", "Standard-biased", "Planning loss (x1e-2)")))
-
-COST_COLUMNS = tuple(Column(f"w'{i + 1} ({t})", lambda r, i=i: r["w"][i], "{:.3f}")
-                     for i, t in enumerate(("coll", "goal", "lane", "heading", "control"))) + (
-    Column("alpha", "alpha", "{:.3f}"), Column("Planning loss", "plan_loss", "{:.3f}"), Column("MSE (m^2)", "mse", "{:.3f}"))
-
-TABLE3 = TableSpec(
-    "cost", "Table 3: learned cost weights (IL; the weights as in App. A.2, Table 7)", "cost", "il",
-    (Method("Cost weights", losses=(0, 0, 1)),), COST_COLUMNS,
-    _paper(COST_COLUMNS, {"Hand-tuned": (5.00, 0.50, 0.30, 0.30, 1.00, 1.00, 2.67, 0.38),
-                          "Learned": (5.00, 0.68, 0.36, 0.43, 0.63, 1.10, 2.41, 0.32)}),
-    figures=("cost_weights.png",),
-    # the weights are learned on L_ctr, the MSE to the expert (IL); the paper reports the planning loss falling too
-    claims=(Claim("Learned", "Hand-tuned", "MSE (m^2)"), Claim("Learned", "Hand-tuned", "Planning loss")))
-
-TABLE4 = TableSpec(
-    "il", "Table 4: imitation learning", "open_loop", "il", FOUR_METHODS, IL_COLUMNS,
-    _paper(IL_COLUMNS, {"No prediction": (None, None, 0.00, 0.00), "Standard": (1.25, 0.53, -0.50, 0.60),
-                        "DiffStack": (1.43, 0.30, -0.80, -1.80), "GT prediction": (None, None, -1.10, -2.80)}),
-    claims=(Claim("DiffStack", "Standard", "MSE (x1e-2)"),))
-
-CLOSED_LOOP_METRICS = {"trajectory": "Trajectory cost", "open_loop": "Open-loop cost", "collision": "Collision cost",
-                       "lane": "Lane keep cost", "control": "Control effort", "deviation": "Deviation (m)"}
-CLOSED_LOOP_COLUMNS = tuple(Column(f"{h} (x1e-2)", "rel_" + k) for k, h in CLOSED_LOOP_METRICS.items()) + (
-    Column("Plannable steps", "plannable", "{:.3f}"),)
-
-TABLE5 = TableSpec(
-    "closed_loop", "Table 5: closed-loop log replay", "closed_loop", "rl", CLOSED_LOOP_METHODS, CLOSED_LOOP_COLUMNS,
-    _paper(CLOSED_LOOP_COLUMNS, {"No prediction": (0.00,) * 6, "Standard": (0.87, 0.33, -8.21, 8.91, 0.18, 1.05),
-                                 "DiffStack": (-4.37, -2.40, -8.20, 4.84, -0.99, 0.98),
-                                 "GT prediction": (-6.30, -2.58, -8.54, 3.34, -1.08, 0.70)}),
-    figures=("closed_loop.png", "stack_example.png"),
-    claims=(Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"), Claim("DiffStack", "Standard", "Open-loop cost (x1e-2)"),
-            Claim("DiffStack", "No prediction", "Trajectory cost (x1e-2)"),  # "substantially better than no prediction"
-            Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1)))  # "the standard stack performs worse"
-
-# Each section compares methods under one configuration of the stack, with its own No prediction and GT prediction
-# rows (the metrics are not comparable across sections). Method.losses multiplies the RL alphas (1, 100, 1000).
-# dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the controller run at 0.1 s over the same 3 s
-# (T = 30), on predictions and GT futures interpolated to that clock (run_stack's plan_dt). The paper's table shows
-# "--" for L_ctr there; its text says planning AND control change resolution, which is what we run.
-
-ABLATION_SECTIONS = (
-    ("Loss weights", {}, (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)), Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
-        Method("DiffStack (no L_ctr)", losses=(1, 1, 0)), Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
-        Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)),
-        # the planner weighs the modes by p(z|x) in training too (Config.train_plan_weights): L_plan and L_ctr then
-        # reach the prior that evaluation uses, which the default q(z|x,y) never trains (without L_pred: nothing does)
-        Method("DiffStack (prior weights)", losses=(1, 1, 1), train_plan_weights="prior"),
-        Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
-        Method("DiffStack (no L_pred, prior weights)", losses=(0, 1, 1), train_plan_weights="prior"))),
-    ("No planner (iLQR from zero controls)", dict(planner=False), (
-        Method("Standard"), Method("DiffStack", losses=(1, 0, 1)))),
-    ("No controller (the plan is final)", dict(controller=False), (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 0)))),
-    ("dt = 0.1 s for planning and control", dict(plan_dt=0.1), (
-        Method("Standard"), Method("DiffStack", losses=(1, 1, 1)))),
+from diffstack import (
+    Config,
+    Predictor,
+    cost_contexts,
+    cost_terms,
+    cost_weights,
+    route_goal,
+    run_stack,
 )
-
-ABLATION_COLUMNS = (Column("ADE (m)", "ade"), Column("NLL (nats)", "nll"), Column("Planning loss (x1e-2)", "rel_plan_loss"),
-                    Column("Hindsight cost (x1e-2)", "rel_hindsight"))
-
-TABLE6 = TableSpec(
-    "ablation", "Ablations (App. A.1, Table 6)", "ablation", "rl", (), ABLATION_COLUMNS,
-    {  # per section, the rows in ABLATION_SECTIONS' names: ADE, NLL, planning loss, hindsight cost
-        title: _paper(ABLATION_COLUMNS, rows) for title, rows in zip((s[0] for s in ABLATION_SECTIONS), (
-            {"Standard": (1.32, 0.42, -3.76, -1.61), "DiffStack": (1.27, 0.38, -5.13, -1.86),
-             "DiffStack (no L_plan)": (1.33, 0.48, -4.98, -1.86), "DiffStack (no L_ctr)": (1.48, 0.55, -5.24, -1.85),
-             "DiffStack (1, 5, 5)": (1.64, 0.85, -5.53, -1.89), "DiffStack (1, 0.2, 0.2)": (1.28, 0.66, -4.79, -1.81),
-             "GT prediction": (None, None, -7.56, -2.25)},
-            {"Standard": (1.27, 0.31, None, -1.8), "DiffStack": (1.40, 0.19, None, -2.0), "GT prediction": (None, None, None, -2.6)},
-            {"Standard": (1.23, 0.56, -4.08, -1.1), "DiffStack": (1.46, 0.53, -5.29, -1.2),
-             "GT prediction": (None, None, -7.56, -1.5)},
-            {"Standard": (1.23, 0.56, -5.65, -2.1), "DiffStack": (1.49, 0.88, -14.01, -2.4),
-             "GT prediction": (None, None, -25.11, -2.9)}))},
-    sections=ABLATION_SECTIONS,
-    claims=tuple(Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)", title) for title, _, _ in ABLATION_SECTIONS))
-
-# Not a table of the paper: why a prediction is worth little to the planner in most scenes. No prediction and GT
-# prediction (the best any predictor can do) by behaviour of the predicted vehicle, under the paper's goal (the GT
-# ego state at T, which already holds the driver's reaction) and under a route goal (Config.goal = 'route').
-GOALS = ("logged", "route")
-GOAL_TABLE = TableSpec(
-    "goal", "Where a perfect prediction is worth something: hindsight cost by behaviour, the paper's goal vs a route goal",
-    "goal", "rl", (TABLE1_METHODS[0], TABLE1_METHODS[-1]), (), {})
-
-TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}  # the order `all` runs them in
-EXPERIMENTS = tuple(TABLES)
-
-# Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors trained on synthetic
-# data (real_data). Not a table of the paper, so not in `all`; its outputs derive from data whose licence forbids
-# committing them, so they go to REAL_OUT (git-ignored) by default and never to results/ (check_outputs).
-REAL_COLUMNS = (Column("ADE (m)", "ade"), Column("CV ADE (m)", "cv_ade"), Column("NLL (nats)", "nll"),
-                Column("Planning loss (x1e-2)", "rel_plan_loss"), Column("Hindsight cost (x1e-2)", "rel_hindsight"),
-                Column("iLQR converged", "converged", "{:.3f}"), Column("Plannable samples", "n", "{:.0f}"))
-REAL = TableSpec("real", "Real driving scenes (Waymo Open Motion Dataset, 3 logs): synthetic-trained predictors",
-                 "real", "rl", FOUR_METHODS, REAL_COLUMNS, {}, figures=("real_scenes.png",))
-SPECS = {**TABLES, REAL.name: REAL}  # every experiment the command line runs
-REAL_OUT = "runs/real"
+from train import (
+    CostWeights,
+    Method,
+    TABLE1_METHODS,
+    TrainingDiverged,
+    add_relative,
+    alphas,
+    bounded,
+    cell,
+    check_writable,
+    compare_methods,
+    config_with,
+    device_arg,
+    evaluate_stack,
+    machine,
+    markdown_table,
+    mean_se,
+    to_device,
+    train_predictor,
+    train_stack,
+    paired_difference,
+    claim_verdict,
+    p_value,
+    experiment_data,
+    VAL_N,
+    VAL_SEED,
+    Rollout,
+    simulate,
+    stack_policy,
+    closed_loop_metrics,
+    closed_loop_scenes,
+)
+from runs import (
+    RUNS_DIR,
+    OutputRefused,
+    RunStore,
+    above,
+    code_version,
+    command_line,
+    compute_in_workers,
+    die_with_parent,
+    folder_lock,
+    git_commit,
+    one_line,
+    ours_files,
+    outputs_manifest,
+    planned_outputs,
+    progress,
+    read_results,
+    record_outputs,
+    refuse_existing,
+    results_json,
+    run_key,
+    save_atomic,
+    write_atomic,
+)
+from specs import (
+    ABLATION_SECTIONS,
+    CLOSED_LOOP_METHODS,
+    CLOSED_LOOP_METRICS,
+    EXPERIMENTS,
+    GOALS,
+    REAL,
+    REAL_OUT,
+    SPECS,
+    TABLE3,
+    Claim,
+    TableSpec,
+)
+from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
 
 
 # ============================================================================================
-# 2. Training, shared between tables
+# 1. Training, shared between tables
 # ============================================================================================
 
 
-CURVE_SAMPLES = 512  # every trained predictor's learning curve: the stack on this many validation scenarios per epoch
+# every trained predictor's learning curve: the stack on this many validation scenarios per epoch
+CURVE_SAMPLES = 512
 
 
-def training_key(m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0, device="cpu", **stack_kw) -> tuple:
-    """What tells method m's predictor apart from another (trained_predictor): its loss weights, scenario weighting,
-    seed, epochs, target offset and device, and only where training runs the stack (L_plan or L_ctr on) the
-    setting and the stack options, less the controller's when L_ctr is off."""
-    a, kw, runs_stack = alphas(m, setting, cfg), dict(stack_kw), True
+def training_key(
+    m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0, device="cpu", **stack_kw
+) -> tuple:
+    """What tells method m's predictor apart from another (trained_predictor): its loss weights,
+    scenario weighting, seed, epochs, target offset and device, and only where training runs the
+    stack (L_plan or L_ctr on) the setting and the stack options, less the controller's when
+    L_ctr is off."""
+    a = alphas(m, setting, cfg)
+    kw = dict(stack_kw)
+    runs_stack = True
     if a[1:] == (0, 0):
-        kw, runs_stack = {}, False
+        kw = {}
+        runs_stack = False
     elif a[2] == 0:
         kw.pop("controller", None)
     plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
-    key = (a, m.weighting, seed, epochs, pred_offset, str(device), setting if runs_stack else None, tuple(sorted(kw.items())))
-    return key + ((plan_weights,) if plan_weights == "prior" else ())  # (the default, the posterior, adds nothing)
+    key = (
+        a,
+        m.weighting,
+        seed,
+        epochs,
+        pred_offset,
+        str(device),
+        setting if runs_stack else None,
+        tuple(sorted(kw.items())),
+    )
+    # (the default, the posterior, adds nothing)
+    return key + ((plan_weights,) if plan_weights == "prior" else ())
 
 
-def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=print, pred_offset=0.0, models=None,
-                      device="cpu", store=None, **stack_kw):
-    """Method m's predictor trained with `seed` (its learning curve on CURVE_SAMPLES scenarios), or the one trained
-    before with the same training_key (Standard once per seed for Tables 1, 3, 4, 5 and the ablations): from models (a
-    dict the tables of one run share), else from store (a RunStore: a resumed run or a worker loads an earlier piece's)."""
+def trained_predictor(
+    m: Method,
+    data,
+    cfg: Config,
+    setting,
+    epochs,
+    seed,
+    log=print,
+    pred_offset=0.0,
+    models=None,
+    device="cpu",
+    store=None,
+    **stack_kw,
+):
+    """Method m's predictor trained with `seed` (its learning curve on CURVE_SAMPLES scenarios), or
+    the one trained before with the same training_key (Standard once per seed for Tables 1, 3, 4, 5
+    and the ablations): from models (a dict the tables of one run share), else from store (a
+    RunStore: a resumed run or a worker loads an earlier piece's)."""
     key = training_key(m, cfg, setting, epochs, seed, pred_offset, device, **stack_kw)
     if models is not None and key in models:
         if log:
@@ -287,10 +199,24 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
         if path.with_suffix(".curve.json").exists():
             model.learning_curve = json.loads(path.with_suffix(".curve.json").read_text())
         if log:
-            log(f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from {path}")
+            log(
+                f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from "
+                f"{path}"
+            )
     else:
-        model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device,
-                                curve_samples=CURVE_SAMPLES, **stack_kw)
+        model = train_predictor(
+            m,
+            data,
+            cfg,
+            setting,
+            epochs,
+            seed,
+            log,
+            pred_offset,
+            device=device,
+            curve_samples=CURVE_SAMPLES,
+            **stack_kw,
+        )
         if path is not None:  # the curve first: a model file on disk always has its curve beside it
             path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(path.with_suffix(".curve.json"), json.dumps(model.learning_curve))
@@ -300,60 +226,121 @@ def trained_predictor(m: Method, data, cfg: Config, setting, epochs, seed, log=p
     return model
 
 
-def open_loop_experiment(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                         pred_offset=0.0, log=print, models=None, device="cpu", **stack_kw) -> dict:
-    """train.compare_methods with predictors shared through `models` (trained_predictor), run on `device`."""
-    train = lambda m, *a, **k: trained_predictor(m, *a, models=models, **k)  # noqa: E731
-    return compare_methods(data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, device, **stack_kw)
+def open_loop_experiment(
+    data,
+    cfg: Config,
+    setting="rl",
+    methods=TABLE1_METHODS,
+    seeds=(0,),
+    epochs=1.0,
+    pred_offset=0.0,
+    log=print,
+    models=None,
+    device="cpu",
+    **stack_kw,
+) -> dict:
+    """train.compare_methods with predictors shared through `models` (trained_predictor), run on
+    `device`."""
+
+    def train(m, *a, **k):
+        return trained_predictor(m, *a, models=models, **k)
+
+    return compare_methods(
+        data,
+        cfg,
+        setting,
+        methods,
+        tuple(seeds),
+        epochs,
+        pred_offset,
+        log,
+        train,
+        device,
+        **stack_kw,
+    )
 
 
-def gap_closed(results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight") -> tuple:
-    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e. over the seeds
-    where there is a gap; (nan, nan) where Standard is as good as GT prediction in every seed (a few scenarios)."""
+def gap_closed(
+    results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight"
+) -> tuple:
+    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e.
+    over the seeds where there is a gap; (nan, nan) where Standard is as good as GT prediction in
+    every seed (a few scenarios)."""
     gt = results["GT prediction"][0][metric]
-    pairs = [(s[metric], d[metric]) for s, d in zip(results[standard], results[diffstack])
-             if metric in s and metric in d and s[metric] != gt]  # (a diverged seed has no metrics)
+    pairs = [
+        (s[metric], d[metric])
+        for s, d in zip(results[standard], results[diffstack])
+        if metric in s and metric in d and s[metric] != gt  # (a diverged seed has no metrics)
+    ]
     return mean_se([(s - d) / (s - gt) for s, d in pairs]) if pairs else (math.nan, math.nan)
 
 
 def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
-    """(the claim's Column, the PairedDifference of its rows over the seeds); results: those its rows are in."""
+    """(the claim's Column, the PairedDifference of its rows over the seeds); results: those its
+    rows are in."""
     col = next((c for c in spec.columns if c.header == claim.column), None)
     if col is None:
         raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
-    base = results[claim.baseline]  # (a baseline without a predictor to train has one run: it pairs with every seed)
+    # (a baseline without a predictor to train has one run: it pairs with every seed)
+    base = results[claim.baseline]
     base = base * len(results[claim.method]) if len(base) == 1 else base
-    pairs = [(b[0], m[0]) for b, m in ((col.values([rb]), col.values([rm]))  # seed by seed; a diverged one is left out
-                                       for rb, rm in zip(base, results[claim.method])) if b and m]
+    # seed by seed; a diverged one is left out
+    pairs = [
+        (b[0], m[0])
+        for b, m in (
+            (col.values([rb]), col.values([rm])) for rb, rm in zip(base, results[claim.method])
+        )
+        if b and m
+    ]
     return col, paired_difference([b for b, _ in pairs], [m for _, m in pairs])
 
 
 def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
-    """A claim's line (results: those its rows are in): the paired difference (method - baseline), t, the seeds, the verdict."""
+    """A claim's line (results: those its rows are in): the paired difference (method - baseline),
+    t, the seeds, the verdict."""
     col, p = claim_test(claim, spec, results)
-    name = claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
-    t = (f"t = {p.t:.2f}, {p_value(p.p)}" if math.isfinite(p.t)
-         else ("no spread over seeds" if p.se == 0 else "one seed"))
-    seeds = (f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "") if claim.direction < 0 else
-             f"{p.worse} of {p.n} seeds higher" + (f", {p.better} lower" if p.better else ""))
+    name = (
+        claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
+    )
+    t = (
+        f"t = {p.t:.2f}, {p_value(p.p)}"
+        if math.isfinite(p.t)
+        else ("no spread over seeds" if p.se == 0 else "one seed")
+    )
+    seeds = (
+        f"{p.better} of {p.n} seeds better" + (f", {p.worse} worse" if p.worse else "")
+        if claim.direction < 0
+        else f"{p.worse} of {p.n} seeds higher" + (f", {p.better} lower" if p.better else "")
+    )
     diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
     seeds += f"; {diverged} diverged, left out" if diverged else ""
     where = f"{claim.section}: " if claim.section else ""
-    return (f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference {col.fmt.format(p.mean)} ± "
-            f"{col.fmt.format(p.se)} ({t}, {seeds}): {claim_verdict(p, claim.direction)}")
+    return (
+        f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference "
+        f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)} ({t}, {seeds}): "
+        f"{claim_verdict(p, claim.direction)}"
+    )
 
 
 def claims_markdown(spec: TableSpec, results: dict) -> str:
-    """The claim lines of a table, a markdown list; '' when it makes no claim (or its rows were not run)."""
+    """The claim lines of a table, a markdown list; '' when it makes no claim (or its rows were
+    not run)."""
+
     def runs(c):  # the results the claim's rows are in: the table's, or its ablation section's
         return results.get(c.section, {}) if c.section else results
-    lines = [claim_line(c, spec, runs(c)) for c in spec.claims if c.method in runs(c) and c.baseline in runs(c)]
+
+    lines = [
+        claim_line(c, spec, runs(c))
+        for c in spec.claims
+        if c.method in runs(c) and c.baseline in runs(c)
+    ]
     return "\n".join(f"- {line}" for line in lines)
 
 
 def claims_card(tables: dict) -> str:
-    """The paper against this run, one row per claim of the paper: tables {table name: its results}. The paper's and
-    our values of the two rows (means over seeds), the paired test and its verdict (claim_line's)."""
+    """The paper against this run, one row per claim of the paper: tables {table name: its results}.
+    The paper's and our values of the two rows (means over seeds), the paired test and its verdict
+    (claim_line's)."""
     rows = []
     for name, results in tables.items():
         spec = SPECS[name]
@@ -364,88 +351,163 @@ def claims_card(tables: dict) -> str:
             col, p = claim_test(c, spec, runs)
             paper = spec.paper.get(c.section, {}) if c.section else spec.paper
             was = [paper.get(row, {}).get(col.header) for row in (c.method, c.baseline)]
-            ours = [statistics.fmean(v) if (v := col.values(runs[row])) else math.nan for row in (c.method, c.baseline)]
+            ours = [
+                statistics.fmean(v) if (v := col.values(runs[row])) else math.nan
+                for row in (c.method, c.baseline)
+            ]
             test = f"t = {p.t:.2f}, {p_value(p.p)}" if math.isfinite(p.t) else "--"
-            rows.append([spec.title.split(":")[0] + (f" ({c.section})" if c.section else ""),
-                         f"{c.method} {'<' if c.direction < 0 else '>'} {c.baseline}, {col.header}",
-                         " vs ".join("--" if v is None else col.fmt.format(v) for v in was),
-                         " vs ".join(col.fmt.format(v) for v in ours),
-                         f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)}", test, claim_verdict(p, c.direction)])
-    return markdown_table(["Table", "Claim", "Paper", "Here (mean)", "Paired difference", "Test", "Verdict"], rows)
+            rows.append(
+                [
+                    spec.title.split(":")[0] + (f" ({c.section})" if c.section else ""),
+                    f"{c.method} {'<' if c.direction < 0 else '>'} {c.baseline}, {col.header}",
+                    " vs ".join("--" if v is None else col.fmt.format(v) for v in was),
+                    " vs ".join(col.fmt.format(v) for v in ours),
+                    f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)}",
+                    test,
+                    claim_verdict(p, c.direction),
+                ]
+            )
+    return markdown_table(
+        ["Table", "Claim", "Paper", "Here (mean)", "Paired difference", "Test", "Verdict"], rows
+    )
 
 
 # ============================================================================================
-# 3. Cost learning (§4.2, Table 3; App. A.2, Table 7)
+# 2. Cost learning (§4.2, Table 3; App. A.2, Table 7)
 # ============================================================================================
 
 
-def cost_learning_experiment(data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu") -> dict:
-    """Table 3: per seed a Standard predictor, then the cost weights learned with it frozen (train.train_stack with
-    `weights`: L = a3 L_ctr, the MSE to the GT ego trajectory); both evaluated on data.val, IL. {'Hand-tuned': [per
-    seed], 'Learned': [...]}, each with w' (normalised weights), alpha, plan_loss and mse (absolute, m^2 over T)."""
+def cost_learning_experiment(
+    data, cfg: Config, seeds=(0,), epochs=1.0, log=print, models=None, device="cpu"
+) -> dict:
+    """Table 3: per seed a Standard predictor, then the cost weights learned with it frozen
+    (train.train_stack with `weights`: L = a3 L_ctr, the MSE to the GT ego trajectory); both
+    evaluated on data.val, IL. {'Hand-tuned': [per seed], 'Learned': [...]}, each with w'
+    (normalised weights), alpha, plan_loss and mse (absolute, m^2 over T)."""
     runs = [cost_learning_seed(data, cfg, seed, epochs, log, models, device) for seed in seeds]
     return {name: [r[name] for r in runs] for name in ("Hand-tuned", "Learned")}
 
 
-def cost_learning_seed(data, cfg: Config, seed=0, epochs=1.0, log=print, models=None, device="cpu", store=None) -> dict:
-    """One seed of Table 3: {'Hand-tuned': metrics, 'Learned': metrics} (cost_learning_experiment)."""
+def cost_learning_seed(
+    data, cfg: Config, seed=0, epochs=1.0, log=print, models=None, device="cpu", store=None
+) -> dict:
+    """One seed of Table 3: {'Hand-tuned': metrics, 'Learned': metrics}
+    (cost_learning_experiment)."""
     res = {}
-    model = trained_predictor(Method("Standard"), data, cfg, "il", epochs, seed, log, models=models, device=device,
-                              store=store)
+    model = trained_predictor(
+        Method("Standard"),
+        data,
+        cfg,
+        "il",
+        epochs,
+        seed,
+        log,
+        models=models,
+        device=device,
+        store=store,
+    )
     weights = CostWeights(cfg).to(device)
     for name in ("Hand-tuned", "Learned"):
         if name == "Learned":
-            train_stack(model, data.train_for(seed), TABLE3.methods[0], cfg, "il", epochs, seed, log, weights=weights)
+            train_stack(
+                model,
+                data.train_for(seed),
+                TABLE3.methods[0],
+                cfg,
+                "il",
+                epochs,
+                seed,
+                log,
+                weights=weights,
+            )
         with torch.no_grad():
-            w, w_norm, alpha = weights(), weights.normalised(), weights.alpha.item()
-        res[name] = r = evaluate_stack(model, data.val, Method("Standard"), cfg, "il", w=w, device=device)
+            w = weights()
+            w_norm = weights.normalised()
+            alpha = weights.alpha.item()
+        res[name] = r = evaluate_stack(
+            model, data.val, Method("Standard"), cfg, "il", w=w, device=device
+        )
         r.update(w=w_norm.tolist(), alpha=alpha)
         if log:
-            log(f"{name:10s} seed {seed}: w' " + " ".join(f"{v:.3f}" for v in r["w"])
-                + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}")
+            log(
+                f"{name:10s} seed {seed}: w' "
+                + " ".join(f"{v:.3f}" for v in r["w"])
+                + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}"
+            )
     return res
 
 
 # ============================================================================================
-# 4. Closed loop: log replay (§4.3, Table 5, App. D.3)
+# 3. Closed loop: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
-# The simulation (simulate, stack_policy, closed_loop_metrics, closed_loop_scenes) is closed-loop evaluation, in
-# train.py; here, the table's runs.
+# The simulation (simulate, stack_policy, closed_loop_metrics, closed_loop_scenes) is closed-loop
+# evaluation, in train.py; here, the table's runs.
 
 
-def closed_loop_experiment(data, val_scenes, cfg: Config, seeds=(0,), epochs=1.0, sim_time=10.0, log=print, models=None,
-                           device="cpu"):
-    """Table 5: the methods trained by the open-loop RL procedure, each simulated on every validation scene (the
-    simulation on the CPU in float64, the stack on `device`). Returns ({method: [per seed: closed_loop_run's metrics,
-    'rel_*' as closed_loop_relative's]}, {method: (Rollout, per-scene metrics) of the first seed}, the scenes)."""
+def closed_loop_experiment(
+    data,
+    val_scenes,
+    cfg: Config,
+    seeds=(0,),
+    epochs=1.0,
+    sim_time=10.0,
+    log=print,
+    models=None,
+    device="cpu",
+):
+    """Table 5: the methods trained by the open-loop RL procedure, each simulated on every
+    validation scene (the simulation on the CPU in float64, the stack on `device`). Returns
+    ({method: [per seed: closed_loop_run's metrics, 'rel_*' as closed_loop_relative's]}, {method:
+    (Rollout, per-scene metrics) of the first seed}, the scenes)."""
     scenes = closed_loop_scenes(val_scenes, cfg, sim_time)
     results, rollouts = {}, {}
     for m in CLOSED_LOOP_METHODS:
         for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            r, roll, per_scene = closed_loop_run(m, seed, scenes, data, cfg, epochs, sim_time, log, models, device)
+            r, roll, per_scene = closed_loop_run(
+                m, seed, scenes, data, cfg, epochs, sim_time, log, models, device
+            )
             results.setdefault(m.name, []).append(r)
             rollouts.setdefault(m.name, (roll, per_scene))
     return closed_loop_relative(results), rollouts, scenes
 
 
-def closed_loop_run(m: Method, seed, scenes, data, cfg: Config, epochs=1.0, sim_time=10.0, log=print, models=None,
-                    device="cpu", store=None):
-    """One method and seed of Table 5 on the closed-loop scenes: (metric means over scenes, Rollout, per-scene metrics)."""
-    t0, model = time.time(), None
+def closed_loop_run(
+    m: Method,
+    seed,
+    scenes,
+    data,
+    cfg: Config,
+    epochs=1.0,
+    sim_time=10.0,
+    log=print,
+    models=None,
+    device="cpu",
+    store=None,
+):
+    """One method and seed of Table 5 on the closed-loop scenes: (metric means over scenes, Rollout,
+    per-scene metrics)."""
+    t0 = time.time()
+    model = None
     if m.predictor == "learned":
-        model = trained_predictor(m, data, cfg, "rl", epochs, seed, log, models=models, device=device, store=store)
+        model = trained_predictor(
+            m, data, cfg, "rl", epochs, seed, log, models=models, device=device, store=store
+        )
     t1 = time.time()
     roll = simulate(scenes, stack_policy(model, m, cfg, device), cfg, sim_time)
     per_scene = closed_loop_metrics(scenes, roll, cfg)
     r = {k: v.mean().item() for k, v in per_scene.items()}
     r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
     if log:
-        log(f"{m.name:14s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+        log(
+            f"{m.name:14s} seed {seed}: "
+            + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
+        )
     return r, roll, per_scene
 
 
 def closed_loop_relative(results: dict) -> dict:
-    """Add 'rel_<metric>' (x1e-2 vs No prediction's first run) to every run of {method: [per seed]}, in place."""
+    """Add 'rel_<metric>' (x1e-2 vs No prediction's first run) to every run of {method: [per seed]},
+    in place."""
     base = results["No prediction"][0]
     for r in (r for runs in results.values() for r in runs):
         for k in CLOSED_LOOP_METRICS:
@@ -455,13 +517,14 @@ def closed_loop_relative(results: dict) -> dict:
 
 
 # ============================================================================================
-# 5. Ablations (App. A.1, Table 6), and where a perfect prediction is worth something
+# 4. Ablations (App. A.1, Table 6), and where a perfect prediction is worth something
 # ============================================================================================
 
 
 def ablation_markdown(spec: TableSpec, results: dict) -> str:
-    """The ablation table: the loss multipliers (x1, x1e2, x1e3 as in the paper), ADE, NLL and the planning
-    metrics relative to the section's No prediction (x1e-2); '--' where a loss or metric does not apply."""
+    """The ablation table: the loss multipliers (x1, x1e2, x1e3 as in the paper), ADE, NLL and the
+    planning metrics relative to the section's No prediction (x1e-2); '--' where a loss or metric
+    does not apply."""
     head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3"] + [c.header for c in spec.columns]
     rows = []
     for title, stack_kw, methods in spec.sections:
@@ -483,38 +546,61 @@ CLOSE = 5.0  # m, centre to centre: a car's length (goal_breakdown)
 
 
 def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) -> dict:
-    """Method m (No prediction or GT prediction: nothing trained) on the validation set under cfg.goal, by behaviour
-    of the predicted vehicle: scenes, hindsight cost, its weighted terms and the share of scenes where the final ego
-    trajectory comes within CLOSE of the predicted vehicle's GT future."""
+    """Method m (No prediction or GT prediction: nothing trained) on the validation set under
+    cfg.goal, by behaviour of the predicted vehicle: scenes, hindsight cost, its weighted terms and
+    the share of scenes where the final ego trajectory comes within CLOSE of the predicted vehicle's
+    GT future."""
     sums, dists = {}, {}
     for i in range(0, len(val), batch_size):
-        batch = to_device(val[i:i + batch_size], device)
+        batch = to_device(val[i : i + batch_size], device)
         out = run_stack(batch, None, m, cfg, "rl")
         w = cost_weights(cfg, out.x.dtype, device)
         s0 = batch.ego_hist[:, -1]
-        goal = batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
+        goal = (
+            batch.goal
+            if cfg.goal == "logged"
+            else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
+        )
         ones = torch.ones(len(batch), device=device)
-        _, hctx = cost_contexts(batch, torch.zeros(len(batch), 1, cfg.horizon, 2, device=device), ones[:, None], ones,
-                                goal=goal)
-        terms = cost_terms(out.x, out.u, hctx, cfg.rbf_var) * w  # (B, 5) weighted, as they add up to the hindsight cost
+        _, hctx = cost_contexts(
+            batch,
+            torch.zeros(len(batch), 1, cfg.horizon, 2, device=device),
+            ones[:, None],
+            ones,
+            goal=goal,
+        )
+        # terms: (B, 5) weighted, as they add up to the hindsight cost
+        terms = cost_terms(out.x, out.u, hctx, cfg.rbf_var) * w
         closest = (out.x[:, 1:, :2] - batch.agent_fut[..., :2]).norm(dim=-1).min(-1).values  # (B,)
         for b in batch.behaviour[out.plannable].unique().tolist():
             rows = out.plannable & (batch.behaviour == b)
             name = data_synth.BEHAVIOURS[b] if b >= 0 else "real"
-            acc = sums.setdefault(name, dict(n=0, hindsight=0.0, terms=torch.zeros(5, dtype=torch.float64)))
+            acc = sums.setdefault(
+                name, dict(n=0, hindsight=0.0, terms=torch.zeros(5, dtype=torch.float64))
+            )
             acc["n"] += rows.sum().item()
             acc["hindsight"] += out.hindsight[rows].sum().item()
             acc["terms"] += terms[rows].sum(0).double().cpu()
             dists.setdefault(name, []).append(closest[rows].cpu())
-    by = {name: dict(n=a["n"], hindsight=a["hindsight"] / a["n"], terms=(a["terms"] / a["n"]).tolist(),
-                     close=(torch.cat(dists[name]) < CLOSE).float().mean().item()) for name, a in sums.items()}
+    by = {
+        name: dict(
+            n=a["n"],
+            hindsight=a["hindsight"] / a["n"],
+            terms=(a["terms"] / a["n"]).tolist(),
+            close=(torch.cat(dists[name]) < CLOSE).float().mean().item(),
+        )
+        for name, a in sums.items()
+    }
     n = sum(a["n"] for a in by.values())
-    return dict(n=n, hindsight=sum(a["hindsight"] * a["n"] for a in by.values()) / n, by_behaviour=by)
+    return dict(
+        n=n, hindsight=sum(a["hindsight"] * a["n"] for a in by.values()) / n, by_behaviour=by
+    )
 
 
 def goal_markdown(results: dict) -> str:
-    """The goal table: per goal, per behaviour, No prediction's hindsight cost and what it is made of, and what a
-    perfect prediction saves (GT prediction minus No prediction, x1e-2, and its share of the whole saving)."""
+    """The goal table: per goal, per behaviour, No prediction's hindsight cost and what it is made
+    of, and what a perfect prediction saves (GT prediction minus No prediction, x1e-2, and its share
+    of the whole saving)."""
     parts = []
     for goal, rows in results.items():
         none, gt = rows["No prediction"][0], rows["GT prediction"][0]
@@ -522,65 +608,136 @@ def goal_markdown(results: dict) -> str:
         table = []
         for b in [b for b in data_synth.BEHAVIOURS if b in none["by_behaviour"]]:
             a, g = none["by_behaviour"][b], gt["by_behaviour"][b]
-            t, saved = a["terms"], g["hindsight"] - a["hindsight"]
-            table.append([f"{b} ({a['n']})", f"{a['hindsight']:.3f}", f"{t[0]:.3f}", f"{t[1]:.3f}", f"{t[4]:.3f}",
-                          f"{g['terms'][0]:.3f}", f"{100 * a['close']:.0f} % / {100 * g['close']:.0f} %",
-                          f"{saved / 1e-2:+.2f}", f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--"])
-        table.append([f"all ({none['n']})", f"{none['hindsight']:.3f}", "", "", "", "", "",
-                      f"{(gt['hindsight'] - none['hindsight']) / 1e-2:+.2f}", "1.00"])
-        what = ("the paper's: the GT ego state at T" if goal == "logged" else
-                "a route goal: where the ego would be at T keeping its speed along its lane (Config.goal = 'route')")
-        parts.append(f"**Goal: {what}.**\n\n" + markdown_table(
-            ["Behaviour (scenes)", "No prediction: hindsight cost", "of which collision", "goal", "control effort",
-             "GT prediction: collision", f"within {CLOSE:g} m of the vehicle (No prediction / GT)",
-             "GT minus No prediction (x1e-2)", "share of GT's saving"], table))
+            t = a["terms"]
+            saved = g["hindsight"] - a["hindsight"]
+            table.append(
+                [
+                    f"{b} ({a['n']})",
+                    f"{a['hindsight']:.3f}",
+                    f"{t[0]:.3f}",
+                    f"{t[1]:.3f}",
+                    f"{t[4]:.3f}",
+                    f"{g['terms'][0]:.3f}",
+                    f"{100 * a['close']:.0f} % / {100 * g['close']:.0f} %",
+                    f"{saved / 1e-2:+.2f}",
+                    f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--",
+                ]
+            )
+        table.append(
+            [
+                f"all ({none['n']})",
+                f"{none['hindsight']:.3f}",
+                "",
+                "",
+                "",
+                "",
+                "",
+                f"{(gt['hindsight'] - none['hindsight']) / 1e-2:+.2f}",
+                "1.00",
+            ]
+        )
+        what = (
+            "the paper's: the GT ego state at T"
+            if goal == "logged"
+            else "a route goal: where the ego would be at T keeping its speed along its lane "
+            "(Config.goal = 'route')"
+        )
+        parts.append(
+            f"**Goal: {what}.**\n\n"
+            + markdown_table(
+                [
+                    "Behaviour (scenes)",
+                    "No prediction: hindsight cost",
+                    "of which collision",
+                    "goal",
+                    "control effort",
+                    "GT prediction: collision",
+                    f"within {CLOSE:g} m of the vehicle (No prediction / GT)",
+                    "GT minus No prediction (x1e-2)",
+                    "share of GT's saving",
+                ],
+                table,
+            )
+        )
     return "\n\n".join(parts)
 
 
 def validation_spread(draws=5, n=VAL_N, cache_dir="data_cache", log=print) -> str:
-    """Why the tables share one validation set of VAL_N samples: GT prediction's hindsight cost relative to No
-    prediction (x1e-2, no training) on `draws` draws of validation scenes none of the tables uses (data seeds after
-    VAL_SEED), each at the old size (the validation side of an n-sample draw: 1,500 of 10,000) and at n. A markdown
-    table: each draw's value, and the mean and standard deviation over draws."""
-    gt, no = (next(m for m in TABLE1_METHODS if m.name == name) for name in ("GT prediction", "No prediction"))
-    rows, cfg = {}, Config()
+    """Why the tables share one validation set of VAL_N samples: GT prediction's hindsight cost
+    relative to No prediction (x1e-2, no training) on `draws` draws of validation scenes none of the
+    tables uses (data seeds after VAL_SEED), each at the old size (the validation side of an
+    n-sample draw: 1,500 of 10,000) and at n. A markdown table: each draw's value, and the mean and
+    standard deviation over draws."""
+    gt, no = (
+        next(m for m in TABLE1_METHODS if m.name == name)
+        for name in ("GT prediction", "No prediction")
+    )
+    rows = {}
+    cfg = Config()
     for seed in range(VAL_SEED + 1, VAL_SEED + 1 + draws):
         data = data_real.load_data(None, n, seed, cache_dir, log)
-        for size, val in (("old", data.val), ("new", data_synth.Scenarios.cat([data.train, data.val]))):
-            res = add_relative({m.name: [evaluate_stack(None, val, m, cfg, "rl")] for m in (no, gt)}, "rl")
+        for size, val in (
+            ("old", data.val),
+            ("new", data_synth.Scenarios.cat([data.train, data.val])),
+        ):
+            res = add_relative(
+                {m.name: [evaluate_stack(None, val, m, cfg, "rl")] for m in (no, gt)}, "rl"
+            )
             rows.setdefault(size, []).append((len(val), res["GT prediction"][0]["rel_hindsight"]))
-    return markdown_table(["Validation samples", *(f"data seed {s}" for s in range(VAL_SEED + 1, VAL_SEED + 1 + draws)),
-                           "mean ± s.d. over draws"],
-                          [[f"{statistics.fmean(n for n, _ in r):,.0f}", *(f"{v:.2f}" for _, v in r),
-                            f"{statistics.fmean(v for _, v in r):.2f} ± {statistics.stdev(v for _, v in r):.2f}"]
-                           for r in rows.values()])
+    return markdown_table(
+        [
+            "Validation samples",
+            *(f"data seed {s}" for s in range(VAL_SEED + 1, VAL_SEED + 1 + draws)),
+            "mean ± s.d. over draws",
+        ],
+        [
+            [
+                f"{statistics.fmean(n for n, _ in r):,.0f}",
+                *(f"{v:.2f}" for _, v in r),
+                f"{statistics.fmean(v for _, v in r):.2f} ± "
+                f"{statistics.stdev(v for _, v in r):.2f}",
+            ]
+            for r in rows.values()
+        ],
+    )
 
 
 # ============================================================================================
-# 6. Running a spec, the report, the command line
+# 5. Running a spec, the report, the command line
 # ============================================================================================
 
 
 def results_markdown(spec: TableSpec, results: dict) -> str:
-    """A spec's results table ('mean ± s.e.' over seeds), then its claim lines (claims_markdown), the diverged
-    trainings, the breakdown by behaviour (open loop) and the learning curves' plateau (Table 1)."""
+    """A spec's results table ('mean ± s.e.' over seeds), then its claim lines (claims_markdown),
+    the diverged trainings, the breakdown by behaviour (open loop) and the learning curves' plateau
+    (Table 1)."""
     if spec.kind == "goal":
         return goal_markdown(results)
-    md = ablation_markdown(spec, results) if spec.kind == "ablation" else table_markdown(spec, results)
+    md = (
+        ablation_markdown(spec, results)
+        if spec.kind == "ablation"
+        else table_markdown(spec, results)
+    )
     claims = claims_markdown(spec, results)
-    md += (f"\n\nThe paper's claims, as paired differences over seeds (a two-sided paired t-test; reproduced only at "
-           f"p < 0.05 in the paper's direction):\n\n{claims}" if claims else "")
+    md += (
+        "\n\nThe paper's claims, as paired differences over seeds (a two-sided paired t-test; "
+        f"reproduced only at p < 0.05 in the paper's direction):\n\n{claims}"
+        if claims
+        else ""
+    )
     by = behaviour_markdown(spec, results) if spec.kind == "open_loop" else ""
     curves = plateau_markdown(results) if "learning_curves.png" in spec.figures else ""
     return md + "".join(f"\n\n{part}" for part in (diverged_markdown(results), by, curves) if part)
 
 
 def diverged_markdown(results: dict) -> str:
-    """One line per training that diverged (its seed is left out of the means and the paired differences)."""
-    found, stack = [], [results]
+    """One line per training that diverged (its seed is left out of the means and the paired
+    differences)."""
+    found = []
+    stack = [results]
     while stack:  # tables nest {method: [runs]} in sections, and Table 3 has {row: [runs]}
         item = stack.pop()
-        for v in (item.values() if isinstance(item, dict) else item):
+        for v in item.values() if isinstance(item, dict) else item:
             if isinstance(v, dict) and "diverged" in v:
                 found.append(v["diverged"])
             elif isinstance(v, (dict, list)):
@@ -589,24 +746,39 @@ def diverged_markdown(results: dict) -> str:
 
 
 def behaviour_markdown(spec: TableSpec, results: dict) -> str:
-    """The setting's planning metric (RL: hindsight cost, IL: MSE) relative to No prediction per behaviour of the
-    predicted vehicle, as the table below says: where a method's predictions help the planner and where they hurt
-    it. '' without the breakdown (real data, or results from before it existed)."""
+    """The setting's planning metric (RL: hindsight cost, IL: MSE) relative to No prediction per
+    behaviour of the predicted vehicle, as the table below says: where a method's predictions help
+    the planner and where they hurt it. '' without the breakdown (real data, or results from before
+    it existed)."""
     key = "hindsight" if spec.setting == "rl" else "mse"
     base = results.get("No prediction", [{}])[0].get("by_behaviour")
     if not base:
         return ""
-    methods = [m for m, runs in results.items() if m != "No prediction" and all("by_behaviour" in r for r in runs)]
+    methods = [
+        m
+        for m, runs in results.items()
+        if m != "No prediction" and all("by_behaviour" in r for r in runs)
+    ]
     rows = []
     for b in [b for b in data_synth.BEHAVIOURS if b in base]:
-        rel = lambda runs: [(r["by_behaviour"][b][key] - base[b][key]) / 1e-2 for r in runs]  # noqa: E731
+
+        def rel(runs):
+            return [(r["by_behaviour"][b][key] - base[b][key]) / 1e-2 for r in runs]
+
         rows.append([f"{b} ({base[b]['n']})"] + [cell(rel(results[m])) for m in methods])
-    rows.append([f"all ({results['No prediction'][0]['n']})"]
-                + [cell([(r[key] - results["No prediction"][0][key]) / 1e-2 for r in results[m]]) for m in methods])
+    rows.append(
+        [f"all ({results['No prediction'][0]['n']})"]
+        + [
+            cell([(r[key] - results["No prediction"][0][key]) / 1e-2 for r in results[m]])
+            for m in methods
+        ]
+    )
     what = "Hindsight cost" if key == "hindsight" else "MSE"
-    return (f"{what} relative to No prediction (x1e-2) by behaviour of the predicted vehicle (scenes), mean ± s.e. over "
-            f"seeds; a behaviour's row is the mean over its scenes, 'all' over every scene:\n\n"
-            + markdown_table(["Behaviour (scenes)"] + methods, rows))
+    return (
+        f"{what} relative to No prediction (x1e-2) by behaviour of the predicted vehicle "
+        "(scenes), mean ± s.e. over seeds; a behaviour's row is the mean over its scenes, 'all' "
+        "over every scene:\n\n" + markdown_table(["Behaviour (scenes)"] + methods, rows)
+    )
 
 
 def has_curves(results: dict) -> bool:
@@ -615,8 +787,9 @@ def has_curves(results: dict) -> bool:
 
 
 def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: float = 5.0) -> str:
-    """Whether training has flattened: per method, the change of ADE and hindsight cost over the last `last` epochs
-    of the curves, mean ± s.e.: 'still falling' past 2 s.e. and 1 % of the value, else 'flat' ('' without curves)."""
+    """Whether training has flattened: per method, the change of ADE and hindsight cost over the
+    last `last` epochs of the curves, mean ± s.e.: 'still falling' past 2 s.e. and 1 % of the value,
+    else 'flat' ('' without curves)."""
     lines = []
     for m in methods:
         curves = [r["curve"] for r in results.get(m, []) if r.get("curve")]
@@ -625,53 +798,83 @@ def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: flo
         parts = []
         for key, unit in (("ade", " m"), ("hindsight", "")):
             end = [c[-1][key] for c in curves]
-            before = [min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves]
+            before = [
+                min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves
+            ]
             mean, se = mean_se([a - b for a, b in zip(end, before)])
             falling = mean < -2 * se and mean < -0.01 * abs(statistics.fmean(end))
-            parts.append(f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
-                         f"({'still falling' if falling else 'flat'})")
-        final = curves[0][-1]  # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
+            parts.append(
+                f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
+                f"({'still falling' if falling else 'flat'})"
+            )
+        # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
+        final = curves[0][-1]
         scenes = final.get("n", CURVE_SAMPLES) + final.get("skipped", 0)
-        lines.append(f"- {m}, over the last {min(last, final['epoch']):g} of {final['epoch']:g} epochs ({len(curves)} "
-                     f"seeds, {scenes} validation scenes): " + "; ".join(parts))
+        lines.append(
+            f"- {m}, over the last {min(last, final['epoch']):g} of {final['epoch']:g} epochs "
+            f"({len(curves)} seeds, {scenes} validation scenes): " + "; ".join(parts)
+        )
     return "Learning curves (learning_curves.png):\n\n" + "\n".join(lines) if lines else ""
 
 
 def table_markdown(spec: TableSpec, results: dict) -> str:
-    """The table of a non-ablation spec, with the gap closed and the closed loop's absolute baseline below it."""
-    rows = [[name] + [cell(c.values(runs), c.fmt) for c in spec.columns] for name, runs in results.items()]
+    """The table of a non-ablation spec, with the gap closed and the closed loop's absolute baseline
+    below it."""
+    rows = [
+        [name] + [cell(c.values(runs), c.fmt) for c in spec.columns]
+        for name, runs in results.items()
+    ]
     md = markdown_table(["Method"] + [c.header for c in spec.columns], rows)
     if spec.gap:
         m, s = gap_closed(results, *spec.gap)
-        md += (f"\n\n{spec.gap[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {spec.gap[0]} -> GT prediction hindsight-cost gap."
-               if math.isfinite(m) else f"\n\n{spec.gap[0]} is as good as GT prediction here: there is no gap to close.")
+        md += (
+            f"\n\n{spec.gap[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {spec.gap[0]} -> "
+            "GT prediction hindsight-cost gap."
+            if math.isfinite(m)
+            else f"\n\n{spec.gap[0]} is as good as GT prediction here: there is no gap to close."
+        )
     if spec.kind == "closed_loop":
         base = results["No prediction"][0]
-        md += (f"\n\nNo prediction, absolute: trajectory cost {base['trajectory']:.4f}, open-loop cost "
-               f"{base['open_loop']:.4f}, deviation {base['deviation']:.3f} m ({base['scenes']} scenes).")
+        md += (
+            f"\n\nNo prediction, absolute: trajectory cost {base['trajectory']:.4f}, open-loop "
+            f"cost {base['open_loop']:.4f}, deviation {base['deviation']:.3f} m "
+            f"({base['scenes']} scenes)."
+        )
     return md
 
 
 def paper_markdown(spec: TableSpec) -> str:
     """The paper's numbers for the same columns ('--': not reported)."""
+
     def rows(paper):
-        return [[name] + [("{:.2f}".format(vals[c.header]) if c.header in vals else "--") for c in spec.columns]
-                for name, vals in paper.items()]
+        return [
+            [name]
+            + [
+                ("{:.2f}".format(vals[c.header]) if c.header in vals else "--")
+                for c in spec.columns
+            ]
+            for name, vals in paper.items()
+        ]
+
     head = ["Method (paper)"] + [c.header for c in spec.columns]
     if spec.kind == "ablation":
-        return "\n\n".join(markdown_table([f"{t} (paper)"] + head[1:], rows(paper)) for t, paper in spec.paper.items())
+        return "\n\n".join(
+            markdown_table([f"{t} (paper)"] + head[1:], rows(paper))
+            for t, paper in spec.paper.items()
+        )
     return markdown_table(head, rows(spec.paper))
 
 
 # --------------------------------------------------------------------------------------------
-# 6.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
+# 5.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
 # --------------------------------------------------------------------------------------------
-# A table's pieces, and its trained predictors, are kept and resumed by runs.RunStore (runs.py: where, which key).
+# A table's pieces, and its trained predictors, are kept and resumed by runs.RunStore (runs.py:
+# where, which key).
 
 
 class Piece(NamedTuple):
-    """One result of a table: a method (Table 3: its one row, both weightings) and a seed; section: the ablation
-    section's title, or the goal table's goal (None elsewhere)."""
+    """One result of a table: a method (Table 3: its one row, both weightings) and a seed; section:
+    the ablation section's title, or the goal table's goal (None elsewhere)."""
 
     method: str
     seed: int
@@ -679,13 +882,23 @@ class Piece(NamedTuple):
 
     @property
     def stem(self) -> str:
-        slug = lambda text: re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")  # noqa: E731
-        return (f"{slug(self.section)}--" if self.section is not None else "") + f"{slug(self.method)}-seed{self.seed}"
+
+        def slug(text):
+            return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")
+
+        return (
+            f"{slug(self.section)}--" if self.section is not None else ""
+        ) + f"{slug(self.method)}-seed{self.seed}"
 
 
 def _rows(methods, seeds, section=None) -> list:
-    """The pieces of some methods: every seed of a learned one, the first seed only of the others (no training)."""
-    return [Piece(m.name, s, section) for m in methods for s in (seeds if m.predictor == "learned" else seeds[:1])]
+    """The pieces of some methods: every seed of a learned one, the first seed only of the others
+    (no training)."""
+    return [
+        Piece(m.name, s, section)
+        for m in methods
+        for s in (seeds if m.predictor == "learned" else seeds[:1])
+    ]
 
 
 def _ablation_methods(methods) -> tuple:
@@ -693,7 +906,8 @@ def _ablation_methods(methods) -> tuple:
 
 
 def table_seeds(spec: TableSpec, seeds=None) -> tuple:
-    """The training seeds of a table: those given, else the spec's own count (Table 1: 10, the others 5)."""
+    """The training seeds of a table: those given, else the spec's own count (Table 1: 10, the
+    others 5)."""
     return tuple(range(spec.seeds)) if seeds is None else tuple(seeds)
 
 
@@ -703,7 +917,11 @@ def table_pieces(spec: TableSpec, seeds) -> list:
     if spec.kind == "cost":
         return [Piece(spec.methods[0].name, s) for s in seeds]
     if spec.kind == "ablation":
-        return [p for title, _, methods in ABLATION_SECTIONS for p in _rows(_ablation_methods(methods), seeds, title)]
+        return [
+            p
+            for title, _, methods in ABLATION_SECTIONS
+            for p in _rows(_ablation_methods(methods), seeds, title)
+        ]
     if spec.kind == "goal":
         return [p for goal in GOALS for p in _rows(spec.methods, seeds, goal)]
     return _rows(spec.methods, seeds)
@@ -713,45 +931,98 @@ def piece_method(spec: TableSpec, piece: Piece) -> tuple:
     """(method, setting, target offset, run_stack options) of a piece of any table but Table 3."""
     if spec.kind == "ablation":
         _, stack_kw, methods = next(s for s in ABLATION_SECTIONS if s[0] == piece.section)
-        return next(m for m in _ablation_methods(methods) if m.name == piece.method), "rl", 0.0, stack_kw
-    return next(m for m in spec.methods if m.name == piece.method), spec.setting, spec.pred_offset, {}
+        return (
+            next(m for m in _ablation_methods(methods) if m.name == piece.method),
+            "rl",
+            0.0,
+            stack_kw,
+        )
+    return (
+        next(m for m in spec.methods if m.name == piece.method),
+        spec.setting,
+        spec.pred_offset,
+        {},
+    )
 
 
-COST_WEIGHTS = "cost weights"  # the first item of Table 3's cost-weight training in piece_trainings' keys
+# the first item of Table 3's cost-weight training in piece_trainings' keys
+COST_WEIGHTS = "cost weights"
 
 
 def piece_trainings(spec: TableSpec, piece: Piece, cfg: Config, epochs, device="cpu") -> tuple:
-    """What a piece trains unless another piece has trained it already (timed_piece's 'trained'): its predictor's
-    training_key as compute_piece's, and Table 3's cost weights; () for No prediction, GT prediction, the goal table."""
+    """What a piece trains unless another piece has trained it already (timed_piece's 'trained'):
+    its predictor's training_key as compute_piece's, and Table 3's cost weights; () for No
+    prediction, GT prediction, the goal table."""
     if spec.kind == "cost":
-        return (training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device), (COST_WEIGHTS, piece.seed))
+        return (
+            training_key(Method("Standard"), cfg, "il", epochs, piece.seed, 0.0, device),
+            (COST_WEIGHTS, piece.seed),
+        )
     m, setting, pred_offset, stack_kw = piece_method(spec, piece)
     if spec.kind == "goal" or m.predictor != "learned":
         return ()
     return (training_key(m, cfg, setting, epochs, piece.seed, pred_offset, device, **stack_kw),)
 
 
-def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=print, models=None, device="cpu",
-                  store=None):
-    """Train (or take from models / store) and evaluate one piece: (its result before the values relative to No
-    prediction, which assemble adds; a dict of tensors to keep beside it or None). A training that diverges is a
-    result too ({'diverged': what}: a resumed run does not retrain it, and the table says which seed is left out)."""
+def compute_piece(
+    spec: TableSpec,
+    piece: Piece,
+    data,
+    cfg: Config,
+    epochs,
+    log=print,
+    models=None,
+    device="cpu",
+    store=None,
+):
+    """Train (or take from models / store) and evaluate one piece: (its result before the values
+    relative to No prediction, which assemble adds; a dict of tensors to keep beside it or None). A
+    training that diverges is a result too ({'diverged': what}: a resumed run does not retrain it,
+    and the table says which seed is left out)."""
     if spec.kind not in ("open_loop", "real", "ablation", "goal", "closed_loop", "cost"):
         raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
     try:
         if spec.kind == "cost":
-            return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
+            return cost_learning_seed(
+                data, cfg, piece.seed, epochs, log, models, device, store
+            ), None
         m, setting, pred_offset, stack_kw = piece_method(spec, piece)
         if spec.kind == "goal":
-            return goal_breakdown(data.val, m, dataclasses.replace(cfg, goal=piece.section), device), None
+            return goal_breakdown(
+                data.val, m, dataclasses.replace(cfg, goal=piece.section), device
+            ), None
         if spec.kind == "closed_loop":
             scenes = closed_loop_scenes(data.val_scenes, cfg)
-            r, roll, per_scene = closed_loop_run(m, piece.seed, scenes, data, cfg, epochs, log=log, models=models,
-                                                 device=device, store=store)
+            r, roll, per_scene = closed_loop_run(
+                m,
+                piece.seed,
+                scenes,
+                data,
+                cfg,
+                epochs,
+                log=log,
+                models=models,
+                device=device,
+                store=store,
+            )
             return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
-        train = lambda m, *a, **k: trained_predictor(m, *a, models=models, store=store, **k)  # noqa: E731
-        return compare_methods(data, cfg, setting, (m,), (piece.seed,), epochs, pred_offset, log, train, device,
-                               **stack_kw)[m.name][0], None
+
+        def train(m, *a, **k):
+            return trained_predictor(m, *a, models=models, store=store, **k)
+
+        return compare_methods(
+            data,
+            cfg,
+            setting,
+            (m,),
+            (piece.seed,),
+            epochs,
+            pred_offset,
+            log,
+            train,
+            device,
+            **stack_kw,
+        )[m.name][0], None
     except TrainingDiverged as e:
         if log:
             log(f"  {piece.stem}: {e}")
@@ -759,20 +1030,32 @@ def compute_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log=
 
 
 def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
-    """A table's results from its pieces {Piece: result}, as its experiment function returns them in one run."""
+    """A table's results from its pieces {Piece: result}, as its experiment function returns them
+    in one run."""
     seeds = tuple(seeds)
 
     def rows(methods, section=None):
-        return {m.name: [json.loads(json.dumps(pieces[Piece(m.name, s, section)]))  # a copy: the relative values are added
-                         for s in (seeds if m.predictor == "learned" else seeds[:1])] for m in methods}
+        # a copy: the relative values are added
+        return {
+            m.name: [
+                json.loads(json.dumps(pieces[Piece(m.name, s, section)]))
+                for s in (seeds if m.predictor == "learned" else seeds[:1])
+            ]
+            for m in methods
+        }
 
     if spec.kind in ("open_loop", "real"):
         return add_relative(rows(spec.methods), spec.setting)
     if spec.kind == "ablation":
-        return {title: add_relative(rows(_ablation_methods(methods), title), "rl") for title, _, methods in ABLATION_SECTIONS}
+        return {
+            title: add_relative(rows(_ablation_methods(methods), title), "rl")
+            for title, _, methods in ABLATION_SECTIONS
+        }
     if spec.kind == "cost":
         runs = [pieces[Piece(spec.methods[0].name, s)] for s in seeds]
-        return {name: [r[name] if name in r else r for r in runs] for name in ("Hand-tuned", "Learned")}
+        return {
+            name: [r[name] if name in r else r for r in runs] for name in ("Hand-tuned", "Learned")
+        }
     if spec.kind == "goal":
         return {goal: rows(spec.methods, goal) for goal in GOALS}
     if spec.kind == "closed_loop":
@@ -780,58 +1063,104 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
     raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
 
 
-def timed_piece(spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store):
-    """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds': wall, 'cpu_seconds':
-    this process's CPU, 'machine': train.machine() (the same seed gives other numbers on another kind of processor),
-    'trained': it trained something no piece had trained before it (piece_trainings)})."""
-    def trained_before(key) -> bool:  # by an earlier piece: in this process's models, or in the store on disk
+def timed_piece(
+    spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store
+):
+    """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds':
+    wall, 'cpu_seconds': this process's CPU, 'machine': train.machine() (the same seed gives other
+    numbers on another kind of processor), 'trained': it trained something no piece had trained
+    before it (piece_trainings)})."""
+
+    # by an earlier piece: in this process's models, or in the store on disk
+    def trained_before(key) -> bool:
         path = store.model_path(key) if store is not None and key[0] != COST_WEIGHTS else None
         return key in (models or {}) or (path is not None and path.exists())
 
-    trains = not all(trained_before(key) for key in piece_trainings(spec, piece, cfg, epochs, device))
+    trains = not all(
+        trained_before(key) for key in piece_trainings(spec, piece, cfg, epochs, device)
+    )
     t0, c0 = time.time(), time.process_time()
     result, extra = compute_piece(spec, piece, data, cfg, epochs, log, models, device, store)
-    return result, extra, dict(seconds=time.time() - t0, cpu_seconds=time.process_time() - c0, machine=machine(),
-                               trained=trains)
+    return (
+        result,
+        extra,
+        dict(
+            seconds=time.time() - t0,
+            cpu_seconds=time.process_time() - c0,
+            machine=machine(),
+            trained=trains,
+        ),
+    )
 
 
 def run_about(spec: TableSpec, store: RunStore, cfg: Config, epochs, device, data) -> dict:
     """What a table's run key stands for (run.json in its folder of pieces)."""
-    return dict(table=spec.name, run_key=store.key, config=dataclasses.asdict(cfg), epochs=epochs,
-                code=code_version() if store.root is not None else None, device=str(device),
-                train=len(data.train), val=len(data.val))
+    return dict(
+        table=spec.name,
+        run_key=store.key,
+        config=dataclasses.asdict(cfg),
+        epochs=epochs,
+        code=code_version() if store.root is not None else None,
+        device=str(device),
+        train=len(data.train),
+        val=len(data.val),
+    )
 
 
-def _compute(table: str, piece: Piece, log, models, store, data=None, cfg=None, epochs=1.0, device="cpu"):
+def _compute(
+    table: str, piece: Piece, log, models, store, data=None, cfg=None, epochs=1.0, device="cpu"
+):
     """timed_piece of the table named `table`: what a worker process computes (in_workers)."""
     return timed_piece(SPECS[table], piece, data, cfg, epochs, log, models, device, store)
 
 
-def in_workers(units: list, data, cfg: Config, epochs, device, store: RunStore, jobs: int, verbose=True):
-    """runs.compute_in_workers of units (table name, pieces of one seed), computed by timed_piece."""
+def in_workers(
+    units: list, data, cfg: Config, epochs, device, store: RunStore, jobs: int, verbose=True
+):
+    """runs.compute_in_workers of units (table name, pieces of one seed), computed by
+    timed_piece."""
     compute = functools.partial(_compute, data=data, cfg=cfg, epochs=epochs, device=device)
     abouts = {name: run_about(SPECS[name], store, cfg, epochs, device, data) for name, _ in units}
     compute_in_workers(compute, units, store, jobs, abouts, verbose)
 
 
 def work_units(names, seeds: dict, store: RunStore) -> list:
-    """The missing pieces of several tables as units for in_workers, one per (table, ablation section, seed): the
-    longest (the ablation's) first, so that the short ones fill the workers at the end; within a table the seeds
-    alternate, so that two workers never train the same predictor (the later units load it from the store)."""
+    """The missing pieces of several tables as units for in_workers, one per (table, ablation
+    section, seed): the longest (the ablation's) first, so that the short ones fill the workers at
+    the end; within a table the seeds alternate, so that two workers never train the same predictor
+    (the later units load it from the store)."""
     units = []
     for name in sorted(names, key=lambda n: SPECS[n].kind != "ablation"):
         pieces = [p for p in table_pieces(SPECS[name], seeds[name]) if not store.has(name, p)]
-        units += [(name, unit) for section in dict.fromkeys(p.section for p in pieces) for seed in seeds[name]
-                  if (unit := [p for p in pieces if p.section == section and p.seed == seed])]
+        units += [
+            (name, unit)
+            for section in dict.fromkeys(p.section for p in pieces)
+            for seed in seeds[name]
+            if (unit := [p for p in pieces if p.section == section and p.seed == seed])
+        ]
     return units
 
 
-def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_dir="results", log=print, models=None,
-              device="cpu", write=True, store=None, jobs=1):
-    """Train and evaluate what a table's spec declares on `device`, its figures into out_dir if `write`. models: the
-    predictors the tables of one run share; store: a RunStore keeping every piece (None: in memory); jobs > 1 (a store
-    on disk): the seeds' pieces in that many one-thread worker processes. Returns (results, markdown table)."""
-    seeds, out = tuple(seeds), pathlib.Path(out_dir)
+def run_table(
+    spec: TableSpec,
+    data,
+    cfg: Config,
+    seeds=(0,),
+    epochs=1.0,
+    out_dir="results",
+    log=print,
+    models=None,
+    device="cpu",
+    write=True,
+    store=None,
+    jobs=1,
+):
+    """Train and evaluate what a table's spec declares on `device`, its figures into out_dir if
+    `write`. models: the predictors the tables of one run share; store: a RunStore keeping every
+    piece (None: in memory); jobs > 1 (a store on disk): the seeds' pieces in that many one-thread
+    worker processes. Returns (results, markdown table)."""
+    seeds = tuple(seeds)
+    out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     models = {} if models is None else models
     store = RunStore(None, "") if store is None else store
@@ -842,34 +1171,66 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
     missing = [p for p in pieces if not store.has(spec.name, p)]
     if log and len(missing) < len(pieces):
         reused = [p.stem for p in pieces if p not in missing]
-        log(f"{spec.name}: {len(reused)} of {len(pieces)} pieces done by an earlier run of the same key, reused from "
-            f"{store.table_dir(spec.name) if store.root is not None else 'memory'}: {', '.join(reused)}")
-    by_seed = {s: [p for p in missing if p.seed == s] for s in dict.fromkeys(p.seed for p in missing)}
+        log(
+            f"{spec.name}: {len(reused)} of {len(pieces)} pieces done by an earlier run of the "
+            "same key, reused from "
+            f"{store.table_dir(spec.name) if store.root is not None else 'memory'}: "
+            f"{', '.join(reused)}"
+        )
+    by_seed = {
+        s: [p for p in missing if p.seed == s] for s in dict.fromkeys(p.seed for p in missing)
+    }
     if jobs > 1 and store.root is not None and len(by_seed) > 1:
         if log:
-            log(f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in {min(jobs, len(by_seed))} worker "
-                f"processes, one thread each")
-        in_workers([(spec.name, ps) for ps in by_seed.values()], data, cfg, epochs, device, store, jobs,
-                   log is not None)
+            log(
+                f"{spec.name}: {len(missing)} pieces of {len(by_seed)} seeds in "
+                f"{min(jobs, len(by_seed))} worker processes, one thread each"
+            )
+        in_workers(
+            [(spec.name, ps) for ps in by_seed.values()],
+            data,
+            cfg,
+            epochs,
+            device,
+            store,
+            jobs,
+            log is not None,
+        )
     else:
         for p in missing:
-            result, extra, timing = timed_piece(spec, p, data, cfg, epochs, log, models, device, store)
+            result, extra, timing = timed_piece(
+                spec, p, data, cfg, epochs, log, models, device, store
+            )
             store.save(spec.name, p, result, extra, about, timing)
     loaded = {p: store.load(spec.name, p) for p in pieces}
     res = assemble(spec, {p: r for p, (r, _) in loaded.items()}, seeds)
 
     def first_pair():  # the first seed's Standard and DiffStack, the predictors the figures compare
-        return {m.name: trained_predictor(m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device,
-                                          store=store) for m in spec.methods[1:3]}
+        return {
+            m.name: trained_predictor(
+                m, data, cfg, "rl", epochs, seeds[0], log, models=models, device=device, store=store
+            )
+            for m in spec.methods[1:3]
+        }
+
     if write and spec.kind == "cost":
         figures.figure_cost_weights(res, out / "cost_weights.png")
     elif write and "learning_curves.png" in spec.figures and has_curves(res):
-        figures.figure_learning_curves(res, out / "learning_curves.png",
-                                       figures.learning_curve_reference(data, cfg, CURVE_SAMPLES))
-    elif write and spec.kind == "closed_loop":  # the first seed's rollouts (a diverged training has none)
-        rollouts = {p.method: (Rollout(**extra["rollout"]), extra["per_scene"]) for p, (_, extra) in loaded.items()
-                    if p.seed == seeds[0] and extra is not None}
-        figures.figure_closed_loop(closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt)
+        figures.figure_learning_curves(
+            res,
+            out / "learning_curves.png",
+            figures.learning_curve_reference(data, cfg, CURVE_SAMPLES),
+        )
+    elif write and spec.kind == "closed_loop":
+        # the first seed's rollouts (a diverged training has none)
+        rollouts = {
+            p.method: (Rollout(**extra["rollout"]), extra["per_scene"])
+            for p, (_, extra) in loaded.items()
+            if p.seed == seeds[0] and extra is not None
+        }
+        figures.figure_closed_loop(
+            closed_loop_scenes(data.val_scenes, cfg), rollouts, out / "closed_loop.png", cfg.dt
+        )
         try:
             figures.figure_stack_example(data, first_pair(), cfg, out / "stack_example.png")
         except TrainingDiverged as e:  # the figure needs seed 0's two predictors
@@ -881,14 +1242,22 @@ def run_table(spec: TableSpec, data, cfg: Config, seeds=(0,), epochs=1.0, out_di
 
 
 def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
-    """Before any work: out_dir must be writable, and no file a run of these tables would write may exist already
-    unless overwrite or it is in ours (runs.refuse_existing). OutputRefused naming the folder or the files."""
-    here, out = pathlib.Path(__file__).resolve().parent, pathlib.Path(out_dir).resolve()
-    inside = lambda folder: folder == out or folder in out.parents  # noqa: E731
-    if REAL.name in names and inside(here) and not inside(here / "runs"):  # before check_writable makes the folder
-        raise OutputRefused(f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose "
-                            f"licence forbids committing them; inside this repository they go under runs/ (git-ignored; "
-                            f"default {REAL_OUT}/), or write them outside it")
+    """Before any work: out_dir must be writable, and no file a run of these tables would write may
+    exist already unless overwrite or it is in ours (runs.refuse_existing). OutputRefused naming the
+    folder or the files."""
+    here = pathlib.Path(__file__).resolve().parent
+    out = pathlib.Path(out_dir).resolve()
+
+    def inside(folder):
+        return folder == out or folder in out.parents
+
+    # before check_writable makes the folder
+    if REAL.name in names and inside(here) and not inside(here / "runs"):
+        raise OutputRefused(
+            f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose "
+            "licence forbids committing them; inside this repository they go under runs/ "
+            f"(git-ignored; default {REAL_OUT}/), or write them outside it"
+        )
     try:
         check_writable(out_dir, "--out")
     except ValueError as e:
@@ -897,27 +1266,37 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
 
 
 def write_report(out_dir, sections, metas=(), rendered=False, tables=None) -> pathlib.Path:
-    """out_dir/report.md: sections, a list of (title, markdown, [figure files in out_dir]), each figure linked below
-    its section, after the paper-vs-here card of tables {name: results} (claims_card). Its first line says when, where
-    and on which device the tables were made, from their metas, and when it was re-rendered from them (--render);
-    without metas, this process's date and machine."""
+    """out_dir/report.md: sections, a list of (title, markdown, [figure files in out_dir]), each
+    figure linked below its section, after the paper-vs-here card of tables {name: results}
+    (claims_card). Its first line says when, where and on which device the tables were made, from
+    their metas, and when it was re-rendered from them (--render); without metas, this process's
+    date and machine."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if metas:
         dates = sorted({m["date"] for m in metas})
         when = dates[0] if len(dates) == 1 else f"{dates[0]} to {dates[-1]}"
-        header = (f"Tables made {when} on {'; '.join(dict.fromkeys(m['machine'] for m in metas))}, device "
-                  f"{', '.join(dict.fromkeys(m.get('device', 'cpu') for m in metas))}")
+        header = (
+            f"Tables made {when} on {'; '.join(dict.fromkeys(m['machine'] for m in metas))}, "
+            f"device {', '.join(dict.fromkeys(m.get('device', 'cpu') for m in metas))}"
+        )
         if any(m.get("computed_on") for m in metas):  # a run resumed on other machines
             header += " (pieces computed on several machines: see the sections)"
-        header += f" (rendered {time.strftime('%Y-%m-%d')} from their JSON files)" if rendered else ""
+        header += (
+            f" (rendered {time.strftime('%Y-%m-%d')} from their JSON files)" if rendered else ""
+        )
     else:
-        header = (f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, "
-                  f"{torch.get_num_threads()} threads")
+        header = (
+            f"{time.strftime('%Y-%m-%d')}, {machine()}, torch {torch.__version__}, "
+            f"{torch.get_num_threads()} threads"
+        )
     parts = [f"# DiffStack: results\n\n{header}\n"]
     if tables:
-        parts += [f"## The paper's claims, here\n\nEach claim is a two-sided paired t-test over the seeds; reproduced "
-                  f"only at p < 0.05 in the paper's direction.\n\n{claims_card(tables)}\n"]
+        parts += [
+            "## The paper's claims, here\n\nEach claim is a two-sided paired t-test over the "
+            "seeds; reproduced only at p < 0.05 in the paper's "
+            f"direction.\n\n{claims_card(tables)}\n"
+        ]
     for title, md, files in sections:
         parts += [f"## {title}\n\n{md}\n"] + [f"![{f}]({f})\n" for f in files]
     write_atomic(out / "report.md", "\n".join(parts))
@@ -925,22 +1304,37 @@ def write_report(out_dir, sections, metas=(), rendered=False, tables=None) -> pa
 
 
 def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
-    """A table's provenance line (its command, date, machine, device, seconds, commit, and a note if the run has
-    one), the table, and the paper's numbers: the text of its .md file and of its section of the report."""
-    where = [meta["date"], meta["machine"]] + ([f"device {meta['device']}"] if "device" in meta else [])
+    """A table's provenance line (its command, date, machine, device, seconds, commit, and a note if
+    the run has one), the table, and the paper's numbers: the text of its .md file and of its
+    section of the report."""
+    where = [meta["date"], meta["machine"]] + (
+        [f"device {meta['device']}"] if "device" in meta else []
+    )
     where += [f"{meta['seconds']:.0f} s"]
-    if "piece_seconds" in meta:  # a resumed run's own seconds are only what was left; workers overlap
-        where[-1] += (f" wall in this command, {meta['piece_seconds']:.0f} s of computing summed over its "
-                      f"{meta['pieces']} pieces ({meta['piece_cpu_seconds']:.0f} CPU s)")
+    # a resumed run's own seconds are only what was left; workers overlap
+    if "piece_seconds" in meta:
+        where[-1] += (
+            f" wall in this command, {meta['piece_seconds']:.0f} s of computing summed over its "
+            f"{meta['pieces']} pieces ({meta['piece_cpu_seconds']:.0f} CPU s)"
+        )
     where += [f"commit {meta['git_commit']}"] if meta.get("git_commit") else []
     note = f"; {meta['note']}" if meta.get("note") else ""
-    if meta.get("computed_on"):  # a resumed run's pieces from several machines: the same seed differs between them
-        where_ran = ", ".join(f"{m} ({k} piece{'s' * (k > 1)})" for m, k in meta["computed_on"].items())
-        note += (f"; its pieces ran on {len(meta['computed_on'])} machines, and the same seed gives other numbers on "
-                 f"another kind of processor: {where_ran}")
-    return (f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n"
-            + (f"The paper's numbers:\n\n{paper_markdown(spec)}\n" if spec.paper else
-               f"{data_real.WAYMO_LICENCE}.\n" if spec.kind == "real" else ""))
+    # a resumed run's pieces from several machines: the same seed differs between them
+    if meta.get("computed_on"):
+        where_ran = ", ".join(
+            f"{m} ({k} piece{'s' * (k > 1)})" for m, k in meta["computed_on"].items()
+        )
+        note += (
+            f"; its pieces ran on {len(meta['computed_on'])} machines, and the same seed gives "
+            f"other numbers on another kind of processor: {where_ran}"
+        )
+    return f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n" + (
+        f"The paper's numbers:\n\n{paper_markdown(spec)}\n"
+        if spec.paper
+        else f"{data_real.WAYMO_LICENCE}.\n"
+        if spec.kind == "real"
+        else ""
+    )
 
 
 def table_file_markdown(spec: TableSpec, md: str) -> str:
@@ -949,35 +1343,65 @@ def table_file_markdown(spec: TableSpec, md: str) -> str:
 
 
 def render_markdown(name: str, out_dir="results") -> pathlib.Path:
-    """Re-write out_dir/<name>.md from out_dir/<name>.json, running nothing: for when the way a table is written
-    changes (e.g. the claim lines) but its numbers do not. Returns the path written."""
+    """Re-write out_dir/<name>.md from out_dir/<name>.json, running nothing: for when the way a
+    table is written changes (e.g. the claim lines) but its numbers do not. Returns the
+    path written."""
     if name not in SPECS:
         raise ValueError(f"name: {name!r} is not an experiment ({', '.join(SPECS)})")
     src = pathlib.Path(out_dir) / f"{name}.json"
     if not src.exists():
         raise ValueError(f"out_dir: no {src} to render {name} from")
-    saved, spec, path = read_results(src), SPECS[name], src.with_suffix(".md")
-    write_atomic(path, table_file_markdown(spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))))
+    saved = read_results(src)
+    spec = SPECS[name]
+    path = src.with_suffix(".md")
+    write_atomic(
+        path,
+        table_file_markdown(
+            spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))
+        ),
+    )
     return path
 
 
-def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None = None, log=print) -> list:
-    """Re-write the .md files and learning curves (their reference lines when `data` is given) of an earlier run of
-    `name` ('all': every table and report.md) from its JSON files in out_dir, training nothing. Returns the paths."""
+def render_outputs(
+    name: str, out_dir="results", data=None, cfg: Config | None = None, log=print
+) -> list:
+    """Re-write the .md files and learning curves (their reference lines when `data` is given) of an
+    earlier run of `name` ('all': every table and report.md) from its JSON files in out_dir,
+    training nothing. Returns the paths."""
     names = EXPERIMENTS if name == "all" else (name,)
-    out, written, sections, metas, tables = pathlib.Path(out_dir), [], [], [], {}
+    out = pathlib.Path(out_dir)
+    written = []
+    sections = []
+    metas = []
+    tables = {}
     for one in names:
         spec = SPECS[one]
         written.append(render_markdown(one, out))
         saved = read_results(out / f"{one}.json")
         tables[one] = saved["results"]
-        if "learning_curves.png" in spec.figures and has_curves(saved["results"]):  # (none in older runs)
-            cfg_run = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved["meta"]["config"].items()})
-            ref = figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES) if data is not None else None
+        # (none in older runs)
+        if "learning_curves.png" in spec.figures and has_curves(saved["results"]):
+            cfg_run = Config(
+                **{
+                    k: tuple(v) if isinstance(v, list) else v
+                    for k, v in saved["meta"]["config"].items()
+                }
+            )
+            ref = (
+                figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES)
+                if data is not None
+                else None
+            )
             figures.figure_learning_curves(saved["results"], out / "learning_curves.png", ref)
             written.append(out / "learning_curves.png")
-        sections.append((spec.title, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
-                         [f for f in spec.figures if (out / f).exists()]))
+        sections.append(
+            (
+                spec.title,
+                section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
+                [f for f in spec.figures if (out / f).exists()],
+            )
+        )
         metas.append(saved["meta"])
     if name == "all":
         written.append(write_report(out, sections, metas, rendered=True, tables=tables))
@@ -986,64 +1410,127 @@ def render_outputs(name: str, out_dir="results", data=None, cfg: Config | None =
     return written
 
 
-def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", command="", log=print, overwrite=False,
-                   device="cpu", write=True, jobs=1, progress_every=2.0):
-    """Run one table (or 'all', each predictor trained once for every table) on `device`, writing out_dir/<name>.json
-    (results, the full Config, the device, the git commit), .md and the figures (for 'all', report.md too) unless
-    write=False (torchrun's other ranks). Every piece is kept in out_dir/.runs/: re-running the command resumes it.
-    A progress bar while log and write. OutputRefused when a file it would write exists, unless overwrite or this
-    same run wrote it as is."""
+def run_experiment(
+    name,
+    data,
+    cfg: Config,
+    seeds,
+    epochs,
+    out_dir="results",
+    command="",
+    log=print,
+    overwrite=False,
+    device="cpu",
+    write=True,
+    jobs=1,
+    progress_every=2.0,
+):
+    """Run one table (or 'all', each predictor trained once for every table) on `device`, writing
+    out_dir/<name>.json (results, the full Config, the device, the git commit), .md and the figures
+    (for 'all', report.md too) unless write=False (torchrun's other ranks). Every piece is kept in
+    out_dir/.runs/: re-running the command resumes it. A progress bar while log and write.
+    OutputRefused when a file it would write exists, unless overwrite or this same run wrote
+    it as is."""
     names = EXPERIMENTS if name == "all" else (name,)
-    out, per_table = pathlib.Path(out_dir), {one: table_seeds(SPECS[one], seeds) for one in names}
+    out = pathlib.Path(out_dir)
+    per_table = {one: table_seeds(SPECS[one], seeds) for one in names}
     seeds = tuple(seeds) if seeds is not None else None
     processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
-    # under torchrun every rank must train the same pieces together: nothing is kept or resumed there
+    # under torchrun every rank must train the same pieces together: nothing is kept or
+    # resumed there
     root = out / RUNS_DIR if write and processes == 1 else None
-    if root is None or not (root / "outputs").is_dir():  # no run wrote outputs here: check before hashing the data
+    # no run wrote outputs here: check before hashing the data
+    if root is None or not (root / "outputs").is_dir():
         check_outputs(names, out_dir, overwrite)
     store = RunStore(root, run_key(data, cfg, epochs, device))
     manifest = outputs_manifest(out, name, seeds or (), store.key)
-    check_outputs(names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ())
-    sections, metas, models, tables = [], [], {}, {}
+    check_outputs(
+        names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ()
+    )
+    sections = []
+    metas = []
+    models = {}
+    tables = {}
     all_pieces = [(one, p) for one in names for p in table_pieces(SPECS[one], per_table[one])]
     # worker processes only where there are seeds to share out (the goal table has one run per row)
-    jobs = max(1, min(jobs, len({p.seed for _, p in all_pieces}))) if write and processes == 1 else 1
+    jobs = (
+        max(1, min(jobs, len({p.seed for _, p in all_pieces}))) if write and processes == 1 else 1
+    )
     if store.root is not None and log:
-        log(f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in {out / RUNS_DIR} as "
-            f"they finish" + (f"; {jobs} worker processes of one thread" if jobs > 1 else ""))
+        log(
+            f"run key {store.key[:16]}: {len(all_pieces)} pieces (table, method, seed), kept in "
+            f"{out / RUNS_DIR} as they finish"
+            + (f"; {jobs} worker processes of one thread" if jobs > 1 else "")
+        )
     with progress(store, all_pieces, progress_every, disable=not (log and write)) as bar:
         log = above(bar, log) if log else log
-        units = work_units(names, per_table, store) if jobs > 1 and store.root is not None and len(names) > 1 else []
-        if units:  # every table's pieces in one pool of workers (then each table below finds its pieces done)
+        units = (
+            work_units(names, per_table, store)
+            if jobs > 1 and store.root is not None and len(names) > 1
+            else []
+        )
+        # every table's pieces in one pool of workers (then each table below finds its pieces done)
+        if units:
             if log:
-                log(f"{sum(len(u) for _, u in units)} pieces in {len(units)} units (table, seed) over {jobs} worker "
-                    f"processes, one thread each")
+                log(
+                    f"{sum(len(u) for _, u in units)} pieces in {len(units)} units (table, seed) "
+                    f"over {jobs} worker processes, one thread each"
+                )
             in_workers(units, data, cfg, epochs, device, store, jobs, log is not None)
         for one in names:
-            spec, t0, seeds_one = SPECS[one], time.time(), per_table[one]
-            res, table = run_table(spec, data, cfg, seeds_one, epochs, out, log, models, device, write, store, jobs)
+            spec = SPECS[one]
+            t0 = time.time()
+            seeds_one = per_table[one]
+            res, table = run_table(
+                spec, data, cfg, seeds_one, epochs, out, log, models, device, write, store, jobs
+            )
             tables[one] = res
-            threads = (f"{torch.get_num_threads()} threads" if jobs == 1 else
-                       f"1 thread per process, {jobs} worker processes (--jobs)")
-            timings, piece_time = [store.timing(one, p) for p in table_pieces(spec, seeds_one)], {}
-            if timings and all(timings):  # the table's computing time, summed over its pieces, whenever they ran
-                piece_time = dict(piece_seconds=sum(t["seconds"] for t in timings),
-                                  piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
+            threads = (
+                f"{torch.get_num_threads()} threads"
+                if jobs == 1
+                else f"1 thread per process, {jobs} worker processes (--jobs)"
+            )
+            timings = [store.timing(one, p) for p in table_pieces(spec, seeds_one)]
+            piece_time = {}
+            # the table's computing time, summed over its pieces, whenever they ran
+            if timings and all(timings):
+                piece_time = dict(
+                    piece_seconds=sum(t["seconds"] for t in timings),
+                    piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings),
+                    pieces=len(timings),
+                )
             computed_on = collections.Counter(t["machine"] for t in timings if t and "machine" in t)
             if len(computed_on) > 1:  # not all on one machine (a run resumed on another host, say)
                 piece_time["computed_on"] = dict(computed_on)
-            meta = dict(experiment=one, command=command, seeds=list(seeds_one), epochs=epochs, seconds=time.time() - t0,
-                        **piece_time, date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val),
-                        data_seeds=list(seeds_one) if data.train_draws is not None else None,
-                        machine=f"{machine()}, torch {torch.__version__}, {threads}"
-                                + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
-                        device=str(device), git_commit=git_commit(), config=dataclasses.asdict(cfg))
+            meta = dict(
+                experiment=one,
+                command=command,
+                seeds=list(seeds_one),
+                epochs=epochs,
+                seconds=time.time() - t0,
+                **piece_time,
+                date=time.strftime("%Y-%m-%d"),
+                train=len(data.train),
+                val=len(data.val),
+                data_seeds=list(seeds_one) if data.train_draws is not None else None,
+                machine=f"{machine()}, torch {torch.__version__}, {threads}"
+                + (f" per process, {processes} processes (DDP)" if processes > 1 else ""),
+                device=str(device),
+                git_commit=git_commit(),
+                config=dataclasses.asdict(cfg),
+            )
             md = section_markdown(spec, meta, table) if write else table
             if write:
-                write_atomic(out / f"{one}.json", results_json(dict(meta=meta, results=res), str(out / f"{one}.json")))
+                write_atomic(
+                    out / f"{one}.json",
+                    results_json(dict(meta=meta, results=res), str(out / f"{one}.json")),
+                )
                 write_atomic(out / f"{one}.md", table_file_markdown(spec, md))
                 if store.root is not None:
-                    record_outputs(manifest, [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures])
+                    record_outputs(
+                        manifest,
+                        [out / f"{one}.json", out / f"{one}.md"] + [out / f for f in spec.figures],
+                    )
                 metas.append(meta)
                 if log:
                     log(f"\n{spec.title}\n{table}")
@@ -1051,8 +1538,16 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
     timings = [store.timing(one, p) for one, p in all_pieces] if store.root is not None else []
     if log and timings and all(timings):
         total = sum(t["seconds"] for t in timings)
-        log(f"computing time summed over the {len(timings)} pieces (whenever they ran): {tqdm.format_interval(total)}"
-            + (f", {tqdm.format_interval(total / jobs)} of wall time on {jobs} workers sharing it evenly" if jobs > 1 else ""))
+        log(
+            f"computing time summed over the {len(timings)} pieces (whenever they ran): "
+            f"{tqdm.format_interval(total)}"
+            + (
+                f", {tqdm.format_interval(total / jobs)} of wall time on {jobs} workers sharing "
+                "it evenly"
+                if jobs > 1
+                else ""
+            )
+        )
     if name == "all" and write:
         report = write_report(out, sections, metas, tables=tables)
         if store.root is not None:
@@ -1063,90 +1558,166 @@ def run_experiment(name, data, cfg: Config, seeds, epochs, out_dir="results", co
 
 
 class RealData(NamedTuple):
-    """Training samples (synthetic), and the real samples as the validation side, grouped by scene."""
+    """Training samples (synthetic), and the real samples as the validation side, grouped
+    by scene."""
 
     train: data_synth.Scenarios
     val: data_synth.Scenarios
     val_scenes: None = None  # no closed loop on the real logs
     val_groups: dict = {}  # {scene name: number of its samples}, in the order of val
-    train_draws: tuple | None = None  # the synthetic training draws, one per seed (Dataset.train_for)
+    # the synthetic training draws, one per seed (Dataset.train_for)
+    train_draws: tuple | None = None
 
     train_for = data_synth.Dataset.train_for
 
 
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
-    """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the validation side."""
+    """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the
+    validation side."""
     real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
-    log(f"real: {report['samples']} samples from {report['files']} Waymo logs ({len(tuple(phases))} 2 Hz phase(s) each), "
-        f"training on {len(data.train)} synthetic samples. {data_real.WAYMO_LICENCE}")
+    log(
+        f"real: {report['samples']} samples from {report['files']} Waymo logs "
+        f"({len(tuple(phases))} 2 Hz phase(s) each), training on {len(data.train)} synthetic "
+        f"samples. {data_real.WAYMO_LICENCE}"
+    )
     return RealData(data.train, real, None, report["samples_per_scene"], data.train_draws)
 
 
 def start_distributed(device: torch.device) -> torch.device:
-    """Join torchrun's process group (named by its environment): gloo on CPUs, nccl on GPUs, each rank on its own,
-    cuda:LOCAL_RANK. Returns this rank's device; train_stack then trains with DistributedDataParallel."""
+    """Join torchrun's process group (named by its environment): gloo on CPUs, nccl on GPUs, each
+    rank on its own, cuda:LOCAL_RANK. Returns this rank's device; train_stack then trains with
+    DistributedDataParallel."""
     if device.type == "cuda":
         local = int(os.environ.get("LOCAL_RANK", 0))
         if local >= torch.cuda.device_count():
-            raise ValueError(f"--device {device}: rank {local} of this machine needs cuda:{local}, but there are "
-                             f"{torch.cuda.device_count()} CUDA devices; start at most that many processes per machine")
+            raise ValueError(
+                f"--device {device}: rank {local} of this machine needs cuda:{local}, but there "
+                f"are {torch.cuda.device_count()} CUDA devices; start at most that many "
+                "processes per machine"
+            )
         device = torch.device("cuda", local)
         torch.cuda.set_device(device)
         dist.init_process_group("nccl", device_id=device)
     elif device.type == "cpu":
         dist.init_process_group("gloo")
     else:
-        raise ValueError(f"--device {device}: torchrun trains on cpu (gloo) or cuda (nccl), not {device.type}")
+        raise ValueError(
+            f"--device {device}: torchrun trains on cpu (gloo) or cuda (nccl), not {device.type}"
+        )
     return device
 
 
 def main(argv=None):
-    # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike; rank 0 prints, writes
+    # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike;
+    # rank 0 prints, writes
     rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
     if world > 1:  # a rank ends with the torchrun that started it, as a --jobs worker with its run
         die_with_parent(os.getppid())
-    ap = argparse.ArgumentParser(description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
-                                             "Under torchrun, on N processes: training with DistributedDataParallel.")
-    if rank != 0:  # the same errors come up on every rank: rank 0 says what they are, the others exit alike
+    ap = argparse.ArgumentParser(
+        description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
+        "Under torchrun, on N processes: training with DistributedDataParallel."
+    )
+    # the same errors come up on every rank: rank 0 says what they are, the others exit alike
+    if rank != 0:
         ap.error = lambda message: sys.exit(2)
-    ap.add_argument("--experiment", choices=EXPERIMENTS + (REAL.name, "all"),  # (required, but by --validation-spread)
-                    help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
-                         f"results/report.md; real: the synthetic-trained stack on three real Waymo scenes (downloaded "
-                         f"once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)")
-    ap.add_argument("--phases", type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"), default=1,
-                    help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: 78 samples)")
-    ap.add_argument("--seeds", type=bounded(int, 1, 100, "--seeds"), default=None,
-                    help="training seeds per method, at most 100 (default: each table's own, 10 for Table 1 and 5 for "
-                         "the others)")
-    ap.add_argument("--epochs", type=bounded(float, 0, 1000, "--epochs"), default=40.0,
-                    help="training epochs per method (default 40, the committed tables': the paper's 20 left Standard "
-                         "short of its plateau on this data, results/epochs20/; fractions allowed; at most 1000)")
-    ap.add_argument("--n", "--samples", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"), default=10000,
-                    help=f"synthetic scenarios per training draw (each seed trains on the training scenes, 85 %%, of "
-                         f"its own draw; default 10000, at most {data_synth.MAX_SAMPLES:,}); under torchrun write "
-                         f"--samples (torchrun's own parser takes --n for an abbreviation of its options)")
-    ap.add_argument("--val", type=bounded(int, 10, data_synth.MAX_SAMPLES, "--val"), default=VAL_N,
-                    help=f"samples of the common validation set every method and seed is evaluated on (default "
-                         f"{VAL_N:,}; scenes of data seed {VAL_SEED}, which no training draw holds)")
-    ap.add_argument("--data", help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data")
-    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=2, help="torch threads (default 2)")
-    ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
-                    help=f"worker processes, one thread each, running a table's seeds in parallel (default: the "
-                         f"machine's cores, here {os.cpu_count()}; 1: one process with --threads threads; 1 under torchrun)")
-    ap.add_argument("--device", type=device_arg, default="cpu",
-                    help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; the data "
-                         "is made and cached on the CPU")
+    ap.add_argument(
+        "--experiment",
+        choices=EXPERIMENTS + (REAL.name, "all"),  # (required, but by --validation-spread)
+        help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
+        "results/report.md; real: the synthetic-trained stack on three real Waymo scenes "
+        f"(downloaded once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)",
+    )
+    ap.add_argument(
+        "--phases",
+        type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"),
+        default=1,
+        help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: "
+        "78 samples)",
+    )
+    ap.add_argument(
+        "--seeds",
+        type=bounded(int, 1, 100, "--seeds"),
+        default=None,
+        help="training seeds per method, at most 100 (default: each table's own, 10 for Table 1 "
+        "and 5 for the others)",
+    )
+    ap.add_argument(
+        "--epochs",
+        type=bounded(float, 0, 1000, "--epochs"),
+        default=40.0,
+        help="training epochs per method (default 40, the committed tables': the paper's 20 "
+        "left Standard short of its plateau on this data, results/epochs20/; fractions allowed; "
+        "at most 1000)",
+    )
+    ap.add_argument(
+        "--n",
+        "--samples",
+        type=bounded(int, 10, data_synth.MAX_SAMPLES, "--n"),
+        default=10000,
+        help="synthetic scenarios per training draw (each seed trains on the training scenes, "
+        f"85 %%, of its own draw; default 10000, at most {data_synth.MAX_SAMPLES:,}); under "
+        "torchrun write --samples (torchrun's own parser takes --n for an abbreviation of its "
+        "options)",
+    )
+    ap.add_argument(
+        "--val",
+        type=bounded(int, 10, data_synth.MAX_SAMPLES, "--val"),
+        default=VAL_N,
+        help=f"samples of the common validation set every method and seed is evaluated on (default "
+        f"{VAL_N:,}; scenes of data seed {VAL_SEED}, which no training draw holds)",
+    )
+    ap.add_argument(
+        "--data",
+        help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data",
+    )
+    ap.add_argument(
+        "--threads",
+        type=bounded(int, 1, 256, "--threads"),
+        default=2,
+        help="torch threads (default 2)",
+    )
+    ap.add_argument(
+        "--jobs",
+        type=bounded(int, 1, 256, "--jobs"),
+        default=None,
+        help="worker processes, one thread each, running a table's seeds in parallel (default: "
+        f"the machine's cores, here {os.cpu_count()}; 1: one process with --threads threads; 1 "
+        "under torchrun)",
+    )
+    ap.add_argument(
+        "--device",
+        type=device_arg,
+        default="cpu",
+        help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; "
+        "the data is made and cached on the CPU",
+    )
     ap.add_argument("--out", help=f"where the results go (default results/; for real, {REAL_OUT}/)")
-    ap.add_argument("--overwrite", action="store_true",
-                    help="replace result files that exist already in --out (without it, the run refuses to start)")
-    ap.add_argument("--render", action="store_true",
-                    help="train nothing: re-write the .md files, the report and the learning curves of an earlier run "
-                         "from its JSON files in --out (after a change to how results are written)")
-    ap.add_argument("--validation-spread", action="store_true",
-                    help="train nothing: print GT prediction's relative hindsight cost on 5 unseen validation draws at "
-                         "about 1,500 samples and at --val's default (validation_spread); about 2 minutes")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a Config field, e.g. --set beta=2 (repeatable)")
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace result files that exist already in --out (without it, the run refuses to "
+        "start)",
+    )
+    ap.add_argument(
+        "--render",
+        action="store_true",
+        help="train nothing: re-write the .md files, the report and the learning curves of an "
+        "earlier run from its JSON files in --out (after a change to how results are written)",
+    )
+    ap.add_argument(
+        "--validation-spread",
+        action="store_true",
+        help="train nothing: print GT prediction's relative hindsight cost on 5 unseen "
+        "validation draws at about 1,500 samples and at --val's default (validation_spread); "
+        "about 2 minutes",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field, e.g. --set beta=2 (repeatable)",
+    )
     args = ap.parse_args(argv)
     if args.validation_spread:
         return print(validation_spread())
@@ -1154,55 +1725,86 @@ def main(argv=None):
         ap.error("the following arguments are required: --experiment")
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     args.out = args.out or (REAL_OUT if args.experiment == REAL.name else "results")
-    launcher = f"torchrun --nproc_per_node {world} experiments.py" if world > 1 else "python experiments.py"
-    command, held = command_line(launcher, argv if argv is not None else sys.argv[1:]), contextlib.ExitStack()
-    # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock); the project's errors and
-    # a file's (a NaN result, a bad JSON) are one line
-    with held, one_line(ap, "the pieces finished so far are kept, and the same command resumes the run"):
+    launcher = (
+        f"torchrun --nproc_per_node {world} experiments.py"
+        if world > 1
+        else "python experiments.py"
+    )
+    command = command_line(launcher, argv if argv is not None else sys.argv[1:])
+    held = contextlib.ExitStack()
+    # rank 0 holds --out from the checks to the end: one run per folder (runs.folder_lock); the
+    # project's errors and a file's (a NaN result, a bad JSON) are one line
+    with (
+        held,
+        one_line(ap, "the pieces finished so far are kept, and the same command resumes the run"),
+    ):
         return _main(ap, args, names, world, rank, command, held)
 
 
 def _main(ap, args, names, world, rank, command, held):
     seeds = range(args.seeds) if args.seeds is not None else None  # (None: each table's own count)
-    if args.render:  # derived files only, from the JSON an earlier run wrote: nothing it made is lost
-        missing = [f"{args.out}/{n}.json" for n in names if not pathlib.Path(args.out, f"{n}.json").exists()]
+    # derived files only, from the JSON an earlier run wrote: nothing it made is lost
+    if args.render:
+        missing = [
+            f"{args.out}/{n}.json"
+            for n in names
+            if not pathlib.Path(args.out, f"{n}.json").exists()
+        ]
         if missing:
             ap.error(f"--render: no results to render from: {', '.join(missing)} missing")
         try:
-            if args.data is not None:  # (its validation scenes draw the learning curves' reference lines)
+            # (its validation scenes draw the learning curves' reference lines)
+            if args.data is not None:
                 data_real.nuscenes_version(args.data)
             held.enter_context(folder_lock(args.out, command))
         except ValueError as e:
             ap.error(str(e))
-        data = (experiment_data(args.n, (0,), args.val, log=print) if args.data is None
-                else data_real.load_data(args.data, args.n, log=print))
+        data = (
+            experiment_data(args.n, (0,), args.val, log=print)
+            if args.data is None
+            else data_real.load_data(args.data, args.n, log=print)
+        )
         return render_outputs(args.experiment, args.out, data)
     try:  # everything that can be checked before the data is made and the first model trained
         cfg = config_with(Config(), args.set)
         if cfg.batch_size % world:
-            raise ValueError(f"--set batch_size={cfg.batch_size}: a training batch must split evenly over the "
-                             f"{world} processes torchrun started; choose a multiple of {world}")
+            raise ValueError(
+                f"--set batch_size={cfg.batch_size}: a training batch must split evenly over the "
+                f"{world} processes torchrun started; choose a multiple of {world}"
+            )
         if args.jobs is not None and args.jobs > 1 and world > 1:
-            raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run without --jobs")
+            raise ValueError(
+                f"--jobs {args.jobs}: under torchrun the processes train together (DDP); run "
+                "without --jobs"
+            )
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
             data_real.nuscenes_version(args.data)
-        check_outputs(names, args.out, args.overwrite,  # an earlier run's files may be ours: run_experiment decides
-                      ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")))
-        check_writable("data_cache", "the data cache (./data_cache)")  # synthetic data, a folder's parse, Waymo
+        check_outputs(
+            names,
+            args.out,
+            args.overwrite,  # an earlier run's files may be ours: run_experiment decides
+            ours=ours_files(args.out, pathlib.Path(args.out, RUNS_DIR, "outputs").glob("*.json")),
+        )
+        # synthetic data, a folder's parse, Waymo
+        check_writable("data_cache", "the data cache (./data_cache)")
         if rank == 0:
             held.enter_context(folder_lock(args.out, command))
         device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
         ap.error(str(e))
     torch.set_num_threads(args.threads)
-    # flushed line by line: a run's log is often a file (a long run in the background), read while it runs
+    # flushed line by line: a run's log is often a file (a long run in the background), read
+    # while it runs
     log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)
 
     def load():  # (the data, None), or (None, why it cannot be made)
         try:
             most = max(len(table_seeds(SPECS[one], seeds)) for one in names)
-            data = (experiment_data(args.n, range(most), args.val, log=log) if args.data is None
-                    else data_real.load_data(args.data, args.n, log=log))
+            data = (
+                experiment_data(args.n, range(most), args.val, log=log)
+                if args.data is None
+                else data_real.load_data(args.data, args.n, log=log)
+            )
             if args.experiment == REAL.name:
                 data = real_data(data, range(args.phases), log=log)
             if "closed_loop" in names:
@@ -1211,8 +1813,9 @@ def _main(ap, args, names, world, rank, command, held):
         except (ValueError, OSError) as e:  # (OSError: a file, or the Waymo download offline)
             return None, str(e)
 
-    # Rank 0 makes (or reads) the data caches first, the others then read them: one process generates or parses,
-    # and if it fails the others hear of it (a broadcast) instead of waiting for it at the first training step.
+    # Rank 0 makes (or reads) the data caches first, the others then read them: one process
+    # generates or parses, and if it fails the others hear of it (a broadcast) instead of waiting
+    # for it at the first training step.
     data, error = load() if rank == 0 else (None, None)
     if world > 1:
         verdict = [error]
@@ -1225,9 +1828,20 @@ def _main(ap, args, names, world, rank, command, held):
             dist.destroy_process_group()
         ap.error(error)
     try:
-        return run_experiment(args.experiment, data, cfg, seeds, args.epochs, args.out, command, log=log,
-                              overwrite=args.overwrite, device=device, write=rank == 0,
-                              jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1))
+        return run_experiment(
+            args.experiment,
+            data,
+            cfg,
+            seeds,
+            args.epochs,
+            args.out,
+            command,
+            log=log,
+            overwrite=args.overwrite,
+            device=device,
+            write=rank == 0,
+            jobs=args.jobs or (1 if world > 1 else os.cpu_count() or 1),
+        )
     finally:
         if world > 1:
             dist.destroy_process_group()

@@ -1,17 +1,20 @@
-"""The run machinery under experiments.py, ignorant of tables: a run's pieces kept on disk as they finish and
-resumed (RunStore), atomic writes, provenance (the run key: config, data, code, device; the git commit), refusing
-to overwrite outputs a run did not make, the worker pool, and the progress bar.
+"""The run machinery under experiments.py, ignorant of tables: a run's pieces kept on disk as they
+finish and resumed (RunStore), atomic writes, provenance (the run key: config, data, code, device;
+the git commit), refusing to overwrite outputs a run did not make, the worker pool, and the
+progress bar.
 
-A piece is one result of a run under a name (a table): anything with a `stem` (its file name) and `_asdict()`
-(a NamedTuple; experiments.Piece). A run's pieces live next to its outputs, in
-<out>/.runs/<name>/<name key>/<piece stem>.json (with a .pt of tensors beside it where it has some), written
-atomically the moment the piece is made. The name key is a hash of the run key and the name; the run key, of
-everything that determines the numbers: the Config, the epochs, the data (a hash of its tensors), the code (a hash
-of the modules that make numbers, code_version) and the device. Re-running the same command loads the finished
-pieces and computes only the missing ones; any change to the config, data or code is another key, so nothing of
-another run is mixed in. The seeds are not part of the key (a piece is one seed), nor is the thread count (it moves
-only the last digits, README Usage). Trained models go in <out>/.runs/models/<run key>/ (RunStore.model_path).
+A piece is one result of a run under a name (a table): anything with a `stem` (its file name) and
+`_asdict()` (a NamedTuple; experiments.Piece). A run's pieces live next to its outputs, in
+<out>/.runs/<name>/<name key>/<piece stem>.json (with a .pt of tensors beside it where it has some),
+written atomically the moment the piece is made. The name key is a hash of the run key and the name;
+the run key, of everything that determines the numbers: the Config, the epochs, the data (a hash of
+its tensors), the code (a hash of the modules that make numbers, code_version) and the device.
+Re-running the same command loads the finished pieces and computes only the missing ones; any change
+to the config, data or code is another key, so nothing of another run is mixed in. The seeds are not
+part of the key (a piece is one seed), nor is the thread count (it moves only the last digits,
+README Usage). Trained models go in <out>/.runs/models/<run key>/ (RunStore.model_path).
 """
+
 from __future__ import annotations
 
 import ast
@@ -46,7 +49,8 @@ def to_json(o):
 
 
 def read_results(path) -> dict:
-    """A results file an earlier run wrote ({'meta': ..., 'results': ...}); ValueError naming the file otherwise."""
+    """A results file an earlier run wrote ({'meta': ..., 'results': ...}); ValueError naming the
+    file otherwise."""
     try:
         saved = json.loads(pathlib.Path(path).read_text())
         if isinstance(saved, dict) and {"meta", "results"} <= saved.keys():
@@ -57,18 +61,26 @@ def read_results(path) -> dict:
 
 
 def results_json(obj, name: str) -> str:
-    """obj as the text of the result file `name`; ValueError naming the first NaN or infinity, never written."""
+    """obj as the text of the result file `name`; ValueError naming the first NaN or infinity,
+    never written."""
     try:
         return json.dumps(obj, indent=1, default=to_json, allow_nan=False)
     except ValueError:
+
         def where(o, path):
             if isinstance(o, float) and not math.isfinite(o):
                 return f"{path} = {o}"
-            for k, v in o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ():
+            for k, v in (
+                o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+            ):
                 if (found := where(v, f"{path}[{k!r}]")) is not None:
                     return found
+
         found = where(json.loads(json.dumps(obj, default=to_json)), "")
-        raise ValueError(f"{name}: {found or 'a value'} is not finite; a result is never written with NaN or infinity") from None
+        raise ValueError(
+            f"{name}: {found or 'a value'} is not finite; a result is never written with NaN or "
+            "infinity"
+        ) from None
 
 
 # ============================================================================================
@@ -76,19 +88,20 @@ def results_json(obj, name: str) -> str:
 # ============================================================================================
 
 
-_UMASK = os.umask(0o022)  # the process's umask, read once at import (reading it means setting it) and put back
+# the process's umask, read once at import (reading it means setting it) and put back
+_UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
 def _usual_permissions(path) -> None:
-    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its files 0600, and a
-    result only its owner can read is no use in a shared lab folder."""
+    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its
+    files 0600, and a result only its owner can read is no use in a shared lab folder."""
     os.chmod(path, 0o666 & ~_UMASK)
 
 
 def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old file intact,
-    and a failed write leaves no temporary file behind."""
+    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old
+    file intact, and a failed write leaves no temporary file behind."""
     path = pathlib.Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -121,22 +134,36 @@ def save_atomic(obj, path) -> None:
 # ============================================================================================
 
 
-NUMBER_MODULES = ("diffstack.py", "train.py", "data_synth.py", "data_real.py", "experiments.py")  # the code a table's numbers come from
+# the code a table's numbers come from
+NUMBER_MODULES = (
+    "diffstack.py",
+    "train.py",
+    "data_synth.py",
+    "data_real.py",
+    "experiments.py",
+    "specs.py",
+)
 
 
 class _NoStrings(ast.NodeTransformer):
-    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring in Config."""
+    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring
+    in Config."""
 
     def visit_Expr(self, node):
-        return None if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str) else node
+        return (
+            None
+            if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)
+            else node
+        )
 
 
-@functools.lru_cache(maxsize=8)  # parsing the three modules takes about 0.4 s; a run asks once per work unit
+# parsing the three modules takes about 0.4 s; a run asks once per work unit
+@functools.lru_cache(maxsize=8)
 def code_of(source: str) -> str:
-    """A module's code without what cannot change a number: its comments, docstrings and layout. The source is
-    parsed, every statement that is only a string (a docstring, a Config field's docstring) dropped, and the tree
-    written back out by ast.unparse, so a re-wrapped line or an edited comment or docstring gives the same text; any
-    other change does."""
+    """A module's code without what cannot change a number: its comments, docstrings and layout. The
+    source is parsed, every statement that is only a string (a docstring, a Config field's
+    docstring) dropped, and the tree written back out by ast.unparse, so a re-wrapped line or an
+    edited comment or docstring gives the same text; any other change does."""
     tree = _NoStrings().visit(ast.parse(source))
     for node in ast.walk(tree):
         if getattr(node, "body", None) == []:  # a function or class that held only its docstring
@@ -145,10 +172,11 @@ def code_of(source: str) -> str:
 
 
 def code_version() -> str:
-    """The code a run's numbers come from: a hash of the code of the modules that make them (NUMBER_MODULES, as
-    code_of reads them), so that any change to their code is a new run, while a commit of the README, the tests or
-    the notebook, or of a comment or docstring, is not. (ast.unparse is Python's own: under another Python version
-    the same code may read as new, a new run, never a mixed one.)"""
+    """The code a run's numbers come from: a hash of the code of the modules that make them
+    (NUMBER_MODULES, as code_of reads them), so that any change to their code is a new run, while a
+    commit of the README, the tests or the notebook, or of a comment or docstring, is not.
+    (ast.unparse is Python's own: under another Python version the same code may read as new, a new
+    run, never a mixed one.)"""
     here = pathlib.Path(__file__).resolve().parent
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
@@ -157,15 +185,16 @@ def code_version() -> str:
 
 
 def data_fingerprint(data) -> str:
-    """A hash of the data's tensors (each part of `data` with a tensors() dict; a part that is a dict or None, as
-    JSON): the same samples give the same fingerprint whichever file or folder they came from. About 0.1 s for
-    10 000 samples."""
+    """A hash of the data's tensors (each part of `data` with a tensors() dict; a part that is a
+    dict or None, as JSON): the same samples give the same fingerprint whichever file or folder they
+    came from. About 0.1 s for 10 000 samples."""
     h = hashlib.sha256()
     for part in data:
         if part is None or isinstance(part, dict):
             h.update(json.dumps(part, sort_keys=True).encode())
             continue
-        for one in part if isinstance(part, tuple) else (part,):  # (a tuple: the training draws, one per seed)
+        # (a tuple: the training draws, one per seed)
+        for one in part if isinstance(part, tuple) else (part,):
             for name, t in sorted(one.tensors().items()):
                 h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
                 h.update(t.detach().cpu().contiguous().numpy().tobytes())
@@ -173,14 +202,23 @@ def data_fingerprint(data) -> str:
 
 
 def run_key(data, cfg, epochs, device="cpu") -> str:
-    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same thread count)."""
-    return sha(dict(config=dataclasses.asdict(cfg), epochs=float(epochs), data=data_fingerprint(data),
-                    code=code_version(), device=str(device)))
+    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same
+    thread count)."""
+    return sha(
+        dict(
+            config=dataclasses.asdict(cfg),
+            epochs=float(epochs),
+            data=data_fingerprint(data),
+            code=code_version(),
+            device=str(device),
+        )
+    )
 
 
 def command_line(launcher: str, argv) -> str:
-    """The command as a result records it: absolute paths inside the repository made relative to it, so that the
-    record reads the same on every machine (`--out /home/me/diffstack/results` -> `--out results`)."""
+    """The command as a result records it: absolute paths inside the repository made relative to it,
+    so that the record reads the same on every machine (`--out /home/me/diffstack/results` -> `--out
+    results`)."""
     root = pathlib.Path(__file__).resolve().parent
 
     def rel(token):
@@ -194,12 +232,20 @@ def command_line(launcher: str, argv) -> str:
 
 
 def git_commit() -> str | None:
-    """The commit the code was run from, '+dirty' when the work tree differs from it; None outside git."""
+    """The commit the code was run from, '+dirty' when the work tree differs from it; None
+    outside git."""
     here = pathlib.Path(__file__).resolve().parent
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
-                               text=True, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
     return head + ("+dirty" if dirty else "")
@@ -211,11 +257,13 @@ def git_commit() -> str | None:
 
 
 class RunStore:
-    """A run's pieces and models: under root (<out>/.runs) on disk, or in memory when root is None (nothing is
-    resumed)."""
+    """A run's pieces and models: under root (<out>/.runs) on disk, or in memory when root is None
+    (nothing is resumed)."""
 
     def __init__(self, root, key: str):
-        self.root, self.key, self.memory = (pathlib.Path(root) if root is not None else None), key, {}
+        self.root = pathlib.Path(root) if root is not None else None
+        self.key = key
+        self.memory = {}
 
     def table_dir(self, table: str) -> pathlib.Path:
         return self.root / table / sha(self.key, table)[:16]
@@ -224,16 +272,19 @@ class RunStore:
         return self.table_dir(table) / f"{piece.stem}.json"
 
     def has(self, table: str, piece) -> bool:
-        """Whether the piece is finished; one whose file cannot be read (a disk error, an edit) is named on stderr, set
-        aside as <piece>.corrupt and computed again."""
+        """Whether the piece is finished; one whose file cannot be read (a disk error, an edit) is
+        named on stderr, set aside as <piece>.corrupt and computed again."""
         if self.root is None:
             return (table, piece) in self.memory
         path = self.path(table, piece)
         try:
             return path.exists() and "result" in json.loads(path.read_text())
         except (OSError, ValueError) as e:
-            print(f"{path}: not a finished piece ({e}); set aside as {path.with_suffix('.corrupt').name}, computed again",
-                  file=sys.stderr)
+            print(
+                f"{path}: not a finished piece ({e}); set aside as "
+                f"{path.with_suffix('.corrupt').name}, computed again",
+                file=sys.stderr,
+            )
             os.replace(path, path.with_suffix(".corrupt"))
             return False
 
@@ -249,15 +300,16 @@ class RunStore:
         return saved["result"], extra
 
     def timing(self, table: str, piece) -> dict | None:
-        """How long a finished piece took to compute and where (the timing it was saved with), or None (not
-        finished, or in memory)."""
+        """How long a finished piece took to compute and where (the timing it was saved with), or
+        None (not finished, or in memory)."""
         if self.root is None or not self.path(table, piece).exists():
             return None
         return json.loads(self.path(table, piece).read_text()).get("timing")
 
     def save(self, table: str, piece, result: dict, extra=None, about=None, timing=None) -> None:
-        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically; about: what the key
-        stands for, written once per table folder (run.json); timing: how long it took (see `timing`)."""
+        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically;
+        about: what the key stands for, written once per table folder (run.json); timing: how long
+        it took (see `timing`)."""
         if self.root is None:
             self.memory[(table, piece)] = (json.loads(json.dumps(result, default=to_json)), extra)
             return
@@ -267,12 +319,29 @@ class RunStore:
             write_atomic(path.parent / "run.json", json.dumps(about, indent=1, default=str))
         if extra is not None:
             save_atomic(extra, path.with_suffix(".pt"))
-        write_atomic(path, json.dumps(dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None,
-                                           timing=timing, result=result), indent=1, default=to_json))
+        write_atomic(
+            path,
+            json.dumps(
+                dict(
+                    table=table,
+                    piece=piece._asdict(),
+                    key=self.key,
+                    extra=extra is not None,
+                    timing=timing,
+                    result=result,
+                ),
+                indent=1,
+                default=to_json,
+            ),
+        )
 
     def model_path(self, train_key) -> pathlib.Path | None:
         """Where a model trained the way train_key says is kept (None: in memory only)."""
-        return None if self.root is None else self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
+        return (
+            None
+            if self.root is None
+            else self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
+        )
 
 
 # ============================================================================================
@@ -281,31 +350,47 @@ class RunStore:
 
 
 class WorkerDied(ValueError):
-    """A worker process of the run ended without its result (killed, out of memory): the run stops, saying so."""
+    """A worker process of the run ended without its result (killed, out of memory): the run stops,
+    saying so."""
 
 
 def die_with_parent(parent: int) -> None:
-    """A worker process's initializer: a thread that ends the worker once its parent is gone (killed with SIGKILL, say),
-    so that no worker outlives the run it belongs to and writes pieces for nobody."""
+    """A worker process's initializer: a thread that ends the worker once its parent is gone (killed
+    with SIGKILL, say), so that no worker outlives the run it belongs to and writes pieces
+    for nobody."""
+
     def watch():
         while os.getppid() == parent:
             time.sleep(0.5)
         os._exit(1)
+
     threading.Thread(target=watch, daemon=True).start()
 
 
 def pool(jobs: int):
-    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with this one."""
+    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with
+    this one."""
     from concurrent.futures import ProcessPoolExecutor
-    return ProcessPoolExecutor(jobs, mp_context=torch.multiprocessing.get_context("spawn"), initializer=die_with_parent,
-                               initargs=(os.getpid(),))
+
+    return ProcessPoolExecutor(
+        jobs,
+        mp_context=torch.multiprocessing.get_context("spawn"),
+        initializer=die_with_parent,
+        initargs=(os.getpid(),),
+    )
 
 
 def _worker(compute, table: str, pieces: list, root: str, key: str, about, verbose: bool) -> int:
-    """A worker process: compute and save some pieces of one table, on one thread. Returns how many."""
+    """A worker process: compute and save some pieces of one table, on one thread. Returns
+    how many."""
     torch.set_num_threads(1)
-    store, models = RunStore(root, key), {}
-    log = (lambda text: print(f"[{table} seed {pieces[0].seed}] {text}", flush=True)) if verbose else None
+    store = RunStore(root, key)
+    models = {}
+    log = (
+        (lambda text: print(f"[{table} seed {pieces[0].seed}] {text}", flush=True))
+        if verbose
+        else None
+    )
     for piece in pieces:
         result, extra, timing = compute(table, piece, log, models, store)
         store.save(table, piece, result, extra, about, timing)
@@ -313,21 +398,27 @@ def _worker(compute, table: str, pieces: list, root: str, key: str, about, verbo
 
 
 def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=None, verbose=True):
-    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of one thread each,
-    in the order given; each piece is saved in `store` (on disk) as it finishes. compute(table, piece, log, models,
-    store) -> (result, extra, timing) makes a piece: a picklable callable (a module's function, or a
-    functools.partial of one), `models` a dict the pieces of one unit share. abouts: {table: what its key stands
-    for} (RunStore.save). Raises the first worker's error; WorkerDied when a worker ended without one."""
+    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of
+    one thread each, in the order given; each piece is saved in `store` (on disk) as it finishes.
+    compute(table, piece, log, models, store) -> (result, extra, timing) makes a piece: a picklable
+    callable (a module's function, or a functools.partial of one), `models` a dict the pieces of one
+    unit share. abouts: {table: what its key stands for} (RunStore.save). Raises the first worker's
+    error; WorkerDied when a worker ended without one."""
     from concurrent.futures import FIRST_EXCEPTION, wait
     from concurrent.futures.process import BrokenProcessPool
 
     abouts = abouts or {}
     with pool(min(jobs, len(units))) as workers:
-        futures = [workers.submit(_worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose)
-                   for name, ps in units]
+        futures = [
+            workers.submit(
+                _worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose
+            )
+            for name, ps in units
+        ]
         try:
             finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
-        except BaseException:  # Ctrl-C (or SIGINT to this process alone): stop the workers now, not after their pieces
+        except BaseException:
+            # Ctrl-C (or SIGINT to this process alone): stop the workers now, not after their pieces
             workers.shutdown(wait=False, cancel_futures=True)
             for worker in torch.multiprocessing.active_children():
                 worker.terminate()
@@ -336,20 +427,31 @@ def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=
             if f.exception() is not None:
                 workers.shutdown(cancel_futures=True)
                 if isinstance(f.exception(), BrokenProcessPool):
-                    raise WorkerDied(f"a worker process died ({f.exception()}); the run stops here: the same command "
-                                     f"resumes it from the pieces kept in {store.root}") from None
+                    raise WorkerDied(
+                        f"a worker process died ({f.exception()}); the run stops here: the same "
+                        f"command resumes it from the pieces kept in {store.root}"
+                    ) from None
                 raise f.exception()
 
 
 @contextlib.contextmanager
 def progress(store: RunStore, pieces: list, every: float = 2.0, disable: bool = False, **bar_kw):
-    """A tqdm bar over pieces [(table, piece)], for the length of the with block: those the store has at the start
-    count as done (reused), and the store is polled every `every` seconds (and at the end) for those finished
-    since, in this process or in worker processes. Yields the bar."""
-    done = lambda: sum(store.has(t, p) for t, p in pieces)  # noqa: E731
+    """A tqdm bar over pieces [(table, piece)], for the length of the with block: those the store
+    has at the start count as done (reused), and the store is polled every `every` seconds (and at
+    the end) for those finished since, in this process or in worker processes. Yields the bar."""
+
+    def done():
+        return sum(store.has(t, p) for t, p in pieces)
+
     reused = done()
-    bar = tqdm(total=len(pieces), initial=reused, unit="piece", desc=f"pieces ({reused} reused)", disable=disable,
-               **bar_kw)
+    bar = tqdm(
+        total=len(pieces),
+        initial=reused,
+        unit="piece",
+        desc=f"pieces ({reused} reused)",
+        disable=disable,
+        **bar_kw,
+    )
     stop = threading.Event()
 
     def poll():
@@ -372,10 +474,13 @@ def progress(store: RunStore, pieces: list, every: float = 2.0, disable: bool = 
 
 
 def above(bar, log):
-    """log, writing above the bar: the bar is cleared first and drawn again after (tqdm.external_write_mode)."""
+    """log, writing above the bar: the bar is cleared first and drawn again after
+    (tqdm.external_write_mode)."""
+
     def write(*a, **k):
         with bar.external_write_mode():
             log(*a, **k)
+
     return write
 
 
@@ -386,9 +491,10 @@ def above(bar, log):
 
 @contextlib.contextmanager
 def folder_lock(folder, command: str):
-    """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block runs. A second run
-    on the same folder is refused with an OutputRefused naming the holder (its PID, command and start time); the
-    operating system releases a lock with the process that held it, so one left by a killed run is taken over."""
+    """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block
+    runs. A second run on the same folder is refused with an OutputRefused naming the holder (its
+    PID, command and start time); the operating system releases a lock with the process that held
+    it, so one left by a killed run is taken over."""
     folder = pathlib.Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -403,11 +509,20 @@ def folder_lock(folder, command: str):
         except ValueError:
             holder = {}
         os.close(fd)
-        raise OutputRefused(f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, `{holder.get('command', '?')}`, "
-                            f"since {holder.get('start', '?')}); wait for it to end, or use another folder") from None
+        raise OutputRefused(
+            f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, "
+            f"`{holder.get('command', '?')}`, since {holder.get('start', '?')}); wait for it to "
+            "end, or use another folder"
+        ) from None
     try:
         os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps(dict(pid=os.getpid(), command=command, start=time.strftime("%Y-%m-%d %H:%M:%S"))).encode(), 0)
+        os.pwrite(
+            fd,
+            json.dumps(
+                dict(pid=os.getpid(), command=command, start=time.strftime("%Y-%m-%d %H:%M:%S"))
+            ).encode(),
+            0,
+        )
         yield
     finally:
         os.close(fd)  # (closing the descriptor releases the lock)
@@ -415,8 +530,9 @@ def folder_lock(folder, command: str):
 
 @contextlib.contextmanager
 def one_line(ap, interrupted: str = "nothing half-written is left"):
-    """A CLI's top level (ap: its argparse parser): the project's errors (all ValueError) and a file's (OSError) become
-    one line naming the argument or file, exit 2 as argparse's own; Ctrl-C one line saying what is kept, exit 130."""
+    """A CLI's top level (ap: its argparse parser): the project's errors (all ValueError) and a
+    file's (OSError) become one line naming the argument or file, exit 2 as argparse's own; Ctrl-C
+    one line saying what is kept, exit 130."""
     try:
         yield
     except (ValueError, OSError) as e:
@@ -427,12 +543,14 @@ def one_line(ap, interrupted: str = "nothing half-written is left"):
 
 
 class OutputRefused(ValueError):
-    """A run's refusal to start: a bad --out, or result files it would replace. The CLI prints it as one line."""
+    """A run's refusal to start: a bad --out, or result files it would replace. The CLI prints it as
+    one line."""
 
 
 def planned_outputs(out_dir, figures: dict) -> list:
-    """Every file a run of some tables writes in out_dir: figures {table name: its figure file names}; each table's
-    <name>.json and .md, its figures, and report.md where there are several tables."""
+    """Every file a run of some tables writes in out_dir: figures {table name: its figure file
+    names}; each table's <name>.json and .md, its figures, and report.md where there are
+    several tables."""
     out = pathlib.Path(out_dir)
     files = [out / f"{n}{ext}" for n in figures for ext in (".json", ".md")]
     files += [out / f for fs in figures.values() for f in fs]
@@ -440,18 +558,21 @@ def planned_outputs(out_dir, figures: dict) -> list:
 
 
 def refuse_existing(files, overwrite: bool, ours=()) -> None:
-    """OutputRefused naming them if any of files exists already, unless overwrite (a run never replaces a result it
-    did not make) or it is in ours (files this same run wrote before it was interrupted, unchanged since:
-    ours_files)."""
+    """OutputRefused naming them if any of files exists already, unless overwrite (a run never
+    replaces a result it did not make) or it is in ours (files this same run wrote before it was
+    interrupted, unchanged since: ours_files)."""
     existing = [str(f) for f in files if f.exists() and f not in set(ours)]
     if existing and not overwrite:
-        raise OutputRefused(f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
-                            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
-                            f"replace them, or choose another --out")
+        raise OutputRefused(
+            f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
+            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
+            f"replace them, or choose another --out"
+        )
 
 
 def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
-    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with their sha256."""
+    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with
+    their sha256."""
     return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{sha(name, list(seeds), key)[:16]}.json"
 
 
@@ -468,10 +589,15 @@ def record_outputs(manifest: pathlib.Path, files) -> None:
 
 
 def ours_files(out_dir, manifests) -> set:
-    """The files of out_dir that one of these manifests lists and that are unchanged since that run wrote them."""
+    """The files of out_dir that one of these manifests lists and that are unchanged since that run
+    wrote them."""
     ours = set()
     for manifest in manifests:
-        made = json.loads(pathlib.Path(manifest).read_text()) if pathlib.Path(manifest).exists() else {}
+        made = (
+            json.loads(pathlib.Path(manifest).read_text())
+            if pathlib.Path(manifest).exists()
+            else {}
+        )
         for fname, sha_ in made.items():
             f = pathlib.Path(out_dir) / fname
             if f.exists() and _file_sha(f) == sha_:

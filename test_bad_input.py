@@ -1,8 +1,11 @@
-"""Bad input gets a clear error that names the culprit, and no result is ever lost (diffstack.py, experiments.py).
+"""Bad input gets a clear error that names the culprit, and no result is ever lost (diffstack.py,
+experiments.py).
 
-One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that the message
-names the argument, field or file. The nuScenes loader and the data CLI have their own file, test_data_bad_input.py.
+One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that
+the message names the argument, field or file. The nuScenes loader and the data CLI have their own
+file, test_data_bad_input.py.
 """
+
 import dataclasses
 import json
 import math
@@ -19,6 +22,7 @@ import data_synth
 import diffstack as ds
 import experiments as ex
 import runs
+import specs
 import train as tr
 from test_diffstack import TINY, toy_scene
 
@@ -37,8 +41,10 @@ def cli_error(main, argv, capsys) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Nothing lost: experiments refuse to replace results, check --out and the cache first, write atomically
+# Nothing lost: experiments refuse to replace results, check --out and the cache first,
+# write atomically
 # ---------------------------------------------------------------------------------------------
+
 
 def test_existing_results_are_never_replaced_without_overwrite(tmp_path, capsys):
     (tmp_path / "rl.json").write_text('{"mine": 1}')
@@ -49,9 +55,10 @@ def test_existing_results_are_never_replaced_without_overwrite(tmp_path, capsys)
     (tmp_path / "rl.json").unlink()
     (tmp_path / "closed_loop.png").write_bytes(b"png")
     with pytest.raises(ValueError, match="closed_loop.png"):
-        ex.check_outputs(ex.EXPERIMENTS, tmp_path, overwrite=False)
-    ex.check_outputs(ex.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
-    ex.check_outputs(("rl",), tmp_path, overwrite=False)  # an unrelated file does not block another table
+        ex.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=False)
+    ex.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
+    # an unrelated file does not block another table
+    ex.check_outputs(("rl",), tmp_path, overwrite=False)
 
 
 def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
@@ -75,21 +82,38 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     assert "data cache" in err
 
 
-def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(tmp_path, monkeypatch, capsys):
-    """A second run on a folder another run holds is refused before any work, naming the holder (PID, command); when
-    the holder is killed (SIGKILL), the next run takes the folder over."""
+def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
+    tmp_path, monkeypatch, capsys
+):
+    """A second run on a folder another run holds is refused before any work, naming the holder
+    (PID, command); when the holder is killed (SIGKILL), the next run takes the folder over."""
     out = tmp_path / "out"
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time, runs\n"
-                               "with runs.folder_lock(sys.argv[1], 'the other run'):\n print('held', flush=True); time.sleep(60)",
-                               str(out)], cwd=os.path.dirname(runs.__file__), stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time, runs\nwith runs.folder_lock(sys.argv[1], 'the other run'):\n "
+            "print('held', flush=True); time.sleep(60)",
+            str(out),
+        ],
+        cwd=os.path.dirname(runs.__file__),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
-        monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
-        for argv in (["--experiment", "rl", "--out", str(out), "--n", "100"], ["--experiment", "rl", "--out", str(out)]):
+        monkeypatch.setattr(
+            data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made")
+        )
+        for argv in (
+            ["--experiment", "rl", "--out", str(out), "--n", "100"],
+            ["--experiment", "rl", "--out", str(out)],
+        ):
             err = cli_error(ex.main, argv, capsys)
             assert f"PID {holder.pid}" in err and "the other run" in err and str(out) in err
         (out / "rl.json").write_text("{}")
-        err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)  # --render writes too
+        # --render writes too
+        err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
         assert f"PID {holder.pid}" in err
     finally:
         holder.send_signal(signal.SIGKILL)
@@ -103,19 +127,23 @@ def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
     path.write_text("old")
 
     def killed(src, dst):
-        raise KeyboardInterrupt  # the process dies between writing the temporary file and the rename
+        # the process dies between writing the temporary file and the rename
+        raise KeyboardInterrupt
 
     monkeypatch.setattr(os, "replace", killed)
     with pytest.raises(KeyboardInterrupt):
         runs.write_atomic(path, json.dumps({"new": 1}))
     assert path.read_text() == "old"
-    assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]  # and no half-written temporary file is left
+    # and no half-written temporary file is left
+    assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]
 
 
 def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch):
-    """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would have made it
-    (0666 less the umask), so that others in a shared lab folder can read it; a plain file is the reference."""
-    monkeypatch.setattr(runs, "_UMASK", 0o022)  # the umask runs.py read at import, here the common one
+    """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would
+    have made it (0666 less the umask), so that others in a shared lab folder can read it; a plain
+    file is the reference."""
+    # the umask runs.py read at import, here the common one
+    monkeypatch.setattr(runs, "_UMASK", 0o022)
     old = os.umask(0o022)
     try:
         (tmp_path / "plain.txt").write_text("x")
@@ -123,7 +151,10 @@ def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch)
         runs.save_atomic({"w": 1}, tmp_path / "model.pt")
     finally:
         os.umask(old)
-    mode = lambda name: (tmp_path / name).stat().st_mode & 0o777  # noqa: E731
+
+    def mode(name):
+        return (tmp_path / name).stat().st_mode & 0o777
+
     assert mode("plain.txt") == 0o644
     assert mode("rl.json") == mode("model.pt") == mode("plain.txt")
 
@@ -132,18 +163,33 @@ def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch)
 # The command lines: numbers finite, positive and bounded; --quick takes no flag it would ignore
 # ---------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("argv, culprit", [
-    (["--epochs", "nan"], "--epochs"), (["--epochs", "inf"], "--epochs"), (["--epochs", "0"], "--epochs"),
-    (["--epochs", "1e9"], "--epochs"), (["--threads", "0"], "--threads"), (["--seeds", "0"], "--seeds"),
-    (["--seeds", "1000"], "--seeds"), (["--n", "5"], "--n"), (["--n", "100000000"], "--n"), (["--n", "1e8"], "--n"),
-    (["--set", "dt=0"], "dt"), (["--set", "horizon=-1"], "horizon"), (["--set", "nope=1"], "nope"),
-])
+
+@pytest.mark.parametrize(
+    "argv, culprit",
+    [
+        (["--epochs", "nan"], "--epochs"),
+        (["--epochs", "inf"], "--epochs"),
+        (["--epochs", "0"], "--epochs"),
+        (["--epochs", "1e9"], "--epochs"),
+        (["--threads", "0"], "--threads"),
+        (["--seeds", "0"], "--seeds"),
+        (["--seeds", "1000"], "--seeds"),
+        (["--n", "5"], "--n"),
+        (["--n", "100000000"], "--n"),
+        (["--n", "1e8"], "--n"),
+        (["--set", "dt=0"], "dt"),
+        (["--set", "horizon=-1"], "horizon"),
+        (["--set", "nope=1"], "nope"),
+    ],
+)
 def test_experiments_cli_numbers(argv, culprit, capsys, tmp_path):
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), *argv], capsys)
     assert culprit in err.splitlines()[-1]
 
 
-@pytest.mark.parametrize("flag", [["--data", "x"], ["--n", "100"], ["--epochs", "2"], ["--out", "x"], ["--seeds", "2"]])
+@pytest.mark.parametrize(
+    "flag", [["--data", "x"], ["--n", "100"], ["--epochs", "2"], ["--out", "x"], ["--seeds", "2"]]
+)
 def test_quick_rejects_the_flags_it_does_not_take(flag, capsys):
     err = cli_error(tr.main, ["--quick", *flag], capsys)
     assert flag[0] in err
@@ -158,13 +204,37 @@ def test_quick_threads_bounds(capsys):
 # Config and Method: refused at construction, naming the field
 # ---------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("field, value", [
-    ("dt", 0.0), ("dt", -0.5), ("dt", math.nan), ("horizon", 0), ("horizon", 2.5), ("hist_len", True),
-    ("rbf_var", 0.0), ("beta", math.inf), ("w_coll", -1.0), ("u_lower", (1.0, -5.0)), ("u_upper", (0.7,)),
-    ("ilqr_iters", 0), ("line_search_decay", 1.0), ("pred_modes", 0), ("batch_size", 0), ("lr", 0.0),
-    ("plan_accels", ()), ("pred_lr_decay", 1.5), ("alpha_rl", (1.0, -1.0, 1.0)), ("pred_scales", (1.0, 1.0, 1.0, 0.0)),
-    ("batch_size", 10**9), ("pred_modes", 10**6), ("dt", 1e-300), ("horizon", 10**4), ("lr", 1e9),
-])
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("dt", 0.0),
+        ("dt", -0.5),
+        ("dt", math.nan),
+        ("horizon", 0),
+        ("horizon", 2.5),
+        ("hist_len", True),
+        ("rbf_var", 0.0),
+        ("beta", math.inf),
+        ("w_coll", -1.0),
+        ("u_lower", (1.0, -5.0)),
+        ("u_upper", (0.7,)),
+        ("ilqr_iters", 0),
+        ("line_search_decay", 1.0),
+        ("pred_modes", 0),
+        ("batch_size", 0),
+        ("lr", 0.0),
+        ("plan_accels", ()),
+        ("pred_lr_decay", 1.5),
+        ("alpha_rl", (1.0, -1.0, 1.0)),
+        ("pred_scales", (1.0, 1.0, 1.0, 0.0)),
+        ("batch_size", 10**9),
+        ("pred_modes", 10**6),
+        ("dt", 1e-300),
+        ("horizon", 10**4),
+        ("lr", 1e9),
+    ],
+)
 def test_config_refuses_values_that_would_fail_later(field, value):
     with pytest.raises(ValueError, match=field):
         ds.Config(**{field: value})
@@ -177,7 +247,10 @@ def test_config_accepts_its_defaults_and_the_tests_small_models():
 def test_every_number_of_the_config_has_a_range_named_in_its_refusal():
     for f in dataclasses.fields(ds.Config):
         if f.type in ("int", "float"):
-            with pytest.raises(ValueError, match=rf"^Config\.{f.name}: must be a (whole|finite) number from \S+ to \S+, got"):
+            with pytest.raises(
+                ValueError,
+                match=rf"^Config\.{f.name}: must be a (whole|finite) number from \S+ to \S+, got",
+            ):
                 ds.Config(**{f.name: 10**12})
         if f.type == "int":  # a flag or a fraction is no count, though Python calls True 1
             for v in (True, 2.5):
@@ -185,11 +258,17 @@ def test_every_number_of_the_config_has_a_range_named_in_its_refusal():
                     ds.Config(**{f.name: v})
 
 
-@pytest.mark.parametrize("kw, culprit", [
-    (dict(predictor="Learned"), "predictor"), (dict(predictor="oracle"), "predictor"),
-    (dict(losses=(1, 1)), "losses"), (dict(losses=(1, math.nan, 1)), "losses"), (dict(losses=(1, -1, 1)), "losses"),
-    (dict(weighting="grad-cost"), "weighting"),
-])
+@pytest.mark.parametrize(
+    "kw, culprit",
+    [
+        (dict(predictor="Learned"), "predictor"),
+        (dict(predictor="oracle"), "predictor"),
+        (dict(losses=(1, 1)), "losses"),
+        (dict(losses=(1, math.nan, 1)), "losses"),
+        (dict(losses=(1, -1, 1)), "losses"),
+        (dict(weighting="grad-cost"), "weighting"),
+    ],
+)
 def test_method_refuses_unknown_names(kw, culprit):
     with pytest.raises(ValueError, match=culprit):
         tr.Method("m", **kw)
@@ -197,9 +276,11 @@ def test_method_refuses_unknown_names(kw, culprit):
 
 def test_unknown_setting_is_refused(batch):
     cfg = ds.Config()
-    for call in (lambda: ds.run_stack(batch, None, tr.Method("GT", "gt"), cfg, "xx"),
-                 lambda: tr.alphas(tr.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
-                 lambda: tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), cfg, "Il")):
+    for call in (
+        lambda: ds.run_stack(batch, None, tr.Method("GT", "gt"), cfg, "xx"),
+        lambda: tr.alphas(tr.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
+        lambda: tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), cfg, "Il"),
+    ):
         with pytest.raises(ValueError, match="setting"):
             call()
 
@@ -208,12 +289,19 @@ def test_unknown_setting_is_refused(batch):
 # The low-level API: never a silent NaN
 # ---------------------------------------------------------------------------------------------
 
+
 def test_unicycle_step_checks_its_input():
     s, u = torch.zeros(3, 4, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64)
     assert torch.isfinite(ds.unicycle_step(s, u, 0.5)).all()  # the valid input passes
-    for bad_s, bad_u, dt, culprit in ((s.clone().fill_(math.nan), u, 0.5, "s"), (s, u.clone().fill_(math.inf), 0.5, "u"),
-                                      (s, u, 0.0, "dt"), (s, u, math.nan, "dt"), (s[:, :3], u, 0.5, "s"),
-                                      (s, u.float(), 0.5, "u"), (s, u[:, :1], 0.5, "u")):
+    for bad_s, bad_u, dt, culprit in (
+        (s.clone().fill_(math.nan), u, 0.5, "s"),
+        (s, u.clone().fill_(math.inf), 0.5, "u"),
+        (s, u, 0.0, "dt"),
+        (s, u, math.nan, "dt"),
+        (s[:, :3], u, 0.5, "s"),
+        (s, u.float(), 0.5, "u"),
+        (s, u[:, :1], 0.5, "u"),
+    ):
         with pytest.raises(ValueError, match=f"^{culprit}"):
             ds.unicycle_step(bad_s, bad_u, dt)
 
@@ -227,10 +315,18 @@ def test_total_cost_checks_its_input():
     assert torch.isfinite(ds.total_cost(x, u, ctx, w)).all()
     nan_x = x.clone()
     nan_x[1, 2, 0] = math.nan
-    cases = [(dict(x=nan_x), "x"), (dict(u=u[:, :5]), "u"), (dict(w=w[:4]), "w"), (dict(w=w.float()), "w"),
-             (dict(ctx=ds.CostContext(ctx.preds * math.nan, *ctx.tensors()[1:])), "ctx.preds"),
-             (dict(ctx=ds.CostContext(*ctx.tensors()[:5], ctx.goal[:, :1], *ctx.tensors()[6:])), "ctx.goal"),
-             (dict(rbf_var=0.0), "rbf_var")]
+    cases = [
+        (dict(x=nan_x), "x"),
+        (dict(u=u[:, :5]), "u"),
+        (dict(w=w[:4]), "w"),
+        (dict(w=w.float()), "w"),
+        (dict(ctx=ds.CostContext(ctx.preds * math.nan, *ctx.tensors()[1:])), "ctx.preds"),
+        (
+            dict(ctx=ds.CostContext(*ctx.tensors()[:5], ctx.goal[:, :1], *ctx.tensors()[6:])),
+            "ctx.goal",
+        ),
+        (dict(rbf_var=0.0), "rbf_var"),
+    ]
     for kw, culprit in cases:
         args = dict(x=x, u=u, ctx=ctx, w=w, rbf_var=2.0) | kw
         with pytest.raises(ValueError, match=culprit):
@@ -244,56 +340,84 @@ def test_planner_checks_its_input():
     assert ds.plan(s0, ctx, goal, w, cfg).plannable.any()
     lanes_nan = ctx.lanes.clone()
     lanes_nan[0, 0, 3, 1] = math.nan
-    for args, culprit in (((s0 * math.nan, goal, ctx.lanes, ctx.lanes_mask), "s0"),
-                          ((s0, goal[:, :3], ctx.lanes, ctx.lanes_mask), "goal"),
-                          ((s0, goal, lanes_nan, ctx.lanes_mask), "lanes"),
-                          ((s0, goal, ctx.lanes, ctx.lanes_mask.float()), "lanes_mask"),
-                          ((s0[:0], goal[:0], ctx.lanes[:0], ctx.lanes_mask[:0]), "s0")):
+    for args, culprit in (
+        ((s0 * math.nan, goal, ctx.lanes, ctx.lanes_mask), "s0"),
+        ((s0, goal[:, :3], ctx.lanes, ctx.lanes_mask), "goal"),
+        ((s0, goal, lanes_nan, ctx.lanes_mask), "lanes"),
+        ((s0, goal, ctx.lanes, ctx.lanes_mask.float()), "lanes_mask"),
+        ((s0[:0], goal[:0], ctx.lanes[:0], ctx.lanes_mask[:0]), "s0"),
+    ):
         with pytest.raises(ValueError, match=culprit):
             ds.plan_candidates(*args, cfg)
     with pytest.raises(ValueError, match="ctx.probs"):
-        ds.plan(s0, ds.CostContext(ctx.preds, ctx.probs * math.inf, *ctx.tensors()[2:]), goal, w, cfg)
+        ds.plan(
+            s0, ds.CostContext(ctx.preds, ctx.probs * math.inf, *ctx.tensors()[2:]), goal, w, cfg
+        )
     with pytest.raises(ValueError, match="w"):
         ds.plan(s0, ctx, goal, w[:3], cfg)
 
 
 def test_batches_with_inf_or_no_scenarios_are_refused(batch):
     cfg = ds.Config(**TINY)
-    model = ds.Predictor(cfg).double() if batch.agent_hist.dtype == torch.float64 else ds.Predictor(cfg)
+    model = (
+        ds.Predictor(cfg).double() if batch.agent_hist.dtype == torch.float64 else ds.Predictor(cfg)
+    )
     import dataclasses
 
     for field in ("agent_hist", "others_hist", "ego_fut", "others_fut", "goal", "lanes"):
         bad = getattr(batch, field).clone()
         bad.view(-1)[0] = math.inf
         with pytest.raises(ValueError, match=field):
-            ds.run_stack(dataclasses.replace(batch, **{field: bad}), model, tr.Method("DiffStack", losses=(1, 1, 1)),
-                         cfg, train=True, step=0)
+            ds.run_stack(
+                dataclasses.replace(batch, **{field: bad}),
+                model,
+                tr.Method("DiffStack", losses=(1, 1, 1)),
+                cfg,
+                train=True,
+                step=0,
+            )
     with pytest.raises(ValueError, match="batch"):
         ds.run_stack(batch[:0], None, tr.Method("GT", "gt"), cfg)
     with pytest.raises(ValueError, match="batch"):
         model(batch[:0], use_posterior=False)
-    ds.run_stack(batch, model, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)  # the valid batch runs
+    # the valid batch runs
+    ds.run_stack(batch, model, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)
 
 
 # ---------------------------------------------------------------------------------------------
 # The closed loop says how long a scene it needs and what the data has
 # ---------------------------------------------------------------------------------------------
 
+
 def test_closed_loop_needs_long_enough_scenes():
     scenes = data_synth.make_dataset(120, seed=5).val_scenes
     assert len(ex.closed_loop_scenes(scenes, ds.Config())) == len(scenes)
-    cut = {k: (v[:, :20] if k in ("ego", "pred_idx") else v[:, :, :20] if k in ("agents", "agents_mask") else v)
-           for k, v in scenes.tensors().items()}
+    cut = {
+        k: (
+            v[:, :20]
+            if k in ("ego", "pred_idx")
+            else v[:, :, :20]
+            if k in ("agents", "agents_mask")
+            else v
+        )
+        for k, v in scenes.tensors().items()
+    }
     short = data_synth.Scenes(**cut, names=scenes.names)
-    with pytest.raises(ValueError, match=r"at least 34 frames .* the data has \d+ validation scene\(s\) of 20 frames"):
+    with pytest.raises(
+        ValueError,
+        match=r"at least 34 frames .* the data has \d+ validation scene\(s\) of 20 frames",
+    ):
         ex.closed_loop_scenes(short, ds.Config())
     with pytest.raises(ValueError, match="of 0 .*|0 validation"):
         ex.closed_loop_scenes(scenes[:0], ds.Config())
 
 
-def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken_provenance(tmp_path, monkeypatch, capsys):
-    """--pretrain never replaces pretrained/ without --overwrite (a one-line error before any data is made); a
-    provenance file that is not one is an error naming it, not a traceback from inside json or torch."""
+def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken_provenance(
+    tmp_path, monkeypatch, capsys
+):
+    """--pretrain never replaces pretrained/ without --overwrite (a one-line error before any data
+    is made); a provenance file that is not one is an error naming it, not a traceback from inside
+    json or torch."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
@@ -306,20 +430,27 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
 
 
 def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatch, capsys, batch):
-    """--render of a truncated results file, and --quick over a broken shipped predictor: one line naming the file,
-    exit code 2, no traceback."""
+    """--render of a truncated results file, and --quick over a broken shipped predictor: one line
+    naming the file, exit code 2, no traceback."""
     out = tmp_path / "out"
     out.mkdir()
     (out / "rl.json").write_text('{"meta": {"command"')  # cut off mid-write
     err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
-    assert f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
+    assert (
+        f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
+    )
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pretrained").mkdir()
-    prov = {"files": {"standard-seed0.pt": {"method": "Standard", "seed": 0, "sha256": "0"}},
-            "config": dataclasses.asdict(ds.Config())}  # the defaults: the file listed, but missing
+    prov = {
+        "files": {"standard-seed0.pt": {"method": "Standard", "seed": 0, "sha256": "0"}},
+        "config": dataclasses.asdict(ds.Config()),  # the defaults: the file listed, but missing
+    }
     (tmp_path / "pretrained" / "provenance.json").write_text(json.dumps(prov))
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5))
-    monkeypatch.setattr(tr, "evaluate_stack", lambda *a, **k: {})  # (the rows before the shipped ones)
+    monkeypatch.setattr(
+        data_real, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5)
+    )
+    # (the rows before the shipped ones)
+    monkeypatch.setattr(tr, "evaluate_stack", lambda *a, **k: {})
     monkeypatch.setattr(tr, "add_relative", lambda res, setting: res)
     monkeypatch.setattr(tr, "open_loop_table", lambda *a, **k: "")
     err = cli_error(tr.main, ["--quick"], capsys)
@@ -339,7 +470,9 @@ def test_a_corrupt_piece_of_the_resume_store_is_named_and_computed_again(tmp_pat
 
 def test_an_evaluation_with_no_plannable_scenario_is_an_error_not_a_table_of_zeros(batch):
     import dataclasses
-    no_lanes = dataclasses.replace(batch, lanes_mask=torch.zeros_like(batch.lanes_mask))  # no goal lane anywhere
+
+    # no goal lane anywhere
+    no_lanes = dataclasses.replace(batch, lanes_mask=torch.zeros_like(batch.lanes_mask))
     with pytest.raises(ValueError, match=r"GT: none of the 8 scenarios is plannable"):
         tr.evaluate_stack(None, no_lanes, tr.Method("GT", "gt"), ds.Config())
     assert tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), ds.Config())["n"] > 0

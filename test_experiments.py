@@ -1,5 +1,6 @@
-"""Tests of experiments.py: the paper's tables as specs, cost learning, the closed loop, the ablations, the report
-and the command line. Every test runs on one thread."""
+"""Tests of experiments.py and specs.py: the paper's tables as specs, cost learning, the closed
+loop, the ablations, the report and the command line. Every test runs on one thread."""
+
 import dataclasses
 import json
 import math
@@ -15,6 +16,7 @@ import diffstack as ds
 import experiments as ex
 import figures
 import runs
+import specs
 import train as tr
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
@@ -24,41 +26,85 @@ TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hid
 # The command line
 # ---------------------------------------------------------------------------------------------
 
+
 def test_nuscenes_folder_trains_through_the_cli(tmp_path):
     scenes = data_synth.generate_scenes(4, seed=3)
     data_synth.write_nuscenes(scenes, tmp_path / "nusc")
-    ex.main(["--experiment", "il", "--data", str(tmp_path / "nusc"), "--seeds", "1", "--epochs", "1",
-             "--threads", "1", "--out", str(tmp_path / "out")])
+    ex.main(
+        [
+            "--experiment",
+            "il",
+            "--data",
+            str(tmp_path / "nusc"),
+            "--seeds",
+            "1",
+            "--epochs",
+            "1",
+            "--threads",
+            "1",
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     res = json.loads((tmp_path / "out" / "il.json").read_text())
     assert set(res["results"]) == {"No prediction", "Standard", "DiffStack", "GT prediction"}
     assert "MSE" in (tmp_path / "out" / "il.md").read_text()
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--experiment", "nonsense"], "invalid choice"),
-    (["--experiment", "rl", "--data", "/no/such/folder"], "is not a folder"),
-    ([], "--experiment"),
-    (["--experiment", "rl", "--seeds", "0"], "--seeds"),
-    (["--experiment", "rl", "--set", "no_such_field=1"], "no_such_field"),
-    (["--experiment", "rl", "--set", "beta=warm"], "beta"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--experiment", "nonsense"], "invalid choice"),
+        (["--experiment", "rl", "--data", "/no/such/folder"], "is not a folder"),
+        ([], "--experiment"),
+        (["--experiment", "rl", "--seeds", "0"], "--seeds"),
+        (["--experiment", "rl", "--set", "no_such_field=1"], "no_such_field"),
+        (["--experiment", "rl", "--set", "beta=warm"], "beta"),
+    ],
+)
 def test_bad_cli_input_exits_with_a_message(argv, message, capsys, tmp_path):
     with pytest.raises(SystemExit) as e:
-        ex.main(argv + (["--out", str(tmp_path)] if argv else []))  # a fresh --out: results/ holds committed results
+        # a fresh --out: results/ holds committed results
+        ex.main(argv + (["--out", str(tmp_path)] if argv else []))
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 
 def test_a_data_folder_that_is_no_nuscenes_folder_is_refused_before_out_is_made(capsys, tmp_path):
     (tmp_path / "empty").mkdir()
-    for data, why in (("no-such", "is not a folder"), ("empty", "holds no nuScenes version folder")):
+    for data, why in (
+        ("no-such", "is not a folder"),
+        ("empty", "holds no nuScenes version folder"),
+    ):
         with pytest.raises(SystemExit):
-            ex.main(["--experiment", "rl", "--data", str(tmp_path / data), "--out", str(tmp_path / "new")])
-        assert why in capsys.readouterr().err.strip().splitlines()[-1] and not (tmp_path / "new").exists()
+            ex.main(
+                [
+                    "--experiment",
+                    "rl",
+                    "--data",
+                    str(tmp_path / data),
+                    "--out",
+                    str(tmp_path / "new"),
+                ]
+            )
+        assert (
+            why in capsys.readouterr().err.strip().splitlines()[-1]
+            and not (tmp_path / "new").exists()
+        )
     # --render too: a one-line error, not a traceback from inside the loader
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "rl.json").write_text("{}")
     with pytest.raises(SystemExit):
-        ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path / "old"), "--data", str(tmp_path / "empty")])
+        ex.main(
+            [
+                "--experiment",
+                "rl",
+                "--render",
+                "--out",
+                str(tmp_path / "old"),
+                "--data",
+                str(tmp_path / "empty"),
+            ]
+        )
     assert "holds no nuScenes version folder" in capsys.readouterr().err
 
 
@@ -66,7 +112,9 @@ def test_a_data_folder_that_is_no_nuscenes_folder_is_refused_before_out_is_made(
 # Cost learning, closed loop, ablations, figures
 # ---------------------------------------------------------------------------------------------
 
-TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
+TINY10 = dict(
+    pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32
+)
 
 
 @pytest.fixture(scope="module")
@@ -80,36 +128,60 @@ def clean():
 # The tables' data: a training draw per seed, one common validation set
 # ---------------------------------------------------------------------------------------------
 
+
 def _samples(batch) -> set:
     return {bytes(row.numpy()) for row in batch.ego_fut.reshape(len(batch), -1)}
 
 
-def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validation_set(tmp_path, monkeypatch):
+def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validation_set(
+    tmp_path, monkeypatch
+):
     data = tr.experiment_data(200, range(3), n_val=300, cache_dir=tmp_path, log=None)
     assert len(data.train_draws) == 3 and len(data.val) == 300 and data.train is data.train_draws[0]
     assert all(data.train_for(s) is data.train_draws[s] for s in range(3))
-    assert torch.equal(data.train_draws[2].ego_fut, data_real.load_data(None, 200, 2, tmp_path, log=None).train.ego_fut)
+    assert torch.equal(
+        data.train_draws[2].ego_fut,
+        data_real.load_data(None, 200, 2, tmp_path, log=None).train.ego_fut,
+    )
     val, draws = _samples(data.val), [_samples(d) for d in data.train_draws]
-    assert len(val) == 300 and not any(d & val for d in draws)  # no validation sample comes from a training draw
+    # no validation sample comes from a training draw
+    assert len(val) == 300 and not any(d & val for d in draws)
     assert not (draws[0] & draws[1]) and not (draws[1] & draws[2])  # the draws differ
-    assert all(name.startswith(f"synth-{tr.VAL_SEED}-") for name in data.val_scenes.names)  # closed loop's
+    # the closed loop's scenes too
+    assert all(name.startswith(f"synth-{tr.VAL_SEED}-") for name in data.val_scenes.names)
     with pytest.raises(ValueError, match=r"--seeds: training seeds must be 0\.\.999"):
         tr.experiment_data(200, range(1001), cache_dir=tmp_path, log=None)
     # training seed s trains on draw s (train_predictor -> train_stack)
     seen = []
     monkeypatch.setattr(tr, "train_stack", lambda model, train, *a, **k: seen.append(train))
-    tr.compare_methods(data._replace(val=data.val[:20]), ds.Config(**TINY10), "rl", (tr.Method("Standard"),), (0, 1, 2),
-                       0.1, log=None)
+    tr.compare_methods(
+        data._replace(val=data.val[:20]),
+        ds.Config(**TINY10),
+        "rl",
+        (tr.Method("Standard"),),
+        (0, 1, 2),
+        0.1,
+        log=None,
+    )
     assert [id(t) for t in seen] == [id(d) for d in data.train_draws]
 
 
 def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes(tmp_path):
     md = ex.validation_spread(draws=2, n=300, cache_dir=tmp_path, log=None)
     head, _, small, large = md.splitlines()
-    assert f"data seed {tr.VAL_SEED + 1} | data seed {tr.VAL_SEED + 2} | mean" in head and large.startswith("| 300 |")
-    data = data_real.load_data(None, 300, tr.VAL_SEED + 2, tmp_path, log=None)  # the second draw, its validation side
-    gt, no = (next(m for m in tr.TABLE1_METHODS if m.name == n) for n in ("GT prediction", "No prediction"))
-    rel = tr.add_relative({m.name: [tr.evaluate_stack(None, data.val, m, ds.Config(), "rl")] for m in (no, gt)}, "rl")
+    assert (
+        f"data seed {tr.VAL_SEED + 1} | data seed {tr.VAL_SEED + 2} | mean" in head
+        and large.startswith("| 300 |")
+    )
+    # the second draw, its validation side
+    data = data_real.load_data(None, 300, tr.VAL_SEED + 2, tmp_path, log=None)
+    gt, no = (
+        next(m for m in tr.TABLE1_METHODS if m.name == n)
+        for n in ("GT prediction", "No prediction")
+    )
+    rel = tr.add_relative(
+        {m.name: [tr.evaluate_stack(None, data.val, m, ds.Config(), "rl")] for m in (no, gt)}, "rl"
+    )
     assert small.split(" | ")[2] == f"{rel['GT prediction'][0]['rel_hindsight']:.2f}"
 
 
@@ -123,13 +195,19 @@ def test_validation_spread_needs_no_experiment_on_the_command_line(monkeypatch, 
 
 
 def test_table_1_runs_10_seeds_and_the_others_5_unless_the_command_says(tmp_path, monkeypatch):
-    assert ex.table_seeds(ex.TABLE1) == tuple(range(10)) and ex.TABLE1.seeds == 10
-    assert {ex.table_seeds(ex.SPECS[n]) for n in ex.EXPERIMENTS if n != "rl"} == {tuple(range(5))}
-    assert ex.table_seeds(ex.TABLE1, range(3)) == (0, 1, 2)
+    assert ex.table_seeds(specs.TABLE1) == tuple(range(10)) and specs.TABLE1.seeds == 10
+    assert {ex.table_seeds(specs.SPECS[n]) for n in specs.EXPERIMENTS if n != "rl"} == {
+        tuple(range(5))
+    }
+    assert ex.table_seeds(specs.TABLE1, range(3)) == (0, 1, 2)
     asked = {}
     data = data_synth.Dataset(None, None)
-    monkeypatch.setattr(ex, "experiment_data", lambda n, seeds, *a, **k: asked.update(draws=tuple(seeds)) or data)
-    monkeypatch.setattr(ex, "run_experiment", lambda name, data, cfg, seeds, *a, **k: asked.update(seeds=seeds))
+    monkeypatch.setattr(
+        ex, "experiment_data", lambda n, seeds, *a, **k: asked.update(draws=tuple(seeds)) or data
+    )
+    monkeypatch.setattr(
+        ex, "run_experiment", lambda name, data, cfg, seeds, *a, **k: asked.update(seeds=seeds)
+    )
     monkeypatch.setattr(ex, "closed_loop_scenes", lambda *a: None)
     ex.main(["--experiment", "all", "--out", str(tmp_path / "a")])
     assert asked == {"draws": tuple(range(10)), "seeds": None}  # a draw for each of Table 1's seeds
@@ -140,7 +218,8 @@ def test_table_1_runs_10_seeds_and_the_others_5_unless_the_command_says(tmp_path
 
 
 def test_a_table_records_its_validation_count_and_training_draws(clean, tmp_path):
-    (data, _), cfg = clean, ds.Config(**TINY10)
+    data, _ = clean
+    cfg = ds.Config(**TINY10)
     draws = (data.train[:32], data.train[32:64])
     small = data_synth.Dataset(draws[0], data.val[:16], None, draws)
     ex.run_experiment("cost", small, cfg, (0, 1), 0.25, tmp_path, "test", log=None)
@@ -152,6 +231,7 @@ def test_a_table_records_its_validation_count_and_training_draws(clean, tmp_path
 # Cost learning
 # ---------------------------------------------------------------------------------------------
 
+
 def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
     cfg = ds.Config()
     cw = tr.CostWeights(cfg)
@@ -161,7 +241,8 @@ def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
     (cw() * torch.tensor([1.0, 2.0, -1.0, 3.0, 0.5])).sum().backward()
     assert cw.w_coll.grad is None
     assert cw.psi.grad.abs().min() > 0 and cw.log_alpha.grad.abs() > 0
-    with torch.no_grad():  # w'_1 stays the collision weight and w'_2..5 keep their sum c, whatever psi is
+    # w'_1 stays the collision weight and w'_2..5 keep their sum c, whatever psi is
+    with torch.no_grad():
         cw.psi.add_(torch.tensor([0.3, -0.2, 0.1, -0.4]))
     w0 = ds.cost_weights(cfg)
     assert cw.normalised()[0] == w0[0] and torch.allclose(cw.normalised()[1:].sum(), w0[1:].sum())
@@ -169,16 +250,23 @@ def test_cost_weights_recover_hand_tuned_and_collision_psi_is_fixed():
 
 
 def test_controller_gradient_reaches_the_cost_weights(clean):
-    (data, _), cfg = clean, ds.Config()
+    data, _ = clean
+    cfg = ds.Config()
     cw = tr.CostWeights(cfg)
     out = ds.run_stack(data.val[:16], None, tr.Method("GT prediction", "gt"), cfg, "il", w=cw())
     keep = out.plannable.to(out.l_ctr.dtype)
-    ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()  # the plannable mean, as in training
-    assert torch.isfinite(cw.psi.grad).all() and cw.psi.grad.abs().sum() > 0 and cw.log_alpha.grad.abs() > 0
+    # the plannable mean, as in training
+    ((out.l_ctr * keep).sum() / keep.sum().clamp_min(1)).backward()
+    assert (
+        torch.isfinite(cw.psi.grad).all()
+        and cw.psi.grad.abs().sum() > 0
+        and cw.log_alpha.grad.abs() > 0
+    )
 
 
 def test_cost_scale_stays_positive_when_driven_toward_zero():
-    # the loss sum(w) pushes alpha down at every step; an unconstrained alpha would pass zero in ~1 step of lr 1
+    # the loss sum(w) pushes alpha down at every step; an unconstrained alpha would pass zero in ~1
+    # step of lr 1
     cw = tr.CostWeights(ds.Config())
     opt = torch.optim.SGD(cw.parameters(), lr=1.0)
     for _ in range(50):
@@ -190,9 +278,13 @@ def test_cost_scale_stays_positive_when_driven_toward_zero():
 
 def test_controller_solution_does_not_depend_on_the_cost_scale(clean):
     # why alpha is not identified (CostWeights): argmin alpha C is the same for every alpha > 0
-    (data, _), cfg = clean, ds.Config()
+    data, _ = clean
+    cfg = ds.Config()
     w = ds.cost_weights(cfg)
-    out = [ds.run_stack(data.val[:16], None, tr.Method("GT prediction", "gt"), cfg, "il", w=s * w) for s in (1.0, 0.3)]
+    out = [
+        ds.run_stack(data.val[:16], None, tr.Method("GT prediction", "gt"), cfg, "il", w=s * w)
+        for s in (1.0, 0.3)
+    ]
     assert out[0].plannable.any()
     assert torch.allclose(out[0].u, out[1].u, rtol=0, atol=1e-5)
     assert not torch.allclose(out[0].cand_cost, out[1].cand_cost)  # the costs themselves do scale
@@ -202,36 +294,53 @@ def test_controller_solution_does_not_depend_on_the_cost_scale(clean):
 # Closed loop
 # ---------------------------------------------------------------------------------------------
 
+
 def test_frame_round_trip():
     g = torch.Generator().manual_seed(0)
     origin = torch.randn(3, 4, generator=g, dtype=torch.float64) * 10
     world = torch.randn(3, 5, 4, generator=g, dtype=torch.float64) * 10
     back = tr.from_frame(data_synth._to_frame(world, origin), origin)
     assert torch.allclose(back[..., :2], world[..., :2], atol=1e-10)
-    assert torch.allclose(torch.cos(back[..., 2] - world[..., 2]), torch.ones(3, 5, dtype=torch.float64))
+    assert torch.allclose(
+        torch.cos(back[..., 2] - world[..., 2]), torch.ones(3, 5, dtype=torch.float64)
+    )
 
 
 def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
-    """A fixed control policy on noise-free logs: every step's sample, mapped back to the world, shows the
-    logged agents exactly, the simulated ego history and the logged goal; the ego moves by the unicycle."""
-    (data, scfg), cfg = clean, ds.Config()
+    """A fixed control policy on noise-free logs: every step's sample, mapped back to the world,
+    shows the logged agents exactly, the simulated ego history and the logged goal; the ego moves by
+    the unicycle."""
+    data, scfg = clean
+    cfg = ds.Config()
     scenes = data.val_scenes
     S, T = len(scenes), cfg.horizon
-    u_fix = torch.stack([torch.linspace(-0.03, 0.03, S), torch.linspace(-0.3, 0.3, S)], -1).double()  # (S, 2)
+    # u_fix: (S, 2)
+    u_fix = torch.stack([torch.linspace(-0.03, 0.03, S), torch.linspace(-0.3, 0.3, S)], -1).double()
     seen = []
 
     def policy(batch):
         seen.append(batch)
-        u = u_fix[:, None] + 0.01 * torch.arange(T, dtype=torch.float64)[:, None]  # (S, T, 2): only u[:, 0] is applied
-        return ds.unicycle_rollout(batch.ego_hist[:, -1], u, cfg.dt), u, torch.zeros(S), torch.ones(S, dtype=torch.bool)
+        # u: (S, T, 2): only u[:, 0] is applied
+        u = u_fix[:, None] + 0.01 * torch.arange(T, dtype=torch.float64)[:, None]
+        return (
+            ds.unicycle_rollout(batch.ego_hist[:, -1], u, cfg.dt),
+            u,
+            torch.zeros(S),
+            torch.ones(S, dtype=torch.bool),
+        )
 
     roll = ex.simulate(scenes, policy, cfg, 10.0, scfg=scfg, dtype=torch.float64)
-    N, f0, H = 20, roll.start_frame, scfg.hist
+    N = 20
+    f0 = roll.start_frame
+    H = scfg.hist
     assert roll.ego.shape == (S, N + 1, 4) and len(seen) == N and f0 == H
     # the ego: the unicycle driven by the fixed controls from the logged state at f0
-    ref = ds.unicycle_rollout(scenes.ego[:, f0], u_fix[:, None].expand(S, N, 2), cfg.dt)  # (S, N+1, 4)
+    # ref: (S, N+1, 4)
+    ref = ds.unicycle_rollout(scenes.ego[:, f0], u_fix[:, None].expand(S, N, 2), cfg.dt)
     assert torch.allclose(roll.ego[..., :2], ref[..., :2], atol=1e-8)
-    assert torch.allclose(torch.cos(roll.ego[..., 2] - ref[..., 2]), torch.ones(S, N + 1, dtype=torch.float64))
+    assert torch.allclose(
+        torch.cos(roll.ego[..., 2] - ref[..., 2]), torch.ones(S, N + 1, dtype=torch.float64)
+    )
     assert torch.allclose(roll.controls, u_fix[:, None].expand(S, N, 2))
     pred = scenes.pred_idx[:, f0]
     ar = torch.arange(S)
@@ -239,56 +348,96 @@ def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
         origin = roll.ego[:, k]
         win = torch.arange(f0 + k - H, f0 + k + T + 1)  # the sample's frames
         agent = torch.cat([b.agent_hist, b.agent_fut], 1)
-        assert torch.allclose(tr.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9)
-        others = tr.from_frame(b.others_hist[:, :, -1], origin)[..., :2]  # (S, A, 2) each a logged agent at t0
-        d = (others[:, :, None] - scenes.agents[:, None, :, f0 + k, :2]).norm(dim=-1).min(-1).values  # (S, A)
+        assert torch.allclose(
+            tr.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9
+        )
+        # others: (S, A, 2) each a logged agent at t0
+        others = tr.from_frame(b.others_hist[:, :, -1], origin)[..., :2]
+        # d: (S, A)
+        d = (others[:, :, None] - scenes.agents[:, None, :, f0 + k, :2]).norm(dim=-1).min(-1).values
         assert (d[b.others_mask] < 1e-9).all()
-        sim_hist = torch.cat([scenes.ego[:, f0 + k - H:f0], roll.ego[:, :k + 1]], 1)[:, -H - 1:]  # (S, H+1, 4)
-        assert torch.allclose(tr.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9)
-        assert torch.allclose(tr.from_frame(b.goal[:, None], origin)[:, 0, :2], scenes.ego[:, f0 + k + T, :2], atol=1e-9)
+        # sim_hist: (S, H+1, 4)
+        sim_hist = torch.cat([scenes.ego[:, f0 + k - H : f0], roll.ego[:, : k + 1]], 1)[:, -H - 1 :]
+        assert torch.allclose(
+            tr.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9
+        )
+        assert torch.allclose(
+            tr.from_frame(b.goal[:, None], origin)[:, 0, :2],
+            scenes.ego[:, f0 + k + T, :2],
+            atol=1e-9,
+        )
 
 
 def test_gt_prediction_closed_loop_stays_near_the_log(clean):
-    (data, scfg), cfg = clean, ds.Config()
+    data, scfg = clean
+    cfg = ds.Config()
     scenes = data.val_scenes
-    roll = ex.simulate(scenes, ex.stack_policy(None, tr.Method("GT prediction", "gt"), cfg), cfg, 10.0, scfg=scfg)
+    roll = ex.simulate(
+        scenes, ex.stack_policy(None, tr.Method("GT prediction", "gt"), cfg), cfg, 10.0, scfg=scfg
+    )
     m = ex.closed_loop_metrics(scenes, roll, cfg)
     assert all(torch.isfinite(v).all() for v in m.values())
     assert (m["deviation"] < 2.0).all() and (m["plannable"] > 0.9).all()
     assert torch.allclose(m["trajectory"], m["collision"] + m["lane"] + m["control"])
-    # the applied control is the first of the controller's trajectory, so the ego lies on each step's plan
+    # the applied control is the first of the controller's trajectory, so the ego lies on
+    # each step's plan
     assert torch.allclose(roll.plans[:, :, 1, :2], roll.ego[:, 1:, :2], atol=1e-3)
 
 
 def test_metrics_on_the_logged_trajectory_have_zero_deviation(clean):
-    (data, _), cfg = clean, ds.Config()
+    data, _ = clean
+    cfg = ds.Config()
     scenes = data.val_scenes
-    S, N, f0 = len(scenes), 4, 8
-    ego = scenes.ego[:, f0:f0 + N + 1]
-    roll = ex.Rollout(ego, torch.zeros(S, N, 2, dtype=torch.float64), torch.zeros(S, N, 7, 4, dtype=torch.float64),
-                      torch.ones(S, N, dtype=torch.float64), torch.ones(S, N, dtype=torch.bool), f0)
+    S = len(scenes)
+    N = 4
+    f0 = 8
+    ego = scenes.ego[:, f0 : f0 + N + 1]
+    roll = ex.Rollout(
+        ego,
+        torch.zeros(S, N, 2, dtype=torch.float64),
+        torch.zeros(S, N, 7, 4, dtype=torch.float64),
+        torch.ones(S, N, dtype=torch.float64),
+        torch.ones(S, N, dtype=torch.bool),
+        f0,
+    )
     m = ex.closed_loop_metrics(scenes, roll, cfg)
     assert torch.allclose(m["deviation"], torch.zeros(S, dtype=torch.float64))
-    assert (m["control"] == 0).all() and torch.allclose(m["open_loop"], torch.ones(S, dtype=torch.float64))
-    # one agent placed on the ego at every step adds exactly w1 phi(0) = w1 to the collision cost per step
+    assert (m["control"] == 0).all() and torch.allclose(
+        m["open_loop"], torch.ones(S, dtype=torch.float64)
+    )
+    # one agent placed on the ego at every step adds exactly w1 phi(0) = w1 to the collision
+    # cost per step
     on_ego = dict(scenes.tensors(), names=scenes.names)
     on_ego["agents"] = scenes.agents.clone()
-    on_ego["agents"][:, 0, f0 + 1:f0 + N + 1] = ego[:, 1:]
+    on_ego["agents"][:, 0, f0 + 1 : f0 + N + 1] = ego[:, 1:]
     on_ego["agents_mask"] = scenes.agents_mask.clone()
     on_ego["agents_mask"][:, 0] = True
     m2 = ex.closed_loop_metrics(data_synth.Scenes(**on_ego), roll, cfg)
-    moved_away = scenes.agents_mask[:, 0, f0 + 1:f0 + N + 1].double() * torch.exp(
-        -((ego[:, 1:, :2] - scenes.agents[:, 0, f0 + 1:f0 + N + 1, :2]) ** 2).sum(-1) / (2 * cfg.rbf_var))
+    moved_away = scenes.agents_mask[:, 0, f0 + 1 : f0 + N + 1].double() * torch.exp(
+        -((ego[:, 1:, :2] - scenes.agents[:, 0, f0 + 1 : f0 + N + 1, :2]) ** 2).sum(-1)
+        / (2 * cfg.rbf_var)
+    )
     assert torch.allclose(m2["collision"] - m["collision"], cfg.w_coll * (1 - moved_away.mean(-1)))
 
 
-@pytest.mark.parametrize("kw, match", [(dict(sim_time=-1.0), "sim_time"), (dict(sim_time=0.0), "sim_time"),
-                                       (dict(sim_time=1.2), "sim_time"), (dict(sim_time=20.0), "start_frame"),
-                                       (dict(start_frame=3), "start_frame"), (dict(dt=0.1), "dt")])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(sim_time=-1.0), "sim_time"),
+        (dict(sim_time=0.0), "sim_time"),
+        (dict(sim_time=1.2), "sim_time"),
+        (dict(sim_time=20.0), "start_frame"),
+        (dict(start_frame=3), "start_frame"),
+        (dict(dt=0.1), "dt"),
+    ],
+)
 def test_simulate_bad_input_names_the_argument(clean, kw, match):
     (data, scfg) = clean
     cfg = ds.Config(dt=kw.pop("dt", 0.5))
-    never = lambda b: pytest.fail("the policy must not run on bad input")  # noqa: E731
+
+    def never(b):
+        return pytest.fail("the policy must not run on bad input")
+
     with pytest.raises(ValueError, match=match):
         ex.simulate(data.val_scenes, never, cfg, scfg=scfg, **kw)
 
@@ -297,66 +446,101 @@ def test_simulate_bad_input_names_the_argument(clean, kw, match):
 # Experiments end to end, tiny
 # ---------------------------------------------------------------------------------------------
 
+
 def test_experiments_end_to_end_tiny(clean, tmp_path):
-    (data, _), cfg = clean, ds.Config(**TINY10)
+    data, _ = clean
+    cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:32], data.val_scenes[:3])
-    res, table = ex.run_table(ex.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    res, table = ex.run_table(specs.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert set(res) == {"Hand-tuned", "Learned"} and "Learned" in table
     assert res["Hand-tuned"][0]["w"] == pytest.approx([5.0, 0.5, 0.3, 0.3, 1.0], rel=1e-5)
-    learned = res["Learned"][0]["w"]  # Table 3 as the paper: w'_1 fixed at 5, w'_2..5 moved but summing to 2.1
+    # Table 3 as the paper: w'_1 fixed at 5, w'_2..5 moved but summing to 2.1
+    learned = res["Learned"][0]["w"]
     assert learned[0] == 5.0 and sum(learned[1:]) == pytest.approx(2.1, rel=1e-6)
     assert max(abs(a - b) for a, b in zip(learned[1:], (0.5, 0.3, 0.3, 1.0))) > 1e-4
-    res, table = ex.run_table(ex.TABLES["closed_loop"], small, cfg, (0,), 0.5, tmp_path, log=None)
+    res, table = ex.run_table(
+        specs.TABLES["closed_loop"], small, cfg, (0,), 0.5, tmp_path, log=None
+    )
     assert list(res) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
-    assert res["No prediction"][0]["rel_trajectory"] == 0 and math.isfinite(res["DiffStack"][0]["rel_trajectory"])
-    report = ex.write_report(tmp_path, [("Closed loop", table, ["closed_loop.png", "stack_example.png"])])
+    assert res["No prediction"][0]["rel_trajectory"] == 0 and math.isfinite(
+        res["DiffStack"][0]["rel_trajectory"]
+    )
+    report = ex.write_report(
+        tmp_path, [("Closed loop", table, ["closed_loop.png", "stack_example.png"])]
+    )
     for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
         assert (tmp_path / f).stat().st_size > 10_000
     assert "![closed_loop.png](closed_loop.png)" in report.read_text()
 
 
 def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkeypatch):
-    (data, _), cfg = clean, ds.Config(**TINY10)
+    data, _ = clean
+    cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:32], data.val[:16])
-    no_planner, dt01 = ex.ABLATION_SECTIONS[1], ex.ABLATION_SECTIONS[-1]
-    monkeypatch.setattr(ex, "ABLATION_SECTIONS", (no_planner, dt01))  # the shortest section and dt = 0.1 s
+    no_planner, dt01 = specs.ABLATION_SECTIONS[1], specs.ABLATION_SECTIONS[-1]
+    # the shortest section and dt = 0.1 s
+    monkeypatch.setattr(ex, "ABLATION_SECTIONS", (no_planner, dt01))
     trained = []
     train = tr.train_stack
-    monkeypatch.setattr(tr, "train_stack", lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[1])
-    res, table = ex.run_table(ex.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    monkeypatch.setattr(
+        tr,
+        "train_stack",
+        lambda model, data, m, *a, **k: (trained.append(m.losses), train(model, data, m, *a, **k))[
+            1
+        ],
+    )
+    res, table = ex.run_table(specs.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
     for rows in res.values():
         assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
-    assert trained == [(1, 0, 0), (1, 0, 1), (1, 1, 1)]  # Standard never sees the stack: trained once, shared
+    # Standard never sees the stack: trained once, shared
+    assert trained == [(1, 0, 0), (1, 0, 1), (1, 1, 1)]
     assert res[dt01[0]]["Standard"][0]["ade"] == res[no_planner[0]]["Standard"][0]["ade"]
     line = next(ln for ln in table.splitlines() if ln.startswith("| DiffStack"))
-    assert line.split("|")[1:4] == [" DiffStack ", " 1 ", " -- "]  # no planner: L_plan does not apply
+    # no planner: L_plan does not apply
+    assert line.split("|")[1:4] == [" DiffStack ", " 1 ", " -- "]
 
 
 def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypatch):
-    """--experiment all: a predictor trained the same way is trained once and reused by every table (Standard:
-    Tables 1, 3, 4, 5 and each ablation section); the report links every figure."""
-    (data, _), cfg = clean, ds.Config(**TINY10)
+    """--experiment all: a predictor trained the same way is trained once and reused by every table
+    (Standard: Tables 1, 3, 4, 5 and each ablation section); the report links every figure."""
+    data, _ = clean
+    cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:32], data.val[:16], data.val_scenes[:2])
     trained = []
     train = tr.train_stack
 
-    def counting(model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, on_epoch=None, **kw):
-        trained.append((m.losses, m.weighting, setting if m.losses[1:] != (0, 0) else None, pred_offset,
-                        tuple(sorted(kw.items())), m.train_plan_weights))
-        return train(model, data, m, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **kw)
+    def counting(
+        model, data, m, cfg, setting, epochs, seed, log, pred_offset=0.0, on_epoch=None, **kw
+    ):
+        trained.append(
+            (
+                m.losses,
+                m.weighting,
+                setting if m.losses[1:] != (0, 0) else None,
+                pred_offset,
+                tuple(sorted(kw.items())),
+                m.train_plan_weights,
+            )
+        )
+        return train(
+            model, data, m, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch, **kw
+        )
 
     monkeypatch.setattr(tr, "train_stack", counting)
     ex.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
     assert len(trained) == len(set(trained))
     assert trained.count(((1, 0, 0), "standard", None, 0.0, (), None)) == 1
-    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),), None) in trained  # the dt = 0.1 s section
-    assert ((1, 1, 1), "standard", "rl", 0.0, (), "prior") in trained  # the ablation's prior-weights row
-    assert trained.count(((0, 1, 1), "standard", "rl", 0.0, (), None)) == 1  # no L_pred: Table 1 and the ablation
+    # the dt = 0.1 s section
+    assert ((1, 1, 1), "standard", "rl", 0.0, (("plan_dt", 0.1),), None) in trained
+    # the ablation's prior-weights row
+    assert ((1, 1, 1), "standard", "rl", 0.0, (), "prior") in trained
+    # no L_pred: Table 1 and the ablation
+    assert trained.count(((0, 1, 1), "standard", "rl", 0.0, (), None)) == 1
     report = (tmp_path / "report.md").read_text()
     for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
         assert f"({f})" in report and (tmp_path / f).exists()
-    for name in ex.EXPERIMENTS:
+    for name in specs.EXPERIMENTS:
         assert json.loads((tmp_path / f"{name}.json").read_text())["meta"]["experiment"] == name
 
 
@@ -364,18 +548,40 @@ def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the synthetic data cache goes to tmp_path/data_cache
     tiny = ds.Config(**TINY)
     monkeypatch.setattr(ex, "Config", lambda: tiny)  # what main() builds
-    ex.main(["--experiment", "closed_loop", "--n", "60", "--val", "200", "--seeds", "1", "--epochs", "1", "--threads", "1",
-             "--out", "out"])
+    ex.main(
+        [
+            "--experiment",
+            "closed_loop",
+            "--n",
+            "60",
+            "--val",
+            "200",
+            "--seeds",
+            "1",
+            "--epochs",
+            "1",
+            "--threads",
+            "1",
+            "--out",
+            "out",
+        ]
+    )
     res = json.loads((tmp_path / "out" / "closed_loop.json").read_text())
-    assert res["meta"]["experiment"] == "closed_loop" and (tmp_path / "out" / "closed_loop.png").exists()
+    assert (
+        res["meta"]["experiment"] == "closed_loop"
+        and (tmp_path / "out" / "closed_loop.png").exists()
+    )
     assert "Trajectory" in (tmp_path / "out" / "closed_loop.md").read_text()
 
 
 def test_gap_closed_share_and_no_gap():
-    """The share of the Standard -> GT gap DiffStack closes, per seed; undefined (nan, and the table says so) when
-    Standard already costs what GT prediction does."""
-    res = {"GT prediction": [{"rel_hindsight": -2.0}], "Standard": [{"rel_hindsight": 0.0}, {"rel_hindsight": 2.0}],
-           "DiffStack": [{"rel_hindsight": -1.0}, {"rel_hindsight": 0.0}]}
+    """The share of the Standard -> GT gap DiffStack closes, per seed; undefined (nan, and the table
+    says so) when Standard already costs what GT prediction does."""
+    res = {
+        "GT prediction": [{"rel_hindsight": -2.0}],
+        "Standard": [{"rel_hindsight": 0.0}, {"rel_hindsight": 2.0}],
+        "DiffStack": [{"rel_hindsight": -1.0}, {"rel_hindsight": 0.0}],
+    }
     m, s = ex.gap_closed(res)
     assert m == pytest.approx(0.5) and s == pytest.approx(0.0)  # both seeds close half of their gap
     res["Standard"] = [{"rel_hindsight": -2.0}]
@@ -386,6 +592,7 @@ def test_gap_closed_share_and_no_gap():
 # The paper's claims: paired differences over seeds
 # ---------------------------------------------------------------------------------------------
 
+
 def _p_four_dof(t: float) -> float:
     """The two-sided p-value of Student's t with 4 degrees of freedom (5 seeds), in closed form:
     F(t) = 1/2 + 3/4 x (1 - x^2 / 3), x = t / sqrt(4 + t^2) -- independent of scipy."""
@@ -394,17 +601,23 @@ def _p_four_dof(t: float) -> float:
 
 
 def test_paired_difference_is_a_two_sided_t_test():
-    """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025), s.e. sqrt(0.025 / 5) = 0.0707, t = -14.1."""
+    """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025), s.e. sqrt(0.025 / 5) =
+    0.0707, t = -14.1."""
     p = ex.paired_difference([2.0, 2.0, 2.0, 2.0, 2.0], [1.0, 0.8, 1.2, 0.9, 1.1])
     assert p.mean == pytest.approx(-1.0) and p.se == pytest.approx(math.sqrt(0.025 / 5))
-    assert p.t == pytest.approx(-1.0 / math.sqrt(0.025 / 5)) and (p.better, p.worse, p.n) == (5, 0, 5)
+    assert p.t == pytest.approx(-1.0 / math.sqrt(0.025 / 5)) and (p.better, p.worse, p.n) == (
+        5,
+        0,
+        5,
+    )
     assert p.p == pytest.approx(_p_four_dof(p.t), rel=1e-9) and p.p < 0.001
     assert ex.claim_verdict(p) == "reproduced"
 
 
 def test_beyond_two_standard_errors_is_not_yet_p_below_5_percent():
-    """5 seeds at t = -2.6 (Table 1's hindsight claim once): past two standard errors, but with 4 degrees of freedom
-    a two-sided 5 % test needs |t| > 2.776, so p = 0.060: not reproduced. Differences -1 + 0.5 k, k = -2..2 scaled."""
+    """5 seeds at t = -2.6 (Table 1's hindsight claim once): past two standard errors, but with 4
+    degrees of freedom a two-sided 5 % test needs |t| > 2.776, so p = 0.060: not reproduced.
+    Differences -1 + 0.5 k, k = -2..2 scaled."""
     d = [-1.0, -0.5, 0.0, 0.5, 1.0]
     sd = statistics.stdev(d)
     shift = 2.6 * sd / math.sqrt(5)  # the mean that gives t = -2.6
@@ -417,8 +630,9 @@ def test_beyond_two_standard_errors_is_not_yet_p_below_5_percent():
 
 
 def test_paired_difference_not_significant_or_the_other_way():
-    """Table 4's case: better on average, worse in two seeds. Differences -3, -3, -3, +1, +1: mean -1.4,
-    s.d. sqrt(4.8), s.e. 0.980, t = -1.43 -- the unpaired means would look apart, the paired test says no."""
+    """Table 4's case: better on average, worse in two seeds. Differences -3, -3, -3, +1, +1: mean
+    -1.4, s.d. sqrt(4.8), s.e. 0.980, t = -1.43 -- the unpaired means would look apart, the paired
+    test says no."""
     p = ex.paired_difference([0.0] * 5, [-3.0, -3.0, -3.0, 1.0, 1.0])
     assert p.mean == pytest.approx(-1.4) and p.se == pytest.approx(math.sqrt(4.8 / 5))
     assert p.t == pytest.approx(-1.4 / math.sqrt(4.8 / 5)) and (p.better, p.worse) == (3, 2)
@@ -429,47 +643,82 @@ def test_paired_difference_not_significant_or_the_other_way():
 
 
 def test_paired_difference_without_spread_and_bad_input():
-    # the same difference in every seed: s.e. 0, t = -inf, p = 0, reproduced; no difference at all: t undefined, not
+    # the same difference in every seed: s.e. 0, t = -inf, p = 0, reproduced; no difference at all:
+    # t undefined, not
     p = ex.paired_difference([1.0, 2.0, 3.0], [0.5, 1.5, 2.5])
     assert p.se == 0 and p.t == -math.inf and p.p == 0 and ex.claim_verdict(p) == "reproduced"
     p = ex.paired_difference([1.0, 2.0], [1.0, 2.0])
     assert p.se == 0 and math.isnan(p.t) and math.isnan(p.p) and (p.better, p.worse) == (0, 0)
     assert ex.claim_verdict(p) == "not reproduced"
-    assert ex.claim_verdict(ex.paired_difference([1.0], [0.0])).startswith("untested")  # one seed: no s.e.
+    # one seed: no s.e.
+    assert ex.claim_verdict(ex.paired_difference([1.0], [0.0])).startswith("untested")
     with pytest.raises(ValueError, match="method: 2 seeds, but baseline has 3"):
         ex.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0])
 
 
 def test_a_claim_that_the_method_is_higher_against_a_baseline_of_one_run():
-    """Table 5's "the standard stack performs worse than no prediction": direction +1, and No prediction (nothing to
-    train, one run) pairs with every seed of Standard."""
+    """Table 5's "the standard stack performs worse than no prediction": direction +1, and No
+    prediction (nothing to train, one run) pairs with every seed of Standard."""
     p = ex.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])
-    assert ex.claim_verdict(p, direction=1) == "reproduced" and ex.claim_verdict(p) == "contradicted (the other way)"
-    res = {"No prediction": [{"rel_trajectory": 0.0}], "Standard": [{"rel_trajectory": x} for x in (1.0, 1.2, 0.8, 1.1, -0.1)]}
-    higher = ex.Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1)
-    line = ex.claim_line(higher, ex.TABLE5, res)
+    assert (
+        ex.claim_verdict(p, direction=1) == "reproduced"
+        and ex.claim_verdict(p) == "contradicted (the other way)"
+    )
+    res = {
+        "No prediction": [{"rel_trajectory": 0.0}],
+        "Standard": [{"rel_trajectory": x} for x in (1.0, 1.2, 0.8, 1.1, -0.1)],
+    }
+    higher = specs.Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1)
+    line = ex.claim_line(higher, specs.TABLE5, res)
     assert "4 of 5 seeds higher, 1 lower" in line and line.endswith("): reproduced"), line
-    assert ex.claim_line(dataclasses.replace(higher, direction=-1), ex.TABLE5, res).endswith("contradicted (the other way)")
+    assert ex.claim_line(dataclasses.replace(higher, direction=-1), specs.TABLE5, res).endswith(
+        "contradicted (the other way)"
+    )
 
 
 def test_table_markdown_carries_the_claim_lines(tmp_path):
-    """A table's markdown (and render_markdown's file, re-made from its JSON) has one line per claim of the paper."""
-    runs = lambda *v: [{"rel_hindsight": x, "rel_plan_loss": x, "ade": 1.0, "nll": 1.0, "converged": 1.0} for x in v]  # noqa: E731
-    res = {"No prediction": runs(0, 0, 0), "Standard": runs(1.0, 2.0, 3.0), "DiffStack": runs(0.0, 0.9, 2.1),
-           "GT prediction": runs(-2, -2, -2)}
-    md = ex.results_markdown(ex.TABLE1, res)
-    assert ("DiffStack vs Standard, hindsight cost (x1e-2): paired difference -1.00 ± 0.06 (t = -17.32, p = 0.003, 3 of 3 "
-            "seeds better): reproduced") in md
+    """A table's markdown (and render_markdown's file, re-made from its JSON) has one line per claim
+    of the paper."""
+
+    def runs(*v):
+        return [
+            {"rel_hindsight": x, "rel_plan_loss": x, "ade": 1.0, "nll": 1.0, "converged": 1.0}
+            for x in v
+        ]
+
+    res = {
+        "No prediction": runs(0, 0, 0),
+        "Standard": runs(1.0, 2.0, 3.0),
+        "DiffStack": runs(0.0, 0.9, 2.1),
+        "GT prediction": runs(-2, -2, -2),
+    }
+    md = ex.results_markdown(specs.TABLE1, res)
+    assert (
+        "DiffStack vs Standard, hindsight cost (x1e-2): paired difference -1.00 ± 0.06 (t = "
+        "-17.32, p = 0.003, 3 of 3 seeds better): reproduced"
+    ) in md
     assert "DiffStack vs Standard, planning loss (x1e-2): paired difference" in md
-    meta = dict(command="python experiments.py --experiment rl", date="2026-01-01", machine="m", seconds=1.0)
+    meta = dict(
+        command="python experiments.py --experiment rl", date="2026-01-01", machine="m", seconds=1.0
+    )
     (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=res)))
     text = ex.render_markdown("rl", tmp_path).read_text()
-    assert text.startswith("# Table 1") and md in text and "`python experiments.py --experiment rl` (2026-01-01, m, 1 s)" in text
+    assert (
+        text.startswith("# Table 1")
+        and md in text
+        and "`python experiments.py --experiment rl` (2026-01-01, m, 1 s)" in text
+    )
     # an ablation: one line per section, named
-    abl = {title: {"Standard": runs(1.0, 2.0), "DiffStack": runs(1.5, 2.5)} for title, _, _ in ex.ABLATION_SECTIONS}
-    md = ex.results_markdown(ex.TABLE6, abl)
-    assert md.count("DiffStack vs Standard, hindsight cost") == len(ex.ABLATION_SECTIONS)
-    assert "Loss weights: DiffStack vs Standard, hindsight cost (x1e-2): paired difference 0.50 ± 0.00" in md
+    abl = {
+        title: {"Standard": runs(1.0, 2.0), "DiffStack": runs(1.5, 2.5)}
+        for title, _, _ in specs.ABLATION_SECTIONS
+    }
+    md = ex.results_markdown(specs.TABLE6, abl)
+    assert md.count("DiffStack vs Standard, hindsight cost") == len(specs.ABLATION_SECTIONS)
+    assert (
+        "Loss weights: DiffStack vs Standard, hindsight cost (x1e-2): paired difference 0.50 ± 0.00"
+        in md
+    )
     with pytest.raises(ValueError, match="name: 'nope'"):
         ex.render_markdown("nope", tmp_path)
 
@@ -478,22 +727,32 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
 # The breakdown by behaviour, the goal table, learning curves, re-rendering
 # ---------------------------------------------------------------------------------------------
 
+
 def _by(**hindsight):
     return {b: dict(n=10, hindsight=h, mse=h, plan_loss=h) for b, h in hindsight.items()}
 
 
 def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
-    res = {"No prediction": [dict(n=20, hindsight=1.0, by_behaviour=_by(cut_in=1.5, keep_lane=0.5))],
-           "Standard": [dict(n=20, hindsight=0.99, by_behaviour=_by(cut_in=1.49, keep_lane=0.49)),
-                        dict(n=20, hindsight=1.01, by_behaviour=_by(cut_in=1.47, keep_lane=0.55))],
-           "GT prediction": [dict(n=20, hindsight=0.9, by_behaviour=_by(cut_in=1.5, keep_lane=0.3))]}
-    md = ex.behaviour_markdown(ex.TABLE1, res)
-    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]] for ln in md.splitlines() if ln.startswith("| ")}
+    res = {
+        "No prediction": [dict(n=20, hindsight=1.0, by_behaviour=_by(cut_in=1.5, keep_lane=0.5))],
+        "Standard": [
+            dict(n=20, hindsight=0.99, by_behaviour=_by(cut_in=1.49, keep_lane=0.49)),
+            dict(n=20, hindsight=1.01, by_behaviour=_by(cut_in=1.47, keep_lane=0.55)),
+        ],
+        "GT prediction": [dict(n=20, hindsight=0.9, by_behaviour=_by(cut_in=1.5, keep_lane=0.3))],
+    }
+    md = ex.behaviour_markdown(specs.TABLE1, res)
+    rows = {
+        ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]]
+        for ln in md.splitlines()
+        if ln.startswith("| ")
+    }
     assert rows["Behaviour (scenes)"] == ["Standard", "GT prediction"]
     assert rows["cut_in (10)"] == ["-2.00 ± 1.00", "0.00 ± 0.00"]
     assert rows["keep_lane (10)"] == ["2.00 ± 3.00", "-20.00 ± 0.00"]
     assert rows["all (20)"] == ["0.00 ± 1.00", "-10.00 ± 0.00"]
-    assert ex.behaviour_markdown(ex.TABLE1, {"No prediction": [dict(n=1, hindsight=1.0)]}) == ""  # real data: none
+    # real data: none
+    assert ex.behaviour_markdown(specs.TABLE1, {"No prediction": [dict(n=1, hindsight=1.0)]}) == ""
 
 
 def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
@@ -503,21 +762,32 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
     assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
     assert all(len({p.seed for p in ps}) == 1 for _, ps in units)  # one seed per unit
     seeds = [ps[0].seed for _, ps in units]
-    assert all(a != b for a, b in zip(seeds, seeds[1:]))  # two workers never start the same seed side by side
-    every = [(n, p) for n in names for p in ex.table_pieces(ex.SPECS[n], (0, 1, 2))]
+    # two workers never start the same seed side by side
+    assert all(a != b for a, b in zip(seeds, seeds[1:]))
+    every = [(n, p) for n in names for p in ex.table_pieces(specs.SPECS[n], (0, 1, 2))]
     assert sorted((n, p) for n, ps in units for p in ps) == sorted(every)
     done = units[0][1][0]
     store.save("ablation", done, {"x": 1})
-    assert ("ablation", done) not in [(n, p) for n, ps in ex.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps]
+    assert ("ablation", done) not in [
+        (n, p) for n, ps in ex.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps
+    ]
 
 
 def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monkeypatch):
-    assert set(runs.NUMBER_MODULES) == {"diffstack.py", "train.py", "data_synth.py", "data_real.py", "experiments.py"}
+    assert set(runs.NUMBER_MODULES) == {
+        "diffstack.py",
+        "train.py",
+        "data_synth.py",
+        "data_real.py",
+        "experiments.py",
+        "specs.py",
+    }
     for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
         (tmp_path / name).write_text(f"# {name}\nx = 1\n")
     monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
     versions = {runs.code_version()}
-    for name in ("README.md", "test_x.py", "tutorial.py"):  # the tests, the docs, the notebook: the same run
+    # the tests, the docs, the notebook: the same run
+    for name in ("README.md", "test_x.py", "tutorial.py"):
         (tmp_path / name).write_text("# edited\nx = 2\n")
         assert runs.code_version() in versions
     for name in runs.NUMBER_MODULES:  # each module that makes numbers: a new run
@@ -551,61 +821,95 @@ def f(x,
 
 
 def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monkeypatch):
-    """An edited comment or docstring or a re-wrapped line is the same run (hours of pieces kept); a changed
-    number, name or string is a new one. (SAME_CODE's comment stands before the docstring: the string is then
-    still the function's first statement, its docstring.)"""
+    """An edited comment or docstring or a re-wrapped line is the same run (hours of pieces kept); a
+    changed number, name or string is a new one. (SAME_CODE's comment stands before the docstring:
+    the string is then still the function's first statement, its docstring.)"""
     for name in runs.NUMBER_MODULES:
         (tmp_path / name).write_text(CODE)
     monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
     before = runs.code_version()
     (tmp_path / "diffstack.py").write_text(SAME_CODE)
     assert runs.code_version() == before
-    for edit in (("2.0", "3.0"), ("sqrt", "exp"), ("scale *", "scale +"), ('"""Twice x."""\n', '"""Twice x."""\n    x = x\n'),
-                 ("# a comment", "+ len('a string')")):
+    for edit in (
+        ("2.0", "3.0"),
+        ("sqrt", "exp"),
+        ("scale *", "scale +"),
+        ('"""Twice x."""\n', '"""Twice x."""\n    x = x\n'),
+        ("# a comment", "+ len('a string')"),
+    ):
         (tmp_path / "diffstack.py").write_text(CODE.replace(*edit))
         assert runs.code_version() != before, edit
     # a string that is not a docstring is code: the tables' texts are made of such strings
     assert runs.code_of('x = "a"\n') != runs.code_of('x = "b"\n')
-    assert runs.code_of('def g():\n    """Doc."""\n') == runs.code_of('def g():\n    pass\n')
-    # a dataclass field's docstring (Config's) is a string statement too; the field's default is code
+    assert runs.code_of('def g():\n    """Doc."""\n') == runs.code_of("def g():\n    pass\n")
+    # a dataclass field's docstring (Config's) is a string statement too; the field's
+    # default is code
     field = 'class C:\n    x: float = 1.0\n    """The x, in m."""\n'
     assert runs.code_of(field) == runs.code_of(field.replace("in m", "in metres"))
     assert runs.code_of(field) != runs.code_of(field.replace("1.0", "2.0"))
 
 
 def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp_path):
-    """The goal table runs No and GT prediction under both goals; the cost terms add up to the hindsight cost."""
-    (data, _), cfg = clean, ds.Config()
-    res, md = ex.run_table(ex.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
-    assert list(res) == list(ex.GOALS) and all(list(rows) == ["No prediction", "GT prediction"] for rows in res.values())
+    """The goal table runs No and GT prediction under both goals; the cost terms add up to the
+    hindsight cost."""
+    data, _ = clean
+    cfg = ds.Config()
+    res, md = ex.run_table(specs.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
+    assert list(res) == list(specs.GOALS) and all(
+        list(rows) == ["No prediction", "GT prediction"] for rows in res.values()
+    )
     for rows in res.values():
         for per_seed in rows.values():
             assert len(per_seed) == 1  # nothing trained: one run
             for b in per_seed[0]["by_behaviour"].values():
-                assert sum(b["terms"]) == pytest.approx(b["hindsight"], rel=1e-4) and 0 <= b["close"] <= 1
+                assert (
+                    sum(b["terms"]) == pytest.approx(b["hindsight"], rel=1e-4)
+                    and 0 <= b["close"] <= 1
+                )
         gt, none = rows["GT prediction"][0]["hindsight"], rows["No prediction"][0]["hindsight"]
         assert gt <= none + 1e-6  # with the GT future, the plan is the best candidate in hindsight
     assert md.count("**Goal:") == 2 and "share of GT's saving" in md
 
 
 def test_the_report_says_when_and_where_its_tables_ran_not_when_it_was_written(tmp_path):
-    metas = [dict(date="2026-11-24", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
-                  device="cpu"),
-             dict(date="2026-11-25", machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
-                  device="cpu"),
-             dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads", device="cuda")]
+    metas = [
+        dict(
+            date="2026-11-24",
+            machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
+            device="cpu",
+        ),
+        dict(
+            date="2026-11-25",
+            machine="x86_64, 2 cores, 1 thread per process, 2 worker processes (--jobs)",
+            device="cpu",
+        ),
+        dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads", device="cuda"),
+    ]
     header = ex.write_report(tmp_path, [("T", "table", [])], metas).read_text().splitlines()[2]
-    assert header == ("Tables made 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker "
-                      "processes (--jobs); aarch64, 8 cores, 2 threads, device cpu, cuda")  # each once, in order
-    metas[0]["computed_on"] = {"x86_64, AVX512": 3, "x86_64, AVX2": 2}  # a run resumed on another machine
-    header = ex.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True).read_text().splitlines()[2]
-    assert header.startswith("Tables made 2026-11-24 on x86_64") and "device cpu (pieces computed on several" in header
+    assert header == (
+        "Tables made 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker "
+        # each once, in order
+        "processes (--jobs); aarch64, 8 cores, 2 threads, device cpu, cuda"
+    )
+    # a run resumed on another machine
+    metas[0]["computed_on"] = {"x86_64, AVX512": 3, "x86_64, AVX2": 2}
+    header = (
+        ex.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True)
+        .read_text()
+        .splitlines()[2]
+    )
+    assert (
+        header.startswith("Tables made 2026-11-24 on x86_64")
+        and "device cpu (pieces computed on several" in header
+    )
     assert header.endswith(f"(rendered {time.strftime('%Y-%m-%d')} from their JSON files)")
 
 
 def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
-    """--render: the .md files, the learning curves and the report again from the JSON, nothing trained."""
-    (data, _), cfg = clean, ds.Config(**TINY10)
+    """--render: the .md files, the learning curves and the report again from the JSON,
+    nothing trained."""
+    data, _ = clean
+    cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:16], data.val_scenes[:2])
     ex.run_experiment("rl", small, cfg, (0, 1), 1.0, tmp_path, "test", log=None)
     assert (tmp_path / "learning_curves.png").exists()
@@ -616,7 +920,9 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
         (tmp_path / f).unlink()
     with pytest.raises(SystemExit):  # nothing to render from
         ex.main(["--experiment", "all", "--render", "--out", str(tmp_path)])
-    ex.main(["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100", "--val", "100"])
+    ex.main(
+        ["--experiment", "rl", "--render", "--out", str(tmp_path), "--n", "100", "--val", "100"]
+    )
     assert (tmp_path / "rl.md").read_text() == md and (tmp_path / "learning_curves.png").exists()
     # results from before the curves existed: their tables re-rendered, no empty figure drawn
     saved = json.loads((tmp_path / "rl.json").read_text())
@@ -626,43 +932,86 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
     (tmp_path / "rl.json").write_text(json.dumps(saved))
     (tmp_path / "learning_curves.png").unlink()
     ex.render_outputs("rl", tmp_path, log=None)
-    assert not (tmp_path / "learning_curves.png").exists() and "Learning curves" not in (tmp_path / "rl.md").read_text()
+    assert (
+        not (tmp_path / "learning_curves.png").exists()
+        and "Learning curves" not in (tmp_path / "rl.md").read_text()
+    )
 
 
 def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
-    def runs(*slopes):  # one seed per slope: the metric falls by `slope` per epoch over 10 epochs, plus seed noise
-        return [dict(curve=[dict(epoch=float(e), ade=2.0 - s * e + 0.001 * i, hindsight=1.9 - s * e / 10)
-                            for e in range(11)]) for i, s in enumerate(slopes)]
-    md = ex.plateau_markdown({"Standard": runs(0.0, 0.0, 0.0), "DiffStack": runs(0.05, 0.04, 0.06)}, last=5)
+    # one seed per slope: the metric falls by `slope` per epoch over 10 epochs, plus seed noise
+    def runs(*slopes):
+        return [
+            dict(
+                curve=[
+                    dict(epoch=float(e), ade=2.0 - s * e + 0.001 * i, hindsight=1.9 - s * e / 10)
+                    for e in range(11)
+                ]
+            )
+            for i, s in enumerate(slopes)
+        ]
+
+    md = ex.plateau_markdown(
+        {"Standard": runs(0.0, 0.0, 0.0), "DiffStack": runs(0.05, 0.04, 0.06)}, last=5
+    )
     std, dif = [ln for ln in md.splitlines() if ln.startswith("- ")]
-    assert std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds") and std.count("(flat)") == 2
+    assert (
+        std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds")
+        and std.count("(flat)") == 2
+    )
     assert "ADE -0.250 ± 0.029 m (still falling)" in dif
     assert ex.plateau_markdown({"Standard": [dict(ade=1.0)]}) == ""
     assert f"{ex.CURVE_SAMPLES} validation scenes" in std  # curves without a count: the default's
     # a short run on a small validation set says what it had: 0.5 epochs, 40 + 14 scenes
-    short = [dict(curve=[dict(epoch=e, ade=1.0, hindsight=1.0, n=40, skipped=14) for e in (0.0, 0.5)])]
+    short = [
+        dict(curve=[dict(epoch=e, ade=1.0, hindsight=1.0, n=40, skipped=14) for e in (0.0, 0.5)])
+    ]
     line = ex.plateau_markdown({"Standard": short}).splitlines()[-1]
-    assert line.startswith("- Standard, over the last 0.5 of 0.5 epochs (1 seeds, 54 validation scenes)")
+    assert line.startswith(
+        "- Standard, over the last 0.5 of 0.5 epochs (1 seeds, 54 validation scenes)"
+    )
 
 
 def test_the_learning_curves_caption_is_read_off_the_curves():
     def runs(level, ade):
         return [dict(curve=[dict(epoch=float(e), hindsight=level(e), ade=ade) for e in range(6)])]
-    res = {"Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1), "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3)}
-    assert figures.learning_curves_caption(res) == ("DiffStack plans better than Standard from epoch 2 on (right), with a "
-                                                "higher ADE at the end (left)")
-    res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)  # above Standard at the end
+
+    res = {
+        "Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1),
+        "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3),
+    }
+    assert figures.learning_curves_caption(res) == (
+        "DiffStack plans better than Standard from epoch 2 on (right), with a "
+        "higher ADE at the end (left)"
+    )
+    # above Standard at the end
+    res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)
     assert figures.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
     assert figures.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
 
 
 def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
-    # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say so, not drop it
-    run = lambda w, a: dict(w=w, alpha=a)  # noqa: E731
+    # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say
+    # so, not drop it
+    def run(w, a):
+        return dict(w=w, alpha=a)
+
     hand = [run([5.0, 0.5, 0.3, 0.3, 1.0], 1.0)] * 2
-    assert figures.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], 0.5)] * 2},
-                                  tmp_path / "a.png") == []
-    notes = figures.figure_cost_weights({"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], -0.04),
-                                                                    run([4.0, 1.3, 0.8, 0.8, 0.2], -0.05)]},
-                                   tmp_path / "b.png")
+    assert (
+        figures.figure_cost_weights(
+            {"Hand-tuned": hand, "Learned": [run([4.0, 1.3, 0.8, 0.8, 0.2], 0.5)] * 2},
+            tmp_path / "a.png",
+        )
+        == []
+    )
+    notes = figures.figure_cost_weights(
+        {
+            "Hand-tuned": hand,
+            "Learned": [
+                run([4.0, 1.3, 0.8, 0.8, 0.2], -0.04),
+                run([4.0, 1.3, 0.8, 0.8, 0.2], -0.05),
+            ],
+        },
+        tmp_path / "b.png",
+    )
     assert notes == ["Learned alpha = -0.045"] and (tmp_path / "b.png").exists()

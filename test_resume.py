@@ -1,6 +1,8 @@
-"""Runs that survive: every (table, method, seed) piece is kept in <out>/.runs/ as it finishes, a re-run of the same
-command resumes (and a changed config is a new run), --jobs N runs the seeds in worker processes with the numbers of
-one process, and a progress bar counts the pieces done. Tiny models and data."""
+"""Runs that survive: every (table, method, seed) piece is kept in <out>/.runs/ as it finishes, a
+re-run of the same command resumes (and a changed config is a new run), --jobs N runs the seeds in
+worker processes with the numbers of one process, and a progress bar counts the pieces done. Tiny
+models and data."""
+
 import dataclasses
 import json
 import os
@@ -17,20 +19,26 @@ import data_synth
 import diffstack as ds
 import experiments as ex
 import runs
+import specs
 import train as tr
 
-TINY10 = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32)
+TINY10 = dict(
+    pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32
+)
 
 
 @pytest.fixture(scope="module")
 def small():
-    data = data_synth.make_dataset(120, data_synth.SynthConfig(pos_noise=0.0, yaw_noise=0.0), seed=3)
+    data = data_synth.make_dataset(
+        120, data_synth.SynthConfig(pos_noise=0.0, yaw_noise=0.0), seed=3
+    )
     return data_synth.Dataset(data.train[:64], data.val[:16], data.val_scenes[:2])
 
 
 @pytest.fixture
 def trainings(monkeypatch):
-    """Count the predictors trained ((method, seed) per call); trainings.fail_at = k: the k-th training raises."""
+    """Count the predictors trained ((method, seed) per call); trainings.fail_at = k: the k-th
+    training raises."""
     calls = []
     train = tr.train_stack
 
@@ -41,7 +49,8 @@ def trainings(monkeypatch):
             calls.append((m.name, seed))
         return train(model, data, m, cfg, setting, epochs, seed, *a, **k)
 
-    counting.fail_at, counting.calls = None, calls
+    counting.fail_at = None
+    counting.calls = calls
     monkeypatch.setattr(tr, "train_stack", counting)
     return counting
 
@@ -49,20 +58,31 @@ def trainings(monkeypatch):
 def numbers(out, name="il") -> dict:
     """A result file's results without the wall-clock times (they differ from run to run)."""
     res = json.loads((out / f"{name}.json").read_text())["results"]
-    return {m: [{k: v for k, v in r.items() if "seconds" not in k} for r in runs] for m, runs in res.items()}
+    return {
+        m: [{k: v for k, v in r.items() if "seconds" not in k} for r in runs]
+        for m, runs in res.items()
+    }
 
 
 def table_of(out, name="il") -> str:
     """The .md file less its provenance line (which has the run's seconds)."""
-    return "\n".join(ln for ln in (out / f"{name}.md").read_text().splitlines() if not ln.startswith("`"))
+    return "\n".join(
+        ln for ln in (out / f"{name}.md").read_text().splitlines() if not ln.startswith("`")
+    )
 
 
 def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, trainings):
     cfg = ds.Config(**TINY10)
     ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "whole", "test", log=None)
-    assert sorted(trainings.calls) == [("DiffStack", 0), ("DiffStack", 1), ("Standard", 0), ("Standard", 1)]
+    assert sorted(trainings.calls) == [
+        ("DiffStack", 0),
+        ("DiffStack", 1),
+        ("Standard", 0),
+        ("Standard", 1),
+    ]
     trainings.calls.clear()
-    trainings.fail_at = 3  # Standard seeds 0 and 1 train, then the run dies while training DiffStack seed 0
+    # Standard seeds 0 and 1 train, then the run dies while training DiffStack seed 0
+    trainings.fail_at = 3
     with pytest.raises(RuntimeError, match="killed"):
         ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=None)
     kept = sorted(p.name for p in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json"))
@@ -73,11 +93,19 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     lines = []
     ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=lines.append)
     assert trainings.calls == [("DiffStack", 0), ("DiffStack", 1)]  # only what was missing
-    assert any("3 of 6 pieces done by an earlier run" in ln and "Standard-seed1" in ln for ln in lines)
-    # the table's computing time is its pieces', the interrupted run's three included (its own seconds are not)
-    kept = [json.loads(f.read_text())["timing"] for f in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json")]
+    assert any(
+        "3 of 6 pieces done by an earlier run" in ln and "Standard-seed1" in ln for ln in lines
+    )
+    # the table's computing time is its pieces', the interrupted run's three included (its own
+    # seconds are not)
+    kept = [
+        json.loads(f.read_text())["timing"]
+        for f in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json")
+    ]
     meta = json.loads((tmp_path / "cut" / "il.json").read_text())["meta"]
-    assert len(kept) == meta["pieces"] == 6 and all(t["seconds"] > 0 and t["cpu_seconds"] > 0 for t in kept)
+    assert len(kept) == meta["pieces"] == 6 and all(
+        t["seconds"] > 0 and t["cpu_seconds"] > 0 for t in kept
+    )
     assert meta["piece_seconds"] == pytest.approx(sum(t["seconds"] for t in kept))
     assert "s wall in this command" in (tmp_path / "cut" / "il.md").read_text()
     assert "s of computing summed over its 6 pieces" in (tmp_path / "cut" / "il.md").read_text()
@@ -86,15 +114,20 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     assert table_of(tmp_path / "cut") == table_of(tmp_path / "whole")
 
 
-def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces(small, tmp_path, trainings):
-    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces(
+    small, tmp_path, trainings
+):
+    cfg = ds.Config(**TINY10)
+    out = tmp_path / "out"
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2
     before = numbers(out)
-    # the same command again: its own outputs may be replaced, nothing is trained, the same numbers come out
+    # the same command again: its own outputs may be replaced, nothing is trained, the same
+    # numbers come out
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2 and numbers(out) == before
-    # another config is another run: its outputs are not ours (refused without --overwrite), and all is retrained
+    # another config is another run: its outputs are not ours (refused without --overwrite), and all
+    # is retrained
     other = dataclasses.replace(cfg, beta=2 * cfg.beta)
     with pytest.raises(ValueError, match="--overwrite"):
         ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
@@ -108,11 +141,13 @@ def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces
 
 
 def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_path, trainings):
-    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    cfg = ds.Config(**TINY10)
+    out = tmp_path / "out"
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     kept = sorted((out / ".runs" / "il").glob("*/*-seed*.json"))
     assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [tr.machine()] * 4
-    assert "computed_on" not in json.loads((out / "il.json").read_text())["meta"]  # one machine: nothing to say
+    # one machine: nothing to say
+    assert "computed_on" not in json.loads((out / "il.json").read_text())["meta"]
     assert "pieces ran on" not in (out / "il.md").read_text()
     # as if Standard had been trained on another host before the run was resumed here
     piece = json.loads(kept[-1].read_text())
@@ -122,19 +157,29 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     assert len(trainings.calls) == 2  # resumed: nothing trained again
     meta = json.loads((out / "il.json").read_text())["meta"]
     assert meta["computed_on"] == {tr.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
-    assert ("its pieces ran on 2 machines, and the same seed gives other numbers on another kind of processor: "
-            in (out / "il.md").read_text())
+    assert (
+        "its pieces ran on 2 machines, and the same seed gives other numbers on another kind of "
+        "processor: " in (out / "il.md").read_text()
+    )
 
 
-def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(small, tmp_path, trainings, monkeypatch):
-    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(
+    small, tmp_path, trainings, monkeypatch
+):
+    cfg = ds.Config(**TINY10)
+    out = tmp_path / "out"
     ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
     before = numbers(out, "closed_loop")
     (out / "closed_loop.png").unlink()
-    monkeypatch.setattr(ex, "simulate", lambda *a, **k: pytest.fail("every piece is kept: nothing is simulated"))
+    monkeypatch.setattr(
+        ex, "simulate", lambda *a, **k: pytest.fail("every piece is kept: nothing is simulated")
+    )
     ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
-    assert len(trainings.calls) == 2  # Standard and DiffStack, once; the figure's predictors are loaded
-    assert numbers(out, "closed_loop") == before and (out / "closed_loop.png").stat().st_size > 10_000
+    # Standard and DiffStack, once; the figure's predictors are loaded
+    assert len(trainings.calls) == 2
+    assert (
+        numbers(out, "closed_loop") == before and (out / "closed_loop.png").stat().st_size > 10_000
+    )
 
 
 def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
@@ -147,7 +192,8 @@ def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
     assert numbers(tmp_path / "two") == numbers(tmp_path / "one")
     machine = json.loads((tmp_path / "two" / "il.json").read_text())["meta"]["machine"]
     assert "2 worker processes (--jobs)" in machine
-    # the kind of processor, on which the numbers depend (tr.machine: oneDNN's kernels follow its instruction set)
+    # the kind of processor, on which the numbers depend (tr.machine: oneDNN's kernels follow its
+    # instruction set)
     assert f", {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores, torch " in machine
 
 
@@ -159,16 +205,18 @@ def test_bad_jobs_is_a_one_line_error_naming_it(jobs, capsys, tmp_path):
     assert e.value.code == 2 and "--jobs" in err[-1] and err[-1].startswith("usage") is False
 
 
-def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_those_finished_elsewhere_up_to_the_total(tmp_path):
-    """Pieces saved to the store by another process (here a thread, as a worker process would) are counted as they
-    appear: the bar starts at those finished before it, and reaches the total while the run is still in its with
-    block, not only at the end."""
+def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_others_up_to_the_total(tmp_path):
+    """Pieces saved to the store by another process (here a thread, as a worker process would) are
+    counted as they appear: the bar starts at those finished before it, and reaches the total while
+    the run is still in its with block, not only at the end."""
     store = runs.RunStore(tmp_path, "k")
     pieces = [("il", ex.Piece("Standard", s)) for s in range(4)]
     store.save("il", pieces[0][1], {"ade": 1.0})
     with runs.progress(store, pieces, every=0.01) as bar:
         assert (bar.initial, bar.n, bar.total) == (1, 1, 4)
-        worker = threading.Thread(target=lambda: [store.save("il", p, {"ade": 1.0}) for _, p in pieces[1:]])
+        worker = threading.Thread(
+            target=lambda: [store.save("il", p, {"ade": 1.0}) for _, p in pieces[1:]]
+        )
         worker.start()
         worker.join()
         deadline = time.time() + 5.0
@@ -179,27 +227,38 @@ def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_those_finished_
 
 
 def test_a_piece_records_whether_it_trained(small, tmp_path):
-    cfg, out = ds.Config(**TINY10), tmp_path / "out"
+    cfg = ds.Config(**TINY10)
+    out = tmp_path / "out"
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     ex.run_experiment("cost", small, cfg, (0,), 0.5, out, "test", log=None)
-    trained = {f"{f.parent.parent.name} {f.stem}": json.loads(f.read_text())["timing"]["trained"]
-               for f in (out / ".runs").glob("*/*/*-seed*.json")}
+    trained = {
+        f"{f.parent.parent.name} {f.stem}": json.loads(f.read_text())["timing"]["trained"]
+        for f in (out / ".runs").glob("*/*/*-seed*.json")
+    }
     # Table 3 finds Table 4's Standard trained, and trains its cost weights
-    assert trained == {"il No_prediction-seed0": False, "il Standard-seed0": True, "il DiffStack-seed0": True,
-                       "il GT_prediction-seed0": False, "cost Cost_weights-seed0": True}
+    assert trained == {
+        "il No_prediction-seed0": False,
+        "il Standard-seed0": True,
+        "il DiffStack-seed0": True,
+        "il GT_prediction-seed0": False,
+        "cost Cost_weights-seed0": True,
+    }
 
 
 def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypatch):
-    """timed_piece knows what a piece trains from piece_trainings, which must name the training_key that the piece
-    itself asks trained_predictor for, in every table (trainings replaced by untrained models: only keys count)."""
-    cfg, asked, key = ds.Config(**TINY10), [], ex.training_key
+    """timed_piece knows what a piece trains from piece_trainings, which must name the training_key
+    that the piece itself asks trained_predictor for, in every table (trainings replaced by
+    untrained models: only keys count)."""
+    cfg = ds.Config(**TINY10)
+    asked = []
+    key = ex.training_key
     monkeypatch.setattr(ex, "training_key", lambda *a, **k: asked.append(key(*a, **k)) or asked[-1])
     monkeypatch.setattr(ex, "train_predictor", lambda m, data, cfg, *a, **k: ds.Predictor(cfg))
     monkeypatch.setattr(ex, "train_stack", lambda *a, **k: None)  # Table 3's cost weights
     monkeypatch.setattr(ex, "CURVE_SAMPLES", 0)
     kinds = set()
     for name in ("rl", "biased", "il", "cost", "ablation", "closed_loop", "goal"):
-        spec = ex.SPECS[name]
+        spec = specs.SPECS[name]
         for piece in ex.table_pieces(spec, (1,)):
             asked.clear()
             ex.compute_piece(spec, piece, small, cfg, 0.5, log=None)
@@ -208,15 +267,37 @@ def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypat
             assert used == [k for k in named if k[0] != "cost weights"], (name, piece)
             assert all(k[2] == 1 for k in used)  # the piece's seed
             kinds.update(k[:2] + k[3:] for k in used)
-    # the predictors the tables train, per seed: Table 1's five, Table 2's two, Table 4's DiffStack, the ablations' eight
-    # (Standard, DiffStack and DiffStack (no L_pred) are Table 1's; No controller's DiffStack is no L_ctr's)
+    # the predictors the tables train, per seed: Table 1's five, Table 2's two, Table 4's DiffStack,
+    # the ablations' eight (Standard, DiffStack and DiffStack (no L_pred) are Table 1's; No
+    # controller's DiffStack is no L_ctr's)
     assert len(kinds) == 5 + 2 + 1 + 8
 
 
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
-    """Found only once the data (and so the run's key) is known, the refusal is still argparse's one-line error."""
-    args = ["--experiment", "il", "--seeds", "1", "--epochs", "0.05", "--n", "120", "--val", "120", "--threads", "1", "--jobs", "1",
-            "--out", str(tmp_path), "--set", "pred_modes=5", "--set", "pred_dec_hidden=16"]
+    """Found only once the data (and so the run's key) is known, the refusal is still argparse's
+    one-line error."""
+    args = [
+        "--experiment",
+        "il",
+        "--seeds",
+        "1",
+        "--epochs",
+        "0.05",
+        "--n",
+        "120",
+        "--val",
+        "120",
+        "--threads",
+        "1",
+        "--jobs",
+        "1",
+        "--out",
+        str(tmp_path),
+        "--set",
+        "pred_modes=5",
+        "--set",
+        "pred_dec_hidden=16",
+    ]
     ex.main(args)
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
@@ -226,22 +307,30 @@ def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys)
     assert not any("Traceback" in line for line in err)
 
 
-def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(small, tmp_path, monkeypatch):
-    """A training whose loss turns NaN stops with TrainingDiverged (method, seed, step); the run keeps going, keeps
-    that piece as 'diverged' (a resumed run does not retrain it), and the table leaves the seed out and says so."""
+def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(
+    small, tmp_path, monkeypatch
+):
+    """A training whose loss turns NaN stops with TrainingDiverged (method, seed, step); the run
+    keeps going, keeps that piece as 'diverged' (a resumed run does not retrain it), and the table
+    leaves the seed out and says so."""
     cfg = ds.Config(**TINY10)
-    train, calls = tr.train_stack, []
+    train = tr.train_stack
+    calls = []
 
     def diverging(model, data, m, cfg_, setting, epochs, seed, *a, **k):
         calls.append((m.name, seed))
         if (m.name, seed) == ("DiffStack", 1):
-            raise tr.TrainingDiverged(f"{m.name}, seed {seed}: training diverged at step 3 of 4: L_pred is not finite")
+            raise tr.TrainingDiverged(
+                f"{m.name}, seed {seed}: training diverged at step 3 of 4: L_pred is not finite"
+            )
         return train(model, data, m, cfg_, setting, epochs, seed, *a, **k)
 
     monkeypatch.setattr(tr, "train_stack", diverging)
     ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
     res = json.loads((tmp_path / "il.json").read_text())["results"]
-    assert res["DiffStack"][1] == {"diverged": "DiffStack, seed 1: training diverged at step 3 of 4: L_pred is not finite"}
+    assert res["DiffStack"][1] == {
+        "diverged": "DiffStack, seed 1: training diverged at step 3 of 4: L_pred is not finite"
+    }
     md = (tmp_path / "il.md").read_text()
     assert "Diverged, left out of the means: DiffStack, seed 1: training diverged at step 3" in md
     assert "1 of 1 seeds better" in md or "0 of 1 seeds better" in md
@@ -254,7 +343,8 @@ def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(small, t
 def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatch):
     cfg = ds.Config(**TINY10)
     data = small.train[:64]
-    orig, seen = ds.pred_loss, []
+    orig = ds.pred_loss
+    seen = []
 
     def nan_at_step_2(pred, batch, step, cfg_, shard=None):
         loss, parts = orig(pred, batch, step, cfg_, shard)
@@ -264,34 +354,57 @@ def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatc
     monkeypatch.setattr(ds, "pred_loss", nan_at_step_2)
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
-    with pytest.raises(tr.TrainingDiverged, match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite"):
-        tr.train_stack(model, data, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None)
+    with pytest.raises(
+        tr.TrainingDiverged,
+        match=r"DiffStack, seed 7: training diverged at step 3 of 4: L_pred is not finite",
+    ):
+        tr.train_stack(
+            model, data, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", 2.0, 7, None
+        )
     assert seen == [0, 1, 2] and all(torch.isfinite(p).all() for p in model.parameters())
 
 
 def test_a_recorded_command_names_paths_relative_to_the_repository(tmp_path):
-    """Results record their command with the repository's own paths relative (the same on every machine); a path
-    outside the repository is kept as given."""
+    """Results record their command with the repository's own paths relative (the same on every
+    machine); a path outside the repository is kept as given."""
     root = pathlib.Path(runs.__file__).resolve().parent
-    cmd = runs.command_line("python experiments.py", ["--experiment", "rl", "--out", str(root / "results" / "x"),
-                                                      f"--data={root / 'data'}", "--cache", str(tmp_path)])
-    assert cmd == f"python experiments.py --experiment rl --out results/x --data=data --cache {tmp_path}"
+    cmd = runs.command_line(
+        "python experiments.py",
+        [
+            "--experiment",
+            "rl",
+            "--out",
+            str(root / "results" / "x"),
+            f"--data={root / 'data'}",
+            "--cache",
+            str(tmp_path),
+        ],
+    )
+    assert (
+        cmd
+        == f"python experiments.py --experiment rl --out results/x --data=data --cache {tmp_path}"
+    )
 
 
 def test_a_nan_gradient_stops_training_before_it_reaches_the_parameters(small, monkeypatch):
-    """A finite loss with a NaN gradient (what a NaN inside the stack's backward gives) stops the training too."""
+    """A finite loss with a NaN gradient (what a NaN inside the stack's backward gives) stops the
+    training too."""
     cfg = ds.Config(**TINY10)
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
     model.dec_out.weight.register_hook(lambda g: g * float("nan"))
-    with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 7: training diverged at step 1 of 2: a gradient is NaN"):
+    with pytest.raises(
+        tr.TrainingDiverged,
+        match=r"Standard, seed 7: training diverged at step 1 of 2: a gradient is NaN",
+    ):
         tr.train_stack(model, small.train[:64], tr.Method("Standard"), cfg, "rl", 1.0, 7, None)
     assert all(torch.isfinite(p).all() for p in model.parameters())
 
 
 def test_a_parameter_that_overflows_stops_training(small):
-    """A step that makes a parameter infinite under a finite loss and gradient (an overflowing update) stops the
-    training at that step; the loss would only show it at the next one, and after the last step never."""
+    """A step that makes a parameter infinite under a finite loss and gradient (an overflowing
+    update) stops the training at that step; the loss would only show it at the next one, and after
+    the last step never."""
     cfg = ds.Config(**TINY10)
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
@@ -302,8 +415,11 @@ def test_a_parameter_that_overflows_stops_training(small):
 
     hook = register_optimizer_step_post_hook(overflow)
     try:
-        with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 7: training diverged at step 1 of 2: a parameter "
-                                                      r"is not finite"):
+        with pytest.raises(
+            tr.TrainingDiverged,
+            match=r"Standard, seed 7: training diverged at step 1 of 2: a parameter "
+            r"is not finite",
+        ):
             tr.train_stack(model, small.train[:64], tr.Method("Standard"), cfg, "rl", 1.0, 7, None)
     finally:
         hook.remove()
@@ -311,15 +427,26 @@ def test_a_parameter_that_overflows_stops_training(small):
 
 def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small, monkeypatch):
     evaluate = tr.evaluate_stack
-    monkeypatch.setattr(tr, "evaluate_stack", lambda model, *a, **k: {**evaluate(model, *a, **k), "ade": float("nan")})
+    monkeypatch.setattr(
+        tr,
+        "evaluate_stack",
+        lambda model, *a, **k: {**evaluate(model, *a, **k), "ade": float("nan")},
+    )
     cfg = ds.Config(**TINY10)
-    with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 0: its evaluation is not finite \(ade\)"):
+    with pytest.raises(
+        tr.TrainingDiverged, match=r"Standard, seed 0: its evaluation is not finite \(ade\)"
+    ):
         tr.compare_methods(small, cfg, "rl", (tr.Method("Standard"),), (0,), 0.5, log=None)
 
 
 def test_a_result_with_nan_or_infinity_is_never_written(tmp_path):
-    assert json.loads(runs.results_json({"a": [1.0, {"b": 2.0}]}, "x.json")) == {"a": [1.0, {"b": 2.0}]}
-    for bad, where in (({"a": [1.0, {"b": float("nan")}]}, "['a'][1]['b'] = nan"), ({"c": float("-inf")}, "['c'] = -inf")):
+    assert json.loads(runs.results_json({"a": [1.0, {"b": 2.0}]}, "x.json")) == {
+        "a": [1.0, {"b": 2.0}]
+    }
+    for bad, where in (
+        ({"a": [1.0, {"b": float("nan")}]}, "['a'][1]['b'] = nan"),
+        ({"c": float("-inf")}, "['c'] = -inf"),
+    ):
         with pytest.raises(ValueError, match=re.escape(f"out/rl.json: {where} is not finite")):
             runs.results_json(bad, "out/rl.json")
 
@@ -340,24 +467,50 @@ def _children(pid: int) -> set:
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
 @pytest.mark.parametrize("how", ["kill -9", "Ctrl-C", "kill -INT"])
 def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
-    """kill -9 of a --jobs 2 run, Ctrl-C in its terminal (SIGINT to its process group), or SIGINT to the run alone
-    (kill -INT PID): its worker processes end too (they watch their parent) instead of training on under PID 1, and
-    the run ends at once, not when its workers' pieces are done."""
+    """kill -9 of a --jobs 2 run, Ctrl-C in its terminal (SIGINT to its process group), or SIGINT to
+    the run alone (kill -INT PID): its worker processes end too (they watch their parent) instead of
+    training on under PID 1, and the run ends at once, not when its workers' pieces are done."""
     import signal
     import subprocess
     import sys
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
-    # (start_new_session: a process group of its own, as a terminal gives a command; SIGINT at its default, which
-    # Python turns into KeyboardInterrupt, also where the tests run in the background, whose jobs ignore SIGINT)
-    run = subprocess.Popen([sys.executable, str(script), "--experiment", "rl", "--seeds", "2", "--jobs", "2", "--n", "200", "--val", "200",
-                            "--epochs", "300", "--out", "out"], cwd=tmp_path, stdout=subprocess.DEVNULL,
-                           stderr=open(tmp_path / "stderr", "wb"), start_new_session=True,
-                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    workers, t0 = set(), time.time()
+    # (start_new_session: a process group of its own, as a terminal gives a command; SIGINT at its
+    # default, which Python turns into KeyboardInterrupt, also where the tests run in the
+    # background, whose jobs ignore SIGINT)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            str(script),
+            "--experiment",
+            "rl",
+            "--seeds",
+            "2",
+            "--jobs",
+            "2",
+            "--n",
+            "200",
+            "--val",
+            "200",
+            "--epochs",
+            "300",
+            "--out",
+            "out",
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=open(tmp_path / "stderr", "wb"),
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    workers = set()
+    t0 = time.time()
     while len(workers) < 2 and time.time() - t0 < 120 and run.poll() is None:
-        workers = {p for p in _children(run.pid)
-                   if b"spawn_main" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ")}
+        workers = {
+            p
+            for p in _children(run.pid)
+            if b"spawn_main" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ")
+        }
         time.sleep(0.2)
     assert len(workers) == 2, "the run's two worker processes never started"
     time.sleep(10)  # into their training (a piece here takes minutes)
@@ -374,7 +527,10 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
         run.kill()
     said = (tmp_path / "stderr").read_text()
     assert run.returncode == (-signal.SIGKILL if how == "kill -9" else 130)
-    assert how == "kill -9" or ("interrupted (Ctrl-C); the pieces finished so far are kept" in said and "Traceback" not in said)
+    assert how == "kill -9" or (
+        "interrupted (Ctrl-C); the pieces finished so far are kept" in said
+        and "Traceback" not in said
+    )
     t0 = time.time()
     while any(pathlib.Path(f"/proc/{p}").exists() for p in workers) and time.time() - t0 < 5:
         time.sleep(0.2)
@@ -391,8 +547,12 @@ def _dies(table, piece, log, models, store):
 
 def test_a_worker_that_dies_stops_the_run_saying_so(tmp_path):
     store = runs.RunStore(tmp_path, "k")
-    with pytest.raises(runs.WorkerDied, match=r"a worker process died .*the same command resumes it"):
-        runs.compute_in_workers(_dies, [("rl", [ex.Piece("Standard", 0, None)])], store, jobs=1, verbose=False)
+    with pytest.raises(
+        runs.WorkerDied, match=r"a worker process died .*the same command resumes it"
+    ):
+        runs.compute_in_workers(
+            _dies, [("rl", [ex.Piece("Standard", 0, None)])], store, jobs=1, verbose=False
+        )
 
 
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
@@ -403,14 +563,39 @@ def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
     import sys
 
     script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
-    agent = subprocess.Popen([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", str(script),
-                              "--experiment", "rl", "--samples", "200", "--val", "200", "--epochs", "300", "--threads", "1",
-                              "--out", "out"],
-                             cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    ranks, t0 = set(), time.time()
+    agent = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--nproc_per_node",
+            "2",
+            str(script),
+            "--experiment",
+            "rl",
+            "--samples",
+            "200",
+            "--val",
+            "200",
+            "--epochs",
+            "300",
+            "--threads",
+            "1",
+            "--out",
+            "out",
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    ranks = set()
+    t0 = time.time()
     while len(ranks) < 2 and time.time() - t0 < 120 and agent.poll() is None:
-        ranks = {p for p in _children(agent.pid)
-                 if b"experiments.py" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes()}
+        ranks = {
+            p
+            for p in _children(agent.pid)
+            if b"experiments.py" in pathlib.Path(f"/proc/{p}/cmdline").read_bytes()
+        }
         time.sleep(0.2)
     assert len(ranks) == 2, "torchrun's two ranks never started"
     time.sleep(12)  # into their training

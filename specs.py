@@ -1,0 +1,402 @@
+"""The paper's tables as declarative specs: their methods, settings, columns, claims and numbers.
+
+Each table of the paper is a TableSpec: its methods (the rows), the setting, the loss weights, the
+metrics (the columns), the findings the paper claims and the paper's own numbers.
+experiments.run_table runs any of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from train import TABLE1_METHODS, Method
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a results table: a metric of a run (a key of its dict, or a function of it)."""
+
+    header: str
+    key: str | Callable
+    fmt: str = "{:.2f}"
+
+    def values(self, runs) -> list:
+        """The column's value in every run (seed) that has it."""
+        return (
+            [self.key(r) for r in runs]
+            if callable(self.key)
+            else [r[self.key] for r in runs if self.key in r]
+        )
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A finding of the paper on one column of a table: `method` lower than `baseline` (direction
+    -1: it beats it, every metric claimed on being a cost or a loss), or higher (+1). section: the
+    ablation section of the rows (or None)."""
+
+    method: str
+    baseline: str
+    column: str  # a header of the table's columns
+    section: str | None = None
+    direction: int = -1
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A table of the paper, as run here. kind: 'open_loop' (train every method, evaluate open loop:
+    Tables 1, 2, 4), 'cost' (Table 3), 'closed_loop' (Table 5), 'ablation' (App. A.1, Table 6),
+    'goal' or 'real'. methods: the rows; a Method's `losses` switch the setting's loss weights
+    (Config.alpha_rl or alpha_il) on and off. paper: the paper's numbers {row: {column header:
+    value}} in the units of the columns (absent: not reported)."""
+
+    name: str
+    title: str
+    kind: str
+    setting: str
+    methods: tuple
+    columns: tuple
+    paper: dict
+    pred_offset: float = 0.0
+    # (Standard row, DiffStack row): the share of the Standard -> GT prediction gap closed
+    gap: tuple | None = None
+    figures: tuple = ()
+    sections: tuple = ()  # ablations: (title, run_stack options, methods) per section
+    # the paper's "method beats baseline" findings, each tested by its paired difference over seeds
+    claims: tuple = ()
+    seeds: int = 5  # training seeds when the command names none (--seeds)
+
+
+def open_loop_columns(setting: str) -> tuple:
+    """Tables 1, 2 and 4: ADE, NLL, the planning metrics relative to No prediction, iLQR's
+    convergence."""
+    if setting == "rl":
+        planning = (
+            Column("Planning loss (x1e-2)", "rel_plan_loss"),
+            Column("Hindsight cost (x1e-2)", "rel_hindsight"),
+        )
+    else:
+        planning = (
+            Column("Planning loss (x1e-3)", "rel_plan_loss"),
+            Column("MSE (x1e-2)", "rel_mse"),
+        )
+    return (
+        Column("ADE (m)", "ade"),
+        Column("NLL (nats)", "nll"),
+        *planning,
+        Column("iLQR converged", "converged", "{:.3f}"),
+    )
+
+
+FOUR_METHODS = tuple(
+    m
+    for m in TABLE1_METHODS
+    if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")
+)
+CLOSED_LOOP_METHODS = FOUR_METHODS
+
+
+def _paper(columns, rows: dict) -> dict:
+    """{row: values in column order (None: not reported)} -> {row: {header: value}}."""
+    return {
+        name: {c.header: v for c, v in zip(columns, vals) if v is not None}
+        for name, vals in rows.items()
+    }
+
+
+RL_COLUMNS, IL_COLUMNS = open_loop_columns("rl"), open_loop_columns("il")
+
+TABLE1 = TableSpec(
+    "rl",
+    "Table 1: reinforcement learning (hindsight cost)",
+    "open_loop",
+    "rl",
+    TABLE1_METHODS,
+    RL_COLUMNS,
+    _paper(
+        RL_COLUMNS,
+        {  # ADE, NLL, planning loss, hindsight cost (paper §4.2, Table 1)
+            "No prediction": (None, None, 0.00, 0.00),
+            "Standard": (1.32, 0.42, -3.76, -1.61),
+            "Distance weighted": (1.34, 1.19, -4.04, -1.68),
+            "Grad-cost weighted": (1.43, -1.06, -4.29, -1.77),
+            "DiffStack (no L_pred)": (1.37, 8.01, -5.13, -1.87),
+            "DiffStack": (1.27, 0.38, -5.13, -1.86),
+            "GT prediction": (None, None, -7.56, -2.25),
+        },
+    ),
+    gap=("Standard", "DiffStack"),
+    figures=("learning_curves.png",),
+    claims=(
+        Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)"),
+        Claim("DiffStack", "Standard", "Planning loss (x1e-2)"),
+        # "outperforms all baselines"
+        Claim("DiffStack", "Distance weighted", "Hindsight cost (x1e-2)"),
+        Claim("DiffStack", "Grad-cost weighted", "Hindsight cost (x1e-2)"),
+    ),
+    seeds=10,  # the paper's headline claim: 10 seeds
+)
+
+TABLE2 = TableSpec(
+    "biased",
+    "Table 2: a 1 m offset on the prediction targets",
+    "open_loop",
+    "rl",
+    (
+        TABLE1_METHODS[0],
+        Method("Standard-biased"),
+        Method("DiffStack-biased", losses=(1, 1, 1)),
+        TABLE1_METHODS[-1],
+    ),
+    RL_COLUMNS,
+    _paper(
+        RL_COLUMNS,
+        {
+            "No prediction": (None, None, 0.00, 0.00),
+            "Standard-biased": (3.64, 8.43, 16.22, 3.13),
+            "DiffStack-biased": (2.01, 4.20, -3.58, -1.61),
+            "GT prediction": (None, None, -7.56, -2.25),
+        },
+    ),
+    pred_offset=1.0,
+    gap=("Standard-biased", "DiffStack-biased"),
+    claims=(
+        Claim("DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)"),
+        Claim("DiffStack-biased", "Standard-biased", "Planning loss (x1e-2)"),
+    ),
+)
+
+COST_COLUMNS = tuple(
+    Column(f"w'{i + 1} ({t})", lambda r, i=i: r["w"][i], "{:.3f}")
+    for i, t in enumerate(("coll", "goal", "lane", "heading", "control"))
+) + (
+    Column("alpha", "alpha", "{:.3f}"),
+    Column("Planning loss", "plan_loss", "{:.3f}"),
+    Column("MSE (m^2)", "mse", "{:.3f}"),
+)
+
+TABLE3 = TableSpec(
+    "cost",
+    "Table 3: learned cost weights (IL; the weights as in App. A.2, Table 7)",
+    "cost",
+    "il",
+    (Method("Cost weights", losses=(0, 0, 1)),),
+    COST_COLUMNS,
+    _paper(
+        COST_COLUMNS,
+        {
+            "Hand-tuned": (5.00, 0.50, 0.30, 0.30, 1.00, 1.00, 2.67, 0.38),
+            "Learned": (5.00, 0.68, 0.36, 0.43, 0.63, 1.10, 2.41, 0.32),
+        },
+    ),
+    figures=("cost_weights.png",),
+    # the weights are learned on L_ctr, the MSE to the expert (IL); the paper reports the planning
+    # loss falling too
+    claims=(
+        Claim("Learned", "Hand-tuned", "MSE (m^2)"),
+        Claim("Learned", "Hand-tuned", "Planning loss"),
+    ),
+)
+
+TABLE4 = TableSpec(
+    "il",
+    "Table 4: imitation learning",
+    "open_loop",
+    "il",
+    FOUR_METHODS,
+    IL_COLUMNS,
+    _paper(
+        IL_COLUMNS,
+        {
+            "No prediction": (None, None, 0.00, 0.00),
+            "Standard": (1.25, 0.53, -0.50, 0.60),
+            "DiffStack": (1.43, 0.30, -0.80, -1.80),
+            "GT prediction": (None, None, -1.10, -2.80),
+        },
+    ),
+    claims=(Claim("DiffStack", "Standard", "MSE (x1e-2)"),),
+)
+
+CLOSED_LOOP_METRICS = {
+    "trajectory": "Trajectory cost",
+    "open_loop": "Open-loop cost",
+    "collision": "Collision cost",
+    "lane": "Lane keep cost",
+    "control": "Control effort",
+    "deviation": "Deviation (m)",
+}
+CLOSED_LOOP_COLUMNS = tuple(
+    Column(f"{h} (x1e-2)", "rel_" + k) for k, h in CLOSED_LOOP_METRICS.items()
+) + (Column("Plannable steps", "plannable", "{:.3f}"),)
+
+TABLE5 = TableSpec(
+    "closed_loop",
+    "Table 5: closed-loop log replay",
+    "closed_loop",
+    "rl",
+    CLOSED_LOOP_METHODS,
+    CLOSED_LOOP_COLUMNS,
+    _paper(
+        CLOSED_LOOP_COLUMNS,
+        {
+            "No prediction": (0.00,) * 6,
+            "Standard": (0.87, 0.33, -8.21, 8.91, 0.18, 1.05),
+            "DiffStack": (-4.37, -2.40, -8.20, 4.84, -0.99, 0.98),
+            "GT prediction": (-6.30, -2.58, -8.54, 3.34, -1.08, 0.70),
+        },
+    ),
+    figures=("closed_loop.png", "stack_example.png"),
+    claims=(
+        Claim("DiffStack", "Standard", "Trajectory cost (x1e-2)"),
+        Claim("DiffStack", "Standard", "Open-loop cost (x1e-2)"),
+        # "substantially better than no prediction"
+        Claim("DiffStack", "No prediction", "Trajectory cost (x1e-2)"),
+        # "the standard stack performs worse"
+        Claim("Standard", "No prediction", "Trajectory cost (x1e-2)", direction=1),
+    ),
+)
+
+# Each section compares methods under one configuration of the stack, with its own No prediction and
+# GT prediction rows (the metrics are not comparable across sections). Method.losses multiplies the
+# RL alphas (1, 100, 1000). dt = 0.1 s: the predictor stays at the data's 0.5 s; the planner and the
+# controller run at 0.1 s over the same 3 s (T = 30), on predictions and GT futures interpolated to
+# that clock (run_stack's plan_dt). The paper's table shows "--" for L_ctr there; its text says
+# planning AND control change resolution, which is what we run.
+
+ABLATION_SECTIONS = (
+    (
+        "Loss weights",
+        {},
+        (
+            Method("Standard"),
+            Method("DiffStack", losses=(1, 1, 1)),
+            Method("DiffStack (no L_plan)", losses=(1, 0, 1)),
+            Method("DiffStack (no L_ctr)", losses=(1, 1, 0)),
+            Method("DiffStack (1, 5, 5)", losses=(1, 5, 5)),
+            Method("DiffStack (1, 0.2, 0.2)", losses=(1, 0.2, 0.2)),
+            # the planner weighs the modes by p(z|x) in training too (Config.train_plan_weights):
+            # L_plan and L_ctr then reach the prior that evaluation uses, which the default q(z|x,y)
+            # never trains (without L_pred: nothing does)
+            Method("DiffStack (prior weights)", losses=(1, 1, 1), train_plan_weights="prior"),
+            Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+            Method(
+                "DiffStack (no L_pred, prior weights)", losses=(0, 1, 1), train_plan_weights="prior"
+            ),
+        ),
+    ),
+    (
+        "No planner (iLQR from zero controls)",
+        dict(planner=False),
+        (Method("Standard"), Method("DiffStack", losses=(1, 0, 1))),
+    ),
+    (
+        "No controller (the plan is final)",
+        dict(controller=False),
+        (Method("Standard"), Method("DiffStack", losses=(1, 1, 0))),
+    ),
+    (
+        "dt = 0.1 s for planning and control",
+        dict(plan_dt=0.1),
+        (Method("Standard"), Method("DiffStack", losses=(1, 1, 1))),
+    ),
+)
+
+ABLATION_COLUMNS = (
+    Column("ADE (m)", "ade"),
+    Column("NLL (nats)", "nll"),
+    Column("Planning loss (x1e-2)", "rel_plan_loss"),
+    Column("Hindsight cost (x1e-2)", "rel_hindsight"),
+)
+
+TABLE6 = TableSpec(
+    "ablation",
+    "Ablations (App. A.1, Table 6)",
+    "ablation",
+    "rl",
+    (),
+    ABLATION_COLUMNS,
+    {  # per section, the rows in ABLATION_SECTIONS' names: ADE, NLL, planning loss, hindsight cost
+        title: _paper(ABLATION_COLUMNS, rows)
+        for title, rows in zip(
+            (s[0] for s in ABLATION_SECTIONS),
+            (
+                {
+                    "Standard": (1.32, 0.42, -3.76, -1.61),
+                    "DiffStack": (1.27, 0.38, -5.13, -1.86),
+                    "DiffStack (no L_plan)": (1.33, 0.48, -4.98, -1.86),
+                    "DiffStack (no L_ctr)": (1.48, 0.55, -5.24, -1.85),
+                    "DiffStack (1, 5, 5)": (1.64, 0.85, -5.53, -1.89),
+                    "DiffStack (1, 0.2, 0.2)": (1.28, 0.66, -4.79, -1.81),
+                    "GT prediction": (None, None, -7.56, -2.25),
+                },
+                {
+                    "Standard": (1.27, 0.31, None, -1.8),
+                    "DiffStack": (1.40, 0.19, None, -2.0),
+                    "GT prediction": (None, None, None, -2.6),
+                },
+                {
+                    "Standard": (1.23, 0.56, -4.08, -1.1),
+                    "DiffStack": (1.46, 0.53, -5.29, -1.2),
+                    "GT prediction": (None, None, -7.56, -1.5),
+                },
+                {
+                    "Standard": (1.23, 0.56, -5.65, -2.1),
+                    "DiffStack": (1.49, 0.88, -14.01, -2.4),
+                    "GT prediction": (None, None, -25.11, -2.9),
+                },
+            ),
+        )
+    },
+    sections=ABLATION_SECTIONS,
+    claims=tuple(
+        Claim("DiffStack", "Standard", "Hindsight cost (x1e-2)", title)
+        for title, _, _ in ABLATION_SECTIONS
+    ),
+)
+
+# Not a table of the paper: why a prediction is worth little to the planner in most scenes. No
+# prediction and GT prediction (the best any predictor can do) by behaviour of the predicted
+# vehicle, under the paper's goal (the GT ego state at T, which already holds the driver's reaction)
+# and under a route goal (Config.goal = 'route').
+GOALS = ("logged", "route")
+GOAL_TABLE = TableSpec(
+    "goal",
+    "Where a perfect prediction is worth something: hindsight cost by behaviour, the paper's "
+    "goal vs a route goal",
+    "goal",
+    "rl",
+    (TABLE1_METHODS[0], TABLE1_METHODS[-1]),
+    (),
+    {},
+)
+
+# the order `all` runs them in
+TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}
+EXPERIMENTS = tuple(TABLES)
+
+# Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors
+# trained on synthetic data (experiments.real_data). Not a table of the paper, so not in `all`; its
+# outputs derive from data whose licence forbids committing them, so they go to REAL_OUT
+# (git-ignored) by default and never to results/ (experiments.check_outputs).
+REAL_COLUMNS = (
+    Column("ADE (m)", "ade"),
+    Column("CV ADE (m)", "cv_ade"),
+    Column("NLL (nats)", "nll"),
+    Column("Planning loss (x1e-2)", "rel_plan_loss"),
+    Column("Hindsight cost (x1e-2)", "rel_hindsight"),
+    Column("iLQR converged", "converged", "{:.3f}"),
+    Column("Plannable samples", "n", "{:.0f}"),
+)
+REAL = TableSpec(
+    "real",
+    "Real driving scenes (Waymo Open Motion Dataset, 3 logs): synthetic-trained predictors",
+    "real",
+    "rl",
+    FOUR_METHODS,
+    REAL_COLUMNS,
+    {},
+    figures=("real_scenes.png",),
+)
+SPECS = {**TABLES, REAL.name: REAL}  # every experiment the command line runs
+REAL_OUT = "runs/real"
