@@ -1,14 +1,17 @@
-"""Synthetic scenario data for DiffStack: nuScenes-like driving scenes, and the nuScenes v1.0 format written.
+"""Synthetic data for DiffStack: nuScenes-like driving scenes, and the nuScenes v1.0 format written.
 
-The stack (diffstack.py) trains on *planning samples* (paper §4.1, App. D): 4 s of history and 3 s of future at
-2 Hz in the ego frame at t0, with one predicted vehicle, the other agents, the lanes near the ego and a goal.
-Scenes, generated here or read by data_real.py, give Scenarios through sample_at; write_nuscenes stores scenes as a
-nuScenes folder that data_real.load_nuscenes reads back exactly. The command line is data_real.py's.
+The stack (diffstack.py) trains on *planning samples* (paper §4.1, App. D): 4 s of history and 3 s
+of future at 2 Hz in the ego frame at t0, with one predicted vehicle, the other agents, the lanes
+near the ego and a goal. Scenes, generated here or read by data_real.py, give Scenarios through
+sample_at; write_nuscenes stores scenes as a nuScenes folder that data_real.load_nuscenes reads back
+exactly. The command line is data_real.py's.
 
-Shapes: S scenes, F frames (41 = 20 s at 2 Hz), M agents per scene, B samples, A other agents, L lanes, P points
-per lane, Q arcline paths per scene, R paths per lane (a route), N fine simulation steps; 9 = history with t0,
-6 = future steps. A state is (x, y, heading h, speed v). Speeds are backward differences of positions (central
-ones would leak the future into the inputs). Everything random takes a numpy Generator from a seed."""
+Shapes: S scenes, F frames (41 = 20 s at 2 Hz), M agents per scene, B samples, A other agents, L
+lanes, P points per lane, Q arcline paths per scene, R paths per lane (a route), N fine simulation
+steps; 9 = history with t0, 6 = future steps. A state is (x, y, heading h, speed v). Speeds are
+backward differences of positions (central ones would leak the future into the inputs). Everything
+random takes a numpy Generator from a seed."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,59 +28,101 @@ import torch
 
 # === 1. Config ==============================================================================
 
-BEHAVIOURS = ("cut_in", "keep_lane", "lead_brake", "lead_cruise", "turn_across", "go_straight",
-              "cross_go", "cross_yield", "far", "behind")
-"""The predicted vehicle's manoeuvre, the label in Scenarios.behaviour. They come in pairs that share a set-up
-and differ in what happens at the event time, so the history only partly tells them apart:
-    cut_in / keep_lane       a vehicle in the next lane, a little ahead: it merges in front of the ego, or not
-    lead_brake / lead_cruise the vehicle ahead in the ego's lane brakes hard (maybe to a stop), or keeps going
-    turn_across / go_straight an oncoming vehicle turns left across the ego's lane at an intersection, or not
-    cross_go / cross_yield   a vehicle on the crossing road (from the ego's right) crosses in front, or stops
-    far                      a vehicle 35-60 m ahead in the next lane that changes lanes or not: errors don't matter
-    behind                   a vehicle behind in the next lane that merges behind the ego or not: errors don't matter"""
+BEHAVIOURS = (
+    "cut_in",
+    "keep_lane",
+    "lead_brake",
+    "lead_cruise",
+    "turn_across",
+    "go_straight",
+    "cross_go",
+    "cross_yield",
+    "far",
+    "behind",
+)
+"""The predicted vehicle's manoeuvre, the label in Scenarios.behaviour. They come in pairs that
+share a set-up and differ in what happens at the event time, so the history only partly tells them
+apart. The predicted vehicle is
+    cut_in / keep_lane        in the next lane, a little ahead: merges in front of the ego, or not
+    lead_brake / lead_cruise  ahead in the ego's lane: brakes hard (maybe to a stop), or keeps going
+    turn_across / go_straight oncoming: turns left across the ego's lane at an intersection, or not
+    cross_go / cross_yield    on the crossing road, from the ego's right: crosses in front, or stops
+    far                       35-60 m ahead, next lane: changes lanes or not (errors don't matter)
+    behind                    behind, next lane: merges behind the ego or not (errors don't matter)
+"""
 _B = {name: i for i, name in enumerate(BEHAVIOURS)}
 _INTERSECTION_BEHAVIOURS = ("turn_across", "go_straight", "cross_go", "cross_yield")
 
 
 @dataclass
 class SynthConfig:
-    """Knobs of the synthetic generator and of cutting planning samples (used for real nuScenes too)."""
+    """Knobs of the synthetic generator and of cutting planning samples (real nuScenes too)."""
+
     # --- time (paper App. D.1: nuScenes at 2 Hz, 4 s of history, 3 s of future) ---
     dt: float = 0.5  # frame period (s): nuScenes key frames are 2 Hz
-    frames: int = 41  # frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit
+    # frames per scene (20 s): 4 s history + 10 s closed-loop simulation + 3 s horizon fit
+    frames: int = 41
     hist: int = 8  # past steps of a sample's history (the current state makes 9)
     fut: int = 6  # future steps of a sample (3 s)
-    sim_dt: float = 0.25  # step of the generator's simulation (s); frames are every dt / sim_dt steps
+    # step of the generator's simulation (s); frames are every dt / sim_dt steps
+    sim_dt: float = 0.25
     # --- behaviour mix ---
-    mix: dict = field(default_factory=lambda: {  # weight of each behaviour (BEHAVIOURS); normalised, a missing one is 0
-        "cut_in": 0.15, "keep_lane": 0.13, "lead_brake": 0.12, "lead_cruise": 0.10, "turn_across": 0.09,
-        "go_straight": 0.08, "cross_go": 0.09, "cross_yield": 0.08, "far": 0.08, "behind": 0.08})
-    cue_prob: float = 0.7  # P(an active manoeuvre is announced in the history: a drift to the line, early slowing)
-    false_cue_prob: float = 0.3  # P(a passive twin shows the same cue, then does not act: keeps lane, resumes speed)
-    intersection_prob: float = 0.25  # probability of an intersection in scenes whose behaviour does not need one
-    curved_prob: float = 0.5  # probability that a road without intersection is a constant-curvature arc (else straight)
-    min_radius: float = 150.0  # smallest road radius (m); curvature uniform in [1/1000, 1/min_radius], random sign
+    # weight of each behaviour (BEHAVIOURS); normalised, a missing one is 0
+    mix: dict = field(
+        default_factory=lambda: {
+            "cut_in": 0.15,
+            "keep_lane": 0.13,
+            "lead_brake": 0.12,
+            "lead_cruise": 0.10,
+            "turn_across": 0.09,
+            "go_straight": 0.08,
+            "cross_go": 0.09,
+            "cross_yield": 0.08,
+            "far": 0.08,
+            "behind": 0.08,
+        }
+    )
+    # P(an active manoeuvre is announced in the history: a drift to the line, early slowing)
+    cue_prob: float = 0.7
+    # P(a passive twin shows the same cue, then does not act: keeps lane, resumes speed)
+    false_cue_prob: float = 0.3
+    # probability of an intersection in scenes whose behaviour does not need one
+    intersection_prob: float = 0.25
+    # probability that a road without intersection is a constant-curvature arc (else straight)
+    curved_prob: float = 0.5
+    # smallest road radius (m); curvature uniform in [1/1000, 1/min_radius], random sign
+    min_radius: float = 150.0
     # --- agents ---
-    ego_speed: tuple = (6.0, 14.0)  # the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15
-    n_vehicles: int = 6  # most moving background vehicles per scene (a uniform count from half of it)
+    # the ego's initial speed (m/s); its desired speed is 0-10 % higher, at most 15
+    ego_speed: tuple = (6.0, 14.0)
+    # most moving background vehicles per scene (a uniform count from half of it)
+    n_vehicles: int = 6
     n_parked: int = 2  # most parked vehicles on the kerb per scene
     n_peds: int = 4  # most pedestrians on the sidewalks per scene
     lane_width: float = 3.5  # lane width W (m)
-    # --- tracking noise on the other agents' logged tracks (ego poses are exact, as from localisation) ---
-    pos_noise: float = 0.08  # std of the AR(1) position noise (m); applied to history AND future, like real annotations
+    # --- tracking noise on the other agents' logged tracks (ego poses are exact, as localised) ---
+    # std of the AR(1) position noise (m); applied to history AND future, like real annotations
+    pos_noise: float = 0.08
     yaw_noise: float = 0.01  # std of the AR(1) heading noise (rad)
-    noise_corr: float = 0.9  # AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)
+    # AR(1) correlation of the noise from one frame to the next (a tracker's errors are smooth)
+    noise_corr: float = 0.9
     # --- cutting samples (synthetic and real) ---
-    samples_per_scene: int = 4  # samples cut from a synthetic scene, at random frames of event_window
-    event_window: tuple = (-5, 1)  # synthetic t0s: 2.5 s before the event (in the 3 s future) to 0.5 s after (seen)
+    # samples cut from a synthetic scene, at random frames of event_window
+    samples_per_scene: int = 4
+    # synthetic t0s: 2.5 s before the event (in the 3 s future) to 0.5 s after (seen)
+    event_window: tuple = (-5, 1)
     lane_points: int = 40  # P: points per lane in a sample (2 m apart: 80 m)
     lane_spacing: float = 2.0  # distance between lane points (m)
-    lane_behind: int = 2  # a sample's lane starts this many points behind the point closest to the ego
+    # a sample's lane starts this many points behind the point closest to the ego
+    lane_behind: int = 2
     max_lanes: int = 12  # L: at most this many lanes per sample, the closest to the ego
-    lane_radius: float = 30.0  # a lane is near the ego when one of its points is within this distance (m)
+    # a lane is near the ego when one of its points is within this distance (m)
+    lane_radius: float = 30.0
     max_others: int = 16  # A: at most this many other agents per sample, the closest to the ego
-    others_radius: float = 50.0  # other agents farther than this from the ego at t0 are left out (m)
-    map_radius: float = 60.0  # reader: map lanes this near the ego's logged path (m) form the scene's lane graph
+    # other agents farther than this from the ego at t0 are left out (m)
+    others_radius: float = 50.0
+    # reader: map lanes this near the ego's logged path (m) form the scene's lane graph
+    map_radius: float = 60.0
     val_fraction: float = 0.15  # fraction of scenes (not samples) held out for validation
 
 
@@ -85,33 +130,50 @@ class SynthConfig:
 
 
 class _Batch:
-    """Indexing, length, concatenation and dtype conversion for dataclasses whose tensors share dim 0."""
+    """Indexing, length, concatenation, dtype conversion: dataclasses whose tensors share dim 0."""
 
     def __len__(self):
         return next(iter(self.tensors().values())).shape[0]
 
     def tensors(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                if isinstance(getattr(self, f.name), torch.Tensor)}
+        return {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), torch.Tensor)
+        }
 
     def _map(self, tensor, other=None):
-        """The same class with tensor(v) for each tensor field v, other(v) for the others (a list of names)."""
-        return type(self)(**{f.name: tensor(v) if isinstance(v := getattr(self, f.name), torch.Tensor) else
-                             other(v) if other else v for f in dataclasses.fields(self)})
+        """The same class: tensor(v) for each tensor field v, other(v) for the others (lists)."""
+        return type(self)(
+            **{
+                f.name: tensor(v)
+                if isinstance(v := getattr(self, f.name), torch.Tensor)
+                else other(v)
+                if other
+                else v
+                for f in dataclasses.fields(self)
+            }
+        )
 
     def __getitem__(self, idx):
-        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows (names too)."""
-        rows = lambda v: np.arange(len(v))[idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx]  # noqa: E731
+        """idx: a slice, an int64 index tensor or a bool mask -> the same class with those rows."""
+
+        def rows(v):
+            return np.arange(len(v))[idx.cpu().numpy() if isinstance(idx, torch.Tensor) else idx]
+
         return self._map(lambda v: v[idx], lambda v: list(np.asarray(v, dtype=object)[rows(v)]))
 
     def to(self, dtype=None, device=None):
         """Floating tensors to dtype (bool/int stay), everything to device."""
-        return self._map(lambda v: v.to(device=device, dtype=dtype if dtype is not None and v.is_floating_point()
-                                        else None))
+        return self._map(
+            lambda v: v.to(
+                device=device, dtype=dtype if dtype is not None and v.is_floating_point() else None
+            )
+        )
 
     @classmethod
     def cat(cls, items: list):
-        """Concatenate along dim 0, padding the other dims to the largest (0 / False; -1 for integer indices)."""
+        """Concatenate along dim 0, padding other dims to the largest (0 / False; indices: -1)."""
         out = {}
         for f in dataclasses.fields(cls):
             vs = [getattr(b, f.name) for b in items]
@@ -119,7 +181,8 @@ class _Batch:
                 out[f.name] = [x for v in vs for x in v]
                 continue
             shape = [max(v.shape[d] for v in vs) for d in range(1, vs[0].dim())]
-            fill, padded = -1 if vs[0].dtype == torch.int64 else 0, []
+            fill = -1 if vs[0].dtype == torch.int64 else 0
+            padded = []
             for v in vs:
                 p = torch.full((v.shape[0], *shape), fill, dtype=v.dtype)
                 p[tuple(slice(0, n) for n in v.shape)] = v
@@ -130,18 +193,22 @@ class _Batch:
 
 @dataclass
 class Scenarios(_Batch):
-    """A batch of planning samples, every coordinate in the EGO FRAME AT t0 (ego at the origin, heading +x).
-    These are the fields diffstack.py consumes; padding is 0 / False, never NaN."""
+    """A batch of planning samples, every coordinate in the EGO FRAME AT t0 (ego at the origin,
+    heading +x). These are the fields diffstack.py consumes; padding is 0 / False, never NaN."""
+
     ego_hist: torch.Tensor  # (B, 9, 4)   ego states t-8..t0; ego_hist[:, -1] = (0, 0, 0, v)
     ego_fut: torch.Tensor  # (B, 6, 4)    ego GT future t1..t6 (the expert's plan)
     agent_hist: torch.Tensor  # (B, 9, 4)  the predicted vehicle's history
-    agent_hist_mask: torch.Tensor  # (B, 9) bool  observed steps (missing early ones hold the earliest observed)
+    # (B, 9) bool  observed steps (missing early ones hold the earliest observed)
+    agent_hist_mask: torch.Tensor
     agent_fut: torch.Tensor  # (B, 6, 4)   its GT future (always complete)
     others_hist: torch.Tensor  # (B, A, 9, 4) other vehicles and pedestrians
-    others_fut: torch.Tensor  # (B, A, 6, 4)  their GT futures (gaps hold the nearest observed state)
+    # (B, A, 6, 4)  their GT futures (gaps hold the nearest observed state)
+    others_fut: torch.Tensor
     others_mask: torch.Tensor  # (B, A) bool  a real agent
     others_is_ped: torch.Tensor  # (B, A) bool
-    lanes: torch.Tensor  # (B, L, P, 3)  lane centre lines (x, y, heading) along the driving direction, 2 m apart
+    # (B, L, P, 3)  lane centre lines (x, y, heading) along the driving direction, 2 m apart
+    lanes: torch.Tensor
     lanes_mask: torch.Tensor  # (B, L, P) bool  valid points (a prefix of each lane)
     goal: torch.Tensor  # (B, 4)   = ego_fut[:, -1]
     behaviour: torch.Tensor  # (B,) int64  index into BEHAVIOURS; -1 for real data
@@ -149,55 +216,73 @@ class Scenarios(_Batch):
 
 @dataclass
 class Scenes(_Batch):
-    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres). The map is kept
-    twice: as arcline paths with the lanes' routes through them (what the nuScenes map expansion stores; the writer
-    needs it) and as the routes discretised every 2 m (what sample_at crops)."""
+    """World-frame logs at 2 Hz (float64: global nuScenes coordinates are thousands of metres). The
+    map is kept twice: as arcline paths with the lanes' routes through them (what the nuScenes map
+    expansion stores; the writer needs it) and as the routes discretised every 2 m (what sample_at
+    crops)."""
+
     ego: torch.Tensor  # (S, F, 4)  ego states (x, y, h, v)
     agents: torch.Tensor  # (S, M, F, 4)  other agents' logged states (tracking noise included)
     agents_mask: torch.Tensor  # (S, M, F) bool  annotated at that frame
     agents_is_ped: torch.Tensor  # (S, M) bool
     agents_size: torch.Tensor  # (S, M, 3)  width, length, height (m)
-    pred_idx: torch.Tensor  # (S, F) int64  the predicted agent for a sample cut at that frame (-1: none)
-    event_frame: torch.Tensor  # (S,) int64  frame of the predicted agent's manoeuvre (-1 for real data)
+    # (S, F) int64  the predicted agent for a sample cut at that frame (-1: none)
+    pred_idx: torch.Tensor
+    # (S,) int64  frame of the predicted agent's manoeuvre (-1 for real data)
+    event_frame: torch.Tensor
     behaviour: torch.Tensor  # (S,) int64  index into BEHAVIOURS (-1 for real data)
-    lanes: torch.Tensor  # (S, L, P, 3)  routes through the lane graph, discretised every 2 m from their start
+    # (S, L, P, 3)  routes through the lane graph, discretised every 2 m from their start
+    lanes: torch.Tensor
     lanes_mask: torch.Tensor  # (S, L, P) bool
-    paths: torch.Tensor  # (S, Q, 10)  arcline paths [x, y, yaw, radius, l0, l1, l2, sign0, sign1, sign2]
+    # (S, Q, 10)  arcline paths [x, y, yaw, radius, l0, l1, l2, sign0, sign1, sign2]
+    paths: torch.Tensor
     paths_is_connector: torch.Tensor  # (S, Q) bool  lane connector (inside an intersection) or lane
-    routes: torch.Tensor  # (S, L, R) int64  the paths each lane runs through, in order (-1: padding)
+    # (S, L, R) int64  the paths each lane runs through, in order (-1: padding)
+    routes: torch.Tensor
     names: list  # S scene names
 
 
 # === 3. Geometry: arcline paths, poses along them, discretisation, the road frame ===========
-# A nuScenes lane is arcline paths: a start pose and three pieces of curvature sign_k / radius, length l_k (shape
-# LSR = left arc, straight, right arc, ...). The generator's roads use them too, so a map written and read back gives
-# the same lanes bit for bit. A *segment* is one piece, [x0, y0, yaw0, kappa, length]; at arc length u along it:
-#     x = x0 + cos(yaw0) A - sin(yaw0) C,   y = y0 + sin(yaw0) A + cos(yaw0) C,   yaw = yaw0 + kappa u,
-#     A = sin(kappa u) / kappa,   C = (1 - cos(kappa u)) / kappa.
+# A nuScenes lane is arcline paths: a start pose and three pieces of curvature sign_k / radius,
+# length l_k (shape LSR = left arc, straight, right arc, ...). The generator's roads use them too,
+# so a map written and read back gives the same lanes bit for bit. A *segment* is one piece,
+# [x0, y0, yaw0, kappa, length]; at arc length u along it:
+#     x = x0 + cos(yaw0) A - sin(yaw0) C,   y = y0 + sin(yaw0) A + cos(yaw0) C,
+#     yaw = yaw0 + kappa u,   A = sin(kappa u) / kappa,   C = (1 - cos(kappa u)) / kappa.
 
-_SHAPE_SIGNS = {"LSL": (1, 0, 1), "LSR": (1, 0, -1), "RSL": (-1, 0, 1), "RSR": (-1, 0, -1),
-                "LRL": (1, -1, 1), "RLR": (-1, 1, -1)}  # the devkit's compute_segment_sign
+_SHAPE_SIGNS = {
+    "LSL": (1, 0, 1),
+    "LSR": (1, 0, -1),
+    "RSL": (-1, 0, 1),
+    "RSR": (-1, 0, -1),
+    "LRL": (1, -1, 1),
+    "RLR": (-1, 1, -1),
+}  # the devkit's compute_segment_sign
 
 
 def wrap_angle(a):
-    """Angle to (-pi, pi] (numpy or torch), the project's one wrapping function: atan2(sin a, cos a), not a modulo,
-    so that it is smooth away from +-pi with gradient 1."""
+    """Angle to (-pi, pi] (numpy or torch), the project's one wrapping function:
+    atan2(sin a, cos a), not a modulo, so that it is smooth away from +-pi with gradient 1."""
     if torch.is_tensor(a):
         return torch.atan2(torch.sin(a), torch.cos(a))
     return np.arctan2(np.sin(a), np.cos(a))
 
 
 def _arc(kappa, u):
-    """(A, C) above for curvature kappa and arc length u (broadcast); a Taylor series where |kappa u| < 1e-4."""
+    """(A, C) above for curvature kappa and arc length u (broadcast); a Taylor series where
+    |kappa u| < 1e-4."""
     ku = kappa * u
     small = np.abs(ku) < 1e-4
     ks = np.where(small, 1.0, kappa)
-    a, c = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks), np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
+    a, c = (
+        np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks),
+        np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks),
+    )
     return a, c
 
 
 def _segment_pose(seg, u):
-    """Pose (x, y, yaw) at arc length u along segments seg (..., 5); u broadcasts against seg[..., 0]."""
+    """Pose (x, y, yaw) at arc length u along segments seg (..., 5); u broadcasts to seg[..., 0]."""
     x0, y0, yaw0, kappa = seg[..., 0], seg[..., 1], seg[..., 2], seg[..., 3]
     a, c = _arc(kappa, u)
     cos, sin = np.cos(yaw0), np.sin(yaw0)
@@ -205,44 +290,49 @@ def _segment_pose(seg, u):
 
 
 def arcline_segments(paths):
-    """Arcline paths (..., 10) -> their three segments (..., 3, 5), each starting where the previous ends."""
-    start, radius, lengths, signs, segs = paths[..., :3], paths[..., 3], paths[..., 4:7], paths[..., 7:10], []
+    """Arcline paths (..., 10) -> their three segments (..., 3, 5), each from the last one's end."""
+    start, radius, lengths, signs = paths[..., :3], paths[..., 3], paths[..., 4:7], paths[..., 7:10]
+    segs = []
     for k in range(3):
-        kappa = np.divide(signs[..., k], radius, out=np.zeros_like(radius), where=radius > 0)  # padding: r = 0
+        # padding: r = 0
+        kappa = np.divide(signs[..., k], radius, out=np.zeros_like(radius), where=radius > 0)
         segs.append(np.concatenate([start, kappa[..., None], lengths[..., k, None]], -1))
         start = _segment_pose(segs[-1], lengths[..., k])
     return np.stack(segs, -2)
 
 
 def route_segments(paths, routes):
-    """The segments of lanes that run through paths (S, Q, 10) in the order routes (S, L, R) gives (-1 = none):
-    (S, L, 3R, 5), padded with zero-length segments."""
+    """The segments of lanes that run through paths (S, Q, 10) in the order routes (S, L, R) gives
+    (-1 = none): (S, L, 3R, 5), padded with zero-length segments."""
     segs = arcline_segments(paths)  # (S, Q, 3, 5)
-    gathered = np.take_along_axis(segs[:, None], np.maximum(routes, 0)[..., None, None], 2)  # (S, L, R, 3, 5)
+    # (S, L, R, 3, 5)
+    gathered = np.take_along_axis(segs[:, None], np.maximum(routes, 0)[..., None, None], 2)
     gathered[..., 4] *= routes[..., None] >= 0  # padding -> length 0
     return gathered.reshape(*routes.shape[:2], -1, 5)
 
 
 def pose_along(segs, u):
-    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments (..., G, 5). Each
-    segment keeps its own start pose (no drift across joints); the first / last one extends past the ends."""
+    """Poses (..., N, 3) and curvatures (..., N) at arc lengths u (..., N) along chained segments
+    (..., G, 5). Each segment keeps its own start pose (no drift across joints); the first / last
+    one extends past the ends."""
     lengths = segs[..., 4]  # (..., G)
-    starts, G = np.cumsum(lengths, -1) - lengths, lengths.shape[-1]
+    starts = np.cumsum(lengths, -1) - lengths
+    G = lengths.shape[-1]
     first = np.argmax(lengths > 0, -1)[..., None]  # (..., 1)
     k = np.broadcast_to(first, u.shape).copy()  # (..., N) the segment each u falls on
     for g in range(G):  # G is small: a loop over segments, vectorised over everything else
-        k = np.where((lengths[..., g:g + 1] > 0) & (starts[..., g:g + 1] <= u), g, k)
+        k = np.where((lengths[..., g : g + 1] > 0) & (starts[..., g : g + 1] <= u), g, k)
     seg = np.stack([np.take_along_axis(segs[..., c], k, -1) for c in range(5)], -1)  # (..., N, 5)
     return _segment_pose(seg, u - np.take_along_axis(starts, k, -1)), seg[..., 3]
 
 
 MAX_LANE_POINTS = 20_000
-"""Most points of one discretised lane or route (40 km at 2 m; generated paths are ~430 m, real lanes under 1 km):
-it stops a corrupt length (say 1e9 m) from allocating gigabytes."""
+"""Most points of one discretised lane or route (40 km at 2 m; generated paths are ~430 m, real
+lanes under 1 km): it stops a corrupt length (say 1e9 m) from allocating gigabytes."""
 
 
 def _lane_points(length: float, spacing: float):
-    """Number of points discretize gives a polyline of this length (m); math.inf if that overflows."""
+    """Number of points discretize gives a polyline of this length (m); math.inf on overflow."""
     q = float(length) / spacing + 1e-9
     return int(np.floor(q)) + 1 if math.isfinite(q) else math.inf
 
@@ -250,15 +340,18 @@ def _lane_points(length: float, spacing: float):
 def discretize(segs, spacing: float):
     """Points every `spacing` metres from the start of chained segments (..., G, 5):
     (..., P, 3) poses (yaw wrapped) and (..., P) mask, P from the longest; invalid points are 0.
-    A ValueError before allocating if spacing is not > 0, a length is not finite, or P > MAX_LANE_POINTS."""
+    A ValueError before allocating if spacing <= 0, a length is not finite, P > MAX_LANE_POINTS."""
     total = segs[..., 4].sum(-1)  # (...)
     if not (spacing > 0 and math.isfinite(spacing)):
         raise ValueError(f"discretize: spacing must be a finite number > 0 (m), got {spacing!r}")
     if total.size and not np.isfinite(total).all():
         raise ValueError("discretize: a segment length is not finite")
     if total.size and _lane_points(total.max(), spacing) > MAX_LANE_POINTS:
-        raise ValueError(f"discretize: a polyline of {total.max():.6g} m needs {_lane_points(total.max(), spacing)} "
-                         f"points at {spacing} m spacing, more than MAX_LANE_POINTS = {MAX_LANE_POINTS}")
+        raise ValueError(
+            f"discretize: a polyline of {total.max():.6g} m needs "
+            f"{_lane_points(total.max(), spacing)} points at {spacing} m spacing, more than "
+            f"MAX_LANE_POINTS = {MAX_LANE_POINTS}"
+        )
     P = int(np.floor(total.max() / spacing + 1e-9)) + 1 if total.size else 1
     u = np.broadcast_to(np.arange(P) * spacing, (*total.shape, P))
     mask = (u <= total[..., None] + 1e-9) & (total[..., None] > 0)  # an empty route has no points
@@ -268,55 +361,65 @@ def discretize(segs, spacing: float):
 
 
 def frenet_to_xy(s, d, kappa):
-    """The road frame: a reference arc from the origin heading +x with curvature kappa; (s along, d left)."""
+    """The road frame: a reference arc from the origin heading +x with curvature kappa; (s along,
+    d left)."""
     a, c = _arc(kappa, s)
     th = kappa * s
     return a - d * np.sin(th), c + d * np.cos(th), th
 
 
 def xy_to_frenet(x, y, kappa):
-    """Inverse of frenet_to_xy (closed form; d = (2y - kappa (x^2 + y^2)) / (1 + r) avoids 1/kappa)."""
+    """Inverse of frenet_to_xy (closed form: d = (2y - kappa (x^2 + y^2)) / (1 + r), no 1/kappa)."""
     r = np.sqrt((kappa * x) ** 2 + (1 - kappa * y) ** 2)
-    d, ks = (2 * y - kappa * (x**2 + y**2)) / (1 + r), np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
+    d = (2 * y - kappa * (x**2 + y**2)) / (1 + r)
+    ks = np.where(np.abs(kappa) < 1e-12, 1.0, kappa)
     s = np.where(np.abs(kappa) < 1e-12, x, np.arctan2(kappa * x, 1 - kappa * y) / ks)
     return s, d
 
 
 def backward_speed(xy, mask, t):
-    """Speed by backward differences: |p_t - p_prev| / (t - t_prev), prev = the previous observed frame.
-    xy (..., F, 2), mask (..., F), t (..., F) seconds -> (..., F); a track's first frame copies its second."""
-    F, t = xy.shape[-2], np.broadcast_to(t, mask.shape)
+    """Speed by backward differences: |p_t - p_prev| / (t - t_prev), prev = the previous observed
+    frame. xy (..., F, 2), mask (..., F), t (..., F) seconds -> (..., F); a track's first frame
+    copies its second."""
+    F = xy.shape[-2]
+    t = np.broadcast_to(t, mask.shape)
     idx = np.where(mask, np.arange(F), -1)
-    prev = np.maximum.accumulate(np.concatenate([np.full(idx.shape[:-1] + (1,), -1), idx[..., :-1]], -1), -1)
-    has_prev, p = mask & (prev >= 0), np.maximum(prev, 0)
+    prev = np.maximum.accumulate(
+        np.concatenate([np.full(idx.shape[:-1] + (1,), -1), idx[..., :-1]], -1), -1
+    )
+    has_prev = mask & (prev >= 0)
+    p = np.maximum(prev, 0)
     dp, dt = xy - np.take_along_axis(xy, p[..., None], -2), t - np.take_along_axis(t, p, -1)
     v = np.where(has_prev, np.linalg.norm(dp, axis=-1) / np.where(has_prev, dt, 1.0), 0.0)
     obs = np.where(mask, np.arange(F), F)
     after = np.minimum.accumulate(obs[..., ::-1], -1)[..., ::-1]  # first observed frame >= f
-    nxt = np.concatenate([after[..., 1:], np.full(idx.shape[:-1] + (1,), F)], -1)  # first observed frame > f
+    # first observed frame > f
+    nxt = np.concatenate([after[..., 1:], np.full(idx.shape[:-1] + (1,), F)], -1)
     first = mask & ~has_prev & (nxt < F)
     return np.where(first, np.take_along_axis(v, np.minimum(nxt, F - 1), -1), v)
 
 
 # === 4. Synthetic scenes ====================================================================
-# One scene = one road (n_fwd lanes in the ego's direction, n_opp oncoming; straight or an arc), sometimes crossed
-# by a two-lane road at an intersection at s = 0. Every agent follows an arcline *path* (its lane, or a turn) with a
-# scripted speed program and lateral offset; agents do not react to each other and are placed to rarely collide.
-# The ego is simulated last by an expert that sees everybody's TRUE future, so its log is a sensible plan to
-# imitate; scenes where anything still collides are regenerated. Road frame: s along the centre divider, d to the
-# left; forward lane i (0 next to the divider) at d = -(i + 1/2) W, oncoming lane j at +(j + 1/2) W.
+# One scene = one road (n_fwd lanes in the ego's direction, n_opp oncoming; straight or an arc),
+# sometimes crossed by a two-lane road at an intersection at s = 0. Every agent follows an arcline
+# *path* (its lane, or a turn) with a scripted speed program and lateral offset; agents do not react
+# to each other and are placed to rarely collide. The ego is simulated last by an expert that sees
+# everybody's TRUE future, so its log is a sensible plan to imitate; scenes where anything still
+# collides are regenerated. Road frame: s along the centre divider, d to the left; forward lane i
+# (0 next to the divider) at d = -(i + 1/2) W, oncoming lane j at +(j + 1/2) W.
 
 _CAR = (1.9, 4.6, 1.6)  # width, length, height (m)
 _PED = (0.6, 0.6, 1.75)
 _EGO_W, _EGO_L = 1.9, 4.7
 _BOX_MARGIN = 3.0  # between the road edges and the intersection box (m)
-_FAR = 300.0  # paths that approach the intersection start this far before it; u = 300 is the box edge
+# paths that approach the intersection start this far before it; u = 300 is the box edge
+_FAR = 300.0
 _IDM = dict(a_max=1.5, b=2.5, T=1.0, s0=2.0, look=6)  # the ego's IDM, look-ahead in frames (3 s)
 _LONG = 1e4  # length of a path's open-ended segment (m)
 
 
 def _smoothstep(x):
-    """Quintic ramp 0 -> 1 on [0, 1] and its derivative (zero velocity and acceleration at both ends)."""
+    """Quintic ramp 0 -> 1 on [0, 1] and its derivative (zero speed and acceleration at 0 and 1)."""
     x = np.clip(x, 0.0, 1.0)
     return x**3 * (10 - 15 * x + 6 * x**2), 30 * x**2 * (1 - x) ** 2
 
@@ -324,113 +427,208 @@ def _smoothstep(x):
 def _straight(x, y, yaw, length, ones):
     """A straight arcline path (shape LSR with lengths [0, L, 0]) as (..., 10)."""
     z = 0 * ones
-    return np.stack([x * ones, y * ones, yaw * ones, 1000 * ones, z, length * ones, z, ones, z, -ones], -1)
+    return np.stack(
+        [x * ones, y * ones, yaw * ones, 1000 * ones, z, length * ones, z, ones, z, -ones], -1
+    )
 
 
 def _arc_path(x, y, yaw, radius, sign, l_arc, l_straight, ones):
-    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSR (or LSL/RSL), as (..., 10)."""
+    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSR (or LSL/RSL), as
+    (..., 10)."""
     z = 0 * ones
-    return np.stack([x * ones, y * ones, yaw * ones, radius * ones, l_arc * ones, l_straight * ones, z,
-                     sign * ones, z, np.where(l_straight > 0, -sign, sign) * ones], -1)
+    return np.stack(
+        [
+            x * ones,
+            y * ones,
+            yaw * ones,
+            radius * ones,
+            l_arc * ones,
+            l_straight * ones,
+            z,
+            sign * ones,
+            z,
+            np.where(l_straight > 0, -sign, sign) * ones,
+        ],
+        -1,
+    )
 
 
 def _lane_path(d, kappa, forward):
     """The open-ended path of the lane at road offset d, u = 0 at s = 0: segments (..., 3, 5)."""
-    one, k_lane = np.ones_like(d * kappa), kappa / (1 - kappa * d)
-    seg0 = np.stack([0 * one, d * one, np.where(forward, 0.0, np.pi) * one,
-                     np.where(forward, k_lane, -k_lane) * one, _LONG * one], -1)
+    one = np.ones_like(d * kappa)
+    k_lane = kappa / (1 - kappa * d)
+    seg0 = np.stack(
+        [
+            0 * one,
+            d * one,
+            np.where(forward, 0.0, np.pi) * one,
+            np.where(forward, k_lane, -k_lane) * one,
+            _LONG * one,
+        ],
+        -1,
+    )
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
 
 
 def _draw_layout(S, cfg, rng):
     """Per-scene road, behaviour, timing and ego speed: a dict of (S,) arrays."""
     if unknown := set(cfg.mix) - set(BEHAVIOURS):
-        raise ValueError(f"SynthConfig.mix: unknown behaviours {sorted(unknown)}; known: {BEHAVIOURS}")
+        raise ValueError(
+            f"SynthConfig.mix: unknown behaviours {sorted(unknown)}; known: {BEHAVIOURS}"
+        )
     w = np.array([float(cfg.mix.get(b, 0.0)) for b in BEHAVIOURS])
     if (w < 0).any() or w.sum() <= 0:
-        raise ValueError(f"SynthConfig.mix needs non-negative weights with a positive sum, got {cfg.mix}")
+        raise ValueError(
+            f"SynthConfig.mix needs non-negative weights with a positive sum, got {cfg.mix}"
+        )
     beh = rng.choice(len(BEHAVIOURS), S, p=w / w.sum())
-    inter = np.isin(beh, [_B[b] for b in _INTERSECTION_BEHAVIOURS]) | (rng.random(S) < cfg.intersection_prob)
+    inter = np.isin(beh, [_B[b] for b in _INTERSECTION_BEHAVIOURS]) | (
+        rng.random(S) < cfg.intersection_prob
+    )
     n_fwd, n_opp = rng.integers(2, 4, S), rng.integers(1, 3, S)
     curv = rng.uniform(1 / 1000, 1 / cfg.min_radius, S) * rng.choice([-1.0, 1.0], S)
     kappa = np.where(~inter & (rng.random(S) < cfg.curved_prob), curv, 0.0)
-    ego_lane, side = np.floor(rng.random(S) * n_fwd).astype(int), np.where(rng.random(S) < 0.5, -1, 1)
+    ego_lane = np.floor(rng.random(S) * n_fwd).astype(int)
+    side = np.where(rng.random(S) < 0.5, -1, 1)
     side = np.where((ego_lane + side < 0) | (ego_lane + side >= n_fwd), -side, side)
     v_e0 = rng.uniform(*cfg.ego_speed, S)
-    v_des = np.minimum(np.minimum(v_e0 * rng.uniform(1.0, 1.1, S), 15.0), np.sqrt(2.5 / np.maximum(abs(kappa), 1e-9)))
-    return dict(beh=beh, inter=inter, n_fwd=n_fwd, n_opp=n_opp, kappa=kappa, ego_lane=ego_lane,
-                adj_lane=ego_lane + side, t_e=rng.uniform(7.0, 12.5, S), v_e0=v_e0, v_des=v_des)
+    v_des = np.minimum(
+        np.minimum(v_e0 * rng.uniform(1.0, 1.1, S), 15.0),
+        np.sqrt(2.5 / np.maximum(abs(kappa), 1e-9)),
+    )
+    return dict(
+        beh=beh,
+        inter=inter,
+        n_fwd=n_fwd,
+        n_opp=n_opp,
+        kappa=kappa,
+        ego_lane=ego_lane,
+        adj_lane=ego_lane + side,
+        t_e=rng.uniform(7.0, 12.5, S),
+        v_e0=v_e0,
+        v_des=v_des,
+    )
 
 
 def _script_agents(lay, cfg, rng):
-    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0. A program: path
-    segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2 (from t2) tracked with |decel| <= dec1
-    / dec2; an optional stop at u_stop held until t_go; a lateral offset
+    """Programs for every agent slot (slot 0 = the predicted vehicle) and the ego's start s_e0. A
+    program: path segments; start u and speed v0; a speed reference v0 -> v1 (from t1) -> v2
+    (from t2) tracked with |decel| <= dec1 / dec2; an optional stop at u_stop held until t_go; a
+    lateral offset
         d(t) = d0 + D S((t - t_lc)/T_lc) + c (S((t - t_up)/T_up) - S((t - t_dn)/T_dn))
-    (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift and back).
-    Agents with a finite anchor_t are shifted after simulation so that they are at anchor_u at anchor_t."""
-    S, W = len(lay["beh"]), cfg.lane_width
-    M = 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds  # predicted; ego-lane leader + background; parked; peds
+    (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift
+    and back). Agents with a finite anchor_t are shifted after simulation so that they are at
+    anchor_u at anchor_t."""
+    S = len(lay["beh"])
+    W = cfg.lane_width
+    # predicted; ego-lane leader + background; parked; peds
+    M = 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds
     beh, kappa, t_e, v_e0 = lay["beh"], lay["kappa"], lay["t_e"], lay["v_e0"]
-    inf, one = np.inf, np.ones(S)
-    U = lambda lo, hi, n=S: rng.uniform(lo, hi, n)  # noqa: E731
-    is_ = lambda *names: np.isin(beh, [_B[n] for n in names])  # noqa: E731
+    inf = np.inf
+    one = np.ones(S)
+
+    def U(lo, hi, n=S):
+        return rng.uniform(lo, hi, n)
+
+    def is_(*names):
+        return np.isin(beh, [_B[n] for n in names])
+
     p = {k: np.zeros((S, M)) for k in ("u_start", "v0", "v1", "v2", "d0", "D", "c")}
-    p.update({k: np.full((S, M), inf) for k in ("t1", "t2", "u_stop", "t_lc", "t_up", "t_dn", "anchor_t")})
-    p.update(dec1=np.full((S, M), 2.0), dec2=np.full((S, M), 2.0), t_go=np.full((S, M), -inf),
-             b_stop=np.full((S, M), 2.0), T_lc=np.full((S, M), 3.0), T_up=np.full((S, M), 1.5),
-             T_dn=np.full((S, M), 1.5), anchor_u=np.zeros((S, M)), exists=np.zeros((S, M), bool),
-             is_ped=np.zeros((S, M), bool), segs=np.zeros((S, M, 3, 5)))
+    p.update(
+        {
+            k: np.full((S, M), inf)
+            for k in ("t1", "t2", "u_stop", "t_lc", "t_up", "t_dn", "anchor_t")
+        }
+    )
+    p.update(
+        dec1=np.full((S, M), 2.0),
+        dec2=np.full((S, M), 2.0),
+        t_go=np.full((S, M), -inf),
+        b_stop=np.full((S, M), 2.0),
+        T_lc=np.full((S, M), 3.0),
+        T_up=np.full((S, M), 1.5),
+        T_dn=np.full((S, M), 1.5),
+        anchor_u=np.zeros((S, M)),
+        exists=np.zeros((S, M), bool),
+        is_ped=np.zeros((S, M), bool),
+        segs=np.zeros((S, M, 3, 5)),
+    )
     p["size"] = np.broadcast_to(np.array(_CAR), (S, M, 3)).copy()
-    d_f = lambda i: -(i + 0.5) * W  # noqa: E731  forward lane offsets
-    d_o = lambda j: (j + 0.5) * W  # noqa: E731  oncoming lane offsets
+
+    def d_f(i):  # forward lane offsets
+        return -(i + 0.5) * W
+
+    def d_o(j):  # oncoming lane offsets
+        return (j + 0.5) * W
+
     de, dj = d_f(lay["ego_lane"]), d_f(lay["adj_lane"])
     bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
     y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
     R_left = bx + W / 2  # radius of the oncoming left turn
-    # --- slot 0, the predicted vehicle ------------------------------------------------------------------
+    # --- slot 0, the predicted vehicle ------------------------------------------------------------
     p["exists"][:, 0] = True
     p["size"][:, 0, 0], p["size"][:, 0, 1] = U(1.8, 2.0), U(4.3, 4.9)
     cue, false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
     # (a) an agent in the adjacent forward lane: cut_in / keep_lane / far / behind.
-    #     Its lane change starts 1 s before the event (so the event is when it reaches the ego's lane); in the
-    #     middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
-    adj, T_lc = is_("cut_in", "keep_lane", "far", "behind"), U(2.5, 4.0)
+    #     Its lane change starts 1 s before the event (the event: it reaches the ego's lane); in
+    #     the middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
+    adj = is_("cut_in", "keep_lane", "far", "behind")
+    T_lc = U(2.5, 4.0)
     t_lc = t_e - 1.0
     t_ref = t_lc + T_lc / 2
     gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(4, 10), U(35, 60)], U(-25, -10))
-    v_adj = np.select([is_("cut_in", "keep_lane"), is_("far")], [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
-                      v_e0 + U(-2, 0.5)).clip(5.0, 20.0)
-    changes, toward = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5)), np.sign(de - dj)
+    v_adj = np.select(
+        [is_("cut_in", "keep_lane"), is_("far")],
+        [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
+        v_e0 + U(-2, 0.5),
+    ).clip(5.0, 20.0)
+    changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
+    toward = np.sign(de - dj)
     # (b) the vehicle ahead in the ego's lane: lead_brake / lead_cruise
-    lead, v_lead = is_("lead_brake", "lead_cruise"), np.maximum(v_e0 + U(-1, 0.5), 4.0)
+    lead = is_("lead_brake", "lead_cruise")
+    v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
     g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
-    # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the ego's
-    #     lane at the event time; it is at the box edge R acos(h / R) / v_turn earlier (h: see below).
+    # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the
+    #     ego's lane at the event time, the box edge R acos(h / R) / v_turn earlier (h: see below).
     turn, onc = is_("turn_across"), is_("turn_across", "go_straight")
     v_onc, v_turn = U(7, 11), U(4.0, 5.5)
     h = de - (W / 2 - R_left)  # the ego lane's offset from the turn's centre
     t_box = t_e - R_left * np.arccos(np.clip(h / R_left, -1, 1)) / v_turn
-    # (d) a vehicle on the crossing road from the ego's right: cross_go / cross_yield; in the ego's lane at t_e
+    # (d) a crossing vehicle from the ego's right: cross_go / cross_yield; in the ego's lane at t_e
     cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
     v_cross = U(6, 9)
     t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
-    # --- the ego's start (road s). Intersection situations: its front reaches the conflict point delta after
-    #     the other vehicle's centre (the expert then yields); the same delta for both twins, so nothing leaks.
-    #     Other scenes: 4-16 s before the intersection if there is one, else at s = 0.
-    delta, x_turn_conflict = U(-0.5, 1.0), bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
-    s_e0 = np.select([onc, cross, lay["inter"]],
-                     [x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
-                      W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta), -v_e0 * U(4, 16)], 0.0)
+    # --- the ego's start (road s). Intersection situations: its front reaches the conflict point
+    #     delta after the other vehicle's centre (the expert then yields); the same delta for both
+    #     twins, so nothing leaks. Other scenes: 4-16 s before an intersection if any, else s = 0.
+    delta = U(-0.5, 1.0)
+    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
+    s_e0 = np.select(
+        [onc, cross, lay["inter"]],
+        [
+            x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
+            W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta),
+            -v_e0 * U(4, 16),
+        ],
+        0.0,
+    )
     p["segs"][:, 0] = np.select(
         [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
-        [_lane_path(dj, kappa, True), _lane_path(de, kappa, True), _turn_path(S, W, bx, R_left, lay["n_fwd"]),
-         _turn_path(S, W, bx, R_left, lay["n_fwd"], turn=False)],
-        _cross_path(S, W, y_bot))
+        [
+            _lane_path(dj, kappa, True),
+            _lane_path(de, kappa, True),
+            _turn_path(S, W, bx, R_left, lay["n_fwd"]),
+            _turn_path(S, W, bx, R_left, lay["n_fwd"], turn=False),
+        ],
+        _cross_path(S, W, y_bot),
+    )
     p["v0"][:, 0] = np.select([adj, lead, onc], [v_adj, v_lead, v_onc], v_cross)
-    # adjacent: placement, lane change, the cue (a drift to the line) or the false cue (a drift and back)
-    p["u_start"][:, 0] = np.where(adj, (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref,
-                                  np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0))
+    # adjacent: placement, lane change, the cue (a drift to the line) or false cue (drift and back)
+    p["u_start"][:, 0] = np.where(
+        adj,
+        (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref,
+        np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0),
+    )
     p["D"][:, 0] = np.where(adj & changes, de - dj, 0.0)
     p["t_lc"][:, 0], p["T_lc"][:, 0] = np.where(adj & changes, t_lc, inf), T_lc
     drift = adj & np.where(changes, cue, false_cue)
@@ -438,44 +636,57 @@ def _script_agents(lay, cfg, rng):
     p["t_up"][:, 0] = np.where(drift, t_lc - 1.5, inf)
     p["t_dn"][:, 0] = np.where(drift, np.where(changes, t_lc, t_lc + 0.5), inf)
     p["T_dn"][:, 0] = np.where(changes, T_lc, 2.0)
-    # lead: brake 1 s before t_e (to 0-50 % of its speed, a third to a stop), announced by a gentle slow-down
-    brake, t_brake = is_("lead_brake"), t_e - 1.0
+    # lead: brake 1 s before t_e (to 0-50 % of its speed, a third to a stop), cued by slowing gently
+    brake = is_("lead_brake")
+    t_brake = t_e - 1.0
     slow_first = lead & np.where(brake, cue, false_cue)
     p["t1"][:, 0] = np.where(slow_first, t_brake - 1.5, np.where(lead, t_brake, inf))
     p["v1"][:, 0], p["dec1"][:, 0] = v_lead - 1.5, 1.0
     p["t2"][:, 0] = np.where(lead, t_brake, p["t2"][:, 0])
     p["v2"][:, 0] = np.where(brake, v_lead * U(0, 0.5) * (rng.random(S) > 0.33), v_lead)
     p["dec2"][:, 0] = np.where(brake, U(2.5, 4.0), 2.0)
-    # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and harder);
-    # a go_straight vehicle with the false cue slows the same way, then speeds up again at the box
+    # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and
+    # harder); a go_straight vehicle with the false cue slows alike, then speeds up again at the box
     gentle = np.where(turn, cue, false_cue)
-    dec, slows = np.where(gentle, 1.5, 3.0), turn | (onc & false_cue)
+    dec = np.where(gentle, 1.5, 3.0)
+    slows = turn | (onc & false_cue)
     p["t1"][:, 0] = np.where(onc & slows, t_box - (v_onc - v_turn) / dec - 1.0, p["t1"][:, 0])
-    p["v1"][:, 0], p["dec1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0]), np.where(onc, dec, p["dec1"][:, 0])
+    p["v1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0])
+    p["dec1"][:, 0] = np.where(onc, dec, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(turn, t_box + 3.0, np.where(onc & slows, t_box, p["t2"][:, 0]))
     p["v2"][:, 0] = np.where(onc, v_onc, p["v2"][:, 0])
     # crossing: cross_go is at the box edge at t_box (a false cue: it slows to half speed first);
-    # cross_yield stops 1 m before the box at t_box (braking early when cued) and waits until the ego has passed
+    # cross_yield stops 1 m before the box at t_box (braking early when cued) and lets the ego pass
     go_slow = cross & ~yields & false_cue
     p["t1"][:, 0] = np.where(go_slow, t_box - 3.0, p["t1"][:, 0])
     p["v1"][:, 0] = np.where(go_slow, 0.5 * v_cross, p["v1"][:, 0])
     p["dec1"][:, 0] = np.where(go_slow, 1.5, p["dec1"][:, 0])
     p["t2"][:, 0] = np.where(go_slow, t_box - 1.0, p["t2"][:, 0])
     p["v2"][:, 0] = np.where(cross, v_cross, p["v2"][:, 0])
-    b_stop, u_stop = np.where(cue, 1.2, 3.0), _FAR - 1.0 - p["size"][:, 0, 1] / 2
+    b_stop = np.where(cue, 1.2, 3.0)
+    u_stop = _FAR - 1.0 - p["size"][:, 0, 1] / 2
     p["u_stop"][:, 0], p["b_stop"][:, 0] = np.where(yields, u_stop, inf), b_stop
-    p["u_start"][:, 0] = np.where(yields, u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
-                                  p["u_start"][:, 0])
-    p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)  # the ego has passed
+    p["u_start"][:, 0] = np.where(
+        yields,
+        u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
+        p["u_start"][:, 0],
+    )
+    # once the ego has passed
+    p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)
     p["anchor_t"][:, 0], p["anchor_u"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf), _FAR
-    # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) -----------
-    p["exists"][:, 1], p["segs"][:, 1] = ~lead & (rng.random(S) < 0.5), _lane_path(de, kappa, True)
+    # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) ---
+    p["exists"][:, 1] = ~lead & (rng.random(S) < 0.5)
+    p["segs"][:, 1] = _lane_path(de, kappa, True)
     p["u_start"][:, 1] = (s_e0 + U(55, 90)) * (1 - kappa * de)
     p["v0"][:, 1] = np.minimum(lay["v_des"] + U(1, 3), 20.0)
-    # --- background traffic on the lanes nobody else uses, each lane at its own speed, spaced 25-45 m ------
-    lane_d = np.stack([d_f(0) * one, d_f(1) * one, d_f(2) * one, d_o(0) * one, d_o(1) * one], 1)  # (S, 5)
+    # --- background traffic on the lanes nobody else uses, each at its own speed, 25-45 m apart ---
+    # (S, 5)
+    lane_d = np.stack([d_f(0) * one, d_f(1) * one, d_f(2) * one, d_o(0) * one, d_o(1) * one], 1)
     lane_fwd = np.array([True, True, True, False, False])
-    free = np.stack([lay["n_fwd"] > 0, lay["n_fwd"] > 1, lay["n_fwd"] > 2, lay["n_opp"] > 0, lay["n_opp"] > 1], 1)
+    free = np.stack(
+        [lay["n_fwd"] > 0, lay["n_fwd"] > 1, lay["n_fwd"] > 2, lay["n_opp"] > 0, lay["n_opp"] > 1],
+        1,
+    )
     free &= np.arange(5) != lay["ego_lane"][:, None]
     free[:, :3] &= ~(adj[:, None] & (np.arange(3) == lay["adj_lane"][:, None]))
     free[:, 3] &= ~onc
@@ -485,33 +696,49 @@ def _script_agents(lay, cfg, rng):
     nb = cfg.n_vehicles - 1
     if nb > 0:
         bg = slice(2, 2 + nb)
-        choice = np.argmax(rng.random((S, nb, 5)) * free[:, None], -1)  # (S, nb) a free lane per vehicle
+        # (S, nb) a free lane per vehicle
+        choice = np.argmax(rng.random((S, nb, 5)) * free[:, None], -1)
         onehot = choice[..., None] == np.arange(5)
         rank = (np.cumsum(onehot, 1) - 1)[onehot].reshape(S, nb)
-        take = lambda a: np.take_along_axis(a, choice, 1)  # noqa: E731
+
+        def take(a):
+            return np.take_along_axis(a, choice, 1)
+
         s0 = s_e0[:, None] + take(lane_s0) + rank * take(lane_gap)
         d, fwd = take(lane_d), lane_fwd[choice]
         p["exists"][:, bg] = np.arange(nb) < rng.integers((nb + 1) // 2, nb + 1, S)[:, None]
         p["segs"][:, bg] = _lane_path(d, kappa[:, None], fwd)
-        p["u_start"][:, bg], p["v0"][:, bg] = np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d), take(lane_v)
-    # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ---------------------
+        p["u_start"][:, bg], p["v0"][:, bg] = (
+            np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d),
+            take(lane_v),
+        )
+    # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ------------
     pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + cfg.n_parked)
     d_out = d_f(lay["n_fwd"] - 1)[:, None]
-    s_pk = s_e0[:, None] + rng.uniform(-20, 100, (S, 1)) + np.cumsum(rng.uniform(8, 60, (S, cfg.n_parked)), 1)
+    s_pk = (
+        s_e0[:, None]
+        + rng.uniform(-20, 100, (S, 1))
+        + np.cumsum(rng.uniform(8, 60, (S, cfg.n_parked)), 1)
+    )
     s_pk = np.where(lay["inter"][:, None] & (abs(s_pk) < 25), s_pk + 50, s_pk)
     p["exists"][:, pk] = rng.random((S, cfg.n_parked)) < 0.5
     p["segs"][:, pk] = _lane_path(d_out, kappa[:, None], True)
     p["u_start"][:, pk] = s_pk * (1 - kappa[:, None] * d_out)
     p["d0"][:, pk] = -(W / 2 + 1.0)  # centre 1 m outside the lane's edge
-    # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) -----------------
-    pd, left = slice(M - cfg.n_peds, M), rng.random((S, cfg.n_peds)) < 0.5
-    walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)  # each pedestrian its own line: they never walk into each other
+    # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) --------
+    pd = slice(M - cfg.n_peds, M)
+    left = rng.random((S, cfg.n_peds)) < 0.5
+    # each pedestrian its own line: they never walk into each other
+    walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)
     d_sw = np.where(left, lay["n_opp"][:, None] * W + walkway, -lay["n_fwd"][:, None] * W - walkway)
     s_pd = s_e0[:, None] + rng.uniform(-30, 200, (S, cfg.n_peds))
     s_pd = np.where(lay["inter"][:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
     fwd = np.where(lay["inter"][:, None], s_pd > 0, rng.random((S, cfg.n_peds)) < 0.5)
-    p["exists"][:, pd] = np.arange(cfg.n_peds) < rng.integers((cfg.n_peds + 1) // 2, cfg.n_peds + 1, S)[:, None]
-    p["is_ped"][:, pd], p["size"][:, pd] = True, _PED
+    p["exists"][:, pd] = (
+        np.arange(cfg.n_peds) < rng.integers((cfg.n_peds + 1) // 2, cfg.n_peds + 1, S)[:, None]
+    )
+    p["is_ped"][:, pd] = True
+    p["size"][:, pd] = _PED
     p["segs"][:, pd] = _lane_path(d_sw, kappa[:, None], fwd)
     p["u_start"][:, pd] = np.where(fwd, s_pd, -s_pd) * (1 - kappa[:, None] * d_sw)
     p["v0"][:, pd] = rng.uniform(0.8, 1.6, (S, cfg.n_peds))
@@ -521,10 +748,12 @@ def _script_agents(lay, cfg, rng):
 
 
 def _turn_path(S, W, bx, R, n_fwd, turn=True):
-    """The oncoming (westbound) vehicle's left turn into the southbound crossing lane: approach, arc, exit;
-    or (turn=False) straight on along its lane. u = _FAR at the box edge either way."""
+    """The oncoming (westbound) vehicle's left turn into the southbound crossing lane: approach,
+    arc, exit; or (turn=False) straight on along its lane. u = _FAR at the box edge either way."""
     one = np.ones(S)
-    approach = np.stack([(bx + _FAR) * one, W / 2 * one, np.pi * one, 0 * one, (_FAR if turn else _LONG) * one], -1)
+    approach = np.stack(
+        [(bx + _FAR) * one, W / 2 * one, np.pi * one, 0 * one, (_FAR if turn else _LONG) * one], -1
+    )
     if not turn:
         return np.stack([approach, 0 * approach, 0 * approach], -2)
     arc = np.stack([bx * one, W / 2 * one, np.pi * one, one / R, np.pi / 2 * R * one], -1)
@@ -533,14 +762,16 @@ def _turn_path(S, W, bx, R, n_fwd, turn=True):
 
 
 def _cross_path(S, W, y_bot):
-    """The northbound crossing lane (x = +W/2), u = _FAR at the box edge y_bot: segments (S, 3, 5)."""
+    """The northbound crossing lane (x = +W/2), u = _FAR at the box edge y_bot: segments
+    (S, 3, 5)."""
     one = np.ones(S)
     seg0 = np.stack([W / 2 * one, y_bot - _FAR, np.pi / 2 * one, 0 * one, _LONG * one], -1)
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
 
 
 def _run_programs(p, n_steps, sim_dt):
-    """Integrate every agent's speed program: arc position u and speed v along its path, (S, M, N) each."""
+    """Integrate every agent's speed program: arc position u and speed v along its path,
+    (S, M, N) each."""
     u, v = p["u_start"].copy(), p["v0"].copy()
     us, vs = np.empty(u.shape + (n_steps,)), np.empty(u.shape + (n_steps,))
     for k in range(n_steps):  # a loop over time, vectorised over scenes and agents
@@ -549,27 +780,38 @@ def _run_programs(p, n_steps, sim_dt):
         v_ref = np.where(t < p["t1"], p["v0"], np.where(t < p["t2"], p["v1"], p["v2"]))
         dec = np.where(t < p["t1"], 2.0, np.where(t < p["t2"], p["dec1"], p["dec2"]))
         a = np.clip(2.0 * (v_ref - v), -dec, 1.5)
-        # stopping at u_stop until t_go: brake at the constant deceleration v^2 / (2 gap) once it exceeds b_stop
-        gap, stopping = p["u_stop"] - u, t < p["t_go"]
+        # stopping at u_stop until t_go: brake at constant v^2 / (2 gap) once that exceeds b_stop
+        gap = p["u_stop"] - u
+        stopping = t < p["t_go"]
         need = v**2 / (2 * np.maximum(gap, 0.05))
         a = np.where(stopping & (need > p["b_stop"]), -np.minimum(need, 4.0), a)
         hold = stopping & (gap < 0.5) & (v < 0.5)
         v_new = np.where(hold, 0.0, np.maximum(v + a * sim_dt, 0.0))
         u, v = u + 0.5 * (v + v_new) * sim_dt, v_new
     # anchored agents: shift along the path so that they are at anchor_u at anchor_t
-    k_anchor = np.clip(np.where(np.isfinite(p["anchor_t"]), p["anchor_t"], 0) / sim_dt, 0, n_steps - 1).round()
+    k_anchor = np.clip(
+        np.where(np.isfinite(p["anchor_t"]), p["anchor_t"], 0) / sim_dt, 0, n_steps - 1
+    ).round()
     shift = p["anchor_u"] - np.take_along_axis(us, k_anchor.astype(int)[..., None], -1)[..., 0]
     return us + np.where(np.isfinite(p["anchor_t"]), shift, 0.0)[..., None], vs
 
 
 def _agent_states(p, us, vs, t):
     """World states (S, M, N, 4) from path positions and the lateral offset program d(t)."""
-    ramp = lambda t0, T: _smoothstep((t - t0[..., None]) / T[..., None])  # noqa: E731
-    (s_lc, ds_lc), (s_up, ds_up), (s_dn, ds_dn) = ramp(p["t_lc"], p["T_lc"]), ramp(p["t_up"], p["T_up"]), \
-        ramp(p["t_dn"], p["T_dn"])
+
+    def ramp(t0, T):
+        return _smoothstep((t - t0[..., None]) / T[..., None])
+
+    (s_lc, ds_lc), (s_up, ds_up), (s_dn, ds_dn) = (
+        ramp(p["t_lc"], p["T_lc"]),
+        ramp(p["t_up"], p["T_up"]),
+        ramp(p["t_dn"], p["T_dn"]),
+    )
     D, c = p["D"][..., None], p["c"][..., None]
     d = p["d0"][..., None] + D * s_lc + c * (s_up - s_dn)  # (S, M, N)
-    d_dot = D * ds_lc / p["T_lc"][..., None] + c * (ds_up / p["T_up"][..., None] - ds_dn / p["T_dn"][..., None])
+    d_dot = D * ds_lc / p["T_lc"][..., None] + c * (
+        ds_up / p["T_up"][..., None] - ds_dn / p["T_dn"][..., None]
+    )
     pose, kappa = pose_along(p["segs"], us)  # (S, M, N, 3), (S, M, N)
     along = vs * (1 - kappa * d)
     x, y = pose[..., 0] - d * np.sin(pose[..., 2]), pose[..., 1] + d * np.cos(pose[..., 2])
@@ -577,15 +819,18 @@ def _agent_states(p, us, vs, t):
 
 
 def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
-    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields. An agent that will
-    be in its lane corridor within 3 s (TRUE futures) is an obstacle at its road position then, if it drives along
-    the road (a leader, a car merging in) or is still there at most 0.6 s before the ego would reach it at its
-    current speed (crossing or turning: the ego yields, or passes just after); never if the ego at constant speed
-    would already be past it. IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
+    """The expert ego: keeps its lane (with a small smooth wander), follows with IDM, and yields. An
+    agent that will be in its lane corridor within 3 s (TRUE futures) is an obstacle at its road
+    position then, if it drives along the road (a leader, a car merging in) or is still there at
+    most 0.6 s before the ego would reach it at its current speed (crossing or turning: the ego
+    yields, or passes just after); never if the ego at constant speed would already be past it.
+    IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
     s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))), a in [-4, a_max]."""
-    S, N, W = len(s_e0), len(t), cfg.lane_width
-    kappa, de = lay["kappa"], -(lay["ego_lane"] + 0.5) * W
-    # the others in the road frame: position, longitudinal speed, half-extents along and across the road
+    S, N = len(s_e0), len(t)
+    W = cfg.lane_width
+    kappa = lay["kappa"]
+    de = -(lay["ego_lane"] + 0.5) * W
+    # the others in the road frame: position, speed along the road, half-extents along and across
     s_a, d_a = xy_to_frenet(others[..., 0], others[..., 1], kappa[:, None, None])  # (S, M, N)
     rel = others[..., 2] - kappa[:, None, None] * s_a
     w, length = sizes[..., 0, None] / 2, sizes[..., 1, None] / 2
@@ -604,34 +849,51 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
         tau = (idx - k) * cfg.sim_dt  # (J,)
         s_e = u / (1 - kappa * de)
         sa, ex = s_a[..., idx], ext_long[..., idx]  # (S, M, J)
-        passed = (tau > 0) & (s_e[:, None, None] + v[:, None, None] * tau - _EGO_L / 2 - 1.0 > sa + ex)
+        passed = (tau > 0) & (
+            s_e[:, None, None] + v[:, None, None] * tau - _EGO_L / 2 - 1.0 > sa + ex
+        )
         gap = np.maximum(sa - ex - s_e[:, None, None] - _EGO_L / 2, 0.1)
-        arrival = gap / np.maximum(v, 1.0)[:, None, None]  # when the ego would reach it at its current speed
+        # when the ego would reach it at its current speed
+        arrival = gap / np.maximum(v, 1.0)[:, None, None]
         along = (sdot_a[..., idx] > 2.0) | (tau >= arrival - 0.6)
         obstacle = in_corr[..., idx] & (sa > s_e[:, None, None]) & ~passed & along
         vv = v[:, None, None]
-        s_star = _IDM["s0"] + np.maximum(0.0, vv * _IDM["T"] + vv * (vv - sdot_a[..., idx]) / sqrt_ab)
+        s_star = _IDM["s0"] + np.maximum(
+            0.0, vv * _IDM["T"] + vv * (vv - sdot_a[..., idx]) / sqrt_ab
+        )
         interaction = np.where(obstacle, (s_star / gap) ** 2, 0.0).max((1, 2))
-        a = np.clip(_IDM["a_max"] * (1 - (v / lay["v_des"]) ** 4 - interaction), -4.0, _IDM["a_max"])
+        a = np.clip(
+            _IDM["a_max"] * (1 - (v / lay["v_des"]) ** 4 - interaction), -4.0, _IDM["a_max"]
+        )
         v_new = np.maximum(v + a * cfg.sim_dt, 0.0)
         u, v = u + 0.5 * (v + v_new) * cfg.sim_dt, v_new
     # lane keeping with a smooth wander of the lateral offset along the lane (amplitude <= 0.2 m)
     amp, lam, phase = rng.uniform(0, 0.2, S), rng.uniform(60, 150, S), rng.uniform(0, 2 * np.pi, S)
     off = amp[:, None] * np.sin(2 * np.pi * us / lam[:, None] + phase[:, None])  # (S, N)
-    doff_du = amp[:, None] * 2 * np.pi / lam[:, None] * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
+    doff_du = (
+        amp[:, None]
+        * 2
+        * np.pi
+        / lam[:, None]
+        * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
+    )
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
     x, y = pose[..., 0] - off * np.sin(pose[..., 2]), pose[..., 1] + off * np.cos(pose[..., 2])
-    ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)  # (S, N, 4)
+    # (S, N, 4)
+    ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)
     return ego, us / (1 - kappa * de)[:, None]
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
-    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3). Path slots: forward
-    lane i -> 3i..3i+2 (before / through / after the intersection; one path without it), oncoming lane j -> 9+3j..,
-    southbound crossing lane 15..17, northbound 18..20, the ego side's right turn 21, the oncoming left turn 22.
-    Routes: forward 0-2, oncoming 3-4, south 5, north 6, right turn 7, left turn 8; they are exactly the maximal
-    chains of the graph, which is what the loader rebuilds from the connectivity."""
-    S, W, kappa, inter = len(s_lo), cfg.lane_width, lay["kappa"], lay["inter"]
+    """The scene's lane graph as arcline paths (S, 23, 10) and the 9 routes through it (S, 9, 3).
+    Path slots: forward lane i -> 3i..3i+2 (before / through / after the intersection; one path
+    without it), oncoming lane j -> 9+3j.., southbound crossing lane 15..17, northbound 18..20, the
+    ego side's right turn 21, the oncoming left turn 22. Routes: forward 0-2, oncoming 3-4, south 5,
+    north 6, right turn 7, left turn 8; they are exactly the maximal chains of the graph, which is
+    what the loader rebuilds from the connectivity."""
+    S = len(s_lo)
+    W = cfg.lane_width
+    kappa, inter = lay["kappa"], lay["inter"]
     n_fwd, n_opp = lay["n_fwd"], lay["n_opp"]
     one = np.ones(S)
     bx, y_top, y_bot = W + _BOX_MARGIN, n_opp * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
@@ -651,28 +913,49 @@ def _build_map(lay, s_lo, s_hi, cfg):
             radius = np.where(kappa != 0, abs(1 / np.where(kappa != 0, kappa, 1) - d), 1000.0)
             sign = np.sign(kappa) * (1 if fwd else -1)
             curved = _arc_path(x, y, th + (0 if fwd else np.pi), radius, sign, length, 0 * one, one)
-            single = np.where((kappa != 0)[:, None], curved, _straight(x, y, th + (0 if fwd else np.pi), length, one))
+            single = np.where(
+                (kappa != 0)[:, None],
+                curved,
+                _straight(x, y, th + (0 if fwd else np.pi), length, one),
+            )
             # before / through / after the intersection (straight road)
             sg = 1 if fwd else -1
             ends = [s_lo, -bx * one, bx * one, s_hi] if fwd else [s_hi, bx * one, -bx * one, s_lo]
             yaw = 0.0 if fwd else np.pi
             for k in range(3):
                 piece = _straight(ends[k], d * one, yaw, sg * (ends[k + 1] - ends[k]), one)
-                paths[:, base + k] = np.where(inter[:, None], piece, single if k == 0 else 0 * single)
+                paths[:, base + k] = np.where(
+                    inter[:, None], piece, single if k == 0 else 0 * single
+                )
                 valid[:, base + k] = exists & (inter | (k == 0))
             conn[:, base + 1] = inter
-            routes[:, r] = np.where((exists & inter)[:, None], base + np.arange(3),
-                                    np.where(exists[:, None], [base, -1, -1], -1))
+            routes[:, r] = np.where(
+                (exists & inter)[:, None],
+                base + np.arange(3),
+                np.where(exists[:, None], [base, -1, -1], -1),
+            )
     # the crossing road: southbound at x = -W/2, northbound at x = +W/2
-    for base, x, yaw, ys in [(15, -W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
-                             (18, W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one])]:
+    for base, x, yaw, ys in [
+        (15, -W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
+        (18, W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one]),
+    ]:
         for k in range(3):
             paths[:, base + k] = _straight(x, ys[k], yaw, abs(ys[k + 1] - ys[k]), one)
         conn[:, base + 1] = True
-    # turns: the outer forward lane right into the southbound lane; the inner oncoming lane left into it
-    paths[:, 21] = _arc_path(-bx, -(n_fwd - 0.5) * W, 0.0, W / 2 + _BOX_MARGIN, -1.0,
-                             np.pi / 2 * (W / 2 + _BOX_MARGIN), 0 * one, one)
-    paths[:, 22] = _arc_path(bx, W / 2, np.pi, bx + W / 2, 1.0, np.pi / 2 * (bx + W / 2), (n_fwd - 1) * W, one)
+    # turns into the southbound lane: right from the outer forward one, left from the inner oncoming
+    paths[:, 21] = _arc_path(
+        -bx,
+        -(n_fwd - 0.5) * W,
+        0.0,
+        W / 2 + _BOX_MARGIN,
+        -1.0,
+        np.pi / 2 * (W / 2 + _BOX_MARGIN),
+        0 * one,
+        one,
+    )
+    paths[:, 22] = _arc_path(
+        bx, W / 2, np.pi, bx + W / 2, 1.0, np.pi / 2 * (bx + W / 2), (n_fwd - 1) * W, one
+    )
     valid[:, 15:] = inter[:, None]
     conn[:, 21:] = True
     conn &= valid
@@ -684,25 +967,36 @@ def _build_map(lay, s_lo, s_hi, cfg):
 
 
 def _bodies(states, sizes, is_ped):
-    """Three discs along each body (radius half the width; one disc for pedestrians): centres (..., 3, 2), radii."""
-    half = np.where(is_ped, 0.0, sizes[..., 1] / 2 - sizes[..., 0] / 2)  # (..., 1) centre to end disc
+    """Three discs along each body (radius half the width; one disc for pedestrians): centres
+    (..., 3, 2), radii."""
+    # (..., 1) centre to end disc
+    half = np.where(is_ped, 0.0, sizes[..., 1] / 2 - sizes[..., 0] / 2)
     off = half[..., None, None] * np.array([-1.0, 0.0, 1.0])[:, None]  # (..., 1, 3, 1)
-    heading = np.stack([np.cos(states[..., 2]), np.sin(states[..., 2])], -1)[..., None, :]  # (..., F, 1, 2)
+    # (..., F, 1, 2)
+    heading = np.stack([np.cos(states[..., 2]), np.sin(states[..., 2])], -1)[..., None, :]
     centres = states[..., None, :2] + off * heading  # (..., F, 3, 2)
     radius = np.where(is_ped, 0.3, sizes[..., 0] / 2)
     return centres, radius
 
 
 def _collides(ego, agents, sizes, is_ped, exists):
-    """(S,) True where any two bodies (ego included) overlap at any frame. ego (S, F, 4), agents (S, M, F, 4)."""
+    """(S,) True where any two bodies (ego included) overlap at any frame. ego (S, F, 4),
+    agents (S, M, F, 4)."""
     S, M, F, _ = agents.shape
     states = np.concatenate([ego[:, None], agents], 1)  # (S, 1+M, F, 4)
     sz = np.concatenate([np.broadcast_to(np.array([_EGO_W, _EGO_L, 1.6]), (S, 1, 3)), sizes], 1)
-    ped, ex = np.concatenate([np.zeros((S, 1), bool), is_ped], 1), np.concatenate([np.ones((S, 1), bool), exists], 1)
+    ped, ex = (
+        np.concatenate([np.zeros((S, 1), bool), is_ped], 1),
+        np.concatenate([np.ones((S, 1), bool), exists], 1),
+    )
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
     # only pairs whose centres come within reach (two car lengths) need the disc test
-    near = (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1) & ex[:, iu] & ex[:, ju]
+    near = (
+        (np.linalg.norm(states[:, iu, :, :2] - states[:, ju, :, :2], axis=-1) < 10.0).any(-1)
+        & ex[:, iu]
+        & ex[:, ju]
+    )
     s, k = np.nonzero(near)
     ci, cj = c[s, iu[k]], c[s, ju[k]]  # (n, F, 3, 2)
     dist = np.linalg.norm(ci[:, :, :, None] - cj[:, :, None], axis=-1)  # (n, F, 3, 3)
@@ -711,8 +1005,9 @@ def _collides(ego, agents, sizes, is_ped, exists):
 
 
 def _ar1_noise(shape, sigma, rho, rng):
-    """Stationary AR(1) noise along the last axis: e_f = rho e_(f-1) + sqrt(1 - rho^2) sigma xi_f."""
-    xi, e = rng.standard_normal(shape) * sigma, np.empty(shape)
+    """Stationary AR(1) noise on the last axis: e_f = rho e_(f-1) + sqrt(1 - rho^2) sigma xi_f."""
+    xi = rng.standard_normal(shape) * sigma
+    e = np.empty(shape)
     e[..., 0] = xi[..., 0]
     for f in range(1, shape[-1]):
         e[..., f] = rho * e[..., f - 1] + math.sqrt(1 - rho**2) * xi[..., f]
@@ -720,36 +1015,51 @@ def _ar1_noise(shape, sigma, rho, rng):
 
 
 def _simulate_chunk(S, cfg, rng):
-    """Simulate S candidate scenes; returns the world-frame arrays of the ones that are collision-free."""
+    """Simulate S candidate scenes; returns the world-frame arrays of the collision-free ones."""
     stride = int(round(cfg.dt / cfg.sim_dt))
     t = np.arange((cfg.frames - 1) * stride + 1) * cfg.sim_dt  # (N,) fine time grid
     lay = _draw_layout(S, cfg, rng)
     p, s_e0 = _script_agents(lay, cfg, rng)
     us, vs = _run_programs(p, len(t), cfg.sim_dt)
     others = _agent_states(p, us, vs, t)  # (S, M, N, 4)
-    ego, s_ego = _drive_ego(lay, s_e0, others, p["exists"], p["size"], cfg, rng, t)  # (S, N, 4), (S, N)
+    # (S, N, 4), (S, N)
+    ego, s_ego = _drive_ego(lay, s_e0, others, p["exists"], p["size"], cfg, rng, t)
     ego, others = ego[:, ::stride], others[:, :, ::stride]  # frames: (S, F, 4), (S, M, F, 4)
     ok = ~_collides(ego, others, p["size"], p["is_ped"], p["exists"])
-    # the map spans the ego's drive: 40 m behind its start, 90 m past its end (the crop needs 80 m ahead)
+    # the map spans the ego's drive, from 40 m behind it to 90 m past its end (the crop needs 80 m)
     paths, conn, routes = _build_map(lay, s_ego[:, 0] - 40.0, s_ego[:, -1] + 90.0, cfg)
-    # tracking noise on the others' logs (history and future alike), then speeds by backward differences
-    M, F, noisy = others.shape[1], others.shape[2], others.copy()
+    # tracking noise on the others' logs (history and future alike), then backward-difference speeds
+    M, F = others.shape[1], others.shape[2]
+    noisy = others.copy()
     for ch, sigma in [(0, cfg.pos_noise), (1, cfg.pos_noise), (2, cfg.yaw_noise)]:
         noisy[..., ch] += _ar1_noise((S, M, F), sigma, cfg.noise_corr, rng)
     noisy[..., 2], ego[..., 2] = wrap_angle(noisy[..., 2]), wrap_angle(ego[..., 2])
-    tf, mask = np.arange(F) * cfg.dt, np.broadcast_to(p["exists"][..., None], (S, M, F))
+    tf = np.arange(F) * cfg.dt
+    mask = np.broadcast_to(p["exists"][..., None], (S, M, F))
     noisy[..., 3] = backward_speed(noisy[..., :2], mask, tf) * mask
     ego[..., 3] = backward_speed(ego[..., :2], np.ones((S, F), bool), tf)
     noisy *= mask[..., None]
-    keep = lambda a: a[ok]  # noqa: E731
-    return dict(ego=keep(ego), agents=keep(noisy), agents_mask=keep(mask), agents_is_ped=keep(p["is_ped"]),
-                agents_size=keep(p["size"]), behaviour=keep(lay["beh"]),
-                event_frame=keep(np.round(lay["t_e"] / cfg.dt).astype(np.int64)),
-                paths=keep(paths), paths_is_connector=keep(conn), routes=keep(routes))
+
+    def keep(a):
+        return a[ok]
+
+    return dict(
+        ego=keep(ego),
+        agents=keep(noisy),
+        agents_mask=keep(mask),
+        agents_is_ped=keep(p["is_ped"]),
+        agents_size=keep(p["size"]),
+        behaviour=keep(lay["beh"]),
+        event_frame=keep(np.round(lay["t_e"] / cfg.dt).astype(np.int64)),
+        paths=keep(paths),
+        paths_is_connector=keep(conn),
+        routes=keep(routes),
+    )
 
 
 MAX_SCENES = 500_000
-"""Most scenes per generate_scenes call: MAX_SAMPLES at 4 per scene (~35 GB of float64), a bound against typos."""
+"""Most scenes per generate_scenes call: MAX_SAMPLES at 4 per scene (~35 GB of float64), a bound
+against typos."""
 
 
 def _check_count(where: str, name: str, n, cap: int):
@@ -762,14 +1072,19 @@ def _check_seed(where: str, seed):
         raise ValueError(f"{where}: seed must be a whole number >= 0, got {seed!r}")
 
 
-def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512) -> Scenes:
-    """n <= MAX_SCENES synthetic scenes, deterministic for (cfg, seed). Candidates where two bodies touch are
-    replaced (~4 % by default, mostly crossing vehicles meeting traffic); simulated `chunk` scenes at a time."""
+def generate_scenes(
+    n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk: int = 512
+) -> Scenes:
+    """n <= MAX_SCENES synthetic scenes, deterministic for (cfg, seed). Candidates where two bodies
+    touch are replaced (~4 % by default, mostly crossing vehicles meeting traffic); simulated
+    `chunk` scenes at a time."""
     _check_count("generate_scenes", "n (scenes)", n, MAX_SCENES)
     _check_count("generate_scenes", "chunk", chunk, MAX_SCENES)
     _check_seed("generate_scenes", seed)
-    cfg, rng = cfg or SynthConfig(), np.random.default_rng(seed)
-    parts, have = [], 0
+    cfg = cfg or SynthConfig()
+    rng = np.random.default_rng(seed)
+    parts = []
+    have = 0
     while have < n:
         parts.append(_simulate_chunk(min(chunk, int((n - have) * 1.1) + 4), cfg, rng))
         have += len(parts[-1]["ego"])
@@ -779,27 +1094,40 @@ def generate_scenes(n: int, cfg: SynthConfig | None = None, seed: int = 0, chunk
     F = cfg.frames
     valid_t0 = (np.arange(F) >= cfg.hist) & (np.arange(F) < F - cfg.fut)
     pred_idx = np.where(valid_t0, 0, -1)[None].repeat(n, 0)
-    T = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731  (the integer arrays are int64)
-    return Scenes(**{k: T(v) for k, v in arr.items()}, pred_idx=T(pred_idx), lanes=T(lanes), lanes_mask=T(lanes_mask),
-                  names=[f"synth-{seed}-{i:06d}" for i in range(n)])
+
+    def T(a):  # (the integer arrays are int64)
+        return torch.from_numpy(np.ascontiguousarray(a))
+
+    return Scenes(
+        **{k: T(v) for k, v in arr.items()},
+        pred_idx=T(pred_idx),
+        lanes=T(lanes),
+        lanes_mask=T(lanes_mask),
+        names=[f"synth-{seed}-{i:06d}" for i in range(n)],
+    )
 
 
 # === 5. Planning samples: cut a batch out of scenes at frame t0 =============================
 
 
 def _to_frame(states, origin):
-    """World states (S, ..., >=3) -> the frame of origin (S, 4): positions rotated by -h0, headings - h0."""
+    """World states (S, ..., >=3) -> the frame of origin (S, 4): positions rotated by -h0,
+    headings - h0."""
     shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
     x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
     c, s = torch.cos(h0), torch.sin(h0)
     dx, dy = states[..., 0] - x0, states[..., 1] - y0
     out = states.clone()
-    out[..., 0], out[..., 1], out[..., 2] = c * dx + s * dy, -s * dx + c * dy, wrap_angle(states[..., 2] - h0)
+    out[..., 0], out[..., 1], out[..., 2] = (
+        c * dx + s * dy,
+        -s * dx + c * dy,
+        wrap_angle(states[..., 2] - h0),
+    )
     return out
 
 
 def _fill_gaps(x, mask):
-    """Missing steps (mask False) of x (..., T, C) take the previous observed step, or else the next one."""
+    """Missing steps (mask False) of x (..., T, C) take the last observed step, or else the next."""
     T = mask.shape[-1]
     ar = torch.arange(T, device=mask.device)
     prev = torch.cummax(torch.where(mask, ar, -1), -1).values
@@ -808,19 +1136,25 @@ def _fill_gaps(x, mask):
     return torch.gather(x, -2, src[..., None].expand(x.shape))
 
 
-def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = None,
-              dtype=torch.float32) -> Scenarios:
-    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0: the predicted agent
-    scenes.pred_idx, the nearest others and lanes (cfg). ego_state, for closed-loop log replay, replaces the logged ego:
-    (S, 4) its current world state, or (S, 9, 4) its history; the frame, the history and the others follow it, while
-    the GT future, the goal and the lanes stay the logged ego's (paper §4.3)."""
+def sample_at(
+    scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = None, dtype=torch.float32
+) -> Scenarios:
+    """One planning sample per scene at frame t0 (an int, or (S,) frames), in the ego frame at t0:
+    the predicted agent scenes.pred_idx, the nearest others and lanes (cfg). ego_state, for
+    closed-loop log replay, replaces the logged ego: (S, 4) its current world state, or (S, 9, 4)
+    its history; the frame, the history and the others follow it, while the GT future, the goal and
+    the lanes stay the logged ego's (paper §4.3)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.ego.shape[:2]
     H, T, P = cfg.hist, cfg.fut, cfg.lane_points
-    dev = scenes.ego.device  # every index made here lives with the scenes (the CPU, for the closed loop)
+    # every index made here lives with the scenes (the CPU, for the closed loop)
+    dev = scenes.ego.device
     frame = torch.as_tensor(frame, dtype=torch.int64, device=dev).expand(S)
     if ((frame < H) | (frame > F - T - 1)).any():
-        raise ValueError(f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), got {frame}")
+        raise ValueError(
+            f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), "
+            f"got {frame}"
+        )
     ar = torch.arange(S, device=dev)
     win = frame[:, None] + torch.arange(-H, T + 1, device=dev)  # (S, 15) the sample's frames
     ego = scenes.ego[ar[:, None], win]  # (S, 15, 4) world
@@ -831,21 +1165,33 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
         elif es.shape == (S, H + 1, 4):
             ego[:, : H + 1] = es
         else:
-            raise ValueError(f"sample_at: ego_state must be ({S}, 4) or ({S}, {H + 1}, 4), got {tuple(es.shape)}")
+            raise ValueError(
+                f"sample_at: ego_state must be ({S}, 4) or ({S}, {H + 1}, 4), got {tuple(es.shape)}"
+            )
     pred = scenes.pred_idx[ar, frame]  # (S,)
     if (pred < 0).any():
-        raise ValueError(f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames")
+        raise ValueError(
+            f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames"
+        )
     origin = ego[:, H].clone()  # (S, 4)
     ego = _to_frame(ego, origin)
-    ag, ag_mask = scenes.agents[ar, pred][ar[:, None], win], scenes.agents_mask[ar, pred][ar[:, None], win]
+    ag, ag_mask = (
+        scenes.agents[ar, pred][ar[:, None], win],
+        scenes.agents_mask[ar, pred][ar[:, None], win],
+    )
     ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
-    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real track can be
-    # occluded for a frame; differences across the gap would not be velocities, so steps before it count as missing)
+    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real
+    # track can be occluded for a frame; differences across the gap would not be velocities, so
+    # steps before it count as missing)
     hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
     M = scenes.agents.shape[1]  # the others: present at t0, near, closest first
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
-    cand = scenes.agents_mask[ar, :, frame] & (torch.arange(M, device=dev) != pred[:, None]) & (dist < cfg.others_radius)
+    cand = (
+        scenes.agents_mask[ar, :, frame]
+        & (torch.arange(M, device=dev) != pred[:, None])
+        & (dist < cfg.others_radius)
+    )
     A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
     order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
     o_mask = torch.gather(cand, 1, order)  # (S, A)
@@ -853,41 +1199,64 @@ def sample_at(scenes: Scenes, frame, ego_state=None, cfg: SynthConfig | None = N
     o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
     # the lanes near the ego (distances in the world frame; only the crop is transformed)
-    dx, dy = scenes.lanes[..., 0] - origin[:, 0, None, None], scenes.lanes[..., 1] - origin[:, 1, None, None]
+    dx, dy = (
+        scenes.lanes[..., 0] - origin[:, 0, None, None],
+        scenes.lanes[..., 1] - origin[:, 1, None, None],
+    )
     d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
     L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
     lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
     Pw = scenes.lanes.shape[2]
-    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(P, device=dev)  # (S, L, P)
-    inside, pidx = pidx < Pw, pidx.clamp(max=Pw - 1)
+    # (S, L, P)
+    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(
+        P, device=dev
+    )
+    inside = pidx < Pw
+    pidx = pidx.clamp(max=Pw - 1)
     pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
     lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
-    out = Scenarios(ego_hist=ego[:, : H + 1], ego_fut=ego[:, H + 1:], agent_hist=ag[:, : H + 1],
-                    agent_hist_mask=hist_mask, agent_fut=ag[:, H + 1:],
-                    others_hist=o[:, :, : H + 1], others_fut=o[:, :, H + 1:], others_mask=o_mask,
-                    others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
-                    lanes=lane_pts * lane_mask[..., None], lanes_mask=lane_mask, goal=ego[:, -1].clone(),
-                    behaviour=scenes.behaviour.clone())
+    out = Scenarios(
+        ego_hist=ego[:, : H + 1],
+        ego_fut=ego[:, H + 1 :],
+        agent_hist=ag[:, : H + 1],
+        agent_hist_mask=hist_mask,
+        agent_fut=ag[:, H + 1 :],
+        others_hist=o[:, :, : H + 1],
+        others_fut=o[:, :, H + 1 :],
+        others_mask=o_mask,
+        others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
+        lanes=lane_pts * lane_mask[..., None],
+        lanes_mask=lane_mask,
+        goal=ego[:, -1].clone(),
+        behaviour=scenes.behaviour.clone(),
+    )
     return out.to(dtype)
 
 
-def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
-                cfg: SynthConfig | None = None) -> tuple[Scenarios, int]:
-    """Planning samples from every scene: per_scene random frames among those with a predicted agent (for
-    synthetic scenes: within cfg.event_window of its event), or all such frames when per_scene is None.
-    Samples with no lane near the ego are dropped; returns (samples, number dropped)."""
+def cut_samples(
+    scenes: Scenes, per_scene: int | None, rng: np.random.Generator, cfg: SynthConfig | None = None
+) -> tuple[Scenarios, int]:
+    """Planning samples from every scene: per_scene random frames among those with a predicted agent
+    (for synthetic scenes: within cfg.event_window of its event), or all such frames when per_scene
+    is None. Samples with no lane near the ego are dropped; returns (samples, number dropped)."""
     cfg = cfg or SynthConfig()
     S, F = scenes.pred_idx.shape
-    f, e, (lo, hi) = torch.arange(F), scenes.event_frame[:, None], cfg.event_window
+    f = torch.arange(F)
+    e = scenes.event_frame[:, None]
+    lo, hi = cfg.event_window
     cand = (scenes.pred_idx >= 0) & ((e < 0) | ((f >= e + lo) & (f <= e + hi)))  # (S, F)
     k = per_scene if per_scene is not None else int(cand.sum(1).max())
-    score = torch.where(cand, torch.from_numpy(rng.random((S, F))) if per_scene is not None else -f.double(),
-                        -math.inf)
+    score = torch.where(
+        cand,
+        torch.from_numpy(rng.random((S, F))) if per_scene is not None else -f.double(),
+        -math.inf,
+    )
     frames = torch.argsort(score, 1, descending=True)[:, :k]  # (S, k)
-    ok, parts = torch.gather(cand, 1, frames), []
+    ok = torch.gather(cand, 1, frames)
+    parts = []
     for r in range(k):  # k rounds over all scenes at once
         sel = ok[:, r]
         if sel.any():
@@ -901,64 +1270,94 @@ def cut_samples(scenes: Scenes, per_scene: int | None, rng: np.random.Generator,
 
 _CACHE_FORMAT = 2  # bump when the generator's output changes, so old caches are not reused
 MAX_SAMPLES = 2_000_000
-"""Most samples make_dataset / load_or_generate make (~20 GB as float32; all of nuScenes has ~40 000 key frames)."""
+"""Most samples make_dataset / load_or_generate make (~20 GB as float32; all of nuScenes has
+~40 000 key frames)."""
 
 
 class Dataset(NamedTuple):
-    """Training and validation planning samples, the validation scenes' logs, and maybe a training draw per seed."""
+    """Training and validation planning samples, the validation scenes' logs, and maybe a training
+    draw per seed."""
+
     train: Scenarios
     val: Scenarios
     val_scenes: Scenes | None = None  # the validation scenes, for closed-loop log replay
-    train_draws: tuple | None = None  # Scenarios per training seed 0, 1, ..; None: every seed trains on train
+    # Scenarios per training seed 0, 1, ..; None: every seed trains on train
+    train_draws: tuple | None = None
 
     def train_for(self, seed: int) -> Scenarios:
-        return self.train if self.train_draws is None else self.train_draws[seed]  # the seed's own draw, if any
+        # the seed's own draw, if any
+        return self.train if self.train_draws is None else self.train_draws[seed]
 
 
 def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Dataset:
     """n planning samples (train + val) from ceil(n / samples_per_scene) synthetic scenes; the last
-    val_fraction of the scenes are validation, so no scene gives samples to both. n <= MAX_SAMPLES."""
+    val_fraction of the scenes are validation (no scene gives samples to both); n <= MAX_SAMPLES."""
     _check_count("make_dataset", "n (samples)", n, MAX_SAMPLES)
     _check_seed("make_dataset", seed)
     cfg = cfg or SynthConfig()
     _check_count("make_dataset", "cfg.samples_per_scene", cfg.samples_per_scene, MAX_SAMPLES)
     n_scenes = max(2, math.ceil(n / cfg.samples_per_scene))
     if n_scenes > MAX_SCENES:
-        raise ValueError(f"make_dataset: n = {n:,} samples at {cfg.samples_per_scene} per scene needs {n_scenes:,} "
-                         f"scenes, more than MAX_SCENES = {MAX_SCENES:,}")
+        raise ValueError(
+            f"make_dataset: n = {n:,} samples at {cfg.samples_per_scene} per scene needs "
+            f"{n_scenes:,} scenes, more than MAX_SCENES = {MAX_SCENES:,}"
+        )
     scenes = generate_scenes(n_scenes, cfg, seed)
     n_val = min(max(1, round(cfg.val_fraction * n_scenes)), n_scenes - 1)
     rng = np.random.default_rng([seed, 1])  # frame choice: its own stream, derived from the seed
-    val, _ = cut_samples(scenes[n_scenes - n_val:], cfg.samples_per_scene, rng, cfg)
+    val, _ = cut_samples(scenes[n_scenes - n_val :], cfg.samples_per_scene, rng, cfg)
     train, _ = cut_samples(scenes[: n_scenes - n_val], cfg.samples_per_scene, rng, cfg)
-    return Dataset(train[: max(n - len(val), 0)], val, scenes[n_scenes - n_val:])
+    return Dataset(train[: max(n - len(val), 0)], val, scenes[n_scenes - n_val :])
 
 
 def _cache_path(n, seed, cfg, cache_dir):
-    key = json.dumps({"n": n, "seed": seed, "cfg": dataclasses.asdict(cfg), "format": _CACHE_FORMAT}, sort_keys=True)
-    return Path(cache_dir) / f"scenarios-n{n}-s{seed}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt", key
+    key = json.dumps(
+        {"n": n, "seed": seed, "cfg": dataclasses.asdict(cfg), "format": _CACHE_FORMAT},
+        sort_keys=True,
+    )
+    return Path(
+        cache_dir
+    ) / f"scenarios-n{n}-s{seed}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt", key
 
 
-def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data_cache",
-                     cfg: SynthConfig | None = None) -> Dataset:
-    """The Dataset for (n, seed, cfg): from cache_dir if there, else generated and saved. The file name hashes
-    everything that determines the data; a file of that name that is not such a cache is an error, never replaced."""
+def load_or_generate(
+    n: int,
+    seed: int = 0,
+    cache_dir: str | os.PathLike = "data_cache",
+    cfg: SynthConfig | None = None,
+) -> Dataset:
+    """The Dataset for (n, seed, cfg): from cache_dir if there, else generated and saved. The file
+    name hashes everything that determines the data; a file of that name that is not such a cache is
+    an error, never replaced."""
     _check_count("load_or_generate", "n (samples)", n, MAX_SAMPLES)
     _check_seed("load_or_generate", seed)
-    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()  # numpy integers -> int, for the cache key's json
+    # numpy integers -> int, for the cache key's json
+    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()
     path, key = _cache_path(n, seed, cfg, cache_dir)
     if path.exists():
         try:
             blob = torch.load(path, weights_only=True)
             assert blob["key"] == key, "made with other settings"
-            return Dataset(Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"]))
-        except Exception as e:  # noqa: BLE001  (any failure means: not our cache)
-            raise ValueError(f"{path}: not a readable data_synth cache ({e}); move it away or use another cache_dir") from e
+            return Dataset(
+                Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"])
+            )
+        except Exception as e:  # any failure means: not our cache
+            raise ValueError(
+                f"{path}: not a readable data_synth cache ({e}); "
+                "move it away or use another cache_dir"
+            ) from e
     data = make_dataset(n, cfg, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
-    own = lambda batch: {k: v.clone() for k, v in batch.tensors().items()}  # noqa: E731  (slices share storage)
-    blob = {"key": key, "train": own(data.train), "val": own(data.val),
-            "val_scenes": {**own(data.val_scenes), "names": data.val_scenes.names}}
+
+    def own(batch):  # (slices share storage)
+        return {k: v.clone() for k, v in batch.tensors().items()}
+
+    blob = {
+        "key": key,
+        "train": own(data.train),
+        "val": own(data.val),
+        "val_scenes": {**own(data.val_scenes), "names": data.val_scenes.names},
+    }
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     torch.save(blob, tmp)
     os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
@@ -968,77 +1367,113 @@ def load_or_generate(n: int, seed: int = 0, cache_dir: str | os.PathLike = "data
 # === 7. Statistics ==========================================================================
 
 PLAUSIBLE = {"speed_max": 20.5, "accel_p99": 4.0, "yaw_rate_p99": 0.7}
-"""Urban driving at 2 Hz: speeds up to 20 m/s, 99 % of |accelerations| below 4 m/s^2 and of vehicle |yaw rates|
-below 0.7 rad/s (derived from the states by backward differences, tracking noise included)."""
+"""Urban driving at 2 Hz: speeds up to 20 m/s, 99 % of |accelerations| below 4 m/s^2 and of vehicle
+|yaw rates| below 0.7 rad/s (derived from the states by backward differences, tracking noise
+included)."""
 
 
 def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
-    """Kinematics (from the states, by backward differences), the behaviour mix and how close the predicted
-    vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a few metres)."""
+    """Kinematics (from the states, by backward differences), the behaviour mix and how close the
+    predicted vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a
+    few metres)."""
 
-    def kin(states, mask):  # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
+    def kin(states, mask):
+        # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
         v, h = states[..., 3], states[..., 2]
         acc, yaw = (v[..., 1:] - v[..., :-1]) / dt, wrap_angle(h[..., 1:] - h[..., :-1]) / dt
-        moving = (v[..., 1:] > 2.0) & mask[..., None]  # headings of (near) stopped vehicles mean little
+        # headings of (near) stopped vehicles mean little
+        moving = (v[..., 1:] > 2.0) & mask[..., None]
         return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
 
     def summary(x):
         x = x.double()
         if x.numel() == 0:
             return {}
-        q = torch.quantile(x[:100_000], torch.tensor([0.01, 0.5, 0.99], dtype=torch.float64)).tolist()
+        q = torch.quantile(
+            x[:100_000], torch.tensor([0.01, 0.5, 0.99], dtype=torch.float64)
+        ).tolist()
         return {"p1": q[0], "p50": q[1], "p99": q[2], "max": x.max().item()}
 
     B = len(batch)
-    groups = {"ego": (torch.cat([batch.ego_hist, batch.ego_fut], 1), torch.ones(B, dtype=torch.bool)),
-              "predicted": (torch.cat([batch.agent_hist, batch.agent_fut], 1), batch.agent_hist_mask.all(1)),
-              "other vehicles": (torch.cat([batch.others_hist, batch.others_fut], 2),
-                                 batch.others_mask & ~batch.others_is_ped)}
+    groups = {
+        "ego": (torch.cat([batch.ego_hist, batch.ego_fut], 1), torch.ones(B, dtype=torch.bool)),
+        "predicted": (
+            torch.cat([batch.agent_hist, batch.agent_fut], 1),
+            batch.agent_hist_mask.all(1),
+        ),
+        "other vehicles": (
+            torch.cat([batch.others_hist, batch.others_fut], 2),
+            batch.others_mask & ~batch.others_is_ped,
+        ),
+    }
     out = {"samples": B}
     for name, (states, mask) in groups.items():
         v, a, w = kin(states, mask)
         out[name] = {"speed": summary(v), "|accel|": summary(a), "|yaw rate|": summary(w)}
-    d = torch.linalg.norm(batch.ego_fut[..., :2] - batch.agent_fut[..., :2], dim=-1).min(1).values  # (B,)
+    # (B,)
+    d = torch.linalg.norm(batch.ego_fut[..., :2] - batch.agent_fut[..., :2], dim=-1).min(1).values
     rel = (_no_brake_plan(batch, dt) - batch.agent_fut[..., :2]).abs()  # (B, 6, 2), ego frame at t0
     overlap = ((rel[..., 0] < _EGO_L) & (rel[..., 1] < _EGO_W)).any(1)  # the two footprints touch
     mix = {}
     for i, name in enumerate(BEHAVIOURS):
         m = batch.behaviour == i
         if m.any():
-            mix[name] = {"share": m.float().mean().item(), "min_dist_p50": d[m].median().item(),
-                         "within_5m": (d[m] < 5).float().mean().item(),
-                         "no_brake_conflict": overlap[m].float().mean().item()}
+            mix[name] = {
+                "share": m.float().mean().item(),
+                "min_dist_p50": d[m].median().item(),
+                "within_5m": (d[m] < 5).float().mean().item(),
+                "no_brake_conflict": overlap[m].float().mean().item(),
+            }
     out["behaviour"] = mix
     vehicles = [out[g] for g in groups]
-    checks = (("speed_max", "speed", "max"), ("accel_p99", "|accel|", "p99"), ("yaw_rate_p99", "|yaw rate|", "p99"))
-    out["plausible"] = {k: max(g[q].get(stat, 0) for g in vehicles) <= PLAUSIBLE[k] for k, q, stat in checks}
+    checks = (
+        ("speed_max", "speed", "max"),
+        ("accel_p99", "|accel|", "p99"),
+        ("yaw_rate_p99", "|yaw rate|", "p99"),
+    )
+    out["plausible"] = {
+        k: max(g[q].get(stat, 0) for g in vehicles) <= PLAUSIBLE[k] for k, q, stat in checks
+    }
     return out
 
 
 def _no_brake_plan(batch: Scenarios, dt: float):
-    """The ego's positions (B, 6, 2) had it kept its t0 speed along its GT path (extended straight past its end):
-    the plan of a planner that ignores the predicted vehicle."""
+    """The ego's positions (B, 6, 2) had it kept its t0 speed along its GT path (extended straight
+    past its end): the plan of a planner that ignores the predicted vehicle."""
     path = torch.cat([batch.ego_hist[:, -1:, :2], batch.ego_fut[..., :2]], 1)  # (B, 7, 2)
     seg = path[:, 1:] - path[:, :-1]  # (B, 6, 2)
     seg_len = torch.linalg.norm(seg, dim=-1).clamp(min=1e-6)
     cum = torch.cat([torch.zeros(len(path), 1, dtype=path.dtype), seg_len.cumsum(1)], 1)  # (B, 7)
     want = batch.ego_hist[:, -1, 3:4] * dt * torch.arange(1, 7, dtype=path.dtype)  # (B, 6)
-    k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)  # segment index (last extends)
-    frac, k2 = (want - cum.gather(1, k)) / seg_len.gather(1, k), k[..., None].expand(-1, -1, 2)
+    # segment index (last extends)
+    k = (torch.searchsorted(cum.contiguous(), want.contiguous()) - 1).clamp(0, 5)
+    frac = (want - cum.gather(1, k)) / seg_len.gather(1, k)
+    k2 = k[..., None].expand(-1, -1, 2)
     return path.gather(1, k2) + frac[..., None] * seg.gather(1, k2)
 
 
 def format_statistics(st: dict) -> str:
-    lines = [f"{st['samples']} samples   plausible ranges: speed <= {PLAUSIBLE['speed_max']} m/s, "
-             f"p99 |accel| <= {PLAUSIBLE['accel_p99']} m/s^2, p99 |yaw rate| <= {PLAUSIBLE['yaw_rate_p99']} rad/s"]
+    lines = [
+        f"{st['samples']} samples   plausible ranges: speed <= {PLAUSIBLE['speed_max']} m/s, "
+        f"p99 |accel| <= {PLAUSIBLE['accel_p99']} m/s^2, "
+        f"p99 |yaw rate| <= {PLAUSIBLE['yaw_rate_p99']} rad/s"
+    ]
     for g in ("ego", "predicted", "other vehicles"):
         for q, unit in (("speed", "m/s"), ("|accel|", "m/s^2"), ("|yaw rate|", "rad/s")):
             if s := st[g][q]:
-                lines.append(f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  p99 {s['p99']:6.2f}  max {s['max']:6.2f} {unit}")
-    lines.append("  behaviour      share | predicted vehicle vs the ego's GT future: median min distance, share < 5 m"
-                 " | share colliding with a no-braking ego")
+                lines.append(
+                    f"  {g:15s} {q:11s} p1 {s['p1']:6.2f}  p50 {s['p50']:6.2f}  "
+                    f"p99 {s['p99']:6.2f}  max {s['max']:6.2f} {unit}"
+                )
+    lines.append(
+        "  behaviour      share | predicted vehicle vs the ego's GT future: "
+        "median min distance, share < 5 m | share colliding with a no-braking ego"
+    )
     for name, m in st["behaviour"].items():
-        lines.append(f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%} | {m['no_brake_conflict']:7.1%}")
+        lines.append(
+            f"  {name:13s} {m['share']:6.1%} | {m['min_dist_p50']:6.1f} m {m['within_5m']:7.1%} | "
+            f"{m['no_brake_conflict']:7.1%}"
+        )
     verdict = (f"{k} {'ok' if v else 'OUT OF RANGE'}" for k, v in st["plausible"].items())
     lines.append("  plausible: " + ", ".join(verdict))
     return "\n".join(lines)
@@ -1047,33 +1482,68 @@ def format_statistics(st: dict) -> str:
 # === 8. Plot ================================================================================
 
 
-def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)):
-    """Draw sample i in the ego frame: lanes (grey, arrows along the driving direction), other vehicles and
-    pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle (orange), the ego (blue,
-    GT future dashed) and its goal (star). Returns ax; callers overlay predictions and plans with ax.plot."""
+def plot_scenario(
+    ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)
+):
+    """Draw sample i in the ego frame: lanes (grey, arrows along the driving direction), other
+    vehicles and pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle
+    (orange), the ego (blue, GT future dashed) and its goal (star). Returns ax; callers overlay
+    predictions and plans with ax.plot."""
     from matplotlib.patches import Rectangle
-    b = batch[torch.tensor([i])].to(torch.float64, device="cpu")  # plotted on the CPU, wherever the batch is
+
+    # plotted on the CPU, wherever the batch is
+    b = batch[torch.tensor([i])].to(torch.float64, device="cpu")
     for lane, m in zip(b.lanes[0], b.lanes_mask[0]):
         pts = lane[m].numpy()
         if len(pts):
             ax.plot(pts[:, 0], pts[:, 1], color="0.75", lw=1, zorder=1)
             k = min(len(pts) - 1, 5)
-            ax.annotate("", pts[k, :2] + 1.5 * np.array([np.cos(pts[k, 2]), np.sin(pts[k, 2])]), pts[k, :2],
-                        arrowprops=dict(arrowstyle="->", color="0.6", lw=0.8), zorder=1)
+            ax.annotate(
+                "",
+                pts[k, :2] + 1.5 * np.array([np.cos(pts[k, 2]), np.sin(pts[k, 2])]),
+                pts[k, :2],
+                arrowprops=dict(arrowstyle="->", color="0.6", lw=0.8),
+                zorder=1,
+            )
 
     def box(state, size, color, z):
         (x, y, h), (w, length) = state[:3].tolist(), size
-        back_right = -np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
+        back_right = (
+            -np.array([np.cos(h), np.sin(h)]) * length / 2
+            + np.array([np.sin(h), -np.cos(h)]) * w / 2
+        )
         corner = np.array([x, y]) + back_right
-        ax.add_patch(Rectangle(corner, length, w, angle=math.degrees(h), rotation_point="xy", fc=color, ec="k",
-                               lw=0.5, alpha=0.8, zorder=z))
+        ax.add_patch(
+            Rectangle(
+                corner,
+                length,
+                w,
+                angle=math.degrees(h),
+                rotation_point="xy",
+                fc=color,
+                ec="k",
+                lw=0.5,
+                alpha=0.8,
+                zorder=z,
+            )
+        )
 
     def track(hist, fut, color, z, dashed=False):
         ax.plot(hist[:, 0], hist[:, 1], ":", color=color, lw=1.2, zorder=z)
-        ax.plot(np.r_[hist[-1:, 0], fut[:, 0]], np.r_[hist[-1:, 1], fut[:, 1]], "--" if dashed else "-",
-                color=color, lw=1.5, zorder=z, marker=".", ms=3)
+        ax.plot(
+            np.r_[hist[-1:, 0], fut[:, 0]],
+            np.r_[hist[-1:, 1], fut[:, 1]],
+            "--" if dashed else "-",
+            color=color,
+            lw=1.5,
+            zorder=z,
+            marker=".",
+            ms=3,
+        )
 
-    for oh, of, m, ped in zip(b.others_hist[0], b.others_fut[0], b.others_mask[0], b.others_is_ped[0]):
+    for oh, of, m, ped in zip(
+        b.others_hist[0], b.others_fut[0], b.others_mask[0], b.others_is_ped[0]
+    ):
         if m:
             color = "tab:green" if ped else "tab:gray"
             track(oh.numpy(), of.numpy(), color, 2)
@@ -1087,28 +1557,74 @@ def plot_scenario(ax, batch: Scenarios, i: int, title: str | None = None, extent
     box(b.ego_hist[0, -1], (_EGO_W, _EGO_L), "tab:blue", 5)
     ax.plot(*b.goal[0, :2].tolist(), "*", color="tab:blue", ms=12, mec="k", zorder=6)
     beh = int(b.behaviour[0])
-    ax.set_title(title if title is not None else (BEHAVIOURS[beh] if beh >= 0 else f"sample {i}"), fontsize=9)
+    ax.set_title(
+        title if title is not None else (BEHAVIOURS[beh] if beh >= 0 else f"sample {i}"), fontsize=9
+    )
     ax.set(xlim=extent[:2], ylim=extent[2:], aspect="equal")
     ax.tick_params(labelsize=7)
     return ax
 
 
 # === 9. nuScenes v1.0 writer ================================================================
-# The nuScenes v1.0 format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
-# maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with polygons and
-# connectivity), the map PNGs named by map.json, maps/prediction/prediction_scenes.json. The ego is the ego_pose of
-# the key-frame sample_data (CAM_FRONT, LIDAR_TOP) at the sample's timestamp: simultaneous with the annotations.
+# The nuScenes v1.0 format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON
+# tables, maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline
+# paths, with polygons and connectivity), the map PNGs named by map.json,
+# maps/prediction/prediction_scenes.json. The ego is the ego_pose of the key-frame sample_data
+# (CAM_FRONT, LIDAR_TOP) at the sample's timestamp: simultaneous with the annotations.
 
 NUSC_VERSIONS = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
-NUSC_TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
-               "log", "scene", "sample", "sample_data", "sample_annotation", "map")
-NUSC_LOCATIONS = ("singapore-onenorth", "singapore-hollandvillage", "singapore-queenstown", "boston-seaport")
-MAP_LAYERS = ("polygon", "line", "node", "drivable_area", "road_segment", "road_block", "lane", "ped_crossing",
-              "walkway", "stop_line", "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
-MINI_SCENES = ("scene-0061", "scene-0103", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-0916",
-               "scene-1077", "scene-1094", "scene-1100")
-"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only those); later ones
-are scene-9xxx."""
+NUSC_TABLES = (
+    "category",
+    "attribute",
+    "visibility",
+    "instance",
+    "sensor",
+    "calibrated_sensor",
+    "ego_pose",
+    "log",
+    "scene",
+    "sample",
+    "sample_data",
+    "sample_annotation",
+    "map",
+)
+NUSC_LOCATIONS = (
+    "singapore-onenorth",
+    "singapore-hollandvillage",
+    "singapore-queenstown",
+    "boston-seaport",
+)
+MAP_LAYERS = (
+    "polygon",
+    "line",
+    "node",
+    "drivable_area",
+    "road_segment",
+    "road_block",
+    "lane",
+    "ped_crossing",
+    "walkway",
+    "stop_line",
+    "carpark_area",
+    "road_divider",
+    "lane_divider",
+    "traffic_light",
+    "lane_connector",
+)
+MINI_SCENES = (
+    "scene-0061",
+    "scene-0103",
+    "scene-0553",
+    "scene-0655",
+    "scene-0757",
+    "scene-0796",
+    "scene-0916",
+    "scene-1077",
+    "scene-1094",
+    "scene-1100",
+)
+"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only
+those); later ones are scene-9xxx."""
 _SIGNS_SHAPE = {v: k for k, v in _SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
 
@@ -1129,115 +1645,259 @@ def _dump(obj, path: Path):
         json.dump(obj, f)
 
 
-def write_nuscenes(scenes: Scenes, root, version: str = "v1.0-mini", cfg: SynthConfig | None = None,
-                   overwrite: bool = False) -> Path:
-    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. Scenes go round-robin to the four map
-    locations and sit side by side (300 m apart) in their map's canvas. Refuses to replace existing files unless
-    overwrite=True."""
+def write_nuscenes(
+    scenes: Scenes,
+    root,
+    version: str = "v1.0-mini",
+    cfg: SynthConfig | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. Scenes go
+    round-robin to the four map locations and sit side by side (300 m apart) in their map's canvas.
+    Refuses to replace existing files unless overwrite=True."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
     root = Path(root)
-    outputs = [root / version / f"{t}.json" for t in NUSC_TABLES] + \
-        [root / "maps" / "expansion" / f"{loc}.json" for loc in NUSC_LOCATIONS] + \
-        [root / "maps" / "prediction" / "prediction_scenes.json"]
+    outputs = (
+        [root / version / f"{t}.json" for t in NUSC_TABLES]
+        + [root / "maps" / "expansion" / f"{loc}.json" for loc in NUSC_LOCATIONS]
+        + [root / "maps" / "prediction" / "prediction_scenes.json"]
+    )
     existing = [str(p) for p in outputs if p.exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
-                              f"pass overwrite=True (CLI: --overwrite)")
+        raise FileExistsError(
+            f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
+            f"pass overwrite=True (CLI: --overwrite)"
+        )
     S, F = scenes.ego.shape[:2]
-    ego, agents, amask, paths = (x.numpy() for x in (scenes.ego, scenes.agents, scenes.agents_mask, scenes.paths))
+    ego, agents, amask, paths = (
+        x.numpy() for x in (scenes.ego, scenes.agents, scenes.agents_mask, scenes.paths)
+    )
     path_valid = paths[..., 4:7].sum(-1) > 0
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
-    # placement: a translation per scene that puts it, with 300 m around it, next to the previous one
+    # placement: a translation per scene that puts it, with 300 m around it, next to the last one
     offsets = np.zeros((S, 2))
     cursor, height = dict.fromkeys(NUSC_LOCATIONS, 300.0), dict.fromkeys(NUSC_LOCATIONS, 300.0)
     locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
     for i in range(S):
-        pts = np.concatenate([scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy(), ego[i, :, :2],
-                              agents[i][amask[i]][:, :2]])
+        pts = np.concatenate(
+            [
+                scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy(),
+                ego[i, :, :2],
+                agents[i][amask[i]][:, :2],
+            ]
+        )
         lo, hi = pts.min(0), pts.max(0)
         offsets[i] = (cursor[locs[i]] - lo[0], 300.0 - lo[1])
         cursor[locs[i]] += hi[0] - lo[0] + 300.0
         height[locs[i]] = max(height[locs[i]], hi[1] - lo[1] + 600.0)
-    cat = {False: _token("category", "vehicle.car"), True: _token("category", "human.pedestrian.adult")}
+    cat = {
+        False: _token("category", "vehicle.car"),
+        True: _token("category", "human.pedestrian.adult"),
+    }
     tables = {t: [] for t in NUSC_TABLES}
     tables["category"] = [
-        {"token": cat[False], "name": "vehicle.car", "description": "Vehicle designed primarily for personal use.",
-         "index": 17},
-        {"token": cat[True], "name": "human.pedestrian.adult", "description": "Adult subcategory.", "index": 2}]
-    attr = {n: _token("attribute", n) for n in ("vehicle.moving", "vehicle.stopped", "pedestrian.moving",
-                                                "pedestrian.standing")}
-    tables["attribute"] = [{"token": t, "name": n, "description": n.replace(".", " ")} for n, t in attr.items()]
-    tables["visibility"] = [{"token": str(k + 1), "level": lvl, "description": f"visibility of whole object is {lvl}"}
-                            for k, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"))]
-    sensors = {"CAM_FRONT": ("camera", [1.70, 0.016, 1.51], [0.4998, -0.5031, 0.4998, -0.4972],
-                             [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]], "jpg", 900, 1600),
-               "LIDAR_TOP": ("lidar", [0.943, 0.0, 1.84], [0.7071, 0.0, 0.0, -0.7071], [], "pcd.bin", 0, 0)}
+        {
+            "token": cat[False],
+            "name": "vehicle.car",
+            "description": "Vehicle designed primarily for personal use.",
+            "index": 17,
+        },
+        {
+            "token": cat[True],
+            "name": "human.pedestrian.adult",
+            "description": "Adult subcategory.",
+            "index": 2,
+        },
+    ]
+    attr = {
+        n: _token("attribute", n)
+        for n in ("vehicle.moving", "vehicle.stopped", "pedestrian.moving", "pedestrian.standing")
+    }
+    tables["attribute"] = [
+        {"token": t, "name": n, "description": n.replace(".", " ")} for n, t in attr.items()
+    ]
+    tables["visibility"] = [
+        {"token": str(k + 1), "level": lvl, "description": f"visibility of whole object is {lvl}"}
+        for k, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"))
+    ]
+    sensors = {
+        "CAM_FRONT": (
+            "camera",
+            [1.70, 0.016, 1.51],
+            [0.4998, -0.5031, 0.4998, -0.4972],
+            [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
+            "jpg",
+            900,
+            1600,
+        ),
+        "LIDAR_TOP": (
+            "lidar",
+            [0.943, 0.0, 1.84],
+            [0.7071, 0.0, 0.0, -0.7071],
+            [],
+            "pcd.bin",
+            0,
+            0,
+        ),
+    }
     for ch, (modality, trans, rot, intr, *_rest) in sensors.items():
-        tables["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": modality})
-        tables["calibrated_sensor"].append({"token": _token("calibrated_sensor", ch), "translation": trans,
-                                            "sensor_token": _token("sensor", ch), "rotation": rot,
-                                            "camera_intrinsic": intr})
+        tables["sensor"].append(
+            {"token": _token("sensor", ch), "channel": ch, "modality": modality}
+        )
+        tables["calibrated_sensor"].append(
+            {
+                "token": _token("calibrated_sensor", ch),
+                "translation": trans,
+                "sensor_token": _token("sensor", ch),
+                "rotation": rot,
+                "camera_intrinsic": intr,
+            }
+        )
     # scenes: log, samples, key-frame sample_data with their ego poses, instances and annotations
     split = {}
     for i in range(S):
         name, (ox, oy), b = names[i], offsets[i], int(scenes.behaviour[i])
         log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
-        tables["log"].append({"token": log_tok, "logfile": f"synthetic-{scenes.names[i]}", "vehicle": "synthetic",
-                              "date_captured": "2026-01-01", "location": locs[i]})
+        tables["log"].append(
+            {
+                "token": log_tok,
+                "logfile": f"synthetic-{scenes.names[i]}",
+                "vehicle": "synthetic",
+                "date_captured": "2026-01-01",
+                "location": locs[i],
+            }
+        )
         ts = [_T0_US + (i * (F + 20) + f) * int(round(cfg.dt * 1e6)) for f in range(F)]
         sample_tok = [_token(name, "sample", f) for f in range(F)]
-        tables["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": F,
-                                "first_sample_token": sample_tok[0], "last_sample_token": sample_tok[-1],
-                                "name": name, "description": f"synthetic; {BEHAVIOURS[b] if b >= 0 else 'real'}"})
+        tables["scene"].append(
+            {
+                "token": scene_tok,
+                "log_token": log_tok,
+                "nbr_samples": F,
+                "first_sample_token": sample_tok[0],
+                "last_sample_token": sample_tok[-1],
+                "name": name,
+                "description": f"synthetic; {BEHAVIOURS[b] if b >= 0 else 'real'}",
+            }
+        )
         for f in range(F):
             prev, nxt = _links(sample_tok, f)
-            tables["sample"].append({"token": sample_tok[f], "timestamp": ts[f], "scene_token": scene_tok,
-                                     "prev": prev, "next": nxt})
+            tables["sample"].append(
+                {
+                    "token": sample_tok[f],
+                    "timestamp": ts[f],
+                    "scene_token": scene_tok,
+                    "prev": prev,
+                    "next": nxt,
+                }
+            )
             x, y, h = (float(v) for v in ego[i, f, :3])
             for ch, (_m, _t, _r, _i, fmt, height_px, width_px) in sensors.items():
                 sd_toks = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
                 pose_tok = _token(name, ch, "ego_pose", f)
-                tables["ego_pose"].append({"token": pose_tok, "timestamp": ts[f], "rotation": _quat(h),
-                                           "translation": [x + ox, y + oy, 0.0]})
-                tables["sample_data"].append({
-                    "token": sd_toks[1], "sample_token": sample_tok[f], "ego_pose_token": pose_tok,
-                    "calibrated_sensor_token": _token("calibrated_sensor", ch), "timestamp": ts[f], "fileformat": fmt,
-                    "is_key_frame": True, "height": height_px, "width": width_px,
-                    "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
-                    "prev": sd_toks[0] if f else "", "next": sd_toks[2] if f < F - 1 else ""})
+                tables["ego_pose"].append(
+                    {
+                        "token": pose_tok,
+                        "timestamp": ts[f],
+                        "rotation": _quat(h),
+                        "translation": [x + ox, y + oy, 0.0],
+                    }
+                )
+                tables["sample_data"].append(
+                    {
+                        "token": sd_toks[1],
+                        "sample_token": sample_tok[f],
+                        "ego_pose_token": pose_tok,
+                        "calibrated_sensor_token": _token("calibrated_sensor", ch),
+                        "timestamp": ts[f],
+                        "fileformat": fmt,
+                        "is_key_frame": True,
+                        "height": height_px,
+                        "width": width_px,
+                        "filename": f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
+                        "prev": sd_toks[0] if f else "",
+                        "next": sd_toks[2] if f < F - 1 else "",
+                    }
+                )
         for m in np.nonzero(amask[i].any(-1))[0]:
-            frames, inst = np.nonzero(amask[i, m])[0], _token(name, "instance", m)
-            ann, ped = [_token(name, "annotation", m, f) for f in frames], bool(scenes.agents_is_ped[i, m])
-            tables["instance"].append({"token": inst, "category_token": cat[ped], "nbr_annotations": len(frames),
-                                       "first_annotation_token": ann[0], "last_annotation_token": ann[-1]})
+            frames = np.nonzero(amask[i, m])[0]
+            inst = _token(name, "instance", m)
+            ann = [_token(name, "annotation", m, f) for f in frames]
+            ped = bool(scenes.agents_is_ped[i, m])
+            tables["instance"].append(
+                {
+                    "token": inst,
+                    "category_token": cat[ped],
+                    "nbr_annotations": len(frames),
+                    "first_annotation_token": ann[0],
+                    "last_annotation_token": ann[-1],
+                }
+            )
             w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
             for k, f in enumerate(frames):
                 x, y, h, v = (float(q) for q in agents[i, m, f])
-                a = f"pedestrian.{'moving' if v > 0.5 else 'standing'}" if ped else \
-                    f"vehicle.{'moving' if v > 0.5 else 'stopped'}"
-                tables["sample_annotation"].append({
-                    "token": ann[k], "sample_token": sample_tok[f], "instance_token": inst, "visibility_token": "4",
-                    "attribute_tokens": [attr[a]], "translation": [x + ox, y + oy, hgt / 2], "size": [w, length, hgt],
-                    "rotation": _quat(h), "prev": _links(ann, k)[0], "next": _links(ann, k)[1], "num_lidar_pts": 20,
-                    "num_radar_pts": 0})
+                a = (
+                    f"pedestrian.{'moving' if v > 0.5 else 'standing'}"
+                    if ped
+                    else f"vehicle.{'moving' if v > 0.5 else 'stopped'}"
+                )
+                tables["sample_annotation"].append(
+                    {
+                        "token": ann[k],
+                        "sample_token": sample_tok[f],
+                        "instance_token": inst,
+                        "visibility_token": "4",
+                        "attribute_tokens": [attr[a]],
+                        "translation": [x + ox, y + oy, hgt / 2],
+                        "size": [w, length, hgt],
+                        "rotation": _quat(h),
+                        "prev": _links(ann, k)[0],
+                        "next": _links(ann, k)[1],
+                        "num_lidar_pts": 20,
+                        "num_radar_pts": 0,
+                    }
+                )
         pred = scenes.pred_idx[i].numpy()
-        split[name] = [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in range(F)
-                       if pred[f] >= 0 and amask[i, pred[f], f]]
-    # maps: one record per location (with its logs and a tiny PNG), and the expansion json per location
+        split[name] = [
+            f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}"
+            for f in range(F)
+            if pred[f] >= 0 and amask[i, pred[f], f]
+        ]
+    # maps: one record per location (with its logs and a tiny PNG), and each one's expansion json
     import matplotlib.image
+
     for loc in NUSC_LOCATIONS:
         tok = _token("map", loc)
-        tables["map"].append({"token": tok, "category": "semantic_prior", "filename": f"maps/{tok}.png",
-                              "log_tokens": [_token(names[i], "log") for i in range(S) if locs[i] == loc]})
+        tables["map"].append(
+            {
+                "token": tok,
+                "category": "semantic_prior",
+                "filename": f"maps/{tok}.png",
+                "log_tokens": [_token(names[i], "log") for i in range(S) if locs[i] == loc],
+            }
+        )
         (root / "maps").mkdir(parents=True, exist_ok=True)
         matplotlib.image.imsave(root / "maps" / f"{tok}.png", np.zeros((8, 8)), cmap="gray")
-        expansion = {"version": "1.3", "canvas_edge": [cursor[loc] + 300.0, height[loc]],
-                     **{layer: [] for layer in MAP_LAYERS}, "arcline_path_3": {}, "connectivity": {}}
+        expansion = {
+            "version": "1.3",
+            "canvas_edge": [cursor[loc] + 300.0, height[loc]],
+            **{layer: [] for layer in MAP_LAYERS},
+            "arcline_path_3": {},
+            "connectivity": {},
+        }
         for i in (i for i in range(S) if locs[i] == loc):
-            _write_scene_map(expansion, names[i], paths[i], path_valid[i], scenes.paths_is_connector[i].numpy(),
-                             scenes.routes[i].numpy(), offsets[i], cfg)
+            _write_scene_map(
+                expansion,
+                names[i],
+                paths[i],
+                path_valid[i],
+                scenes.paths_is_connector[i].numpy(),
+                scenes.routes[i].numpy(),
+                offsets[i],
+                cfg,
+            )
         _dump(expansion, root / "maps" / "expansion" / f"{loc}.json")
     for t in NUSC_TABLES:
         _dump(tables[t], root / version / f"{t}.json")
@@ -1251,8 +1911,9 @@ def _links(tokens: list, k: int) -> tuple:
 
 
 def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset, cfg):
-    """Add one scene's arcline paths to a map expansion: each path becomes a lane (or lane connector) with a
-    polygon (the centre line +- W/2), edge lines and connectivity from consecutive paths of the routes."""
+    """Add one scene's arcline paths to a map expansion: each path becomes a lane (or lane
+    connector) with a polygon (the centre line +- W/2), edge lines and connectivity from consecutive
+    paths of the routes."""
     ox, oy = offset
     tok = {q: _token(name, "lane", q) for q in np.nonzero(valid)[0]}
     links = {q: {"incoming": [], "outgoing": []} for q in tok}
@@ -1266,11 +1927,15 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
     for q, t in tok.items():
         x, y, yaw, radius, *lengths = paths[q, :7]
         end = _segment_pose(segs[q, 2], lengths[2])
-        exp["arcline_path_3"][t] = [{
-            "start_pose": [float(x + ox), float(y + oy), float(yaw)],
-            "end_pose": [float(end[0] + ox), float(end[1] + oy), float(wrap_angle(end[2]))],
-            "shape": _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])], "radius": float(radius),
-            "segment_length": [float(v) for v in lengths]}]
+        exp["arcline_path_3"][t] = [
+            {
+                "start_pose": [float(x + ox), float(y + oy), float(yaw)],
+                "end_pose": [float(end[0] + ox), float(end[1] + oy), float(wrap_angle(end[2]))],
+                "shape": _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])],
+                "radius": float(radius),
+                "segment_length": [float(v) for v in lengths],
+            }
+        ]
         exp["connectivity"][t] = links[q]
         # polygon: the centre line every 2 m (and its end), offset by half a lane to either side
         total = sum(lengths)
@@ -1279,7 +1944,9 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
         normal = np.stack([-np.sin(pose[:, 2]), np.cos(pose[:, 2])], -1) * cfg.lane_width / 2
         ring = np.concatenate([pose[:, :2] + normal, (pose[:, :2] - normal)[::-1]]) + offset
         nodes = [_token(t, "node", k) for k in range(len(ring))]
-        exp["node"] += [{"token": n, "x": float(px), "y": float(py)} for n, (px, py) in zip(nodes, ring)]
+        exp["node"] += [
+            {"token": n, "x": float(px), "y": float(py)} for n, (px, py) in zip(nodes, ring)
+        ]
         poly = _token(t, "polygon")
         exp["polygon"].append({"token": poly, "exterior_node_tokens": nodes, "holes": []})
         if is_conn[q]:
@@ -1287,14 +1954,27 @@ def _write_scene_map(exp: dict, name: str, paths, valid, is_conn, routes, offset
         else:
             n = len(u)
             edges = [_token(t, "from_edge"), _token(t, "to_edge")]
-            exp["line"] += [{"token": edges[0], "node_tokens": [nodes[0], nodes[-1]]},
-                            {"token": edges[1], "node_tokens": [nodes[n - 1], nodes[n]]}]
-            exp["lane"].append({"token": t, "polygon_token": poly, "lane_type": "CAR", "from_edge_line_token": edges[0],
-                                "to_edge_line_token": edges[1], "left_lane_divider_segments": [], "right_lane_divider_segments": []})
+            exp["line"] += [
+                {"token": edges[0], "node_tokens": [nodes[0], nodes[-1]]},
+                {"token": edges[1], "node_tokens": [nodes[n - 1], nodes[n]]},
+            ]
+            exp["lane"].append(
+                {
+                    "token": t,
+                    "polygon_token": poly,
+                    "lane_type": "CAR",
+                    "from_edge_line_token": edges[0],
+                    "to_edge_line_token": edges[1],
+                    "left_lane_divider_segments": [],
+                    "right_lane_divider_segments": [],
+                }
+            )
     polys = [_token(t, "polygon") for t in tok.values()]
     exp["drivable_area"].append({"token": _token(name, "drivable_area"), "polygon_tokens": polys})
 
 
-if __name__ == "__main__":  # the data's command line (generate, write-nuscenes, read-nuscenes, ...) is data_real.py's
+if __name__ == "__main__":
+    # the data's command line (generate, write-nuscenes, read-nuscenes, ...) is data_real.py's
     import data_real
+
     data_real.main()
