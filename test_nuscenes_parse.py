@@ -1,5 +1,6 @@
-"""Reading nuScenes folders at scale (data_real.py section 1): the scenes parsed by a process pool, and the parse
-cached keyed by the sha256 of the folder's files."""
+"""Reading nuScenes folders at scale (data_real.py section 1): the scenes parsed by a process pool,
+and the parse cached keyed by the sha256 of the folder's files."""
+
 import json
 import shutil
 
@@ -14,6 +15,7 @@ def _files(folder):
     """The names in `folder` but its .lock (the record of who holds it: runs.folder_lock)."""
     return [p.name for p in folder.iterdir() if p.name != ".lock"]
 
+
 SCENES = 40  # 3 chunks of PARSE_CHUNK = 16: a pool of 2 workers gets more than one task each
 
 
@@ -25,8 +27,11 @@ def folder(tmp_path_factory):
 
 
 def same(a: data_synth.Scenes, b: data_synth.Scenes) -> bool:
-    return a.names == b.names and a.tensors().keys() == b.tensors().keys() and \
-        all(torch.equal(v, b.tensors()[k]) for k, v in a.tensors().items())
+    return (
+        a.names == b.names
+        and a.tensors().keys() == b.tensors().keys()
+        and all(torch.equal(v, b.tensors()[k]) for k, v in a.tensors().items())
+    )
 
 
 def test_the_pool_gives_the_scenes_of_one_process(folder):
@@ -55,18 +60,23 @@ def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
 
 def test_a_second_parse_into_a_cache_being_written_is_refused(folder, tmp_path):
     import runs
+
     with runs.folder_lock(tmp_path, "another parse"):
-        with pytest.raises(runs.OutputRefused, match=r"another run is writing here .*`another parse`"):
+        with pytest.raises(
+            runs.OutputRefused, match=r"another run is writing here .*`another parse`"
+        ):
             data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
     assert not list(tmp_path.glob("*.pt"))
-    data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)  # once the first has ended, it goes ahead
+    # once the first has ended, it goes ahead
+    data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
     assert len(list(tmp_path.glob("*.pt"))) == 1
 
 
 def test_a_changed_table_invalidates_the_cache(folder, tmp_path):
     changed = tmp_path / "changed"
     shutil.copytree(folder, changed)
-    cache, lines = tmp_path / "cache", []
+    cache = tmp_path / "cache"
+    lines = []
     before, _ = data_real.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
     table = changed / "v1.0-mini" / "sample_annotation.json"
     anns = json.loads(table.read_text())
@@ -104,5 +114,7 @@ def test_load_data_parses_once_then_reads_the_cache(folder, tmp_path):
     lines = []
     a = data_real.load_data(folder, cache_dir=tmp_path, log=lines.append)
     b = data_real.load_data(folder, cache_dir=tmp_path, log=lines.append)
-    assert any("parsed in" in s for s in lines[:2]) and any("read from the cache" in s for s in lines[2:])
+    assert any("parsed in" in s for s in lines[:2]) and any(
+        "read from the cache" in s for s in lines[2:]
+    )
     assert all(torch.equal(v, b.train.tensors()[k]) for k, v in a.train.tensors().items())
