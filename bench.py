@@ -1,55 +1,68 @@
 """Benchmarks of the DiffStack reference: every timing of the project, in one module.
 
-    python bench.py                                   # everything at 1 and 2 threads, B = 256 (a few minutes)
+    python bench.py                       # everything at 1 and 2 threads, B = 256 (a few minutes)
     python bench.py --threads 1 --reps 3 --skip-closed-loop
-    python bench.py --quick                           # tiny sizes and reps, well under a minute (test_bench.py)
-    python bench.py --json runs/bench.json            # also every figure, in a JSON file
-    python bench.py --device cuda --threads 1         # our modules on a GPU (the peers and closed loop left out)
+    python bench.py --quick               # tiny sizes and reps, well under a minute (test_bench.py)
+    python bench.py --json runs/bench.json
+                                          # also every figure, in a JSON file
+    python bench.py --device cuda --threads 1
+                                          # our modules on a GPU (without the peers and closed loop)
 
 What is timed (B = --batch scenarios or problems, default 256):
-    controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its KKT backward on
-                  tracking_problem (B unicycle tracking problems, T = 6, dt 0.5), in float64 and float32; the cost is
-                  TrackingCost (its quadratic expansion in closed form, as the peers are handed it); and in float64
-                  at B = 1024 and 4096 (--quick: B and 2 B), whose slope is the cost of one more problem
+    controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its
+                  KKT backward on tracking_problem (B unicycle tracking problems, T = 6, dt 0.5), in
+                  float64 and float32; the cost is TrackingCost (its quadratic expansion in closed
+                  form, as the peers are handed it); and in float64 at B = 1024 and 4096 (--quick: B
+                  and 2 B), whose slope is the cost of one more problem
     planner       plan_candidates: the planner's spline candidates (48 per scenario)
-    predictor     a training iteration (forward, InfoVAE loss, backward, Adam step) and an eval forward (K = 25)
-    stack         one DiffStack training step (RL) as train_stack takes it: run_stack on the batch's scene plan and the
-                  backward of L = a1 L_pred + a2 L_plan + a3 L_ctr; its parts predict / plan / control / backward as
-                  perf_counter laps; and scene_plan (goal, candidates, their prediction-free
-                  cost terms), which train_stack computes once for its data set rather than at every step
-    closed loop   log replay of 100 scenes x 10 s (20 replanning steps) with each stack of Table 5, one thread
-    peers         the controller side by side with mpc.pytorch on the same problems, with the same solver settings,
-                  and with PyPose's MPC (pp.module.MPC) on the same problems with the box widened until inactive
-                  (PyPose has no bounds), one thread, B = 64 ... 4096, after checking that both reach the same
-                  solution; every peer's gradient against finite differences
+    predictor     a training iteration (forward, InfoVAE loss, backward, Adam step) and an eval
+                  forward (K = 25)
+    stack         one DiffStack training step (RL) as train_stack takes it: run_stack on the batch's
+                  scene plan and the backward of L = a1 L_pred + a2 L_plan + a3 L_ctr; its parts
+                  predict / plan / control / backward as perf_counter laps; and scene_plan (goal,
+                  candidates, their prediction-free cost terms), which train_stack computes once for
+                  its data set rather than at every step
+    closed loop   log replay of 100 scenes x 10 s (20 replanning steps) with each stack of Table 5,
+                  one thread
+    peers         the controller side by side with mpc.pytorch on the same problems, with the same
+                  solver settings, and with PyPose's MPC (pp.module.MPC) on the same problems with
+                  the box widened until inactive (PyPose has no bounds), one thread, B = 64 ...
+                  4096, after checking that both reach the same solution; every peer's gradient
+                  against finite differences
 
-How: every figure is a torch.utils.benchmark.Timer measurement at a stated torch thread count (Timer's num_threads):
-the median and the interquartile range (IQR) of --reps timed runs. Each timed run follows an untimed run of the same
-code (blocked_autorange(min_run_time=0) runs the statement once to size its block, then times one block of one run),
-and the benchmarks measured together take turns, so that a change in the machine's load hits them alike.
+How: every figure is a torch.utils.benchmark.Timer measurement at a stated torch thread count
+(Timer's num_threads): the median and the interquartile range (IQR) of --reps timed runs. Each timed
+run follows an untimed run of the same code (blocked_autorange(min_run_time=0) runs the statement
+once to size its block, then times one block of one run), and the benchmarks measured together take
+turns, so that a change in the machine's load hits them alike.
 
---json PATH writes (atomically) stack_step_ms_1thread (the whole DiffStack step at one thread; null when --threads
-leaves out 1), speedup_vs_mpc_pytorch (mpc.pytorch time / ours, iLQR forward + backward, 5 iterations, float64, box
-controls, at the fewest threads; null without mpc), speedup_vs_pypose (PyPose time / ours, forward + backward, 5
-iterations, float64, no bound active, one thread, B = 256 (--quick: its B); null without pypose),
-controller_ms_per_problem (ms per problem of iLQR forward + KKT backward, float64, box, one thread: the slope from
-B = 1024 to 4096), meta, figures
-(every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms, runs, note), mpc_pytorch and
-pypose (its figures, the per-B table, the agreement check and the gradient errors).
+--json PATH writes (atomically) stack_step_ms_1thread (the whole DiffStack step at one thread; null
+when --threads leaves out 1), speedup_vs_mpc_pytorch (mpc.pytorch time / ours, iLQR forward +
+backward, 5 iterations, float64, box controls, at the fewest threads; null without mpc),
+speedup_vs_pypose (PyPose time / ours, forward + backward, 5 iterations, float64, no bound active,
+one thread, B = 256 (--quick: its B); null without pypose), controller_ms_per_problem (ms per
+problem of iLQR forward + KKT backward, float64, box, one thread: the slope from B = 1024 to 4096),
+meta, figures (every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms,
+runs, note), mpc_pytorch and pypose (its figures, the per-B table, the agreement check and the
+gradient errors).
 
-Peers are no dependencies of the project. Without one, its part is skipped with a one-line hint; to compare, install
-it in a throwaway venv (--no-deps keeps the torch of requirements.txt):
-    python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt && /tmp/peers/bin/pip install --no-deps mpc==0.0.6
+Peers are no dependencies of the project. Without one, its part is skipped with a one-line hint; to
+compare, install it in a throwaway venv (--no-deps keeps the torch of requirements.txt):
+    python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt
+    /tmp/peers/bin/pip install --no-deps mpc==0.0.6
     /tmp/peers/bin/pip install --no-deps pypose==0.9.5
     /tmp/peers/bin/python bench.py
 
 Map of the module:
     1. Measuring     measure(): Timer measurements taking turns; figure(): one row of the results
-    2. The problem   tracking_problem, tracking_cost: the controller's benchmark, shared with the peers
+    2. The problem   tracking_problem, tracking_cost: the controller's benchmark, shared with the
+                     peers
     3. Our modules   controller, planner, predictor, a DiffStack training step, the closed loop
-    4. Peers         mpc.pytorch, then PyPose, side by side (each skipped with a hint when it is not installed)
+    4. Peers         mpc.pytorch, then PyPose, side by side (each skipped with a hint when it is not
+                     installed)
     5. Running       run(), the tables, the JSON file, the command line
 """
+
 from __future__ import annotations
 
 import argparse
@@ -69,11 +82,23 @@ import torch.utils.benchmark as benchmark
 
 import data_synth
 import diffstack
-from diffstack import (Config, Predictor, Unicycle, ilqr, ilqr_solve, plan_candidates, pred_loss, run_stack,
-                       scene_plan, unicycle_jacobians, unicycle_rollout)
+from diffstack import (
+    Config,
+    Predictor,
+    Unicycle,
+    ilqr,
+    ilqr_solve,
+    plan_candidates,
+    pred_loss,
+    run_stack,
+    scene_plan,
+    unicycle_jacobians,
+    unicycle_rollout,
+)
 from train import Method, alphas, bounded, check_writable, device_arg, machine, markdown_table
-from experiments import CLOSED_LOOP_METHODS, closed_loop_scenes, simulate, stack_policy
+from experiments import closed_loop_scenes, simulate, stack_policy
 from runs import command_line, one_line, write_atomic
+from specs import CLOSED_LOOP_METHODS
 
 DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
 
@@ -83,27 +108,45 @@ DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
 
 
 def measure(fns: dict, reps: int, threads: int, label: str = "") -> dict:
-    """{name: torch.utils.benchmark Measurement of fns[name]()}: reps timed runs of each callable at `threads`
-    torch threads. The callables take turns, one run each per round (a drift in load hits them alike); each timed
-    run follows an untimed one of the same callable, which blocked_autorange(min_run_time=0) makes to size its
-    block (one run for anything slower than microseconds) -- so no callable inherits another's warm caches."""
-    timers = {name: benchmark.Timer("fn()", globals={"fn": fn}, label=label, description=name, num_threads=threads)
-              for name, fn in fns.items()}
+    """{name: torch.utils.benchmark Measurement of fns[name]()}: reps timed runs of each callable at
+    `threads` torch threads. The callables take turns, one run each per round (a drift in load hits
+    them alike); each timed run follows an untimed one of the same callable, which
+    blocked_autorange(min_run_time=0) makes to size its block (one run for anything slower than
+    microseconds) -- so no callable inherits another's warm caches."""
+    timers = {
+        name: benchmark.Timer(
+            "fn()", globals={"fn": fn}, label=label, description=name, num_threads=threads
+        )
+        for name, fn in fns.items()
+    }
     runs = {name: [] for name in fns}
     for _ in range(reps):
         for name, timer in timers.items():
             runs[name].append(timer.blocked_autorange(min_run_time=0))
-    return {name: benchmark.Measurement.merge(ms)[0] for name, ms in runs.items()}  # one Measurement per callable
+    # one Measurement per callable
+    return {name: benchmark.Measurement.merge(ms)[0] for name, ms in runs.items()}
 
 
 def figure(key: str, name: str, times, threads: int, dtype="", batch=None, note="") -> dict:
-    """One row of the results: median and IQR (ms) of run times (s; a Measurement's .times, or perf_counter laps),
-    quartiles interpolated linearly as Measurement.iqr does."""
+    """One row of the results: median and IQR (ms) of run times (s; a Measurement's .times, or
+    perf_counter laps), quartiles interpolated linearly as Measurement.iqr does."""
     times = sorted(times)
-    q1, q3 = statistics.quantiles(times, n=4, method="inclusive")[::2] if len(times) > 1 else (times[0], times[0])
-    return dict(key=key, benchmark=name, dtype=dtype, threads=threads, batch=batch,
-                median_ms=1e3 * statistics.median(times),
-                iqr_ms=1e3 * (q3 - q1), runs=len(times), note=note)
+    q1, q3 = (
+        statistics.quantiles(times, n=4, method="inclusive")[::2]
+        if len(times) > 1
+        else (times[0], times[0])
+    )
+    return dict(
+        key=key,
+        benchmark=name,
+        dtype=dtype,
+        threads=threads,
+        batch=batch,
+        median_ms=1e3 * statistics.median(times),
+        iqr_ms=1e3 * (q3 - q1),
+        runs=len(times),
+        note=note,
+    )
 
 
 # ============================================================================================
@@ -114,53 +157,81 @@ def figure(key: str, name: str, times, threads: int, dtype="", batch=None, note=
 def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
     """B unicycle tracking problems, the benchmark shared with mpc.pytorch (section 4):
         min sum_t 1/2 (s_t - r_t)' Q (s_t - r_t) + 1/2 (u_t - ur_t)' R (u_t - ur_t),  box controls,
-    the reference rolled out from smooth random controls (some outside the box), the start perturbed. Drawn on
-    the CPU (the same problems whatever the device), then moved to `device`."""
+    the reference rolled out from smooth random controls (some outside the box), the start
+    perturbed. Drawn on the CPU (the same problems whatever the device), then moved to `device`."""
     g = torch.Generator().manual_seed(seed)
-    U = lambda lo, hi, *shape: lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)  # noqa: E731
+
+    def U(lo, hi, *shape):
+        return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)
+
     x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-math.pi, math.pi, B), U(2.0, 15.0, B)], -1)
     tt = torch.arange(T, dtype=dtype) / (T - 1)
-    u_ref = torch.stack([U(-0.5, 0.5, B, 1) + U(-0.6, 0.6, B, 1) * tt, U(-3.0, 2.5, B, 1) + U(-3.5, 3.5, B, 1) * tt], -1)
+    u_ref = torch.stack(
+        [
+            U(-0.5, 0.5, B, 1) + U(-0.6, 0.6, B, 1) * tt,
+            U(-3.0, 2.5, B, 1) + U(-3.5, 3.5, B, 1) * tt,
+        ],
+        -1,
+    )
     x_ref = unicycle_rollout(x0, u_ref, 0.5)  # (B, T+1, 4)
-    x_init = x0 + torch.randn(B, 4, generator=g, dtype=dtype) * torch.tensor([1.0, 1.0, 0.15, 1.0], dtype=dtype)
+    x_init = x0 + torch.randn(B, 4, generator=g, dtype=dtype) * torch.tensor(
+        [1.0, 1.0, 0.15, 1.0], dtype=dtype
+    )
     Q, R = torch.tensor([1.0, 1.0, 1.0, 0.2], dtype=dtype), torch.tensor([0.5, 0.1], dtype=dtype)
     cfg = Config()
     lo, hi = torch.tensor(cfg.u_lower, dtype=dtype), torch.tensor(cfg.u_upper, dtype=dtype)
-    P = dict(x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi))
+    P = dict(
+        x_init=x_init, x_ref=x_ref, u_ref=u_ref, Q=Q, R=R, lo=lo, hi=hi, u_init=u_ref.clamp(lo, hi)
+    )
     return {k: v.to(device) for k, v in P.items()}
 
 
 def tracking_cost(x, u, x_ref, u_ref, Q, R):
-    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S); Q (4,) and R (2,) shared
-    or per problem, (B, 4) and (B, 2)."""
-    view = lambda t: t.reshape(t.shape[0], *([1] * (x.dim() - 3)), *t.shape[1:])  # noqa: E731
+    """The tracking benchmark's cost: x (B, *S, T+1, 4), u (B, *S, T, 2) -> (B, *S); Q (4,) and R
+    (2,) shared or per problem, (B, 4) and (B, 2)."""
+
+    def view(t):
+        return t.reshape(t.shape[0], *([1] * (x.dim() - 3)), *t.shape[1:])
+
     if Q.dim() == 2:  # per problem: broadcast over *S and the steps
         Q, R = (w.reshape(len(w), *([1] * (x.dim() - 2)), w.shape[-1]) for w in (Q, R))
-    return 0.5 * ((x - view(x_ref)) ** 2 * Q).sum((-1, -2)) + 0.5 * ((u - view(u_ref)) ** 2 * R).sum((-1, -2))
+    return 0.5 * ((x - view(x_ref)) ** 2 * Q).sum((-1, -2)) + 0.5 * (
+        (u - view(u_ref)) ** 2 * R
+    ).sum((-1, -2))
 
 
 class TrackingCost:
-    """tracking_cost as our controller takes it: with its expansion in closed form (the cost is quadratic:
-    gradient Q (x - x_ref) and R (u - u_ref), Hessian diag(Q, R) at every step), as mpc.pytorch and PyPose are
-    handed the quadratic directly; parameters per problem (ours_params), so that the solver sets converged
-    problems aside."""
+    """tracking_cost as our controller takes it: with its expansion in closed form (the cost is
+    quadratic: gradient Q (x - x_ref) and R (u - u_ref), Hessian diag(Q, R) at every step), as
+    mpc.pytorch and PyPose are handed the quadratic directly; parameters per problem (ours_params),
+    so that the solver sets converged problems aside."""
 
     def __call__(self, x, u, x_ref, u_ref, Q, R):
         return tracking_cost(x, u, x_ref, u_ref, Q, R)
 
     def expansion(self, x, u, x_ref, u_ref, Q, R):
-        """Gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6), the last step's control a zero pad."""
+        """Gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6), the last step's control a
+        zero pad."""
         B, T = u.shape[:2]
-        pad = lambda t: torch.cat([t, torch.zeros_like(t[:, :1])], 1)  # noqa: E731  (B, T, 2) -> (B, T+1, 2)
+
+        def pad(t):  # (B, T, 2) -> (B, T+1, 2)
+            return torch.cat([t, torch.zeros_like(t[:, :1])], 1)
+
         g = torch.cat([(x - x_ref) * Q[:, None], pad((u - u_ref) * R[:, None])], -1)
         H = torch.cat([Q[:, None].expand(B, T + 1, 4), pad(R[:, None].expand(B, T, 2))], -1)
         return g, torch.diag_embed(H)
 
 
 def ours_params(P, x_ref=None):
-    """Our solver's parameters for the tracking problems P: (x_ref, u_ref, Q, R), each per problem (a view)."""
+    """Our solver's parameters for the tracking problems P: (x_ref, u_ref, Q, R), each per problem
+    (a view)."""
     B = len(P["x_init"])
-    return (P["x_ref"] if x_ref is None else x_ref, P["u_ref"], P["Q"].expand(B, 4), P["R"].expand(B, 2))
+    return (
+        P["x_ref"] if x_ref is None else x_ref,
+        P["u_ref"],
+        P["Q"].expand(B, 4),
+        P["R"].expand(B, 2),
+    )
 
 
 # ============================================================================================
@@ -168,39 +239,81 @@ def ours_params(P, x_ref=None):
 # ============================================================================================
 
 
-def bench_controller(B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol=0.01, device="cpu") -> list:
+def bench_controller(
+    B=256, dtype=torch.float64, reps=5, threads=1, iters=5, tol=0.01, device="cpu"
+) -> list:
     """iLQR forward and KKT backward on the tracking problem; the note gives the converged share."""
     P = tracking_problem(B, dtype=dtype, device=device)
     params = ours_params(P)
 
     def solve(x_init, params):
-        return ilqr_solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], params, P["lo"], P["hi"],
-                          iters=iters, tol=tol, batched_params=True)
+        return ilqr_solve(
+            TrackingCost(),
+            Unicycle(0.5),
+            x_init,
+            P["u_init"],
+            params,
+            P["lo"],
+            P["hi"],
+            iters=iters,
+            tol=tol,
+            batched_params=True,
+        )
 
-    # the backward alone: one solve with x_init and x_ref requiring grad builds the graph, each run walks it
-    # again (retain_graph keeps ILQR's saved tensors; the gradients accumulating in .grad cost a few additions)
+    # the backward alone: one solve with x_init and x_ref requiring grad builds the graph, each run
+    # walks it again (retain_graph keeps ILQR's saved tensors; the gradients accumulating in .grad
+    # cost a few additions)
     x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
     x, u, converged = solve(x_init, (x_ref, *params[1:]))  # (B, T+1, 4), (B, T, 2), (B,)
     loss = x.sum()
-    m = measure({"forward": lambda: solve(P["x_init"], params), "backward": lambda: loss.backward(retain_graph=True)},
-                reps, threads, "controller")
-    dt, conv = str(dtype).replace("torch.float", "f"), f"converged {converged.float().mean().item():.2f}"
-    return [figure(f"ilqr_forward_{dt}", f"iLQR forward ({iters} iterations, tol {tol})", m["forward"].times, threads,
-                   dt, B, conv),
-            figure(f"kkt_backward_{dt}", "KKT backward", m["backward"].times, threads, dt, B)]
+    m = measure(
+        {
+            "forward": lambda: solve(P["x_init"], params),
+            "backward": lambda: loss.backward(retain_graph=True),
+        },
+        reps,
+        threads,
+        "controller",
+    )
+    dt = str(dtype).replace("torch.float", "f")
+    conv = f"converged {converged.float().mean().item():.2f}"
+    return [
+        figure(
+            f"ilqr_forward_{dt}",
+            f"iLQR forward ({iters} iterations, tol {tol})",
+            m["forward"].times,
+            threads,
+            dt,
+            B,
+            conv,
+        ),
+        figure(f"kkt_backward_{dt}", "KKT backward", m["backward"].times, threads, dt, B),
+    ]
 
 
-def bench_controller_scaling(batches=(1024, 4096), reps=3, iters=5, tol=0.01, device="cpu") -> tuple[list, float]:
-    """The controller's cost per problem: iLQR forward + KKT backward (float64, box, one thread) at two batch sizes;
-    the slope between them (ms per problem) is what a problem costs once the per-op overhead is paid."""
-    rows, med = [], {}
+def bench_controller_scaling(
+    batches=(1024, 4096), reps=3, iters=5, tol=0.01, device="cpu"
+) -> tuple[list, float]:
+    """The controller's cost per problem: iLQR forward + KKT backward (float64, box, one thread) at
+    two batch sizes; the slope between them (ms per problem) is what a problem costs once the per-op
+    overhead is paid."""
+    rows = []
+    med = {}
     for B in batches:
         fwd, bwd = solver_runs(tracking_problem(B, device=device), ours_solve, iters, tol)
         m = measure({"forward": fwd, "backward": bwd}, reps, 1, f"controller, B = {B}")
         med[B] = 1e3 * (m["forward"].median + m["backward"].median)
-        rows += [figure(f"ilqr_forward_f64_B{B}", f"iLQR forward ({iters} iterations, tol {tol})", m["forward"].times,
-                        1, "f64", B),
-                 figure(f"kkt_backward_f64_B{B}", "KKT backward", m["backward"].times, 1, "f64", B)]
+        rows += [
+            figure(
+                f"ilqr_forward_f64_B{B}",
+                f"iLQR forward ({iters} iterations, tol {tol})",
+                m["forward"].times,
+                1,
+                "f64",
+                B,
+            ),
+            figure(f"kkt_backward_f64_B{B}", "KKT backward", m["backward"].times, 1, "f64", B),
+        ]
     lo, hi = batches
     return rows, (med[hi] - med[lo]) / (hi - lo)
 
@@ -208,16 +321,28 @@ def bench_controller_scaling(batches=(1024, 4096), reps=3, iters=5, tol=0.01, de
 def bench_candidates(batch, cfg: Config, reps=5, threads=1) -> list:
     """The planner's candidate splines (plan_candidates) for every scenario of the batch."""
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    m = measure({"candidates": lambda: plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)},
-                reps, threads, "planner")
+    m = measure(
+        {"candidates": lambda: plan_candidates(s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)},
+        reps,
+        threads,
+        "planner",
+    )
     n = 24 * cfg.max_goal_lanes  # 8 accelerations x 3 offsets per goal lane
-    return [figure("candidates", f"planner: candidates (up to {n} per scenario)", m["candidates"].times, threads, "f32",
-                   len(batch))]
+    return [
+        figure(
+            "candidates",
+            f"planner: candidates (up to {n} per scenario)",
+            m["candidates"].times,
+            threads,
+            "f32",
+            len(batch),
+        )
+    ]
 
 
 def bench_predictor(batch, cfg: Config | None = None, reps=5, threads=1) -> list:
-    """A training iteration (forward with q(z|x,y), InfoVAE loss, backward, Adam step) and an eval forward, on the
-    batch's device."""
+    """A training iteration (forward with q(z|x,y), InfoVAE loss, backward, Adam step) and an eval
+    forward, on the batch's device."""
     cfg = cfg or Config()
     torch.manual_seed(0)
     model = Predictor(cfg).to(batch.agent_hist.device, batch.agent_hist.dtype)
@@ -239,29 +364,42 @@ def bench_predictor(batch, cfg: Config | None = None, reps=5, threads=1) -> list
 
     m = measure({"train": train_iteration, "eval": eval_forward}, reps, threads, "predictor")
     what = f"K = {cfg.pred_modes}, decoder {cfg.pred_dec_hidden}"
-    return [figure("predictor_train", f"predictor: training iteration ({what})", m["train"].times, threads, "f32",
-                   len(batch)),
-            figure("predictor_eval", "predictor: eval forward", m["eval"].times, threads, "f32", len(batch))]
+    return [
+        figure(
+            "predictor_train",
+            f"predictor: training iteration ({what})",
+            m["train"].times,
+            threads,
+            "f32",
+            len(batch),
+        ),
+        figure(
+            "predictor_eval", "predictor: eval forward", m["eval"].times, threads, "f32", len(batch)
+        ),
+    ]
 
 
 def bench_stack_step(batch, cfg: Config, reps=5, threads=1) -> list:
-    """One DiffStack training step (RL) as train_stack takes it: run_stack with train=True on the batch's scene plan
-    (goal, candidates and their prediction-free cost terms, which train_stack computes once for its data set), then
-    the backward of the weighted losses; beside it, that scene plan's own cost (scene_plan, once per scenario in
-    training). The step is a Timer measurement; its parts are perf_counter laps over the same runs (all but the very
-    first, which pays for first-call allocations): predict, the predictor's forward (a forward hook); plan, from there
-    to the controller's start (L_pred, the candidates' costs, L_plan; diffstack.ilqr_solve wrapped); control, the
-    controller and the hindsight cost; backward. On a GPU the laps are times to launch, not to finish; the step's
-    Timer does synchronise."""
+    """One DiffStack training step (RL) as train_stack takes it: run_stack with train=True on the
+    batch's scene plan (goal, candidates and their prediction-free cost terms, which train_stack
+    computes once for its data set), then the backward of the weighted losses; beside it, that scene
+    plan's own cost (scene_plan, once per scenario in training). The step is a Timer measurement;
+    its parts are perf_counter laps over the same runs (all but the very first, which pays for
+    first-call allocations): predict, the predictor's forward (a forward hook); plan, from there to
+    the controller's start (L_pred, the candidates' costs, L_plan; diffstack.ilqr_solve wrapped);
+    control, the controller and the hindsight cost; backward. On a GPU the laps are times to launch,
+    not to finish; the step's Timer does synchronise."""
     torch.manual_seed(0)
     model = Predictor(cfg).to(batch.agent_hist.device)
     method = Method("DiffStack", losses=(1, 1, 1))
     a1, a2, a3 = alphas(method, "rl", cfg)
     scene = scene_plan(batch, cfg)
-    solve, laps = diffstack.ilqr_solve, []
+    solve = diffstack.ilqr_solve
+    laps = []
 
     def step():
-        t, clock = {}, [time.perf_counter()]
+        t = {}
+        clock = [time.perf_counter()]
 
         def lap(name):
             clock.append(time.perf_counter())
@@ -283,19 +421,44 @@ def bench_stack_step(batch, cfg: Config, reps=5, threads=1) -> list:
         lap("backward")
         laps.append(t)
 
-    m = measure({"step": step, "scene": lambda: scene_plan(batch, cfg)}, reps, threads, "DiffStack step")
-    rows = [figure("stack_step", "DiffStack training step (RL)", m["step"].times, threads, "f32", len(batch)),
-            figure("stack_scene_plan", "scene plan (once per data set in training)", m["scene"].times, threads, "f32",
-                   len(batch))]
+    m = measure(
+        {"step": step, "scene": lambda: scene_plan(batch, cfg)}, reps, threads, "DiffStack step"
+    )
+    rows = [
+        figure(
+            "stack_step",
+            "DiffStack training step (RL)",
+            m["step"].times,
+            threads,
+            "f32",
+            len(batch),
+        ),
+        figure(
+            "stack_scene_plan",
+            "scene plan (once per data set in training)",
+            m["scene"].times,
+            threads,
+            "f32",
+            len(batch),
+        ),
+    ]
     for part in ("predict", "plan", "control", "backward"):
-        rows.append(figure(f"stack_{part}", f"DiffStack step: {part} (perf_counter lap)", [t[part] for t in laps[1:]],
-                           threads, "f32", len(batch)))
+        rows.append(
+            figure(
+                f"stack_{part}",
+                f"DiffStack step: {part} (perf_counter lap)",
+                [t[part] for t in laps[1:]],
+                threads,
+                "f32",
+                len(batch),
+            )
+        )
     return rows
 
 
 def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, reps=3) -> list:
-    """Log replay of n scenes for sim_time with each stack of Table 5, one thread. The predictor is untrained:
-    the time does not depend on its weights."""
+    """Log replay of n scenes for sim_time with each stack of Table 5, one thread. The predictor is
+    untrained: the time does not depend on its weights."""
     cfg = cfg or Config()
     scenes = closed_loop_scenes(scenes, cfg, sim_time)[:n]
     torch.manual_seed(0)
@@ -307,40 +470,53 @@ def bench_closed_loop(scenes, cfg: Config | None = None, n=100, sim_time=10.0, r
 
     m = measure({meth.name: replay(meth) for meth in CLOSED_LOOP_METHODS}, reps, 1, "closed loop")
     what = f"{len(scenes)} scenes x {sim_time:g} s"
-    return [figure("closed_loop_" + name.lower().replace(" ", "_"), f"closed loop, {name} ({what})", mm.times, 1, "f32")
-            for name, mm in m.items()]
+    return [
+        figure(
+            "closed_loop_" + name.lower().replace(" ", "_"),
+            f"closed loop, {name} ({what})",
+            mm.times,
+            1,
+            "f32",
+        )
+        for name, mm in m.items()
+    ]
 
 
 # ============================================================================================
 # 4. Peers: mpc.pytorch (locuslab, `mpc` 0.0.6) and PyPose (`pypose` 0.9.x), side by side
 # ============================================================================================
 #
-# 4a. mpc.pytorch: the same problems (tracking_problem, float64), the same initial controls, iterations, tolerance,
-# line search (decay 1/5, 5 steps) and box; runs alternate in one process. mpc.pytorch's T = 7 convention adds a
-# 7th control that drives nothing: it gets weight R and reference 0, so it stays 0 and costs nothing.
+# 4a. mpc.pytorch: the same problems (tracking_problem, float64), the same initial controls,
+# iterations, tolerance, line search (decay 1/5, 5 steps) and box; runs alternate in one process.
+# mpc.pytorch's T = 7 convention adds a 7th control that drives nothing: it gets weight R and
+# reference 0, so it stays 0 and costs nothing.
 
 PEER_BASE = "python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt"
 PEER_VENV = f"{PEER_BASE} && /tmp/peers/bin/pip install --no-deps mpc==0.0.6"
 
 
 def import_peer(name: str):
-    """(module, None), or (None, why) when it cannot be imported: a missing peer is a skip, never a traceback."""
+    """(module, None), or (None, why) when it cannot be imported: a missing peer is a skip, never a
+    traceback."""
     try:
         return importlib.import_module(name), None
     except ImportError:
         return None, "not installed"
-    except Exception as e:  # noqa: BLE001  (a peer built for another torch may fail any way on import)
+    except Exception as e:  # a peer built for another torch may fail any way on import
         return None, f"import failed: {type(e).__name__}: {' '.join(str(e).split())}"
 
 
 def mpc_hint(why: str) -> str:
     """The one line printed instead of the mpc.pytorch comparison."""
-    return (f"mpc.pytorch: {why}, comparison skipped (speedup_vs_mpc_pytorch: null). To run it: {PEER_VENV} "
-            "then /tmp/peers/bin/python bench.py")
+    return (
+        f"mpc.pytorch: {why}, comparison skipped (speedup_vs_mpc_pytorch: null). To run it: "
+        f"{PEER_VENV} then /tmp/peers/bin/python bench.py"
+    )
 
 
 class UnicycleDx(torch.nn.Module):
-    """The unicycle as mpc.pytorch wants it, with the exact closed-form Jacobians (GradMethods.ANALYTIC)."""
+    """The unicycle as mpc.pytorch wants it, with the exact closed-form Jacobians
+    (GradMethods.ANALYTIC)."""
 
     def forward(self, x, u):
         return Unicycle(0.5)(x, u)  # the unchecked step our solver uses too, so both pay the same
@@ -355,47 +531,91 @@ def mpc_solve(P, x_init, x_ref, iters, eps):
 
     B, T1, _ = x_ref.shape
     C = torch.diag(torch.cat([P["Q"], P["R"]])).expand(T1, B, 6, 6)
-    u_ref = torch.cat([P["u_ref"], torch.zeros_like(P["u_ref"][:, :1])], 1)  # (B, T+1, 2) the idle 7th control
+    # u_ref: (B, T+1, 2) the idle 7th control
+    u_ref = torch.cat([P["u_ref"], torch.zeros_like(P["u_ref"][:, :1])], 1)
     c = torch.cat([-P["Q"] * x_ref, -P["R"] * u_ref], -1).transpose(0, 1)  # (T+1, B, 6)
     lo, hi = P["lo"].expand(T1, B, 2).contiguous(), P["hi"].expand(T1, B, 2).contiguous()
-    u0 = torch.cat([P["u_init"], torch.zeros_like(P["u_init"][:, :1])], 1).transpose(0, 1).contiguous()  # (T+1, B, 2)
-    ctrl = mpc_lib.MPC(4, 2, T1, u_lower=lo, u_upper=hi, u_init=u0, lqr_iter=iters, eps=eps,
-                       grad_method=mpc_lib.GradMethods.ANALYTIC, exit_unconverged=False, backprop=True,
-                       verbose=-1, n_batch=B, linesearch_decay=0.2, max_linesearch_iter=5)
-    x, u, _ = ctrl(x_init, mpc_lib.QuadCost(C, c), UnicycleDx())  # time-major: (T+1, B, 4), (T+1, B, 2)
+    # u0: (T+1, B, 2)
+    u0 = (
+        torch.cat([P["u_init"], torch.zeros_like(P["u_init"][:, :1])], 1)
+        .transpose(0, 1)
+        .contiguous()
+    )
+    ctrl = mpc_lib.MPC(
+        4,
+        2,
+        T1,
+        u_lower=lo,
+        u_upper=hi,
+        u_init=u0,
+        lqr_iter=iters,
+        eps=eps,
+        grad_method=mpc_lib.GradMethods.ANALYTIC,
+        exit_unconverged=False,
+        backprop=True,
+        verbose=-1,
+        n_batch=B,
+        linesearch_decay=0.2,
+        max_linesearch_iter=5,
+    )
+    # time-major: (T+1, B, 4), (T+1, B, 2)
+    x, u, _ = ctrl(x_init, mpc_lib.QuadCost(C, c), UnicycleDx())
     return x.transpose(0, 1), u.transpose(0, 1)[:, :-1]
 
 
 def ours_solve(P, x_init, x_ref, iters, eps):
     """The same solve with diffstack's controller: x (B, T+1, 4), u (B, T, 2)."""
-    x, u, _ = ilqr_solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], ours_params(P, x_ref),
-                         P["lo"], P["hi"], iters=iters, tol=eps, batched_params=True)
+    x, u, _ = ilqr_solve(
+        TrackingCost(),
+        Unicycle(0.5),
+        x_init,
+        P["u_init"],
+        ours_params(P, x_ref),
+        P["lo"],
+        P["hi"],
+        iters=iters,
+        tol=eps,
+        batched_params=True,
+    )
     return x, u
 
 
 def solver_runs(P, solve, iters, eps):
-    """(forward, backward) callables: a solve with x_init and x_ref requiring grad (both solvers build their graph
-    in the forward), and the backward of the final positions' sum wrt them on one prebuilt graph."""
+    """(forward, backward) callables: a solve with x_init and x_ref requiring grad (both solvers
+    build their graph in the forward), and the backward of the final positions' sum wrt them on one
+    prebuilt graph."""
     x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
     x, _ = solve(P, x_init, x_ref, iters, eps)
-    loss = x[:, -1, :2].sum()  # the final positions depend on every control: the gradient crosses every step
+    # the final positions depend on every control: the gradient crosses every step
+    loss = x[:, -1, :2].sum()
     return (lambda: solve(P, x_init, x_ref, iters, eps)), (lambda: loss.backward(retain_graph=True))
 
 
 def gradient_errors(P, solve, idx, iters):
-    """Relative error of d(x_T + y_T)/dx_init per problem in idx against central finite differences of our
-    tight solve (which test_diffstack.py checks against finite differences and unrolled autograd)."""
+    """Relative error of d(x_T + y_T)/dx_init per problem in idx against central finite differences
+    of our tight solve (which test_diffstack.py checks against finite differences and unrolled
+    autograd)."""
     sub = {k: (v[idx] if torch.is_tensor(v) and v.dim() > 1 else v) for k, v in P.items()}
     x_init = sub["x_init"].clone().requires_grad_()
     x, _ = solve(sub, x_init, sub["x_ref"], iters, 1e-9)
     (g,) = torch.autograd.grad((x[:, -1, 0] + x[:, -1, 1]).sum(), x_init)  # (b, 4)
 
     def loss(xi):
-        x, u, _ = ilqr(tracking_cost, Unicycle(0.5), xi, sub["u_init"], (sub["x_ref"], sub["u_ref"], sub["Q"], sub["R"]),
-                       sub["lo"], sub["hi"], iters=200, tol=1e-12)
+        x, u, _ = ilqr(
+            tracking_cost,
+            Unicycle(0.5),
+            xi,
+            sub["u_init"],
+            (sub["x_ref"], sub["u_ref"], sub["Q"], sub["R"]),
+            sub["lo"],
+            sub["hi"],
+            iters=200,
+            tol=1e-12,
+        )
         return x[:, -1, 0] + x[:, -1, 1]
 
-    h, fd = 1e-5, torch.zeros_like(g)
+    h = 1e-5
+    fd = torch.zeros_like(g)
     for j in range(4):
         e = torch.zeros_like(sub["x_init"])
         e[:, j] = h
@@ -404,20 +624,32 @@ def gradient_errors(P, solve, idx, iters):
 
 
 def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
-    """diffstack's iLQR against mpc.pytorch on tracking_problem(B), float64, at 5 iterations / tol 0.01 and 10 /
-    1e-3. Returns {rows, speedup (mpc time / ours, forward + backward, 5 iterations, the fewest threads),
-    gradient_error}, or None after one line of hint when mpc cannot be imported."""
+    """diffstack's iLQR against mpc.pytorch on tracking_problem(B), float64, at 5 iterations / tol
+    0.01 and 10 / 1e-3. Returns {rows, speedup (mpc time / ours, forward + backward, 5 iterations,
+    the fewest threads), gradient_error}, or None after one line of hint when mpc cannot be
+    imported."""
     mpc_lib, why = import_peer("mpc.mpc")
     if mpc_lib is None:
         log(mpc_hint(why))
         return None
     P = tracking_problem(B, dtype=torch.float64)
-    head = ["threads", "iterations, tol", "mpc.pytorch fwd / bwd (ms)", "diffstack fwd / bwd (ms)",
-            "speed-up fwd / fwd+bwd"]
-    rows, lines, speedup = [], [], None
-    ms = lambda m: f"{1e3 * m.median:.1f} (±{1e3 * m.iqr:.1f})"  # noqa: E731
+    head = [
+        "threads",
+        "iterations, tol",
+        "mpc.pytorch fwd / bwd (ms)",
+        "diffstack fwd / bwd (ms)",
+        "speed-up fwd / fwd+bwd",
+    ]
+    rows = []
+    lines = []
+    speedup = None
+
+    def ms(m):
+        return f"{1e3 * m.median:.1f} (±{1e3 * m.iqr:.1f})"
+
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # mpc 0.0.6 uses deprecated torch APIs (torch.lu, uint8 masks)
+        # mpc 0.0.6 uses deprecated torch APIs (torch.lu, uint8 masks)
+        warnings.simplefilter("ignore")
         for nt in sorted(threads):
             for iters, eps in ((5, 0.01), (10, 1e-3)):
                 fns = {}
@@ -427,25 +659,47 @@ def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
                 med = {k: v.median for k, v in m.items()}
                 fwd = med["mpc fwd"] / med["ours fwd"]
                 total = (med["mpc fwd"] + med["mpc bwd"]) / (med["ours fwd"] + med["ours bwd"])
-                if speedup is None:  # the headline: the controller's default settings, the fewest threads
+                # the headline: the controller's default settings, the fewest threads
+                if speedup is None:
                     speedup = total
                 for k, v in m.items():
-                    rows.append(figure(f"{k.replace(' ', '_')}_{iters}it", f"{k}, {iters} iterations, tol {eps}",
-                                       v.times, nt, "f64", B))
-                lines.append([str(nt), f"{iters}, {eps}", f"{ms(m['mpc fwd'])} / {ms(m['mpc bwd'])}",
-                              f"{ms(m['ours fwd'])} / {ms(m['ours bwd'])}", f"{fwd:.2f}x / {total:.2f}x"])
+                    rows.append(
+                        figure(
+                            f"{k.replace(' ', '_')}_{iters}it",
+                            f"{k}, {iters} iterations, tol {eps}",
+                            v.times,
+                            nt,
+                            "f64",
+                            B,
+                        )
+                    )
+                lines.append(
+                    [
+                        str(nt),
+                        f"{iters}, {eps}",
+                        f"{ms(m['mpc fwd'])} / {ms(m['mpc bwd'])}",
+                        f"{ms(m['ours fwd'])} / {ms(m['ours bwd'])}",
+                        f"{fwd:.2f}x / {total:.2f}x",
+                    ]
+                )
         idx = torch.arange(0, B, 16)  # 16 problems at B = 256
         errors = {}
         for name, solve in (("mpc.pytorch", mpc_solve), ("diffstack", ours_solve)):
             err = gradient_errors(P, solve, idx, 100)
             q = err.quantile(torch.tensor([0.5, 0.9], dtype=err.dtype))
-            errors[name] = dict(median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx))
-    log(f"mpc.pytorch side by side: B = {B} unicycle tracking problems, T = 6, dt 0.5, float64, box controls; "
-        f"median (IQR) of {reps} alternating runs")
+            errors[name] = dict(
+                median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx)
+            )
+    log(
+        f"mpc.pytorch side by side: B = {B} unicycle tracking problems, T = 6, dt 0.5, float64, "
+        f"box controls; median (IQR) of {reps} alternating runs"
+    )
     log(markdown_table(head, lines))
     for name, e in errors.items():
-        log(f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: median {e['median']:.1e}, "
-            f"90th percentile {e['p90']:.1e}, max {e['max']:.1e}")
+        log(
+            f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: "
+            f"median {e['median']:.1e}, 90th percentile {e['p90']:.1e}, max {e['max']:.1e}"
+        )
     return dict(rows=rows, speedup=speedup, gradient_error=errors)
 
 
@@ -453,26 +707,30 @@ def compare_mpc(B=256, threads=(1, 2), reps=5, log=print) -> dict | None:
 # 4b. PyPose (`pypose` 0.9.x, pp.module.MPC), side by side
 # --------------------------------------------------------------------------------------------
 #
-# PyPose's MPC is iLQR with full steps: no control bounds and no line search. So both solve the same tracking
-# problems with the box widened to +-WIDE, which no control comes near (checked on every solution). Its horizon
-# convention is mpc.pytorch's: T' = 7 stages tau_t = (x_t, u_t), t = 0..6, each costing 1/2 tau' Q tau + p' tau,
-# with x_7 = f(x_6, u_6) uncosted. So Q_t = diag(Q, R) and p_t = (-Q r_t, -R ur_t), with the idle 7th control's
-# reference 0 (it stays 0 and costs nothing); the cost it reports lacks the constant 1/2 r'Q r + 1/2 ur'R ur.
-# Stock PyPose cannot run this benchmark as it is; what changed, and nothing else (PyPoseUnicycle, PyPoseMPC):
-#   1. Jacobians: NLS.A/B are torch.autograd.functional.jacobian of the whole batch, (B, 4, B, 4) for B > 1,
-#      which LQR cannot use. set_refpoint computes diffstack's closed-form unicycle_jacobians (B, 4, 4) and
-#      (B, 4, 2) instead (the same Jacobians mpc.pytorch and ours get), detached as autograd's jacobian returns
-#      them (create_graph=False); it skips NLS's f and g at the reference point, which LQR never reads.
-#   2. The state transition is diffstack's unchecked unicycle step (ours uses the same) on a clone of the state,
-#      as PyPose's own LTI does: runsys and lqr_forward write the states in place into one tensor, which the
-#      step's saved views would otherwise break in the backward.
-#   3. Stopping: ReduceToBason(iters, tol=-inf, decreasing=-inf), so that it runs exactly `iters` LQR passes
-#      (iters - 1 without grad, then one with grad) like our `iters` iterations. Its default tol 1e-5 stops after
-#      the first pass whenever every cost is negative, which the constant-less tracking cost is.
-#   4. The best iterate, per problem: MPC.forward compares the batch's costs with `cost < best` (an error for
-#      B > 1); PyPoseMPC keeps each problem's best u, a new one winning ties up to the rounding allowance of our
-#      line search (100 eps (1 + |cost|)); a strict `<` keeps a stale iterate whose cost differs by rounding only
-#      (1.7e-7 from the optimum in u, B = 256). The last pass starts from the best u, as MPC.forward does.
+# PyPose's MPC is iLQR with full steps: no control bounds and no line search. So both solve the same
+# tracking problems with the box widened to +-WIDE, which no control comes near (checked on every
+# solution). Its horizon convention is mpc.pytorch's: T' = 7 stages tau_t = (x_t, u_t), t = 0..6,
+# each costing 1/2 tau' Q tau + p' tau, with x_7 = f(x_6, u_6) uncosted. So Q_t = diag(Q, R) and
+# p_t = (-Q r_t, -R ur_t), with the idle 7th control's reference 0 (it stays 0 and costs nothing);
+# the cost it reports lacks the constant 1/2 r'Q r + 1/2 ur'R ur. Stock PyPose cannot run this
+# benchmark as it is; what changed, and nothing else (PyPoseUnicycle, PyPoseMPC):
+#   1. Jacobians: NLS.A/B are torch.autograd.functional.jacobian of the whole batch, (B, 4, B, 4)
+#      for B > 1, which LQR cannot use. set_refpoint computes diffstack's closed-form
+#      unicycle_jacobians (B, 4, 4) and (B, 4, 2) instead (the same Jacobians mpc.pytorch and ours
+#      get), detached as autograd's jacobian returns them (create_graph=False); it skips NLS's f and
+#      g at the reference point, which LQR never reads.
+#   2. The state transition is diffstack's unchecked unicycle step (ours uses the same) on a clone
+#      of the state, as PyPose's own LTI does: runsys and lqr_forward write the states in place into
+#      one tensor, which the step's saved views would otherwise break in the backward.
+#   3. Stopping: ReduceToBason(iters, tol=-inf, decreasing=-inf), so that it runs exactly `iters`
+#      LQR passes (iters - 1 without grad, then one with grad) like our `iters` iterations. Its
+#      default tol 1e-5 stops after the first pass whenever every cost is negative, which the
+#      constant-less tracking cost is.
+#   4. The best iterate, per problem: MPC.forward compares the batch's costs with `cost < best` (an
+#      error for B > 1); PyPoseMPC keeps each problem's best u, a new one winning ties up to the
+#      rounding allowance of our line search (100 eps (1 + |cost|)); a strict `<` keeps a stale
+#      iterate whose cost differs by rounding only (1.7e-7 from the optimum in u, B = 256). The last
+#      pass starts from the best u, as MPC.forward does.
 
 WIDE = 1e3  # the box of the PyPose comparison, +-WIDE: never active
 PYPOSE_BATCHES = (64, 256, 1024, 4096)  # the full run's batch sizes; --quick: its --batch only
@@ -483,13 +741,17 @@ _PYPOSE_CLASSES = {}
 
 def pypose_hint(why: str) -> str:
     """The one line printed instead of the PyPose comparison."""
-    return (f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_BASE} && {PYPOSE_VENV} "
-            "then /tmp/peers/bin/python bench.py")
+    return (
+        f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_BASE} && "
+        f"{PYPOSE_VENV} then /tmp/peers/bin/python bench.py"
+    )
 
 
 def pypose_classes(pp):
-    """(PyPoseUnicycle, PyPoseMPC): subclasses of pp.module.NLS and pp.module.MPC with the changes 1-4 above."""
+    """(PyPoseUnicycle, PyPoseMPC): subclasses of pp.module.NLS and pp.module.MPC with the changes
+    1-4 above."""
     if _PYPOSE_CLASSES.get("pp") is not pp:
+
         class PyPoseUnicycle(pp.module.NLS):
             """The unicycle as a PyPose system, with closed-form Jacobians (changes 1 and 2)."""
 
@@ -517,10 +779,13 @@ def pypose_classes(pp):
                 return self._B
 
         class PyPoseMPC(pp.module.MPC):
-            """pp.module.MPC keeping each problem's best iterate (change 4); the rest is MPC.forward's."""
+            """pp.module.MPC keeping each problem's best iterate (change 4); the rest is
+            MPC.forward's."""
 
             def forward(self, dt, x_init, u_init=None, u_lower=None, u_upper=None, du=None):
-                u, best_u, best = u_init, u_init, None
+                u = u_init
+                best_u = u_init
+                best = None
                 self.stepper.reset()
                 with torch.no_grad():
                     while self.stepper.continual():
@@ -529,8 +794,13 @@ def pypose_classes(pp):
                         if best is None:
                             best_u, best = u, cost
                         else:
-                            win = cost <= best + 100 * torch.finfo(cost.dtype).eps * (1 + best.abs())
-                            best_u, best = torch.where(win[:, None, None], u, best_u), torch.where(win, cost, best)
+                            win = cost <= best + 100 * torch.finfo(cost.dtype).eps * (
+                                1 + best.abs()
+                            )
+                            best_u, best = (
+                                torch.where(win[:, None, None], u, best_u),
+                                torch.where(win, cost, best),
+                            )
                 return self.lqr(x_init, dt, u_traj=best_u)
 
         _PYPOSE_CLASSES.update(pp=pp, classes=(PyPoseUnicycle, PyPoseMPC))
@@ -538,76 +808,122 @@ def pypose_classes(pp):
 
 
 def unconstrained(P: dict) -> dict:
-    """The tracking problems with the box widened to +-WIDE (the initial controls: the reference's, unclipped)."""
+    """The tracking problems with the box widened to +-WIDE (the initial controls: the reference's,
+    unclipped)."""
     lo, hi = torch.full_like(P["lo"], -WIDE), torch.full_like(P["hi"], WIDE)
     return dict(P, lo=lo, hi=hi, u_init=P["u_ref"].clamp(lo, hi))
 
 
 def pypose_solve(P, x_init, x_ref, iters, eps):
-    """One PyPose MPC solve of the (unconstrained) tracking problem: x (B, T+1, 4), u (B, T, 2). Exactly `iters`
-    LQR passes; eps is unused (PyPose has no step tolerance, its stepper's tol is -inf: change 3)."""
+    """One PyPose MPC solve of the (unconstrained) tracking problem: x (B, T+1, 4), u (B, T, 2).
+    Exactly `iters` LQR passes; eps is unused (PyPose has no step tolerance, its stepper's tol is
+    -inf: change 3)."""
     import pypose as pp
     from pypose.utils.stepper import ReduceToBason
 
     system, MPC = pypose_classes(pp)
     B, T1, _ = x_ref.shape
     Q = torch.diag(torch.cat([P["Q"], P["R"]])).expand(B, T1, 6, 6)
-    u_ref = torch.cat([P["u_ref"], torch.zeros_like(P["u_ref"][:, :1])], 1)  # (B, T+1, 2) the idle 7th control
+    # u_ref: (B, T+1, 2) the idle 7th control
+    u_ref = torch.cat([P["u_ref"], torch.zeros_like(P["u_ref"][:, :1])], 1)
     p = torch.cat([-P["Q"] * x_ref, -P["R"] * u_ref], -1)  # (B, T+1, 6)
     u0 = torch.cat([P["u_init"], torch.zeros_like(P["u_init"][:, :1])], 1)  # (B, T+1, 2)
-    stepper = ReduceToBason(iters, tol=-math.inf, decreasing=-math.inf)  # MPC runs iters - 1 passes, then 1 more
-    x, u, _ = MPC(system(0.5), Q, p, T1, stepper=stepper)(0.5, x_init, u_init=u0)  # (B, T+2, 4), (B, T+1, 2)
-    return x[:, :T1], u[:, :T1 - 1]
+    # MPC runs iters - 1 passes, then 1 more
+    stepper = ReduceToBason(iters, tol=-math.inf, decreasing=-math.inf)
+    # (B, T+2, 4), (B, T+1, 2)
+    x, u, _ = MPC(system(0.5), Q, p, T1, stepper=stepper)(0.5, x_init, u_init=u0)
+    return x[:, :T1], u[:, : T1 - 1]
 
 
 def pypose_agreement(P, iters=50) -> dict:
-    """Both solvers on the unconstrained problems P, to convergence (iters, tol 1e-12): the largest difference in
-    u and x, and the largest |u| (against WIDE: no bound active)."""
+    """Both solvers on the unconstrained problems P, to convergence (iters, tol 1e-12): the largest
+    difference in u and x, and the largest |u| (against WIDE: no bound active)."""
     xo, uo = ours_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
     xp, up = pypose_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
-    return dict(iters=iters, problems=len(uo), max_du=(up - uo).abs().max().item(), max_dx=(xp - xo).abs().max().item(),
-                max_abs_u=max(uo.abs().max().item(), up.abs().max().item()))
+    return dict(
+        iters=iters,
+        problems=len(uo),
+        max_du=(up - uo).abs().max().item(),
+        max_dx=(xp - xo).abs().max().item(),
+        max_abs_u=max(uo.abs().max().item(), up.abs().max().item()),
+    )
 
 
 def time_pypose(B, reps, iters, tol):
-    """One B of the PyPose comparison: (figures, the table's entry, the printed row). Both solvers take turns on
-    forward and backward (one thread); the entry also says how many iterations ours ran and that no bound was
-    near the solutions of the timed settings."""
+    """One B of the PyPose comparison: (figures, the table's entry, the printed row). Both solvers
+    take turns on forward and backward (one thread); the entry also says how many iterations ours
+    ran and that no bound was near the solutions of the timed settings."""
     P = unconstrained(tracking_problem(B, dtype=torch.float64))
     fns = {}
     for name, solve in (("pypose", pypose_solve), ("ours", ours_solve)):
         fns[name + " fwd"], fns[name + " bwd"] = solver_runs(P, solve, iters, tol)
-    _, uo, info = ilqr(tracking_cost, Unicycle(0.5), P["x_init"], P["u_init"], (P["x_ref"], P["u_ref"], P["Q"], P["R"]),
-                       P["lo"], P["hi"], iters=iters, tol=tol)
+    _, uo, info = ilqr(
+        tracking_cost,
+        Unicycle(0.5),
+        P["x_init"],
+        P["u_init"],
+        (P["x_ref"], P["u_ref"], P["Q"], P["R"]),
+        P["lo"],
+        P["hi"],
+        iters=iters,
+        tol=tol,
+    )
     _, up = pypose_solve(P, P["x_init"], P["x_ref"], iters, tol)
     m = measure(fns, reps, 1, f"iLQR vs PyPose, B = {B}")
     med = {k: 1e3 * v.median for k, v in m.items()}
     total = (med["pypose fwd"] + med["pypose bwd"]) / (med["ours fwd"] + med["ours bwd"])
-    rows = [figure(f"{k.replace(' ', '_')}_{iters}it_unconstrained",
-                   f"{k}, {iters} iterations, tol {tol}, box +-{WIDE:g}", v.times, 1, "f64", B) for k, v in m.items()]
-    entry = dict(batch=B, **{k.replace(" ", "_") + "_ms": v for k, v in med.items()}, speedup=total,
-                 ours_iterations=int(info.iters.max()), ours_converged=info.converged.double().mean().item(),
-                 max_du=(up - uo).abs().max().item(),  # at these settings (ours stops moving a problem below tol)
-                 bounds_inactive=max(uo.abs().max().item(), up.abs().max().item()) < WIDE / 2)
-    ms = lambda k: f"{1e3 * m[k].median:.1f} (±{1e3 * m[k].iqr:.1f})"  # noqa: E731
-    line = [str(B), f"{ms('pypose fwd')} / {ms('pypose bwd')}", f"{ms('ours fwd')} / {ms('ours bwd')}",
-            str(entry["ours_iterations"]), f"{med['pypose fwd'] / med['ours fwd']:.2f}x / {total:.2f}x"]
+    rows = [
+        figure(
+            f"{k.replace(' ', '_')}_{iters}it_unconstrained",
+            f"{k}, {iters} iterations, tol {tol}, box +-{WIDE:g}",
+            v.times,
+            1,
+            "f64",
+            B,
+        )
+        for k, v in m.items()
+    ]
+    entry = dict(
+        batch=B,
+        **{k.replace(" ", "_") + "_ms": v for k, v in med.items()},
+        speedup=total,
+        ours_iterations=int(info.iters.max()),
+        ours_converged=info.converged.double().mean().item(),
+        # at these settings (ours stops moving a problem below tol)
+        max_du=(up - uo).abs().max().item(),
+        bounds_inactive=max(uo.abs().max().item(), up.abs().max().item()) < WIDE / 2,
+    )
+
+    def ms(k):
+        return f"{1e3 * m[k].median:.1f} (±{1e3 * m[k].iqr:.1f})"
+
+    line = [
+        str(B),
+        f"{ms('pypose fwd')} / {ms('pypose bwd')}",
+        f"{ms('ours fwd')} / {ms('ours bwd')}",
+        str(entry["ours_iterations"]),
+        f"{med['pypose fwd'] / med['ours fwd']:.2f}x / {total:.2f}x",
+    ]
     return rows, entry, line
 
 
 def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01, log=print) -> dict | None:
-    """diffstack's iLQR against PyPose's MPC on tracking_problem(B) with the box widened (no bound active),
-    float64, one thread, `iters` iterations (ours: tol too), forward + backward of a loss on the solution to x_init
-    and the reference, at each B in batches. First both solvers to convergence at the smallest B (they must agree),
-    then the timings, then both gradients against finite differences (16 problems). Returns {rows, table, speedup
-    (PyPose time / ours at PYPOSE_SPEEDUP_BATCH, or at the largest B below it, or the smallest), speedup_batch,
-    agreement, gradient_error}, or None after one line of hint when pypose cannot be imported."""
+    """diffstack's iLQR against PyPose's MPC on tracking_problem(B) with the box widened (no bound
+    active), float64, one thread, `iters` iterations (ours: tol too), forward + backward of a loss
+    on the solution to x_init and the reference, at each B in batches. First both solvers to
+    convergence at the smallest B (they must agree), then the timings, then both gradients against
+    finite differences (16 problems). Returns {rows, table, speedup (PyPose time / ours at
+    PYPOSE_SPEEDUP_BATCH, or at the largest B below it, or the smallest), speedup_batch, agreement,
+    gradient_error}, or None after one line of hint when pypose cannot be imported."""
     pp, why = import_peer("pypose")
     if pp is None:
         log(pypose_hint(why))
         return None
     batches = sorted(set(batches))
-    rows, table, lines, errors = [], [], [], {}
+    rows = []
+    table = []
+    lines = []
+    errors = {}
     before = torch.get_num_threads()
     torch.set_num_threads(1)  # the untimed set-up too; the Timers set it for every run
     try:
@@ -620,26 +936,54 @@ def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01, log=print)
         for name, solve in (("PyPose", pypose_solve), ("diffstack", ours_solve)):
             err = gradient_errors(P, solve, idx, 100)
             q = err.quantile(torch.tensor([0.5, 0.9], dtype=err.dtype))
-            errors[name] = dict(median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx))
+            errors[name] = dict(
+                median=q[0].item(), p90=q[1].item(), max=err.max().item(), problems=len(idx)
+            )
     finally:
         torch.set_num_threads(before)
     at = [t for t in table if t["batch"] <= PYPOSE_SPEEDUP_BATCH] or table[:1]
-    log(f"PyPose side by side: unicycle tracking problems, T = 6, dt 0.5, float64, box widened to ±{WIDE:g} (PyPose "
-        f"has no bounds), one thread, {iters} iterations (ours: tol {tol}; PyPose: exactly {iters} LQR passes); "
-        f"median (IQR) of {reps} alternating runs")
+    log(
+        "PyPose side by side: unicycle tracking problems, T = 6, dt 0.5, float64, box widened "
+        f"to ±{WIDE:g} (PyPose has no bounds), one thread, {iters} iterations (ours: tol {tol}; "
+        f"PyPose: exactly {iters} LQR passes); median (IQR) of {reps} alternating runs"
+    )
     same = agree["max_du"] < 1e-8
-    log(f"same solution: {'yes' if same else 'NO'}, both to convergence ({agree['iters']} iterations, tol 1e-12) on "
-        f"{agree['problems']} problems: max |u_pypose - u_ours| {agree['max_du']:.1e}, max |x difference| "
-        f"{agree['max_dx']:.1e}; largest |u| {agree['max_abs_u']:.2f}, far inside ±{WIDE:g}: no bound active")
+    log(
+        f"same solution: {'yes' if same else 'NO'}, both to convergence ({agree['iters']} "
+        f"iterations, tol 1e-12) on {agree['problems']} problems: max |u_pypose - u_ours| "
+        f"{agree['max_du']:.1e}, max |x difference| {agree['max_dx']:.1e}; largest |u| "
+        f"{agree['max_abs_u']:.2f}, far inside ±{WIDE:g}: no bound active"
+    )
     if agree["max_abs_u"] >= WIDE / 2 or not all(t["bounds_inactive"] for t in table):
-        log(f"WARNING: a control came within {WIDE / 2:g} of the box: the comparison is not of the same problem")
-    log(markdown_table(["B", "PyPose fwd / bwd (ms)", "diffstack fwd / bwd (ms)", "our iterations",
-                        "speed-up fwd / fwd+bwd"], lines))
+        log(
+            f"WARNING: a control came within {WIDE / 2:g} of the box: the comparison is not of "
+            "the same problem"
+        )
+    log(
+        markdown_table(
+            [
+                "B",
+                "PyPose fwd / bwd (ms)",
+                "diffstack fwd / bwd (ms)",
+                "our iterations",
+                "speed-up fwd / fwd+bwd",
+            ],
+            lines,
+        )
+    )
     for name, e in errors.items():
-        log(f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: median "
-            f"{e['median']:.1e}, 90th percentile {e['p90']:.1e}, max {e['max']:.1e}")
-    return dict(rows=rows, table=table, speedup=at[-1]["speedup"], speedup_batch=at[-1]["batch"], agreement=agree,
-                gradient_error=errors)
+        log(
+            f"{name:12s} d(x_T + y_T)/d x_init vs finite differences, {e['problems']} problems: "
+            f"median {e['median']:.1e}, 90th percentile {e['p90']:.1e}, max {e['max']:.1e}"
+        )
+    return dict(
+        rows=rows,
+        table=table,
+        speedup=at[-1]["speedup"],
+        speedup_batch=at[-1]["batch"],
+        agreement=agree,
+        gradient_error=errors,
+    )
 
 
 # ============================================================================================
@@ -658,17 +1002,41 @@ def device_name(device: torch.device) -> str:
 
 def results_table(rows) -> str:
     """The figures as one markdown table."""
-    num = lambda v: f"{v:.1f}" if v < 100 else f"{v:.0f}"  # noqa: E731
-    return markdown_table(["benchmark", "B", "dtype", "threads", "median (ms)", "IQR (ms)", "runs", "note"],
-                    [[r["benchmark"], "" if r["batch"] is None else str(r["batch"]), r["dtype"], str(r["threads"]),
-                      num(r["median_ms"]), num(r["iqr_ms"]), str(r["runs"]), r["note"]] for r in rows])
+
+    def num(v):
+        return f"{v:.1f}" if v < 100 else f"{v:.0f}"
+
+    return markdown_table(
+        ["benchmark", "B", "dtype", "threads", "median (ms)", "IQR (ms)", "runs", "note"],
+        [
+            [
+                r["benchmark"],
+                "" if r["batch"] is None else str(r["batch"]),
+                r["dtype"],
+                str(r["threads"]),
+                num(r["median_ms"]),
+                num(r["iqr_ms"]),
+                str(r["runs"]),
+                r["note"],
+            ]
+            for r in rows
+        ],
+    )
 
 
-def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, log=print, progress=None,
-        device=torch.device("cpu")) -> dict:
-    """Every benchmark; returns the JSON document (the headline keys first, then every figure). On a device other
-    than the CPU our modules run there (the data drawn on the CPU and moved); the closed loop and the peers, whose
-    ratios are defined on the CPU, are left out."""
+def run(
+    threads=(1, 2),
+    reps=5,
+    batch_size=256,
+    quick=False,
+    closed_loop=True,
+    log=print,
+    progress=None,
+    device=torch.device("cpu"),
+) -> dict:
+    """Every benchmark; returns the JSON document (the headline keys first, then every figure). On a
+    device other than the CPU our modules run there (the data drawn on the CPU and moved); the
+    closed loop and the peers, whose ratios are defined on the CPU, are left out."""
     progress = progress or (lambda s: print(s, file=sys.stderr, flush=True))
     on_cpu = device.type == "cpu"
     cfg = Config()
@@ -676,28 +1044,49 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
         data = data_synth.make_dataset(max(2 * batch_size, 64), seed=0)
     else:
         data = data_synth.load_or_generate(max(2000, 2 * batch_size), seed=0, cache_dir=DATA_CACHE)
-    assert len(data.train) >= batch_size, "about 85 % of the samples are for training: 2 B samples are enough"
+    assert len(data.train) >= batch_size, (
+        "about 85 % of the samples are for training: 2 B samples are enough"
+    )
     batch = data.train[:batch_size].to(device=device)
     rows = []
     for nt in threads:
         torch.set_num_threads(nt)  # for the untimed set-up too; the Timers set it for every run
-        progress(f"threads {nt}: controller, planner, predictor, DiffStack step (B = {batch_size}, {reps} runs each)")
+        progress(
+            f"threads {nt}: controller, planner, predictor, DiffStack step (B = {batch_size}, "
+            f"{reps} runs each)"
+        )
         for dtype in (torch.float64, torch.float32):
             rows += bench_controller(batch_size, dtype, reps, nt, device=device)
         rows += bench_candidates(batch, cfg, reps, nt) + bench_predictor(batch, cfg, reps, nt)
         rows += bench_stack_step(batch, cfg, reps, nt)
-    progress("controller scaling: B = " + ("%d and %d" % ((batch_size, 2 * batch_size) if quick else (1024, 4096))))
-    scaling, per_problem = bench_controller_scaling((batch_size, 2 * batch_size) if quick else (1024, 4096),
-                                                    min(reps, 3), device=device)
+    progress(
+        "controller scaling: B = "
+        + ("%d and %d" % ((batch_size, 2 * batch_size) if quick else (1024, 4096)))
+    )
+    scaling, per_problem = bench_controller_scaling(
+        (batch_size, 2 * batch_size) if quick else (1024, 4096), min(reps, 3), device=device
+    )
     rows += scaling
     if closed_loop and on_cpu:
-        n, sim_time, cl_reps = (QUICK["scenes"], QUICK["sim_time"], 1) if quick else (100, 10.0, min(reps, 3))
-        progress(f"closed loop: {n} scenes x {sim_time:g} s, one thread, {cl_reps} timed run(s) per stack")
-        scenes = data.val_scenes if quick else data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE).val_scenes
+        n, sim_time, cl_reps = (
+            (QUICK["scenes"], QUICK["sim_time"], 1) if quick else (100, 10.0, min(reps, 3))
+        )
+        progress(
+            f"closed loop: {n} scenes x {sim_time:g} s, one thread, {cl_reps} timed run(s) per "
+            "stack"
+        )
+        scenes = (
+            data.val_scenes
+            if quick
+            else data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE).val_scenes
+        )
         rows += bench_closed_loop(scenes, cfg, n, sim_time, cl_reps)
     where = "" if on_cpu else f" on {device_name(device)}"
-    log(f"\nDiffStack benchmarks{where}: B = {batch_size}, torch {torch.__version__}, {os.cpu_count()} cores; median "
-        f"and IQR of the timed runs (torch.utils.benchmark), at the thread count of each row")
+    log(
+        f"\nDiffStack benchmarks{where}: B = {batch_size}, torch {torch.__version__}, "
+        f"{os.cpu_count()} cores; median and IQR of the timed runs (torch.utils.benchmark), at "
+        "the thread count of each row"
+    )
     log(results_table(rows) + "\n")
     mpc_res = pp_res = None
     if on_cpu:
@@ -712,37 +1101,86 @@ def run(threads=(1, 2), reps=5, batch_size=256, quick=False, closed_loop=True, l
     return dict(
         stack_step_ms_1thread=step_1[0] if step_1 else None,  # None when --threads leaves out 1
         speedup_vs_mpc_pytorch=None if mpc_res is None else mpc_res["speedup"],
-        speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],  # at B = 256 (--quick: its B)
-        controller_ms_per_problem=per_problem,  # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
-        meta=dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine(), cores=os.cpu_count(),
-                  torch=torch.__version__, threads=list(threads), reps=reps, batch=batch_size, quick=quick,
-                  device=str(device), device_name=device_name(device)),
+        # at B = 256 (--quick: its B)
+        speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],
+        # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
+        controller_ms_per_problem=per_problem,
+        meta=dict(
+            date=time.strftime("%Y-%m-%d %H:%M"),
+            machine=machine(),
+            cores=os.cpu_count(),
+            torch=torch.__version__,
+            threads=list(threads),
+            reps=reps,
+            batch=batch_size,
+            quick=quick,
+            device=str(device),
+            device_name=device_name(device),
+        ),
         figures=rows,
-        mpc_pytorch=None if mpc_res is None else dict(figures=mpc_res["rows"], gradient_error=mpc_res["gradient_error"]),
-        pypose=None if pp_res is None else dict(figures=pp_res["rows"], table=pp_res["table"],
-                                                speedup_batch=pp_res["speedup_batch"], agreement=pp_res["agreement"],
-                                                gradient_error=pp_res["gradient_error"]),
+        mpc_pytorch=None
+        if mpc_res is None
+        else dict(figures=mpc_res["rows"], gradient_error=mpc_res["gradient_error"]),
+        pypose=None
+        if pp_res is None
+        else dict(
+            figures=pp_res["rows"],
+            table=pp_res["table"],
+            speedup_batch=pp_res["speedup_batch"],
+            agreement=pp_res["agreement"],
+            gradient_error=pp_res["gradient_error"],
+        ),
     )
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
-                                             "predictor, a training step, the closed loop, and mpc.pytorch and PyPose side by side.")
-    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), nargs="+", default=[1, 2],
-                    help="torch thread counts (default 1 2)")
-    ap.add_argument("--reps", type=bounded(int, 1, 10_000, "--reps"),
-                    help="timed runs per figure (default 5; closed loop at most 3; --quick 2)")
-    ap.add_argument("--batch", type=bounded(int, 1, 1_000_000, "--batch"), help="scenarios / problems per batch (default 256; --quick 16)")
-    ap.add_argument("--json", type=pathlib.Path, metavar="PATH", help="also write every figure to this JSON file")
-    ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay")
+    ap = argparse.ArgumentParser(
+        description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
+        "predictor, a training step, the closed loop, and mpc.pytorch and PyPose side by side."
+    )
+    ap.add_argument(
+        "--threads",
+        type=bounded(int, 1, 256, "--threads"),
+        nargs="+",
+        default=[1, 2],
+        help="torch thread counts (default 1 2)",
+    )
+    ap.add_argument(
+        "--reps",
+        type=bounded(int, 1, 10_000, "--reps"),
+        help="timed runs per figure (default 5; closed loop at most 3; --quick 2)",
+    )
+    ap.add_argument(
+        "--batch",
+        type=bounded(int, 1, 1_000_000, "--batch"),
+        help="scenarios / problems per batch (default 256; --quick 16)",
+    )
+    ap.add_argument(
+        "--json",
+        type=pathlib.Path,
+        metavar="PATH",
+        help="also write every figure to this JSON file",
+    )
+    ap.add_argument(
+        "--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay"
+    )
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
-    ap.add_argument("--device", type=device_arg, default="cpu",
-                    help="where our modules run (cpu, cuda, cuda:N; default cpu); off the CPU the closed loop and the "
-                         "peers are left out")
+    ap.add_argument(
+        "--device",
+        type=device_arg,
+        default="cpu",
+        help="where our modules run (cpu, cuda, cuda:N; default cpu); off the CPU the closed "
+        "loop and the peers are left out",
+    )
     args = ap.parse_args(argv)
-    if args.device.type == "mps":  # MPS has no float64: the controller's rows would fail after the set-up
-        ap.error("argument --device: mps has no float64, which the controller's benchmarks use; use cpu or cuda")
-    if args.json is not None:  # before the minutes of work, not after: a folder, or a place no file can go
+    # MPS has no float64: the controller's rows would fail after the set-up
+    if args.device.type == "mps":
+        ap.error(
+            "argument --device: mps has no float64, which the controller's benchmarks use; use "
+            "cpu or cuda"
+        )
+    # before the minutes of work, not after: a folder, or a place no file can go
+    if args.json is not None:
         if args.json.is_dir():
             ap.error(f"argument --json: {args.json} is a folder, expected a file path")
         try:
@@ -755,8 +1193,12 @@ def main(argv=None) -> dict:
     before = torch.get_num_threads()
     try:  # the project's errors and a file's (the data cache, --json) as one line
         with one_line(ap):
-            doc = run(threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device)
-            doc["meta"]["command"] = command_line("python bench.py", sys.argv[1:] if argv is None else argv)
+            doc = run(
+                threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device
+            )
+            doc["meta"]["command"] = command_line(
+                "python bench.py", sys.argv[1:] if argv is None else argv
+            )
             if args.json is not None:
                 args.json.parent.mkdir(parents=True, exist_ok=True)
                 write_atomic(args.json, json.dumps(doc, indent=1))

@@ -1,10 +1,12 @@
-"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's hint, and
-PyPose's agreement with our controller where pypose is installed (skipped otherwise).
+"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's
+hint, and PyPose's agreement with our controller where pypose is installed (skipped otherwise).
 
     python -m pytest -q test_bench.py        # about half a minute on 2 cores
 
-No test asserts a timing: they check that the figures exist, are positive and are written where promised.
+No test asserts a timing: they check that the figures exist, are positive and are written
+where promised.
 """
+
 import importlib.util
 import json
 import math
@@ -31,18 +33,25 @@ def test_quick_run_writes_json(tmp_path, capsys):
     assert torch.get_num_threads() == threads_before  # main() leaves the process as it found it
     on_disk = json.loads(path.read_text())
     assert on_disk["figures"] == json.loads(json.dumps(doc["figures"]))
-    assert not [p for p in tmp_path.iterdir() if p.name != "b.json"]  # the temporary file was renamed away
+    # the temporary file was renamed away
+    assert not [p for p in tmp_path.iterdir() if p.name != "b.json"]
     # the headline keys
     step = on_disk["stack_step_ms_1thread"]
     assert isinstance(step, float) and math.isfinite(step) and step > 0
-    assert isinstance(on_disk["controller_ms_per_problem"], float)  # a slope: noise at --quick sizes may make it < 0
-    assert {"ilqr_forward_f64_B%d" % (bench.QUICK["batch"] * k) for k in (1, 2)} <= {f["key"] for f in on_disk["figures"]}
+    # a slope: noise at --quick sizes may make it < 0
+    assert isinstance(on_disk["controller_ms_per_problem"], float)
+    assert {"ilqr_forward_f64_B%d" % (bench.QUICK["batch"] * k) for k in (1, 2)} <= {
+        f["key"] for f in on_disk["figures"]
+    }
     for peer, key in (("mpc", "speedup_vs_mpc_pytorch"), ("pypose", "speedup_vs_pypose")):
         assert key in on_disk
         if not installed(peer):
             assert on_disk[key] is None
     if installed("mpc"):
-        assert isinstance(on_disk["speedup_vs_mpc_pytorch"], float) and on_disk["speedup_vs_mpc_pytorch"] > 0
+        assert (
+            isinstance(on_disk["speedup_vs_mpc_pytorch"], float)
+            and on_disk["speedup_vs_mpc_pytorch"] > 0
+        )
     else:
         assert on_disk["mpc_pytorch"] is None
         assert out.count(HINT) == 1
@@ -57,9 +66,21 @@ def test_quick_run_writes_json(tmp_path, capsys):
         assert out.count(PYPOSE_HINT) == 1
     # every figure: positive, at the one thread asked for, nothing from the skipped closed loop
     keys = {f["key"] for f in on_disk["figures"]}
-    assert {"ilqr_forward_f64", "kkt_backward_f64", "ilqr_forward_f32", "kkt_backward_f32", "candidates",
-            "predictor_train", "predictor_eval", "stack_step", "stack_scene_plan", "stack_predict", "stack_plan", "stack_control",
-            "stack_backward"} <= keys
+    assert {
+        "ilqr_forward_f64",
+        "kkt_backward_f64",
+        "ilqr_forward_f32",
+        "kkt_backward_f32",
+        "candidates",
+        "predictor_train",
+        "predictor_eval",
+        "stack_step",
+        "stack_scene_plan",
+        "stack_predict",
+        "stack_plan",
+        "stack_control",
+        "stack_backward",
+    } <= keys
     assert not any(k.startswith("closed_loop") for k in keys)
     for f in on_disk["figures"]:
         assert f["threads"] == 1 and f["runs"] >= 1 and f["median_ms"] > 0 and f["iqr_ms"] >= 0, f
@@ -68,20 +89,25 @@ def test_quick_run_writes_json(tmp_path, capsys):
     assert on_disk["meta"]["device"] == "cpu"
     # one markdown table of our figures, one row per figure
     assert sum(line.startswith("| benchmark |") for line in out.splitlines()) == 1
-    assert sum(line.startswith("| ") and "perf_counter lap" in line for line in out.splitlines()) == 4
+    assert (
+        sum(line.startswith("| ") and "perf_counter lap" in line for line in out.splitlines()) == 4
+    )
     assert "Traceback" not in out
 
 
-@pytest.mark.parametrize("args, name", [
-    (["--batch", "0"], "--batch"),
-    (["--batch", "-3"], "--batch"),
-    (["--threads", "0"], "--threads"),
-    (["--threads", "1", "-2"], "--threads"),
-    (["--reps", "-1"], "--reps"),
-    (["--reps", "0"], "--reps"),
-    (["--reps", "two"], "--reps"),
-    (["--device", "gpu"], "--device"),
-])
+@pytest.mark.parametrize(
+    "args, name",
+    [
+        (["--batch", "0"], "--batch"),
+        (["--batch", "-3"], "--batch"),
+        (["--threads", "0"], "--threads"),
+        (["--threads", "1", "-2"], "--threads"),
+        (["--reps", "-1"], "--reps"),
+        (["--reps", "0"], "--reps"),
+        (["--reps", "two"], "--reps"),
+        (["--device", "gpu"], "--device"),
+    ],
+)
 def test_bad_arguments_exit_2_naming_the_argument(args, name, capsys):
     with pytest.raises(SystemExit) as e:
         bench.main(["--quick", "--skip-closed-loop", *args])
@@ -103,7 +129,8 @@ def test_a_json_path_no_file_can_take_is_refused_before_any_work(tmp_path, monke
 
 
 def test_a_gpu_this_machine_lacks_is_refused_before_any_work(monkeypatch, capsys):
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same on a machine with a GPU
+    # the same on a machine with a GPU
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
     with pytest.raises(SystemExit) as e:
         bench.main(["--quick", "--device", "cuda"])
@@ -113,7 +140,8 @@ def test_a_gpu_this_machine_lacks_is_refused_before_any_work(monkeypatch, capsys
 
 
 def test_mps_is_refused_before_any_work(monkeypatch, capsys):
-    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)  # as on a Mac: there, it has no float64
+    # as on a Mac: there, it has no float64
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)
     monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("work started"))
     with pytest.raises(SystemExit) as e:
         bench.main(["--quick", "--device", "mps"])
@@ -122,11 +150,22 @@ def test_mps_is_refused_before_any_work(monkeypatch, capsys):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_quick_run_on_cuda(tmp_path, capsys):
-    doc = bench.main(["--quick", "--threads", "1", "--device", "cuda", "--json", str(tmp_path / "b.json")])
+    doc = bench.main(
+        ["--quick", "--threads", "1", "--device", "cuda", "--json", str(tmp_path / "b.json")]
+    )
     out = capsys.readouterr().out
-    assert doc["meta"]["device"] == "cuda" and torch.cuda.get_device_name() in doc["meta"]["device_name"]
+    assert (
+        doc["meta"]["device"] == "cuda"
+        and torch.cuda.get_device_name() in doc["meta"]["device_name"]
+    )
     keys = {f["key"] for f in doc["figures"]}
-    assert {"ilqr_forward_f64", "kkt_backward_f64", "stack_step", "predictor_train", "candidates"} <= keys
+    assert {
+        "ilqr_forward_f64",
+        "kkt_backward_f64",
+        "stack_step",
+        "predictor_train",
+        "candidates",
+    } <= keys
     assert all(f["median_ms"] > 0 for f in doc["figures"])
     # the peers and the closed loop, compared on the CPU, are left out, saying so
     assert doc["speedup_vs_mpc_pytorch"] is None and doc["speedup_vs_pypose"] is None
@@ -153,7 +192,9 @@ def test_missing_pypose_is_a_skipped_row_with_a_hint(monkeypatch, capsys):
     assert "Traceback" not in captured.out + captured.err
 
 
-@pytest.mark.skipif(not installed("pypose"), reason="pypose is not installed (a peer, never a dependency)")
+@pytest.mark.skipif(
+    not installed("pypose"), reason="pypose is not installed (a peer, never a dependency)"
+)
 def test_pypose_reaches_our_solution_with_no_bound_active():
     P = bench.unconstrained(bench.tracking_problem(8))
     agree = bench.pypose_agreement(P, iters=40)
@@ -165,11 +206,19 @@ def test_pypose_reaches_our_solution_with_no_bound_active():
         x, u = solve(P, x_init, x_ref, 5, 0.01)
         assert x.shape == (8, 7, 4) and u.shape == (8, 6, 2)
         x[:, -1, :2].sum().backward()
-        assert torch.isfinite(x_init.grad).all() and torch.isfinite(x_ref.grad).all() and x_ref.grad.abs().sum() > 0
+        assert (
+            torch.isfinite(x_init.grad).all()
+            and torch.isfinite(x_ref.grad).all()
+            and x_ref.grad.abs().sum() > 0
+        )
 
 
 def test_tracking_problem_is_reproducible():
-    a, b, c = bench.tracking_problem(8, seed=3), bench.tracking_problem(8, seed=3), bench.tracking_problem(8, seed=4)
+    a, b, c = (
+        bench.tracking_problem(8, seed=3),
+        bench.tracking_problem(8, seed=3),
+        bench.tracking_problem(8, seed=4),
+    )
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not torch.equal(a["x_init"], c["x_init"])
     # the reference is a rollout of its controls, and costs nothing to track
