@@ -1,16 +1,17 @@
 """The course's harness for tutorial.ipynb, and the checks of its exercises.
 
-The harness: the section clock (start, section_done, report_times), the notebook's checks (checkpoint, check_order,
-check_claim: each prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
-the committed tables over seeds (results_table), the helpers that several cells use (gt_context, first_of,
-behaviour_rows), and the notebook's larger figures (figure_*: drawing only, each cell computes what it
-shows).
+The harness: the section clock (start, section_done, report_times), the notebook's checks
+(checkpoint, check_order, check_claim: each prints a line and raises CheckpointError when it fails,
+so that the notebook stops at that cell), the committed tables over seeds (results_table), the
+helpers that several cells use (gt_context, first_of, behaviour_rows), and the notebook's larger
+figures (figure_*: drawing only, each cell computes what it shows).
 
-Each check_* builds its own small problems (seeded, float64), runs the student's function on them and compares with
-an independent answer (the module's function, autograd, or a closed form). A wrong answer raises AssertionError
-with what differs and a hint; a stub that still raises NotImplementedError is reported as not done, so that
-*Run All* goes on past an exercise the student has not tried yet. test_tutorial.py feeds every check known-wrong
-answers and asserts that it catches each one.
+Each check_* builds its own small problems (seeded, float64), runs the student's function on them
+and compares with an independent answer (the module's function, autograd, or a closed form). A wrong
+answer raises AssertionError with what differs and a hint; a stub that still raises
+NotImplementedError is reported as not done, so that *Run All* goes on past an exercise the student
+has not tried yet. test_tutorial.py feeds every check known-wrong answers and asserts that it
+catches each one.
 """
 
 import json
@@ -26,81 +27,108 @@ import diffstack as ds
 F64 = torch.float64
 
 
-# --- the harness: section clock -----------------------------------------------------------------------------------
+# --- the harness: section clock -------------------------------------------------------------------
 
 SECTION_TIMES = {}
 _CLOCK = {}
 
 
 def start():
-    """One torch thread (reproducible numbers, and the machine stays usable), the figures' style, and the clock
-    that section_done and report_times read."""
+    """One torch thread (reproducible numbers, and the machine stays usable), the figures' style,
+    and the clock that section_done and report_times read."""
     import matplotlib.pyplot as plt
 
     torch.set_num_threads(1)
-    plt.rcParams.update({"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8})
+    plt.rcParams.update(
+        {"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8}
+    )
     SECTION_TIMES.clear()
     _CLOCK.update(wall=time.time(), cpu=time.process_time(), section=time.time())
 
 
 def section_done(name):
-    """Record and print the wall time since the previous section ended (the notebook's first table quotes these)."""
+    """Record and print the wall time since the previous section ended (the notebook's first table
+    quotes these)."""
     SECTION_TIMES[name] = time.time() - _CLOCK["section"]
     _CLOCK["section"] = time.time()
     print(f"{name}: {SECTION_TIMES[name]:.0f} s")
 
 
 def report_times(quick):
-    """Wall clock per section and in all, and the kernel's CPU time (one thread: about the wall clock when idle)."""
+    """Wall clock per section and in all, and the kernel's CPU time (one thread: about the wall
+    clock when idle)."""
     print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
-    print(f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, {time.process_time() - _CLOCK['cpu']:.0f}s CPU "
-          f"({'quick' if quick else 'full'} mode)")
+    print(
+        f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, "
+        f"{time.process_time() - _CLOCK['cpu']:.0f}s CPU ({'quick' if quick else 'full'} mode)"
+    )
 
 
-# --- the harness: the notebook's checks ---------------------------------------------------------------------------
+# --- the harness: the notebook's checks -----------------------------------------------------------
 
 
 class CheckpointError(AssertionError):
-    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and going on."""
+    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and
+    going on."""
 
 
-def checkpoint(name, measured, expected, tol, rel=False, hint="re-run the section's cells in order from a fresh kernel"):
-    """For what is deterministic (no training: gradient errors, a file's round trip, a solver on fixed data): the
-    measured value, the expected one, whether they agree within tol; a disagreement stops the notebook."""
+def checkpoint(
+    name,
+    measured,
+    expected,
+    tol,
+    rel=False,
+    hint="re-run the section's cells in order from a fresh kernel",
+):
+    """For what is deterministic (no training: gradient errors, a file's round trip, a solver on
+    fixed data): the measured value, the expected one, whether they agree within tol; a disagreement
+    stops the notebook."""
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
     ok = err <= tol
-    print(f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
-          f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}")
+    print(
+        f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
+        f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}"
+    )
     if not ok:
-        raise CheckpointError(f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
-                              f"{'%g%%' % (100 * tol) if rel else tol}; {hint}")
+        raise CheckpointError(
+            f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
+            f"{'%g%%' % (100 * tol) if rel else tol}; {hint}"
+        )
 
 
 def check_order(name, values, order, margin=0.0):
-    """For what training makes (it differs in the last digits between machines and thread counts, and a short
-    training can go either way): only an ordering that holds on any machine, lowest first, each value at least
-    `margin` below the next. A wrong order stops the notebook."""
+    """For what training makes (it differs in the last digits between machines and thread counts,
+    and a short training can go either way): only an ordering that holds on any machine, lowest
+    first, each value at least `margin` below the next. A wrong order stops the notebook."""
     print(f"CHECK {name}: " + " < ".join(f"{k} {values[k]:.4g}" for k in order), end=" -> ")
     bad = [(a, b) for a, b in zip(order, order[1:]) if not values[a] + margin <= values[b]]
     print("OK" if not bad else "FAILED")
     if bad:
-        raise CheckpointError(f"{name}: expected {' < '.join(order)} (margin {margin:g}); "
-                              + ", ".join(f"{a} {values[a]:.4g} is not below {b} {values[b]:.4g}" for a, b in bad))
+        raise CheckpointError(
+            f"{name}: expected {' < '.join(order)} (margin {margin:g}); "
+            + ", ".join(f"{a} {values[a]:.4g} is not below {b} {values[b]:.4g}" for a, b in bad)
+        )
 
 
 def check_claim(table, method, baseline, column, expect, section=None):
-    """A finding the notebook states, checked on the committed table results/<table>.json: its paired
-    difference over seeds and the verdict (a two-sided paired t-test: reproduced only at p < 0.05 in the paper's
-    direction) must be what the text says.
-    If a re-run of the tables changes the verdict, this stops the notebook until the text is changed with it."""
+    """A finding the notebook states, checked on the committed table results/<table>.json: its
+    paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at p <
+    0.05 in the paper's direction) must be what the text says. If a re-run of the tables changes the
+    verdict, this stops the notebook until the text is changed with it."""
     import experiments as xp
+    import specs
 
-    spec, saved = xp.TABLES[table], json.loads((Path("results") / f"{table}.json").read_text())["results"]
-    line = xp.claim_line(xp.Claim(method, baseline, column, section), spec, saved[section] if section else saved)
+    spec = specs.TABLES[table]
+    saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
+    line = xp.claim_line(
+        specs.Claim(method, baseline, column, section), spec, saved[section] if section else saved
+    )
     verdict = line.rsplit("): ", 1)[-1]
     print(f"CLAIM {line} -> {'OK' if verdict.startswith(expect) else 'FAILED'}")
     if not verdict.startswith(expect):
-        raise CheckpointError(f"results/{table}.json says {verdict!r}, the text says {expect!r}: update the text")
+        raise CheckpointError(
+            f"results/{table}.json says {verdict!r}, the text says {expect!r}: update the text"
+        )
 
 
 def results_table(name):
@@ -109,7 +137,8 @@ def results_table(name):
 
     text = (Path("results") / f"{name}.md").read_text()
     seeds = len(json.loads((Path("results") / f"{name}.json").read_text())["meta"]["seeds"])
-    body = text.split("\n", 1)[1].split("![")[0].strip()  # without the title line and the figure links
+    # without the title line and the figure links
+    body = text.split("\n", 1)[1].split("![")[0].strip()
     display(Markdown(f"**{seeds} seeds, from `results/{name}.md`:** " + body))
 
 
@@ -117,19 +146,29 @@ def rel_err(a, b):
     return ((a - b).norm() / b.norm()).item()
 
 
-# --- the harness: helpers that several cells use -----------------------------------------------------------------
+# --- the harness: helpers that several cells use --------------------------------------------------
 
 
 def gt_context(batch):
-    """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT prediction")."""
+    """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT
+    prediction")."""
     B = len(batch)
     one = torch.ones(B, dtype=batch.ego_hist.dtype)
-    return ds.CostContext(batch.agent_fut[:, None, :, :2], one[:, None], one, batch.others_fut[..., :2],
-                          batch.others_mask.to(one.dtype), batch.goal[:, :2], batch.lanes, batch.lanes_mask)
+    return ds.CostContext(
+        batch.agent_fut[:, None, :, :2],
+        one[:, None],
+        one,
+        batch.others_fut[..., :2],
+        batch.others_mask.to(one.dtype),
+        batch.goal[:, :2],
+        batch.lanes,
+        batch.lanes_mask,
+    )
 
 
 def first_of(batch, behaviour, where=None):
-    """The index of the first sample of `batch` whose predicted vehicle does `behaviour` (and `where` holds)."""
+    """The index of the first sample of `batch` whose predicted vehicle does `behaviour` (and
+    `where` holds)."""
     sel = batch.behaviour == data_synth.BEHAVIOURS.index(behaviour)
     return int((sel if where is None else sel & where).nonzero()[0])
 
@@ -140,11 +179,12 @@ def smooth(v, n=10):
     return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
 
 
-# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ----------------------
+# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ---------
 
 
 def behaviour_rows(behaviour, mask, row):
-    """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that behaviour's mask."""
+    """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that
+    behaviour's mask."""
     rows = []
     for b, name in enumerate(data_synth.BEHAVIOURS):
         sel = mask & (behaviour == b)
@@ -158,118 +198,281 @@ def _legend_right(ax):
 
 
 def figure_stack():
-    """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack (red, dashed)."""
+    """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack
+    (red, dashed)."""
     import matplotlib.pyplot as plt
     from matplotlib.patches import FancyBboxPatch
 
     _, ax = plt.subplots(figsize=(10, 4.2))
     ax.set(xlim=(0, 10), ylim=(-0.55, 4.45))
     ax.axis("off")
-    boxes = {"inputs": (0.1, 1.7, "history of all agents\nlanes, goal"), "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
-             "plan": (4.8, 1.7, "Planner\nsplines + argmin"), "ctrl": (7.15, 1.7, "Controller\nbox-iLQR")}
+    boxes = {
+        "inputs": (0.1, 1.7, "history of all agents\nlanes, goal"),
+        "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
+        "plan": (4.8, 1.7, "Planner\nsplines + argmin"),
+        "ctrl": (7.15, 1.7, "Controller\nbox-iLQR"),
+    }
     for key, (x, y, text) in boxes.items():
         color = "#e8e8e8" if key == "inputs" else ("#ffd9b3" if key == "pred" else "#cfe2f3")
         ax.add_patch(FancyBboxPatch((x, y), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k"))
         ax.text(x + 0.95, y + 0.5, text, ha="center", va="center", fontsize=9)
+
     def arrow(x0, y0, x1, y1, **kw):
         return ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
-    for x0, x1, label in ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$")):
+
+    for x0, x1, label in (
+        (2.0, 2.45, ""),
+        (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"),
+        (6.7, 7.15, r"plan $u^{(0)}$"),
+    ):
         arrow(x0, 2.2, x1, 2.2, lw=1.5)
         ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
     arrow(9.05, 2.2, 9.6, 2.2, lw=1.5)
     ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
     # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
-    for x, text in ((3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
-                    (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
-                    (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)")):
-        ax.text(x, 0.45, text, ha="center", va="center", fontsize=9, bbox=dict(fc="white", ec="tab:red"))
+    for x, text in (
+        (3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
+        (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
+        (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)"),
+    ):
+        ax.text(
+            x, 0.45, text, ha="center", va="center", fontsize=9, bbox=dict(fc="white", ec="tab:red")
+        )
         arrow(x, 1.65, x, 0.9, lw=1)
     red = dict(color="tab:red", lw=1.8, ls="--")
-    ax.annotate("", (3.55, 2.8), (5.75, 2.8), arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.45", **red))
-    ax.annotate("", (3.25, 2.8), (8.1, 2.8), arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.35", **red))
-    ax.text(4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$", color="tab:red", ha="center", fontsize=9)
-    ax.text(6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)", color="tab:red", ha="center", fontsize=9)
+    ax.annotate(
+        "",
+        (3.55, 2.8),
+        (5.75, 2.8),
+        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.45", **red),
+    )
+    ax.annotate(
+        "",
+        (3.25, 2.8),
+        (8.1, 2.8),
+        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.35", **red),
+    )
+    ax.text(
+        4.65,
+        2.93,
+        r"$\partial\mathcal{L}_{plan} / \partial \hat s$",
+        color="tab:red",
+        ha="center",
+        fontsize=9,
+    )
+    ax.text(
+        6.9,
+        3.85,
+        r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)",
+        color="tab:red",
+        ha="center",
+        fontsize=9,
+    )
     ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
-    ax.text(5.0, -0.4, "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the iLQR "
-            "solution (KKT, §5); both reach θ through the predictions", ha="center", fontsize=8.5, color="tab:red")
+    ax.text(
+        5.0,
+        -0.4,
+        "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the "
+        "iLQR solution (KKT, §5); both reach θ through the predictions",
+        ha="center",
+        fontsize=8.5,
+        color="tab:red",
+    )
     plt.show()
 
 
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
-    """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan (argmin) black dashed,
-    axes zoomed on the candidates."""
+    """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
+    (argmin) black dashed, axes zoomed on the candidates."""
     import math
 
     import matplotlib.pyplot as plt
 
     xy = cands.x[0][cands.valid[0]][..., :2]  # (N_valid, T+1, 2)
-    box = (xy[..., 0].min().item() - 3, xy[..., 0].max().item() + 6, xy[..., 1].min().item() - 3, xy[..., 1].max().item() + 3)
+    box = (
+        xy[..., 0].min().item() - 3,
+        xy[..., 0].max().item() + 6,
+        xy[..., 1].min().item() - 3,
+        xy[..., 1].max().item() + 3,
+    )
     norm = plt.matplotlib.colors.LogNorm(1e-4, 1)
-    fig, axes = plt.subplots(len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
+    fig, axes = plt.subplots(
+        len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True
+    )
     for ax, beta in zip(axes, betas):
         p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
         data_synth.plot_scenario(ax, ex, 0, extent=box)
         for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
             if cands.valid[0, n]:
-                ax.plot(cands.x[0, n, :, 0], cands.x[0, n, :, 1], color=plt.cm.viridis(norm(max(p[n].item(), 1e-4))),
-                        lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
-        ax.plot(cands.x[0, best[0], :, 0], cands.x[0, best[0], :, 1], "k--", lw=1.5, zorder=8, label="plan (argmin)")
-        ax.set_title(f"β = {beta}: max p_n = {p.max():.2f}, entropy {-(p[p > 0] * p[p > 0].log()).sum():.2f} nats "
-                     f"(uniform over {int(cands.valid.sum())}: {math.log(int(cands.valid.sum())):.2f})", fontsize=9)
+                ax.plot(
+                    cands.x[0, n, :, 0],
+                    cands.x[0, n, :, 1],
+                    color=plt.cm.viridis(norm(max(p[n].item(), 1e-4))),
+                    lw=1.0 + 2 * p[n].item() ** 0.5,
+                    zorder=7,
+                )
+        ax.plot(
+            cands.x[0, best[0], :, 0],
+            cands.x[0, best[0], :, 1],
+            "k--",
+            lw=1.5,
+            zorder=8,
+            label="plan (argmin)",
+        )
+        ax.set_title(
+            f"β = {beta}: max p_n = {p.max():.2f}, entropy "
+            f"{-(p[p > 0] * p[p > 0].log()).sum():.2f} nats (uniform over "
+            f"{int(cands.valid.sum())}: {math.log(int(cands.valid.sum())):.2f})",
+            fontsize=9,
+        )
         _legend_right(ax)
-    fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=norm), ax=axes, shrink=0.6, label="p_n (log scale)")
+    fig.colorbar(
+        plt.cm.ScalarMappable(cmap="viridis", norm=norm),
+        ax=axes,
+        shrink=0.6,
+        label="p_n (log scale)",
+    )
     plt.show()
 
 
 def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
-    """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show` (three), with the
-    prediction, the target n* and the plan."""
+    """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
+    (three), with the prediction, the target n* and the plan."""
     import matplotlib.pyplot as plt
 
     scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
-    fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
+    fig, axd = plt.subplot_mosaic(
+        [["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1)
+    )
     for ax, j in zip(axd.values(), show):
         P = preds[j, 0].detach()
-        pts = torch.cat([P, bg.agent_fut[j, :, :2], cands.x[j, target[j], :, :2], bg.ego_hist[j, -1:, :2]])
+        pts = torch.cat(
+            [P, bg.agent_fut[j, :, :2], cands.x[j, target[j], :, :2], bg.ego_hist[j, -1:, :2]]
+        )
         lo, hi = pts.min(0).values, pts.max(0).values
-        data_synth.plot_scenario(ax, bg, j, extent=(lo[0].item() - 6, hi[0].item() + 6, lo[1].item() - 5, hi[1].item() + 5), title=(
-            f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = {l_plan[j]:.2f},\nlargest "
-            f"|dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan {'=' if best[j] == target[j] else '≠'} target n*"))
-        ax.plot(P[:, 0], P[:, 1], "o-", color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
-        ax.quiver(P[:, 0], P[:, 1], -scale * grad[j, 0, :, 0], -scale * grad[j, 0, :, 1], color="tab:red",
-                  angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9, label="-dL_plan/dŝ_t (one scale)")
-        ax.plot(cands.x[j, target[j], :, 0], cands.x[j, target[j], :, 1], "g-", lw=3, alpha=0.6, zorder=7,
-                label="target n* (cheapest in hindsight)")
-        ax.plot(cands.x[j, best[j], :, 0], cands.x[j, best[j], :, 1], "k--", lw=1.5, zorder=7, label="plan with this prediction")
+        data_synth.plot_scenario(
+            ax,
+            bg,
+            j,
+            extent=(lo[0].item() - 6, hi[0].item() + 6, lo[1].item() - 5, hi[1].item() + 5),
+            title=(
+                f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
+                f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
+                f"{'=' if best[j] == target[j] else '≠'} target n*"
+            ),
+        )
+        ax.plot(
+            P[:, 0],
+            P[:, 1],
+            "o-",
+            color="tab:red",
+            ms=4,
+            lw=1,
+            zorder=8,
+            label="prediction (constant velocity)",
+        )
+        ax.quiver(
+            P[:, 0],
+            P[:, 1],
+            -scale * grad[j, 0, :, 0],
+            -scale * grad[j, 0, :, 1],
+            color="tab:red",
+            angles="xy",
+            scale_units="xy",
+            scale=1,
+            width=0.004,
+            zorder=9,
+            label="-dL_plan/dŝ_t (one scale)",
+        )
+        ax.plot(
+            cands.x[j, target[j], :, 0],
+            cands.x[j, target[j], :, 1],
+            "g-",
+            lw=3,
+            alpha=0.6,
+            zorder=7,
+            label="target n* (cheapest in hindsight)",
+        )
+        ax.plot(
+            cands.x[j, best[j], :, 0],
+            cands.x[j, best[j], :, 1],
+            "k--",
+            lw=1.5,
+            zorder=7,
+            label="plan with this prediction",
+        )
     axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
-    fig.suptitle("Which prediction errors the planner cares about: -dL_plan/d(prediction) on a constant-velocity "
-                 "prediction\n(orange: the vehicle's true future; red arrows: where a gradient step moves each predicted "
-                 "position)", fontsize=10)
+    fig.suptitle(
+        "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a "
+        "constant-velocity prediction\n(orange: the vehicle's true future; red arrows: where a "
+        "gradient step moves each predicted position)",
+        fontsize=10,
+    )
     plt.show()
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
-    """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the mean); right,
-    sample i: the plan's and the controller's trajectories, the states at the same time joined, and the controls
-    over time (the plan's dashed, the controller's solid; grey band: the box)."""
+    """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
+    mean); right, sample i: the plan's and the controller's trajectories, the states at the same
+    time joined, and the controls over time (the plan's dashed, the controller's solid; grey band:
+    the box)."""
     import matplotlib.pyplot as plt
 
-    _, axd = plt.subplot_mosaic([["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained")
+    _, axd = plt.subplot_mosaic(
+        [["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained"
+    )
     ax = axd["cost"]
     ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
     ax.plot(rel.mean(0), color="k", lw=2, label="mean")
-    ax.set(xlabel="iteration", ylabel="cost / cost of the plan", title="iLQR: the true cost never rises (line search)")
+    ax.set(
+        xlabel="iteration",
+        ylabel="cost / cost of the plan",
+        title="iLQR: the true cost never rises (line search)",
+    )
     ax.legend(loc="lower left")
     ax.grid(alpha=0.3)
     ax = axd["map"]
     pts = torch.cat([plan_x[:, :2], ctrl_x[:, :2]])
-    data_synth.plot_scenario(ax, batch, i, extent=(pts[:, 0].min().item() - 4, pts[:, 0].max().item() + 4,
-                                                   pts[:, 1].min().item() - 4, pts[:, 1].max().item() + 4),
-                             title=f"sample {i}: plan (green) → iLQR (purple), the states at the same times joined")
-    ax.plot(plan_x[:, 0], plan_x[:, 1], "o--", color="tab:green", lw=2, ms=5, zorder=8, label="plan (candidate)")
-    ax.plot(ctrl_x[:, 0], ctrl_x[:, 1], "o-", color="purple", lw=2, ms=5, zorder=9, label="controller (iLQR)")
+    data_synth.plot_scenario(
+        ax,
+        batch,
+        i,
+        extent=(
+            pts[:, 0].min().item() - 4,
+            pts[:, 0].max().item() + 4,
+            pts[:, 1].min().item() - 4,
+            pts[:, 1].max().item() + 4,
+        ),
+        title=f"sample {i}: plan (green) → iLQR (purple), the states at the same times joined",
+    )
+    ax.plot(
+        plan_x[:, 0],
+        plan_x[:, 1],
+        "o--",
+        color="tab:green",
+        lw=2,
+        ms=5,
+        zorder=8,
+        label="plan (candidate)",
+    )
+    ax.plot(
+        ctrl_x[:, 0],
+        ctrl_x[:, 1],
+        "o-",
+        color="purple",
+        lw=2,
+        ms=5,
+        zorder=9,
+        label="controller (iLQR)",
+    )
     for t in range(1, len(plan_x)):
-        ax.annotate("", ctrl_x[t, :2].tolist(), plan_x[t, :2].tolist(), arrowprops=dict(arrowstyle="->", color="k", lw=0.8), zorder=10)
+        ax.annotate(
+            "",
+            ctrl_x[t, :2].tolist(),
+            plan_x[t, :2].tolist(),
+            arrowprops=dict(arrowstyle="->", color="k", lw=0.8),
+            zorder=10,
+        )
     _legend_right(ax)
     tt_u = cfg.dt * torch.arange(len(plan_u))
     for key, j, label in (("w", 0, "yaw rate ω (rad/s)"), ("a", 1, "acceleration a (m/s²)")):
@@ -285,9 +488,10 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
 
 
 def figure_modes(sub, pred, train_steps):
-    """§6: a predictor's K modes on the samples of `sub`, coloured and widened by p(z = k | x) (one colour scale),
-    the most likely labelled, the three largest probabilities in each title, 1σ ellipses of the most likely mode;
-    zoomed on the predicted vehicle (its last history steps, the modes and its true future)."""
+    """§6: a predictor's K modes on the samples of `sub`, coloured and widened by p(z = k | x) (one
+    colour scale), the most likely labelled, the three largest probabilities in each title, 1σ
+    ellipses of the most likely mode; zoomed on the predicted vehicle (its last history steps, the
+    modes and its true future)."""
     import matplotlib.pyplot as plt
 
     import figures
@@ -295,60 +499,122 @@ def figure_modes(sub, pred, train_steps):
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
-        P = torch.cat([pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
-        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])  # the vehicle, not the ego
-        c, half = (pts.max(0).values + pts.min(0).values) / 2, (pts.max(0).values - pts.min(0).values) / 2 + 1.5
-        hx, hy = max(half[0].item(), 1.3 * half[1].item()), max(half[1].item(), half[0].item() / 1.3)  # the panels' shape
+        # P: (K, 1+T, 2)
+        P = torch.cat(
+            [pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1
+        )
+        # the vehicle, not the ego
+        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
+        c, half = (
+            (pts.max(0).values + pts.min(0).values) / 2,
+            (pts.max(0).values - pts.min(0).values) / 2 + 1.5,
+        )
+        # the panels' shape
+        hx, hy = (
+            max(half[0].item(), 1.3 * half[1].item()),
+            max(half[1].item(), half[0].item() / 1.3),
+        )
         top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
-        data_synth.plot_scenario(ax, sub, j, extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
-                                 title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
-                                       + ", ".join(f"{q:.2f}" for q in top3))
-        figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # the 1σ ellipses (and faint modes)
+        data_synth.plot_scenario(
+            ax,
+            sub,
+            j,
+            extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
+            title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
+            + ", ".join(f"{q:.2f}" for q in top3),
+        )
+        # the 1σ ellipses (and faint modes)
+        figures.plot_prediction(ax, pred, j, color="tab:red", label=None)
         for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
             pk = pred.probs[j, k].item()
-            ax.plot(P[k, :, 0], P[k, :, 1], color=plt.cm.viridis_r(norm_p(pk)), lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
+            ax.plot(
+                P[k, :, 0],
+                P[k, :, 1],
+                color=plt.cm.viridis_r(norm_p(pk)),
+                lw=0.6 + 3 * pk / norm_p.vmax,
+                zorder=8,
+            )
         k = int(pred.probs[j].argmax())
-        ax.annotate(f"most likely, p = {pred.probs[j, k]:.2f}", P[k, -1].tolist(), xytext=(0, 14), textcoords="offset points",
-                    fontsize=8, ha="center", zorder=10, arrowprops=dict(arrowstyle="-", lw=0.6),
-                    bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1))
-    fig.colorbar(plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p), ax=axes, shrink=0.8, label="mode probability p(z = k | x)")
-    fig.suptitle(f"Standard predictor: 25 modes with their probabilities (orange: the true future). After {train_steps} steps no "
-                 "mode stands out: the probability is spread over many similar modes", fontsize=10)
+        ax.annotate(
+            f"most likely, p = {pred.probs[j, k]:.2f}",
+            P[k, -1].tolist(),
+            xytext=(0, 14),
+            textcoords="offset points",
+            fontsize=8,
+            ha="center",
+            zorder=10,
+            arrowprops=dict(arrowstyle="-", lw=0.6),
+            bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1),
+        )
+    fig.colorbar(
+        plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p),
+        ax=axes,
+        shrink=0.8,
+        label="mode probability p(z = k | x)",
+    )
+    fig.suptitle(
+        "Standard predictor: 25 modes with their probabilities (orange: the true future). After "
+        f"{train_steps} steps no mode stands out: the probability is spread over many similar "
+        "modes",
+        fontsize=10,
+    )
     plt.show()
 
 
 def figure_goal(goal_res):
-    """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene mean), the paper's
-    goal against a route goal, from results/goal.json."""
+    """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene
+    mean), the paper's goal against a route goal, from results/goal.json."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)  # one scale: compare the sizes
-    behaviours = [b for b in data_synth.BEHAVIOURS if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]]
+    # one scale: compare the sizes
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
+    behaviours = [
+        b
+        for b in data_synth.BEHAVIOURS
+        if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]
+    ]
     for ax, goal in zip(axes, ("logged", "route")):
         none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
-        saved = [(gt["by_behaviour"][b]["hindsight"] - none["by_behaviour"][b]["hindsight"]) * none["by_behaviour"][b]["n"]
-                 / none["n"] / 1e-2 for b in behaviours]  # each behaviour's part of the all-scene mean
-        ax.barh(behaviours, saved, color=["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours])
+        saved = [
+            (gt["by_behaviour"][b]["hindsight"] - none["by_behaviour"][b]["hindsight"])
+            * none["by_behaviour"][b]["n"]
+            # each behaviour's part of the all-scene mean
+            / none["n"]
+            / 1e-2
+            for b in behaviours
+        ]
+        ax.barh(
+            behaviours,
+            saved,
+            color=["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours],
+        )
         ax.axvline(0, color="k", lw=0.8)
         name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
         ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
         ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
         ax.grid(axis="x", alpha=0.3)
     axes[0].invert_yaxis()
-    fig.suptitle("Under the paper's goal a perfect prediction pays little, mostly in keep_lane;\nunder a route goal five "
-                 "times more, mostly in cut-ins and behind braking leaders (red)", fontsize=10)
+    fig.suptitle(
+        "Under the paper's goal a perfect prediction pays little, mostly in keep_lane;\nunder a "
+        "route goal five times more, mostly in cut-ins and behind braking leaders (red)",
+        fontsize=10,
+    )
     plt.tight_layout()
     plt.show()
 
 
 def figure_learning_curves(histories):
-    """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean (solid); a method
-    that does not run the stack in training (no l_plan) has only an L_pred curve."""
+    """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean
+    (solid); a method that does not run the stack in training (no l_plan) has only an
+    L_pred curve."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.4), layout="constrained")
-    for key, ax, label in (("l_pred", axes[0], "L_pred (nats)"), ("l_plan", axes[1], "L_plan (nats)"),
-                           ("l_ctr", axes[2], "L_ctr = hindsight cost")):
+    for key, ax, label in (
+        ("l_pred", axes[0], "L_pred (nats)"),
+        ("l_plan", axes[1], "L_plan (nats)"),
+        ("l_ctr", axes[2], "L_ctr = hindsight cost"),
+    ):
         for name, (h, color) in histories.items():
             if key != "l_pred" and name == "Standard":
                 continue
@@ -359,95 +625,137 @@ def figure_learning_curves(histories):
         ax.set(xlabel="training step", ylabel=label)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
-    fig.suptitle("Learning curves on the training batches (faint: per batch; solid: 10-step mean)", fontsize=10)
+    fig.suptitle(
+        "Learning curves on the training batches (faint: per batch; solid: 10-step mean)",
+        fontsize=10,
+    )
     plt.show()
 
 
 def figure_stacks(batch, i, outs, cfg, at="", also=None):
-    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack: predictions, candidates
-    coloured by p_n, plan, controller); `also` (outs of another run) adds that run's controller states as circles."""
+    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack:
+    predictions, candidates coloured by p_n, plan, controller); `also` (outs of another run) adds
+    that run's controller states as circles."""
     import matplotlib.pyplot as plt
 
     import figures
 
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
-        figures.plot_stack(ax, batch, i, outs[name], cfg, f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
-                      extent=(-12, 48, -10, 10))
+        figures.plot_stack(
+            ax,
+            batch,
+            i,
+            outs[name],
+            cfg,
+            f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
+            extent=(-12, 48, -10, 10),
+        )
         if also is not None:
-            ax.plot(also[name].x[i, :, 0], also[name].x[i, :, 1], "o", color="tab:purple", ms=6, mfc="none", zorder=10,
-                    label="controller at 0.5 s")
+            ax.plot(
+                also[name].x[i, :, 0],
+                also[name].x[i, :, 1],
+                "o",
+                color="tab:purple",
+                ms=6,
+                mfc="none",
+                zorder=10,
+                label="controller at 0.5 s",
+            )
         _legend_right(ax)
     if also is None:
-        fig.colorbar(plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1)), ax=axes, shrink=0.5,
-                     label="candidate p_n / max p_n", boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
+        fig.colorbar(
+            plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1)),
+            ax=axes,
+            shrink=0.5,
+            label="candidate p_n / max p_n",
+            boundaries=np.linspace(0, 1, 101),
+            ticks=[0, 0.5, 1],
+        )
     plt.show()
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory, how far each is
-    from No prediction's in cm, the ego's speed over time)."""
+    """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory,
+    how far each is from No prediction's in cm, the ego's speed over time)."""
     import figures
 
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
-# --- the exercises' checks -------------------------------------------------------------------------------------
+# --- the exercises' checks ------------------------------------------------------------------------
 
 
 def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None):
-    """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max), where allowed is
-    tol for a float64 answer and grows with the answer's rounding unit otherwise (16 eps cond: a correct float32
-    answer passes, a wrong one still fails); cond: how much the problem magnifies a rounding error (its conditioning);
-    dtype: the one the answer was computed in, where that is not mine's (a gradient autograd cast back)."""
+    """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
+    where allowed is tol for a float64 answer and grows with the answer's rounding unit otherwise
+    (16 eps cond: a correct float32 answer passes, a wrong one still fails); cond: how much the
+    problem magnifies a rounding error (its conditioning); dtype: the one the answer was computed
+    in, where that is not mine's (a gradient autograd cast back)."""
     if not isinstance(mine, torch.Tensor):
         try:
             mine = torch.as_tensor(mine)
         except (TypeError, ValueError, RuntimeError):
-            raise AssertionError(f"{name}: expected a tensor of shape {tuple(ref.shape)}, got {type(mine).__name__}. "
-                                 f"{hint}") from None
-    assert mine.shape == ref.shape, f"{name}: shape {tuple(mine.shape)}, expected {tuple(ref.shape)}. {hint}"
-    assert mine.is_floating_point(), f"{name}: dtype {mine.dtype}, expected a floating-point tensor. {hint}"
+            raise AssertionError(
+                f"{name}: expected a tensor of shape {tuple(ref.shape)}, got "
+                f"{type(mine).__name__}. {hint}"
+            ) from None
+    assert mine.shape == ref.shape, (
+        f"{name}: shape {tuple(mine.shape)}, expected {tuple(ref.shape)}. {hint}"
+    )
+    assert mine.is_floating_point(), (
+        f"{name}: dtype {mine.dtype}, expected a floating-point tensor. {hint}"
+    )
     assert torch.isfinite(mine).all(), f"{name}: contains inf or NaN. {hint}"
     err = (mine.to(ref.dtype) - ref).abs().max().item()
     scale = max(1.0, ref.abs().max().item())
     allowed = max(tol, 16 * torch.finfo(dtype or mine.dtype).eps * cond) * scale
-    assert err <= allowed, f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}). {hint}"
+    assert err <= allowed, (
+        f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}). {hint}"
+    )
     return err
 
 
 def _call(name, fn, *args, returns=""):
-    """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned into a failed check
-    that names the inputs' shapes and what it should return; NotImplementedError (a stub) passes through."""
+    """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned
+    into a failed check that names the inputs' shapes and what it should return; NotImplementedError
+    (a stub) passes through."""
     try:
         return fn(*args)
     except NotImplementedError:
         raise
-    except Exception as e:  # noqa: BLE001  (whatever the student's code raises is the answer's failure)
-        shapes = ", ".join(str(tuple(a.shape)) if isinstance(a, torch.Tensor) else type(a).__name__ for a in args)
-        raise AssertionError(f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
-                             f"{returns})") from None
+    except Exception as e:  # whatever the student's code raises is the answer's failure
+        shapes = ", ".join(
+            str(tuple(a.shape)) if isinstance(a, torch.Tensor) else type(a).__name__ for a in args
+        )
+        raise AssertionError(
+            f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
+            f"{returns})"
+        ) from None
 
 
 def exercise(number, check, fn):
-    """Run one exercise's check from a notebook cell: PASS, not done yet (the stub raised NotImplementedError),
-    or AssertionError (a wrong answer: the message says what differs). Returns True on PASS."""
+    """Run one exercise's check from a notebook cell: PASS, not done yet (the stub raised
+    NotImplementedError), or AssertionError (a wrong answer: the message says what differs). Returns
+    True on PASS."""
     try:
         detail = check(fn)
     except NotImplementedError:
-        print(f"EXERCISE {number}: not done yet: fill in `{fn.__name__}` in the cell above, run it, then this cell. "
-              f"(The rest of the notebook does not need it.)")
+        print(
+            f"EXERCISE {number}: not done yet: fill in `{fn.__name__}` in the cell above, run "
+            "it, then this cell. (The rest of the notebook does not need it.)"
+        )
         return False
     print(f"EXERCISE {number}: PASS ({detail})")
     return True
 
 
-# --- exercise 1: the collision term ----------------------------------------------------------------------------
+# --- exercise 1: the collision term ---------------------------------------------------------------
 
 
 def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
-    """Ego positions (B, N, T, 2) near a multi-mode prediction, and a CostContext in which some scenarios have no
-    predicted agent (pred_mask 0) and some other agents are masked out."""
+    """Ego positions (B, N, T, 2) near a multi-mode prediction, and a CostContext in which some
+    scenarios have no predicted agent (pred_mask 0) and some other agents are masked out."""
     g = torch.Generator().manual_seed(seed)
     preds = 3 * torch.randn(B, K, T, 2, generator=g, dtype=F64)
     probs = torch.softmax(2 * torch.randn(B, K, generator=g, dtype=F64), -1)  # far from uniform
@@ -457,41 +765,63 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     others_mask[::2, 0] = 0  # some other agents absent
     lanes = torch.zeros(B, 1, 5, 3, dtype=F64)
     lanes[..., 0] = torch.linspace(-10, 30, 5, dtype=F64)
-    ctx = ds.CostContext(preds, probs, pred_mask, others, others_mask, torch.zeros(B, 2, dtype=F64), lanes,
-                         torch.ones(B, 1, 5, dtype=torch.bool))
+    ctx = ds.CostContext(
+        preds,
+        probs,
+        pred_mask,
+        others,
+        others_mask,
+        torch.zeros(B, 2, dtype=F64),
+        lanes,
+        torch.ones(B, 1, 5, dtype=torch.bool),
+    )
     pos = 3 * torch.randn(B, N, T, 2, generator=g, dtype=F64)
     return pos, ctx
 
 
 def check_collision(fn):
-    hint = ("C_coll = pred_mask * sum_t phi(sum_k pi_k ||s_t - s^_kt||^2) + sum_a mask_a sum_t phi(||s_t - s_at||^2), "
-            "phi(d2) = exp(-d2 / (2 rbf_var)); the expectation is over squared distances, not of positions.")
+    hint = (
+        "C_coll = pred_mask * sum_t phi(sum_k pi_k ||s_t - s^_kt||^2) + sum_a mask_a sum_t "
+        "phi(||s_t - s_at||^2), phi(d2) = exp(-d2 / (2 rbf_var)); the expectation is over "
+        "squared distances, not of positions."
+    )
     worst = 0.0
     for seed, rbf_var in ((0, 2.0), (1, 3.5)):
         pos, ctx = collision_problem(seed)
         mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
-        worst = max(worst, _close("my_collision", mine, ds.collision_term(pos, ctx, rbf_var), 1e-9, hint, cond=10))
+        worst = max(
+            worst,
+            _close("my_collision", mine, ds.collision_term(pos, ctx, rbf_var), 1e-9, hint, cond=10),
+        )
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
 
-# --- exercise 2: the relaxed planner's loss ---------------------------------------------------------------------
+# --- exercise 2: the relaxed planner's loss -------------------------------------------------------
 
 
 def plan_problem(seed=0, B=8, N=12):
-    """Candidate costs in the thousands (B, N), a valid mask with invalid candidates cheaper than every valid
-    one (a softmax that ignores the mask picks them), and targets n* among the valid ones."""
+    """Candidate costs in the thousands (B, N), a valid mask with invalid candidates cheaper than
+    every valid one (a softmax that ignores the mask picks them), and targets n* among the
+    valid ones."""
     g = torch.Generator().manual_seed(seed)
     cost = 2000 + 3 * torch.randn(B, N, generator=g, dtype=F64)
     valid = torch.rand(B, N, generator=g) > 0.3
     valid[:, :2] = True  # at least two valid candidates
     cost = torch.where(valid, cost, cost - 20)
-    target = torch.stack([torch.nonzero(v).flatten()[torch.randint(int(v.sum()), (1,), generator=g)][0] for v in valid])
+    target = torch.stack(
+        [
+            torch.nonzero(v).flatten()[torch.randint(int(v.sum()), (1,), generator=g)][0]
+            for v in valid
+        ]
+    )
     return cost, valid, target
 
 
 def check_plan_loss(fn):
-    hint = ("L_plan = -log p_{n*}, p_n = exp(-beta C_n) / sum over the *valid* n' of exp(-beta C_n'); use a stable "
-            "log-softmax (logsumexp): exp(-2000) underflows.")
+    hint = (
+        "L_plan = -log p_{n*}, p_n = exp(-beta C_n) / sum over the *valid* n' of exp(-beta "
+        "C_n'); use a stable log-softmax (logsumexp): exp(-2000) underflows."
+    )
     worst = 0.0
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
@@ -501,18 +831,28 @@ def check_plan_loss(fn):
         cond = beta * cost.abs().max().item()  # the costs' rounding, magnified by beta
         worst = max(worst, _close(f"my_plan_loss (beta = {beta})", mine, ref, 1e-9, hint, cond))
         ref.sum().backward()
-        assert mine.requires_grad, f"my_plan_loss: the result has no gradient (keep it a torch expression). {hint}"
+        assert mine.requires_grad, (
+            f"my_plan_loss: the result has no gradient (keep it a torch expression). {hint}"
+        )
         mine.sum().backward()
-        _close(f"gradient of my_plan_loss wrt the costs (beta = {beta})", c1.grad, c2.grad, 1e-9, hint, cond, mine.dtype)
+        _close(
+            f"gradient of my_plan_loss wrt the costs (beta = {beta})",
+            c1.grad,
+            c2.grad,
+            1e-9,
+            hint,
+            cond,
+            mine.dtype,
+        )
     return f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
-# --- exercise 3: one step of the Riccati recursion --------------------------------------------------------------
+# --- exercise 3: one step of the Riccati recursion ------------------------------------------------
 
 
 def riccati_problem(seed=0, B=6, n=4, m=2):
-    """A random one-step LQR (positive definite cost), as ds.lqr_backward_fixed takes it: H (B, 2, n+m, n+m),
-    g (B, 2, n+m), A (B, 1, n, n), B (B, 1, n, m)."""
+    """A random one-step LQR (positive definite cost), as ds.lqr_backward_fixed takes it: H (B, 2,
+    n+m, n+m), g (B, 2, n+m), A (B, 1, n, n), B (B, 1, n, m)."""
     g = torch.Generator().manual_seed(seed)
     R = torch.randn(B, 2, n + m, n + m, generator=g, dtype=F64)
     H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)
@@ -529,49 +869,81 @@ def check_riccati(fn):
     for seed in (0, 1):
         H, gv, A, Bm = riccati_problem(seed, n=n, m=m)
         B = len(H)
-        k_ref, K_ref, _, p0_ref = ds.lqr_backward_fixed(A, Bm, H, gv, n, torch.ones(B, 1, m, dtype=torch.bool))
+        k_ref, K_ref, _, p0_ref = ds.lqr_backward_fixed(
+            A, Bm, H, gv, n, torch.ones(B, 1, m, dtype=torch.bool)
+        )
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
         F = torch.cat([A[:, 0], Bm[:, 0]], -1)
         Q = H[:, 0] + F.transpose(-1, -2) @ H[:, 1, :n, :n] @ F
         P_ref = Q[:, :n, :n] - Q[:, :n, n:] @ torch.linalg.solve(Q[:, n:, n:], Q[:, n:, :n])
         args = (H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
-        out = _call("my_riccati_step", fn, *args, returns=f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))")
+        out = _call(
+            "my_riccati_step",
+            fn,
+            *args,
+            returns=f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))",
+        )
         assert isinstance(out, (tuple, list)) and len(out) == 4, (
-            f"my_riccati_step: returned {type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}, "
-            f"expected the four (k, K, P_new, p_new). {hint}")
+            "my_riccati_step: returned "
+            f"{type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}, "
+            f"expected the four (k, K, P_new, p_new). {hint}"
+        )
         k, K, P_new, p_new = out
         cond = torch.linalg.cond(Q[:, n:, n:]).max().item()  # the solves with Q_uu
-        for name, mine, ref in (("k (feed-forward)", k, k_ref[:, 0]), ("K (feedback gain)", K, K_ref[:, 0]),
-                                ("P_new", P_new, P_ref), ("p_new", p_new, p0_ref)):
+        for name, mine, ref in (
+            ("k (feed-forward)", k, k_ref[:, 0]),
+            ("K (feedback gain)", K, K_ref[:, 0]),
+            ("P_new", P_new, P_ref),
+            ("p_new", p_new, p0_ref),
+        ):
             worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, 1e-8, hint, cond))
     return f"k, K, P_new, p_new, max error {worst:.1e}"
 
 
-# --- exercise 4: the gradient through the relaxed argmin --------------------------------------------------------
+# --- exercise 4: the gradient through the relaxed argmin ------------------------------------------
 
 
 def check_plan_grad(fn):
-    hint = ("differentiate -log p_{n*} = beta C_{n*} + log sum_{n' valid} exp(-beta C_n') with respect to C_n; "
-            "invalid candidates get 0.")
+    hint = (
+        "differentiate -log p_{n*} = beta C_{n*} + log sum_{n' valid} exp(-beta C_n') with "
+        "respect to C_n; invalid candidates get 0."
+    )
     worst = 0.0
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c = cost.clone().requires_grad_()
-        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)  # autograd's answer
-        mine = _call("my_plan_loss_grad", fn, cost, valid, target, beta, returns="dL_plan/dC of shape (B, N)")
-        worst = max(worst, _close(f"my_plan_loss_grad (beta = {beta})", mine, ref, 1e-9, hint, beta * cost.abs().max().item()))
+        # autograd's answer
+        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)
+        mine = _call(
+            "my_plan_loss_grad", fn, cost, valid, target, beta, returns="dL_plan/dC of shape (B, N)"
+        )
+        worst = max(
+            worst,
+            _close(
+                f"my_plan_loss_grad (beta = {beta})",
+                mine,
+                ref,
+                1e-9,
+                hint,
+                beta * cost.abs().max().item(),
+            ),
+        )
     return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
-# --- exercise 5: the controller's gradient, the KKT backward (App. C.3) -------------------------------------------
+# --- exercise 5: the controller's gradient, the KKT backward (App. C.3) ---------------------------
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
-    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t x_t + B_t u_t from x_init,
-    the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over z_t = [x_t; u_t] (t = 0..T, the last control block unused), some
-    controls held at their bound (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
+    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t x_t +
+    B_t u_t from x_init, the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over z_t = [x_t; u_t] (t = 0..T,
+    the last control block unused), some controls held at their bound (free False), and the incoming
+    gradient (grad_x, grad_u) of a loss on the solution."""
     gen = torch.Generator().manual_seed(seed)
-    randn = lambda *shape: torch.randn(*shape, generator=gen, dtype=F64)  # noqa: E731
+
+    def randn(*shape):
+        return torch.randn(*shape, generator=gen, dtype=F64)
+
     A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
     Bm = randn(B, T, n, m)
     R = randn(B, T + 1, n + m, n + m)
@@ -581,8 +953,8 @@ def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
 
 
 def lqr_solve(A, Bm, H, g, x_init, free):
-    """The problem's solution (x* (B, T+1, n), u* (B, T, m)): the module's Riccati recursion, then the policy
-    u_t = k_t + K_t x_t rolled out from x_init; held controls stay at 0."""
+    """The problem's solution (x* (B, T+1, n), u* (B, T, m)): the module's Riccati recursion, then
+    the policy u_t = k_t + K_t x_t rolled out from x_init; held controls stay at 0."""
     k, K, _, _ = ds.lqr_backward_fixed(A, Bm, H, g, x_init.shape[-1], free)
     x, u = [x_init], []
     for t in range(A.shape[1]):
@@ -592,75 +964,131 @@ def lqr_solve(A, Bm, H, g, x_init, free):
 
 
 def check_kkt(fn):
-    hint = ("the backward pass is the same LQR (A, B, H, the active set) with the incoming gradient [grad_x; grad_u] "
-            "as its linear term and dx_0 = 0: roll its policy out for d = (dx, du); dL/dg = d, dL/dx_init = p_0.")
+    hint = (
+        "the backward pass is the same LQR (A, B, H, the active set) with the incoming gradient "
+        "[grad_x; grad_u] as its linear term and dx_0 = 0: roll its policy out for d = (dx, "
+        "du); dL/dg = d, dL/dx_init = p_0."
+    )
     worst = 0.0
     for seed in (0, 1):
         A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
         B, T1, nm = g.shape
         n = x_init.shape[-1]
-        # the reference: autograd through the module's solver, dL/dx_init and dL/dg of L = <grad_x, x*> + <grad_u, u*>
+        # the reference: autograd through the module's solver, dL/dx_init and dL/dg of
+        # L = <grad_x, x*> + <grad_u, u*>
         xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
-        loss = lambda xi, gg: sum((a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free)))  # noqa: E731
+
+        def loss(xi, gg):
+            return sum(
+                (a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free))
+            )
+
         ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
         # ... itself against central finite differences on a few coordinates
         for (b, i), h in (((0, 1), 1e-6), ((2, 0), 1e-6)):
             e = torch.zeros_like(x_init)
             e[b, i] = h
-            assert abs((loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * h) - ref_x[b, i].item()) < 1e-6
-        out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n,
-                    returns=f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))")
+            assert (
+                abs(
+                    (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * h)
+                    - ref_x[b, i].item()
+                )
+                < 1e-6
+            )
+        out = _call(
+            "my_kkt_backward",
+            fn,
+            A,
+            Bm,
+            H,
+            grad_x,
+            grad_u,
+            free,
+            n,
+            returns=f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))",
+        )
         assert isinstance(out, (tuple, list)) and len(out) == 2, (
-            f"my_kkt_backward: returned {type(out).__name__}, expected the two (dL/dx_init, dL/dg). {hint}")
+            f"my_kkt_backward: returned {type(out).__name__}, expected the two (dL/dx_init, "
+            f"dL/dg). {hint}"
+        )
         cond = torch.linalg.cond(H).max().item()
         worst = max(worst, _close("my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond))
         worst = max(worst, _close("my_kkt_backward: dL/dg", out[1], ref_g, 1e-9, hint, cond))
-    return f"dL/dx_init and dL/dg against autograd through the solver (itself against finite differences), " \
-           f"max error {worst:.1e}, held controls"
+    return (
+        "dL/dx_init and dL/dg against autograd through the solver (itself against finite "
+        f"differences), max error {worst:.1e}, held controls"
+    )
 
 
-CHECKS = {1: check_collision, 2: check_plan_loss, 3: check_riccati, 4: check_plan_grad, 5: check_kkt}
+CHECKS = {
+    1: check_collision,
+    2: check_plan_loss,
+    3: check_riccati,
+    4: check_plan_grad,
+    5: check_kkt,
+}
 
 
-# --- the grader: every exercise's check on a student's answers ------------------------------------------------
+# --- the grader: every exercise's check on a student's answers ------------------------------------
 
-EXERCISES = {1: ("my_collision", "the collision term"), 2: ("my_plan_loss", "the relaxed planner's loss"),
-             3: ("my_riccati_step", "one step of the Riccati recursion"),
-             4: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
-             5: ("my_kkt_backward", "the controller's gradient (the KKT backward)")}
+EXERCISES = {
+    1: ("my_collision", "the collision term"),
+    2: ("my_plan_loss", "the relaxed planner's loss"),
+    3: ("my_riccati_step", "one step of the Riccati recursion"),
+    4: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
+    5: ("my_kkt_backward", "the controller's gradient (the KKT backward)"),
+}
 
 
 def load_answers(path) -> dict:
-    """{exercise number: the student's function, or None} from a .py file, or from a notebook (.ipynb): its import
-    statements and the code cells that define an exercise's function (its other cells are not run). This runs the
-    student's code."""
+    """{exercise number: the student's function, or None} from a .py file, or from a notebook
+    (.ipynb): its import statements and the code cells that define an exercise's function (its other
+    cells are not run). This runs the student's code."""
     path = Path(path)
     if path.suffix == ".ipynb":
         import ast
 
-        cells = ["".join(c["source"]) for c in json.loads(path.read_text())["cells"] if c["cell_type"] == "code"]
+        cells = [
+            "".join(c["source"])
+            for c in json.loads(path.read_text())["cells"]
+            if c["cell_type"] == "code"
+        ]
+
         def tree(cell):  # (a cell with IPython syntax has no imports to take)
             try:
                 return ast.parse(cell).body
             except SyntaxError:
                 return []
-        imports = [ast.unparse(node) for c in cells for node in tree(c)  # the notebook's imports, then the cells that
-                   if isinstance(node, (ast.Import, ast.ImportFrom))]    # define answers
-        source = "\n\n".join(imports + [c for c in cells if any(f"def {name}(" in c for name, _ in EXERCISES.values())])
+
+        # the notebook's imports, then the cells that define answers
+        imports = [
+            ast.unparse(node)
+            for c in cells
+            for node in tree(c)
+            if isinstance(node, (ast.Import, ast.ImportFrom))
+        ]
+        source = "\n\n".join(
+            imports
+            + [c for c in cells if any(f"def {name}(" in c for name, _ in EXERCISES.values())]
+        )
     else:
         source = path.read_text()
-    space = {"__name__": "answers", "SOLUTIONS": False}  # (the notebook's cells import solutions.py only under CI)
-    exec(compile(source, str(path), "exec"), space)  # noqa: S102  (grading runs the answers, as the notebook does)
+    # (the notebook's cells import solutions.py only under CI)
+    space = {"__name__": "answers", "SOLUTIONS": False}
+    # grading runs the answers, as the notebook does
+    exec(compile(source, str(path), "exec"), space)
     return {k: space.get(name) for k, (name, _) in EXERCISES.items()}
 
 
 def grade(path, out=print) -> dict:
-    """Run every exercise's check on the answers in `path` (load_answers): one line per exercise (PASS, not done, or
-    what failed) and the score. Returns {number: True (pass) or the reason it scores nothing}."""
+    """Run every exercise's check on the answers in `path` (load_answers): one line per exercise
+    (PASS, not done, or what failed) and the score. Returns {number: True (pass) or the reason it
+    scores nothing}."""
     try:
         answers = load_answers(path)
-    except Exception as e:  # noqa: BLE001  (a file that does not even run scores nothing, saying why)
-        answers, broken = {}, f"the file does not run: {type(e).__name__}: {e}"
+    except Exception as e:  # a file that does not even run scores nothing, saying why
+        answers = {}
+        broken = f"the file does not run: {type(e).__name__}: {e}"
     result = {}
     for k, (name, title) in EXERCISES.items():
         fn = answers.get(k)
@@ -669,7 +1097,8 @@ def grade(path, out=print) -> dict:
             result[k] = broken if not answers else f"no function {name}"
         else:
             try:
-                detail, result[k] = f" ({CHECKS[k](fn)})", True
+                detail = f" ({CHECKS[k](fn)})"
+                result[k] = True
             except NotImplementedError:
                 result[k] = "not done (the stub still raises NotImplementedError)"
             except AssertionError as e:
@@ -683,9 +1112,11 @@ if __name__ == "__main__":
     import argparse
     import sys
 
-    ap = argparse.ArgumentParser(description="Grade the course's exercises: run every exercise's check on the answers "
-                                             "in each file (a student's tutorial.ipynb, or a .py that defines the "
-                                             "my_* functions) and print a score per exercise. It runs their code.")
+    ap = argparse.ArgumentParser(
+        description="Grade the course's exercises: run every exercise's check on the answers "
+        "in each file (a student's tutorial.ipynb, or a .py that defines the "
+        "my_* functions) and print a score per exercise. It runs their code."
+    )
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
     args = ap.parse_args()
     for f in args.files:
@@ -694,4 +1125,3 @@ if __name__ == "__main__":
     torch.set_num_threads(1)
     graded = [grade(f) for f in args.files]
     sys.exit(0 if all(v is True for g in graded for v in g.values()) else 1)
-

@@ -1,8 +1,10 @@
 """Reference answers to the exercises of tutorial.ipynb. Try the exercises before reading this file.
 
-The notebook does not show this file. `DIFFSTACK_SOLUTIONS=1` (what CI and test_tutorial.py set) makes the notebook
-import these functions in place of the student's stubs, so that every exercise check runs on a known-right answer.
+The notebook does not show this file. `DIFFSTACK_SOLUTIONS=1` (what CI and test_tutorial.py set)
+makes the notebook import these functions in place of the student's stubs, so that every exercise
+check runs on a known-right answer.
 """
+
 import math
 
 import torch
@@ -10,8 +12,11 @@ import torch
 
 # Exercise 1: the collision term of eq. (3), the expectation over modes taken directly
 def my_collision(pos, ctx, rbf_var):
-    phi = lambda d2: torch.exp(-d2 / (2 * rbf_var))  # noqa: E731
-    d2 = ((pos[:, :, None] - ctx.preds[:, None]) ** 2).sum(-1)  # (B, N, K, T) squared distance to every mode
+    def phi(d2):
+        return torch.exp(-d2 / (2 * rbf_var))
+
+    # d2: (B, N, K, T) squared distance to every mode
+    d2 = ((pos[:, :, None] - ctx.preds[:, None]) ** 2).sum(-1)
     expected = (ctx.probs[:, None, :, None] * d2).sum(2)  # (B, N, T) its expectation over the modes
     pred_term = ctx.pred_mask[:, None] * phi(expected).sum(-1)  # (B, N)
     d2_others = ((pos[:, :, None] - ctx.others[:, None]) ** 2).sum(-1)  # (B, N, A, T)
@@ -19,9 +24,11 @@ def my_collision(pos, ctx, rbf_var):
     return pred_term + others_term
 
 
-# Exercise 2: the relaxed planner's loss, -log p_{n*} with p the softmax of -beta C over the valid candidates
+# Exercise 2: the relaxed planner's loss, -log p_{n*} with p the softmax of -beta C over the
+# valid candidates
 def my_plan_loss(cost, valid, target, beta):
-    logits = torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype))  # invalid: p = 0
+    # invalid: p = 0
+    logits = torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype))
     logp = logits - torch.logsumexp(logits, -1, keepdim=True)  # (B, N) a stable log-softmax
     return -logp.gather(-1, target[:, None])[:, 0]
 
@@ -37,7 +44,12 @@ def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
     K = -torch.linalg.solve(Quu, Qus)  # (B, m, n) feedback gain
     KT = K.transpose(-1, -2)
     P_new = Qss + KT @ Quu @ K + KT @ Qus + Qsu @ K
-    p_new = qs + (KT @ Quu @ k[..., None])[..., 0] + (KT @ qu[..., None])[..., 0] + (Qsu @ k[..., None])[..., 0]
+    p_new = (
+        qs
+        + (KT @ Quu @ k[..., None])[..., 0]
+        + (KT @ qu[..., None])[..., 0]
+        + (Qsu @ k[..., None])[..., 0]
+    )
     return k, K, P_new, p_new
 
 
@@ -45,18 +57,23 @@ def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
 #   log p_n = -beta C_n - log sum_{n' valid} exp(-beta C_n'),  so
 #   dL_plan/dC_n = beta (1[n = n*] - p_n) on valid candidates, 0 on invalid ones.
 def my_plan_loss_grad(cost, valid, target, beta):
-    p = torch.softmax(torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype)), -1)  # (B, N)
+    # p: (B, N)
+    p = torch.softmax(
+        torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype)), -1
+    )
     onehot = torch.nn.functional.one_hot(target, cost.shape[-1]).to(cost.dtype)  # (B, N)
     return beta * (onehot - p)
 
 
-# Exercise 5: the controller's gradient. At the solution, the KKT conditions hold; differentiating them gives the
-# same LQR with the incoming gradient as its linear term (Amos et al. 2018): d = argmin 1/2 d'Hd + [grad_x; grad_u]'d
-# s.t. dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t, held controls du = 0. Then dL/dg_t = d_t and dL/dx_init = p_0.
+# Exercise 5: the controller's gradient. At the solution, the KKT conditions hold; differentiating
+# them gives the same LQR with the incoming gradient as its linear term (Amos et al. 2018):
+#   d = argmin 1/2 d'Hd + [grad_x; grad_u]'d  s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t,
+# held controls du = 0. Then dL/dg_t = d_t and dL/dx_init = p_0.
 def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
     import diffstack as ds
 
-    rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)  # (B, T+1, n+m)
+    # (B, T+1, n+m)
+    rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)
     k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, rhs, n, free)
     dx, du = [torch.zeros_like(grad_x[:, 0])], []
     for t in range(A.shape[1]):

@@ -1,5 +1,6 @@
-"""Tests of the course: tutorial.py (jupytext percent format) is the notebook's source, tutorial.ipynb is made from
-it, and the notebook runs top to bottom."""
+"""Tests of the course: tutorial.py (jupytext percent format) is the notebook's source,
+tutorial.ipynb is made from it, and the notebook runs top to bottom."""
+
 import ast
 import dataclasses
 import json
@@ -23,7 +24,8 @@ def cell_sources(nb):
 
 
 def test_notebook_is_made_from_tutorial_py():
-    """tutorial.ipynb holds exactly the cells of tutorial.py (regenerate: jupytext --update --to ipynb tutorial.py)."""
+    """tutorial.ipynb holds exactly the cells of tutorial.py (regenerate: jupytext --update --to
+    ipynb tutorial.py)."""
     source = jupytext.read(REPO / "tutorial.py")
     notebook = nbformat.read(REPO / "tutorial.ipynb", as_version=4)
     assert cell_sources(source) == cell_sources(notebook)
@@ -37,35 +39,50 @@ def test_the_comparison_catches_a_changed_cell():
 
 
 def test_tutorial_notebook_runs_in_quick_mode(monkeypatch):
-    """The student notebook (tutorial.py) with solutions.py injected executes top to bottom from a fresh kernel in
-    quick mode (cwd = the repository) with no error, every exercise check passes, and every checkpoint it prints
-    agrees with its expected value. About 2 minutes on 2 shared cores."""
+    """The student notebook (tutorial.py) with solutions.py injected executes top to bottom from a
+    fresh kernel in quick mode (cwd = the repository) with no error, every exercise check passes,
+    and every checkpoint it prints agrees with its expected value. About 2 minutes on 2
+    shared cores."""
     nb = jupytext.read(REPO / "tutorial.py")
-    monkeypatch.setenv("DIFFSTACK_QUICK", "1")  # the notebook's parameters cell reads it; the kernel inherits it
+    # the notebook's parameters cell reads it; the kernel inherits it
+    monkeypatch.setenv("DIFFSTACK_QUICK", "1")
     monkeypatch.setenv("DIFFSTACK_SOLUTIONS", "1")  # the exercises use solutions.py's answers
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(REPO)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(REPO)}}
+    )
     client.execute()  # raises CellExecutionError (naming the cell) on the first error
     text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
     assert "QUICK = True" in text and "solutions.py injected" in text
     for number in SOLUTIONS:
         assert f"EXERCISE {number}: PASS" in text, f"exercise {number} did not pass in the notebook"
-    checks = [line for line in text.splitlines() if line.startswith(("CHECKPOINT", "CHECK ", "CLAIM "))]
+    checks = [
+        line for line in text.splitlines() if line.startswith(("CHECKPOINT", "CHECK ", "CLAIM "))
+    ]
     assert len(checks) >= 14, checks
-    assert all(line.endswith("OK") for line in checks), checks  # (a failed one raises: the cell errors first)
+    # (a failed one raises: the cell errors first)
+    assert all(line.endswith("OK") for line in checks), checks
 
 
 def tutorial_checks():
-    """The notebook's check functions (checkpoint, check_order, check_claim): course.py's, which tutorial.py imports."""
+    """The notebook's check functions (checkpoint, check_order, check_claim): course.py's, which
+    tutorial.py imports."""
     tree = ast.parse((REPO / "tutorial.py").read_text())
-    imported = {a.name for node in tree.body if isinstance(node, ast.ImportFrom) and node.module == "course"
-                for a in node.names}
+    imported = {
+        a.name
+        for node in tree.body
+        if isinstance(node, ast.ImportFrom) and node.module == "course"
+        for a in node.names
+    }
     assert {"checkpoint", "check_order", "check_claim"} <= imported, sorted(imported)
-    return {name: getattr(course, name) for name in ("CheckpointError", "checkpoint", "check_order", "check_claim")}
+    return {
+        name: getattr(course, name)
+        for name in ("CheckpointError", "checkpoint", "check_order", "check_claim")
+    }
 
 
 def test_the_notebook_checks_stop_on_a_wrong_value(tmp_path, monkeypatch, capsys):
-    """A checkpoint off its value, an ordering the other way round, a claim whose verdict the text gets wrong: each
-    raises (the notebook stops at that cell), each right one passes."""
+    """A checkpoint off its value, an ordering the other way round, a claim whose verdict the text
+    gets wrong: each raises (the notebook stops at that cell), each right one passes."""
     t = tutorial_checks()
     t["checkpoint"]("x", 1.0, 1.0, 1e-9)
     with pytest.raises(t["CheckpointError"], match="measured 1.1"):
@@ -75,36 +92,54 @@ def test_the_notebook_checks_stop_on_a_wrong_value(tmp_path, monkeypatch, capsys
         t["check_order"]("o", {"GT": -2.0, "none": -2.5}, ["GT", "none"])
     with pytest.raises(t["CheckpointError"], match="margin 0.1"):
         t["check_order"]("o", {"a": 1.0, "b": 1.05}, ["a", "b"], margin=0.1)
-    runs = lambda *v: [{"rel_mse": x, "ade": 1.0, "nll": 1.0, "converged": 1.0, "rel_plan_loss": 0.0} for x in v]  # noqa: E731
+
+    def runs(*v):
+        return [
+            {"rel_mse": x, "ade": 1.0, "nll": 1.0, "converged": 1.0, "rel_plan_loss": 0.0}
+            for x in v
+        ]
+
     (tmp_path / "results").mkdir()
-    (tmp_path / "results" / "il.json").write_text(json.dumps(dict(results=dict(
-        Standard=runs(1.0, 2.0, 3.0), DiffStack=runs(0.0, 1.1, 1.9)))))
+    (tmp_path / "results" / "il.json").write_text(
+        json.dumps(dict(results=dict(Standard=runs(1.0, 2.0, 3.0), DiffStack=runs(0.0, 1.1, 1.9))))
+    )
     monkeypatch.chdir(tmp_path)
     t["check_claim"]("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
     with pytest.raises(t["CheckpointError"], match="update the text"):
         t["check_claim"]("il", "DiffStack", "Standard", "MSE (x1e-2)", "not reproduced")
 
 
-# --- the exercises: solutions pass their checks, known-wrong answers fail them ----------------------------------
+# --- the exercises: solutions pass their checks, known-wrong answers fail them --------------------
 
-SOLUTIONS = {1: solutions.my_collision, 2: solutions.my_plan_loss, 3: solutions.my_riccati_step,
-             4: solutions.my_plan_loss_grad, 5: solutions.my_kkt_backward}
+SOLUTIONS = {
+    1: solutions.my_collision,
+    2: solutions.my_plan_loss,
+    3: solutions.my_riccati_step,
+    4: solutions.my_plan_loss_grad,
+    5: solutions.my_kkt_backward,
+}
 
 
 def _phi(d2, var):
     return torch.exp(-d2 / (2 * var))
 
 
-def _coll(pos, ctx, var, use_pred_mask=True, use_others_mask=True, mean_position=False, uniform=False):
+def _coll(
+    pos, ctx, var, use_pred_mask=True, use_others_mask=True, mean_position=False, uniform=False
+):
     probs = torch.full_like(ctx.probs, 1 / ctx.probs.shape[1]) if uniform else ctx.probs
     if mean_position:  # phi of the distance to the modes' mean: drops their spread
         mu = (probs[:, :, None, None] * ctx.preds).sum(1)
         expected = ((pos - mu[:, None]) ** 2).sum(-1)
     else:
-        expected = (probs[:, None, :, None] * ((pos[:, :, None] - ctx.preds[:, None]) ** 2).sum(-1)).sum(2)
+        expected = (
+            probs[:, None, :, None] * ((pos[:, :, None] - ctx.preds[:, None]) ** 2).sum(-1)
+        ).sum(2)
     pm = ctx.pred_mask[:, None] if use_pred_mask else 1.0
     om = ctx.others_mask[:, None] if use_others_mask else torch.ones_like(ctx.others_mask)[:, None]
-    return pm * _phi(expected, var).sum(-1) + (om * _phi(((pos[:, :, None] - ctx.others[:, None]) ** 2).sum(-1), var).sum(-1)).sum(-1)
+    return pm * _phi(expected, var).sum(-1) + (
+        om * _phi(((pos[:, :, None] - ctx.others[:, None]) ** 2).sum(-1), var).sum(-1)
+    ).sum(-1)
 
 
 def _plan_loss(cost, valid, target, beta, use_beta=True, use_valid=True, stable=True, sign=1.0):
@@ -134,6 +169,7 @@ def _riccati(mutation):
         elif mutation == "Q without F'PF":
             return solutions.my_riccati_step(torch.zeros_like(P), p, H_t, g_t, A_t, B_t, n)
         return k, K, P_new, p_new
+
     return fn
 
 
@@ -150,11 +186,13 @@ def _plan_grad(mutation):
         if mutation == "one-hot only":
             return beta * torch.nn.functional.one_hot(target, cost.shape[-1]).to(cost.dtype)
         return g
+
     return fn
 
 
 def _kkt(mutation):
-    """Exercise 5's answer with one plausible mistake (the rollout and the LQR call as a student would write them)."""
+    """Exercise 5's answer with one plausible mistake (the rollout and the LQR call as a student
+    would write them)."""
     import diffstack as ds
 
     def fn(A, B, H, grad_x, grad_u, free, n):
@@ -165,10 +203,23 @@ def _kkt(mutation):
             gu = torch.cat([torch.zeros_like(grad_u[:, :1]), grad_u], 1)
         hold = torch.ones_like(free) if mutation == "the active set ignored" else free
         k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, torch.cat([grad_x, gu], -1), n, hold)
-        dx, du = [torch.ones_like(grad_x[:, 0]) if mutation == "dx_0 = 1" else torch.zeros_like(grad_x[:, 0])], []
+        dx = [
+            torch.ones_like(grad_x[:, 0])
+            if mutation == "dx_0 = 1"
+            else torch.zeros_like(grad_x[:, 0])
+        ]
+        du = []
         for t in range(A.shape[1]):
-            Kt = K[:, t].transpose(-1, -2).reshape(K[:, t].shape) if mutation == "K transposed" else K[:, t]
-            du.append(k[:, t] if mutation == "feed-forward only" else k[:, t] + (Kt @ dx[-1][..., None])[..., 0])
+            Kt = (
+                K[:, t].transpose(-1, -2).reshape(K[:, t].shape)
+                if mutation == "K transposed"
+                else K[:, t]
+            )
+            du.append(
+                k[:, t]
+                if mutation == "feed-forward only"
+                else k[:, t] + (Kt @ dx[-1][..., None])[..., 0]
+            )
             dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
         if mutation == "states a step early":
             dx = dx[1:] + [dx[-1]]
@@ -181,13 +232,17 @@ def _kkt(mutation):
         if mutation == "dL/dx_init = dx_0":
             p0 = dx[0]
         return p0, d
+
     return fn
 
 
 WRONG = {
     "1: pred_mask ignored": (1, lambda pos, ctx, v: _coll(pos, ctx, v, use_pred_mask=False)),
     "1: others_mask ignored": (1, lambda pos, ctx, v: _coll(pos, ctx, v, use_others_mask=False)),
-    "1: phi of the distance to the modes' mean": (1, lambda pos, ctx, v: _coll(pos, ctx, v, mean_position=True)),
+    "1: phi of the distance to the modes' mean": (
+        1,
+        lambda pos, ctx, v: _coll(pos, ctx, v, mean_position=True),
+    ),
     "1: probabilities ignored": (1, lambda pos, ctx, v: _coll(pos, ctx, v, uniform=True)),
     "1: rbf_var fixed at 2": (1, lambda pos, ctx, v: _coll(pos, ctx, 2.0)),
     "2: beta ignored": (2, lambda c, v, t, b: _plan_loss(c, v, t, b, use_beta=False)),
@@ -195,12 +250,35 @@ WRONG = {
     "2: unstable softmax": (2, lambda c, v, t, b: _plan_loss(c, v, t, b, stable=False)),
     "2: +log p instead of -log p": (2, lambda c, v, t, b: _plan_loss(c, v, t, b, sign=-1.0)),
     "2: no gradient (detached)": (2, lambda c, v, t, b: _plan_loss(c.detach(), v, t, b)),
-    **{f"3: {m}": (3, _riccati(m)) for m in ("P_new = Q_ss", "P_new unchanged", "K sign",
-                                             "p_new without the Q_su k term", "Q without F'PF")},
-    **{f"4: {m}": (4, _plan_grad(m)) for m in ("no beta", "sign", "softmax over invalid candidates too", "one-hot only")},
-    **{f"5: {m}": (5, _kkt(m)) for m in ("grad_u left out", "grad_u a step late", "the active set ignored", "dx_0 = 1",
-                                         "K transposed", "feed-forward only", "states a step early", "p_0 sign",
-                                         "d sign", "dL/dx_init = dx_0")},
+    **{
+        f"3: {m}": (3, _riccati(m))
+        for m in (
+            "P_new = Q_ss",
+            "P_new unchanged",
+            "K sign",
+            "p_new without the Q_su k term",
+            "Q without F'PF",
+        )
+    },
+    **{
+        f"4: {m}": (4, _plan_grad(m))
+        for m in ("no beta", "sign", "softmax over invalid candidates too", "one-hot only")
+    },
+    **{
+        f"5: {m}": (5, _kkt(m))
+        for m in (
+            "grad_u left out",
+            "grad_u a step late",
+            "the active set ignored",
+            "dx_0 = 1",
+            "K transposed",
+            "feed-forward only",
+            "states a step early",
+            "p_0 sign",
+            "d sign",
+            "dL/dx_init = dx_0",
+        )
+    },
 }
 
 
@@ -218,23 +296,28 @@ def test_checks_catch_known_wrong_answers(name):
 
 
 def _in_float32(fn):
-    """fn computed in float32: every floating input (a CostContext's fields too) cast down, the outputs as they come."""
+    """fn computed in float32: every floating input (a CostContext's fields too) cast down, the
+    outputs as they come."""
+
     def down(a):
         if isinstance(a, torch.Tensor):
             return a.float() if a.is_floating_point() else a
         if dataclasses.is_dataclass(a):
             return type(a)(*(down(t) for t in a.tensors()))
         return a
+
     def wrapped(*args):
         return fn(*(down(a) for a in args))
+
     wrapped.__name__ = fn.__name__
     return wrapped
 
 
 @pytest.mark.parametrize("number", sorted(SOLUTIONS))
 def test_a_right_answer_in_float32_passes(number, capsys):
-    """The checks judge the answer, not its float type: each solution computed in float32 passes (its rounding,
-    magnified by the problem's conditioning, is allowed), while the wrong answers above fail in float64."""
+    """The checks judge the answer, not its float type: each solution computed in float32 passes
+    (its rounding, magnified by the problem's conditioning, is allowed), while the wrong answers
+    above fail in float64."""
     assert course.exercise(number, course.CHECKS[number], _in_float32(SOLUTIONS[number]))
 
 
@@ -248,47 +331,70 @@ def test_known_wrong_answers_fail_in_float32_too(name):
 def test_a_wrong_shape_or_an_error_inside_the_answer_is_reported_as_such():
     def flat(pos, ctx, rbf_var):  # (B, N, 1) instead of (B, N)
         return solutions.my_collision(pos, ctx, rbf_var)[..., None]
+
     with pytest.raises(AssertionError, match=r"my_collision: shape \(6, 7, 1\), expected \(6, 7\)"):
         course.check_collision(flat)
 
-    def broadcast_error(pos, ctx, rbf_var):  # sums the modes against the time axis: a RuntimeError inside it
+    # sums the modes against the time axis: a RuntimeError inside it
+    def broadcast_error(pos, ctx, rbf_var):
         return (pos[:, :, None] - ctx.preds[:, None].transpose(-2, -3)).sum()
-    with pytest.raises(AssertionError, match=r"my_collision raised RuntimeError: .* \(its inputs: \(6, 7, 6, 2\), "
-                                             r"CostContext, float; it should return C_coll of shape \(B, N\)\)"):
+
+    with pytest.raises(
+        AssertionError,
+        match=r"my_collision raised RuntimeError: .* \(its inputs: \(6, 7, 6, 2\), "
+        r"CostContext, float; it should return C_coll of shape \(B, N\)\)",
+    ):
         course.check_collision(broadcast_error)
 
     def three(P, p, H_t, g_t, A_t, B_t, n):
         return solutions.my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)[:3]
-    with pytest.raises(AssertionError, match=r"my_riccati_step: returned tuple of 3, expected the four"):
+
+    with pytest.raises(
+        AssertionError, match=r"my_riccati_step: returned tuple of 3, expected the four"
+    ):
         course.check_riccati(three)
 
 
 def test_a_stub_is_reported_as_not_done(capsys):
     def my_collision(pos, ctx, rbf_var):
         raise NotImplementedError
+
     assert not course.exercise(1, course.check_collision, my_collision)
     assert "EXERCISE 1: not done yet" in capsys.readouterr().out
 
 
 def test_the_student_notebook_holds_stubs_not_solutions():
-    """Every exercise function in tutorial.py only raises NotImplementedError; solutions.py defines each of them."""
+    """Every exercise function in tutorial.py only raises NotImplementedError; solutions.py defines
+    each of them."""
     tree = ast.parse((REPO / "tutorial.py").read_text())
-    stubs = {f.name: f for f in ast.walk(tree) if isinstance(f, ast.FunctionDef) and f.name.startswith("my_")}
+    stubs = {
+        f.name: f
+        for f in ast.walk(tree)
+        if isinstance(f, ast.FunctionDef) and f.name.startswith("my_")
+    }
     assert set(stubs) == {f.__name__ for f in SOLUTIONS.values()}, sorted(stubs)
     for f in stubs.values():
-        body = [s for s in f.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))]
-        assert len(body) == 1 and isinstance(body[0], ast.Raise), f"{f.name} in tutorial.py is not a stub"
+        body = [
+            s for s in f.body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant))
+        ]
+        assert len(body) == 1 and isinstance(body[0], ast.Raise), (
+            f"{f.name} in tutorial.py is not a stub"
+        )
         assert "NotImplementedError" in ast.unparse(body[0])
 
 
-# --- the grader ---------------------------------------------------------------------------------------------------
+# --- the grader -----------------------------------------------------------------------------------
 
 
 def test_the_grader_scores_a_notebook_and_a_file_exercise_by_exercise(tmp_path, capsys):
-    """course.py grades the committed student notebook (every exercise not done), solutions.py (5 of 5), and a
-    notebook where the student solved exercise 1 and got exercise 2 wrong (1 of 5, saying what failed)."""
+    """course.py grades the committed student notebook (every exercise not done), solutions.py (5 of
+    5), and a notebook where the student solved exercise 1 and got exercise 2 wrong (1 of 5, saying
+    what failed)."""
     lines = []
-    assert all(v.startswith("not done") for v in course.grade(REPO / "tutorial.ipynb", lines.append).values())
+    assert all(
+        v.startswith("not done")
+        for v in course.grade(REPO / "tutorial.ipynb", lines.append).values()
+    )
     assert lines[-1].endswith("tutorial.ipynb: score 0/5")
     assert all(v is True for v in course.grade(REPO / "solutions.py", lines.append).values())
     assert lines[-1].endswith("score 5/5")
@@ -297,30 +403,51 @@ def test_the_grader_scores_a_notebook_and_a_file_exercise_by_exercise(tmp_path, 
     one = next(c for c in cells if "def my_collision(" in "".join(c["source"]))
     one["source"] = ast.get_source_segment(SOLUTIONS_SOURCE, _function("my_collision"))
     two = next(c for c in cells if "def my_plan_loss(" in "".join(c["source"]))
-    two["source"] = ("def my_plan_loss(cost, valid, target, beta):\n"  # the valid mask left out
-                     "    return -(-beta * cost).log_softmax(-1).gather(-1, target[:, None])[:, 0]\n")
+    two["source"] = (
+        "def my_plan_loss(cost, valid, target, beta):\n"  # the valid mask left out
+        "    return -(-beta * cost).log_softmax(-1).gather(-1, target[:, None])[:, 0]\n"
+    )
     (tmp_path / "student.ipynb").write_text(json.dumps(nb))
     result = course.grade(tmp_path / "student.ipynb", lines.append)
-    assert result[1] is True and result[2].startswith("FAIL: my_plan_loss (beta = 1.0): max |yours - reference|")
+    assert result[1] is True and result[2].startswith(
+        "FAIL: my_plan_loss (beta = 1.0): max |yours - reference|"
+    )
     assert result[3].startswith("not done") and lines[-1].endswith("student.ipynb: score 1/5")
     (tmp_path / "broken.py").write_text("def my_collision(:\n")
-    assert all(v.startswith("the file does not run: SyntaxError") for v in course.grade(tmp_path / "broken.py", lines.append).values())
+    assert all(
+        v.startswith("the file does not run: SyntaxError")
+        for v in course.grade(tmp_path / "broken.py", lines.append).values()
+    )
 
 
 SOLUTIONS_SOURCE = (REPO / "solutions.py").read_text()
 
 
 def _function(name):
-    return next(f for f in ast.parse(SOLUTIONS_SOURCE).body if isinstance(f, ast.FunctionDef) and f.name == name)
+    return next(
+        f
+        for f in ast.parse(SOLUTIONS_SOURCE).body
+        if isinstance(f, ast.FunctionDef) and f.name == name
+    )
 
 
 def test_the_grader_command_line(tmp_path):
     import subprocess
     import sys
 
-    run = subprocess.run([sys.executable, str(REPO / "course.py"), str(REPO / "solutions.py")], capture_output=True,
-                         text=True, cwd=tmp_path)
+    run = subprocess.run(
+        [sys.executable, str(REPO / "course.py"), str(REPO / "solutions.py")],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert run.returncode == 0 and "solutions.py: score 5/5" in run.stdout
-    run = subprocess.run([sys.executable, str(REPO / "course.py"), str(REPO / "tutorial.ipynb"), "nothere.ipynb"],
-                         capture_output=True, text=True, cwd=tmp_path)
-    assert run.returncode == 2 and run.stderr.strip().splitlines()[-1].endswith("nothere.ipynb: no such file")
+    run = subprocess.run(
+        [sys.executable, str(REPO / "course.py"), str(REPO / "tutorial.ipynb"), "nothere.ipynb"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2 and run.stderr.strip().splitlines()[-1].endswith(
+        "nothere.ipynb: no such file"
+    )
