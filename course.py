@@ -112,9 +112,10 @@ def check_order(name, values, order, margin=0.0):
 
 def check_claim(table, method, baseline, column, expect, section=None):
     """A finding the notebook states, checked on the committed table results/<table>.json: its
-    paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at p <
-    0.05 in the paper's direction) must be what the text says. If a re-run of the tables changes the
-    verdict, this stops the notebook until the text is changed with it."""
+    paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at
+    p < 0.05 in the paper's direction) must be what the text says.
+    If a re-run of the tables changes the verdict, this stops the notebook until the text is changed
+    with it."""
     import experiments as xp
     import specs
 
@@ -935,10 +936,10 @@ def check_plan_grad(fn):
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
-    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t x_t +
-    B_t u_t from x_init, the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over z_t = [x_t; u_t] (t = 0..T,
-    the last control block unused), some controls held at their bound (free False), and the incoming
-    gradient (grad_x, grad_u) of a loss on the solution."""
+    """An LQR as the controller's backward pass sees one, its active set fixed:
+    x_{t+1} = A_t x_t + B_t u_t from x_init, the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over
+    z_t = [x_t; u_t] (t = 0..T, the last control block unused), some controls held at their bound
+    (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
     gen = torch.Generator().manual_seed(seed)
 
     def randn(*shape):

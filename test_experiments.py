@@ -601,8 +601,8 @@ def _p_four_dof(t: float) -> float:
 
 
 def test_paired_difference_is_a_two_sided_t_test():
-    """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025), s.e. sqrt(0.025 / 5) =
-    0.0707, t = -14.1."""
+    """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025),
+    s.e. sqrt(0.025 / 5) = 0.0707, t = -14.1."""
     p = ex.paired_difference([2.0, 2.0, 2.0, 2.0, 2.0], [1.0, 0.8, 1.2, 0.9, 1.1])
     assert p.mean == pytest.approx(-1.0) and p.se == pytest.approx(math.sqrt(0.025 / 5))
     assert p.t == pytest.approx(-1.0 / math.sqrt(0.025 / 5)) and (p.better, p.worse, p.n) == (
