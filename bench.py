@@ -257,7 +257,6 @@ def bench_controller(
             P["hi"],
             iters=iters,
             tol=tol,
-            batched_params=True,
         )
 
     # the backward alone: one solve with x_init and x_ref requiring grad builds the graph, each run
@@ -575,7 +574,6 @@ def ours_solve(P, x_init, x_ref, iters, eps):
         P["hi"],
         iters=iters,
         tol=eps,
-        batched_params=True,
     )
     return x, u
 

@@ -852,7 +852,7 @@ def check_plan_loss(fn):
 
 
 def riccati_problem(seed=0, B=6, n=4, m=2):
-    """A random one-step LQR (positive definite cost), as ds.lqr_backward_fixed takes it: H (B, 2,
+    """A random one-step LQR (positive definite cost), as ds.lqr_backward takes it: H (B, 2,
     n+m, n+m), g (B, 2, n+m), A (B, 1, n, n), B (B, 1, n, m)."""
     g = torch.Generator().manual_seed(seed)
     R = torch.randn(B, 2, n + m, n + m, generator=g, dtype=F64)
@@ -870,9 +870,8 @@ def check_riccati(fn):
     for seed in (0, 1):
         H, gv, A, Bm = riccati_problem(seed, n=n, m=m)
         B = len(H)
-        k_ref, K_ref, _, p0_ref = ds.lqr_backward_fixed(
-            A, Bm, H, gv, n, torch.ones(B, 1, m, dtype=torch.bool)
-        )
+        free = torch.ones(B, 1, m, dtype=torch.bool)
+        k_ref, K_ref, _, p0_ref = ds.lqr_backward(A, Bm, H, gv, free=free)
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
         F = torch.cat([A[:, 0], Bm[:, 0]], -1)
         Q = H[:, 0] + F.transpose(-1, -2) @ H[:, 1, :n, :n] @ F
@@ -956,7 +955,7 @@ def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
 def lqr_solve(A, Bm, H, g, x_init, free):
     """The problem's solution (x* (B, T+1, n), u* (B, T, m)): the module's Riccati recursion, then
     the policy u_t = k_t + K_t x_t rolled out from x_init; held controls stay at 0."""
-    k, K, _, _ = ds.lqr_backward_fixed(A, Bm, H, g, x_init.shape[-1], free)
+    k, K, _, _ = ds.lqr_backward(A, Bm, H, g, free=free)
     x, u = [x_init], []
     for t in range(A.shape[1]):
         u.append(k[:, t] + (K[:, t] @ x[-1][..., None])[..., 0])

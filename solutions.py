@@ -74,7 +74,7 @@ def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
 
     # (B, T+1, n+m)
     rhs = torch.cat([grad_x, torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)], -1)
-    k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, rhs, n, free)
+    k, K, _, p0 = ds.lqr_backward(A, B, H, rhs, free=free)
     dx, du = [torch.zeros_like(grad_x[:, 0])], []
     for t in range(A.shape[1]):
         du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])

@@ -24,7 +24,7 @@ import experiments as ex
 import runs
 import specs
 import train as tr
-from test_diffstack import TINY, toy_scene
+from test_diffstack import TINY
 
 
 @pytest.fixture(scope="module")
@@ -286,75 +286,8 @@ def test_unknown_setting_is_refused(batch):
 
 
 # ---------------------------------------------------------------------------------------------
-# The low-level API: never a silent NaN
+# Data is checked where it enters a run: never a silent NaN
 # ---------------------------------------------------------------------------------------------
-
-
-def test_unicycle_step_checks_its_input():
-    s, u = torch.zeros(3, 4, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64)
-    assert torch.isfinite(ds.unicycle_step(s, u, 0.5)).all()  # the valid input passes
-    for bad_s, bad_u, dt, culprit in (
-        (s.clone().fill_(math.nan), u, 0.5, "s"),
-        (s, u.clone().fill_(math.inf), 0.5, "u"),
-        (s, u, 0.0, "dt"),
-        (s, u, math.nan, "dt"),
-        (s[:, :3], u, 0.5, "s"),
-        (s, u.float(), 0.5, "u"),
-        (s, u[:, :1], 0.5, "u"),
-    ):
-        with pytest.raises(ValueError, match=f"^{culprit}"):
-            ds.unicycle_step(bad_s, bad_u, dt)
-
-
-def test_total_cost_checks_its_input():
-    s0, goal, ctx = toy_scene()
-    cfg = ds.Config()
-    w = ds.cost_weights(cfg, torch.float64)
-    x = ds.unicycle_rollout(s0, torch.zeros(3, 6, 2, dtype=torch.float64), cfg.dt)
-    u = torch.zeros(3, 6, 2, dtype=torch.float64)
-    assert torch.isfinite(ds.total_cost(x, u, ctx, w)).all()
-    nan_x = x.clone()
-    nan_x[1, 2, 0] = math.nan
-    cases = [
-        (dict(x=nan_x), "x"),
-        (dict(u=u[:, :5]), "u"),
-        (dict(w=w[:4]), "w"),
-        (dict(w=w.float()), "w"),
-        (dict(ctx=ds.CostContext(ctx.preds * math.nan, *ctx.tensors()[1:])), "ctx.preds"),
-        (
-            dict(ctx=ds.CostContext(*ctx.tensors()[:5], ctx.goal[:, :1], *ctx.tensors()[6:])),
-            "ctx.goal",
-        ),
-        (dict(rbf_var=0.0), "rbf_var"),
-    ]
-    for kw, culprit in cases:
-        args = dict(x=x, u=u, ctx=ctx, w=w, rbf_var=2.0) | kw
-        with pytest.raises(ValueError, match=culprit):
-            ds.total_cost(args["x"], args["u"], args["ctx"], args["w"], args["rbf_var"])
-
-
-def test_planner_checks_its_input():
-    s0, goal, ctx = toy_scene()
-    cfg = ds.Config()
-    w = ds.cost_weights(cfg, torch.float64)
-    assert ds.plan(s0, ctx, goal, w, cfg).plannable.any()
-    lanes_nan = ctx.lanes.clone()
-    lanes_nan[0, 0, 3, 1] = math.nan
-    for args, culprit in (
-        ((s0 * math.nan, goal, ctx.lanes, ctx.lanes_mask), "s0"),
-        ((s0, goal[:, :3], ctx.lanes, ctx.lanes_mask), "goal"),
-        ((s0, goal, lanes_nan, ctx.lanes_mask), "lanes"),
-        ((s0, goal, ctx.lanes, ctx.lanes_mask.float()), "lanes_mask"),
-        ((s0[:0], goal[:0], ctx.lanes[:0], ctx.lanes_mask[:0]), "s0"),
-    ):
-        with pytest.raises(ValueError, match=culprit):
-            ds.plan_candidates(*args, cfg)
-    with pytest.raises(ValueError, match="ctx.probs"):
-        ds.plan(
-            s0, ds.CostContext(ctx.preds, ctx.probs * math.inf, *ctx.tensors()[2:]), goal, w, cfg
-        )
-    with pytest.raises(ValueError, match="w"):
-        ds.plan(s0, ctx, goal, w[:3], cfg)
 
 
 def test_batches_with_inf_or_no_scenarios_are_refused(batch):
@@ -364,24 +297,22 @@ def test_batches_with_inf_or_no_scenarios_are_refused(batch):
     )
     import dataclasses
 
+    method = tr.Method("DiffStack", losses=(1, 1, 1))
     for field in ("agent_hist", "others_hist", "ego_fut", "others_fut", "goal", "lanes"):
         bad = getattr(batch, field).clone()
         bad.view(-1)[0] = math.inf
         with pytest.raises(ValueError, match=field):
-            ds.run_stack(
-                dataclasses.replace(batch, **{field: bad}),
-                model,
-                tr.Method("DiffStack", losses=(1, 1, 1)),
-                cfg,
-                train=True,
-                step=0,
+            tr.evaluate_stack(model, dataclasses.replace(batch, **{field: bad}), method, cfg)
+        with pytest.raises(ValueError, match=field):
+            tr.train_stack(
+                model, dataclasses.replace(batch, **{field: bad}), method, cfg, epochs=0.1
             )
     with pytest.raises(ValueError, match="batch"):
-        ds.run_stack(batch[:0], None, tr.Method("GT", "gt"), cfg)
+        tr.check_batch(batch[:0], cfg, need_future=False)
     with pytest.raises(ValueError, match="batch"):
-        model(batch[:0], use_posterior=False)
+        tr.check_batch(batch[:0], cfg, need_future=True, stack=True)
     # the valid batch runs
-    ds.run_stack(batch, model, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, train=True, step=0)
+    ds.run_stack(batch, model, method, cfg, train=True, step=0)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread (conftest.py).
 experiments.py, bench.py and the notebook have test files of their own."""
+
 import dataclasses
 import json
 import math
@@ -21,8 +22,18 @@ TINY_PRED = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_laten
 
 def rk4_reference(s, u, dt, substeps=2000):
     """An independent integrator of the unicycle ODE, to check the exact step against."""
+
     def f(x):
-        return torch.stack([x[..., 3] * torch.cos(x[..., 2]), x[..., 3] * torch.sin(x[..., 2]), u[..., 0], u[..., 1]], -1)
+        return torch.stack(
+            [
+                x[..., 3] * torch.cos(x[..., 2]),
+                x[..., 3] * torch.sin(x[..., 2]),
+                u[..., 0],
+                u[..., 1],
+            ],
+            -1,
+        )
+
     h, x = dt / substeps, s.clone()
     for _ in range(substeps):
         k1 = f(x)
@@ -37,6 +48,7 @@ def rk4_reference(s, u, dt, substeps=2000):
 # Dynamics
 # ---------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("w", [0.0, 1e-9, -0.05, 0.59, 0.61, -2.0])
 def test_unicycle_matches_rk4(w):
     s = torch.tensor([[1.0, 2.0, 0.3, 5.0], [0.0, -1.0, -2.5, 0.5]], dtype=torch.float64)
@@ -48,7 +60,9 @@ def test_unicycle_gradients_finite_at_zero_yaw_rate():
     s = torch.tensor([[0.0, 0.0, 0.2, 3.0]], dtype=torch.float64, requires_grad=True)
     u = torch.zeros(1, 2, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda s, u: ds.unicycle_step(s, u, DT), (s, u))
-    H = torch.autograd.functional.hessian(lambda u: ds.unicycle_step(s.detach(), u, DT)[..., 0].sum(), u.detach())
+    H = torch.autograd.functional.hessian(
+        lambda u: ds.unicycle_step(s.detach(), u, DT)[..., 0].sum(), u.detach()
+    )
     assert torch.isfinite(H).all()
     # the series and the closed form agree on both sides of the switch, derivatives included
     for w0 in (ds._SERIES_SWITCH / DT - 1e-7, ds._SERIES_SWITCH / DT + 1e-7):
@@ -62,10 +76,14 @@ def test_unicycle_batched_and_jacobians():
     u = torch.randn(3, 5, 2, generator=g, dtype=torch.float64)
     assert ds.unicycle_step(s, u, DT).shape == (3, 5, 4)
     A, B = ds.unicycle_jacobians(s, u, DT)
-    JA, JB = torch.autograd.functional.jacobian(lambda s, u: ds.unicycle_step(s, u, DT), (s[1, 2], u[1, 2]))
+    JA, JB = torch.autograd.functional.jacobian(
+        lambda s, u: ds.unicycle_step(s, u, DT), (s[1, 2], u[1, 2])
+    )
     assert torch.allclose(A[1, 2], JA) and torch.allclose(B[1, 2], JB)
     states = ds.unicycle_rollout(s[:, 0], u, DT)
-    assert states.shape == (3, 6, 4) and torch.allclose(states[:, 1], ds.unicycle_step(s[:, 0], u[:, 0], DT))
+    assert states.shape == (3, 6, 4) and torch.allclose(
+        states[:, 1], ds.unicycle_step(s[:, 0], u[:, 0], DT)
+    )
 
 
 @pytest.mark.parametrize("w_scale", [1e-3, 0.59, 0.61, 3.0])
@@ -83,6 +101,7 @@ def test_unicycle_curvature_matches_autodiff(w_scale):
 # Cost, planner, controller on small hand-made scenes
 # ---------------------------------------------------------------------------------------------
 
+
 def toy_scene(B=3, K=4, A=2, L=2, P=40, dtype=torch.float64, seed=1):
     """Two parallel straight lanes along +x, a predicted agent ahead, two other agents."""
     g = torch.Generator().manual_seed(seed)
@@ -93,20 +112,36 @@ def toy_scene(B=3, K=4, A=2, L=2, P=40, dtype=torch.float64, seed=1):
     lanes_mask = torch.ones(B, L, P, dtype=torch.bool)
     lanes_mask[0, 1, 30:] = False  # a shorter lane: the mask must be honoured
     s0 = torch.tensor([[0, 0.3, 0.05, 8.0], [0, -0.5, 0, 10.0], [0, 1, 0.1, 6.0]], dtype=dtype)[:B]
-    preds = torch.randn(B, K, T, 2, generator=g, dtype=dtype) * 2 + torch.tensor([12.0, 2.0], dtype=dtype)
+    preds = torch.randn(B, K, T, 2, generator=g, dtype=dtype) * 2 + torch.tensor(
+        [12.0, 2.0], dtype=dtype
+    )
     probs = torch.softmax(torch.randn(B, K, generator=g, dtype=dtype), -1)
-    others = torch.randn(B, A, T, 2, generator=g, dtype=dtype) * 3 + torch.tensor([20.0, -2.0], dtype=dtype)
+    others = torch.randn(B, A, T, 2, generator=g, dtype=dtype) * 3 + torch.tensor(
+        [20.0, -2.0], dtype=dtype
+    )
     goal = torch.tensor([[24.0, 0, 0, 8], [28, 3.5, 0, 9], [18, 0, 0, 6]], dtype=dtype)[:B]
-    ctx = ds.CostContext(preds, probs, torch.ones(B, dtype=dtype), others, torch.ones(B, A, dtype=dtype),
-                         goal[:, :2], lanes, lanes_mask)
+    ctx = ds.CostContext(
+        preds,
+        probs,
+        torch.ones(B, dtype=dtype),
+        others,
+        torch.ones(B, A, dtype=dtype),
+        goal[:, :2],
+        lanes,
+        lanes_mask,
+    )
     return s0, goal, ctx
 
 
 def stack_cost_fn(ctx):
     """The DiffStack cost as a solver callable, differentiable wrt weights, predictions, goal and lanes."""
+
     def cost_fn(x, u, w, preds, probs, goal, lanes):
-        c = ds.CostContext(preds, probs, ctx.pred_mask, ctx.others, ctx.others_mask, goal, lanes, ctx.lanes_mask)
+        c = ds.CostContext(
+            preds, probs, ctx.pred_mask, ctx.others, ctx.others_mask, goal, lanes, ctx.lanes_mask
+        )
         return ds.total_cost(x, u, c, w)
+
     return cost_fn
 
 
@@ -146,7 +181,12 @@ def test_lane_projection_ignores_oncoming_lanes():
     lanes[0, 1, :, 1], lanes[0, 1, :, 2] = 1.0, math.pi  # a lane 1 m away, going the other way
     lanes[0, 1] = lanes[0, 1].flip(0)
     pos = torch.tensor([[[4.3, 0.8]]], dtype=torch.float64)
-    d2, err, ok = ds.project_to_lanes(pos, torch.tensor([[0.1]], dtype=torch.float64), lanes, torch.ones(1, 2, 10, dtype=torch.bool))
+    d2, err, ok = ds.project_to_lanes(
+        pos,
+        torch.tensor([[0.1]], dtype=torch.float64),
+        lanes,
+        torch.ones(1, 2, 10, dtype=torch.bool),
+    )
     assert ok.all() and torch.allclose(d2, torch.tensor([[0.64]], dtype=torch.float64))
     assert torch.allclose(err, torch.tensor([[0.1]], dtype=torch.float64))
 
@@ -163,13 +203,20 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
     dist = (s0[:, 3:4] + v_f) / 2 * 3.0
     lane0 = c.x[:, :24].reshape(B, 8, 3, 7, 4)  # first goal lane: the closest to the goal
     lane_y = torch.tensor([0.0, 3.5, 0.0], dtype=torch.float64)[:B]
-    assert torch.allclose(lane0[..., -1, 0], (s0[:, 0:1] + dist)[..., None].expand(B, 8, 3), atol=1e-9)
+    assert torch.allclose(
+        lane0[..., -1, 0], (s0[:, 0:1] + dist)[..., None].expand(B, 8, 3), atol=1e-9
+    )
     off = torch.tensor(cfg.plan_offsets, dtype=torch.float64)
-    assert torch.allclose(lane0[..., -1, 1], (lane_y[:, None, None] + off).expand(B, 8, 3), atol=1e-9)
+    assert torch.allclose(
+        lane0[..., -1, 1], (lane_y[:, None, None] + off).expand(B, 8, 3), atol=1e-9
+    )
     assert torch.allclose(lane0[..., -1, 3], v_f[..., None].expand(B, 8, 3), atol=1e-9)
     assert torch.allclose(c.x[:, :, 0], s0[:, None].expand(B, N, 4))
     # every valid candidate respects the feasibility limits; hard stops from 10 m/s violate them
-    lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+    lo, hi = (
+        torch.tensor(cfg.u_lower, dtype=torch.float64),
+        torch.tensor(cfg.u_upper, dtype=torch.float64),
+    )
     ok_box = ((c.u >= lo) & (c.u <= hi)).all(-1).all(-1)
     assert (ok_box | ~c.valid).all() and not c.valid.all()
     # a sharp turn at speed is infeasible
@@ -192,9 +239,13 @@ def test_planner_takes_any_number_of_accelerations_and_offsets():
     small = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, small_cfg)
     G = full.x.shape[1] // 24
     assert small.x.shape[1] == G * 3
-    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(3, G * 3, 7, 4)  # accel -1, 0, 1; offset 0
+    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(
+        3, G * 3, 7, 4
+    )  # accel -1, 0, 1; offset 0
     assert torch.allclose(small.x, pick)
-    assert torch.equal(small.valid, full.valid.reshape(3, G, 8, 3)[:, :, [2, 4, 6], 1].reshape(3, G * 3))
+    assert torch.equal(
+        small.valid, full.valid.reshape(3, G, 8, 3)[:, :, [2, 4, 6], 1].reshape(3, G * 3)
+    )
 
 
 def test_plan_is_argmin_and_flags_unplannable():
@@ -215,13 +266,26 @@ def test_relaxed_planner_gradients():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
     cands = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, cfg)
-    target = ds.masked_argmin(torch.arange(cands.valid.shape[1], dtype=torch.float64).expand_as(cands.valid), cands.valid)
+    target = ds.masked_argmin(
+        torch.arange(cands.valid.shape[1], dtype=torch.float64).expand_as(cands.valid), cands.valid
+    )
     preds = ctx.preds.clone().requires_grad_()
     w = ds.cost_weights(cfg, torch.float64).requires_grad_()
 
     def loss(preds, w):
-        c = ds.CostContext(preds, ctx.probs, ctx.pred_mask, ctx.others, ctx.others_mask, ctx.goal, ctx.lanes, ctx.lanes_mask)
-        return ds.plan_loss(ds.total_cost(cands.x, cands.u, c, w), cands.valid, target, cfg.beta).sum()
+        c = ds.CostContext(
+            preds,
+            ctx.probs,
+            ctx.pred_mask,
+            ctx.others,
+            ctx.others_mask,
+            ctx.goal,
+            ctx.lanes,
+            ctx.lanes_mask,
+        )
+        return ds.plan_loss(
+            ds.total_cost(cands.x, cands.u, c, w), cands.valid, target, cfg.beta
+        ).sum()
 
     assert torch.autograd.gradcheck(loss, (preds, w))
     # p_n = softmax(-beta C_n): the loss is -log p of the target
@@ -233,7 +297,9 @@ def test_relaxed_planner_gradients():
 
 def linear_quadratic_problem(B=4, T=6, seed=0):
     g = torch.Generator().manual_seed(seed)
-    A = torch.eye(4, dtype=torch.float64) + 0.1 * torch.randn(4, 4, generator=g, dtype=torch.float64)
+    A = torch.eye(4, dtype=torch.float64) + 0.1 * torch.randn(
+        4, 4, generator=g, dtype=torch.float64
+    )
     Bm = torch.randn(4, 2, generator=g, dtype=torch.float64)
     dyn = lambda x, u: (A @ x[..., None])[..., 0] + (Bm @ u[..., None])[..., 0]  # noqa: E731
     Q = torch.randn(B, T + 1, 6, 6, generator=g, dtype=torch.float64)
@@ -247,7 +313,10 @@ def linear_quadratic_problem(B=4, T=6, seed=0):
         return (0.5 * (z[..., None, :] @ Qv @ z[..., None])[..., 0, 0] + (qv * z).sum(-1)).sum(-1)
 
     x0 = torch.randn(B, 4, generator=g, dtype=torch.float64)
-    lo, hi = torch.tensor([-0.5, -1.0], dtype=torch.float64), torch.tensor([0.5, 1.0], dtype=torch.float64)
+    lo, hi = (
+        torch.tensor([-0.5, -1.0], dtype=torch.float64),
+        torch.tensor([0.5, 1.0], dtype=torch.float64),
+    )
     return dyn, cost, x0, Q, q, lo, hi
 
 
@@ -255,16 +324,25 @@ def test_kkt_gradients_linear_dynamics_with_active_bounds():
     dyn, cost, x0, Q, q, lo, hi = linear_quadratic_problem()
     B, T = x0.shape[0], 6
     g = torch.Generator().manual_seed(5)
-    wx, wu = torch.randn(B, T + 1, 4, generator=g, dtype=torch.float64), torch.randn(B, T, 2, generator=g, dtype=torch.float64)
+    wx, wu = (
+        torch.randn(B, T + 1, 4, generator=g, dtype=torch.float64),
+        torch.randn(B, T, 2, generator=g, dtype=torch.float64),
+    )
     u0 = torch.zeros(B, T, 2, dtype=torch.float64)
-    x0r, qr, Qr = x0.clone().requires_grad_(), q.clone().requires_grad_(), Q.clone().requires_grad_()
+    x0r, qr, Qr = (
+        x0.clone().requires_grad_(),
+        q.clone().requires_grad_(),
+        Q.clone().requires_grad_(),
+    )
     x, u_star, conv = ds.ilqr_solve(cost, dyn, x0r, u0, (Qr, qr), lo, hi, iters=20, tol=1e-10)
     assert conv.all()
     n_active = ((u_star - lo).abs() < 1e-8).sum() + ((hi - u_star).abs() < 1e-8).sum()
     assert n_active >= 5  # the check covers active bounds
     ((x * wx).sum() + (u_star * wu).sum()).backward()
 
-    def loss(x0_, Q_, q_):  # re-solved from the solution: a few iterations reach the perturbed optimum
+    def loss(
+        x0_, Q_, q_
+    ):  # re-solved from the solution: a few iterations reach the perturbed optimum
         x, u, _ = ds.ilqr(cost, dyn, x0_, u_star.detach(), (Q_, q_), lo, hi, iters=30, tol=1e-13)
         return (x * wx).sum() + (u * wu).sum()
 
@@ -284,20 +362,46 @@ def unicycle_problem():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
     w = ds.cost_weights(cfg, torch.float64)
-    lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+    lo, hi = (
+        torch.tensor(cfg.u_lower, dtype=torch.float64),
+        torch.tensor(cfg.u_upper, dtype=torch.float64),
+    )
     cost_fn = stack_cost_fn(ctx)
     params = (w, ctx.preds, ctx.probs, ctx.goal, ctx.lanes)
-    x, u, info = ds.ilqr(cost_fn, ds.Unicycle(DT), s0, torch.zeros(3, 6, 2, dtype=torch.float64), params, lo, hi, iters=50, tol=1e-11)
+    x, u, info = ds.ilqr(
+        cost_fn,
+        ds.Unicycle(DT),
+        s0,
+        torch.zeros(3, 6, 2, dtype=torch.float64),
+        params,
+        lo,
+        hi,
+        iters=50,
+        tol=1e-11,
+    )
     assert info.converged.all()
     g = torch.Generator().manual_seed(3)
-    wx, wu = torch.randn(3, 7, 4, generator=g, dtype=torch.float64), torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
+    wx, wu = (
+        torch.randn(3, 7, 4, generator=g, dtype=torch.float64),
+        torch.randn(3, 6, 2, generator=g, dtype=torch.float64),
+    )
     return dict(cost_fn=cost_fn, s0=s0, u=u, params=params, lo=lo, hi=hi, wx=wx, wu=wu)
 
 
 def _kkt_grads(P, exact=True):
     leaves = [P["s0"].clone().requires_grad_()] + [p.clone().requires_grad_() for p in P["params"]]
-    x, u, _ = ds.ilqr_solve(P["cost_fn"], ds.Unicycle(DT), leaves[0], P["u"], tuple(leaves[1:]), P["lo"], P["hi"],
-                            iters=30, tol=1e-11, exact=exact)
+    x, u, _ = ds.ilqr_solve(
+        P["cost_fn"],
+        ds.Unicycle(DT),
+        leaves[0],
+        P["u"],
+        tuple(leaves[1:]),
+        P["lo"],
+        P["hi"],
+        iters=30,
+        tol=1e-11,
+        exact=exact,
+    )
     return torch.autograd.grad((x * P["wx"]).sum() + (u * P["wu"]).sum(), leaves)
 
 
@@ -308,16 +412,32 @@ def test_kkt_gradients_unicycle_full_cost_match_finite_differences(unicycle_prob
     def loss(i, v):
         leaves = [P["s0"], *P["params"]]
         leaves[i] = v
-        x, u, info = ds.ilqr(P["cost_fn"], ds.Unicycle(DT), leaves[0], P["u"], tuple(leaves[1:]), P["lo"], P["hi"], iters=50, tol=1e-11)
+        x, u, info = ds.ilqr(
+            P["cost_fn"],
+            ds.Unicycle(DT),
+            leaves[0],
+            P["u"],
+            tuple(leaves[1:]),
+            P["lo"],
+            P["hi"],
+            iters=50,
+            tol=1e-11,
+        )
         assert info.converged.all()
         return (x * P["wx"]).sum() + (u * P["wu"]).sum()
 
     # x_init, weights, predictions, goal, lanes
-    for i, idx in [(0, [(b, j) for b in range(3) for j in range(4)]), (1, [(j,) for j in range(5)]),
-                   (2, [(b, k, t, b % 2) for b in range(3) for k, t in ((0, 1), (2, 4))]),
-                   (4, [(b, j) for b in range(3) for j in range(2)]), (5, [(b, 0, 8, 1) for b in range(3)])]:
+    for i, idx in [
+        (0, [(b, j) for b in range(3) for j in range(4)]),
+        (1, [(j,) for j in range(5)]),
+        (2, [(b, k, t, b % 2) for b in range(3) for k, t in ((0, 1), (2, 4))]),
+        (4, [(b, j) for b in range(3) for j in range(2)]),
+        (5, [(b, 0, 8, 1) for b in range(3)]),
+    ]:
         base = ([P["s0"], *P["params"]])[i]
-        fd = torch.stack([central_fd(lambda v: loss(i, v), base, j, h=1e-4) for j in idx])  # h: above the solver's tolerance
+        fd = torch.stack(
+            [central_fd(lambda v: loss(i, v), base, j, h=1e-4) for j in idx]
+        )  # h: above the solver's tolerance
         assert rel_err(torch.stack([exact[i][j] for j in idx]), fd) < 1e-4, i
         if i in (0, 2):  # without the dynamics' curvature the gradient is measurably wrong
             assert rel_err(torch.stack([gauss_newton[i][j] for j in idx]), fd) > 1e-3
@@ -327,9 +447,20 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
     P = unicycle_problem
     kkt = _kkt_grads(P)
     leaves = [P["s0"].clone().requires_grad_()] + [p.clone().requires_grad_() for p in P["params"]]
-    x, u, _ = ds.ilqr(P["cost_fn"], ds.Unicycle(DT), leaves[0], torch.zeros_like(P["u"]), tuple(leaves[1:]),
-                      P["lo"], P["hi"], iters=20, tol=0.0)  # tol 0: every iteration is differentiated through
-    unrolled = torch.autograd.grad((x * P["wx"]).sum() + (u * P["wu"]).sum(), leaves, allow_unused=True)
+    x, u, _ = ds.ilqr(
+        P["cost_fn"],
+        ds.Unicycle(DT),
+        leaves[0],
+        torch.zeros_like(P["u"]),
+        tuple(leaves[1:]),
+        P["lo"],
+        P["hi"],
+        iters=20,
+        tol=0.0,
+    )  # tol 0: every iteration is differentiated through
+    unrolled = torch.autograd.grad(
+        (x * P["wx"]).sum() + (u * P["wu"]).sum(), leaves, allow_unused=True
+    )
     for a, b in zip(unrolled, kkt):
         if b.abs().sum() > 0:
             assert rel_err(a, b) < 1e-8
@@ -337,7 +468,14 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
 
 def _cast(batch, dtype):
     fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(batch)}
-    return dataclasses.replace(batch, **{k: v.to(dtype) for k, v in fields.items() if torch.is_tensor(v) and v.is_floating_point()})
+    return dataclasses.replace(
+        batch,
+        **{
+            k: v.to(dtype)
+            for k, v in fields.items()
+            if torch.is_tensor(v) and v.is_floating_point()
+        },
+    )
 
 
 def test_closed_form_cost_expansion_matches_autodiff(small):
@@ -351,14 +489,22 @@ def test_closed_form_cost_expansion_matches_autodiff(small):
     g = torch.Generator().manual_seed(0)
     preds = b.agent_fut[:, None, :, :2] + torch.randn(B, 3, 6, 2, generator=g, dtype=torch.float64)
     probs = torch.softmax(torch.randn(B, 3, generator=g, dtype=torch.float64), -1)
-    ctx, _ = ds.cost_contexts(b, preds, probs, (torch.arange(B) % 3 > 0).to(torch.float64))  # some without a prediction
-    u = torch.randn(B, 6, 2, generator=g, dtype=torch.float64) * torch.tensor([0.6, 2.0], dtype=torch.float64)
+    ctx, _ = ds.cost_contexts(
+        b, preds, probs, (torch.arange(B) % 3 > 0).to(torch.float64)
+    )  # some without a prediction
+    u = torch.randn(B, 6, 2, generator=g, dtype=torch.float64) * torch.tensor(
+        [0.6, 2.0], dtype=torch.float64
+    )
     x = ds.unicycle_rollout(b.ego_hist[:, -1], u, cfg.dt)
-    w = ds.cost_weights(cfg, torch.float64) * torch.rand(B, 5, generator=g, dtype=torch.float64)  # per-scenario weights
+    w = ds.cost_weights(cfg, torch.float64) * torch.rand(
+        B, 5, generator=g, dtype=torch.float64
+    )  # per-scenario weights
     params = (w, *ctx.tensors())
     cost = ds.StackCost(cfg.rbf_var)
     g1, H1 = ds.cost_expansion(cost, x, u, params)  # closed form
-    g2, H2 = ds.cost_expansion(lambda x, u, *p: cost(x, u, *p), x, u, params)  # a plain function: autodiff
+    g2, H2 = ds.cost_expansion(
+        lambda x, u, *p: cost(x, u, *p), x, u, params
+    )  # a plain function: autodiff
     assert rel_err(g1, g2) < 1e-12 and rel_err(H1, H2) < 1e-12
     # the check covers every case of the lane projection
     a, bb, has_lane = ds.nearest_lane_segment(x[:, 1:, :2], x[:, 1:, 2], ctx.lanes, ctx.lanes_mask)
@@ -377,19 +523,33 @@ def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicy
     B = len(s0)
     base = (P["params"][0].expand(B, 5), *ctx.tensors())
     grads = []
-    for fn, batched in ((cost, True), (lambda x, u, *p: cost(x, u, *p), False)):
-        leaves = [s0.clone().requires_grad_(), *[p.clone().requires_grad_() if p.is_floating_point() else p for p in base]]
-        x, u, _ = ds.ilqr_solve(fn, ds.Unicycle(DT), leaves[0], torch.zeros(B, 6, 2, dtype=torch.float64),
-                                tuple(leaves[1:]), P["lo"], P["hi"], iters=30, tol=1e-11, batched_params=batched)
+    for fn in (cost, lambda x, u, *p: cost(x, u, *p)):
+        leaves = [
+            s0.clone().requires_grad_(),
+            *[p.clone().requires_grad_() if p.is_floating_point() else p for p in base],
+        ]
+        x, u, _ = ds.ilqr_solve(
+            fn,
+            ds.Unicycle(DT),
+            leaves[0],
+            torch.zeros(B, 6, 2, dtype=torch.float64),
+            tuple(leaves[1:]),
+            P["lo"],
+            P["hi"],
+            iters=30,
+            tol=1e-11,
+        )
         loss = (x * P["wx"]).sum() + (u * P["wu"]).sum()
-        grads.append(torch.autograd.grad(loss, [leaves[i] for i in (0, 1, 2, 3, 7)]))  # x0, w, preds, probs, lanes
+        grads.append(
+            torch.autograd.grad(loss, [leaves[i] for i in (0, 1, 2, 3, 7)])
+        )  # x0, w, preds, probs, lanes
     for a, b in zip(*grads):
         assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
 @pytest.mark.parametrize("all_free", [True, False])
 def test_riccati_recursion_solves_the_lqr_exactly(all_free):
-    """riccati_backward (homogeneous coordinates) against the LQR solved as one dense problem: the controls as the
+    """lqr_backward (the Q-function form, active set held) against the LQR solved as one dense problem: the controls as the
     only unknowns (the states rolled out from them), the optimum by one Newton step on that quadratic. Its policy
     du_t = k_t + K_t dx_t rolled out from a random dx_0 gives the optimal controls, and p_0 is dV/d dx_0 at 0.
     all_free False: some controls are held at 0 (the KKT backward's clamped controls); the dense problem then
@@ -401,12 +561,14 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
     H[:, T, n:], H[:, T, :, n:] = 0.0, 0.0  # the last step has no control
     gv = torch.randn(Bsz, T + 1, n + m, generator=g, dtype=torch.float64)
     gv[:, T, n:] = 0.0
-    A = torch.eye(n, dtype=torch.float64) + 0.3 * torch.randn(Bsz, T, n, n, generator=g, dtype=torch.float64)
+    A = torch.eye(n, dtype=torch.float64) + 0.3 * torch.randn(
+        Bsz, T, n, n, generator=g, dtype=torch.float64
+    )
     Bm = torch.randn(Bsz, T, n, m, generator=g, dtype=torch.float64)
     held = torch.zeros(Bsz, T, m, dtype=torch.bool)
     if not all_free:
         held[0, 1, 0] = held[1, 0, :] = held[2, 3, 1] = True
-    k, K, free, p0 = ds.lqr_backward_fixed(A, Bm, H, gv, n, ~held)
+    k, K, free, p0 = ds.lqr_backward(A, Bm, H, gv, free=~held)
     assert torch.equal(free, ~held)
 
     def cost(du, dx0, b):  # du (T, m): the LQR's cost of the controls du from dx0, scenario b
@@ -421,9 +583,15 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
     for b in range(Bsz):
         du0 = torch.zeros(T, m, dtype=torch.float64)
         for start in (dx0[b], torch.zeros(n, dtype=torch.float64)):
-            Hd = torch.autograd.functional.hessian(lambda du: cost(du, start, b), du0).reshape(T * m, T * m)
-            gd = torch.autograd.functional.jacobian(lambda du: cost(du, start, b), du0).reshape(T * m)
-            f = ~held[b].reshape(-1)  # the exact optimum over the free controls (cost is quadratic in du)
+            Hd = torch.autograd.functional.hessian(lambda du: cost(du, start, b), du0).reshape(
+                T * m, T * m
+            )
+            gd = torch.autograd.functional.jacobian(lambda du: cost(du, start, b), du0).reshape(
+                T * m
+            )
+            f = ~held[b].reshape(
+                -1
+            )  # the exact optimum over the free controls (cost is quadratic in du)
             best = torch.zeros(T * m, dtype=torch.float64)
             best[f] = -torch.linalg.solve(Hd[f][:, f], gd[f])
             best = best.reshape(T, m)
@@ -433,7 +601,9 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
                 dx = A[b, t] @ dx + Bm[b, t] @ policy[-1]
             assert rel_err(torch.stack(policy), best) < 1e-10
         # V(dx0) = cost(du*(dx0), dx0): by the envelope theorem dV/d dx0 = d cost / d dx0 at du*(0)
-        grad = torch.autograd.functional.jacobian(lambda x: cost(best, x, b), torch.zeros(n, dtype=torch.float64))
+        grad = torch.autograd.functional.jacobian(
+            lambda x: cost(best, x, b), torch.zeros(n, dtype=torch.float64)
+        )
         assert rel_err(p0[b], grad) < 1e-10
 
 
@@ -447,7 +617,9 @@ def test_solve_masked_keeps_the_fixed_rows_and_solves_the_free_ones():
     assert rel_err(y[~free], rhs[~free]) < 1e-14  # fixed rows keep the right-hand side
     both = free.all(-1)
     assert rel_err(y[both], torch.linalg.solve(Q[both], rhs[both])) < 1e-10
-    one = free[:, 0] & ~free[:, 1]  # control 0 free, 1 fixed: Q_00 y_0 = rhs_0 (the caller moved Q_01 d_1 over)
+    one = (
+        free[:, 0] & ~free[:, 1]
+    )  # control 0 free, 1 fixed: Q_00 y_0 = rhs_0 (the caller moved Q_01 d_1 over)
     assert rel_err(y[one, 0], rhs[one, 0] / Q[one, 0, 0, None]) < 1e-10
 
 
@@ -455,40 +627,59 @@ def test_solve_small_is_the_linear_solve():
     """Cramer's rule for 2x2 (non-symmetric, so a transpose shows) and the general solve beyond, in float64."""
     g = torch.Generator().manual_seed(1)
     for m in (2, 3):
-        M = torch.randn(300, m, m, generator=g, dtype=torch.float64) + 3 * torch.eye(m, dtype=torch.float64)
+        M = torch.randn(300, m, m, generator=g, dtype=torch.float64) + 3 * torch.eye(
+            m, dtype=torch.float64
+        )
         rhs = torch.randn(300, m, 5, generator=g, dtype=torch.float64)
         assert rel_err(ds.solve_small(M, rhs), torch.linalg.solve(M, rhs)) < 1e-12
         assert rel_err(M @ ds.solve_small(M, rhs), rhs) < 1e-12
 
 
-def test_ilqr_on_the_scenarios_still_moving_gives_the_same_solution():
-    """batched_params (iterations on the scenarios still moving, the line search's smaller scales only where the full
-    step failed) gives what the solver gives on every scenario every iteration, on a problem where both shortcuts are
-    taken: some scenarios converge early and some reject full steps."""
+def test_ilqr_solves_each_scenario_of_a_batch_as_if_alone():
+    """The batched iteration (a converged scenario stops moving through a mask; the line search's
+    smaller scales taken where the full step failed) gives each scenario what solving it alone
+    gives, on a problem where both happen: some scenarios converge early and some reject full
+    steps."""
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
-    lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+    lo, hi = (
+        torch.tensor(cfg.u_lower, dtype=torch.float64),
+        torch.tensor(cfg.u_upper, dtype=torch.float64),
+    )
     cost = ds.StackCost(2.0)
-    w = ds.cost_weights(cfg, torch.float64) * torch.tensor([10.0, 1, 1, 1, 1], dtype=torch.float64)  # collisions matter
+    w = ds.cost_weights(cfg, torch.float64) * torch.tensor(
+        [10.0, 1, 1, 1, 1], dtype=torch.float64
+    )  # collisions matter
     params = (w.expand(3, 5), *ctx.tensors())
-    u0 = torch.tensor([0.7, 4.0], dtype=torch.float64).expand(3, 6, 2)  # a hard left at full throttle
-    seen = []
+    u0 = torch.tensor([0.7, 4.0], dtype=torch.float64).expand(
+        3, 6, 2
+    )  # a hard left at full throttle
+    calls = []
 
-    def recording(x, u, *p):  # records (scenarios, step scales) of every line-search evaluation
-        seen.append(tuple(x.shape[:2]) if x.dim() == 4 else None)
+    def recording(
+        x, u, *p
+    ):  # counts the cost's evaluations: 1 at the start, then 1 per scale tried
+        calls.append(len(x))
         return cost(x, u, *p)
 
     recording.expansion = cost.expansion
-    runs = [ds.ilqr(recording, ds.Unicycle(DT), s0, u0, params, lo, hi, iters=8, tol=1e-3, batched_params=b)
-            for b in (False, True)]
-    (xa, ua, ia), (xb, ub, ib) = runs
-    assert torch.allclose(xa, xb, rtol=0, atol=1e-12) and torch.allclose(ua, ub, rtol=0, atol=1e-12)
-    assert torch.equal(ia.iters, ib.iters) and torch.equal(ia.converged, ib.converged)
+    xa, ua, ia = ds.ilqr(recording, ds.Unicycle(DT), s0, u0, params, lo, hi, iters=8, tol=1e-3)
+    for b in range(3):
+        alone = tuple(p[b : b + 1] for p in params)
+        xb, ub, ib = ds.ilqr(
+            cost, ds.Unicycle(DT), s0[b : b + 1], u0[b : b + 1], alone, lo, hi, iters=8, tol=1e-3
+        )
+        assert torch.allclose(xa[b], xb[0], rtol=0, atol=1e-12) and torch.allclose(
+            ua[b], ub[0], rtol=0, atol=1e-12
+        )
+        assert ia.iters[b] == ib.iters[0] and ia.converged[b] == ib.converged[0]
     assert ia.iters.min() < ia.iters.max()  # some scenarios stopped early
-    assert any(s is not None and s[1] == 4 and s[0] < 3 for s in seen)  # smaller scales, for some scenarios only
+    assert len(calls) > 1 + ia.iters.max()  # and some iteration tried a smaller step scale
 
 
-@pytest.mark.parametrize("bound", [0.2, 100.0])  # bounds active in many problems; in none (the shortcut)
+@pytest.mark.parametrize(
+    "bound", [0.2, 100.0]
+)  # bounds active in many problems; in none (the shortcut)
 def test_box_qp_meets_the_kkt_conditions(bound):
     """box_qp's answer is the optimum of the convex box QP: feasible, zero gradient on the free controls, the
     gradient pushing outwards on the clamped ones (the KKT conditions, which only the optimum meets)."""
@@ -496,7 +687,9 @@ def test_box_qp_meets_the_kkt_conditions(bound):
     L = torch.randn(400, 2, 2, generator=g, dtype=torch.float64)
     Q = L @ L.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
     q = torch.randn(400, 2, generator=g, dtype=torch.float64)
-    lo, hi = (s * bound * (1 + torch.rand(400, 2, generator=g, dtype=torch.float64)) for s in (-1, 1))
+    lo, hi = (
+        s * bound * (1 + torch.rand(400, 2, generator=g, dtype=torch.float64)) for s in (-1, 1)
+    )
     d, free = ds.box_qp(Q, q, lo, hi)
     grad = (Q @ d[..., None])[..., 0] + q
     at_lo, at_hi = ~free & ((d - lo).abs() < 1e-12), ~free & ((d - hi).abs() < 1e-12)
@@ -510,53 +703,43 @@ def test_box_qp_meets_the_kkt_conditions(bound):
 def test_ilqr_descends_respects_bounds_and_flags_convergence():
     cfg = ds.Config()
     s0, goal, ctx = toy_scene()
-    lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+    lo, hi = (
+        torch.tensor(cfg.u_lower, dtype=torch.float64),
+        torch.tensor(cfg.u_upper, dtype=torch.float64),
+    )
     params = (ds.cost_weights(cfg, torch.float64), ctx.preds, ctx.probs, ctx.goal, ctx.lanes)
     u0 = torch.full((3, 6, 2), 3.0, dtype=torch.float64)  # far outside the box: clamped first
     for iters, tol in ((5, 0.05), (2, 0.05), (5, 1e-9)):
-        x, u, info = ds.ilqr(stack_cost_fn(ctx), ds.Unicycle(DT), s0, u0, params, lo, hi, iters=iters, tol=tol)
+        x, u, info = ds.ilqr(
+            stack_cost_fn(ctx), ds.Unicycle(DT), s0, u0, params, lo, hi, iters=iters, tol=tol
+        )
         c = info.costs
         assert (c[:, 1:] <= c[:, :-1] * (1 + 1e-12) + 1e-12).all()  # the true cost never increases
         assert ((u >= lo) & (u <= hi)).all()
         assert torch.equal(info.converged, info.step_norm < tol)
-        assert torch.allclose(x, ds.unicycle_rollout(s0, u, DT))  # the solution is dynamically consistent
+        assert torch.allclose(
+            x, ds.unicycle_rollout(s0, u, DT)
+        )  # the solution is dynamically consistent
     assert not info.converged.all() or info.iters.max() <= 5
 
 
 def test_unconverged_scenarios_get_no_gradient():
     dyn, cost, x0, Q, q, lo, hi = linear_quadratic_problem()
     qr = q.clone().requires_grad_()
-    x, u, conv = ds.ilqr_solve(cost, dyn, x0, torch.zeros(4, 6, 2, dtype=torch.float64), (Q, qr), lo, hi, iters=1, tol=1e-12)
+    x, u, conv = ds.ilqr_solve(
+        cost,
+        dyn,
+        x0,
+        torch.zeros(4, 6, 2, dtype=torch.float64),
+        (Q, qr),
+        lo,
+        hi,
+        iters=1,
+        tol=1e-12,
+    )
     assert not conv.any()
     x.sum().backward()
     assert (qr.grad == 0).all()
-
-
-@pytest.mark.parametrize("bad, match", [
-    (dict(x_init=torch.zeros(3, 4, dtype=torch.float32)), "u_init"),  # dtype mismatch
-    (dict(u_init=torch.zeros(2, 6, 2, dtype=torch.float64)), "u_init"),  # batch mismatch
-    (dict(x_init=torch.tensor([[math.nan, 0, 0, 1]] * 3, dtype=torch.float64)), "x_init"),
-    (dict(lo=torch.tensor([1.0, -1.0], dtype=torch.float64)), "lo"),
-    (dict(params=(torch.full((5,), math.inf, dtype=torch.float64),)), r"params\[0\]"),
-])
-def test_controller_bad_input_names_the_argument(bad, match):
-    args = dict(cost_fn=lambda x, u, w: (u**2).sum((-1, -2)), dynamics=ds.Unicycle(DT),
-                x_init=torch.zeros(3, 4, dtype=torch.float64), u_init=torch.zeros(3, 6, 2, dtype=torch.float64),
-                params=(torch.ones(5, dtype=torch.float64),), lo=torch.tensor([-0.7, -5.0], dtype=torch.float64),
-                hi=torch.tensor([0.7, 4.0], dtype=torch.float64))
-    args.update(bad)
-    with pytest.raises(ValueError, match=match):
-        ds.ilqr_solve(**args)
-
-
-def test_planner_bad_input_names_the_argument():
-    cfg = ds.Config()
-    s0, goal, ctx = toy_scene()
-    w = ds.cost_weights(cfg, torch.float64)
-    with pytest.raises(ValueError, match="goal_state"):
-        ds.plan(s0, ctx, goal[:2], w, cfg)
-    with pytest.raises(ValueError, match="s0"):
-        ds.plan(torch.full_like(s0, math.nan), ctx, goal, w, cfg)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -564,11 +747,11 @@ def test_planner_bad_input_names_the_argument():
 # ---------------------------------------------------------------------------------------------
 
 
-
 # ---------------------------------------------------------------------------------------------
 # A stand-in for data_synth.Scenarios: the exact field names and shapes of data_synth.Scenarios, with
 # plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at it).
 # ---------------------------------------------------------------------------------------------
+
 
 @dataclass
 class FakeScenarios:
@@ -599,7 +782,9 @@ class FakeScenarios:
 
     @staticmethod
     def cat(items):
-        return FakeScenarios(*[torch.cat([getattr(b, f.name) for b in items]) for f in fields(FakeScenarios)])
+        return FakeScenarios(
+            *[torch.cat([getattr(b, f.name) for b in items]) for f in fields(FakeScenarios)]
+        )
 
 
 def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
@@ -608,7 +793,9 @@ def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
     behaviour = torch.randint(0, 4, (B,), generator=g)
     w = torch.tensor([0.0, 0.25, -0.25, 0.0], dtype=dtype)[behaviour]
     a = torch.tensor([0.0, 0.0, 0.0, -1.5], dtype=dtype)[behaviour]
-    s = torch.stack([5 + 20 * rnd(B), -10 + 20 * rnd(B), math.pi * (2 * rnd(B) - 1), 3 + 7 * rnd(B)], -1)
+    s = torch.stack(
+        [5 + 20 * rnd(B), -10 + 20 * rnd(B), math.pi * (2 * rnd(B) - 1), 3 + 7 * rnd(B)], -1
+    )
     states = [s]
     for t in range(14):
         u = torch.stack([w, a], -1) * (t >= 6)
@@ -621,18 +808,28 @@ def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
     tt = DT * torch.arange(-8, 7, dtype=dtype)
     ego = torch.stack([ve * tt, 0 * tt.expand(B, -1), 0 * tt.expand(B, -1), ve.expand(-1, 15)], -1)
     # other agents: constant velocity, some padding, some pedestrians
-    o0 = torch.stack([60 * rnd(B, A) - 30, 60 * rnd(B, A) - 30, math.pi * (2 * rnd(B, A) - 1), 8 * rnd(B, A)], -1)
+    o0 = torch.stack(
+        [60 * rnd(B, A) - 30, 60 * rnd(B, A) - 30, math.pi * (2 * rnd(B, A) - 1), 8 * rnd(B, A)], -1
+    )
     vel = torch.stack([o0[..., 3] * torch.cos(o0[..., 2]), o0[..., 3] * torch.sin(o0[..., 2])], -1)
     pos = o0[..., None, :2] + tt[:, None] * vel[..., None, :]  # (B, A, 15, 2)
     others = torch.cat([pos, o0[..., None, 2:].expand(-1, -1, 15, -1)], -1)
     others_mask = rnd(B, A) < 0.7
     others = others * others_mask[..., None, None]
     return FakeScenarios(
-        ego_hist=ego[:, :9], ego_fut=ego[:, 9:], agent_hist=traj[:, :9],
+        ego_hist=ego[:, :9],
+        ego_fut=ego[:, 9:],
+        agent_hist=traj[:, :9],
         agent_hist_mask=torch.ones(B, 9, dtype=torch.bool),
-        agent_fut=traj[:, 9:], others_hist=others[:, :, :9], others_fut=others[:, :, 9:], others_mask=others_mask,
-        others_is_ped=rnd(B, A) < 0.3, lanes=torch.zeros(B, 1, 40, 3, dtype=dtype),
-        lanes_mask=torch.zeros(B, 1, 40, dtype=torch.bool), goal=ego[:, -1], behaviour=behaviour,
+        agent_fut=traj[:, 9:],
+        others_hist=others[:, :, :9],
+        others_fut=others[:, :, 9:],
+        others_mask=others_mask,
+        others_is_ped=rnd(B, A) < 0.3,
+        lanes=torch.zeros(B, 1, 40, 3, dtype=dtype),
+        lanes_mask=torch.zeros(B, 1, 40, dtype=torch.bool),
+        goal=ego[:, -1],
+        behaviour=behaviour,
     )
 
 
@@ -648,6 +845,7 @@ def make_model(cfg, seed=0):
 # ---------------------------------------------------------------------------------------------
 # Inputs
 # ---------------------------------------------------------------------------------------------
+
 
 def test_backward_differences_and_mask_prefix():
     t = torch.arange(9, dtype=torch.float64)
@@ -667,9 +865,13 @@ def test_backward_differences_and_mask_prefix():
 def test_state_features_values():
     cfg = ds.Config()
     b = make_batch(4)
-    f = ds.state_features(b.agent_hist, b.agent_hist[:, -1, :2], torch.zeros(4, dtype=torch.long), cfg)
+    f = ds.state_features(
+        b.agent_hist, b.agent_hist[:, -1, :2], torch.zeros(4, dtype=torch.long), cfg
+    )
     assert f.shape == (4, 9, 8)
-    assert torch.allclose(f[:, -1, :2], torch.zeros(4, 2, dtype=torch.float64))  # relative to the current position
+    assert torch.allclose(
+        f[:, -1, :2], torch.zeros(4, 2, dtype=torch.float64)
+    )  # relative to the current position
     vel = (b.agent_hist[:, -1, :2] - b.agent_hist[:, -2, :2]) / DT
     assert torch.allclose(f[:, -1, 2:4] * 15.0, vel)
     assert torch.allclose(f[:, -1, 6] * math.pi, ds.wrap_angle(b.agent_hist[:, -1, 2]))
@@ -679,14 +881,21 @@ def test_state_features_values():
 # The model: shapes, masks, no leakage, determinism in eval
 # ---------------------------------------------------------------------------------------------
 
+
 def test_shapes_and_probabilities():
     cfg = ds.Config(pred_dec_hidden=16)  # K = 25
     model, b = make_model(cfg), make_batch(8)
     for use_post in (True, False):
         p = model(b, use_posterior=use_post, step=0 if use_post else None)
         assert p.states.shape == (8, 25, 6, 4) and p.controls.shape == (8, 25, 6, 2)
-        assert p.means.shape == (8, 25, 6, 2) and p.pos_cov.shape == (8, 25, 6, 2, 2) and p.s0.shape == (8, 4)
-        assert p.probs.shape == (8, 25) and torch.allclose(p.probs.sum(-1), torch.ones(8, dtype=torch.float64))
+        assert (
+            p.means.shape == (8, 25, 6, 2)
+            and p.pos_cov.shape == (8, 25, 6, 2, 2)
+            and p.s0.shape == (8, 4)
+        )
+        assert p.probs.shape == (8, 25) and torch.allclose(
+            p.probs.sum(-1), torch.ones(8, dtype=torch.float64)
+        )
         assert (p.log_q is not None) == use_post
         assert torch.allclose(p.probs, (p.log_q if use_post else p.log_p).exp())
         assert torch.linalg.eigvalsh(p.pos_cov).min() > 0  # proper covariances
@@ -708,13 +917,21 @@ def test_masks_padding_radius_and_history_mask():
     assert torch.allclose(model(b.replace(others_hist=oh), use_posterior=False).states, ref.states)
     # neither do agents beyond 30 m (moved from 31 to 100 m away)
     far = b.agent_hist[:, -1:, None, :2] + torch.tensor([31.0, 0.0], dtype=torch.float64)
-    b_far = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + far, b.others_hist[..., 2:]], -1))
-    b_farther = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + far + 69.0, b.others_hist[..., 2:]], -1))
-    assert torch.allclose(model(b_far, use_posterior=False).states, model(b_farther, use_posterior=False).states)
+    b_far = b.replace(
+        others_hist=torch.cat([b.others_hist[..., :2] * 0 + far, b.others_hist[..., 2:]], -1)
+    )
+    b_farther = b.replace(
+        others_hist=torch.cat([b.others_hist[..., :2] * 0 + far + 69.0, b.others_hist[..., 2:]], -1)
+    )
+    assert torch.allclose(
+        model(b_far, use_posterior=False).states, model(b_farther, use_posterior=False).states
+    )
     # but a near agent does change the prediction (the test above could not pass by ignoring everyone)
     near = b.agent_hist[:, -1:, None, :2] + torch.tensor([5.0, 0.0], dtype=torch.float64)
-    b_near = b.replace(others_hist=torch.cat([b.others_hist[..., :2] * 0 + near, b.others_hist[..., 2:]], -1),
-                       others_mask=torch.ones_like(b.others_mask))
+    b_near = b.replace(
+        others_hist=torch.cat([b.others_hist[..., :2] * 0 + near, b.others_hist[..., 2:]], -1),
+        others_mask=torch.ones_like(b.others_mask),
+    )
     assert not torch.allclose(model(b_near, use_posterior=False).states, ref.states)
     # agent_hist_mask: unobserved early steps (filled with the earliest observed state) do not matter
     m = b.agent_hist_mask.clone()
@@ -735,7 +952,9 @@ def test_no_neighbours_no_nan():
     ego_far[..., 1] += 500.0  # the ego is a neighbour too: move it out of range
     b0 = b.replace(others_mask=torch.zeros_like(b.others_mask), ego_hist=ego_far)
     x, _ = model.encode(b0)
-    assert torch.equal(x[:, cfg.pred_enc_hidden:], torch.zeros_like(x[:, cfg.pred_enc_hidden:]))  # zero context
+    assert torch.equal(
+        x[:, cfg.pred_enc_hidden :], torch.zeros_like(x[:, cfg.pred_enc_hidden :])
+    )  # zero context
     p = model(b0, use_posterior=True, step=0)
     loss, _ = ds.pred_loss(p, b0, 0, cfg)
     loss.mean().backward()
@@ -752,12 +971,20 @@ def _drive_rho_to_the_edge(model, pre_tanh):
 
 def _training_step_is_finite(model, b, cfg):
     model.zero_grad()
-    p = model(b, use_posterior=True, step=0)  # training mode: the sample u = mu + L eps uses sqrt(1 - rho^2)
-    loss, _ = ds.pred_loss(p, b, 0, cfg)  # the GMM likelihood inverts Sigma_u's propagation (rho s_w s_a off-diagonal)
+    p = model(
+        b, use_posterior=True, step=0
+    )  # training mode: the sample u = mu + L eps uses sqrt(1 - rho^2)
+    loss, _ = ds.pred_loss(
+        p, b, 0, cfg
+    )  # the GMM likelihood inverts Sigma_u's propagation (rho s_w s_a off-diagonal)
     loss.mean().backward()
     grads = [q.grad for q in model.parameters() if q.grad is not None]
-    return (torch.isfinite(p.states).all() and torch.isfinite(p.pos_cov).all() and torch.isfinite(loss).all()
-            and all(torch.isfinite(g).all() for g in grads))
+    return (
+        torch.isfinite(p.states).all()
+        and torch.isfinite(p.pos_cov).all()
+        and torch.isfinite(loss).all()
+        and all(torch.isfinite(g).all() for g in grads)
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -770,7 +997,9 @@ def test_decoder_correlation_at_the_edge_stays_finite(dtype, pre_tanh, monkeypat
     _drive_rho_to_the_edge(model, pre_tanh)
     assert abs(ds.bounded_correlation(torch.tensor(pre_tanh, dtype=dtype))) == 1 - ds.RHO_MARGIN
     assert _training_step_is_finite(model, b, cfg)
-    monkeypatch.setattr(ds, "bounded_correlation", torch.tanh)  # no clamp: the test would catch its removal
+    monkeypatch.setattr(
+        ds, "bounded_correlation", torch.tanh
+    )  # no clamp: the test would catch its removal
     assert not _training_step_is_finite(model, b, cfg)
 
 
@@ -792,7 +1021,9 @@ def test_stationary_agent_is_finite():
     still[..., 3] = 0.0  # parked: no motion, no speed, no velocity direction
     b0 = b.replace(agent_hist=still, agent_fut=still[:, :6])
     p = model(b0, use_posterior=True, step=500)
-    assert (ds.wrap_angle(p.s0[:, 2] - still[:, -1, 2]).abs() < 1).all()  # the tracked heading + a correction
+    assert (
+        ds.wrap_angle(p.s0[:, 2] - still[:, -1, 2]).abs() < 1
+    ).all()  # the tracked heading + a correction
     loss, _ = ds.pred_loss(p, b0, 500, cfg)
     loss.mean().backward()
     assert torch.isfinite(loss).all() and torch.linalg.eigvalsh(p.pos_cov).min() >= 0.05**2 - 1e-12
@@ -803,45 +1034,62 @@ def test_prior_does_not_see_the_future_and_eval_is_deterministic():
     cfg = small_cfg()
     model, b = make_model(cfg).eval(), make_batch(8)
     p1 = model(b, use_posterior=False)
-    p2 = model(b.replace(agent_fut=b.agent_fut + 3.0, others_fut=b.others_fut + 3.0), use_posterior=False)
+    p2 = model(
+        b.replace(agent_fut=b.agent_fut + 3.0, others_fut=b.others_fut + 3.0), use_posterior=False
+    )
     assert torch.equal(p1.states, p2.states) and torch.equal(p1.probs, p2.probs)
     q1 = model(b, use_posterior=True).probs
-    assert not torch.allclose(q1, model(b.replace(agent_fut=b.agent_fut + 3.0), use_posterior=True).probs)
+    assert not torch.allclose(
+        q1, model(b.replace(agent_fut=b.agent_fut + 3.0), use_posterior=True).probs
+    )
     model.train()  # training feeds sampled controls back: two calls differ
-    assert not torch.allclose(model(b, use_posterior=False).states, model(b, use_posterior=False).states)
+    assert not torch.allclose(
+        model(b, use_posterior=False).states, model(b, use_posterior=False).states
+    )
 
 
 def test_bad_input_names_the_argument():
+    """The data check where data enters a run (train.check_batch, before training and evaluation)."""
     cfg = small_cfg()
-    model, b = make_model(cfg), make_batch(4)
+    b = make_batch(4)
+    tr.check_batch(b, cfg, need_future=True)  # the valid batch passes
     with pytest.raises(ValueError, match="agent_hist"):
-        model(b.replace(agent_hist=b.agent_hist[:, 1:], agent_hist_mask=b.agent_hist_mask[:, 1:]), use_posterior=False)
+        tr.check_batch(
+            b.replace(agent_hist=b.agent_hist[:, 1:], agent_hist_mask=b.agent_hist_mask[:, 1:]),
+            cfg,
+            False,
+        )
     with pytest.raises(ValueError, match="others_hist"):
-        model(b.replace(others_hist=b.others_hist[:, :, :5]), use_posterior=False)
+        tr.check_batch(b.replace(others_hist=b.others_hist[:, :, :5]), cfg, False)
     with pytest.raises(ValueError, match="agent_fut"):
-        model(b.replace(agent_fut=b.agent_fut[:, :4]), use_posterior=True)
+        tr.check_batch(b.replace(agent_fut=b.agent_fut[:, :4]), cfg, True)
     for name in ("agent_hist", "ego_hist", "others_hist", "agent_fut"):
         x = getattr(b, name).clone()
         x.view(-1)[5] = float("nan")
         with pytest.raises(ValueError, match=f"{name} contains NaN"):
-            model(b.replace(**{name: x}), use_posterior=True)
+            tr.check_batch(b.replace(**{name: x}), cfg, True)
     bad = b.agent_hist_mask.clone()
     bad[0, 4] = False  # a gap in the middle
     with pytest.raises(ValueError, match="agent_hist_mask"):
-        model(b.replace(agent_hist_mask=bad), use_posterior=False)
+        tr.check_batch(b.replace(agent_hist_mask=bad), cfg, False)
 
 
 # ---------------------------------------------------------------------------------------------
 # Dynamics: modes, covariance propagation, the Gaussian density
 # ---------------------------------------------------------------------------------------------
 
+
 def test_modes_are_the_unicycle_integration_of_the_mean_controls():
     cfg = small_cfg()
     model, b = make_model(cfg).eval(), make_batch(6)
     p = model(b, use_posterior=False)
-    ref = ds.unicycle_rollout(p.s0[:, None].expand(-1, cfg.pred_modes, -1), p.controls, DT)  # (B, K, 7, 4)
+    ref = ds.unicycle_rollout(
+        p.s0[:, None].expand(-1, cfg.pred_modes, -1), p.controls, DT
+    )  # (B, K, 7, 4)
     assert torch.allclose(p.states, ref[:, :, 1:], atol=1e-10)
-    assert torch.allclose(p.s0[:, :2], b.agent_hist[:, -1, :2]) and torch.allclose(p.s0[:, 3], b.agent_hist[:, -1, 3])
+    assert torch.allclose(p.s0[:, :2], b.agent_hist[:, -1, :2]) and torch.allclose(
+        p.s0[:, 3], b.agent_hist[:, -1, 3]
+    )
     # heading = velocity direction + a correction bounded by 1 rad
     vel = b.agent_hist[:, -1, :2] - b.agent_hist[:, -2, :2]
     assert (ds.wrap_angle(p.s0[:, 2] - torch.atan2(vel[:, 1], vel[:, 0])).abs() < 1).all()
@@ -865,7 +1113,10 @@ def test_covariance_propagation_matches_monte_carlo():
     cfg = ds.Config(pred_pos_std_min=0.0)
     g = torch.Generator().manual_seed(1)
     s0 = torch.tensor([1.0, -2.0, 0.4, 6.0], dtype=torch.float64)
-    mu = torch.tensor([[0.2, 1.0], [0.1, -0.5], [-0.3, 0.0], [0.0, 0.5], [0.25, -1.0], [0.0, 0.0]], dtype=torch.float64)
+    mu = torch.tensor(
+        [[0.2, 1.0], [0.1, -0.5], [-0.3, 0.0], [0.0, 0.5], [0.25, -1.0], [0.0, 0.0]],
+        dtype=torch.float64,
+    )
     sig = torch.tensor([0.05, 0.3], dtype=torch.float64)
     cov_u = torch.diag(sig**2).expand(6, 2, 2)
     ekf = ds.integrate_modes(s0, mu, cov_u, cfg)[1]  # (6, 2, 2)
@@ -882,10 +1133,15 @@ def test_gaussian_log_prob_matches_torch_distributions():
     g = torch.Generator().manual_seed(0)
     A = torch.randn(5, 2, 2, generator=g, dtype=torch.float64)
     cov = A @ A.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
-    mean, y = torch.randn(5, 2, generator=g, dtype=torch.float64), torch.randn(5, 2, generator=g, dtype=torch.float64)
+    mean, y = (
+        torch.randn(5, 2, generator=g, dtype=torch.float64),
+        torch.randn(5, 2, generator=g, dtype=torch.float64),
+    )
     ref = torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(y)
     assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov), ref)
-    assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov, min_var=0.1), ref)  # the floor's bound: inactive here
+    assert torch.allclose(
+        ds.gaussian2_log_prob(y, mean, cov, min_var=0.1), ref
+    )  # the floor's bound: inactive here
 
 
 def test_gaussian_log_prob_survives_a_long_thin_covariance_in_float32():
@@ -901,22 +1157,37 @@ def test_gaussian_log_prob_survives_a_long_thin_covariance_in_float32():
     c64 = cov.double() - s2 * torch.eye(2, dtype=torch.float64)
     lam, vec = torch.linalg.eigh(c64)
     c64 = vec @ torch.diag(lam.clamp_min(0)) @ vec.T + s2 * torch.eye(2, dtype=torch.float64)
-    ref = torch.distributions.MultivariateNormal(mean.double(), covariance_matrix=c64).log_prob(y.double())
+    ref = torch.distributions.MultivariateNormal(mean.double(), covariance_matrix=c64).log_prob(
+        y.double()
+    )
     assert torch.isfinite(got) and abs(got.double() - ref) < 0.05 * abs(ref), (got, ref)
 
 
 def test_gradients_through_the_covariance_propagation():
     cfg = ds.Config()
     g = torch.Generator().manual_seed(2)
-    s = torch.tensor([[0.0, 0.0, 0.3, 4.0]], dtype=torch.float64).expand(3, 4).clone().requires_grad_(True)
+    s = (
+        torch.tensor([[0.0, 0.0, 0.3, 4.0]], dtype=torch.float64)
+        .expand(3, 4)
+        .clone()
+        .requires_grad_(True)
+    )
     u = (0.2 * torch.randn(3, 2, generator=g, dtype=torch.float64)).requires_grad_(True)
-    cu = torch.diag(torch.tensor([0.04, 0.2], dtype=torch.float64)).expand(3, 2, 2).clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda s, u, c: ds.integrate_modes(s[0], u, c, cfg)[1], (s, u, cu))
+    cu = (
+        torch.diag(torch.tensor([0.04, 0.2], dtype=torch.float64))
+        .expand(3, 2, 2)
+        .clone()
+        .requires_grad_(True)
+    )
+    assert torch.autograd.gradcheck(
+        lambda s, u, c: ds.integrate_modes(s[0], u, c, cfg)[1], (s, u, cu)
+    )
 
 
 # ---------------------------------------------------------------------------------------------
 # Loss, training, weighting
 # ---------------------------------------------------------------------------------------------
+
 
 def test_loss_matches_an_independent_computation():
     cfg = small_cfg()
@@ -927,7 +1198,9 @@ def test_loss_matches_an_independent_computation():
         assert loss.shape == (16,)
         # LL with torch.distributions' mixture, per scenario
         D = torch.distributions
-        comp = D.MultivariateNormal(p.means.transpose(1, 2), covariance_matrix=p.pos_cov.transpose(1, 2))  # (B, T | K)
+        comp = D.MultivariateNormal(
+            p.means.transpose(1, 2), covariance_matrix=p.pos_cov.transpose(1, 2)
+        )  # (B, T | K)
         mix = D.MixtureSameFamily(D.Categorical(probs=p.probs[:, None].expand(-1, 6, -1)), comp)
         ll = mix.log_prob(b.agent_fut[..., :2]).clamp(max=6).sum(-1)  # (B,)
         prior = D.Categorical(logits=p.log_p)
@@ -994,7 +1267,9 @@ def test_distance_and_cost_gradient_weights():
     assert w[d.argmin()] == w.max() and w[d.argmax()] == w.min()
     # grad-cost: |d (w1 C_coll) / d agent future| along the ego's GT future, by hand
     diff = b.agent_fut[..., :2] - b.ego_fut[..., :2]
-    by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(1).norm(dim=-1)
+    by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(
+        1
+    ).norm(dim=-1)
     assert torch.allclose(tr.grad_cost_weights(b, cfg), by_hand)
     assert torch.allclose(tr.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
     zero = tr.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
@@ -1022,7 +1297,14 @@ def test_collision_cost_gradient_reaches_all_decoder_parameters():
     # phi(sum_k pi_k ||s_t - s_hat_kt||^2), eq. (2)'s collision term
     cost = torch.exp(-(p.probs[..., None] * ((ego - p.means) ** 2).sum(-1)).sum(1) / 4).sum()
     cost.backward()
-    names = ("dec_in.weight", "dec_hh.weight", "dec_out.weight", "p_z.2.weight", "hist_lstm.weight_hh", "heading_fix.weight")
+    names = (
+        "dec_in.weight",
+        "dec_hh.weight",
+        "dec_out.weight",
+        "p_z.2.weight",
+        "hist_lstm.weight_hh",
+        "heading_fix.weight",
+    )
     for name in names:
         grad = dict(model.named_parameters())[name].grad
         assert grad is not None and grad.abs().sum() > 0, name
@@ -1039,7 +1321,11 @@ def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weigh
     out = ds.run_stack(b, model, tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
     (out.l_plan.mean() + out.l_ctr.mean()).backward()
     grads = dict(model.named_parameters())
-    prior = sum(float(p.grad.abs().sum()) for n, p in grads.items() if n.startswith("p_z.") and p.grad is not None)
+    prior = sum(
+        float(p.grad.abs().sum())
+        for n, p in grads.items()
+        if n.startswith("p_z.") and p.grad is not None
+    )
     assert (prior > 0) == (weights == "prior")
     assert grads["dec_out.weight"].grad.abs().sum() > 0  # the decoder is trained either way
     with pytest.raises(ValueError, match="train_plan_weights"):
@@ -1052,10 +1338,21 @@ def test_a_method_chooses_its_own_planner_weights(small):
     b = _cast(small.train[:32], torch.float64)
     for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
         model = make_model(cfg)
-        out = ds.run_stack(b, model, tr.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights), cfg, "rl",
-                           step=0, train=True)
+        out = ds.run_stack(
+            b,
+            model,
+            tr.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights),
+            cfg,
+            "rl",
+            step=0,
+            train=True,
+        )
         (out.l_plan.mean() + out.l_ctr.mean()).backward()
-        prior = sum(float(p.grad.abs().sum()) for n, p in model.named_parameters() if n.startswith("p_z.") and p.grad is not None)
+        prior = sum(
+            float(p.grad.abs().sum())
+            for n, p in model.named_parameters()
+            if n.startswith("p_z.") and p.grad is not None
+        )
         assert (prior > 0) == reaches, weights
     with pytest.raises(ValueError, match="Method.train_plan_weights"):
         tr.Method("DiffStack", train_plan_weights="both")
@@ -1069,7 +1366,9 @@ def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
     s0 = b.ego_hist[:, -1]
     g = ds.route_goal(s0, b.lanes, b.lanes_mask, cfg)
     lat, head, _ = ds.project_to_lanes(g[:, None, :2], g[:, None, 2], b.lanes, b.lanes_mask)
-    assert lat.max() < 0.05 and head.abs().max() < 0.05  # on a lane's centre line, along it (squared m, rad)
+    assert (
+        lat.max() < 0.05 and head.abs().max() < 0.05
+    )  # on a lane's centre line, along it (squared m, rad)
     assert torch.allclose(g[:, 3], s0[:, 3])
     ahead = s0[:, 3] * cfg.horizon * cfg.dt
     # on straight and gently curved roads the chord is the arc length to within a few cm (and the ego sits
@@ -1079,8 +1378,14 @@ def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
     out_route = ds.run_stack(b, None, tr.Method("No prediction", "none"), cfg, "rl")
     out_logged = ds.run_stack(b, None, tr.Method("No prediction", "none"), ds.Config(), "rl")
     end = lambda out: out.x[:, -1, :2]  # noqa: E731
-    closer = ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1)).float().mean()
-    assert closer > 0.7  # planning towards the route goal ends nearer to it than planning towards the logged one
+    closer = (
+        ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1))
+        .float()
+        .mean()
+    )
+    assert (
+        closer > 0.7
+    )  # planning towards the route goal ends nearer to it than planning towards the logged one
     with pytest.raises(ValueError, match="Config.goal"):
         ds.Config(goal="anywhere")
 
@@ -1098,7 +1403,9 @@ def test_a_learning_curve_does_not_change_the_training(small):
     assert all(c["n"] + c["skipped"] == 8 for c in curved.learning_curve)
     for (name, a), b in zip(plain.state_dict().items(), curved.state_dict().values()):
         assert torch.equal(a, b), name
-    assert curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]  # it measured a model that changed
+    assert (
+        curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]
+    )  # it measured a model that changed
 
 
 @pytest.mark.parametrize("goal, plan_dt", [("logged", None), ("route", None), ("logged", 0.1)])
@@ -1111,8 +1418,13 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
     scenes = tr.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
     rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
     own = ds.scene_plan(data[rows], cfg, plan_dt)
-    for a, b in ((scenes[rows].goal, own.goal), (scenes[rows].cands.x, own.cands.x), (scenes[rows].cands.u, own.cands.u),
-                 (scenes[rows].cands.valid, own.cands.valid), (scenes[rows].terms, own.terms)):
+    for a, b in (
+        (scenes[rows].goal, own.goal),
+        (scenes[rows].cands.x, own.cands.x),
+        (scenes[rows].cands.u, own.cands.u),
+        (scenes[rows].cands.valid, own.cands.valid),
+        (scenes[rows].terms, own.terms),
+    ):
         assert torch.equal(a, b)
     model = make_model(cfg).float()
     m = tr.Method("DiffStack", losses=(1, 1, 1))
@@ -1120,7 +1432,9 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
     def run(scene):
         torch.manual_seed(1)  # the decoder's sampled controls
         model.zero_grad()
-        out = ds.run_stack(data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene)
+        out = ds.run_stack(
+            data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene
+        )
         (out.l_pred + out.l_plan + out.l_ctr).sum().backward()
         return [out.l_plan, out.l_ctr, out.x] + [p.grad.clone() for p in model.parameters()]
 
@@ -1135,13 +1449,22 @@ def test_training_refuses_bad_data_before_the_first_step(small):
     first batches would not reach is refused, naming the field, before any step is taken."""
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=16)
     data = small.train[:64]
-    last = torch.randperm(64, generator=torch.Generator().manual_seed(0))[-1]  # train_stack's order (seed 0): its
-    lanes = data.lanes.clone()                                                # first epoch's last batch holds it
+    last = torch.randperm(64, generator=torch.Generator().manual_seed(0))[
+        -1
+    ]  # train_stack's order (seed 0): its
+    lanes = data.lanes.clone()  # first epoch's last batch holds it
     lanes[last, 0, 0, 0] = math.nan
     lines = []
     with pytest.raises(ValueError, match="lanes"):
-        tr.train_stack(make_model(cfg).float(), dataclasses.replace(data, lanes=lanes), tr.Method("DiffStack", losses=(1, 1, 1)),
-                       cfg, "rl", epochs=4.0, log=lines.append)
+        tr.train_stack(
+            make_model(cfg).float(),
+            dataclasses.replace(data, lanes=lanes),
+            tr.Method("DiffStack", losses=(1, 1, 1)),
+            cfg,
+            "rl",
+            epochs=4.0,
+            log=lines.append,
+        )
     assert lines == []
 
 
@@ -1153,13 +1476,17 @@ def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
     assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
     for key in ("hindsight", "mse", "plan_loss"):
         assert sum(v[key] * v["n"] for v in by.values()) / r["n"] == pytest.approx(r[key], rel=1e-5)
-    counts = {data_synth.BEHAVIOURS[b]: int(n) for b, n in zip(*small.val.behaviour.unique(return_counts=True))}
+    counts = {
+        data_synth.BEHAVIOURS[b]: int(n)
+        for b, n in zip(*small.val.behaviour.unique(return_counts=True))
+    }
     assert all(by[name]["n"] <= counts[name] for name in by)
 
 
 # ---------------------------------------------------------------------------------------------
 # Metrics and plot
 # ---------------------------------------------------------------------------------------------
+
 
 def test_metrics_on_a_known_prediction():
     cfg = small_cfg()
@@ -1178,21 +1505,32 @@ def test_metrics_on_a_known_prediction():
     nll = -math.log(0.9 / (2 * math.pi * 0.25) + 0.1 / (2 * math.pi * 0.25) * math.exp(-4 / 0.5))
     assert torch.allclose(m["nll"], torch.full((4,), nll, dtype=torch.float64))
     probs2 = probs.flip(-1)
-    m2 = tr.prediction_metrics(ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg)
+    m2 = tr.prediction_metrics(
+        ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg
+    )
     assert torch.allclose(m2["ade"], torch.full((4,), 2.0, dtype=torch.float64))
     assert torch.allclose(m2["min_ade"], m["min_ade"])
     # constant velocity is exact on a constant-velocity agent (behaviour 0 after its manoeuvre: w = a = 0)
     s0 = b.agent_hist[:, -1]
-    cv_fut = torch.stack([s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
-                          s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7)], -1)
-    m3 = tr.prediction_metrics(pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg)
+    cv_fut = torch.stack(
+        [
+            s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
+            s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7),
+        ],
+        -1,
+    )
+    m3 = tr.prediction_metrics(
+        pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg
+    )
     assert torch.allclose(m3["cv_ade"], torch.zeros(4, dtype=torch.float64), atol=1e-12)
 
 
 def test_plot_prediction_draws_modes():
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     cfg = small_cfg()
     model, b = make_model(cfg).eval(), make_batch(2)
     fig, ax = plt.subplots()
@@ -1209,7 +1547,10 @@ def test_plot_prediction_draws_modes():
 # Slow: a few minutes of training on the synthetic data (DIFFSTACK_SLOW=1 to run)
 # ---------------------------------------------------------------------------------------------
 
-@pytest.mark.skipif(os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1")
+
+@pytest.mark.skipif(
+    os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1"
+)
 def test_trained_predictor_beats_constant_velocity():
     data_synth = pytest.importorskip("data_synth")
     data = data_synth.make_dataset(8000, seed=0)
@@ -1237,7 +1578,9 @@ def small():
 @pytest.fixture(scope="module")
 def scenes_mixed():
     """Curved roads, straight roads with intersections, turns and cut-ins: every kind of geometry."""
-    cfg = data_synth.SynthConfig(mix={"turn_across": 1.0, "cut_in": 1.0, "cross_yield": 1.0}, curved_prob=1.0)
+    cfg = data_synth.SynthConfig(
+        mix={"turn_across": 1.0, "cut_in": 1.0, "cross_yield": 1.0}, curved_prob=1.0
+    )
     return data_synth.generate_scenes(6, cfg, seed=5), cfg
 
 
@@ -1248,24 +1591,50 @@ def scenes_mixed():
 def test_scenarios_shapes_and_frame(small):
     b = small.train
     B, A, L = len(b), b.others_hist.shape[1], b.lanes.shape[1]
-    expect = {"ego_hist": (B, 9, 4), "ego_fut": (B, 6, 4), "agent_hist": (B, 9, 4), "agent_hist_mask": (B, 9),
-              "agent_fut": (B, 6, 4), "others_hist": (B, A, 9, 4), "others_fut": (B, A, 6, 4), "others_mask": (B, A),
-              "others_is_ped": (B, A), "lanes": (B, L, 40, 3), "lanes_mask": (B, L, 40), "goal": (B, 4),
-              "behaviour": (B,)}
+    expect = {
+        "ego_hist": (B, 9, 4),
+        "ego_fut": (B, 6, 4),
+        "agent_hist": (B, 9, 4),
+        "agent_hist_mask": (B, 9),
+        "agent_fut": (B, 6, 4),
+        "others_hist": (B, A, 9, 4),
+        "others_fut": (B, A, 6, 4),
+        "others_mask": (B, A),
+        "others_is_ped": (B, A),
+        "lanes": (B, L, 40, 3),
+        "lanes_mask": (B, L, 40),
+        "goal": (B, 4),
+        "behaviour": (B,),
+    }
     assert {k: tuple(v.shape) for k, v in b.tensors().items()} == expect
-    assert b.ego_hist.dtype == torch.float32 and b.behaviour.dtype == torch.int64 and b.lanes_mask.dtype == torch.bool
+    assert (
+        b.ego_hist.dtype == torch.float32
+        and b.behaviour.dtype == torch.int64
+        and b.lanes_mask.dtype == torch.bool
+    )
     assert all(torch.isfinite(v).all() for v in b.tensors().values() if v.is_floating_point())
     assert torch.equal(b.ego_hist[:, -1, :3], torch.zeros(B, 3))  # ego frame at t0
     assert torch.equal(b.goal, b.ego_fut[:, -1])
     assert b.agent_hist_mask.all() and A > 0 and L > 0
-    assert (b.others_hist[~b.others_mask] == 0).all() and (b.lanes[~b.lanes_mask] == 0).all()  # padding is 0
+    assert (b.others_hist[~b.others_mask] == 0).all() and (
+        b.lanes[~b.lanes_mask] == 0
+    ).all()  # padding is 0
     m = b.lanes_mask.long()
     assert (m[..., 1:] <= m[..., :-1]).all()  # valid lane points are a prefix
-    gaps = torch.linalg.norm(b.lanes[..., 1:, :2] - b.lanes[..., :-1, :2], dim=-1)[b.lanes_mask[..., 1:]]
-    assert gaps.min() > 1.95 and gaps.max() < 2.0 + 1e-4  # 2 m apart along the lane (chords on tight turns)
+    gaps = torch.linalg.norm(b.lanes[..., 1:, :2] - b.lanes[..., :-1, :2], dim=-1)[
+        b.lanes_mask[..., 1:]
+    ]
+    assert (
+        gaps.min() > 1.95 and gaps.max() < 2.0 + 1e-4
+    )  # 2 m apart along the lane (chords on tight turns)
     assert set(b.behaviour.tolist()) <= set(range(len(data_synth.BEHAVIOURS)))
     # the ego's lane: some lane passes within 1 m of the ego, along its heading
-    d = torch.where(b.lanes_mask, torch.linalg.norm(b.lanes[..., :2], dim=-1), math.inf).flatten(1).min(1).values
+    d = (
+        torch.where(b.lanes_mask, torch.linalg.norm(b.lanes[..., :2], dim=-1), math.inf)
+        .flatten(1)
+        .min(1)
+        .values
+    )
     assert (d < 1.0).float().mean() > 0.95
 
 
@@ -1273,9 +1642,15 @@ def test_scenes_fields(scenes_mixed):
     s, cfg = scenes_mixed
     S, F = s.ego.shape[:2]
     assert F == 41 and s.agents.shape[:3] == s.agents_mask.shape and s.pred_idx.shape == (S, F)
-    assert (s.pred_idx[:, 8:35] == 0).all() and (s.pred_idx[:, :8] == -1).all() and (s.pred_idx[:, 35:] == -1).all()
+    assert (
+        (s.pred_idx[:, 8:35] == 0).all()
+        and (s.pred_idx[:, :8] == -1).all()
+        and (s.pred_idx[:, 35:] == -1).all()
+    )
     assert s.ego.dtype == torch.float64 and len(s.names) == S
-    assert torch.equal(s.lanes_mask.any(-1), (s.routes >= 0).any(-1))  # every route has points, padding none
+    assert torch.equal(
+        s.lanes_mask.any(-1), (s.routes >= 0).any(-1)
+    )  # every route has points, padding none
     # the predicted vehicle is present at every frame; the v channel is the backward-difference speed
     assert s.agents_mask[:, 0].all()
     v = torch.linalg.norm(s.ego[:, 1:, :2] - s.ego[:, :-1, :2], dim=-1) / cfg.dt
@@ -1301,8 +1676,13 @@ def test_statistics_plausible_and_planning_relevant():
     assert st["ego"]["speed"]["max"] <= 15.01 and st["ego"]["speed"]["p1"] >= 0
     # the active manoeuvres often hit a no-braking ego; the passive twins, far and behind agents never do
     beh = st["behaviour"]
-    assert beh["cut_in"]["no_brake_conflict"] > 0.25 and beh["lead_brake"]["no_brake_conflict"] > 0.1
-    assert beh["turn_across"]["no_brake_conflict"] > 0.02 and beh["cross_go"]["no_brake_conflict"] > 0.02
+    assert (
+        beh["cut_in"]["no_brake_conflict"] > 0.25 and beh["lead_brake"]["no_brake_conflict"] > 0.1
+    )
+    assert (
+        beh["turn_across"]["no_brake_conflict"] > 0.02
+        and beh["cross_go"]["no_brake_conflict"] > 0.02
+    )
     for name in ("keep_lane", "lead_cruise", "go_straight", "cross_yield", "far", "behind"):
         assert beh[name]["no_brake_conflict"] == 0.0, name
     assert beh["far"]["min_dist_p50"] > 30 and beh["keep_lane"]["within_5m"] > 0.3
@@ -1324,19 +1704,29 @@ def _same_lanes(a, am, b, bm, tol):
     for x, xm, y, ym in ((a, am, b, bm), (b, bm, a, am)):
         for lane, m in zip(x, xm):
             if m.any():
-                assert any(torch.equal(m, m2) and (lane - l2).abs().max() < tol for l2, m2 in zip(y, ym))
+                assert any(
+                    torch.equal(m, m2) and (lane - l2).abs().max() < tol for l2, m2 in zip(y, ym)
+                )
 
 
 def test_nuscenes_round_trip(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
     loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
-    assert report == dict(scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[])
+    assert report == dict(
+        scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[]
+    )
     assert torch.equal(loaded.pred_idx >= 0, scenes.pred_idx >= 0)
     for frame in (8, 21, 34):
         a = data_synth.sample_at(scenes, frame, cfg=cfg, dtype=torch.float64)
         b = data_synth.sample_at(loaded, frame, cfg=cfg, dtype=torch.float64)
-        for k in ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal"):  # exact up to float64 rounding
+        for k in (
+            "ego_hist",
+            "ego_fut",
+            "agent_hist",
+            "agent_fut",
+            "goal",
+        ):  # exact up to float64 rounding
             assert (getattr(a, k) - getattr(b, k)).abs().max() < 1e-9, k
         A = a.others_mask.shape[1]
         assert torch.equal(a.others_mask, b.others_mask[:, :A]) and not b.others_mask[:, A:].any()
@@ -1396,13 +1786,18 @@ def test_missing_map_expansion_names_the_file(folder):
 def test_unknown_or_missing_version_folder(folder):
     with pytest.raises(data_real.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
         data_real.load_nuscenes(folder, "v2.0-beta")
-    with pytest.raises(data_real.NuScenesFormatError, match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini"):
+    with pytest.raises(
+        data_real.NuScenesFormatError,
+        match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini",
+    ):
         data_real.load_nuscenes(folder, "v1.0-trainval")
 
 
 def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
-    s = data_synth.Scenes(**{k: v.clone() for k, v in scenes[:4].tensors().items()}, names=scenes.names[:4])
+    s = data_synth.Scenes(
+        **{k: v.clone() for k, v in scenes[:4].tensors().items()}, names=scenes.names[:4]
+    )
     s.ego[1, :, :2] += 5000.0  # the ego drives far from its lanes: no lanes
     s.pred_idx[2] = -1  # nobody to predict
     data_synth.write_nuscenes(s, tmp_path, cfg=cfg)
@@ -1416,11 +1811,16 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     path.write_text(json.dumps(samples))
     loaded, report = data_real.load_nuscenes(tmp_path, cfg=cfg)
     why = report.pop("skipped")
-    assert report == dict(scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1)
+    assert report == dict(
+        scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1
+    )
     assert loaded.names == [data_synth.MINI_SCENES[3]]
     # each skipped scene is named with its reason and the file it comes from
     names = data_synth.MINI_SCENES
-    assert why[0].startswith(f"{names[0]}: 11 samples in ") and "sample.json, a sample needs 15" in why[0]
+    assert (
+        why[0].startswith(f"{names[0]}: 11 samples in ")
+        and "sample.json, a sample needs 15" in why[0]
+    )
     assert why[1].startswith(f"{names[1]}: no lane of ") and "expansion" in why[1]
     assert why[2].startswith(f"{names[2]}: no vehicle in ") and "sample_annotation.json" in why[2]
     batch, report = data_real.load_nuscenes_scenarios(tmp_path, cfg=cfg)
@@ -1438,8 +1838,11 @@ def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
     assert split[name]  # (the writer lists it)
     split[name] = ["nosuchinstance_" + e.split("_")[1] for e in split[name]]
     path.write_text(json.dumps(split))
-    with pytest.raises(data_real.NuScenesFormatError, match=rf"prediction_scenes\.json: scene '{name}' is listed "
-                       r"\(first entry 'nosuchinstance_\w+'\) but .*sample_annotation\.json has no vehicle"):
+    with pytest.raises(
+        data_real.NuScenesFormatError,
+        match=rf"prediction_scenes\.json: scene '{name}' is listed "
+        r"\(first entry 'nosuchinstance_\w+'\) but .*sample_annotation\.json has no vehicle",
+    ):
         data_real.load_nuscenes(tmp_path, cfg=cfg)
 
 
@@ -1453,12 +1856,18 @@ def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_
             p = int(loaded.pred_idx[i, f])
             if p < 0:
                 continue
-            assert not loaded.agents_is_ped[i, p] and loaded.agents_mask[i, p, f:f + 7].all()
-            gap = loaded.agents[i, :, f:f + 7, :2] - loaded.ego[i, None, f:f + 7, :2]
+            assert not loaded.agents_is_ped[i, p] and loaded.agents_mask[i, p, f : f + 7].all()
+            gap = loaded.agents[i, :, f : f + 7, :2] - loaded.ego[i, None, f : f + 7, :2]
             d = torch.linalg.norm(gap, dim=-1).min(1).values
-            window = loaded.agents[i, :, f - 8:f + 7, :2]
-            moved = torch.linalg.norm(window - window[:, :1], dim=-1).max(1).values  # all observed here
-            ok = ~loaded.agents_is_ped[i] & loaded.agents_mask[i, :, f - 8:f + 7].all(1) & (moved >= 1.0)
+            window = loaded.agents[i, :, f - 8 : f + 7, :2]
+            moved = (
+                torch.linalg.norm(window - window[:, :1], dim=-1).max(1).values
+            )  # all observed here
+            ok = (
+                ~loaded.agents_is_ped[i]
+                & loaded.agents_mask[i, :, f - 8 : f + 7].all(1)
+                & (moved >= 1.0)
+            )
             assert d[p] <= d[ok].min() + 1e-9
 
 
@@ -1468,12 +1877,24 @@ def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_
 
 def test_scenarios_indexing_cat_and_to(small):
     b = small.train
-    assert len(b[2:5]) == 3 and len(b[torch.tensor([0, 3])]) == 2 and len(b[b.behaviour == b.behaviour[0]]) >= 1
+    assert (
+        len(b[2:5]) == 3
+        and len(b[torch.tensor([0, 3])]) == 2
+        and len(b[b.behaviour == b.behaviour[0]]) >= 1
+    )
     assert torch.equal(b[torch.tensor([3])].goal, b.goal[3:4])
     few = b[:2]
-    few = data_synth.Scenarios(**{**few.tensors(), "others_hist": few.others_hist[:, :1], "others_fut": few.others_fut[:, :1],
-                          "others_mask": few.others_mask[:, :1], "others_is_ped": few.others_is_ped[:, :1],
-                          "lanes": few.lanes[:, :1], "lanes_mask": few.lanes_mask[:, :1]})
+    few = data_synth.Scenarios(
+        **{
+            **few.tensors(),
+            "others_hist": few.others_hist[:, :1],
+            "others_fut": few.others_fut[:, :1],
+            "others_mask": few.others_mask[:, :1],
+            "others_is_ped": few.others_is_ped[:, :1],
+            "lanes": few.lanes[:, :1],
+            "lanes_mask": few.lanes_mask[:, :1],
+        }
+    )
     cat = data_synth.Scenarios.cat([few, b[2:4]])
     assert len(cat) == 4 and cat.others_hist.shape[1] == b.others_hist.shape[1]
     assert cat.lanes.shape[1] == b.lanes.shape[1]
@@ -1493,9 +1914,13 @@ def test_sample_at_with_a_simulated_ego(scenes_mixed):
     state[:, 0] += torch.cos(h) + 0.5 * -torch.sin(h)  # 1 m ahead and 0.5 m to the left of the log
     state[:, 1] += torch.sin(h) + 0.5 * torch.cos(h)
     sim = data_synth.sample_at(scenes, 20, ego_state=state, cfg=cfg, dtype=torch.float64)
-    assert torch.allclose(sim.ego_hist[:, -1, :3], torch.zeros(len(scenes), 3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(
+        sim.ego_hist[:, -1, :3], torch.zeros(len(scenes), 3, dtype=torch.float64), atol=1e-12
+    )
     shift = torch.tensor([1.0, 0.5], dtype=torch.float64)
-    assert torch.allclose(sim.goal[:, :2], logged.goal[:, :2] - shift)  # the goal stays the logged ego's
+    assert torch.allclose(
+        sim.goal[:, :2], logged.goal[:, :2] - shift
+    )  # the goal stays the logged ego's
     assert torch.allclose(sim.agent_fut[..., :2], logged.agent_fut[..., :2] - shift)
     hist = scenes.ego[:, 12:21].clone()
     hist[:, -1] = state
@@ -1520,8 +1945,8 @@ def test_an_occluded_history_frame_leaves_a_usable_sample(scenes_mixed):
     b = data_synth.sample_at(gap, f0, cfg=cfg)
     H = cfg.hist
     want = torch.zeros(len(scenes), H + 1, dtype=torch.bool)
-    want[:, H - 2:] = True  # the 3 steps after the gap (t0 - 1 s .. t0)
-    assert torch.equal(b.agent_hist_mask, want & scenes.agents_mask[ar, pred, f0 - H:f0 + 1])
+    want[:, H - 2 :] = True  # the 3 steps after the gap (t0 - 1 s .. t0)
+    assert torch.equal(b.agent_hist_mask, want & scenes.agents_mask[ar, pred, f0 - H : f0 + 1])
     model = ds.Predictor(ds.Config(**TINY_PRED))
     pred_out = model.eval()(b, use_posterior=False)
     assert torch.isfinite(pred_out.states).all()
@@ -1531,7 +1956,9 @@ def test_cache_round_trip_and_foreign_file(tmp_path):
     a = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
     (path,) = tmp_path.glob("scenarios-*.pt")
     b = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
-    assert torch.equal(a.train.lanes, b.train.lanes) and torch.equal(a.val_scenes.ego, b.val_scenes.ego)
+    assert torch.equal(a.train.lanes, b.train.lanes) and torch.equal(
+        a.val_scenes.ego, b.val_scenes.ego
+    )
     assert b.val_scenes.names == a.val_scenes.names and len(a.train) + len(a.val) == 30
     path.write_bytes(b"not a cache")
     with pytest.raises(ValueError, match=path.name):
@@ -1541,8 +1968,10 @@ def test_cache_round_trip_and_foreign_file(tmp_path):
 
 def test_plot_scenario_draws_everything(small):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots()
     data_synth.plot_scenario(ax, small.train, 0)
     n_lanes = int(small.train.lanes_mask[0].any(-1).sum())
@@ -1567,7 +1996,9 @@ def test_arcline_geometry():
     assert np.allclose(end[0], [10, 10, math.pi / 2])
     # arc then straight (shape LSR with lengths [arc, 5, 0]): the straight continues north; past the end it extends
     p2 = np.array([[0.0, 0.0, 0.0, 10.0, 5 * math.pi, 5.0, 0.0, 1, 0, -1]])
-    ends, _ = data_synth.pose_along(data_synth.arcline_segments(p2)[0], np.array([5 * math.pi + 5, 5 * math.pi + 7]))
+    ends, _ = data_synth.pose_along(
+        data_synth.arcline_segments(p2)[0], np.array([5 * math.pi + 5, 5 * math.pi + 7])
+    )
     assert np.allclose(ends, [[10, 15, math.pi / 2], [10, 17, math.pi / 2]])
     # the road frame round trip, straight and curved
     for kappa in (0.0, 1 / 150, -1 / 300):
@@ -1581,7 +2012,9 @@ def test_backward_speed_with_gaps():
     xy = np.array([[0, 0], [1, 0], [0, 0], [4, 0], [5, 0]], float)
     mask = np.array([True, True, False, True, True])
     v = data_synth.backward_speed(xy, mask, np.arange(5) * 0.5)
-    assert np.allclose(v[[0, 1, 3, 4]], [2.0, 2.0, 3.0, 2.0])  # first copies the second; the gap spans 1 s
+    assert np.allclose(
+        v[[0, 1, 3, 4]], [2.0, 2.0, 3.0, 2.0]
+    )  # first copies the second; the gap spans 1 s
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1600,7 +2033,9 @@ def synth_small():
 def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
     """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central differences;
     plan_dt = 0.1: also through the interpolation of the predicted modes to the planner's 0.1 s clock."""
-    cfg = ds.Config(**TINY, ilqr_iters=40 if plan_dt is None else 100, ilqr_tol=1e-10)  # 30 steps converge slower
+    cfg = ds.Config(
+        **TINY, ilqr_iters=40 if plan_dt is None else 100, ilqr_tol=1e-10
+    )  # 30 steps converge slower
     batch = synth_small.train[:6].to(torch.float64)
     torch.manual_seed(0)
     model = ds.Predictor(cfg).double()
@@ -1632,24 +2067,39 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
 
 def test_upsample_keeps_the_knots_and_interpolates_linearly():
     g = torch.Generator().manual_seed(0)
-    now, fut = torch.randn(3, 2, generator=g, dtype=torch.float64), torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
+    now, fut = (
+        torch.randn(3, 2, generator=g, dtype=torch.float64),
+        torch.randn(3, 6, 2, generator=g, dtype=torch.float64),
+    )
     assert ds.upsample(now, fut, 1) is fut
     fine = ds.upsample(now, fut, 5)  # (3, 30, 2)
     assert fine.shape == (3, 30, 2) and torch.allclose(fine[:, 4::5], fut, rtol=0, atol=1e-15)
-    assert torch.allclose(fine[:, 0], 0.8 * now + 0.2 * fut[:, 0]) and torch.allclose(fine[:, 7], 0.4 * fut[:, 0] + 0.6 * fut[:, 1])
+    assert torch.allclose(fine[:, 0], 0.8 * now + 0.2 * fut[:, 0]) and torch.allclose(
+        fine[:, 7], 0.4 * fut[:, 0] + 0.6 * fut[:, 1]
+    )
 
 
 @pytest.mark.parametrize("plan_dt", [0.3, 0.0, -0.1, 1.0])
 def test_plan_dt_that_does_not_divide_dt_is_refused(synth_small, plan_dt):
     with pytest.raises(ValueError, match="plan_dt"):
-        ds.run_stack(synth_small.val[:4], None, tr.Method("GT prediction", "gt"), ds.Config(), plan_dt=plan_dt)
+        ds.run_stack(
+            synth_small.val[:4],
+            None,
+            tr.Method("GT prediction", "gt"),
+            ds.Config(),
+            plan_dt=plan_dt,
+        )
 
 
 def test_plan_dt_changes_the_resolution_not_the_problem(synth_small):
     """plan_dt = dt is the default stack exactly; at 0.1 s the same 3 s are planned in 30 steps and, with the
     per-step terms scaled by 1/5, the costs and the trajectory at the logged steps stay close to the 0.5 s ones
     (unscaled, control effort and lane terms would count 5x and the goal 1x)."""
-    cfg, batch, gt = ds.Config(), synth_small.train[:64].to(torch.float64), tr.Method("GT prediction", "gt")
+    cfg, batch, gt = (
+        ds.Config(),
+        synth_small.train[:64].to(torch.float64),
+        tr.Method("GT prediction", "gt"),
+    )
     base = ds.run_stack(batch, None, gt, cfg)
     same = ds.run_stack(batch, None, gt, cfg, plan_dt=0.5)
     assert torch.equal(base.x, same.x) and torch.equal(base.hindsight, same.hindsight)
@@ -1668,25 +2118,57 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
     batch = synth_small.train[:32]
     torch.manual_seed(0)
     model = ds.Predictor(cfg)
-    out = ds.run_stack(batch, model, tr.Method("DiffStack", losses=(0, 1, 1)), cfg, "rl", step=0, train=True)
+    out = ds.run_stack(
+        batch, model, tr.Method("DiffStack", losses=(0, 1, 1)), cfg, "rl", step=0, train=True
+    )
     for loss in (out.l_plan.mean(), out.l_ctr.mean()):
         g = torch.autograd.grad(loss, model.dec_h0.weight, retain_graph=True)[0]
         assert g.abs().sum() > 0
     # No prediction and GT prediction need no model; GT prediction plans at least as well in hindsight on average
     none = ds.run_stack(batch, None, tr.Method("No prediction", "none"), cfg)
     gt = ds.run_stack(batch, None, tr.Method("GT prediction", "gt"), cfg)
-    assert torch.isfinite(none.hindsight).all() and gt.hindsight.mean() <= none.hindsight.mean() + 1e-6
+    assert (
+        torch.isfinite(none.hindsight).all() and gt.hindsight.mean() <= none.hindsight.mean() + 1e-6
+    )
 
 
 def test_quick_runs_and_same_seed_same_table(tmp_path):
     cfg = ds.Config(**TINY)
     lines = []
-    first = tr.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=tmp_path / "none")
+    first = tr.quick(
+        threads=1,
+        n=300,
+        epochs=1,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=lines.append,
+        pretrained=tmp_path / "none",
+    )
     text = "\n".join(lines)
-    assert "| DiffStack (1 epochs) |" in text and "| Standard (1 epochs) |" in text and "| GT prediction |" in text
-    assert "Standard: no pre-trained predictor" in text  # none shipped here: said, and its row left out
-    second = tr.quick(threads=1, n=300, epochs=1, cfg=cfg, cache_dir=tmp_path, log=lambda s: None, pretrained=tmp_path / "none")
-    strip = lambda res: {k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs] for k, runs in res.items()}  # noqa: E731
+    assert (
+        "| DiffStack (1 epochs) |" in text
+        and "| Standard (1 epochs) |" in text
+        and "| GT prediction |" in text
+    )
+    assert (
+        "Standard: no pre-trained predictor" in text
+    )  # none shipped here: said, and its row left out
+    second = tr.quick(
+        threads=1,
+        n=300,
+        epochs=1,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=lambda s: None,
+        pretrained=tmp_path / "none",
+    )
+
+    def strip(res):  # the results without their wall times
+        return {
+            k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs]
+            for k, runs in res.items()
+        }
+
     assert [strip(r) for r in first] == [strip(r) for r in second]
 
 
@@ -1694,26 +2176,68 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
     shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
     cfg, out = ds.Config(**TINY), tmp_path / "pre"
-    about = tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200)
-    assert sorted(about["files"]) == ["diffstack-seed0.pt", "diffstack-seed1.pt", "standard-seed0.pt", "standard-seed1.pt"]
+    about = tr.pretrain(
+        out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
+    )
+    assert sorted(about["files"]) == [
+        "diffstack-seed0.pt",
+        "diffstack-seed1.pt",
+        "standard-seed0.pt",
+        "standard-seed1.pt",
+    ]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
-        tr.pretrain(out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200)
+        tr.pretrain(
+            out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
+        )
     models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
-    again = tr.train_predictor(tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
-                               tr.experiment_data(300, (0, 1), 200, tmp_path, log=None), cfg, "rl", 0.5, 1, None)
-    assert all(torch.equal(a, b) for a, b in zip(models[1].state_dict().values(), again.state_dict().values()))
-    assert not all(torch.equal(a, b) for a, b in zip(models[0].state_dict().values(), again.state_dict().values()))
+    again = tr.train_predictor(
+        tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
+        tr.experiment_data(300, (0, 1), 200, tmp_path, log=None),
+        cfg,
+        "rl",
+        0.5,
+        1,
+        None,
+    )
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(models[1].state_dict().values(), again.state_dict().values())
+    )
+    assert not all(
+        torch.equal(a, b)
+        for a, b in zip(models[0].state_dict().values(), again.state_dict().values())
+    )
     # two worker processes make the same files, byte for byte
-    pooled = tr.pretrain(tmp_path / "pooled", n=300, epochs=0.5, seeds=(0, 1), jobs=2, cfg=cfg, cache_dir=tmp_path, log=None,
-                         val=200)
-    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {k: v["sha256"] for k, v in about["files"].items()}
-    assert tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0] is None  # another Config
+    pooled = tr.pretrain(
+        tmp_path / "pooled",
+        n=300,
+        epochs=0.5,
+        seeds=(0, 1),
+        jobs=2,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=None,
+        val=200,
+    )
+    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {
+        k: v["sha256"] for k, v in about["files"].items()
+    }
+    assert (
+        tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
+        is None
+    )  # another Config
     lines = []
-    res, _ = tr.quick(threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out)
-    assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2  # a row per seed
-    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(lines)
+    res, _ = tr.quick(
+        threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out
+    )
+    assert (
+        len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2
+    )  # a row per seed
+    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(
+        lines
+    )
     with open(out / "standard-seed1.pt", "ab") as f:
         f.write(b"tampered")
     with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
@@ -1723,63 +2247,108 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
 def test_quick_story_states_only_what_its_numbers_show():
     row = lambda h, ade=1.0: [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]  # noqa: E731
     by = lambda **v: {b: dict(n=10, hindsight=x) for b, x in v.items()}  # noqa: E731
-    res = {"No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
-           "Standard (20 epochs)": row(-0.5), "DiffStack (20 epochs)": row(-1.5, 1.2),
-           "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))]}
+    res = {
+        "No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
+        "Standard (20 epochs)": row(-0.5),
+        "DiffStack (20 epochs)": row(-1.5, 1.2),
+        "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))],
+    }
     lines = tr.quick_story(res, "no/such/folder")
-    assert lines[0] == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
+    assert (
+        lines[0]
+        == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
+    )
     assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
     assert "75 % of it in keep_lane scenes" in lines[2]
-    assert len(lines) == 3  # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
+    assert (
+        len(lines) == 3
+    )  # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
     # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back where
-    res["Standard (20 epochs)"] = [dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
-                                   dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0))]
-    line = tr.quick_story(res, "no/such/folder")[3]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
-    assert line.startswith("And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in cut_in")
+    res["Standard (20 epochs)"] = [
+        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
+        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0)),
+    ]
+    line = tr.quick_story(res, "no/such/folder")[
+        3
+    ]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
+    assert line.startswith(
+        "And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in cut_in"
+    )
     res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
     assert tr.quick_story(res, "no/such/folder")[0].startswith(
-        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order")
+        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order"
+    )
 
 
 def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tmp_path):
     runs = lambda h: [dict(rel_hindsight=h)]  # noqa: E731
-    res = {"No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)], "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)]}
+    res = {
+        "No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)],
+        "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)],
+    }
     cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
     # the same run: the same epochs, Config, validation set, and each shipped seed trained on its own draw, as pretrain
-    for epochs, shipped, val, draws, same in ((20.0, [0, 1], 100, [0, 1], True), (4.0, [0, 1], 100, [0, 1], False),
-                                              (20.0, [0, 1, 2], 100, [0, 1], False), (20.0, [0, 1], 50, [0, 1], False),
-                                              (20.0, [0, 1], 100, None, False), (20.0, [0, 1], 100, [0, 0], False)):
+    for epochs, shipped, val, draws, same in (
+        (20.0, [0, 1], 100, [0, 1], True),
+        (4.0, [0, 1], 100, [0, 1], False),
+        (20.0, [0, 1, 2], 100, [0, 1], False),
+        (20.0, [0, 1], 50, [0, 1], False),
+        (20.0, [0, 1], 100, None, False),
+        (20.0, [0, 1], 100, [0, 0], False),
+    ):
         prov = dict(epochs=20.0, seeds=shipped, config=cfg, val=100)
         meta = dict(seeds=[0, 1], epochs=epochs, config=cfg, val=val, data_seeds=draws)
-        (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=dict(
-            Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}))))
+        (tmp_path / "rl.json").write_text(
+            json.dumps(
+                dict(
+                    meta=meta,
+                    results=dict(
+                        Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}
+                    ),
+                )
+            )
+        )
         line = tr.quick_story(res, tmp_path, prov)[-1]
         assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
-        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (not same)
+        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (
+            not same
+        )
 
 
 def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
     # two seeds of DiffStack, one better and one worse than Standard: the story follows their mean, not the first
     one = lambda h, ade: dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)  # noqa: E731
-    res = {"No prediction": [one(0.0, 1.0)], "GT prediction": [one(-2.0, 1.0)], "Standard (20 epochs)": [one(-0.5, 1.0)],
-           "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)]}
+    res = {
+        "No prediction": [one(0.0, 1.0)],
+        "GT prediction": [one(-2.0, 1.0)],
+        "Standard (20 epochs)": [one(-0.5, 1.0)],
+        "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)],
+    }
     lines = tr.quick_story(res, "no/such/folder")
-    assert lines[0].startswith("Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order")
+    assert lines[0].startswith(
+        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order"
+    )
     assert "its ADE is +30 % against Standard's" in lines[1]
-    res["DiffStack (20 epochs)"] = [one(-0.4, 1.5), one(-0.5, 1.1)]  # mean -0.45: above Standard's -0.5
+    res["DiffStack (20 epochs)"] = [
+        one(-0.4, 1.5),
+        one(-0.5, 1.1),
+    ]  # mean -0.45: above Standard's -0.5
     assert "NOT the paper's order" in tr.quick_story(res, "no/such/folder")[0]
 
 
-@pytest.mark.parametrize("argv, message", [
-    ([], "--quick"),
-    (["--quick", "--seeds", "0"], "--seeds"),
-    (["--experiment", "rl"], "experiments.py"),
-    (["--bench"], "bench.py"),
-    (["--quick", "--threads", "0"], "--threads"),
-    (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
-    (["--pretrain", "--jobs", "0"], "--jobs"),
-    (["--quick", "--set", "no_such_field=1"], "no_such_field"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "--quick"),
+        (["--quick", "--seeds", "0"], "--seeds"),
+        (["--experiment", "rl"], "experiments.py"),
+        (["--bench"], "bench.py"),
+        (["--quick", "--threads", "0"], "--threads"),
+        (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
+        (["--pretrain", "--jobs", "0"], "--jobs"),
+        (["--quick", "--set", "no_such_field=1"], "no_such_field"),
+    ],
+)
 def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
     with pytest.raises(SystemExit) as e:
         tr.main(argv)
@@ -1787,13 +2356,20 @@ def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
 
 
 def test_set_overrides_config_fields_with_their_types():
-    cfg = tr.config_with(ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"])
+    cfg = tr.config_with(
+        ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
+    )
     assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
     assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
     assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
     assert tr.config_with(ds.Config(), []) == ds.Config()
-    for bad, culprit in (["nope=1"], "nope"), (["beta"], "beta"), (["ilqr_iters=2.5"], "ilqr_iters"), \
-                        (["beta=nan"], "beta"), (["u_upper=a,b"], "u_upper"):
+    for bad, culprit in (
+        (["nope=1"], "nope"),
+        (["beta"], "beta"),
+        (["ilqr_iters=2.5"], "ilqr_iters"),
+        (["beta=nan"], "beta"),
+        (["u_upper=a,b"], "u_upper"),
+    ):
         with pytest.raises(ValueError, match=culprit):
             tr.config_with(ds.Config(), bad)
 
@@ -1814,7 +2390,9 @@ def test_decoder_matches_a_plain_gru_cell():
         cell.weight_hh.copy_(model.dec_hh.weight), cell.bias_hh.copy_(model.dec_hh.bias)
 
     def reference(train):  # rows b*K + k, as decode's
-        zx = torch.cat([torch.eye(K, dtype=x.dtype).expand(B, K, K), x[:, None].expand(B, K, 2 * E)], -1)
+        zx = torch.cat(
+            [torch.eye(K, dtype=x.dtype).expand(B, K, K), x[:, None].expand(B, K, 2 * E)], -1
+        )
         zx = zx.reshape(B * K, K + 2 * E)  # (B*K, K+X): (one_hot(k), x)
         h = model.dec_h0(zx)  # (B*K, Hd)
         u = model.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
@@ -1825,11 +2403,18 @@ def test_decoder_matches_a_plain_gru_cell():
             mu, s_w, s_a = out[:, :2], out[:, 2].exp(), out[:, 3].exp()
             rho = torch.tanh(out[:, 4]).clamp(-1 + ds.RHO_MARGIN, 1 - ds.RHO_MARGIN)
             c = rho * s_w * s_a
-            covs.append(torch.stack([torch.stack([s_w**2, c], -1), torch.stack([c, s_a**2], -1)], -2))
+            covs.append(
+                torch.stack([torch.stack([s_w**2, c], -1), torch.stack([c, s_a**2], -1)], -2)
+            )
             mus.append(mu)
             if train:
-                L = torch.stack([torch.stack([s_w, 0 * s_w], -1),
-                                 torch.stack([rho * s_a, s_a * (1 - rho**2).sqrt()], -1)], -2)  # Sigma_u = L L'
+                L = torch.stack(
+                    [
+                        torch.stack([s_w, 0 * s_w], -1),
+                        torch.stack([rho * s_a, s_a * (1 - rho**2).sqrt()], -1),
+                    ],
+                    -2,
+                )  # Sigma_u = L L'
                 u = mu + (L @ torch.randn_like(mu)[..., None])[..., 0]
             else:
                 u = mu
@@ -1842,9 +2427,17 @@ def test_decoder_matches_a_plain_gru_cell():
             mu, cov = model.decode(x, f0)
             torch.manual_seed(7)
             mu_ref, cov_ref = reference(train)
-            assert torch.allclose(mu, mu_ref, rtol=0, atol=1e-10), (train, (mu - mu_ref).abs().max())
-            assert torch.allclose(cov, cov_ref, rtol=0, atol=1e-10), (train, (cov - cov_ref).abs().max())
-    assert not torch.allclose(mu, model.eval().decode(x, f0)[0], atol=1e-6)  # the sample fed back does matter
+            assert torch.allclose(mu, mu_ref, rtol=0, atol=1e-10), (
+                train,
+                (mu - mu_ref).abs().max(),
+            )
+            assert torch.allclose(cov, cov_ref, rtol=0, atol=1e-10), (
+                train,
+                (cov - cov_ref).abs().max(),
+            )
+    assert not torch.allclose(
+        mu, model.eval().decode(x, f0)[0], atol=1e-6
+    )  # the sample fed back does matter
 
 
 def test_integrate_modes_matches_the_step_by_step_recursion():
@@ -1854,8 +2447,12 @@ def test_integrate_modes_matches_the_step_by_step_recursion():
     g = torch.Generator().manual_seed(5)
     n, T = 6, cfg.horizon
     rnd = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)  # noqa: E731
-    s0 = torch.stack([20 * rnd(n) - 10, 20 * rnd(n) - 10, 6 * rnd(n) - 3, 12 * rnd(n)], -1)  # (n, 4): x, y, h, v
-    u = torch.randn(n, T, 2, generator=g, dtype=torch.float64) * torch.tensor([0.4, 1.5], dtype=torch.float64)
+    s0 = torch.stack(
+        [20 * rnd(n) - 10, 20 * rnd(n) - 10, 6 * rnd(n) - 3, 12 * rnd(n)], -1
+    )  # (n, 4): x, y, h, v
+    u = torch.randn(n, T, 2, generator=g, dtype=torch.float64) * torch.tensor(
+        [0.4, 1.5], dtype=torch.float64
+    )
     u[0, :, 0] = 0.0  # straight: the yaw-rate series branch
     L = torch.randn(n, T, 2, 2, generator=g, dtype=torch.float64) * 0.5
     cov_u = L @ L.mT + 0.01 * torch.eye(2, dtype=torch.float64)
@@ -1867,8 +2464,12 @@ def test_integrate_modes_matches_the_step_by_step_recursion():
         Sigma = A @ Sigma @ A.mT + B @ cov_u[:, t] @ B.mT
         s = ds.unicycle_step(s, u[:, t], cfg.dt)
         ref_states.append(s)
-        ref_cov.append(Sigma[:, :2, :2] + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=torch.float64))
+        ref_cov.append(
+            Sigma[:, :2, :2] + cfg.pred_pos_std_min**2 * torch.eye(2, dtype=torch.float64)
+        )
     ref_states, ref_cov = torch.stack(ref_states, 1), torch.stack(ref_cov, 1)
     assert torch.allclose(states, ref_states, rtol=0, atol=1e-10), (states - ref_states).abs().max()
     assert torch.allclose(pos_cov, ref_cov, rtol=0, atol=1e-10), (pos_cov - ref_cov).abs().max()
-    assert pos_cov[:, -1].diagonal(dim1=-2, dim2=-1).max() > 1  # the covariances grow well beyond the floor
+    assert (
+        pos_cov[:, -1].diagonal(dim1=-2, dim2=-1).max() > 1
+    )  # the covariances grow well beyond the floor

@@ -181,7 +181,7 @@ def test_samples_have_the_shapes_and_sizes_of_the_other_sources(real):
         assert not v.is_floating_point() or torch.isfinite(v).all(), k
     assert batch.lanes.shape[1:] == (12, 40, 3) and batch.others_hist.shape[1:] == (16, 9, 4)
     assert (batch.behaviour == -1).all()
-    diffstack.check_batch(batch, diffstack.Config(), need_future=True, stack=True)
+    train.check_batch(batch, diffstack.Config(), need_future=True, stack=True)
 
 
 def test_ego_at_the_origin_facing_x_and_the_goal(real):

@@ -202,7 +202,7 @@ def _kkt(mutation):
         elif mutation == "grad_u a step late":
             gu = torch.cat([torch.zeros_like(grad_u[:, :1]), grad_u], 1)
         hold = torch.ones_like(free) if mutation == "the active set ignored" else free
-        k, K, _, p0 = ds.lqr_backward_fixed(A, B, H, torch.cat([grad_x, gu], -1), n, hold)
+        k, K, _, p0 = ds.lqr_backward(A, B, H, torch.cat([grad_x, gu], -1), free=hold)
         dx = [
             torch.ones_like(grad_x[:, 0])
             if mutation == "dx_0 = 1"

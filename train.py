@@ -8,6 +8,7 @@ the predictors shipped in pretrained/, and `python diffstack.py --quick` (this m
     4. Training         train_stack, train_predictor, compare_methods
     5. --quick          the shipped predictors, the quick run and its command line
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,10 +33,27 @@ import data_real
 import data_synth
 from runs import WorkerDied, command_line, folder_lock, one_line
 from runs import pool as worker_pool
-from data_synth import BEHAVIOURS  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
-from diffstack import (Candidates, Config, Prediction, Predictor, ScenePlan, check_batch, check_setting,
-                       collision_term, cost_contexts, cost_weights, gmm_log_prob, pred_loss, project_to_lanes, run_stack,
-                       scene_plan, unicycle_step, wrap_angle)
+from data_synth import (
+    BEHAVIOURS,
+)  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
+from diffstack import (
+    Candidates,
+    Config,
+    Prediction,
+    Predictor,
+    ScenePlan,
+    check_setting,
+    collision_term,
+    cost_contexts,
+    cost_weights,
+    gmm_log_prob,
+    pred_loss,
+    project_to_lanes,
+    run_stack,
+    scene_plan,
+    unicycle_step,
+    wrap_angle,
+)
 
 # --------------------------------------------------------------------------------------------
 # 1. Metrics, and the constant-velocity baseline
@@ -58,17 +76,27 @@ def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.
     err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
     best = pred.probs.argmax(-1)  # (B,)
     err_ml = err[torch.arange(len(best), device=best.device), best]  # (B, T)
-    nll = -gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2).clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
+    nll = (
+        -gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2)
+        .clamp(min=cfg.pred_nll_min)
+        .mean(-1)
+    )  # (B,)
     err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
     return {
-        "ade": err_ml.mean(-1), "fde": err_ml[:, -1],
-        "min_ade": err.mean(-1).min(-1).values, "min_fde": err[..., -1].min(-1).values,
-        "nll": nll, "cv_ade": err_cv.mean(-1), "cv_fde": err_cv[:, -1],
+        "ade": err_ml.mean(-1),
+        "fde": err_ml[:, -1],
+        "min_ade": err.mean(-1).min(-1).values,
+        "min_fde": err[..., -1].min(-1).values,
+        "nll": nll,
+        "cv_ade": err_cv.mean(-1),
+        "cv_fde": err_cv[:, -1],
     }
 
 
 @torch.no_grad()
-def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 1024) -> dict[str, float]:
+def evaluate_predictor(
+    model: Predictor, data, cfg: Config, batch_size: int = 1024
+) -> dict[str, float]:
     """Mean metrics over a Scenarios set, in eval mode (prior weights, mean controls), constant velocity beside.
 
     cv_nll is constant velocity made a distribution: an isotropic Gaussian per step whose variance is fit to this
@@ -79,10 +107,13 @@ def evaluate_predictor(model: Predictor, data, cfg: Config, batch_size: int = 10
     sums, cv_sq, n = {}, 0.0, 0
     for i in range(0, len(data), batch_size):
         batch = data[i : i + batch_size]
+        check_batch(batch, cfg, need_future=True)
         m = prediction_metrics(model(batch, use_posterior=False), batch, cfg)
         for k, v in m.items():
             sums[k] = sums.get(k, 0.0) + v.sum().item()
-        cv_sq = cv_sq + ((constant_velocity(batch, cfg) - batch.agent_fut[..., :2]) ** 2).sum((0, 2))  # (T,)
+        cv_sq = cv_sq + ((constant_velocity(batch, cfg) - batch.agent_fut[..., :2]) ** 2).sum(
+            (0, 2)
+        )  # (T,)
         n += len(batch)
     model.train(was_training)
     out = {k: v / n for k, v in sums.items()}
@@ -104,20 +135,37 @@ class Method:
 
     name: str
     predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
-    losses: tuple = (1, 0, 0)  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
+    losses: tuple = (
+        1,
+        0,
+        0,
+    )  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
     weighting: str = "standard"  # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
     train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
 
     def __post_init__(self):
         if self.predictor not in PREDICTORS:
-            raise ValueError(f"Method.predictor: expected one of {PREDICTORS}, got {self.predictor!r}")
-        if (not isinstance(self.losses, tuple) or len(self.losses) != 3
-                or not all(isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in self.losses)):
-            raise ValueError(f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}")
+            raise ValueError(
+                f"Method.predictor: expected one of {PREDICTORS}, got {self.predictor!r}"
+            )
+        if (
+            not isinstance(self.losses, tuple)
+            or len(self.losses) != 3
+            or not all(
+                isinstance(a, (int, float)) and math.isfinite(a) and a >= 0 for a in self.losses
+            )
+        ):
+            raise ValueError(
+                f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}"
+            )
         if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
-            raise ValueError(f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}")
+            raise ValueError(
+                f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}"
+            )
         if self.train_plan_weights not in (None, "posterior", "prior"):
-            raise ValueError(f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}")
+            raise ValueError(
+                f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}"
+            )
 
 
 PREDICTORS, WEIGHTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost")
@@ -132,6 +180,7 @@ TABLE1_METHODS = (
     Method("DiffStack", losses=(1, 1, 1)),
     Method("GT prediction", "gt"),
 )
+
 
 def alphas(method: Method, setting: str, cfg: Config):
     """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
@@ -148,7 +197,9 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
     ctx, _ = cost_contexts(batch, fut[:, None], ones[:, None], ones)
     x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
     with torch.enable_grad():
-        (g,) = torch.autograd.grad(collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut)
+        (g,) = torch.autograd.grad(
+            collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut
+        )
     return g.flatten(1).norm(dim=-1)
 
 
@@ -184,7 +235,9 @@ class CostWeights(nn.Module):
         self.register_buffer("w_coll", w0[:1].clone())  # (1,) w'_1, fixed: not a parameter
         self.register_buffer("c", w0[1:].sum())  # the sum of w'_2..5
         self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
-        self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))  # alpha = exp(0) = 1
+        self.log_alpha = nn.Parameter(
+            torch.zeros((), dtype=w0.dtype, device=w0.device)
+        )  # alpha = exp(0) = 1
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -198,8 +251,6 @@ class CostWeights(nn.Module):
     def forward(self) -> torch.Tensor:
         """w = alpha w' (5,), what the planner and the controller use."""
         return self.alpha * self.normalised()
-
-
 
 
 def distance_weights(batch) -> torch.Tensor:
@@ -225,7 +276,9 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
         raw = weighting(batch)
     raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
     if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
-        raise ValueError(f"weighting: expected finite non-negative weights of shape ({len(batch)},)")
+        raise ValueError(
+            f"weighting: expected finite non-negative weights of shape ({len(batch)},)"
+        )
     mean = raw.mean(0) if shard is None else shard.mean(raw)
     return raw / mean if mean > 0 else torch.ones_like(raw)
 
@@ -242,7 +295,7 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
 #     (same seed) and takes positions rank, rank + W, rank + 2W, ... of it (DistributedSampler, without its own
 #     shuffling), so step i's shards together are perm[i B:(i + 1) B], the single-process batch i;
 #   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B rows on every
-#     rank (same seed) and each keeps its own rows (Shard.randn_rows);
+#     rank (same seed) and each keeps its own rows (Shard.decoder_noise);
 #   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks' gradients, so the
 #     rank's sum over its scenarios is divided by (global count / W), never by its own count. L_plan and L_ctr are
 #     means over the *plannable* scenarios, whose number differs from rank to rank: the global count is all-reduced;
@@ -287,7 +340,9 @@ class Shard:
         """This process's shard under torch.distributed (torchrun): Shard() when it is not initialised or has one rank."""
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
             return Shard()
-        return Shard(dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend()))
+        return Shard(
+            dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend())
+        )
 
     def mean(self, x: torch.Tensor) -> torch.Tensor:
         """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows); autograd-aware."""
@@ -302,21 +357,30 @@ class Shard:
             dist.all_reduce(s, group=self.group)
         return s
 
-    def randn_rows(self, like: torch.Tensor, per_row: int) -> torch.Tensor:
-        """Standard normal noise shaped like `like` (b * per_row, ...): this rank's rows of the draw the whole global
-        batch (world * b scenarios of per_row rows each, in global order) would get."""
-        if self.world == 1:
-            return torch.randn_like(like)
-        b = like.shape[0] // per_row
-        noise = torch.randn(b * self.world * per_row, *like.shape[1:], dtype=like.dtype, device=like.device)
-        # global scenario rank + world j is this rank's scenario j: view the draw as (b, world, per_row, ...)
-        return noise.view(b, self.world, per_row, *like.shape[1:])[:, self.rank].reshape(like.shape)
+    def decoder_noise(self, model, b: int, cfg: Config, like: torch.Tensor):
+        """The decoder's training noise (T, b, K, 2) for this rank's b scenarios: its rows of the draw the
+        whole global batch (world * b scenarios, in global order) gets, one step at a time as the decoder
+        draws it in one process. None in one process or when the model does not sample (eval mode): the
+        decoder then draws from torch's generator itself."""
+        if self.world == 1 or not model.training:
+            return None
+        K, steps = cfg.pred_modes, []
+        for _ in range(cfg.horizon):
+            noise = torch.randn(b * self.world * K, 2, dtype=like.dtype, device=like.device)
+            # global scenario rank + world j is this rank's scenario j: view the draw as (b, world, K, 2)
+            steps.append(noise.view(b, self.world, K, 2)[:, self.rank])
+        return torch.stack(steps)
 
     def positions(self, n: int) -> torch.Tensor:
         """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ... (DistributedSampler
         without its shuffling; the ordering, a permutation drawn the same on every rank, is the shuffle)."""
-        return torch.tensor(list(DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)),
-                            dtype=torch.long, device="cpu")  # they index the permutation, drawn on the CPU
+        return torch.tensor(
+            list(
+                DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)
+            ),
+            dtype=torch.long,
+            device="cpu",
+        )  # they index the permutation, drawn on the CPU
 
     def close(self) -> None:
         """Release the loss's process group (train_stack makes one per call)."""
@@ -340,8 +404,14 @@ def to_device(obj, device):
     if torch.is_tensor(obj):
         return obj.to(device)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
-                                           for f in dataclasses.fields(obj) if f.init})
+        return dataclasses.replace(
+            obj,
+            **{
+                f.name: to_device(getattr(obj, f.name), device)
+                for f in dataclasses.fields(obj)
+                if f.init
+            },
+        )
     if isinstance(obj, tuple) and hasattr(obj, "_fields"):
         return type(obj)(*(to_device(v, device) for v in obj))
     if isinstance(obj, (tuple, list)):
@@ -351,25 +421,109 @@ def to_device(obj, device):
     return obj
 
 
+# Where data enters a run (training, evaluation), it is checked once: the method (diffstack.py) takes it as given.
+
+
+def _shape_error(t, shape) -> bool:
+    """Whether t's shape differs from `shape` (None: any size there; a leading ...: any dims)."""
+    tail = shape[0] is ...
+    want = shape[1:] if tail else shape
+    if t.dim() < len(want) or (not tail and t.dim() != len(want)):
+        return True
+    dims = t.shape[t.dim() - len(want) :]
+    return any(s is not None and s != d for s, d in zip(want, dims))
+
+
+def check_tensor(name: str, t, shape=None, dtype=None):
+    """ValueError naming `name` unless t is a tensor of the given shape (None: any size there) and
+    dtype, and finite."""
+    if not torch.is_tensor(t):
+        raise ValueError(f"{name}: expected a tensor, got {type(t).__name__}")
+    if shape is not None and _shape_error(t, shape):
+        sizes = ("..." if s is ... else "*" if s is None else str(s) for s in shape)
+        raise ValueError(f"{name}: expected shape ({', '.join(sizes)}), got {tuple(t.shape)}")
+    if dtype is not None and t.dtype != dtype:
+        raise ValueError(f"{name}: expected dtype {dtype}, got {t.dtype}")
+    try:
+        bad = t.is_floating_point() and not torch.isfinite(t).all()
+    except RuntimeError:  # inside torch.func's transforms a value cannot steer Python
+        bad = False
+    if bad:
+        raise ValueError(f"{name}: contains NaN or inf")
+    return t
+
+
+def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> None:
+    """What the method takes from data, checked where data enters a run (the method does not check
+    it again). A batch of Scenarios: not empty, the history and future lengths of cfg, finite.
+    need_future: the agent's GT future is read (training); stack: the ego's future, the other
+    agents, the goal and the lanes too."""
+    if len(batch) == 0:
+        raise ValueError("batch: no scenarios (a batch of size 0)")
+    H, T = cfg.hist_len + 1, cfg.horizon
+    expect = dict(agent_hist=H, ego_hist=H, others_hist=H)
+    if need_future or stack:
+        expect["agent_fut"] = T
+    if stack:
+        expect.update(ego_fut=T, others_fut=T)
+    for name, steps in expect.items():
+        x = getattr(batch, name)
+        if tuple(x.shape[-2:]) != (steps, 4):
+            raise ValueError(f"{name}: expected shape (..., {steps}, 4), got {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError(f"{name} contains NaN or inf")
+    if stack:
+        check_tensor("goal", batch.goal, (len(batch), 4), batch.ego_hist.dtype)
+        check_tensor("lanes", batch.lanes, (len(batch), None, None, 3), batch.ego_hist.dtype)
+    m = batch.agent_hist_mask
+    if tuple(m.shape) != tuple(batch.agent_hist.shape[:2]):
+        raise ValueError(
+            f"agent_hist_mask: expected shape {tuple(batch.agent_hist.shape[:2])}, "
+            f"got {tuple(m.shape)}"
+        )
+    if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
+        raise ValueError(
+            "agent_hist_mask: the current step must be observed and missing steps must be "
+            "the earliest"
+        )
+
+
 def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
     """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the set is:
     scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one scenario's own)."""
     parts = []
     for i in range(0, len(data), chunk):
-        batch = data[i:i + chunk]
+        batch = data[i : i + chunk]
         check_batch(batch, cfg, need_future=True, stack=True)
         parts.append(scene_plan(batch, cfg, plan_dt))
     cat = lambda get: torch.cat([get(p) for p in parts])  # noqa: E731
-    return ScenePlan(cat(lambda p: p.goal), Candidates(cat(lambda p: p.cands.x), cat(lambda p: p.cands.u),
-                                                       cat(lambda p: p.cands.valid)), cat(lambda p: p.terms))
+    return ScenePlan(
+        cat(lambda p: p.goal),
+        Candidates(
+            cat(lambda p: p.cands.x), cat(lambda p: p.cands.u), cat(lambda p: p.cands.valid)
+        ),
+        cat(lambda p: p.terms),
+    )
 
 
 class TrainingDiverged(ValueError):
     """A training whose loss, gradient or parameters became NaN or infinite (train_stack stops at that step)."""
 
 
-def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print,
-                pred_offset=0.0, weights: CostWeights | None = None, on_epoch=None, **stack_kw):
+def train_stack(
+    model,
+    data,
+    method: Method,
+    cfg: Config,
+    setting="rl",
+    epochs=1.0,
+    seed=0,
+    log=print,
+    pred_offset=0.0,
+    weights: CostWeights | None = None,
+    on_epoch=None,
+    **stack_kw,
+):
     """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's x0.9999 per step and
     clipping by value are Trajectron++'s) -- or,
     given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
@@ -390,16 +544,22 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     Returns the per-step log (list of dicts).
     """
     device = next(model.parameters()).device
-    shard = Shard.of_process_group()  # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
+    shard = (
+        Shard.of_process_group()
+    )  # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
     if cfg.batch_size % shard.world:
-        raise ValueError(f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
-                         f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count")
+        raise ValueError(
+            f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
+            f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count"
+        )
     b = cfg.batch_size // shard.world  # scenarios per step on this rank
     log = log if shard.rank == 0 else None  # the other ranks stay quiet
     # The same seed on every rank: the data order and the decoder's sampled controls are drawn for the global batch,
     # whichever rank uses them (section 3). manual_seed seeds the CPU's and every GPU's generator.
     torch.manual_seed(seed)  # the decoder's sampled controls
-    g = torch.Generator().manual_seed(seed)  # the order of the scenarios, drawn on the CPU whatever the device
+    g = torch.Generator().manual_seed(
+        seed
+    )  # the order of the scenarios, drawn on the CPU whatever the device
     a1, a2, a3 = alphas(method, setting, cfg)
     downstream = a2 > 0 or a3 > 0
     learn_cost = weights is not None
@@ -423,10 +583,15 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     # predictor (nor on learned cost weights: they weigh the terms afterwards): computed once for the data here,
     # not at every step of every epoch (about a sixth of a step). The same numbers either way.
     scenes = scene_plans(data, cfg, stack_kw.get("plan_dt")) if downstream else None
+    if not downstream:  # scene_plans checks the data itself
+        for i in range(0, len(data), 1024):
+            check_batch(data[i : i + 1024], cfg, need_future=True)
     n = len(data)
     steps_per_epoch = max(1, n // cfg.batch_size)
     total = max(1, round(epochs * steps_per_epoch))
-    mine = shard.positions(n)  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
+    mine = shard.positions(
+        n
+    )  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
     history, t0, step = [], time.time(), 0
 
     def epoch_done():
@@ -438,79 +603,151 @@ def train_stack(model, data, method: Method, cfg: Config, setting="rl", epochs=1
     epoch_done()
     try:
         while step < total:
-            perm = torch.randperm(n, generator=g, device="cpu")  # the epoch's order, the same on every rank
+            perm = torch.randperm(
+                n, generator=g, device="cpu"
+            )  # the epoch's order, the same on every rank
             for i in range(steps_per_epoch):
                 if step >= total:
                     break
-                rows = perm[mine[i * b:(i + 1) * b]]  # one process: perm[i B:(i + 1) B]
+                rows = perm[mine[i * b : (i + 1) * b]]  # one process: perm[i B:(i + 1) B]
                 batch = to_device(data[rows], device)
                 target = offset_targets(batch, pred_offset) if pred_offset else None
                 if downstream:
-                    out = run_stack(batch, predictor, method, cfg, setting, step=None if learn_cost else step,
-                                    train=not learn_cost, w=cost_w() if learn_cost else None, pred_target=target,
-                                    shard=shard, scene=to_device(scenes[rows], device), **stack_kw)
+                    out = run_stack(
+                        batch,
+                        predictor,
+                        method,
+                        cfg,
+                        setting,
+                        step=None if learn_cost else step,
+                        train=not learn_cost,
+                        w=cost_w() if learn_cost else None,
+                        pred_target=target,
+                        noise=shard.decoder_noise(predictor, len(batch), cfg, batch.ego_hist),
+                        batch_mean=shard.mean,
+                        scene=to_device(scenes[rows], device),
+                        **stack_kw,
+                    )
                     keep = out.plannable.to(out.l_plan.dtype)
                     # Each rank divides its sums by the global number of plannable scenarios / world (never by its own
                     # number): DDP's mean over the ranks then makes (global sum) / (global count). One process: keep.sum().
                     m = shard.total(keep).clamp_min(1) / shard.world
-                    l_pred = (out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep).sum() / m
+                    l_pred = (
+                        out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep
+                    ).sum() / m
                     l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
                     if shard.world == 1:
                         conv = out.converged[out.plannable].float().mean().item()
                     else:  # converged among the plannable scenarios of the global batch
-                        conv = (shard.total((out.converged & out.plannable).to(keep.dtype)) / shard.total(keep)).item()
+                        conv = (
+                            shard.total((out.converged & out.plannable).to(keep.dtype))
+                            / shard.total(keep)
+                        ).item()
                 else:
-                    pred = predictor(batch, use_posterior=True, step=step, shard=shard)
-                    l_pred_b, _ = pred_loss(pred, batch if target is None else dataclasses.replace(batch, agent_fut=target),
-                                            step, cfg, shard)
+                    noise = shard.decoder_noise(predictor, len(batch), cfg, batch.ego_hist)
+                    pred = predictor(batch, use_posterior=True, step=step, noise=noise)
+                    l_pred_b, _ = pred_loss(
+                        pred,
+                        batch if target is None else dataclasses.replace(batch, agent_fut=target),
+                        step,
+                        cfg,
+                        shard.mean,
+                    )
                     # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over the ranks is the
                     # mean over the global batch
-                    l_pred = (l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)).mean()
+                    l_pred = (
+                        l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)
+                    ).mean()
                     l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
                     conv = float("nan")
-                loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr  # this rank's loss; DDP averages its gradient over the ranks
+                loss = (
+                    a1 * l_pred + a2 * l_plan + a3 * l_ctr
+                )  # this rank's loss; DDP averages its gradient over the ranks
                 # a non-finite loss would make every parameter NaN at this step: stop here, saying where (every rank
                 # sees the flags of all: they stop together)
-                bad = shard.total((~torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))).to(loss.dtype)[None])  # (3,)
+                bad = shard.total(
+                    (~torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))).to(loss.dtype)[None]
+                )  # (3,)
                 if bad.any():
-                    which = ", ".join(n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b)
-                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
-                                           f"{total}: {which} is not finite")
+                    which = ", ".join(
+                        n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b
+                    )
+                    raise TrainingDiverged(
+                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
+                        f"{total}: {which} is not finite"
+                    )
                 opt.zero_grad()
                 loss.backward()
                 # a NaN gradient under a finite loss would reach the parameters too (an infinite one is clipped below)
-                if torch.isnan(torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])):
-                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
-                                           f"a gradient is NaN")
-                torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)  # the same (averaged) gradient on every rank
+                if torch.isnan(
+                    torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])
+                ):
+                    raise TrainingDiverged(
+                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
+                        f"a gradient is NaN"
+                    )
+                torch.nn.utils.clip_grad_value_(
+                    params, cfg.pred_grad_clip
+                )  # the same (averaged) gradient on every rank
                 opt.step()
                 # a step that overflows (a huge learning rate) can make a parameter infinite under a finite gradient
                 if not torch.isfinite(torch.nn.utils.get_total_norm(params)):
-                    raise TrainingDiverged(f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
-                                           f"a parameter is not finite")
+                    raise TrainingDiverged(
+                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
+                        f"a parameter is not finite"
+                    )
                 if sched is not None:
                     sched.step()
                 step += 1
                 # the logged values of the global batch: the mean over the ranks of theirs (one process: its own)
-                loss_v, l_pred_v, l_plan_v, l_ctr_v = shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None]).div(
-                    shard.world).tolist()
-                history.append(dict(step=step, loss=loss_v, l_pred=l_pred_v, l_plan=l_plan_v, l_ctr=l_ctr_v, converged=conv))
+                loss_v, l_pred_v, l_plan_v, l_ctr_v = (
+                    shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None])
+                    .div(shard.world)
+                    .tolist()
+                )
+                history.append(
+                    dict(
+                        step=step,
+                        loss=loss_v,
+                        l_pred=l_pred_v,
+                        l_plan=l_plan_v,
+                        l_ctr=l_ctr_v,
+                        converged=conv,
+                    )
+                )
                 if learn_cost:
                     history[-1]["w"] = weights().tolist()
                 if step % steps_per_epoch == 0 or step == total:
                     epoch_done()
                 if log and (step % max(1, total // 10) == 0 or step == total):
                     el = time.time() - t0
-                    w_now = "  w " + " ".join(f"{v:.3f}" for v in weights().tolist()) if learn_cost else ""
-                    log(f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred {l_pred_v:7.3f}  "
-                        f"L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s")
+                    w_now = (
+                        "  w " + " ".join(f"{v:.3f}" for v in weights().tolist())
+                        if learn_cost
+                        else ""
+                    )
+                    log(
+                        f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred {l_pred_v:7.3f}  "
+                        f"L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s"
+                    )
     finally:
         shard.close()
     return history
 
 
-def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0, seed=0, log=print, pred_offset=0.0,
-                    device="cpu", curve_samples=0, **stack_kw) -> Predictor:
+def train_predictor(
+    method: Method,
+    data,
+    cfg: Config,
+    setting="rl",
+    epochs=1.0,
+    seed=0,
+    log=print,
+    pred_offset=0.0,
+    device="cpu",
+    curve_samples=0,
+    **stack_kw,
+) -> Predictor:
     """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
     moved to `device` and trained there on data.train_for(seed) (the seed's own draw) by train_stack.
     curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples validation scenarios before
@@ -520,16 +757,32 @@ def train_predictor(method: Method, data, cfg: Config, setting="rl", epochs=1.0,
     curve, on_epoch = [], None
     if curve_samples > 0:
         subset = data.val[:curve_samples]
-        on_epoch = lambda epoch, step: curve.append(dict(  # noqa: E731
-            epoch=epoch, step=step, **evaluate_stack(model, subset, method, cfg, setting, device=device, **stack_kw)))
-    train_stack(model, data.train_for(seed), method, cfg, setting, epochs, seed, log, pred_offset, on_epoch=on_epoch,
-                **stack_kw)
+
+        def on_epoch(epoch, step):  # a point of the learning curve
+            metrics = evaluate_stack(model, subset, method, cfg, setting, device=device, **stack_kw)
+            curve.append(dict(epoch=epoch, step=step, **metrics))
+
+    train_stack(
+        model,
+        data.train_for(seed),
+        method,
+        cfg,
+        setting,
+        epochs,
+        seed,
+        log,
+        pred_offset,
+        on_epoch=on_epoch,
+        **stack_kw,
+    )
     if curve_samples > 0:
         model.learning_curve = curve
     return model
 
 
-def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch_size=512, device=None, **stack_kw) -> dict:
+def evaluate_stack(
+    model, data, method: Method, cfg: Config, setting="rl", batch_size=512, device=None, **stack_kw
+) -> dict:
     """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
     predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate.
     Each batch runs on `device` (default: the model's; the CPU without a model)."""
@@ -539,13 +792,25 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
         model.eval()
     sums, n, n_all, by_behaviour = {}, 0, 0, {}
     for i in range(0, len(data), batch_size):
-        batch = to_device(data[i:i + batch_size], device)
+        batch = to_device(data[i : i + batch_size], device)
+        check_batch(batch, cfg, need_future=True, stack=True)
         out = run_stack(batch, model, method, cfg, setting, **stack_kw)
         keep = out.plannable
-        vals = dict(plan_loss=out.l_plan, hindsight=out.hindsight, mse=out.mse, converged=out.converged.to(out.mse.dtype))
+        vals = dict(
+            plan_loss=out.l_plan,
+            hindsight=out.hindsight,
+            mse=out.mse,
+            converged=out.converged.to(out.mse.dtype),
+        )
         if out.pred is not None:
             metrics = prediction_metrics(out.pred, batch, cfg)
-            vals.update({k: v for k, v in metrics.items() if k in ("ade", "fde", "min_ade", "nll", "cv_ade")})
+            vals.update(
+                {
+                    k: v
+                    for k, v in metrics.items()
+                    if k in ("ade", "fde", "min_ade", "nll", "cv_ade")
+                }
+            )
         for k, v in vals.items():
             sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
         # the same sums per behaviour of the predicted agent (synthetic data; real data is labelled -1)
@@ -558,23 +823,41 @@ def evaluate_stack(model, data, method: Method, cfg: Config, setting="rl", batch
                     acc[k] = acc.get(k, 0.0) + vals[k].detach()[rows].sum().item()
         n, n_all = n + keep.sum().item(), n_all + len(batch)
     if n == 0:  # means over nothing would read as a table of zeros
-        raise ValueError(f"{method.name}: none of the {n_all} scenarios is plannable (fewer than 2 feasible candidates on a "
-                         f"goal lane in each): check the data's lanes and goals, or the Config's planner settings")
+        raise ValueError(
+            f"{method.name}: none of the {n_all} scenarios is plannable (fewer than 2 feasible candidates on a "
+            f"goal lane in each): check the data's lanes and goals, or the Config's planner settings"
+        )
     out = {k: v / n for k, v in sums.items()}
     out.update(n=n, skipped=n_all - n)
     if by_behaviour:  # means per behaviour, and how many scenarios each has
-        out["by_behaviour"] = {name: {k: (v if k == "n" else v / acc["n"]) for k, v in acc.items()}
-                               for name, acc in sorted(by_behaviour.items())}
+        out["by_behaviour"] = {
+            name: {k: (v if k == "n" else v / acc["n"]) for k, v in acc.items()}
+            for name, acc in sorted(by_behaviour.items())
+        }
     return out
 
 
 # The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios, in the units
 # of the paper's columns (x1e-2 or x1e-3).
-RELATIVE_SCALE = {"rl": {"plan_loss": 1e-2, "hindsight": 1e-2}, "il": {"plan_loss": 1e-3, "mse": 1e-2}}
+RELATIVE_SCALE = {
+    "rl": {"plan_loss": 1e-2, "hindsight": 1e-2},
+    "il": {"plan_loss": 1e-3, "mse": 1e-2},
+}
 
 
-def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, seeds=(0,), epochs=1.0,
-                    pred_offset=0.0, log=print, train=train_predictor, device="cpu", **stack_kw) -> dict:
+def compare_methods(
+    data,
+    cfg: Config,
+    setting="rl",
+    methods=TABLE1_METHODS,
+    seeds=(0,),
+    epochs=1.0,
+    pred_offset=0.0,
+    log=print,
+    train=train_predictor,
+    device="cpu",
+    **stack_kw,
+) -> dict:
     """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the ablations).
 
     Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
@@ -590,17 +873,28 @@ def compare_methods(data, cfg: Config, setting="rl", methods=TABLE1_METHODS, see
             t0 = time.time()
             model = None
             if m.predictor == "learned":
-                model = train(m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw)
+                model = train(
+                    m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw
+                )
             r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
-            bad = [k for k in ("ade", "fde", "min_ade", "min_fde", "nll") if k in r and not math.isfinite(r[k])]
+            bad = [
+                k
+                for k in ("ade", "fde", "min_ade", "min_fde", "nll")
+                if k in r and not math.isfinite(r[k])
+            ]
             if bad:  # a predictor that trained to finite losses can still predict NaN
-                raise TrainingDiverged(f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})")
+                raise TrainingDiverged(
+                    f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})"
+                )
             r["seconds"] = time.time() - t0
             if getattr(model, "learning_curve", None) is not None:
                 r["curve"] = model.learning_curve
             runs.append(r)
             if log:
-                log(f"{m.name:24s} seed {seed}: " + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)))
+                log(
+                    f"{m.name:24s} seed {seed}: "
+                    + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
+                )
         results[m.name] = runs
     return add_relative(results, setting)
 
@@ -647,7 +941,9 @@ def paired_difference(baseline: list, method: list) -> PairedDifference:
     of the differences against 0. With one seed the s.e. is unknown (t, p nan); with no spread it is 0 and t is
     -inf / +inf, p = 0 (t and p nan for a zero difference)."""
     if len(baseline) != len(method):
-        raise ValueError(f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index")
+        raise ValueError(
+            f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index"
+        )
     if not baseline:
         raise ValueError("baseline: no seeds to compare")
     d = [b - a for a, b in zip(baseline, method)]
@@ -683,18 +979,26 @@ VAL_N = 10_000
 near-collisions among ~46 cut-in scenes carry the signal); at 10,000 the rows hold from draw to draw."""
 
 
-def experiment_data(n=10000, seeds=range(5), n_val=VAL_N, cache_dir="data_cache", log=print) -> data_synth.Dataset:
+def experiment_data(
+    n=10000, seeds=range(5), n_val=VAL_N, cache_dir="data_cache", log=print
+) -> data_synth.Dataset:
     """The tables' synthetic data: training seed s trains on the training scenes of its own draw (load_data(n,
     seed=s).train), and every method of every seed is evaluated on one common validation set, all n_val samples of
     the draw of data seed VAL_SEED, whose scenes no training draw contains; that draw's validation scenes are the
     closed loop's. Each draw is generated once, then read from cache_dir."""
     seeds = tuple(seeds)
     if not seeds or max(seeds) >= VAL_SEED:
-        raise ValueError(f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the validation "
-                         f"set's), got {seeds}")
+        raise ValueError(
+            f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the validation "
+            f"set's), got {seeds}"
+        )
     common = data_real.load_data(None, n_val, VAL_SEED, cache_dir, log)
-    draws = tuple(data_real.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1))
-    return data_synth.Dataset(draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws)
+    draws = tuple(
+        data_real.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1)
+    )
+    return data_synth.Dataset(
+        draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws
+    )
 
 
 def cell(values, fmt="{:.2f}") -> str:
@@ -722,8 +1026,12 @@ class Rollout:
 
     ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
     controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
-    plans: torch.Tensor  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
-    open_loop: torch.Tensor  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
+    plans: (
+        torch.Tensor
+    )  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
+    open_loop: (
+        torch.Tensor
+    )  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
     plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
     start_frame: int  # f0
 
@@ -734,7 +1042,10 @@ def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
     x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
     c, s, x, y = torch.cos(h0), torch.sin(h0), states[..., 0], states[..., 1]
-    return torch.stack([x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]], -1)
+    return torch.stack(
+        [x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]],
+        -1,
+    )
 
 
 def stack_policy(model, method: Method, cfg: Config, device=None):
@@ -755,32 +1066,49 @@ def stack_policy(model, method: Method, cfg: Config, device=None):
     return policy
 
 
-def simulate(scenes, policy, cfg: Config, sim_time: float = 10.0, start_frame: int | None = None, scfg=None,
-             dtype=torch.float32) -> Rollout:
+def simulate(
+    scenes,
+    policy,
+    cfg: Config,
+    sim_time: float = 10.0,
+    start_frame: int | None = None,
+    scfg=None,
+    dtype=torch.float32,
+) -> Rollout:
     """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first frame
     with a full history); policy as stack_policy's. scfg: the data's SynthConfig (frame period, history and
     horizon); dtype: the policy's samples (the simulation is float64)."""
     scfg = scfg or data_synth.SynthConfig()
     H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
     if abs(cfg.dt - scfg.dt) > 1e-9:
-        raise ValueError(f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
-                         f"got {cfg.dt}")
+        raise ValueError(
+            f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
+            f"got {cfg.dt}"
+        )
     steps = sim_time / cfg.dt
     if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
-        raise ValueError(f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}")
+        raise ValueError(
+            f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}"
+        )
     N = round(steps)
     f0 = H if start_frame is None else start_frame
     if f0 < H or f0 + N - 1 + T > F - 1:
-        raise ValueError(f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
-                         f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)")
-    hist = scenes.ego[:, f0 - H:f0 + 1].clone()  # (S, H+1, 4) the simulated ego's history, world frame
+        raise ValueError(
+            f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
+            f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)"
+        )
+    hist = scenes.ego[
+        :, f0 - H : f0 + 1
+    ].clone()  # (S, H+1, 4) the simulated ego's history, world frame
     ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
     for k in range(N):  # a loop over simulation steps; every scene at once
         batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
         x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
         s = hist[:, -1]  # (S, 4)
         u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
-        s_next = unicycle_step(s, u0, cfg.dt)  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
+        s_next = unicycle_step(
+            s, u0, cfg.dt
+        )  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
         s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
         hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
         ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
@@ -797,12 +1125,21 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     N, f0 = roll.controls.shape[1], roll.start_frame
     x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
     frames = slice(f0 + 1, f0 + N + 1)
-    agents, present = scenes.agents[:, :, frames, :2], scenes.agents_mask[:, :, frames]  # (S, M, N, 2), (S, M, N)
-    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    agents, present = (
+        scenes.agents[:, :, frames, :2],
+        scenes.agents_mask[:, :, frames],
+    )  # (S, M, N, 2), (S, M, N)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(
+        -1
+    )  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
-    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask)  # (S, N)
+    lat, head, _ = project_to_lanes(
+        x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask
+    )  # (S, N)
     w = cost_weights(cfg, x.dtype, x.device)
-    parts = dict(collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1))  # (S, N) each
+    parts = dict(
+        collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1)
+    )  # (S, N) each
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]
     keep = roll.plannable.to(x.dtype)
@@ -819,15 +1156,22 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
         raise ValueError("closed_loop: the data has no validation scene logs")
     scfg = scfg or data_synth.SynthConfig()
     H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
-    window = scenes.pred_idx[:, H:H + N] >= 0  # (S, <=N) a predicted agent (with its 3 s future) at each frame
-    ok = (window.all(1) & (window.shape[1] == N)) if len(scenes) else torch.zeros(0, dtype=torch.bool)
+    window = (
+        scenes.pred_idx[:, H : H + N] >= 0
+    )  # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    ok = (
+        (window.all(1) & (window.shape[1] == N))
+        if len(scenes)
+        else torch.zeros(0, dtype=torch.bool)
+    )
     if not ok.any():
-        run = (window.int().cumprod(1).sum(1).max().item() if window.numel() else 0)
+        run = window.int().cumprod(1).sum(1).max().item() if window.numel() else 0
         raise ValueError(
             f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at each of its {N} frames "
             f"after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} frames ({(H + N + T - 1) * cfg.dt:g} s at "
             f"{1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s horizon included); the data has {len(scenes)} validation scene(s) "
-            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}")
+            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}"
+        )
     return scenes[ok]
 
 
@@ -835,11 +1179,19 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 # 5. The shipped predictors, --quick and the command line
 # ============================================================================================
 
-QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)  # the tables' data; the live runs train on a part of it,
+QUICK = dict(
+    n=10000, live_train=2560, epochs=8.0, val=1500
+)  # the tables' data; the live runs train on a part of it,
 # and everything is evaluated on the first 1,500 samples of the tables' common validation set (all 10,000: Table 1)
-QUICK_METHODS = tuple(m for m in TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction"))
+QUICK_METHODS = tuple(
+    m
+    for m in TABLE1_METHODS
+    if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")
+)
 PRETRAINED = "pretrained"  # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
-PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))  # = Table 1's five seeds at the tables' length (experiments.py)
+PRETRAIN = dict(
+    n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4)
+)  # = Table 1's five seeds at the tables' length (experiments.py)
 
 
 def open_loop_table(results: dict, setting="rl") -> str:
@@ -847,12 +1199,17 @@ def open_loop_table(results: dict, setting="rl") -> str:
     prediction, iLQR's convergence; means ± standard errors over seeds."""
     rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
     scales = RELATIVE_SCALE[setting]
-    head = ["Method", "ADE (m)", "NLL (nats)"] + [f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()]
+    head = ["Method", "ADE (m)", "NLL (nats)"] + [
+        f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()
+    ]
     rows = []
     for name, runs in results.items():
         get = lambda key: [r[key] for r in runs] if key in runs[0] else []  # noqa: E731
-        rows.append([name, cell(get("ade")), cell(get("nll"))] + [cell(get("rel_" + k)) for k in scales]
-                    + [cell(get("converged"), "{:.3f}")])
+        rows.append(
+            [name, cell(get("ade")), cell(get("nll"))]
+            + [cell(get("rel_" + k)) for k in scales]
+            + [cell(get("converged"), "{:.3f}")]
+        )
     return markdown_table(head + ["iLQR converged"], rows)
 
 
@@ -871,28 +1228,49 @@ def machine() -> str:
     name = platform.processor() or "unknown processor"
     try:
         with open("/proc/cpuinfo") as f:
-            name = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+            name = next(
+                line.split(":", 1)[1].strip() for line in f if line.startswith("model name")
+            )
     except (OSError, StopIteration):
         pass
     return f"{platform.machine()}, {name}, {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores"
 
 
-def _pretrain_one(method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int, val: int):
+def _pretrain_one(
+    method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int, val: int
+):
     """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
     threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
     clock, so that what it records does not depend on what else the machine was doing."""
 
     torch.set_num_threads(threads)
     t0 = time.process_time()
-    data = experiment_data(n, range(seed + 1), val, cache_dir, log=None)  # its draw: as the tables train it
+    data = experiment_data(
+        n, range(seed + 1), val, cache_dir, log=None
+    )  # its draw: as the tables train it
     model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
     metrics = evaluate_stack(model, data.val, method, cfg, "rl")
-    return model.state_dict(), {k: metrics[k] for k in ("ade", "nll", "hindsight")}, time.process_time() - t0
+    return (
+        model.state_dict(),
+        {k: metrics[k] for k in ("ade", "nll", "hindsight")},
+        time.process_time() - t0,
+    )
 
 
-def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs"], seeds=PRETRAIN["seeds"], jobs=1,
-             cfg=None, cache_dir="data_cache", overwrite=False, log=print, command="python diffstack.py --pretrain",
-             val=None):
+def pretrain(
+    out=PRETRAINED,
+    threads=1,
+    n=PRETRAIN["n"],
+    epochs=PRETRAIN["epochs"],
+    seeds=PRETRAIN["seeds"],
+    jobs=1,
+    cfg=None,
+    cache_dir="data_cache",
+    overwrite=False,
+    log=print,
+    command="python diffstack.py --pretrain",
+    val=None,
+):
     """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables' 40 epochs (the
     paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed,
     and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command, date, commit, data,
@@ -903,21 +1281,40 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
     import json
     import subprocess
 
-
     out, cfg, seeds, val = pathlib.Path(out), cfg or Config(), tuple(seeds), val or VAL_N
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
     work = [(m, seed, out / f"{_slug(m.name)}-seed{seed}.pt") for seed in seeds for m in learned]
     if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
-        raise ValueError(f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them")
+        raise ValueError(
+            f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them"
+        )
     check_writable(out, f"the pre-trained predictors' folder ({out})")
     with folder_lock(out, command):  # one --pretrain into a folder at a time
-        experiment_data(n, seeds, val, cache_dir)  # made (or checked) once, here, before the workers read it
-        about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, val=val, epochs=epochs, seeds=list(seeds), setting="rl",
-                     threads=threads, torch=torch.__version__, machine=machine(),
-                     config=dataclasses.asdict(cfg), files={})
+        experiment_data(
+            n, seeds, val, cache_dir
+        )  # made (or checked) once, here, before the workers read it
+        about = dict(
+            command=command,
+            date=time.strftime("%Y-%m-%d"),
+            n=n,
+            val=val,
+            epochs=epochs,
+            seeds=list(seeds),
+            setting="rl",
+            threads=threads,
+            torch=torch.__version__,
+            machine=machine(),
+            config=dataclasses.asdict(cfg),
+            files={},
+        )
         try:
-            about["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                             cwd=pathlib.Path(__file__).parent, check=True).stdout.strip()
+            about["commit"] = subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                cwd=pathlib.Path(__file__).parent,
+                check=True,
+            ).stdout.strip()
         except (OSError, subprocess.CalledProcessError):
             about["commit"] = None
         args = [(m, seed, n, epochs, cfg, cache_dir, threads, val) for m, seed, _ in work]
@@ -931,13 +1328,22 @@ def pretrain(out=PRETRAINED, threads=1, n=PRETRAIN["n"], epochs=PRETRAIN["epochs
                 tmp = path.with_suffix(".tmp")
                 torch.save(state, tmp)
                 os.replace(tmp, path)
-                about["files"][path.name] = dict(method=m.name, seed=seed, sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                                                 cpu_seconds=round(seconds), **metrics)
+                about["files"][path.name] = dict(
+                    method=m.name,
+                    seed=seed,
+                    sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                    cpu_seconds=round(seconds),
+                    **metrics,
+                )
                 if log:
-                    log(f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
-                        f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)")
+                    log(
+                        f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
+                        f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)"
+                    )
         except BrokenProcessPool as e:
-            raise WorkerDied(f"a worker process died ({e}); --pretrain stops, the finished predictors are kept") from None
+            raise WorkerDied(
+                f"a worker process died ({e}); --pretrain stops, the finished predictors are kept"
+            ) from None
         finally:
             if pool is not None:
                 pool.shutdown()
@@ -960,21 +1366,36 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
         return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
     try:
         prov = json.loads(prov_path.read_text())
-        entries = sorted(((e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name))
-        trained_with = {k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()}
+        entries = sorted(
+            (
+                (e["seed"], name, e)
+                for name, e in prov["files"].items()
+                if e["method"] == method.name
+            )
+        )
+        trained_with = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
+        }
     except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})") from None
+        raise ValueError(
+            f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})"
+        ) from None
     if not entries:
         return None, f"{prov_path} lists no {method.name} predictor"
     if trained_with != dataclasses.asdict(cfg):
         changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
-        return None, f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set here"
+        return (
+            None,
+            f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set here",
+        )
     models = {}
     for seed, name, entry in entries:
         path = folder / name
         if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
-            raise ValueError(f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
-                             f"re-make it with python diffstack.py --pretrain --overwrite")
+            raise ValueError(
+                f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
+                f"re-make it with python diffstack.py --pretrain --overwrite"
+            )
         models[seed] = Predictor(cfg)
         models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
         models[seed].to(device)
@@ -983,12 +1404,23 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
 
 def _seed_list(seeds) -> str:
     seeds = list(seeds)
-    return f"seeds {seeds[0]}-{seeds[-1]}" if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[-1] + 1)) else \
-        f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}"
+    return (
+        f"seeds {seeds[0]}-{seeds[-1]}"
+        if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[-1] + 1))
+        else f"seed{'s' * (len(seeds) > 1)} {', '.join(map(str, seeds))}"
+    )
 
 
-def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=print, device="cpu",
-          pretrained=PRETRAINED):
+def quick(
+    threads=2,
+    n=None,
+    epochs=None,
+    cfg=None,
+    cache_dir="data_cache",
+    log=print,
+    device="cpu",
+    pretrained=PRETRAINED,
+):
     """`--quick`, about a minute on 2 cores: Table 1's story on the tables' synthetic validation data. Standard
     and DiffStack trained for the tables' 40 epochs (shipped in pretrained/: Table 1's five seeds, so the rows are
     that table's, mean ± s.e.) beside No prediction and GT prediction; then both trained live for a few epochs so
@@ -998,15 +1430,19 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
     cfg = cfg or Config()
     n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
-    log(f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the validation set "
+    log(
+        f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the validation set "
         f"(generated once, then cached in {cache_dir}/).\n"
         f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in {pretrained}/), No prediction\n"
-        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores.")
+        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores."
+    )
     t0 = time.time()
     data = experiment_data(n, (0,), cache_dir=cache_dir, log=log)
-    data = data._replace(val=data.val[:QUICK["val"]])
-    log(f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of the tables' "
-        f"{VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)")
+    data = data._replace(val=data.val[: QUICK["val"]])
+    log(
+        f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of the tables' "
+        f"{VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)"
+    )
     res, prov = {}, None
     for m in QUICK_METHODS:
         if m.predictor != "learned":
@@ -1017,21 +1453,44 @@ def quick(threads=2, n=None, epochs=None, cfg=None, cache_dir="data_cache", log=
             log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
             continue
         prov = about
-        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [evaluate_stack(model, data.val, m, cfg, "rl", device=device)
-                                                        for model in models.values()]  # one run per seed
+        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [
+            evaluate_stack(model, data.val, m, cfg, "rl", device=device)
+            for model in models.values()
+        ]  # one run per seed
     add_relative(res, "rl")
     if prov is not None:
-        log(f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
+        log(
+            f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
             f"epochs, {_seed_list(prov['seeds'])}, {prov['threads']} thread each), on the {len(data.val)} validation "
-            f"scenarios; mean ± s.e. over the seeds:")
+            f"scenarios; mean ± s.e. over the seeds:"
+        )
     log("\n" + open_loop_table(res, "rl"))
     # live: a few epochs on part of the training data, to watch the three losses fall
-    part = data_synth.Dataset(data.train[:QUICK["live_train"]], data.val, None)
-    took = (f" (the shipped rows above took {sum(f['cpu_seconds'] for f in prov['files'].values()) / 60:.0f} minutes "
-            f"of CPU to train, {prov['threads']} thread each)" if prov is not None else "")
+    part = data_synth.Dataset(data.train[: QUICK["live_train"]], data.val, None)
+    took = (
+        f" (the shipped rows above took {sum(f['cpu_seconds'] for f in prov['files'].values()) / 60:.0f} minutes "
+        f"of CPU to train, {prov['threads']} thread each)"
+        if prov is not None
+        else ""
+    )
     log(f"\nTrained now, {epochs:g} epochs on {len(part.train)} scenarios{took}:")
-    live = compare_methods(part, cfg, "rl", (QUICK_METHODS[0], *learned), seeds=(0,), epochs=epochs, log=log, device=device)
-    log("\n" + open_loop_table({f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()}, "rl"))
+    live = compare_methods(
+        part,
+        cfg,
+        "rl",
+        (QUICK_METHODS[0], *learned),
+        seeds=(0,),
+        epochs=epochs,
+        log=log,
+        device=device,
+    )
+    log(
+        "\n"
+        + open_loop_table(
+            {f"{k} ({epochs:g} epochs)" if k != "No prediction" else k: v for k, v in live.items()},
+            "rl",
+        )
+    )
     log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov)))
     log(f"\ntotal {time.time() - t0:.0f}s")
     return res, live
@@ -1049,56 +1508,103 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
 
     def shipped(name):  # the mean over seeds of a shipped predictor's metrics, or None
         runs = runs_of(name)
-        return None if runs is None else {k: statistics.fmean(r[k] for r in runs) for k in ("rel_hindsight", "hindsight", "ade")}
+        return (
+            None
+            if runs is None
+            else {
+                k: statistics.fmean(r[k] for r in runs)
+                for k in ("rel_hindsight", "hindsight", "ade")
+            }
+        )
 
     std, dif = shipped("Standard"), shipped("DiffStack")
     none, gt = res["No prediction"][0], res["GT prediction"][0]
     lines = []
     if std is not None and dif is not None:
-        h = {k: r["rel_hindsight"] for k, r in (("GT", gt), ("DiffStack", dif), ("Standard", std), ("No prediction", none))}
+        h = {
+            k: r["rel_hindsight"]
+            for k, r in (("GT", gt), ("DiffStack", dif), ("Standard", std), ("No prediction", none))
+        }
         order = " < ".join(sorted(h, key=h.get))
         paper = "GT < DiffStack < Standard < No prediction"
-        lines.append(f"Hindsight cost: {order}: " + ("the paper's order (its Table 1)." if order == paper else
-                                                      f"NOT the paper's order ({paper} in its Table 1)."))
+        lines.append(
+            f"Hindsight cost: {order}: "
+            + (
+                "the paper's order (its Table 1)."
+                if order == paper
+                else f"NOT the paper's order ({paper} in its Table 1)."
+            )
+        )
         gap = (std["hindsight"] - dif["hindsight"]) / (std["hindsight"] - gt["hindsight"])
-        lines.append(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
-                     f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): trained for the "
-                     f"plan, not for the average position error.")
+        lines.append(
+            f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
+            f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): trained for the "
+            f"plan, not for the average position error."
+        )
     by_none, by_gt = none.get("by_behaviour"), gt.get("by_behaviour")
     if by_none and by_gt:
-        saved = {b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none}
+        saved = {
+            b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none
+        }
         total = sum(saved.values())
         top = min(saved, key=saved.get)
-        lines.append(f"Why Standard's gain over No prediction is small: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
-                     f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
-                     f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
-                     f"the future adds little (results/goal.md).")
+        lines.append(
+            f"Why Standard's gain over No prediction is small: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
+            f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
+            f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
+            f"the future adds little (results/goal.md)."
+        )
         runs = runs_of("Standard")
-        if runs and all("by_behaviour" in r for r in runs):  # Standard's part of the all-scene mean, by behaviour
-            part = {b: statistics.fmean(r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs)
-                    * by_none[b]["n"] / none["n"] / 1e-2 for b in by_none}
+        if runs and all(
+            "by_behaviour" in r for r in runs
+        ):  # Standard's part of the all-scene mean, by behaviour
+            part = {
+                b: statistics.fmean(
+                    r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs
+                )
+                * by_none[b]["n"]
+                / none["n"]
+                / 1e-2
+                for b in by_none
+            }
             lost = sorted((b for b in part if part[b] > 0.005), key=part.get, reverse=True)
             won = sorted((b for b in part if part[b] < -0.005), key=part.get)
             if lost:
-                lines.append(f"And Standard gives part of it back: it gains {-sum(part[b] for b in won):.2f}e-2 in "
-                             f"{', '.join(won)}, and loses {sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where "
-                             f"it predicts the wrong one of two manoeuvres that start alike (results/rl.md, by behaviour).")
+                lines.append(
+                    f"And Standard gives part of it back: it gains {-sum(part[b] for b in won):.2f}e-2 in "
+                    f"{', '.join(won)}, and loses {sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where "
+                    f"it predicts the wrong one of two manoeuvres that start alike (results/rl.md, by behaviour)."
+                )
     table = pathlib.Path(results_dir) / "rl.json"
     if table.exists():
         saved = json.loads(table.read_text())
         runs = saved["results"]
-        cells = ", ".join(f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}" for m in ("Standard", "DiffStack", "GT prediction")
-                          if m in runs)
+        cells = ", ".join(
+            f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}"
+            for m in ("Standard", "DiffStack", "GT prediction")
+            if m in runs
+        )
         meta = saved["meta"]
-        draw_of = dict(zip(meta.get("seeds", []), meta.get("data_seeds") or []))  # seed -> its training draw
-        same = (provenance is not None and meta.get("epochs") == provenance["epochs"]
-                and meta.get("config") == provenance["config"] and meta.get("val") == provenance.get("val")
-                and all(draw_of.get(s) == s for s in provenance["seeds"]))  # pretrain: seed s on draw s
-        lines.append(f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
-                     f"hindsight cost x1e-2: {cells}; " + (
-                         f"the shipped predictors above are its {_seed_list(provenance['seeds'])}." if same else
-                         "made by another run than the shipped predictors (other epochs, Config or data), so its numbers "
-                         "and the ones above are not the same experiment."))
+        draw_of = dict(
+            zip(meta.get("seeds", []), meta.get("data_seeds") or [])
+        )  # seed -> its training draw
+        same = (
+            provenance is not None
+            and meta.get("epochs") == provenance["epochs"]
+            and meta.get("config") == provenance["config"]
+            and meta.get("val") == provenance.get("val")
+            and all(draw_of.get(s) == s for s in provenance["seeds"])
+        )  # pretrain: seed s on draw s
+        lines.append(
+            f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
+            f"hindsight cost x1e-2: {cells}; "
+            + (
+                f"the shipped predictors above are its {_seed_list(provenance['seeds'])}."
+                if same
+                else "made by another run than the shipped predictors (other epochs, Config or data), so its numbers "
+                "and the ones above are not the same experiment."
+            )
+        )
     return lines
 
 
@@ -1122,7 +1628,9 @@ def bounded(kind, lo, hi, name):
         try:
             x = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
+            raise argparse.ArgumentTypeError(
+                f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}"
+            ) from None
         if not math.isfinite(x) or x > hi or (x <= lo if kind is float else x < lo):
             bounds = f"> {lo:g} and <= {hi:g}" if kind is float else f"from {lo:,} to {hi:,}"
             raise argparse.ArgumentTypeError(f"{name} must be {bounds}, got {text!r}")
@@ -1139,18 +1647,28 @@ def device_arg(text):
     try:
         device = torch.device(text)
     except (RuntimeError, ValueError):
-        raise argparse.ArgumentTypeError(f"--device takes a torch device (cpu, cuda, cuda:N or mps), got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"--device takes a torch device (cpu, cuda, cuda:N or mps), got {text!r}"
+        ) from None
     if device.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
-            raise argparse.ArgumentTypeError(f"--device {text}: no CUDA device here (torch.cuda.is_available() is False)")
+            raise argparse.ArgumentTypeError(
+                f"--device {text}: no CUDA device here (torch.cuda.is_available() is False)"
+            )
         if device.index is not None and device.index >= count:
-            raise argparse.ArgumentTypeError(f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+            raise argparse.ArgumentTypeError(
+                f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}"
+            )
     elif device.type == "mps":
         if not torch.backends.mps.is_available():
-            raise argparse.ArgumentTypeError(f"--device {text}: no MPS device here (torch.backends.mps.is_available() is False)")
+            raise argparse.ArgumentTypeError(
+                f"--device {text}: no MPS device here (torch.backends.mps.is_available() is False)"
+            )
     elif device.type != "cpu":
-        raise argparse.ArgumentTypeError(f"--device {text}: the stack runs on cpu, cuda, cuda:N or mps, not {device.type}")
+        raise argparse.ArgumentTypeError(
+            f"--device {text}: the stack runs on cpu, cuda, cuda:N or mps, not {device.type}"
+        )
     return device
 
 
@@ -1164,19 +1682,26 @@ def config_with(cfg: Config, assignments) -> Config:
         key, eq, text = item.partition("=")
         key, text = key.strip(), text.strip()
         if not eq or key not in fields:
-            raise ValueError(f"--set {item}: unknown Config field {key!r} (known: {', '.join(fields)})" if eq else
-                             f"--set {item}: expected key=value")
+            raise ValueError(
+                f"--set {item}: unknown Config field {key!r} (known: {', '.join(fields)})"
+                if eq
+                else f"--set {item}: expected key=value"
+            )
         default = getattr(cfg, key)
         try:
             if isinstance(default, tuple):
-                value = tuple(float(p) for p in text.strip("()[] ").split(",") if p.strip())  # every tuple field holds floats
+                value = tuple(
+                    float(p) for p in text.strip("()[] ").split(",") if p.strip()
+                )  # every tuple field holds floats
             elif isinstance(default, bool):
                 value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
             else:
                 value = type(default)(text)
         except (ValueError, KeyError, IndexError):
-            raise ValueError(f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
-                             f"could not parse {text!r}") from None
+            raise ValueError(
+                f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
+                f"could not parse {text!r}"
+            ) from None
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"--set {item}: {key} must be finite")
         changes[key] = value
@@ -1188,41 +1713,86 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(
         description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run of it.",
-        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.")
-    ap.add_argument("--quick", action="store_true",
-                    help=f"Table 1's story in about a minute: the shipped {PRETRAIN['epochs']:g}-epoch Standard and DiffStack "
-                         "beside No prediction and GT prediction, then both trained live for a few epochs")
-    ap.add_argument("--pretrain", action="store_true",
-                    help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} epochs, "
-                         f"{_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
-                         f"~40 min on 2 cores")
-    ap.add_argument("--jobs", type=bounded(int, 1, 256, "--jobs"), default=None,
-                    help="--pretrain: worker processes training side by side, one thread each (default: the machine's cores)")
-    ap.add_argument("--overwrite", action="store_true", help=f"--pretrain: replace the predictors in {PRETRAINED}/")
-    ap.add_argument("--threads", type=bounded(int, 1, 256, "--threads"), default=None,
-                    help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at most 256)")
-    ap.add_argument("--device", type=device_arg, default="cpu",
-                    help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is made on the CPU")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)")
+        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.",
+    )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"Table 1's story in about a minute: the shipped {PRETRAIN['epochs']:g}-epoch Standard and DiffStack "
+        "beside No prediction and GT prediction, then both trained live for a few epochs",
+    )
+    ap.add_argument(
+        "--pretrain",
+        action="store_true",
+        help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} epochs, "
+        f"{_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
+        f"~40 min on 2 cores",
+    )
+    ap.add_argument(
+        "--jobs",
+        type=bounded(int, 1, 256, "--jobs"),
+        default=None,
+        help="--pretrain: worker processes training side by side, one thread each (default: the machine's cores)",
+    )
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help=f"--pretrain: replace the predictors in {PRETRAINED}/",
+    )
+    ap.add_argument(
+        "--threads",
+        type=bounded(int, 1, 256, "--threads"),
+        default=None,
+        help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at most 256)",
+    )
+    ap.add_argument(
+        "--device",
+        type=device_arg,
+        default="cpu",
+        help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is made on the CPU",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)",
+    )
     argv = sys.argv[1:] if argv is None else list(argv)
     for moved in ("--experiment", "--bench"):
         if any(a == moved or a.startswith(moved + "=") for a in argv):
-            ap.error(f"{moved} moved: " + ("python experiments.py --experiment NAME" if moved == "--experiment"
-                                           else "python bench.py"))
+            ap.error(
+                f"{moved} moved: "
+                + (
+                    "python experiments.py --experiment NAME"
+                    if moved == "--experiment"
+                    else "python bench.py"
+                )
+            )
     args = ap.parse_args(argv)
     if args.quick == args.pretrain:
-        ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)")
+        ap.error(
+            "choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)"
+        )
     if args.jobs is not None and not args.pretrain:
         ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
     # every refusal, of the arguments or of a file (the shipped predictors, a cache), is one line
-    with one_line(ap, "the predictors written so far stay in pretrained/; --pretrain --overwrite trains them all again"
-                  if args.pretrain else "nothing half-written is left"):
+    with one_line(
+        ap,
+        "the predictors written so far stay in pretrained/; --pretrain --overwrite trains them all again"
+        if args.pretrain
+        else "nothing half-written is left",
+    ):
         cfg = config_with(Config(), args.set)
         check_writable("data_cache", "the data cache (./data_cache)")
         if args.pretrain:
-            return pretrain(threads=args.threads or 1, jobs=args.jobs or os.cpu_count() or 1, cfg=cfg, overwrite=args.overwrite,
-                            command=command_line("python diffstack.py", argv))
+            return pretrain(
+                threads=args.threads or 1,
+                jobs=args.jobs or os.cpu_count() or 1,
+                cfg=cfg,
+                overwrite=args.overwrite,
+                command=command_line("python diffstack.py", argv),
+            )
         return quick(args.threads or 2, cfg=cfg, device=args.device)
 
 
