@@ -347,13 +347,13 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     p = pts.detach()
     mask = lanes_mask.reshape(B, L * P)
     # 1. the nearest point: |q - p|^2 + lam (1 - cos(h_q - h_p)) is the squared distance of the
-    #    points (x, y, r cos h, r sin h), r = sqrt(lam / 2): plain distances in that space
+    #    points (x, y, r cos h, r sin h), r = sqrt(lam / 2): plain distances in that space, with the
+    #    lanes' padding moved out of reach
     r = math.sqrt(_SEARCH_LAM / 2)
     q_feat = torch.cat([q, r * torch.cos(hq)[..., None], r * torch.sin(hq)[..., None]], -1)
     p_feat = torch.cat([p[..., :2], r * torch.cos(p[..., 2:]), r * torch.sin(p[..., 2:])], -1)
-    dist = torch.cdist(q_feat, p_feat)  # (B, Q, L*P)
-    rank = torch.where(mask[:, None], dist, math.inf)
-    j = rank.argmin(-1)  # (B, Q)
+    p_feat = torch.where(mask[..., None], p_feat, 1e15)  # (B, L*P, 4)
+    j = torch.cdist(q_feat, p_feat).argmin(-1)  # (B, Q) the nearest point's index
     near = pts.gather(1, j[..., None].expand(B, -1, 3))  # (B, Q, 3)
     has_lane = mask.gather(1, j) & (torch.cos(hq - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points: a prefix)
@@ -1710,20 +1710,9 @@ def run_stack(
     hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
     mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
-    return StackOutput(
-        l_pred,
-        l_plan,
-        l_ctr,
-        hindsight,
-        mse,
-        plan_out.plannable,
-        converged,
-        x,
-        u,
-        plan_out.cands,
-        plan_out.cost,
-        pred,
-    )
+    losses = (l_pred, l_plan, l_ctr)
+    metrics = (hindsight, mse, plan_out.plannable, converged)
+    return StackOutput(*losses, *metrics, x, u, plan_out.cands, plan_out.cost, pred)
 
 
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
@@ -1733,34 +1722,22 @@ def run_stack(
 # Every number of Config has a range (inclusive): no NaN or petabyte later.
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
-    "hist_len": (1, 100),
-    "horizon": (1, 100),
-    "w_coll": (0, 1e6),
-    "w_goal": (0, 1e6),
-    "w_lat": (0, 1e6),
-    "w_head": (0, 1e6),
-    "w_ctrl": (0, 1e6),
-    "rbf_var": (1e-6, 1e6),
-    "goal_lane_dist": (1e-6, 1e4),
+    **dict.fromkeys(["hist_len", "horizon"], (1, 100)),
+    **dict.fromkeys(["w_coll", "w_goal", "w_lat", "w_head", "w_ctrl"], (0, 1e6)),
+    **dict.fromkeys(["rbf_var", "beta"], (1e-6, 1e6)),
+    **dict.fromkeys(["goal_lane_dist", "feas_lat_accel", "feas_yaw_per_speed"], (1e-6, 1e4)),
     "goal_lane_heading": (1e-6, 7),
     "max_goal_lanes": (1, 64),
-    "beta": (1e-6, 1e6),
-    "feas_lat_accel": (1e-6, 1e4),
-    "feas_yaw_per_speed": (1e-6, 1e4),
     "ilqr_iters": (1, 1000),
     "ilqr_tol": (1e-12, 1e6),
     "line_search_steps": (1, 60),
     "line_search_decay": (1.01, 1e6),
     "pred_modes": (1, 1024),
-    "pred_enc_hidden": (1, 4096),
-    "pred_latent_hidden": (1, 4096),
-    "pred_dec_hidden": (1, 4096),
+    **dict.fromkeys(["pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden"], (1, 4096)),
     "pred_radius": (1e-6, 1e4),
-    "pred_min_speed": (0, 1e3),
-    "pred_pos_std_min": (0, 1e3),
-    "pred_log_p_max": (-1e6, 1e6),
+    **dict.fromkeys(["pred_min_speed", "pred_pos_std_min"], (0, 1e3)),
+    **dict.fromkeys(["pred_log_p_max", "pred_nll_min"], (-1e6, 1e6)),
     "pred_kl_min": (0, 1e6),
-    "pred_nll_min": (-1e6, 1e6),
     "pred_lr_decay": (1e-9, 1),
     "pred_grad_clip": (1e-12, 1e6),
     "lr": (1e-12, 1e3),
