@@ -1,23 +1,24 @@
-"""Tests of diffstack.py and data_synth.py. Gradient tests run in float64; every test runs on one thread (conftest.py).
-experiments.py, bench.py and the notebook have test files of their own."""
+"""Tests of diffstack.py, the method: the dynamics, the cost, the planner and the controller, the
+predictor and the end-to-end gradient, each checked against an independent computation. Gradient
+tests run in float64; every test runs on one thread (conftest.py).
+
+train.py's training, metrics and command line are tested in test_train.py, data_synth.py's synthetic
+scenes and nuScenes files in test_data_synth.py; experiments.py, bench.py and the notebook have test
+files of their own. The helpers and fixtures here (make_batch, make_model, TINY, small, ...) are
+shared with them."""
 
 import dataclasses
-import json
 import math
-import os
 from dataclasses import dataclass, fields
 
-import numpy as np
 import pytest
 import torch
 
-import data_real
 import data_synth
 import diffstack as ds
 import train as tr
 
 DT = 0.5
-TINY_PRED = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
 
 def rk4_reference(s, u, dt, substeps=2000):
@@ -34,7 +35,8 @@ def rk4_reference(s, u, dt, substeps=2000):
             -1,
         )
 
-    h, x = dt / substeps, s.clone()
+    h = dt / substeps
+    x = s.clone()
     for _ in range(substeps):
         k1 = f(x)
         k2 = f(x + h / 2 * k1)
@@ -92,7 +94,10 @@ def test_unicycle_curvature_matches_autodiff(w_scale):
     s, u, lam = (torch.randn(10, k, generator=g, dtype=torch.float64) for k in (4, 2, 4))
     u[:, 0] *= w_scale  # both sides of the series switch
     H = ds.unicycle_curvature(s, u, lam, DT)
-    lagrangian = lambda z, mult: (mult * ds.unicycle_step(z[:4], z[4:], DT)).sum()  # noqa: E731
+
+    def lagrangian(z, mult):
+        return (mult * ds.unicycle_step(z[:4], z[4:], DT)).sum()
+
     expect = torch.vmap(torch.func.hessian(lagrangian))(torch.cat([s, u], -1), lam)
     assert torch.allclose(H, expect, atol=1e-12)
 
@@ -134,7 +139,8 @@ def toy_scene(B=3, K=4, A=2, L=2, P=40, dtype=torch.float64, seed=1):
 
 
 def stack_cost_fn(ctx):
-    """The DiffStack cost as a solver callable, differentiable wrt weights, predictions, goal and lanes."""
+    """The DiffStack cost as a solver callable, differentiable wrt weights, predictions, goal and
+    lanes."""
 
     def cost_fn(x, u, w, preds, probs, goal, lanes):
         c = ds.CostContext(
@@ -156,7 +162,8 @@ def central_fd(f, x, idx, h=1e-6):
 
 
 def test_collision_mean_spread_identity():
-    """The cost's collision term uses sum_k pi_k |s - s_k|^2 = |s - mu|^2 + spread: check against the sum."""
+    """The cost's collision term uses sum_k pi_k |s - s_k|^2 = |s - mu|^2 + spread: check against
+    the sum."""
     s0, goal, ctx = toy_scene()
     x = ds.unicycle_rollout(s0, torch.zeros(3, 6, 2, dtype=torch.float64), DT)
     terms = ds.cost_terms(x, torch.zeros(3, 6, 2, dtype=torch.float64), ctx)
@@ -230,8 +237,8 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
 
 
 def test_planner_takes_any_number_of_accelerations_and_offsets():
-    """A Config with 3 accelerations and 1 offset (e.g. --set plan_accels=-1,0,1 --set plan_offsets=0) gives exactly
-    the default planner's candidates for those terminal states."""
+    """A Config with 3 accelerations and 1 offset (e.g. --set plan_accels=-1,0,1 --set
+    plan_offsets=0) gives exactly the default planner's candidates for those terminal states."""
     s0, goal, ctx = toy_scene()
     full_cfg = ds.Config()
     small_cfg = ds.Config(plan_accels=(-1.0, 0.0, 1.0), plan_offsets=(0.0,))
@@ -239,9 +246,8 @@ def test_planner_takes_any_number_of_accelerations_and_offsets():
     small = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, small_cfg)
     G = full.x.shape[1] // 24
     assert small.x.shape[1] == G * 3
-    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(
-        3, G * 3, 7, 4
-    )  # accel -1, 0, 1; offset 0
+    # accel -1, 0, 1; offset 0
+    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(3, G * 3, 7, 4)
     assert torch.allclose(small.x, pick)
     assert torch.equal(
         small.valid, full.valid.reshape(3, G, 8, 3)[:, :, [2, 4, 6], 1].reshape(3, G * 3)
@@ -301,7 +307,10 @@ def linear_quadratic_problem(B=4, T=6, seed=0):
         4, 4, generator=g, dtype=torch.float64
     )
     Bm = torch.randn(4, 2, generator=g, dtype=torch.float64)
-    dyn = lambda x, u: (A @ x[..., None])[..., 0] + (Bm @ u[..., None])[..., 0]  # noqa: E731
+
+    def dyn(x, u):
+        return (A @ x[..., None])[..., 0] + (Bm @ u[..., None])[..., 0]
+
     Q = torch.randn(B, T + 1, 6, 6, generator=g, dtype=torch.float64)
     Q = Q @ Q.transpose(-1, -2) / 6 + 0.5 * torch.eye(6, dtype=torch.float64)
     q = torch.randn(B, T + 1, 6, generator=g, dtype=torch.float64) * 3
@@ -340,9 +349,8 @@ def test_kkt_gradients_linear_dynamics_with_active_bounds():
     assert n_active >= 5  # the check covers active bounds
     ((x * wx).sum() + (u_star * wu).sum()).backward()
 
-    def loss(
-        x0_, Q_, q_
-    ):  # re-solved from the solution: a few iterations reach the perturbed optimum
+    # re-solved from the solution: a few iterations reach the perturbed optimum
+    def loss(x0_, Q_, q_):
         x, u, _ = ds.ilqr(cost, dyn, x0_, u_star.detach(), (Q_, q_), lo, hi, iters=30, tol=1e-13)
         return (x * wx).sum() + (u * wu).sum()
 
@@ -435,9 +443,8 @@ def test_kkt_gradients_unicycle_full_cost_match_finite_differences(unicycle_prob
         (5, [(b, 0, 8, 1) for b in range(3)]),
     ]:
         base = ([P["s0"], *P["params"]])[i]
-        fd = torch.stack(
-            [central_fd(lambda v: loss(i, v), base, j, h=1e-4) for j in idx]
-        )  # h: above the solver's tolerance
+        # h: above the solver's tolerance
+        fd = torch.stack([central_fd(lambda v: loss(i, v), base, j, h=1e-4) for j in idx])
         assert rel_err(torch.stack([exact[i][j] for j in idx]), fd) < 1e-4, i
         if i in (0, 2):  # without the dynamics' curvature the gradient is measurably wrong
             assert rel_err(torch.stack([gauss_newton[i][j] for j in idx]), fd) > 1e-3
@@ -447,6 +454,7 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
     P = unicycle_problem
     kkt = _kkt_grads(P)
     leaves = [P["s0"].clone().requires_grad_()] + [p.clone().requires_grad_() for p in P["params"]]
+    # tol 0: every iteration is differentiated through
     x, u, _ = ds.ilqr(
         P["cost_fn"],
         ds.Unicycle(DT),
@@ -457,7 +465,7 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
         P["hi"],
         iters=20,
         tol=0.0,
-    )  # tol 0: every iteration is differentiated through
+    )
     unrolled = torch.autograd.grad(
         (x * P["wx"]).sum() + (u * P["wu"]).sum(), leaves, allow_unused=True
     )
@@ -479,8 +487,9 @@ def _cast(batch, dtype):
 
 
 def test_closed_form_cost_expansion_matches_autodiff(small):
-    """StackCost.expansion (the closed form the controller uses) equals forward-over-reverse autodiff of the same
-    cost, on synthetic scenes with states on lanes, past a lane's end (clamped projection) and with no lane."""
+    """StackCost.expansion (the closed form the controller uses) equals forward-over-reverse
+    autodiff of the same cost, on synthetic scenes with states on lanes, past a lane's end
+    (clamped projection) and with no lane."""
     cfg = ds.Config()
     b = _cast(small.train[:64], torch.float64)
     b = dataclasses.replace(b, lanes_mask=b.lanes_mask.clone())
@@ -489,22 +498,19 @@ def test_closed_form_cost_expansion_matches_autodiff(small):
     g = torch.Generator().manual_seed(0)
     preds = b.agent_fut[:, None, :, :2] + torch.randn(B, 3, 6, 2, generator=g, dtype=torch.float64)
     probs = torch.softmax(torch.randn(B, 3, generator=g, dtype=torch.float64), -1)
-    ctx, _ = ds.cost_contexts(
-        b, preds, probs, (torch.arange(B) % 3 > 0).to(torch.float64)
-    )  # some without a prediction
+    # some without a prediction
+    ctx, _ = ds.cost_contexts(b, preds, probs, (torch.arange(B) % 3 > 0).to(torch.float64))
     u = torch.randn(B, 6, 2, generator=g, dtype=torch.float64) * torch.tensor(
         [0.6, 2.0], dtype=torch.float64
     )
     x = ds.unicycle_rollout(b.ego_hist[:, -1], u, cfg.dt)
-    w = ds.cost_weights(cfg, torch.float64) * torch.rand(
-        B, 5, generator=g, dtype=torch.float64
-    )  # per-scenario weights
+    # per-scenario weights
+    w = ds.cost_weights(cfg, torch.float64) * torch.rand(B, 5, generator=g, dtype=torch.float64)
     params = (w, *ctx.tensors())
     cost = ds.StackCost(cfg.rbf_var)
     g1, H1 = ds.cost_expansion(cost, x, u, params)  # closed form
-    g2, H2 = ds.cost_expansion(
-        lambda x, u, *p: cost(x, u, *p), x, u, params
-    )  # a plain function: autodiff
+    # a plain function: autodiff
+    g2, H2 = ds.cost_expansion(lambda x, u, *p: cost(x, u, *p), x, u, params)
     assert rel_err(g1, g2) < 1e-12 and rel_err(H1, H2) < 1e-12
     # the check covers every case of the lane projection
     a, bb, has_lane = ds.nearest_lane_segment(x[:, 1:, :2], x[:, 1:, 2], ctx.lanes, ctx.lanes_mask)
@@ -514,9 +520,9 @@ def test_closed_form_cost_expansion_matches_autodiff(small):
 
 
 def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicycle_problem):
-    """The KKT gradients through StackCost (closed-form expansion, per-scenario parameters, converged scenarios
-    set aside) equal those through the same cost expanded by autodiff, whose gradients the test above checks
-    against finite differences."""
+    """The KKT gradients through StackCost (closed-form expansion, per-scenario parameters,
+    converged scenarios set aside) equal those through the same cost expanded by autodiff, whose
+    gradients the test above checks against finite differences."""
     P = unicycle_problem
     s0, goal, ctx = toy_scene()
     cost = ds.StackCost(2.0)
@@ -540,20 +546,19 @@ def test_controller_with_the_closed_form_cost_gives_the_autodiff_gradients(unicy
             tol=1e-11,
         )
         loss = (x * P["wx"]).sum() + (u * P["wu"]).sum()
-        grads.append(
-            torch.autograd.grad(loss, [leaves[i] for i in (0, 1, 2, 3, 7)])
-        )  # x0, w, preds, probs, lanes
+        # x0, w, preds, probs, lanes
+        grads.append(torch.autograd.grad(loss, [leaves[i] for i in (0, 1, 2, 3, 7)]))
     for a, b in zip(*grads):
         assert a.abs().sum() > 0 and rel_err(a, b) < 1e-10
 
 
 @pytest.mark.parametrize("all_free", [True, False])
 def test_riccati_recursion_solves_the_lqr_exactly(all_free):
-    """lqr_backward (the Q-function form, active set held) against the LQR solved as one dense problem: the controls as the
-    only unknowns (the states rolled out from them), the optimum by one Newton step on that quadratic. Its policy
-    du_t = k_t + K_t dx_t rolled out from a random dx_0 gives the optimal controls, and p_0 is dV/d dx_0 at 0.
-    all_free False: some controls are held at 0 (the KKT backward's clamped controls); the dense problem then
-    optimises the others only."""
+    """lqr_backward (the Q-function form, active set held) against the LQR solved as one dense
+    problem: the controls as the only unknowns (the states rolled out from them), the optimum by one
+    Newton step on that quadratic. Its policy du_t = k_t + K_t dx_t rolled out from a random dx_0
+    gives the optimal controls, and p_0 is dV/d dx_0 at 0. all_free False: some controls are held at
+    0 (the KKT backward's clamped controls); the dense problem then optimises the others only."""
     g = torch.Generator().manual_seed(4)
     Bsz, T, n, m = 3, 4, 4, 2
     R = torch.randn(Bsz, T + 1, n + m, n + m, generator=g, dtype=torch.float64)
@@ -572,7 +577,8 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
     assert torch.equal(free, ~held)
 
     def cost(du, dx0, b):  # du (T, m): the LQR's cost of the controls du from dx0, scenario b
-        dx, total = dx0, 0.0
+        dx = dx0
+        total = 0.0
         for t in range(T):
             z = torch.cat([dx, du[t]])
             total = total + 0.5 * z @ H[b, t] @ z + gv[b, t] @ z
@@ -589,13 +595,13 @@ def test_riccati_recursion_solves_the_lqr_exactly(all_free):
             gd = torch.autograd.functional.jacobian(lambda du: cost(du, start, b), du0).reshape(
                 T * m
             )
-            f = ~held[b].reshape(
-                -1
-            )  # the exact optimum over the free controls (cost is quadratic in du)
+            # the exact optimum over the free controls (cost is quadratic in du)
+            f = ~held[b].reshape(-1)
             best = torch.zeros(T * m, dtype=torch.float64)
             best[f] = -torch.linalg.solve(Hd[f][:, f], gd[f])
             best = best.reshape(T, m)
-            dx, policy = start, []
+            dx = start
+            policy = []
             for t in range(T):
                 policy.append(k[b, t] + K[b, t] @ dx)
                 dx = A[b, t] @ dx + Bm[b, t] @ policy[-1]
@@ -617,14 +623,14 @@ def test_solve_masked_keeps_the_fixed_rows_and_solves_the_free_ones():
     assert rel_err(y[~free], rhs[~free]) < 1e-14  # fixed rows keep the right-hand side
     both = free.all(-1)
     assert rel_err(y[both], torch.linalg.solve(Q[both], rhs[both])) < 1e-10
-    one = (
-        free[:, 0] & ~free[:, 1]
-    )  # control 0 free, 1 fixed: Q_00 y_0 = rhs_0 (the caller moved Q_01 d_1 over)
+    # control 0 free, 1 fixed: Q_00 y_0 = rhs_0 (the caller moved Q_01 d_1 over)
+    one = free[:, 0] & ~free[:, 1]
     assert rel_err(y[one, 0], rhs[one, 0] / Q[one, 0, 0, None]) < 1e-10
 
 
 def test_solve_small_is_the_linear_solve():
-    """Cramer's rule for 2x2 (non-symmetric, so a transpose shows) and the general solve beyond, in float64."""
+    """Cramer's rule for 2x2 (non-symmetric, so a transpose shows) and the general solve beyond, in
+    float64."""
     g = torch.Generator().manual_seed(1)
     for m in (2, 3):
         M = torch.randn(300, m, m, generator=g, dtype=torch.float64) + 3 * torch.eye(
@@ -647,18 +653,15 @@ def test_ilqr_solves_each_scenario_of_a_batch_as_if_alone():
         torch.tensor(cfg.u_upper, dtype=torch.float64),
     )
     cost = ds.StackCost(2.0)
-    w = ds.cost_weights(cfg, torch.float64) * torch.tensor(
-        [10.0, 1, 1, 1, 1], dtype=torch.float64
-    )  # collisions matter
+    # collisions matter
+    w = ds.cost_weights(cfg, torch.float64) * torch.tensor([10.0, 1, 1, 1, 1], dtype=torch.float64)
     params = (w.expand(3, 5), *ctx.tensors())
-    u0 = torch.tensor([0.7, 4.0], dtype=torch.float64).expand(
-        3, 6, 2
-    )  # a hard left at full throttle
+    # a hard left at full throttle
+    u0 = torch.tensor([0.7, 4.0], dtype=torch.float64).expand(3, 6, 2)
     calls = []
 
-    def recording(
-        x, u, *p
-    ):  # counts the cost's evaluations: 1 at the start, then 1 per scale tried
+    # counts the cost's evaluations: 1 at the start, then 1 per scale tried
+    def recording(x, u, *p):
         calls.append(len(x))
         return cost(x, u, *p)
 
@@ -677,12 +680,12 @@ def test_ilqr_solves_each_scenario_of_a_batch_as_if_alone():
     assert len(calls) > 1 + ia.iters.max()  # and some iteration tried a smaller step scale
 
 
-@pytest.mark.parametrize(
-    "bound", [0.2, 100.0]
-)  # bounds active in many problems; in none (the shortcut)
+# bounds active in many problems; in none (the shortcut)
+@pytest.mark.parametrize("bound", [0.2, 100.0])
 def test_box_qp_meets_the_kkt_conditions(bound):
-    """box_qp's answer is the optimum of the convex box QP: feasible, zero gradient on the free controls, the
-    gradient pushing outwards on the clamped ones (the KKT conditions, which only the optimum meets)."""
+    """box_qp's answer is the optimum of the convex box QP: feasible, zero gradient on the free
+    controls, the gradient pushing outwards on the clamped ones (the KKT conditions, which only the
+    optimum meets)."""
     g = torch.Generator().manual_seed(1)
     L = torch.randn(400, 2, 2, generator=g, dtype=torch.float64)
     Q = L @ L.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=torch.float64)
@@ -717,9 +720,8 @@ def test_ilqr_descends_respects_bounds_and_flags_convergence():
         assert (c[:, 1:] <= c[:, :-1] * (1 + 1e-12) + 1e-12).all()  # the true cost never increases
         assert ((u >= lo) & (u <= hi)).all()
         assert torch.equal(info.converged, info.step_norm < tol)
-        assert torch.allclose(
-            x, ds.unicycle_rollout(s0, u, DT)
-        )  # the solution is dynamically consistent
+        # the solution is dynamically consistent
+        assert torch.allclose(x, ds.unicycle_rollout(s0, u, DT))
     assert not info.converged.all() or info.iters.max() <= 5
 
 
@@ -748,8 +750,9 @@ def test_unconverged_scenarios_get_no_gradient():
 
 
 # ---------------------------------------------------------------------------------------------
-# A stand-in for data_synth.Scenarios: the exact field names and shapes of data_synth.Scenarios, with
-# plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at it).
+# A stand-in for data_synth.Scenarios: the exact field names and shapes of data_synth.Scenarios,
+# with plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at
+# it).
 # ---------------------------------------------------------------------------------------------
 
 
@@ -789,7 +792,10 @@ class FakeScenarios:
 
 def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
     g = torch.Generator().manual_seed(seed)
-    rnd = lambda *s: torch.rand(*s, generator=g, dtype=dtype)  # noqa: E731
+
+    def rnd(*s):
+        return torch.rand(*s, generator=g, dtype=dtype)
+
     behaviour = torch.randint(0, 4, (B,), generator=g)
     w = torch.tensor([0.0, 0.25, -0.25, 0.0], dtype=dtype)[behaviour]
     a = torch.tensor([0.0, 0.0, 0.0, -1.5], dtype=dtype)[behaviour]
@@ -843,6 +849,23 @@ def make_model(cfg, seed=0):
 
 
 # ---------------------------------------------------------------------------------------------
+# Synthetic data, shared with test_train.py and test_data_synth.py
+# ---------------------------------------------------------------------------------------------
+
+SYNTH_CFG = data_synth.SynthConfig()
+
+
+def small_dataset():
+    """120 synthetic samples: what the fixture `small` of each test file holds."""
+    return data_synth.make_dataset(120, SYNTH_CFG, seed=0)
+
+
+@pytest.fixture(scope="module")
+def small():
+    return small_dataset()
+
+
+# ---------------------------------------------------------------------------------------------
 # Inputs
 # ---------------------------------------------------------------------------------------------
 
@@ -855,7 +878,8 @@ def test_backward_differences_and_mask_prefix():
     assert torch.allclose(v[0, 1:, 0], torch.full((8,), 2.0, dtype=torch.float64))
     assert torch.allclose(v[0, 1:, 1], 0.5 * (t[1:] ** 2 - t[:-1] ** 2))  # backward, not central
     assert torch.allclose(v[0, 0], v[0, 1])  # no predecessor: copies the first difference
-    # a history observed from step 3 on: steps <= 3 take the difference at 4; the masked values never matter
+    # a history observed from step 3 on: steps <= 3 take the difference at 4; the masked values
+    # never matter
     x2 = x.clone()
     x2[0, :3] = 1e3
     v2 = ds.backward_diff(x2, torch.tensor([3]), 1.0)
@@ -869,9 +893,8 @@ def test_state_features_values():
         b.agent_hist, b.agent_hist[:, -1, :2], torch.zeros(4, dtype=torch.long), cfg
     )
     assert f.shape == (4, 9, 8)
-    assert torch.allclose(
-        f[:, -1, :2], torch.zeros(4, 2, dtype=torch.float64)
-    )  # relative to the current position
+    # relative to the current position
+    assert torch.allclose(f[:, -1, :2], torch.zeros(4, 2, dtype=torch.float64))
     vel = (b.agent_hist[:, -1, :2] - b.agent_hist[:, -2, :2]) / DT
     assert torch.allclose(f[:, -1, 2:4] * 15.0, vel)
     assert torch.allclose(f[:, -1, 6] * math.pi, ds.wrap_angle(b.agent_hist[:, -1, 2]))
@@ -884,7 +907,8 @@ def test_state_features_values():
 
 def test_shapes_and_probabilities():
     cfg = ds.Config(pred_dec_hidden=16)  # K = 25
-    model, b = make_model(cfg), make_batch(8)
+    model = make_model(cfg)
+    b = make_batch(8)
     for use_post in (True, False):
         p = model(b, use_posterior=use_post, step=0 if use_post else None)
         assert p.states.shape == (8, 25, 6, 4) and p.controls.shape == (8, 25, 6, 2)
@@ -909,7 +933,8 @@ def test_shapes_and_probabilities():
 
 def test_masks_padding_radius_and_history_mask():
     cfg = small_cfg()
-    model, b = make_model(cfg).eval(), make_batch(8)
+    model = make_model(cfg).eval()
+    b = make_batch(8)
     ref = model(b, use_posterior=False)
     # padded agents' values do not matter
     oh = b.others_hist.clone()
@@ -926,14 +951,16 @@ def test_masks_padding_radius_and_history_mask():
     assert torch.allclose(
         model(b_far, use_posterior=False).states, model(b_farther, use_posterior=False).states
     )
-    # but a near agent does change the prediction (the test above could not pass by ignoring everyone)
+    # but a near agent does change the prediction (the test above could not pass by ignoring
+    # everyone)
     near = b.agent_hist[:, -1:, None, :2] + torch.tensor([5.0, 0.0], dtype=torch.float64)
     b_near = b.replace(
         others_hist=torch.cat([b.others_hist[..., :2] * 0 + near, b.others_hist[..., 2:]], -1),
         others_mask=torch.ones_like(b.others_mask),
     )
     assert not torch.allclose(model(b_near, use_posterior=False).states, ref.states)
-    # agent_hist_mask: unobserved early steps (filled with the earliest observed state) do not matter
+    # agent_hist_mask: unobserved early steps (filled with the earliest observed state) do not
+    # matter
     m = b.agent_hist_mask.clone()
     m[:4, :3] = False
     h1, h2 = b.agent_hist.clone(), b.agent_hist.clone()
@@ -947,14 +974,14 @@ def test_masks_padding_radius_and_history_mask():
 
 def test_no_neighbours_no_nan():
     cfg = small_cfg()
-    model, b = make_model(cfg), make_batch(8)
+    model = make_model(cfg)
+    b = make_batch(8)
     ego_far = b.ego_hist.clone()
     ego_far[..., 1] += 500.0  # the ego is a neighbour too: move it out of range
     b0 = b.replace(others_mask=torch.zeros_like(b.others_mask), ego_hist=ego_far)
     x, _ = model.encode(b0)
-    assert torch.equal(
-        x[:, cfg.pred_enc_hidden :], torch.zeros_like(x[:, cfg.pred_enc_hidden :])
-    )  # zero context
+    # zero context
+    assert torch.equal(x[:, cfg.pred_enc_hidden :], torch.zeros_like(x[:, cfg.pred_enc_hidden :]))
     p = model(b0, use_posterior=True, step=0)
     loss, _ = ds.pred_loss(p, b0, 0, cfg)
     loss.mean().backward()
@@ -963,7 +990,8 @@ def test_no_neighbours_no_nan():
 
 
 def _drive_rho_to_the_edge(model, pre_tanh):
-    """Every step's rho output (dec_out's last row) set to the constant pre_tanh, whatever the hidden state."""
+    """Every step's rho output (dec_out's last row) set to the constant pre_tanh, whatever the
+    hidden state."""
     with torch.no_grad():
         model.dec_out.weight[4].zero_()
         model.dec_out.bias[4] = pre_tanh
@@ -971,12 +999,10 @@ def _drive_rho_to_the_edge(model, pre_tanh):
 
 def _training_step_is_finite(model, b, cfg):
     model.zero_grad()
-    p = model(
-        b, use_posterior=True, step=0
-    )  # training mode: the sample u = mu + L eps uses sqrt(1 - rho^2)
-    loss, _ = ds.pred_loss(
-        p, b, 0, cfg
-    )  # the GMM likelihood inverts Sigma_u's propagation (rho s_w s_a off-diagonal)
+    # training mode: the sample u = mu + L eps uses sqrt(1 - rho^2)
+    p = model(b, use_posterior=True, step=0)
+    # the GMM likelihood inverts Sigma_u's propagation (rho s_w s_a off-diagonal)
+    loss, _ = ds.pred_loss(p, b, 0, cfg)
     loss.mean().backward()
     grads = [q.grad for q in model.parameters() if q.grad is not None]
     return (
@@ -990,21 +1016,23 @@ def _training_step_is_finite(model, b, cfg):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("pre_tanh", [50.0, -50.0])
 def test_decoder_correlation_at_the_edge_stays_finite(dtype, pre_tanh, monkeypatch):
-    """tanh(+-50) is +-1 exactly in floating point: the clamp of bounded_correlation keeps the training forward, the
-    loss and the backward finite. With plain tanh (the code before the clamp) the same model gives NaN."""
+    """tanh(+-50) is +-1 exactly in floating point: the clamp of bounded_correlation keeps the
+    training forward, the loss and the backward finite. With plain tanh (the code before the clamp)
+    the same model gives NaN."""
     cfg = small_cfg()
-    model, b = make_model(cfg).to(dtype), make_batch(8, dtype=dtype)
+    model = make_model(cfg).to(dtype)
+    b = make_batch(8, dtype=dtype)
     _drive_rho_to_the_edge(model, pre_tanh)
     assert abs(ds.bounded_correlation(torch.tensor(pre_tanh, dtype=dtype))) == 1 - ds.RHO_MARGIN
     assert _training_step_is_finite(model, b, cfg)
-    monkeypatch.setattr(
-        ds, "bounded_correlation", torch.tanh
-    )  # no clamp: the test would catch its removal
+    # no clamp: the test would catch its removal
+    monkeypatch.setattr(ds, "bounded_correlation", torch.tanh)
     assert not _training_step_is_finite(model, b, cfg)
 
 
 def test_bounded_correlation_is_tanh_inside_the_bounds():
-    """Ordinary pre-tanh values: the same values and gradients as tanh, bit for bit (same seed, same numbers)."""
+    """Ordinary pre-tanh values: the same values and gradients as tanh, bit for bit
+    (same seed, same numbers)."""
     for dtype in (torch.float32, torch.float64):
         x = torch.linspace(-5, 5, 101, dtype=dtype, requires_grad=True)
         y = torch.tanh(x)
@@ -1016,14 +1044,14 @@ def test_bounded_correlation_is_tanh_inside_the_bounds():
 
 def test_stationary_agent_is_finite():
     cfg = small_cfg()
-    model, b = make_model(cfg), make_batch(4)
+    model = make_model(cfg)
+    b = make_batch(4)
     still = b.agent_hist[:, -1:].expand(-1, 9, -1).clone()
     still[..., 3] = 0.0  # parked: no motion, no speed, no velocity direction
     b0 = b.replace(agent_hist=still, agent_fut=still[:, :6])
     p = model(b0, use_posterior=True, step=500)
-    assert (
-        ds.wrap_angle(p.s0[:, 2] - still[:, -1, 2]).abs() < 1
-    ).all()  # the tracked heading + a correction
+    # the tracked heading + a correction
+    assert (ds.wrap_angle(p.s0[:, 2] - still[:, -1, 2]).abs() < 1).all()
     loss, _ = ds.pred_loss(p, b0, 500, cfg)
     loss.mean().backward()
     assert torch.isfinite(loss).all() and torch.linalg.eigvalsh(p.pos_cov).min() >= 0.05**2 - 1e-12
@@ -1032,7 +1060,8 @@ def test_stationary_agent_is_finite():
 
 def test_prior_does_not_see_the_future_and_eval_is_deterministic():
     cfg = small_cfg()
-    model, b = make_model(cfg).eval(), make_batch(8)
+    model = make_model(cfg).eval()
+    b = make_batch(8)
     p1 = model(b, use_posterior=False)
     p2 = model(
         b.replace(agent_fut=b.agent_fut + 3.0, others_fut=b.others_fut + 3.0), use_posterior=False
@@ -1049,7 +1078,8 @@ def test_prior_does_not_see_the_future_and_eval_is_deterministic():
 
 
 def test_bad_input_names_the_argument():
-    """The data check where data enters a run (train.check_batch, before training and evaluation)."""
+    """The data check where data enters a run (train.check_batch, before training and
+    evaluation)."""
     cfg = small_cfg()
     b = make_batch(4)
     tr.check_batch(b, cfg, need_future=True)  # the valid batch passes
@@ -1081,11 +1111,11 @@ def test_bad_input_names_the_argument():
 
 def test_modes_are_the_unicycle_integration_of_the_mean_controls():
     cfg = small_cfg()
-    model, b = make_model(cfg).eval(), make_batch(6)
+    model = make_model(cfg).eval()
+    b = make_batch(6)
     p = model(b, use_posterior=False)
-    ref = ds.unicycle_rollout(
-        p.s0[:, None].expand(-1, cfg.pred_modes, -1), p.controls, DT
-    )  # (B, K, 7, 4)
+    # (B, K, 7, 4)
+    ref = ds.unicycle_rollout(p.s0[:, None].expand(-1, cfg.pred_modes, -1), p.controls, DT)
     assert torch.allclose(p.states, ref[:, :, 1:], atol=1e-10)
     assert torch.allclose(p.s0[:, :2], b.agent_hist[:, -1, :2]) and torch.allclose(
         p.s0[:, 3], b.agent_hist[:, -1, 3]
@@ -1097,7 +1127,8 @@ def test_modes_are_the_unicycle_integration_of_the_mean_controls():
 
 def test_covariance_one_step_by_hand():
     cfg = ds.Config(pred_pos_std_min=0.0)
-    v, sw, sa, rho = 2.0, 0.3, 0.8, 0.4
+    v = 2.0
+    sw, sa, rho = 0.3, 0.8, 0.4
     s = torch.tensor([[[0.0, 0.0, 0.0, v]]], dtype=torch.float64)  # (1, T=1, 4), heading 0
     u = torch.zeros(1, 1, 2, dtype=torch.float64)  # w = a = 0
     cov_u = torch.tensor([[[[sw**2, rho * sw * sa], [rho * sw * sa, sa**2]]]], dtype=torch.float64)
@@ -1139,21 +1170,22 @@ def test_gaussian_log_prob_matches_torch_distributions():
     )
     ref = torch.distributions.MultivariateNormal(mean, covariance_matrix=cov).log_prob(y)
     assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov), ref)
-    assert torch.allclose(
-        ds.gaussian2_log_prob(y, mean, cov, min_var=0.1), ref
-    )  # the floor's bound: inactive here
+    # the floor's bound: inactive here
+    assert torch.allclose(ds.gaussian2_log_prob(y, mean, cov, min_var=0.1), ref)
 
 
 def test_gaussian_log_prob_survives_a_long_thin_covariance_in_float32():
-    """A covariance the predictor produced in training (20-epoch DiffStack (1, 5, 5), seed 4, step 461): variances
-    ~1e5 m^2 along a line, the 0.05 m floor across it. In float32 a c - b^2 cancels to 0 and the log-likelihood was
-    NaN; with the floor's bound it is finite and close to the float64 density of the same matrix with its floor."""
+    """A covariance the predictor produced in training (20-epoch DiffStack (1, 5, 5), seed 4, step
+    461): variances ~1e5 m^2 along a line, the 0.05 m floor across it. In float32 a c - b^2 cancels
+    to 0 and the log-likelihood was NaN; with the floor's bound it is finite and close to the
+    float64 density of the same matrix with its floor."""
     s2 = ds.Config().pred_pos_std_min ** 2
     cov = torch.tensor([[22144.466796875, 47221.01171875], [47221.01171875, 100694.40625]])
     y, mean = torch.tensor([3.0, 7.0]), torch.tensor([0.0, 0.0])
     assert not torch.isfinite(ds.gaussian2_log_prob(y, mean, cov))  # what training met
     got = ds.gaussian2_log_prob(y, mean, cov, min_var=s2)
-    # float64: the propagated part made exactly singular (its smallest eigenvalue removed), then the floor added
+    # float64: the propagated part made exactly singular (its smallest eigenvalue removed), then the
+    # floor added
     c64 = cov.double() - s2 * torch.eye(2, dtype=torch.float64)
     lam, vec = torch.linalg.eigh(c64)
     c64 = vec @ torch.diag(lam.clamp_min(0)) @ vec.T + s2 * torch.eye(2, dtype=torch.float64)
@@ -1185,840 +1217,7 @@ def test_gradients_through_the_covariance_propagation():
 
 
 # ---------------------------------------------------------------------------------------------
-# Loss, training, weighting
-# ---------------------------------------------------------------------------------------------
-
-
-def test_loss_matches_an_independent_computation():
-    cfg = small_cfg()
-    model, b = make_model(cfg), make_batch(16)
-    for step in (0, 1000):  # KL below (free bits) and above 0.07
-        p = model(b, use_posterior=True, step=step)
-        loss, parts = ds.pred_loss(p, b, step, cfg)
-        assert loss.shape == (16,)
-        # LL with torch.distributions' mixture, per scenario
-        D = torch.distributions
-        comp = D.MultivariateNormal(
-            p.means.transpose(1, 2), covariance_matrix=p.pos_cov.transpose(1, 2)
-        )  # (B, T | K)
-        mix = D.MixtureSameFamily(D.Categorical(probs=p.probs[:, None].expand(-1, 6, -1)), comp)
-        ll = mix.log_prob(b.agent_fut[..., :2]).clamp(max=6).sum(-1)  # (B,)
-        prior = D.Categorical(logits=p.log_p)
-        kl = D.kl_divergence(D.Categorical(logits=p.log_q), prior)
-        mi = D.Categorical(probs=prior.probs.mean(0)).entropy() - prior.entropy().mean()
-        beta = 100 / (1 + math.exp(-(step - 400) / 100))
-        kl_term = kl if kl.mean() > 0.07 else torch.full_like(kl, 0.07)
-        assert torch.allclose(loss, -(ll - beta * kl_term + mi))
-        assert math.isclose(parts["ll"], ll.mean().item()) and math.isclose(parts["beta"], beta)
-    with pytest.raises(ValueError, match="pred"):
-        ds.pred_loss(model(b, use_posterior=False), b, 0, cfg)
-
-
-STANDARD = tr.Method("Standard")
-
-
-def test_loss_decreases_on_a_small_set():
-    cfg = small_cfg(batch_size=32, lr=1e-2)
-    model, data = make_model(cfg), make_batch(64, seed=3)
-
-    def loss_at_step0():
-        torch.manual_seed(0)
-        return ds.pred_loss(model(data, use_posterior=True, step=0), data, 0, cfg)[0].mean().item()
-
-    before = loss_at_step0()
-    tr.train_stack(model, data, STANDARD, cfg, epochs=30, seed=0, log=None)
-    assert loss_at_step0() < before - 5.0
-
-
-def test_same_seed_same_model():
-    cfg = small_cfg()
-    data = make_batch(48, seed=4)
-    params = []
-    for seed in (0, 0, 1):
-        model = make_model(cfg, seed=0)
-        hist = tr.train_stack(model, data, STANDARD, cfg, epochs=2, seed=seed, log=None)
-        assert len(hist) == 6  # 2 epochs of 3 batches of 16
-        params.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
-    assert torch.equal(params[0], params[1]) and not torch.equal(params[0], params[2])
-
-
-def test_progress_lines_fractional_epochs_and_val_metrics():
-    cfg = small_cfg()
-    data, val = make_batch(48, seed=5), make_batch(16, seed=6)
-    lines = []
-    hist = tr.train_stack(make_model(cfg), data, STANDARD, cfg, epochs=2 / 3, log=lines.append)
-    assert len(hist) == 2 and lines and "ETA" in lines[-1] and "L_pred" in lines[-1]
-    m = tr.evaluate_predictor(make_model(cfg), val, cfg)
-    assert {"ade", "min_ade", "nll", "cv_ade", "cv_nll"} <= set(m)
-    # the calibrated constant-velocity NLL, by hand: sigma_t^2 = mean squared error / 2 per axis
-    err2 = ((tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]) ** 2).sum(-1)  # (B, T)
-    var = err2.mean(0) / 2
-    e = (tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]).transpose(1, 2)  # (B, 2, T)
-    by_hand = -torch.distributions.Normal(0.0, var.sqrt()).log_prob(e).sum(1).mean()
-    assert math.isclose(m["cv_nll"], by_hand.item(), rel_tol=1e-6)
-
-
-def test_distance_and_cost_gradient_weights():
-    cfg = ds.Config()
-    b = make_batch(8)
-    w = tr.scenario_weights(b, "distance", cfg)
-    d = (b.ego_fut[..., :2] - b.agent_fut[..., :2]).norm(dim=-1).mean(-1)
-    assert torch.isclose(w.mean(), torch.tensor(1.0, dtype=w.dtype))
-    assert w[d.argmin()] == w.max() and w[d.argmax()] == w.min()
-    # grad-cost: |d (w1 C_coll) / d agent future| along the ego's GT future, by hand
-    diff = b.agent_fut[..., :2] - b.ego_fut[..., :2]
-    by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(
-        1
-    ).norm(dim=-1)
-    assert torch.allclose(tr.grad_cost_weights(b, cfg), by_hand)
-    assert torch.allclose(tr.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
-    zero = tr.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
-    assert torch.equal(zero, torch.ones(8, dtype=torch.float64))
-    with pytest.raises(ValueError, match="weighting"):
-        tr.scenario_weights(b, lambda batch: -torch.ones(len(batch)), cfg)
-
-
-def test_weighting_changes_training():
-    cfg = small_cfg()
-    data = make_batch(32, seed=7)
-    out = []
-    for weighting in ("standard", "distance"):
-        model = make_model(cfg)
-        tr.train_stack(model, data, tr.Method("x", weighting=weighting), cfg, epochs=1, log=None)
-        out.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
-    assert not torch.allclose(out[0], out[1])
-
-
-def test_collision_cost_gradient_reaches_all_decoder_parameters():
-    cfg = small_cfg()
-    model, b = make_model(cfg), make_batch(8)
-    p = model(b, use_posterior=False)
-    ego = b.ego_fut[:, None, :, :2]  # (B, 1, T, 2)
-    # phi(sum_k pi_k ||s_t - s_hat_kt||^2), eq. (2)'s collision term
-    cost = torch.exp(-(p.probs[..., None] * ((ego - p.means) ** 2).sum(-1)).sum(1) / 4).sum()
-    cost.backward()
-    names = (
-        "dec_in.weight",
-        "dec_hh.weight",
-        "dec_out.weight",
-        "p_z.2.weight",
-        "hist_lstm.weight_hh",
-        "heading_fix.weight",
-    )
-    for name in names:
-        grad = dict(model.named_parameters())[name].grad
-        assert grad is not None and grad.abs().sum() > 0, name
-
-
-@pytest.mark.parametrize("weights", ["posterior", "prior"])
-def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weights):
-    """In training the planner weighs the modes by q(z|x,y) (the authors' code, the default), so L_plan and L_ctr
-    never reach p(z|x) -- the network evaluation uses: its gradient is exactly zero. With
-    train_plan_weights='prior' the planner sees p(z|x), as at evaluation, and the losses train it."""
-    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, train_plan_weights=weights)
-    b = _cast(small.train[:32], torch.float64)
-    model = make_model(cfg)
-    out = ds.run_stack(b, model, tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
-    (out.l_plan.mean() + out.l_ctr.mean()).backward()
-    grads = dict(model.named_parameters())
-    prior = sum(
-        float(p.grad.abs().sum())
-        for n, p in grads.items()
-        if n.startswith("p_z.") and p.grad is not None
-    )
-    assert (prior > 0) == (weights == "prior")
-    assert grads["dec_out.weight"].grad.abs().sum() > 0  # the decoder is trained either way
-    with pytest.raises(ValueError, match="train_plan_weights"):
-        ds.Config(train_plan_weights="both")
-
-
-def test_a_method_chooses_its_own_planner_weights(small):
-    """Method.train_plan_weights overrides the Config's for that method only (the ablation's prior-weights rows)."""
-    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16)  # posterior by default
-    b = _cast(small.train[:32], torch.float64)
-    for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
-        model = make_model(cfg)
-        out = ds.run_stack(
-            b,
-            model,
-            tr.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights),
-            cfg,
-            "rl",
-            step=0,
-            train=True,
-        )
-        (out.l_plan.mean() + out.l_ctr.mean()).backward()
-        prior = sum(
-            float(p.grad.abs().sum())
-            for n, p in model.named_parameters()
-            if n.startswith("p_z.") and p.grad is not None
-        )
-        assert (prior > 0) == reaches, weights
-    with pytest.raises(ValueError, match="Method.train_plan_weights"):
-        tr.Method("DiffStack", train_plan_weights="both")
-
-
-def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
-    """Config.goal = 'route': the goal is on the ego's lane (near its centre line, with its heading), the distance
-    the ego covers in T steps at its current speed ahead along it; run_stack plans towards it, not the logged goal."""
-    cfg = ds.Config(goal="route")
-    b = small.val[:40]
-    s0 = b.ego_hist[:, -1]
-    g = ds.route_goal(s0, b.lanes, b.lanes_mask, cfg)
-    lat, head, _ = ds.project_to_lanes(g[:, None, :2], g[:, None, 2], b.lanes, b.lanes_mask)
-    assert (
-        lat.max() < 0.05 and head.abs().max() < 0.05
-    )  # on a lane's centre line, along it (squared m, rad)
-    assert torch.allclose(g[:, 3], s0[:, 3])
-    ahead = s0[:, 3] * cfg.horizon * cfg.dt
-    # on straight and gently curved roads the chord is the arc length to within a few cm (and the ego sits
-    # within 0.2 m of its lane's centre)
-    chord = (g[:, :2] - s0[:, :2]).norm(dim=-1)
-    assert torch.allclose(chord, ahead, atol=0.3), (chord - ahead).abs().max()
-    out_route = ds.run_stack(b, None, tr.Method("No prediction", "none"), cfg, "rl")
-    out_logged = ds.run_stack(b, None, tr.Method("No prediction", "none"), ds.Config(), "rl")
-    end = lambda out: out.x[:, -1, :2]  # noqa: E731
-    closer = (
-        ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1))
-        .float()
-        .mean()
-    )
-    assert (
-        closer > 0.7
-    )  # planning towards the route goal ends nearer to it than planning towards the logged one
-    with pytest.raises(ValueError, match="Config.goal"):
-        ds.Config(goal="anywhere")
-
-
-def test_a_learning_curve_does_not_change_the_training(small):
-    """train_predictor(curve_samples=n): the model evaluated before training and after every epoch, in a fork of
-    the random state: the trained weights are those of a run without the curve."""
-    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=32)
-    data = data_synth.Dataset(small.train[:64], small.val[:16], None)
-    m = tr.Method("DiffStack", losses=(1, 1, 1))
-    plain = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
-    curved = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
-    assert not hasattr(plain, "learning_curve")
-    assert [c["epoch"] for c in curved.learning_curve] == [0.0, 1.0, 2.0]
-    assert all(c["n"] + c["skipped"] == 8 for c in curved.learning_curve)
-    for (name, a), b in zip(plain.state_dict().items(), curved.state_dict().values()):
-        assert torch.equal(a, b), name
-    assert (
-        curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]
-    )  # it measured a model that changed
-
-
-@pytest.mark.parametrize("goal, plan_dt", [("logged", None), ("route", None), ("logged", 0.1)])
-def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
-    """train_stack computes the scene's part of the plan (goal, candidates, every term of eq. (3) but C_coll) once for
-    its data: indexed by a batch's rows it is that batch's own, bit for bit, and the stack's outputs and gradients
-    are those of a run that computes it itself. A scene plan of other rows changes them (the check can fail)."""
-    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, goal=goal)
-    data = small.train[:96]
-    scenes = tr.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
-    rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
-    own = ds.scene_plan(data[rows], cfg, plan_dt)
-    for a, b in (
-        (scenes[rows].goal, own.goal),
-        (scenes[rows].cands.x, own.cands.x),
-        (scenes[rows].cands.u, own.cands.u),
-        (scenes[rows].cands.valid, own.cands.valid),
-        (scenes[rows].terms, own.terms),
-    ):
-        assert torch.equal(a, b)
-    model = make_model(cfg).float()
-    m = tr.Method("DiffStack", losses=(1, 1, 1))
-
-    def run(scene):
-        torch.manual_seed(1)  # the decoder's sampled controls
-        model.zero_grad()
-        out = ds.run_stack(
-            data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene
-        )
-        (out.l_pred + out.l_plan + out.l_ctr).sum().backward()
-        return [out.l_plan, out.l_ctr, out.x] + [p.grad.clone() for p in model.parameters()]
-
-    for a, b in zip(run(None), run(scenes[rows])):
-        assert torch.equal(a, b)
-    other = scenes[torch.roll(rows, 1)]
-    assert not all(torch.equal(a, b) for a, b in zip(run(None), run(other)))
-
-
-def test_training_refuses_bad_data_before_the_first_step(small):
-    """train_stack checks its whole data set up front (scene_plans): a non-finite lane point in a scenario the
-    first batches would not reach is refused, naming the field, before any step is taken."""
-    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=16)
-    data = small.train[:64]
-    last = torch.randperm(64, generator=torch.Generator().manual_seed(0))[
-        -1
-    ]  # train_stack's order (seed 0): its
-    lanes = data.lanes.clone()  # first epoch's last batch holds it
-    lanes[last, 0, 0, 0] = math.nan
-    lines = []
-    with pytest.raises(ValueError, match="lanes"):
-        tr.train_stack(
-            make_model(cfg).float(),
-            dataclasses.replace(data, lanes=lanes),
-            tr.Method("DiffStack", losses=(1, 1, 1)),
-            cfg,
-            "rl",
-            epochs=4.0,
-            log=lines.append,
-        )
-    assert lines == []
-
-
-def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
-    """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their counts, are the
-    overall means."""
-    r = tr.evaluate_stack(None, small.val, tr.Method("GT prediction", "gt"), ds.Config(), "rl")
-    by = r["by_behaviour"]
-    assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
-    for key in ("hindsight", "mse", "plan_loss"):
-        assert sum(v[key] * v["n"] for v in by.values()) / r["n"] == pytest.approx(r[key], rel=1e-5)
-    counts = {
-        data_synth.BEHAVIOURS[b]: int(n)
-        for b, n in zip(*small.val.behaviour.unique(return_counts=True))
-    }
-    assert all(by[name]["n"] <= counts[name] for name in by)
-
-
-# ---------------------------------------------------------------------------------------------
-# Metrics and plot
-# ---------------------------------------------------------------------------------------------
-
-
-def test_metrics_on_a_known_prediction():
-    cfg = small_cfg()
-    b = make_batch(4)
-    K = cfg.pred_modes
-    states = b.agent_fut[:, None].repeat(1, K, 1, 1)
-    states[:, 1:, :, 0] += 2.0  # mode 0 exact, others 2 m off in x
-    probs = torch.full((4, K), 0.1 / (K - 1), dtype=torch.float64)
-    probs[:, 0] = 0.9
-    cov = 0.25 * torch.eye(2, dtype=torch.float64).expand(4, K, 6, 2, 2)
-    controls = torch.zeros(4, K, 6, 2, dtype=torch.float64)
-    pred = ds.Prediction(b.agent_hist[:, -1], states, controls, cov, probs.log(), None, probs)
-    m = tr.prediction_metrics(pred, b, cfg)
-    zeros = torch.zeros(4, dtype=torch.float64)
-    assert torch.allclose(m["ade"], zeros) and torch.allclose(m["min_fde"], zeros)
-    nll = -math.log(0.9 / (2 * math.pi * 0.25) + 0.1 / (2 * math.pi * 0.25) * math.exp(-4 / 0.5))
-    assert torch.allclose(m["nll"], torch.full((4,), nll, dtype=torch.float64))
-    probs2 = probs.flip(-1)
-    m2 = tr.prediction_metrics(
-        ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg
-    )
-    assert torch.allclose(m2["ade"], torch.full((4,), 2.0, dtype=torch.float64))
-    assert torch.allclose(m2["min_ade"], m["min_ade"])
-    # constant velocity is exact on a constant-velocity agent (behaviour 0 after its manoeuvre: w = a = 0)
-    s0 = b.agent_hist[:, -1]
-    cv_fut = torch.stack(
-        [
-            s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
-            s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7),
-        ],
-        -1,
-    )
-    m3 = tr.prediction_metrics(
-        pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg
-    )
-    assert torch.allclose(m3["cv_ade"], torch.zeros(4, dtype=torch.float64), atol=1e-12)
-
-
-def test_plot_prediction_draws_modes():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cfg = small_cfg()
-    model, b = make_model(cfg).eval(), make_batch(2)
-    fig, ax = plt.subplots()
-    import figures
-
-    figures.plot_prediction(ax, model(b, use_posterior=False), 1)
-    assert len(ax.lines) == cfg.pred_modes + cfg.horizon
-    widths = sorted(line.get_linewidth() for line in ax.lines[: cfg.pred_modes])
-    assert widths[-1] == 3.0 and widths[0] < widths[-1]
-    plt.close(fig)
-
-
-# ---------------------------------------------------------------------------------------------
-# Slow: a few minutes of training on the synthetic data (DIFFSTACK_SLOW=1 to run)
-# ---------------------------------------------------------------------------------------------
-
-
-@pytest.mark.skipif(
-    os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1"
-)
-def test_trained_predictor_beats_constant_velocity():
-    data_synth = pytest.importorskip("data_synth")
-    data = data_synth.make_dataset(8000, seed=0)
-    cfg = ds.Config()
-    torch.manual_seed(0)
-    model = ds.Predictor(cfg)
-    tr.train_stack(model, data.train, STANDARD, cfg, epochs=12, seed=0)
-    m = tr.evaluate_predictor(model, data.val, cfg)
-    assert m["min_ade"] < 0.7 * m["cv_ade"]  # measured: 0.82 vs 1.67 (312 steps, about 1 minute)
-    assert m["nll"] < m["cv_nll"] - 1.0  # measured: 0.86 vs 3.20
-
-
-# ---------------------------------------------------------------------------------------------
-# Data: synthetic scenes, the nuScenes format written and read (data_synth.py)
-# ---------------------------------------------------------------------------------------------
-
-SYNTH_CFG = data_synth.SynthConfig()
-
-
-@pytest.fixture(scope="module")
-def small():
-    return data_synth.make_dataset(120, SYNTH_CFG, seed=0)
-
-
-@pytest.fixture(scope="module")
-def scenes_mixed():
-    """Curved roads, straight roads with intersections, turns and cut-ins: every kind of geometry."""
-    cfg = data_synth.SynthConfig(
-        mix={"turn_across": 1.0, "cut_in": 1.0, "cross_yield": 1.0}, curved_prob=1.0
-    )
-    return data_synth.generate_scenes(6, cfg, seed=5), cfg
-
-
-# --------------------------------------------------------------------------------------------------------------
-# shapes and conventions (the fields of data_synth.Scenarios)
-
-
-def test_scenarios_shapes_and_frame(small):
-    b = small.train
-    B, A, L = len(b), b.others_hist.shape[1], b.lanes.shape[1]
-    expect = {
-        "ego_hist": (B, 9, 4),
-        "ego_fut": (B, 6, 4),
-        "agent_hist": (B, 9, 4),
-        "agent_hist_mask": (B, 9),
-        "agent_fut": (B, 6, 4),
-        "others_hist": (B, A, 9, 4),
-        "others_fut": (B, A, 6, 4),
-        "others_mask": (B, A),
-        "others_is_ped": (B, A),
-        "lanes": (B, L, 40, 3),
-        "lanes_mask": (B, L, 40),
-        "goal": (B, 4),
-        "behaviour": (B,),
-    }
-    assert {k: tuple(v.shape) for k, v in b.tensors().items()} == expect
-    assert (
-        b.ego_hist.dtype == torch.float32
-        and b.behaviour.dtype == torch.int64
-        and b.lanes_mask.dtype == torch.bool
-    )
-    assert all(torch.isfinite(v).all() for v in b.tensors().values() if v.is_floating_point())
-    assert torch.equal(b.ego_hist[:, -1, :3], torch.zeros(B, 3))  # ego frame at t0
-    assert torch.equal(b.goal, b.ego_fut[:, -1])
-    assert b.agent_hist_mask.all() and A > 0 and L > 0
-    assert (b.others_hist[~b.others_mask] == 0).all() and (
-        b.lanes[~b.lanes_mask] == 0
-    ).all()  # padding is 0
-    m = b.lanes_mask.long()
-    assert (m[..., 1:] <= m[..., :-1]).all()  # valid lane points are a prefix
-    gaps = torch.linalg.norm(b.lanes[..., 1:, :2] - b.lanes[..., :-1, :2], dim=-1)[
-        b.lanes_mask[..., 1:]
-    ]
-    assert (
-        gaps.min() > 1.95 and gaps.max() < 2.0 + 1e-4
-    )  # 2 m apart along the lane (chords on tight turns)
-    assert set(b.behaviour.tolist()) <= set(range(len(data_synth.BEHAVIOURS)))
-    # the ego's lane: some lane passes within 1 m of the ego, along its heading
-    d = (
-        torch.where(b.lanes_mask, torch.linalg.norm(b.lanes[..., :2], dim=-1), math.inf)
-        .flatten(1)
-        .min(1)
-        .values
-    )
-    assert (d < 1.0).float().mean() > 0.95
-
-
-def test_scenes_fields(scenes_mixed):
-    s, cfg = scenes_mixed
-    S, F = s.ego.shape[:2]
-    assert F == 41 and s.agents.shape[:3] == s.agents_mask.shape and s.pred_idx.shape == (S, F)
-    assert (
-        (s.pred_idx[:, 8:35] == 0).all()
-        and (s.pred_idx[:, :8] == -1).all()
-        and (s.pred_idx[:, 35:] == -1).all()
-    )
-    assert s.ego.dtype == torch.float64 and len(s.names) == S
-    assert torch.equal(
-        s.lanes_mask.any(-1), (s.routes >= 0).any(-1)
-    )  # every route has points, padding none
-    # the predicted vehicle is present at every frame; the v channel is the backward-difference speed
-    assert s.agents_mask[:, 0].all()
-    v = torch.linalg.norm(s.ego[:, 1:, :2] - s.ego[:, :-1, :2], dim=-1) / cfg.dt
-    assert torch.allclose(s.ego[:, 1:, 3], v) and torch.equal(s.ego[:, 0, 3], s.ego[:, 1, 3])
-
-
-# --------------------------------------------------------------------------------------------------------------
-# determinism, statistics
-
-
-def test_same_seed_same_data_other_seed_other_data():
-    a, b, c = (data_synth.make_dataset(40, SYNTH_CFG, seed=s) for s in (1, 1, 2))
-    for k, v in a.train.tensors().items():
-        assert torch.equal(v, getattr(b.train, k)), k
-    assert not torch.equal(a.train.ego_fut, c.train.ego_fut)
-
-
-def test_statistics_plausible_and_planning_relevant():
-    data = data_synth.make_dataset(1200, SYNTH_CFG, seed=0)
-    st = data_synth.statistics(data_synth.Scenarios.cat([data.train, data.val]))
-    assert all(st["plausible"].values()), data_synth.format_statistics(st)
-    assert set(st["behaviour"]) == set(data_synth.BEHAVIOURS)  # the whole mix is there
-    assert st["ego"]["speed"]["max"] <= 15.01 and st["ego"]["speed"]["p1"] >= 0
-    # the active manoeuvres often hit a no-braking ego; the passive twins, far and behind agents never do
-    beh = st["behaviour"]
-    assert (
-        beh["cut_in"]["no_brake_conflict"] > 0.25 and beh["lead_brake"]["no_brake_conflict"] > 0.1
-    )
-    assert (
-        beh["turn_across"]["no_brake_conflict"] > 0.02
-        and beh["cross_go"]["no_brake_conflict"] > 0.02
-    )
-    for name in ("keep_lane", "lead_cruise", "go_straight", "cross_yield", "far", "behind"):
-        assert beh[name]["no_brake_conflict"] == 0.0, name
-    assert beh["far"]["min_dist_p50"] > 30 and beh["keep_lane"]["within_5m"] > 0.3
-
-
-def test_mix_is_configurable():
-    data = data_synth.make_dataset(60, data_synth.SynthConfig(mix={"lead_brake": 1.0}), seed=0)
-    assert (data.train.behaviour == data_synth.BEHAVIOURS.index("lead_brake")).all()
-    with pytest.raises(ValueError, match="unknown behaviours"):
-        data_synth.generate_scenes(2, data_synth.SynthConfig(mix={"tailgate": 1.0}))
-
-
-# --------------------------------------------------------------------------------------------------------------
-# nuScenes round trip, bad input, skipped scenes
-
-
-def _same_lanes(a, am, b, bm, tol):
-    """Every lane of one sample has a twin in the other (the order of equidistant lanes may differ)."""
-    for x, xm, y, ym in ((a, am, b, bm), (b, bm, a, am)):
-        for lane, m in zip(x, xm):
-            if m.any():
-                assert any(
-                    torch.equal(m, m2) and (lane - l2).abs().max() < tol for l2, m2 in zip(y, ym)
-                )
-
-
-def test_nuscenes_round_trip(tmp_path, scenes_mixed):
-    scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
-    loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
-    assert report == dict(
-        scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[]
-    )
-    assert torch.equal(loaded.pred_idx >= 0, scenes.pred_idx >= 0)
-    for frame in (8, 21, 34):
-        a = data_synth.sample_at(scenes, frame, cfg=cfg, dtype=torch.float64)
-        b = data_synth.sample_at(loaded, frame, cfg=cfg, dtype=torch.float64)
-        for k in (
-            "ego_hist",
-            "ego_fut",
-            "agent_hist",
-            "agent_fut",
-            "goal",
-        ):  # exact up to float64 rounding
-            assert (getattr(a, k) - getattr(b, k)).abs().max() < 1e-9, k
-        A = a.others_mask.shape[1]
-        assert torch.equal(a.others_mask, b.others_mask[:, :A]) and not b.others_mask[:, A:].any()
-        assert (a.others_hist - b.others_hist[:, :A]).abs().max() < 1e-9
-        assert (a.others_fut - b.others_fut[:, :A]).abs().max() < 1e-9
-        assert torch.equal(a.others_is_ped, b.others_is_ped[:, :A])
-        for i in range(len(scenes)):
-            _same_lanes(a.lanes[i], a.lanes_mask[i], b.lanes[i], b.lanes_mask[i], 1e-9)
-    # the float32 samples agree to float32 precision
-    a32, b32 = data_synth.sample_at(scenes, 20, cfg=cfg), data_synth.sample_at(loaded, 20, cfg=cfg)
-    assert (a32.ego_fut - b32.ego_fut).abs().max() < 1e-4 and a32.ego_fut.dtype == torch.float32
-
-
-def test_writer_refuses_to_overwrite(tmp_path, scenes_mixed):
-    scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
-    with pytest.raises(FileExistsError, match="overwrite"):
-        data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg, overwrite=True)
-
-
-@pytest.fixture
-def folder(tmp_path, scenes_mixed):
-    scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
-    return tmp_path
-
-
-def test_bad_input_names_the_file(folder):
-    (folder / "v1.0-mini" / "sample.json").unlink()
-    with pytest.raises(data_real.NuScenesFormatError, match=r"sample\.json: missing"):
-        data_real.load_nuscenes(folder)
-
-
-def test_malformed_json_names_the_file(folder):
-    (folder / "v1.0-mini" / "scene.json").write_text('[{"token": "x", ')
-    with pytest.raises(ValueError, match=r"scene\.json: malformed JSON"):
-        data_real.load_nuscenes(folder)
-
-
-def test_missing_key_names_the_file(folder):
-    path = folder / "v1.0-mini" / "ego_pose.json"
-    poses = json.loads(path.read_text())
-    del poses[4]["translation"]  # a CAM_FRONT pose (the writer alternates CAM_FRONT, LIDAR_TOP)
-    path.write_text(json.dumps(poses))
-    with pytest.raises(data_real.NuScenesFormatError, match=r"ego_pose\.json"):
-        data_real.load_nuscenes(folder)
-
-
-def test_missing_map_expansion_names_the_file(folder):
-    loc = json.loads((folder / "v1.0-mini" / "log.json").read_text())[0]["location"]
-    (folder / "maps" / "expansion" / f"{loc}.json").unlink()
-    with pytest.raises(data_real.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
-        data_real.load_nuscenes(folder)
-
-
-def test_unknown_or_missing_version_folder(folder):
-    with pytest.raises(data_real.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
-        data_real.load_nuscenes(folder, "v2.0-beta")
-    with pytest.raises(
-        data_real.NuScenesFormatError,
-        match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini",
-    ):
-        data_real.load_nuscenes(folder, "v1.0-trainval")
-
-
-def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
-    scenes, cfg = scenes_mixed
-    s = data_synth.Scenes(
-        **{k: v.clone() for k, v in scenes[:4].tensors().items()}, names=scenes.names[:4]
-    )
-    s.ego[1, :, :2] += 5000.0  # the ego drives far from its lanes: no lanes
-    s.pred_idx[2] = -1  # nobody to predict
-    data_synth.write_nuscenes(s, tmp_path, cfg=cfg)
-    path = tmp_path / "v1.0-mini" / "sample.json"
-    samples = json.loads(path.read_text())
-    first = json.loads((tmp_path / "v1.0-mini" / "scene.json").read_text())[0]["first_sample_token"]
-    rec = next(r for r in samples if r["token"] == first)
-    for _ in range(10):  # the first scene ends after 11 frames: too short for a 15-frame sample
-        rec = next(r for r in samples if r["token"] == rec["next"])
-    rec["next"] = ""
-    path.write_text(json.dumps(samples))
-    loaded, report = data_real.load_nuscenes(tmp_path, cfg=cfg)
-    why = report.pop("skipped")
-    assert report == dict(
-        scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1
-    )
-    assert loaded.names == [data_synth.MINI_SCENES[3]]
-    # each skipped scene is named with its reason and the file it comes from
-    names = data_synth.MINI_SCENES
-    assert (
-        why[0].startswith(f"{names[0]}: 11 samples in ")
-        and "sample.json, a sample needs 15" in why[0]
-    )
-    assert why[1].startswith(f"{names[1]}: no lane of ") and "expansion" in why[1]
-    assert why[2].startswith(f"{names[2]}: no vehicle in ") and "sample_annotation.json" in why[2]
-    batch, report = data_real.load_nuscenes_scenarios(tmp_path, cfg=cfg)
-    assert report["samples"] == len(batch) == 27 and report["samples_skipped_no_lanes"] == 0
-
-
-def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
-    """The prediction split promises a vehicle to predict in each scene it lists: a listed scene whose entries name
-    no annotated vehicle is refused (file, scene, entry), not skipped as if it had nobody to predict."""
-    scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
-    path = tmp_path / "maps" / "prediction" / "prediction_scenes.json"
-    split = json.loads(path.read_text())
-    name = data_synth.MINI_SCENES[1]
-    assert split[name]  # (the writer lists it)
-    split[name] = ["nosuchinstance_" + e.split("_")[1] for e in split[name]]
-    path.write_text(json.dumps(split))
-    with pytest.raises(
-        data_real.NuScenesFormatError,
-        match=rf"prediction_scenes\.json: scene '{name}' is listed "
-        r"\(first entry 'nosuchinstance_\w+'\) but .*sample_annotation\.json has no vehicle",
-    ):
-        data_real.load_nuscenes(tmp_path, cfg=cfg)
-
-
-def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_mixed):
-    scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
-    (tmp_path / "maps" / "prediction" / "prediction_scenes.json").unlink()
-    loaded, _ = data_real.load_nuscenes(tmp_path, cfg=cfg)
-    for i in range(2):
-        for f in range(8, 35):
-            p = int(loaded.pred_idx[i, f])
-            if p < 0:
-                continue
-            assert not loaded.agents_is_ped[i, p] and loaded.agents_mask[i, p, f : f + 7].all()
-            gap = loaded.agents[i, :, f : f + 7, :2] - loaded.ego[i, None, f : f + 7, :2]
-            d = torch.linalg.norm(gap, dim=-1).min(1).values
-            window = loaded.agents[i, :, f - 8 : f + 7, :2]
-            moved = (
-                torch.linalg.norm(window - window[:, :1], dim=-1).max(1).values
-            )  # all observed here
-            ok = (
-                ~loaded.agents_is_ped[i]
-                & loaded.agents_mask[i, :, f - 8 : f + 7].all(1)
-                & (moved >= 1.0)
-            )
-            assert d[p] <= d[ok].min() + 1e-9
-
-
-# --------------------------------------------------------------------------------------------------------------
-# batches, closed-loop cutting, cache, plot
-
-
-def test_scenarios_indexing_cat_and_to(small):
-    b = small.train
-    assert (
-        len(b[2:5]) == 3
-        and len(b[torch.tensor([0, 3])]) == 2
-        and len(b[b.behaviour == b.behaviour[0]]) >= 1
-    )
-    assert torch.equal(b[torch.tensor([3])].goal, b.goal[3:4])
-    few = b[:2]
-    few = data_synth.Scenarios(
-        **{
-            **few.tensors(),
-            "others_hist": few.others_hist[:, :1],
-            "others_fut": few.others_fut[:, :1],
-            "others_mask": few.others_mask[:, :1],
-            "others_is_ped": few.others_is_ped[:, :1],
-            "lanes": few.lanes[:, :1],
-            "lanes_mask": few.lanes_mask[:, :1],
-        }
-    )
-    cat = data_synth.Scenarios.cat([few, b[2:4]])
-    assert len(cat) == 4 and cat.others_hist.shape[1] == b.others_hist.shape[1]
-    assert cat.lanes.shape[1] == b.lanes.shape[1]
-    assert not cat.others_mask[:2, 1:].any() and (cat.others_hist[:2, 1:] == 0).all()
-    assert not cat.lanes_mask[:2, 1:].any()
-    assert torch.equal(cat.others_hist[2:], b.others_hist[2:4])
-    b64 = b.to(torch.float64)
-    assert b64.lanes.dtype == torch.float64 and b64.lanes_mask.dtype == torch.bool
-    assert b64.behaviour.dtype == torch.int64
-
-
-def test_sample_at_with_a_simulated_ego(scenes_mixed):
-    scenes, cfg = scenes_mixed
-    logged = data_synth.sample_at(scenes, 20, cfg=cfg, dtype=torch.float64)
-    state = scenes.ego[:, 20].clone()
-    h = state[:, 2]
-    state[:, 0] += torch.cos(h) + 0.5 * -torch.sin(h)  # 1 m ahead and 0.5 m to the left of the log
-    state[:, 1] += torch.sin(h) + 0.5 * torch.cos(h)
-    sim = data_synth.sample_at(scenes, 20, ego_state=state, cfg=cfg, dtype=torch.float64)
-    assert torch.allclose(
-        sim.ego_hist[:, -1, :3], torch.zeros(len(scenes), 3, dtype=torch.float64), atol=1e-12
-    )
-    shift = torch.tensor([1.0, 0.5], dtype=torch.float64)
-    assert torch.allclose(
-        sim.goal[:, :2], logged.goal[:, :2] - shift
-    )  # the goal stays the logged ego's
-    assert torch.allclose(sim.agent_fut[..., :2], logged.agent_fut[..., :2] - shift)
-    hist = scenes.ego[:, 12:21].clone()
-    hist[:, -1] = state
-    full = data_synth.sample_at(scenes, 20, ego_state=hist, cfg=cfg, dtype=torch.float64)
-    assert torch.allclose(full.ego_hist, sim.ego_hist)
-    with pytest.raises(ValueError, match="ego_state"):
-        data_synth.sample_at(scenes, 20, ego_state=state[:, :3], cfg=cfg)
-    with pytest.raises(ValueError, match="frames must be in"):
-        data_synth.sample_at(scenes, 35, cfg=cfg)
-
-
-def test_an_occluded_history_frame_leaves_a_usable_sample(scenes_mixed):
-    """A real track can miss a frame in the middle of the history: the sample keeps the unbroken run of observed
-    steps that ends at t0 (a prefix mask, as check_batch requires), and the predictor runs on it."""
-    scenes, cfg = scenes_mixed
-    f0 = 20
-    pred = scenes.pred_idx[:, f0]
-    mask = scenes.agents_mask.clone()
-    ar = torch.arange(len(scenes))
-    mask[ar, pred, f0 - 3] = False  # occluded 1.5 s before t0
-    gap = data_synth.Scenes(**{**scenes.tensors(), "agents_mask": mask, "names": scenes.names})
-    b = data_synth.sample_at(gap, f0, cfg=cfg)
-    H = cfg.hist
-    want = torch.zeros(len(scenes), H + 1, dtype=torch.bool)
-    want[:, H - 2 :] = True  # the 3 steps after the gap (t0 - 1 s .. t0)
-    assert torch.equal(b.agent_hist_mask, want & scenes.agents_mask[ar, pred, f0 - H : f0 + 1])
-    model = ds.Predictor(ds.Config(**TINY_PRED))
-    pred_out = model.eval()(b, use_posterior=False)
-    assert torch.isfinite(pred_out.states).all()
-
-
-def test_cache_round_trip_and_foreign_file(tmp_path):
-    a = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
-    (path,) = tmp_path.glob("scenarios-*.pt")
-    b = data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
-    assert torch.equal(a.train.lanes, b.train.lanes) and torch.equal(
-        a.val_scenes.ego, b.val_scenes.ego
-    )
-    assert b.val_scenes.names == a.val_scenes.names and len(a.train) + len(a.val) == 30
-    path.write_bytes(b"not a cache")
-    with pytest.raises(ValueError, match=path.name):
-        data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
-    assert path.read_bytes() == b"not a cache"  # never overwritten
-
-
-def test_plot_scenario_draws_everything(small):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots()
-    data_synth.plot_scenario(ax, small.train, 0)
-    n_lanes = int(small.train.lanes_mask[0].any(-1).sum())
-    n_others = int(small.train.others_mask[0].sum())
-    assert len(ax.lines) >= n_lanes + 2 * n_others + 5 and len(ax.patches) >= 2
-    assert ax.get_title() == data_synth.BEHAVIOURS[int(small.train.behaviour[0])]
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------------------------------
-# geometry
-
-
-def test_arcline_geometry():
-    # a left quarter circle of radius 10 from the origin heading +x ends at (10, 10) heading +y, points on the circle
-    p = np.array([[0.0, 0.0, 0.0, 10.0, 5 * math.pi, 0.0, 0.0, 1, 0, 1]])
-    segs = data_synth.arcline_segments(p)
-    pts, mask = data_synth.discretize(segs, 2.0)
-    assert mask.sum() == 8  # 15.7 m: points at 0, 2, ..., 14
-    assert np.allclose(np.linalg.norm(pts[mask][:, :2] - [0, 10], axis=-1), 10)
-    end, _ = data_synth.pose_along(segs[0], np.array([5 * math.pi]))
-    assert np.allclose(end[0], [10, 10, math.pi / 2])
-    # arc then straight (shape LSR with lengths [arc, 5, 0]): the straight continues north; past the end it extends
-    p2 = np.array([[0.0, 0.0, 0.0, 10.0, 5 * math.pi, 5.0, 0.0, 1, 0, -1]])
-    ends, _ = data_synth.pose_along(
-        data_synth.arcline_segments(p2)[0], np.array([5 * math.pi + 5, 5 * math.pi + 7])
-    )
-    assert np.allclose(ends, [[10, 15, math.pi / 2], [10, 17, math.pi / 2]])
-    # the road frame round trip, straight and curved
-    for kappa in (0.0, 1 / 150, -1 / 300):
-        s, d = np.array([-40.0, 0.0, 120.0]), np.array([-5.25, 1.75, 8.0])
-        x, y, _ = data_synth.frenet_to_xy(s, d, kappa)
-        s2, d2 = data_synth.xy_to_frenet(x, y, kappa)
-        assert np.allclose(s2, s) and np.allclose(d2, d)
-
-
-def test_backward_speed_with_gaps():
-    xy = np.array([[0, 0], [1, 0], [0, 0], [4, 0], [5, 0]], float)
-    mask = np.array([True, True, False, True, True])
-    v = data_synth.backward_speed(xy, mask, np.arange(5) * 0.5)
-    assert np.allclose(
-        v[[0, 1, 3, 4]], [2.0, 2.0, 3.0, 2.0]
-    )  # first copies the second; the gap spans 1 s
-
-
-# ---------------------------------------------------------------------------------------------
-# The stack end to end, and the command line
+# The stack end to end
 # ---------------------------------------------------------------------------------------------
 
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
@@ -2031,11 +1230,11 @@ def synth_small():
 
 @pytest.mark.parametrize("plan_dt", [None, 0.1])
 def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
-    """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central differences;
-    plan_dt = 0.1: also through the interpolation of the predicted modes to the planner's 0.1 s clock."""
-    cfg = ds.Config(
-        **TINY, ilqr_iters=40 if plan_dt is None else 100, ilqr_tol=1e-10
-    )  # 30 steps converge slower
+    """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central
+    differences; plan_dt = 0.1: also through the interpolation of the predicted modes to the
+    planner's 0.1 s clock."""
+    # 30 steps converge slower
+    cfg = ds.Config(**TINY, ilqr_iters=40 if plan_dt is None else 100, ilqr_tol=1e-10)
     batch = synth_small.train[:6].to(torch.float64)
     torch.manual_seed(0)
     model = ds.Predictor(cfg).double()
@@ -2054,7 +1253,8 @@ def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
     analytic, fd = [], []
     with torch.no_grad():
         for i, idx in picks:
-            p, h = params[i], 1e-5
+            p = params[i]
+            h = 1e-5
             p[idx] += h
             up = loss()
             p[idx] -= 2 * h
@@ -2092,14 +1292,13 @@ def test_plan_dt_that_does_not_divide_dt_is_refused(synth_small, plan_dt):
 
 
 def test_plan_dt_changes_the_resolution_not_the_problem(synth_small):
-    """plan_dt = dt is the default stack exactly; at 0.1 s the same 3 s are planned in 30 steps and, with the
-    per-step terms scaled by 1/5, the costs and the trajectory at the logged steps stay close to the 0.5 s ones
-    (unscaled, control effort and lane terms would count 5x and the goal 1x)."""
-    cfg, batch, gt = (
-        ds.Config(),
-        synth_small.train[:64].to(torch.float64),
-        tr.Method("GT prediction", "gt"),
-    )
+    """plan_dt = dt is the default stack exactly; at 0.1 s the same 3 s are planned in 30 steps and,
+    with the per-step terms scaled by 1/5, the costs and the trajectory at the logged steps stay
+    close to the 0.5 s ones (unscaled, control effort and lane terms would count 5x and the goal
+    1x)."""
+    cfg = ds.Config()
+    batch = synth_small.train[:64].to(torch.float64)
+    gt = tr.Method("GT prediction", "gt")
     base = ds.run_stack(batch, None, gt, cfg)
     same = ds.run_stack(batch, None, gt, cfg, plan_dt=0.5)
     assert torch.equal(base.x, same.x) and torch.equal(base.hindsight, same.hindsight)
@@ -2124,7 +1323,8 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
     for loss in (out.l_plan.mean(), out.l_ctr.mean()):
         g = torch.autograd.grad(loss, model.dec_h0.weight, retain_graph=True)[0]
         assert g.abs().sum() > 0
-    # No prediction and GT prediction need no model; GT prediction plans at least as well in hindsight on average
+    # No prediction and GT prediction need no model; GT prediction plans at least as well in
+    # hindsight on average
     none = ds.run_stack(batch, None, tr.Method("No prediction", "none"), cfg)
     gt = ds.run_stack(batch, None, tr.Method("GT prediction", "gt"), cfg)
     assert (
@@ -2132,251 +1332,10 @@ def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_sm
     )
 
 
-def test_quick_runs_and_same_seed_same_table(tmp_path):
-    cfg = ds.Config(**TINY)
-    lines = []
-    first = tr.quick(
-        threads=1,
-        n=300,
-        epochs=1,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=lines.append,
-        pretrained=tmp_path / "none",
-    )
-    text = "\n".join(lines)
-    assert (
-        "| DiffStack (1 epochs) |" in text
-        and "| Standard (1 epochs) |" in text
-        and "| GT prediction |" in text
-    )
-    assert (
-        "Standard: no pre-trained predictor" in text
-    )  # none shipped here: said, and its row left out
-    second = tr.quick(
-        threads=1,
-        n=300,
-        epochs=1,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=lambda s: None,
-        pretrained=tmp_path / "none",
-    )
-
-    def strip(res):  # the results without their wall times
-        return {
-            k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs]
-            for k, runs in res.items()
-        }
-
-    assert [strip(r) for r in first] == [strip(r) for r in second]
-
-
-def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path):
-    """--pretrain writes the predictors and their provenance; --quick loads them (sha256 checked, weights_only) and
-    shows them beside the baselines; a changed file, or another Config, is refused or left out, never misused."""
-    cfg, out = ds.Config(**TINY), tmp_path / "pre"
-    about = tr.pretrain(
-        out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
-    )
-    assert sorted(about["files"]) == [
-        "diffstack-seed0.pt",
-        "diffstack-seed1.pt",
-        "standard-seed0.pt",
-        "standard-seed1.pt",
-    ]
-    assert about["threads"] == 1 and about["seeds"] == [0, 1]
-    with pytest.raises(ValueError, match="--overwrite"):
-        tr.pretrain(
-            out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
-        )
-    models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
-    assert sorted(models) == [0, 1]
-    again = tr.train_predictor(
-        tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
-        tr.experiment_data(300, (0, 1), 200, tmp_path, log=None),
-        cfg,
-        "rl",
-        0.5,
-        1,
-        None,
-    )
-    assert all(
-        torch.equal(a, b)
-        for a, b in zip(models[1].state_dict().values(), again.state_dict().values())
-    )
-    assert not all(
-        torch.equal(a, b)
-        for a, b in zip(models[0].state_dict().values(), again.state_dict().values())
-    )
-    # two worker processes make the same files, byte for byte
-    pooled = tr.pretrain(
-        tmp_path / "pooled",
-        n=300,
-        epochs=0.5,
-        seeds=(0, 1),
-        jobs=2,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=None,
-        val=200,
-    )
-    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {
-        k: v["sha256"] for k, v in about["files"].items()
-    }
-    assert (
-        tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
-        is None
-    )  # another Config
-    lines = []
-    res, _ = tr.quick(
-        threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out
-    )
-    assert (
-        len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2
-    )  # a row per seed
-    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(
-        lines
-    )
-    with open(out / "standard-seed1.pt", "ab") as f:
-        f.write(b"tampered")
-    with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
-        tr.load_pretrained(tr.Method("Standard"), cfg, out)
-
-
-def test_quick_story_states_only_what_its_numbers_show():
-    row = lambda h, ade=1.0: [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]  # noqa: E731
-    by = lambda **v: {b: dict(n=10, hindsight=x) for b, x in v.items()}  # noqa: E731
-    res = {
-        "No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
-        "Standard (20 epochs)": row(-0.5),
-        "DiffStack (20 epochs)": row(-1.5, 1.2),
-        "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))],
-    }
-    lines = tr.quick_story(res, "no/such/folder")
-    assert (
-        lines[0]
-        == "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order (its Table 1)."
-    )
-    assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
-    assert "75 % of it in keep_lane scenes" in lines[2]
-    assert (
-        len(lines) == 3
-    )  # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
-    # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back where
-    res["Standard (20 epochs)"] = [
-        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
-        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0)),
-    ]
-    line = tr.quick_story(res, "no/such/folder")[
-        3
-    ]  # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
-    assert line.startswith(
-        "And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in cut_in"
-    )
-    res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
-    assert tr.quick_story(res, "no/such/folder")[0].startswith(
-        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order"
-    )
-
-
-def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tmp_path):
-    runs = lambda h: [dict(rel_hindsight=h)]  # noqa: E731
-    res = {
-        "No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)],
-        "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)],
-    }
-    cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
-    # the same run: the same epochs, Config, validation set, and each shipped seed trained on its own draw, as pretrain
-    for epochs, shipped, val, draws, same in (
-        (20.0, [0, 1], 100, [0, 1], True),
-        (4.0, [0, 1], 100, [0, 1], False),
-        (20.0, [0, 1, 2], 100, [0, 1], False),
-        (20.0, [0, 1], 50, [0, 1], False),
-        (20.0, [0, 1], 100, None, False),
-        (20.0, [0, 1], 100, [0, 0], False),
-    ):
-        prov = dict(epochs=20.0, seeds=shipped, config=cfg, val=100)
-        meta = dict(seeds=[0, 1], epochs=epochs, config=cfg, val=val, data_seeds=draws)
-        (tmp_path / "rl.json").write_text(
-            json.dumps(
-                dict(
-                    meta=meta,
-                    results=dict(
-                        Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}
-                    ),
-                )
-            )
-        )
-        line = tr.quick_story(res, tmp_path, prov)[-1]
-        assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
-        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (
-            not same
-        )
-
-
-def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
-    # two seeds of DiffStack, one better and one worse than Standard: the story follows their mean, not the first
-    one = lambda h, ade: dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)  # noqa: E731
-    res = {
-        "No prediction": [one(0.0, 1.0)],
-        "GT prediction": [one(-2.0, 1.0)],
-        "Standard (20 epochs)": [one(-0.5, 1.0)],
-        "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)],
-    }
-    lines = tr.quick_story(res, "no/such/folder")
-    assert lines[0].startswith(
-        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order"
-    )
-    assert "its ADE is +30 % against Standard's" in lines[1]
-    res["DiffStack (20 epochs)"] = [
-        one(-0.4, 1.5),
-        one(-0.5, 1.1),
-    ]  # mean -0.45: above Standard's -0.5
-    assert "NOT the paper's order" in tr.quick_story(res, "no/such/folder")[0]
-
-
-@pytest.mark.parametrize(
-    "argv, message",
-    [
-        ([], "--quick"),
-        (["--quick", "--seeds", "0"], "--seeds"),
-        (["--experiment", "rl"], "experiments.py"),
-        (["--bench"], "bench.py"),
-        (["--quick", "--threads", "0"], "--threads"),
-        (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
-        (["--pretrain", "--jobs", "0"], "--jobs"),
-        (["--quick", "--set", "no_such_field=1"], "no_such_field"),
-    ],
-)
-def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
-    with pytest.raises(SystemExit) as e:
-        tr.main(argv)
-    assert e.value.code != 0 and message in capsys.readouterr().err
-
-
-def test_set_overrides_config_fields_with_their_types():
-    cfg = tr.config_with(
-        ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
-    )
-    assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
-    assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
-    assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
-    assert tr.config_with(ds.Config(), []) == ds.Config()
-    for bad, culprit in (
-        (["nope=1"], "nope"),
-        (["beta"], "beta"),
-        (["ilqr_iters=2.5"], "ilqr_iters"),
-        (["beta=nan"], "beta"),
-        (["u_upper=a,b"], "u_upper"),
-    ):
-        with pytest.raises(ValueError, match=culprit):
-            tr.config_with(ds.Config(), bad)
-
-
 def test_decoder_matches_a_plain_gru_cell():
-    """Predictor.decode's gate-by-gate GRU against torch.nn.GRUCell with the same weights, in eval mode (the mean
-    fed back) and in training mode (the reparameterised sample fed back, same seed)."""
+    """Predictor.decode's gate-by-gate GRU against torch.nn.GRUCell with the same weights, in eval
+    mode (the mean fed back) and in training mode (the reparameterised sample fed back, same
+    seed)."""
     cfg = small_cfg()
     model = make_model(cfg)
     K, T, Hd, E = cfg.pred_modes, cfg.horizon, cfg.pred_dec_hidden, cfg.pred_enc_hidden
@@ -2386,8 +1345,10 @@ def test_decoder_matches_a_plain_gru_cell():
     f0 = torch.randn(B, 8, generator=g, dtype=torch.float64)
     cell = torch.nn.GRUCell(K + 2 * E + 2, Hd, dtype=torch.float64)
     with torch.no_grad():
-        cell.weight_ih.copy_(model.dec_in.weight), cell.bias_ih.copy_(model.dec_in.bias)
-        cell.weight_hh.copy_(model.dec_hh.weight), cell.bias_hh.copy_(model.dec_hh.bias)
+        cell.weight_ih.copy_(model.dec_in.weight)
+        cell.bias_ih.copy_(model.dec_in.bias)
+        cell.weight_hh.copy_(model.dec_hh.weight)
+        cell.bias_hh.copy_(model.dec_hh.bias)
 
     def reference(train):  # rows b*K + k, as decode's
         zx = torch.cat(
@@ -2408,13 +1369,14 @@ def test_decoder_matches_a_plain_gru_cell():
             )
             mus.append(mu)
             if train:
+                # Sigma_u = L L'
                 L = torch.stack(
                     [
                         torch.stack([s_w, 0 * s_w], -1),
                         torch.stack([rho * s_a, s_a * (1 - rho**2).sqrt()], -1),
                     ],
                     -2,
-                )  # Sigma_u = L L'
+                )
                 u = mu + (L @ torch.randn_like(mu)[..., None])[..., 0]
             else:
                 u = mu
@@ -2435,21 +1397,22 @@ def test_decoder_matches_a_plain_gru_cell():
                 train,
                 (cov - cov_ref).abs().max(),
             )
-    assert not torch.allclose(
-        mu, model.eval().decode(x, f0)[0], atol=1e-6
-    )  # the sample fed back does matter
+    # the sample fed back does matter
+    assert not torch.allclose(mu, model.eval().decode(x, f0)[0], atol=1e-6)
 
 
 def test_integrate_modes_matches_the_step_by_step_recursion():
-    """integrate_modes (cumulative sums, the unrolled covariance) against unicycle_step and the EKF recursion
-    Sigma_{t+1} = A Sigma A' + B Su B' over the whole 4-D state, one step at a time."""
+    """integrate_modes (cumulative sums, the unrolled covariance) against unicycle_step and the EKF
+    recursion Sigma_{t+1} = A Sigma A' + B Su B' over the whole 4-D state, one step at a time."""
     cfg = ds.Config()
     g = torch.Generator().manual_seed(5)
     n, T = 6, cfg.horizon
-    rnd = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float64)  # noqa: E731
-    s0 = torch.stack(
-        [20 * rnd(n) - 10, 20 * rnd(n) - 10, 6 * rnd(n) - 3, 12 * rnd(n)], -1
-    )  # (n, 4): x, y, h, v
+
+    def rnd(*shape):
+        return torch.rand(*shape, generator=g, dtype=torch.float64)
+
+    # (n, 4): x, y, h, v
+    s0 = torch.stack([20 * rnd(n) - 10, 20 * rnd(n) - 10, 6 * rnd(n) - 3, 12 * rnd(n)], -1)
     u = torch.randn(n, T, 2, generator=g, dtype=torch.float64) * torch.tensor(
         [0.4, 1.5], dtype=torch.float64
     )
@@ -2470,6 +1433,5 @@ def test_integrate_modes_matches_the_step_by_step_recursion():
     ref_states, ref_cov = torch.stack(ref_states, 1), torch.stack(ref_cov, 1)
     assert torch.allclose(states, ref_states, rtol=0, atol=1e-10), (states - ref_states).abs().max()
     assert torch.allclose(pos_cov, ref_cov, rtol=0, atol=1e-10), (pos_cov - ref_cov).abs().max()
-    assert (
-        pos_cov[:, -1].diagonal(dim1=-2, dim2=-1).max() > 1
-    )  # the covariances grow well beyond the floor
+    # the covariances grow well beyond the floor
+    assert pos_cov[:, -1].diagonal(dim1=-2, dim2=-1).max() > 1

@@ -1,11 +1,13 @@
-"""Training on many processes (diffstack.py section 8.1): DistributedDataParallel on 2 CPU processes over loopback
-(gloo) gives the parameters of one process training on the same global batches, in float64 within 1e-10.
+"""Training on many processes (diffstack.py section 8.1): DistributedDataParallel on 2 CPU processes
+over loopback (gloo) gives the parameters of one process training on the same global batches, in
+float64 within 1e-10.
 
-Every training path is checked: Standard (L_pred's batch statistics: the KL free-bits test and the mutual
-information's mean p(z|x), taken over the global batch), Distance weighted (the weights' normaliser), DiffStack
-(L_plan and L_ctr, means over the *plannable* scenarios: one scenario is made unplannable, so the two ranks hold
-different numbers of them) and the learned cost weights (DDP around CostWeights). Two steps each, so that Adam's
-state and the lr schedule are exercised too, and the second step draws from the permutation's next batch.
+Every training path is checked: Standard (L_pred's batch statistics: the KL free-bits test and the
+mutual information's mean p(z|x), taken over the global batch), Distance weighted
+(the weights' normaliser), DiffStack (L_plan and L_ctr, means over the *plannable* scenarios: one
+scenario is made unplannable, so the two ranks hold different numbers of them) and the learned cost
+weights (DDP around CostWeights). Two steps each, so that Adam's state and the lr schedule are
+exercised too, and the second step draws from the permutation's next batch.
 """
 
 import contextlib
@@ -30,15 +32,16 @@ import train as tr
 WORLD = 2
 GLOBAL_BATCH = 8  # 4 scenarios per rank
 STEPS = 2
-TIMEOUT_S = 120  # the whole 2-process run; it takes about 10 s (a hung collective fails the test, never the suite)
+# the whole 2-process run; it takes about 10 s (a hung collective fails the test, never the suite)
+TIMEOUT_S = 120
 
 
 def cases():
-    """The same problems in every process: (name, method, setting, float64 data, cfg, learn the cost weights?)."""
+    """The same problems in every process:
+    (name, method, setting, float64 data, cfg, learn the cost weights?)."""
     cfg = dataclasses.replace(ds.Config(), batch_size=GLOBAL_BATCH)
-    train = (
-        data_synth.make_dataset(40, seed=3).train[: GLOBAL_BATCH * STEPS].to(torch.float64)
-    )  # (16, ...)
+    # (16, ...)
+    train = data_synth.make_dataset(40, seed=3).train[: GLOBAL_BATCH * STEPS].to(torch.float64)
     lanes_mask = train.lanes_mask.clone()
     lanes_mask[5] = False  # no lanes: fewer than 2 candidates, so scenario 5 is not plannable
     train = dataclasses.replace(train, lanes_mask=lanes_mask)
@@ -52,7 +55,8 @@ def cases():
 
 
 def train_all() -> dict:
-    """Run every case from the same initial predictor (seed 0): {name: (trained parameters, per-step log)}."""
+    """Run every case from the same initial predictor (seed 0):
+    {name: (trained parameters, per-step log)}."""
     out = {}
     for name, method, setting, data, cfg, learn_cost in cases():
         torch.manual_seed(0)
@@ -75,7 +79,8 @@ def train_all() -> dict:
 
 
 def _worker(rank: int, port: int, path: str) -> None:
-    """One rank: join the process group on 127.0.0.1:port, train every case; rank 0 saves the results to path."""
+    """One rank: join the process group on 127.0.0.1:port, train every case; rank 0 saves the
+    results to path."""
     torch.set_num_threads(1)
     dist.init_process_group(
         "gloo",
@@ -99,8 +104,8 @@ def free_port() -> int:
 
 
 def _cli_worker(rank: int, port: int, argv: list, log_dir: str) -> None:
-    """One rank of `torchrun --nproc_per_node WORLD experiments.py ARGV`: torchrun's environment, then main(argv),
-    its output (stdout and stderr) to log_dir/rank<rank>.log."""
+    """One rank of `torchrun --nproc_per_node WORLD experiments.py ARGV`: torchrun's environment,
+    then main(argv), its output (stdout and stderr) to log_dir/rank<rank>.log."""
     os.environ.update(
         RANK=str(rank),
         LOCAL_RANK=str(rank),
@@ -117,8 +122,8 @@ def _cli_worker(rank: int, port: int, argv: list, log_dir: str) -> None:
 
 
 def spawn(worker, *args) -> None:
-    """worker(rank, free port, *args) on WORLD processes; every one is ended (killed if need be) before this returns
-    or raises."""
+    """worker(rank, free port, *args) on WORLD processes; every one is ended (killed if need be)
+    before this returns or raises."""
     env = {"GLOO_SOCKET_IFNAME": "lo"} if sys.platform.startswith("linux") else {}
     old = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # spawned workers inherit it: gloo on the loopback interface
@@ -187,12 +192,11 @@ def test_ddp_step_equals_single_process_step(both, name):
 
 
 def test_the_ranks_hold_different_numbers_of_plannable_scenarios():
-    """What makes DiffStack's case a test of the global count: the unplannable scenario sits in one rank's shard
-    (a mean of per-rank means would then differ from the global mean)."""
+    """What makes DiffStack's case a test of the global count: the unplannable scenario sits in one
+    rank's shard (a mean of per-rank means would then differ from the global mean)."""
     _, _, _, data, cfg, _ = cases()[2]
-    perm = torch.randperm(
-        len(data), generator=torch.Generator().manual_seed(7)
-    )  # train_stack's order, seed 7
+    # train_stack's order, seed 7
+    perm = torch.randperm(len(data), generator=torch.Generator().manual_seed(7))
     step = next(i for i in range(STEPS) if 5 in perm[i * GLOBAL_BATCH : (i + 1) * GLOBAL_BATCH])
     batch = perm[step * GLOBAL_BATCH : (step + 1) * GLOBAL_BATCH]
     counts = [
@@ -202,7 +206,8 @@ def test_the_ranks_hold_different_numbers_of_plannable_scenarios():
 
 
 def test_batch_size_must_split_over_the_ranks():
-    """An uneven split is refused by name (a Shard standing in for a 3-process world; nothing is launched)."""
+    """An uneven split is refused by name (a Shard standing in for a 3-process world; nothing is
+    launched)."""
     cfg = dataclasses.replace(ds.Config(), batch_size=GLOBAL_BATCH)
     data = cases()[0][3]
     original = tr.Shard.of_process_group
@@ -217,10 +222,11 @@ def test_batch_size_must_split_over_the_ranks():
 
 
 def test_experiments_cli_on_two_processes(tmp_path):
-    """experiments.py as torchrun starts it, on 2 processes: one training step per method (float32) gives the
-    single-process table to float32 rounding; only rank 0 writes files and prints, and the command is recorded.
-    The rel_ columns are differences of two metrics of size 1 to 5: their rounding is absolute (7.6e-6
-    measured; a rank that takes the wrong rows of the decoder's noise moves them by 2e-3 to 0.8)."""
+    """experiments.py as torchrun starts it, on 2 processes: one training step per method (float32)
+    gives the single-process table to float32 rounding; only rank 0 writes files and prints, and the
+    command is recorded. The rel_ columns are differences of two metrics of size 1 to 5: their
+    rounding is absolute (7.6e-6 measured; a rank that takes the wrong rows of the decoder's noise
+    moves them by 2e-3 to 0.8)."""
     argv = [
         "--experiment",
         "rl",

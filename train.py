@@ -1,9 +1,11 @@
-"""Training and evaluation of the DiffStack method (diffstack.py): one training loop for every method of the paper
-(and for the cost weights), the metrics, the same loop on many processes (DistributedDataParallel under torchrun),
-the predictors shipped in pretrained/, and `python diffstack.py --quick` (this module's main).
+"""Training and evaluation of the DiffStack method (diffstack.py): one training loop for every
+method of the paper (and for the cost weights), the metrics, the same loop on many processes
+(DistributedDataParallel under torchrun), the predictors shipped in pretrained/, and `python
+diffstack.py --quick` (this module's main).
 
     1. Metrics          ADE/FDE, NLL, constant velocity; evaluation of a predictor and of the stack
-    2. Methods          Table 1's rows, their loss weights, the learned cost weights (App. A.2), weighted L_pred (§4.1)
+    2. Methods          Table 1's rows, their loss weights, the learned cost weights (App. A.2),
+                        weighted L_pred (§4.1)
     3. Many processes   DistributedDataParallel: Shard, the rows of a global batch a process holds
     4. Training         train_stack, train_predictor, compare_methods
     5. --quick          the shipped predictors, the quick run and its command line
@@ -34,8 +36,8 @@ import data_synth
 from runs import WorkerDied, command_line, folder_lock, one_line
 from runs import pool as worker_pool
 from data_synth import (
-    BEHAVIOURS,
-)  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
+    BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
+)
 from diffstack import (
     Candidates,
     Config,
@@ -69,18 +71,16 @@ def constant_velocity(batch, cfg: Config) -> torch.Tensor:
 
 
 def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.Tensor]:
-    """Per-scenario metrics (B,): ADE/FDE of the most likely mode (argmax of pred.probs), min-ADE/min-FDE over
-    modes, GMM NLL = -mean_t max(log p(y_t), -20) with weights pred.probs; and constant velocity's ADE/FDE.
-    Call with an eval-mode prediction and use_posterior=False for the paper's metrics (argmax p, mean controls)."""
+    """Per-scenario metrics (B,): ADE/FDE of the most likely mode (argmax of pred.probs),
+    min-ADE/min-FDE over modes, GMM NLL = -mean_t max(log p(y_t), -20) with weights pred.probs; and
+    constant velocity's ADE/FDE. Call with an eval-mode prediction and use_posterior=False for the
+    paper's metrics (argmax p, mean controls)."""
     y = batch.agent_fut[..., :2]  # (B, T, 2)
     err = (pred.means - y[:, None]).norm(dim=-1)  # (B, K, T)
     best = pred.probs.argmax(-1)  # (B,)
     err_ml = err[torch.arange(len(best), device=best.device), best]  # (B, T)
-    nll = (
-        -gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2)
-        .clamp(min=cfg.pred_nll_min)
-        .mean(-1)
-    )  # (B,)
+    log_p = gmm_log_prob(pred, y, pred.probs.log(), cfg.pred_pos_std_min**2)  # (B, T)
+    nll = -log_p.clamp(min=cfg.pred_nll_min).mean(-1)  # (B,)
     err_cv = (constant_velocity(batch, cfg) - y).norm(dim=-1)  # (B, T)
     return {
         "ade": err_ml.mean(-1),
@@ -97,50 +97,54 @@ def prediction_metrics(pred: Prediction, batch, cfg: Config) -> dict[str, torch.
 def evaluate_predictor(
     model: Predictor, data, cfg: Config, batch_size: int = 1024
 ) -> dict[str, float]:
-    """Mean metrics over a Scenarios set, in eval mode (prior weights, mean controls), constant velocity beside.
+    """Mean metrics over a Scenarios set, in eval mode (prior weights, mean controls), constant
+    velocity beside.
 
-    cv_nll is constant velocity made a distribution: an isotropic Gaussian per step whose variance is fit to this
-    very set (sigma_t^2 = mean squared error / 2), an oracle calibration that favours the baseline.
+    cv_nll is constant velocity made a distribution: an isotropic Gaussian per step whose variance
+    is fit to this very set (sigma_t^2 = mean squared error / 2), an oracle calibration that favours
+    the baseline.
     """
     was_training = model.training
     model.eval()
-    sums, cv_sq, n = {}, 0.0, 0
+    sums = {}
+    cv_sq = 0.0
+    n = 0
     for i in range(0, len(data), batch_size):
         batch = data[i : i + batch_size]
         check_batch(batch, cfg, need_future=True)
         m = prediction_metrics(model(batch, use_posterior=False), batch, cfg)
         for k, v in m.items():
             sums[k] = sums.get(k, 0.0) + v.sum().item()
-        cv_sq = cv_sq + ((constant_velocity(batch, cfg) - batch.agent_fut[..., :2]) ** 2).sum(
-            (0, 2)
-        )  # (T,)
+        cv_err = constant_velocity(batch, cfg) - batch.agent_fut[..., :2]  # (B, T, 2)
+        cv_sq = cv_sq + (cv_err**2).sum((0, 2))  # (T,)
         n += len(batch)
     model.train(was_training)
     out = {k: v / n for k, v in sums.items()}
     var = cv_sq / (2 * n)  # (T,) ML variance per axis
-    # -mean_t log N(e_t; 0, var_t I) = mean_t [log(2 pi var_t) + E e^2 / (2 var_t)] = mean_t [log(2 pi var_t) + 1]
+    # -mean_t log N(e_t; 0, var_t I) = mean_t [log(2 pi var_t) + E e^2 / (2 var_t)]
+    #                                = mean_t [log(2 pi var_t) + 1]
     out["cv_nll"] = (torch.log(2 * math.pi * var) + 1).mean().item()  # (no per-step clamp here)
     return out
 
 
 # --------------------------------------------------------------------------------------------
-# 2. The methods of Table 1, their loss weights and the planning-aware weights of L_pred (§4.1, App. A.2)
+# 2. The methods of Table 1, their loss weights and the planning-aware weights of L_pred
+#    (§4.1, App. A.2)
 # --------------------------------------------------------------------------------------------
 
 
 @dataclass
 class Method:
-    """A row of Table 1: where predictions come from and how the predictor is trained (run_stack reads `predictor` and
-    `train_plan_weights`)."""
+    """A row of Table 1: where predictions come from and how the predictor is trained (run_stack
+    reads `predictor` and `train_plan_weights`)."""
 
     name: str
-    predictor: str = "learned"  # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
-    losses: tuple = (
-        1,
-        0,
-        0,
-    )  # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
-    weighting: str = "standard"  # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
+    # 'learned', 'gt' (oracle: the GT future) or 'none' (the predicted agent is ignored)
+    predictor: str = "learned"
+    # which of (L_pred, L_plan, L_ctr) train the predictor, times the setting's alphas
+    losses: tuple = (1, 0, 0)
+    # L_pred's per-scenario weights: 'standard', 'distance', 'grad_cost' (§4.1), a callable
+    weighting: str = "standard"
     train_plan_weights: str | None = None  # as Config.train_plan_weights; None: the Config's
 
     def __post_init__(self):
@@ -156,19 +160,23 @@ class Method:
             )
         ):
             raise ValueError(
-                f"Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got {self.losses!r}"
+                "Method.losses: expected 3 finite numbers >= 0 (L_pred, L_plan, L_ctr), got "
+                f"{self.losses!r}"
             )
         if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
             raise ValueError(
-                f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got {self.weighting!r}"
+                f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got "
+                f"{self.weighting!r}"
             )
         if self.train_plan_weights not in (None, "posterior", "prior"):
             raise ValueError(
-                f"Method.train_plan_weights: expected None, 'posterior' or 'prior', got {self.train_plan_weights!r}"
+                "Method.train_plan_weights: expected None, 'posterior' or 'prior', got "
+                f"{self.train_plan_weights!r}"
             )
 
 
-PREDICTORS, WEIGHTINGS = ("learned", "gt", "none"), ("standard", "distance", "grad_cost")
+PREDICTORS = ("learned", "gt", "none")
+WEIGHTINGS = ("standard", "distance", "grad_cost")
 
 
 TABLE1_METHODS = (
@@ -183,14 +191,15 @@ TABLE1_METHODS = (
 
 
 def alphas(method: Method, setting: str, cfg: Config):
-    """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the method."""
+    """The loss weights (a1, a2, a3) a method trains with: the setting's defaults, switched by the
+    method."""
     base = cfg.alpha_rl if check_setting(setting) == "rl" else cfg.alpha_il
     return tuple(a * on for a, on in zip(base, method.losses))
 
 
 def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
-    """Grad-cost weighting (§4.1, Ivanovic et al. 2021): ||dC/d(agent GT future)|| for the expert's (GT) ego
-    trajectory, i.e. how much the planning cost reacts to this agent. (B,)"""
+    """Grad-cost weighting (§4.1, Ivanovic et al. 2021): ||dC/d(agent GT future)|| for the expert's
+    (GT) ego trajectory, i.e. how much the planning cost reacts to this agent. (B,)"""
     fut = batch.agent_fut[..., :2].detach().clone().requires_grad_(True)  # (B, T, 2)
     B = len(batch)
     ones = torch.ones(B, dtype=fut.dtype, device=fut.device)
@@ -204,7 +213,8 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
 
 
 def offset_targets(batch, offset: float) -> torch.Tensor:
-    """The agent's GT future shifted `offset` metres to its left (its heading at t0): Table 2's interface error."""
+    """The agent's GT future shifted `offset` metres to its left (its heading at t0): Table 2's
+    interface error."""
     h = batch.agent_hist[:, -1, 2]  # (B,)
     shift = offset * torch.stack([-torch.sin(h), torch.cos(h)], -1)  # (B, 2)
     fut = batch.agent_fut.clone()
@@ -215,18 +225,20 @@ def offset_targets(batch, offset: float) -> torch.Tensor:
 class CostWeights(nn.Module):
     """The cost weights of eq. (3), reparameterised as in App. A.2, with the collision weight fixed:
 
-        w_i = alpha w'_i,   w'_1 = w_1 (collision, fixed),   w'_i = c exp(psi_i) / sum_{j=2..5} exp(psi_j),  i = 2..5
+        w_i = alpha w'_i,   w'_1 = w_1 (collision, fixed),
+        w'_i = c exp(psi_i) / sum_{j=2..5} exp(psi_j),  i = 2..5
 
-    alpha and psi_2..5 are trained; c = w_2 + .. + w_5 of the hand-tuned weights. Fixing psi_1 "to ensure safety"
-    means w'_1 does not move: the softmax runs over the trainable terms only, so the paper's learned row keeps
-    w'_1 = 5.00 and w'_2..5 summing to 2.10 (0.5 + 0.3 + 0.3 + 1.0). At initialisation psi = log w and alpha = 1
-    recover the hand-tuned weights exactly.
+    alpha and psi_2..5 are trained; c = w_2 + .. + w_5 of the hand-tuned weights. Fixing psi_1 "to
+    ensure safety" means w'_1 does not move: the softmax runs over the trainable terms only, so the
+    paper's learned row keeps w'_1 = 5.00 and w'_2..5 summing to 2.10 (0.5 + 0.3 + 0.3 + 1.0). At
+    initialisation psi = log w and alpha = 1 recover the hand-tuned weights exactly.
 
-    alpha is trained as log alpha, so it stays positive: the paper only says it is trainable, and a cost times
-    a negative alpha is a cost to maximise. Note what alpha cannot do: the minimiser of alpha C is the same for
-    every alpha > 0, so the loss does not depend on it; its gradient comes only from iLQR stopping short of the
-    exact minimum (at tol), where the KKT backward sees a residual gradient of C. Trained unconstrained, that
-    drift carried alpha through zero by 20 epochs, after which the controller maximised the cost.
+    alpha is trained as log alpha, so it stays positive: the paper only says it is trainable, and a
+    cost times a negative alpha is a cost to maximise. Note what alpha cannot do: the minimiser of
+    alpha C is the same for every alpha > 0, so the loss does not depend on it; its gradient comes
+    only from iLQR stopping short of the exact minimum (at tol), where the KKT backward sees a
+    residual gradient of C. Trained unconstrained, that drift carried alpha through zero by 20
+    epochs, after which the controller maximised the cost.
     """
 
     def __init__(self, cfg: Config):
@@ -235,9 +247,8 @@ class CostWeights(nn.Module):
         self.register_buffer("w_coll", w0[:1].clone())  # (1,) w'_1, fixed: not a parameter
         self.register_buffer("c", w0[1:].sum())  # the sum of w'_2..5
         self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
-        self.log_alpha = nn.Parameter(
-            torch.zeros((), dtype=w0.dtype, device=w0.device)
-        )  # alpha = exp(0) = 1
+        # alpha = exp(0) = 1
+        self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))
 
     @property
     def alpha(self) -> torch.Tensor:
@@ -245,7 +256,8 @@ class CostWeights(nn.Module):
         return self.log_alpha.exp()
 
     def normalised(self) -> torch.Tensor:
-        """w' = [w_1, c softmax(psi_2..5)] (5,): the weights before the scale alpha (the columns of Table 3)."""
+        """w' = [w_1, c softmax(psi_2..5)] (5,): the weights before the scale alpha
+        (the columns of Table 3)."""
         return torch.cat([self.w_coll, self.c * torch.softmax(self.psi, 0)])
 
     def forward(self) -> torch.Tensor:
@@ -254,14 +266,15 @@ class CostWeights(nn.Module):
 
 
 def distance_weights(batch) -> torch.Tensor:
-    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored at 1 m."""
+    """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored
+    at 1 m."""
     d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
     return 1.0 / d.clamp(min=1.0)
 
 
 def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
-    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in the global
-    batch of all processes, section 3).
+    """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in
+    the global batch of all processes, section 3).
 
     weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
     `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
@@ -287,31 +300,36 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
 # 3. Many processes: DistributedDataParallel (torchrun)
 # --------------------------------------------------------------------------------------------
 #
-# Under torchrun every process (a rank) runs the same program. train_stack then splits each global batch of
-# cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps the module it trains in
-# DistributedDataParallel (DDP), which averages the ranks' gradients during backward. That average is exactly the
-# gradient of the single-process loss on the global batch (up to the order floats are summed in) because:
-#   - the ranks' batches together are the single-process batch: every rank draws the same permutation of the data
-#     (same seed) and takes positions rank, rank + W, rank + 2W, ... of it (DistributedSampler, without its own
-#     shuffling), so step i's shards together are perm[i B:(i + 1) B], the single-process batch i;
-#   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B rows on every
-#     rank (same seed) and each keeps its own rows (Shard.decoder_noise);
-#   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks' gradients, so the
-#     rank's sum over its scenarios is divided by (global count / W), never by its own count. L_plan and L_ctr are
-#     means over the *plannable* scenarios, whose number differs from rank to rank: the global count is all-reduced;
-#   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean p(z|x)) and the
-#     scenario weights' normaliser are taken over the global batch, by an all_reduce that autograd differentiates
-#     through (AllReduceSum: its backward sums the ranks' gradients), so each rank's parameters also get the other
-#     ranks' share of the gradient of those statistics.
-# With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the ranks' losses
-# (each a function of every rank's rows): here W x share / W = the single-process loss.
-# The gradients are then the same on every rank, so gradient clipping, Adam and the lr schedule stay in step.
+# Under torchrun every process (a rank) runs the same program. train_stack then splits each global
+# batch of cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps
+# the module it trains in DistributedDataParallel (DDP), which averages the ranks' gradients during
+# backward. That average is exactly the gradient of the single-process loss on the global batch (up
+# to the order floats are summed in) because:
+#   - the ranks' batches together are the single-process batch: every rank draws the same
+#     permutation of the data (same seed) and takes positions rank, rank + W, rank + 2W, ... of it
+#     (DistributedSampler, without its own shuffling), so step i's shards together are
+#     perm[i B:(i + 1) B], the single-process batch i;
+#   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B
+#     rows on every rank (same seed) and each keeps its own rows (Shard.decoder_noise);
+#   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks'
+#     gradients, so the rank's sum over its scenarios is divided by (global count / W), never by its
+#     own count. L_plan and L_ctr are means over the *plannable* scenarios, whose number differs
+#     from rank to rank: the global count is all-reduced;
+#   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean
+#     p(z|x)) and the scenario weights' normaliser are taken over the global batch, by an all_reduce
+#     that autograd differentiates through (AllReduceSum: its backward sums the ranks' gradients),
+#     so each rank's parameters also get the other ranks' share of the gradient of those statistics.
+# With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the
+# ranks' losses (each a function of every rank's rows): here W x share / W = the single-process
+# loss. The gradients are then the same on every rank, so gradient clipping, Adam and the lr
+# schedule stay in step.
 
 
 class AllReduceSum(torch.autograd.Function):
-    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every rank's loss, so
-    dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the same all_reduce. (What
-    torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it for a private module.)"""
+    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every
+    rank's loss, so dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the
+    same all_reduce. (What torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it
+    for a private module.)"""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
@@ -327,9 +345,10 @@ class AllReduceSum(torch.autograd.Function):
 
 @dataclass(frozen=True)
 class Shard:
-    """The rows of a global batch this process holds: positions rank, rank + world, ... (DistributedSampler's).
-    Shard() is one process holding the whole batch; batch statistics then use the plain single-process expressions.
-    group: the process group of the loss's all_reduces, kept apart from DDP's own so that the two never interleave."""
+    """The rows of a global batch this process holds: positions rank, rank + world, ...
+    (DistributedSampler's). Shard() is one process holding the whole batch; batch statistics then
+    use the plain single-process expressions. group: the process group of the loss's all_reduces,
+    kept apart from DDP's own so that the two never interleave."""
 
     rank: int = 0
     world: int = 1
@@ -337,7 +356,8 @@ class Shard:
 
     @staticmethod
     def of_process_group() -> "Shard":
-        """This process's shard under torch.distributed (torchrun): Shard() when it is not initialised or has one rank."""
+        """This process's shard under torch.distributed (torchrun): Shard() when it is not
+        initialised or has one rank."""
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
             return Shard()
         return Shard(
@@ -345,42 +365,43 @@ class Shard:
         )
 
     def mean(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows); autograd-aware."""
+        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows);
+        autograd-aware."""
         if self.world == 1:
             return x.mean(0)
         return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
 
     def total(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its sum over the global batch, without gradient (counts, logged values)."""
+        """x (b, ...) -> (...) its sum over the global batch, without gradient
+        (counts, logged values)."""
         s = x.detach().sum(0)
         if self.world > 1:
             dist.all_reduce(s, group=self.group)
         return s
 
     def decoder_noise(self, model, b: int, cfg: Config, like: torch.Tensor):
-        """The decoder's training noise (T, b, K, 2) for this rank's b scenarios: its rows of the draw the
-        whole global batch (world * b scenarios, in global order) gets, one step at a time as the decoder
-        draws it in one process. None in one process or when the model does not sample (eval mode): the
-        decoder then draws from torch's generator itself."""
+        """The decoder's training noise (T, b, K, 2) for this rank's b scenarios: its rows of the
+        draw the whole global batch (world * b scenarios, in global order) gets, one step at a time
+        as the decoder draws it in one process. None in one process or when the model does not
+        sample (eval mode): the decoder then draws from torch's generator itself."""
         if self.world == 1 or not model.training:
             return None
-        K, steps = cfg.pred_modes, []
+        K = cfg.pred_modes
+        steps = []
         for _ in range(cfg.horizon):
             noise = torch.randn(b * self.world * K, 2, dtype=like.dtype, device=like.device)
-            # global scenario rank + world j is this rank's scenario j: view the draw as (b, world, K, 2)
+            # global scenario rank + world j is this rank's scenario j: view the draw as
+            # (b, world, K, 2)
             steps.append(noise.view(b, self.world, K, 2)[:, self.rank])
         return torch.stack(steps)
 
     def positions(self, n: int) -> torch.Tensor:
-        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ... (DistributedSampler
-        without its shuffling; the ordering, a permutation drawn the same on every rank, is the shuffle)."""
-        return torch.tensor(
-            list(
-                DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)
-            ),
-            dtype=torch.long,
-            device="cpu",
-        )  # they index the permutation, drawn on the CPU
+        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ...
+        (DistributedSampler without its shuffling; the ordering, a permutation drawn the same on
+        every rank, is the shuffle)."""
+        sampler = DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)
+        # they index the permutation, drawn on the CPU
+        return torch.tensor(list(sampler), dtype=torch.long, device="cpu")
 
     def close(self) -> None:
         """Release the loss's process group (train_stack makes one per call)."""
@@ -394,13 +415,15 @@ class Shard:
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
 #
-# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of its
-# method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor frozen.
+# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of
+# its method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor
+# frozen.
 
 
 def to_device(obj, device):
-    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple, list or dict
-    holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g. results to the CPU to plot."""
+    """obj with every tensor in it moved to `device`: a tensor, or a dataclass, NamedTuple, tuple,
+    list or dict holding them (nested; a StackOutput, a Prediction); anything else as it is. E.g.
+    results to the CPU to plot."""
     if torch.is_tensor(obj):
         return obj.to(device)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
@@ -421,7 +444,8 @@ def to_device(obj, device):
     return obj
 
 
-# Where data enters a run (training, evaluation), it is checked once: the method (diffstack.py) takes it as given.
+# Where data enters a run (training, evaluation), it is checked once: the method (diffstack.py)
+# takes it as given.
 
 
 def _shape_error(t, shape) -> bool:
@@ -489,14 +513,18 @@ def check_batch(batch, cfg: Config, need_future: bool, stack: bool = False) -> N
 
 
 def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
-    """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the set is:
-    scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one scenario's own)."""
+    """scene_plan of a whole set of Scenarios, checked and computed in chunks; it is indexed as the
+    set is: scene_plans(data)[rows] equals scene_plan(data[rows]) bit for bit (every number is one
+    scenario's own)."""
     parts = []
     for i in range(0, len(data), chunk):
         batch = data[i : i + chunk]
         check_batch(batch, cfg, need_future=True, stack=True)
         parts.append(scene_plan(batch, cfg, plan_dt))
-    cat = lambda get: torch.cat([get(p) for p in parts])  # noqa: E731
+
+    def cat(get):
+        return torch.cat([get(p) for p in parts])
+
     return ScenePlan(
         cat(lambda p: p.goal),
         Candidates(
@@ -507,7 +535,8 @@ def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
 
 
 class TrainingDiverged(ValueError):
-    """A training whose loss, gradient or parameters became NaN or infinite (train_stack stops at that step)."""
+    """A training whose loss, gradient or parameters became NaN or infinite (train_stack stops at
+    that step)."""
 
 
 def train_stack(
@@ -524,42 +553,46 @@ def train_stack(
     on_epoch=None,
     **stack_kw,
 ):
-    """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's x0.9999 per step and
-    clipping by value are Trajectron++'s) -- or,
-    given `weights`, learn the cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in
-    the IL setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the gradient
-    dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem), and the lr is constant.
+    """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's
+    x0.9999 per step and clipping by value are Trajectron++'s) -- or, given `weights`, learn the
+    cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in the IL
+    setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the
+    gradient dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem),
+    and the lr is constant.
 
-    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods with
-    a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be a fraction.
+    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods
+    with a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be
+    a fraction.
     pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
-    Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU), each batch is
-    moved to the model's device as it is drawn.
-    Under torchrun (torch.distributed initialised, world > 1) it trains with DistributedDataParallel, each rank on
-    its cfg.batch_size / world scenarios of every global batch, with the gradient of the single-process loss on the
-    global batch (section 3); only rank 0 logs. Every rank returns the same per-step log (global values).
-    on_epoch: None, or a function of (epochs done, steps done) called before the first step and after every epoch
-    (and after the last step of a fractional one), e.g. to evaluate the model for a learning curve; it runs in a
-    fork of the random state, so that training draws the same numbers with it or without it.
+    Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU),
+    each batch is moved to the model's device as it is drawn.
+    Under torchrun (torch.distributed initialised, world > 1) it trains with
+    DistributedDataParallel, each rank on its cfg.batch_size / world scenarios of every global
+    batch, with the gradient of the single-process loss on the global batch (section 3); only rank
+    0 logs. Every rank returns the same per-step log (global values).
+    on_epoch: None, or a function of (epochs done, steps done) called before the first step and
+    after every epoch (and after the last step of a fractional one), e.g. to evaluate the model for
+    a learning curve; it runs in a fork of the random state, so that training draws the same
+    numbers with it or without it.
     Returns the per-step log (list of dicts).
     """
     device = next(model.parameters()).device
-    shard = (
-        Shard.of_process_group()
-    )  # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
+    # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
+    shard = Shard.of_process_group()
     if cfg.batch_size % shard.world:
         raise ValueError(
-            f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over {shard.world} "
-            f"processes; choose a multiple of {shard.world} (--set batch_size=...) or another process count"
+            f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over "
+            f"{shard.world} processes; choose a multiple of {shard.world} (--set batch_size=...) "
+            "or another process count"
         )
     b = cfg.batch_size // shard.world  # scenarios per step on this rank
     log = log if shard.rank == 0 else None  # the other ranks stay quiet
-    # The same seed on every rank: the data order and the decoder's sampled controls are drawn for the global batch,
-    # whichever rank uses them (section 3). manual_seed seeds the CPU's and every GPU's generator.
+    # The same seed on every rank: the data order and the decoder's sampled controls are drawn for
+    # the global batch, whichever rank uses them (section 3). manual_seed seeds the CPU's and every
+    # GPU's generator.
     torch.manual_seed(seed)  # the decoder's sampled controls
-    g = torch.Generator().manual_seed(
-        seed
-    )  # the order of the scenarios, drawn on the CPU whatever the device
+    # the order of the scenarios, drawn on the CPU whatever the device
+    g = torch.Generator().manual_seed(seed)
     a1, a2, a3 = alphas(method, setting, cfg)
     downstream = a2 > 0 or a3 > 0
     learn_cost = weights is not None
@@ -569,8 +602,9 @@ def train_stack(
     else:
         model.train()
         params = list(model.parameters())
-    # What the forward pass calls: the modules themselves, or under DDP a DistributedDataParallel around the one
-    # being trained (it broadcasts rank 0's parameters now and averages the ranks' gradients in every backward).
+    # What the forward pass calls: the modules themselves, or under DDP a DistributedDataParallel
+    # around the one being trained (it broadcasts rank 0's parameters now and averages the ranks'
+    # gradients in every backward).
     predictor, cost_w = model, weights
     if shard.world > 1:
         if learn_cost:
@@ -579,9 +613,10 @@ def train_stack(
             predictor = DistributedDataParallel(model)
     opt = torch.optim.Adam(params, lr=cfg.lr)
     sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
-    # The goal, the candidates and every term of eq. (3) but C_coll depend on the scenes alone, never on the
-    # predictor (nor on learned cost weights: they weigh the terms afterwards): computed once for the data here,
-    # not at every step of every epoch (about a sixth of a step). The same numbers either way.
+    # The goal, the candidates and every term of eq. (3) but C_coll depend on the scenes alone,
+    # never on the predictor (nor on learned cost weights: they weigh the terms afterwards):
+    # computed once for the data here, not at every step of every epoch (about a sixth of a step).
+    # The same numbers either way.
     scenes = scene_plans(data, cfg, stack_kw.get("plan_dt")) if downstream else None
     if not downstream:  # scene_plans checks the data itself
         for i in range(0, len(data), 1024):
@@ -589,10 +624,11 @@ def train_stack(
     n = len(data)
     steps_per_epoch = max(1, n // cfg.batch_size)
     total = max(1, round(epochs * steps_per_epoch))
-    mine = shard.positions(
-        n
-    )  # (n // world,) this rank's positions in every epoch's order (all of them: one process)
-    history, t0, step = [], time.time(), 0
+    # (n // world,) this rank's positions in every epoch's order (all of them: one process)
+    mine = shard.positions(n)
+    history = []
+    t0 = time.time()
+    step = 0
 
     def epoch_done():
         if on_epoch is not None:
@@ -603,9 +639,8 @@ def train_stack(
     epoch_done()
     try:
         while step < total:
-            perm = torch.randperm(
-                n, generator=g, device="cpu"
-            )  # the epoch's order, the same on every rank
+            # the epoch's order, the same on every rank
+            perm = torch.randperm(n, generator=g, device="cpu")
             for i in range(steps_per_epoch):
                 if step >= total:
                     break
@@ -629,8 +664,9 @@ def train_stack(
                         **stack_kw,
                     )
                     keep = out.plannable.to(out.l_plan.dtype)
-                    # Each rank divides its sums by the global number of plannable scenarios / world (never by its own
-                    # number): DDP's mean over the ranks then makes (global sum) / (global count). One process: keep.sum().
+                    # Each rank divides its sums by the global number of plannable scenarios / world
+                    # (never by its own number): DDP's mean over the ranks then makes (global sum) /
+                    # (global count). One process: keep.sum().
                     m = shard.total(keep).clamp_min(1) / shard.world
                     l_pred = (
                         out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep
@@ -653,21 +689,19 @@ def train_stack(
                         cfg,
                         shard.mean,
                     )
-                    # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over the ranks is the
-                    # mean over the global batch
+                    # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over
+                    # the ranks is the mean over the global batch
                     l_pred = (
                         l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)
                     ).mean()
                     l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
                     conv = float("nan")
-                loss = (
-                    a1 * l_pred + a2 * l_plan + a3 * l_ctr
-                )  # this rank's loss; DDP averages its gradient over the ranks
-                # a non-finite loss would make every parameter NaN at this step: stop here, saying where (every rank
-                # sees the flags of all: they stop together)
-                bad = shard.total(
-                    (~torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))).to(loss.dtype)[None]
-                )  # (3,)
+                # this rank's loss; DDP averages its gradient over the ranks
+                loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
+                # a non-finite loss would make every parameter NaN at this step: stop here, saying
+                # where (every rank sees the flags of all: they stop together)
+                finite = torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))  # (3,)
+                bad = shard.total((~finite).to(loss.dtype)[None])  # (3,)
                 if bad.any():
                     which = ", ".join(
                         n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b
@@ -678,28 +712,30 @@ def train_stack(
                     )
                 opt.zero_grad()
                 loss.backward()
-                # a NaN gradient under a finite loss would reach the parameters too (an infinite one is clipped below)
+                # a NaN gradient under a finite loss would reach the parameters too (an infinite one
+                # is clipped below)
                 if torch.isnan(
                     torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])
                 ):
                     raise TrainingDiverged(
-                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
-                        f"a gradient is NaN"
+                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
+                        f"{total}: a gradient is NaN"
                     )
-                torch.nn.utils.clip_grad_value_(
-                    params, cfg.pred_grad_clip
-                )  # the same (averaged) gradient on every rank
+                # the same (averaged) gradient on every rank
+                torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)
                 opt.step()
-                # a step that overflows (a huge learning rate) can make a parameter infinite under a finite gradient
+                # a step that overflows (a huge learning rate) can make a parameter infinite under a
+                # finite gradient
                 if not torch.isfinite(torch.nn.utils.get_total_norm(params)):
                     raise TrainingDiverged(
-                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of {total}: "
-                        f"a parameter is not finite"
+                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
+                        f"{total}: a parameter is not finite"
                     )
                 if sched is not None:
                     sched.step()
                 step += 1
-                # the logged values of the global batch: the mean over the ranks of theirs (one process: its own)
+                # the logged values of the global batch: the mean over the ranks of theirs
+                # (one process: its own)
                 loss_v, l_pred_v, l_plan_v, l_ctr_v = (
                     shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None])
                     .div(shard.world)
@@ -727,8 +763,9 @@ def train_stack(
                         else ""
                     )
                     log(
-                        f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred {l_pred_v:7.3f}  "
-                        f"L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  {el:5.0f}s  ETA {el / step * (total - step):4.0f}s"
+                        f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred "
+                        f"{l_pred_v:7.3f}  L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  "
+                        f"{el:5.0f}s  ETA {el / step * (total - step):4.0f}s"
                     )
     finally:
         shard.close()
@@ -748,13 +785,15 @@ def train_predictor(
     curve_samples=0,
     **stack_kw,
 ) -> Predictor:
-    """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the same weights),
-    moved to `device` and trained there on data.train_for(seed) (the seed's own draw) by train_stack.
-    curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples validation scenarios before
-    training and after every epoch, is kept in model.learning_curve (a list of {epoch, step, metrics})."""
+    """A fresh predictor, initialised from `seed` (on the CPU, so that every device starts from the
+    same weights), moved to `device` and trained there on data.train_for(seed) (the seed's own draw)
+    by train_stack. curve_samples > 0: its learning curve, evaluate_stack on the first curve_samples
+    validation scenarios before training and after every epoch, is kept in model.learning_curve (a
+    list of {epoch, step, metrics})."""
     torch.manual_seed(seed)  # the predictor's initialisation
     model = Predictor(cfg).to(device)
-    curve, on_epoch = [], None
+    curve = []
+    on_epoch = None
     if curve_samples > 0:
         subset = data.val[:curve_samples]
 
@@ -783,14 +822,17 @@ def train_predictor(
 def evaluate_stack(
     model, data, method: Method, cfg: Config, setting="rl", batch_size=512, device=None, **stack_kw
 ) -> dict:
-    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2): ADE/FDE/NLL of the
-    predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and iLQR's convergence rate.
-    Each batch runs on `device` (default: the model's; the CPU without a model)."""
+    """Mean metrics over the plannable scenarios of a set (prior mode weights p(z|x), §3.2):
+    ADE/FDE/NLL of the predictor, planning loss, hindsight cost, MSE to the GT ego trajectory, and
+    iLQR's convergence rate. Each batch runs on `device` (default: the model's; the CPU without a
+    model)."""
     if device is None:
         device = next(model.parameters()).device if model is not None else "cpu"
     if model is not None:
         model.eval()
-    sums, n, n_all, by_behaviour = {}, 0, 0, {}
+    sums = {}
+    n, n_all = 0, 0
+    by_behaviour = {}
     for i in range(0, len(data), batch_size):
         batch = to_device(data[i : i + batch_size], device)
         check_batch(batch, cfg, need_future=True, stack=True)
@@ -813,7 +855,8 @@ def evaluate_stack(
             )
         for k, v in vals.items():
             sums[k] = sums.get(k, 0.0) + v.detach()[keep].sum().item()
-        # the same sums per behaviour of the predicted agent (synthetic data; real data is labelled -1)
+        # the same sums per behaviour of the predicted agent (synthetic data; real data is
+        # labelled -1)
         for b in batch.behaviour[keep].unique().tolist():
             if b >= 0:
                 rows = keep & (batch.behaviour == b)
@@ -824,8 +867,9 @@ def evaluate_stack(
         n, n_all = n + keep.sum().item(), n_all + len(batch)
     if n == 0:  # means over nothing would read as a table of zeros
         raise ValueError(
-            f"{method.name}: none of the {n_all} scenarios is plannable (fewer than 2 feasible candidates on a "
-            f"goal lane in each): check the data's lanes and goals, or the Config's planner settings"
+            f"{method.name}: none of the {n_all} scenarios is plannable (fewer than 2 feasible "
+            "candidates on a goal lane in each): check the data's lanes and goals, or the "
+            "Config's planner settings"
         )
     out = {k: v / n for k, v in sums.items()}
     out.update(n=n, skipped=n_all - n)
@@ -837,8 +881,8 @@ def evaluate_stack(
     return out
 
 
-# The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios, in the units
-# of the paper's columns (x1e-2 or x1e-3).
+# The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios,
+# in the units of the paper's columns (x1e-2 or x1e-3).
 RELATIVE_SCALE = {
     "rl": {"plan_loss": 1e-2, "hindsight": 1e-2},
     "il": {"plan_loss": 1e-3, "mse": 1e-2},
@@ -858,13 +902,15 @@ def compare_methods(
     device="cpu",
     **stack_kw,
 ) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the ablations).
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the
+    ablations).
 
-    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No prediction on the
-    same validation set ('rel_<metric>', scaled as in the paper's tables, RELATIVE_SCALE). train(method, data,
-    cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw) -> a trained predictor on `device`
-    (experiments.py passes one that shares predictors between tables). Training and evaluation run on `device`;
-    the data stays on the CPU and the metrics come back as Python numbers.
+    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No
+    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables,
+    RELATIVE_SCALE). train(method, data, cfg, setting, epochs, seed, log, pred_offset,
+    device=device, **stack_kw) -> a trained predictor on `device` (experiments.py passes one that
+    shares predictors between tables). Training and evaluation run on `device`; the data stays on
+    the CPU and the metrics come back as Python numbers.
     """
     results = {}
     for m in methods:
@@ -900,8 +946,9 @@ def compare_methods(
 
 
 def add_relative(results: dict, setting: str) -> dict:
-    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as RELATIVE_SCALE) to
-    every run of {method name: [metrics dict per seed]}, in place; nothing without a No prediction row. Returns it."""
+    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as
+    RELATIVE_SCALE) to every run of {method name: [metrics dict per seed]}, in place; nothing
+    without a No prediction row. Returns it."""
     base = results["No prediction"][0] if "No prediction" in results else None
     for runs in results.values():
         for r in runs:
@@ -918,9 +965,9 @@ def mean_se(xs):
 
 
 class PairedDifference(NamedTuple):
-    """method - baseline over seeds paired by index: the mean difference, its standard error, t = mean / s.e., the
-    two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how many of the n seeds the method is
-    lower (better, for a cost) or higher (worse)."""
+    """method - baseline over seeds paired by index: the mean difference, its standard error, t =
+    mean / s.e., the two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how
+    many of the n seeds the method is lower (better, for a cost) or higher (worse)."""
 
     mean: float
     se: float
@@ -932,22 +979,26 @@ class PairedDifference(NamedTuple):
 
 
 P_REPRODUCED = 0.05
-"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the paper's direction."""
+"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the
+paper's direction."""
 
 
 def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two share in a seed (the
-    same data and evaluation set), so the spread left is the difference's own; the t-test is scipy.stats.ttest_1samp
-    of the differences against 0. With one seed the s.e. is unknown (t, p nan); with no spread it is 0 and t is
-    -inf / +inf, p = 0 (t and p nan for a zero difference)."""
+    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two
+    share in a seed (the same data and evaluation set), so the spread left is the difference's own;
+    the t-test is scipy.stats.ttest_1samp of the differences against 0. With one seed the s.e. is
+    unknown (t, p nan); with no spread it is 0 and t is -inf / +inf, p = 0 (t and p nan for a zero
+    difference)."""
     if len(baseline) != len(method):
         raise ValueError(
-            f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by index"
+            f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by "
+            "index"
         )
     if not baseline:
         raise ValueError("baseline: no seeds to compare")
     d = [b - a for a, b in zip(baseline, method)]
-    n, m = len(d), statistics.fmean(d)
+    n = len(d)
+    m = statistics.fmean(d)
     se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
     if se > 0:
         test = scipy.stats.ttest_1samp(d, 0.0)  # two-sided
@@ -958,8 +1009,9 @@ def paired_difference(baseline: list, method: list) -> PairedDifference:
 
 
 def claim_verdict(p: PairedDifference, direction: int = -1) -> str:
-    """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction (-1: the method is
-    lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other way."""
+    """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction
+    (-1: the method is lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other
+    way."""
     if not p.se >= 0:  # nan: one seed
         return "untested (one seed: no standard error)"
     if p.p < P_REPRODUCED:
@@ -972,25 +1024,28 @@ def p_value(p: float) -> str:
 
 
 VAL_SEED = 1000
-"""The data seed of the tables' common validation set. Training seed s trains on the draw of data seed s, and seeds
-are 0..99 (--seeds <= 100): no training draw is this one, and distinct draws hold distinct random scenes."""
+"""The data seed of the tables' common validation set. Training seed s trains on the draw of data
+seed s, and seeds are 0..99 (--seeds <= 100): no training draw is this one, and distinct draws hold
+distinct random scenes."""
 VAL_N = 10_000
-"""Samples in the common validation set: at 1,500 which scenes land in validation decides a row of Table 1 (a few
-near-collisions among ~46 cut-in scenes carry the signal); at 10,000 the rows hold from draw to draw."""
+"""Samples in the common validation set: at 1,500 which scenes land in validation decides a row of
+Table 1 (a few near-collisions among ~46 cut-in scenes carry the signal); at 10,000 the rows hold
+from draw to draw."""
 
 
 def experiment_data(
     n=10000, seeds=range(5), n_val=VAL_N, cache_dir="data_cache", log=print
 ) -> data_synth.Dataset:
-    """The tables' synthetic data: training seed s trains on the training scenes of its own draw (load_data(n,
-    seed=s).train), and every method of every seed is evaluated on one common validation set, all n_val samples of
-    the draw of data seed VAL_SEED, whose scenes no training draw contains; that draw's validation scenes are the
-    closed loop's. Each draw is generated once, then read from cache_dir."""
+    """The tables' synthetic data: training seed s trains on the training scenes of its own draw
+    (load_data(n, seed=s).train), and every method of every seed is evaluated on one common
+    validation set, all n_val samples of the draw of data seed VAL_SEED, whose scenes no training
+    draw contains; that draw's validation scenes are the closed loop's. Each draw is generated once,
+    then read from cache_dir."""
     seeds = tuple(seeds)
     if not seeds or max(seeds) >= VAL_SEED:
         raise ValueError(
-            f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the validation "
-            f"set's), got {seeds}"
+            f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the "
+            f"validation set's), got {seeds}"
         )
     common = data_real.load_data(None, n_val, VAL_SEED, cache_dir, log)
     draws = tuple(
@@ -1015,33 +1070,36 @@ def markdown_table(head, rows) -> str:
 # ============================================================================================
 # 4b. Closed-loop evaluation: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
-# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED ego (its
-# simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the ego by the first control;
-# the other agents replay their logs. 4 s history + 10 s + the 3 s horizon fit in a 20 s scene.
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED
+# ego (its simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the
+# ego by the first control; the other agents replay their logs. 4 s history + 10 s + the 3 s horizon
+# fit in a 20 s scene.
 
 
 @dataclass
 class Rollout:
     """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
 
-    ego: torch.Tensor  # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
-    controls: torch.Tensor  # (S, N, 2)  the controls applied (the first of each step's trajectory)
-    plans: (
-        torch.Tensor
-    )  # (S, N, T+1, 4) each step's final trajectory (controller output), world frame
-    open_loop: (
-        torch.Tensor
-    )  # (S, N)    each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
-    plannable: torch.Tensor  # (S, N)    bool: the planner had at least 2 candidates at that step
+    # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
+    ego: torch.Tensor
+    # (S, N, 2)       the controls applied (the first of each step's trajectory)
+    controls: torch.Tensor
+    # (S, N, T+1, 4)  each step's final trajectory (controller output), world frame
+    plans: torch.Tensor
+    # (S, N)          each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
+    open_loop: torch.Tensor
+    # (S, N)          bool: the planner had at least 2 candidates at that step
+    plannable: torch.Tensor
     start_frame: int  # f0
 
 
 def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
-    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse of the
-    transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
+    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse
+    of the transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
     shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
     x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
-    c, s, x, y = torch.cos(h0), torch.sin(h0), states[..., 0], states[..., 1]
+    c, s = torch.cos(h0), torch.sin(h0)
+    x, y = states[..., 0], states[..., 1]
     return torch.stack(
         [x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]],
         -1,
@@ -1049,9 +1107,10 @@ def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
 
 
 def stack_policy(model, method: Method, cfg: Config, device=None):
-    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or the CPU): batch ->
-    (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent, plannable (S,)), on the batch's
-    device. Planner and controller see the predicted agent only (App. D.3), the predictor every neighbour."""
+    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or
+    the CPU): batch -> (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent,
+    plannable (S,)), on the batch's device. Planner and controller see the predicted agent only
+    (App. D.3), the predictor every neighbour."""
     if model is not None:
         model.eval()
     if device is None:
@@ -1075,15 +1134,16 @@ def simulate(
     scfg=None,
     dtype=torch.float32,
 ) -> Rollout:
-    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default: the first frame
-    with a full history); policy as stack_policy's. scfg: the data's SynthConfig (frame period, history and
-    horizon); dtype: the policy's samples (the simulation is float64)."""
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default:
+    the first frame with a full history); policy as stack_policy's. scfg: the data's SynthConfig
+    (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
     scfg = scfg or data_synth.SynthConfig()
-    H, T, F = scfg.hist, scfg.fut, scenes.ego.shape[1]
+    H, T = scfg.hist, scfg.fut
+    F = scenes.ego.shape[1]
     if abs(cfg.dt - scfg.dt) > 1e-9:
         raise ValueError(
-            f"dt: the simulation replans at every logged frame, so cfg.dt must be the log's {scfg.dt} s, "
-            f"got {cfg.dt}"
+            "dt: the simulation replans at every logged frame, so cfg.dt must be the log's "
+            f"{scfg.dt} s, got {cfg.dt}"
         )
     steps = sim_time / cfg.dt
     if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
@@ -1094,52 +1154,56 @@ def simulate(
     f0 = H if start_frame is None else start_frame
     if f0 < H or f0 + N - 1 + T > F - 1:
         raise ValueError(
-            f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, {F - 1}] "
-            f"(start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)"
+            f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, "
+            f"{F - 1}] (start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)"
         )
-    hist = scenes.ego[
-        :, f0 - H : f0 + 1
-    ].clone()  # (S, H+1, 4) the simulated ego's history, world frame
-    ego, controls, plans, open_loop, plannable = [hist[:, -1]], [], [], [], []
+    # (S, H+1, 4) the simulated ego's history, world frame
+    hist = scenes.ego[:, f0 - H : f0 + 1].clone()
+    ego = [hist[:, -1]]
+    controls, plans, open_loop, plannable = [], [], [], []
     for k in range(N):  # a loop over simulation steps; every scene at once
         batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
         x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
         s = hist[:, -1]  # (S, 4)
         u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
-        s_next = unicycle_step(
-            s, u0, cfg.dt
-        )  # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
+        # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
+        s_next = unicycle_step(s, u0, cfg.dt)
         s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
         hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
-        ego.append(s_next), controls.append(u0), plans.append(from_frame(x.to(s), s))
-        open_loop.append(hindsight.to(s)), plannable.append(ok.to(s.device))
-    st = lambda xs: torch.stack(xs, 1)  # noqa: E731
+        ego.append(s_next)
+        controls.append(u0)
+        plans.append(from_frame(x.to(s), s))
+        open_loop.append(hindsight.to(s))
+        plannable.append(ok.to(s.device))
+
+    def st(xs):
+        return torch.stack(xs, 1)
+
     return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
 
 
 def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
-    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1: trajectory cost 1/N sum_t
-    C(s_t, u_t; GT agents, map) without the goal term (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged
-    agent present); lane 1/N sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the
-    mean hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
-    N, f0 = roll.controls.shape[1], roll.start_frame
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
+    trajectory cost 1/N sum_t C(s_t, u_t; GT agents, map) without the goal term
+    (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged agent present); lane 1/N
+    sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the mean
+    hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
+    N = roll.controls.shape[1]
+    f0 = roll.start_frame
     x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
     frames = slice(f0 + 1, f0 + N + 1)
-    agents, present = (
-        scenes.agents[:, :, frames, :2],
-        scenes.agents_mask[:, :, frames],
-    )  # (S, M, N, 2), (S, M, N)
-    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(
-        -1
-    )  # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    agents = scenes.agents[:, :, frames, :2]  # (S, M, N, 2)
+    present = scenes.agents_mask[:, :, frames]  # (S, M, N)
+    # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
-    lat, head, _ = project_to_lanes(
-        x[..., :2], x[..., 2], scenes.lanes.to(x.dtype), scenes.lanes_mask
-    )  # (S, N)
+    lanes = scenes.lanes.to(x.dtype)
+    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], lanes, scenes.lanes_mask)  # (S, N)
     w = cost_weights(cfg, x.dtype, x.device)
+    # (S, N) each
     parts = dict(
         collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1)
-    )  # (S, N) each
+    )
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]
     keep = roll.plannable.to(x.dtype)
@@ -1150,15 +1214,16 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
 
 
 def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
-    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may lack one).
-    ValueError when there are none (scenes None: the data has no scene logs), saying what the closed loop needs."""
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may
+    lack one). ValueError when there are none (scenes None: the data has no scene logs), saying what
+    the closed loop needs."""
     if scenes is None:
         raise ValueError("closed_loop: the data has no validation scene logs")
     scfg = scfg or data_synth.SynthConfig()
-    H, T, N = scfg.hist, scfg.fut, round(sim_time / cfg.dt)
-    window = (
-        scenes.pred_idx[:, H : H + N] >= 0
-    )  # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    H, T = scfg.hist, scfg.fut
+    N = round(sim_time / cfg.dt)
+    # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    window = scenes.pred_idx[:, H : H + N] >= 0
     ok = (
         (window.all(1) & (window.shape[1] == N))
         if len(scenes)
@@ -1167,10 +1232,12 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
     if not ok.any():
         run = window.int().cumprod(1).sum(1).max().item() if window.numel() else 0
         raise ValueError(
-            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at each of its {N} frames "
-            f"after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} frames ({(H + N + T - 1) * cfg.dt:g} s at "
-            f"{1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s horizon included); the data has {len(scenes)} validation scene(s) "
-            f"of {scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) from frame {H}"
+            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at "
+            f"each of its {N} frames after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} "
+            f"frames ({(H + N + T - 1) * cfg.dt:g} s at {1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s "
+            f"horizon included); the data has {len(scenes)} validation scene(s) of "
+            f"{scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) "
+            f"from frame {H}"
         )
     return scenes[ok]
 
@@ -1179,24 +1246,23 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 # 5. The shipped predictors, --quick and the command line
 # ============================================================================================
 
-QUICK = dict(
-    n=10000, live_train=2560, epochs=8.0, val=1500
-)  # the tables' data; the live runs train on a part of it,
-# and everything is evaluated on the first 1,500 samples of the tables' common validation set (all 10,000: Table 1)
+# the tables' data; the live runs train on a part of it, and everything is evaluated on the first
+# 1,500 samples of the tables' common validation set (all 10,000: Table 1)
+QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)
 QUICK_METHODS = tuple(
     m
     for m in TABLE1_METHODS
     if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")
 )
-PRETRAINED = "pretrained"  # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
-PRETRAIN = dict(
-    n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4)
-)  # = Table 1's five seeds at the tables' length (experiments.py)
+# predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
+PRETRAINED = "pretrained"
+# = Table 1's five seeds at the tables' length (experiments.py)
+PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
 
 
 def open_loop_table(results: dict, setting="rl") -> str:
-    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics relative to No
-    prediction, iLQR's convergence; means ± standard errors over seeds."""
+    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics
+    relative to No prediction, iLQR's convergence; means ± standard errors over seeds."""
     rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
     scales = RELATIVE_SCALE[setting]
     head = ["Method", "ADE (m)", "NLL (nats)"] + [
@@ -1204,7 +1270,10 @@ def open_loop_table(results: dict, setting="rl") -> str:
     ]
     rows = []
     for name, runs in results.items():
-        get = lambda key: [r[key] for r in runs] if key in runs[0] else []  # noqa: E731
+
+        def get(key):
+            return [r[key] for r in runs] if key in runs[0] else []
+
         rows.append(
             [name, cell(get("ade")), cell(get("nll"))]
             + [cell(get("rel_" + k)) for k in scales]
@@ -1218,11 +1287,11 @@ def _slug(name: str) -> str:
 
 
 def machine() -> str:
-    """This machine in a few words, for a result's provenance: architecture, processor, the vector instruction set
-    of torch's kernels, cores. The same seed and thread count give the same numbers on the same kind of processor
-    only: torch's own vectorised kernels, MKL's and oneDNN's follow its instruction set (capping any one at AVX2
-    on an AVX-512 machine changes a few training steps' weights), and one rounding apart grows over a training
-    like another seed."""
+    """This machine in a few words, for a result's provenance: architecture, processor, the vector
+    instruction set of torch's kernels, cores. The same seed and thread count give the same numbers
+    on the same kind of processor only: torch's own vectorised kernels, MKL's and oneDNN's follow
+    its instruction set (capping any one at AVX2 on an AVX-512 machine changes a few training steps'
+    weights), and one rounding apart grows over a training like another seed."""
     import platform
 
     name = platform.processor() or "unknown processor"
@@ -1233,21 +1302,22 @@ def machine() -> str:
             )
     except (OSError, StopIteration):
         pass
-    return f"{platform.machine()}, {name}, {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores"
+    capability = torch.backends.cpu.get_cpu_capability()
+    return f"{platform.machine()}, {name}, {capability}, {os.cpu_count()} cores"
 
 
 def _pretrain_one(
     method: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads: int, val: int
 ):
-    """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train it, on `threads`
-    threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU seconds): CPU time, not the wall
-    clock, so that what it records does not depend on what else the machine was doing."""
+    """One predictor of `pretrain` (a worker process when --jobs > 1): trained as the tables train
+    it, on `threads` threads, and evaluated on the validation set. Returns (state_dict, metrics, CPU
+    seconds): CPU time, not the wall clock, so that what it records does not depend on what else the
+    machine was doing."""
 
     torch.set_num_threads(threads)
     t0 = time.process_time()
-    data = experiment_data(
-        n, range(seed + 1), val, cache_dir, log=None
-    )  # its draw: as the tables train it
+    # its draw: as the tables train it
+    data = experiment_data(n, range(seed + 1), val, cache_dir, log=None)
     model = train_predictor(method, data, cfg, "rl", epochs, seed, log=None)
     metrics = evaluate_stack(model, data.val, method, cfg, "rl")
     return (
@@ -1271,28 +1341,32 @@ def pretrain(
     command="python diffstack.py --pretrain",
     val=None,
 ):
-    """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables' 40 epochs (the
-    paper trains 20; on this data Standard's ADE was still falling at 20, README "Results"), one predictor per seed,
-    and write their weights to out/<name>-seed<seed>.pt with out/provenance.json (the command, date, commit, data,
-    config, each file's sha256 and validation metrics). On one thread each, these are Table 1's predictors of the
-    same seeds to the bit (the tables train each seed on one thread). `jobs` worker processes train them side by
-    side. --quick evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
+    """`--pretrain`: train Standard and DiffStack (RL) on the tables' synthetic data for the tables'
+    40 epochs (the paper trains 20; on this data Standard's ADE was still falling at 20, README
+    "Results"), one predictor per seed, and write their weights to out/<name>-seed<seed>.pt with
+    out/provenance.json (the command, date, commit, data, config, each file's sha256 and validation
+    metrics). On one thread each, these are Table 1's predictors of the same seeds to the bit (the
+    tables train each seed on one thread). `jobs` worker processes train them side by side. --quick
+    evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
     import hashlib
     import json
     import subprocess
 
-    out, cfg, seeds, val = pathlib.Path(out), cfg or Config(), tuple(seeds), val or VAL_N
+    out = pathlib.Path(out)
+    cfg = cfg or Config()
+    seeds = tuple(seeds)
+    val = val or VAL_N
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
     work = [(m, seed, out / f"{_slug(m.name)}-seed{seed}.pt") for seed in seeds for m in learned]
     if not overwrite and any(f.exists() for f in [w[2] for w in work] + [out / "provenance.json"]):
         raise ValueError(
-            f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace them"
+            f"--pretrain: {out}/ holds pre-trained predictors already; pass --overwrite to replace "
+            "them"
         )
     check_writable(out, f"the pre-trained predictors' folder ({out})")
     with folder_lock(out, command):  # one --pretrain into a folder at a time
-        experiment_data(
-            n, seeds, val, cache_dir
-        )  # made (or checked) once, here, before the workers read it
+        # made (or checked) once, here, before the workers read it
+        experiment_data(n, seeds, val, cache_dir)
         about = dict(
             command=command,
             date=time.strftime("%Y-%m-%d"),
@@ -1322,7 +1396,8 @@ def pretrain(
             pool = worker_pool(min(jobs, len(work)))
             finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
         else:
-            pool, finished = None, (_pretrain_one(*a) for a in args)
+            pool = None
+            finished = (_pretrain_one(*a) for a in args)
         try:
             for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
                 tmp = path.with_suffix(".tmp")
@@ -1337,8 +1412,9 @@ def pretrain(
                 )
                 if log:
                     log(
-                        f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE {metrics['ade']:.3f} m, hindsight cost "
-                        f"{metrics['hindsight']:.4f} ({seconds:.0f} s of CPU)"
+                        f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE "
+                        f"{metrics['ade']:.3f} m, hindsight cost {metrics['hindsight']:.4f} "
+                        f"({seconds:.0f} s of CPU)"
                     )
         except BrokenProcessPool as e:
             raise WorkerDied(
@@ -1354,9 +1430,9 @@ def pretrain(
 
 
 def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
-    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the provenance (the
-    file's sha256, the Config it was trained with) and loaded with weights_only=True. Returns ({seed: model},
-    provenance) or (None, why not)."""
+    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the
+    provenance (the file's sha256, the Config it was trained with) and loaded with
+    weights_only=True. Returns ({seed: model}, provenance) or (None, why not)."""
     import hashlib
     import json
 
@@ -1386,7 +1462,8 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
         changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
         return (
             None,
-            f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set here",
+            f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set "
+            "here",
         )
     models = {}
     for seed, name, entry in entries:
@@ -1421,29 +1498,34 @@ def quick(
     device="cpu",
     pretrained=PRETRAINED,
 ):
-    """`--quick`, about a minute on 2 cores: Table 1's story on the tables' synthetic validation data. Standard
-    and DiffStack trained for the tables' 40 epochs (shipped in pretrained/: Table 1's five seeds, so the rows are
-    that table's, mean ± s.e.) beside No prediction and GT prediction; then both trained live for a few epochs so
-    that the losses are seen to fall; then what the numbers say, checked, and how they relate to results/."""
+    """`--quick`, about a minute on 2 cores: Table 1's story on the tables' synthetic validation
+    data. Standard and DiffStack trained for the tables' 40 epochs (shipped in pretrained/:
+    Table 1's five seeds, so the rows are that table's, mean ± s.e.) beside No prediction and GT
+    prediction; then both trained live for a few epochs so that the losses are seen to fall; then
+    what the numbers say, checked, and how they relate to results/."""
 
     torch.set_num_threads(threads)
     cfg = cfg or Config()
-    n, epochs = n or QUICK["n"], epochs or QUICK["epochs"]
+    n = n or QUICK["n"]
+    epochs = epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
     log(
-        f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the validation set "
-        f"(generated once, then cached in {cache_dir}/).\n"
-        f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in {pretrained}/), No prediction\n"
-        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a minute on 2 cores."
+        f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the "
+        f"validation set (generated once, then cached in {cache_dir}/).\n"
+        f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in "
+        f"{pretrained}/), No prediction\n"
+        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a "
+        "minute on 2 cores."
     )
     t0 = time.time()
     data = experiment_data(n, (0,), cache_dir=cache_dir, log=log)
     data = data._replace(val=data.val[: QUICK["val"]])
     log(
-        f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of the tables' "
-        f"{VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)"
+        f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of "
+        f"the tables' {VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)"
     )
-    res, prov = {}, None
+    res = {}
+    prov = None
     for m in QUICK_METHODS:
         if m.predictor != "learned":
             res[m.name] = [evaluate_stack(None, data.val, m, cfg, "rl", device=device)]
@@ -1453,23 +1535,26 @@ def quick(
             log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
             continue
         prov = about
+        # one run per seed
         res[f"{m.name} ({prov['epochs']:g} epochs)"] = [
             evaluate_stack(model, data.val, m, cfg, "rl", device=device)
             for model in models.values()
-        ]  # one run per seed
+        ]
     add_relative(res, "rl")
     if prov is not None:
         log(
-            f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit {prov['commit']}, {prov['epochs']:g} "
-            f"epochs, {_seed_list(prov['seeds'])}, {prov['threads']} thread each), on the {len(data.val)} validation "
-            f"scenarios; mean ± s.e. over the seeds:"
+            f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit "
+            f"{prov['commit']}, {prov['epochs']:g} epochs, {_seed_list(prov['seeds'])}, "
+            f"{prov['threads']} thread each), on the {len(data.val)} validation scenarios; mean ± "
+            "s.e. over the seeds:"
         )
     log("\n" + open_loop_table(res, "rl"))
     # live: a few epochs on part of the training data, to watch the three losses fall
     part = data_synth.Dataset(data.train[: QUICK["live_train"]], data.val, None)
     took = (
-        f" (the shipped rows above took {sum(f['cpu_seconds'] for f in prov['files'].values()) / 60:.0f} minutes "
-        f"of CPU to train, {prov['threads']} thread each)"
+        " (the shipped rows above took "
+        f"{sum(f['cpu_seconds'] for f in prov['files'].values()) / 60:.0f} minutes of CPU to "
+        f"train, {prov['threads']} thread each)"
         if prov is not None
         else ""
     )
@@ -1497,10 +1582,10 @@ def quick(
 
 
 def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
-    """The lines --quick prints under its table: what the numbers show (each statement checked on them, never
-    assumed), why Standard is where it is beside No prediction, and the 5-seed tables' numbers beside them
-    (provenance: the shipped predictors', to say whether they are that table's seeds). A shipped method's rows
-    (one per seed) are read by their mean."""
+    """The lines --quick prints under its table: what the numbers show (each statement checked on
+    them, never assumed), why Standard is where it is beside No prediction, and the 5-seed tables'
+    numbers beside them (provenance: the shipped predictors', to say whether they are that table's
+    seeds). A shipped method's rows (one per seed) are read by their mean."""
     import json
 
     def runs_of(name):  # a shipped predictor's runs (one per seed), or None
@@ -1538,8 +1623,8 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
         gap = (std["hindsight"] - dif["hindsight"]) / (std["hindsight"] - gt["hindsight"])
         lines.append(
             f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
-            f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): trained for the "
-            f"plan, not for the average position error."
+            f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): "
+            "trained for the plan, not for the average position error."
         )
     by_none, by_gt = none.get("by_behaviour"), gt.get("by_behaviour")
     if by_none and by_gt:
@@ -1549,10 +1634,11 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
         total = sum(saved.values())
         top = min(saved, key=saved.get)
         lines.append(
-            f"Why Standard's gain over No prediction is small: a perfect prediction saves only {-gt['rel_hindsight']:.2f}e-2 "
-            f"here, {100 * saved[top] / total:.0f} % of it in {top} scenes; where a car cuts in or brakes ahead, "
-            f"the goal (the logged ego state at T, as in the paper) already holds the driver's reaction, so knowing "
-            f"the future adds little (results/goal.md)."
+            "Why Standard's gain over No prediction is small: a perfect prediction saves only "
+            f"{-gt['rel_hindsight']:.2f}e-2 here, {100 * saved[top] / total:.0f} % of it in {top} "
+            "scenes; where a car cuts in or brakes ahead, the goal (the logged ego state at T, as "
+            "in the paper) already holds the driver's reaction, so knowing the future adds little "
+            "(results/goal.md)."
         )
         runs = runs_of("Standard")
         if runs and all(
@@ -1571,9 +1657,11 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
             won = sorted((b for b in part if part[b] < -0.005), key=part.get)
             if lost:
                 lines.append(
-                    f"And Standard gives part of it back: it gains {-sum(part[b] for b in won):.2f}e-2 in "
-                    f"{', '.join(won)}, and loses {sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where "
-                    f"it predicts the wrong one of two manoeuvres that start alike (results/rl.md, by behaviour)."
+                    "And Standard gives part of it back: it gains "
+                    f"{-sum(part[b] for b in won):.2f}e-2 in {', '.join(won)}, and loses "
+                    f"{sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where it predicts "
+                    "the wrong one of two manoeuvres that start alike (results/rl.md, by "
+                    "behaviour)."
                 )
     table = pathlib.Path(results_dir) / "rl.json"
     if table.exists():
@@ -1585,31 +1673,32 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
             if m in runs
         )
         meta = saved["meta"]
-        draw_of = dict(
-            zip(meta.get("seeds", []), meta.get("data_seeds") or [])
-        )  # seed -> its training draw
+        # seed -> its training draw
+        draw_of = dict(zip(meta.get("seeds", []), meta.get("data_seeds") or []))
+        # pretrain: seed s on draw s
         same = (
             provenance is not None
             and meta.get("epochs") == provenance["epochs"]
             and meta.get("config") == provenance["config"]
             and meta.get("val") == provenance.get("val")
             and all(draw_of.get(s) == s for s in provenance["seeds"])
-        )  # pretrain: seed s on draw s
+        )
         lines.append(
-            f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, {meta['epochs']:g} epochs), "
-            f"hindsight cost x1e-2: {cells}; "
+            f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, "
+            f"{meta['epochs']:g} epochs), hindsight cost x1e-2: {cells}; "
             + (
                 f"the shipped predictors above are its {_seed_list(provenance['seeds'])}."
                 if same
-                else "made by another run than the shipped predictors (other epochs, Config or data), so its numbers "
-                "and the ones above are not the same experiment."
+                else "made by another run than the shipped predictors (other epochs, Config or "
+                "data), so its numbers and the ones above are not the same experiment."
             )
         )
     return lines
 
 
 def check_writable(folder, what: str) -> None:
-    """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and takes files."""
+    """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and
+    takes files."""
     import tempfile
 
     try:
@@ -1621,7 +1710,8 @@ def check_writable(folder, what: str) -> None:
 
 
 def bounded(kind, lo, hi, name):
-    """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi (lo excluded for floats)."""
+    """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi
+    (lo excluded for floats)."""
     import argparse
 
     def parse(text):
@@ -1640,8 +1730,9 @@ def bounded(kind, lo, hi, name):
 
 
 def device_arg(text):
-    """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps), checked
-    before any work; a name torch does not know, or a GPU that is not there, is a one-line argparse error."""
+    """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps),
+    checked before any work; a name torch does not know, or a GPU that is not there, is a one-line
+    argparse error."""
     import argparse
 
     try:
@@ -1658,7 +1749,8 @@ def device_arg(text):
             )
         if device.index is not None and device.index >= count:
             raise argparse.ArgumentTypeError(
-                f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}"
+                f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to "
+                f"cuda:{count - 1}"
             )
     elif device.type == "mps":
         if not torch.backends.mps.is_available():
@@ -1673,9 +1765,9 @@ def device_arg(text):
 
 
 def config_with(cfg: Config, assignments) -> Config:
-    """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the field's
-    type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key when it is not a
-    Config field or the value does not parse."""
+    """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the
+    field's type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key
+    when it is not a Config field or the value does not parse."""
     fields = {f.name: f for f in dataclasses.fields(Config)}
     changes = {}
     for item in assignments or ():
@@ -1690,9 +1782,8 @@ def config_with(cfg: Config, assignments) -> Config:
         default = getattr(cfg, key)
         try:
             if isinstance(default, tuple):
-                value = tuple(
-                    float(p) for p in text.strip("()[] ").split(",") if p.strip()
-                )  # every tuple field holds floats
+                # every tuple field holds floats
+                value = tuple(float(p) for p in text.strip("()[] ").split(",") if p.strip())
             elif isinstance(default, bool):
                 value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
             else:
@@ -1712,27 +1803,31 @@ def main(argv=None):
     import argparse
 
     ap = argparse.ArgumentParser(
-        description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run of it.",
-        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python bench.py.",
+        description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run "
+        "of it.",
+        epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python "
+        "bench.py.",
     )
     ap.add_argument(
         "--quick",
         action="store_true",
-        help=f"Table 1's story in about a minute: the shipped {PRETRAIN['epochs']:g}-epoch Standard and DiffStack "
-        "beside No prediction and GT prediction, then both trained live for a few epochs",
+        help=f"Table 1's story in about a minute: the shipped {PRETRAIN['epochs']:g}-epoch "
+        "Standard and DiffStack beside No prediction and GT prediction, then both trained live "
+        "for a few epochs",
     )
     ap.add_argument(
         "--pretrain",
         action="store_true",
-        help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} epochs, "
-        f"{_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
-        f"~40 min on 2 cores",
+        help=f"train the predictors --quick ships (Standard and DiffStack, {PRETRAIN['epochs']:g} "
+        f"epochs, {_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
+        "~40 min on 2 cores",
     )
     ap.add_argument(
         "--jobs",
         type=bounded(int, 1, 256, "--jobs"),
         default=None,
-        help="--pretrain: worker processes training side by side, one thread each (default: the machine's cores)",
+        help="--pretrain: worker processes training side by side, one thread each (default: the "
+        "machine's cores)",
     )
     ap.add_argument(
         "--overwrite",
@@ -1743,13 +1838,15 @@ def main(argv=None):
         "--threads",
         type=bounded(int, 1, 256, "--threads"),
         default=None,
-        help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at most 256)",
+        help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at "
+        "most 256)",
     )
     ap.add_argument(
         "--device",
         type=device_arg,
         default="cpu",
-        help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is made on the CPU",
+        help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is "
+        "made on the CPU",
     )
     ap.add_argument(
         "--set",
@@ -1772,14 +1869,16 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick == args.pretrain:
         ap.error(
-            "choose --quick or --pretrain (the paper's tables: python experiments.py --experiment NAME)"
+            "choose --quick or --pretrain (the paper's tables: python experiments.py --experiment "
+            "NAME)"
         )
     if args.jobs is not None and not args.pretrain:
         ap.error("--jobs is an option of --pretrain (the tables': python experiments.py --jobs N)")
     # every refusal, of the arguments or of a file (the shipped predictors, a cache), is one line
     with one_line(
         ap,
-        "the predictors written so far stay in pretrained/; --pretrain --overwrite trains them all again"
+        "the predictors written so far stay in pretrained/; --pretrain --overwrite trains them "
+        "all again"
         if args.pretrain
         else "nothing half-written is left",
     ):

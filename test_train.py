@@ -1,0 +1,666 @@
+"""Tests of train.py: the loss and the training loop, the weighted and planner-trained methods, the
+metrics and plot, the shipped predictors, --quick and its story, and the command line. Every test
+runs on one thread (conftest.py)."""
+
+import dataclasses
+import json
+import math
+import os
+
+import pytest
+import torch
+
+import data_synth
+import diffstack as ds
+import train as tr
+from test_diffstack import DT, TINY, _cast, make_batch, make_model, small_cfg, small_dataset
+
+
+@pytest.fixture(scope="module")
+def small():
+    return small_dataset()
+
+
+# ---------------------------------------------------------------------------------------------
+# Loss, training, weighting
+# ---------------------------------------------------------------------------------------------
+
+
+def test_loss_matches_an_independent_computation():
+    cfg = small_cfg()
+    model = make_model(cfg)
+    b = make_batch(16)
+    for step in (0, 1000):  # KL below (free bits) and above 0.07
+        p = model(b, use_posterior=True, step=step)
+        loss, parts = ds.pred_loss(p, b, step, cfg)
+        assert loss.shape == (16,)
+        # LL with torch.distributions' mixture, per scenario
+        D = torch.distributions
+        # (B, T | K)
+        comp = D.MultivariateNormal(
+            p.means.transpose(1, 2), covariance_matrix=p.pos_cov.transpose(1, 2)
+        )
+        mix = D.MixtureSameFamily(D.Categorical(probs=p.probs[:, None].expand(-1, 6, -1)), comp)
+        ll = mix.log_prob(b.agent_fut[..., :2]).clamp(max=6).sum(-1)  # (B,)
+        prior = D.Categorical(logits=p.log_p)
+        kl = D.kl_divergence(D.Categorical(logits=p.log_q), prior)
+        mi = D.Categorical(probs=prior.probs.mean(0)).entropy() - prior.entropy().mean()
+        beta = 100 / (1 + math.exp(-(step - 400) / 100))
+        kl_term = kl if kl.mean() > 0.07 else torch.full_like(kl, 0.07)
+        assert torch.allclose(loss, -(ll - beta * kl_term + mi))
+        assert math.isclose(parts["ll"], ll.mean().item()) and math.isclose(parts["beta"], beta)
+    with pytest.raises(ValueError, match="pred"):
+        ds.pred_loss(model(b, use_posterior=False), b, 0, cfg)
+
+
+STANDARD = tr.Method("Standard")
+
+
+def test_loss_decreases_on_a_small_set():
+    cfg = small_cfg(batch_size=32, lr=1e-2)
+    model = make_model(cfg)
+    data = make_batch(64, seed=3)
+
+    def loss_at_step0():
+        torch.manual_seed(0)
+        return ds.pred_loss(model(data, use_posterior=True, step=0), data, 0, cfg)[0].mean().item()
+
+    before = loss_at_step0()
+    tr.train_stack(model, data, STANDARD, cfg, epochs=30, seed=0, log=None)
+    assert loss_at_step0() < before - 5.0
+
+
+def test_same_seed_same_model():
+    cfg = small_cfg()
+    data = make_batch(48, seed=4)
+    params = []
+    for seed in (0, 0, 1):
+        model = make_model(cfg, seed=0)
+        hist = tr.train_stack(model, data, STANDARD, cfg, epochs=2, seed=seed, log=None)
+        assert len(hist) == 6  # 2 epochs of 3 batches of 16
+        params.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
+    assert torch.equal(params[0], params[1]) and not torch.equal(params[0], params[2])
+
+
+def test_progress_lines_fractional_epochs_and_val_metrics():
+    cfg = small_cfg()
+    data, val = make_batch(48, seed=5), make_batch(16, seed=6)
+    lines = []
+    hist = tr.train_stack(make_model(cfg), data, STANDARD, cfg, epochs=2 / 3, log=lines.append)
+    assert len(hist) == 2 and lines and "ETA" in lines[-1] and "L_pred" in lines[-1]
+    m = tr.evaluate_predictor(make_model(cfg), val, cfg)
+    assert {"ade", "min_ade", "nll", "cv_ade", "cv_nll"} <= set(m)
+    # the calibrated constant-velocity NLL, by hand: sigma_t^2 = mean squared error / 2 per axis
+    err2 = ((tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]) ** 2).sum(-1)  # (B, T)
+    var = err2.mean(0) / 2
+    e = (tr.constant_velocity(val, cfg) - val.agent_fut[..., :2]).transpose(1, 2)  # (B, 2, T)
+    by_hand = -torch.distributions.Normal(0.0, var.sqrt()).log_prob(e).sum(1).mean()
+    assert math.isclose(m["cv_nll"], by_hand.item(), rel_tol=1e-6)
+
+
+def test_distance_and_cost_gradient_weights():
+    cfg = ds.Config()
+    b = make_batch(8)
+    w = tr.scenario_weights(b, "distance", cfg)
+    d = (b.ego_fut[..., :2] - b.agent_fut[..., :2]).norm(dim=-1).mean(-1)
+    assert torch.isclose(w.mean(), torch.tensor(1.0, dtype=w.dtype))
+    assert w[d.argmin()] == w.max() and w[d.argmax()] == w.min()
+    # grad-cost: |d (w1 C_coll) / d agent future| along the ego's GT future, by hand
+    diff = b.agent_fut[..., :2] - b.ego_fut[..., :2]
+    by_hand = cfg.w_coll * (torch.exp(-(diff**2).sum(-1, keepdim=True) / 4) * (-diff / 2)).flatten(
+        1
+    ).norm(dim=-1)
+    assert torch.allclose(tr.grad_cost_weights(b, cfg), by_hand)
+    assert torch.allclose(tr.scenario_weights(b, "grad_cost", cfg), by_hand / by_hand.mean())
+    zero = tr.scenario_weights(b, lambda batch: torch.zeros(len(batch)), cfg)
+    assert torch.equal(zero, torch.ones(8, dtype=torch.float64))
+    with pytest.raises(ValueError, match="weighting"):
+        tr.scenario_weights(b, lambda batch: -torch.ones(len(batch)), cfg)
+
+
+def test_weighting_changes_training():
+    cfg = small_cfg()
+    data = make_batch(32, seed=7)
+    out = []
+    for weighting in ("standard", "distance"):
+        model = make_model(cfg)
+        tr.train_stack(model, data, tr.Method("x", weighting=weighting), cfg, epochs=1, log=None)
+        out.append(torch.cat([q.detach().flatten() for q in model.parameters()]))
+    assert not torch.allclose(out[0], out[1])
+
+
+def test_collision_cost_gradient_reaches_all_decoder_parameters():
+    cfg = small_cfg()
+    model = make_model(cfg)
+    b = make_batch(8)
+    p = model(b, use_posterior=False)
+    ego = b.ego_fut[:, None, :, :2]  # (B, 1, T, 2)
+    # phi(sum_k pi_k ||s_t - s_hat_kt||^2), eq. (2)'s collision term
+    cost = torch.exp(-(p.probs[..., None] * ((ego - p.means) ** 2).sum(-1)).sum(1) / 4).sum()
+    cost.backward()
+    names = (
+        "dec_in.weight",
+        "dec_hh.weight",
+        "dec_out.weight",
+        "p_z.2.weight",
+        "hist_lstm.weight_hh",
+        "heading_fix.weight",
+    )
+    for name in names:
+        grad = dict(model.named_parameters())[name].grad
+        assert grad is not None and grad.abs().sum() > 0, name
+
+
+@pytest.mark.parametrize("weights", ["posterior", "prior"])
+def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weights):
+    """In training the planner weighs the modes by q(z|x,y) (the authors' code, the default), so
+    L_plan and L_ctr never reach p(z|x) -- the network evaluation uses: its gradient is exactly
+    zero. With train_plan_weights='prior' the planner sees p(z|x), as at evaluation, and the losses
+    train it."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, train_plan_weights=weights)
+    b = _cast(small.train[:32], torch.float64)
+    model = make_model(cfg)
+    out = ds.run_stack(b, model, tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
+    (out.l_plan.mean() + out.l_ctr.mean()).backward()
+    grads = dict(model.named_parameters())
+    prior = sum(
+        float(p.grad.abs().sum())
+        for n, p in grads.items()
+        if n.startswith("p_z.") and p.grad is not None
+    )
+    assert (prior > 0) == (weights == "prior")
+    assert grads["dec_out.weight"].grad.abs().sum() > 0  # the decoder is trained either way
+    with pytest.raises(ValueError, match="train_plan_weights"):
+        ds.Config(train_plan_weights="both")
+
+
+def test_a_method_chooses_its_own_planner_weights(small):
+    """Method.train_plan_weights overrides the Config's for that method only (the ablation's
+    prior-weights rows)."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16)  # posterior by default
+    b = _cast(small.train[:32], torch.float64)
+    for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
+        model = make_model(cfg)
+        out = ds.run_stack(
+            b,
+            model,
+            tr.Method("DiffStack", losses=(1, 1, 1), train_plan_weights=weights),
+            cfg,
+            "rl",
+            step=0,
+            train=True,
+        )
+        (out.l_plan.mean() + out.l_ctr.mean()).backward()
+        prior = sum(
+            float(p.grad.abs().sum())
+            for n, p in model.named_parameters()
+            if n.startswith("p_z.") and p.grad is not None
+        )
+        assert (prior > 0) == reaches, weights
+    with pytest.raises(ValueError, match="Method.train_plan_weights"):
+        tr.Method("DiffStack", train_plan_weights="both")
+
+
+def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
+    """Config.goal = 'route': the goal is on the ego's lane (near its centre line, with its
+    heading), the distance the ego covers in T steps at its current speed ahead along it; run_stack
+    plans towards it, not the logged goal."""
+    cfg = ds.Config(goal="route")
+    b = small.val[:40]
+    s0 = b.ego_hist[:, -1]
+    g = ds.route_goal(s0, b.lanes, b.lanes_mask, cfg)
+    lat, head, _ = ds.project_to_lanes(g[:, None, :2], g[:, None, 2], b.lanes, b.lanes_mask)
+    # on a lane's centre line, along it (squared m, rad)
+    assert lat.max() < 0.05 and head.abs().max() < 0.05
+    assert torch.allclose(g[:, 3], s0[:, 3])
+    ahead = s0[:, 3] * cfg.horizon * cfg.dt
+    # on straight and gently curved roads the chord is the arc length to within a few cm (and the
+    # ego sits within 0.2 m of its lane's centre)
+    chord = (g[:, :2] - s0[:, :2]).norm(dim=-1)
+    assert torch.allclose(chord, ahead, atol=0.3), (chord - ahead).abs().max()
+    out_route = ds.run_stack(b, None, tr.Method("No prediction", "none"), cfg, "rl")
+    out_logged = ds.run_stack(b, None, tr.Method("No prediction", "none"), ds.Config(), "rl")
+
+    def end(out):
+        return out.x[:, -1, :2]
+
+    closer = (
+        ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1))
+        .float()
+        .mean()
+    )
+    # planning towards the route goal ends nearer to it than planning towards the logged one
+    assert closer > 0.7
+    with pytest.raises(ValueError, match="Config.goal"):
+        ds.Config(goal="anywhere")
+
+
+def test_a_learning_curve_does_not_change_the_training(small):
+    """train_predictor(curve_samples=n): the model evaluated before training and after every epoch,
+    in a fork of the random state: the trained weights are those of a run without the curve."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=32)
+    data = data_synth.Dataset(small.train[:64], small.val[:16], None)
+    m = tr.Method("DiffStack", losses=(1, 1, 1))
+    plain = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None)
+    curved = tr.train_predictor(m, data, cfg, "rl", epochs=2.0, seed=3, log=None, curve_samples=8)
+    assert not hasattr(plain, "learning_curve")
+    assert [c["epoch"] for c in curved.learning_curve] == [0.0, 1.0, 2.0]
+    assert all(c["n"] + c["skipped"] == 8 for c in curved.learning_curve)
+    for (name, a), b in zip(plain.state_dict().items(), curved.state_dict().values()):
+        assert torch.equal(a, b), name
+    # it measured a model that changed
+    assert curved.learning_curve[0]["ade"] != curved.learning_curve[-1]["ade"]
+
+
+@pytest.mark.parametrize("goal, plan_dt", [("logged", None), ("route", None), ("logged", 0.1)])
+def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
+    """train_stack computes the scene's part of the plan (goal, candidates, every term of eq. (3)
+    but C_coll) once for its data: indexed by a batch's rows it is that batch's own, bit for bit,
+    and the stack's outputs and gradients are those of a run that computes it itself. A scene plan
+    of other rows changes them (the check can fail)."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, goal=goal)
+    data = small.train[:96]
+    scenes = tr.scene_plans(data, cfg, plan_dt, chunk=40)  # three chunks, the last one short
+    rows = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[:32]
+    own = ds.scene_plan(data[rows], cfg, plan_dt)
+    for a, b in (
+        (scenes[rows].goal, own.goal),
+        (scenes[rows].cands.x, own.cands.x),
+        (scenes[rows].cands.u, own.cands.u),
+        (scenes[rows].cands.valid, own.cands.valid),
+        (scenes[rows].terms, own.terms),
+    ):
+        assert torch.equal(a, b)
+    model = make_model(cfg).float()
+    m = tr.Method("DiffStack", losses=(1, 1, 1))
+
+    def run(scene):
+        torch.manual_seed(1)  # the decoder's sampled controls
+        model.zero_grad()
+        out = ds.run_stack(
+            data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene
+        )
+        (out.l_pred + out.l_plan + out.l_ctr).sum().backward()
+        return [out.l_plan, out.l_ctr, out.x] + [p.grad.clone() for p in model.parameters()]
+
+    for a, b in zip(run(None), run(scenes[rows])):
+        assert torch.equal(a, b)
+    other = scenes[torch.roll(rows, 1)]
+    assert not all(torch.equal(a, b) for a, b in zip(run(None), run(other)))
+
+
+def test_training_refuses_bad_data_before_the_first_step(small):
+    """train_stack checks its whole data set up front (scene_plans): a non-finite lane point in a
+    scenario the first batches would not reach is refused, naming the field, before any step is
+    taken."""
+    cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, batch_size=16)
+    data = small.train[:64]
+    # train_stack's order (seed 0): its first epoch's last batch holds it
+    last = torch.randperm(64, generator=torch.Generator().manual_seed(0))[-1]
+    lanes = data.lanes.clone()
+    lanes[last, 0, 0, 0] = math.nan
+    lines = []
+    with pytest.raises(ValueError, match="lanes"):
+        tr.train_stack(
+            make_model(cfg).float(),
+            dataclasses.replace(data, lanes=lanes),
+            tr.Method("DiffStack", losses=(1, 1, 1)),
+            cfg,
+            "rl",
+            epochs=4.0,
+            log=lines.append,
+        )
+    assert lines == []
+
+
+def test_evaluation_by_behaviour_adds_up_to_the_whole(small):
+    """evaluate_stack's by_behaviour: the scenes of each behaviour; their means, weighted by their
+    counts, are the overall means."""
+    r = tr.evaluate_stack(None, small.val, tr.Method("GT prediction", "gt"), ds.Config(), "rl")
+    by = r["by_behaviour"]
+    assert set(by) <= set(data_synth.BEHAVIOURS) and sum(v["n"] for v in by.values()) == r["n"]
+    for key in ("hindsight", "mse", "plan_loss"):
+        assert sum(v[key] * v["n"] for v in by.values()) / r["n"] == pytest.approx(r[key], rel=1e-5)
+    counts = {
+        data_synth.BEHAVIOURS[b]: int(n)
+        for b, n in zip(*small.val.behaviour.unique(return_counts=True))
+    }
+    assert all(by[name]["n"] <= counts[name] for name in by)
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics and plot
+# ---------------------------------------------------------------------------------------------
+
+
+def test_metrics_on_a_known_prediction():
+    cfg = small_cfg()
+    b = make_batch(4)
+    K = cfg.pred_modes
+    states = b.agent_fut[:, None].repeat(1, K, 1, 1)
+    states[:, 1:, :, 0] += 2.0  # mode 0 exact, others 2 m off in x
+    probs = torch.full((4, K), 0.1 / (K - 1), dtype=torch.float64)
+    probs[:, 0] = 0.9
+    cov = 0.25 * torch.eye(2, dtype=torch.float64).expand(4, K, 6, 2, 2)
+    controls = torch.zeros(4, K, 6, 2, dtype=torch.float64)
+    pred = ds.Prediction(b.agent_hist[:, -1], states, controls, cov, probs.log(), None, probs)
+    m = tr.prediction_metrics(pred, b, cfg)
+    zeros = torch.zeros(4, dtype=torch.float64)
+    assert torch.allclose(m["ade"], zeros) and torch.allclose(m["min_fde"], zeros)
+    nll = -math.log(0.9 / (2 * math.pi * 0.25) + 0.1 / (2 * math.pi * 0.25) * math.exp(-4 / 0.5))
+    assert torch.allclose(m["nll"], torch.full((4,), nll, dtype=torch.float64))
+    probs2 = probs.flip(-1)
+    m2 = tr.prediction_metrics(
+        ds.Prediction(pred.s0, states, pred.controls, cov, probs2.log(), None, probs2), b, cfg
+    )
+    assert torch.allclose(m2["ade"], torch.full((4,), 2.0, dtype=torch.float64))
+    assert torch.allclose(m2["min_ade"], m["min_ade"])
+    # constant velocity is exact on a constant-velocity agent
+    # (behaviour 0 after its manoeuvre: w = a = 0)
+    s0 = b.agent_hist[:, -1]
+    cv_fut = torch.stack(
+        [
+            s0[:, 0, None] + s0[:, 3, None] * torch.cos(s0[:, 2, None]) * DT * torch.arange(1, 7),
+            s0[:, 1, None] + s0[:, 3, None] * torch.sin(s0[:, 2, None]) * DT * torch.arange(1, 7),
+        ],
+        -1,
+    )
+    m3 = tr.prediction_metrics(
+        pred, b.replace(agent_fut=torch.cat([cv_fut, b.agent_fut[..., 2:]], -1)), cfg
+    )
+    assert torch.allclose(m3["cv_ade"], torch.zeros(4, dtype=torch.float64), atol=1e-12)
+
+
+def test_plot_prediction_draws_modes():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfg = small_cfg()
+    model = make_model(cfg).eval()
+    b = make_batch(2)
+    fig, ax = plt.subplots()
+    import figures
+
+    figures.plot_prediction(ax, model(b, use_posterior=False), 1)
+    assert len(ax.lines) == cfg.pred_modes + cfg.horizon
+    widths = sorted(line.get_linewidth() for line in ax.lines[: cfg.pred_modes])
+    assert widths[-1] == 3.0 and widths[0] < widths[-1]
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Slow: a few minutes of training on the synthetic data (DIFFSTACK_SLOW=1 to run)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(
+    os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1"
+)
+def test_trained_predictor_beats_constant_velocity():
+    data_synth = pytest.importorskip("data_synth")
+    data = data_synth.make_dataset(8000, seed=0)
+    cfg = ds.Config()
+    torch.manual_seed(0)
+    model = ds.Predictor(cfg)
+    tr.train_stack(model, data.train, STANDARD, cfg, epochs=12, seed=0)
+    m = tr.evaluate_predictor(model, data.val, cfg)
+    assert m["min_ade"] < 0.7 * m["cv_ade"]  # measured: 0.82 vs 1.67 (312 steps, about 1 minute)
+    assert m["nll"] < m["cv_nll"] - 1.0  # measured: 0.86 vs 3.20
+
+
+# ---------------------------------------------------------------------------------------------
+# The command line: --quick and its story, --pretrain, --set
+# ---------------------------------------------------------------------------------------------
+
+
+def test_quick_runs_and_same_seed_same_table(tmp_path):
+    cfg = ds.Config(**TINY)
+    lines = []
+    first = tr.quick(
+        threads=1,
+        n=300,
+        epochs=1,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=lines.append,
+        pretrained=tmp_path / "none",
+    )
+    text = "\n".join(lines)
+    assert (
+        "| DiffStack (1 epochs) |" in text
+        and "| Standard (1 epochs) |" in text
+        and "| GT prediction |" in text
+    )
+    # none shipped here: said, and its row left out
+    assert "Standard: no pre-trained predictor" in text
+    second = tr.quick(
+        threads=1,
+        n=300,
+        epochs=1,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=lambda s: None,
+        pretrained=tmp_path / "none",
+    )
+
+    def strip(res):  # the results without their wall times
+        return {
+            k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs]
+            for k, runs in res.items()
+        }
+
+    assert [strip(r) for r in first] == [strip(r) for r in second]
+
+
+def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path):
+    """--pretrain writes the predictors and their provenance; --quick loads them
+    (sha256 checked, weights_only) and shows them beside the baselines; a changed file, or another
+    Config, is refused or left out, never misused."""
+    cfg = ds.Config(**TINY)
+    out = tmp_path / "pre"
+    about = tr.pretrain(
+        out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
+    )
+    assert sorted(about["files"]) == [
+        "diffstack-seed0.pt",
+        "diffstack-seed1.pt",
+        "standard-seed0.pt",
+        "standard-seed1.pt",
+    ]
+    assert about["threads"] == 1 and about["seeds"] == [0, 1]
+    with pytest.raises(ValueError, match="--overwrite"):
+        tr.pretrain(
+            out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
+        )
+    models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
+    assert sorted(models) == [0, 1]
+    again = tr.train_predictor(
+        tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
+        tr.experiment_data(300, (0, 1), 200, tmp_path, log=None),
+        cfg,
+        "rl",
+        0.5,
+        1,
+        None,
+    )
+    assert all(
+        torch.equal(a, b)
+        for a, b in zip(models[1].state_dict().values(), again.state_dict().values())
+    )
+    assert not all(
+        torch.equal(a, b)
+        for a, b in zip(models[0].state_dict().values(), again.state_dict().values())
+    )
+    # two worker processes make the same files, byte for byte
+    pooled = tr.pretrain(
+        tmp_path / "pooled",
+        n=300,
+        epochs=0.5,
+        seeds=(0, 1),
+        jobs=2,
+        cfg=cfg,
+        cache_dir=tmp_path,
+        log=None,
+        val=200,
+    )
+    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {
+        k: v["sha256"] for k, v in about["files"].items()
+    }
+    # another Config
+    assert (
+        tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
+        is None
+    )
+    lines = []
+    res, _ = tr.quick(
+        threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out
+    )
+    # a row per seed
+    assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2
+    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(
+        lines
+    )
+    with open(out / "standard-seed1.pt", "ab") as f:
+        f.write(b"tampered")
+    with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
+        tr.load_pretrained(tr.Method("Standard"), cfg, out)
+
+
+def test_quick_story_states_only_what_its_numbers_show():
+    def row(h, ade=1.0):
+        return [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]
+
+    def by(**v):
+        return {b: dict(n=10, hindsight=x) for b, x in v.items()}
+
+    res = {
+        "No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
+        "Standard (20 epochs)": row(-0.5),
+        "DiffStack (20 epochs)": row(-1.5, 1.2),
+        "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))],
+    }
+    lines = tr.quick_story(res, "no/such/folder")
+    assert lines[0] == (
+        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order "
+        "(its Table 1)."
+    )
+    assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
+    assert "75 % of it in keep_lane scenes" in lines[2]
+    # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
+    assert len(lines) == 3
+    # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back
+    # where
+    res["Standard (20 epochs)"] = [
+        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
+        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0)),
+    ]
+    # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
+    line = tr.quick_story(res, "no/such/folder")[3]
+    assert line.startswith(
+        "And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in "
+        "cut_in"
+    )
+    res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
+    assert tr.quick_story(res, "no/such/folder")[0].startswith(
+        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order"
+    )
+
+
+def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tmp_path):
+    def runs(h):
+        return [dict(rel_hindsight=h)]
+
+    res = {
+        "No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)],
+        "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)],
+    }
+    cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
+    # the same run: the same epochs, Config, validation set, and each shipped seed trained on its
+    # own draw, as pretrain
+    for epochs, shipped, val, draws, same in (
+        (20.0, [0, 1], 100, [0, 1], True),
+        (4.0, [0, 1], 100, [0, 1], False),
+        (20.0, [0, 1, 2], 100, [0, 1], False),
+        (20.0, [0, 1], 50, [0, 1], False),
+        (20.0, [0, 1], 100, None, False),
+        (20.0, [0, 1], 100, [0, 0], False),
+    ):
+        prov = dict(epochs=20.0, seeds=shipped, config=cfg, val=100)
+        meta = dict(seeds=[0, 1], epochs=epochs, config=cfg, val=val, data_seeds=draws)
+        (tmp_path / "rl.json").write_text(
+            json.dumps(
+                dict(
+                    meta=meta,
+                    results=dict(
+                        Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}
+                    ),
+                )
+            )
+        )
+        line = tr.quick_story(res, tmp_path, prov)[-1]
+        assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
+        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (
+            not same
+        )
+
+
+def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
+    # two seeds of DiffStack, one better and one worse than Standard: the story follows their mean,
+    # not the first
+    def one(h, ade):
+        return dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)
+
+    res = {
+        "No prediction": [one(0.0, 1.0)],
+        "GT prediction": [one(-2.0, 1.0)],
+        "Standard (20 epochs)": [one(-0.5, 1.0)],
+        "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)],
+    }
+    lines = tr.quick_story(res, "no/such/folder")
+    assert lines[0].startswith(
+        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order"
+    )
+    assert "its ADE is +30 % against Standard's" in lines[1]
+    # mean -0.45: above Standard's -0.5
+    res["DiffStack (20 epochs)"] = [one(-0.4, 1.5), one(-0.5, 1.1)]
+    assert "NOT the paper's order" in tr.quick_story(res, "no/such/folder")[0]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "--quick"),
+        (["--quick", "--seeds", "0"], "--seeds"),
+        (["--experiment", "rl"], "experiments.py"),
+        (["--bench"], "bench.py"),
+        (["--quick", "--threads", "0"], "--threads"),
+        (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
+        (["--pretrain", "--jobs", "0"], "--jobs"),
+        (["--quick", "--set", "no_such_field=1"], "no_such_field"),
+    ],
+)
+def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        tr.main(argv)
+    assert e.value.code != 0 and message in capsys.readouterr().err
+
+
+def test_set_overrides_config_fields_with_their_types():
+    cfg = tr.config_with(
+        ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
+    )
+    assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
+    assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
+    assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
+    assert tr.config_with(ds.Config(), []) == ds.Config()
+    for bad, culprit in (
+        (["nope=1"], "nope"),
+        (["beta"], "beta"),
+        (["ilqr_iters=2.5"], "ilqr_iters"),
+        (["beta=nan"], "beta"),
+        (["u_upper=a,b"], "u_upper"),
+    ):
+        with pytest.raises(ValueError, match=culprit):
+            tr.config_with(ds.Config(), bad)
