@@ -988,10 +988,10 @@ def ilqr(
         x_new, u_new, cost_new, accepted, full_step = line_search(
             cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales
         )
-        take = (moving & accepted)[:, None, None]  # (B, 1, 1): a converged scenario stays
-        x = torch.where(take, x_new, x)
-        u = torch.where(take, u_new, u)
-        cost = torch.where(take[:, 0, 0], cost_new, cost)
+        take = moving & accepted  # (B,): a converged scenario stays where it is
+        x = torch.where(take[:, None, None], x_new, x)
+        u = torch.where(take[:, None, None], u_new, u)
+        cost = torch.where(take, cost_new, cost)
         step_norm = torch.where(moving, full_step, step_norm)
         iters_run = iters_run + moving.long()
         costs.append(cost)

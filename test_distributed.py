@@ -1,4 +1,4 @@
-"""Training on many processes (diffstack.py section 8.1): DistributedDataParallel on 2 CPU processes
+"""Training on many processes (train.py section 3): DistributedDataParallel on 2 CPU processes
 over loopback (gloo) gives the parameters of one process training on the same global batches, in
 float64 within 1e-10.
 
