@@ -16,59 +16,64 @@
 # %% [markdown]
 # # DiffStack, walked through on a CPU
 #
-# Karkus, Ivanovic, Mannor, Pavone, *DiffStack: A Differentiable and Modular Control Stack for Autonomous
-# Vehicles*, CoRL 2022, section by section. Every cell **imports** from [`diffstack.py`](diffstack.py) (the method),
-# [`experiments.py`](experiments.py) (the paper's tables), [`data_synth.py`](data_synth.py) (the data) and
-# [`course.py`](course.py) (this course's checks and helpers): what you read is what the modules run.
+# Karkus, Ivanovic, Mannor, Pavone, *DiffStack: A Differentiable and Modular Control Stack for
+# Autonomous Vehicles*, CoRL 2022, section by section. Every cell **imports** from
+# [`diffstack.py`](diffstack.py) (the method), [`experiments.py`](experiments.py) (the paper's
+# tables), [`data_synth.py`](data_synth.py) (the data) and [`course.py`](course.py) (this course's
+# checks and helpers): what you read is what the modules run.
 #
-# **Learning goals.** After this notebook you can (1) write the planning cost of eq. (3) and see which of its terms
-# a prediction enters; (2) explain why an argmin planner gives no gradient and how the softmax relaxation of eq. (2)
-# gives one, and derive that gradient; (3) run one Riccati step of iLQR and compute the controller's gradient;
-# (4) say when training a predictor *through* the planner helps (Tables 1, 2, 5) and when its numbers mislead (ADE,
-# imitation learning), with the evidence.
+# **Learning goals.** After this notebook you can (1) write the planning cost of eq. (3) and see
+# which of its terms a prediction enters; (2) explain why an argmin planner gives no gradient and
+# how the softmax relaxation of eq. (2) gives one, and derive that gradient; (3) run one Riccati
+# step of iLQR and compute the controller's gradient; (4) say when training a predictor *through*
+# the planner helps (Tables 1, 2, 5) and when its numbers mislead (ADE, imitation learning), with
+# the evidence.
 #
-# **Prerequisites.** PyTorch (tensors, broadcasting, autograd); basic optimal control (LQR, the Riccati recursion);
-# a probabilistic model trained by maximum likelihood. No GPU.
+# **Prerequisites.** PyTorch (tensors, broadcasting, autograd); basic optimal control (LQR, the
+# Riccati recursion); a probabilistic model trained by maximum likelihood. No GPU.
 #
 # | § | what | paper | quick | full |
 # |---|---|---|---|---|
-# | 1 | the problem and the stack: predictor → planner → controller, and the gradient path back | §3, Fig. 2 | < 1 s | < 1 s |
-# | 2 | the data: synthetic nuScenes-like scenarios, and the nuScenes writer and loader | §4.1 | 1 s | 1 s |
+# | 1 | the stack: predictor → planner → controller, gradient path | §3, Fig. 2 | < 1 s | < 1 s |
+# | 2 | the data: synthetic scenarios, nuScenes writer and loader | §4.1 | 1 s | 1 s |
 # | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
-# | 4 | the planner, its relaxed argmin; **exercises 2 and 4** (L_plan, its gradient), a prediction's gradient | eq. (2), §3.1 | 1 s | 2 s |
-# | 5 | the controller: box-constrained iLQR, its KKT backward; **exercises 3, 5** (Riccati step, gradient) | eq. (4), App. C | 7 s | 5 s |
-# | 6 | the predictor: a Trajectron++-style CVAE trained the standard way | eq. (1), §3.1 | 1 s | 12 s |
-# | 7 | end-to-end training: DiffStack against Standard (Table 1), learning curves, where they differ | §4.2 | 6 s | 120 s |
-# | 8 | Tables 2, 4, 3, 5: biased predictor, imitation learning, cost learning, closed loop; dt = 0.1 s | §4.2-4.3, App. A | 14 s | 156 s |
+# | 4 | the relaxed argmin; **exercises 2, 4** (L_plan, its gradient) | eq. (2), §3.1 | 1 s | 2 s |
+# | 5 | iLQR, KKT backward; **exercises 3, 5** (Riccati, gradient) | eq. (4), App. C | 7 s | 5 s |
+# | 6 | the predictor: a Trajectron++-style CVAE trained as usual | eq. (1), §3.1 | 1 s | 12 s |
+# | 7 | end-to-end training: DiffStack against Standard (Table 1) | §4.2 | 6 s | 120 s |
+# | 8 | Tables 2-5: bias, IL, cost learning, closed loop; dt = 0.1 s | §4.2-4.3 | 14 s | 156 s |
 # | | **whole notebook** | | 36 s (under 1 min) | 297 s (5 min) |
 #
-# Times: wall time per section on one torch thread with the data cached (the first run generates it, a few seconds
-# more). Plan 20-40 minutes per exercise, 2.5-4 hours for the whole course.
+# Times: wall time per section on one torch thread with the data cached (the first run generates it,
+# a few seconds more). Plan 20-40 minutes per exercise, 2.5-4 hours for the whole course.
 #
-# **Exercises.** Five functions to fill in (stubs until you do). A check runs each on its own test problems against
-# the module, autograd or a closed form: `PASS`, a stop that says what differs, or *not done* (the notebook goes on).
-# The answers are in [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them); `python course.py
-# tutorial.ipynb` grades a notebook's answers, exercise by exercise.
+# **Exercises.** Five functions to fill in (stubs until you do). A check runs each on its own test
+# problems against the module, autograd or a closed form: `PASS`, a stop that says what differs, or
+# *not done* (the notebook goes on). The answers are in [`solutions.py`](solutions.py)
+# (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them); `python course.py tutorial.ipynb` grades a notebook's
+# answers, exercise by exercise.
 #
-# **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True`, the stored outputs (under a minute), trains
-# 16 steps on small data; `QUICK = False` trains longer (5 minutes). Neither gives the paper's findings: each section
-# quotes the tables of [`results/`](results/) (mean ± standard error over 5 or 10 seeds). Three kinds of check
-# stop the notebook when they fail: `CHECKPOINT`, a value that involves no training, against the one expected;
-# `CHECK`, an ordering that holds on any machine (training moves the last digits); `CLAIM`, a finding over seeds of
-# `results/` against what the text says of it.
+# **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True` (the stored outputs)
+# trains 16 steps on small data, `QUICK = False` longer. Neither gives the paper's findings: each
+# section quotes the tables of [`results/`](results/) (mean ± standard error over 5 or 10 seeds).
+# Three kinds of check stop the notebook when they fail: `CHECKPOINT`, a value that involves no
+# training; `CHECK`, an ordering that holds on any machine (training moves the last digits);
+# `CLAIM`, a finding over seeds of `results/` against what the text says.
 
 # %% tags=["parameters"]
 # Parameters
 import os
 
-QUICK = True     # True: small data, short training (the stored outputs); False: the longer run (times above)
-SEED = 0         # every experiment cell seeds itself from this: re-running one cell reproduces its output
-DEVICE = "cpu"   # the module runs on the CPU (float32 training, float64 gradient checks)
+QUICK = True  # True: small data, short training (the stored outputs); False: the longer run
+SEED = 0  # every experiment cell seeds itself from this: re-running one cell reproduces its output
+DEVICE = "cpu"  # the notebook runs on the CPU (float32 training, float64 gradient checks)
 
 QUICK = os.environ.get("DIFFSTACK_QUICK", str(int(QUICK))) == "1"  # the test suite sets this
-SOLUTIONS = os.environ.get("DIFFSTACK_SOLUTIONS") == "1"  # CI: the exercises use solutions.py's answers
-print(f"QUICK = {QUICK}  ({'quick' if QUICK else 'full'} mode), SEED = {SEED}, DEVICE = {DEVICE!r}, "
-      f"exercises: {'solutions.py injected' if SOLUTIONS else 'your code'}")
+SOLUTIONS = os.environ.get("DIFFSTACK_SOLUTIONS") == "1"  # CI: solutions.py's answers
+print(
+    f"QUICK = {QUICK}  ({'quick' if QUICK else 'full'} mode), SEED = {SEED}, DEVICE = {DEVICE!r}, "
+    f"exercises: {'solutions.py injected' if SOLUTIONS else 'your code'}"
+)
 
 # %%
 import dataclasses
@@ -89,81 +94,91 @@ import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
-from course import check_claim, check_order, checkpoint, first_of, gt_context, rel_err, results_table, section_done
+from course import check_claim, check_order, checkpoint, first_of, gt_context, rel_err
+from course import results_table, section_done
 
-assert DEVICE == "cpu", "diffstack.py is a CPU teaching implementation"
+assert DEVICE == "cpu", "the notebook runs on the CPU (GPUs: experiments.py --device)"
 course.start()  # one torch thread (reproducible numbers), the figures' style, the section clock
 
-N_DATA = 800 if QUICK else 4000           # synthetic planning samples (85 % train, 15 % validation, split by scene)
-TRAIN_STEPS = 16 if QUICK else 100        # optimiser steps per trained predictor
-N_CLOSED_LOOP = 8 if QUICK else 60        # validation scenes simulated in closed loop (Table 5)
+N_DATA = 800 if QUICK else 4000  # planning samples (85 % train, 15 % validation, split by scene)
+TRAIN_STEPS = 16 if QUICK else 100  # optimiser steps per trained predictor
+N_CLOSED_LOOP = 8 if QUICK else 60  # validation scenes simulated in closed loop (Table 5)
 cfg = ds.Config(batch_size=64 if QUICK else 256)
 print(f"{N_DATA} samples, {TRAIN_STEPS} training steps of batch {cfg.batch_size} per method")
 
 # %% [markdown]
 # ## 1. The problem and the stack
 #
-# An autonomous vehicle (the *ego*) drives among agents whose futures it does not know. DiffStack keeps the classic
-# modular stack and makes every module differentiable:
+# An autonomous vehicle (the *ego*) drives among agents whose futures it does not know. DiffStack
+# keeps the classic modular stack and makes every module differentiable:
 #
-# * the **predictor** (a Trajectron++-style CVAE, learned) turns 4 s of history into $K$ weighted futures
-#   $\{\hat s_{k,t}, \pi_k\}$ of a nearby vehicle;
-# * the **planner** scores spline candidates $n = 1..N$ with the cost $C(\cdot;\hat s, \pi)$ of eq. (3) and picks
-#   $\arg\min_n C_n$ (eq. 2);
+# * the **predictor** (a Trajectron++-style CVAE, learned) turns 4 s of history into $K$ weighted
+#   futures $\{\hat s_{k,t}, \pi_k\}$ of a nearby vehicle;
+# * the **planner** scores spline candidates $n = 1..N$ with the cost $C(\cdot;\hat s, \pi)$ of
+#   eq. (3) and picks $\arg\min_n C_n$ (eq. 2);
 # * the **controller** refines the plan with a box-constrained iLQR (eq. 4).
 #
-# Planner and controller are fixed, not learned, but differentiable: the losses downstream of the predictor train it:
+# Planner and controller are fixed, not learned, but differentiable: the losses downstream of the
+# predictor train it:
 #
-# $$\mathcal L \;=\; \alpha_1\,\mathcal L_\text{pred} + \alpha_2\,\mathcal L_\text{plan} + \alpha_3\,\mathcal L_\text{ctr},$$
+# $$\mathcal L \;=\; \alpha_1\,\mathcal L_\text{pred} + \alpha_2\,\mathcal L_\text{plan} +
+# \alpha_3\,\mathcal L_\text{ctr},$$
 #
-# with $\mathcal L_\text{pred}$ the predictor's own (InfoVAE) loss, $\mathcal L_\text{plan} = -\log p_{n^*}$ the
-# cross-entropy of a softmax-relaxed planner with the best candidate in hindsight, and $\mathcal L_\text{ctr}$ the
-# hindsight cost of the controller's trajectory (RL setting; $\alpha = (1, 100, 1000)$) or its squared error to
-# the expert (IL setting; $\alpha = (1, 10, 1000)$). *Standard* training uses $\mathcal L_\text{pred}$ alone.
+# with $\mathcal L_\text{pred}$ the predictor's own (InfoVAE) loss,
+# $\mathcal L_\text{plan} = -\log p_{n^*}$ the cross-entropy of a softmax-relaxed planner with the
+# best candidate in hindsight, and $\mathcal L_\text{ctr}$ the hindsight cost of the controller's
+# trajectory (RL setting; $\alpha = (1, 100, 1000)$) or its squared error to the expert (IL setting;
+# $\alpha = (1, 10, 1000)$). *Standard* training uses $\mathcal L_\text{pred}$ alone.
 
 # %%
-course.figure_stack()  # the modules, the forward data flow (black) and the gradient path of DiffStack (red, dashed)
+course.figure_stack()  # the modules, the data flow (black), DiffStack's gradient path (red, dashed)
 
 # %%
 section_done("§1")
 
-
 # %% [markdown]
-# **Summary of §1.** The gradients of $\mathcal L_\text{plan}$ and $\mathcal L_\text{ctr}$ reach the predictor's weights
-# $\theta$ only through its output, the modes $\hat s_{k,t}$ and their weights $\pi_k$.
+# **Summary of §1.** The gradients of $\mathcal L_\text{plan}$ and $\mathcal L_\text{ctr}$ reach the
+# predictor's weights $\theta$ only through its output, the modes $\hat s_{k,t}$ and their weights
+# $\pi_k$.
 #
 # **For discussion.**
 #
-# 1. With $\alpha_1 = 0$ nothing ties the predictions to the agent's true future. What would you expect them to
-#    become? (Check your guess against the row *DiffStack (no L_pred)* in §7's 10-seed table.)
+# 1. With $\alpha_1 = 0$ nothing ties the predictions to the agent's true future. What would you
+#    expect them to become? (Check your guess against the row *DiffStack (no L_pred)* in §7's
+#    10-seed table.)
 # 2. Why keep separate modules at all, rather than one network from history to controls trained on
 #    $\mathcal L_\text{ctr}$?
 
 # %% [markdown]
 # ## 2. The data: synthetic scenarios, and the nuScenes format
 #
-# The paper trains on nuScenes *planning samples*: at a time $t_0$, 4 s of history (9 states at 2 Hz) and 3 s of
-# future (6 steps) of the ego, of one **predicted vehicle** (the moving vehicle that comes closest to the ego) and
-# of the other agents, plus the lanes and a **goal** $g$ = the ego's ground-truth (GT) state at $T$, all in the ego
-# frame at $t_0$. nuScenes needs a licence and a download, so `data_synth.py` generates nuScenes-like scenes whose
-# predicted vehicle's manoeuvres come in *pairs* that share a set-up (cut in / keep lane, brake / cruise, turn across
-# / go straight, ...): its history only partly tells which will happen. The expert ego reacts to the true future.
+# The paper trains on nuScenes *planning samples*: at a time $t_0$, 4 s of history (9 states at
+# 2 Hz) and 3 s of future (6 steps) of the ego, of one **predicted vehicle** (the moving vehicle
+# that comes closest to the ego) and of the other agents, plus the lanes and a **goal** $g$ = the
+# ego's ground-truth (GT) state at $T$, all in the ego frame at $t_0$. nuScenes needs a licence and
+# a download, so `data_synth.py` generates nuScenes-like scenes whose predicted vehicle's manoeuvres
+# come in *pairs* that share a set-up (cut in / keep lane, brake / cruise, turn across / go
+# straight, ...): its history only partly tells which will happen. The expert ego reacts to the true
+# future.
 
 # %%
 # Data: generated once (a few seconds), then read from data_cache/.
 t0 = time.time()
 data = data_synth.load_or_generate(N_DATA, seed=SEED, cache_dir="data_cache")
 EPOCHS = TRAIN_STEPS / max(1, len(data.train) // cfg.batch_size)  # train_stack counts in epochs
-print(f"{len(data.train)} training and {len(data.val)} validation samples from {len(data.val_scenes)} validation "
-      f"scenes ({time.time() - t0:.1f}s); {TRAIN_STEPS} steps = {EPOCHS:.2f} epochs")
-b = data.val
-print("shapes: ego_hist", tuple(b.ego_hist.shape), " agent_fut", tuple(b.agent_fut.shape), " others_fut",
-      tuple(b.others_fut.shape), " lanes", tuple(b.lanes.shape), " goal", tuple(b.goal.shape))
+print(
+    f"{len(data.train)} training and {len(data.val)} validation samples from "
+    f"{len(data.val_scenes)} validation scenes ({time.time() - t0:.1f}s); {TRAIN_STEPS} steps = "
+    f"{EPOCHS:.2f} epochs"
+)
+fields = ("ego_hist", "agent_fut", "others_fut", "lanes", "goal")
+print("shapes:", ", ".join(f"{k} {tuple(getattr(data.val, k).shape)}" for k in fields))
 print(data_synth.format_statistics(data_synth.statistics(data.val)))
 
 # %%
-# One validation sample of each pair of behaviours: ego blue (GT future dashed, goal = star), predicted vehicle
-# orange, other vehicles grey, pedestrians green; dotted = history, solid = GT future.
+# One validation sample of each pair of behaviours: ego blue (GT future dashed, goal = star),
+# predicted vehicle orange, other vehicles grey, pedestrians green; dotted = history, solid = GT
+# future.
 show = ["cut_in", "keep_lane", "lead_brake", "turn_across", "cross_go", "cross_yield"]
 fig, axes = plt.subplots(2, 3, figsize=(12, 5.2))
 for ax, name in zip(axes.flat, show):
@@ -173,8 +188,9 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# **The same scenes through the nuScenes format.** `write_nuscenes` writes a nuScenes v1.0 folder; `load_nuscenes`
-# reads any v1.0 folder (this one or the real v1.0-mini) back, so the same code reads real nuScenes.
+# **The same scenes through the nuScenes format.** `write_nuscenes` writes a nuScenes v1.0 folder;
+# `load_nuscenes` reads any v1.0 folder (this one or the real v1.0-mini) back, so the same code
+# reads real nuScenes.
 
 # %%
 scenes = data.val_scenes[:4]
@@ -187,183 +203,220 @@ print("loader report:", report)
 frame = (scenes.event_frame - 2).clamp(8, 34)  # a frame per scene, just before the manoeuvre
 a = data_synth.sample_at(scenes, frame, dtype=torch.float64)
 b = data_synth.sample_at(loaded, frame, dtype=torch.float64)
-diff = max((getattr(a, k) - getattr(b, k)).abs().max().item() for k in ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal"))
-checkpoint("max |written-and-read - original| over ego/agent states and goals (m)", diff, 0.0, 1e-9)
+compared = ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal")
+diff = max((getattr(a, k) - getattr(b, k)).abs().max().item() for k in compared)
+checkpoint("max |written-and-read - original| over ego/agent states, goals (m)", diff, 0.0, 1e-9)
 
 # %%
 section_done("§2")
 
-
 # %% [markdown]
 # **For discussion (§2).**
 #
-# 1. Why does it matter for this paper that *cut_in* and *keep_lane* start from the same set-up? What would a
-#    predictor learn if they did not?
-# 2. The statistics table lists, per behaviour, how often the predicted vehicle would hit an ego that kept its speed.
-#    For which behaviours can a prediction error change the best plan at all?
+# 1. Why does it matter for this paper that *cut_in* and *keep_lane* start from the same set-up?
+#    What would a predictor learn if they did not?
+# 2. The statistics table lists, per behaviour, how often the predicted vehicle would hit an ego
+#    that kept its speed. For which behaviours can a prediction error change the best plan at all?
 
 # %% [markdown]
 # ## 3. Dynamics and cost
 #
-# **Dynamics.** Every vehicle — the ego in the planner and controller, the predicted vehicle in the predictor —
-# is a dynamically-extended unicycle, state $s = (x, y, h, v)$, control $u = (\omega, a)$, integrated exactly for
-# constant controls over $\Delta t = 0.5$ s:
+# **Dynamics.** Every vehicle — the ego in the planner and controller, the predicted vehicle in the
+# predictor — is a dynamically-extended unicycle, state $s = (x, y, h, v)$, control
+# $u = (\omega, a)$, integrated exactly for constant controls over $\Delta t = 0.5$ s:
 #
 # $$h' = h + \omega\Delta t,\quad v' = v + a\Delta t,\quad
 # x' = x + \frac{v'\sin h' - v\sin h}{\omega} + \frac{a(\cos h' - \cos h)}{\omega^2},\quad
 # y' = y - \frac{v'\cos h' - v\cos h}{\omega} + \frac{a(\sin h' - \sin h)}{\omega^2}.$$
 #
-# (`unicycle_step` uses a series near $\omega = 0$; `unicycle_jacobians` gives $\partial f/\partial s$,
-# $\partial f/\partial u$ in closed form for the controller.)
+# (`unicycle_step` uses a series near $\omega = 0$; `unicycle_jacobians` gives
+# $\partial f/\partial s$, $\partial f/\partial u$ in closed form for the controller.)
 
 # %%
-# Figure: what one control pair does over 3 s. From (0, 0, heading 0, 8 m/s), nine constant yaw rates (colour)
-# and three constant accelerations (line style): braking shortens the arc, the yaw rate bends it.
+# Figure: what one control pair does over 3 s. From (0, 0, heading 0, 8 m/s), nine constant yaw
+# rates (colour) and three constant accelerations (line style): braking shortens the arc, the yaw
+# rate bends it.
 w = torch.linspace(-0.7, 0.7, 9, dtype=torch.float64)
+s_start = torch.tensor([0.0, 0.0, 0.0, 8.0], dtype=torch.float64).expand(9, 4)
 fig, ax = plt.subplots(figsize=(9, 4.2), layout="constrained")
 for a_, style in ((-3.0, ":"), (0.0, "-"), (2.0, "--")):
     u = torch.stack([w, torch.full_like(w, a_)], -1)[:, None].expand(9, 6, 2)  # (9, T, 2)
-    x = ds.unicycle_rollout(torch.tensor([0.0, 0.0, 0.0, 8.0], dtype=torch.float64).expand(9, 4), u, 0.5)  # (9, T+1, 4)
+    x = ds.unicycle_rollout(s_start, u, 0.5)  # (9, T+1, 4)
     for k in range(9):
-        ax.plot(x[k, :, 0], x[k, :, 1], style, color=plt.cm.coolwarm(k / 8), lw=1.6, marker=".", ms=4)
-    ax.plot([], [], style, color="k", lw=1.6, label=f"a = {a_:+.0f} m/s²")  # the legend's line style, in black
+        ax.plot(*x[k, :, :2].T, style, color=plt.cm.coolwarm(k / 8), lw=1.6, marker=".", ms=4)
+    ax.plot([], [], style, color="k", lw=1.6, label=f"a = {a_:+.0f} m/s²")  # the legend's, in black
 ax.plot(0, 0, "ks", ms=6, label="start, 8 m/s")
 ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
 ax.grid(alpha=0.3)
 ax.legend(loc="upper left", bbox_to_anchor=(1.17, 1.0), title="acceleration (line style)")
-fig.colorbar(plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-0.7, 0.7)), ax=ax, label="yaw rate ω (rad/s)")
+yaw_rates = plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-0.7, 0.7))
+fig.colorbar(yaw_rates, ax=ax, label="yaw rate ω (rad/s)")
 ax.set_title("Unicycle rollouts over 3 s (dots every 0.5 s)")
 plt.show()
 s, u = torch.randn(5, 4, dtype=torch.float64), torch.randn(5, 2, dtype=torch.float64) * 0.3
 A, B = ds.unicycle_jacobians(s, u, 0.5)
-J = torch.func.vmap(torch.func.jacrev(lambda s, u: ds.unicycle_step(s, u, 0.5), argnums=(0, 1)))(s, u)
-checkpoint("max |closed-form Jacobians - autograd|", max((A - J[0]).abs().max().item(), (B - J[1]).abs().max().item()),
-           0.0, 1e-12)
+J = torch.func.vmap(torch.func.jacrev(ds.unicycle_step, argnums=(0, 1)), (0, 0, None))(s, u, 0.5)
+err = max((A - J[0]).abs().max().item(), (B - J[1]).abs().max().item())
+checkpoint("max |closed-form Jacobians - autograd|", err, 0.0, 1e-12)
 
 
 # %% [markdown]
-# **Cost, eq. (3).** The planner and the controller minimise the same cost, five terms over the steps $t = 1..T$:
+# **Cost, eq. (3).** The planner and the controller minimise the same cost, five terms over the
+# steps $t = 1..T$:
 #
-# $$C = w_1 C_\text{coll} + w_2 C_\text{goal} + w_3 C_\text{lat} + w_4 C_\text{head} + w_5 C_u,\qquad w = (5, 0.5, 0.3, 0.3, 1),$$
+# $$C = w_1 C_\text{coll} + w_2 C_\text{goal} + w_3 C_\text{lat} + w_4 C_\text{head} + w_5 C_u,
+# \qquad w = (5, 0.5, 0.3, 0.3, 1),$$
 #
 # $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) +
-# \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
+# \sum_{a}\sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad
+# \phi(d^2) = e^{-d^2 / 2\sigma^2},\ \sigma^2 = 2\,\text{m}^2,$$
 #
-# $$C_\text{goal} = \lVert s_T - g\rVert^2,\quad C_\text{lat} = \sum_t \lVert s_t - s_{\ell,\perp}\rVert^2,\quad
-# C_\text{head} = \sum_t \operatorname{wrap}(h_t - h_\ell)^2,\quad C_u = \sum_t \omega_t^2 + a_t^2 .$$
+# $$C_\text{goal} = \lVert s_T - g\rVert^2,\quad
+# C_\text{lat} = \sum_t \lVert s_t - s_{\ell,\perp}\rVert^2,\quad
+# C_\text{head} = \sum_t \operatorname{wrap}(h_t - h_\ell)^2,\quad
+# C_u = \sum_t \omega_t^2 + a_t^2 .$$
 #
-# The predicted vehicle enters through its $K$ modes $\hat s_{k,t}$ and weights $\pi_k$, the other agents through
-# their GT futures ($a$), the lanes through the closest lane point $s_{\ell,\perp}$ and its heading $h_\ell$.
-# The figure below shows one step of the cost (1.5 s ahead, GT future as the prediction) over the ego's position in
-# a cut-in: a bump around each vehicle, a bowl around the goal, valleys along the lanes, and their weighted sum.
+# The predicted vehicle enters through its $K$ modes $\hat s_{k,t}$ and weights $\pi_k$, the other
+# agents through their GT futures ($a$), the lanes through the closest lane point $s_{\ell,\perp}$
+# and its heading $h_\ell$. The figure below shows one step of the cost (1.5 s ahead, GT future as
+# the prediction) over the ego's position in a cut-in: a bump around each vehicle, a bowl around the
+# goal, valleys along the lanes, and their weighted sum.
 
 # %%
 ex = data.val[torch.tensor([first_of(data.val, "cut_in")])]  # a cut-in
 ctx = gt_context(ex)  # course.gt_context: the GT future as a one-mode prediction (the oracle)
-gx, gy = torch.meshgrid(torch.linspace(-10, 45, 111), torch.linspace(-12, 12, 49), indexing="xy")  # (49, 111)
-pos = torch.stack([gx, gy], -1).reshape(1, -1, 1, 2)  # (B=1, G, T=1, 2): one step at every grid point
-t = 2                                                   # the step t = 3 (index 2 of t1..T)
-ctx_t = dataclasses.replace(ctx, preds=ctx.preds[:, :, t:t + 1], others=ctx.others[:, :, t:t + 1])
+gx, gy = torch.meshgrid(torch.linspace(-10, 45, 111), torch.linspace(-12, 12, 49), indexing="xy")
+pos = torch.stack([gx, gy], -1).reshape(1, -1, 1, 2)  # (B=1, G, T=1, 2): a step per grid point
+step = slice(2, 3)  # the step t = 3 (index 2 of t1..T)
+ctx_t = dataclasses.replace(ctx, preds=ctx.preds[:, :, step], others=ctx.others[:, :, step])
 w_hand = ds.cost_weights(cfg)
 c_coll = ds.collision_term(pos, ctx_t, cfg.rbf_var)[0]
-c_goal = ((pos[0, :, 0] - ctx.goal) ** 2).sum(-1)
-d2, herr, _ = ds.project_to_lanes(pos[:, :, 0], torch.zeros(1, pos.shape[1]), ex.lanes, ex.lanes_mask)
-terms = {r"$C_{coll}$ at t = 1.5 s (GT future as prediction)": c_coll, r"$C_{goal}$": c_goal,
-         r"$C_{lat}$ (distance² to the nearest lane)": d2[0],
-         r"weighted sum $w_1 C_{coll} + w_2 C_{goal} + w_3 C_{lat} + w_4 C_{head}$": w_hand[0] * c_coll + w_hand[1] * c_goal
-         + w_hand[2] * d2[0] + w_hand[3] * herr[0] ** 2}
-print(f"C_head over the grid (heading 0): {(herr ** 2).min():.2g} .. {(herr ** 2).max():.2g}; C_lat: {d2.min():.2g} .. "
-      f"{d2.max():.3g}: the heading term is nearly flat here, so it has no panel of its own (it is in the sum)")
+flat = pos[:, :, 0]  # (1, G, 2)
+c_goal = ((flat[0] - ctx.goal) ** 2).sum(-1)
+d2, herr, _ = ds.project_to_lanes(flat, torch.zeros(flat.shape[:2]), ex.lanes, ex.lanes_mask)
+c_sum = w_hand[0] * c_coll + w_hand[1] * c_goal + w_hand[2] * d2[0] + w_hand[3] * herr[0] ** 2
+terms = {
+    r"$C_{coll}$ at t = 1.5 s (GT future as prediction)": c_coll,
+    r"$C_{goal}$": c_goal,
+    r"$C_{lat}$ (distance² to the nearest lane)": d2[0],
+    r"weighted sum $w_1 C_{coll} + w_2 C_{goal} + w_3 C_{lat} + w_4 C_{head}$": c_sum,
+}
+print(
+    f"C_head over the grid (heading 0): {(herr**2).min():.2g} .. {(herr**2).max():.2g}; C_lat: "
+    f"{d2.min():.2g} .. {d2.max():.3g}: C_head is nearly flat here, so it has no panel of its "
+    "own (it is in the sum)"
+)
 fig, axes = plt.subplots(2, 2, figsize=(12, 6), layout="constrained")
 for ax, (name, val) in zip(axes.flat, terms.items()):
-    im = ax.pcolormesh(gx, gy, val.reshape(gx.shape), shading="auto", cmap="magma_r", zorder=0,
-                       vmax=val.quantile(0.95).item() if "coll" not in name else None)
+    vmax = None if "coll" in name else val.quantile(0.95).item()
+    im = ax.pcolormesh(
+        gx, gy, val.reshape(gx.shape), shading="auto", cmap="magma_r", zorder=0, vmax=vmax
+    )
     data_synth.plot_scenario(ax, ex, 0, title=name, extent=(-10, 45, -12, 12))
     fig.colorbar(im, ax=ax, shrink=0.9)
-fig.suptitle("One step of the cost over the ego's position (cut-in; ego blue, predicted vehicle orange, goal star)")
+fig.suptitle(
+    "One step of the cost over the ego's position (cut-in; ego blue, predicted vehicle orange)"
+)
 plt.show()
 
 
 # %% [markdown]
 # ### Exercise 1: the collision term
 #
-# Write `my_collision(pos, ctx, rbf_var)`: for ego positions `pos` (B, N, T, 2) ($N$ trajectories per scenario),
-# return (B, N) with
+# Write `my_collision(pos, ctx, rbf_var)`: for ego positions `pos` (B, N, T, 2) ($N$ trajectories
+# per scenario), return (B, N) with
 #
-# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) \cdot m_\text{pred}
-# + \sum_a m_a \sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad \phi(d^2) = e^{-d^2/(2\,\text{rbf\_var})},$$
+# $$C_\text{coll} = \sum_t \phi\Big(\sum_k \pi_k \lVert s_t - \hat s_{k,t}\rVert^2\Big) \cdot
+# m_\text{pred} + \sum_a m_a \sum_t \phi\big(\lVert s_t - s_{a,t}\rVert^2\big),\qquad
+# \phi(d^2) = e^{-d^2/(2\,\text{rbf\_var})},$$
 #
-# where `ctx.preds` (B, K, T, 2), `ctx.probs` (B, K), `ctx.pred_mask` (B,), `ctx.others` (B, A, T, 2),
-# `ctx.others_mask` (B, A). Compute the expectation over modes directly (the module uses an equivalent
-# mean + spread form: can you see why it is equal?).
+# where `ctx.preds` (B, K, T, 2), `ctx.probs` (B, K), `ctx.pred_mask` (B,), `ctx.others` (B, A, T,
+# 2), `ctx.others_mask` (B, A). Compute the expectation over modes directly (the module uses an
+# equivalent mean + spread form: can you see why it is equal?).
+
 
 # %%
 # Exercise 1: your code here.
 def my_collision(pos, ctx, rbf_var):
-    """pos (B, N, T, 2), ctx a ds.CostContext -> C_coll (B, N). Mind ctx.pred_mask and ctx.others_mask."""
+    """pos (B, N, T, 2), ctx a ds.CostContext -> C_coll (B, N). Mind pred_mask and others_mask."""
     raise NotImplementedError("exercise 1: write my_collision")
+
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_collision
 
 # %%
-# Check exercise 1 against ds.collision_term (multi-mode predictions, masked vehicles, two widths rbf_var).
+# Check exercise 1 against ds.collision_term (multi-mode predictions, masked vehicles, two rbf_var).
 course.exercise(1, course.check_collision, my_collision)
 
 # %%
 section_done("§3")
 
-
 # %% [markdown]
-# **Summary of §3.** The prediction enters only the collision term, through the $\pi$-weighted squared distance,
-# the squared distance to the modes' mean plus their spread: the planner sees only their mean and spread per step.
+# **Summary of §3.** The prediction enters only the collision term, through the $\pi$-weighted
+# squared distance, the squared distance to the modes' mean plus their spread: the planner sees only
+# their mean and spread per step.
 #
 # **For discussion.**
 #
-# 1. What information in a 25-mode prediction does the planner throw away by seeing only its mean and spread? Sketch
-#    two predictions that differ a lot but give the same cost.
-# 2. $\phi$ has width $\sigma^2 = 2$ m². How large is $\partial C_\text{coll}/\partial\hat s$ when the predicted vehicle is
-#    10 m from every candidate, and what does that mean for which prediction errors DiffStack can learn to fix?
+# 1. What information in a 25-mode prediction does the planner throw away by seeing only its mean
+#    and spread? Sketch two predictions that differ a lot but give the same cost.
+# 2. $\phi$ has width $\sigma^2 = 2$ m². How large is $\partial C_\text{coll}/\partial\hat s$ when
+#    the predicted vehicle is 10 m from every candidate, and what does that mean for which
+#    prediction errors DiffStack can learn to fix?
 
 # %% [markdown]
 # ## 4. The planner: candidates, argmin and its relaxation
 #
-# For each of up to two *goal lanes*, 8 terminal accelerations × 3 lateral offsets give 24 cubic-spline candidates
-# (infeasible ones dropped). The plan is the cheapest candidate, eq. (2):
+# For each of up to two *goal lanes*, 8 terminal accelerations × 3 lateral offsets give 24
+# cubic-spline candidates (infeasible ones dropped). The plan is the cheapest candidate, eq. (2):
 #
 # $$n_\text{plan} = \arg\min_n C(s^{(n)}, u^{(n)};\ \hat s, \pi).$$
 #
-# An argmin has no useful gradient, so for training it is relaxed into a softmax, with the cross-entropy to the target
-# candidate $n^*$ as loss (RL: lowest *hindsight* cost, i.e. with the GT future as prediction; IL: closest to the expert):
+# An argmin has no useful gradient, so for training it is relaxed into a softmax, with the
+# cross-entropy to the target candidate $n^*$ as loss (RL: lowest *hindsight* cost, i.e. with the GT
+# future as prediction; IL: closest to the expert):
 #
-# $$p_n = \frac{\exp(-\beta C_n)}{\sum_{n'} \exp(-\beta C_{n'})},\qquad \mathcal L_\text{plan} = -\log p_{n^*}.$$
+# $$p_n = \frac{\exp(-\beta C_n)}{\sum_{n'} \exp(-\beta C_{n'})},\qquad
+# \mathcal L_\text{plan} = -\log p_{n^*}.$$
 #
-# $\beta$ (1 in the paper) sets how sharp it is: as $\beta \to \infty$ the argmin ($\mathcal L_\text{plan}$ 0 or
-# huge), as $\beta \to 0$ uniform (no signal). The figures: the candidates under three $\beta$ (GT prediction), and
-# what ignoring the vehicle adds to the mean $\mathcal L_\text{plan}$, over $\beta$: the signal a prediction gets.
+# $\beta$ (1 in the paper) sets how sharp it is: as $\beta \to \infty$ the argmin
+# ($\mathcal L_\text{plan}$ 0 or huge), as $\beta \to 0$ uniform (no signal). The figures: the
+# candidates under three $\beta$ (GT prediction), and what ignoring the vehicle adds to the mean
+# $\mathcal L_\text{plan}$, over $\beta$: the signal a prediction gets.
 
 # %%
-# Figure: candidates coloured by p_n (one log scale), the plan (argmin) black dashed, axes zoomed on the candidates.
+# Figure: candidates coloured by p_n (one log scale), the plan (argmin) black dashed, zoomed in.
 cands, cost, best, plannable, _ = ds.plan(ex.ego_hist[:, -1], ctx, ex.goal, w_hand, cfg)
-print(f"N = {cands.x.shape[1]} candidates, {int(cands.valid.sum())} valid; plan = candidate {int(best)}, "
-      f"cost {cost[0, best].item():.2f} (costs of valid ones: {cost[cands.valid].min():.2f} .. {cost[cands.valid].max():.2f})")
+valid_cost = cost[cands.valid]
+print(
+    f"N = {cands.x.shape[1]} candidates, {int(cands.valid.sum())} valid; plan = candidate "
+    f"{int(best)}, cost {cost[0, best].item():.2f} (valid ones: {valid_cost.min():.2f} .. "
+    f"{valid_cost.max():.2f})"
+)
 course.figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0))
 
 # %%
-# What ignoring the vehicle adds to L_plan over β (validation set; target n* = the argmin with the GT prediction).
+# What ignoring the vehicle adds to L_plan over β (validation set; n* = argmin with the GT future).
 val = data.val
 ctx_gt = gt_context(val)
 ctx_none = dataclasses.replace(ctx_gt, pred_mask=torch.zeros(len(val)))
 cands, cost_gt, _, plannable, _ = ds.plan(val.ego_hist[:, -1], ctx_gt, val.goal, w_hand, cfg)
 cost_none = ds.total_cost(cands.x, cands.u, ctx_none, w_hand, cfg.rbf_var)
 target = ds.masked_argmin(cost_gt, cands.valid)  # n* = lowest hindsight cost
-betas = torch.logspace(-2, 2, 17)
+betas = torch.logspace(-2, 2, 17).tolist()
+extra = []  # the mean L_plan (no prediction) - L_plan (GT) over the plannable samples, at each β
+for beta in betas:
+    l_none, l_gt = (
+        ds.plan_loss(c, cands.valid, target, beta)[plannable] for c in (cost_none, cost_gt)
+    )
+    extra.append((l_none - l_gt).mean().item())
 fig, ax = plt.subplots(figsize=(7.5, 3.4), layout="constrained")
-mean_l = lambda c_, b: ds.plan_loss(c_, cands.valid, target, b)[plannable].mean().item()  # noqa: E731
-ax.plot(betas, [mean_l(cost_none, b.item()) - mean_l(cost_gt, b.item()) for b in betas], "o-", ms=3, color="tab:red")
-ax.set(xscale="log", yscale="log", xlabel="β", ylabel="L_plan(no prediction) − L_plan(GT) (nats)",
-       title=f"Ignoring the vehicle costs L_plan more as β grows ({int(plannable.sum())} plannable samples)")
-ax.legend(handles=[ax.axvline(cfg.beta, color="0.6", ls=":", label=f"β = {cfg.beta} (the paper's)")], loc="upper left")
+ax.plot(betas, extra, "o-", ms=3, color="tab:red")
+ax.set(xscale="log", yscale="log", xlabel="β", ylabel="L_plan(no prediction) − L_plan(GT) (nats)")
+ax.set_title(f"Ignoring the vehicle costs L_plan more as β grows ({int(plannable.sum())} samples)")
+ax.axvline(cfg.beta, color="0.6", ls=":", label=f"β = {cfg.beta} (the paper's)")
+ax.legend(loc="upper left")
 ax.grid(alpha=0.3, which="both")
 plt.show()
 
@@ -371,37 +424,43 @@ plt.show()
 # %% [markdown]
 # ### Exercise 2: the relaxed planner's loss
 #
-# Write `my_plan_loss(cost, valid, target, beta)`: `cost` (B, N) candidate costs, `valid` (B, N) bool, `target`
-# (B,) the index $n^*$; return (B,) $-\log p_{n^*}$ with $p$ the softmax of $-\beta C$ over the **valid**
-# candidates only. Mind numerical stability (costs can be in the thousands).
+# Write `my_plan_loss(cost, valid, target, beta)`: `cost` (B, N) candidate costs, `valid` (B, N)
+# bool, `target` (B,) the index $n^*$; return (B,) $-\log p_{n^*}$ with $p$ the softmax of
+# $-\beta C$ over the **valid** candidates only. Mind numerical stability (costs can be in the
+# thousands).
+
 
 # %%
 # Exercise 2: your code here.
 def my_plan_loss(cost, valid, target, beta):
-    """cost (B, N), valid (B, N) bool, target (B,) long, beta float -> L_plan (B,), differentiable in cost."""
+    """cost (B, N), valid (B, N) bool, target (B,) long, beta float -> differentiable L_plan (B,)"""
     raise NotImplementedError("exercise 2: write my_plan_loss")
+
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_plan_loss
 
 # %%
-# Check exercise 2: values and gradients against ds.plan_loss, three β, costs near 2000, invalid candidates
-# cheaper than the valid ones (a softmax that ignores the mask is caught).
+# Check exercise 2: values and gradients against ds.plan_loss, three β, costs near 2000, invalid
+# candidates cheaper than the valid ones (a softmax that ignores the mask is caught).
 course.exercise(2, course.check_plan_loss, my_plan_loss)
 
 # %% [markdown]
 # ### Exercise 4: the gradient through the relaxed argmin
 #
-# This is the step that lets a planning loss train a predictor. Derive $\partial\mathcal L_\text{plan}/\partial C_n$
-# on paper first (hint: $-\log p_{n^*} = \beta C_{n^*} + \log\sum_{n'\,\text{valid}} e^{-\beta C_{n'}}$), then code
-# it: `my_plan_loss_grad(cost, valid, target, beta)` returns (B, N), zero on invalid candidates. Then ask: when is the
-# gradient large, and what is its sum over $n$?
+# This is the step that lets a planning loss train a predictor. Derive
+# $\partial\mathcal L_\text{plan}/\partial C_n$ on paper first (hint: $-\log p_{n^*} = \beta C_{n^*}
+# + \log\sum_{n'\,\text{valid}} e^{-\beta C_{n'}}$), then code it: `my_plan_loss_grad(cost, valid,
+# target, beta)` returns (B, N), zero on invalid candidates. Then ask: when is the gradient large,
+# and what is its sum over $n$?
+
 
 # %%
 # Exercise 4: your code here (closed form, no autograd).
 def my_plan_loss_grad(cost, valid, target, beta):
     """cost (B, N), valid (B, N) bool, target (B,) long, beta float -> dL_plan/dC (B, N)."""
     raise NotImplementedError("exercise 4: write my_plan_loss_grad")
+
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_plan_loss_grad
@@ -411,181 +470,242 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 ex4_done = course.exercise(4, course.check_plan_grad, my_plan_loss_grad)
 
 # %% [markdown]
-# **From the costs to the prediction (§3.1).** By the chain rule, $\partial\mathcal L_\text{plan}/\partial
-# \hat s_t = \sum_n (\partial\mathcal L_\text{plan}/\partial C_n)\,\partial C_n/\partial\hat s_t$, and $C_n$ depends on $\hat s$
-# only through $C_\text{coll}$ (the other terms depend on the scene alone: `tr.scene_plans` computes them once).
-# Below, a constant-velocity prediction (one mode) on the validation set; the red arrows are
-# $-\partial\mathcal L_\text{plan}/\partial\hat s_t$ at one scale. **The planner asks a prediction to change only
-# where the change would change its choice**: where the vehicle is within a few metres of the candidates ($\phi$ is
-# 2 m wide). A *far* vehicle's prediction may be just as wrong, but its gradient is zero to the printed digits;
-# Standard training weighs every error alike.
+# **From the costs to the prediction (§3.1).** By the chain rule, $\partial\mathcal
+# L_\text{plan}/\partial \hat s_t = \sum_n (\partial\mathcal L_\text{plan}/\partial C_n)\,\partial
+# C_n/\partial\hat s_t$, and $C_n$ depends on $\hat s$ only through $C_\text{coll}$ (the other terms
+# depend on the scene alone: `tr.scene_plans` computes them once). Below, a constant-velocity
+# prediction (one mode) on the validation set; the red arrows are
+# $-\partial\mathcal L_\text{plan}/\partial\hat s_t$ at one scale. **The planner asks a prediction
+# to change only where the change would change its choice**: where the vehicle is within a few
+# metres of the candidates ($\phi$ is 2 m wide). A *far* vehicle's prediction may be just as wrong,
+# but its gradient is zero to the printed digits; Standard training weighs every error alike.
 
 # %%
-# -dL_plan/d(prediction) for a constant-velocity prediction, on every validation sample at once; by behaviour, the
-# largest gradient over a sample's predicted steps (median and max over the samples of that behaviour).
+# -dL_plan/d(prediction) for a constant-velocity prediction, on every validation sample at once; by
+# behaviour, the largest gradient over a sample's predicted steps (median and max over the samples
+# of that behaviour).
 bg = data.val
 preds_cv = tr.constant_velocity(bg, cfg)[:, None].clone().requires_grad_()  # (B, K=1, T, 2)
 ctx_cv = dataclasses.replace(gt_context(bg), preds=preds_cv)
 cands_g, cost_g, best_g, ok_g, _ = ds.plan(bg.ego_hist[:, -1], ctx_cv, bg.goal, w_hand, cfg)
-target_g = ds.masked_argmin(ds.total_cost(cands_g.x, cands_g.u, gt_context(bg), w_hand, cfg.rbf_var), cands_g.valid)
-l_plan_g = torch.where(ok_g, ds.plan_loss(cost_g, cands_g.valid | ~ok_g[:, None], target_g, cfg.beta), 0.0)  # (B,)
+hindsight_g = ds.total_cost(cands_g.x, cands_g.u, gt_context(bg), w_hand, cfg.rbf_var)
+target_g = ds.masked_argmin(hindsight_g, cands_g.valid)
+valid_g = cands_g.valid | ~ok_g[:, None]
+l_plan_g = torch.where(ok_g, ds.plan_loss(cost_g, valid_g, target_g, cfg.beta), 0.0)  # (B,)
 (grad_g,) = torch.autograd.grad(l_plan_g.sum(), preds_cv, retain_graph=True)  # (B, 1, T, 2)
-if ex4_done:  # the chain rule with your dL/dC: a vector-Jacobian product through the candidate costs
-    dL_dC = torch.where(ok_g[:, None], my_plan_loss_grad(cost_g.detach(), cands_g.valid | ~ok_g[:, None], target_g, cfg.beta), 0.0)
+if ex4_done:  # the chain rule with your dL/dC: a vector-Jacobian product through the costs
+    dL_dC = torch.where(
+        ok_g[:, None], my_plan_loss_grad(cost_g.detach(), valid_g, target_g, cfg.beta), 0
+    )
     (grad_chain,) = torch.autograd.grad(cost_g, preds_cv, grad_outputs=dL_dC)
-    print(f"chain rule with your dL/dC vs autograd end to end: max difference {(grad_chain - grad_g).abs().max():.1e}")
+    err = (grad_chain - grad_g).abs().max()
+    print(f"chain rule with your dL/dC vs autograd end to end: max difference {err:.1e}")
 gmax = grad_g[:, 0].norm(dim=-1).max(-1).values  # (B,) the largest |dL_plan/dŝ_t| of each sample
-rows = course.behaviour_rows(bg.behaviour, ok_g, lambda sel: [f"{gmax[sel].median():.1e}", f"{gmax[sel].max():.1e}",
-                                                              f"{(best_g[sel] != target_g[sel]).float().mean():.0%}"])
-display(Markdown(tr.markdown_table(["behaviour", "samples", "median of max |dL_plan/dŝ_t| (1/m)", "largest",
-                                    "plan ≠ target n*"], rows)))
+wrong = (best_g != target_g).float()
+rows = course.behaviour_rows(
+    bg.behaviour,
+    ok_g,
+    lambda sel: [f"{gmax[sel].median():.1e}", f"{gmax[sel].max():.1e}", f"{wrong[sel].mean():.0%}"],
+)
+head = ["behaviour", "samples", "median of max |dL_plan/dŝ_t| (1/m)", "largest", "plan ≠ target n*"]
+display(Markdown(tr.markdown_table(head, rows)))
 
 # %%
-# Figure: the two samples with the largest gradient, and a "far" vehicle, one arrow scale for all three panels.
-show_g = [*torch.argsort(torch.where(ok_g, gmax, -1.0), descending=True)[:2].tolist(), first_of(bg, "far", ok_g)]
+# Figure: the two samples with the largest gradient, and a "far" vehicle; one arrow scale for all.
+top2 = torch.argsort(torch.where(ok_g, gmax, -1.0), descending=True)[:2].tolist()
+show_g = [*top2, first_of(bg, "far", ok_g)]
 course.figure_plan_gradient(bg, show_g, preds_cv, grad_g, cands_g, best_g, target_g, l_plan_g, gmax)
 
 # %%
 section_done("§4")
 
-
 # %% [markdown]
-# **Summary of §4.** The gradient of $\mathcal L_\text{plan}$ with respect to the candidate costs (exercise 4),
-# chained through $C_\text{coll}$, moves a prediction only where the move changes which candidate is preferred.
+# **Summary of §4.** The gradient of $\mathcal L_\text{plan}$ with respect to the candidate costs
+# (exercise 4), chained through $C_\text{coll}$, moves a prediction only where the move changes
+# which candidate is preferred.
 #
 # **For discussion.**
 #
-# 1. As $\beta \to \infty$, what does $\partial\mathcal L_\text{plan}/\partial C$ become for a plan that already picks
-#    $n^*$, and for one that does not? Why is either bad for training?
-# 2. The far vehicle's prediction gets (almost) no gradient however wrong it is. Is that what you want from a
-#    prediction module that another planner might also use?
+# 1. As $\beta \to \infty$, what does $\partial\mathcal L_\text{plan}/\partial C$ become for a plan
+#    that already picks $n^*$, and for one that does not? Why is either bad for training?
+# 2. The far vehicle's prediction gets (almost) no gradient however wrong it is. Is that what you
+#    want from a prediction module that another planner might also use?
 
 # %% [markdown]
 # ## 5. The controller: box-constrained iLQR, and its gradient
 #
-# The controller, started from the plan, finds the trajectory that minimises the cost under the dynamics and control limits, eq. (4):
+# The controller, started from the plan, finds the trajectory that minimises the cost under the
+# dynamics and control limits, eq. (4):
 #
 # $$\min_{s_{1:T},\,u_{0:T-1}} C(s, u)\quad\text{s.t.}\quad s_{t+1} = f(s_t, u_t),\quad
 # \underline u \le u_t \le \overline u\ \ (\omega \in [-0.7, 0.7],\ a \in [-5, 4]).$$
 #
-# **iLQR.** Around the current trajectory, expand the cost to second order ($H_t$, $g_t$) and the dynamics to
-# first ($A_t$, $B_t$), and solve the resulting LQR by the Riccati recursion, backwards from
-# $V_T(\delta s) = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ with $P = H_{T,ss}$, $p = g_{T,s}$:
+# **iLQR.** Around the current trajectory, expand the cost to second order ($H_t$, $g_t$) and the
+# dynamics to first ($A_t$, $B_t$), and solve the resulting LQR by the Riccati recursion, backwards
+# from $V_T(\delta s) = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ with $P = H_{T,ss}$,
+# $p = g_{T,s}$:
 #
 # $$Q = H_t + F^\top P F,\quad q = g_t + F^\top p,\quad F = [A_t\ B_t];\qquad
 # \kappa_t = -Q_{uu}^{-1} q_u,\quad \Gamma_t = -Q_{uu}^{-1} Q_{us};$$
-# $$P \leftarrow Q_{ss} + \Gamma_t^\top Q_{uu} \Gamma_t + \Gamma_t^\top Q_{us} + Q_{su} \Gamma_t,\qquad
-# p \leftarrow q_s + \Gamma_t^\top Q_{uu} \kappa_t + \Gamma_t^\top q_u + Q_{su} \kappa_t .$$
+# $$P \leftarrow Q_{ss} + \Gamma_t^\top Q_{uu} \Gamma_t + \Gamma_t^\top Q_{us} + Q_{su} \Gamma_t,
+# \qquad p \leftarrow q_s + \Gamma_t^\top Q_{uu} \kappa_t + \Gamma_t^\top q_u + Q_{su} \kappa_t .$$
 #
-# ($\kappa_t$ the feed-forward step, $\Gamma_t$ the feedback gain: `k` and `K` in the code.) With the box,
-# $\kappa_t$ solves a small box QP and the gain rows of clamped controls are zero. The new controls
-# $u_t + \varepsilon \kappa_t + \Gamma_t(s'_t - s_t)$ are rolled out for $\varepsilon = 1, 1/5, 1/25, \dots$ and the
-# largest step that does not raise the true cost is kept. (`ds.riccati_backward` computes these formulas in
-# homogeneous coordinates $[1; s; u]$; exercise 3 asks for them as written.)
+# ($\kappa_t$ the feed-forward step, $\Gamma_t$ the feedback gain: `k` and `K` in the code.)
+# `ds.lqr_backward` computes exactly these formulas, block by block: the Q-function form of iLQR (Li
+# & Todorov 2004; Tassa, Mansard, Todorov 2014), with $P$, $p$ its `V_xx`, `V_x`; exercise 3 asks
+# for one step. With the box, $\kappa_t$ solves a small box QP and the gain rows of clamped controls
+# are zero. The new controls $u_t + \varepsilon \kappa_t + \Gamma_t(s'_t - s_t)$ are rolled out for
+# $\varepsilon = 1, 1/5, 1/25, \dots$ and the largest step that does not raise the true cost is
+# kept; a scenario whose full step is below the tolerance has converged and stops moving.
 
 # %%
-# iLQR on 128 validation samples from the plan, with the GT prediction: the cost after each iteration (under a second).
+# iLQR on 128 validation samples from the plan, with the GT prediction: the cost at each iteration.
 batch = data.val[:128]
 ctx_b = gt_context(batch)
 cands, cost_b, best_b, ok_b, _ = ds.plan(batch.ego_hist[:, -1], ctx_b, batch.goal, w_hand, cfg)
 u_plan = cands.u[torch.arange(len(batch)), best_b]  # (B, T, 2) the plan's controls
+uni = ds.Unicycle(cfg.dt)  # the dynamics, as the solver takes them
+box = torch.tensor(cfg.u_lower), torch.tensor(cfg.u_upper)  # the control limits
+
+
 def cost_fn(x, u, w):  # the solver's interface: cost(x, u, *params)
     return ds.total_cost(x, u, ctx_b, w, cfg.rbf_var)
+
+
 t0 = time.time()
-x, u, info = ds.ilqr(cost_fn, ds.Unicycle(cfg.dt), batch.ego_hist[:, -1], u_plan, (w_hand,),
-                     torch.tensor(cfg.u_lower), torch.tensor(cfg.u_upper), iters=10, tol=cfg.ilqr_tol)
-print(f"{time.time() - t0:.2f}s; converged {info.converged[ok_b].float().mean():.3f} of {int(ok_b.sum())} plannable "
-      f"samples; iterations used: {torch.bincount(info.iters[ok_b]).tolist()} (count per number of iterations)")
+x, u, info = ds.ilqr(
+    cost_fn, uni, batch.ego_hist[:, -1], u_plan, (w_hand,), *box, iters=10, tol=cfg.ilqr_tol
+)
+conv = info.converged[ok_b].float().mean()
+used = torch.bincount(info.iters[ok_b]).tolist()
+print(
+    f"{time.time() - t0:.2f}s; converged {conv:.3f} of {int(ok_b.sum())} plannable samples; "
+    f"iterations used: {used} (count per number of iterations)"
+)
 rel = (info.costs / info.costs[:, :1])[ok_b]  # (B, I+1) cost relative to the plan's
 i = int((info.costs[:, 0] - info.costs[:, -1]).argmax())  # the sample iLQR improves most
 xp_, xi_ = cands.x[i, best_b[i]], x[i]  # (T+1, 4) the plan's and the controller's states
-print(f"sample {i}: cost of the plan {info.costs[i, 0]:.3f} -> after iLQR {info.costs[i, -1]:.3f}; "
-      f"largest position change {(xi_[:, :2] - xp_[:, :2]).norm(dim=-1).max():.2f} m")
-course.figure_ilqr(batch, i, rel, xp_, u_plan[i], xi_, u[i], cfg)  # the costs; sample i's trajectories and controls
-checkpoint("mean cost after iLQR / cost of the plan", rel[:, -1].mean().item(), 0.70 if QUICK else 0.62, 0.05)
+print(
+    f"sample {i}: cost of the plan {info.costs[i, 0]:.3f} -> after iLQR {info.costs[i, -1]:.3f}; "
+    f"largest position change {(xi_[:, :2] - xp_[:, :2]).norm(dim=-1).max():.2f} m"
+)
+# the cost per iteration; sample i's trajectories and controls
+course.figure_ilqr(batch, i, rel, xp_, u_plan[i], xi_, u[i], cfg)
+ratio = rel[:, -1].mean().item()
+checkpoint("mean cost after iLQR / cost of the plan", ratio, 0.70 if QUICK else 0.62, 0.05)
 
 # %% [markdown]
-# **The backward pass** (Amos et al. 2018). Differentiating the KKT conditions at the solution $z^\star = (s^\star,
-# u^\star)$ gives $\partial\mathcal L/\partial\theta$ without forming $\partial z^\star/\partial\theta$: one solves
-# **one more LQR**, with $\partial\mathcal L/\partial z$ as its linear term and the active bounds held fixed; its
-# solution is the **adjoint** direction $\bar d$, a vector the size of $z$:
+# **The backward pass** (Amos et al. 2018). Differentiating the KKT conditions at the solution
+# $z^\star = (s^\star, u^\star)$ gives $\partial\mathcal L/\partial\theta$ without forming
+# $\partial z^\star/\partial\theta$: one solves **one more LQR**, with
+# $\partial\mathcal L/\partial z$ as its linear term and the active bounds held fixed; its solution
+# is the **adjoint** direction $\bar d$, a vector the size of $z$:
 #
-# $$\bar d = \arg\min_d\ \tfrac12 d^\top \mathcal H d + (\partial\mathcal L/\partial z)^\top d\quad\text{s.t.}\quad
+# $$\bar d = \arg\min_d\ \tfrac12 d^\top \mathcal H d + (\partial\mathcal L/\partial z)^\top d
+# \quad\text{s.t.}\quad
 # \delta s_0 = 0,\ \delta s_{t+1} = A_t\delta s_t + B_t\delta u_t,\ \delta u_\text{active} = 0,$$
 #
 # $$\mathcal H_t = \nabla^2 \ell_t + \sum_i \lambda_{t+1,i}\,\nabla^2 f_i(s_t, u_t),\qquad
-# \frac{\partial\mathcal L}{\partial\theta} = \frac{\partial}{\partial\theta}\Big[\sum_t \nabla_{z_t}\ell_t(\theta)\cdot \bar d_t\Big]
+# \frac{\partial\mathcal L}{\partial\theta} =
+# \frac{\partial}{\partial\theta}\Big[\sum_t \nabla_{z_t}\ell_t(\theta)\cdot \bar d_t\Big]
 # \quad(\bar d\ \text{held constant}).$$
 #
-# $\mathcal H$ is the Hessian of the Lagrangian: the cost's **plus the dynamics' curvature** weighted by the costates
-# $\lambda$. mpc.pytorch and the authors' code leave the curvature out (`exact=False` here), exact for linear
-# dynamics only. Below, on three scenarios in float64, the gradient of a random linear function of the solution
-# against central finite differences of the re-solved problem.
+# $\mathcal H$ is the Hessian of the Lagrangian: the cost's **plus the dynamics' curvature**
+# weighted by the costates $\lambda$. mpc.pytorch and the authors' code leave the curvature out
+# (`exact=False` here), exact for linear dynamics only. Below, on three scenarios in float64, the
+# gradient of a random linear function of the solution against central finite differences of the
+# re-solved problem.
 
 # %%
-# Gradient check (about 10 s): KKT backward (exact and curvature-free) vs central finite differences.
+# Gradient check (about 10 s): KKT backward (exact, curvature-free) vs central finite differences.
 torch.manual_seed(SEED)
 d_min = (data.val.ego_fut[..., :2] - data.val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
-pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the predicted vehicle comes within 6 m
+pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes within 6 m
 b64 = data.val[pick].to(torch.float64)
-ctx64, w64 = gt_context(b64), ds.cost_weights(cfg, torch.float64)
-lo, hi = torch.tensor(cfg.u_lower, dtype=torch.float64), torch.tensor(cfg.u_upper, dtype=torch.float64)
+ctx64 = gt_context(b64)
+w64 = ds.cost_weights(cfg, torch.float64)
+lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (cfg.u_lower, cfg.u_upper))
+
+
 def fn(x, u, w, preds):
     return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
+
+
 s0 = b64.ego_hist[:, -1]
-_, u_star, info = ds.ilqr(fn, ds.Unicycle(cfg.dt), s0, torch.zeros(3, 6, 2, dtype=torch.float64), (w64, ctx64.preds),
-                          lo, hi, iters=50, tol=1e-11)
+u0 = torch.zeros(3, 6, 2, dtype=torch.float64)
+_, u_star, info = ds.ilqr(fn, uni, s0, u0, (w64, ctx64.preds), lo, hi, iters=50, tol=1e-11)
 assert info.converged.all()
 g = torch.Generator().manual_seed(SEED)
-wx, wu = torch.randn(3, 7, 4, generator=g, dtype=torch.float64), torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
+wx = torch.randn(3, 7, 4, generator=g, dtype=torch.float64)
+wu = torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
 leaves = (s0, w64, ctx64.preds)
+
 
 def kkt_grads(exact):
     ls = [v.clone().requires_grad_() for v in leaves]
-    x, u, _ = ds.ilqr_solve(fn, ds.Unicycle(cfg.dt), ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact)
+    x, u, _ = ds.ilqr_solve(
+        fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact
+    )
     return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
 
+
 def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
-    ls = [*leaves[:i], v, *leaves[i + 1:]]
-    x, u, inf = ds.ilqr(fn, ds.Unicycle(cfg.dt), ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+    ls = [*leaves[:i], v, *leaves[i + 1 :]]
+    x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
     return (x * wx).sum() + (u * wu).sum()
+
 
 def central_fd(i, idx, h=1e-4):
     e = torch.zeros_like(leaves[i])
     e[idx] = h
     return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
 
+
 t0 = time.time()
 exact, gn = kkt_grads(True), kkt_grads(False)
-coords = {"initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
-          "cost weights w": (1, [(j,) for j in range(5)]),
-          "predicted trajectory": (2, [(b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)])}
+on_pred = [
+    (b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)
+]  # (B, K, T, 2) entries
+coords = {
+    "initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
+    "cost weights w": (1, [(j,) for j in range(5)]),
+    "predicted trajectory": (2, on_pred),
+}
 errs = {}
 for name, (i, idx) in coords.items():
     fd = torch.stack([central_fd(i, j) for j in idx])
-    e_exact, e_gn = rel_err(torch.stack([exact[i][j] for j in idx]), fd), rel_err(torch.stack([gn[i][j] for j in idx]), fd)
-    errs[name] = (e_exact, e_gn)
-    print(f"  {name:22s} relative error vs finite differences: exact KKT {e_exact:.1e}   curvature-free {e_gn:.1e}")
+    errs[name] = [rel_err(torch.stack([grad[i][j] for j in idx]), fd) for grad in (exact, gn)]
+    print(
+        f"  {name:22s} relative error vs finite differences: exact KKT {errs[name][0]:.1e}   "
+        f"curvature-free {errs[name][1]:.1e}"
+    )
 print(f"({time.time() - t0:.1f}s)")
-checkpoint("largest relative error of the exact KKT gradient", max(e for e, _ in errs.values()), 0.0, 1e-4)
-checkpoint("log10 of the largest relative error of the curvature-free gradient (mpc.pytorch's: 0.4-4 % expected)",
-           math.log10(max(e for _, e in errs.values())), -2.0, 1.0)
+e_exact, e_gn = (max(e) for e in zip(*errs.values()))
+checkpoint("largest relative error of the exact KKT gradient", e_exact, 0.0, 1e-4)
+label = "log10 of the largest relative error of the curvature-free gradient (0.1-10 % accepted)"
+checkpoint(label, math.log10(e_gn), -2.0, 1.0)
 
 # %% [markdown]
 # ### Exercise 5: the controller's gradient
 #
-# The backward pass on a linear-quadratic problem ($\ell_t = \tfrac12 z_t^\top H_t z_t + g_t^\top z_t$, $s_{t+1} = A_t s_t
-# + B_t u_t$ from $s_\text{init}$), its active set fixed (`free` False: held at a bound). `my_kkt_backward(A, B, H,
-# grad_x, grad_u, free, n)` gets $\partial\mathcal L/\partial z$ and returns $\partial\mathcal L/\partial s_\text{init}$ (B, n)
-# and $\partial\mathcal L/\partial g$ (B, T+1, n+m; the last stage has no control). `ds.lqr_backward_fixed(A, B, H, g, n,
-# free)` does the Riccati pass (exercise 3) and returns $(k, K, P_0, p_0)$, $p_0$ the value function's gradient.
+# The backward pass on a linear-quadratic problem
+# ($\ell_t = \tfrac12 z_t^\top H_t z_t + g_t^\top z_t$, $s_{t+1} = A_t s_t + B_t u_t$ from
+# $s_\text{init}$), its active set fixed (`free` False: held at a bound). `my_kkt_backward(A, B, H,
+# grad_x, grad_u, free, n)` gets $\partial\mathcal L/\partial z$ and returns
+# $\partial\mathcal L/\partial s_\text{init}$ (B, n) and $\partial\mathcal L/\partial g$ (B, T+1,
+# n+m; the last stage has no control). `ds.lqr_backward(A, B, H, g, free=free)` does the Riccati
+# pass of exercise 3 at every stage, the controls that are not free held at $\delta u = 0$, and
+# returns `(k, K, free, p_0)`: $\kappa$ (B, T, m), $\Gamma$ (B, T, m, n), the free controls (B, T,
+# m) and $p_0$ (B, n), the costate ($p$ at $t = 0$).
+
 
 # %%
-# Exercise 5: your code here; checked against autograd through the LQR solver (itself against finite differences).
+# Exercise 5: your code here; checked against autograd through an LQR solver (itself against FD).
 def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
-    """A (B, T, n, n), B (B, T, n, m), H (B, T+1, n+m, n+m), grad_x (B, T+1, n), grad_u (B, T, m), free (B, T, m)
-    -> (dL/ds_init (B, n), dL/dg (B, T+1, n+m))."""
+    """A (B, T, n, n), B (B, T, n, m), H (B, T+1, n+m, n+m), grad_x (B, T+1, n), grad_u (B, T, m),
+    free (B, T, m) -> (dL/ds_init (B, n), dL/dg (B, T+1, n+m))."""
     raise NotImplementedError("exercise 5: write my_kkt_backward")
+
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_kkt_backward
@@ -595,19 +715,21 @@ course.exercise(5, course.check_kkt, my_kkt_backward)
 # %% [markdown]
 # ### Exercise 3: one step of the Riccati recursion
 #
-# Write `my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)` for an **unconstrained** LQR: given the value function
-# $V_{t+1} = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ (P (B, n, n), p (B, n)), the stage's cost Hessian
-# `H_t` (B, n+m, n+m) and gradient `g_t` (B, n+m), and the dynamics Jacobians `A_t` (B, n, n), `B_t` (B, n, m),
-# return `(k, K, P_new, p_new)`: $\kappa_t$ (B, m), $\Gamma_t$ (B, m, n) and the value function at $t$ (formulas
-# above the iLQR cell). The check compares `P_new` with the Schur complement $Q_{ss} - Q_{su}Q_{uu}^{-1}Q_{us}$
-# (why are the two equal?).
+# Write `my_riccati_step(P, p, H_t, g_t, A_t, B_t, n)` for an **unconstrained** LQR: given the value
+# function $V_{t+1} = \tfrac12\delta s^\top P\delta s + p^\top\delta s$ (P (B, n, n), p (B, n)), the
+# stage's cost Hessian `H_t` (B, n+m, n+m) and gradient `g_t` (B, n+m), and the dynamics Jacobians
+# `A_t` (B, n, n), `B_t` (B, n, m), return `(k, K, P_new, p_new)`: $\kappa_t$ (B, m), $\Gamma_t$ (B,
+# m, n) and the value function at $t$ (formulas above the iLQR cell). The check compares `P_new`
+# with the Schur complement $Q_{ss} - Q_{su}Q_{uu}^{-1}Q_{us}$ (why are the two equal?).
+
 
 # %%
 # Exercise 3: your code here.
 def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
-    """V_{t+1} = (P (B, n, n), p (B, n)), stage H_t (B, n+m, n+m), g_t (B, n+m), A_t (B, n, n), B_t (B, n, m)
-    -> (k (B, m), K (B, m, n), P_new (B, n, n), p_new (B, n))."""
+    """V_{t+1} = (P (B, n, n), p (B, n)), stage H_t (B, n+m, n+m), g_t (B, n+m), A_t (B, n, n),
+    B_t (B, n, m) -> (k (B, m), K (B, m, n), P_new (B, n, n), p_new (B, n))."""
     raise NotImplementedError("exercise 3: write my_riccati_step")
+
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_riccati_step
@@ -619,53 +741,66 @@ course.exercise(3, course.check_riccati, my_riccati_step)
 # %%
 section_done("§5")
 
-
 # %% [markdown]
-# **Summary of §5.** The backward pass is one more LQR solve; leaving out the dynamics' curvature (mpc.pytorch's
-# choice) costs gradient errors of order 1e-3, the exact backward agrees with finite differences to about 1e-8.
+# **Summary of §5.** The backward pass is one more LQR solve; leaving out the dynamics' curvature
+# (mpc.pytorch's choice) costs gradient errors of order 1e-3, the exact backward agrees with finite
+# differences to about 1e-8.
 #
 # **For discussion.**
 #
-# 1. Why start iLQR from the planner's candidate rather than from zero controls? (Compare the ablation *No planner*
-#    in `results/ablation.md`.)
-# 2. Why must a scenario whose iLQR did not converge get no gradient? What would the KKT backward compute there?
+# 1. Why start iLQR from the planner's candidate rather than from zero controls? (Compare the
+#    ablation *No planner* in `results/ablation.md`.)
+# 2. Why must a scenario whose iLQR did not converge get no gradient? What would the KKT backward
+#    compute there?
 
 # %% [markdown]
 # ## 6. The predictor
 #
-# A Trajectron++-style conditional VAE: an LSTM over the predicted vehicle's 4 s history, attention over its
-# neighbours, and a discrete latent $z \in \{1..K\}$, $K = 25$:
+# A Trajectron++-style conditional VAE: an LSTM over the predicted vehicle's 4 s history, attention
+# over its neighbours, and a discrete latent $z \in \{1..K\}$, $K = 25$:
 #
 # $$p(y\mid x) = \sum_{k=1}^{K} p(z = k\mid x)\; p(y\mid x, z = k).$$
 #
-# For each $k$ a GRU emits a Gaussian over the controls $(\omega, a)$ per step, integrated by the planner's unicycle
-# (the $K$ **modes** $\hat s_{k,t}$; covariances by EKF). *Standard* training maximises the InfoVAE objective,
+# For each $k$ a GRU emits a Gaussian over the controls $(\omega, a)$ per step, integrated by the
+# planner's unicycle (the $K$ **modes** $\hat s_{k,t}$; covariances by EKF). *Standard* training
+# maximises the InfoVAE objective,
 #
-# $$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,\mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
+# $$\mathcal L_\text{pred} = -\Big(\sum_t \log \sum_k q(k\mid x, y)\,
+# \mathcal N(y_t;\hat s_{k,t}, \Sigma_{k,t})
 # \;-\; \eta\,\mathrm{KL}\big(q(z\mid x,y)\,\Vert\,p(z\mid x)\big) \;+\; I_p(x; z)\Big),$$
 #
-# $\eta$ the annealed KL weight (`pred_beta` in the Config). Metrics: ADE/FDE of the most likely mode, min-ADE over
-# modes, NLL of the GT under the mixture, against **constant velocity**.
+# $\eta$ the annealed KL weight (`pred_beta` in the Config). Metrics: ADE/FDE of the most likely
+# mode, min-ADE over modes, NLL of the GT under the mixture, against **constant velocity**.
 
 # %%
 # Train the Standard predictor (L_pred only). Expected run time: ~2 s quick, ~20 s full.
 t0 = time.time()
-torch.manual_seed(SEED)                       # the initialisation (as open_loop_experiment does)
+torch.manual_seed(SEED)  # the initialisation (as open_loop_experiment does)
 model_std = ds.Predictor(cfg)
-hist_std = tr.train_stack(model_std, data.train, tr.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED,
-                      log=print if not QUICK else None)
+log = None if QUICK else print
+hist_std = tr.train_stack(
+    model_std, data.train, tr.Method("Standard"), cfg, "rl", epochs=EPOCHS, seed=SEED, log=log
+)
 m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
 print("          ADE    FDE    min-ADE  NLL")
-print(f"Standard  {m_std['ade']:.2f}   {m_std['fde']:.2f}   {m_std['min_ade']:.2f}     {m_std['nll']:.2f}")
-print(f"const vel {m_std['cv_ade']:.2f}   {m_std['cv_fde']:.2f}   --       {m_std['cv_nll']:.2f}  (cv NLL: variance fit to this set)")
-if not QUICK:  # 16 quick steps leave it near constant velocity; 100 steps put its best mode well below it
-    check_order("best mode's ADE vs constant velocity's (m)", dict(Standard=m_std["min_ade"], CV=m_std["cv_ade"]),
-                ["Standard", "CV"], margin=0.1)
+print(
+    f"Standard  {m_std['ade']:.2f}   {m_std['fde']:.2f}   {m_std['min_ade']:.2f}     "
+    f"{m_std['nll']:.2f}"
+)
+print(
+    f"const vel {m_std['cv_ade']:.2f}   {m_std['cv_fde']:.2f}   --       {m_std['cv_nll']:.2f}  "
+    "(cv NLL: variance fit to this set)"
+)
+# 16 quick steps leave it near constant velocity; 100 steps put its best mode well below it
+if not QUICK:
+    ades = dict(Standard=m_std["min_ade"], CV=m_std["cv_ade"])
+    check_order("best mode's ADE vs constant velocity's (m)", ades, ["Standard", "CV"], margin=0.1)
 
 # %%
-# Figure: what the Standard predictor says on three validation samples: its K = 25 modes coloured and widened by
-# p(z = k | x), 1σ ellipses of the most likely mode, the vehicle's true future in orange.
+# Figure: what the Standard predictor says on three validation samples: its K = 25 modes coloured
+# and widened by p(z = k | x), 1σ ellipses of the most likely mode, the vehicle's true future in
+# orange.
 model_std.eval()
 idx = torch.tensor([first_of(data.val, n) for n in ("cut_in", "lead_brake", "turn_across")])
 sub = data.val[idx]
@@ -676,195 +811,239 @@ course.figure_modes(sub, pred, TRAIN_STEPS)
 # %%
 section_done("§6")
 
-
 # %% [markdown]
-# **Summary of §6.** The learned model's advantage over constant velocity is in min-ADE and NLL (a spread of modes),
-# less or not at all in the most likely mode's ADE.
+# **Summary of §6.** The learned model's advantage over constant velocity is in min-ADE and NLL (a
+# spread of modes), less or not at all in the most likely mode's ADE.
 #
 # **For discussion.**
 #
-# 1. Which metric should a predictor that feeds this planner be judged by: ADE, min-ADE or NLL? Use §3's answer
-#    (the planner sees the mean and spread) in your argument.
-# 2. The most likely mode of the *cut_in* sample above either cuts in or does not. What does the planner do with a
-#    prediction that gives both 40 %?
+# 1. Which metric should a predictor that feeds this planner be judged by: ADE, min-ADE or NLL? Use
+#    §3's answer (the planner sees the mean and spread) in your argument.
+# 2. The most likely mode of the *cut_in* sample above either cuts in or does not. What does the
+#    planner do with a prediction that gives both 40 %?
 
 # %% [markdown]
 # ## 7. End-to-end training: DiffStack against Standard (Table 1)
 #
-# **DiffStack** trains the predictor with all three losses, $\alpha = (1, 100, 1000)$ (RL). Table 1's baselines:
-# *No prediction* (the vehicle ignored), *Standard*, *Distance weighted* and *∇Cost weighted* (L_pred reweighted per
-# sample by closeness to the ego / by how much the cost reacts to that agent), *DiffStack (no L_pred)*, and the oracle
-# *GT prediction*. Planning loss and hindsight cost are **relative to No prediction** (negative = better), as in the
-# paper. `open_loop_experiment` trains each learned method (same data, seed and steps) and evaluates all of them.
+# **DiffStack** trains the predictor with all three losses, $\alpha = (1, 100, 1000)$ (RL).
+# Table 1's baselines: *No prediction* (the vehicle ignored), *Standard*, *Distance weighted* and
+# *∇Cost weighted* (L_pred reweighted per sample by closeness to the ego / by how much the cost
+# reacts to that agent), *DiffStack (no L_pred)*, and the oracle *GT prediction*. Planning loss and
+# hindsight cost are **relative to No prediction** (negative = better), as in the paper.
+# `open_loop_experiment` trains each learned method (same data, seed and steps) and evaluates all of
+# them.
 
 # %%
 # Table 1 (RL). Expected run time: ~10 s quick (4 methods), ~3 min full (all 7 methods).
 t0 = time.time()
-methods1 = tr.TABLE1_METHODS if not QUICK else [m for m in tr.TABLE1_METHODS
-                                              if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
+four = ("No prediction", "Standard", "DiffStack", "GT prediction")  # quick mode's (and Table 4's)
+methods4 = [m for m in tr.TABLE1_METHODS if m.name in four]
+methods1 = methods4 if QUICK else tr.TABLE1_METHODS
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
-print(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap in hindsight cost (paper: 39 %)")
+print(
+    f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT gap in hindsight cost (paper: 39 %)"
+)
 rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
-# one seed of a short training: whether DiffStack beats Standard here varies between machines, so it is not checked;
-# what a perfect prediction is worth needs no training and is (GT prediction below No prediction)
+# one seed of a short training: whether DiffStack beats Standard here varies between machines, so it
+# is not checked; what a perfect prediction is worth needs no training and is (GT prediction below
+# No prediction)
 check_order("Table 1, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 if QUICK:
-    print(f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}, DiffStack's ADE {res1['DiffStack'][0]['ade']:.2f} m (constant "
-          f"velocity: {m_std['cv_ade']:.2f} m): barely trained, these numbers test the code. Read the 10-seed table below.")
+    ade_ds = res1["DiffStack"][0]["ade"]
+    print(
+        f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}, DiffStack's ADE {ade_ds:.2f} m "
+        f"(constant velocity: {m_std['cv_ade']:.2f} m): barely trained, these numbers test the "
+        "code. Read the 10-seed table below."
+    )
 results_table("rl")
 check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced")
 
 
 # %% [markdown]
-# **What the numbers say** (the 10-seed table: 40 epochs of 1 320 steps of 256 per seed, each seed on its own draw
-# of 8 500 training samples, all judged on one validation set of 10 000 scenarios):
+# **What the numbers say** (the 10-seed table: 40 epochs of 1 320 steps of 256 per seed, each seed
+# on its own draw of 8 500 training samples, all judged on one validation set of 10 000 scenarios):
 #
-# * DiffStack's hindsight cost is below Standard's in 7 of 10 seeds, −0.99 ± 0.05 against −0.84 ± 0.04 (×10⁻²,
-#   relative to No prediction), closing 27 ± 10 % of the Standard → GT gap (paper: 39 %); paired over seeds
-#   −0.15 ± 0.06, t = −2.67, p = 0.026 (two-sided): *reproduced* at 5 %. Its planning loss is not lower (p = 0.13).
-# * Its ADE stays at Standard's, 1.04 ± 0.04 m against 1.01 ± 0.04 m (paper: 1.27 against 1.32), though with
-#   $\alpha = (1, 100, 1000)$ the downstream losses weigh more than $\mathcal L_\text{pred}$.
-# * **Standard helps, but less** than in the paper (−1.61). Per behaviour (table below), both predictors gain in
-#   *keep_lane* and *cut_in*, but Standard gives part of it back at intersections (*cross_go*: +0.93 ± 0.15 per scene,
-#   DiffStack +0.08 ± 0.07) and behind a braking leader (*lead_brake*: +0.68 ± 0.23), the behaviours whose twin
-#   manoeuvre shares the set-up (§2): predicting the twin makes the plan react to a vehicle that is not there.
-#   DiffStack learned which errors hurt the plan (though not in *turn_across*, +0.43 ± 0.20 against Standard's
+# * DiffStack's hindsight cost is below Standard's in 7 of 10 seeds, −0.99 ± 0.05 against
+#   −0.84 ± 0.04 (×10⁻², relative to No prediction), closing 27 ± 10 % of the Standard → GT gap
+#   (paper: 39 %); paired over seeds −0.15 ± 0.06, t = −2.67, p = 0.026 (two-sided): *reproduced* at
+#   5 %. Its planning loss is not lower (p = 0.13).
+# * Its ADE stays at Standard's, 1.04 ± 0.04 m against 1.01 ± 0.04 m (paper: 1.27 against 1.32),
+#   though with $\alpha = (1, 100, 1000)$ the downstream losses weigh more than
+#   $\mathcal L_\text{pred}$.
+# * **Standard helps, but less** than in the paper (−1.61). Per behaviour (table below), both
+#   predictors gain in *keep_lane* and *cut_in*, but Standard gives part of it back at intersections
+#   (*cross_go*: +0.93 ± 0.15 per scene, DiffStack +0.08 ± 0.07) and behind a braking leader
+#   (*lead_brake*: +0.68 ± 0.23), the behaviours whose twin manoeuvre shares the set-up (§2):
+#   predicting the twin makes the plan react to a vehicle that is not there. DiffStack learned which
+#   errors hurt the plan (though not in *turn_across*, +0.43 ± 0.20 against Standard's
 #   +0.12 ± 0.05).
-# * The reweightings of $\mathcal L_\text{pred}$ do not land between Standard and DiffStack as in the paper (Distance
-#   weighted −0.58 ± 0.12, ∇Cost weighted −0.08 ± 0.05): *which samples* count does not tell the model *which errors*
-#   hurt the plan; the gradient of §4 does.
-
-# **The tables' learning curves** (10 seeds, mean ± s.e., on 512 fixed validation scenes after every epoch): DiffStack
-# plans better than Standard from the first epoch on; its ADE is higher until the last epochs, where the two meet. The
-# tables train 40 epochs, not the paper's 20, because at 20 Standard's ADE was still falling.
+# * The reweightings of $\mathcal L_\text{pred}$ do not land between Standard and DiffStack as in
+#   the paper (Distance weighted −0.58 ± 0.12, ∇Cost weighted −0.08 ± 0.05): *which samples* count
+#   does not tell the model *which errors* hurt the plan; the gradient of §4 does.
+#
+# **The tables' learning curves** (10 seeds, mean ± s.e., on 512 fixed validation scenes after every
+# epoch): DiffStack plans better than Standard from the first epoch on; its ADE is higher until the
+# last epochs, where the two meet. The tables train 40 epochs, not the paper's 20, because at 20
+# Standard's ADE was still falling.
 #
 # ![Learning curves of Standard and DiffStack over 40 epochs](results/learning_curves.png)
 
 # %% [markdown]
-# **Where a perfect prediction is worth something (`results/goal.md`, no training).** Every validation scene planned
-# with no prediction and with the GT future, under the paper's goal (the GT ego state at T) and under a *route* goal
-# (where the ego would be at T keeping its speed along its lane, `Config.goal = "route"`).
+# **Where a perfect prediction is worth something (`results/goal.md`, no training).** Every
+# validation scene planned with no prediction and with the GT future, under the paper's goal (the GT
+# ego state at T) and under a *route* goal (where the ego would be at T keeping its speed along its
+# lane, `Config.goal = "route"`).
 
 # %%
-# Figure: what the GT future saves per behaviour, the paper's goal vs a route goal, from results/goal.json.
+# Figure: what the GT future saves per behaviour, the paper's goal vs a route goal
+# (results/goal.json).
 goal_res = json.loads(Path("results/goal.json").read_text())["results"]
 course.figure_goal(goal_res)
 cut = goal_res["logged"]["No prediction"][0]["by_behaviour"]["cut_in"]
-print(f"cut_in under the paper's goal, No prediction: hindsight cost {cut['hindsight']:.2f} = collision {cut['terms'][0]:.2f} "
-      f"+ goal {cut['terms'][1]:.2f} + lane {cut['terms'][2]:.2f} + heading {cut['terms'][3]:.2f} + control effort "
-      f"{cut['terms'][4]:.2f}")
+parts = " + ".join(
+    f"{n} {v:.2f}" for n, v in zip(("collision", "goal", "lane", "heading"), cut["terms"])
+)
+print(
+    f"cut_in under the paper's goal, No prediction: hindsight cost {cut['hindsight']:.2f} = "
+    f"{parts} + control effort {cut['terms'][4]:.2f}"
+)
 
 # %% [markdown]
-# In a cut-in, the plan *without* prediction costs 7.26, of which collision 0.08: the rest is the goal and the control
-# effort of braking to where the logged driver ended up, because the paper's goal is the logged ego state at T. The
-# goal hands every planner the reaction, so the car's future adds little; what is left for a prediction is mostly
-# where the vehicle in the next lane will be (*keep_lane*). With a route goal the same GT futures are worth eight times
-# more, mostly in cut-ins and behind braking leaders. The paper names this limit ("alternative goal definitions ...
-# future work", §4.2); the tables keep its goal.
+# In a cut-in, the plan *without* prediction costs 7.26, of which collision 0.08: the rest is the
+# goal and the control effort of braking to where the logged driver ended up, because the paper's
+# goal is the logged ego state at T. The goal hands every planner the reaction, so the car's future
+# adds little; what is left for a prediction is mostly where the vehicle in the next lane will be
+# (*keep_lane*). With a route goal the same GT futures are worth eight times more, mostly in cut-ins
+# and behind braking leaders. The paper names this limit ("alternative goal definitions ... future
+# work", §4.2); the tables keep its goal.
 #
-# *Questions.* Why does the route goal make the collision term, not the goal term, carry most of No prediction's
-# cost? Would a learned predictor's errors cost more or less under the route goal than under the logged one?
+# *Questions.* Why does the route goal make the collision term, not the goal term, carry most of No
+# prediction's cost? Would a learned predictor's errors cost more or less under the route goal than
+# under the logged one?
 
 # %%
-# The learned predictors of Table 1, behaviour by behaviour (results/rl.json, 10 seeds, mean ± s.e.): where their
-# predictions help the planner (negative) and where they cost it (positive), beside GT prediction's column.
+# The learned predictors of Table 1, behaviour by behaviour (results/rl.json, 10 seeds, mean ±
+# s.e.): where their predictions help the planner (negative) and where they cost it (positive),
+# beside GT prediction's column.
 table1 = json.loads(Path("results/rl.json").read_text())["results"]
 breakdown = xp.behaviour_markdown(xp.TABLES["rl"], table1)
-display(Markdown(breakdown) if breakdown else
-        Markdown("*results/rl.json predates the breakdown by behaviour: re-run Table 1 to see it.*"))
-
-# %%
+missing = "*results/rl.json predates the breakdown by behaviour: re-run Table 1 to see it.*"
+display(Markdown(breakdown or missing))
 
 # %% [markdown]
-# **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained again, same seed
-# (`train_stack` is deterministic: the checkpoints confirm Table 1's rows; §6's predictor *is* Table 1's Standard).
+# **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained
+# again, same seed (`train_stack` is deterministic: the checkpoints confirm Table 1's rows; §6's
+# predictor *is* Table 1's Standard).
 
 # %%
-# DiffStack trained again (Table 1's seed); No prediction, Standard and DiffStack on the validation set. ~5 s quick, ~1 min full.
+# DiffStack trained again (Table 1's seed); No prediction, Standard and DiffStack on the validation
+# set. ~5 s quick, ~1 min full.
 t0 = time.time()
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
-hist_ds = tr.train_stack(model_ds, data.train, tr.Method("DiffStack", losses=(1, 1, 1)), cfg, "rl", epochs=EPOCHS,
-                         seed=SEED, log=None)
+method_ds = tr.Method("DiffStack", losses=(1, 1, 1))
+hist_ds = tr.train_stack(
+    model_ds, data.train, method_ds, cfg, "rl", epochs=EPOCHS, seed=SEED, log=None
+)
+stacks = {
+    "No prediction": (None, tr.Method("No prediction", "none")),
+    "Standard": (model_std, tr.Method("Standard")),
+    "DiffStack": (model_ds, method_ds),
+}
 outs = {}
-for name, model, method in (("No prediction", None, tr.Method("No prediction", "none")),
-                            ("Standard", model_std, tr.Method("Standard")),
-                            ("DiffStack", model_ds, tr.Method("DiffStack", losses=(1, 1, 1)))):
+for name, (model, method) in stacks.items():
     if model is not None:
         model.eval()
     with torch.no_grad():
         outs[name] = ds.run_stack(data.val, model, method, cfg, "rl")
 print(f"({time.time() - t0:.0f}s)")
 ok = outs["Standard"].plannable
-for name in ("Standard", "DiffStack"):  # section 6's Standard and this DiffStack are the very models behind Table 1's rows
-    checkpoint(f"{name}: mean hindsight cost here vs in Table 1", outs[name].hindsight[ok].mean().item(),
-               res1[name][0]["hindsight"], 1e-3, rel=True)
+# §6's Standard and this DiffStack are the very models behind Table 1's rows
+for name in ("Standard", "DiffStack"):
+    here, in_table = outs[name].hindsight[ok].mean().item(), res1[name][0]["hindsight"]
+    checkpoint(f"{name}: mean hindsight cost here vs in Table 1", here, in_table, 1e-3, rel=True)
 
 # %% [markdown]
-# **Learning curves** per training batch. DiffStack pays for its downstream losses in $\mathcal L_\text{pred}$, which
-# falls more slowly than Standard's; its $\mathcal L_\text{plan}$ and $\mathcal L_\text{ctr}$ barely move, because the
-# batch-to-batch spread is larger than what training changes: the gain shows only on a fixed set, relative to No
-# prediction, which is why the tables report relative numbers.
+# **Learning curves** per training batch. DiffStack pays for its downstream losses in
+# $\mathcal L_\text{pred}$, which falls more slowly than Standard's; its $\mathcal L_\text{plan}$
+# and $\mathcal L_\text{ctr}$ barely move, because the batch-to-batch spread is larger than what
+# training changes: the gain shows only on a fixed set, relative to No prediction, which is why the
+# tables report relative numbers.
 
 # %%
-# Figure: learning curves of Standard and DiffStack (raw per-batch values faint, 10-step moving average solid).
-course.figure_learning_curves({"Standard": (hist_std, "tab:orange"), "DiffStack": (hist_ds, "tab:green")})
+# Figure: learning curves of Standard and DiffStack (per batch faint, 10-step moving average solid).
+course.figure_learning_curves(
+    {"Standard": (hist_std, "tab:orange"), "DiffStack": (hist_ds, "tab:green")}
+)
 
 # %%
-# Where Standard loses what it gains: the hindsight cost minus No prediction's by behaviour (x1e-2, mean over the
-# plannable validation samples of each behaviour), and how many samples carry the difference.
+# Where Standard loses what it gains: the hindsight cost minus No prediction's by behaviour (x1e-2,
+# mean over the plannable validation samples of each behaviour), and how many samples carry the
+# difference.
 d = {m: outs[m].hindsight - outs["No prediction"].hindsight for m in ("Standard", "DiffStack")}
-rows = course.behaviour_rows(data.val.behaviour, ok, lambda sel: [f"{100 * d[m][sel].mean().item():+.2f}" for m in d])
-display(Markdown(tr.markdown_table(["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"], rows)))
-d_std = (outs["Standard"].hindsight - outs["No prediction"].hindsight)[ok]
-worst = d_std.sort(descending=True).values[: max(1, len(d_std) // 20)]  # the 5 % of samples where Standard costs most
-print(f"Standard costs more than No prediction on {(d_std > 1e-3).float().mean():.0%} of the samples, less on "
-      f"{(d_std < -1e-3).float().mean():.0%}; net {100 * d_std.mean():+.2f}e-2 per sample, of which its worst 5 % of the "
-      f"samples add {100 * worst.sum() / len(d_std):+.2f}e-2: a few costly mistakes against many small gains.")
+rows = course.behaviour_rows(
+    data.val.behaviour, ok, lambda sel: [f"{100 * d[m][sel].mean():+.2f}" for m in d]
+)
+head = ["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"]
+display(Markdown(tr.markdown_table(head, rows)))
+d_std = d["Standard"][ok]
+worst = d_std.sort(descending=True).values[: max(1, len(d_std) // 20)]  # where Standard costs most
+more, less = (d_std > 1e-3).float().mean(), (d_std < -1e-3).float().mean()
+print(
+    f"Standard costs more than No prediction on {more:.0%} of the samples, less on {less:.0%}; net "
+    f"{100 * d_std.mean():+.2f}e-2 per sample, of which its worst 5 % of the samples add "
+    f"{100 * worst.sum() / len(d_std):+.2f}e-2: a few costly mistakes against many small gains."
+)
 
 # %% [markdown]
-# **An example where they differ** (the paper's Fig. 3): of the samples where the two stacks plan differently, the one
-# where DiffStack's hindsight cost is lowest relative to Standard's: predictions (red), candidates coloured by $p_n$,
-# the plan (black dashed), the controller (purple).
+# **An example where they differ** (the paper's Fig. 3): of the samples where the two stacks plan
+# differently, the one where DiffStack's hindsight cost is lowest relative to Standard's:
+# predictions (red), candidates coloured by $p_n$, the plan (black dashed), the controller (purple).
 
 # %%
-plan_of = lambda o: ds.masked_argmin(o.cand_cost, o.cands.valid)  # noqa: E731  the candidate each stack plans
-delta = torch.where(ok & (plan_of(outs["Standard"]) != plan_of(outs["DiffStack"])),
-                    outs["Standard"].hindsight - outs["DiffStack"].hindsight, -math.inf)
-i = int(delta.argmax())
-print(f"sample {i} ({data_synth.BEHAVIOURS[int(data.val.behaviour[i])]}): hindsight cost Standard "
-      f"{outs['Standard'].hindsight[i]:.2f}, DiffStack {outs['DiffStack'].hindsight[i]:.2f}; over all samples "
-      f"DiffStack lower on {(delta[ok] > 1e-3).float().mean():.0%}, higher on {(delta[ok] < -1e-3).float().mean():.0%}")
+# the candidate each stack plans, and how much lower DiffStack's hindsight cost is than Standard's
+plans = {m: ds.masked_argmin(o.cand_cost, o.cands.valid) for m, o in outs.items()}
+gain = outs["Standard"].hindsight - outs["DiffStack"].hindsight  # (B,)
+i = int(torch.where(ok & (plans["Standard"] != plans["DiffStack"]), gain, -math.inf).argmax())
+lower, higher = (gain[ok] > 1e-3).float().mean(), (gain[ok] < -1e-3).float().mean()
+print(
+    f"sample {i} ({data_synth.BEHAVIOURS[int(data.val.behaviour[i])]}): hindsight cost Standard "
+    f"{outs['Standard'].hindsight[i]:.2f}, DiffStack {outs['DiffStack'].hindsight[i]:.2f}; over "
+    f"all samples DiffStack lower on {lower:.0%}, higher on {higher:.0%}"
+)
 course.figure_stacks(data.val, i, outs, cfg)
 
 # %%
 section_done("§7")
 
-
 # %% [markdown]
 # **For discussion (§7).**
 #
-# 1. DiffStack's ADE is worse and its plans are better. What would you tell the team that owns the predictor, whose
-#    dashboard shows ADE?
-# 2. The ablation $\alpha = (1, 0.2, 0.2)$ gives an ADE of 0.89 ± 0.02 m, below Standard's, with a hindsight cost of
-#    −1.04 ± 0.02 (`results/ablation.md`). What does that say about the default $\alpha = (1, 100, 1000)$?
+# 1. DiffStack's ADE is worse and its plans are better. What would you tell the team that owns the
+#    predictor, whose dashboard shows ADE?
+# 2. The ablation $\alpha = (1, 0.2, 0.2)$ gives an ADE of 0.89 ± 0.02 m, below Standard's, with a
+#    hindsight cost of −1.04 ± 0.02 (`results/ablation.md`). What does that say about the default
+#    $\alpha = (1, 100, 1000)$?
 
 # %% [markdown]
 # ## 8. More experiments
 #
-# **A biased predictor (Table 2).** A 1 m offset on every prediction target (to the vehicle's left), a stand-in for an
-# interface error between modules (`pred_offset=1.0`); hindsight cost and ADE are still measured against the true
-# future. Does training through the planner protect the plan from the bias, and remove it from the predictions?
+# **A biased predictor (Table 2).** A 1 m offset on every prediction target (to the vehicle's left),
+# a stand-in for an interface error between modules (`pred_offset=1.0`); hindsight cost and ADE are
+# still measured against the true future. Does training through the planner protect the plan from
+# the bias, and remove it from the predictions?
 
 # %%
 # Table 2 (biased targets, RL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
-methods2 = (tr.Method("No prediction", "none"), tr.Method("Standard-biased"), tr.Method("DiffStack-biased", losses=(1, 1, 1)),
-            tr.Method("GT prediction", "gt"))
-res2 = xp.open_loop_experiment(data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None)
+biased = (tr.Method("Standard-biased"), tr.Method("DiffStack-biased", losses=(1, 1, 1)))
+methods2 = (tr.Method("No prediction", "none"), *biased, tr.Method("GT prediction", "gt"))
+res2 = xp.open_loop_experiment(
+    data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None
+)
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
@@ -874,38 +1053,41 @@ results_table("biased")
 check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle (+0.59 ± 0.37 ×10⁻²), and
-# DiffStack-biased better in every seed (−0.81 ± 0.09, paired −1.40 ± 0.41, p = 0.028): training through the planner
-# protects the plan. Its planning loss is not reproduced (p = 0.16), nor is a lower ADE beyond the noise (1.42 ± 0.04
-# against 1.52 ± 0.15 m; paired p = 0.57): the plan needs the predictions right only near the candidates (§4's
-# arrows). One seed of this short training is chaotic: read sizes from the 5-seed table.
+# **What the numbers say.** In 5 seeds, Standard-biased is *worse* than ignoring the vehicle
+# (+0.59 ± 0.37 ×10⁻²), and DiffStack-biased better in every seed (−0.81 ± 0.09, paired
+# −1.40 ± 0.41, p = 0.028): training through the planner protects the plan. Its planning loss is not
+# reproduced (p = 0.16), nor is a lower ADE beyond the noise (1.42 ± 0.04 against 1.52 ± 0.15 m;
+# paired p = 0.57): the plan needs the predictions right only near the candidates (§4's arrows). One
+# seed of this short training is chaotic: read sizes from the 5-seed table.
 #
 # **Imitation learning (Table 4).** The target $n^*$ is the candidate closest to the expert and
-# $\mathcal L_\text{ctr} = \sum_t \lVert s_{\text{ctr},t} - s_{\text{gt},t}\rVert^2$, $\alpha = (1, 10, 1000)$; planning
-# loss (×10⁻³) and MSE to the expert (×10⁻²) relative to No prediction.
+# $\mathcal L_\text{ctr} = \sum_t \lVert s_{\text{ctr},t} - s_{\text{gt},t}\rVert^2$,
+# $\alpha = (1, 10, 1000)$; planning loss (×10⁻³) and MSE to the expert (×10⁻²) relative to No
+# prediction.
 #
-# **A surprise: DiffStack beats GT prediction** (5 seeds: MSE −19.77 ± 1.88 against +0.20 ± 0.00 ×10⁻²) at an ADE of
-# 5.02 ± 0.40 m: the MSE gradient moves the predicted vehicle onto the ego's path (9.7 m from its true position
-# at T), an obstacle that makes the plan slow down as the expert did (`docs/results.md`, Table 4).
+# **A surprise: DiffStack beats GT prediction** (5 seeds: MSE −19.77 ± 1.88 against +0.20 ± 0.00
+# ×10⁻²) at an ADE of 5.02 ± 0.40 m: the MSE gradient moves the predicted vehicle onto the ego's
+# path (9.7 m from its true position at T), an obstacle that makes the plan slow down as the expert
+# did (`docs/results.md`, Table 4).
 
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
 t0 = time.time()
-methods_il = [m for m in tr.TABLE1_METHODS if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")]
-res_il = xp.open_loop_experiment(data, cfg, "il", methods_il, seeds=(SEED,), epochs=EPOCHS, log=None)
+res_il = xp.open_loop_experiment(data, cfg, "il", methods4, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(res_il, "il")))
-rel = {n: r[0]["rel_mse"] for n, r in res_il.items()}
-# one seed of a short training again: nothing here is checked but the 5-seed claim under the table (even a perfect
-# prediction need not bring the plan closer to the expert's: on the quick data GT prediction's MSE is above No prediction's)
+# one seed of a short training again: nothing here is checked but the 5-seed claim under the table
+# (even a perfect prediction need not bring the plan closer to the expert's: on the quick data GT
+# prediction's MSE is above No prediction's)
 results_table("il")
 check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 
 # %% [markdown]
-# **Cost learning (Table 3).** In the IL setting the weights $w_i = \rho\,w'_i$, $w'_1 = 5$ fixed, $w'_i = 2.1\,e^{\psi_i}
-# / \sum_{j \ge 2} e^{\psi_j}$ (App. A.2; the paper's scale $\alpha$ is $\rho = e^\lambda$ here) are learned with $\mathcal L = \alpha_3\,
-# \mathcal L_\text{ctr}$ through the KKT backward of §5, the predictor a frozen Standard one. The table lists the
-# normalised weights $w'$, $\rho$ (column "alpha"), and the absolute IL planning loss and MSE.
+# **Cost learning (Table 3).** In the IL setting the weights $w_i = \rho\,w'_i$, $w'_1 = 5$ fixed,
+# $w'_i = 2.1\,e^{\psi_i} / \sum_{j \ge 2} e^{\psi_j}$ (App. A.2; the paper's scale $\alpha$ is
+# $\rho = e^\lambda$ here) are learned with $\mathcal L = \alpha_3\, \mathcal L_\text{ctr}$ through
+# the KKT backward of §5, the predictor a frozen Standard one. The table lists the normalised
+# weights $w'$, $\rho$ (column "alpha"), and the absolute IL planning loss and MSE.
 
 # %%
 # Table 3 (cost learning). Expected run time: ~5 s quick, ~65 s full.
@@ -917,83 +1099,94 @@ with tempfile.TemporaryDirectory() as tmp:
     figures.figure_cost_weights(res_cost, Path(tmp) / "w.png")
     display(Image(filename=str(Path(tmp) / "w.png"), width=560))
 mse = {n: r[0]["mse"] for n, r in res_cost.items()}
-check_order("Table 3, MSE (m^2): the weights learned on it lower it", mse, ["Learned", "Hand-tuned"])
+check_order(
+    "Table 3, MSE (m^2): the weights learned on it lower it", mse, ["Learned", "Hand-tuned"]
+)
 results_table("cost")
 check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %% [markdown]
-# **What the numbers say.** Over 5 seeds the learned weights cut the MSE from 2.73 to 0.63 m² in every seed; goal and
-# lane rise and control effort falls, as in the paper's (heading falls, where the paper's rises). The scale $\rho$:
-# the minimiser of $\rho\,C$ is the same for every $\rho > 0$, so the loss cannot see $\rho$; its gradient comes only
-# from iLQR stopping a little short of the exact minimum. Trained as a plain number, $\rho$ drifted through zero (every weight negative, the
-# controller maximising the cost); as $\rho = e^\lambda$ it stays positive and harmless. A parameter the loss cannot
-# see still gets a gradient from an inexact solver.
+# **What the numbers say.** Over 5 seeds the learned weights cut the MSE from 2.73 to 0.63 m² in
+# every seed; goal and lane rise and control effort falls, as in the paper's (heading falls, where
+# the paper's rises). The scale $\rho$: the minimiser of $\rho\,C$ is the same for every $\rho > 0$,
+# so the loss cannot see $\rho$; its gradient comes only from iLQR stopping a little short of the
+# exact minimum. Trained as a plain number, $\rho$ drifted through zero (every weight negative, the
+# controller maximising the cost); as $\rho = e^\lambda$ it stays positive and harmless. A parameter
+# the loss cannot see still gets a gradient from an inexact solver.
 
 # %% [markdown]
-# **Closed loop (Table 5).** Log replay (§4.3): every 0.5 s for 10 s the stack replans from the *simulated* ego state,
-# the ego executes the first control, the other agents replay their logs. Metrics over the executed trajectory
-# (trajectory cost = eq. 3 without the goal term, each step's plan's open-loop cost and its parts, deviation from the
-# logged ego), as differences to No prediction (×10⁻²).
+# **Closed loop (Table 5).** Log replay (§4.3): every 0.5 s for 10 s the stack replans from the
+# *simulated* ego state, the ego executes the first control, the other agents replay their logs.
+# Metrics over the executed trajectory (trajectory cost = eq. 3 without the goal term, each step's
+# plan's open-loop cost and its parts, deviation from the logged ego), as differences to No
+# prediction (×10⁻²).
 
 # %%
 # Table 5 (closed loop). Expected run time: ~15 s quick, ~80 s full.
 t0 = time.time()
-res5, rollouts, cl_scenes = xp.closed_loop_experiment(data, data.val_scenes[:N_CLOSED_LOOP], cfg, seeds=(SEED,),
-                                                      epochs=EPOCHS, log=None)
+cl = data.val_scenes[:N_CLOSED_LOOP]
+res5, rollouts, cl_scenes = xp.closed_loop_experiment(
+    data, cl, cfg, seeds=(SEED,), epochs=EPOCHS, log=None
+)
 print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
 display(Markdown(xp.results_markdown(xp.TABLES["closed_loop"], res5)))
 results_table("closed_loop")
 check_claim("closed_loop", "DiffStack", "Standard", "Trajectory cost (x1e-2)", "not reproduced")
-# Figure: the scene where Standard's trajectory cost exceeds DiffStack's most, every method's executed trajectory.
+# Figure: the scene where Standard's trajectory cost exceeds DiffStack's most, every method's path.
 sc = int((rollouts["Standard"][1]["trajectory"] - rollouts["DiffStack"][1]["trajectory"]).argmax())
 course.figure_closed_loop(rollouts, cl_scenes, sc)
 rel = {n: r[0]["rel_trajectory"] for n, r in res5.items()}
 check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", "No prediction"])
 
 # %% [markdown]
-# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is −0.11 ± 0.01, level
-# with GT prediction's, Standard's +0.14 ± 0.09 (paired −0.25 ± 0.09, t = −2.71, p = 0.054: *not reproduced* at 5 %).
-# Standard's plans look better in open loop (−1.71 ± 0.22 against −0.82 ± 0.03: the paper's claim contradicted,
-# p = 0.020) but cost more once executed (control effort +0.26 ± 0.08 against +0.02 ± 0.01). Replanning every 0.5 s
-# corrects a wrong plan early: the executed trajectories stay within half a metre of each other.
+# **What the closed-loop numbers say.** In 5 seeds (375 scenes) DiffStack's trajectory cost is
+# −0.11 ± 0.01, level with GT prediction's, Standard's +0.14 ± 0.09 (paired −0.25 ± 0.09, t = −2.71,
+# p = 0.054: *not reproduced* at 5 %). Standard's plans look better in open loop (−1.71 ± 0.22
+# against −0.82 ± 0.03: the paper's claim contradicted, p = 0.020) but cost more once executed
+# (control effort +0.26 ± 0.08 against +0.02 ± 0.01). Replanning every 0.5 s corrects a wrong plan
+# early: the executed trajectories stay within half a metre of each other.
 #
-# **A finer clock (App. A.1).** Planner and controller can plan the same 3 s in 30 steps of 0.1 s: `plan_dt=0.1`
-# interpolates the predictions (`ds.upsample`) and scales the per-step cost by 1/5. Here the predictors trained at
-# 0.5 s are *evaluated* at 0.1 s; the ablation (`results/ablation.md`) also trains at 0.1 s and keeps the order
-# (hindsight cost: Standard −0.89 ± 0.04, DiffStack −1.09 ± 0.02, GT −1.30 ± 0.00).
+# **A finer clock (App. A.1).** Planner and controller can plan the same 3 s in 30 steps of 0.1 s:
+# `plan_dt=0.1` interpolates the predictions (`ds.upsample`) and scales the per-step cost by 1/5.
+# Here the predictors trained at 0.5 s are *evaluated* at 0.1 s; the ablation
+# (`results/ablation.md`) also trains at 0.1 s and keeps the order (hindsight cost: Standard
+# −0.89 ± 0.04, DiffStack −1.09 ± 0.02, GT −1.30 ± 0.00).
 
 # %%
-# Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s quick, ~30 s full.
+# Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s
+# quick, ~30 s full.
 t0 = time.time()
-stacks = {"No prediction": (None, tr.Method("No prediction", "none")), "Standard": (model_std, tr.Method("Standard")),
-          "DiffStack": (model_ds, tr.Method("DiffStack", losses=(1, 1, 1))), "GT prediction": (None, tr.Method("GT prediction", "gt"))}
-fine = {name: [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)] for name, (model, method) in stacks.items()}
-for runs in fine.values():  # relative to No prediction, as open_loop_experiment reports
-    for key, scale in tr.RELATIVE_SCALE["rl"].items():
-        runs[0]["rel_" + key] = (runs[0][key] - fine["No prediction"][0][key]) / scale
+fine = {}  # §7's stacks and GT prediction; relative to No prediction, as open_loop_experiment's
+stacks_gt = {**stacks, "GT prediction": (None, tr.Method("GT prediction", "gt"))}
+for name, (model, method) in stacks_gt.items():
+    fine[name] = [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
+tr.add_relative(fine, "rl")
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(tr.open_loop_table(fine, "rl")))
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
-check_order("dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"])
+check_order(
+    "dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"]
+)
 
 # %%
 section_done("§8")
 
-
 # %% [markdown]
 # **For discussion (§8).**
 #
-# 1. In imitation learning, is "DiffStack beats GT prediction" a success of the method or a sign that the metric
-#    rewards something else? What experiment would tell the two apart?
-# 2. Standard's plans are better than DiffStack's in open loop and worse once executed. Which of the closed-loop
-#    columns tells you why, and what would you change in Standard's training to fix it?
+# 1. In imitation learning, is "DiffStack beats GT prediction" a success of the method or a sign
+#    that the metric rewards something else? What experiment would tell the two apart?
+# 2. Standard's plans are better than DiffStack's in open loop and worse once executed. Which of the
+#    closed-loop columns tells you why, and what would you change in Standard's training to fix it?
 
 # %% [markdown]
 # ## Where to go from here
 #
-# * `python experiments.py --experiment rl --seeds 5 --out runs` runs Table 1 with several seeds (`biased`, `cost`,
-#   `il`, `closed_loop`: Tables 2-5; `ablation`: App. A.1; `all`: everything) and writes `runs/<name>.md`.
-# * Change `cfg` (e.g. `ds.Config(beta=10.0)`, other cost weights) and re-run a section: every cell seeds itself.
+# * `python experiments.py --experiment rl --seeds 5 --out runs` runs Table 1 with several seeds
+#   (`biased`, `cost`, `il`, `closed_loop`: Tables 2-5; `ablation`: App. A.1; `all`: everything) and
+#   writes `runs/<name>.md`.
+# * Change `cfg` (e.g. `ds.Config(beta=10.0)`, other cost weights) and re-run a section: every cell
+#   seeds itself.
 # * `python -m pytest -q test_diffstack.py` checks each module against an independent computation.
 
 # %%
