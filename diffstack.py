@@ -24,6 +24,7 @@ A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceler
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -131,6 +132,7 @@ _SERIES_SWITCH = 0.3  # |w tau| below which the series replaces the closed forms
 _SERIES_TERMS = 7  # k = 0 .. 6
 
 
+@functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, dtype, device):
     """a_kj = (-1)^k / ((2k)! (2k+j+1)) and b_kj = (-1)^k / ((2k+1)! (2k+j+2)) of the moments'
     series, side by side: (terms, 2 (jmax+1))."""
@@ -153,11 +155,12 @@ def _moments(w, tau, jmax):
     #     c_j = tau^(j+1) sum_k a_kj th^2k,   s_j = tau^(j+1) th sum_k b_kj th^2k
     th_s = torch.where(small, th, 0.0)
     coef = _series_coefficients(jmax, w.dtype, w.device)  # (terms, 2J)
+    th2 = th_s**2
     power = torch.ones_like(th_s)  # th^2k, from k = 0
     series = 0.0
     for k in range(_SERIES_TERMS):
         series = series + power[..., None] * coef[k]  # (..., 2J)
-        power = power * th_s**2
+        power = power * th2
     c_series = series[..., :J] * tau_pow
     s_series = series[..., J:] * th_s[..., None] * tau_pow
     # the closed forms, by parts:
@@ -339,21 +342,22 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     First the nearest lane point (no gradient: it only picks an index), ranked by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2
     so that an oncoming lane beside the state's own is not 'closest' (no lane within 90 degrees:
-    no lane cost); then the closer of the two segments that meet there."""
+    no lane cost); then the closer of the two segments that meet there. The ranking is one product
+    of features (below), the fast form of these distances; a test holds the two to one point."""
     B, L, P, _ = lanes.shape
     q = pos.reshape(B, -1, 2).detach()  # (B, Q, 2)
     hq = heading.reshape(B, -1).detach()  # (B, Q)
     pts = lanes.reshape(B, L * P, 3)
     p = pts.detach()
     mask = lanes_mask.reshape(B, L * P)
-    # 1. the nearest point: |q - p|^2 + lam (1 - cos(h_q - h_p)) is the squared distance of the
-    #    points (x, y, r cos h, r sin h), r = sqrt(lam / 2): plain distances in that space, with the
-    #    lanes' padding moved out of reach
-    r = math.sqrt(_SEARCH_LAM / 2)
-    q_feat = torch.cat([q, r * torch.cos(hq)[..., None], r * torch.sin(hq)[..., None]], -1)
-    p_feat = torch.cat([p[..., :2], r * torch.cos(p[..., 2:]), r * torch.sin(p[..., 2:])], -1)
-    p_feat = torch.where(mask[..., None], p_feat, 1e15)  # (B, L*P, 4)
-    j = torch.cdist(q_feat, p_feat).argmin(-1)  # (B, Q) the nearest point's index
+    # 1. the nearest point: |q|^2 is the same for every p and drops out; the rest is one product
+    #    [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam], u(h) = (cos h, sin h); padding: 1e30
+    p_norm = torch.where(mask, (p[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
+    u_p = torch.cat([torch.cos(p[..., 2:]), torch.sin(p[..., 2:])], -1)  # (B, L*P, 2)
+    p_feat = torch.cat([p[..., :2], u_p, p_norm[..., None]], -1)  # (B, L*P, 5)
+    u_q = torch.stack([torch.cos(hq), torch.sin(hq)], -1)  # (B, Q, 2)
+    q_feat = torch.cat([-2 * q, -_SEARCH_LAM * u_q, torch.ones_like(q[..., :1])], -1)  # (B, Q, 5)
+    j = (q_feat @ p_feat.mT).argmin(-1)  # (B, Q) the nearest point's index
     near = pts.gather(1, j[..., None].expand(B, -1, 3))  # (B, Q, 3)
     has_lane = mask.gather(1, j) & (torch.cos(hq - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points: a prefix)
@@ -1572,10 +1576,9 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     prediction-free terms."""
     sub = planner_substeps(cfg, plan_dt)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    if cfg.goal == "logged":
-        goal = batch.goal  # (B, 4)
-    else:
-        goal = route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
+    goal = (
+        batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
+    )
     pcfg = planner_config(cfg, sub)
     cands = plan_candidates(s0, goal, batch.lanes, batch.lanes_mask, pcfg)
     pos, head = cands.x[..., 1:, :2], cands.x[..., 1:, 2]

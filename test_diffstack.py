@@ -182,6 +182,31 @@ def test_rbf_is_the_gaussian_kernel_down_to_its_floor():
     assert torch.isfinite(torch.autograd.functional.jacobian(lambda d: ds.rbf(d, 2.0), d2)).all()
 
 
+def test_lane_search_ranks_by_the_plain_distance():
+    """nearest_lane_segment ranks lane points by one product of features; the point it picks is the
+    argmin of the plain |q - p|^2 + lam (1 - cos(h_q - h_p)) over the valid points (float64, random
+    lanes with padding), and the segment it returns has that point at one end."""
+    g = torch.Generator().manual_seed(2)
+    B, L, P, Q = 6, 4, 9, 11
+    lanes = torch.randn(B, L, P, 3, generator=g, dtype=torch.float64) * torch.tensor([20, 20, 3.0])
+    lanes_mask = torch.arange(P) < torch.randint(2, P + 1, (B, L, 1), generator=g)  # valid prefix
+    pos = torch.randn(B, Q, 2, generator=g, dtype=torch.float64) * 20
+    heading = torch.randn(B, Q, generator=g, dtype=torch.float64) * 3
+    a, b, _ = ds.nearest_lane_segment(pos, heading, lanes, lanes_mask)
+    pts = lanes.reshape(B, L * P, 3)
+    dist2 = ((pos[:, :, None] - pts[:, None, :, :2]) ** 2).sum(-1)  # (B, Q, L*P)
+    turn = 1 - torch.cos(heading[:, :, None] - pts[:, None, :, 2])
+    rank = torch.where(lanes_mask.reshape(B, 1, L * P), dist2 + 50.0 * turn, math.inf)
+    nearest = pts.gather(1, rank.argmin(-1)[..., None].expand(B, Q, 3))  # (B, Q, 3)
+    at_an_end = (a == nearest).all(-1) | (b == nearest).all(-1)
+    assert at_an_end.all()
+    # a wrong ranking (the heading term left out) picks other points
+    wrong = pts.gather(
+        1, torch.where(rank.isinf(), math.inf, dist2).argmin(-1)[..., None].expand(B, Q, 3)
+    )
+    assert not ((a == wrong).all(-1) | (b == wrong).all(-1)).all()
+
+
 def test_lane_projection_ignores_oncoming_lanes():
     lanes = torch.zeros(1, 2, 10, 3, dtype=torch.float64)
     lanes[..., 0] = torch.arange(10.0)
