@@ -36,16 +36,17 @@
 # |---|---|---|---|---|
 # | 1 | the stack: predictor → planner → controller, gradient path | §3, Fig. 2 | < 1 s | < 1 s |
 # | 2 | the data: synthetic scenarios, nuScenes writer and loader | §4.1 | 1 s | 1 s |
-# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 2 s | 1 s |
-# | 4 | the relaxed argmin; **exercises 2, 4** (L_plan, its gradient) | eq. (2), §3.1 | 1 s | 2 s |
-# | 5 | iLQR, KKT backward; **exercises 3, 5** (Riccati, gradient) | eq. (4), App. C | 7 s | 5 s |
-# | 6 | the predictor: a Trajectron++-style CVAE trained as usual | eq. (1), §3.1 | 1 s | 12 s |
-# | 7 | end-to-end training: DiffStack against Standard (Table 1) | §4.2 | 6 s | 120 s |
-# | 8 | Tables 2-5: bias, IL, cost learning, closed loop; dt = 0.1 s | §4.2-4.3 | 14 s | 156 s |
-# | | **whole notebook** | | 36 s (under 1 min) | 297 s (5 min) |
+# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 3 s | 1 s |
+# | 4 | the relaxed argmin; **exercises 2, 4** (L_plan, its gradient) | eq. (2), §3.1 | 3 s | 2 s |
+# | 5 | iLQR, KKT backward; **exercises 3, 5** (Riccati, gradient) | eq. (4), App. C | 13 s | 5 s |
+# | 6 | the predictor: a Trajectron++-style CVAE trained as usual | eq. (1), §3.1 | 2 s | 12 s |
+# | 7 | end-to-end training: DiffStack against Standard (Table 1) | §4.2 | 13 s | 120 s |
+# | 8 | Tables 2-5: bias, IL, cost learning, closed loop; dt = 0.1 s | §4.2-4.3 | 35 s | 156 s |
+# | | **whole notebook** | | 70 s (about 1 min) | 297 s (5 min) |
 #
-# Times: wall time per section on one torch thread with the data cached (the first run generates it,
-# a few seconds more). Plan 20-40 minutes per exercise, 2.5-4 hours for the whole course.
+# Times: wall time per section on one torch thread of a 2-core VM with the data cached (the first
+# run generates it, a few seconds more); the full column was measured on a faster day of that VM.
+# Plan 20-40 minutes per exercise, 2.5-4 hours for the whole course.
 #
 # **Exercises.** Five functions to fill in (stubs until you do). A check runs each on its own test
 # problems against the module, autograd or a closed form: `PASS`, a stop that says what differs, or
