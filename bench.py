@@ -1,12 +1,14 @@
 """Benchmarks of the DiffStack reference: every timing of the project, in one module.
 
-    python bench.py                       # everything at 1 and 2 threads, B = 256 (a few minutes)
+    python bench.py                       # everything at 1 and 2 threads, B = 256 (about 15 minutes,
+                                          # most of it the bounded LQR)
     python bench.py --threads 1 --reps 3 --skip-closed-loop
     python bench.py --quick               # tiny sizes and reps, well under a minute (test_bench.py)
     python bench.py --json runs/bench.json
                                           # also every figure, in a JSON file
     python bench.py --device cuda --threads 1
                                           # our modules on a GPU (without the peers and closed loop)
+    python bench.py --bounded-lqr         # only the bounded LQR of differentiable_nmpc (minutes)
 
 What is timed (B = --batch scenarios or problems, default 256):
     controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its
@@ -29,6 +31,11 @@ What is timed (B = --batch scenarios or problems, default 256):
                   the box widened until inactive (PyPose has no bounds), one thread, B = 64 ...
                   4096, after checking that both reach the same solution; every peer's gradient
                   against finite differences
+    bounded LQR   the published benchmark of FreyJo/differentiable_nmpc (128 problems, 8 states, 4
+                  controls, N = 20, umax 1e4 and 1.0): our box-iLQR and KKT backward, with the
+                  gradient wrt A, B, b and H, beside mpc.pytorch (one thread, alternating); each
+                  solve checked against the QP's solution from scipy; the published acados and
+                  mpc.pytorch rows printed beside ours, labelled as such (section 4c)
 
 How: every figure is a torch.utils.benchmark.Timer measurement at a stated torch thread count
 (Timer's num_threads): the median and the interquartile range (IQR) of --reps timed runs. Each timed
@@ -44,7 +51,8 @@ one thread, B = 256 (--quick: its B); null without pypose), controller_ms_per_pr
 problem of iLQR forward + KKT backward, float64, box, one thread: the slope from B = 1024 to 4096),
 meta, figures (every row of the table: key, benchmark, dtype, threads, batch, median_ms, iqr_ms,
 runs, note), mpc_pytorch and pypose (its figures, the per-B table, the agreement check and the
-gradient errors).
+gradient errors), bounded_lqr (its table: per solver and umax the times, µs per problem-stage,
+iterations, converged problems, distance to the reference; the gradient against mpc.pytorch's).
 
 Peers are no dependencies of the project. Without one, its part is skipped with a one-line hint; to
 compare, install it in a throwaway venv (--no-deps keeps the torch of requirements.txt):
@@ -59,14 +67,17 @@ Map of the module:
                      peers
     3. Our modules   controller, planner, predictor, a DiffStack training step, the closed loop
     4. Peers         mpc.pytorch, then PyPose, side by side (each skipped with a hint when it is not
-                     installed)
+                     installed); the bounded LQR of differentiable_nmpc, ours beside mpc.pytorch
     5. Running       run(), the tables, the JSON file, the command line
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
 import importlib
+import io
 import itertools
 import json
 import math
@@ -77,7 +88,11 @@ import sys
 import time
 import warnings
 
+import numpy as np
+import scipy.linalg
+import scipy.optimize
 import torch
+import torch.nn.functional as F
 import torch.utils.benchmark as benchmark
 
 import data_synth
@@ -984,6 +999,438 @@ def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01, log=print)
     )
 
 
+# --------------------------------------------------------------------------------------------
+# 4c. The bounded LQR of differentiable_nmpc (Frey et al., acados), beside mpc.pytorch
+# --------------------------------------------------------------------------------------------
+#
+# The benchmark of Table 1 in the README of FreyJo/differentiable_nmpc: 128 problems sharing one
+# affine system x' = A x + B u + b, 8 states, 4 controls, horizon N = 20, stage cost
+# 1/2 tau_t' H tau_t with H = I (12 x 12; tau_t = (x_t, u_t)), u within +-umax, float64, from
+# zero controls; the loss is the sum of the first controls over the batch, its gradient taken wrt
+# the 248 parameters A (64), B (32), b (8) and H (144). mpc.pytorch's horizon has N + 1 = 21
+# stages, the 21st control driving nothing (it stays 0); ours costs x_N by H's state block, the
+# same problem. The problems are the script's own: numpy's legacy generator seeded 42 draws A, B,
+# b and then x0 twice (its timing run, its sensitivity run) for umax = 1e4, then again for
+# umax = 1.0; we solve the sensitivity run's x0.
+#
+# Our solver differentiates x_init and the cost's parameters (the KKT backward, diffstack.py §5);
+# the dynamics' A, B, b take one more step from the same backward pass, the costates (Amos et al.
+# 2018, eq. 8): with lambda the forward problem's costates and (dx, du, dlambda) the backward
+# LQR's solution and costates,
+#     dL/dA = sum_t dlambda_{t+1} x_t' + lambda_{t+1} dx_t'
+#     dL/dB = sum_t dlambda_{t+1} u_t' + lambda_{t+1} du_t'
+#     dL/db = sum_t dlambda_{t+1}
+# (AffineLQR; test_bench.py holds them to central finite differences under active bounds).
+
+LQR_UMAX = (1e4, 1.0)  # the two configurations, in the order the reference script draws them
+LQR_N, LQR_NX, LQR_NU, LQR_BATCH = 20, 8, 4, 128
+LQR_SETTINGS = {  # ours at ilqr's defaults; run until the step is below 1e-6; and with a finer
+    "defaults": dict(iters=5, tol=0.05),  # line search (scales down to 2^-19, not 5^-4)
+    "tight": dict(iters=100, tol=1e-6),
+    "finer": dict(iters=100, tol=1e-6, ls_steps=20, ls_decay=2.0),
+}
+LQR_MPC = dict(lqr_iter=100, eps=1e-6)  # mpc.pytorch as the reference script runs it
+LQR_PUBLISHED = (  # (umax, acados solve, acados solve + gradient (ms), mpc.pytorch x acados)
+    (1e4, 7.6, 36.6, 9.22, 3.23),
+    (1.0, 17.4, 58.4, 1460.0, 441.0),
+)
+
+
+def bounded_lqr_problem(umax: float, batch=LQR_BATCH, seed=42, horizon=LQR_N) -> dict:
+    """The benchmark's problems for umax (one of LQR_UMAX), float64: A (8, 8), B (8, 4), b (8,),
+    H (12, 12), x_init (batch, 8), lo, hi (4,), u_init (batch, horizon, 4) zeros (the horizon
+    of u_init is the problems')."""
+    rng = np.random.RandomState(seed)  # numpy's legacy generator, as npr.seed(42)
+    for drawn in LQR_UMAX:
+        A = np.eye(LQR_NX) + 0.2 * rng.randn(LQR_NX, LQR_NX)
+        B = rng.randn(LQR_NX, LQR_NU)
+        b = rng.randn(LQR_NX)
+        rng.randn(batch, LQR_NX)  # the timing run's x0
+        x0 = rng.randn(batch, LQR_NX)  # the sensitivity run's x0
+        if drawn == umax:
+            break
+    else:
+        raise ValueError(f"umax: {umax} is none of the benchmark's {LQR_UMAX}")
+    P = dict(A=A, B=B, b=b, H=np.eye(LQR_NX + LQR_NU), x_init=x0)
+    P = {k: torch.tensor(v, dtype=torch.float64) for k, v in P.items()}
+    P["lo"] = torch.full((LQR_NU,), -umax, dtype=torch.float64)
+    P["hi"] = torch.full((LQR_NU,), umax, dtype=torch.float64)
+    P["u_init"] = torch.zeros(batch, horizon, LQR_NU, dtype=torch.float64)
+    return P
+
+
+class Affine:
+    """x_{t+1} = A x_t + B u_t + b for x (..., n), u (..., m), with its Jacobians (A, B) and
+    curvature (0) in closed form, as diffstack's solver takes dynamics."""
+
+    def __init__(self, A, B, b):
+        self.A, self.B, self.b = A, B, b
+
+    def __call__(self, x, u):
+        return x @ self.A.mT + u @ self.B.mT + self.b
+
+    def jacobians(self, x, u):  # x (B, T, n) -> (B, T, n, n), (B, T, n, m)
+        n, m = self.B.shape
+        return self.A.expand(*x.shape[:-1], n, n), self.B.expand(*x.shape[:-1], n, m)
+
+    def curvature(self, x, u, lam):  # (B, T, n+m, n+m): affine dynamics curve nowhere
+        k = x.shape[-1] + u.shape[-1]
+        return x.new_zeros(*x.shape[:-1], k, k)
+
+
+class StageQuadratic:
+    """The benchmark's cost: sum_{t<N} 1/2 tau_t' H tau_t + 1/2 x_N' H_xx x_N, tau_t = (x_t, u_t),
+    x (B, N+1, n), u (B, N, m) -> (B,); its expansion in closed form (H's symmetric part)."""
+
+    def __call__(self, x, u, H):
+        n = x.shape[-1]
+        tau = torch.cat([x[:, :-1], u], -1)  # (B, N, n+m)
+        stages = 0.5 * torch.einsum("bti,ij,btj->b", tau, H, tau)
+        return stages + 0.5 * torch.einsum("bi,ij,bj->b", x[:, -1], H[:n, :n], x[:, -1])
+
+    def expansion(self, x, u, H):
+        """Gradient (B, N+1, n+m) and Hessian (B, N+1, n+m, n+m); the last control a zero pad."""
+        H_sym = (H + H.mT) / 2
+        z = torch.cat([x, F.pad(u, (0, 0, 0, 1))], -1)  # (B, N+1, n+m)
+        return z @ H_sym, H_sym.expand(*z.shape[:-1], *H.shape)
+
+
+def costates(g_x, A):
+    """lambda_N = g_x[N], lambda_t = g_x[t] + A_t' lambda_{t+1}: the costates of a problem whose
+    stage gradients in x are g_x (B, N+1, n) along dynamics with Jacobians A (B, N, n, n)
+    -> (B, N+1, n), lambda_0 .. lambda_N."""
+    lam = [g_x[:, -1]]
+    for t in reversed(range(A.shape[1])):
+        lam.append(g_x[:, t] + (A[:, t].mT @ lam[-1][..., None])[..., 0])
+    return torch.stack(lam[::-1], 1)
+
+
+def outer_sum(a, b):
+    """sum over the batch and the steps of a_t b_t': a (B, N, i), b (B, N, j) -> (i, j)."""
+    return torch.einsum("bti,btj->ij", a, b)
+
+
+class AffineLQR(torch.autograd.Function):
+    """diffstack.ilqr on the bounded LQR, differentiable in x_init, A, B, b and H: the KKT backward
+    of diffstack.py §5 (same active set held, same LQR), plus the dynamics' gradients from the
+    costates (above). Scenarios that did not converge pass no gradient, as in diffstack."""
+
+    @staticmethod
+    def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
+        with torch.no_grad():
+            x, u, info = ilqr(
+                StageQuadratic(), Affine(A, B, b), x_init, u_init, (H,), lo, hi, **settings
+            )
+        ctx.save_for_backward(x, u, info.converged, lo.expand_as(u), hi.expand_as(u), A, B, b, H)
+        ctx.mark_non_differentiable(info.converged, info.iters)
+        return x, u, info.converged, info.iters
+
+    @staticmethod
+    def backward(ctx, grad_x, grad_u, _, __):
+        x, u, converged, lo, hi, A, B, b, H = ctx.saved_tensors
+        n, T = x.shape[-1], u.shape[1]
+        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # the active set, held
+        keep = converged.to(x.dtype)[:, None, None]
+        cost, dynamics = StageQuadratic(), Affine(A, B, b)
+        g, Hz = cost.expansion(x, u, H)  # (B, N+1, n+m), (B, N+1, n+m, n+m)
+        A_t, B_t = dynamics.jacobians(x[:, :-1], u)
+        rhs = torch.cat([grad_x * keep, F.pad(grad_u * keep, (0, 0, 0, 1))], -1)
+        k, K, _, p0 = diffstack.lqr_backward(A_t, B_t, Hz, rhs, free=free)
+        dx, du = [torch.zeros_like(x[:, 0])], []  # the backward LQR's solution from dx_0 = 0
+        for t in range(T):
+            du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
+            dx.append((A_t[:, t] @ dx[-1][..., None] + B_t[:, t] @ du[-1][..., None])[..., 0])
+        dx, du = torch.stack(dx, 1), torch.stack(du, 1)
+        d = torch.cat([dx, F.pad(du, (0, 0, 0, 1))], -1)  # (B, N+1, n+m)
+        lam = costates(g[..., :n], A_t)[:, 1:]  # (B, N, n): lambda_1 .. lambda_N
+        dlam = costates(((Hz @ d[..., None])[..., 0] + rhs)[..., :n], A_t)[:, 1:]
+        (grad_H,) = diffstack.params_gradients(cost, x, u, (H.detach().requires_grad_(),), dx, du)
+        # the gradients wrt the dynamics (above), summed over the batch and the steps
+        grad_A = outer_sum(dlam, x[:, :-1]) + outer_sum(lam, dx[:, :-1])
+        grad_B = outer_sum(dlam, u) + outer_sum(lam, du)
+        grad_b = dlam.sum((0, 1))
+        return None, None, None, None, p0, grad_A, grad_B, grad_b, grad_H
+
+
+def condensed_qp(P) -> tuple:
+    """The problems in the controls alone: with U = (u_0, ..., u_{N-1}) (N m,) the states are
+    affine in U and the cost is 1/2 U'M U + q'U + const, M (N m, N m) shared, q (batch, N m)."""
+    cost, dynamics = StageQuadratic(), Affine(P["A"], P["B"], P["b"])
+    N = P["u_init"].shape[1]
+
+    def of(U, x0):  # one problem's cost
+        u = U.reshape(1, N, LQR_NU)
+        return cost(diffstack.rollout(dynamics, x0[None], u), u, P["H"])[0]
+
+    U0 = torch.zeros(N * LQR_NU, dtype=torch.float64)
+    M = torch.func.hessian(of)(U0, P["x_init"][0])
+    q = torch.func.vmap(torch.func.grad(of), (None, 0))(U0, P["x_init"])
+    return M, q
+
+
+def kkt_residual(u, M, q, lo, hi):
+    """How far the controls u (batch, N, m) are from the box QP's solution, in units of controls:
+    the largest move of a projected coordinate-Newton step, |U - clamp(U - (M U + q) / diag M)|,
+    0 exactly at the solution -> (batch,). Scaled by diag M because the unstable system (spectral
+    radius 1.8) makes the gradient wrt u_0 some 1e5 times that wrt u_19."""
+    U = u.reshape(len(u), -1)
+    grad = U @ M + q  # (batch, N m); M is symmetric
+    lo, hi = lo.repeat(u.shape[1]), hi.repeat(u.shape[1])
+    return (U - (U - grad / M.diagonal()).clamp(lo, hi)).abs().amax(-1)
+
+
+def reference_controls(M, q, lo, hi) -> torch.Tensor:
+    """The box QP solved another way: bounded-variable least squares (scipy's lsq_linear, 'bvls',
+    an active-set method that ends at the exact solution) on 1/2 ||L'U + L^-1 q||^2, M = L L'
+    -> (batch, N, m). Its default cap of N m iterations stops it short on some problems here."""
+    L = scipy.linalg.cholesky(M.numpy(), lower=True)
+    N = len(M) // len(lo)
+    bounds = (lo.repeat(N).numpy(), hi.repeat(N).numpy())
+    U = []
+    for qi in q.numpy():
+        b = -scipy.linalg.solve_triangular(L, qi, lower=True)
+        res = scipy.optimize.lsq_linear(L.T, b, bounds, "bvls", tol=1e-14, max_iter=10_000)
+        if res.status <= 0:
+            raise RuntimeError(f"the reference solver stopped short: {res.message}")
+        U.append(res.x)
+    return torch.tensor(np.array(U)).reshape(len(U), N, len(lo))
+
+
+def ours_lqr(P, settings, grad=False):
+    """Our solve of the benchmark: x (batch, N+1, n), u (batch, N, m), iterations (batch,), and
+    the parameters (x_init, A, B, b, H), which with grad require it."""
+    args = [P[k] for k in ("x_init", "A", "B", "b", "H")]
+    if grad:
+        args = [a.detach().clone().requires_grad_() for a in args]
+    x, u, _, iters = AffineLQR.apply(settings, P["lo"], P["hi"], P["u_init"], *args)
+    return x, u, iters, args
+
+
+def mpc_lqr(P, grad=False, **settings):
+    """mpc.pytorch's solve, as the reference script runs it: (x (batch, N+1, n), u (batch, N, m),
+    iterations, the parameters); its 21st control is dropped (it drives nothing and stays 0)."""
+    from mpc import mpc as mpc_lib
+    from mpc.dynamics import AffineDynamics
+
+    Bsz, T1 = len(P["x_init"]), LQR_N + 1
+    args = [P[k] for k in ("x_init", "A", "B", "b", "H")]
+    if grad:
+        args = [a.detach().clone().requires_grad_() for a in args]
+    x_init, A, B, b, H = args
+    ctrl = mpc_lib.MPC(
+        LQR_NX,
+        LQR_NU,
+        T1,
+        P["lo"].expand(T1, Bsz, LQR_NU).contiguous(),
+        P["hi"].expand(T1, Bsz, LQR_NU).contiguous(),
+        None,
+        backprop=grad,
+        exit_unconverged=False,
+        n_batch=Bsz,
+        verbose=-1,
+        **settings,
+    )
+    passes = [0]
+    subproblem = ctrl.solve_lqr_subproblem
+
+    def counted(*a, **kw):  # one LQR pass per iteration, and one more on the best iterate
+        passes[0] += 1
+        return subproblem(*a, **kw)
+
+    ctrl.solve_lqr_subproblem = counted
+    zero = torch.zeros(LQR_NX + LQR_NU, dtype=torch.float64)
+    with contextlib.redirect_stdout(io.StringIO()):  # its inner QP's "did not converge" lines
+        x, u, _ = ctrl(x_init, mpc_lib.QuadCost(H, zero), AffineDynamics(A, B, b))
+    return x.transpose(0, 1), u.transpose(0, 1), passes[0] - 1, args
+
+
+LQR_CONVERGED = 1e-6  # a solve has converged when no control would move by more (kkt_residual)
+
+
+def lqr_check(name, settings, P, M, q, ref, solve) -> dict:
+    """One untimed solve with gradients: iterations, how many problems converged (kkt_residual
+    below LQR_CONVERGED), the largest distance to the reference controls, the largest relative
+    objective gap, and the gradient of the sum of the first controls wrt (A, B, b, H), flattened
+    (248,)."""
+    x, u, iters, args = solve(P, grad=True)
+    u = u[:, :LQR_N]  # mpc.pytorch's idle 21st control dropped
+    u[:, 0].sum().backward()
+    res = kkt_residual(u.detach(), M, q, P["lo"], P["hi"])
+
+    def objective(u):
+        U = u.reshape(len(u), -1)
+        return 0.5 * ((U @ M) * U).sum(-1) + (q * U).sum(-1)
+
+    gap = (objective(u.detach()) - objective(ref)) / objective(ref).abs()
+    iters = torch.as_tensor(iters).double()
+    return dict(
+        solver=name,
+        settings=settings,
+        iterations_median=iters.median().item(),
+        iterations_max=iters.max().item(),
+        converged=int((res < LQR_CONVERGED).sum()),
+        residual_max=res.max().item(),
+        max_du=(u.detach() - ref).abs().max().item(),
+        gap_max=gap.max().item(),
+        grad=torch.cat([a.grad.flatten() for a in args[1:]]),
+    )
+
+
+def compare_bounded_lqr(batch=LQR_BATCH, reps=3, quick=False, log=print, hint=True) -> dict:
+    """The bounded-LQR benchmark (above) at both umax: ours at ilqr's defaults and run tight,
+    mpc.pytorch as the reference script runs it (skipped with its hint when not installed); one
+    thread, float64, alternating runs. Returns {rows, table, gradient}; --quick caps the
+    iterations at 20."""
+    mpc_lib, why = import_peer("mpc.mpc")
+    if mpc_lib is None:  # hint: with its install line (not when compare_mpc gave it already)
+        log(
+            mpc_hint(why).replace("comparison", "bounded-LQR comparison")
+            if hint
+            else f"mpc.pytorch: {why}, left out of the bounded-LQR comparison"
+        )
+    cap = 20 if quick else None
+    ours_settings = {
+        k: dict(v, iters=min(v["iters"], cap or v["iters"])) for k, v in LQR_SETTINGS.items()
+    }
+    mpc_settings = dict(LQR_MPC, lqr_iter=min(LQR_MPC["lqr_iter"], cap or LQR_MPC["lqr_iter"]))
+    solvers = {
+        f"diffstack, {k}": (s, functools.partial(ours_lqr, settings=s))
+        for k, s in ours_settings.items()
+    }
+    if mpc_lib is not None:
+        solvers["mpc.pytorch"] = (mpc_settings, functools.partial(mpc_lqr, **mpc_settings))
+    rows, table, gradient = [], [], {}
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # mpc 0.0.6 uses deprecated torch APIs
+            for umax in LQR_UMAX:
+                P = bounded_lqr_problem(umax, batch)
+                M, q = condensed_qp(P)
+                ref = reference_controls(M, q, P["lo"], P["hi"])
+                checks = {n: lqr_check(n, s, P, M, q, ref, f) for n, (s, f) in solvers.items()}
+                fns = {}
+                for n, (_, f) in solvers.items():
+                    fns[n + " fwd"] = functools.partial(f, P)
+                    fns[n + " fwd+bwd"] = functools.partial(lqr_forward_backward, f, P)
+                m = measure(fns, reps, 1, f"bounded LQR, umax {umax:g}")
+                for n, c in checks.items():
+                    fwd, both = m[n + " fwd"], m[n + " fwd+bwd"]
+                    key = "lqr_" + n.replace(".", "_").replace(", ", "_") + f"_umax{umax:g}"
+                    rows += [
+                        figure(
+                            key + "_fwd",
+                            f"bounded LQR umax {umax:g}: {n} forward",
+                            fwd.times,
+                            1,
+                            "f64",
+                            batch,
+                        ),
+                        figure(
+                            key + "_fwd_bwd",
+                            f"bounded LQR umax {umax:g}: {n} forward + backward",
+                            both.times,
+                            1,
+                            "f64",
+                            batch,
+                        ),
+                    ]
+                    table.append(
+                        dict(
+                            {k: v for k, v in c.items() if k != "grad"},
+                            umax=umax,
+                            batch=batch,
+                            forward_ms=1e3 * fwd.median,
+                            forward_backward_ms=1e3 * both.median,
+                            us_per_problem_stage=1e6 * both.median / (batch * LQR_N),
+                        )
+                    )
+                if "mpc.pytorch" in checks:
+                    ours, mpc = checks["diffstack, tight"], checks["mpc.pytorch"]
+                    # each passes gradients from the problems it converged on only
+                    both = ours["converged"] == mpc["converged"] == batch
+                    rel = (ours["grad"] - mpc["grad"]).norm() / mpc["grad"].norm()
+                    gradient[f"{umax:g}"] = dict(
+                        relative_difference=rel.item() if both else None,
+                        converged=[ours["converged"], mpc["converged"]],
+                    )
+    finally:
+        torch.set_num_threads(before)
+    log_bounded_lqr(table, gradient, batch, reps, log)
+    return dict(rows=rows, table=table, gradient_vs_mpc=gradient)
+
+
+def lqr_forward_backward(solve, P):
+    """A solve with the parameters requiring grad and the backward of the sum of the first
+    controls: what the published "solution + adjoint sensitivities" column times."""
+    _, u, _, args = solve(P, grad=True)
+    u[:, 0].sum().backward()
+
+
+def log_bounded_lqr(table, gradient, batch, reps, log):
+    """The bounded-LQR tables: ours and mpc.pytorch measured here, then the published rows."""
+    log(
+        f"\nBounded LQR (FreyJo/differentiable_nmpc, Table 1): {batch} problems, N = {LQR_N}, "
+        f"8 states, 4 controls, float64, one thread; median of {reps} alternating runs; "
+        f"converged: no control moves by more than {LQR_CONVERGED:g} (scipy's bvls gives the "
+        "reference solution)"
+    )
+    lines = [
+        [
+            f"{t['umax']:g}",
+            t["solver"],
+            ", ".join(f"{k} {v:g}" for k, v in t["settings"].items()),
+            f"{t['forward_ms']:.1f}",
+            f"{t['forward_backward_ms']:.1f}",
+            f"{t['us_per_problem_stage']:.2f}",
+            f"{t['iterations_median']:g} / {t['iterations_max']:g}",
+            f"{t['converged']} / {t['batch']}",
+            f"{t['max_du']:.1e}",
+            f"{t['gap_max']:.1e}",
+        ]
+        for t in table
+    ]
+    head = [
+        "umax",
+        "solver",
+        "settings",
+        "fwd (ms)",
+        "fwd+bwd (ms)",
+        "µs / problem-stage",
+        "iterations (median / max)",
+        "converged",
+        "max Δu to u*",
+        "max objective gap",
+    ]
+    log(markdown_table(head, lines))
+    for umax, g in gradient.items():
+        rel, (ours, mpc) = g["relative_difference"], g["converged"]
+        log(
+            f"umax {umax}: gradient of sum u_0 wrt (A, B, b, H), diffstack (tight) vs "
+            + (
+                f"mpc.pytorch: relative difference {rel:.1e}"
+                if rel is not None
+                else f"mpc.pytorch: not compared, each passes gradients only from the problems "
+                f"it converged on ({ours} and {mpc} of {table[0]['batch']})"
+            )
+        )
+    log("Published (i7-8665U laptop, up to 4 threads; not measured here):")
+    pub = []
+    for umax, ac_f, ac_fb, mp_f, mp_fb in LQR_PUBLISHED:
+        for name, f, fb in (("acados", ac_f, ac_fb), ("mpc.pytorch", ac_f * mp_f, ac_fb * mp_fb)):
+            pub.append(
+                [
+                    f"{umax:g}",
+                    name,
+                    f"{f:.1f}",
+                    f"{fb:.1f}",
+                    f"{1e3 * fb / (LQR_BATCH * LQR_N):.2f}",
+                ]
+            )
+    log(markdown_table(["umax", "solver", "fwd (ms)", "fwd+bwd (ms)", "µs / problem-stage"], pub))
+
+
 # ============================================================================================
 # 5. Running, the tables, the JSON file, the command line
 # ============================================================================================
@@ -1086,13 +1533,15 @@ def run(
         "the thread count of each row"
     )
     log(results_table(rows) + "\n")
-    mpc_res = pp_res = None
+    mpc_res = pp_res = lqr_res = None
     if on_cpu:
         progress("peers: mpc.pytorch side by side")
         mpc_res = compare_mpc(batch_size, threads, reps, log=log)
         pp_batches = (batch_size,) if quick else PYPOSE_BATCHES
         progress(f"peers: PyPose side by side, B in {pp_batches}, one thread")
         pp_res = compare_pypose(pp_batches, reps, log=log)
+        lqr_res = run_bounded_lqr(quick, reps, batch_size, log, progress, hint=False)
+        rows += lqr_res["rows"]
     else:
         log(f"--device {device}: the closed loop and the peers (compared on the CPU) are left out")
     step_1 = [r["median_ms"] for r in rows if r["key"] == "stack_step" and r["threads"] == 1]
@@ -1103,18 +1552,7 @@ def run(
         speedup_vs_pypose=None if pp_res is None else pp_res["speedup"],
         # iLQR fwd + bwd, f64, box, 1 thread: slope from B = 1024 to 4096
         controller_ms_per_problem=per_problem,
-        meta=dict(
-            date=time.strftime("%Y-%m-%d %H:%M"),
-            machine=machine(),
-            cores=os.cpu_count(),
-            torch=torch.__version__,
-            threads=list(threads),
-            reps=reps,
-            batch=batch_size,
-            quick=quick,
-            device=str(device),
-            device_name=device_name(device),
-        ),
+        meta=run_meta(threads, reps, batch_size, quick, device),
         figures=rows,
         mpc_pytorch=None
         if mpc_res is None
@@ -1128,7 +1566,37 @@ def run(
             agreement=pp_res["agreement"],
             gradient_error=pp_res["gradient_error"],
         ),
+        bounded_lqr=None if lqr_res is None else lqr_summary(lqr_res),
     )
+
+
+def run_meta(threads, reps, batch_size, quick, device) -> dict:
+    """Where and how the figures were taken."""
+    return dict(
+        date=time.strftime("%Y-%m-%d %H:%M"),
+        machine=machine(),
+        cores=os.cpu_count(),
+        torch=torch.__version__,
+        threads=list(threads),
+        reps=reps,
+        batch=batch_size,
+        quick=quick,
+        device=str(device),
+        device_name=device_name(device),
+    )
+
+
+def run_bounded_lqr(quick, reps, batch_size, log=print, progress=None, hint=True) -> dict:
+    """compare_bounded_lqr at the published size (--quick: at --batch, iterations capped)."""
+    progress = progress or (lambda s: print(s, file=sys.stderr, flush=True))
+    batch = batch_size if quick else LQR_BATCH
+    progress(f"bounded LQR (differentiable_nmpc): {batch} problems, umax {LQR_UMAX}, one thread")
+    return compare_bounded_lqr(batch, min(reps, 3), quick, log, hint)
+
+
+def lqr_summary(res: dict) -> dict:
+    """The bounded LQR's part of the JSON document."""
+    return dict(table=res["table"], gradient_vs_mpc=res["gradient_vs_mpc"])
 
 
 def main(argv=None) -> dict:
@@ -1164,6 +1632,12 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
     ap.add_argument(
+        "--bounded-lqr",
+        action="store_true",
+        help="only the bounded-LQR benchmark of FreyJo/differentiable_nmpc, ours beside "
+        "mpc.pytorch (a few minutes; --quick: seconds)",
+    )
+    ap.add_argument(
         "--device",
         type=device_arg,
         default="cpu",
@@ -1191,9 +1665,21 @@ def main(argv=None) -> dict:
     before = torch.get_num_threads()
     try:  # the project's errors and a file's (the data cache, --json) as one line
         with one_line(ap):
-            doc = run(
-                threads, reps, batch_size, args.quick, not args.skip_closed_loop, device=args.device
-            )
+            if args.bounded_lqr:
+                res = run_bounded_lqr(args.quick, reps, batch_size)
+                meta = run_meta(
+                    [1], min(reps, 3), res["table"][0]["batch"], args.quick, args.device
+                )
+                doc = dict(bounded_lqr=lqr_summary(res), figures=res["rows"], meta=meta)
+            else:
+                doc = run(
+                    threads,
+                    reps,
+                    batch_size,
+                    args.quick,
+                    not args.skip_closed_loop,
+                    device=args.device,
+                )
             doc["meta"]["command"] = command_line(
                 "python bench.py", sys.argv[1:] if argv is None else argv
             )

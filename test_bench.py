@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import bench
+import diffstack
 
 HINT = "pip install --no-deps mpc==0.0.6"
 PYPOSE_HINT = "pip install --no-deps pypose==0.9.5"
@@ -93,6 +94,28 @@ def test_quick_run_writes_json(tmp_path, capsys):
         sum(line.startswith("| ") and "perf_counter lap" in line for line in out.splitlines()) == 4
     )
     assert "Traceback" not in out
+    # the bounded LQR, at --batch with its iterations capped: no bound active at umax 1e4, where
+    # every solver converges in one LQR step (and a second to see the step vanish)
+    table = on_disk["bounded_lqr"]["table"]
+    assert {(t["umax"], t["solver"]) for t in table} >= {
+        (u, f"diffstack, {k}") for u in bench.LQR_UMAX for k in bench.LQR_SETTINGS
+    }
+    for t in table:
+        assert t["batch"] == bench.QUICK["batch"] and t["us_per_problem_stage"] > 0
+        if t["umax"] == 1e4:
+            assert t["converged"] == t["batch"] and t["iterations_max"] == 2
+    assert {f"lqr_diffstack_tight_umax{u:g}_fwd_bwd" for u in bench.LQR_UMAX} <= keys
+
+
+def test_bounded_lqr_alone_writes_its_json(tmp_path, capsys):
+    path = tmp_path / "lqr.json"
+    doc = bench.main(["--bounded-lqr", "--quick", "--json", str(path)])
+    out = capsys.readouterr().out
+    assert json.loads(path.read_text())["bounded_lqr"] == json.loads(json.dumps(doc["bounded_lqr"]))
+    assert set(doc) == {"bounded_lqr", "figures", "meta"}
+    assert "Published (i7-8665U laptop, up to 4 threads; not measured here)" in out
+    if not installed("mpc"):
+        assert out.count(HINT) == 1 and doc["bounded_lqr"]["gradient_vs_mpc"] == {}
 
 
 @pytest.mark.parametrize(
@@ -225,3 +248,99 @@ def test_tracking_problem_is_reproducible():
     assert a["x_ref"].shape == (8, 7, 4) and a["u_ref"].shape == (8, 6, 2)
     zero = bench.tracking_cost(a["x_ref"], a["u_ref"], a["x_ref"], a["u_ref"], a["Q"], a["R"])
     assert torch.equal(zero, torch.zeros(8, dtype=torch.float64))
+
+
+# ---- the bounded LQR of differentiable_nmpc ----------------------------------------------------
+
+
+def lqr_subset(umax, rows, horizon=bench.LQR_N):
+    """The benchmark's problems `rows` at umax (the same system, their own x0)."""
+    P = bench.bounded_lqr_problem(umax, horizon=horizon)
+    P["x_init"], P["u_init"] = P["x_init"][rows], P["u_init"][rows]
+    return P
+
+
+def reference_first_controls(P):
+    """sum of u_0 over the problems, from the reference solver (scipy's bvls, the true solution
+    map, active set and all): independent of ours."""
+    M, q = bench.condensed_qp(P)
+    return bench.reference_controls(M, q, P["lo"], P["hi"])[:, 0].sum()
+
+
+TIGHT = dict(iters=100, tol=1e-9)
+ACTIVE_ROWS = [4, 12, 19, 21]  # at umax 1: 5, 5, 29 and 25 bounds active, and our solver converges
+
+
+def test_bounded_lqr_problems_have_bounds_active_at_umax_1_only():
+    for umax, active in ((1e4, False), (1.0, True)):
+        P = bench.bounded_lqr_problem(umax)
+        assert P["x_init"].shape == (128, 8) and P["A"].shape == (8, 8) and P["B"].shape == (8, 4)
+        M, q = bench.condensed_qp(P)
+        ref = bench.reference_controls(M, q, P["lo"], P["hi"])
+        # the reference is the solution: no control would move
+        assert bench.kkt_residual(ref, M, q, P["lo"], P["hi"]).max() < 1e-8
+        assert bool((ref.abs() > umax - 1e-9).any()) == active
+    with pytest.raises(ValueError, match="umax"):
+        bench.bounded_lqr_problem(2.0)
+
+
+def test_kkt_residual_catches_a_control_off_the_solution():
+    P = lqr_subset(1.0, [0, 1])
+    M, q = bench.condensed_qp(P)
+    ref = bench.reference_controls(M, q, P["lo"], P["hi"])
+    free = (ref.abs() < 0.5).nonzero()[0]  # a control well inside the box
+    wrong = ref.clone()
+    wrong[tuple(free)] += 1e-4
+    res = bench.kkt_residual(wrong, M, q, P["lo"], P["hi"])
+    assert res[free[0]] > 1e-5 and res[1 - free[0]] < 1e-8
+
+
+def test_affine_lqr_gradient_matches_the_library_backward():
+    # x_init and H through diffstack.ilqr_solve's own KKT backward: AffineLQR must agree
+    P = lqr_subset(1.0, ACTIVE_ROWS)
+    _, u, _, (x_init, A, B, b, H) = bench.ours_lqr(P, TIGHT, grad=True)
+    u[:, 0].sum().backward()
+    x_init2, H2 = P["x_init"].clone().requires_grad_(), P["H"].clone().requires_grad_()
+    _, u2, conv = diffstack.ilqr_solve(
+        bench.StageQuadratic(),
+        bench.Affine(P["A"], P["B"], P["b"]),
+        x_init2,
+        P["u_init"],
+        (H2,),
+        P["lo"],
+        P["hi"],
+        **TIGHT,
+    )
+    u2[:, 0].sum().backward()
+    assert conv.all() and torch.equal(u, u2)
+    assert torch.allclose(x_init.grad, x_init2.grad, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(H.grad, H2.grad, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("umax, rows", [(1.0, [1, 3, 4, 7]), (1e4, [0, 1, 2, 3])])
+def test_affine_lqr_gradient_matches_finite_differences(umax, rows):
+    # d(sum u_0) / d(x_init, A, B, b, H) along a random direction per block, against central
+    # differences of the reference solver's solution; umax 1.0: 9, 12, 8 and 20 bounds active,
+    # which the KKT backward holds. Horizon 8, not 20: the system's spectral radius is 1.8, and
+    # over 20 steps the condensed QP's condition number (1e11) leaves its solution some 1e-7
+    # absolute, too coarse for differences; over 8 it is 9e4.
+    P = lqr_subset(umax, rows, horizon=8)
+    M, q = bench.condensed_qp(P)
+    ref = bench.reference_controls(M, q, P["lo"], P["hi"])
+    _, u, _, args = bench.ours_lqr(P, TIGHT, grad=True)
+    assert bench.kkt_residual(u.detach(), M, q, P["lo"], P["hi"]).max() < 1e-8
+    assert ((ref.abs() > umax - 1e-9).sum() >= 40) == (umax == 1.0)
+    u[:, 0].sum().backward()
+    g = torch.Generator().manual_seed(0)
+    for name, arg in zip(("x_init", "A", "B", "b", "H"), args):
+        v = torch.randn(arg.shape, generator=g, dtype=torch.float64)
+        if name == "H":
+            v = v + v.T  # H stays symmetric
+        h = 1e-5 * P[name].abs().max().item()
+
+        def at(s):
+            return reference_first_controls(dict(P, **{name: P[name] + s * h * v}))
+
+        fd = (at(1) - at(-1)) / (2 * h)
+        ours = (arg.grad * v).sum()
+        assert abs(ours - fd) <= 1e-6 * max(1.0, abs(fd)), (name, ours.item(), fd.item())
