@@ -1,6 +1,6 @@
 """Benchmarks of the DiffStack reference: every timing of the project, in one module.
 
-    python bench.py                       # everything at 1 and 2 threads, B = 256 (about 15 minutes,
+    python bench.py                       # everything, 1 and 2 threads, B = 256 (about 15 minutes,
                                           # most of it the bounded LQR)
     python bench.py --threads 1 --reps 3 --skip-closed-loop
     python bench.py --quick               # tiny sizes and reps, well under a minute (test_bench.py)

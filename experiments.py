@@ -75,6 +75,8 @@ from train import (
     machine,
     markdown_table,
     mean_se,
+    plus_minus,
+    PairedDifference,
     to_device,
     train_predictor,
     train_stack,
@@ -217,6 +219,9 @@ def trained_predictor(
             curve_samples=CURVE_SAMPLES,
             **stack_kw,
         )
+        bad = non_finite(getattr(model, "learning_curve", None) or [])
+        if bad is not None:  # neither file is written: a result is never written with NaN
+            raise TrainingDiverged(f"{m.name}, seed {seed}: its learning curve holds {bad}")
         if path is not None:  # the curve first: a model file on disk always has its curve beside it
             path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(path.with_suffix(".curve.json"), json.dumps(model.learning_curve))
@@ -276,8 +281,8 @@ def gap_closed(
 
 
 def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
-    """(the claim's Column, the PairedDifference of its rows over the seeds); results: those its
-    rows are in."""
+    """(the claim's Column, the PairedDifference of its rows over the seeds, or None where no seed
+    has both: they diverged); results: those its rows are in."""
     col = next((c for c in spec.columns if c.header == claim.column), None)
     if col is None:
         raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
@@ -292,6 +297,8 @@ def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
         )
         if b and m
     ]
+    if not pairs:  # every seed of one row or the other diverged
+        return col, None
     return col, paired_difference([b for b, _ in pairs], [m for _, m in pairs])
 
 
@@ -302,6 +309,13 @@ def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
     name = (
         claim.column[0].lower() + claim.column[1:] if claim.column[1:2].islower() else claim.column
     )
+    where = f"{claim.section}: " if claim.section else ""
+    diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
+    if p is None:
+        return (
+            f"{where}{claim.method} vs {claim.baseline}, {name}: untested (no seed trained both "
+            f"rows; {diverged} diverged)"
+        )
     t = (
         f"t = {p.t:.2f}, {p_value(p.p)}"
         if math.isfinite(p.t)
@@ -312,12 +326,10 @@ def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
         if claim.direction < 0
         else f"{p.worse} of {p.n} seeds higher" + (f", {p.better} lower" if p.better else "")
     )
-    diverged = sum("diverged" in r for r in results[claim.baseline] + results[claim.method])
     seeds += f"; {diverged} diverged, left out" if diverged else ""
-    where = f"{claim.section}: " if claim.section else ""
     return (
         f"{where}{claim.method} vs {claim.baseline}, {name}: paired difference "
-        f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)} ({t}, {seeds}): "
+        f"{plus_minus(col.fmt, p.mean, p.se)} ({t}, {seeds}): "
         f"{claim_verdict(p, claim.direction)}"
     )
 
@@ -349,6 +361,8 @@ def claims_card(tables: dict) -> str:
             if c.method not in runs or c.baseline not in runs:
                 continue
             col, p = claim_test(c, spec, runs)
+            if p is None:  # every seed of a row diverged: nothing to pair
+                p = PairedDifference(math.nan, math.nan, math.nan, math.nan, 0, 0, 0)
             paper = spec.paper.get(c.section, {}) if c.section else spec.paper
             was = [paper.get(row, {}).get(col.header) for row in (c.method, c.baseline)]
             ours = [
@@ -361,8 +375,8 @@ def claims_card(tables: dict) -> str:
                     spec.title.split(":")[0] + (f" ({c.section})" if c.section else ""),
                     f"{c.method} {'<' if c.direction < 0 else '>'} {c.baseline}, {col.header}",
                     " vs ".join("--" if v is None else col.fmt.format(v) for v in was),
-                    " vs ".join(col.fmt.format(v) for v in ours),
-                    f"{col.fmt.format(p.mean)} ± {col.fmt.format(p.se)}",
+                    " vs ".join("--" if math.isnan(v) else col.fmt.format(v) for v in ours),
+                    "--" if p.n == 0 else plus_minus(col.fmt, p.mean, p.se),
                     test,
                     claim_verdict(p, c.direction),
                 ]
@@ -536,7 +550,7 @@ def ablation_markdown(spec: TableSpec, results: dict) -> str:
             m = next((m for m in methods if m.name == name), None)
             loss = ["", "", ""] if m is None else [f"{v:g}" for v in m.losses]
             loss[1:] = ["--" if no_plan else loss[1], "--" if no_ctrl else loss[2]]
-            cells = [cell(c.values(runs), c.fmt) for c in spec.columns]
+            cells = [cell(c.values(runs), c.fmt, name) for c in spec.columns]
             cells[2] = "--" if no_plan else cells[2]
             rows.append([name, *loss, *cells])
     return markdown_table(head, rows)
@@ -765,11 +779,11 @@ def behaviour_markdown(spec: TableSpec, results: dict) -> str:
         def rel(runs):
             return [(r["by_behaviour"][b][key] - base[b][key]) / 1e-2 for r in runs]
 
-        rows.append([f"{b} ({base[b]['n']})"] + [cell(rel(results[m])) for m in methods])
+        rows.append([f"{b} ({base[b]['n']})"] + [cell(rel(results[m]), row=m) for m in methods])
     rows.append(
         [f"all ({results['No prediction'][0]['n']})"]
         + [
-            cell([(r[key] - results["No prediction"][0][key]) / 1e-2 for r in results[m]])
+            cell([(r[key] - results["No prediction"][0][key]) / 1e-2 for r in results[m]], row=m)
             for m in methods
         ]
     )
@@ -802,9 +816,11 @@ def plateau_markdown(results: dict, methods=("Standard", "DiffStack"), last: flo
                 min(c, key=lambda e: abs(e["epoch"] - (c[-1]["epoch"] - last)))[key] for c in curves
             ]
             mean, se = mean_se([a - b for a, b in zip(end, before)])
-            falling = mean < -2 * se and mean < -0.01 * abs(statistics.fmean(end))
+            # (one seed: no s.e., the 1 % alone decides)
+            falling = not mean >= -2 * se and mean < -0.01 * abs(statistics.fmean(end))
             parts.append(
-                f"{'ADE' if key == 'ade' else 'hindsight cost'} {mean:+.3f} ± {se:.3f}{unit} "
+                f"{'ADE' if key == 'ade' else 'hindsight cost'} "
+                f"{plus_minus('{:+.3f}', mean, se).replace('± +', '± ')}{unit} "
                 f"({'still falling' if falling else 'flat'})"
             )
         # its scenes: those evaluated and those skipped (CURVE_SAMPLES, or fewer in a small run)
@@ -821,14 +837,18 @@ def table_markdown(spec: TableSpec, results: dict) -> str:
     """The table of a non-ablation spec, with the gap closed and the closed loop's absolute baseline
     below it."""
     rows = [
-        [name] + [cell(c.values(runs), c.fmt) for c in spec.columns]
+        [name] + [cell(c.values(runs), c.fmt, name) for c in spec.columns]
         for name, runs in results.items()
     ]
     md = markdown_table(["Method"] + [c.header for c in spec.columns], rows)
-    if spec.gap:
+    trained = [any("rel_hindsight" in r for r in results.get(row, [])) for row in (spec.gap or ())]
+    if spec.gap and not all(trained):
+        md += f"\n\nNo gap closed is given: every seed of {' or '.join(spec.gap)} diverged."
+    elif spec.gap:
         m, s = gap_closed(results, *spec.gap)
         md += (
-            f"\n\n{spec.gap[1]} closes {100 * m:.0f} ± {100 * s:.0f} % of the {spec.gap[0]} -> "
+            f"\n\n{spec.gap[1]} closes {plus_minus('{:.0f}', 100 * m, 100 * s)} % of the "
+            f"{spec.gap[0]} -> "
             "GT prediction hindsight-cost gap."
             if math.isfinite(m)
             else f"\n\n{spec.gap[0]} is as good as GT prediction here: there is no gap to close."
@@ -978,55 +998,85 @@ def compute_piece(
     """Train (or take from models / store) and evaluate one piece: (its result before the values
     relative to No prediction, which assemble adds; a dict of tensors to keep beside it or None). A
     training that diverges is a result too ({'diverged': what}: a resumed run does not retrain it,
-    and the table says which seed is left out)."""
-    if spec.kind not in ("open_loop", "real", "ablation", "goal", "closed_loop", "cost"):
-        raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+    and the table says which seed is left out), and so is one whose evaluation gives a value that is
+    not finite (a result is never written with NaN)."""
     try:
-        if spec.kind == "cost":
-            return cost_learning_seed(
-                data, cfg, piece.seed, epochs, log, models, device, store
-            ), None
-        m, setting, pred_offset, stack_kw = piece_method(spec, piece)
-        if spec.kind == "goal":
-            return goal_breakdown(
-                data.val, m, dataclasses.replace(cfg, goal=piece.section), device
-            ), None
-        if spec.kind == "closed_loop":
-            scenes = closed_loop_scenes(data.val_scenes, cfg)
-            r, roll, per_scene = closed_loop_run(
-                m,
-                piece.seed,
-                scenes,
-                data,
-                cfg,
-                epochs,
-                log=log,
-                models=models,
-                device=device,
-                store=store,
-            )
-            return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
-
-        def train(m, *a, **k):
-            return trained_predictor(m, *a, models=models, store=store, **k)
-
-        return compare_methods(
-            data,
-            cfg,
-            setting,
-            (m,),
-            (piece.seed,),
-            epochs,
-            pred_offset,
-            log,
-            train,
-            device,
-            **stack_kw,
-        )[m.name][0], None
+        result, extra = piece_result(spec, piece, data, cfg, epochs, log, models, device, store)
+        bad = non_finite(result)
+        if bad is not None:
+            raise TrainingDiverged(f"{piece.stem}: its evaluation gave {bad}")
+        return result, extra
     except TrainingDiverged as e:
         if log:
             log(f"  {piece.stem}: {e}")
         return dict(diverged=str(e)), None
+
+
+def non_finite(o, path="") -> str | None:
+    """The first number in o (nested dicts and lists) that is NaN or infinite, as 'path = value';
+    None when every one is finite."""
+    if isinstance(o, float) and not math.isfinite(o):
+        return f"{path.lstrip('.') or 'a value'}, " + ("not a number" if o != o else "infinite")
+    items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+    for k, v in items:
+        if (found := non_finite(v, f"{path}.{k}")) is not None:
+            return found
+    return None
+
+
+def piece_result(
+    spec: TableSpec,
+    piece: Piece,
+    data,
+    cfg: Config,
+    epochs,
+    log=print,
+    models=None,
+    device="cpu",
+    store=None,
+):
+    """compute_piece's work: the piece's result, or TrainingDiverged."""
+    if spec.kind not in ("open_loop", "real", "ablation", "goal", "closed_loop", "cost"):
+        raise ValueError(f"spec.kind: unknown kind {spec.kind!r}")
+    if spec.kind == "cost":
+        return cost_learning_seed(data, cfg, piece.seed, epochs, log, models, device, store), None
+    m, setting, pred_offset, stack_kw = piece_method(spec, piece)
+    if spec.kind == "goal":
+        return goal_breakdown(
+            data.val, m, dataclasses.replace(cfg, goal=piece.section), device
+        ), None
+    if spec.kind == "closed_loop":
+        scenes = closed_loop_scenes(data.val_scenes, cfg)
+        r, roll, per_scene = closed_loop_run(
+            m,
+            piece.seed,
+            scenes,
+            data,
+            cfg,
+            epochs,
+            log=log,
+            models=models,
+            device=device,
+            store=store,
+        )
+        return r, dict(rollout=dataclasses.asdict(roll), per_scene=per_scene)
+
+    def train(m, *a, **k):
+        return trained_predictor(m, *a, models=models, store=store, **k)
+
+    return compare_methods(
+        data,
+        cfg,
+        setting,
+        (m,),
+        (piece.seed,),
+        epochs,
+        pred_offset,
+        log,
+        train,
+        device,
+        **stack_kw,
+    )[m.name][0], None
 
 
 def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:

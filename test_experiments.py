@@ -1015,3 +1015,69 @@ def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
         tmp_path / "b.png",
     )
     assert notes == ["Learned alpha = -0.045"] and (tmp_path / "b.png").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Nothing not finite in what users read: one seed, every seed diverged
+# ---------------------------------------------------------------------------------------------
+
+
+def _open_loop_runs(*v, curve=False):
+    runs = [
+        {"rel_hindsight": x, "rel_plan_loss": x, "ade": 1.0 + x, "nll": 1.0, "converged": 1.0}
+        for x in v
+    ]
+    for r in runs if curve else ():
+        r["curve"] = [
+            dict(epoch=e, step=e, ade=2.0 - 0.1 * e, hindsight=1.0 - 0.01 * e) for e in range(5)
+        ]
+    return runs
+
+
+def test_a_one_seed_table_says_its_standard_errors_are_not_available():
+    res = {
+        "No prediction": _open_loop_runs(0.0),
+        "Standard": _open_loop_runs(1.0, curve=True),
+        "DiffStack": _open_loop_runs(0.5, curve=True),
+        "GT prediction": _open_loop_runs(-2.0),
+    }
+    md = ex.results_markdown(specs.TABLE1, res)
+    card = ex.claims_card({"rl": res})
+    for text in (md, card):
+        assert "nan" not in text.lower() and "inf" not in text.lower(), text
+    rows = {ln.split("|")[1].strip(): ln for ln in md.splitlines() if ln.startswith("| ")}
+    assert "| 1.00 ± n/a (1 seed) |" in rows["Standard"]
+    assert "| 0.00 ± 0.00 |" in rows["No prediction"]  # nothing trained: the same every seed
+    assert "paired difference -0.50 ± n/a (1 seed) (one seed" in md
+    assert "untested (one seed: no standard error)" in md
+    assert "DiffStack closes 17 ± n/a (1 seed) % of the Standard" in md
+    assert "ADE -0.400 ± n/a (1 seed) m (still falling)" in md
+
+
+def test_a_table_whose_trained_rows_all_diverged_names_them_and_tests_nothing():
+    gone = [
+        {"diverged": "Standard, seed 0: training diverged at step 3 of 4: L_pred is not finite"}
+    ]
+    res = {
+        "No prediction": _open_loop_runs(0.0),
+        "Standard": gone,
+        "DiffStack": [{"diverged": "DiffStack, seed 0: its learning curve holds 1.nll, infinite"}],
+        "GT prediction": _open_loop_runs(-2.0),
+    }
+    md = ex.results_markdown(specs.TABLE1, res)
+    card = ex.claims_card({"rl": res})
+    for text in (md, card):
+        assert "nan" not in text.lower() and "inf " not in text.lower(), text
+    assert (
+        "DiffStack vs Standard, hindsight cost (x1e-2): untested (no seed trained both rows; 2 "
+        in md
+    )
+    assert "No gap closed is given: every seed of Standard or DiffStack diverged." in md
+    assert "Diverged, left out of the means: DiffStack, seed 0: its learning curve holds" in md
+    assert "untested (no seed trained both rows)" in card
+
+
+def test_non_finite_names_the_first_value_that_is_not_a_number():
+    assert ex.non_finite({"a": [1.0, {"b": 2.0}], "c": "x"}) is None
+    assert ex.non_finite({"a": [1.0, {"b": float("nan")}]}) == "a.1.b, not a number"
+    assert ex.non_finite([{"epoch": 0, "nll": float("-inf")}]) == "0.nll, infinite"

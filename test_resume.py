@@ -609,3 +609,21 @@ def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
     for p in alive:
         os.kill(p, signal.SIGKILL)
     assert not alive, f"ranks {alive} outlived their killed torchrun"
+
+
+def test_a_learning_curve_that_is_not_finite_is_a_diverged_training(small, tmp_path, monkeypatch):
+    # neither the model nor its curve is written; the piece is kept as diverged, with its reason
+    train = tr.train_predictor
+
+    def nan_curve(*a, **k):
+        model = train(*a, **k)
+        model.learning_curve[-1]["nll"] = float("nan")
+        return model
+
+    monkeypatch.setattr(ex, "train_predictor", nan_curve)
+    store = runs.RunStore(tmp_path / ".runs", "k")
+    cfg = ds.Config(**TINY10)
+    with pytest.raises(tr.TrainingDiverged, match=r"Standard, seed 0: its learning curve holds "):
+        ex.trained_predictor(tr.Method("Standard"), small, cfg, "rl", 0.5, 0, log=None, store=store)
+    assert not list((tmp_path / ".runs").rglob("*.curve.json"))
+    assert not list((tmp_path / ".runs").rglob("*.pt"))

@@ -959,9 +959,18 @@ def add_relative(results: dict, setting: str) -> dict:
 
 
 def mean_se(xs):
-    """Mean and standard error of a list of numbers."""
+    """Mean and standard error of a list of numbers; the s.e. of one number is unknown (nan)."""
     m = statistics.fmean(xs)
-    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else 0.0)
+    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else math.nan)
+
+
+def plus_minus(fmt: str, mean: float, se: float) -> str:
+    """'mean ± s.e.' in fmt; 'mean ± n/a (1 seed)' where one seed cannot give the s.e. (nan)."""
+    return f"{fmt.format(mean)} ± " + ("n/a (1 seed)" if math.isnan(se) else fmt.format(se))
+
+
+NOTHING_TO_TRAIN = ("No prediction", "GT prediction")
+"""Rows whose one run is the same for every seed (no predictor is trained): their s.e. is 0."""
 
 
 class PairedDifference(NamedTuple):
@@ -1012,6 +1021,8 @@ def claim_verdict(p: PairedDifference, direction: int = -1) -> str:
     """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction
     (-1: the method is lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other
     way."""
+    if p.n == 0:
+        return "untested (no seed trained both rows)"
     if not p.se >= 0:  # nan: one seed
         return "untested (one seed: no standard error)"
     if p.p < P_REPRODUCED:
@@ -1056,9 +1067,13 @@ def experiment_data(
     )
 
 
-def cell(values, fmt="{:.2f}") -> str:
-    """'mean ± s.e.' of the per-seed values of one table cell; '--' for none."""
-    return "--" if not values else "{} ± {}".format(*(fmt.format(v) for v in mean_se(values)))
+def cell(values, fmt="{:.2f}", row: str = "") -> str:
+    """'mean ± s.e.' of the per-seed values of one table cell of `row`; '--' for none; one value:
+    its s.e. is n/a (1 seed), or 0 for a row with nothing to train (NOTHING_TO_TRAIN)."""
+    if not values:
+        return "--"
+    mean, se = mean_se(values)
+    return plus_minus(fmt, mean, 0.0 if row in NOTHING_TO_TRAIN else se)
 
 
 def markdown_table(head, rows) -> str:
@@ -1275,9 +1290,9 @@ def open_loop_table(results: dict, setting="rl") -> str:
             return [r[key] for r in runs] if key in runs[0] else []
 
         rows.append(
-            [name, cell(get("ade")), cell(get("nll"))]
-            + [cell(get("rel_" + k)) for k in scales]
-            + [cell(get("converged"), "{:.3f}")]
+            [name, cell(get("ade"), row=name), cell(get("nll"), row=name)]
+            + [cell(get("rel_" + k), row=name) for k in scales]
+            + [cell(get("converged"), "{:.3f}", name)]
         )
     return markdown_table(head + ["iLQR converged"], rows)
 
@@ -1668,7 +1683,7 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
         saved = json.loads(table.read_text())
         runs = saved["results"]
         cells = ", ".join(
-            f"{m} {cell([r['rel_hindsight'] for r in runs[m]])}"
+            f"{m} {cell([r['rel_hindsight'] for r in runs[m]], row=m)}"
             for m in ("Standard", "DiffStack", "GT prediction")
             if m in runs
         )
