@@ -102,6 +102,7 @@ from runs import (
     compute_in_workers,
     die_with_parent,
     folder_lock,
+    ranks,
     git_commit,
     one_line,
     ours_files,
@@ -1660,7 +1661,10 @@ def start_distributed(device: torch.device) -> torch.device:
 def main(argv=None):
     # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike;
     # rank 0 prints, writes
-    rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
+    rank, world, misuse = ranks()
+    if misuse:  # every process says it: none of them can reach the others
+        print(f"experiments.py: error: {misuse}", file=sys.stderr)
+        sys.exit(2)
     if world > 1:  # a rank ends with the torchrun that started it, as a --jobs worker with its run
         die_with_parent(os.getppid())
     ap = argparse.ArgumentParser(

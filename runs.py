@@ -489,13 +489,51 @@ def above(bar, log):
 # ============================================================================================
 
 
+def ranks() -> tuple:
+    """(rank, world size) from the launcher's environment (1 process: 0, 1), and why they cannot
+    be used or None: RANK and WORLD_SIZE that neither torchrun (TORCHELASTIC_RUN_ID) nor a launcher
+    giving the rendezvous (MASTER_ADDR, MASTER_PORT) set, or that are no numbers."""
+    names = ("RANK", "WORLD_SIZE")
+    given = {k: os.environ[k] for k in names if k in os.environ}
+    try:
+        rank, world = int(given.get("RANK", 0)), int(given.get("WORLD_SIZE", 1))
+    except ValueError:
+        return 0, 1, f"{' '.join(f'{k}={v}' for k, v in given.items())}: not numbers"
+    launched = "TORCHELASTIC_RUN_ID" in os.environ or {"MASTER_ADDR", "MASTER_PORT"} <= set(
+        os.environ
+    )
+    if (world != 1 or rank != 0) and not launched:
+        return (
+            0,
+            1,
+            f"{' '.join(f'{k}={v}' for k, v in given.items())} are set, but no launcher started "
+            "this process (torchrun sets them with the rendezvous): run it under torchrun "
+            "--nproc_per_node N, or unset them",
+        )
+    if not 0 <= rank < world:
+        return 0, 1, f"RANK={rank} is not below WORLD_SIZE={world}"
+    return rank, world, None
+
+
+_HELD = {}  # the folders this process holds: resolved path -> how many blocks hold it
+
+
 @contextlib.contextmanager
 def folder_lock(folder, command: str):
     """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block
     runs. A second run on the same folder is refused with an OutputRefused naming the holder (its
     PID, command and start time); the operating system releases a lock with the process that held
-    it, so one left by a killed run is taken over."""
+    it, so one left by a killed run is taken over. Re-entrant: a run that holds the folder already
+    (--out data_cache, where the data cache is made too) goes on holding it."""
     folder = pathlib.Path(folder)
+    held = str(folder.resolve())
+    if held in _HELD:  # this process holds it already
+        _HELD[held] += 1
+        try:
+            yield
+        finally:
+            _HELD[held] -= 1
+        return
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
@@ -523,8 +561,10 @@ def folder_lock(folder, command: str):
             ).encode(),
             0,
         )
+        _HELD[held] = 1
         yield
     finally:
+        _HELD.pop(held, None)
         os.close(fd)  # (closing the descriptor releases the lock)
 
 

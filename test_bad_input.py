@@ -122,6 +122,29 @@ def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
         assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
 
 
+def test_a_run_holding_a_folder_may_hold_it_again_inside(tmp_path):
+    # --out data_cache: the run holds its output folder, and making the data cache holds the same
+    # folder again (spelled another way); another process is still refused while the run holds it
+    out = tmp_path / "data_cache"
+    with runs.folder_lock(out, "the run"):
+        with runs.folder_lock(tmp_path / "x" / ".." / "data_cache", "the data cache"):
+            assert json.loads((out / ".lock").read_text())["command"] == "the run"
+        other = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "import sys, runs\nwith runs.folder_lock(sys.argv[1], 'other'): pass",
+                str(out),
+            ],
+            cwd=os.path.dirname(runs.__file__),
+            capture_output=True,
+            text=True,
+        )
+        assert other.returncode != 0 and "another run is writing here" in other.stderr
+    with runs.folder_lock(out, "the next run"):  # released when the outer block ended
+        pass
+
+
 def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
     path = tmp_path / "rl.json"
     path.write_text("old")
@@ -407,3 +430,40 @@ def test_an_evaluation_with_no_plannable_scenario_is_an_error_not_a_table_of_zer
     with pytest.raises(ValueError, match=r"GT: none of the 8 scenarios is plannable"):
         tr.evaluate_stack(None, no_lanes, tr.Method("GT", "gt"), ds.Config())
     assert tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), ds.Config())["n"] > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# The distributed entry points, misused
+# ---------------------------------------------------------------------------------------------
+
+
+def _launcher_env(monkeypatch, **env):
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.delenv("TORCHELASTIC_RUN_ID", raising=False)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+
+
+@pytest.mark.parametrize("rank", ["0", "1"])
+def test_rank_variables_without_a_launcher_are_refused_in_one_line(rank, monkeypatch, capsys):
+    _launcher_env(monkeypatch, RANK=rank, WORLD_SIZE="2")
+    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("work started"))
+    for main in (ex.main, tr.main):
+        err = cli_error(main, ["--experiment", "rl"] if main is ex.main else ["--quick"], capsys)
+        lines = err.strip().splitlines()
+        assert (
+            f"RANK={rank} WORLD_SIZE=2 are set, but no launcher started this process" in (lines[-1])
+        )
+        assert "Traceback" not in err
+
+
+def test_quick_and_pretrain_under_torchrun_are_refused_by_rank_0_alone(monkeypatch, capsys):
+    monkeypatch.setattr(tr, "quick", lambda *a, **k: pytest.fail("work started"))
+    monkeypatch.setattr(tr, "pretrain", lambda *a, **k: pytest.fail("work started"))
+    for argv in (["--quick"], ["--pretrain"]):
+        _launcher_env(monkeypatch, RANK="0", WORLD_SIZE="2", TORCHELASTIC_RUN_ID="x")
+        err = cli_error(tr.main, argv, capsys)
+        assert "not under torchrun (it would run them 2 times)" in err.strip().splitlines()[-1]
+        _launcher_env(monkeypatch, RANK="1", WORLD_SIZE="2", TORCHELASTIC_RUN_ID="x")
+        assert cli_error(tr.main, argv, capsys) == ""  # rank 1 exits alike, silently

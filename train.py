@@ -33,7 +33,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
-from runs import WorkerDied, command_line, folder_lock, one_line
+from runs import WorkerDied, command_line, folder_lock, one_line, ranks
 from runs import pool as worker_pool
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
@@ -1881,6 +1881,17 @@ def main(argv=None):
                     else "python bench.py"
                 )
             )
+    rank, world, misuse = ranks()
+    if misuse:
+        ap.error(misuse)
+    if world > 1:  # one line from rank 0; the others exit alike
+        if rank != 0:
+            sys.exit(2)
+        ap.error(
+            "--quick and --pretrain run in one process, not under torchrun (it would run them "
+            f"{world} times); the tables train with DistributedDataParallel: torchrun "
+            "--nproc_per_node N experiments.py --experiment NAME"
+        )
     args = ap.parse_args(argv)
     if args.quick == args.pretrain:
         ap.error(
