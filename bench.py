@@ -1599,6 +1599,15 @@ def lqr_summary(res: dict) -> dict:
     return dict(table=res["table"], gradient_vs_mpc=res["gradient_vs_mpc"])
 
 
+def bench_result(path) -> bool:
+    """Whether path holds what bench.py --json writes (which a later run may replace)."""
+    try:
+        doc = json.loads(pathlib.Path(path).read_text())
+        return str(doc["meta"]["command"]).startswith("python bench.py") and "figures" in doc
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
+        return False
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(
         description="DiffStack benchmarks (torch.utils.benchmark): controller, planner, "
@@ -1628,6 +1637,11 @@ def main(argv=None) -> dict:
         help="also write every figure to this JSON file",
     )
     ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="let --json replace a file that is not an earlier bench.py result",
+    )
+    ap.add_argument(
         "--skip-closed-loop", action="store_true", help="leave out the closed-loop log replay"
     )
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: well under a minute")
@@ -1655,6 +1669,11 @@ def main(argv=None) -> dict:
     if args.json is not None:
         if args.json.is_dir():
             ap.error(f"argument --json: {args.json} is a folder, expected a file path")
+        if args.json.exists() and not args.overwrite and not bench_result(args.json):
+            ap.error(
+                f"argument --json: {args.json} exists and is no bench.py result; to keep it, "
+                "name another file; to replace it, add --overwrite"
+            )
         try:
             check_writable(args.json.parent, "--json")
         except ValueError as e:

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 import data_synth
-from runs import folder_lock, one_line
+from runs import folder_lock, one_line, write_file_atomic
 from data_synth import (
     _SHAPE_SIGNS,
     MAX_LANE_POINTS,
@@ -1633,7 +1633,7 @@ def render_grid(batch: Scenarios, path, n: int = 12, cols: int = 4):
     for k, ax in enumerate(axes.flat):
         data_synth.plot_scenario(ax, batch, k) if k < n else ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_file_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110))
     plt.close(fig)
 
 
@@ -1714,8 +1714,9 @@ def main(argv=None):
     p = sub.add_parser(
         "render", help="draw samples to a PNG grid (synthetic, or from a nuScenes folder)"
     )
-    p.add_argument("out")
+    p.add_argument("out", help="the PNG to write (.png is added to a name without it)")
     p.add_argument("--n", type=_whole(1, MAX_RENDER, " (MAX_RENDER)"), default=12)
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.add_argument("--seed", type=_whole(0), default=0)
     p.add_argument("--nuscenes", help="a nuScenes dataroot to draw from instead of synthetic data")
     p.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
@@ -1773,6 +1774,19 @@ def _run(ap, args):
         )
         _summary(batch, report)
     elif args.cmd == "render":
+        out = Path(args.out)
+        out = out if out.suffix.lower() == ".png" else out.with_name(out.name + ".png")
+        if out.is_dir() or (out.exists() and not args.overwrite):
+            ap.error(
+                f"argument out: {out} exists"
+                + (
+                    " and is a folder"
+                    if out.is_dir()
+                    else "; to keep it, name another file; to replace it, add --overwrite"
+                )
+            )
+        if not out.parent.is_dir():
+            ap.error(f"argument out: {out.parent} is no folder")
         if args.nuscenes:
             batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
         else:
@@ -1781,8 +1795,8 @@ def _run(ap, args):
                 4,
                 np.random.default_rng(args.seed),
             )
-        render_grid(batch, args.out, args.n)
-        print(f"wrote {min(args.n, len(batch))} samples to {args.out}")
+        render_grid(batch, out, args.n)
+        print(f"wrote {min(args.n, len(batch))} samples to {out}")
     elif args.cmd == "stats":
         data = data_synth.make_dataset(args.n, SynthConfig(), args.seed)
         print(

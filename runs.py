@@ -114,6 +114,21 @@ def write_atomic(path: pathlib.Path, text: str) -> None:
         raise
 
 
+def write_file_atomic(path, write) -> None:
+    """write(temporary path) then a rename onto path (as write_atomic), for writers that take a
+    path (a figure's savefig); the temporary file keeps path's extension, which names its format."""
+    path = pathlib.Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        _usual_permissions(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
 def save_atomic(obj, path) -> None:
     """torch.save through a temporary file and a rename (as write_atomic)."""
     path = pathlib.Path(path)

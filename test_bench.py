@@ -344,3 +344,27 @@ def test_affine_lqr_gradient_matches_finite_differences(umax, rows):
         fd = (at(1) - at(-1)) / (2 * h)
         ours = (arg.grad * v).sum()
         assert abs(ours - fd) <= 1e-6 * max(1.0, abs(fd)), (name, ours.item(), fd.item())
+
+
+def test_json_never_replaces_a_file_bench_did_not_make(tmp_path, monkeypatch, capsys):
+    ran = []
+
+    def fake_run(*a, **k):
+        ran.append(1)
+        return dict(meta={}, figures=[])
+
+    monkeypatch.setattr(bench, "run", fake_run)
+    committed = tmp_path / "goal.json"
+    committed.write_text('{"meta": {"command": "python experiments.py"}, "results": {}}')
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--quick", "--json", str(committed)])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and ran == []
+    assert f"argument --json: {committed} exists and is no bench.py result" in err
+    assert "--overwrite" in err and "goal.json" in committed.read_text() + str(committed)
+    assert json.loads(committed.read_text())["meta"]["command"] == "python experiments.py"
+    # an earlier bench result is replaced; anything else with --overwrite
+    bench.main(["--quick", "--json", str(committed), "--overwrite"])
+    assert json.loads(committed.read_text())["meta"]["command"].startswith("python bench.py")
+    bench.main(["--quick", "--json", str(committed)])
+    assert len(ran) == 2

@@ -1026,3 +1026,22 @@ def test_a_data_cache_being_made_by_another_process_is_refused_naming_it(tmp_pat
         holder.wait()
     # the holder gone: made here
     assert len(data_real.load_data(n=40, seed=4, cache_dir=tmp_path).train) > 0
+
+
+def test_render_never_replaces_a_file_and_names_the_png_it_writes(tmp_path, capsys, monkeypatch):
+    import data_real
+
+    kept = tmp_path / "learning_curves.png"
+    kept.write_bytes(b"a committed figure")
+    with pytest.raises(SystemExit) as e:
+        data_real.main(["render", str(kept), "--n", "1"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and f"{kept} exists" in err and "--overwrite" in err
+    assert kept.read_bytes() == b"a committed figure"
+    data_real.main(["render", str(tmp_path / "grid"), "--n", "1"])
+    out = capsys.readouterr().out
+    assert (tmp_path / "grid.png").exists() and not (tmp_path / "grid").exists()
+    assert f"to {tmp_path / 'grid.png'}" in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grid.png", "learning_curves.png"]
+    data_real.main(["render", str(kept), "--n", "1", "--overwrite"])
+    assert kept.read_bytes()[:4] == b"\x89PNG"
