@@ -36,6 +36,7 @@ import json
 import math
 import os
 import pathlib
+import pickle
 import re
 import statistics
 import sys
@@ -109,6 +110,7 @@ from runs import (
     outputs_manifest,
     planned_outputs,
     progress,
+    load_json,
     read_results,
     record_outputs,
     refuse_existing,
@@ -172,6 +174,33 @@ def training_key(
     return key + ((plan_weights,) if plan_weights == "prior" else ())
 
 
+def stored_predictor(path, cfg: Config, device):
+    """The predictor an earlier piece of this run stored at path (with its learning curve), or None
+    when there is none; one that cannot be read (a damaged file, an earlier version) is named on
+    stderr, set aside as .corrupt beside it and trained again."""
+    if not path.exists():
+        return None
+    model = Predictor(cfg).to(device)
+    curve = path.with_suffix(".curve.json")
+    try:
+        model.load_state_dict(torch.load(path, map_location=device, weights_only=True))
+        if curve.exists():
+            model.learning_curve = load_json(curve, "a learning curve")
+            if not isinstance(model.learning_curve, list):
+                raise ValueError(f"{curve}: not a learning curve (a list)")
+    except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
+        print(
+            f"{path}: not a stored predictor ({' '.join(str(e).split())[:200]}); set aside as "
+            f"{path.name}.corrupt, trained again",
+            file=sys.stderr,
+        )
+        for f in (path, curve):
+            if f.exists():
+                os.replace(f, f.with_name(f.name + ".corrupt"))
+        return None
+    return model
+
+
 def trained_predictor(
     m: Method,
     data,
@@ -196,11 +225,8 @@ def trained_predictor(
             log(f"  [{m.name}] seed {seed}: trained above, reused")
         return models[key]
     path = store.model_path(key) if store is not None else None
-    if path is not None and path.exists():
-        model = Predictor(cfg).to(device)
-        model.load_state_dict(torch.load(path, map_location=device, weights_only=True))
-        if path.with_suffix(".curve.json").exists():
-            model.learning_curve = json.loads(path.with_suffix(".curve.json").read_text())
+    model = stored_predictor(path, cfg, device) if path is not None else None
+    if model is not None:
         if log:
             log(
                 f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from "
@@ -1397,6 +1423,15 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
     """Re-write out_dir/<name>.md from out_dir/<name>.json, running nothing: for when the way a
     table is written changes (e.g. the claim lines) but its numbers do not. Returns the
     path written."""
+    src, _, section, _ = rendered(name, out_dir)
+    write_atomic(src.with_suffix(".md"), table_file_markdown(SPECS[name], section))
+    return src.with_suffix(".md")
+
+
+def rendered(name: str, out_dir) -> tuple:
+    """(out_dir/<name>.json, its contents, its section's markdown, the Config of its learning
+    curves or None), every field render reads checked: ValueError naming the file and the field,
+    before anything is written."""
     if name not in SPECS:
         raise ValueError(f"name: {name!r} is not an experiment ({', '.join(SPECS)})")
     src = pathlib.Path(out_dir) / f"{name}.json"
@@ -1404,14 +1439,18 @@ def render_markdown(name: str, out_dir="results") -> pathlib.Path:
         raise ValueError(f"out_dir: no {src} to render {name} from")
     saved = read_results(src)
     spec = SPECS[name]
-    path = src.with_suffix(".md")
-    write_atomic(
-        path,
-        table_file_markdown(
-            spec, section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))
-        ),
-    )
-    return path
+    try:
+        section = section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"]))
+        config = saved["meta"].get("config")
+        cfg = None
+        if "learning_curves.png" in spec.figures and has_curves(saved["results"]):
+            cfg = Config(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})
+    except KeyError as e:
+        raise ValueError(f"{src}: not a {name} table's results (field {e} missing)") from None
+    except (TypeError, ValueError, IndexError, AttributeError, ZeroDivisionError) as e:
+        why = " ".join(str(e).split())[:200]
+        raise ValueError(f"{src}: not a {name} table's results ({why})") from None
+    return src, saved, section, cfg
 
 
 def render_outputs(
@@ -1419,26 +1458,18 @@ def render_outputs(
 ) -> list:
     """Re-write the .md files and learning curves (their reference lines when `data` is given) of an
     earlier run of `name` ('all': every table and report.md) from its JSON files in out_dir,
-    training nothing. Returns the paths."""
+    training nothing; every file is read and checked before the first is written. Returns the
+    paths."""
     names = EXPERIMENTS if name == "all" else (name,)
     out = pathlib.Path(out_dir)
+    done = {one: rendered(one, out) for one in names}
     written = []
     sections = []
-    metas = []
-    tables = {}
-    for one in names:
+    for one, (src, saved, section, cfg_run) in done.items():
         spec = SPECS[one]
-        written.append(render_markdown(one, out))
-        saved = read_results(out / f"{one}.json")
-        tables[one] = saved["results"]
-        # (none in older runs)
-        if "learning_curves.png" in spec.figures and has_curves(saved["results"]):
-            cfg_run = Config(
-                **{
-                    k: tuple(v) if isinstance(v, list) else v
-                    for k, v in saved["meta"]["config"].items()
-                }
-            )
+        write_atomic(src.with_suffix(".md"), table_file_markdown(spec, section))
+        written.append(src.with_suffix(".md"))
+        if cfg_run is not None:  # (no learning curves in older runs)
             ref = (
                 figures.learning_curve_reference(data, cfg_run, CURVE_SAMPLES)
                 if data is not None
@@ -1446,15 +1477,10 @@ def render_outputs(
             )
             figures.figure_learning_curves(saved["results"], out / "learning_curves.png", ref)
             written.append(out / "learning_curves.png")
-        sections.append(
-            (
-                spec.title,
-                section_markdown(spec, saved["meta"], results_markdown(spec, saved["results"])),
-                [f for f in spec.figures if (out / f).exists()],
-            )
-        )
-        metas.append(saved["meta"])
+        sections.append((spec.title, section, [f for f in spec.figures if (out / f).exists()]))
     if name == "all":
+        metas = [saved["meta"] for _, saved, _, _ in done.values()]
+        tables = {one: saved["results"] for one, (_, saved, _, _) in done.items()}
         written.append(write_report(out, sections, metas, rendered=True, tables=tables))
     if log:
         log("rendered: " + ", ".join(str(p) for p in written))

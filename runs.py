@@ -48,16 +48,66 @@ def to_json(o):
     return o.tolist() if torch.is_tensor(o) else str(o)
 
 
-def read_results(path) -> dict:
-    """A results file an earlier run wrote ({'meta': ..., 'results': ...}); ValueError naming the
-    file otherwise."""
+MAX_JSON_BYTES = 512 * 2**20  # the largest JSON file the project reads (its results: a few MB)
+MAX_JSON_DEPTH = 32  # and the deepest nesting (its results: 7)
+
+
+def load_json(path, what: str):
+    """The JSON document in path, or one ValueError naming the file and what is wrong: unreadable,
+    larger than MAX_JSON_BYTES, not JSON, nested deeper than MAX_JSON_DEPTH, or holding NaN or
+    infinity (which the project never writes). what: what the file should be, for the message."""
+    path = pathlib.Path(path)
+
+    def constant(name):
+        raise ValueError(f"it holds {name}, which no file of the project holds")
+
     try:
-        saved = json.loads(pathlib.Path(path).read_text())
-        if isinstance(saved, dict) and {"meta", "results"} <= saved.keys():
-            return saved
-        raise ValueError("no 'meta' and 'results'")
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{path}: not a results file of python experiments.py ({e})") from None
+        if path.stat().st_size > MAX_JSON_BYTES:
+            raise ValueError(f"larger than {MAX_JSON_BYTES // 2**20} MB")
+        doc = json.loads(path.read_text(), parse_constant=constant)
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read it ({e.strerror or e})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not {what} (nested too deeply)") from None
+    except ValueError as e:  # (UnicodeDecodeError and JSONDecodeError too)
+        raise ValueError(f"{path}: not {what} ({e})") from None
+    stack = [(doc, 0)]
+    while stack:
+        o, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise ValueError(f"{path}: not {what} (nested deeper than {MAX_JSON_DEPTH} levels)")
+        items = o.values() if isinstance(o, dict) else o if isinstance(o, list) else ()
+        stack += [(v, depth + 1) for v in items]
+    return doc
+
+
+RESULTS_META = {"command": "text", "date": "text", "machine": "text", "seconds": "number"}
+_KINDS = {"text": str, "number": (int, float)}
+
+
+def read_results(path) -> dict:
+    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with RESULTS_META's
+    fields); ValueError naming the file and the field otherwise."""
+    what = "a results file of python experiments.py"
+    saved = load_json(path, what)
+    if not isinstance(saved, dict) or not {"meta", "results"} <= saved.keys():
+        raise ValueError(f"{path}: not {what} (no 'meta' and 'results')")
+    meta, results = saved["meta"], saved["results"]
+    if not isinstance(meta, dict) or not isinstance(results, dict):
+        raise ValueError(f"{path}: not {what} ('meta' and 'results' must be objects)")
+    for field, kind in RESULTS_META.items():
+        if not isinstance(meta.get(field), _KINDS[kind]) or isinstance(meta.get(field), bool):
+            raise ValueError(f"{path}: meta.{field} is missing or not {kind}")
+    stack = [(results, "results")]
+    while stack:  # a result is numbers, text and lists and objects of them: never null
+        o, where = stack.pop()
+        if o is None:
+            raise ValueError(f"{path}: {where} is null, where a result belongs")
+        items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+        stack += [
+            (v, f"{where}[{k!r}]" if isinstance(k, int) else f"{where}.{k}") for k, v in items
+        ]
+    return saved
 
 
 def results_json(obj, name: str) -> str:
@@ -293,8 +343,10 @@ class RunStore:
             return (table, piece) in self.memory
         path = self.path(table, piece)
         try:
-            return path.exists() and "result" in json.loads(path.read_text())
-        except (OSError, ValueError) as e:
+            return path.exists() and isinstance(
+                load_json(path, "a piece of a run").get("result"), dict
+            )
+        except (OSError, ValueError, AttributeError) as e:
             print(
                 f"{path}: not a finished piece ({e}); set aside as "
                 f"{path.with_suffix('.corrupt').name}, computed again",
@@ -310,8 +362,10 @@ class RunStore:
         path = self.path(table, piece)
         if not path.exists():
             return None
-        saved = json.loads(path.read_text())
-        extra = torch.load(path.with_suffix(".pt"), weights_only=True) if saved["extra"] else None
+        saved = load_json(path, "a piece of a run")
+        extra = (
+            torch.load(path.with_suffix(".pt"), weights_only=True) if saved.get("extra") else None
+        )
         return saved["result"], extra
 
     def timing(self, table: str, piece) -> dict | None:
@@ -319,7 +373,8 @@ class RunStore:
         None (not finished, or in memory)."""
         if self.root is None or not self.path(table, piece).exists():
             return None
-        return json.loads(self.path(table, piece).read_text()).get("timing")
+        timing = load_json(self.path(table, piece), "a piece of a run").get("timing")
+        return timing if isinstance(timing, dict) else None
 
     def save(self, table: str, piece, result: dict, extra=None, about=None, timing=None) -> None:
         """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically;
@@ -631,13 +686,23 @@ def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
     return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{sha(name, list(seeds), key)[:16]}.json"
 
 
+def _manifest(path) -> dict:
+    """A run's manifest {file name: sha256} ({} when there is none)."""
+    if not pathlib.Path(path).exists():
+        return {}
+    made = load_json(path, "a manifest of a run's outputs")
+    if not isinstance(made, dict) or not all(isinstance(v, str) for v in made.values()):
+        raise ValueError(f"{path}: not a manifest of a run's outputs ({{file: sha256}})")
+    return made
+
+
 def _file_sha(path) -> str:
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
 
 
 def record_outputs(manifest: pathlib.Path, files) -> None:
     """Add files (as they are now) to a run's manifest of the outputs it wrote."""
-    made = json.loads(manifest.read_text()) if manifest.exists() else {}
+    made = _manifest(manifest)
     made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
     manifest.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(manifest, json.dumps(made, indent=1, sort_keys=True))
@@ -648,11 +713,7 @@ def ours_files(out_dir, manifests) -> set:
     wrote them."""
     ours = set()
     for manifest in manifests:
-        made = (
-            json.loads(pathlib.Path(manifest).read_text())
-            if pathlib.Path(manifest).exists()
-            else {}
-        )
+        made = _manifest(manifest)
         for fname, sha_ in made.items():
             f = pathlib.Path(out_dir) / fname
             if f.exists() and _file_sha(f) == sha_:

@@ -10,6 +10,7 @@ import dataclasses
 import json
 import math
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -467,3 +468,103 @@ def test_quick_and_pretrain_under_torchrun_are_refused_by_rank_0_alone(monkeypat
         assert "not under torchrun (it would run them 2 times)" in err.strip().splitlines()[-1]
         _launcher_env(monkeypatch, RANK="1", WORLD_SIZE="2", TORCHELASTIC_RUN_ID="x")
         assert cli_error(tr.main, argv, capsys) == ""  # rank 1 exits alike, silently
+
+
+# ---------------------------------------------------------------------------------------------
+# Files of the right syntax and the wrong schema: one line naming the file and the field
+# ---------------------------------------------------------------------------------------------
+
+META = dict(command="python experiments.py --experiment rl", date="d", machine="m", seconds=1.0)
+
+
+@pytest.mark.parametrize(
+    "text, why",
+    [
+        ('{"meta": {}, "results": {}}', "meta.command is missing or not text"),
+        (
+            json.dumps(dict(meta=META, results={"Standard": [{"ade": None}]})),
+            "results.Standard[0].ade is null",
+        ),
+        ('{"meta": {"command": "c"}, "results": {"Standard": [{"ade": NaN}]}}', "it holds NaN"),
+        ("[" * 5000 + "]" * 5000, "nested too deeply"),
+        ("[" * 40 + "]" * 40, "nested deeper than 32 levels"),
+        ("\xff\xfe not text", "not a results file"),
+        (
+            json.dumps(dict(meta=dict(META, config={"no_such_field": 1}), results={})),
+            "no_such_field",
+        ),
+    ],
+)
+def test_render_of_a_file_of_the_wrong_schema_is_one_line(text, why, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rl.json").write_text(text, errors="surrogateescape")
+    (out / "rl.md").write_text("kept")
+    if "no_such_field" in text:  # the committed Table 1, its Config from a later version
+        saved = json.loads(pathlib.Path("results/rl.json").read_text())
+        saved["meta"]["config"]["no_such_field"] = 1
+        (out / "rl.json").write_text(json.dumps(saved))
+    err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
+    last = err.strip().splitlines()[-1]
+    assert str(out / "rl.json") in last and why in last, err
+    assert "Traceback" not in err and (out / "rl.md").read_text() == "kept"
+
+
+def test_render_all_checks_every_file_before_writing_any(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ex.EXPERIMENTS:  # the committed results, the last one damaged
+        (out / f"{name}.json").write_text((pathlib.Path("results") / f"{name}.json").read_text())
+        (out / f"{name}.md").write_text("kept")
+    (out / f"{ex.EXPERIMENTS[-1]}.json").write_text('{"meta": {}, "results": {}}')
+    err = cli_error(ex.main, ["--experiment", "all", "--render", "--out", str(out)], capsys)
+    assert f"{ex.EXPERIMENTS[-1]}.json: meta.command" in err.strip().splitlines()[-1]
+    assert all((out / f"{n}.md").read_text() == "kept" for n in ex.EXPERIMENTS)
+
+
+def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = ex.Piece("Standard", 0)
+    path = store.path("rl", piece)
+    path.parent.mkdir(parents=True)
+    path.write_text("[" * 100 + "]" * 100)
+    assert not store.has("rl", piece) and path.with_suffix(".corrupt").exists()
+    assert "nested deeper than 32 levels" in capsys.readouterr().err
+    # a model file of the run store that is not a model: set aside, trained again
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"not a model")
+    assert ex.stored_predictor(model, ds.Config(**TINY), "cpu") is None
+    assert (tmp_path / "m.pt.corrupt").exists() and not model.exists()
+    assert "m.pt: not a stored predictor" in capsys.readouterr().err
+    # a provenance entry without its sha256
+    folder = tmp_path / "pretrained"
+    folder.mkdir()
+    prov = dict(
+        files={"s0.pt": dict(method="Standard", seed=0)},
+        config={},
+        command="c",
+        date="d",
+        commit="x",
+        epochs=1,
+        seeds=[0],
+        threads=1,
+    )
+    (folder / "provenance.json").write_text(json.dumps(prov))
+    with pytest.raises(ValueError, match=r"provenance.json: not a provenance file .*sha256"):
+        tr.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
+
+
+def test_quick_names_a_damaged_results_file_before_any_work(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "rl.json").write_text(
+        json.dumps(
+            dict(
+                meta=dict(META, seeds=[0], epochs=1),
+                results={"Standard": [{"rel_hindsight": "x"}]},
+            )
+        )
+    )
+    monkeypatch.setattr(tr, "experiment_data", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(ValueError, match=r"results.Standard\[0\].rel_hindsight is not a number"):
+        tr.quick()

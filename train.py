@@ -17,6 +17,7 @@ import dataclasses
 import math
 import os
 import pathlib
+import pickle
 import statistics
 import sys
 import time
@@ -33,7 +34,7 @@ from torch.utils.data.distributed import DistributedSampler
 
 import data_real
 import data_synth
-from runs import WorkerDied, command_line, folder_lock, one_line, ranks
+from runs import WorkerDied, command_line, folder_lock, load_json, one_line, ranks, read_results
 from runs import pool as worker_pool
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
@@ -1449,14 +1450,13 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
     provenance (the file's sha256, the Config it was trained with) and loaded with
     weights_only=True. Returns ({seed: model}, provenance) or (None, why not)."""
     import hashlib
-    import json
 
     folder = pathlib.Path(folder)
     prov_path = folder / "provenance.json"
     if not prov_path.exists():
         return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
     try:
-        prov = json.loads(prov_path.read_text())
+        prov = load_json(prov_path, "a provenance file of python diffstack.py --pretrain")
         entries = sorted(
             (
                 (e["seed"], name, e)
@@ -1464,6 +1464,12 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
                 if e["method"] == method.name
             )
         )
+        for _, name, e in entries:  # every field this function reads, before any is used
+            if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
+                raise ValueError(f"files.{name}: no sha256 or seed")
+        for field in ("command", "date", "commit", "epochs", "seeds", "threads"):
+            if field not in prov:
+                raise KeyError(field)
         trained_with = {
             k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
         }
@@ -1489,7 +1495,13 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
                 f"re-make it with python diffstack.py --pretrain --overwrite"
             )
         models[seed] = Predictor(cfg)
-        models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        try:
+            models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
+            raise ValueError(
+                f"{path}: not a predictor of this version ({' '.join(str(e).split())[:200]}); "
+                "re-make it with python diffstack.py --pretrain --overwrite"
+            ) from None
         models[seed].to(device)
     return models, prov
 
@@ -1521,6 +1533,7 @@ def quick(
 
     torch.set_num_threads(threads)
     cfg = cfg or Config()
+    table1_results("results")  # read at the end: a damaged file is named before the work
     n = n or QUICK["n"]
     epochs = epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
@@ -1601,7 +1614,6 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
     them, never assumed), why Standard is where it is beside No prediction, and the 5-seed tables'
     numbers beside them (provenance: the shipped predictors', to say whether they are that table's
     seeds). A shipped method's rows (one per seed) are read by their mean."""
-    import json
 
     def runs_of(name):  # a shipped predictor's runs (one per seed), or None
         return next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
@@ -1680,10 +1692,10 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
                 )
     table = pathlib.Path(results_dir) / "rl.json"
     if table.exists():
-        saved = json.loads(table.read_text())
+        saved = table1_results(results_dir)
         runs = saved["results"]
         cells = ", ".join(
-            f"{m} {cell([r['rel_hindsight'] for r in runs[m]], row=m)}"
+            f"{m} {cell([r['rel_hindsight'] for r in runs[m] if 'rel_hindsight' in r], row=m)}"
             for m in ("Standard", "DiffStack", "GT prediction")
             if m in runs
         )
@@ -1709,6 +1721,24 @@ def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
             )
         )
     return lines
+
+
+def table1_results(results_dir) -> dict | None:
+    """results_dir/rl.json as --quick reads it (None when there is none), checked before --quick's
+    first second of work: ValueError naming the file and the field."""
+    path = pathlib.Path(results_dir) / "rl.json"
+    if not path.exists():
+        return None
+    saved = read_results(path)
+    meta, runs = saved["meta"], saved["results"]
+    if not isinstance(meta.get("seeds"), list) or not isinstance(meta.get("epochs"), (int, float)):
+        raise ValueError(f"{path}: meta.seeds (a list) or meta.epochs (a number) is missing")
+    for m in ("Standard", "DiffStack", "GT prediction"):
+        for i, r in enumerate(runs.get(m, [])):
+            v = r.get("rel_hindsight", 0.0) if isinstance(r, dict) else None
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"{path}: results.{m}[{i}].rel_hindsight is not a number")
+    return saved
 
 
 def check_writable(folder, what: str) -> None:
