@@ -203,6 +203,10 @@ def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch)
         (["--n", "1e8"], "--n"),
         (["--set", "dt=0"], "dt"),
         (["--set", "horizon=-1"], "horizon"),
+        (["--set", "dt=10"], "dt is the data's (0.5)"),
+        (["--set", "dt=0.001"], "dt is the data's (0.5)"),
+        (["--set", "horizon=7"], "horizon is the data's (6)"),
+        (["--set", "hist_len=4"], "hist_len is the data's (8)"),
         (["--set", "nope=1"], "nope"),
     ],
 )

@@ -1467,9 +1467,6 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
         for _, name, e in entries:  # every field this function reads, before any is used
             if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
                 raise ValueError(f"files.{name}: no sha256 or seed")
-        for field in ("command", "date", "commit", "epochs", "seeds", "threads"):
-            if field not in prov:
-                raise KeyError(field)
         trained_with = {
             k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
         }
@@ -1503,6 +1500,14 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
                 "re-make it with python diffstack.py --pretrain --overwrite"
             ) from None
         models[seed].to(device)
+    missing = [
+        f for f in ("command", "date", "commit", "epochs", "seeds", "threads") if f not in prov
+    ]
+    if missing or not all(isinstance(e.get("cpu_seconds"), (int, float)) for _, _, e in entries):
+        raise ValueError(
+            f"{prov_path}: not a provenance file of python diffstack.py --pretrain (no "
+            f"{', '.join(missing) or 'cpu_seconds of a file'})"
+        )
     return models, prov
 
 
@@ -1840,8 +1845,21 @@ def config_with(cfg: Config, assignments) -> Config:
             ) from None
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"--set {item}: {key} must be finite")
+        if key in SET_BY_DATA and value != SET_BY_DATA[key]:
+            raise ValueError(
+                f"--set {item}: {key} is the data's ({SET_BY_DATA[key]:g}), which every command "
+                "reads: the synthetic scenes, nuScenes' key frames and the Waymo scenes are "
+                "sampled at 2 Hz into 4 s of history (8 steps and the current one) and 3 s of "
+                "future (6 steps)"
+            )
         changes[key] = value
     return dataclasses.replace(cfg, **changes)
+
+
+SET_BY_DATA = dict(dt=0.5, hist_len=8, horizon=6)
+"""Config fields every data source fixes: a command run at another value would read 2 Hz samples
+as if they were another rate (dt), or samples of another length (refused only after the data is
+made): --set refuses them at once."""
 
 
 def main(argv=None):
