@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 import data_synth
-from runs import folder_lock, one_line, write_file_atomic
+from runs import folder_lock, one_line, save_atomic, write_file_atomic
 from data_synth import (
     _SHAPE_SIGNS,
     MAX_LANE_POINTS,
@@ -882,14 +882,8 @@ def load_nuscenes_cached(
         # (folder_lock makes the folder)
         scenes, report = load_nuscenes(root, version, cfg, workers)
         blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        try:
-            torch.save(blob, tmp)
-            # atomic: a crash leaves no half-written cache under the real name
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        # atomic: a crash or a full disk leaves no half-written cache under the real name
+        save_atomic(blob, path)
     log(f"{root}/{version}: parsed in {time.perf_counter() - t0:.1f} s, cached in {path}")
     return scenes, report
 

@@ -26,6 +26,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from runs import save_atomic
+
 # === 1. Config ==============================================================================
 
 BEHAVIOURS = (
@@ -1358,9 +1360,7 @@ def load_or_generate(
         "val": own(data.val),
         "val_scenes": {**own(data.val_scenes), "names": data.val_scenes.names},
     }
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    torch.save(blob, tmp)
-    os.replace(tmp, path)  # atomic: a crash leaves no half-written cache under the real name
+    save_atomic(blob, path)  # atomic: a crash or a full disk leaves no half-written cache
     return data
 
 

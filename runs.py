@@ -20,6 +20,7 @@ from __future__ import annotations
 import ast
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import functools
 import hashlib
@@ -27,6 +28,7 @@ import json
 import math
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -149,49 +151,68 @@ def _usual_permissions(path) -> None:
     os.chmod(path, 0o666 & ~_UMASK)
 
 
-def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write text to path through a temporary file and a rename: a kill mid-write leaves the old
-    file intact, and a failed write leaves no temporary file behind."""
-    path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        _usual_permissions(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+class DiskFull(OSError):
+    """A write that found its disk full: one line naming the file and the space it needs."""
+
+    def __str__(self):
+        return self.args[0]
 
 
-def write_file_atomic(path, write) -> None:
-    """write(temporary path) then a rename onto path (as write_atomic), for writers that take a
-    path (a figure's savefig); the temporary file keeps path's extension, which names its format."""
+def _nbytes(obj) -> int:
+    """About how many bytes torch.save writes for obj: its tensors' data."""
+    if torch.is_tensor(obj):
+        return obj.numel() * obj.element_size()
+    items = obj.values() if isinstance(obj, dict) else obj if isinstance(obj, (list, tuple)) else ()
+    return sum(_nbytes(v) for v in items)
+
+
+def replace_atomic(path, write, needed: int, suffix=".tmp") -> None:
+    """write(a temporary file beside path), then rename it onto path: a kill mid-write leaves the
+    old file intact, a failed write leaves no temporary file, and a full disk is one DiskFull line
+    naming the file and the space it needs (about `needed` bytes). suffix: the temporary file's (a
+    figure's names its format)."""
     path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
         _usual_permissions(tmp)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         os.unlink(tmp)
+        free = shutil.disk_usage(path.parent).free
+        # torch.save reports a full disk as a RuntimeError ("file write failed")
+        full = isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)
+        if full or (isinstance(e, RuntimeError) and free < needed + 2**20):
+            raise DiskFull(
+                f"{path}: no space left on its disk to write it (it needs about "
+                f"{max(needed, 1) / 2**20:.1f} MB, {free / 2**20:.1f} MB are free); nothing of it "
+                "was written, and an earlier version of it, if any, is kept"
+            ) from None
         raise
+
+
+def write_atomic(path: pathlib.Path, text: str) -> None:
+    """Write text to path through a temporary file and a rename (replace_atomic)."""
+
+    def write(tmp):
+        with open(tmp, "w") as f:
+            f.write(text)
+
+    replace_atomic(path, write, len(text.encode()))
+
+
+def write_file_atomic(path, write) -> None:
+    """write(temporary path) then a rename onto path (replace_atomic), for writers that take a
+    path (a figure's savefig)."""
+    replace_atomic(path, write, 0, suffix=path.suffix)
 
 
 def save_atomic(obj, path) -> None:
-    """torch.save through a temporary file and a rename (as write_atomic)."""
+    """torch.save through a temporary file and a rename (replace_atomic)."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        _usual_permissions(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    replace_atomic(path, lambda tmp: torch.save(obj, tmp), _nbytes(obj))
 
 
 # ============================================================================================

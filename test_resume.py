@@ -627,3 +627,69 @@ def test_a_learning_curve_that_is_not_finite_is_a_diverged_training(small, tmp_p
         ex.trained_predictor(tr.Method("Standard"), small, cfg, "rl", 0.5, 0, log=None, store=store)
     assert not list((tmp_path / ".runs").rglob("*.curve.json"))
     assert not list((tmp_path / ".runs").rglob("*.pt"))
+
+
+# ---------------------------------------------------------------------------------------------
+# A full disk: one line naming the file and the space, nothing half-written, the old file kept
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 256 kB tmpfs (mounting needs root, as in CI): a disk that a few hundred kB fill."""
+    import subprocess
+
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], capture_output=True
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (root only): {done.stderr.decode().strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
+
+
+def test_every_writer_survives_a_full_disk(full_disk):
+    path = full_disk / "rl.json"
+    path.write_text("the previous version")
+    writers = {
+        "write_atomic": lambda p: runs.write_atomic(p, "x" * 2**20),
+        "save_atomic": lambda p: runs.save_atomic({"w": torch.zeros(2**18)}, p),
+        "write_file_atomic": lambda p: runs.write_file_atomic(
+            p, lambda tmp: pathlib.Path(tmp).write_bytes(b"x" * 2**20)
+        ),
+    }
+    for name, write in writers.items():
+        with pytest.raises(runs.DiskFull) as e:
+            write(path)
+        msg = str(e.value)
+        assert msg.startswith(f"{path}: no space left on its disk") and "\n" not in msg, name
+        assert "MB are free" in msg and "an earlier version of it, if any, is kept" in msg
+        if name != "write_file_atomic":  # (a figure's size is not known before it is drawn)
+            assert "it needs about 1.0 MB" in msg, msg
+        assert sorted(p.name for p in full_disk.iterdir()) == ["rl.json"], name
+        assert path.read_text() == "the previous version"
+
+
+def test_the_data_cache_on_a_full_disk_is_one_line_and_leaves_nothing(full_disk):
+    with pytest.raises(
+        runs.DiskFull, match=r"no space left on its disk to write it \(it needs about"
+    ):
+        data_synth.load_or_generate(600, seed=0, cache_dir=full_disk)
+    assert list(full_disk.iterdir()) == []
+
+
+def test_bench_json_on_a_full_disk_is_one_line(full_disk, monkeypatch, capsys):
+    import bench
+
+    big = [dict(key=f"k{i}", note="x" * 1000) for i in range(1000)]
+    monkeypatch.setattr(bench, "run", lambda *a, **k: dict(meta={}, figures=big))
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--quick", "--json", str(full_disk / "b.json")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err
+    assert f"{full_disk / 'b.json'}: no space left on its disk" in err.strip().splitlines()[-1]
+    assert list(full_disk.iterdir()) == []

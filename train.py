@@ -35,6 +35,7 @@ from torch.utils.data.distributed import DistributedSampler
 import data_real
 import data_synth
 from runs import WorkerDied, command_line, folder_lock, load_json, one_line, ranks, read_results
+from runs import save_atomic, write_atomic
 from runs import pool as worker_pool
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
@@ -1416,9 +1417,7 @@ def pretrain(
             finished = (_pretrain_one(*a) for a in args)
         try:
             for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
-                tmp = path.with_suffix(".tmp")
-                torch.save(state, tmp)
-                os.replace(tmp, path)
+                save_atomic(state, path)
                 about["files"][path.name] = dict(
                     method=m.name,
                     seed=seed,
@@ -1439,9 +1438,7 @@ def pretrain(
         finally:
             if pool is not None:
                 pool.shutdown()
-        tmp = out / "provenance.json.tmp"
-        tmp.write_text(json.dumps(about, indent=1))
-        os.replace(tmp, out / "provenance.json")
+        write_atomic(out / "provenance.json", json.dumps(about, indent=1))
         return about
 
 
