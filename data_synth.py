@@ -19,6 +19,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -26,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from runs import save_atomic
+from runs import folder_lock, save_atomic
 
 # === 1. Config ==============================================================================
 
@@ -1654,7 +1655,10 @@ def write_nuscenes(
 ) -> Path:
     """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. Scenes go
     round-robin to the four map locations and sit side by side (300 m apart) in their map's canvas.
-    Refuses to replace existing files unless overwrite=True."""
+    The folder is written whole: into a temporary sibling, renamed into place when complete, under
+    a lock on the target (a second writer is refused); an interrupted or killed write leaves the
+    old folder (or none). Refuses to replace existing files unless overwrite=True, and a folder
+    holding files it does not make at all."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -1664,12 +1668,48 @@ def write_nuscenes(
         + [root / "maps" / "expansion" / f"{loc}.json" for loc in NUSC_LOCATIONS]
         + [root / "maps" / "prediction" / "prediction_scenes.json"]
     )
-    existing = [str(p) for p in outputs if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(
-            f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
-            f"pass overwrite=True (CLI: --overwrite)"
-        )
+    root.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root.parent, f"write_nuscenes into {root}", f".{root.name}.lock"):
+        existing = [str(p) for p in outputs if p.exists()]
+        if existing and not overwrite:
+            raise FileExistsError(
+                f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
+                f"pass overwrite=True (CLI: --overwrite)"
+            )
+        ours = {str(p) for p in outputs}
+        found = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else []
+        foreign = [p for p in found if str(p) not in ours and p.parent != root / "maps"]
+        if foreign:
+            raise FileExistsError(
+                f"write_nuscenes: {foreign[0]} is no file of this dataset ({len(foreign)} such); "
+                f"{root} is written whole, replacing what is in it: write elsewhere"
+            )
+        for stale in root.parent.glob(f".{root.name}.writing-*"):  # left by a killed writer
+            shutil.rmtree(stale)
+        tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
+        try:
+            _write_nuscenes(scenes, tmp, version, cfg)
+            _replace_folder(tmp, root)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    return root
+
+
+def _replace_folder(new: Path, root: Path) -> None:
+    """Put the folder new where root is: a rename; an existing root is renamed aside first and
+    removed after (between the two renames, a kill leaves it under .<name>.old-<pid>)."""
+    if root.is_dir() and any(root.iterdir()):
+        old = root.parent / f".{root.name}.old-{os.getpid()}"
+        os.rename(root, old)
+        os.rename(new, root)
+        shutil.rmtree(old)
+    else:
+        os.rename(new, root)  # (onto an empty folder too)
+
+
+def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) -> None:
+    """write_nuscenes' work: every file of the dataset under root."""
     S, F = scenes.ego.shape[:2]
     ego, agents, amask, paths = (
         x.numpy() for x in (scenes.ego, scenes.agents, scenes.agents_mask, scenes.paths)
@@ -1902,7 +1942,6 @@ def write_nuscenes(
     for t in NUSC_TABLES:
         _dump(tables[t], root / version / f"{t}.json")
     _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
-    return root
 
 
 def _links(tokens: list, k: int) -> tuple:

@@ -185,7 +185,7 @@ def replace_atomic(path, write, needed: int, suffix=".tmp") -> None:
         full = isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)
         if full or (isinstance(e, RuntimeError) and free < needed + 2**20):
             raise DiskFull(
-                f"{path}: no space left on its disk to write it (it needs about "
+                f"{path}: cannot write it, {os.strerror(errno.ENOSPC)} (it needs about "
                 f"{max(needed, 1) / 2**20:.1f} MB, {free / 2**20:.1f} MB are free); nothing of it "
                 "was written, and an earlier version of it, if any, is kept"
             ) from None
@@ -610,14 +610,15 @@ _HELD = {}  # the folders this process holds: resolved path -> how many blocks h
 
 
 @contextlib.contextmanager
-def folder_lock(folder, command: str):
+def folder_lock(folder, command: str, lock_name: str = ".lock"):
     """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block
     runs. A second run on the same folder is refused with an OutputRefused naming the holder (its
     PID, command and start time); the operating system releases a lock with the process that held
     it, so one left by a killed run is taken over. Re-entrant: a run that holds the folder already
-    (--out data_cache, where the data cache is made too) goes on holding it."""
+    (--out data_cache, where the data cache is made too) goes on holding it. lock_name: the lock
+    file in folder (another name holds a part of the folder: write_nuscenes' target)."""
     folder = pathlib.Path(folder)
-    held = str(folder.resolve())
+    held = str(folder.resolve() / lock_name)
     if held in _HELD:  # this process holds it already
         _HELD[held] += 1
         try:
@@ -627,7 +628,7 @@ def folder_lock(folder, command: str):
         return
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(folder / lock_name, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as e:
         raise OutputRefused(f"{folder}: cannot hold it for this run ({e.strerror or e})") from None
     try:

@@ -4,6 +4,7 @@ the road geometry. Every test runs on one thread (conftest.py)."""
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import torch
 import data_real
 import data_synth
 import diffstack as ds
+import runs
 from test_diffstack import SYNTH_CFG, TINY, small_dataset
 
 
@@ -468,3 +470,82 @@ def test_backward_speed_with_gaps():
     v = data_synth.backward_speed(xy, mask, np.arange(5) * 0.5)
     # first copies the second; the gap spans 1 s
     assert np.allclose(v[[0, 1, 3, 4]], [2.0, 2.0, 3.0, 2.0])
+
+
+# ---- the nuScenes folder is written whole ----------------------------------------------------
+
+
+def _tree(root):
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def test_an_interrupted_overwrite_leaves_the_old_folder(tmp_path, scenes_mixed, monkeypatch):
+    scenes, cfg = scenes_mixed
+    root = tmp_path / "nusc"
+    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    before = _tree(root)
+    dump = data_synth._dump
+    calls = []
+
+    def interrupted(obj, path):
+        calls.append(path)
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # Ctrl-C, mid-write
+        dump(obj, path)
+
+    monkeypatch.setattr(data_synth, "_dump", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        data_synth.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
+    assert _tree(root) == before  # the old folder, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".nusc.lock", "nusc"]  # no temporary
+
+
+def test_a_killed_writer_leaves_the_old_folder_and_the_next_one_cleans_up(tmp_path, scenes_mixed):
+    import signal
+    import subprocess
+    import sys
+
+    scenes, cfg = scenes_mixed
+    root = tmp_path / "nusc"
+    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    before = _tree(root)
+    code = (
+        "import sys, time, data_synth\n"
+        "dump = data_synth._dump\n"
+        "def slow(obj, path):\n"
+        "    dump(obj, path); print('wrote', flush=True); time.sleep(60)\n"
+        "data_synth._dump = slow\n"
+        "data_synth.write_nuscenes(data_synth.generate_scenes(2, seed=1), sys.argv[1], "
+        "overwrite=True)\n"
+    )
+    writer = subprocess.Popen(
+        [sys.executable, "-c", code, str(root)],
+        cwd=os.path.dirname(data_synth.__file__),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert writer.stdout.readline().strip() == "wrote"  # one file written, mid-way
+        # a second writer meanwhile is refused: the target is locked
+        with pytest.raises(runs.OutputRefused, match="another run is writing here"):
+            data_synth.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
+        writer.send_signal(signal.SIGKILL)
+    finally:
+        writer.kill()
+        writer.wait()
+    assert _tree(root) == before
+    assert [p.name for p in tmp_path.glob(".nusc.writing-*")]  # its temporary folder, left
+    data_synth.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
+    assert not list(tmp_path.glob(".nusc.writing-*")) and _tree(root) != before
+
+
+def test_a_folder_with_files_of_its_own_is_never_replaced(tmp_path, scenes_mixed):
+    scenes, cfg = scenes_mixed
+    root = tmp_path / "nusc"
+    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    (root / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match=r"notes.txt is no file of this dataset"):
+        data_synth.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
+    assert (root / "notes.txt").read_text() == "mine"
