@@ -870,10 +870,12 @@ def load_nuscenes_cached(
                 f"(sha256 of {len(sums)} files match; {time.perf_counter() - t0:.1f} s)"
             )
             return scenes, blob["report"]
-        before = json.loads(stored)["files"]
-        changed = sorted(f for f in set(sums) | set(before) if sums.get(f) != before.get(f)) or [
-            "the settings"
-        ]
+        try:  # (a cache of an earlier version of the project may key otherwise)
+            before = json.loads(stored)["files"]
+            changed = sorted(f for f in set(sums) | set(before) if sums.get(f) != before.get(f))
+        except (TypeError, ValueError, KeyError, AttributeError):
+            changed = ["the cache's format: an earlier version of the project wrote it"]
+        changed = changed or ["the settings"]
         log(
             f"{root}/{version}: the cache {path} is out of date ({', '.join(changed[:3])}"
             f"{' ...' if len(changed) > 3 else ''} changed); parsing again"

@@ -139,3 +139,15 @@ def test_load_data_parses_once_then_reads_the_cache(folder, tmp_path):
         "read from the cache" in s for s in lines[2:]
     )
     assert all(torch.equal(v, b.train.tensors()[k]) for k, v in a.train.tensors().items())
+
+
+def test_a_cache_of_an_earlier_version_is_parsed_again(folder, tmp_path):
+    import torch
+
+    path = data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"key": '{"version": "v1.0-mini", "sums": {}}', "scenes": {}}, path)  # other keys
+    lines = []
+    scenes, _ = data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
+    assert len(scenes.ego) == SCENES
+    assert any("an earlier version of the project wrote it" in s for s in lines)
