@@ -87,9 +87,10 @@ RESULTS_META = {"command": "text", "date": "text", "machine": "text", "seconds":
 _KINDS = {"text": str, "number": (int, float)}
 
 
-def read_results(path) -> dict:
-    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with RESULTS_META's
-    fields); ValueError naming the file and the field otherwise."""
+def read_results(path, meta_fields=RESULTS_META) -> dict:
+    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with the fields of
+    meta_fields {name: 'text' or 'number'}, by default those a table's header shows); ValueError
+    naming the file and the field otherwise."""
     what = "a results file of python experiments.py"
     saved = load_json(path, what)
     if not isinstance(saved, dict) or not {"meta", "results"} <= saved.keys():
@@ -97,7 +98,7 @@ def read_results(path) -> dict:
     meta, results = saved["meta"], saved["results"]
     if not isinstance(meta, dict) or not isinstance(results, dict):
         raise ValueError(f"{path}: not {what} ('meta' and 'results' must be objects)")
-    for field, kind in RESULTS_META.items():
+    for field, kind in meta_fields.items():
         if not isinstance(meta.get(field), _KINDS[kind]) or isinstance(meta.get(field), bool):
             raise ValueError(f"{path}: meta.{field} is missing or not {kind}")
     stack = [(results, "results")]

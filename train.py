@@ -1731,7 +1731,7 @@ def table1_results(results_dir) -> dict | None:
     path = pathlib.Path(results_dir) / "rl.json"
     if not path.exists():
         return None
-    saved = read_results(path)
+    saved = read_results(path, meta_fields={"epochs": "number"})
     meta, runs = saved["meta"], saved["results"]
     if not isinstance(meta.get("seeds"), list) or not isinstance(meta.get("epochs"), (int, float)):
         raise ValueError(f"{path}: meta.seeds (a list) or meta.epochs (a number) is missing")
