@@ -102,6 +102,7 @@ from runs import (
     command_line,
     compute_in_workers,
     die_with_parent,
+    default_threads,
     folder_lock,
     ranks,
     git_commit,
@@ -1753,8 +1754,8 @@ def main(argv=None):
     ap.add_argument(
         "--threads",
         type=bounded(int, 1, 256, "--threads"),
-        default=2,
-        help="torch threads (default 2)",
+        default=None,
+        help="torch threads (default 2, or 1 when other work keeps a core busy)",
     )
     ap.add_argument(
         "--jobs",
@@ -1872,7 +1873,10 @@ def _main(ap, args, names, world, rank, command, held):
         device = start_distributed(args.device) if world > 1 else args.device
     except ValueError as e:
         ap.error(str(e))
-    torch.set_num_threads(args.threads)
+    threads, why = (args.threads, "--threads") if args.threads else default_threads()
+    torch.set_num_threads(threads)
+    if rank == 0:
+        print(f"torch threads: {threads} ({why}; --threads N to choose)", flush=True)
     # flushed line by line: a run's log is often a file (a long run in the background), read
     # while it runs
     log = functools.partial(print, flush=True) if rank == 0 else (lambda *a, **k: None)

@@ -607,6 +607,40 @@ def ranks() -> tuple:
     return rank, world, None
 
 
+def free_cores(seconds: float = 0.3) -> float:
+    """How many of this machine's cores other work leaves idle, from /proc/stat over `seconds`
+    (where there is none: the load average); 0 .. os.cpu_count()."""
+    cores = os.cpu_count() or 1
+
+    def idle_total():
+        with open("/proc/stat") as f:
+            ticks = [int(v) for v in f.readline().split()[1:]]
+        return ticks[3] + ticks[4], sum(ticks)  # idle + iowait, all
+
+    try:
+        idle0, total0 = idle_total()
+        time.sleep(seconds)
+        idle1, total1 = idle_total()
+        return cores * (idle1 - idle0) / max(total1 - total0, 1)
+    except (OSError, ValueError, IndexError):
+        return max(cores - os.getloadavg()[0], 0.0)
+
+
+def default_threads(most: int = 2) -> tuple:
+    """(torch threads, why): `most`, or fewer when other work keeps cores busy. Threads that wait
+    on each other at every operation run many times slower when one of them is descheduled (two
+    threads on 2 cores with one busy: 483 s for --quick, one thread 68 s)."""
+    free = free_cores()
+    threads = max(1, min(most, round(free)))
+    busy = (os.cpu_count() or 1) - free
+    why = (
+        f"{busy:.1f} of {os.cpu_count()} cores are busy with other work"
+        if threads < most
+        else "the default"
+    )
+    return threads, why
+
+
 _HELD = {}  # the folders this process holds: resolved path -> how many blocks hold it
 
 

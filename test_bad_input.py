@@ -572,3 +572,23 @@ def test_quick_names_a_damaged_results_file_before_any_work(tmp_path, monkeypatc
     monkeypatch.setattr(tr, "experiment_data", lambda *a, **k: pytest.fail("work started"))
     with pytest.raises(ValueError, match=r"results.Standard\[0\].rel_hindsight is not a number"):
         tr.quick()
+
+
+def test_the_default_thread_count_leaves_out_the_cores_other_work_keeps_busy(monkeypatch, capsys):
+    assert 0.0 <= runs.free_cores(0.05) <= os.cpu_count()
+    for free, threads in ((2.0, 2), (1.6, 2), (1.0, 1), (0.2, 1), (7.5, 2)):
+        monkeypatch.setattr(runs, "free_cores", lambda seconds=0.3, f=free: f)
+        got, why = runs.default_threads()
+        assert got == threads and (("busy with other work" in why) == (threads < 2)), (free, why)
+    # --quick says which it took, and --threads overrides it
+    monkeypatch.setattr(tr, "quick", lambda threads, **k: print(f"quick at {threads}"))
+    monkeypatch.setattr(tr, "default_threads", lambda: (1, "1.0 of 2 cores are busy"))
+    tr.main(["--quick"])
+    tr.main(["--quick", "--threads", "2"])
+    out = capsys.readouterr().out.splitlines()
+    assert out == [
+        "torch threads: 1 (1.0 of 2 cores are busy; --threads N to choose)",
+        "quick at 1",
+        "torch threads: 2 (--threads; --threads N to choose)",
+        "quick at 2",
+    ]

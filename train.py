@@ -35,7 +35,7 @@ from torch.utils.data.distributed import DistributedSampler
 import data_real
 import data_synth
 from runs import WorkerDied, command_line, folder_lock, load_json, one_line, ranks, read_results
-from runs import save_atomic, write_atomic
+from runs import default_threads, save_atomic, write_atomic
 from runs import pool as worker_pool
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
@@ -1898,8 +1898,8 @@ def main(argv=None):
         "--threads",
         type=bounded(int, 1, 256, "--threads"),
         default=None,
-        help="torch threads (default: 2 for --quick; 1 for --pretrain, as the tables train; at "
-        "most 256)",
+        help="torch threads (default: 1 for --pretrain, as the tables train; for --quick 2, or 1 "
+        "when other work keeps a core busy; at most 256)",
     )
     ap.add_argument(
         "--device",
@@ -1963,7 +1963,9 @@ def main(argv=None):
                 overwrite=args.overwrite,
                 command=command_line("python diffstack.py", argv),
             )
-        return quick(args.threads or 2, cfg=cfg, device=args.device)
+        threads, why = (args.threads, "--threads") if args.threads else default_threads()
+        print(f"torch threads: {threads} ({why}; --threads N to choose)")
+        return quick(threads, cfg=cfg, device=args.device)
 
 
 if __name__ == "__main__":
