@@ -167,20 +167,21 @@ def _nbytes(obj) -> int:
     return sum(_nbytes(v) for v in items)
 
 
-def replace_atomic(path, write, needed: int, suffix=".tmp") -> None:
-    """write(a temporary file beside path), then rename it onto path: a kill mid-write leaves the
-    old file intact, a failed write leaves no temporary file, and a full disk is one DiskFull line
-    naming the file and the space it needs (about `needed` bytes). suffix: the temporary file's (a
-    figure's names its format)."""
+def replace_atomic(path, write, needed: int) -> None:
+    """write(a temporary file of the same name, in a temporary folder beside path), then rename it
+    onto path: a kill mid-write leaves the old file intact, a failed write leaves nothing behind,
+    and a full disk is one DiskFull line naming the file and the space it needs (about `needed`
+    bytes). The same name keeps a figure's format and torch.save's bytes (its archive is named
+    after the file)."""
     path = pathlib.Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
+    folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = os.path.join(folder, path.name)
     try:
         write(tmp)
         _usual_permissions(tmp)
         os.replace(tmp, path)
     except BaseException as e:
-        os.unlink(tmp)
+        shutil.rmtree(folder, ignore_errors=True)
         free = shutil.disk_usage(path.parent).free
         # torch.save reports a full disk as a RuntimeError ("file write failed")
         full = isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)
@@ -191,6 +192,7 @@ def replace_atomic(path, write, needed: int, suffix=".tmp") -> None:
                 "was written, and an earlier version of it, if any, is kept"
             ) from None
         raise
+    os.rmdir(folder)
 
 
 def write_atomic(path: pathlib.Path, text: str) -> None:
@@ -206,7 +208,7 @@ def write_atomic(path: pathlib.Path, text: str) -> None:
 def write_file_atomic(path, write) -> None:
     """write(temporary path) then a rename onto path (replace_atomic), for writers that take a
     path (a figure's savefig)."""
-    replace_atomic(path, write, 0, suffix=path.suffix)
+    replace_atomic(path, write, 0)
 
 
 def save_atomic(obj, path) -> None:
