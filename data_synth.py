@@ -19,7 +19,6 @@ import hashlib
 import json
 import math
 import os
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -27,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from runs import folder_lock, save_atomic
+from runs import save_atomic, write_folder
 
 # === 1. Config ==============================================================================
 
@@ -1668,44 +1667,16 @@ def write_nuscenes(
         + [root / "maps" / "expansion" / f"{loc}.json" for loc in NUSC_LOCATIONS]
         + [root / "maps" / "prediction" / "prediction_scenes.json"]
     )
-    root.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(root.parent, f"write_nuscenes into {root}", f".{root.name}.lock"):
-        existing = [str(p) for p in outputs if p.exists()]
-        if existing and not overwrite:
-            raise FileExistsError(
-                f"write_nuscenes: {existing[0]} exists ({len(existing)} files would be replaced); "
-                f"pass overwrite=True (CLI: --overwrite)"
-            )
-        ours = {str(p) for p in outputs}
-        found = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else []
-        foreign = [p for p in found if str(p) not in ours and p.parent != root / "maps"]
-        if foreign:
-            raise FileExistsError(
-                f"write_nuscenes: {foreign[0]} is no file of this dataset ({len(foreign)} such); "
-                f"{root} is written whole, replacing what is in it: write elsewhere"
-            )
-        for stale in root.parent.glob(f".{root.name}.writing-*"):  # left by a killed writer
-            shutil.rmtree(stale)
-        tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
-        try:
-            _write_nuscenes(scenes, tmp, version, cfg)
-            _replace_folder(tmp, root)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+
+    write_folder(
+        root,
+        lambda tmp: _write_nuscenes(scenes, tmp, version, cfg),
+        "write_nuscenes",
+        outputs,
+        overwrite,
+        also=root / "maps",  # (the maps' PNGs)
+    )
     return root
-
-
-def _replace_folder(new: Path, root: Path) -> None:
-    """Put the folder new where root is: a rename; an existing root is renamed aside first and
-    removed after (between the two renames, a kill leaves it under .<name>.old-<pid>)."""
-    if root.is_dir() and any(root.iterdir()):
-        old = root.parent / f".{root.name}.old-{os.getpid()}"
-        os.rename(root, old)
-        os.rename(new, root)
-        shutil.rmtree(old)
-    else:
-        os.rename(new, root)  # (onto an empty folder too)
 
 
 def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) -> None:

@@ -643,6 +643,47 @@ def default_threads(most: int = 2) -> tuple:
     return threads, why
 
 
+def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
+    """A folder of several files written whole: write(tmp) fills a temporary sibling, renamed into
+    place when complete, while a lock on the target (.<name>.lock beside it) refuses a second
+    writer. An interrupted or killed write leaves the old folder (a killed writer's sibling is
+    removed by the next). files: those the writer makes, which only overwrite replaces; a folder
+    holding any other file (besides those directly in `also`) is never replaced. who: the writer,
+    for the messages."""
+    root = pathlib.Path(root)
+    root.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(root.parent, f"{who} {root}", f".{root.name}.lock"):
+        existing = [str(p) for p in files if p.exists()]
+        if existing and not overwrite:
+            raise FileExistsError(
+                f"{who}: {existing[0]} exists ({len(existing)} files would be replaced); pass "
+                "overwrite=True (CLI: --overwrite)"
+            )
+        ours = {str(p) for p in files}
+        found = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else []
+        foreign = [p for p in found if str(p) not in ours and p.parent != also]
+        if foreign:
+            raise FileExistsError(
+                f"{who}: {foreign[0]} is no file of what it writes ({len(foreign)} such); {root} "
+                "is written whole, replacing what is in it: write elsewhere"
+            )
+        for stale in root.parent.glob(f".{root.name}.writing-*"):
+            shutil.rmtree(stale)
+        tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
+        try:
+            write(tmp)
+            if root.is_dir() and any(root.iterdir()):  # aside, then the new one in, then away
+                old = root.parent / f".{root.name}.old-{os.getpid()}"
+                os.rename(root, old)
+                os.rename(tmp, root)
+                shutil.rmtree(old)
+            else:
+                os.rename(tmp, root)  # (onto an empty folder too)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+
 _HELD = {}  # the folders this process holds: resolved path -> how many blocks hold it
 
 

@@ -546,6 +546,6 @@ def test_a_folder_with_files_of_its_own_is_never_replaced(tmp_path, scenes_mixed
     root = tmp_path / "nusc"
     data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
     (root / "notes.txt").write_text("mine")
-    with pytest.raises(FileExistsError, match=r"notes.txt is no file of this dataset"):
+    with pytest.raises(FileExistsError, match=r"notes.txt is no file of what it writes"):
         data_synth.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
     assert (root / "notes.txt").read_text() == "mine"
