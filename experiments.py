@@ -103,6 +103,7 @@ from runs import (
     compute_in_workers,
     die_with_parent,
     default_threads,
+    first_non_finite,
     folder_lock,
     ranks,
     git_commit,
@@ -1040,16 +1041,14 @@ def compute_piece(
         return dict(diverged=str(e)), None
 
 
-def non_finite(o, path="") -> str | None:
-    """The first number in o (nested dicts and lists) that is NaN or infinite, as 'path = value';
-    None when every one is finite."""
-    if isinstance(o, float) and not math.isfinite(o):
-        return f"{path.lstrip('.') or 'a value'}, " + ("not a number" if o != o else "infinite")
-    items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
-    for k, v in items:
-        if (found := non_finite(v, f"{path}.{k}")) is not None:
-            return found
-    return None
+def non_finite(o) -> str | None:
+    """The first number in o (nested dicts and lists) that is NaN or infinite, as 'a.1.b, not a
+    number' (or 'infinite'); None when every one is finite."""
+    found = first_non_finite(o)
+    if found is None:
+        return None
+    keys, v = found
+    return f"{'.'.join(map(str, keys)) or 'a value'}, " + ("not a number" if v != v else "infinite")
 
 
 def piece_result(

@@ -113,26 +113,29 @@ def read_results(path, meta_fields=RESULTS_META) -> dict:
     return saved
 
 
+def first_non_finite(o, keys=()) -> tuple | None:
+    """(the keys down to it, the value) of the first NaN or infinite number in o (nested dicts and
+    lists), or None when every one is finite."""
+    if isinstance(o, float) and not math.isfinite(o):
+        return keys, o
+    items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+    for k, v in items:
+        if (found := first_non_finite(v, (*keys, k))) is not None:
+            return found
+    return None
+
+
 def results_json(obj, name: str) -> str:
     """obj as the text of the result file `name`; ValueError naming the first NaN or infinity,
     never written."""
     try:
         return json.dumps(obj, indent=1, default=to_json, allow_nan=False)
     except ValueError:
-
-        def where(o, path):
-            if isinstance(o, float) and not math.isfinite(o):
-                return f"{path} = {o}"
-            for k, v in (
-                o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
-            ):
-                if (found := where(v, f"{path}[{k!r}]")) is not None:
-                    return found
-
-        found = where(json.loads(json.dumps(obj, default=to_json)), "")
+        found = first_non_finite(json.loads(json.dumps(obj, default=to_json)))
+        where = "a value" if found is None else "".join(f"[{k!r}]" for k in found[0])
         raise ValueError(
-            f"{name}: {found or 'a value'} is not finite; a result is never written with NaN or "
-            "infinity"
+            f"{name}: {where}{'' if found is None else f' = {found[1]}'} is not finite; a result "
+            "is never written with NaN or infinity"
         ) from None
 
 
