@@ -11,7 +11,6 @@ import json
 import math
 import os
 import pathlib
-import signal
 import subprocess
 import sys
 
@@ -84,25 +83,12 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
 
 
 def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
-    tmp_path, monkeypatch, capsys
+    tmp_path, monkeypatch, capsys, lock_held_elsewhere
 ):
     """A second run on a folder another run holds is refused before any work, naming the holder
     (PID, command); when the holder is killed (SIGKILL), the next run takes the folder over."""
     out = tmp_path / "out"
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys, time, runs\nwith runs.folder_lock(sys.argv[1], 'the other run'):\n "
-            "print('held', flush=True); time.sleep(60)",
-            str(out),
-        ],
-        cwd=os.path.dirname(runs.__file__),
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with lock_held_elsewhere(out, "the other run") as holder:
         monkeypatch.setattr(
             data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made")
         )
@@ -116,9 +102,6 @@ def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
         # --render writes too
         err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
         assert f"PID {holder.pid}" in err
-    finally:
-        holder.send_signal(signal.SIGKILL)
-        holder.wait()
     with runs.folder_lock(out, "this run"):  # the killed run's lock, taken over
         assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
 

@@ -58,35 +58,17 @@ def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
     assert _files(tmp_path) == [data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
 
 
-def test_a_second_parse_into_a_cache_being_written_is_refused(folder, tmp_path):
-    import os
-    import subprocess
-    import sys
-
+def test_a_second_parse_into_a_cache_being_written_is_refused(
+    folder, tmp_path, lock_held_elsewhere
+):
     import runs
 
     # another process holds the cache folder (this one may hold it again: runs.folder_lock)
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys, time, runs\nwith runs.folder_lock(sys.argv[1], 'another parse'):\n "
-            "print('held', flush=True); time.sleep(60)",
-            str(tmp_path),
-        ],
-        cwd=os.path.dirname(runs.__file__),
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with lock_held_elsewhere(tmp_path, "another parse"):
         with pytest.raises(
             runs.OutputRefused, match=r"another run is writing here .*`another parse`"
         ):
             data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
-    finally:
-        holder.kill()
-        holder.wait()
     assert not list(tmp_path.glob("*.pt"))
     # once the first has ended, it goes ahead
     data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
