@@ -14,7 +14,15 @@ has not tried yet. test_tutorial.py feeds every check known-wrong answers and as
 catches each one.
 """
 
+import ast
+import contextlib
+import dataclasses
 import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,8 +31,10 @@ import torch
 
 import data_synth
 import diffstack as ds
+import runs
 
 F64 = torch.float64
+HERE = Path(__file__).resolve().parent
 
 
 # --- the harness: section clock -------------------------------------------------------------------
@@ -684,15 +694,217 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
+def kkt_gradient_check(val, cfg, seed, out=print):
+    """§5's gradient check: on three validation samples where the predicted vehicle comes within
+    6 m (float64), iLQR solved to 1e-11, the gradient of a random linear function of its solution
+    with respect to the initial state, the cost weights and the prediction, by ds.ilqr_solve's KKT
+    backward (exact, and curvature-free as mpc.pytorch's) and by central differences of the
+    re-solved problem. Prints a line per input; returns {input: (exact's relative error,
+    curvature-free's)}."""
+    torch.manual_seed(seed)
+    d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
+    pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
+    b64 = val[pick].to(torch.float64)
+    ctx64 = gt_context(b64)
+    w64 = ds.cost_weights(cfg, torch.float64)
+    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (cfg.u_lower, cfg.u_upper))
+    uni = ds.Unicycle(cfg.dt)
+
+    def fn(x, u, w, preds):
+        return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
+
+    s0 = b64.ego_hist[:, -1]
+    u0 = torch.zeros(3, 6, 2, dtype=torch.float64)
+    _, u_star, info = ds.ilqr(fn, uni, s0, u0, (w64, ctx64.preds), lo, hi, iters=50, tol=1e-11)
+    assert info.converged.all()
+    g = torch.Generator().manual_seed(seed)
+    wx = torch.randn(3, 7, 4, generator=g, dtype=torch.float64)  # the loss's weights on x, u
+    wu = torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
+    leaves = (s0, w64, ctx64.preds)
+
+    def kkt_grads(exact):
+        ls = [v.clone().requires_grad_() for v in leaves]
+        x, u, _ = ds.ilqr_solve(
+            fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact
+        )
+        return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
+
+    def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
+        ls = [*leaves[:i], v, *leaves[i + 1 :]]
+        x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+        return (x * wx).sum() + (u * wu).sum()
+
+    def central_fd(i, idx, h=1e-4):
+        e = torch.zeros_like(leaves[i])
+        e[idx] = h
+        return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
+
+    t0 = time.time()
+    exact, gn = kkt_grads(True), kkt_grads(False)
+    on_pred = [(b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)]  # (B, K, T, 2)
+    coords = {
+        "initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
+        "cost weights w": (1, [(j,) for j in range(5)]),
+        "predicted trajectory": (2, on_pred),
+    }
+    errs = {}
+    for name, (i, idx) in coords.items():
+        fd = torch.stack([central_fd(i, j) for j in idx])
+        errs[name] = [rel_err(torch.stack([grad[i][j] for j in idx]), fd) for grad in (exact, gn)]
+        out(
+            f"  {name:22s} relative error vs finite differences: exact KKT {errs[name][0]:.1e}   "
+            f"curvature-free {errs[name][1]:.1e}"
+        )
+    out(f"({time.time() - t0:.1f}s)")
+    return errs
+
+
+# --- the module's code beside its equation, and the interactive planner ---------------------------
+
+
+def show_source(fn):
+    """Display a function's source, as the module has it (inspect reads the file the notebook
+    imported), under a line naming where it is."""
+    import inspect
+
+    from IPython.display import Markdown, display
+
+    lines, first = inspect.getsourcelines(fn)
+    where = f"`{fn.__module__}.{fn.__qualname__}`, {Path(inspect.getfile(fn)).name} line {first}"
+    display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
+
+
+def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
+    """The relaxed planner of eq. (2) on one scenario `ex` (a batch of 1), its prediction the GT
+    future moved by `shift` (m, ego frame): the candidates' costs C (N,), their p_n (N,; softmax
+    of -beta C over the valid ones), the plan (argmin C) and the target n* (argmin of the
+    hindsight cost, with the true future), L_plan = -log p_{n*}, its gradient with respect to the
+    prediction (T, 2), and the candidates. A dict."""
+    ctx = gt_context(ex)
+    preds = (ctx.preds + torch.tensor(shift, dtype=ctx.preds.dtype)).requires_grad_()
+    w = ds.cost_weights(cfg, ctx.preds.dtype)
+    start = ex.ego_hist[:, -1]
+    cands, cost, plan, _, _ = ds.plan(start, dataclasses.replace(ctx, preds=preds), ex.goal, w, cfg)
+    target = ds.masked_argmin(ds.total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var), cands.valid)
+    l_plan = ds.plan_loss(cost, cands.valid, target, beta)
+    (grad,) = torch.autograd.grad(l_plan.sum(), preds)  # (1, K=1, T, 2)
+    logits = torch.where(cands.valid, -beta * cost.detach(), -math.inf)
+    return dict(
+        cost=cost.detach()[0],
+        p=torch.softmax(logits, -1)[0],
+        plan=int(plan[0]),
+        target=int(target[0]),
+        l_plan=l_plan.item(),
+        grad=grad[0, 0],
+        pred=preds.detach()[0, 0],
+        cands=cands,
+    )
+
+
+def draw_planner_view(ax, ex, view, title=""):
+    """One planner_view drawn: the candidates coloured by p_n (log scale), the plan (black
+    dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as arrows."""
+    import matplotlib.pyplot as plt
+
+    data_synth.plot_scenario(ax, ex, 0, title=title, extent=(-10, 45, -12, 12))
+    x = view["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
+    colour = plt.cm.viridis(np.clip(1 + np.log10(view["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
+    for n in torch.nonzero(view["cands"].valid[0]).flatten().tolist():
+        ax.plot(*x[n].T, color=colour[n], lw=1, zorder=2)
+    ax.plot(*x[view["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
+    ax.plot(*x[view["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
+    ax.plot(*view["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
+    arrows = -view["grad"] / max(view["grad"].norm(dim=-1).max().item(), 1e-12) * 3
+    ax.quiver(*view["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
+    ax.set(xlabel="x (m)", ylabel="y (m)")
+
+
+def interactive_planner(ex, cfg, settings):
+    """The static figure: one panel per (shift, beta) in settings, each its planner_view; then,
+    where ipywidgets is installed, sliders that move the prediction and change beta and redraw
+    one panel. Returns the widget, or None without ipywidgets."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
+    for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
+        v = planner_view(ex, cfg, shift, beta)
+        draw_planner_view(ax, ex, v, planner_title(v, shift, beta))
+    np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=7)
+    fig.suptitle(
+        "Move the prediction or change β: the costs, p_n (colour), the plan and -dL_plan/dŝ "
+        "(arrows, scaled per panel) follow"
+    )
+    fig.tight_layout()
+    plt.show()
+    try:
+        import ipywidgets as widgets
+    except ImportError:
+        return None
+
+    def redraw(dx=0.0, dy=0.0, beta=1.0):
+        fig, ax = plt.subplots(figsize=(7, 3.6))
+        v = planner_view(ex, cfg, (dx, dy), beta)
+        draw_planner_view(ax, ex, v, planner_title(v, (dx, dy), beta))
+        ax.legend(loc="lower left", fontsize=7)
+        plt.show()
+
+    return widgets.interactive(
+        redraw,
+        dx=widgets.FloatSlider(value=0.0, min=-8, max=8, step=0.5, description="move x (m)"),
+        dy=widgets.FloatSlider(value=0.0, min=-4, max=4, step=0.25, description="move y (m)"),
+        beta=widgets.FloatLogSlider(value=1.0, base=10, min=-2, max=1, description="β"),
+    )
+
+
+def planner_title(view, shift, beta):
+    """A panel's title: the setting, L_plan, whether the plan is the target, the largest
+    |dL_plan/dŝ_t|."""
+    hit = "plan = n*" if view["plan"] == view["target"] else f"plan {view['plan']} ≠ n*"
+    return (
+        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {view['l_plan']:.2f}, "
+        f"{hit},\nlargest |dL/dŝ_t| {view['grad'].norm(dim=-1).max():.2f} 1/m"
+    )
+
+
 # --- the exercises' checks ------------------------------------------------------------------------
 
 
-def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None):
+class Forbidden(AssertionError):
+    """An answer that used what its exercise rules out (autograd where the closed form is asked)."""
+
+
+# the relations between an answer and the reference that one number explains (mine = c * ref)
+COMMON_FACTORS = {
+    -1.0: "the sign is flipped",
+    2.0: "a factor 2 too many",
+    0.5: "a factor 2 missing",
+}
+
+
+def _relation(mine, ref, factors):
+    """How mine relates to ref when one number c explains the whole difference, mine = c ref (a
+    sign, a factor 2, a mean where a sum is asked): a sentence naming c and, where factors knows
+    it, why; '' when no single c fits."""
+    m, r = mine.detach().double().flatten(), ref.detach().double().flatten()
+    if not torch.isfinite(m).all() or (r @ r).item() == 0:
+        return ""
+    if m.abs().max() == 0:
+        return " Yours is zero everywhere."
+    c = (m @ r).item() / (r @ r).item()
+    if abs(c - 1) < 1e-6 or (m - c * r).norm() > 1e-4 * r.norm():  # the reference, or no multiple
+        return ""
+    why = next((w for v, w in factors.items() if abs(c - v) <= 1e-4 * abs(v)), None)
+    return f" Yours is {c:.4g} times the reference" + (f": {why}." if why else ".")
+
+
+def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagnose=None):
     """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
     where allowed is tol for a float64 answer and grows with the answer's rounding unit otherwise
     (16 eps cond: a correct float32 answer passes, a wrong one still fails); cond: how much the
     problem magnifies a rounding error (its conditioning); dtype: the one the answer was computed
-    in, where that is not mine's (a gradient autograd cast back)."""
+    in, where that is not mine's (a gradient autograd cast back). A failure says what differs: the
+    ratio to the reference where one number explains it (factors: {c: why}, beside the sign and a
+    factor 2), and diagnose(mine) where the check knows more (which term, which stage)."""
     if not isinstance(mine, torch.Tensor):
         try:
             mine = torch.as_tensor(mine)
@@ -707,23 +919,31 @@ def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None):
     assert mine.is_floating_point(), (
         f"{name}: dtype {mine.dtype}, expected a floating-point tensor. {hint}"
     )
-    assert torch.isfinite(mine).all(), f"{name}: contains inf or NaN. {hint}"
+    bad = (~torch.isfinite(mine)).nonzero()
+    if len(bad):
+        raise AssertionError(
+            f"{name}: inf or NaN in {len(bad)} of {mine.numel()} entries (the first at index "
+            f"{tuple(bad[0].tolist())}).{diagnose(mine) if diagnose else ''} {hint}"
+        )
     err = (mine.to(ref.dtype) - ref).abs().max().item()
     scale = max(1.0, ref.abs().max().item())
     allowed = max(tol, 16 * torch.finfo(dtype or mine.dtype).eps * cond) * scale
-    assert err <= allowed, (
-        f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}). {hint}"
-    )
+    if err > allowed:
+        ratio = _relation(mine, ref, {**COMMON_FACTORS, **(factors or {})})
+        raise AssertionError(
+            f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}).{ratio}"
+            f"{diagnose(mine) if diagnose else ''} {hint}"
+        )
     return err
 
 
 def _call(name, fn, *args, returns=""):
     """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned
     into a failed check that names the inputs' shapes and what it should return; NotImplementedError
-    (a stub) passes through."""
+    (a stub) and Forbidden pass through."""
     try:
         return fn(*args)
-    except NotImplementedError:
+    except (NotImplementedError, Forbidden):
         raise
     except Exception as e:  # whatever the student's code raises is the answer's failure
         shapes = ", ".join(
@@ -733,6 +953,48 @@ def _call(name, fn, *args, returns=""):
             f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
             f"{returns})"
         ) from None
+
+
+@contextlib.contextmanager
+def no_autograd(name):
+    """Within it, autograd is off limits: its entry points raise Forbidden naming the one called,
+    and an answer that records a graph anyway (torch.enable_grad, a function imported by name) is
+    caught by a saved-tensors hook when it returns."""
+    entries = [
+        (torch.autograd, "grad"),
+        (torch.autograd, "backward"),
+        (torch.Tensor, "backward"),
+        *((torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")),
+        *((torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")),
+    ]
+    saved = [(owner, attr, getattr(owner, attr)) for owner, attr in entries]
+
+    def refuse(what):
+        def refused(*args, **kwargs):
+            raise Forbidden(
+                f"{name} used autograd ({what}): this exercise asks for the closed form"
+            )
+
+        return refused
+
+    recorded = []
+
+    def pack(t):  # autograd saves a tensor for a backward pass: a graph is being recorded
+        recorded.append(True)
+        return t
+
+    try:
+        for owner, attr, _ in saved:
+            setattr(owner, attr, refuse(f"{owner.__name__}.{attr}"))
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t), torch.no_grad():
+            yield
+    finally:
+        for owner, attr, value in saved:
+            setattr(owner, attr, value)
+    if recorded:
+        raise Forbidden(
+            f"{name} recorded a graph for autograd: this exercise asks for the closed form"
+        )
 
 
 def exercise(number, check, fn):
@@ -749,6 +1011,47 @@ def exercise(number, check, fn):
         return False
     print(f"EXERCISE {number}: PASS ({detail})")
     return True
+
+
+def show_failure(check, fn):
+    """Run a check on an answer known to be wrong and print what it reports (the find-the-bug
+    exercise), without stopping the notebook. Returns the message ('' if it passed)."""
+    try:
+        check(fn)
+    except AssertionError as e:
+        print(f"the check says: {e}")
+        return str(e)
+    print("the check passes")
+    return ""
+
+
+# --- a gradient check for your own functions (as CS231n's eval_numerical_gradient) ---------------
+
+
+def eval_numerical_gradient(f, x, h=1e-6):
+    """The gradient of a scalar function f at x by central differences, entry by entry, in
+    float64: (f(x + h e_i) - f(x - h e_i)) / 2h. x is left as it is. For small problems: one pair
+    of calls of f per entry of x."""
+    x = x.detach().to(F64)
+    grad = torch.zeros_like(x)
+    for i in range(x.numel()):
+        e = torch.zeros_like(x).flatten()
+        e[i] = h
+        e = e.view_as(x)
+        grad.view(-1)[i] = (float(f(x + e)) - float(f(x - e))) / (2 * h)
+    return grad
+
+
+def grad_check(f, x, analytic, h=1e-6, out=print):
+    """Your gradient `analytic` (x's shape) against eval_numerical_gradient(f, x): prints and
+    returns the largest relative error, |a - n| / max(|a| + |n|, 1e-12) over the entries. Around
+    1e-7 or below: right; 1e-2 or above: almost surely wrong."""
+    numeric = eval_numerical_gradient(f, x, h)
+    a = torch.as_tensor(analytic).detach().to(F64)
+    assert a.shape == numeric.shape, f"the gradient's shape {tuple(a.shape)}, x's {tuple(x.shape)}"
+    rel = ((a - numeric).abs() / (a.abs() + numeric.abs()).clamp_min(1e-12)).max().item()
+    out(f"gradient check: largest relative error {rel:.1e} over {x.numel()} entries")
+    return rel
 
 
 # --- exercise 1: the collision term ---------------------------------------------------------------
@@ -780,6 +1083,43 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     return pos, ctx
 
 
+def collision_terms_at_fault(fn, pos, ctx, rbf_var):
+    """Which of C_coll's two terms a wrong answer gets wrong, each scored alone (the other agents
+    masked out, then the predicted vehicle): a sentence, or '' when both or neither are."""
+    alone = {
+        "the predicted vehicle's term (preds, probs, pred_mask)": dataclasses.replace(
+            ctx, others_mask=torch.zeros_like(ctx.others_mask)
+        ),
+        "the other agents' term (others, others_mask)": dataclasses.replace(
+            ctx, pred_mask=torch.zeros_like(ctx.pred_mask)
+        ),
+    }
+    wrong = []
+    for term, c in alone.items():
+        try:
+            mine = torch.as_tensor(fn(pos, c, rbf_var)).double()
+            right = torch.allclose(mine, ds.collision_term(pos, c, rbf_var), rtol=1e-5, atol=1e-9)
+        except Exception:  # (the answer's own error is reported by the check)
+            right = False
+        if not right:
+            wrong.append(term)
+    ignored = {
+        "pred_mask": dataclasses.replace(ctx, pred_mask=torch.ones_like(ctx.pred_mask)),
+        "others_mask": dataclasses.replace(ctx, others_mask=torch.ones_like(ctx.others_mask)),
+    }
+    for mask, c in ignored.items():
+        try:
+            mine = torch.as_tensor(fn(pos, ctx, rbf_var)).double()
+            if torch.allclose(mine, ds.collision_term(pos, c, rbf_var), rtol=1e-5, atol=1e-9):
+                return f" Yours equals C_coll with every {mask} entry 1: it ignores {mask}."
+        except Exception:
+            pass
+    if len(wrong) != 1:
+        return ""
+    right_one = next(t for t in alone if t not in wrong)
+    return f" Scored alone, {wrong[0]} is wrong and {right_one} right."
+
+
 def check_collision(fn):
     hint = (
         "C_coll = pred_mask * sum_t phi(sum_k pi_k ||s_t - s^_kt||^2) + sum_a mask_a sum_t "
@@ -790,14 +1130,22 @@ def check_collision(fn):
     for seed, rbf_var in ((0, 2.0), (1, 3.5)):
         pos, ctx = collision_problem(seed)
         mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
-        worst = max(
-            worst,
-            _close("my_collision", mine, ds.collision_term(pos, ctx, rbf_var), 1e-9, hint, cond=10),
+        T = pos.shape[2]
+        err = _close(
+            "my_collision",
+            mine,
+            ds.collision_term(pos, ctx, rbf_var),
+            1e-9,
+            hint,
+            cond=10,
+            factors={1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"},
+            diagnose=lambda _: collision_terms_at_fault(fn, pos, ctx, rbf_var),
         )
+        worst = max(worst, err)
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
 
-# --- exercise 2: the relaxed planner's loss -------------------------------------------------------
+# --- exercise 2: the relaxed planner's loss (and exercise 4, its bug found) -----------------------
 
 
 def plan_problem(seed=0, B=8, N=12):
@@ -818,7 +1166,35 @@ def plan_problem(seed=0, B=8, N=12):
     return cost, valid, target
 
 
-def check_plan_loss(fn):
+def float32_plan_problem(B=4, N=6):
+    """float32 costs near 500 where an invalid candidate is 200 cheaper than every valid one: next
+    to it, exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32), so a
+    softmax over all candidates renormalised over the valid ones is 0/0."""
+    g = torch.Generator().manual_seed(3)
+    cost = 500 + 5 * torch.rand(B, N, generator=g)
+    valid = torch.ones(B, N, dtype=torch.bool)
+    valid[:, 0] = False
+    cost[:, 0] = cost[:, 1:].min(-1).values - 200
+    return cost, valid, torch.randint(1, N, (B,), generator=g)
+
+
+def target_off_by_one(mine, cost, valid, target, beta):
+    """Whether the answer is the loss of the candidate next to n* (an off-by-one in the target
+    index): a sentence, or ''."""
+    m = mine.detach().double()
+    for shift in (1, -1):
+        other = (target + shift).clamp(0, cost.shape[-1] - 1)
+        alt = ds.plan_loss(cost.detach().double(), valid, other, beta)  # inf where it is invalid
+        finite = torch.isfinite(alt)
+        if (finite == torch.isfinite(m)).all() and torch.allclose(m[finite], alt[finite], 1e-5):
+            return (
+                f" Yours is the loss of candidate n* {shift:+d} (an off-by-one in the target index;"
+                " where that candidate is invalid, its loss is inf)."
+            )
+    return ""
+
+
+def check_plan_loss(fn, name="my_plan_loss"):
     hint = (
         "L_plan = -log p_{n*}, p_n = exp(-beta C_n) / sum over the *valid* n' of exp(-beta "
         "C_n'); use a stable log-softmax (logsumexp): exp(-2000) underflows."
@@ -827,17 +1203,30 @@ def check_plan_loss(fn):
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c1, c2 = cost.clone().requires_grad_(), cost.clone().requires_grad_()
-        mine = _call("my_plan_loss", fn, c1, valid, target, beta, returns="L_plan of shape (B,)")
+        mine = _call(name, fn, c1, valid, target, beta, returns="L_plan of shape (B,)")
         ref = ds.plan_loss(c2, valid, target, beta)
         cond = beta * cost.abs().max().item()  # the costs' rounding, magnified by beta
-        worst = max(worst, _close(f"my_plan_loss (beta = {beta})", mine, ref, 1e-9, hint, cond))
+        factors = {beta: "beta applied twice?", 1 / beta: "beta left out"}
+        worst = max(
+            worst,
+            _close(
+                f"{name} (beta = {beta})",
+                mine,
+                ref,
+                1e-9,
+                hint,
+                cond,
+                factors=factors,
+                diagnose=lambda m: target_off_by_one(m, cost, valid, target, beta),
+            ),
+        )
         ref.sum().backward()
         assert mine.requires_grad, (
-            f"my_plan_loss: the result has no gradient (keep it a torch expression). {hint}"
+            f"{name}: the result has no gradient (keep it a torch expression). {hint}"
         )
         mine.sum().backward()
         _close(
-            f"gradient of my_plan_loss wrt the costs (beta = {beta})",
+            f"gradient of {name} wrt the costs (beta = {beta})",
             c1.grad,
             c2.grad,
             1e-9,
@@ -845,10 +1234,77 @@ def check_plan_loss(fn):
             cond,
             mine.dtype,
         )
-    return f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
+    # the fragile case: float32, an invalid candidate far cheaper than the valid ones
+    cost, valid, target = float32_plan_problem()
+    mine = _call(name, fn, cost, valid, target, 1.0, returns="L_plan of shape (B,)")
+    _close(
+        f"{name} in float32, an invalid candidate 200 cheaper than every valid one",
+        mine,
+        ds.plan_loss(cost.double(), valid, target, 1.0),
+        1e-9,
+        "A softmax over all candidates, renormalised over the valid ones, is 0/0 here: every valid "
+        "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
+        "softmax itself (their logits -inf, then logsumexp).",
+        cond=500,
+    )
+    return (
+        f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
+        "float32 with a far cheaper invalid candidate"
+    )
 
 
-# --- exercise 3: one step of the Riccati recursion ------------------------------------------------
+def check_plan_loss_fixed(fn):
+    """Exercise 4 (find the bug): the fixed loss passes exercise 2's check."""
+    return check_plan_loss(fn, "my_plan_loss_fixed")
+
+
+# --- exercise 3: the gradient through the relaxed argmin ------------------------------------------
+
+
+def check_plan_grad(fn):
+    hint = (
+        "differentiate -log p_{n*} = beta C_{n*} + log sum_{n' valid} exp(-beta C_n') with "
+        "respect to C_n; invalid candidates get 0."
+    )
+    worst = 0.0
+    for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
+        cost, valid, target = plan_problem(seed)
+        c = cost.clone().requires_grad_()
+        # autograd's answer
+        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)
+        with no_autograd("my_plan_loss_grad"):
+            mine = _call(
+                "my_plan_loss_grad",
+                fn,
+                cost,
+                valid,
+                target,
+                beta,
+                returns="dL_plan/dC of shape (B, N)",
+            )
+        B = len(cost)
+        factors = {
+            1 / B: f"divided by B = {B} (the gradient of the batch's mean; the check asks for each "
+            "sample's own)",
+            1 / beta: "beta left out",
+            beta: "beta applied twice",
+        }
+        worst = max(
+            worst,
+            _close(
+                f"my_plan_loss_grad (beta = {beta})",
+                mine,
+                ref,
+                1e-9,
+                hint,
+                beta * cost.abs().max().item(),
+                factors=factors,
+            ),
+        )
+    return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
+
+
+# --- exercise 5: one step of the Riccati recursion ------------------------------------------------
 
 
 def riccati_problem(seed=0, B=6, n=4, m=2):
@@ -900,38 +1356,7 @@ def check_riccati(fn):
     return f"k, K, P_new, p_new, max error {worst:.1e}"
 
 
-# --- exercise 4: the gradient through the relaxed argmin ------------------------------------------
-
-
-def check_plan_grad(fn):
-    hint = (
-        "differentiate -log p_{n*} = beta C_{n*} + log sum_{n' valid} exp(-beta C_n') with "
-        "respect to C_n; invalid candidates get 0."
-    )
-    worst = 0.0
-    for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
-        cost, valid, target = plan_problem(seed)
-        c = cost.clone().requires_grad_()
-        # autograd's answer
-        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)
-        mine = _call(
-            "my_plan_loss_grad", fn, cost, valid, target, beta, returns="dL_plan/dC of shape (B, N)"
-        )
-        worst = max(
-            worst,
-            _close(
-                f"my_plan_loss_grad (beta = {beta})",
-                mine,
-                ref,
-                1e-9,
-                hint,
-                beta * cost.abs().max().item(),
-            ),
-        )
-    return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
-
-
-# --- exercise 5: the controller's gradient, the KKT backward (App. C.3) ---------------------------
+# --- exercise 6: the controller's gradient, the KKT backward (App. C.3) ---------------------------
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
@@ -963,11 +1388,34 @@ def lqr_solve(A, Bm, H, g, x_init, free):
     return torch.stack(x, 1), torch.stack(u, 1)
 
 
+def kkt_stage_at_fault(mine, ref, free, n, allowed):
+    """Where a wrong dL/dg (B, T+1, n+m) first differs: the stage t and, in it, the state entries,
+    the free controls or the held ones (free False). A sentence."""
+    T = free.shape[1]
+    bad = (mine.detach().double() - ref).abs() > allowed  # (B, T+1, n+m)
+    held, free_u = torch.zeros_like(bad), torch.zeros_like(bad)
+    held[:, :T, n:], free_u[:, :T, n:] = ~free, free
+    states = torch.zeros_like(bad)
+    states[..., :n] = True
+    t = int(bad.any(0).any(-1).nonzero()[0])
+    parts = {
+        "state entries": states,
+        "free controls": free_u,
+        "controls held at a bound (free False; there d holds du = 0, so dL/dg is 0)": held,
+    }
+    where = [p for p, sel in parts.items() if (bad[:, t] & sel[:, t]).any()]
+    if T in bad.any(0).any(-1).nonzero().flatten().tolist() and (bad[:, T, n:]).any():
+        where.append("the last stage's control block (it has no control: 0)")
+    found = f" It differs first at stage t = {t} (of 0..{T}), in its {' and in its '.join(where)}."
+    if (mine.detach().double()[:, :T, n:][~free].abs() > allowed).any():
+        found += " At the held controls yours is not 0: the backward pass keeps the active set."
+    return found
+
+
 def check_kkt(fn):
     hint = (
         "the backward pass is the same LQR (A, B, H, the active set) with the incoming gradient "
-        "[grad_x; grad_u] as its linear term and dx_0 = 0: roll its policy out for d = (dx, "
-        "du); dL/dg = d, dL/dx_init = p_0."
+        "[grad_x; grad_u] as its linear term and dx_0 = 0 (see the derivation above)."
     )
     worst = 0.0
     for seed in (0, 1):
@@ -1012,8 +1460,22 @@ def check_kkt(fn):
             f"dL/dg). {hint}"
         )
         cond = torch.linalg.cond(H).max().item()
-        worst = max(worst, _close("my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond))
-        worst = max(worst, _close("my_kkt_backward: dL/dg", out[1], ref_g, 1e-9, hint, cond))
+        costate = {-1.0: "p_0 with the wrong sign"}
+        allowed = max(1e-9, 16 * torch.finfo(torch.as_tensor(out[1]).dtype).eps * cond)
+        allowed *= max(1.0, ref_g.abs().max().item())
+        err_g = _close(
+            "my_kkt_backward: dL/dg",
+            out[1],
+            ref_g,
+            1e-9,
+            hint,
+            cond,
+            diagnose=lambda m: kkt_stage_at_fault(m, ref_g, free, n, allowed),
+        )
+        err = _close(
+            "my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond, factors=costate
+        )
+        worst = max(worst, err, err_g)
     return (
         "dL/dx_init and dL/dg against autograd through the solver (itself against finite "
         f"differences), max error {worst:.1e}, held controls"
@@ -1023,105 +1485,246 @@ def check_kkt(fn):
 CHECKS = {
     1: check_collision,
     2: check_plan_loss,
-    3: check_riccati,
-    4: check_plan_grad,
-    5: check_kkt,
+    3: check_plan_grad,
+    4: check_plan_loss_fixed,
+    5: check_riccati,
+    6: check_kkt,
 }
 
 
-# --- the grader: every exercise's check on a student's answers ------------------------------------
+# --- the grader: every exercise's check on a student's answers, each in its own process -----------
 
 EXERCISES = {
     1: ("my_collision", "the collision term"),
     2: ("my_plan_loss", "the relaxed planner's loss"),
-    3: ("my_riccati_step", "one step of the Riccati recursion"),
-    4: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
-    5: ("my_kkt_backward", "the controller's gradient (the KKT backward)"),
+    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
+    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32"),
+    5: ("my_riccati_step", "one step of the Riccati recursion"),
+    6: ("my_kkt_backward", "the controller's gradient, the KKT backward"),
 }
+TIMEOUT = 120.0  # seconds per exercise (the checks take about a second)
+# cell magics whose body is Python that the kernel runs (the others' is not Python: %%bash, ...)
+PYTHON_CELL_MAGICS = ("time", "timeit", "capture", "prun")
 
 
-def load_answers(path) -> dict:
-    """{exercise number: the student's function, or None} from a .py file, or from a notebook
-    (.ipynb): its import statements and the code cells that define an exercise's function (its other
-    cells are not run). This runs the student's code."""
+def cell_python(cell: str) -> str:
+    """A cell's Python as the kernel runs it: %%time and its kind dropped from the first line, a
+    cell under any other cell magic (%%bash, %%html) left out; line magics and shell lines
+    (%pip, !ls, x = !ls) become IPython's own calls, which the grader does not run."""
+    from IPython.core.inputtransformer2 import TransformerManager
+
+    lines = cell.splitlines(keepends=True)
+    first = next((i for i, line in enumerate(lines) if line.strip()), None)
+    if first is not None and lines[first].lstrip().startswith("%%"):
+        if lines[first].lstrip()[2:].split(maxsplit=1)[0] not in PYTHON_CELL_MAGICS:
+            return ""
+        lines[first] = "\n"  # (keeps the line numbers)
+    return TransformerManager().transform_cell("".join(lines))
+
+
+def _calls_something(node) -> bool:
+    """Whether evaluating the expression calls a function (a lambda's body is not evaluated)."""
+    if isinstance(node, ast.Call):
+        return True
+    children = [node.args] if isinstance(node, ast.Lambda) else ast.iter_child_nodes(node)
+    return any(_calls_something(c) for c in children)
+
+
+def definitions(path) -> tuple[list, list]:
+    """What a student's file defines, as Jupyter has it after running every cell: from each code
+    cell in order (a .py file is one cell), its imports, functions, classes and the assignments
+    that call nothing (a constant, a lambda). Their test calls, prints, loops and analyses are
+    left out. Returns ([(where, code)], [a cell that does not parse, with why]); code keeps the
+    cell's line numbers. Raises SyntaxError for a .py file that does not parse, ValueError for a
+    notebook that cannot be read."""
     path = Path(path)
     if path.suffix == ".ipynb":
-        import ast
-
-        cells = [
-            "".join(c["source"])
-            for c in json.loads(path.read_text())["cells"]
-            if c["cell_type"] == "code"
-        ]
-
-        def tree(cell):  # (a cell with IPython syntax has no imports to take)
-            try:
-                return ast.parse(cell).body
-            except SyntaxError:
-                return []
-
-        # the notebook's imports, then the cells that define answers
-        imports = [
-            ast.unparse(node)
-            for c in cells
-            for node in tree(c)
-            if isinstance(node, (ast.Import, ast.ImportFrom))
-        ]
-        source = "\n\n".join(
-            imports
-            + [c for c in cells if any(f"def {name}(" in c for name, _ in EXERCISES.values())]
-        )
+        try:
+            nb = json.loads(path.read_text())
+            cells = [
+                "".join(c["source"]) if isinstance(c["source"], list) else c["source"]
+                for c in nb["cells"]
+                if c["cell_type"] == "code"
+            ]
+        except (ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"not a notebook that Jupyter can read ({type(e).__name__}: {e})")
+        sources = [(f"{path.name}, code cell {i + 1}", cell_python(c)) for i, c in enumerate(cells)]
     else:
-        source = path.read_text()
-    # (the notebook's cells import solutions.py only under CI)
+        sources = [(str(path), path.read_text())]
+    kept, unparsed = [], []
+    for where, source in sources:
+        try:
+            tree = ast.parse(source)
+        except SyntaxError as e:
+            if path.suffix != ".ipynb":
+                raise
+            unparsed.append(f"{where} does not parse: {e.msg}, line {e.lineno}")
+            continue
+        lines = source.splitlines(keepends=True)
+        for node in tree.body:
+            defines = isinstance(
+                node,
+                (ast.Import, ast.ImportFrom, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef),
+            )
+            assigns = isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None
+            if defines or (assigns and not _calls_something(node.value)):
+                start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
+                code = "\n" * (start - 1) + "".join(lines[start - 1 : node.end_lineno])
+                kept.append((where, code))
+    return kept, unparsed
+
+
+def _defines(code, name) -> bool:
+    return any(
+        isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name == name
+        for _, c in code
+        for n in ast.parse(c).body
+    )
+
+
+def check_in_this_process(spec_file):
+    """The grader's worker: run the student's definitions (each alone: one that fails is left out,
+    as a cell that failed), then one exercise's check, and write the verdict as JSON. Whatever the
+    answer prints goes nowhere; an exit from inside it is the answer's failure."""
+    spec = json.loads(Path(spec_file).read_text())
+    torch.set_num_threads(1)
+    sys.path.append(spec["folder"])  # the student's own modules, after the course's
     space = {"__name__": "answers", "SOLUTIONS": False}
-    # grading runs the answers, as the notebook does
-    exec(compile(source, str(path), "exec"), space)
-    return {k: space.get(name) for k, (name, _) in EXERCISES.items()}
-
-
-def grade(path, out=print) -> dict:
-    """Run every exercise's check on the answers in `path` (load_answers): one line per exercise
-    (PASS, not done, or what failed) and the score. Returns {number: True (pass) or the reason it
-    scores nothing}."""
+    for where, code in spec["code"]:
+        try:
+            exec(compile(code, where, "exec"), space)
+        except (Exception, SystemExit):  # a definition that needs a value from the analysis
+            pass
+    name, number = spec["name"], spec["number"]
     try:
-        answers = load_answers(path)
-    except Exception as e:  # a file that does not even run scores nothing, saying why
-        answers = {}
-        broken = f"the file does not run: {type(e).__name__}: {e}"
+        if not callable(space.get(name)):
+            raise AssertionError(f"{name} is defined, but its definition does not run on its own")
+        verdict = [True, CHECKS[number](space[name])]
+    except NotImplementedError:
+        verdict = [False, "not done (the stub still raises NotImplementedError)"]
+    except AssertionError as e:
+        verdict = [False, f"FAIL: {e}"]
+    except SystemExit as e:
+        verdict = [False, f"FAIL: {name} ended the process (sys.exit({e.code!r}))"]
+    except Exception as e:  # an answer that breaks the check itself (a strange return value)
+        verdict = [False, f"FAIL: {name} broke the check: {type(e).__name__}: {e}"]
+    runs.write_file_atomic(spec["verdict"], lambda p: Path(p).write_text(json.dumps(verdict)))
+
+
+def _check_in_a_process(number, code, folder, tmp, timeout):
+    """One exercise's check in a fresh Python process (check_in_this_process): (True, what it
+    measured) or (False, why it scores nothing: its failure, a time-out, an exit before its
+    verdict)."""
+    name = EXERCISES[number][0]
+    spec, verdict = Path(tmp) / f"spec{number}.json", Path(tmp) / f"verdict{number}.json"
+    spec.write_text(
+        json.dumps(
+            dict(name=name, number=number, code=code, folder=str(folder), verdict=str(verdict))
+        )
+    )
+    worker = "import sys, course; course.check_in_this_process(sys.argv[1])"
+    with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
+        try:
+            run = subprocess.run(
+                [sys.executable, "-c", worker, str(spec)],
+                cwd=HERE,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                timeout=timeout,
+                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(HERE)},
+            )
+        except subprocess.TimeoutExpired:
+            return False, f"FAIL: did not finish in {timeout:g} s (an endless loop?)"
+        if verdict.is_file():
+            return tuple(json.loads(verdict.read_text()))
+        err.seek(0)
+        last = [line for line in err.read().splitlines() if line.strip()][-1:]
+    return False, (
+        f"FAIL: the process ended (exit status {run.returncode}) before the check finished: "
+        f"{name} exits or crashes ({last[0] if last else 'nothing on stderr'})"
+    )
+
+
+def grade(path, out=print, timeout=TIMEOUT) -> dict:
+    """Grade the answers in `path` (a notebook or a .py file) exercise by exercise: the student's
+    definitions (definitions), then each exercise's check in its own process
+    (check_in_this_process), so that an error, a NaN, a time-out or an exit in one answer fails
+    that exercise alone. Prints one line per exercise (PASS with the error measured, not done, or
+    what failed) and the score. Returns {number: True, or the reason it scores nothing}."""
+    path = Path(path)
+    try:
+        code, unparsed = definitions(path)
+    except (SyntaxError, ValueError, OSError) as e:  # nothing to grade, saying why
+        code, unparsed, broken = None, [], f"the file does not run: {type(e).__name__}: {e}"
     result = {}
-    for k, (name, title) in EXERCISES.items():
-        fn = answers.get(k)
-        detail = ""
-        if fn is None:
-            result[k] = broken if not answers else f"no function {name}"
-        else:
-            try:
-                detail = f" ({CHECKS[k](fn)})"
-                result[k] = True
-            except NotImplementedError:
-                result[k] = "not done (the stub still raises NotImplementedError)"
-            except AssertionError as e:
-                result[k] = f"FAIL: {e}"
-        out(f"  exercise {k} ({title}): {'PASS' + detail if result[k] is True else result[k]}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (name, title) in EXERCISES.items():
+            if code is None:
+                passed, said = False, broken
+            elif not _defines(code, name):
+                passed, said = False, f"no function {name}" + "".join(f"; {u}" for u in unparsed)
+            else:
+                passed, said = _check_in_a_process(k, code, path.resolve().parent, tmp, timeout)
+            result[k] = True if passed else said
+            out(f"  exercise {k} ({title}): {f'PASS ({said})' if passed else said}")
     out(f"{path}: score {sum(v is True for v in result.values())}/{len(EXERCISES)}")
     return result
 
 
-if __name__ == "__main__":
+def write_grades(graded, csv_path):
+    """The class's grades as CSV: a row per file, 1 or 0 per exercise, the score."""
+    import csv
+    import io
+
+    text = io.StringIO()
+    rows = csv.writer(text)
+    rows.writerow(["file", *(f"exercise {k}" for k in EXERCISES), "score"])
+    for f, result in graded.items():
+        passed = [int(result[k] is True) for k in EXERCISES]
+        rows.writerow([f, *passed, sum(passed)])
+    runs.write_file_atomic(csv_path, lambda p: Path(p).write_text(text.getvalue()))
+
+
+def main(argv=None):
     import argparse
-    import sys
 
     ap = argparse.ArgumentParser(
         description="Grade the course's exercises: run every exercise's check on the answers "
-        "in each file (a student's tutorial.ipynb, or a .py that defines the "
-        "my_* functions) and print a score per exercise. It runs their code."
+        "in each file (a student's tutorial.ipynb, or a .py that defines the my_* functions), "
+        "each check in its own process, and print a line per exercise and the score. It runs "
+        "the students' code: grade in a throwaway container or VM. Exit status 0 when every "
+        "exercise of every file passes, 1 otherwise."
     )
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
-    args = ap.parse_args()
+    ap.add_argument(
+        "--timeout",
+        type=float,
+        default=TIMEOUT,
+        help=f"seconds one exercise's check may take (default {TIMEOUT:g})",
+    )
+    ap.add_argument("--csv", help="also write the grades to this CSV file, a row per file")
+    ap.add_argument("--overwrite", action="store_true", help="let --csv replace an existing file")
+    args = ap.parse_args(argv)
     for f in args.files:
         if not Path(f).is_file():
             ap.error(f"{f}: no such file")
+        if Path(f).suffix not in (".ipynb", ".py"):
+            ap.error(f"{f}: not a notebook (.ipynb) or a Python file (.py)")
+    if not 0 < args.timeout < math.inf:
+        ap.error(f"--timeout {args.timeout:g}: a number of seconds above 0")
+    if args.csv is not None:
+        if Path(args.csv).exists() and not args.overwrite:
+            ap.error(f"--csv {args.csv}: the file exists (--overwrite replaces it)")
+        if not Path(args.csv).resolve().parent.is_dir():
+            ap.error(f"--csv {args.csv}: no folder {Path(args.csv).parent}")
     torch.set_num_threads(1)
-    graded = [grade(f) for f in args.files]
-    sys.exit(0 if all(v is True for g in graded for v in g.values()) else 1)
+    graded = {f: grade(f, timeout=args.timeout) for f in args.files}
+    if args.csv is not None:
+        write_grades(graded, args.csv)
+        print(f"grades of {len(graded)} file(s) written to {args.csv}")
+    return 0 if all(v is True for g in graded.values() for v in g.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -81,3 +81,14 @@ def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
         dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
     du.append(torch.zeros_like(du[0]))  # the last stage has no control
     return p0, torch.cat([torch.stack(dx, 1), torch.stack(du, 1)], -1)
+
+
+# Exercise 4 (find the bug): buggy_plan_loss takes the softmax over every candidate and then
+# renormalises it over the valid ones. When an invalid candidate is far cheaper, exp(-beta C) of
+# every valid candidate underflows next to it (exp(-200) is 0 in float32), the renormalisation is
+# 0/0 and the loss NaN; float64 only moves the cliff further out. The fix: mask the logits, so the
+# invalid candidates never enter the softmax, and take the log-softmax in one stable step.
+def my_plan_loss_fixed(cost, valid, target, beta):
+    logits = torch.where(valid, -beta * cost, torch.tensor(-math.inf, dtype=cost.dtype))  # (B, N)
+    logp = torch.log_softmax(logits, -1)  # (B, N), 0 probability (-inf) on invalid candidates
+    return -logp.gather(-1, target[:, None])[:, 0]
