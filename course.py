@@ -1534,9 +1534,10 @@ def definitions(path) -> tuple[list, list]:
     """What a student's file defines, as Jupyter has it after running every cell: from each code
     cell in order (a .py file is one cell), its imports, functions, classes and the assignments
     that call nothing (a constant, a lambda). Their test calls, prints, loops and analyses are
-    left out. Returns ([(where, code)], [a cell that does not parse, with why]); code keeps the
-    cell's line numbers. Raises SyntaxError for a .py file that does not parse, ValueError for a
-    notebook that cannot be read."""
+    left out, and so is an import of the reference answers (solutions.py). Returns
+    ([(where, code)], [a cell that does not parse, with why]); code keeps the cell's line
+    numbers. Raises SyntaxError for a .py file that does not parse, ValueError for a notebook
+    that cannot be read."""
     path = Path(path)
     if path.suffix == ".ipynb":
         try:
@@ -1567,11 +1568,20 @@ def definitions(path) -> tuple[list, list]:
                 (ast.Import, ast.ImportFrom, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef),
             )
             assigns = isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None
+            if defines and _imports_solutions(node):  # the reference answers are not an answer
+                continue
             if defines or (assigns and not _calls_something(node.value)):
                 start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
                 code = "\n" * (start - 1) + "".join(lines[start - 1 : node.end_lineno])
                 kept.append((where, code))
     return kept, unparsed
+
+
+def _imports_solutions(node) -> bool:
+    """Whether a statement imports the reference answers (solutions.py)."""
+    if isinstance(node, ast.ImportFrom):
+        return (node.module or "").split(".")[0] == "solutions"
+    return isinstance(node, ast.Import) and any(a.name == "solutions" for a in node.names)
 
 
 def _defines(code, name) -> bool:

@@ -123,6 +123,13 @@ def test_an_exit_a_nan_or_an_endless_loop_fails_that_exercise_alone(tmp_path):
     assert result[6] is True and lines[-1].endswith("score 1/6")
 
 
+def test_the_reference_answers_imported_score_nothing(tmp_path):
+    cells = ["from solutions import my_collision\nimport solutions\n", solution("my_plan_loss")]
+    code, _ = course.definitions(notebook(tmp_path, cells))
+    assert not any("solutions" in c for _, c in code)
+    assert not course._defines(code, "my_collision") and course._defines(code, "my_plan_loss")
+
+
 def test_a_cell_that_does_not_parse_is_named(tmp_path):
     cells = ["def my_collision(pos, ctx, rbf_var):\n    return (pos\n", solution("my_plan_loss")]
     result, _ = grade(notebook(tmp_path, cells))
