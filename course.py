@@ -292,6 +292,110 @@ def figure_stack():
     plt.show()
 
 
+PAIRS = (
+    ("cut_in", "keep_lane"),
+    ("lead_brake", "lead_cruise"),
+    ("turn_across", "go_straight"),
+    ("cross_go", "cross_yield"),
+)
+
+
+def scene_legend(fig, extra=(), ncol=4):
+    """A figure legend for data_synth.plot_scenario's drawing (proxy artists), and `extra` (handles)
+    below the panels."""
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D([], [], color="tab:blue", ls="--", marker="s", ms=7, label="ego (GT future dashed)"),
+        Line2D([], [], color="tab:blue", ls="", marker="*", ms=12, mec="k", label="goal g"),
+        Line2D([], [], color="tab:orange", marker="s", ms=7, label="predicted vehicle (GT future)"),
+        Line2D([], [], color="0.6", marker="s", ms=7, label="other vehicles"),
+        Line2D([], [], color="tab:green", marker="o", ms=5, label="pedestrians"),
+        Line2D([], [], color="k", ls=":", label="history (4 s)"),
+        Line2D([], [], color="k", marker=".", label="GT future (3 s, dots every 0.5 s)"),
+        Line2D([], [], color="0.75", label="lanes (arrow: direction)"),
+        *extra,
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8)
+
+
+def figure_scenarios(val, extent=(-20, 50, -20, 20)):
+    """§2: the first validation sample of each behaviour of the four PAIRS, one column per pair
+    (top: the vehicle acts, bottom: its twin does not), in the ego frame at t0, with a legend."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(
+        2, len(PAIRS), figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True
+    )
+    for col, pair in enumerate(PAIRS):
+        for row, name in enumerate(pair):
+            i = first_of(val, name)
+            title = f"{name} (val sample {i})"
+            data_synth.plot_scenario(axes[row, col], val, i, title=title, extent=extent)
+            axes[row, col].set(xlabel="x (m)" if row else "", ylabel="y (m)" if col == 0 else "")
+    scene_legend(fig)
+    fig.suptitle(
+        "The four pairs of behaviours (columns): the same set-up, then the predicted vehicle acts "
+        "(top: cuts in, brakes, turns across, crosses) or does not (bottom)",
+        fontsize=10,
+    )
+    plt.show()
+
+
+def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1.5):
+    """§3: one step of the cost over the ego's position (grid gx, gy): C_coll, C_goal, C_lat on
+    their own colour scales, the weighted sum on a log scale with contours of w_coll * C_coll over
+    it; the vehicles' positions at t (the step) marked where their bumps are."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+    from matplotlib.lines import Line2D
+
+    coll = w_coll * c_coll
+    terms = {
+        f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
+        r"$C_{goal}$ (its own scale)": (c_goal, None),
+        r"$C_{lat}$ (distance² to the nearest lane; clipped at its 95 % quantile)": (c_lat, None),
+        r"weighted sum $w_1C_{coll} + w_2C_{goal} + w_3C_{lat} + w_4C_{head}$ (log scale); "
+        r"contours: $w_1C_{coll}$": (c_sum, LogNorm(max(c_sum.min().item(), 0.1), c_sum.max())),
+    }
+    fig, axes = plt.subplots(2, 2, figsize=(12, 6.6), layout="constrained")
+    at_t = dict(ms=11, mec="k", ls="", zorder=9)
+    for ax, (name, (val, norm)) in zip(axes.flat, terms.items()):
+        vmax = val.quantile(0.95).item() if "lat" in name else None
+        kw = dict(norm=norm) if norm else dict(vmax=vmax)
+        im = ax.pcolormesh(gx, gy, val.reshape(gx.shape), shading="auto", cmap="magma_r", **kw)
+        data_synth.plot_scenario(ax, ex, 0, title=name, extent=(-10, 45, -12, 12))
+        fig.colorbar(im, ax=ax, shrink=0.9, label="cost")
+        ax.plot(*ctx_t.preds[0, 0, 0].tolist(), "X", color="tab:orange", **at_t)
+        for ped, color in ((False, "0.6"), (True, "tab:green")):
+            sel = (ctx_t.others_mask[0] > 0) & (ex.others_is_ped[0] == ped)
+            xy = ctx_t.others[0, sel, 0]  # (agents, 2) at t
+            ax.plot(xy[:, 0], xy[:, 1], "X", color=color, **at_t)
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+    levels = [v for v in (0.5, 1.0, 2.0, 4.0) if v < coll.max()]
+    cs = axes[1, 1].contour(gx, gy, coll.reshape(gx.shape), levels, colors="tab:cyan", zorder=8)
+    axes[1, 1].clabel(cs, fontsize=7)
+    marker = dict(marker="X", ms=10, mec="k", ls="")
+    scene_legend(
+        fig,
+        [
+            Line2D([], [], color="tab:orange", label=f"predicted vehicle at t = {t:g} s", **marker),
+            Line2D([], [], color="0.6", label=f"other vehicles at t = {t:g} s", **marker),
+            Line2D([], [], color="tab:green", label=f"pedestrians at t = {t:g} s", **marker),
+            Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"),
+        ],
+        ncol=6,
+    )
+    fig.suptitle(
+        f"One step of the cost (t = {t:g} s) over the ego's position, a cut-in: the collision "
+        f"term adds at most {coll.max():.1f} (bumps at the vehicles' positions at {t:g} s, "
+        f"crosses) to a sum of {c_sum.min():.1f} .. {c_sum.max():.0f},\nmostly the goal's bowl: it "
+        "decides only between positions that the goal and the lanes rate alike",
+        fontsize=10,
+    )
+    plt.show()
+
+
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
     (argmin) black dashed, axes zoomed on the candidates."""
@@ -313,6 +417,7 @@ def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     for ax, beta in zip(axes, betas):
         p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
         data_synth.plot_scenario(ax, ex, 0, extent=box)
+        ax.set(xlabel="x (m)" if ax is axes[-1] else "", ylabel="y (m)")
         for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
             if cands.valid[0, n]:
                 ax.plot(
@@ -346,6 +451,33 @@ def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     plt.show()
 
 
+def figure_beta_signal(betas, extra, beta_paper, n):
+    """§4: what ignoring the vehicle adds to the mean L_plan (`extra`, nats) at each β of `betas`,
+    the title read off the curve: from which β on it grows monotonically, and any bump below."""
+    import matplotlib.pyplot as plt
+
+    e = np.asarray(extra)
+    up = next(i for i in range(len(e)) if (np.diff(e[i:]) > 0).all())  # monotone from betas[up]
+    at = float(np.interp(np.log(beta_paper), np.log(betas), e))
+    bump = ""
+    if up > 0:
+        k = int(e[: up + 1].argmax())
+        bump = f"; below, a bump at β = {betas[k]:.2g} ({e[k]:.3f})" if k < up else ""
+    _, ax = plt.subplots(figsize=(8, 3.8), layout="constrained")
+    ax.plot(betas, e, "o-", ms=3, color="tab:red", label="mean over the samples")
+    ax.set(xscale="log", yscale="log", xlabel="β (1/cost)")
+    ax.set_ylabel("L_plan(no prediction) −\nL_plan(GT) (nats)")
+    ax.axvline(beta_paper, color="0.6", ls=":", label=f"β = {beta_paper:g} (the paper's): {at:.3f}")
+    ax.legend(loc="upper left")
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title(
+        f"What ignoring the vehicle adds to L_plan ({n} samples): it grows with β from "
+        f"β = {betas[up]:.2g} on,\nto {e[-1]:.2f} nats at β = {betas[-1]:g}{bump}",
+        fontsize=10,
+    )
+    plt.show()
+
+
 def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
     """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
     (three), with the prediction, the target n* and the plan."""
@@ -372,6 +504,7 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
                 f"{'=' if best[j] == target[j] else '≠'} target n*"
             ),
         )
+        ax.set(xlabel="x (m)", ylabel="y (m)")
         ax.plot(
             P[:, 0],
             P[:, 1],
@@ -424,9 +557,8 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
-    mean); right, sample i: the plan's and the controller's trajectories, the states at the same
-    time joined, and the controls over time (the plan's dashed, the controller's solid; grey band:
-    the box)."""
+    mean); right, sample i: the controller's position minus the plan's over time (x, y, distance),
+    and the controls over time (the plan's dashed, the controller's solid; grey band: the box)."""
     import matplotlib.pyplot as plt
 
     _, axd = plt.subplot_mosaic(
@@ -438,52 +570,27 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     ax.set(
         xlabel="iteration",
         ylabel="cost / cost of the plan",
-        title="iLQR: the true cost never rises (line search)",
+        title="iLQR: the true cost never rises\n(line search), mean in black",
     )
     ax.legend(loc="lower left")
     ax.grid(alpha=0.3)
     ax = axd["map"]
-    pts = torch.cat([plan_x[:, :2], ctrl_x[:, :2]])
-    data_synth.plot_scenario(
-        ax,
-        batch,
-        i,
-        extent=(
-            pts[:, 0].min().item() - 4,
-            pts[:, 0].max().item() + 4,
-            pts[:, 1].min().item() - 4,
-            pts[:, 1].max().item() + 4,
-        ),
-        title=f"sample {i}: plan (green) → iLQR (purple), the states at the same times joined",
+    tt = cfg.dt * torch.arange(len(plan_x))  # (T+1,) s
+    diff = ctrl_x[:, :2] - plan_x[:, :2]  # (T+1, 2) m
+    for j, (name, color) in enumerate((("x (ahead)", "tab:blue"), ("y (left)", "tab:orange"))):
+        ax.plot(tt, diff[:, j], "o-", color=color, lw=2, ms=4, label=f"Δ{name}")
+    ax.plot(tt, diff.norm(dim=-1), "k:", lw=1.5, label="distance")
+    ax.axhline(0, color="0.5", lw=0.8)
+    ax.set(xlabel="time (s)", ylabel="controller − plan (m)")
+    ax.grid(alpha=0.3)
+    big = int(diff.abs().max(0).values.argmax())
+    ax.set_title(
+        f"sample {i} ({data_synth.BEHAVIOURS[int(batch.behaviour[i])]}): the controller's position "
+        f"minus the plan's;\nthe change is along {'xy'[big]}, up to "
+        f"{diff[:, big].abs().max():.2f} m "
+        f"(along {'yx'[big]}: at most {diff[:, 1 - big].abs().max():.2f} m)",
+        fontsize=9,
     )
-    ax.plot(
-        plan_x[:, 0],
-        plan_x[:, 1],
-        "o--",
-        color="tab:green",
-        lw=2,
-        ms=5,
-        zorder=8,
-        label="plan (candidate)",
-    )
-    ax.plot(
-        ctrl_x[:, 0],
-        ctrl_x[:, 1],
-        "o-",
-        color="purple",
-        lw=2,
-        ms=5,
-        zorder=9,
-        label="controller (iLQR)",
-    )
-    for t in range(1, len(plan_x)):
-        ax.annotate(
-            "",
-            ctrl_x[t, :2].tolist(),
-            plan_x[t, :2].tolist(),
-            arrowprops=dict(arrowstyle="->", color="k", lw=0.8),
-            zorder=10,
-        )
     _legend_right(ax)
     tt_u = cfg.dt * torch.arange(len(plan_u))
     for key, j, label in (("w", 0, "yaw rate ω (rad/s)"), ("a", 1, "acceleration a (m/s²)")):
@@ -498,11 +605,12 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     plt.show()
 
 
-def figure_modes(sub, pred, train_steps):
-    """§6: a predictor's K modes on the samples of `sub`, coloured and widened by p(z = k | x) (one
-    colour scale), the most likely labelled, the three largest probabilities in each title, 1σ
-    ellipses of the most likely mode; zoomed on the predicted vehicle (its last history steps, the
-    modes and its true future)."""
+def figure_modes(sub, pred, label):
+    """§6: a predictor's (`label`: which) K modes on the samples of `sub`, coloured and widened by
+    p(z = k | x) (one colour scale), the most likely labelled, the three largest probabilities in
+    each title, 1σ ellipses of the most likely mode; zoomed on the predicted vehicle (its last
+    history steps, the modes and its true future); the title says how far apart the modes end and
+    how close the closest comes to the truth."""
     import matplotlib.pyplot as plt
 
     import figures
@@ -563,10 +671,26 @@ def figure_modes(sub, pred, train_steps):
         shrink=0.8,
         label="mode probability p(z = k | x)",
     )
+    from matplotlib.lines import Line2D
+
+    for ax in axes:
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+    kinds = (("tab:blue", "-", "a mode (colour, width: p)"), ("tab:orange", ".-", "true future"))
+    handles = [
+        Line2D([], [], color=c, ls=ls[-1], marker=ls[:-1] or None, label=t) for c, ls, t in kinds
+    ]
+    handles.append(Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"))
+    axes[0].legend(handles=handles, loc="lower left", fontsize=7)
+    ends = pred.means[:, :, -1, :2]  # (B, K, 2) the modes' positions at T
+    likely = pred.probs >= 0.05  # (B, K) the modes drawn thick enough to see
+    spread = max(torch.cdist(e[m], e[m]).max().item() for e, m in zip(ends, likely))
+    closest = (ends - sub.agent_fut[:, None, -1, :2]).norm(dim=-1).min(-1).values  # (B,)
+    top = pred.probs.max(-1).values
     fig.suptitle(
-        "Standard predictor: 25 modes with their probabilities (orange: the true future). After "
-        f"{train_steps} steps no mode stands out: the probability is spread over many similar "
-        "modes",
+        f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future). "
+        f"The most likely mode has p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 "
+        f"end up to {spread:.1f} m apart,\nand the closest mode ends {closest.min():.1f} .. "
+        f"{closest.max():.1f} m from the true position at T = 3 s",
         fontsize=10,
     )
     plt.show()
@@ -574,7 +698,8 @@ def figure_modes(sub, pred, train_steps):
 
 def figure_goal(goal_res):
     """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene
-    mean), the paper's goal against a route goal, from results/goal.json."""
+    mean), the paper's goal against a route goal, from results/goal.json; the title names the
+    behaviours with a quarter or more of each saving. Returns route's saving / the paper goal's."""
     import matplotlib.pyplot as plt
 
     # one scale: compare the sizes
@@ -584,6 +709,7 @@ def figure_goal(goal_res):
         for b in data_synth.BEHAVIOURS
         if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]
     ]
+    total, most = {}, {}
     for ax, goal in zip(axes, ("logged", "route")):
         none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
         saved = [
@@ -602,42 +728,71 @@ def figure_goal(goal_res):
         ax.axvline(0, color="k", lw=0.8)
         name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
         ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
+        total[goal] = -sum(saved)
+        order = np.argsort(saved)  # the largest savings first
+        most[goal] = [behaviours[k] for k in order if saved[k] < -0.25 * total[goal]]
         ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
         ax.grid(axis="x", alpha=0.3)
     axes[0].invert_yaxis()
+    ratio = total["route"] / total["logged"]
     fig.suptitle(
-        "Under the paper's goal a perfect prediction pays little, mostly in keep_lane;\nunder a "
-        "route goal five times more, mostly in cut-ins and behind braking leaders (red)",
+        f"What a perfect prediction saves: under the paper's goal {total['logged']:.2f}e-2, most "
+        f"in "
+        f"{' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most in "
+        f"{' and '.join(most['route'])} (red: cut_in, lead_brake)",
         fontsize=10,
     )
     plt.tight_layout()
     plt.show()
+    return ratio
+
+
+def curve_change(v):
+    """How a per-batch loss curve moved: (mean of its first quarter, of its last quarter, whether
+    the change exceeds twice its standard error from the batch-to-batch spread)."""
+    v = np.asarray(v, dtype=float)
+    n = max(2, len(v) // 4)
+    first, last = v[:n].mean(), v[-n:].mean()
+    se = np.sqrt(v[:n].var(ddof=1) / n + v[-n:].var(ddof=1) / n)
+    return first, last, abs(last - first) > 2 * se
 
 
 def figure_learning_curves(histories):
     """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean
     (solid); a method that does not run the stack in training (no l_plan) has only an
-    L_pred curve."""
+    L_pred curve. Each panel's title: the mean of the first and the last quarter of the steps, and
+    whether the change exceeds the batch-to-batch noise (curve_change)."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4), layout="constrained")
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
+    moved, steps = [], 0
     for key, ax, label in (
         ("l_pred", axes[0], "L_pred (nats)"),
         ("l_plan", axes[1], "L_plan (nats)"),
         ("l_ctr", axes[2], "L_ctr = hindsight cost"),
     ):
+        title = []
         for name, (h, color) in histories.items():
             if key != "l_pred" and name == "Standard":
                 continue
             v = [r[key] for r in h]
+            steps = len(v)
             ax.plot(range(1, len(v) + 1), v, color=color, alpha=0.25, lw=0.8)
             sm = smooth(v)
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
+            first, last, real = curve_change(v)
+            fmt = "{:.3f}" if abs(first) < 10 else "{:.1f}"
+            change = f"{fmt.format(first)} → {fmt.format(last)}"
+            title.append(f"{name} {change}" + ("" if real else " (noise)"))
+            moved += [f"{name}'s {label.split()[0]}"] if real else []
         ax.set(xlabel="training step", ylabel=label)
+        ax.set_title("\n".join(title), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
     fig.suptitle(
-        "Learning curves on the training batches (faint: per batch; solid: 10-step mean)",
+        f"Training losses per batch over {steps} steps (faint; solid: 10-step mean), first quarter "
+        "→ last quarter of the steps; beyond the batch-to-batch noise (2 s.e.): "
+        + (", ".join(moved) or "none"),
         fontsize=10,
     )
     plt.show()
@@ -662,6 +817,7 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
             f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
             extent=(-12, 48, -10, 10),
         )
+        ax.set(xlabel="x (m)", ylabel="y (m)")
         if also is not None:
             ax.plot(
                 also[name].x[i, :, 0],
@@ -684,6 +840,13 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
             ticks=[0, 0.5, 1],
         )
     plt.show()
+
+
+def closed_loop_spread(rollouts):
+    """(S,) m: per closed-loop scene, the largest distance between two methods' executed egos at
+    the same time."""
+    xy = torch.stack([r.ego[..., :2] for r, _ in rollouts.values()])  # (M, S, N+1, 2)
+    return (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1, 3))
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):

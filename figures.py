@@ -305,8 +305,9 @@ def figure_closed_loop(
 ):
     """One closed-loop scene, its point: replanning every dt keeps the methods' executed
     trajectories within centimetres of each other. Left, every method's executed ego over the logged
-    ego and the predicted vehicle where it comes near; right, each one's distance from No
-    prediction's ego (cm) and the ego's speed over time. rollouts: {method: (Rollout, per-scene
+    ego and the predicted vehicle where it comes near, with a zoom where they are furthest apart;
+    right, each one's distance from No prediction's ego and the widest pair's (cm), and the ego's
+    speed over time. rollouts: {method: (Rollout, per-scene
     metrics)}; default scene: the one where Standard's trajectory cost exceeds DiffStack's the most.
     path None: shown (the notebook), else saved."""
     import matplotlib.pyplot as plt
@@ -324,8 +325,8 @@ def figure_closed_loop(
     # agent: (N+1, 4) the predicted vehicle's log
     agent = scenes.agents[sc, int(scenes.pred_idx[sc, f0]), frames]
     fig, axd = plt.subplot_mosaic(
-        [["map", "dist"], ["map", "speed"]],
-        figsize=(13, 6),
+        [["map", "dist"], ["zoom", "speed"]],
+        figsize=(13, 7),
         layout="constrained",
         width_ratios=(1.6, 1),
     )
@@ -352,7 +353,20 @@ def figure_closed_loop(
     )
     tt = dt * torch.arange(N + 1)  # (N+1,) seconds
     base = rollouts.get("No prediction", (first, None))[0].ego[sc, :, :2]
-    spread = max((r.ego[sc, :, :2] - base).norm(dim=-1).max().item() for r, _ in rollouts.values())
+    xy = torch.stack([r.ego[sc, :, :2] for r, _ in rollouts.values()])  # (M, N+1, 2)
+    apart = (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1))  # (N+1,) the widest pair
+    spread, t_max = apart.max().item(), int(apart.argmax())
+    # a zoom on where they are furthest apart, a square of side 4 x spread (at least 4 cm)
+    half = max(2 * spread, 0.02)
+    zoom = axd["zoom"]
+    c0 = xy[:, t_max].mean(0).tolist()
+    zoom.set(xlim=(c0[0] - 3 * half, c0[0] + 3 * half), ylim=(c0[1] - half, c0[1] + half))
+    zoom.set(xlabel="x (m)", ylabel="y (m)")
+    zoom.set_title(
+        f"zoomed in where they are furthest apart (t = {tt[t_max]:.1f} s, the box on the map)",
+        fontsize=9,
+    )
+    ax.indicate_inset_zoom(zoom, edgecolor="0.3")
     colors = dict(
         zip(
             ("No prediction", "Standard", "DiffStack", "GT prediction"),
@@ -370,20 +384,23 @@ def figure_closed_loop(
             lw=1.2,
             label=f"{name} (cost {per['trajectory'][sc]:.3f})",
         )
+        zoom.plot(roll.ego[sc, :, 0], roll.ego[sc, :, 1], "o-", color=c, ms=4, lw=1.5)
         ax_d.plot(tt, 100 * (roll.ego[sc, :, :2] - base).norm(dim=-1), color=c, label=name)
         ax_v.plot(tt, roll.ego[sc, :, 3], color=c, label=name)
     ax_v.plot(tt, scenes.ego[sc, frames, 3], "k--", lw=1, label="logged ego")
     ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), xlabel="x (m)", ylabel="y (m)")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=3, fontsize=9)
     fig.suptitle(
         f"Closed loop, scene {scenes.names[sc]} ({N * dt:.0f} s): the methods' executed "
-        f"trajectories lie within {100 * spread:.0f} cm of each other"
+        f"trajectories lie within {100 * spread:.1f} cm of each other (at most, at "
+        f"t = {tt[t_max]:.1f} s)"
     )
-    ax_d.set_ylabel("from No prediction's ego (cm)")
+    ax_d.plot(tt, 100 * apart, "k:", lw=1.2, label="widest pair")
+    ax_d.set(ylabel="distance (cm)", title="from No prediction's ego, and the widest pair")
     ax_v.set(xlabel="time (s)", ylabel="ego speed (m/s)")
-    for a in (ax, ax_d, ax_v):
+    for a in (ax, ax_d, ax_v, zoom):
         a.grid(alpha=0.3)
-    ax_v.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax_d.legend(fontsize=8)
     if path is None:
         plt.show()
     else:
@@ -476,10 +493,11 @@ def learning_curve_reference(data, cfg: Config, samples: int) -> dict:
     }
 
 
-def figure_cost_weights(results: dict, path):
-    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds.
-    A mean that is not positive has no bar on the log scale: it is written in its place instead
-    (returned too), never dropped."""
+def figure_cost_weights(results: dict, path, source: str = ""):
+    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds;
+    the title says which weights learning raised or lowered by more than 10 % (`source`: where the
+    results come from, added to it). A mean that is not positive has no bar on the log scale: it is
+    written in its place instead (returned too), never dropped."""
     import matplotlib.pyplot as plt
 
     names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
@@ -519,10 +537,24 @@ def figure_cost_weights(results: dict, path):
     ax.minorticks_off()
     ax.set_ylabel("weight (log scale)")
     ax.legend(fontsize=8)
+    means = {
+        label: np.mean([[*r["w"], r["alpha"]] for r in runs], 0) for label, runs in results.items()
+    }
+    moved = ""
+    if {"Hand-tuned", "Learned"} <= set(means):
+        ratio = means["Learned"] / means["Hand-tuned"]
+        words = [f"{names[i].split()[-1]} x{ratio[i]:.2g}" for i in range(len(names))]
+        up = ", ".join(w for w, r in zip(words[1:], ratio[1:]) if r > 1.1)
+        down = ", ".join(w for w, r in zip(words[1:], ratio[1:]) if r < 1 / 1.1)
+        moved = f"\nlearning raises {up or 'none'}; lowers {down or 'none'} (more than 10 %)"
+    seeds = len(next(iter(results.values())))
     ax.set_title(
-        "Cost weights: hand-tuned vs learned (IL, L_ctr = MSE)"
+        f"Cost weights: hand-tuned vs learned (IL, L_ctr = MSE), {seeds} seed"
+        + "s" * (seeds > 1)
+        + (f", {source}" if source else "")
+        + moved
         + ("; not positive, written not drawn: " + ", ".join(notes) if notes else ""),
-        fontsize=10 if not notes else 8,
+        fontsize=9 if not notes else 8,
     )
     save_figure(fig, path)
     return notes
