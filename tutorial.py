@@ -35,17 +35,17 @@
 # | § | what | paper | quick | full |
 # |---|---|---|---|---|
 # | 1 | the stack: predictor → planner → controller, gradient path | §3, Fig. 2 | < 1 s | < 1 s |
-# | 2 | the data: synthetic scenarios, nuScenes writer and loader | §4.1 | 1 s | 1 s |
-# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 3 s | 1 s |
-# | 4 | the relaxed argmin; **exercises 2-4** (L_plan, gradient, bug) | eq. (2), §3.1 | 3 s | 2 s |
-# | 5 | iLQR, KKT backward; **exercises 5, 6** (Riccati, gradient) | eq. (4), App. C | 13 s | 5 s |
-# | 6 | the predictor: a Trajectron++-style CVAE trained as usual | eq. (1), §3.1 | 2 s | 12 s |
-# | 7 | end-to-end training: DiffStack against Standard (Table 1) | §4.2 | 13 s | 120 s |
-# | 8 | Tables 2-5: bias, IL, cost learning, closed loop; dt = 0.1 s | §4.2-4.3 | 35 s | 156 s |
-# | | **whole notebook** | | 70 s (about 1 min) | 297 s (5 min) |
+# | 2 | the data: synthetic scenarios, nuScenes writer and loader | §4.1 | 1 s | 5 s |
+# | 3 | dynamics and cost; **exercise 1** (the collision term) | eq. (3), App. C | 3 s | 3 s |
+# | 4 | the relaxed argmin; **exercises 2-4** (L_plan, gradient, bug) | eq. (2), §3.1 | 3 s | 4 s |
+# | 5 | iLQR, KKT backward; **exercises 5, 6** (Riccati, gradient) | eq. (4), App. C | 10 s | 8 s |
+# | 6 | the predictor: a Trajectron++-style CVAE trained as usual | eq. (1), §3.1 | 2 s | 21 s |
+# | 7 | end-to-end training: DiffStack against Standard (Table 1) | §4.2 | 10 s | 220 s |
+# | 8 | Tables 2-5: bias, IL, cost learning, closed loop; dt = 0.1 s | §4.2-4.3 | 26 s | 298 s |
+# | | **whole notebook** | | 56 s (about 1 min) | 560 s (9 min) |
 #
 # Times: wall time per section on one torch thread of a 2-core VM with the data cached (the first
-# run generates it, a few seconds more); the full column was measured on a faster day of that VM.
+# run generates it, a few seconds more); the last cell prints this run's times.
 # Plan 20-40 minutes per exercise, 3-5 hours for the whole course.
 #
 # **Exercises.** Six functions to fill in (stubs until you do), in the order they build on each
@@ -874,7 +874,7 @@ section_done("§6")
 # them.
 
 # %%
-# Table 1 (RL). Expected run time: ~10 s quick (4 methods), ~3 min full (all 7 methods).
+# Table 1 (RL). Expected run time: ~5 s quick (4 methods), ~3 min full (all 7 methods).
 t0 = time.time()
 four = ("No prediction", "Standard", "DiffStack", "GT prediction")  # quick mode's (and Table 4's)
 methods4 = [m for m in tr.TABLE1_METHODS if m.name in four]
@@ -980,7 +980,7 @@ display(Markdown(breakdown or missing))
 
 # %%
 # DiffStack trained again (Table 1's seed); No prediction, Standard and DiffStack on the validation
-# set. ~5 s quick, ~1 min full.
+# set. ~3 s quick, ~40 s full.
 t0 = time.time()
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
@@ -1136,7 +1136,7 @@ check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 # weights $w'$, $\rho$ (column "alpha"), and the absolute IL planning loss and MSE.
 
 # %%
-# Table 3 (cost learning). Expected run time: ~5 s quick, ~65 s full.
+# Table 3 (cost learning). Expected run time: ~3 s quick, ~50 s full.
 t0 = time.time()
 res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
@@ -1169,7 +1169,7 @@ check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 # prediction (×10⁻²).
 
 # %%
-# Table 5 (closed loop). Expected run time: ~15 s quick, ~80 s full.
+# Table 5 (closed loop). Expected run time: ~7 s quick, ~80 s full.
 t0 = time.time()
 cl = data.val_scenes[:N_CLOSED_LOOP]
 res5, rollouts, cl_scenes = xp.closed_loop_experiment(
@@ -1206,8 +1206,8 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # −0.89 ± 0.04, DiffStack −1.09 ± 0.02, GT −1.30 ± 0.00).
 
 # %%
-# Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~5 s
-# quick, ~30 s full.
+# Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~2 s
+# quick, ~15 s full.
 t0 = time.time()
 fine = {}  # §7's stacks and GT prediction; relative to No prediction, as open_loop_experiment's
 stacks_gt = {**stacks, "GT prediction": (None, tr.Method("GT prediction", "gt"))}
