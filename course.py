@@ -1796,6 +1796,7 @@ def _check_in_a_process(number, code, folder, tmp, timeout):
         )
     )
     worker = "import sys, course; course.check_in_this_process(sys.argv[1])"
+    python_path = os.pathsep.join([str(HERE), *filter(None, [os.environ.get("PYTHONPATH")])])
     with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
         try:
             run = subprocess.run(
@@ -1805,7 +1806,7 @@ def _check_in_a_process(number, code, folder, tmp, timeout):
                 stdout=subprocess.DEVNULL,
                 stderr=err,
                 timeout=timeout,
-                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(HERE)},
+                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path},
             )
         except subprocess.TimeoutExpired:
             return False, f"FAIL: did not finish in {timeout:g} s (an endless loop?)"
