@@ -845,8 +845,9 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
 def closed_loop_spread(rollouts):
     """(S,) m: per closed-loop scene, the largest distance between two methods' executed egos at
     the same time."""
-    xy = torch.stack([r.ego[..., :2] for r, _ in rollouts.values()])  # (M, S, N+1, 2)
-    return (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1, 3))
+    import figures
+
+    return figures.widest_pair(rollouts).amax(-1)
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
@@ -1247,8 +1248,22 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
 
 
 def collision_terms_at_fault(fn, pos, ctx, rbf_var):
-    """Which of C_coll's two terms a wrong answer gets wrong, each scored alone (the other agents
-    masked out, then the predicted vehicle): a sentence, or '' when both or neither are."""
+    """Which part of C_coll a wrong answer gets wrong: a mask it ignores (it equals C_coll with that
+    mask all 1), or one of the two terms, each scored alone (the other agents masked out, then the
+    predicted vehicle). A sentence, or '' when none of these explains it."""
+
+    def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
+        try:
+            mine = torch.as_tensor(fn(pos, answer_ctx, rbf_var)).double()
+            ref = ds.collision_term(pos, reference_ctx, rbf_var)
+            return torch.allclose(mine, ref, rtol=1e-5, atol=1e-9)
+        except Exception:  # (the answer's own error is reported by the check)
+            return False
+
+    for mask in ("pred_mask", "others_mask"):
+        all_ones = dataclasses.replace(ctx, **{mask: torch.ones_like(getattr(ctx, mask))})
+        if agrees(ctx, all_ones):
+            return f" Yours equals C_coll with every {mask} entry 1: it ignores {mask}."
     alone = {
         "the predicted vehicle's term (preds, probs, pred_mask)": dataclasses.replace(
             ctx, others_mask=torch.zeros_like(ctx.others_mask)
@@ -1257,26 +1272,7 @@ def collision_terms_at_fault(fn, pos, ctx, rbf_var):
             ctx, pred_mask=torch.zeros_like(ctx.pred_mask)
         ),
     }
-    wrong = []
-    for term, c in alone.items():
-        try:
-            mine = torch.as_tensor(fn(pos, c, rbf_var)).double()
-            right = torch.allclose(mine, ds.collision_term(pos, c, rbf_var), rtol=1e-5, atol=1e-9)
-        except Exception:  # (the answer's own error is reported by the check)
-            right = False
-        if not right:
-            wrong.append(term)
-    ignored = {
-        "pred_mask": dataclasses.replace(ctx, pred_mask=torch.ones_like(ctx.pred_mask)),
-        "others_mask": dataclasses.replace(ctx, others_mask=torch.ones_like(ctx.others_mask)),
-    }
-    for mask, c in ignored.items():
-        try:
-            mine = torch.as_tensor(fn(pos, ctx, rbf_var)).double()
-            if torch.allclose(mine, ds.collision_term(pos, c, rbf_var), rtol=1e-5, atol=1e-9):
-                return f" Yours equals C_coll with every {mask} entry 1: it ignores {mask}."
-        except Exception:
-            pass
+    wrong = [term for term, c in alone.items() if not agrees(c, c)]
     if len(wrong) != 1:
         return ""
     right_one = next(t for t in alone if t not in wrong)

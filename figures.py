@@ -300,6 +300,13 @@ def _ade(pred: Prediction, batch) -> torch.Tensor:
     return (means - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)
 
 
+def widest_pair(rollouts):
+    """(S, N+1) m: per closed-loop scene and step, the largest distance between two methods'
+    executed egos."""
+    xy = torch.stack([r.ego[..., :2] for r, _ in rollouts.values()])  # (M, S, N+1, 2)
+    return (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1))
+
+
 def figure_closed_loop(
     scenes, rollouts: dict, path=None, dt: float = 0.5, scene: int | None = None
 ):
@@ -354,7 +361,7 @@ def figure_closed_loop(
     tt = dt * torch.arange(N + 1)  # (N+1,) seconds
     base = rollouts.get("No prediction", (first, None))[0].ego[sc, :, :2]
     xy = torch.stack([r.ego[sc, :, :2] for r, _ in rollouts.values()])  # (M, N+1, 2)
-    apart = (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1))  # (N+1,) the widest pair
+    apart = widest_pair(rollouts)[sc]  # (N+1,)
     spread, t_max = apart.max().item(), int(apart.argmax())
     # a zoom on where they are furthest apart, a square of side 4 x spread (at least 4 cm)
     half = max(2 * spread, 0.02)
