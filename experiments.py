@@ -62,6 +62,8 @@ from diffstack import (
 from train import (
     CostWeights,
     Method,
+    GT_PREDICTION,
+    NO_PREDICTION,
     TABLE1_METHODS,
     TrainingDiverged,
     add_relative,
@@ -951,7 +953,7 @@ def _rows(methods, seeds, section=None) -> list:
 
 
 def _ablation_methods(methods) -> tuple:
-    return (TABLE1_METHODS[0], *methods, TABLE1_METHODS[-1])
+    return (NO_PREDICTION, *methods, GT_PREDICTION)
 
 
 def table_seeds(spec: TableSpec, seeds=None) -> tuple:

@@ -26,7 +26,7 @@ import torch
 
 import data_synth
 from diffstack import Config, Prediction, StackOutput, masked_argmin, run_stack
-from train import Method, TABLE1_METHODS, evaluate_stack, mean_se, to_device
+from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, mean_se, to_device
 
 
 def save_figure(fig, path) -> None:
@@ -496,7 +496,7 @@ def learning_curve_reference(data, cfg: Config, samples: int) -> dict:
     subset = data.val[:samples]
     return {
         m.name: evaluate_stack(None, subset, m, cfg, "rl")["hindsight"]
-        for m in (TABLE1_METHODS[0], TABLE1_METHODS[-1])
+        for m in (NO_PREDICTION, GT_PREDICTION)
     }
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from train import TABLE1_METHODS, Method
+from train import GT_PREDICTION, NO_PREDICTION, TABLE1_METHODS, Method
 
 
 @dataclass(frozen=True)
@@ -144,10 +144,10 @@ TABLE2 = TableSpec(
     "open_loop",
     "rl",
     (
-        TABLE1_METHODS[0],
+        NO_PREDICTION,
         Method("Standard-biased"),
         Method("DiffStack-biased", losses=(1, 1, 1)),
-        TABLE1_METHODS[-1],
+        GT_PREDICTION,
     ),
     RL_COLUMNS,
     _paper(
@@ -366,7 +366,7 @@ GOAL_TABLE = TableSpec(
     "goal vs a route goal",
     "goal",
     "rl",
-    (TABLE1_METHODS[0], TABLE1_METHODS[-1]),
+    (NO_PREDICTION, GT_PREDICTION),
     (),
     {},
 )

@@ -1,4 +1,4 @@
-"""Training on many processes (train.py section 3): DistributedDataParallel on 2 CPU processes
+"""Training on many processes (lab/ddp.py): DistributedDataParallel on 2 CPU processes
 over loopback (gloo) gives the parameters of one process training on the same global batches, in
 float64 within 1e-10.
 
@@ -116,7 +116,7 @@ def train_all(names=None) -> dict:
     return out
 
 
-# Two ways a rank can break DDP's equality (section 3 of train.py), each swapped in on every rank
+# Two ways a rank can break DDP's equality (lab/ddp.py), each swapped in on every rank
 def _wrong_noise_rows(self, model, b, cfg, like):
     """The decoder's noise: the next rank's rows of the global draw instead of this rank's."""
     other = dataclasses.replace(self, rank=(self.rank + 1) % self.world)

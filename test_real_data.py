@@ -328,7 +328,7 @@ def test_the_stack_runs_on_real_scenes(real):
         assert torch.isfinite(getattr(out, name)).all(), name
     assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
-    for m in (train.TABLE1_METHODS[0], train.TABLE1_METHODS[-1]):  # No prediction, GT prediction
+    for m in (train.NO_PREDICTION, train.GT_PREDICTION):
         r = train.evaluate_stack(None, batch, m, cfg, "rl")
         assert r["n"] > 70 and all(np.isfinite(v) for v in r.values())
 

@@ -6,9 +6,9 @@ diffstack.py --quick` (this module's main).
     1. Metrics          ADE/FDE, NLL, constant velocity; evaluation of a predictor and of the stack
     2. Methods          Table 1's rows, their loss weights, the learned cost weights (App. A.2),
                         weighted L_pred (§4.1)
-    3. Many processes   DistributedDataParallel: Shard, the rows of a global batch a process holds
-    4. Training         train_stack, train_predictor, compare_methods
-    5. --quick          the shipped predictors, the quick run and its command line
+    (Many processes: DistributedDataParallel, lab/ddp.py, handed to train_stack as a Shard)
+    3. Training         train_stack, train_predictor, compare_methods
+    4. --quick          the shipped predictors, the quick run and its command line
 """
 
 from __future__ import annotations
@@ -27,13 +27,12 @@ from typing import NamedTuple
 
 import scipy.stats
 import torch
-import torch.distributed as dist
 import torch.nn as nn
-from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data.distributed import DistributedSampler
+from torch.optim.lr_scheduler import ExponentialLR
 
 import data_real
 import data_synth
+from lab.ddp import Shard, wrap  # hand-over: training on many processes (DDP)
 from runs import (
     WorkerDied,
     command_line,
@@ -191,14 +190,17 @@ PREDICTORS = ("learned", "gt", "none")
 WEIGHTINGS = ("standard", "distance", "grad_cost")
 
 
+# The two reference rows every table of the planner is read against, by name
+NO_PREDICTION = Method("No prediction", "none")
+GT_PREDICTION = Method("GT prediction", "gt")
 TABLE1_METHODS = (
-    Method("No prediction", "none"),
+    NO_PREDICTION,
     Method("Standard"),
     Method("Distance weighted", weighting="distance"),
     Method("Grad-cost weighted", weighting="grad_cost"),
     Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
     Method("DiffStack", losses=(1, 1, 1)),
-    Method("GT prediction", "gt"),
+    GT_PREDICTION,
 )
 
 
@@ -286,7 +288,7 @@ def distance_weights(batch) -> torch.Tensor:
 
 def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) -> torch.Tensor:
     """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in
-    the global batch of all processes, section 3).
+    the global batch of all processes, lab/ddp.py).
 
     weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
     `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
@@ -308,128 +310,25 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
     return raw / mean if mean > 0 else torch.ones_like(raw)
 
 
-# --------------------------------------------------------------------------------------------
-# 3. Many processes: DistributedDataParallel (torchrun)
-# --------------------------------------------------------------------------------------------
-#
-# Under torchrun every process (a rank) runs the same program. train_stack then splits each global
-# batch of cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps
-# the module it trains in DistributedDataParallel (DDP), which averages the ranks' gradients during
-# backward. That average is exactly the gradient of the single-process loss on the global batch (up
-# to the order floats are summed in) because:
-#   - the ranks' batches together are the single-process batch: every rank draws the same
-#     permutation of the data (same seed) and takes positions rank, rank + W, rank + 2W, ... of it
-#     (DistributedSampler, without its own shuffling), so step i's shards together are
-#     perm[i B:(i + 1) B], the single-process batch i;
-#   - every random draw is of the global batch: the decoder's sampled controls are drawn for all B
-#     rows on every rank (same seed) and each keeps its own rows (Shard.decoder_noise);
-#   - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks'
-#     gradients, so the rank's sum over its scenarios is divided by (global count / W), never by its
-#     own count. L_plan and L_ctr are means over the *plannable* scenarios, whose number differs
-#     from rank to rank: the global count is all-reduced;
-#   - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean
-#     p(z|x)) and the scenario weights' normaliser are taken over the global batch, by an all_reduce
-#     that autograd differentiates through (AllReduceSum: its backward sums the ranks' gradients),
-#     so each rank's parameters also get the other ranks' share of the gradient of those statistics.
-# With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the
-# ranks' losses (each a function of every rank's rows): here W x share / W = the single-process
-# loss. The gradients are then the same on every rank, so gradient clipping, Adam and the lr
-# schedule stay in step.
-
-
-class AllReduceSum(torch.autograd.Function):
-    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every
-    rank's loss, so dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the
-    same all_reduce. (What torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it
-    for a private module.)"""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
-        ctx.group = group
-        y = x.clone(memory_format=torch.contiguous_format)
-        dist.all_reduce(y, group=group)
-        return y
-
-    @staticmethod
-    def backward(ctx, grad_y: torch.Tensor):
-        return AllReduceSum.apply(grad_y, ctx.group), None
-
-
-@dataclass(frozen=True)
-class Shard:
-    """The rows of a global batch this process holds: positions rank, rank + world, ...
-    (DistributedSampler's). Shard() is one process holding the whole batch; batch statistics then
-    use the plain single-process expressions. group: the process group of the loss's all_reduces,
-    kept apart from DDP's own so that the two never interleave."""
-
-    rank: int = 0
-    world: int = 1
-    group: object = None
-
-    @staticmethod
-    def of_process_group() -> "Shard":
-        """This process's shard under torch.distributed (torchrun): Shard() when it is not
-        initialised or has one rank."""
-        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
-            return Shard()
-        return Shard(
-            dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend())
-        )
-
-    def mean(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows);
-        autograd-aware."""
-        if self.world == 1:
-            return x.mean(0)
-        return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
-
-    def total(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its sum over the global batch, without gradient
-        (counts, logged values)."""
-        s = x.detach().sum(0)
-        if self.world > 1:
-            dist.all_reduce(s, group=self.group)
-        return s
-
-    def decoder_noise(self, model, b: int, cfg: Config, like: torch.Tensor):
-        """The decoder's training noise (T, b, K, 2) for this rank's b scenarios: its rows of the
-        draw the whole global batch (world * b scenarios, in global order) gets, one step at a time
-        as the decoder draws it in one process. None in one process or when the model does not
-        sample (eval mode): the decoder then draws from torch's generator itself."""
-        if self.world == 1 or not model.training:
-            return None
-        K = cfg.pred_modes
-        steps = []
-        for _ in range(cfg.horizon):
-            noise = torch.randn(b * self.world * K, 2, dtype=like.dtype, device=like.device)
-            # global scenario rank + world j is this rank's scenario j: view the draw as
-            # (b, world, K, 2)
-            steps.append(noise.view(b, self.world, K, 2)[:, self.rank])
-        return torch.stack(steps)
-
-    def positions(self, n: int) -> torch.Tensor:
-        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ...
-        (DistributedSampler without its shuffling; the ordering, a permutation drawn the same on
-        every rank, is the shuffle)."""
-        sampler = DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)
-        # they index the permutation, drawn on the CPU
-        return torch.tensor(list(sampler), dtype=torch.long, device="cpu")
-
-    def close(self) -> None:
-        """Release the loss's process group (train_stack makes one per call)."""
-        if self.group is not None:
-            dist.destroy_process_group(self.group)
-
-
 # ============================================================================================
-# 4. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
+# 3. Training and evaluation, §3.2, §4.1, App. A.2, App. D.2
 # ============================================================================================
 #
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr
 #
-# One loop trains every method of the paper: the predictor, with the loss weights (a1, a2, a3) of
-# its method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with the predictor
-# frozen.
+# One loop, train_stack, trains every method of the paper: the predictor, with the loss weights
+# (a1, a2, a3) of its method and setting, or (Table 3, App. A.2) the cost weights w of eq. (3) with
+# the predictor frozen. Each step draws a batch, runs the stack (the Objective), forms L, and takes
+# an Adam step (lr 0.003, gradient clipping, App. D.2; the lr's x0.9999 per step and clipping by
+# value are Trajectron++'s; learning the cost weights keeps the lr constant). L_plan and L_ctr (and
+# L_pred with them) are means over the plannable scenarios of the batch; methods with a2 = a3 = 0
+# (Standard and the weighted baselines) skip planning and control. pred_offset: metres added to
+# the GT prediction targets, to the left of the agent (Table 2). Training runs on the model's
+# device (the cost weights must be there too): the data stays on the CPU, each batch is moved as
+# it is drawn. Under torchrun each rank trains on its cfg.batch_size / world scenarios of every
+# global batch, with the gradient of the single-process loss on the global batch (lab/ddp.py);
+# only rank 0 logs, and every rank returns the same per-step log. A loss, gradient or parameter
+# that is no longer finite stops the training at that step (TrainingDiverged).
 
 
 def to_device(obj, device):
@@ -551,6 +450,110 @@ class TrainingDiverged(ValueError):
     that step)."""
 
 
+LOSS_NAMES = ("L_pred", "L_plan", "L_ctr")
+
+
+def stop_if_diverged(where: str, shard: Shard, terms=None, grads=None, params=None) -> None:
+    """TrainingDiverged, saying where, once training has diverged: a loss term that is not finite
+    (it would make every parameter NaN at this step; every rank sees the flags of all, so they stop
+    together), a NaN gradient under finite losses (an infinite one is clipped), or a parameter made
+    infinite by a step that overflowed (a huge learning rate)."""
+    if terms is not None:
+        finite = torch.isfinite(torch.stack(terms))  # (3,)
+        bad = shard.total((~finite).to(terms[0].dtype)[None])  # (3,)
+        if bad.any():
+            which = ", ".join(n for n, b in zip(LOSS_NAMES, bad.tolist()) if b)
+            raise TrainingDiverged(f"{where}: {which} is not finite")
+    if grads is not None and torch.isnan(torch.nn.utils.get_total_norm(grads)):
+        raise TrainingDiverged(f"{where}: a gradient is NaN")
+    if params is not None and not torch.isfinite(torch.nn.utils.get_total_norm(params)):
+        raise TrainingDiverged(f"{where}: a parameter is not finite")
+
+
+@dataclass
+class Objective:
+    """What a training step minimises on a batch: the terms (L_pred, L_plan, L_ctr) of
+    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the batch's plannable scenarios (the predictor
+    alone, over all, when a2 = a3 = 0), and iLQR's convergence rate among them.
+
+    predictor, cost_w: what the forward pass calls (under DDP the wrapped modules); cost_w None:
+    the hand-tuned weights. scenes: the data's scene_plans (None without planning)."""
+
+    predictor: torch.nn.Module
+    cost_w: torch.nn.Module | None
+    method: Method
+    cfg: Config
+    setting: str
+    shard: Shard
+    scenes: ScenePlan | None
+    pred_offset: float
+    stack_kw: dict
+
+    def __call__(self, batch, rows, step: int) -> tuple[tuple, float]:
+        target = offset_targets(batch, self.pred_offset) if self.pred_offset else None
+        noise = self.shard.decoder_noise(self.predictor, len(batch), self.cfg, batch.ego_hist)
+        if self.scenes is None:
+            return self.prediction_terms(batch, target, noise, step)
+        return self.stack_terms(batch, rows, target, noise, step)
+
+    def prediction_terms(self, batch, target, noise, step):
+        """(L_pred, 0, 0) of the predictor alone (Standard and the weighted baselines)."""
+        pred = self.predictor(batch, use_posterior=True, step=step, noise=noise)
+        truth = batch if target is None else dataclasses.replace(batch, agent_fut=target)
+        l_pred_b, _ = pred_loss(pred, truth, step, self.cfg, self.shard.mean)
+        # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over the ranks is
+        # the mean over the global batch
+        weights = scenario_weights(batch, self.method.weighting, self.cfg, self.shard)
+        l_pred = (l_pred_b * weights).mean()
+        zero = torch.zeros((), dtype=l_pred.dtype, device=l_pred.device)
+        return (l_pred, zero, zero), float("nan")
+
+    def stack_terms(self, batch, rows, target, noise, step):
+        """(L_pred, L_plan, L_ctr) of the whole stack, means over the plannable scenarios."""
+        learn_cost = self.cost_w is not None
+        out = run_stack(
+            batch,
+            self.predictor,
+            self.method,
+            self.cfg,
+            self.setting,
+            step=None if learn_cost else step,
+            train=not learn_cost,
+            w=self.cost_w() if learn_cost else None,
+            pred_target=target,
+            noise=noise,
+            batch_mean=self.shard.mean,
+            scene=to_device(self.scenes[rows], batch.ego_hist.device),
+            **self.stack_kw,
+        )
+        keep = out.plannable.to(out.l_plan.dtype)
+        # this rank's sums divided by the global number of plannable scenarios / world (lab/ddp.py)
+        m = self.shard.total(keep).clamp_min(1) / self.shard.world
+        weights = scenario_weights(batch, self.method.weighting, self.cfg, self.shard)
+        l_pred = (out.l_pred * weights * keep).sum() / m
+        l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
+        if self.shard.world == 1:
+            conv = out.converged[out.plannable].float().mean().item()
+        else:  # converged among the plannable scenarios of the global batch
+            converged = (out.converged & out.plannable).to(keep.dtype)
+            conv = (self.shard.total(converged) / self.shard.total(keep)).item()
+        return (l_pred, l_plan, l_ctr), conv
+
+
+def batch_rows(n: int, cfg: Config, shard: Shard, order: torch.Generator, total: int):
+    """The rows of this rank's share of every training batch, `total` batches: each epoch a new
+    permutation of the n scenarios, the same on every rank (drawn on the CPU by `order`), cut into
+    batches of cfg.batch_size (the last partial one dropped)."""
+    b = cfg.batch_size // shard.world  # scenarios per step on this rank
+    mine = shard.positions(n)  # (n // world,) this rank's positions (all of them: one process)
+    steps_per_epoch, step = max(1, n // cfg.batch_size), 0
+    while step < total:
+        perm = torch.randperm(n, generator=order, device="cpu")
+        for i in range(min(steps_per_epoch, total - step)):
+            yield perm[mine[i * b : (i + 1) * b]]  # one process: perm[i B:(i + 1) B]
+            step += 1
+
+
 def train_stack(
     model,
     data,
@@ -565,223 +568,123 @@ def train_stack(
     on_epoch=None,
     **stack_kw,
 ):
-    """Train the predictor of a method (Adam, lr 0.003, gradient clipping, App. D.2; the lr's
-    x0.9999 per step and clipping by value are Trajectron++'s) -- or, given `weights`, learn the
-    cost weights instead (App. A.2, Table 3; method Method(..., losses=(0, 0, 1)) in the IL
-    setting): the predictor is then frozen and weighs its modes by p(z|x) as at evaluation, the
-    gradient dL/dw comes from the controller's KKT backward (w is a parameter of the iLQR problem),
-    and the lr is constant.
+    """Train the predictor of a method (or, given `weights`, the cost weights, the predictor
+    frozen) for `epochs` (a fraction too) on data: L = a1 L_pred + a2 L_plan + a3 L_ctr, Adam.
+    on_epoch(epochs done, steps done): called before the first step and after every epoch, in a
+    fork of the random state. Returns the per-step log (list of dicts: the global batch's
+    values)."""
+    shard = Shard.of_process_group()  # one process, or this rank's rows under torchrun
+    check_split(cfg, shard)
+    log = log if shard.rank == 0 else None  # the other ranks stay quiet
+    torch.manual_seed(seed)  # the decoder's sampled controls, the same on every rank
+    order = torch.Generator().manual_seed(seed)  # the order of the scenarios, on the CPU
+    a1, a2, a3 = alphas(method, setting, cfg)
+    params, objective = objective_for(
+        model, data, method, cfg, setting, shard, weights, pred_offset, stack_kw
+    )
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    sched = None if weights is not None else ExponentialLR(opt, cfg.pred_lr_decay)
+    steps_per_epoch = max(1, len(data) // cfg.batch_size)
+    total = max(1, round(epochs * steps_per_epoch))
+    epoch_done = epoch_callback(on_epoch, model, weights is None, steps_per_epoch)
+    history, t0 = [], time.time()
+    epoch_done(0)
+    try:
+        for step, rows in enumerate(batch_rows(len(data), cfg, shard, order, total), 1):
+            batch = to_device(data[rows], next(model.parameters()).device)
+            terms, conv = objective(batch, rows, step - 1)
+            loss = a1 * terms[0] + a2 * terms[1] + a3 * terms[2]
+            where = f"{method.name}, seed {seed}: training diverged at step {step} of {total}"
+            stop_if_diverged(where, shard, terms=terms)
+            opt.zero_grad()
+            loss.backward()
+            stop_if_diverged(where, shard, grads=[p.grad for p in params if p.grad is not None])
+            torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)
+            opt.step()
+            stop_if_diverged(where, shard, params=params)
+            if sched is not None:
+                sched.step()
+            history.append(step_record(step, loss, terms, conv, shard, weights))
+            if step % steps_per_epoch == 0 or step == total:
+                epoch_done(step)
+            if log and (step % max(1, total // 10) == 0 or step == total):
+                log(progress_line(method, history[-1], step, total, time.time() - t0))
+    finally:
+        shard.close()
+    return history
 
-    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the plannable scenarios of a batch. Methods
-    with a2 = a3 = 0 (Standard and the weighted baselines) skip planning and control. epochs may be
-    a fraction.
-    pred_offset: metres added to the GT prediction targets, to the left of the agent (Table 2).
-    Runs on the model's device (and `weights` must be there too): data stays where it is (the CPU),
-    each batch is moved to the model's device as it is drawn.
-    Under torchrun (torch.distributed initialised, world > 1) it trains with
-    DistributedDataParallel, each rank on its cfg.batch_size / world scenarios of every global
-    batch, with the gradient of the single-process loss on the global batch (section 3); only rank
-    0 logs. Every rank returns the same per-step log (global values).
-    on_epoch: None, or a function of (epochs done, steps done) called before the first step and
-    after every epoch (and after the last step of a fractional one), e.g. to evaluate the model for
-    a learning curve; it runs in a fork of the random state, so that training draws the same
-    numbers with it or without it.
-    Returns the per-step log (list of dicts).
-    """
-    device = next(model.parameters()).device
-    # Shard(): one process; under torchrun, this rank's rows of every batch (section 3)
-    shard = Shard.of_process_group()
+
+def check_split(cfg: Config, shard: Shard) -> None:
+    """ValueError naming cfg.batch_size unless it splits evenly over the processes."""
     if cfg.batch_size % shard.world:
         raise ValueError(
             f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over "
             f"{shard.world} processes; choose a multiple of {shard.world} (--set batch_size=...) "
             "or another process count"
         )
-    b = cfg.batch_size // shard.world  # scenarios per step on this rank
-    log = log if shard.rank == 0 else None  # the other ranks stay quiet
-    # The same seed on every rank: the data order and the decoder's sampled controls are drawn for
-    # the global batch, whichever rank uses them (section 3). manual_seed seeds the CPU's and every
-    # GPU's generator.
-    torch.manual_seed(seed)  # the decoder's sampled controls
-    # the order of the scenarios, drawn on the CPU whatever the device
-    g = torch.Generator().manual_seed(seed)
-    a1, a2, a3 = alphas(method, setting, cfg)
-    downstream = a2 > 0 or a3 > 0
-    learn_cost = weights is not None
-    if learn_cost:
+
+
+def objective_for(model, data, method, cfg, setting, shard, weights, pred_offset, stack_kw):
+    """(the parameters to train, the Objective) of a training: the predictor's (train mode), or
+    with `weights` the cost weights' (the predictor frozen, in eval mode: it weighs its modes by
+    p(z|x) as at evaluation, and dL/dw comes from the controller's KKT backward). Under DDP the
+    trained module is wrapped (lab/ddp.py). Without planning (a2 = a3 = 0) the data
+    is checked here; with it, the goal, the candidates and every term of eq. (3) but C_coll depend
+    on the scenes alone (not on the predictor nor on the weights): computed once for the data here,
+    not at every step of every epoch (about a sixth of a step), the same numbers either way."""
+    if weights is not None:
         model.eval().requires_grad_(False)
-        params = list(weights.parameters())
+        params, predictor, cost_w = list(weights.parameters()), model, wrap(weights, shard)
     else:
         model.train()
-        params = list(model.parameters())
-    # What the forward pass calls: the modules themselves, or under DDP a DistributedDataParallel
-    # around the one being trained (it broadcasts rank 0's parameters now and averages the ranks'
-    # gradients in every backward).
-    predictor, cost_w = model, weights
-    if shard.world > 1:
-        if learn_cost:
-            cost_w = DistributedDataParallel(weights)
-        else:
-            predictor = DistributedDataParallel(model)
-    opt = torch.optim.Adam(params, lr=cfg.lr)
-    sched = None if learn_cost else torch.optim.lr_scheduler.ExponentialLR(opt, cfg.pred_lr_decay)
-    # The goal, the candidates and every term of eq. (3) but C_coll depend on the scenes alone,
-    # never on the predictor (nor on learned cost weights: they weigh the terms afterwards):
-    # computed once for the data here, not at every step of every epoch (about a sixth of a step).
-    # The same numbers either way.
-    scenes = scene_plans(data, cfg, stack_kw.get("plan_dt")) if downstream else None
-    if not downstream:  # scene_plans checks the data itself
+        params, predictor, cost_w = list(model.parameters()), wrap(model, shard), None
+    _, a2, a3 = alphas(method, setting, cfg)
+    scenes = None
+    if a2 > 0 or a3 > 0:
+        scenes = scene_plans(data, cfg, stack_kw.get("plan_dt"))
+    else:
         for i in range(0, len(data), 1024):
             check_batch(data[i : i + 1024], cfg, need_future=True)
-    n = len(data)
-    steps_per_epoch = max(1, n // cfg.batch_size)
-    total = max(1, round(epochs * steps_per_epoch))
-    # (n // world,) this rank's positions in every epoch's order (all of them: one process)
-    mine = shard.positions(n)
-    history = []
-    t0 = time.time()
-    step = 0
+    objective = Objective(
+        predictor, cost_w, method, cfg, setting, shard, scenes, pred_offset, stack_kw
+    )
+    return params, objective
 
-    def epoch_done():
-        if on_epoch is not None:
-            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-                on_epoch(step / steps_per_epoch, step)
-            model.train(not learn_cost)
 
-    epoch_done()
-    try:
-        while step < total:
-            # the epoch's order, the same on every rank
-            perm = torch.randperm(n, generator=g, device="cpu")
-            for i in range(steps_per_epoch):
-                if step >= total:
-                    break
-                rows = perm[mine[i * b : (i + 1) * b]]  # one process: perm[i B:(i + 1) B]
-                batch = to_device(data[rows], device)
-                target = offset_targets(batch, pred_offset) if pred_offset else None
-                if downstream:
-                    out = run_stack(
-                        batch,
-                        predictor,
-                        method,
-                        cfg,
-                        setting,
-                        step=None if learn_cost else step,
-                        train=not learn_cost,
-                        w=cost_w() if learn_cost else None,
-                        pred_target=target,
-                        noise=shard.decoder_noise(predictor, len(batch), cfg, batch.ego_hist),
-                        batch_mean=shard.mean,
-                        scene=to_device(scenes[rows], device),
-                        **stack_kw,
-                    )
-                    keep = out.plannable.to(out.l_plan.dtype)
-                    # Each rank divides its sums by the global number of plannable scenarios / world
-                    # (never by its own number): DDP's mean over the ranks then makes (global sum) /
-                    # (global count). One process: keep.sum().
-                    m = shard.total(keep).clamp_min(1) / shard.world
-                    l_pred = (
-                        out.l_pred * scenario_weights(batch, method.weighting, cfg, shard) * keep
-                    ).sum() / m
-                    l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
-                    if shard.world == 1:
-                        conv = out.converged[out.plannable].float().mean().item()
-                    else:  # converged among the plannable scenarios of the global batch
-                        conv = (
-                            shard.total((out.converged & out.plannable).to(keep.dtype))
-                            / shard.total(keep)
-                        ).item()
-                else:
-                    noise = shard.decoder_noise(predictor, len(batch), cfg, batch.ego_hist)
-                    pred = predictor(batch, use_posterior=True, step=step, noise=noise)
-                    l_pred_b, _ = pred_loss(
-                        pred,
-                        batch if target is None else dataclasses.replace(batch, agent_fut=target),
-                        step,
-                        cfg,
-                        shard.mean,
-                    )
-                    # a mean over this rank's b scenarios: every rank holds b, so DDP's mean over
-                    # the ranks is the mean over the global batch
-                    l_pred = (
-                        l_pred_b * scenario_weights(batch, method.weighting, cfg, shard)
-                    ).mean()
-                    l_plan = l_ctr = torch.zeros((), dtype=l_pred.dtype, device=device)
-                    conv = float("nan")
-                # this rank's loss; DDP averages its gradient over the ranks
-                loss = a1 * l_pred + a2 * l_plan + a3 * l_ctr
-                # a non-finite loss would make every parameter NaN at this step: stop here, saying
-                # where (every rank sees the flags of all: they stop together)
-                finite = torch.isfinite(torch.stack([l_pred, l_plan, l_ctr]))  # (3,)
-                bad = shard.total((~finite).to(loss.dtype)[None])  # (3,)
-                if bad.any():
-                    which = ", ".join(
-                        n for n, b in zip(("L_pred", "L_plan", "L_ctr"), bad.tolist()) if b
-                    )
-                    raise TrainingDiverged(
-                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
-                        f"{total}: {which} is not finite"
-                    )
-                opt.zero_grad()
-                loss.backward()
-                # a NaN gradient under a finite loss would reach the parameters too (an infinite one
-                # is clipped below)
-                if torch.isnan(
-                    torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])
-                ):
-                    raise TrainingDiverged(
-                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
-                        f"{total}: a gradient is NaN"
-                    )
-                # the same (averaged) gradient on every rank
-                torch.nn.utils.clip_grad_value_(params, cfg.pred_grad_clip)
-                opt.step()
-                # a step that overflows (a huge learning rate) can make a parameter infinite under a
-                # finite gradient
-                if not torch.isfinite(torch.nn.utils.get_total_norm(params)):
-                    raise TrainingDiverged(
-                        f"{method.name}, seed {seed}: training diverged at step {step + 1} of "
-                        f"{total}: a parameter is not finite"
-                    )
-                if sched is not None:
-                    sched.step()
-                step += 1
-                # the logged values of the global batch: the mean over the ranks of theirs
-                # (one process: its own)
-                loss_v, l_pred_v, l_plan_v, l_ctr_v = (
-                    shard.total(torch.stack([loss, l_pred, l_plan, l_ctr])[None])
-                    .div(shard.world)
-                    .tolist()
-                )
-                history.append(
-                    dict(
-                        step=step,
-                        loss=loss_v,
-                        l_pred=l_pred_v,
-                        l_plan=l_plan_v,
-                        l_ctr=l_ctr_v,
-                        converged=conv,
-                    )
-                )
-                if learn_cost:
-                    history[-1]["w"] = weights().tolist()
-                if step % steps_per_epoch == 0 or step == total:
-                    epoch_done()
-                if log and (step % max(1, total // 10) == 0 or step == total):
-                    el = time.time() - t0
-                    w_now = (
-                        "  w " + " ".join(f"{v:.3f}" for v in weights().tolist())
-                        if learn_cost
-                        else ""
-                    )
-                    log(
-                        f"  [{method.name}] step {step}/{total}  loss {loss_v:9.3f}  L_pred "
-                        f"{l_pred_v:7.3f}  L_plan {l_plan_v:6.3f}  L_ctr {l_ctr_v:7.4f}{w_now}  "
-                        f"{el:5.0f}s  ETA {el / step * (total - step):4.0f}s"
-                    )
-    finally:
-        shard.close()
-    return history
+def epoch_callback(on_epoch, model, train_mode: bool, steps_per_epoch: int):
+    """step -> None: on_epoch(epochs done, step) in a fork of the random state (training draws
+    the same numbers with it or without it), the model put back in its training mode after."""
+
+    def epoch_done(step: int) -> None:
+        if on_epoch is None:
+            return
+        device = next(model.parameters()).device
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            on_epoch(step / steps_per_epoch, step)
+        model.train(train_mode)
+
+    return epoch_done
+
+
+def step_record(step: int, loss, terms, conv: float, shard: Shard, weights) -> dict:
+    """The log of a step: the global batch's loss and terms (the mean over the ranks of theirs;
+    one process: its own), iLQR's convergence rate and, when learned, the cost weights."""
+    values = torch.stack([loss, *terms])[None]  # (1, 4)
+    loss_v, l_pred, l_plan, l_ctr = shard.total(values).div(shard.world).tolist()
+    record = dict(step=step, loss=loss_v, l_pred=l_pred, l_plan=l_plan, l_ctr=l_ctr, converged=conv)
+    if weights is not None:
+        record["w"] = weights().tolist()
+    return record
+
+
+def progress_line(method: Method, rec: dict, step: int, total: int, elapsed: float) -> str:
+    """One line of training progress (about ten per training)."""
+    w = "  w " + " ".join(f"{v:.3f}" for v in rec["w"]) if "w" in rec else ""
+    return (
+        f"  [{method.name}] step {step}/{total}  loss {rec['loss']:9.3f}  L_pred "
+        f"{rec['l_pred']:7.3f}  L_plan {rec['l_plan']:6.3f}  L_ctr {rec['l_ctr']:7.4f}{w}  "
+        f"{elapsed:5.0f}s  ETA {elapsed / step * (total - step):4.0f}s"
+    )
 
 
 def train_predictor(
@@ -1270,7 +1173,7 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 
 
 # ============================================================================================
-# 5. The shipped predictors, --quick and the command line
+# 4. The shipped predictors, --quick and the command line
 # ============================================================================================
 
 # the tables' data; the live runs train on a part of it, and everything is evaluated on the first
@@ -1603,7 +1506,7 @@ def quick(
         part,
         cfg,
         "rl",
-        (QUICK_METHODS[0], *learned),
+        (NO_PREDICTION, *learned),
         seeds=(0,),
         epochs=epochs,
         log=log,
