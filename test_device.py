@@ -15,9 +15,7 @@ runs on the CPU, so that it is tested without one).
 2. The factory audit, which covers that blind spot and names the line: a TorchFunctionMode (the
    mechanism torch.device("meta") itself uses) records every factory called without device=
    directly from diffstack.py, experiments.py or data_synth.py (the caller's frame), while the
-   stack runs normally: none may be left, in sections 3-6 of diffstack.py (cost, planner,
-   controller, predictor; given device= in the speed work) and in the rest of the code, each
-   reported by a test of its own.
+   stack runs normally: none may be left, each named by its file, line and function.
 """
 
 import copy
@@ -36,10 +34,6 @@ import train as tr
 
 TINY = dict(
     pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8, batch_size=16
-)
-SPEED_WORK = (
-    "sections 3-6 of diffstack.py (cost, planner, controller, predictor) "
-    "get device= in the speed work"
 )
 
 # ---------------------------------------------------------------------------------------------
@@ -76,15 +70,6 @@ AUDITED = {
     str(HERE / name): name
     for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "data_real.py")
 }
-
-
-def section_lines() -> range:
-    """The lines of sections 3-6 of diffstack.py: from the '# 3. Cost' banner to the
-    '# 7. The stack' one."""
-    lines = (HERE / "diffstack.py").read_text().splitlines()
-    start = next(i for i, s in enumerate(lines, 1) if s.startswith("# ===== 3. Cost"))
-    end = next(i for i, s in enumerate(lines, 1) if s.startswith("# ===== 7. The stack"))
-    return range(start, end)
 
 
 class FactoryAudit(TorchFunctionMode):
@@ -296,18 +281,11 @@ def audit(setup):
     return a.calls
 
 
-def test_no_factory_without_device_outside_sections_3_to_6(audit):
-    theirs = section_lines()
-    ours = sorted(c for c in audit if not (c[0] == "diffstack.py" and c[1] in theirs))
-    assert not ours, "tensor factories without device=: " + "; ".join(
-        f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in ours
-    )
-
-
-def test_no_factory_without_device_in_sections_3_to_6(audit):
-    theirs = sorted(c for c in audit if c[0] == "diffstack.py" and c[1] in section_lines())
-    assert not theirs, "tensor factories without device=: " + "; ".join(
-        f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in theirs
+def test_no_factory_without_device(audit):
+    """Anywhere in the audited files: every factory the stack calls is given device=."""
+    calls = sorted(audit)
+    assert not calls, "tensor factories without device=: " + "; ".join(
+        f"{f}:{n} {fn}() torch.{t}" for f, n, fn, t in calls
     )
 
 

@@ -5,7 +5,6 @@ runs on one thread (conftest.py)."""
 import dataclasses
 import json
 import math
-import os
 
 import pytest
 import torch
@@ -391,13 +390,11 @@ def test_plot_prediction_draws_modes():
 
 
 # ---------------------------------------------------------------------------------------------
-# Slow: a few minutes of training on the synthetic data (DIFFSTACK_SLOW=1 to run)
+# Slow: about a minute of training on the synthetic data
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(
-    os.environ.get("DIFFSTACK_SLOW") != "1", reason="about 1 minute of training; DIFFSTACK_SLOW=1"
-)
+@pytest.mark.slow
 def test_trained_predictor_beats_constant_velocity():
     data_synth = pytest.importorskip("data_synth")
     data = data_synth.make_dataset(8000, seed=0)
