@@ -24,7 +24,7 @@ import experiments as ex
 import runs
 import specs
 import train as tr
-from test_diffstack import TINY
+from conftest import TINY
 
 
 @pytest.fixture(scope="module")

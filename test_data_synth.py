@@ -14,12 +14,7 @@ import data_real
 import data_synth
 import diffstack as ds
 import runs
-from test_diffstack import SYNTH_CFG, TINY, small_dataset
-
-
-@pytest.fixture(scope="module")
-def small():
-    return small_dataset()
+from conftest import SYNTH_CFG, TINY
 
 
 # ---------------------------------------------------------------------------------------------

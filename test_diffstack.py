@@ -9,7 +9,6 @@ shared with them."""
 
 import dataclasses
 import math
-from dataclasses import dataclass, fields
 
 import pytest
 import torch
@@ -17,8 +16,7 @@ import torch
 import data_synth
 import diffstack as ds
 import train as tr
-
-DT = 0.5
+from conftest import DT, TINY, cast, make_batch, make_model, small_cfg
 
 
 def rk4_reference(s, u, dt, substeps=2000):
@@ -499,24 +497,12 @@ def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
             assert rel_err(a, b) < 1e-8
 
 
-def _cast(batch, dtype):
-    fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(batch)}
-    return dataclasses.replace(
-        batch,
-        **{
-            k: v.to(dtype)
-            for k, v in fields.items()
-            if torch.is_tensor(v) and v.is_floating_point()
-        },
-    )
-
-
 def test_closed_form_cost_expansion_matches_autodiff(small):
     """StackCost.expansion (the closed form the controller uses) equals forward-over-reverse
     autodiff of the same cost, on synthetic scenes with states on lanes, past a lane's end
     (clamped projection) and with no lane."""
     cfg = ds.Config()
-    b = _cast(small.train[:64], torch.float64)
+    b = cast(small.train[:64], torch.float64)
     b = dataclasses.replace(b, lanes_mask=b.lanes_mask.clone())
     b.lanes_mask[:3] = False  # three scenarios without lanes
     B = len(b)
@@ -772,122 +758,6 @@ def test_unconverged_scenarios_get_no_gradient():
 # ---------------------------------------------------------------------------------------------
 # Predictor
 # ---------------------------------------------------------------------------------------------
-
-
-# ---------------------------------------------------------------------------------------------
-# A stand-in for data_synth.Scenarios: the exact field names and shapes of data_synth.Scenarios,
-# with plausible agents (unicycle motion whose manoeuvre starts 1 s before t0, so history hints at
-# it).
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class FakeScenarios:
-    ego_hist: torch.Tensor
-    ego_fut: torch.Tensor
-    agent_hist: torch.Tensor
-    agent_hist_mask: torch.Tensor
-    agent_fut: torch.Tensor
-    others_hist: torch.Tensor
-    others_fut: torch.Tensor
-    others_mask: torch.Tensor
-    others_is_ped: torch.Tensor
-    lanes: torch.Tensor
-    lanes_mask: torch.Tensor
-    goal: torch.Tensor
-    behaviour: torch.Tensor
-
-    def __len__(self):
-        return len(self.ego_hist)
-
-    def __getitem__(self, idx):
-        return FakeScenarios(*[getattr(self, f.name)[idx] for f in fields(self)])
-
-    def replace(self, **kw):
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
-        d.update(kw)
-        return FakeScenarios(**d)
-
-    @staticmethod
-    def cat(items):
-        return FakeScenarios(
-            *[torch.cat([getattr(b, f.name) for b in items]) for f in fields(FakeScenarios)]
-        )
-
-
-def make_batch(B=32, A=4, seed=0, dtype=torch.float64):
-    g = torch.Generator().manual_seed(seed)
-
-    def rnd(*s):
-        return torch.rand(*s, generator=g, dtype=dtype)
-
-    behaviour = torch.randint(0, 4, (B,), generator=g)
-    w = torch.tensor([0.0, 0.25, -0.25, 0.0], dtype=dtype)[behaviour]
-    a = torch.tensor([0.0, 0.0, 0.0, -1.5], dtype=dtype)[behaviour]
-    s = torch.stack(
-        [5 + 20 * rnd(B), -10 + 20 * rnd(B), math.pi * (2 * rnd(B) - 1), 3 + 7 * rnd(B)], -1
-    )
-    states = [s]
-    for t in range(14):
-        u = torch.stack([w, a], -1) * (t >= 6)
-        s = ds.unicycle_step(states[-1], u, DT)
-        s = torch.stack([s[:, 0], s[:, 1], s[:, 2], s[:, 3].clamp(min=0)], -1)
-        states.append(s)
-    traj = torch.stack(states, 1)  # (B, 15, 4), t0 at index 8
-    # the ego drives along +x through the origin at t0
-    ve = 4 + 6 * rnd(B, 1)
-    tt = DT * torch.arange(-8, 7, dtype=dtype)
-    ego = torch.stack([ve * tt, 0 * tt.expand(B, -1), 0 * tt.expand(B, -1), ve.expand(-1, 15)], -1)
-    # other agents: constant velocity, some padding, some pedestrians
-    o0 = torch.stack(
-        [60 * rnd(B, A) - 30, 60 * rnd(B, A) - 30, math.pi * (2 * rnd(B, A) - 1), 8 * rnd(B, A)], -1
-    )
-    vel = torch.stack([o0[..., 3] * torch.cos(o0[..., 2]), o0[..., 3] * torch.sin(o0[..., 2])], -1)
-    pos = o0[..., None, :2] + tt[:, None] * vel[..., None, :]  # (B, A, 15, 2)
-    others = torch.cat([pos, o0[..., None, 2:].expand(-1, -1, 15, -1)], -1)
-    others_mask = rnd(B, A) < 0.7
-    others = others * others_mask[..., None, None]
-    return FakeScenarios(
-        ego_hist=ego[:, :9],
-        ego_fut=ego[:, 9:],
-        agent_hist=traj[:, :9],
-        agent_hist_mask=torch.ones(B, 9, dtype=torch.bool),
-        agent_fut=traj[:, 9:],
-        others_hist=others[:, :, :9],
-        others_fut=others[:, :, 9:],
-        others_mask=others_mask,
-        others_is_ped=rnd(B, A) < 0.3,
-        lanes=torch.zeros(B, 1, 40, 3, dtype=dtype),
-        lanes_mask=torch.zeros(B, 1, 40, dtype=torch.bool),
-        goal=ego[:, -1],
-        behaviour=behaviour,
-    )
-
-
-def small_cfg(**kw):
-    return ds.Config(**{"pred_modes": 5, "pred_dec_hidden": 16, "batch_size": 16, **kw})
-
-
-def make_model(cfg, seed=0):
-    torch.manual_seed(seed)
-    return ds.Predictor(cfg).double()
-
-
-# ---------------------------------------------------------------------------------------------
-# Synthetic data, shared with test_train.py and test_data_synth.py
-# ---------------------------------------------------------------------------------------------
-
-SYNTH_CFG = data_synth.SynthConfig()
-
-
-def small_dataset():
-    """120 synthetic samples: what the fixture `small` of each test file holds."""
-    return data_synth.make_dataset(120, SYNTH_CFG, seed=0)
-
-
-@pytest.fixture(scope="module")
-def small():
-    return small_dataset()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1244,8 +1114,6 @@ def test_gradients_through_the_covariance_propagation():
 # ---------------------------------------------------------------------------------------------
 # The stack end to end
 # ---------------------------------------------------------------------------------------------
-
-TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,7 @@ import torch
 import data_synth
 import diffstack as ds
 import train as tr
-from test_diffstack import DT, TINY, _cast, make_batch, make_model, small_cfg, small_dataset
-
-
-@pytest.fixture(scope="module")
-def small():
-    return small_dataset()
+from conftest import DT, TINY, cast, make_batch, make_model, small_cfg
 
 
 # ---------------------------------------------------------------------------------------------
@@ -157,7 +152,7 @@ def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weigh
     zero. With train_plan_weights='prior' the planner sees p(z|x), as at evaluation, and the losses
     train it."""
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16, train_plan_weights=weights)
-    b = _cast(small.train[:32], torch.float64)
+    b = cast(small.train[:32], torch.float64)
     model = make_model(cfg)
     out = ds.run_stack(b, model, tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
     (out.l_plan.mean() + out.l_ctr.mean()).backward()
@@ -177,7 +172,7 @@ def test_a_method_chooses_its_own_planner_weights(small):
     """Method.train_plan_weights overrides the Config's for that method only (the ablation's
     prior-weights rows)."""
     cfg = ds.Config(pred_modes=5, pred_dec_hidden=16)  # posterior by default
-    b = _cast(small.train[:32], torch.float64)
+    b = cast(small.train[:32], torch.float64)
     for weights, reaches in ((None, False), ("prior", True), ("posterior", False)):
         model = make_model(cfg)
         out = ds.run_stack(
