@@ -148,6 +148,31 @@ from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABL
 CURVE_SAMPLES = 512
 
 
+def method_key(m: Method) -> tuple:
+    """A method by what it trains with, in names and numbers (a callable weighting by its
+    qualified name, never the object: an object's text holds its address)."""
+    w = m.weighting
+    weighting = w if isinstance(w, str) else f"{w.__module__}.{w.__qualname__}"
+    return (m.name, m.predictor, tuple(m.losses), weighting, m.train_plan_weights)
+
+
+def spec_key(spec: TableSpec) -> dict:
+    """What a table's spec sets that moves its numbers, by value: its kind, setting, target
+    offset, rows and ablation sections (and the goals of the goal table); not its title, columns,
+    claims or the paper's numbers, which are text."""
+    return dict(
+        kind=spec.kind,
+        setting=spec.setting,
+        pred_offset=spec.pred_offset,
+        methods=[method_key(m) for m in spec.methods],
+        sections=[
+            (title, sorted(kw.items()), [method_key(m) for m in methods])
+            for title, kw, methods in spec.sections
+        ],
+        goals=list(GOALS) if spec.kind == "goal" else None,
+    )
+
+
 def training_key(
     m: Method, cfg: Config, setting, epochs, seed, pred_offset=0.0, device="cpu", **stack_kw
 ) -> tuple:
@@ -166,7 +191,7 @@ def training_key(
     plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
     key = (
         a,
-        m.weighting,
+        method_key(m)[3],  # the weighting, by name
         seed,
         epochs,
         pred_offset,
@@ -1521,7 +1546,9 @@ def run_experiment(
     # no run wrote outputs here: check before hashing the data
     if root is None or not (root / "outputs").is_dir():
         check_outputs(names, out_dir, overwrite)
-    store = RunStore(root, run_key(data, cfg, epochs, device))
+    store = RunStore(
+        root, run_key(data, cfg, epochs, device), {n: spec_key(SPECS[n]) for n in names}
+    )
     manifest = outputs_manifest(out, name, seeds or (), store.key)
     check_outputs(
         names, out_dir, overwrite, ours=ours_files(out, [manifest]) if root is not None else ()

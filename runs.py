@@ -227,36 +227,48 @@ def save_atomic(obj, path) -> None:
 
 
 # the code a table's numbers come from
+# The modules whose code makes a run's numbers. specs.py is not one: what a table's spec sets that
+# moves numbers (its methods, setting, offset, sections) is part of the table's own key, by value
+# (experiments.spec_key), and its titles, columns and the paper's numbers are text.
 NUMBER_MODULES = (
     "diffstack.py",
     "train.py",
+    "lab/ddp.py",
     "data_synth.py",
     "data_real.py",
     "experiments.py",
-    "specs.py",
 )
 
 
-class _NoStrings(ast.NodeTransformer):
-    """Drops every statement that is a string and nothing else: a docstring, or a field's docstring
-    in Config."""
+class _NoText(ast.NodeTransformer):
+    """Drops what is text for people: every statement that is a string and nothing else (a
+    docstring, or a field's docstring in Config), and every string or f-string with a space in its
+    text (a log line, an error message, a title, markdown), which becomes ''. A string without a
+    space (a key, a name such as 'rl', 'distance' or f'rel_{key}') is code."""
 
     def visit_Expr(self, node):
-        return (
-            None
-            if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)
-            else node
-        )
+        if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            return None
+        return self.generic_visit(node)
+
+    def visit_JoinedStr(self, node):
+        parts = [v.value for v in node.values if isinstance(v, ast.Constant)]
+        return ast.Constant("") if any(c.isspace() for p in parts for c in p) else node
+
+    def visit_Constant(self, node):
+        if isinstance(node.value, str) and any(c.isspace() for c in node.value):
+            return ast.Constant("")
+        return node
 
 
 # parsing the three modules takes about 0.4 s; a run asks once per work unit
 @functools.lru_cache(maxsize=8)
 def code_of(source: str) -> str:
-    """A module's code without what cannot change a number: its comments, docstrings and layout. The
-    source is parsed, every statement that is only a string (a docstring, a Config field's
-    docstring) dropped, and the tree written back out by ast.unparse, so a re-wrapped line or an
-    edited comment or docstring gives the same text; any other change does."""
-    tree = _NoStrings().visit(ast.parse(source))
+    """A module's code without what cannot change a number: its comments, layout and text. The
+    source is parsed, its text dropped (_NoText: docstrings, log lines, messages, titles) and the
+    tree written back out by ast.unparse, so a re-wrapped line or an edited comment, docstring, log
+    line or title gives the same code; any other change does not."""
+    tree = _NoText().visit(ast.parse(source))
     for node in ast.walk(tree):
         if getattr(node, "body", None) == []:  # a function or class that held only its docstring
             node.body = [ast.Pass()]
@@ -266,7 +278,8 @@ def code_of(source: str) -> str:
 def code_version() -> str:
     """The code a run's numbers come from: a hash of the code of the modules that make them
     (NUMBER_MODULES, as code_of reads them), so that any change to their code is a new run, while a
-    commit of the README, the tests or the notebook, or of a comment or docstring, is not.
+    commit of the README, the tests or the notebook, or of a comment, docstring or log line, is
+    not.
     (ast.unparse is Python's own: under another Python version the same code may read as new, a new
     run, never a mixed one.)"""
     here = pathlib.Path(__file__).resolve().parent
@@ -352,13 +365,15 @@ class RunStore:
     """A run's pieces and models: under root (<out>/.runs) on disk, or in memory when root is None
     (nothing is resumed)."""
 
-    def __init__(self, root, key: str):
+    def __init__(self, root, key: str, table_keys: dict | None = None):
         self.root = pathlib.Path(root) if root is not None else None
         self.key = key
+        # {table: what its spec sets that moves numbers (by value)}: part of its folder's key
+        self.table_keys = table_keys or {}
         self.memory = {}
 
     def table_dir(self, table: str) -> pathlib.Path:
-        return self.root / table / sha(self.key, table)[:16]
+        return self.root / table / sha(self.key, table, self.table_keys.get(table))[:16]
 
     def path(self, table: str, piece) -> pathlib.Path:
         return self.table_dir(table) / f"{piece.stem}.json"
@@ -477,11 +492,11 @@ def pool(jobs: int):
     )
 
 
-def _worker(compute, table: str, pieces: list, root: str, key: str, about, verbose: bool) -> int:
-    """A worker process: compute and save some pieces of one table, on one thread. Returns
-    how many."""
+def _worker(compute, table: str, pieces: list, store: RunStore, about, verbose: bool) -> int:
+    """A worker process: compute and save some pieces of one table into the store (its root and
+    keys), on one thread. Returns how many."""
     torch.set_num_threads(1)
-    store = RunStore(root, key)
+    store = RunStore(store.root, store.key, store.table_keys)
     models = {}
     log = (
         (lambda text: print(f"[{table} seed {pieces[0].seed}] {text}", flush=True))
@@ -507,9 +522,7 @@ def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=
     abouts = abouts or {}
     with pool(min(jobs, len(units))) as workers:
         futures = [
-            workers.submit(
-                _worker, compute, name, ps, str(store.root), store.key, abouts.get(name), verbose
-            )
+            workers.submit(_worker, compute, name, ps, store, abouts.get(name), verbose)
             for name, ps in units
         ]
         try:

@@ -777,23 +777,57 @@ def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monke
     assert set(runs.NUMBER_MODULES) == {
         "diffstack.py",
         "train.py",
+        "lab/ddp.py",
         "data_synth.py",
         "data_real.py",
         "experiments.py",
-        "specs.py",
     }
-    for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py"):
+    (tmp_path / "lab").mkdir()
+    for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py", "specs.py"):
         (tmp_path / name).write_text(f"# {name}\nx = 1\n")
     monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
     versions = {runs.code_version()}
-    # the tests, the docs, the notebook: the same run
-    for name in ("README.md", "test_x.py", "tutorial.py"):
+    # the tests, the docs, the notebook, the specs' text: the same run
+    for name in ("README.md", "test_x.py", "tutorial.py", "specs.py"):
         (tmp_path / name).write_text("# edited\nx = 2\n")
         assert runs.code_version() in versions
     for name in runs.NUMBER_MODULES:  # each module that makes numbers: a new run
         (tmp_path / name).write_text(f"# {name}\nx = 2\n")
         versions.add(runs.code_version())
     assert len(versions) == 1 + len(runs.NUMBER_MODULES)
+
+
+def _distance_like(batch):
+    """A weighting defined as a function, as a user's Method(weighting=...) would be."""
+    return tr.distance_weights(batch)
+
+
+def test_a_tables_key_follows_its_numbers_not_its_text(tmp_path):
+    """A table's folder of kept pieces is keyed on what its spec sets that moves numbers (rows,
+    setting, offset, sections), by value: a new title or column header keeps every piece, a changed
+    row or offset is a new folder. A callable weighting is keyed by its name, never by the object
+    (whose text holds a memory address that differs in every process)."""
+    spec = specs.TABLE2
+
+    def folder(s):
+        return runs.RunStore(tmp_path, "k", {s.name: ex.spec_key(s)}).table_dir(s.name)
+
+    same = dataclasses.replace(spec, title="Table 2, retitled", columns=spec.columns[:2])
+    assert folder(same) == folder(spec)
+    for changed in (
+        dataclasses.replace(spec, pred_offset=2.0),
+        dataclasses.replace(spec, methods=spec.methods[:-1]),
+        dataclasses.replace(
+            spec, methods=(*spec.methods[:2], tr.Method("DiffStack-biased", losses=(1, 0, 1)))
+        ),
+    ):
+        assert folder(changed) != folder(spec)
+    m = tr.Method("Mine", weighting=_distance_like)
+    key = ex.training_key(m, ds.Config(), "rl", 1.0, 0)
+    assert "0x" not in repr(key) and key == ex.training_key(
+        tr.Method("Mine", weighting=_distance_like), ds.Config(), "rl", 1.0, 0
+    )
+    assert key[1] == "test_experiments._distance_like"
 
 
 CODE = '''"""A module."""
@@ -824,6 +858,7 @@ def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monke
     """An edited comment or docstring or a re-wrapped line is the same run (hours of pieces kept); a
     changed number, name or string is a new one. (SAME_CODE's comment stands before the docstring:
     the string is then still the function's first statement, its docstring.)"""
+    (tmp_path / "lab").mkdir()
     for name in runs.NUMBER_MODULES:
         (tmp_path / name).write_text(CODE)
     monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
@@ -839,8 +874,24 @@ def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monke
     ):
         (tmp_path / "diffstack.py").write_text(CODE.replace(*edit))
         assert runs.code_version() != before, edit
-    # a string that is not a docstring is code: the tables' texts are made of such strings
+    # a string without a space is code (a key, a name); one with a space, or an f-string, is
+    # text (a log line, a message, a title): editing it is the same run
     assert runs.code_of('x = "a"\n') != runs.code_of('x = "b"\n')
+    assert runs.code_of('if s == "rl":\n    y = 1\n') != runs.code_of('if s == "il":\n    y = 1\n')
+    for text, typo in (
+        ('log(f"step {i} of {n}")\n', 'log(f"setp {i} of {n}")\n'),
+        (
+            'raise ValueError("--epochs: expected a number")\n',
+            'raise ValueError("--epochs: a number")\n',
+        ),
+        (
+            'TITLE = "Table 1: reinforcement learning"\n',
+            'TITLE = "Table 1: reinforcment learning"\n',
+        ),
+        ('f(x, "| Method | ADE |")\n', 'f(x, "| Method | ADE (m) |")\n'),
+    ):
+        assert runs.code_of(text) == runs.code_of(typo), text
+    assert runs.code_of('k = f"rel_{key}"\n') != runs.code_of('k = f"abs_{key}"\n')
     assert runs.code_of('def g():\n    """Doc."""\n') == runs.code_of("def g():\n    pass\n")
     # a dataclass field's docstring (Config's) is a string statement too; the field's
     # default is code
