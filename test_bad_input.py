@@ -371,6 +371,7 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     assert "--quick or --pretrain" in cli_error(tr.main, ["--quick", "--pretrain"], capsys)
 
 
+@pytest.mark.slow
 def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatch, capsys, batch):
     """--render of a truncated results file, and --quick over a broken shipped predictor: one line
     naming the file, exit code 2, no traceback."""

@@ -26,6 +26,7 @@ def installed(name):
     return importlib.util.find_spec(name) is not None
 
 
+@pytest.mark.slow
 def test_quick_run_writes_json(tmp_path, capsys):
     path = tmp_path / "b.json"
     threads_before = torch.get_num_threads()
@@ -107,6 +108,7 @@ def test_quick_run_writes_json(tmp_path, capsys):
     assert {f"lqr_diffstack_tight_umax{u:g}_fwd_bwd" for u in bench.LQR_UMAX} <= keys
 
 
+@pytest.mark.slow
 def test_bounded_lqr_alone_writes_its_json(tmp_path, capsys):
     path = tmp_path / "lqr.json"
     doc = bench.main(["--bounded-lqr", "--quick", "--json", str(path)])

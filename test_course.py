@@ -51,6 +51,7 @@ def grade(path, **kw):
     return course.grade(path, lines.append, **kw), lines
 
 
+@pytest.mark.slow
 def test_reference_answers_score_full_marks_in_a_notebook_and_a_file(tmp_path, capsys):
     result, lines = grade(notebook(tmp_path, [solution(n) for n in NAMES]))
     assert all(v is True for v in result.values()), lines
@@ -61,6 +62,7 @@ def test_reference_answers_score_full_marks_in_a_notebook_and_a_file(tmp_path, c
     assert capsys.readouterr().out == ""  # nothing but the grader's lines (here: into `lines`)
 
 
+@pytest.mark.slow
 def test_the_stub_notebook_scores_zero_and_prints_nothing_else(capsys):
     result = course.grade(REPO / "tutorial.ipynb")
     out = capsys.readouterr().out.splitlines()
@@ -69,6 +71,7 @@ def test_the_stub_notebook_scores_zero_and_prints_nothing_else(capsys):
     assert len(out) == 7 and all(line.startswith("  exercise") for line in out[:-1]), out
 
 
+@pytest.mark.slow
 def test_one_wrong_answer_fails_alone_and_says_what_differs(tmp_path):
     """Exercise 6 wrong (p_0 with the wrong sign), and an assert that fails in its cell after the
     definition (as a notebook's own test would): 5 of 6, one line naming what is wrong."""
@@ -80,6 +83,7 @@ def test_one_wrong_answer_fails_alone_and_says_what_differs(tmp_path):
     assert lines[-1].endswith("score 5/6")
 
 
+@pytest.mark.slow
 def test_magics_shell_lines_test_calls_and_helper_cells_do_not_sink_right_answers(tmp_path):
     """A %%time cell, a line magic, a shell line, a test call on a notebook variable that the
     grader never defines, a helper function in a cell of its own, a constant in another: every
@@ -103,6 +107,7 @@ def test_magics_shell_lines_test_calls_and_helper_cells_do_not_sink_right_answer
     assert all(v is True for v in result.values()), lines
 
 
+@pytest.mark.slow
 def test_an_exit_a_nan_or_an_endless_loop_fails_that_exercise_alone(tmp_path):
     cells = [
         "import sys\n"
@@ -140,6 +145,7 @@ def test_a_cell_that_does_not_parse_is_named(tmp_path):
     assert result[2] is True
 
 
+@pytest.mark.slow
 def test_the_command_line_grades_every_file_and_owns_the_exit_status(tmp_path):
     """A file whose answer calls sys.exit(0) does not end the grading: the next file is graded,
     the status is 1 (not every exercise passes), the CSV has a row per file and is not replaced
@@ -286,6 +292,7 @@ def test_the_interactive_planner_computes_what_it_draws(monkeypatch):
     assert course.interactive_planner(ex, cfg, [((0.0, 0.0), 1.0)]) is None
 
 
+@pytest.mark.slow
 def test_the_committed_notebook_with_one_answer_right_and_one_wrong(tmp_path):
     """The student notebook with exercise 1 solved and exercise 2 wrong (the valid mask left out):
     1 of 6, exercise 2's line saying what failed, the others not done."""

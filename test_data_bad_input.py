@@ -836,6 +836,7 @@ CORRUPTIONS = [
 N_CASES = 300
 
 
+@pytest.mark.slow
 def test_random_corruptions_load_or_fail_cleanly(valid, tmp_path):
     rng = random.Random(20260)
     outcomes = {c.__name__[2:]: collections.Counter() for c in CORRUPTIONS}
@@ -903,6 +904,7 @@ MUTANTS = (
 )
 
 
+@pytest.mark.slow
 def test_random_mutations_of_a_folder_are_read_or_refused_by_name(valid, tmp_path):
     """300 seeded mutations, each a random field (a numeric one more often than not) of a random
     record of a random table set to a value of another kind or out of range: the reader either reads

@@ -1121,7 +1121,7 @@ def synth_small():
     return data_synth.make_dataset(300, seed=1)
 
 
-@pytest.mark.parametrize("plan_dt", [None, 0.1])
+@pytest.mark.parametrize("plan_dt", [None, pytest.param(0.1, marks=pytest.mark.slow)])
 def test_end_to_end_gradient_matches_finite_differences(synth_small, plan_dt):
     """dL/dtheta through predictor, relaxed planner and iLQR (KKT backward) against central
     differences; plan_dt = 0.1: also through the interpolation of the predicted modes to the

@@ -241,6 +241,7 @@ def largest_differences(one, other) -> dict:
 EXACT = 1e-10
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [c[0] for c in cases()])
 def test_ddp_step_equals_single_process_step(both, name):
     single, ddp = both
@@ -333,6 +334,7 @@ ONE_FLIP = {
 }
 
 
+@pytest.mark.slow
 def test_experiments_cli_on_two_processes(tmp_path):
     """experiments.py as torchrun starts it, on 2 processes: only rank 0 writes files and prints,
     the command and the machine are recorded, and the table has the single-process table's rows,

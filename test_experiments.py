@@ -501,6 +501,7 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
     assert line.split("|")[1:4] == [" DiffStack ", " 1 ", " -- "]
 
 
+@pytest.mark.slow
 def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypatch):
     """--experiment all: a predictor trained the same way is trained once and reused by every table
     (Standard: Tables 1, 3, 4, 5 and each ablation section); the report links every figure."""

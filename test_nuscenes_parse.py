@@ -58,6 +58,7 @@ def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
     assert _files(tmp_path) == [data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
 
 
+@pytest.mark.slow
 def test_a_second_parse_into_a_cache_being_written_is_refused(
     folder, tmp_path, lock_held_elsewhere
 ):
@@ -75,6 +76,7 @@ def test_a_second_parse_into_a_cache_being_written_is_refused(
     assert len(list(tmp_path.glob("*.pt"))) == 1
 
 
+@pytest.mark.slow
 def test_a_changed_table_invalidates_the_cache(folder, tmp_path):
     changed = tmp_path / "changed"
     shutil.copytree(folder, changed)

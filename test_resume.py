@@ -182,6 +182,7 @@ def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(
     )
 
 
+@pytest.mark.slow
 def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
     cfg = ds.Config(**TINY10)
     t0 = time.time()
@@ -464,6 +465,7 @@ def _children(pid: int) -> set:
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
 @pytest.mark.parametrize("how", ["kill -9", "Ctrl-C", "kill -INT"])
 def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
@@ -555,6 +557,7 @@ def test_a_worker_that_dies_stops_the_run_saying_so(tmp_path):
         )
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="reads the process table from /proc")
 def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
     """kill -9 of torchrun (its agent) mid-training: the ranks it started end too."""

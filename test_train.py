@@ -407,6 +407,7 @@ def test_trained_predictor_beats_constant_velocity():
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_quick_runs_and_same_seed_same_table(tmp_path):
     cfg = ds.Config(**TINY)
     lines = []
@@ -446,6 +447,7 @@ def test_quick_runs_and_same_seed_same_table(tmp_path):
     assert [strip(r) for r in first] == [strip(r) for r in second]
 
 
+@pytest.mark.slow
 def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path):
     """--pretrain writes the predictors and their provenance; --quick loads them
     (sha256 checked, weights_only) and shows them beside the baselines; a changed file, or another

@@ -38,6 +38,7 @@ def test_the_comparison_catches_a_changed_cell():
     assert cell_sources(source) != cell_sources(changed)
 
 
+@pytest.mark.slow
 def test_tutorial_notebook_runs_in_quick_mode(monkeypatch):
     """The student notebook (tutorial.py) with solutions.py injected executes top to bottom from a
     fresh kernel in quick mode (cwd = the repository) with no error, every exercise check passes,
