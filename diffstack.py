@@ -292,6 +292,12 @@ class Unicycle:
 #   step's state and control: the controller relies on the cost's Hessian being block-diagonal in
 #   time.
 
+# The terms of eq. (3) by name, in the order of every weight vector w (Config.w_<name>) and every
+# tensor of terms (..., len(COST_TERMS)): the collision term, the only one a prediction enters,
+# first; then the terms of the scene alone (scene_terms), which the planner computes once per scene.
+SCENE_TERMS = ("goal", "lat", "head", "ctrl")
+COST_TERMS = ("coll", *SCENE_TERMS)
+
 
 @dataclass
 class CostContext:
@@ -443,15 +449,15 @@ def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: floa
 
 
 def cost_weights(cfg: Config, dtype=torch.float32, device=None) -> torch.Tensor:
-    """The hand-tuned weights (w1..w5) of App. C.3."""
-    w = [cfg.w_coll, cfg.w_goal, cfg.w_lat, cfg.w_head, cfg.w_ctrl]
+    """The hand-tuned weights (w1..w5) of App. C.3, in COST_TERMS' order."""
+    w = [getattr(cfg, f"w_{name}") for name in COST_TERMS]
     return torch.tensor(w, dtype=dtype, device=device)
 
 
 def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Eq. (3): C = sum_i w_i C_i. terms (B, ..., 5), w (5,) or per scenario (B, 5) -> (B, ...)."""
     if w.dim() == 2:
-        w = w.reshape(w.shape[0], *([1] * (terms.dim() - 2)), 5)
+        w = w.reshape(w.shape[0], *([1] * (terms.dim() - 2)), len(COST_TERMS))
     return (terms * w).sum(-1)
 
 
@@ -517,7 +523,8 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
       C_u     w^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
     eye = torch.eye(2, dtype=x.dtype, device=x.device)
-    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, 5)[:, :, None, None].unbind(1)  # (B, 1, 1)
+    # each (B, 1, 1)
+    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, len(COST_TERMS))[:, :, None, None].unbind(1)
     p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
     g_coll, H_coll = _collision_expansion(p, ctx, rbf_var)
     g_lat, H_lat, g_head, H_head = _lane_expansion(p, h, ctx)
@@ -1656,7 +1663,7 @@ def control(s0, plan_out: Plan, ctx, w, cfg: Config, substeps, planner=True, con
     if not controller:
         return x_plan, u_plan, torch.ones(B, dtype=torch.bool, device=s0.device)
     u_init = u_plan if planner else torch.zeros_like(u_plan)
-    params = (w.expand(B, 5), *ctx.tensors())  # every parameter per scenario
+    params = (w.expand(B, len(COST_TERMS)), *ctx.tensors())  # every parameter per scenario
     cost = StackCost(cfg.rbf_var)
     dynamics = Unicycle(cfg.dt / substeps)
     settings = dict(iters=cfg.ilqr_iters, tol=cfg.ilqr_tol)
@@ -1726,7 +1733,7 @@ def run_stack(
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
     **dict.fromkeys(["hist_len", "horizon"], (1, 100)),
-    **dict.fromkeys(["w_coll", "w_goal", "w_lat", "w_head", "w_ctrl"], (0, 1e6)),
+    **dict.fromkeys([f"w_{name}" for name in COST_TERMS], (0, 1e6)),
     **dict.fromkeys(["rbf_var", "beta"], (1e-6, 1e6)),
     **dict.fromkeys(["goal_lane_dist", "feas_lat_accel", "feas_yaw_per_speed"], (1e-6, 1e4)),
     "goal_lane_heading": (1e-6, 7),

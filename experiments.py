@@ -51,6 +51,7 @@ import data_real
 import data_synth
 import figures
 from diffstack import (
+    COST_TERMS,
     Config,
     Predictor,
     cost_contexts,
@@ -646,7 +647,8 @@ def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) ->
             rows = out.plannable & (batch.behaviour == b)
             name = data_synth.BEHAVIOURS[b] if b >= 0 else "real"
             acc = sums.setdefault(
-                name, dict(n=0, hindsight=0.0, terms=torch.zeros(5, dtype=torch.float64))
+                name,
+                dict(n=0, hindsight=0.0, terms=torch.zeros(len(COST_TERMS), dtype=torch.float64)),
             )
             acc["n"] += rows.sum().item()
             acc["hindsight"] += out.hindsight[rows].sum().item()

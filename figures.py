@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 import data_synth
-from diffstack import Config, Prediction, StackOutput, masked_argmin, run_stack
+from diffstack import COST_TERMS, Config, Prediction, StackOutput, masked_argmin, run_stack
+from specs import COST_LABELS
 from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, mean_se, to_device
 
 
@@ -507,7 +508,7 @@ def figure_cost_weights(results: dict, path, source: str = ""):
     written in its place instead (returned too), never dropped."""
     import matplotlib.pyplot as plt
 
-    names = ["w'1 coll", "w'2 goal", "w'3 lane", "w'4 heading", "w'5 control", "alpha"]
+    names = [f"w'{i + 1} {COST_LABELS.get(t, t)}" for i, t in enumerate(COST_TERMS)] + ["alpha"]
     fig, ax = plt.subplots(figsize=(7, 3.2))
     x = np.arange(len(names))
     notes = []

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+from diffstack import COST_TERMS
 from train import GT_PREDICTION, NO_PREDICTION, TABLE1_METHODS, Method
 
 
@@ -167,9 +168,11 @@ TABLE2 = TableSpec(
     ),
 )
 
+# Table 3's header for each term of eq. (3) (diffstack.COST_TERMS; a term without one: its name)
+COST_LABELS = {"coll": "coll", "goal": "goal", "lat": "lane", "head": "heading", "ctrl": "control"}
 COST_COLUMNS = tuple(
-    Column(f"w'{i + 1} ({t})", lambda r, i=i: r["w"][i], "{:.3f}")
-    for i, t in enumerate(("coll", "goal", "lane", "heading", "control"))
+    Column(f"w'{i + 1} ({COST_LABELS.get(t, t)})", lambda r, i=i: r["w"][i], "{:.3f}")
+    for i, t in enumerate(COST_TERMS)
 ) + (
     Column("alpha", "alpha", "{:.3f}"),
     Column("Planning loss", "plan_loss", "{:.3f}"),

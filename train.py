@@ -50,6 +50,7 @@ from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 )
 from diffstack import (
+    COST_TERMS,
     Candidates,
     Config,
     Prediction,
@@ -260,7 +261,7 @@ class CostWeights(nn.Module):
         w0 = cost_weights(cfg, torch.float32)  # (5,)
         self.register_buffer("w_coll", w0[:1].clone())  # (1,) w'_1, fixed: not a parameter
         self.register_buffer("c", w0[1:].sum())  # the sum of w'_2..5
-        self.psi = nn.Parameter(w0[1:].log())  # (4,) goal, lane, heading, control
+        self.psi = nn.Parameter(w0[1:].log())  # (4,) the SCENE_TERMS' weights
         # alpha = exp(0) = 1
         self.log_alpha = nn.Parameter(torch.zeros((), dtype=w0.dtype, device=w0.device))
 
@@ -1129,10 +1130,12 @@ def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
     coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
     lanes = scenes.lanes.to(x.dtype)
     lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], lanes, scenes.lanes_mask)  # (S, N)
-    w = cost_weights(cfg, x.dtype, x.device)
+    w = dict(zip(COST_TERMS, cost_weights(cfg, x.dtype, x.device)))
     # (S, N) each
     parts = dict(
-        collision=w[0] * coll, lane=w[2] * lat + w[3] * head**2, control=w[4] * (u**2).sum(-1)
+        collision=w["coll"] * coll,
+        lane=w["lat"] * lat + w["head"] * head**2,
+        control=w["ctrl"] * (u**2).sum(-1),
     )
     out = {k: v.mean(-1) for k, v in parts.items()}
     out["trajectory"] = out["collision"] + out["lane"] + out["control"]
