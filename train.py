@@ -177,7 +177,7 @@ class Method:
             )
         if not callable(self.weighting) and self.weighting not in WEIGHTINGS:
             raise ValueError(
-                f"Method.weighting: expected one of {WEIGHTINGS} or a callable, got "
+                f"Method.weighting: expected one of {tuple(WEIGHTINGS)} or a callable, got "
                 f"{self.weighting!r}"
             )
         if self.train_plan_weights not in (None, "posterior", "prior"):
@@ -188,21 +188,6 @@ class Method:
 
 
 PREDICTORS = ("learned", "gt", "none")
-WEIGHTINGS = ("standard", "distance", "grad_cost")
-
-
-# The two reference rows every table of the planner is read against, by name
-NO_PREDICTION = Method("No prediction", "none")
-GT_PREDICTION = Method("GT prediction", "gt")
-TABLE1_METHODS = (
-    NO_PREDICTION,
-    Method("Standard"),
-    Method("Distance weighted", weighting="distance"),
-    Method("Grad-cost weighted", weighting="grad_cost"),
-    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
-    Method("DiffStack", losses=(1, 1, 1)),
-    GT_PREDICTION,
-)
 
 
 def alphas(method: Method, setting: str, cfg: Config):
@@ -280,7 +265,12 @@ class CostWeights(nn.Module):
         return self.alpha * self.normalised()
 
 
-def distance_weights(batch) -> torch.Tensor:
+def standard_weights(batch, cfg: Config | None = None) -> torch.Tensor:
+    """Standard: every scenario weighs 1 (B,)."""
+    return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
+
+
+def distance_weights(batch, cfg: Config | None = None) -> torch.Tensor:
     """Distance weighted (§4.1): 1 / mean_t ||ego GT_t - agent GT_t|| (B,), distances floored
     at 1 m."""
     d = (batch.ego_fut[..., :2] - batch.agent_fut[..., :2]).norm(dim=-1).mean(-1)  # (B,)
@@ -291,17 +281,9 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
     """Per-scenario weights of L_pred (B,), normalised to mean 1 in the batch (under DDP, shard: in
     the global batch of all processes, lab/ddp.py).
 
-    weighting: 'standard' (all 1), 'distance' (Distance weighted), 'grad_cost' (grad-Cost weighted,
-    `grad_cost_weights`, which needs the cost) or a callable batch -> (B,) raw weights.
+    weighting: a name in WEIGHTINGS, or a callable batch -> (B,) raw weights.
     """
-    if weighting == "standard":
-        return torch.ones(len(batch), dtype=batch.agent_fut.dtype, device=batch.agent_fut.device)
-    if weighting == "distance":
-        raw = distance_weights(batch)
-    elif weighting == "grad_cost":
-        raw = grad_cost_weights(batch, cfg)
-    else:
-        raw = weighting(batch)
+    raw = WEIGHTINGS[weighting](batch, cfg) if isinstance(weighting, str) else weighting(batch)
     raw = raw.detach().to(batch.agent_fut.dtype)  # (B,)
     if raw.shape != (len(batch),) or not torch.isfinite(raw).all() or (raw < 0).any():
         raise ValueError(
@@ -309,6 +291,28 @@ def scenario_weights(batch, weighting, cfg: Config, shard: Shard | None = None) 
         )
     mean = raw.mean(0) if shard is None else shard.mean(raw)
     return raw / mean if mean > 0 else torch.ones_like(raw)
+
+
+# L_pred's per-scenario weightings by name (§4.1): (batch, cfg) -> raw weights (B,)
+WEIGHTINGS = {
+    "standard": standard_weights,
+    "distance": distance_weights,
+    "grad_cost": grad_cost_weights,
+}
+
+
+# The two reference rows every table of the planner is read against, by name
+NO_PREDICTION = Method("No prediction", "none")
+GT_PREDICTION = Method("GT prediction", "gt")
+TABLE1_METHODS = (
+    NO_PREDICTION,
+    Method("Standard"),
+    Method("Distance weighted", weighting="distance"),
+    Method("Grad-cost weighted", weighting="grad_cost"),
+    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+    Method("DiffStack", losses=(1, 1, 1)),
+    GT_PREDICTION,
+)
 
 
 # ============================================================================================
