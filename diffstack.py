@@ -12,7 +12,7 @@ the planning and control losses.
     5. Controller    eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
     6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
-    8. Input checks  what the public entry points refuse, in one place
+    8. Checks        every Config field in its range, refused by name at construction
 Training and evaluation are in train.py (`python diffstack.py --quick` hands over to it).
 
 Shapes in comments: B scenarios, A other agents, K prediction modes, N planner candidates,
@@ -74,8 +74,7 @@ class Config:
     u_lower: tuple = (-0.7, -5.0)  # control lower bounds (yaw rate rad/s, accel m/s^2), authors'
     u_upper: tuple = (0.7, 4.0)  # control upper bounds
     ilqr_iters: int = 5  # maximum iLQR iterations
-    # converged when the full LQR control step's norm is below this (authors' code: 0.01)
-    ilqr_tol: float = 0.05
+    ilqr_tol: float = 0.05  # converged when the LQR step's norm is below this (authors': 0.01)
     line_search_steps: int = 5  # step scales tried: 1, 1/5, 1/25, ...
     line_search_decay: float = 5.0  # divide the step by this on failure
     # --- predictor, eq. (1), §3.1 (Trajectron++'s defaults, Salzmann et al. 2020) ---
@@ -99,8 +98,7 @@ class Config:
     pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
     pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(y_t) below at this
     pred_lr_decay: float = 0.9999  # learning rate multiplied by this after every iteration
-    # gradients clipped to [-c, c] elementwise (value clipping, as Trajectron++)
-    pred_grad_clip: float = 1.0
+    pred_grad_clip: float = 1.0  # gradients clipped to [-c, c] elementwise, as Trajectron++
     # --- training, §3.2, App. D ---
     alpha_rl: tuple = (1.0, 100.0, 1000.0)  # loss weights (L_pred, L_plan, L_ctr), RL setting
     alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
@@ -290,11 +288,8 @@ class Unicycle:
 # ===== 3. Cost, eq. (3) and App. C.3 ==============================================================
 #   C = w1 C_coll + w2 C_goal + w3 C_lat + w4 C_head + w5 C_u, a sum of per-step terms, each of one
 #   step's state and control: the controller relies on the cost's Hessian being block-diagonal in
-#   time.
-
-# The terms of eq. (3) by name, in the order of every weight vector w (Config.w_<name>) and every
-# tensor of terms (..., len(COST_TERMS)): the collision term, the only one a prediction enters,
-# first; then the terms of the scene alone (scene_terms), which the planner computes once per scene.
+#   time. The terms by name, in the order of w (Config.w_<name>) and of every tensor of terms:
+#   C_coll, the one a prediction enters, first; then those of the scene alone (scene_terms).
 SCENE_TERMS = ("goal", "lat", "head", "ctrl")
 COST_TERMS = ("coll", *SCENE_TERMS)
 
@@ -523,8 +518,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
       C_u     w^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
     eye = torch.eye(2, dtype=x.dtype, device=x.device)
-    # each (B, 1, 1)
-    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, len(COST_TERMS))[:, :, None, None].unbind(1)
+    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
     p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
     g_coll, H_coll = _collision_expansion(p, ctx, rbf_var)
     g_lat, H_lat, g_head, H_head = _lane_expansion(p, h, ctx)
@@ -1663,7 +1657,7 @@ def control(s0, plan_out: Plan, ctx, w, cfg: Config, substeps, planner=True, con
     if not controller:
         return x_plan, u_plan, torch.ones(B, dtype=torch.bool, device=s0.device)
     u_init = u_plan if planner else torch.zeros_like(u_plan)
-    params = (w.expand(B, len(COST_TERMS)), *ctx.tensors())  # every parameter per scenario
+    params = (w.expand(B, -1), *ctx.tensors())  # every parameter per scenario
     cost = StackCost(cfg.rbf_var)
     dynamics = Unicycle(cfg.dt / substeps)
     settings = dict(iters=cfg.ilqr_iters, tol=cfg.ilqr_tol)
@@ -1727,9 +1721,8 @@ def run_stack(
 
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
 # The method takes what Config, the command lines and the loaders (train.py, data_synth.py,
-# data_real.py) have checked; the math does not check its input again.
-
-# Every number of Config has a range (inclusive): no NaN or petabyte later.
+# data_real.py) have checked; the math does not check its input again. Every number of Config has a
+# range (inclusive): no NaN or petabyte later.
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
     **dict.fromkeys(["hist_len", "horizon"], (1, 100)),
