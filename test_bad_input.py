@@ -542,22 +542,6 @@ def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, 
         tr.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
 
 
-def test_quick_names_a_damaged_results_file_before_any_work(tmp_path, monkeypatch, capsys):
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "results").mkdir()
-    (tmp_path / "results" / "rl.json").write_text(
-        json.dumps(
-            dict(
-                meta=dict(META, seeds=[0], epochs=1),
-                results={"Standard": [{"rel_hindsight": "x"}]},
-            )
-        )
-    )
-    monkeypatch.setattr(tr, "experiment_data", lambda *a, **k: pytest.fail("work started"))
-    with pytest.raises(ValueError, match=r"results.Standard\[0\].rel_hindsight is not a number"):
-        tr.quick()
-
-
 def test_the_default_thread_count_leaves_out_the_cores_other_work_keeps_busy(monkeypatch, capsys):
     assert 0.0 <= runs.free_cores(0.05) <= os.cpu_count()
     for free, threads in ((2.0, 2), (1.6, 2), (1.0, 1), (0.2, 1), (7.5, 2)):

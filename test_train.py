@@ -3,7 +3,6 @@ metrics and plot, the shipped predictors, --quick and its story, and the command
 runs on one thread (conftest.py)."""
 
 import dataclasses
-import json
 import math
 
 import pytest
@@ -522,104 +521,38 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         tr.load_pretrained(tr.Method("Standard"), cfg, out)
 
 
-def test_quick_story_states_only_what_its_numbers_show():
-    def row(h, ade=1.0):
-        return [dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)]
+def test_quick_verdicts_are_computed_from_its_numbers():
+    """The order of the hindsight costs against the paper's, and DiffStack against Standard by the
+    paired t-test over the shipped seeds (a shipped method's rows are read by their mean)."""
 
-    def by(**v):
-        return {b: dict(n=10, hindsight=x) for b, x in v.items()}
+    def rows(*hs):
+        return [dict(rel_hindsight=h) for h in hs]
 
     res = {
-        "No prediction": [dict(row(0.0)[0], n=20, by_behaviour=by(keep_lane=1.0, cut_in=2.0))],
-        "Standard (20 epochs)": row(-0.5),
-        "DiffStack (20 epochs)": row(-1.5, 1.2),
-        "GT prediction": [dict(row(-2.0)[0], by_behaviour=by(keep_lane=0.7, cut_in=1.9))],
+        "No prediction": rows(0.0),
+        "Standard (40 epochs)": rows(-0.5, -0.6, -0.4),
+        "DiffStack (40 epochs)": rows(-0.9, -1.1, -0.8),
+        "GT prediction": rows(-2.0),
     }
-    lines = tr.quick_story(res, "no/such/folder")
-    assert lines[0] == (
+    order, test = tr.quick_verdicts(res)
+    assert order == (
         "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order "
         "(its Table 1)."
     )
-    assert "closes 67 % of the Standard -> GT prediction gap; its ADE is +20 %" in lines[1]
-    assert "75 % of it in keep_lane scenes" in lines[2]
-    # no results/rl.json there, nor Standard's breakdown by behaviour: no line about them
-    assert len(lines) == 3
-    # Standard's breakdown by behaviour (two seeds): what it gains where, and what it gives back
-    # where
-    res["Standard (20 epochs)"] = [
-        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.5, cut_in=2.2)),
-        dict(row(-0.5)[0], by_behaviour=by(keep_lane=0.7, cut_in=2.0)),
-    ]
-    # per seed: keep_lane -0.5 / -0.3, cut_in +0.2 / 0.0, 10 of 20 scenes each
-    line = tr.quick_story(res, "no/such/folder")[3]
-    assert line.startswith(
-        "And Standard gives part of it back: it gains 20.00e-2 in keep_lane, and loses 5.00e-2 in "
-        "cut_in"
+    # differences -0.4, -0.5, -0.4: mean -0.43, s.e. 0.033, t = -13, p = 0.006
+    assert test.startswith(
+        "DiffStack vs Standard, hindsight cost (x1e-2), paired over the 3 shipped seeds: "
+        "-0.43 ± 0.03 (p = 0.006, 3 of 3 seeds better): reproduced"
     )
-    res["DiffStack (20 epochs)"] = row(-0.2)  # worse than Standard: the line must say so
-    assert tr.quick_story(res, "no/such/folder")[0].startswith(
-        "Hindsight cost: GT < Standard < DiffStack < No prediction: NOT the paper's order"
-    )
-
-
-def test_quick_says_whether_the_committed_table_is_the_shipped_predictors_run(tmp_path):
-    def runs(h):
-        return [dict(rel_hindsight=h)]
-
-    res = {
-        "No prediction": [dict(rel_hindsight=0.0, hindsight=2.0, ade=1.0)],
-        "GT prediction": [dict(rel_hindsight=-2.0, hindsight=1.98)],
-    }
-    cfg = json.loads(json.dumps(dataclasses.asdict(ds.Config())))
-    # the same run: the same epochs, Config, validation set, and each shipped seed trained on its
-    # own draw, as pretrain
-    for epochs, shipped, val, draws, same in (
-        (20.0, [0, 1], 100, [0, 1], True),
-        (4.0, [0, 1], 100, [0, 1], False),
-        (20.0, [0, 1, 2], 100, [0, 1], False),
-        (20.0, [0, 1], 50, [0, 1], False),
-        (20.0, [0, 1], 100, None, False),
-        (20.0, [0, 1], 100, [0, 0], False),
-    ):
-        prov = dict(epochs=20.0, seeds=shipped, config=cfg, val=100)
-        meta = dict(seeds=[0, 1], epochs=epochs, config=cfg, val=val, data_seeds=draws)
-        (tmp_path / "rl.json").write_text(
-            json.dumps(
-                dict(
-                    meta=meta,
-                    results=dict(
-                        Standard=runs(-0.5), DiffStack=runs(-1.0), **{"GT prediction": runs(-2.0)}
-                    ),
-                )
-            )
-        )
-        line = tr.quick_story(res, tmp_path, prov)[-1]
-        assert line.startswith(f"The full Table 1 ({tmp_path}/rl.md: 2 seeds, {epochs:g} epochs)")
-        assert ("are its seeds 0-1." in line) == same and ("not the same experiment" in line) == (
-            not same
-        )
-
-
-def test_quick_story_reads_a_shipped_method_by_its_mean_over_seeds():
-    # two seeds of DiffStack, one better and one worse than Standard: the story follows their mean,
-    # not the first
-    def one(h, ade):
-        return dict(rel_hindsight=h, hindsight=2 + h / 100, ade=ade)
-
-    res = {
-        "No prediction": [one(0.0, 1.0)],
-        "GT prediction": [one(-2.0, 1.0)],
-        "Standard (20 epochs)": [one(-0.5, 1.0)],
-        "DiffStack (20 epochs)": [one(-0.4, 1.5), one(-1.6, 1.1)],
-    }
-    lines = tr.quick_story(res, "no/such/folder")
-    assert lines[0].startswith(
-        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order"
-    )
-    assert "its ADE is +30 % against Standard's" in lines[1]
-    # mean -0.45: above Standard's -0.5
-    res["DiffStack (20 epochs)"] = [one(-0.4, 1.5), one(-0.5, 1.1)]
-    assert "NOT the paper's order" in tr.quick_story(res, "no/such/folder")[0]
+    # one seed better, two worse: the mean above Standard's, the order and the test say so
+    res["DiffStack (40 epochs)"] = rows(-1.0, -0.3, -0.1)
+    order, test = tr.quick_verdicts(res)
+    assert "GT < Standard < DiffStack < No prediction: NOT the paper's order" in order
+    assert "1 of 3 seeds better): not reproduced" in test
+    # one seed: no standard error, untested
+    one = dict(res, **{"Standard (40 epochs)": rows(-0.5), "DiffStack (40 epochs)": rows(-0.9)})
+    assert "untested (one seed" in tr.quick_verdicts(one)[1]
+    assert tr.quick_verdicts({k: v for k, v in res.items() if "DiffStack" not in k}) == []
 
 
 @pytest.mark.parametrize(

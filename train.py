@@ -41,7 +41,6 @@ from runs import (
     load_json,
     one_line,
     ranks,
-    read_results,
     save_atomic,
     write_atomic,
 )
@@ -1451,11 +1450,10 @@ def quick(
     data. Standard and DiffStack trained for the tables' 40 epochs (shipped in pretrained/:
     Table 1's five seeds, so the rows are that table's, mean ± s.e.) beside No prediction and GT
     prediction; then both trained live for a few epochs so that the losses are seen to fall; then
-    what the numbers say, checked, and how they relate to results/."""
+    the verdicts computed from the numbers (quick_verdicts)."""
 
     torch.set_num_threads(threads)
     cfg = cfg or Config()
-    table1_results("results")  # (read at the end by quick_story: a damaged file named first)
     n = n or QUICK["n"]
     epochs = epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
@@ -1526,141 +1524,41 @@ def quick(
             "rl",
         )
     )
-    log("\n" + "\n".join(quick_story(res, pathlib.Path("results"), prov)))
+    log("\n" + "\n".join(quick_verdicts(res)))
     log(f"\ntotal {time.time() - t0:.0f}s")
     return res, live
 
 
-def quick_story(res: dict, results_dir, provenance: dict | None = None) -> list:
-    """The lines --quick prints under its table: what the numbers show (each statement checked on
-    them, never assumed), why Standard is where it is beside No prediction, and the 5-seed tables'
-    numbers beside them (provenance: the shipped predictors', to say whether they are that table's
-    seeds). A shipped method's rows (one per seed) are read by their mean."""
+def quick_verdicts(res: dict) -> list:
+    """The verdicts --quick prints under its table, each computed from its numbers: the order of
+    the hindsight costs against the paper's, and DiffStack against Standard by the paired t-test
+    over the shipped seeds. What they mean is in docs/results.md."""
 
-    def runs_of(name):  # a shipped predictor's runs (one per seed), or None
-        return next((runs for k, runs in res.items() if k.startswith(name + " (")), None)
-
-    def shipped(name):  # the mean over seeds of a shipped predictor's metrics, or None
-        runs = runs_of(name)
-        return (
-            None
-            if runs is None
-            else {
-                k: statistics.fmean(r[k] for r in runs)
-                for k in ("rel_hindsight", "hindsight", "ade")
-            }
+    def shipped(name):  # a shipped predictor's rel_hindsight per seed (its rows start so)
+        return next(
+            ([r["rel_hindsight"] for r in runs] for k, runs in res.items() if k.startswith(name)),
+            None,
         )
 
-    std, dif = shipped("Standard"), shipped("DiffStack")
-    none, gt = res["No prediction"][0], res["GT prediction"][0]
-    lines = []
-    if std is not None and dif is not None:
-        h = {
-            k: r["rel_hindsight"]
-            for k, r in (("GT", gt), ("DiffStack", dif), ("Standard", std), ("No prediction", none))
-        }
-        order = " < ".join(sorted(h, key=h.get))
-        paper = "GT < DiffStack < Standard < No prediction"
-        lines.append(
-            f"Hindsight cost: {order}: "
-            + (
-                "the paper's order (its Table 1)."
-                if order == paper
-                else f"NOT the paper's order ({paper} in its Table 1)."
-            )
-        )
-        gap = (std["hindsight"] - dif["hindsight"]) / (std["hindsight"] - gt["hindsight"])
-        lines.append(
-            f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT prediction gap; its ADE is "
-            f"{100 * (dif['ade'] / std['ade'] - 1):+.0f} % against Standard's (the paper: -4 %): "
-            "trained for the plan, not for the average position error."
-        )
-    by_none, by_gt = none.get("by_behaviour"), gt.get("by_behaviour")
-    if by_none and by_gt:
-        saved = {
-            b: (by_gt[b]["hindsight"] - by_none[b]["hindsight"]) * by_none[b]["n"] for b in by_none
-        }
-        total = sum(saved.values())
-        top = min(saved, key=saved.get)
-        lines.append(
-            "Why Standard's gain over No prediction is small: a perfect prediction saves only "
-            f"{-gt['rel_hindsight']:.2f}e-2 here, {100 * saved[top] / total:.0f} % of it in {top} "
-            "scenes; where a car cuts in or brakes ahead, the goal (the logged ego state at T, as "
-            "in the paper) already holds the driver's reaction, so knowing the future adds little "
-            "(results/goal.md)."
-        )
-        runs = runs_of("Standard")
-        if runs and all(
-            "by_behaviour" in r for r in runs
-        ):  # Standard's part of the all-scene mean, by behaviour
-            part = {
-                b: statistics.fmean(
-                    r["by_behaviour"][b]["hindsight"] - by_none[b]["hindsight"] for r in runs
-                )
-                * by_none[b]["n"]
-                / none["n"]
-                / 1e-2
-                for b in by_none
-            }
-            lost = sorted((b for b in part if part[b] > 0.005), key=part.get, reverse=True)
-            won = sorted((b for b in part if part[b] < -0.005), key=part.get)
-            if lost:
-                lines.append(
-                    "And Standard gives part of it back: it gains "
-                    f"{-sum(part[b] for b in won):.2f}e-2 in {', '.join(won)}, and loses "
-                    f"{sum(part[b] for b in lost):.2f}e-2 in {', '.join(lost)}, where it predicts "
-                    "the wrong one of two manoeuvres that start alike (results/rl.md, by "
-                    "behaviour)."
-                )
-    table = pathlib.Path(results_dir) / "rl.json"
-    if table.exists():
-        saved = table1_results(results_dir)
-        runs = saved["results"]
-        cells = ", ".join(
-            f"{m} {cell([r['rel_hindsight'] for r in runs[m] if 'rel_hindsight' in r], row=m)}"
-            for m in ("Standard", "DiffStack", "GT prediction")
-            if m in runs
-        )
-        meta = saved["meta"]
-        # seed -> its training draw
-        draw_of = dict(zip(meta.get("seeds", []), meta.get("data_seeds") or []))
-        # pretrain: seed s on draw s
-        same = (
-            provenance is not None
-            and meta.get("epochs") == provenance["epochs"]
-            and meta.get("config") == provenance["config"]
-            and meta.get("val") == provenance.get("val")
-            and all(draw_of.get(s) == s for s in provenance["seeds"])
-        )
-        lines.append(
-            f"The full Table 1 ({results_dir}/rl.md: {len(meta['seeds'])} seeds, "
-            f"{meta['epochs']:g} epochs), hindsight cost x1e-2: {cells}; "
-            + (
-                f"the shipped predictors above are its {_seed_list(provenance['seeds'])}."
-                if same
-                else "made by another run than the shipped predictors (other epochs, Config or "
-                "data), so its numbers and the ones above are not the same experiment."
-            )
-        )
-    return lines
-
-
-def table1_results(results_dir) -> dict | None:
-    """results_dir/rl.json as --quick reads it (None when there is none), checked before --quick's
-    first second of work: ValueError naming the file and the field."""
-    path = pathlib.Path(results_dir) / "rl.json"
-    if not path.exists():
-        return None
-    saved = read_results(path, meta_fields={"epochs": "number"})
-    meta, runs = saved["meta"], saved["results"]
-    if not isinstance(meta.get("seeds"), list):
-        raise ValueError(f"{path}: meta.seeds is missing or not a list")
-    for m in ("Standard", "DiffStack", "GT prediction"):
-        for i, r in enumerate(runs.get(m, [])):
-            v = r.get("rel_hindsight", 0.0) if isinstance(r, dict) else None
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ValueError(f"{path}: results.{m}[{i}].rel_hindsight is not a number")
-    return saved
+    std, dif = shipped("Standard ("), shipped("DiffStack (")
+    if std is None or dif is None:
+        return []
+    h = {
+        "GT": res["GT prediction"][0]["rel_hindsight"],
+        "DiffStack": statistics.fmean(dif),
+        "Standard": statistics.fmean(std),
+        "No prediction": res["No prediction"][0]["rel_hindsight"],
+    }
+    order = " < ".join(sorted(h, key=h.get))
+    paper = "GT < DiffStack < Standard < No prediction"
+    same = "the paper's order" if order == paper else f"NOT the paper's order ({paper})"
+    p = paired_difference(std, dif)
+    return [
+        f"Hindsight cost: {order}: {same} (its Table 1).",
+        f"DiffStack vs Standard, hindsight cost (x1e-2), paired over the {p.n} shipped seeds: "
+        f"{plus_minus('{:.2f}', p.mean, p.se)} ({p_value(p.p)}, {p.better} of {p.n} seeds better): "
+        f"{claim_verdict(p)}; over Table 1's 10 seeds: results/rl.md.",
+    ]
 
 
 def check_writable(folder, what: str) -> None:
