@@ -226,7 +226,6 @@ def save_atomic(obj, path) -> None:
 # ============================================================================================
 
 
-# the code a table's numbers come from
 # The modules whose code makes a run's numbers. specs.py is not one: what a table's spec sets that
 # moves numbers (its methods, setting, offset, sections) is part of the table's own key, by value
 # (experiments.spec_key), and its titles, columns and the paper's numbers are text.
