@@ -112,7 +112,7 @@ from diffstack import (
 )
 from train import Method, alphas, bounded, check_writable, device_arg, machine, markdown_table
 from experiments import closed_loop_scenes, simulate, stack_policy
-from runs import command_line, one_line, write_atomic
+from lab.runs import command_line, one_line, write_atomic
 from specs import CLOSED_LOOP_METHODS
 
 DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"

@@ -38,7 +38,8 @@ def lock_held_elsewhere():
             [
                 sys.executable,
                 "-c",
-                "import sys, time, runs\nwith runs.folder_lock(sys.argv[1], sys.argv[2]):\n "
+                "import sys, time\nfrom lab import runs\n"
+                "with runs.folder_lock(sys.argv[1], sys.argv[2]):\n "
                 "print('held', flush=True); time.sleep(60)",
                 str(folder),
                 command,

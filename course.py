@@ -31,7 +31,7 @@ import torch
 
 import data_synth
 import diffstack as ds
-import runs
+from lab import runs
 
 F64 = torch.float64
 HERE = Path(__file__).resolve().parent

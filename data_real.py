@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 import data_synth
-from runs import folder_lock, one_line, save_atomic, write_file_atomic
+from lab.runs import folder_lock, one_line, save_atomic, write_file_atomic
 from data_synth import (
     _SHAPE_SIGNS,
     MAX_LANE_POINTS,

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from runs import save_atomic, write_folder
+from lab.runs import save_atomic, write_folder  # hand-over: files written whole (the lab)
 
 # === 1. Config ==============================================================================
 

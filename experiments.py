@@ -16,8 +16,8 @@ Map of the module:
     3. Closed loop    log replay (§4.3, Table 5, App. D.3)
     4. Ablations      App. A.1; the goal table (what a perfect prediction is worth, by behaviour)
     5. Running        a table's pieces, computed and assembled (run_table), the report, the command
-                      line; under it, runs.py (resuming, provenance, worker processes, progress) and
-                      figures.py
+                      line; under it, lab/runs.py (resuming, provenance, worker processes, progress)
+                      and figures.py
 Over it, specs.py: Column, Claim, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations
 (App. A.1, Table 6).
 
@@ -96,7 +96,9 @@ from train import (
     closed_loop_metrics,
     closed_loop_scenes,
 )
-from runs import (
+
+# hand-over: the lab's run machinery (the resume store, files written whole, locks, workers)
+from lab.runs import (
     RUNS_DIR,
     OutputRefused,
     RunStore,
@@ -946,7 +948,7 @@ def paper_markdown(spec: TableSpec) -> str:
 # --------------------------------------------------------------------------------------------
 # 5.1 Pieces: each (table, method, seed) result, computed alone; the units of worker processes
 # --------------------------------------------------------------------------------------------
-# A table's pieces, and its trained predictors, are kept and resumed by runs.RunStore (runs.py:
+# A table's pieces, and its trained predictors, are kept and resumed by runs.RunStore (lab/runs.py:
 # where, which key).
 
 

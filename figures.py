@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 import data_synth
-from runs import write_file_atomic
+from lab.runs import write_file_atomic
 from diffstack import COST_TERMS, Config, Prediction, StackOutput, masked_argmin, run_stack
 from specs import COST_LABELS
 from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, mean_se, to_device

@@ -21,7 +21,7 @@ import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
-import runs
+from lab import runs
 import specs
 import train as tr
 from conftest import TINY
@@ -117,10 +117,11 @@ def test_a_run_holding_a_folder_may_hold_it_again_inside(tmp_path):
             [
                 sys.executable,
                 "-c",
-                "import sys, runs\nwith runs.folder_lock(sys.argv[1], 'other'): pass",
+                "import sys\nfrom lab import runs\n"
+                "with runs.folder_lock(sys.argv[1], 'other'): pass",
                 str(out),
             ],
-            cwd=os.path.dirname(runs.__file__),
+            cwd=runs.ROOT,
             capture_output=True,
             text=True,
         )
@@ -149,7 +150,7 @@ def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch)
     """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would
     have made it (0666 less the umask), so that others in a shared lab folder can read it; a plain
     file is the reference."""
-    # the umask runs.py read at import, here the common one
+    # the umask lab/runs.py read at import, here the common one
     monkeypatch.setattr(runs, "_UMASK", 0o022)
     old = os.umask(0o022)
     try:

@@ -958,7 +958,7 @@ def test_random_corruption_of_resume_pieces_is_named_and_recomputed(tmp_path, ca
     """Seeded random truncations and byte flips of finished pieces: the store never raises, and a
     piece it still calls finished loads."""
     import experiments as ex
-    import runs
+    from lab import runs
 
     rng = random.Random(1)
     store = runs.RunStore(tmp_path, "k")
@@ -997,22 +997,21 @@ def test_a_nan_inside_the_data_cache_is_refused_naming_the_cache(tmp_path):
 def test_a_data_cache_being_made_by_another_process_is_refused_naming_it(tmp_path):
     """While one process makes a data cache, another asking for the same missing cache is told who
     makes it."""
-    import os
     import subprocess
     import sys
 
-    import runs
+    from lab import runs
 
     holder = subprocess.Popen(
         [
             sys.executable,
             "-c",
-            "import sys, time, runs\n"
+            "import sys, time\nfrom lab import runs\n"
             "with runs.folder_lock(sys.argv[1], 'making the data cache'):\n"
             " print('held', flush=True); time.sleep(60)",
             str(tmp_path),
         ],
-        cwd=os.path.dirname(runs.__file__),
+        cwd=runs.ROOT,
         stdout=subprocess.PIPE,
         text=True,
     )

@@ -13,7 +13,7 @@ import torch
 import data_real
 import data_synth
 import diffstack as ds
-import runs
+from lab import runs
 from conftest import SYNTH_CFG, TINY
 
 

@@ -15,7 +15,7 @@ import data_synth
 import diffstack as ds
 import experiments as ex
 import figures
-import runs
+from lab import runs
 import specs
 import train as tr
 
@@ -786,7 +786,7 @@ def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monke
     (tmp_path / "lab").mkdir()
     for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py", "specs.py"):
         (tmp_path / name).write_text(f"# {name}\nx = 1\n")
-    monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
+    monkeypatch.setattr(runs, "ROOT", tmp_path)
     versions = {runs.code_version()}
     # the tests, the docs, the notebook, the specs' text: the same run
     for name in ("README.md", "test_x.py", "tutorial.py", "specs.py"):
@@ -862,7 +862,7 @@ def test_the_code_version_ignores_comments_docstrings_and_layout(tmp_path, monke
     (tmp_path / "lab").mkdir()
     for name in runs.NUMBER_MODULES:
         (tmp_path / name).write_text(CODE)
-    monkeypatch.setattr(runs, "__file__", str(tmp_path / "runs.py"))
+    monkeypatch.setattr(runs, "ROOT", tmp_path)
     before = runs.code_version()
     (tmp_path / "diffstack.py").write_text(SAME_CODE)
     assert runs.code_version() == before

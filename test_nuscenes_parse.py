@@ -62,7 +62,7 @@ def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
 def test_a_second_parse_into_a_cache_being_written_is_refused(
     folder, tmp_path, lock_held_elsewhere
 ):
-    import runs
+    from lab import runs
 
     # another process holds the cache folder (this one may hold it again: runs.folder_lock)
     with lock_held_elsewhere(tmp_path, "another parse"):

@@ -18,7 +18,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 import data_synth
 import diffstack as ds
 import experiments as ex
-import runs
+from lab import runs
 import specs
 import train as tr
 
@@ -368,7 +368,7 @@ def test_train_stack_stops_before_a_nan_reaches_the_parameters(small, monkeypatc
 def test_a_recorded_command_names_paths_relative_to_the_repository(tmp_path):
     """Results record their command with the repository's own paths relative (the same on every
     machine); a path outside the repository is kept as given."""
-    root = pathlib.Path(runs.__file__).resolve().parent
+    root = runs.ROOT
     cmd = runs.command_line(
         "python experiments.py",
         [
@@ -476,7 +476,7 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
     import subprocess
     import sys
 
-    script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
+    script = runs.ROOT / "experiments.py"
     # (start_new_session: a process group of its own, as a terminal gives a command; SIGINT at its
     # default, which Python turns into KeyboardInterrupt, also where the tests run in the
     # background, whose jobs ignore SIGINT)
@@ -565,7 +565,7 @@ def test_the_ranks_of_a_killed_torchrun_do_not_outlive_it(tmp_path):
     import subprocess
     import sys
 
-    script = pathlib.Path(runs.__file__).resolve().parent / "experiments.py"
+    script = runs.ROOT / "experiments.py"
     agent = subprocess.Popen(
         [
             sys.executable,

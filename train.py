@@ -33,7 +33,9 @@ from torch.optim.lr_scheduler import ExponentialLR
 import data_real
 import data_synth
 from lab.ddp import Shard, wrap  # hand-over: training on many processes (DDP)
-from runs import (
+
+# hand-over: the lab's run machinery (files written whole, locks, provenance, workers)
+from lab.runs import (
     WorkerDied,
     command_line,
     default_threads,
@@ -44,7 +46,7 @@ from runs import (
     save_atomic,
     write_atomic,
 )
-from runs import pool as worker_pool
+from lab.runs import pool as worker_pool
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 )

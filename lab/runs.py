@@ -39,6 +39,8 @@ import torch
 from tqdm import tqdm
 
 RUNS_DIR = ".runs"
+# the repository: this file is lab/runs.py
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def sha(*parts) -> str:
@@ -281,7 +283,7 @@ def code_version() -> str:
     not.
     (ast.unparse is Python's own: under another Python version the same code may read as new, a new
     run, never a mixed one.)"""
-    here = pathlib.Path(__file__).resolve().parent
+    here = ROOT
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
         h.update(name.encode() + b"\0" + code_of((here / name).read_text()).encode() + b"\0")
@@ -323,7 +325,7 @@ def command_line(launcher: str, argv) -> str:
     """The command as a result records it: absolute paths inside the repository made relative to it,
     so that the record reads the same on every machine (`--out /home/me/diffstack/results` -> `--out
     results`)."""
-    root = pathlib.Path(__file__).resolve().parent
+    root = ROOT
 
     def rel(token):
         key, eq, value = token.partition("=") if token.startswith("--") else ("", "", token)
@@ -338,7 +340,7 @@ def command_line(launcher: str, argv) -> str:
 def git_commit() -> str | None:
     """The commit the code was run from, '+dirty' when the work tree differs from it; None
     outside git."""
-    here = pathlib.Path(__file__).resolve().parent
+    here = ROOT
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True
