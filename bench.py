@@ -110,7 +110,8 @@ from diffstack import (
     unicycle_jacobians,
     unicycle_rollout,
 )
-from train import Method, alphas, bounded, check_writable, device_arg, machine, markdown_table
+from lab.cli import bounded, check_writable, device_arg, machine
+from train import Method, alphas, markdown_table
 from experiments import closed_loop_scenes, simulate, stack_policy
 from lab.runs import command_line, one_line, write_atomic
 from specs import CLOSED_LOOP_METHODS

@@ -13,7 +13,7 @@ the planning and control losses.
     6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
     8. Checks        every Config field in its range, refused by name at construction
-Training and evaluation are in train.py (`python diffstack.py --quick` hands over to it).
+Training and evaluation are in train.py (`python diffstack.py --quick` hands over to lab/quick.py).
 
 Shapes in comments: B scenarios, A other agents, K prediction modes, N planner candidates,
 T time steps, L lanes, P points per lane, S line-search step scales, n = 4 state and m = 2
@@ -1795,6 +1795,6 @@ def check_setting(setting) -> str:
 
 
 if __name__ == "__main__":
-    import train  # the method ends here; --quick (training, evaluation) is train.py's
+    from lab import quick  # the method ends here; --quick and --pretrain are lab/quick.py's
 
-    train.main()
+    quick.main()

@@ -69,14 +69,9 @@ from train import (
     TrainingDiverged,
     add_relative,
     alphas,
-    bounded,
     cell,
-    check_writable,
     compare_methods,
-    config_with,
-    device_arg,
     evaluate_stack,
-    machine,
     markdown_table,
     mean_se,
     plus_minus,
@@ -96,6 +91,9 @@ from train import (
     closed_loop_metrics,
     closed_loop_scenes,
 )
+
+# hand-over: the command line's argument types and checks, shared with diffstack.py's
+from lab.cli import bounded, check_writable, config_with, device_arg, machine
 
 # hand-over: the lab's run machinery (the resume store, files written whole, locks, workers)
 from lab.runs import (
@@ -1175,7 +1173,7 @@ def timed_piece(
     spec: TableSpec, piece: Piece, data, cfg: Config, epochs, log, models, device, store
 ):
     """compute_piece, how long it took, where, and whether it trained: (result, extra, {'seconds':
-    wall, 'cpu_seconds': this process's CPU, 'machine': train.machine() (the same seed gives other
+    wall, 'cpu_seconds': this process's CPU, 'machine': lab.cli.machine() (the same seed gives other
     numbers on another kind of processor), 'trained': it trained something no piece had trained
     before it (piece_trainings)})."""
 

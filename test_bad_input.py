@@ -24,6 +24,7 @@ import experiments as ex
 from lab import runs
 import specs
 import train as tr
+from lab import quick as lq
 from conftest import TINY
 
 
@@ -78,7 +79,7 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     (tmp_path / "data_cache").write_text("a file where the cache folder should be")
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
     assert "data cache" in err
-    err = cli_error(tr.main, ["--quick"], capsys)
+    err = cli_error(lq.main, ["--quick"], capsys)
     assert "data cache" in err
 
 
@@ -203,13 +204,13 @@ def test_experiments_cli_numbers(argv, culprit, capsys, tmp_path):
     "flag", [["--data", "x"], ["--n", "100"], ["--epochs", "2"], ["--out", "x"], ["--seeds", "2"]]
 )
 def test_quick_rejects_the_flags_it_does_not_take(flag, capsys):
-    err = cli_error(tr.main, ["--quick", *flag], capsys)
+    err = cli_error(lq.main, ["--quick", *flag], capsys)
     assert flag[0] in err
 
 
 def test_quick_threads_bounds(capsys):
-    assert "--threads" in cli_error(tr.main, ["--quick", "--threads", "0"], capsys)
-    assert "--threads" in cli_error(tr.main, ["--quick", "--threads", "two"], capsys)
+    assert "--threads" in cli_error(lq.main, ["--quick", "--threads", "0"], capsys)
+    assert "--threads" in cli_error(lq.main, ["--quick", "--threads", "two"], capsys)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -365,11 +366,11 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
     monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
-    err = cli_error(tr.main, ["--pretrain"], capsys)
+    err = cli_error(lq.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
         tr.load_pretrained(tr.Method("Standard"), ds.Config(), tmp_path / "pretrained")
-    assert "--quick or --pretrain" in cli_error(tr.main, ["--quick", "--pretrain"], capsys)
+    assert "--quick or --pretrain" in cli_error(lq.main, ["--quick", "--pretrain"], capsys)
 
 
 @pytest.mark.slow
@@ -394,10 +395,10 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
         data_real, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5)
     )
     # (the rows before the shipped ones)
-    monkeypatch.setattr(tr, "evaluate_stack", lambda *a, **k: {})
-    monkeypatch.setattr(tr, "add_relative", lambda res, setting: res)
-    monkeypatch.setattr(tr, "open_loop_table", lambda *a, **k: "")
-    err = cli_error(tr.main, ["--quick"], capsys)
+    monkeypatch.setattr(lq, "evaluate_stack", lambda *a, **k: {})
+    monkeypatch.setattr(lq, "add_relative", lambda res, setting: res)
+    monkeypatch.setattr(lq, "open_loop_table", lambda *a, **k: "")
+    err = cli_error(lq.main, ["--quick"], capsys)
     assert "standard-seed0.pt: missing" in err.splitlines()[-1] and "Traceback" not in err
 
 
@@ -439,7 +440,7 @@ def _launcher_env(monkeypatch, **env):
 def test_rank_variables_without_a_launcher_are_refused_in_one_line(rank, monkeypatch, capsys):
     _launcher_env(monkeypatch, RANK=rank, WORLD_SIZE="2")
     monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("work started"))
-    for main in (ex.main, tr.main):
+    for main in (ex.main, lq.main):
         err = cli_error(main, ["--experiment", "rl"] if main is ex.main else ["--quick"], capsys)
         lines = err.strip().splitlines()
         assert (
@@ -449,14 +450,14 @@ def test_rank_variables_without_a_launcher_are_refused_in_one_line(rank, monkeyp
 
 
 def test_quick_and_pretrain_under_torchrun_are_refused_by_rank_0_alone(monkeypatch, capsys):
-    monkeypatch.setattr(tr, "quick", lambda *a, **k: pytest.fail("work started"))
-    monkeypatch.setattr(tr, "pretrain", lambda *a, **k: pytest.fail("work started"))
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: pytest.fail("work started"))
+    monkeypatch.setattr(lq, "pretrain", lambda *a, **k: pytest.fail("work started"))
     for argv in (["--quick"], ["--pretrain"]):
         _launcher_env(monkeypatch, RANK="0", WORLD_SIZE="2", TORCHELASTIC_RUN_ID="x")
-        err = cli_error(tr.main, argv, capsys)
+        err = cli_error(lq.main, argv, capsys)
         assert "not under torchrun (it would run them 2 times)" in err.strip().splitlines()[-1]
         _launcher_env(monkeypatch, RANK="1", WORLD_SIZE="2", TORCHELASTIC_RUN_ID="x")
-        assert cli_error(tr.main, argv, capsys) == ""  # rank 1 exits alike, silently
+        assert cli_error(lq.main, argv, capsys) == ""  # rank 1 exits alike, silently
 
 
 # ---------------------------------------------------------------------------------------------
@@ -550,10 +551,10 @@ def test_the_default_thread_count_leaves_out_the_cores_other_work_keeps_busy(mon
         got, why = runs.default_threads()
         assert got == threads and (("busy with other work" in why) == (threads < 2)), (free, why)
     # --quick says which it took, and --threads overrides it
-    monkeypatch.setattr(tr, "quick", lambda threads, **k: print(f"quick at {threads}"))
-    monkeypatch.setattr(tr, "default_threads", lambda: (1, "1.0 of 2 cores are busy"))
-    tr.main(["--quick"])
-    tr.main(["--quick", "--threads", "2"])
+    monkeypatch.setattr(lq, "quick", lambda threads, **k: print(f"quick at {threads}"))
+    monkeypatch.setattr(lq, "default_threads", lambda: (1, "1.0 of 2 cores are busy"))
+    lq.main(["--quick"])
+    lq.main(["--quick", "--threads", "2"])
     out = capsys.readouterr().out.splitlines()
     assert out == [
         "torch threads: 1 (1.0 of 2 cores are busy; --threads N to choose)",

@@ -31,6 +31,8 @@ import data_synth
 import diffstack as ds
 import experiments as ex
 import train as tr
+from lab import quick as lq
+from lab import cli
 
 TINY = dict(
     pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8, batch_size=16
@@ -307,11 +309,11 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     # the same on a machine with a GPU
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     work = []
-    monkeypatch.setattr(tr, "quick", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: work.append(1))
     monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
     monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
-        err = cli_error(tr.main, ["--quick", "--device", name], capsys)
+        err = cli_error(lq.main, ["--quick", "--device", name], capsys)
     else:
         err = cli_error(
             ex.main, ["--experiment", "rl", "--out", str(tmp_path), "--device", name], capsys
@@ -323,9 +325,9 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
 
 def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     seen = {}
-    monkeypatch.setattr(tr, "quick", lambda *a, **k: seen.update(quick=k["device"]))
-    tr.main(["--quick"])
-    tr.main(["--quick", "--device", "cpu"])
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: seen.update(quick=k["device"]))
+    lq.main(["--quick"])
+    lq.main(["--quick", "--device", "cpu"])
     monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: "data")
     monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
@@ -335,14 +337,14 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
 def test_device_arg_takes_the_devices_that_are_there(monkeypatch):
     import argparse
 
-    assert tr.device_arg("cpu") == torch.device("cpu")
+    assert cli.device_arg("cpu") == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    assert tr.device_arg("cuda") == torch.device("cuda") and tr.device_arg(
+    assert cli.device_arg("cuda") == torch.device("cuda") and cli.device_arg(
         "cuda:1"
     ) == torch.device("cuda", 1)
     with pytest.raises(argparse.ArgumentTypeError, match="2 CUDA device"):
-        tr.device_arg("cuda:2")
+        cli.device_arg("cuda:2")
 
 
 # ---------------------------------------------------------------------------------------------

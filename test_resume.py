@@ -21,6 +21,7 @@ import experiments as ex
 from lab import runs
 import specs
 import train as tr
+from lab import cli
 
 TINY10 = dict(
     pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32
@@ -145,7 +146,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     out = tmp_path / "out"
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     kept = sorted((out / ".runs" / "il").glob("*/*-seed*.json"))
-    assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [tr.machine()] * 4
+    assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [cli.machine()] * 4
     # one machine: nothing to say
     assert "computed_on" not in json.loads((out / "il.json").read_text())["meta"]
     assert "pieces ran on" not in (out / "il.md").read_text()
@@ -156,7 +157,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2  # resumed: nothing trained again
     meta = json.loads((out / "il.json").read_text())["meta"]
-    assert meta["computed_on"] == {tr.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
+    assert meta["computed_on"] == {cli.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
     assert (
         "its pieces ran on 2 machines, and the same seed gives other numbers on another kind of "
         "processor: " in (out / "il.md").read_text()
@@ -193,7 +194,7 @@ def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
     assert numbers(tmp_path / "two") == numbers(tmp_path / "one")
     machine = json.loads((tmp_path / "two" / "il.json").read_text())["meta"]["machine"]
     assert "2 worker processes (--jobs)" in machine
-    # the kind of processor, on which the numbers depend (tr.machine: oneDNN's kernels follow its
+    # the kind of processor, on which the numbers depend (cli.machine: oneDNN's kernels follow its
     # instruction set)
     assert f", {torch.backends.cpu.get_cpu_capability()}, {os.cpu_count()} cores, torch " in machine
 

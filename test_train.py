@@ -11,6 +11,8 @@ import torch
 import data_synth
 import diffstack as ds
 import train as tr
+from lab import quick as lq
+from lab import cli
 from conftest import DT, TINY, cast, make_batch, make_model, small_cfg
 
 
@@ -410,7 +412,7 @@ def test_trained_predictor_beats_constant_velocity():
 def test_quick_runs_and_same_seed_same_table(tmp_path):
     cfg = ds.Config(**TINY)
     lines = []
-    first = tr.quick(
+    first = lq.quick(
         threads=1,
         n=300,
         epochs=1,
@@ -427,7 +429,7 @@ def test_quick_runs_and_same_seed_same_table(tmp_path):
     )
     # none shipped here: said, and its row left out
     assert "Standard: no pre-trained predictor" in text
-    second = tr.quick(
+    second = lq.quick(
         threads=1,
         n=300,
         epochs=1,
@@ -453,7 +455,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     Config, is refused or left out, never misused."""
     cfg = ds.Config(**TINY)
     out = tmp_path / "pre"
-    about = tr.pretrain(
+    about = lq.pretrain(
         out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
     )
     assert sorted(about["files"]) == [
@@ -464,7 +466,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     ]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
     with pytest.raises(ValueError, match="--overwrite"):
-        tr.pretrain(
+        lq.pretrain(
             out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
         )
     models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
@@ -487,7 +489,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         for a, b in zip(models[0].state_dict().values(), again.state_dict().values())
     )
     # two worker processes make the same files, byte for byte
-    pooled = tr.pretrain(
+    pooled = lq.pretrain(
         tmp_path / "pooled",
         n=300,
         epochs=0.5,
@@ -507,7 +509,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         is None
     )
     lines = []
-    res, _ = tr.quick(
+    res, _ = lq.quick(
         threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out
     )
     # a row per seed
@@ -534,7 +536,7 @@ def test_quick_verdicts_are_computed_from_its_numbers():
         "DiffStack (40 epochs)": rows(-0.9, -1.1, -0.8),
         "GT prediction": rows(-2.0),
     }
-    order, test = tr.quick_verdicts(res)
+    order, test = lq.quick_verdicts(res)
     assert order == (
         "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order "
         "(its Table 1)."
@@ -546,13 +548,13 @@ def test_quick_verdicts_are_computed_from_its_numbers():
     )
     # one seed better, two worse: the mean above Standard's, the order and the test say so
     res["DiffStack (40 epochs)"] = rows(-1.0, -0.3, -0.1)
-    order, test = tr.quick_verdicts(res)
+    order, test = lq.quick_verdicts(res)
     assert "GT < Standard < DiffStack < No prediction: NOT the paper's order" in order
     assert "1 of 3 seeds better): not reproduced" in test
     # one seed: no standard error, untested
     one = dict(res, **{"Standard (40 epochs)": rows(-0.5), "DiffStack (40 epochs)": rows(-0.9)})
-    assert "untested (one seed" in tr.quick_verdicts(one)[1]
-    assert tr.quick_verdicts({k: v for k, v in res.items() if "DiffStack" not in k}) == []
+    assert "untested (one seed" in lq.quick_verdicts(one)[1]
+    assert lq.quick_verdicts({k: v for k, v in res.items() if "DiffStack" not in k}) == []
 
 
 @pytest.mark.parametrize(
@@ -570,18 +572,18 @@ def test_quick_verdicts_are_computed_from_its_numbers():
 )
 def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
     with pytest.raises(SystemExit) as e:
-        tr.main(argv)
+        lq.main(argv)
     assert e.value.code != 0 and message in capsys.readouterr().err
 
 
 def test_set_overrides_config_fields_with_their_types():
-    cfg = tr.config_with(
+    cfg = cli.config_with(
         ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
     )
     assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
     assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
     assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
-    assert tr.config_with(ds.Config(), []) == ds.Config()
+    assert cli.config_with(ds.Config(), []) == ds.Config()
     for bad, culprit in (
         (["nope=1"], "nope"),
         (["beta"], "beta"),
@@ -590,4 +592,4 @@ def test_set_overrides_config_fields_with_their_types():
         (["u_upper=a,b"], "u_upper"),
     ):
         with pytest.raises(ValueError, match=culprit):
-            tr.config_with(ds.Config(), bad)
+            cli.config_with(ds.Config(), bad)
