@@ -1204,31 +1204,11 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
     """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the
     provenance (the file's sha256, the Config it was trained with) and loaded with
     weights_only=True. Returns ({seed: model}, provenance) or (None, why not)."""
-    import hashlib
-
     folder = pathlib.Path(folder)
     prov_path = folder / "provenance.json"
     if not prov_path.exists():
         return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
-    try:
-        prov = load_json(prov_path, "a provenance file of python diffstack.py --pretrain")
-        entries = sorted(
-            (
-                (e["seed"], name, e)
-                for name, e in prov["files"].items()
-                if e["method"] == method.name
-            )
-        )
-        for _, name, e in entries:  # every field this function reads, before any is used
-            if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
-                raise ValueError(f"files.{name}: no sha256 or seed")
-        trained_with = {
-            k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
-        }
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(
-            f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})"
-        ) from None
+    prov, entries, trained_with = _shipped_entries(prov_path, method)
     if not entries:
         return None, f"{prov_path} lists no {method.name} predictor"
     if trained_with != dataclasses.asdict(cfg):
@@ -1238,23 +1218,10 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
             f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set "
             "here",
         )
-    models = {}
-    for seed, name, entry in entries:
-        path = folder / name
-        if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != entry["sha256"]:
-            raise ValueError(
-                f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
-                f"re-make it with python diffstack.py --pretrain --overwrite"
-            )
-        models[seed] = Predictor(cfg)
-        try:
-            models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-        except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
-            raise ValueError(
-                f"{path}: not a predictor of this version ({' '.join(str(e).split())[:200]}); "
-                "re-make it with python diffstack.py --pretrain --overwrite"
-            ) from None
-        models[seed].to(device)
+    models = {
+        seed: _load_shipped(folder / name, entry["sha256"], prov_path, cfg).to(device)
+        for seed, name, entry in entries
+    }
     missing = [
         f for f in ("command", "date", "commit", "epochs", "seeds", "threads") if f not in prov
     ]
@@ -1264,3 +1231,45 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
             f"{', '.join(missing) or 'cpu_seconds of a file'})"
         )
     return models, prov
+
+
+def _shipped_entries(prov_path, method: Method):
+    """(provenance, [(seed, file name, entry)] of the method's files by seed, the Config they were
+    trained with), every field read here checked before any is used: ValueError naming the file."""
+    try:
+        prov = load_json(prov_path, "a provenance file of python diffstack.py --pretrain")
+        entries = sorted(
+            (e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name
+        )
+        for _, name, e in entries:
+            if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
+                raise ValueError(f"files.{name}: no sha256 or seed")
+        trained_with = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
+        }
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(
+            f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})"
+        ) from None
+    return prov, entries, trained_with
+
+
+def _load_shipped(path, sha256: str, prov_path, cfg: Config) -> Predictor:
+    """The predictor in path, on the CPU, once its sha256 is the provenance's; ValueError naming
+    the file otherwise, or when it does not load as a predictor of this version."""
+    import hashlib
+
+    if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+        raise ValueError(
+            f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
+            f"re-make it with python diffstack.py --pretrain --overwrite"
+        )
+    model = Predictor(cfg)
+    try:
+        model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
+        raise ValueError(
+            f"{path}: not a predictor of this version ({' '.join(str(e).split())[:200]}); "
+            "re-make it with python diffstack.py --pretrain --overwrite"
+        ) from None
+    return model
