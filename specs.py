@@ -374,6 +374,10 @@ GOAL_TABLE = TableSpec(
     {},
 )
 
+# every trained predictor's learning curve: the stack on this many validation scenarios per epoch
+CURVE_SAMPLES = 512
+CLOSE = 5.0  # m, centre to centre: a car's length (the goal table's "close" share)
+
 # the order `all` runs them in
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}
 EXPERIMENTS = tuple(TABLES)
