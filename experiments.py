@@ -121,13 +121,13 @@ from specs import (
     CLOSED_LOOP_METHODS,
     CLOSED_LOOP_METRICS,
     CLOSE,
+    COST_WEIGHTS_ROW,
     CURVE_SAMPLES,
     EXPERIMENTS,
     GOALS,
     REAL,
     REAL_OUT,
     SPECS,
-    TABLE3,
     TableSpec,
 )
 from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
@@ -366,7 +366,7 @@ def cost_learning_seed(
             train_stack(
                 model,
                 data.train_for(seed),
-                TABLE3.methods[0],
+                COST_WEIGHTS_ROW,
                 cfg,
                 "il",
                 epochs,
@@ -623,7 +623,7 @@ def table_pieces(spec: TableSpec, seeds) -> list:
     """Every piece of a table, in the order a one-process run makes them."""
     seeds = tuple(seeds)
     if spec.kind == "cost":
-        return [Piece(spec.methods[0].name, s) for s in seeds]
+        return [Piece(COST_WEIGHTS_ROW.name, s) for s in seeds]
     if spec.kind == "ablation":
         return [
             p
@@ -788,7 +788,7 @@ def assemble(spec: TableSpec, pieces: dict, seeds) -> dict:
             for title, _, methods in ABLATION_SECTIONS
         }
     if spec.kind == "cost":
-        runs = [pieces[Piece(spec.methods[0].name, s)] for s in seeds]
+        runs = [pieces[Piece(COST_WEIGHTS_ROW.name, s)] for s in seeds]
         return {
             name: [r[name] if name in r else r for r in runs] for name in ("Hand-tuned", "Learned")
         }
