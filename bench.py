@@ -111,7 +111,8 @@ from diffstack import (
     unicycle_rollout,
 )
 from lab.cli import bounded, check_writable, device_arg, machine
-from train import Method, alphas, markdown_table
+from lab.stats import markdown_table
+from train import Method, alphas
 from experiments import closed_loop_scenes, simulate, stack_policy
 from lab.runs import command_line, one_line, write_atomic
 from specs import CLOSED_LOOP_METHODS

@@ -59,6 +59,7 @@ from diffstack import (
     route_goal,
     run_stack,
 )
+from lab.stats import markdown_table
 from train import (
     CostWeights,
     Method,
@@ -70,7 +71,6 @@ from train import (
     alphas,
     compare_methods,
     evaluate_stack,
-    markdown_table,
     to_device,
     train_predictor,
     train_stack,

@@ -26,7 +26,8 @@ import data_synth
 from lab.runs import write_file_atomic
 from diffstack import COST_TERMS, Config, Prediction, StackOutput, masked_argmin, run_stack
 from specs import COST_LABELS
-from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, mean_se, to_device
+from lab.stats import mean_se
+from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, to_device
 
 
 def save_figure(fig, path) -> None:

@@ -15,7 +15,7 @@ import data_synth
 import diffstack as ds
 import experiments as ex
 import figures
-from lab import report, runs
+from lab import report, runs, stats
 import specs
 import train as tr
 
@@ -604,7 +604,7 @@ def _p_four_dof(t: float) -> float:
 def test_paired_difference_is_a_two_sided_t_test():
     """Differences -1.0, -1.2, -0.8, -1.1, -0.9: mean -1.0, s.d. sqrt(0.025),
     s.e. sqrt(0.025 / 5) = 0.0707, t = -14.1."""
-    p = tr.paired_difference([2.0, 2.0, 2.0, 2.0, 2.0], [1.0, 0.8, 1.2, 0.9, 1.1])
+    p = stats.paired_difference([2.0, 2.0, 2.0, 2.0, 2.0], [1.0, 0.8, 1.2, 0.9, 1.1])
     assert p.mean == pytest.approx(-1.0) and p.se == pytest.approx(math.sqrt(0.025 / 5))
     assert p.t == pytest.approx(-1.0 / math.sqrt(0.025 / 5)) and (p.better, p.worse, p.n) == (
         5,
@@ -612,7 +612,7 @@ def test_paired_difference_is_a_two_sided_t_test():
         5,
     )
     assert p.p == pytest.approx(_p_four_dof(p.t), rel=1e-9) and p.p < 0.001
-    assert tr.claim_verdict(p) == "reproduced"
+    assert stats.claim_verdict(p) == "reproduced"
 
 
 def test_beyond_two_standard_errors_is_not_yet_p_below_5_percent():
@@ -622,48 +622,51 @@ def test_beyond_two_standard_errors_is_not_yet_p_below_5_percent():
     d = [-1.0, -0.5, 0.0, 0.5, 1.0]
     sd = statistics.stdev(d)
     shift = 2.6 * sd / math.sqrt(5)  # the mean that gives t = -2.6
-    p = tr.paired_difference([0.0] * 5, [x - shift for x in d])
+    p = stats.paired_difference([0.0] * 5, [x - shift for x in d])
     assert p.t == pytest.approx(-2.6) and p.mean < -2 * p.se
     assert p.p == pytest.approx(_p_four_dof(-2.6), rel=1e-9) == pytest.approx(0.0600, abs=5e-4)
-    assert tr.claim_verdict(p) == "not reproduced"
+    assert stats.claim_verdict(p) == "not reproduced"
     shift = 2.9 * sd / math.sqrt(5)  # t = -2.9: p = 0.044
-    assert tr.claim_verdict(tr.paired_difference([0.0] * 5, [x - shift for x in d])) == "reproduced"
+    assert (
+        stats.claim_verdict(stats.paired_difference([0.0] * 5, [x - shift for x in d]))
+        == "reproduced"
+    )
 
 
 def test_paired_difference_not_significant_or_the_other_way():
     """Table 4's case: better on average, worse in two seeds. Differences -3, -3, -3, +1, +1: mean
     -1.4, s.d. sqrt(4.8), s.e. 0.980, t = -1.43 -- the unpaired means would look apart, the paired
     test says no."""
-    p = tr.paired_difference([0.0] * 5, [-3.0, -3.0, -3.0, 1.0, 1.0])
+    p = stats.paired_difference([0.0] * 5, [-3.0, -3.0, -3.0, 1.0, 1.0])
     assert p.mean == pytest.approx(-1.4) and p.se == pytest.approx(math.sqrt(4.8 / 5))
     assert p.t == pytest.approx(-1.4 / math.sqrt(4.8 / 5)) and (p.better, p.worse) == (3, 2)
     assert p.p == pytest.approx(_p_four_dof(p.t), rel=1e-9) and p.p > 0.2
-    assert tr.claim_verdict(p) == "not reproduced"
-    p = tr.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])  # significantly worse
-    assert p.p < 0.05 and tr.claim_verdict(p) == "contradicted (the other way)"
+    assert stats.claim_verdict(p) == "not reproduced"
+    p = stats.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])  # significantly worse
+    assert p.p < 0.05 and stats.claim_verdict(p) == "contradicted (the other way)"
 
 
 def test_paired_difference_without_spread_and_bad_input():
     # the same difference in every seed: s.e. 0, t = -inf, p = 0, reproduced; no difference at all:
     # t undefined, not
-    p = tr.paired_difference([1.0, 2.0, 3.0], [0.5, 1.5, 2.5])
-    assert p.se == 0 and p.t == -math.inf and p.p == 0 and tr.claim_verdict(p) == "reproduced"
-    p = tr.paired_difference([1.0, 2.0], [1.0, 2.0])
+    p = stats.paired_difference([1.0, 2.0, 3.0], [0.5, 1.5, 2.5])
+    assert p.se == 0 and p.t == -math.inf and p.p == 0 and stats.claim_verdict(p) == "reproduced"
+    p = stats.paired_difference([1.0, 2.0], [1.0, 2.0])
     assert p.se == 0 and math.isnan(p.t) and math.isnan(p.p) and (p.better, p.worse) == (0, 0)
-    assert tr.claim_verdict(p) == "not reproduced"
+    assert stats.claim_verdict(p) == "not reproduced"
     # one seed: no s.e.
-    assert tr.claim_verdict(tr.paired_difference([1.0], [0.0])).startswith("untested")
+    assert stats.claim_verdict(stats.paired_difference([1.0], [0.0])).startswith("untested")
     with pytest.raises(ValueError, match="method: 2 seeds, but baseline has 3"):
-        tr.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0])
+        stats.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0])
 
 
 def test_a_claim_that_the_method_is_higher_against_a_baseline_of_one_run():
     """Table 5's "the standard stack performs worse than no prediction": direction +1, and No
     prediction (nothing to train, one run) pairs with every seed of Standard."""
-    p = tr.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])
+    p = stats.paired_difference([0.0] * 5, [1.0, 1.1, 0.9, 1.05, 0.95])
     assert (
-        tr.claim_verdict(p, direction=1) == "reproduced"
-        and tr.claim_verdict(p) == "contradicted (the other way)"
+        stats.claim_verdict(p, direction=1) == "reproduced"
+        and stats.claim_verdict(p) == "contradicted (the other way)"
     )
     res = {
         "No prediction": [{"rel_trajectory": 0.0}],

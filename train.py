@@ -17,12 +17,9 @@ import dataclasses
 import math
 import pathlib
 import pickle
-import statistics
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
 
-import scipy.stats
 import torch
 import torch.nn as nn
 from torch.optim.lr_scheduler import ExponentialLR
@@ -867,82 +864,6 @@ def add_relative(results: dict, setting: str) -> dict:
     return results
 
 
-def mean_se(xs):
-    """Mean and standard error of a list of numbers; the s.e. of one number is unknown (nan)."""
-    m = statistics.fmean(xs)
-    return m, (statistics.stdev(xs) / math.sqrt(len(xs)) if len(xs) > 1 else math.nan)
-
-
-def plus_minus(fmt: str, mean: float, se: float) -> str:
-    """'mean ± s.e.' in fmt; 'mean ± n/a (1 seed)' where one seed cannot give the s.e. (nan)."""
-    return f"{fmt.format(mean)} ± " + ("n/a (1 seed)" if math.isnan(se) else fmt.format(se))
-
-
-NOTHING_TO_TRAIN = ("No prediction", "GT prediction")
-"""Rows whose one run is the same for every seed (no predictor is trained): their s.e. is 0."""
-
-
-class PairedDifference(NamedTuple):
-    """method - baseline over seeds paired by index: the mean difference, its standard error, t =
-    mean / s.e., the two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how
-    many of the n seeds the method is lower (better, for a cost) or higher (worse)."""
-
-    mean: float
-    se: float
-    t: float
-    p: float
-    better: int
-    worse: int
-    n: int
-
-
-P_REPRODUCED = 0.05
-"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the
-paper's direction."""
-
-
-def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two
-    share in a seed (the same data and evaluation set), so the spread left is the difference's own;
-    the t-test is scipy.stats.ttest_1samp of the differences against 0. With one seed the s.e. is
-    unknown (t, p nan); with no spread it is 0 and t is -inf / +inf, p = 0 (t and p nan for a zero
-    difference)."""
-    if len(baseline) != len(method):
-        raise ValueError(
-            f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by "
-            "index"
-        )
-    if not baseline:
-        raise ValueError("baseline: no seeds to compare")
-    d = [b - a for a, b in zip(baseline, method)]
-    n = len(d)
-    m = statistics.fmean(d)
-    se = statistics.stdev(d) / math.sqrt(n) if n > 1 else math.nan
-    if se > 0:
-        test = scipy.stats.ttest_1samp(d, 0.0)  # two-sided
-        t, p = float(test.statistic), float(test.pvalue)
-    else:
-        t, p = (math.copysign(math.inf, m), 0.0) if m != 0 and se == 0 else (math.nan, math.nan)
-    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
-
-
-def claim_verdict(p: PairedDifference, direction: int = -1) -> str:
-    """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction
-    (-1: the method is lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other
-    way."""
-    if p.n == 0:
-        return "untested (no seed trained both rows)"
-    if not p.se >= 0:  # nan: one seed
-        return "untested (one seed: no standard error)"
-    if p.p < P_REPRODUCED:
-        return "reproduced" if p.mean * direction > 0 else "contradicted (the other way)"
-    return "not reproduced"
-
-
-def p_value(p: float) -> str:
-    return "p < 0.001" if p < 0.001 else f"p = {p:.3f}" if p < 0.1 else f"p = {p:.2f}"
-
-
 VAL_SEED = 1000
 """The data seed of the tables' common validation set. Training seed s trains on the draw of data
 seed s, and seeds are 0..99 (--seeds <= 100): no training draw is this one, and distinct draws hold
@@ -974,21 +895,6 @@ def experiment_data(
     return data_synth.Dataset(
         draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws
     )
-
-
-def cell(values, fmt="{:.2f}", row: str = "") -> str:
-    """'mean ± s.e.' of the per-seed values of one table cell of `row`; '--' for none; one value:
-    its s.e. is n/a (1 seed), or 0 for a row with nothing to train (NOTHING_TO_TRAIN)."""
-    if not values:
-        return "--"
-    mean, se = mean_se(values)
-    return plus_minus(fmt, mean, 0.0 if row in NOTHING_TO_TRAIN else se)
-
-
-def markdown_table(head, rows) -> str:
-    """A markdown table: head [str], rows [[str]]. The only table formatter of the project."""
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
 
 
 # ============================================================================================
@@ -1176,28 +1082,6 @@ def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
 PRETRAINED = "pretrained"
 # = Table 1's five seeds at the tables' length (experiments.py)
 PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
-
-
-def open_loop_table(results: dict, setting="rl") -> str:
-    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics
-    relative to No prediction, iLQR's convergence; means ± standard errors over seeds."""
-    rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
-    scales = RELATIVE_SCALE[setting]
-    head = ["Method", "ADE (m)", "NLL (nats)"] + [
-        f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()
-    ]
-    rows = []
-    for name, runs in results.items():
-
-        def get(key):
-            return [r[key] for r in runs] if key in runs[0] else []
-
-        rows.append(
-            [name, cell(get("ade"), row=name), cell(get("nll"), row=name)]
-            + [cell(get("rel_" + k), row=name) for k in scales]
-            + [cell(get("converged"), "{:.3f}", name)]
-        )
-    return markdown_table(head + ["iLQR converged"], rows)
 
 
 def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):

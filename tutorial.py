@@ -97,6 +97,7 @@ import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
+from lab import report, stats
 from course import check_claim, check_order, checkpoint, first_of, gt_context
 from course import results_table, section_done
 
@@ -541,7 +542,7 @@ head = [
     "largest",
     "plan ≠ target n*",
 ]
-display(Markdown(tr.markdown_table(head, rows)))
+display(Markdown(stats.markdown_table(head, rows)))
 
 # %%
 # Figure: the two samples with the largest gradient, and a "far" vehicle; one arrow scale for all.
@@ -881,7 +882,7 @@ methods4 = [m for m in tr.TABLE1_METHODS if m.name in four]
 methods1 = methods4 if QUICK else tr.TABLE1_METHODS
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(tr.open_loop_table(res1, "rl")))
+display(Markdown(report.open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
 print(
     f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT gap in hindsight cost (paper: 39 %)"
@@ -1028,7 +1029,7 @@ rows = course.behaviour_rows(
     data.val.behaviour, ok, lambda sel: [f"{100 * d[m][sel].mean():+.2f}" for m in d]
 )
 head = ["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"]
-display(Markdown(tr.markdown_table(head, rows)))
+display(Markdown(stats.markdown_table(head, rows)))
 d_std = d["Standard"][ok]
 worst = d_std.sort(descending=True).values[: max(1, len(d_std) // 20)]  # where Standard costs most
 more, less = (d_std > 1e-3).float().mean(), (d_std < -1e-3).float().mean()
@@ -1091,7 +1092,7 @@ res2 = xp.open_loop_experiment(
     data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None
 )
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(tr.open_loop_table(res2, "rl")))
+display(Markdown(report.open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 # one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
 check_order("Table 2, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
@@ -1121,7 +1122,7 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 t0 = time.time()
 res_il = xp.open_loop_experiment(data, cfg, "il", methods4, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(tr.open_loop_table(res_il, "il")))
+display(Markdown(report.open_loop_table(res_il, "il")))
 # one seed of a short training again: nothing here is checked but the 5-seed claim under the table
 # (even a perfect prediction need not bring the plan closer to the expert's: on the quick data GT
 # prediction's MSE is above No prediction's)
@@ -1215,7 +1216,7 @@ for name, (model, method) in stacks_gt.items():
     fine[name] = [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
 tr.add_relative(fine, "rl")
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(tr.open_loop_table(fine, "rl")))
+display(Markdown(report.open_loop_table(fine, "rl")))
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
 check_order(
     "dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"]

@@ -29,6 +29,8 @@ from lab.runs import (
     write_atomic,
 )
 from lab.runs import pool as worker_pool
+from lab.stats import claim_verdict, p_value, paired_difference, plus_minus
+from lab.report import open_loop_table
 from train import (
     NO_PREDICTION,
     PRETRAIN,
@@ -38,14 +40,9 @@ from train import (
     evaluate_stack,
     PRETRAINED,
     TABLE1_METHODS,
-    claim_verdict,
     compare_methods,
     experiment_data,
     load_pretrained,
-    open_loop_table,
-    paired_difference,
-    p_value,
-    plus_minus,
     train_predictor,
 )
 

@@ -16,7 +16,7 @@ import data_synth
 from lab.cli import machine
 from lab.runs import write_atomic
 from specs import CLOSE, CURVE_SAMPLES, SPECS, Claim, TableSpec
-from train import (
+from lab.stats import (
     PairedDifference,
     cell,
     claim_verdict,
@@ -26,6 +26,7 @@ from train import (
     paired_difference,
     plus_minus,
 )
+from train import RELATIVE_SCALE
 
 
 def gap_closed(
@@ -474,3 +475,25 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
 def table_file_markdown(spec: TableSpec, md: str) -> str:
     """out_dir/<name>.md: the title, section_markdown's text and links to the table's figures."""
     return f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures)
+
+
+def open_loop_table(results: dict, setting="rl") -> str:
+    """Tables 1, 2 and 4's columns for {method: [per-seed metrics]}: ADE, NLL, the planning metrics
+    relative to No prediction, iLQR's convergence; means ± standard errors over seeds."""
+    rel = {"plan_loss": "Planning loss", "hindsight": "Hindsight cost", "mse": "MSE"}
+    scales = RELATIVE_SCALE[setting]
+    head = ["Method", "ADE (m)", "NLL (nats)"] + [
+        f"{rel[k]} (x{v:.0e})".replace("e-0", "e-") for k, v in scales.items()
+    ]
+    rows = []
+    for name, runs in results.items():
+
+        def get(key):
+            return [r[key] for r in runs] if key in runs[0] else []
+
+        rows.append(
+            [name, cell(get("ade"), row=name), cell(get("nll"), row=name)]
+            + [cell(get("rel_" + k), row=name) for k in scales]
+            + [cell(get("converged"), "{:.3f}", name)]
+        )
+    return markdown_table(head + ["iLQR converged"], rows)
