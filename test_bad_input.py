@@ -21,7 +21,7 @@ import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
-from lab import runs
+from lab import checks, runs
 import specs
 import train as tr
 from lab import quick as lq
@@ -321,9 +321,9 @@ def test_batches_with_inf_or_no_scenarios_are_refused(batch):
                 model, dataclasses.replace(batch, **{field: bad}), method, cfg, epochs=0.1
             )
     with pytest.raises(ValueError, match="batch"):
-        tr.check_batch(batch[:0], cfg, need_future=False)
+        checks.check_batch(batch[:0], cfg, need_future=False)
     with pytest.raises(ValueError, match="batch"):
-        tr.check_batch(batch[:0], cfg, need_future=True, stack=True)
+        checks.check_batch(batch[:0], cfg, need_future=True, stack=True)
     # the valid batch runs
     ds.run_stack(batch, model, method, cfg, train=True, step=0)
 

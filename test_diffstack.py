@@ -16,6 +16,7 @@ import torch
 import data_synth
 import diffstack as ds
 import train as tr
+from lab import checks
 from conftest import DT, TINY, cast, make_batch, make_model, small_cfg
 
 
@@ -973,30 +974,30 @@ def test_prior_does_not_see_the_future_and_eval_is_deterministic():
 
 
 def test_bad_input_names_the_argument():
-    """The data check where data enters a run (train.check_batch, before training and
+    """The data check where data enters a run (checks.check_batch, before training and
     evaluation)."""
     cfg = small_cfg()
     b = make_batch(4)
-    tr.check_batch(b, cfg, need_future=True)  # the valid batch passes
+    checks.check_batch(b, cfg, need_future=True)  # the valid batch passes
     with pytest.raises(ValueError, match="agent_hist"):
-        tr.check_batch(
+        checks.check_batch(
             b.replace(agent_hist=b.agent_hist[:, 1:], agent_hist_mask=b.agent_hist_mask[:, 1:]),
             cfg,
             False,
         )
     with pytest.raises(ValueError, match="others_hist"):
-        tr.check_batch(b.replace(others_hist=b.others_hist[:, :, :5]), cfg, False)
+        checks.check_batch(b.replace(others_hist=b.others_hist[:, :, :5]), cfg, False)
     with pytest.raises(ValueError, match="agent_fut"):
-        tr.check_batch(b.replace(agent_fut=b.agent_fut[:, :4]), cfg, True)
+        checks.check_batch(b.replace(agent_fut=b.agent_fut[:, :4]), cfg, True)
     for name in ("agent_hist", "ego_hist", "others_hist", "agent_fut"):
         x = getattr(b, name).clone()
         x.view(-1)[5] = float("nan")
         with pytest.raises(ValueError, match=f"{name} contains NaN"):
-            tr.check_batch(b.replace(**{name: x}), cfg, True)
+            checks.check_batch(b.replace(**{name: x}), cfg, True)
     bad = b.agent_hist_mask.clone()
     bad[0, 4] = False  # a gap in the middle
     with pytest.raises(ValueError, match="agent_hist_mask"):
-        tr.check_batch(b.replace(agent_hist_mask=bad), cfg, False)
+        checks.check_batch(b.replace(agent_hist_mask=bad), cfg, False)
 
 
 # ---------------------------------------------------------------------------------------------

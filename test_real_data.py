@@ -24,6 +24,7 @@ import data_synth as ds
 import diffstack
 import experiments as ex
 import train
+from lab import checks
 
 HERE = pathlib.Path(__file__).resolve().parent
 CACHE = HERE / "data_cache"
@@ -181,7 +182,7 @@ def test_samples_have_the_shapes_and_sizes_of_the_other_sources(real):
         assert not v.is_floating_point() or torch.isfinite(v).all(), k
     assert batch.lanes.shape[1:] == (12, 40, 3) and batch.others_hist.shape[1:] == (16, 9, 4)
     assert (batch.behaviour == -1).all()
-    train.check_batch(batch, diffstack.Config(), need_future=True, stack=True)
+    checks.check_batch(batch, diffstack.Config(), need_future=True, stack=True)
 
 
 def test_ego_at_the_origin_facing_x_and_the_goal(real):
