@@ -21,6 +21,7 @@ import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
+from lab import tables as lt
 from lab import checks, runs
 import specs
 import train as tr
@@ -56,17 +57,17 @@ def test_existing_results_are_never_replaced_without_overwrite(tmp_path, capsys)
     (tmp_path / "rl.json").unlink()
     (tmp_path / "closed_loop.png").write_bytes(b"png")
     with pytest.raises(ValueError, match="closed_loop.png"):
-        ex.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=False)
-    ex.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
+        lt.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=False)
+    lt.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
     # an unrelated file does not block another table
-    ex.check_outputs(("rl",), tmp_path, overwrite=False)
+    lt.check_outputs(("rl",), tmp_path, overwrite=False)
 
 
 def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
     (tmp_path / "il.md").write_text("# mine")
-    monkeypatch.setattr(ex, "run_table", lambda *a, **k: pytest.fail("no work may start"))
+    monkeypatch.setattr(lt, "run_table", lambda *a, **k: pytest.fail("no work may start"))
     with pytest.raises(ValueError, match="il.md"):
-        ex.run_experiment("il", None, ds.Config(), (0,), 1.0, tmp_path)
+        lt.run_experiment("il", None, ds.Config(), (0,), 1.0, tmp_path)
 
 
 def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
@@ -404,7 +405,7 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
 
 def test_a_corrupt_piece_of_the_resume_store_is_named_and_computed_again(tmp_path, capsys):
     store = runs.RunStore(tmp_path, "k")
-    piece = ex.Piece("Standard", 0, None)
+    piece = lt.Piece("Standard", 0, None)
     store.save("rl", piece, {"ade": 1.0})
     assert store.has("rl", piece)
     store.path("rl", piece).write_text('{"table": "rl", "res')  # a disk error cut it
@@ -503,18 +504,18 @@ def test_render_of_a_file_of_the_wrong_schema_is_one_line(text, why, tmp_path, c
 def test_render_all_checks_every_file_before_writing_any(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    for name in ex.EXPERIMENTS:  # the committed results, the last one damaged
+    for name in specs.EXPERIMENTS:  # the committed results, the last one damaged
         (out / f"{name}.json").write_text((pathlib.Path("results") / f"{name}.json").read_text())
         (out / f"{name}.md").write_text("kept")
-    (out / f"{ex.EXPERIMENTS[-1]}.json").write_text('{"meta": {}, "results": {}}')
+    (out / f"{specs.EXPERIMENTS[-1]}.json").write_text('{"meta": {}, "results": {}}')
     err = cli_error(ex.main, ["--experiment", "all", "--render", "--out", str(out)], capsys)
-    assert f"{ex.EXPERIMENTS[-1]}.json: meta.command" in err.strip().splitlines()[-1]
-    assert all((out / f"{n}.md").read_text() == "kept" for n in ex.EXPERIMENTS)
+    assert f"{specs.EXPERIMENTS[-1]}.json: meta.command" in err.strip().splitlines()[-1]
+    assert all((out / f"{n}.md").read_text() == "kept" for n in specs.EXPERIMENTS)
 
 
 def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, capsys):
     store = runs.RunStore(tmp_path, "k")
-    piece = ex.Piece("Standard", 0)
+    piece = lt.Piece("Standard", 0)
     path = store.path("rl", piece)
     path.parent.mkdir(parents=True)
     path.write_text("[" * 100 + "]" * 100)

@@ -957,12 +957,12 @@ def test_random_mutations_of_a_folder_are_read_or_refused_by_name(valid, tmp_pat
 def test_random_corruption_of_resume_pieces_is_named_and_recomputed(tmp_path, capsys):
     """Seeded random truncations and byte flips of finished pieces: the store never raises, and a
     piece it still calls finished loads."""
-    import experiments as ex
     from lab import runs
+    from lab import tables as lt
 
     rng = random.Random(1)
     store = runs.RunStore(tmp_path, "k")
-    pieces = [ex.Piece("Standard", s, None) for s in range(30)]
+    pieces = [lt.Piece("Standard", s, None) for s in range(30)]
     for p in pieces:
         store.save("rl", p, {"ade": 1.0 + p.seed, "curve": [1.0, 2.0]})
     for p in pieces:

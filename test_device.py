@@ -32,6 +32,7 @@ import diffstack as ds
 import experiments as ex
 import train as tr
 from lab import quick as lq
+from lab import tables as lt
 from lab import cli
 
 TINY = dict(
@@ -311,7 +312,7 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     work = []
     monkeypatch.setattr(lq, "quick", lambda *a, **k: work.append(1))
     monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
-    monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(lt, "experiment_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
         err = cli_error(lq.main, ["--quick", "--device", name], capsys)
     else:
@@ -328,8 +329,8 @@ def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(lq, "quick", lambda *a, **k: seen.update(quick=k["device"]))
     lq.main(["--quick"])
     lq.main(["--quick", "--device", "cpu"])
-    monkeypatch.setattr(ex, "experiment_data", lambda *a, **k: "data")
-    monkeypatch.setattr(ex, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
+    monkeypatch.setattr(lt, "experiment_data", lambda *a, **k: "data")
+    monkeypatch.setattr(lt, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
     ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
     assert seen == {"quick": torch.device("cpu"), "experiment": torch.device("cpu")}
 

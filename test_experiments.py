@@ -14,6 +14,7 @@ import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
+from lab import tables as lt
 import figures
 from lab import report, runs, stats
 import specs
@@ -186,7 +187,7 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
 
 
 def test_validation_spread_needs_no_experiment_on_the_command_line(monkeypatch, capsys):
-    monkeypatch.setattr(ex, "validation_spread", lambda *a, **k: "the table")
+    monkeypatch.setattr(lt, "validation_spread", lambda *a, **k: "the table")
     ex.main(["--validation-spread"])
     assert capsys.readouterr().out.strip() == "the table"
     with pytest.raises(SystemExit):
@@ -195,20 +196,20 @@ def test_validation_spread_needs_no_experiment_on_the_command_line(monkeypatch, 
 
 
 def test_table_1_runs_10_seeds_and_the_others_5_unless_the_command_says(tmp_path, monkeypatch):
-    assert ex.table_seeds(specs.TABLE1) == tuple(range(10)) and specs.TABLE1.seeds == 10
-    assert {ex.table_seeds(specs.SPECS[n]) for n in specs.EXPERIMENTS if n != "rl"} == {
+    assert lt.table_seeds(specs.TABLE1) == tuple(range(10)) and specs.TABLE1.seeds == 10
+    assert {lt.table_seeds(specs.SPECS[n]) for n in specs.EXPERIMENTS if n != "rl"} == {
         tuple(range(5))
     }
-    assert ex.table_seeds(specs.TABLE1, range(3)) == (0, 1, 2)
+    assert lt.table_seeds(specs.TABLE1, range(3)) == (0, 1, 2)
     asked = {}
     data = data_synth.Dataset(None, None)
     monkeypatch.setattr(
-        ex, "experiment_data", lambda n, seeds, *a, **k: asked.update(draws=tuple(seeds)) or data
+        lt, "experiment_data", lambda n, seeds, *a, **k: asked.update(draws=tuple(seeds)) or data
     )
     monkeypatch.setattr(
-        ex, "run_experiment", lambda name, data, cfg, seeds, *a, **k: asked.update(seeds=seeds)
+        lt, "run_experiment", lambda name, data, cfg, seeds, *a, **k: asked.update(seeds=seeds)
     )
-    monkeypatch.setattr(ex, "closed_loop_scenes", lambda *a: None)
+    monkeypatch.setattr(lt, "closed_loop_scenes", lambda *a: None)
     ex.main(["--experiment", "all", "--out", str(tmp_path / "a")])
     assert asked == {"draws": tuple(range(10)), "seeds": None}  # a draw for each of Table 1's seeds
     ex.main(["--experiment", "il", "--out", str(tmp_path / "b")])
@@ -222,7 +223,7 @@ def test_a_table_records_its_validation_count_and_training_draws(clean, tmp_path
     cfg = ds.Config(**TINY10)
     draws = (data.train[:32], data.train[32:64])
     small = data_synth.Dataset(draws[0], data.val[:16], None, draws)
-    ex.run_experiment("cost", small, cfg, (0, 1), 0.25, tmp_path, "test", log=None)
+    lt.run_experiment("cost", small, cfg, (0, 1), 0.25, tmp_path, "test", log=None)
     meta = json.loads((tmp_path / "cost.json").read_text())["meta"]
     assert meta["val"] == 16 and meta["data_seeds"] == [0, 1]
 
@@ -392,7 +393,7 @@ def test_metrics_on_the_logged_trajectory_have_zero_deviation(clean):
     N = 4
     f0 = 8
     ego = scenes.ego[:, f0 : f0 + N + 1]
-    roll = ex.Rollout(
+    roll = tr.Rollout(
         ego,
         torch.zeros(S, N, 2, dtype=torch.float64),
         torch.zeros(S, N, 7, 4, dtype=torch.float64),
@@ -451,26 +452,26 @@ def test_experiments_end_to_end_tiny(clean, tmp_path):
     data, _ = clean
     cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:32], data.val_scenes[:3])
-    res, table = ex.run_table(specs.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    res, table = lt.run_table(specs.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert set(res) == {"Hand-tuned", "Learned"} and "Learned" in table
     assert res["Hand-tuned"][0]["w"] == pytest.approx([5.0, 0.5, 0.3, 0.3, 1.0], rel=1e-5)
     # Table 3 as the paper: w'_1 fixed at 5, w'_2..5 moved but summing to 2.1
     learned = res["Learned"][0]["w"]
     assert learned[0] == 5.0 and sum(learned[1:]) == pytest.approx(2.1, rel=1e-6)
     assert max(abs(a - b) for a, b in zip(learned[1:], (0.5, 0.3, 0.3, 1.0))) > 1e-4
-    res, table = ex.run_table(
+    res, table = lt.run_table(
         specs.TABLES["closed_loop"], small, cfg, (0,), 0.5, tmp_path, log=None
     )
     assert list(res) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
     assert res["No prediction"][0]["rel_trajectory"] == 0 and math.isfinite(
         res["DiffStack"][0]["rel_trajectory"]
     )
-    report = ex.write_report(
+    written = report.write_report(
         tmp_path, [("Closed loop", table, ["closed_loop.png", "stack_example.png"])]
     )
     for f in ("cost_weights.png", "closed_loop.png", "stack_example.png"):
         assert (tmp_path / f).stat().st_size > 10_000
-    assert "![closed_loop.png](closed_loop.png)" in report.read_text()
+    assert "![closed_loop.png](closed_loop.png)" in written.read_text()
 
 
 def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkeypatch):
@@ -479,7 +480,7 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
     small = data_synth.Dataset(data.train[:32], data.val[:16])
     no_planner, dt01 = specs.ABLATION_SECTIONS[1], specs.ABLATION_SECTIONS[-1]
     # the shortest section and dt = 0.1 s
-    monkeypatch.setattr(ex, "ABLATION_SECTIONS", (no_planner, dt01))
+    monkeypatch.setattr(lt, "ABLATION_SECTIONS", (no_planner, dt01))
     trained = []
     train = tr.train_stack
     monkeypatch.setattr(
@@ -489,7 +490,7 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
             1
         ],
     )
-    res, table = ex.run_table(specs.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    res, table = lt.run_table(specs.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
     assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
     for rows in res.values():
         assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
@@ -529,7 +530,7 @@ def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypat
         )
 
     monkeypatch.setattr(tr, "train_stack", counting)
-    ex.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
+    lt.run_experiment("all", small, cfg, (0,), 0.5, tmp_path, "test", log=lambda s: None)
     assert len(trained) == len(set(trained))
     assert trained.count(((1, 0, 0), "standard", None, 0.0, (), None)) == 1
     # the dt = 0.1 s section
@@ -548,7 +549,7 @@ def test_all_trains_each_predictor_once_and_shares_it(clean, tmp_path, monkeypat
 def test_closed_loop_experiment_through_the_cli(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the synthetic data cache goes to tmp_path/data_cache
     tiny = ds.Config(**TINY)
-    monkeypatch.setattr(ex, "Config", lambda: tiny)  # what main() builds
+    monkeypatch.setattr(lt, "Config", lambda: tiny)  # what main() builds
     ex.main(
         [
             "--experiment",
@@ -696,7 +697,7 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
         "DiffStack": runs(0.0, 0.9, 2.1),
         "GT prediction": runs(-2, -2, -2),
     }
-    md = ex.results_markdown(specs.TABLE1, res)
+    md = report.results_markdown(specs.TABLE1, res)
     assert (
         "DiffStack vs Standard, hindsight cost (x1e-2): paired difference -1.00 ± 0.06 (t = "
         "-17.32, p = 0.003, 3 of 3 seeds better): reproduced"
@@ -706,7 +707,7 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
         command="python experiments.py --experiment rl", date="2026-01-01", machine="m", seconds=1.0
     )
     (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=res)))
-    text = ex.render_markdown("rl", tmp_path).read_text()
+    text = lt.render_markdown("rl", tmp_path).read_text()
     assert (
         text.startswith("# Table 1")
         and md in text
@@ -717,14 +718,14 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
         title: {"Standard": runs(1.0, 2.0), "DiffStack": runs(1.5, 2.5)}
         for title, _, _ in specs.ABLATION_SECTIONS
     }
-    md = ex.results_markdown(specs.TABLE6, abl)
+    md = report.results_markdown(specs.TABLE6, abl)
     assert md.count("DiffStack vs Standard, hindsight cost") == len(specs.ABLATION_SECTIONS)
     assert (
         "Loss weights: DiffStack vs Standard, hindsight cost (x1e-2): paired difference 0.50 ± 0.00"
         in md
     )
     with pytest.raises(ValueError, match="name: 'nope'"):
-        ex.render_markdown("nope", tmp_path)
+        lt.render_markdown("nope", tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -762,18 +763,18 @@ def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
 def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
     store = runs.RunStore(tmp_path, "k")
     names = ("rl", "ablation", "il")
-    units = ex.work_units(names, {n: (0, 1, 2) for n in names}, store)
+    units = lt.work_units(names, {n: (0, 1, 2) for n in names}, store)
     assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
     assert all(len({p.seed for p in ps}) == 1 for _, ps in units)  # one seed per unit
     seeds = [ps[0].seed for _, ps in units]
     # two workers never start the same seed side by side
     assert all(a != b for a, b in zip(seeds, seeds[1:]))
-    every = [(n, p) for n in names for p in ex.table_pieces(specs.SPECS[n], (0, 1, 2))]
+    every = [(n, p) for n in names for p in lt.table_pieces(specs.SPECS[n], (0, 1, 2))]
     assert sorted((n, p) for n, ps in units for p in ps) == sorted(every)
     done = units[0][1][0]
     store.save("ablation", done, {"x": 1})
     assert ("ablation", done) not in [
-        (n, p) for n, ps in ex.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps
+        (n, p) for n, ps in lt.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps
     ]
 
 
@@ -909,7 +910,7 @@ def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp
     hindsight cost."""
     data, _ = clean
     cfg = ds.Config()
-    res, md = ex.run_table(specs.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
+    res, md = lt.run_table(specs.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
     assert list(res) == list(specs.GOALS) and all(
         list(rows) == ["No prediction", "GT prediction"] for rows in res.values()
     )
@@ -940,7 +941,7 @@ def test_the_report_says_when_and_where_its_tables_ran_not_when_it_was_written(t
         ),
         dict(date="2026-11-25", machine="aarch64, 8 cores, 2 threads", device="cuda"),
     ]
-    header = ex.write_report(tmp_path, [("T", "table", [])], metas).read_text().splitlines()[2]
+    header = report.write_report(tmp_path, [("T", "table", [])], metas).read_text().splitlines()[2]
     assert header == (
         "Tables made 2026-11-24 to 2026-11-25 on x86_64, 2 cores, 1 thread per process, 2 worker "
         # each once, in order
@@ -949,7 +950,7 @@ def test_the_report_says_when_and_where_its_tables_ran_not_when_it_was_written(t
     # a run resumed on another machine
     metas[0]["computed_on"] = {"x86_64, AVX512": 3, "x86_64, AVX2": 2}
     header = (
-        ex.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True)
+        report.write_report(tmp_path, [("T", "table", [])], metas[:1], rendered=True)
         .read_text()
         .splitlines()[2]
     )
@@ -966,7 +967,7 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
     data, _ = clean
     cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:16], data.val_scenes[:2])
-    ex.run_experiment("rl", small, cfg, (0, 1), 1.0, tmp_path, "test", log=None)
+    lt.run_experiment("rl", small, cfg, (0, 1), 1.0, tmp_path, "test", log=None)
     assert (tmp_path / "learning_curves.png").exists()
     res = json.loads((tmp_path / "rl.json").read_text())["results"]
     assert [c["epoch"] for c in res["DiffStack"][0]["curve"]] == [0.0, 1.0]
@@ -986,7 +987,7 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
             r.pop("curve", None)
     (tmp_path / "rl.json").write_text(json.dumps(saved))
     (tmp_path / "learning_curves.png").unlink()
-    ex.render_outputs("rl", tmp_path, log=None)
+    lt.render_outputs("rl", tmp_path, log=None)
     assert (
         not (tmp_path / "learning_curves.png").exists()
         and "Learning curves" not in (tmp_path / "rl.md").read_text()
@@ -1096,7 +1097,7 @@ def test_a_one_seed_table_says_its_standard_errors_are_not_available():
         "DiffStack": _open_loop_runs(0.5, curve=True),
         "GT prediction": _open_loop_runs(-2.0),
     }
-    md = ex.results_markdown(specs.TABLE1, res)
+    md = report.results_markdown(specs.TABLE1, res)
     card = report.claims_card({"rl": res})
     for text in (md, card):
         assert "nan" not in text.lower() and "inf" not in text.lower(), text
@@ -1119,7 +1120,7 @@ def test_a_table_whose_trained_rows_all_diverged_names_them_and_tests_nothing():
         "DiffStack": [{"diverged": "DiffStack, seed 0: its learning curve holds 1.nll, infinite"}],
         "GT prediction": _open_loop_runs(-2.0),
     }
-    md = ex.results_markdown(specs.TABLE1, res)
+    md = report.results_markdown(specs.TABLE1, res)
     card = report.claims_card({"rl": res})
     for text in (md, card):
         assert "nan" not in text.lower() and "inf " not in text.lower(), text

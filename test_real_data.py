@@ -23,6 +23,8 @@ import data_real as dr
 import data_synth as ds
 import diffstack
 import experiments as ex
+from lab import tables as lt
+import specs
 import train
 from lab import checks
 
@@ -339,7 +341,7 @@ def test_real_experiment_through_the_cli(tmp_path, monkeypatch, waymo_files):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "data_cache").mkdir()
     (tmp_path / "data_cache" / "waymo").symlink_to(waymo_files[0].parent)
-    monkeypatch.setattr(ex, "Config", lambda: diffstack.Config(**TINY))
+    monkeypatch.setattr(lt, "Config", lambda: diffstack.Config(**TINY))
     ex.main(
         [
             "--experiment",
@@ -356,7 +358,7 @@ def test_real_experiment_through_the_cli(tmp_path, monkeypatch, waymo_files):
             "1",
         ]
     )
-    out = tmp_path / ex.REAL_OUT  # runs/real by default: git-ignored
+    out = tmp_path / specs.REAL_OUT  # runs/real by default: git-ignored
     res = json.loads((out / "real.json").read_text())
     assert res["meta"]["experiment"] == "real" and res["meta"]["val"] == 78
     assert set(res["results"]) == {"No prediction", "Standard", "DiffStack", "GT prediction"}
@@ -375,13 +377,13 @@ def test_real_results_never_go_to_results(tmp_path):
         HERE / "runs" / ".." / "results",
     ):
         with pytest.raises(ValueError, match="licence forbids committing them"):
-            ex.check_outputs(("real",), out, overwrite=True)
+            lt.check_outputs(("real",), out, overwrite=True)
     # refused before making them
     assert not (HERE / "results" / "sub").exists() and not (HERE / "mine").exists()
-    ex.check_outputs(("real",), tmp_path, overwrite=False)
+    lt.check_outputs(("real",), tmp_path, overwrite=False)
     # outside the repository: anywhere
-    ex.check_outputs(("real",), tmp_path / "runs" / "real", overwrite=False)
-    ex.check_outputs(("rl",), HERE / "results", overwrite=True)  # the paper's tables still go there
+    lt.check_outputs(("real",), tmp_path / "runs" / "real", overwrite=False)
+    lt.check_outputs(("rl",), HERE / "results", overwrite=True)  # the paper's tables still go there
     assert "runs/" in (HERE / ".gitignore").read_text().split()
 
 

@@ -18,6 +18,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 import data_synth
 import diffstack as ds
 import experiments as ex
+from lab import tables as lt
 from lab import runs
 import specs
 import train as tr
@@ -74,7 +75,7 @@ def table_of(out, name="il") -> str:
 
 def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, trainings):
     cfg = ds.Config(**TINY10)
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "whole", "test", log=None)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "whole", "test", log=None)
     assert sorted(trainings.calls) == [
         ("DiffStack", 0),
         ("DiffStack", 1),
@@ -85,14 +86,14 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     # Standard seeds 0 and 1 train, then the run dies while training DiffStack seed 0
     trainings.fail_at = 3
     with pytest.raises(RuntimeError, match="killed"):
-        ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=None)
+        lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=None)
     kept = sorted(p.name for p in (tmp_path / "cut" / ".runs" / "il").glob("*/*-seed*.json"))
     assert kept == ["No_prediction-seed0.json", "Standard-seed0.json", "Standard-seed1.json"]
     assert not (tmp_path / "cut" / "il.json").exists()
     trainings.calls.clear()
     trainings.fail_at = None
     lines = []
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=lines.append)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "cut", "test", log=lines.append)
     assert trainings.calls == [("DiffStack", 0), ("DiffStack", 1)]  # only what was missing
     assert any(
         "3 of 6 pieces done by an earlier run" in ln and "Standard-seed1" in ln for ln in lines
@@ -120,31 +121,31 @@ def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces
 ):
     cfg = ds.Config(**TINY10)
     out = tmp_path / "out"
-    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2
     before = numbers(out)
     # the same command again: its own outputs may be replaced, nothing is trained, the same
     # numbers come out
-    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2 and numbers(out) == before
     # another config is another run: its outputs are not ours (refused without --overwrite), and all
     # is retrained
     other = dataclasses.replace(cfg, beta=2 * cfg.beta)
     with pytest.raises(ValueError, match="--overwrite"):
-        ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
-    ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None, overwrite=True)
+        lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None, overwrite=True)
     assert len(trainings.calls) == 4 and len(list((out / ".runs" / "il").iterdir())) == 2
     assert numbers(out) != before
     # an output edited by hand is no longer the run's own: refused
     (out / "il.md").write_text("edited")
     with pytest.raises(ValueError, match="il.md"):
-        ex.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+        lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
 
 
 def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_path, trainings):
     cfg = ds.Config(**TINY10)
     out = tmp_path / "out"
-    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     kept = sorted((out / ".runs" / "il").glob("*/*-seed*.json"))
     assert [json.loads(f.read_text())["timing"]["machine"] for f in kept] == [cli.machine()] * 4
     # one machine: nothing to say
@@ -154,7 +155,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     piece = json.loads(kept[-1].read_text())
     piece["timing"]["machine"] = "x86_64, another processor, AVX2, 2 cores"
     kept[-1].write_text(json.dumps(piece))
-    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2  # resumed: nothing trained again
     meta = json.loads((out / "il.json").read_text())["meta"]
     assert meta["computed_on"] == {cli.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
@@ -169,13 +170,13 @@ def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(
 ):
     cfg = ds.Config(**TINY10)
     out = tmp_path / "out"
-    ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
     before = numbers(out, "closed_loop")
     (out / "closed_loop.png").unlink()
     monkeypatch.setattr(
         ex, "simulate", lambda *a, **k: pytest.fail("every piece is kept: nothing is simulated")
     )
-    ex.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
     # Standard and DiffStack, once; the figure's predictors are loaded
     assert len(trainings.calls) == 2
     assert (
@@ -187,9 +188,9 @@ def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(
 def test_jobs_2_gives_the_numbers_of_one_process(small, tmp_path):
     cfg = ds.Config(**TINY10)
     t0 = time.time()
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "one", "test", log=None, jobs=1)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "one", "test", log=None, jobs=1)
     t1 = time.time()
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "two", "test", log=None, jobs=2)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path / "two", "test", log=None, jobs=2)
     print(f"--jobs 1: {t1 - t0:.1f} s, --jobs 2: {time.time() - t1:.1f} s")
     assert numbers(tmp_path / "two") == numbers(tmp_path / "one")
     machine = json.loads((tmp_path / "two" / "il.json").read_text())["meta"]["machine"]
@@ -212,7 +213,7 @@ def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_others_up_to_th
     counted as they appear: the bar starts at those finished before it, and reaches the total while
     the run is still in its with block, not only at the end."""
     store = runs.RunStore(tmp_path, "k")
-    pieces = [("il", ex.Piece("Standard", s)) for s in range(4)]
+    pieces = [("il", lt.Piece("Standard", s)) for s in range(4)]
     store.save("il", pieces[0][1], {"ade": 1.0})
     with runs.progress(store, pieces, every=0.01) as bar:
         assert (bar.initial, bar.n, bar.total) == (1, 1, 4)
@@ -231,8 +232,8 @@ def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_others_up_to_th
 def test_a_piece_records_whether_it_trained(small, tmp_path):
     cfg = ds.Config(**TINY10)
     out = tmp_path / "out"
-    ex.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
-    ex.run_experiment("cost", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("cost", small, cfg, (0,), 0.5, out, "test", log=None)
     trained = {
         f"{f.parent.parent.name} {f.stem}": json.loads(f.read_text())["timing"]["trained"]
         for f in (out / ".runs").glob("*/*/*-seed*.json")
@@ -261,11 +262,11 @@ def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypat
     kinds = set()
     for name in ("rl", "biased", "il", "cost", "ablation", "closed_loop", "goal"):
         spec = specs.SPECS[name]
-        for piece in ex.table_pieces(spec, (1,)):
+        for piece in lt.table_pieces(spec, (1,)):
             asked.clear()
-            ex.compute_piece(spec, piece, small, cfg, 0.5, log=None)
+            lt.compute_piece(spec, piece, small, cfg, 0.5, log=None)
             used = list(asked)
-            named = ex.piece_trainings(spec, piece, cfg, 0.5)
+            named = lt.piece_trainings(spec, piece, cfg, 0.5)
             assert used == [k for k in named if k[0] != "cost weights"], (name, piece)
             assert all(k[2] == 1 for k in used)  # the piece's seed
             kinds.update(k[:2] + k[3:] for k in used)
@@ -328,7 +329,7 @@ def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(
         return train(model, data, m, cfg_, setting, epochs, seed, *a, **k)
 
     monkeypatch.setattr(tr, "train_stack", diverging)
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
     res = json.loads((tmp_path / "il.json").read_text())["results"]
     assert res["DiffStack"][1] == {
         "diverged": "DiffStack, seed 1: training diverged at step 3 of 4: L_pred is not finite"
@@ -338,7 +339,7 @@ def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(
     assert "1 of 1 seeds better" in md or "0 of 1 seeds better" in md
     assert "1 diverged, left out" in md
     calls.clear()
-    ex.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
     assert calls == []  # every piece kept, the diverged one too
 
 
@@ -554,7 +555,7 @@ def test_a_worker_that_dies_stops_the_run_saying_so(tmp_path):
         runs.WorkerDied, match=r"a worker process died .*the same command resumes it"
     ):
         runs.compute_in_workers(
-            _dies, [("rl", [ex.Piece("Standard", 0, None)])], store, jobs=1, verbose=False
+            _dies, [("rl", [lt.Piece("Standard", 0, None)])], store, jobs=1, verbose=False
         )
 
 

@@ -1141,7 +1141,7 @@ check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 t0 = time.time()
 res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(xp.results_markdown(xp.TABLES["cost"], res_cost)))
+display(Markdown(report.results_markdown(xp.TABLES["cost"], res_cost)))
 with tempfile.TemporaryDirectory() as tmp:  # quick mode: the committed 5 seeds (results/cost.json)
     res_w = json.loads(Path("results/cost.json").read_text())["results"] if QUICK else res_cost
     figures.figure_cost_weights(res_w, Path(tmp) / "w.png", "results/cost.json" if QUICK else "")
@@ -1177,7 +1177,7 @@ res5, rollouts, cl_scenes = xp.closed_loop_experiment(
     data, cl, cfg, seeds=(SEED,), epochs=EPOCHS, log=None
 )
 print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
-display(Markdown(xp.results_markdown(xp.TABLES["closed_loop"], res5)))
+display(Markdown(report.results_markdown(xp.TABLES["closed_loop"], res5)))
 results_table("closed_loop")
 check_claim("closed_loop", "DiffStack", "Standard", "Trajectory cost (x1e-2)", "not reproduced")
 # Figure: the scene where the methods' executed trajectories come furthest apart.

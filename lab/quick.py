@@ -19,6 +19,7 @@ import data_synth
 from diffstack import Config
 from lab.cli import bounded, check_writable, config_with, device_arg, machine
 from lab.runs import (
+    ROOT,
     WorkerDied,
     command_line,
     default_threads,
@@ -143,7 +144,7 @@ def pretrain(
                 ["git", "rev-parse", "--short", "HEAD"],
                 capture_output=True,
                 text=True,
-                cwd=pathlib.Path(__file__).parent,
+                cwd=ROOT,
                 check=True,
             ).stdout.strip()
         except (OSError, subprocess.CalledProcessError):
