@@ -6,20 +6,16 @@
                                               # at the paper's length
 
 Each table of the paper is a declarative TableSpec (specs.py: its methods, setting, loss weights,
-metrics and the paper's own numbers), and one function, run_table, runs any of them (run_experiment:
-what each result file records).
+metrics and the paper's own numbers); the functions here compute its numbers, and lab/tables.py
+runs any of them (cut into pieces, in worker processes, kept and resumed; `main` hands over to it)
+and lab/report.py writes their text.
 
 Map of the module:
     1. Training       trained_predictor: a predictor is trained once per (method, seed, ...) and
-                      shared by the tables
+                      shared by the tables; the tables' data
     2. Cost learning  Table 3, the learned cost weights (App. A.2, Table 7)
-    3. Closed loop    log replay (§4.3, Table 5, App. D.3)
+    3. Closed loop    log replay (§4.3, Table 5, App. D.3): the simulation and its metrics
     4. Ablations      App. A.1; the goal table (what a perfect prediction is worth, by behaviour)
-    5. Running        a table's pieces, computed and assembled (run_table), the report, the command
-                      line; under it, lab/runs.py (resuming, provenance, worker processes, progress)
-                      and figures.py
-Over it, specs.py: Column, Claim, TableSpec, and the paper's tables: 1, 2, 3, 4, 5 and the ablations
-(App. A.1, Table 6).
 
 Shape letters as in diffstack.py; in the closed loop, as in data_synth.py, S counts scenes and N
 simulation steps.
@@ -35,11 +31,15 @@ import sys
 import time
 
 import torch
+from dataclasses import dataclass
 
 import data_real
 import data_synth
 from diffstack import (
     COST_TERMS,
+    project_to_lanes,
+    unicycle_step,
+    wrap_angle,
     Config,
     Predictor,
     cost_contexts,
@@ -61,12 +61,6 @@ from train import (
     to_device,
     train_predictor,
     train_stack,
-    VAL_N,
-    VAL_SEED,
-    simulate,
-    stack_policy,
-    closed_loop_metrics,
-    closed_loop_scenes,
 )
 
 # hand-over: the command line's argument types and checks, shared with diffstack.py's
@@ -286,6 +280,41 @@ def open_loop_experiment(
     )
 
 
+VAL_SEED = 1000
+"""The data seed of the tables' common validation set. Training seed s trains on the draw of data
+seed s, and seeds are 0..99 (--seeds <= 100): no training draw is this one, and distinct draws hold
+distinct random scenes."""
+
+
+VAL_N = 10_000
+"""Samples in the common validation set: at 1,500 which scenes land in validation decides a row of
+Table 1 (a few near-collisions among ~46 cut-in scenes carry the signal); at 10,000 the rows hold
+from draw to draw."""
+
+
+def experiment_data(
+    n=10000, seeds=range(5), n_val=VAL_N, cache_dir="data_cache", log=print
+) -> data_synth.Dataset:
+    """The tables' synthetic data: training seed s trains on the training scenes of its own draw
+    (load_data(n, seed=s).train), and every method of every seed is evaluated on one common
+    validation set, all n_val samples of the draw of data seed VAL_SEED, whose scenes no training
+    draw contains; that draw's validation scenes are the closed loop's. Each draw is generated once,
+    then read from cache_dir."""
+    seeds = tuple(seeds)
+    if not seeds or max(seeds) >= VAL_SEED:
+        raise ValueError(
+            f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the "
+            f"validation set's), got {seeds}"
+        )
+    common = data_real.load_data(None, n_val, VAL_SEED, cache_dir, log)
+    draws = tuple(
+        data_real.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1)
+    )
+    return data_synth.Dataset(
+        draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws
+    )
+
+
 # ============================================================================================
 # 2. Cost learning (§4.2, Table 3; App. A.2, Table 7)
 # ============================================================================================
@@ -354,8 +383,178 @@ def cost_learning_seed(
 # ============================================================================================
 # 3. Closed loop: log replay (§4.3, Table 5, App. D.3)
 # ============================================================================================
-# The simulation (simulate, stack_policy, closed_loop_metrics, closed_loop_scenes) is closed-loop
-# evaluation, in train.py; here, the table's runs.
+# Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED
+# ego (its simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the
+# ego by the first control; the other agents replay their logs. 4 s history + 10 s + the 3 s horizon
+# fit in a 20 s scene.
+
+
+@dataclass
+class Rollout:
+    """A closed-loop simulation of S scenes over N steps (world frame, float64)."""
+
+    # (S, N+1, 4)     simulated ego states at frames f0 .. f0+N
+    ego: torch.Tensor
+    # (S, N, 2)       the controls applied (the first of each step's trajectory)
+    controls: torch.Tensor
+    # (S, N, T+1, 4)  each step's final trajectory (controller output), world frame
+    plans: torch.Tensor
+    # (S, N)          each step's hindsight cost C_H of its trajectory (eq. 3, GT futures)
+    open_loop: torch.Tensor
+    # (S, N)          bool: the planner had at least 2 candidates at that step
+    plannable: torch.Tensor
+    start_frame: int  # f0
+
+
+def from_frame(states: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Ego-frame states (S, ..., 4) back to the world, the frame's origin (S, 4) given: the inverse
+    of the transform of data_synth.sample_at. [x, y] = [x0, y0] + R(h0) [x', y'],  h = h' + h0."""
+    shape = (origin.shape[0],) + (1,) * (states.dim() - 2)
+    x0, y0, h0 = (origin[:, i].reshape(shape) for i in range(3))
+    c, s = torch.cos(h0), torch.sin(h0)
+    x, y = states[..., 0], states[..., 1]
+    return torch.stack(
+        [x0 + c * x - s * y, y0 + s * x + c * y, wrap_angle(states[..., 2] + h0), states[..., 3]],
+        -1,
+    )
+
+
+def stack_policy(model, method: Method, cfg: Config, device=None):
+    """The stack as a closed-loop policy, in evaluation mode on `device` (default: the model's, or
+    the CPU): batch -> (x (S, T+1, 4) in the sample's frame, u (S, T, 2), C_H (S,) with every agent,
+    plannable (S,)), on the batch's device. Planner and controller see the predicted agent only
+    (App. D.3), the predictor every neighbour."""
+    if model is not None:
+        model.eval()
+    if device is None:
+        device = next(model.parameters()).device if model is not None else "cpu"
+
+    def policy(batch):
+        with torch.no_grad():
+            out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
+        home = batch.ego_hist.device
+        return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
+
+    return policy
+
+
+def simulate(
+    scenes,
+    policy,
+    cfg: Config,
+    sim_time: float = 10.0,
+    start_frame: int | None = None,
+    scfg=None,
+    dtype=torch.float32,
+) -> Rollout:
+    """Log replay (§4.3) of every scene at once: N = sim_time / dt steps from start_frame (default:
+    the first frame with a full history); policy as stack_policy's. scfg: the data's SynthConfig
+    (frame period, history and horizon); dtype: the policy's samples (the simulation is float64)."""
+    scfg = scfg or data_synth.SynthConfig()
+    H, T = scfg.hist, scfg.fut
+    F = scenes.ego.shape[1]
+    if abs(cfg.dt - scfg.dt) > 1e-9:
+        raise ValueError(
+            "dt: the simulation replans at every logged frame, so cfg.dt must be the log's "
+            f"{scfg.dt} s, got {cfg.dt}"
+        )
+    steps = sim_time / cfg.dt
+    if not sim_time > 0 or abs(steps - round(steps)) > 1e-9:
+        raise ValueError(
+            f"sim_time: must be a positive multiple of dt = {cfg.dt} s, got {sim_time}"
+        )
+    N = round(steps)
+    f0 = H if start_frame is None else start_frame
+    if f0 < H or f0 + N - 1 + T > F - 1:
+        raise ValueError(
+            f"start_frame: {f0} + {N} steps + the {T}-step horizon must lie in frames [{H}, "
+            f"{F - 1}] (start_frame >= {H}, sim_time <= {(F - 1 - T - H + 1) * cfg.dt} s)"
+        )
+    # (S, H+1, 4) the simulated ego's history, world frame
+    hist = scenes.ego[:, f0 - H : f0 + 1].clone()
+    ego = [hist[:, -1]]
+    controls, plans, open_loop, plannable = [], [], [], []
+    for k in range(N):  # a loop over simulation steps; every scene at once
+        batch = data_synth.sample_at(scenes, f0 + k, ego_state=hist, cfg=scfg, dtype=dtype)
+        x, u, hindsight, ok = policy(batch)  # (S, T+1, 4), (S, T, 2), (S,), (S,)
+        s = hist[:, -1]  # (S, 4)
+        u0 = u[:, 0].to(s)  # (S, 2) the simulation's dtype and device
+        # s_{k+1} = f(s_k, u_0) in the world frame (u does not depend on it)
+        s_next = unicycle_step(s, u0, cfg.dt)
+        s_next = torch.cat([s_next[:, :2], wrap_angle(s_next[:, 2:3]), s_next[:, 3:]], -1)  # (S, 4)
+        hist = torch.cat([hist[:, 1:], s_next[:, None]], 1)  # (S, H+1, 4)
+        ego.append(s_next)
+        controls.append(u0)
+        plans.append(from_frame(x.to(s), s))
+        open_loop.append(hindsight.to(s))
+        plannable.append(ok.to(s.device))
+
+    def st(xs):
+        return torch.stack(xs, 1)
+
+    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
+
+
+def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
+    """The metrics of §4.3 per scene (S,), on the unrolled trajectory s_1..s_N, u_0..u_N-1:
+    trajectory cost 1/N sum_t C(s_t, u_t; GT agents, map) without the goal term
+    (eq. 3, hand-tuned w); collision 1/N sum_t w1 C_coll (every logged agent present); lane 1/N
+    sum_t (w3 C_lat + w4 C_head); control effort 1/N sum_t w5 ||u_t||^2; open-loop cost, the mean
+    hindsight cost C_H of the plannable steps; deviation 1/N sum_t ||s_t - s_log,t|| (m)."""
+    N = roll.controls.shape[1]
+    f0 = roll.start_frame
+    x, u = roll.ego[:, 1:], roll.controls  # (S, N, 4), (S, N, 2)
+    frames = slice(f0 + 1, f0 + N + 1)
+    agents = scenes.agents[:, :, frames, :2]  # (S, M, N, 2)
+    present = scenes.agents_mask[:, :, frames]  # (S, M, N)
+    # (S, M, N); C_coll = sum_a phi(d2),  phi(d2) = exp(-d2 / 2 sigma^2)
+    d2 = ((x[:, None, :, :2] - agents) ** 2).sum(-1)
+    coll = (present * torch.exp(-d2 / (2 * cfg.rbf_var))).sum(1)  # (S, N)
+    lanes = scenes.lanes.to(x.dtype)
+    lat, head, _ = project_to_lanes(x[..., :2], x[..., 2], lanes, scenes.lanes_mask)  # (S, N)
+    w = dict(zip(COST_TERMS, cost_weights(cfg, x.dtype, x.device)))
+    # (S, N) each
+    parts = dict(
+        collision=w["coll"] * coll,
+        lane=w["lat"] * lat + w["head"] * head**2,
+        control=w["ctrl"] * (u**2).sum(-1),
+    )
+    out = {k: v.mean(-1) for k, v in parts.items()}
+    out["trajectory"] = out["collision"] + out["lane"] + out["control"]
+    keep = roll.plannable.to(x.dtype)
+    out["open_loop"] = (roll.open_loop * keep).sum(-1) / keep.sum(-1).clamp_min(1)
+    out["deviation"] = (x[..., :2] - scenes.ego[:, frames, :2]).norm(dim=-1).mean(-1)
+    out["plannable"] = keep.mean(-1)
+    return out
+
+
+def closed_loop_scenes(scenes, cfg: Config, sim_time=10.0, scfg=None):
+    """The scenes with a predicted agent at every simulated frame (all synthetic ones; real logs may
+    lack one). ValueError when there are none (scenes None: the data has no scene logs), saying what
+    the closed loop needs."""
+    if scenes is None:
+        raise ValueError("closed_loop: the data has no validation scene logs")
+    scfg = scfg or data_synth.SynthConfig()
+    H, T = scfg.hist, scfg.fut
+    N = round(sim_time / cfg.dt)
+    # (S, <=N) a predicted agent (with its 3 s future) at each frame
+    window = scenes.pred_idx[:, H : H + N] >= 0
+    ok = (
+        (window.all(1) & (window.shape[1] == N))
+        if len(scenes)
+        else torch.zeros(0, dtype=torch.bool)
+    )
+    if not ok.any():
+        run = window.int().cumprod(1).sum(1).max().item() if window.numel() else 0
+        raise ValueError(
+            f"closed_loop: a {sim_time:g} s closed loop needs scenes with a predicted agent at "
+            f"each of its {N} frames after {H * cfg.dt:g} s of history, i.e. at least {H + N + T} "
+            f"frames ({(H + N + T - 1) * cfg.dt:g} s at {1 / cfg.dt:g} Hz, the {T * cfg.dt:g} s "
+            f"horizon included); the data has {len(scenes)} validation scene(s) of "
+            f"{scenes.ego.shape[1]} frames, the best with a predicted agent for {run} frame(s) "
+            f"from frame {H}"
+        )
+    return scenes[ok]
 
 
 def closed_loop_experiment(

@@ -137,7 +137,7 @@ def _samples(batch) -> set:
 def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validation_set(
     tmp_path, monkeypatch
 ):
-    data = tr.experiment_data(200, range(3), n_val=300, cache_dir=tmp_path, log=None)
+    data = ex.experiment_data(200, range(3), n_val=300, cache_dir=tmp_path, log=None)
     assert len(data.train_draws) == 3 and len(data.val) == 300 and data.train is data.train_draws[0]
     assert all(data.train_for(s) is data.train_draws[s] for s in range(3))
     assert torch.equal(
@@ -149,9 +149,9 @@ def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validat
     assert len(val) == 300 and not any(d & val for d in draws)
     assert not (draws[0] & draws[1]) and not (draws[1] & draws[2])  # the draws differ
     # the closed loop's scenes too
-    assert all(name.startswith(f"synth-{tr.VAL_SEED}-") for name in data.val_scenes.names)
+    assert all(name.startswith(f"synth-{ex.VAL_SEED}-") for name in data.val_scenes.names)
     with pytest.raises(ValueError, match=r"--seeds: training seeds must be 0\.\.999"):
-        tr.experiment_data(200, range(1001), cache_dir=tmp_path, log=None)
+        ex.experiment_data(200, range(1001), cache_dir=tmp_path, log=None)
     # training seed s trains on draw s (train_predictor -> train_stack)
     seen = []
     monkeypatch.setattr(tr, "train_stack", lambda model, train, *a, **k: seen.append(train))
@@ -171,11 +171,11 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
     md = ex.validation_spread(draws=2, n=300, cache_dir=tmp_path, log=None)
     head, _, small, large = md.splitlines()
     assert (
-        f"data seed {tr.VAL_SEED + 1} | data seed {tr.VAL_SEED + 2} | mean" in head
+        f"data seed {ex.VAL_SEED + 1} | data seed {ex.VAL_SEED + 2} | mean" in head
         and large.startswith("| 300 |")
     )
     # the second draw, its validation side
-    data = data_real.load_data(None, 300, tr.VAL_SEED + 2, tmp_path, log=None)
+    data = data_real.load_data(None, 300, ex.VAL_SEED + 2, tmp_path, log=None)
     gt, no = (
         next(m for m in tr.TABLE1_METHODS if m.name == n)
         for n in ("GT prediction", "No prediction")
@@ -300,7 +300,7 @@ def test_frame_round_trip():
     g = torch.Generator().manual_seed(0)
     origin = torch.randn(3, 4, generator=g, dtype=torch.float64) * 10
     world = torch.randn(3, 5, 4, generator=g, dtype=torch.float64) * 10
-    back = tr.from_frame(data_synth._to_frame(world, origin), origin)
+    back = ex.from_frame(data_synth._to_frame(world, origin), origin)
     assert torch.allclose(back[..., :2], world[..., :2], atol=1e-10)
     assert torch.allclose(
         torch.cos(back[..., 2] - world[..., 2]), torch.ones(3, 5, dtype=torch.float64)
@@ -350,20 +350,20 @@ def test_log_replay_agents_are_the_log_and_the_ego_follows_the_dynamics(clean):
         win = torch.arange(f0 + k - H, f0 + k + T + 1)  # the sample's frames
         agent = torch.cat([b.agent_hist, b.agent_fut], 1)
         assert torch.allclose(
-            tr.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9
+            ex.from_frame(agent, origin)[..., :2], scenes.agents[ar, pred][:, win, :2], atol=1e-9
         )
         # others: (S, A, 2) each a logged agent at t0
-        others = tr.from_frame(b.others_hist[:, :, -1], origin)[..., :2]
+        others = ex.from_frame(b.others_hist[:, :, -1], origin)[..., :2]
         # d: (S, A)
         d = (others[:, :, None] - scenes.agents[:, None, :, f0 + k, :2]).norm(dim=-1).min(-1).values
         assert (d[b.others_mask] < 1e-9).all()
         # sim_hist: (S, H+1, 4)
         sim_hist = torch.cat([scenes.ego[:, f0 + k - H : f0], roll.ego[:, : k + 1]], 1)[:, -H - 1 :]
         assert torch.allclose(
-            tr.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9
+            ex.from_frame(b.ego_hist, origin)[..., :2], sim_hist[..., :2], atol=1e-9
         )
         assert torch.allclose(
-            tr.from_frame(b.goal[:, None], origin)[:, 0, :2],
+            ex.from_frame(b.goal[:, None], origin)[:, 0, :2],
             scenes.ego[:, f0 + k + T, :2],
             atol=1e-9,
         )
@@ -393,7 +393,7 @@ def test_metrics_on_the_logged_trajectory_have_zero_deviation(clean):
     N = 4
     f0 = 8
     ego = scenes.ego[:, f0 : f0 + N + 1]
-    roll = tr.Rollout(
+    roll = ex.Rollout(
         ego,
         torch.zeros(S, N, 2, dtype=torch.float64),
         torch.zeros(S, N, 7, 4, dtype=torch.float64),
@@ -786,6 +786,7 @@ def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monke
         "data_synth.py",
         "data_real.py",
         "experiments.py",
+        "lab/tables.py",
     }
     (tmp_path / "lab").mkdir()
     for name in runs.NUMBER_MODULES + ("README.md", "test_x.py", "tutorial.py", "specs.py"):

@@ -10,6 +10,7 @@ import torch
 
 import data_synth
 import diffstack as ds
+import experiments as ex
 import train as tr
 from lab import quick as lq
 from lab import cli
@@ -473,7 +474,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     assert sorted(models) == [0, 1]
     again = tr.train_predictor(
         tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
-        tr.experiment_data(300, (0, 1), 200, tmp_path, log=None),
+        ex.experiment_data(300, (0, 1), 200, tmp_path, log=None),
         cfg,
         "rl",
         0.5,

@@ -32,17 +32,16 @@ from lab.runs import (
 from lab.runs import pool as worker_pool
 from lab.stats import claim_verdict, p_value, paired_difference, plus_minus
 from lab.report import open_loop_table
+from experiments import VAL_N, experiment_data
 from train import (
     NO_PREDICTION,
     PRETRAIN,
-    VAL_N,
     Method,
     add_relative,
     evaluate_stack,
     PRETRAINED,
     TABLE1_METHODS,
     compare_methods,
-    experiment_data,
     load_pretrained,
     train_predictor,
 )

@@ -238,6 +238,7 @@ NUMBER_MODULES = (
     "data_synth.py",
     "data_real.py",
     "experiments.py",
+    "lab/tables.py",
 )
 
 

@@ -25,9 +25,7 @@ from tqdm import tqdm
 import data_real
 import data_synth
 import figures
-from diffstack import (
-    Config,
-)
+from diffstack import Config
 from train import (
     Method,
     GT_PREDICTION,
@@ -35,14 +33,13 @@ from train import (
     TrainingDiverged,
     add_relative,
     compare_methods,
+)
+from experiments import (
     experiment_data,
     VAL_N,
     VAL_SEED,
     Rollout,
     closed_loop_scenes,
-)
-
-from experiments import (
     closed_loop_relative,
     closed_loop_run,
     cost_learning_seed,
@@ -54,10 +51,8 @@ from experiments import (
     validation_spread,
 )
 
-# hand-over: the command line's argument types and checks, shared with diffstack.py's
 from lab.cli import bounded, check_writable, config_with, device_arg, machine
 
-# hand-over: the lab's run machinery (the resume store, files written whole, locks, workers)
 from lab.runs import (
     ROOT,
     RUNS_DIR,
@@ -95,13 +90,6 @@ from specs import (
     SPECS,
     TableSpec,
 )
-from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
-
-# hand-over: the tables' text (markdown, the claims' lines, the report) is lab/report.py's; the
-# notebook and the course read three of its functions as experiments'
-from lab.report import behaviour_markdown as behaviour_markdown
-from lab.report import claim_line as claim_line
-from lab.report import gap_closed as gap_closed
 from lab.report import (
     has_curves,
     results_markdown,
