@@ -24,6 +24,7 @@ simulation steps.
 from __future__ import annotations
 
 import json
+import math
 import os
 import pickle
 import statistics
@@ -54,9 +55,7 @@ from train import (
     Method,
     TABLE1_METHODS,
     TrainingDiverged,
-    add_relative,
     alphas,
-    compare_methods,
     evaluate_stack,
     to_device,
     train_predictor,
@@ -73,12 +72,13 @@ from lab.runs import (
     write_atomic,
 )
 from specs import (
+    CLOSE,
     CLOSED_LOOP_METHODS,
     CLOSED_LOOP_METRICS,
-    CLOSE,
     COST_WEIGHTS_ROW,
     CURVE_SAMPLES,
     GOALS,
+    RELATIVE_SCALE,
     TableSpec,
 )
 from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
@@ -259,7 +259,7 @@ def open_loop_experiment(
     device="cpu",
     **stack_kw,
 ) -> dict:
-    """train.compare_methods with predictors shared through `models` (trained_predictor), run on
+    """compare_methods with predictors shared through `models` (trained_predictor), run on
     `device`."""
 
     def train(m, *a, **k):
@@ -313,6 +313,75 @@ def experiment_data(
     return data_synth.Dataset(
         draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws
     )
+
+
+def compare_methods(
+    data,
+    cfg: Config,
+    setting="rl",
+    methods=TABLE1_METHODS,
+    seeds=(0,),
+    epochs=1.0,
+    pred_offset=0.0,
+    log=print,
+    train=train_predictor,
+    device="cpu",
+    **stack_kw,
+) -> dict:
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the
+    ablations).
+
+    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No
+    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables,
+    RELATIVE_SCALE). train(method, data, cfg, setting, epochs, seed, log, pred_offset,
+    device=device, **stack_kw) -> a trained predictor on `device` (experiments.py passes one that
+    shares predictors between tables). Training and evaluation run on `device`; the data stays on
+    the CPU and the metrics come back as Python numbers.
+    """
+    results = {}
+    for m in methods:
+        runs = []
+        for seed in seeds if m.predictor == "learned" else seeds[:1]:
+            t0 = time.time()
+            model = None
+            if m.predictor == "learned":
+                model = train(
+                    m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw
+                )
+            r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
+            bad = [
+                k
+                for k in ("ade", "fde", "min_ade", "min_fde", "nll")
+                if k in r and not math.isfinite(r[k])
+            ]
+            if bad:  # a predictor that trained to finite losses can still predict NaN
+                raise TrainingDiverged(
+                    f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})"
+                )
+            r["seconds"] = time.time() - t0
+            if getattr(model, "learning_curve", None) is not None:
+                r["curve"] = model.learning_curve
+            runs.append(r)
+            if log:
+                log(
+                    f"{m.name:24s} seed {seed}: "
+                    + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
+                )
+        results[m.name] = runs
+    return add_relative(results, setting)
+
+
+def add_relative(results: dict, setting: str) -> dict:
+    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as
+    RELATIVE_SCALE) to every run of {method name: [metrics dict per seed]}, in place; nothing
+    without a No prediction row. Returns it."""
+    base = results["No prediction"][0] if "No prediction" in results else None
+    for runs in results.values():
+        for r in runs:
+            for key, scale in RELATIVE_SCALE[setting].items():
+                if base is not None and key in r:  # (a diverged training's run has no metrics)
+                    r["rel_" + key] = (r[key] - base[key]) / scale
+    return results
 
 
 # ============================================================================================

@@ -370,7 +370,7 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     err = cli_error(lq.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
-        tr.load_pretrained(tr.Method("Standard"), ds.Config(), tmp_path / "pretrained")
+        lq.load_pretrained(tr.Method("Standard"), ds.Config(), tmp_path / "pretrained")
     assert "--quick or --pretrain" in cli_error(lq.main, ["--quick", "--pretrain"], capsys)
 
 
@@ -542,7 +542,7 @@ def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, 
     )
     (folder / "provenance.json").write_text(json.dumps(prov))
     with pytest.raises(ValueError, match=r"provenance.json: not a provenance file .*sha256"):
-        tr.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
+        lq.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
 
 
 def test_the_default_thread_count_leaves_out_the_cores_other_work_keeps_busy(monkeypatch, capsys):

@@ -36,6 +36,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook
 import data_synth
 import diffstack as ds
 import experiments
+import specs
 import train as tr
 
 WORLD = 2
@@ -373,7 +374,7 @@ def test_experiments_cli_on_two_processes(tmp_path):
                 continue
             metric = key.removeprefix("rel_")
             if metric in ONE_FLIP:
-                scale = tr.RELATIVE_SCALE["rl"][metric] if key.startswith("rel_") else 1.0
+                scale = specs.RELATIVE_SCALE["rl"][metric] if key.startswith("rel_") else 1.0
                 tol = ONE_FLIP[metric] / run["n"] / scale
                 assert abs(other[key] - value) <= tol, (method, key, value, other[key], tol)
             else:

@@ -155,7 +155,7 @@ def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validat
     # training seed s trains on draw s (train_predictor -> train_stack)
     seen = []
     monkeypatch.setattr(tr, "train_stack", lambda model, train, *a, **k: seen.append(train))
-    tr.compare_methods(
+    ex.compare_methods(
         data._replace(val=data.val[:20]),
         ds.Config(**TINY10),
         "rl",
@@ -180,7 +180,7 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
         next(m for m in tr.TABLE1_METHODS if m.name == n)
         for n in ("GT prediction", "No prediction")
     )
-    rel = tr.add_relative(
+    rel = ex.add_relative(
         {m.name: [tr.evaluate_stack(None, data.val, m, ds.Config(), "rl")] for m in (no, gt)}, "rl"
     )
     assert small.split(" | ")[2] == f"{rel['GT prediction'][0]['rel_hindsight']:.2f}"

@@ -431,7 +431,7 @@ def test_a_parameter_that_overflows_stops_training(small):
 def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small, monkeypatch):
     evaluate = tr.evaluate_stack
     monkeypatch.setattr(
-        tr,
+        ex,  # compare_methods evaluates through experiments' name
         "evaluate_stack",
         lambda model, *a, **k: {**evaluate(model, *a, **k), "ade": float("nan")},
     )
@@ -439,7 +439,7 @@ def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small
     with pytest.raises(
         tr.TrainingDiverged, match=r"Standard, seed 0: its evaluation is not finite \(ade\)"
     ):
-        tr.compare_methods(small, cfg, "rl", (tr.Method("Standard"),), (0,), 0.5, log=None)
+        ex.compare_methods(small, cfg, "rl", (tr.Method("Standard"),), (0,), 0.5, log=None)
 
 
 def test_a_result_with_nan_or_infinity_is_never_written(tmp_path):

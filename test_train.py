@@ -470,7 +470,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         lq.pretrain(
             out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
         )
-    models, prov = tr.load_pretrained(tr.Method("DiffStack"), cfg, out)
+    models, prov = lq.load_pretrained(tr.Method("DiffStack"), cfg, out)
     assert sorted(models) == [0, 1]
     again = tr.train_predictor(
         tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
@@ -506,7 +506,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     }
     # another Config
     assert (
-        tr.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
+        lq.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
         is None
     )
     lines = []
@@ -521,7 +521,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     with open(out / "standard-seed1.pt", "ab") as f:
         f.write(b"tampered")
     with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
-        tr.load_pretrained(tr.Method("Standard"), cfg, out)
+        lq.load_pretrained(tr.Method("Standard"), cfg, out)
 
 
 def test_quick_verdicts_are_computed_from_its_numbers():

@@ -1,22 +1,18 @@
 """Training and evaluation of the DiffStack method (diffstack.py): one training loop for every
-method of the paper (and for the cost weights), the metrics, the same loop on many processes
-(DistributedDataParallel under torchrun, lab/ddp.py), and the predictors shipped in pretrained/.
-`python diffstack.py --quick` and `--pretrain` are lab/quick.py's.
+method of the paper (and for the cost weights), and the metrics. The lab hands it what a user runs
+but need not read: data checks (lab/checks.py), many processes (lab/ddp.py); `python diffstack.py
+--quick` and `--pretrain` are lab/quick.py's, the tables experiments.py's.
 
-    1. Metrics          ADE/FDE, NLL, constant velocity; evaluation of a predictor and of the stack
+    1. Metrics          ADE/FDE, NLL, constant velocity; evaluation of a predictor
     2. Methods          Table 1's rows, their loss weights, the learned cost weights (App. A.2),
                         weighted L_pred (§4.1)
-    (Many processes: DistributedDataParallel, lab/ddp.py, handed to train_stack as a Shard)
-    3. Training         train_stack, train_predictor, compare_methods
-    4. Shipped          the predictors shipped in pretrained/, Tables 1, 2 and 4's columns
+    3. Training         train_stack (the paper's loop), train_predictor; evaluation of the stack
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import pathlib
-import pickle
 import time
 from dataclasses import dataclass
 
@@ -28,9 +24,6 @@ from lab.checks import check_batch  # hand-over: data checked where it enters a 
 from lab.ddp import Shard, wrap  # hand-over: training on many processes (DDP)
 
 # hand-over: the lab's run machinery (files written whole, locks, provenance, workers)
-from lab.runs import (
-    load_json,
-)
 from data_synth import (
     BEHAVIOURS,  # the synthetic predicted agent's manoeuvres (evaluation's breakdown by behaviour)
 )
@@ -492,7 +485,7 @@ def train_stack(
     fork of the random state. Returns the per-step log (list of dicts: the global batch's
     values)."""
     shard = Shard.of_process_group()  # one process, or this rank's rows under torchrun
-    check_split(cfg, shard)
+    shard.check_split(cfg.batch_size)
     log = log if shard.rank == 0 else None  # the other ranks stay quiet
     torch.manual_seed(seed)  # the decoder's sampled controls, the same on every rank
     order = torch.Generator().manual_seed(seed)  # the order of the scenarios, on the CPU
@@ -530,16 +523,6 @@ def train_stack(
     finally:
         shard.close()
     return history
-
-
-def check_split(cfg: Config, shard: Shard) -> None:
-    """ValueError naming cfg.batch_size unless it splits evenly over the processes."""
-    if cfg.batch_size % shard.world:
-        raise ValueError(
-            f"cfg.batch_size: {cfg.batch_size} scenarios per step do not split evenly over "
-            f"{shard.world} processes; choose a multiple of {shard.world} (--set batch_size=...) "
-            "or another process count"
-        )
 
 
 def objective_for(model, data, method, cfg, setting, shard, weights, pred_offset, stack_kw):
@@ -712,165 +695,3 @@ def evaluate_stack(
             for name, acc in sorted(by_behaviour.items())
         }
     return out
-
-
-# The planning metrics of Tables 1, 2 and 4 are differences to No prediction on the same scenarios,
-# in the units of the paper's columns (x1e-2 or x1e-3).
-RELATIVE_SCALE = {
-    "rl": {"plan_loss": 1e-2, "hindsight": 1e-2},
-    "il": {"plan_loss": 1e-3, "mse": 1e-2},
-}
-
-
-def compare_methods(
-    data,
-    cfg: Config,
-    setting="rl",
-    methods=TABLE1_METHODS,
-    seeds=(0,),
-    epochs=1.0,
-    pred_offset=0.0,
-    log=print,
-    train=train_predictor,
-    device="cpu",
-    **stack_kw,
-) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the
-    ablations).
-
-    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No
-    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables,
-    RELATIVE_SCALE). train(method, data, cfg, setting, epochs, seed, log, pred_offset,
-    device=device, **stack_kw) -> a trained predictor on `device` (experiments.py passes one that
-    shares predictors between tables). Training and evaluation run on `device`; the data stays on
-    the CPU and the metrics come back as Python numbers.
-    """
-    results = {}
-    for m in methods:
-        runs = []
-        for seed in seeds if m.predictor == "learned" else seeds[:1]:
-            t0 = time.time()
-            model = None
-            if m.predictor == "learned":
-                model = train(
-                    m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw
-                )
-            r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
-            bad = [
-                k
-                for k in ("ade", "fde", "min_ade", "min_fde", "nll")
-                if k in r and not math.isfinite(r[k])
-            ]
-            if bad:  # a predictor that trained to finite losses can still predict NaN
-                raise TrainingDiverged(
-                    f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})"
-                )
-            r["seconds"] = time.time() - t0
-            if getattr(model, "learning_curve", None) is not None:
-                r["curve"] = model.learning_curve
-            runs.append(r)
-            if log:
-                log(
-                    f"{m.name:24s} seed {seed}: "
-                    + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
-                )
-        results[m.name] = runs
-    return add_relative(results, setting)
-
-
-def add_relative(results: dict, setting: str) -> dict:
-    """Add the planning metrics relative to No prediction's first run ('rel_<metric>', scaled as
-    RELATIVE_SCALE) to every run of {method name: [metrics dict per seed]}, in place; nothing
-    without a No prediction row. Returns it."""
-    base = results["No prediction"][0] if "No prediction" in results else None
-    for runs in results.values():
-        for r in runs:
-            for key, scale in RELATIVE_SCALE[setting].items():
-                if base is not None and key in r:  # (a diverged training's run has no metrics)
-                    r["rel_" + key] = (r[key] - base[key]) / scale
-    return results
-
-
-# ============================================================================================
-# 4. The shipped predictors, and Tables 1, 2 and 4's columns
-# ============================================================================================
-
-# predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
-PRETRAINED = "pretrained"
-# = Table 1's five seeds at the tables' length (experiments.py)
-PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
-
-
-def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
-    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the
-    provenance (the file's sha256, the Config it was trained with) and loaded with
-    weights_only=True. Returns ({seed: model}, provenance) or (None, why not)."""
-    folder = pathlib.Path(folder)
-    prov_path = folder / "provenance.json"
-    if not prov_path.exists():
-        return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
-    prov, entries, trained_with = _shipped_entries(prov_path, method)
-    if not entries:
-        return None, f"{prov_path} lists no {method.name} predictor"
-    if trained_with != dataclasses.asdict(cfg):
-        changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
-        return (
-            None,
-            f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set "
-            "here",
-        )
-    models = {
-        seed: _load_shipped(folder / name, entry["sha256"], prov_path, cfg).to(device)
-        for seed, name, entry in entries
-    }
-    missing = [
-        f for f in ("command", "date", "commit", "epochs", "seeds", "threads") if f not in prov
-    ]
-    if missing or not all(isinstance(e.get("cpu_seconds"), (int, float)) for _, _, e in entries):
-        raise ValueError(
-            f"{prov_path}: not a provenance file of python diffstack.py --pretrain (no "
-            f"{', '.join(missing) or 'cpu_seconds of a file'})"
-        )
-    return models, prov
-
-
-def _shipped_entries(prov_path, method: Method):
-    """(provenance, [(seed, file name, entry)] of the method's files by seed, the Config they were
-    trained with), every field read here checked before any is used: ValueError naming the file."""
-    try:
-        prov = load_json(prov_path, "a provenance file of python diffstack.py --pretrain")
-        entries = sorted(
-            (e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name
-        )
-        for _, name, e in entries:
-            if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
-                raise ValueError(f"files.{name}: no sha256 or seed")
-        trained_with = {
-            k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
-        }
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(
-            f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})"
-        ) from None
-    return prov, entries, trained_with
-
-
-def _load_shipped(path, sha256: str, prov_path, cfg: Config) -> Predictor:
-    """The predictor in path, on the CPU, once its sha256 is the provenance's; ValueError naming
-    the file otherwise, or when it does not load as a predictor of this version."""
-    import hashlib
-
-    if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
-        raise ValueError(
-            f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
-            f"re-make it with python diffstack.py --pretrain --overwrite"
-        )
-    model = Predictor(cfg)
-    try:
-        model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-    except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
-        raise ValueError(
-            f"{path}: not a predictor of this version ({' '.join(str(e).split())[:200]}); "
-            "re-make it with python diffstack.py --pretrain --overwrite"
-        ) from None
-    return model

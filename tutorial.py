@@ -97,7 +97,7 @@ import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
-from lab import report, stats
+from lab import quick, report, stats
 from course import check_claim, check_order, checkpoint, first_of, gt_context
 from course import results_table, section_done
 
@@ -817,7 +817,7 @@ hist_std = tr.train_stack(
 )
 m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 # and a Standard predictor trained for the tables' 40 epochs (8 500 samples, seed 0): pretrained/
-model_pre = tr.load_pretrained(tr.Method("Standard"), ds.Config())[0][SEED].eval()
+model_pre = quick.load_pretrained(tr.Method("Standard"), ds.Config())[0][SEED].eval()
 m_pre = tr.evaluate_predictor(model_pre, data.val, cfg)
 print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
 print("            ADE    FDE    min-ADE  NLL")
@@ -1214,7 +1214,7 @@ fine = {}  # §7's stacks and GT prediction; relative to No prediction, as open_
 stacks_gt = {**stacks, "GT prediction": (None, tr.Method("GT prediction", "gt"))}
 for name, (model, method) in stacks_gt.items():
     fine[name] = [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
-tr.add_relative(fine, "rl")
+xp.add_relative(fine, "rl")
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(report.open_loop_table(fine, "rl")))
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}

@@ -75,6 +75,15 @@ class Shard:
             dist.get_rank(), dist.get_world_size(), dist.new_group(backend=dist.get_backend())
         )
 
+    def check_split(self, batch_size: int) -> None:
+        """ValueError naming cfg.batch_size unless it splits evenly over the processes."""
+        if batch_size % self.world:
+            raise ValueError(
+                f"cfg.batch_size: {batch_size} scenarios per step do not split evenly over "
+                f"{self.world} processes; choose a multiple of {self.world} (--set batch_size=...) "
+                "or another process count"
+            )
+
     def mean(self, x: torch.Tensor) -> torch.Tensor:
         """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows);
         autograd-aware."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+import pickle
 import statistics
 import sys
 import time
@@ -16,33 +17,34 @@ import torch
 from concurrent.futures.process import BrokenProcessPool
 
 import data_synth
-from diffstack import Config
+from diffstack import Config, Predictor
 from lab.cli import bounded, check_writable, config_with, device_arg, machine
 from lab.runs import (
     ROOT,
-    WorkerDied,
     command_line,
     default_threads,
     folder_lock,
+    load_json,
     one_line,
     ranks,
     save_atomic,
+    WorkerDied,
     write_atomic,
 )
 from lab.runs import pool as worker_pool
 from lab.stats import claim_verdict, p_value, paired_difference, plus_minus
 from lab.report import open_loop_table
-from experiments import VAL_N, experiment_data
+from experiments import (
+    VAL_N,
+    add_relative,
+    compare_methods,
+    experiment_data,
+)
 from train import (
     NO_PREDICTION,
-    PRETRAIN,
     Method,
-    add_relative,
     evaluate_stack,
-    PRETRAINED,
     TABLE1_METHODS,
-    compare_methods,
-    load_pretrained,
     train_predictor,
 )
 
@@ -57,6 +59,89 @@ QUICK_METHODS = tuple(
     for m in TABLE1_METHODS
     if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")
 )
+
+
+# predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
+PRETRAINED = "pretrained"
+
+
+# = Table 1's five seeds at the tables' length (experiments.py)
+PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
+
+
+def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
+    """The predictors of `method` that `pretrain` wrote, one per seed, each checked against the
+    provenance (the file's sha256, the Config it was trained with) and loaded with
+    weights_only=True. Returns ({seed: model}, provenance) or (None, why not)."""
+    folder = pathlib.Path(folder)
+    prov_path = folder / "provenance.json"
+    if not prov_path.exists():
+        return None, f"no {prov_path} (python diffstack.py --pretrain makes it)"
+    prov, entries, trained_with = _shipped_entries(prov_path, method)
+    if not entries:
+        return None, f"{prov_path} lists no {method.name} predictor"
+    if trained_with != dataclasses.asdict(cfg):
+        changed = sorted(k for k, v in dataclasses.asdict(cfg).items() if trained_with.get(k) != v)
+        return (
+            None,
+            f"{folder}/ was trained with the default Config, not with {', '.join(changed)} as set "
+            "here",
+        )
+    models = {
+        seed: _load_shipped(folder / name, entry["sha256"], prov_path, cfg).to(device)
+        for seed, name, entry in entries
+    }
+    missing = [
+        f for f in ("command", "date", "commit", "epochs", "seeds", "threads") if f not in prov
+    ]
+    if missing or not all(isinstance(e.get("cpu_seconds"), (int, float)) for _, _, e in entries):
+        raise ValueError(
+            f"{prov_path}: not a provenance file of python diffstack.py --pretrain (no "
+            f"{', '.join(missing) or 'cpu_seconds of a file'})"
+        )
+    return models, prov
+
+
+def _shipped_entries(prov_path, method: Method):
+    """(provenance, [(seed, file name, entry)] of the method's files by seed, the Config they were
+    trained with), every field read here checked before any is used: ValueError naming the file."""
+    try:
+        prov = load_json(prov_path, "a provenance file of python diffstack.py --pretrain")
+        entries = sorted(
+            (e["seed"], name, e) for name, e in prov["files"].items() if e["method"] == method.name
+        )
+        for _, name, e in entries:
+            if not isinstance(e.get("sha256"), str) or not isinstance(e["seed"], int):
+                raise ValueError(f"files.{name}: no sha256 or seed")
+        trained_with = {
+            k: tuple(v) if isinstance(v, list) else v for k, v in prov["config"].items()
+        }
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(
+            f"{prov_path}: not a provenance file of python diffstack.py --pretrain ({e})"
+        ) from None
+    return prov, entries, trained_with
+
+
+def _load_shipped(path, sha256: str, prov_path, cfg: Config) -> Predictor:
+    """The predictor in path, on the CPU, once its sha256 is the provenance's; ValueError naming
+    the file otherwise, or when it does not load as a predictor of this version."""
+    import hashlib
+
+    if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+        raise ValueError(
+            f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
+            f"re-make it with python diffstack.py --pretrain --overwrite"
+        )
+    model = Predictor(cfg)
+    try:
+        model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    except (RuntimeError, ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
+        raise ValueError(
+            f"{path}: not a predictor of this version ({' '.join(str(e).split())[:200]}); "
+            "re-make it with python diffstack.py --pretrain --overwrite"
+        ) from None
+    return model
 
 
 def _slug(name: str) -> str:

@@ -15,7 +15,14 @@ import data_real
 import data_synth
 from lab.cli import machine
 from lab.runs import write_atomic
-from specs import CLOSE, CURVE_SAMPLES, SPECS, Claim, TableSpec
+from specs import (
+    CLOSE,
+    CURVE_SAMPLES,
+    RELATIVE_SCALE,
+    SPECS,
+    Claim,
+    TableSpec,
+)
 from lab.stats import (
     PairedDifference,
     cell,
@@ -26,7 +33,6 @@ from lab.stats import (
     paired_difference,
     plus_minus,
 )
-from train import RELATIVE_SCALE
 
 
 def gap_closed(
