@@ -1,7 +1,7 @@
 """Real driving data for DiffStack: the readers, each giving the same Scenes / Scenarios as the
 synthetic generator.
 
-    a nuScenes v1.0 folder (real, or written by data_synth.write_nuscenes) --load_nuscenes--> Scenes
+    a nuScenes v1.0 folder (real, or written by nuscenes.write_nuscenes) --load_nuscenes--> Scenes
     three Waymo logs of a public wheel --fetch_waymo, waymo_scenes--> Scenes
     load_data: the training and validation samples, from a nuScenes folder or (no path) the
                synthetic data
@@ -37,12 +37,12 @@ import numpy as np
 import torch
 
 import data_synth
+from lab import nuscenes
 from lab.runs import folder_lock, one_line, save_atomic, write_file_atomic
+from lab.nuscenes import NUSC_TABLES, NUSC_VERSIONS
 from data_synth import (
     _SHAPE_SIGNS,
     MAX_LANE_POINTS,
-    NUSC_TABLES,
-    NUSC_VERSIONS,
     Dataset,
     Scenarios,
     Scenes,
@@ -59,7 +59,7 @@ from data_synth import (
 )
 
 # === 1. nuScenes v1.0 reader (json + numpy; no devkit) ======================================
-# Any v1.0 folder (written by data_synth.write_nuscenes, or the real v1.0-mini / v1.0-trainval with
+# Any v1.0 folder (written by nuscenes.write_nuscenes, or the real v1.0-mini / v1.0-trainval with
 # the map expansion) -> Scenes:
 #   ego      the CAM_FRONT key-frame ego_pose of every sample; speed by backward differences
 #   agents   vehicle.* and human.pedestrian.* instances, one track each, masked where not annotated
@@ -1599,7 +1599,7 @@ def _bench():
     )
     cfg = SynthConfig(**BENCH_MINI)
     with tempfile.TemporaryDirectory() as tmp:
-        data_synth.write_nuscenes(data_synth.generate_scenes(10, cfg, seed=0), tmp, cfg=cfg)
+        nuscenes.write_nuscenes(data_synth.generate_scenes(10, cfg, seed=0), tmp, cfg=cfg)
         n_ann = len(_read_json(Path(tmp) / "v1.0-mini" / "sample_annotation.json"))
         times = []
         for _ in range(runs):
@@ -1749,7 +1749,7 @@ def _run(ap, args):
         )
     elif args.cmd == "write-nuscenes":
         scenes = data_synth.generate_scenes(args.scenes, SynthConfig(), args.seed)
-        data_synth.write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
+        nuscenes.write_nuscenes(scenes, args.out, args.version, overwrite=args.overwrite)
         print(
             f"wrote {args.scenes} scenes to {args.out}/{args.version} "
             "(+ maps/expansion, maps/prediction)"

@@ -22,6 +22,7 @@ import torch
 
 import data_real
 import data_synth
+from lab import nuscenes
 
 FormatError = data_real.NuScenesFormatError
 TABLE_DIR = "v1.0-mini"
@@ -31,7 +32,7 @@ TABLE_DIR = "v1.0-mini"
 def valid(tmp_path_factory):
     """A valid 3-scene v1.0-mini folder, written once per module (copy it before corrupting it)."""
     root = tmp_path_factory.mktemp("nuscenes") / "valid"
-    data_synth.write_nuscenes(data_synth.generate_scenes(3, seed=1), root)
+    nuscenes.write_nuscenes(data_synth.generate_scenes(3, seed=1), root)
     return root
 
 
@@ -230,7 +231,7 @@ def test_quaternion_norm(folder, name, index, q, ok):
             data_real.load_nuscenes(folder)
 
 
-@pytest.mark.parametrize("name", data_synth.NUSC_TABLES)
+@pytest.mark.parametrize("name", nuscenes.NUSC_TABLES)
 def test_duplicate_tokens(folder, name):
     doc = edit(table(folder, name), lambda d: d.append(dict(d[-1])))
     with pytest.raises(
@@ -387,7 +388,7 @@ MALFORMED = {
 @pytest.mark.parametrize("case", list(MALFORMED))
 def test_malformed_tables_name_the_file(folder, case):
     name, corrupt, message = MALFORMED[case]
-    corrupt(table(folder, name) if name in data_synth.NUSC_TABLES else folder / name)
+    corrupt(table(folder, name) if name in nuscenes.NUSC_TABLES else folder / name)
     with pytest.raises(FormatError, match=message):
         data_real.load_nuscenes(folder)
 
@@ -590,11 +591,11 @@ def test_load_data_uses_the_official_split(tmp_path):
     # written as scene-0061 (train), scene-0103, scene-0553 (val)
     scenes = data_synth.generate_scenes(3, seed=1)
     lines = []
-    data_synth.write_nuscenes(scenes, tmp_path / "tv", "v1.0-trainval")
+    nuscenes.write_nuscenes(scenes, tmp_path / "tv", "v1.0-trainval")
     d = data_real.load_data(tmp_path / "tv", log=lines.append)
     assert sorted(d.val_scenes.names) == ["scene-0103", "scene-0553"]
     assert "validation: the official v1.0-trainval val scenes" in lines[-1]
-    data_synth.write_nuscenes(scenes, tmp_path / "mini", "v1.0-mini")
+    nuscenes.write_nuscenes(scenes, tmp_path / "mini", "v1.0-mini")
     d = data_real.load_data(tmp_path / "mini", log=lines.append)
     assert d.val_scenes.names == ["scene-0103"] and "official v1.0-mini val" in lines[-1]
     # names in neither list: the fallback, the last 15 % of the scenes by name (at least one)

@@ -12,6 +12,7 @@ import torch
 
 import data_real
 import data_synth
+from lab import nuscenes
 import diffstack as ds
 from lab import runs
 from conftest import SYNTH_CFG, TINY
@@ -159,7 +160,7 @@ def _same_lanes(a, am, b, bm, tol):
 
 def test_nuscenes_round_trip(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
+    nuscenes.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
     loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
     assert report == dict(
         scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[]
@@ -191,16 +192,16 @@ def test_nuscenes_round_trip(tmp_path, scenes_mixed):
 
 def test_writer_refuses_to_overwrite(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
     with pytest.raises(FileExistsError, match="overwrite"):
-        data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg, overwrite=True)
+        nuscenes.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], tmp_path, cfg=cfg, overwrite=True)
 
 
 @pytest.fixture
 def folder(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
     return tmp_path
 
 
@@ -249,7 +250,7 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     )
     s.ego[1, :, :2] += 5000.0  # the ego drives far from its lanes: no lanes
     s.pred_idx[2] = -1  # nobody to predict
-    data_synth.write_nuscenes(s, tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(s, tmp_path, cfg=cfg)
     path = tmp_path / "v1.0-mini" / "sample.json"
     samples = json.loads(path.read_text())
     first = json.loads((tmp_path / "v1.0-mini" / "scene.json").read_text())[0]["first_sample_token"]
@@ -263,9 +264,9 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     assert report == dict(
         scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1
     )
-    assert loaded.names == [data_synth.MINI_SCENES[3]]
+    assert loaded.names == [nuscenes.MINI_SCENES[3]]
     # each skipped scene is named with its reason and the file it comes from
-    names = data_synth.MINI_SCENES
+    names = nuscenes.MINI_SCENES
     assert (
         why[0].startswith(f"{names[0]}: 11 samples in ")
         and "sample.json, a sample needs 15" in why[0]
@@ -281,10 +282,10 @@ def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
     whose entries name no annotated vehicle is refused (file, scene, entry), not skipped as if it
     had nobody to predict."""
     scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:3], tmp_path, cfg=cfg)
     path = tmp_path / "maps" / "prediction" / "prediction_scenes.json"
     split = json.loads(path.read_text())
-    name = data_synth.MINI_SCENES[1]
+    name = nuscenes.MINI_SCENES[1]
     assert split[name]  # (the writer lists it)
     split[name] = ["nosuchinstance_" + e.split("_")[1] for e in split[name]]
     path.write_text(json.dumps(split))
@@ -298,7 +299,7 @@ def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
 
 def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
-    data_synth.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
     (tmp_path / "maps" / "prediction" / "prediction_scenes.json").unlink()
     loaded, _ = data_real.load_nuscenes(tmp_path, cfg=cfg)
     for i in range(2):
@@ -479,9 +480,9 @@ def _tree(root):
 def test_an_interrupted_overwrite_leaves_the_old_folder(tmp_path, scenes_mixed, monkeypatch):
     scenes, cfg = scenes_mixed
     root = tmp_path / "nusc"
-    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], root, cfg=cfg)
     before = _tree(root)
-    dump = data_synth._dump
+    dump = nuscenes._dump
     calls = []
 
     def interrupted(obj, path):
@@ -490,9 +491,9 @@ def test_an_interrupted_overwrite_leaves_the_old_folder(tmp_path, scenes_mixed, 
             raise KeyboardInterrupt  # Ctrl-C, mid-write
         dump(obj, path)
 
-    monkeypatch.setattr(data_synth, "_dump", interrupted)
+    monkeypatch.setattr(nuscenes, "_dump", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        data_synth.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
+        nuscenes.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
     assert _tree(root) == before  # the old folder, whole
     assert sorted(p.name for p in tmp_path.iterdir()) == [".nusc.lock", "nusc"]  # no temporary
 
@@ -504,15 +505,15 @@ def test_a_killed_writer_leaves_the_old_folder_and_the_next_one_cleans_up(tmp_pa
 
     scenes, cfg = scenes_mixed
     root = tmp_path / "nusc"
-    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], root, cfg=cfg)
     before = _tree(root)
     code = (
-        "import sys, time, data_synth\n"
-        "dump = data_synth._dump\n"
+        "import sys, time, data_synth\nfrom lab import nuscenes\n"
+        "dump = nuscenes._dump\n"
         "def slow(obj, path):\n"
         "    dump(obj, path); print('wrote', flush=True); time.sleep(60)\n"
-        "data_synth._dump = slow\n"
-        "data_synth.write_nuscenes(data_synth.generate_scenes(2, seed=1), sys.argv[1], "
+        "nuscenes._dump = slow\n"
+        "nuscenes.write_nuscenes(data_synth.generate_scenes(2, seed=1), sys.argv[1], "
         "overwrite=True)\n"
     )
     writer = subprocess.Popen(
@@ -525,22 +526,22 @@ def test_a_killed_writer_leaves_the_old_folder_and_the_next_one_cleans_up(tmp_pa
         assert writer.stdout.readline().strip() == "wrote"  # one file written, mid-way
         # a second writer meanwhile is refused: the target is locked
         with pytest.raises(runs.OutputRefused, match="another run is writing here"):
-            data_synth.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
+            nuscenes.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
         writer.send_signal(signal.SIGKILL)
     finally:
         writer.kill()
         writer.wait()
     assert _tree(root) == before
     assert [p.name for p in tmp_path.glob(".nusc.writing-*")]  # its temporary folder, left
-    data_synth.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
+    nuscenes.write_nuscenes(scenes[:3], root, cfg=cfg, overwrite=True)
     assert not list(tmp_path.glob(".nusc.writing-*")) and _tree(root) != before
 
 
 def test_a_folder_with_files_of_its_own_is_never_replaced(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     root = tmp_path / "nusc"
-    data_synth.write_nuscenes(scenes[:2], root, cfg=cfg)
+    nuscenes.write_nuscenes(scenes[:2], root, cfg=cfg)
     (root / "notes.txt").write_text("mine")
     with pytest.raises(FileExistsError, match=r"notes.txt is no file of what it writes"):
-        data_synth.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
+        nuscenes.write_nuscenes(scenes[:2], root, cfg=cfg, overwrite=True)
     assert (root / "notes.txt").read_text() == "mine"

@@ -12,6 +12,7 @@ import torch
 
 import data_real
 import data_synth
+from lab import nuscenes
 import diffstack as ds
 import experiments as ex
 from lab import tables as lt
@@ -30,7 +31,7 @@ TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hid
 
 def test_nuscenes_folder_trains_through_the_cli(tmp_path):
     scenes = data_synth.generate_scenes(4, seed=3)
-    data_synth.write_nuscenes(scenes, tmp_path / "nusc")
+    nuscenes.write_nuscenes(scenes, tmp_path / "nusc")
     ex.main(
         [
             "--experiment",

@@ -9,6 +9,7 @@ import torch
 
 import data_real
 import data_synth
+from lab import nuscenes
 
 
 def _files(folder):
@@ -22,7 +23,7 @@ SCENES = 40  # 3 chunks of PARSE_CHUNK = 16: a pool of 2 workers gets more than 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     root = tmp_path_factory.mktemp("nusc") / "nusc"
-    data_synth.write_nuscenes(data_synth.generate_scenes(SCENES, seed=5), root)
+    nuscenes.write_nuscenes(data_synth.generate_scenes(SCENES, seed=5), root)
     return root
 
 

@@ -93,6 +93,7 @@ from IPython.display import Image, Markdown, display
 import course
 import data_real
 import data_synth
+from lab import nuscenes
 import diffstack as ds
 import experiments as xp
 import figures
@@ -192,7 +193,7 @@ course.figure_scenarios(data.val)
 # %%
 scenes = data.val_scenes[:4]
 with tempfile.TemporaryDirectory() as tmp:
-    data_synth.write_nuscenes(scenes, tmp, "v1.0-mini")
+    nuscenes.write_nuscenes(scenes, tmp, "v1.0-mini")
     files = sorted(str(p.relative_to(tmp)) for p in Path(tmp).rglob("*.json"))
     print(f"{len(files)} JSON files, e.g.", files[:3], "...", files[-3:])
     loaded, report = data_real.load_nuscenes(tmp, "v1.0-mini")
