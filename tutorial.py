@@ -93,12 +93,14 @@ from IPython.display import Image, Markdown, display
 import course
 import data_real
 import data_synth
-from lab import nuscenes
+from lab.nuscenes import write_nuscenes
 import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
-from lab import quick, report, stats
+from lab.quick import load_pretrained
+from lab.report import open_loop_table, results_markdown
+from lab.stats import markdown_table
 from course import check_claim, check_order, checkpoint, first_of, gt_context
 from course import results_table, section_done
 
@@ -193,7 +195,7 @@ course.figure_scenarios(data.val)
 # %%
 scenes = data.val_scenes[:4]
 with tempfile.TemporaryDirectory() as tmp:
-    nuscenes.write_nuscenes(scenes, tmp, "v1.0-mini")
+    write_nuscenes(scenes, tmp, "v1.0-mini")
     files = sorted(str(p.relative_to(tmp)) for p in Path(tmp).rglob("*.json"))
     print(f"{len(files)} JSON files, e.g.", files[:3], "...", files[-3:])
     loaded, report = data_real.load_nuscenes(tmp, "v1.0-mini")
@@ -543,7 +545,7 @@ head = [
     "largest",
     "plan ≠ target n*",
 ]
-display(Markdown(stats.markdown_table(head, rows)))
+display(Markdown(markdown_table(head, rows)))
 
 # %%
 # Figure: the two samples with the largest gradient, and a "far" vehicle; one arrow scale for all.
@@ -818,7 +820,7 @@ hist_std = tr.train_stack(
 )
 m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 # and a Standard predictor trained for the tables' 40 epochs (8 500 samples, seed 0): pretrained/
-model_pre = quick.load_pretrained(tr.Method("Standard"), ds.Config())[0][SEED].eval()
+model_pre = load_pretrained(tr.Method("Standard"), ds.Config())[0][SEED].eval()
 m_pre = tr.evaluate_predictor(model_pre, data.val, cfg)
 print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
 print("            ADE    FDE    min-ADE  NLL")
@@ -883,7 +885,7 @@ methods4 = [m for m in tr.TABLE1_METHODS if m.name in four]
 methods1 = methods4 if QUICK else tr.TABLE1_METHODS
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(report.open_loop_table(res1, "rl")))
+display(Markdown(open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
 print(
     f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT gap in hindsight cost (paper: 39 %)"
@@ -1030,7 +1032,7 @@ rows = course.behaviour_rows(
     data.val.behaviour, ok, lambda sel: [f"{100 * d[m][sel].mean():+.2f}" for m in d]
 )
 head = ["behaviour", "samples", "Standard − No prediction", "DiffStack − No prediction"]
-display(Markdown(stats.markdown_table(head, rows)))
+display(Markdown(markdown_table(head, rows)))
 d_std = d["Standard"][ok]
 worst = d_std.sort(descending=True).values[: max(1, len(d_std) // 20)]  # where Standard costs most
 more, less = (d_std > 1e-3).float().mean(), (d_std < -1e-3).float().mean()
@@ -1093,7 +1095,7 @@ res2 = xp.open_loop_experiment(
     data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None
 )
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(report.open_loop_table(res2, "rl")))
+display(Markdown(open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 # one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
 check_order("Table 2, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
@@ -1123,7 +1125,7 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 t0 = time.time()
 res_il = xp.open_loop_experiment(data, cfg, "il", methods4, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(report.open_loop_table(res_il, "il")))
+display(Markdown(open_loop_table(res_il, "il")))
 # one seed of a short training again: nothing here is checked but the 5-seed claim under the table
 # (even a perfect prediction need not bring the plan closer to the expert's: on the quick data GT
 # prediction's MSE is above No prediction's)
@@ -1142,7 +1144,7 @@ check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 t0 = time.time()
 res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(report.results_markdown(xp.TABLES["cost"], res_cost)))
+display(Markdown(results_markdown(xp.TABLES["cost"], res_cost)))
 with tempfile.TemporaryDirectory() as tmp:  # quick mode: the committed 5 seeds (results/cost.json)
     res_w = json.loads(Path("results/cost.json").read_text())["results"] if QUICK else res_cost
     figures.figure_cost_weights(res_w, Path(tmp) / "w.png", "results/cost.json" if QUICK else "")
@@ -1178,7 +1180,7 @@ res5, rollouts, cl_scenes = xp.closed_loop_experiment(
     data, cl, cfg, seeds=(SEED,), epochs=EPOCHS, log=None
 )
 print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
-display(Markdown(report.results_markdown(xp.TABLES["closed_loop"], res5)))
+display(Markdown(results_markdown(xp.TABLES["closed_loop"], res5)))
 results_table("closed_loop")
 check_claim("closed_loop", "DiffStack", "Standard", "Trajectory cost (x1e-2)", "not reproduced")
 # Figure: the scene where the methods' executed trajectories come furthest apart.
@@ -1217,7 +1219,7 @@ for name, (model, method) in stacks_gt.items():
     fine[name] = [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
 xp.add_relative(fine, "rl")
 print(f"({time.time() - t0:.0f}s)")
-display(Markdown(report.open_loop_table(fine, "rl")))
+display(Markdown(open_loop_table(fine, "rl")))
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
 check_order(
     "dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"]
