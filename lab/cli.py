@@ -147,3 +147,18 @@ SET_BY_DATA = dict(dt=0.5, hist_len=8, horizon=6)
 """Config fields every data source fixes: a command run at another value would read 2 Hz samples
 as if they were another rate (dt), or samples of another length (refused only after the data is
 made): --set refuses them at once."""
+
+
+def add_shared_options(ap, **helps) -> None:
+    """The options the command lines share, declared once: each one named (jobs, threads, device,
+    overwrite, set) is added to the parser `ap` with its help text, the same type and default in
+    every command line (--set: Config fields, read by config_with)."""
+    shared = {
+        "jobs": dict(type=bounded(int, 1, 256, "--jobs"), default=None),
+        "threads": dict(type=bounded(int, 1, 256, "--threads"), default=None),
+        "device": dict(type=device_arg, default="cpu"),
+        "overwrite": dict(action="store_true"),
+        "set": dict(action="append", default=[], metavar="KEY=VALUE"),
+    }
+    for name, text in helps.items():
+        ap.add_argument(f"--{name}", help=text, **shared[name])

@@ -18,7 +18,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import data_synth
 from diffstack import Config, Predictor
-from lab.cli import bounded, check_writable, config_with, device_arg, machine
+from lab.cli import add_shared_options, check_writable, config_with, machine
 from lab.runs import (
     ROOT,
     command_line,
@@ -424,38 +424,16 @@ def main(argv=None):
         f"epochs, {_seed_list(PRETRAIN['seeds'])}, one thread each: Table 1's) into {PRETRAINED}/, "
         "~40 min on 2 cores",
     )
-    ap.add_argument(
-        "--jobs",
-        type=bounded(int, 1, 256, "--jobs"),
-        default=None,
-        help="--pretrain: worker processes training side by side, one thread each (default: the "
+    add_shared_options(
+        ap,
+        jobs="--pretrain: worker processes training side by side, one thread each (default: the "
         "machine's cores)",
-    )
-    ap.add_argument(
-        "--overwrite",
-        action="store_true",
-        help=f"--pretrain: replace the predictors in {PRETRAINED}/",
-    )
-    ap.add_argument(
-        "--threads",
-        type=bounded(int, 1, 256, "--threads"),
-        default=None,
-        help="torch threads (default: 1 for --pretrain, as the tables train; for --quick 2, or 1 "
-        "when other work keeps a core busy; at most 256)",
-    )
-    ap.add_argument(
-        "--device",
-        type=device_arg,
-        default="cpu",
-        help="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data is "
-        "made on the CPU",
-    )
-    ap.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)",
+        overwrite=f"--pretrain: replace the predictors in {PRETRAINED}/",
+        threads="torch threads (default: 1 for --pretrain, as the tables train; for --quick 2, or "
+        "1 when other work keeps a core busy; at most 256)",
+        device="where training and evaluation run: cpu (default), cuda, cuda:N or mps; the data "
+        "is made on the CPU",
+        set="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)",
     )
     argv = sys.argv[1:] if argv is None else list(argv)
     for moved in ("--experiment", "--bench"):

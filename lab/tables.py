@@ -51,7 +51,7 @@ from experiments import (
     validation_spread,
 )
 
-from lab.cli import bounded, check_writable, config_with, device_arg, machine
+from lab.cli import add_shared_options, bounded, check_writable, config_with, machine
 
 from lab.runs import (
     ROOT,
@@ -843,34 +843,7 @@ def main(argv=None):
         "--data",
         help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data",
     )
-    ap.add_argument(
-        "--threads",
-        type=bounded(int, 1, 256, "--threads"),
-        default=None,
-        help="torch threads (default 2, or 1 when other work keeps a core busy)",
-    )
-    ap.add_argument(
-        "--jobs",
-        type=bounded(int, 1, 256, "--jobs"),
-        default=None,
-        help="worker processes, one thread each, running a table's seeds in parallel (default: "
-        f"the machine's cores, here {os.cpu_count()}; 1: one process with --threads threads; 1 "
-        "under torchrun)",
-    )
-    ap.add_argument(
-        "--device",
-        type=device_arg,
-        default="cpu",
-        help="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or mps; "
-        "the data is made and cached on the CPU",
-    )
     ap.add_argument("--out", help=f"where the results go (default results/; for real, {REAL_OUT}/)")
-    ap.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace result files that exist already in --out (without it, the run refuses to "
-        "start)",
-    )
     ap.add_argument(
         "--render",
         action="store_true",
@@ -884,12 +857,17 @@ def main(argv=None):
         "validation draws at about 1,500 samples and at --val's default (validation_spread); "
         "about 2 minutes",
     )
-    ap.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a Config field, e.g. --set beta=2 (repeatable)",
+    add_shared_options(
+        ap,
+        threads="torch threads (default 2, or 1 when other work keeps a core busy)",
+        jobs="worker processes, one thread each, running a table's seeds in parallel (default: "
+        f"the machine's cores, here {os.cpu_count()}; 1: one process with --threads threads; 1 "
+        "under torchrun)",
+        device="where training, evaluation and the stack run: cpu (default), cuda, cuda:N or "
+        "mps; the data is made and cached on the CPU",
+        overwrite="replace result files that exist already in --out (without it, the run refuses "
+        "to start)",
+        set="override a Config field, e.g. --set beta=2 (repeatable)",
     )
     args = ap.parse_args(argv)
     if args.validation_spread:
