@@ -401,7 +401,8 @@ def quick_verdicts(res: dict) -> list:
     ]
 
 
-def main(argv=None):
+def parser():
+    """diffstack.py's command line: --quick, --pretrain."""
     import argparse
 
     ap = argparse.ArgumentParser(
@@ -435,6 +436,11 @@ def main(argv=None):
         "is made on the CPU",
         set="override a Config field, e.g. --set beta=2 --set u_upper=0.7,4 (repeatable)",
     )
+    return ap
+
+
+def main(argv=None):
+    ap = parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     for moved in ("--experiment", "--bench"):
         if any(a == moved or a.startswith(moved + "=") for a in argv):

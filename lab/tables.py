@@ -777,29 +777,8 @@ def start_distributed(device: torch.device) -> torch.device:
     return device
 
 
-def main(argv=None):
-    # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike;
-    # rank 0 prints, writes
-    rank, world, misuse = ranks()
-    if misuse:  # every process says it: none of them can reach the others
-        print(f"experiments.py: error: {misuse}", file=sys.stderr)
-        sys.exit(2)
-    if world > 1:  # a rank ends with the torchrun that started it, as a --jobs worker with its run
-        die_with_parent(os.getppid())
-    ap = argparse.ArgumentParser(
-        description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
-        "Under torchrun, on N processes: training with DistributedDataParallel."
-    )
-    # the same errors come up on every rank: rank 0 says what they are, the others exit alike
-    if rank != 0:
-        ap.error = lambda message: sys.exit(2)
-    ap.add_argument(
-        "--experiment",
-        choices=EXPERIMENTS + (REAL.name, "all"),  # (required, but by --validation-spread)
-        help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
-        "results/report.md; real: the synthetic-trained stack on three real Waymo scenes "
-        f"(downloaded once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)",
-    )
+def data_options(ap) -> None:
+    """experiments.py's options of what a table trains on: seeds, epochs, the data."""
     ap.add_argument(
         "--phases",
         type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"),
@@ -843,6 +822,22 @@ def main(argv=None):
         "--data",
         help="a nuScenes folder (real, or written by data_synth.py) instead of synthetic data",
     )
+
+
+def parser() -> argparse.ArgumentParser:
+    """experiments.py's command line."""
+    ap = argparse.ArgumentParser(
+        description="DiffStack (CoRL 2022): the paper's tables, run on this machine. "
+        "Under torchrun, on N processes: training with DistributedDataParallel."
+    )
+    ap.add_argument(
+        "--experiment",
+        choices=EXPERIMENTS + (REAL.name, "all"),  # (required, but by --validation-spread)
+        help="a table of the paper (results/<name>.json, .md, figures); all: every one, and "
+        "results/report.md; real: the synthetic-trained stack on three real Waymo scenes "
+        f"(downloaded once into data_cache/waymo; outputs to {REAL_OUT}/, never results/)",
+    )
+    data_options(ap)
     ap.add_argument("--out", help=f"where the results go (default results/; for real, {REAL_OUT}/)")
     ap.add_argument(
         "--render",
@@ -869,6 +864,22 @@ def main(argv=None):
         "to start)",
         set="override a Config field, e.g. --set beta=2 (repeatable)",
     )
+    return ap
+
+
+def main(argv=None):
+    # Under torchrun every process runs main: all ranks train together (DDP) and evaluate alike;
+    # rank 0 prints, writes
+    rank, world, misuse = ranks()
+    if misuse:  # every process says it: none of them can reach the others
+        print(f"experiments.py: error: {misuse}", file=sys.stderr)
+        sys.exit(2)
+    if world > 1:  # a rank ends with the torchrun that started it, as a --jobs worker with its run
+        die_with_parent(os.getppid())
+    ap = parser()
+    # the same errors come up on every rank: rank 0 says what they are, the others exit alike
+    if rank != 0:
+        ap.error = lambda message: sys.exit(2)
     args = ap.parse_args(argv)
     if args.validation_spread:
         return print(validation_spread())
