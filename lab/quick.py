@@ -276,6 +276,28 @@ def _seed_list(seeds) -> str:
     )
 
 
+def shipped_rows(val, cfg: Config, pretrained, device, log) -> tuple:
+    """--quick's first table: No prediction, the shipped predictors (one run per seed) and GT
+    prediction evaluated on `val`, with the planning metrics relative to No prediction; and the
+    shipped predictors' provenance (None when none could be loaded: their rows are left out)."""
+    res = {}
+    prov = None
+    for m in QUICK_METHODS:
+        if m.predictor != "learned":
+            res[m.name] = [evaluate_stack(None, val, m, cfg, "rl", device=device)]
+            continue
+        models, about = load_pretrained(m, cfg, pretrained, device)
+        if models is None:
+            log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
+            continue
+        prov = about
+        # one run per seed
+        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [
+            evaluate_stack(model, val, m, cfg, "rl", device=device) for model in models.values()
+        ]
+    return add_relative(res, "rl"), prov
+
+
 def quick(
     threads=2,
     n=None,
@@ -312,23 +334,7 @@ def quick(
         f"data: {len(data.train)} training scenarios (seed 0's draw), the first {len(data.val)} of "
         f"the tables' {VAL_N:,} validation scenarios ({time.time() - t0:.0f}s)"
     )
-    res = {}
-    prov = None
-    for m in QUICK_METHODS:
-        if m.predictor != "learned":
-            res[m.name] = [evaluate_stack(None, data.val, m, cfg, "rl", device=device)]
-            continue
-        models, about = load_pretrained(m, cfg, pretrained, device)
-        if models is None:
-            log(f"{m.name}: no pre-trained predictor ({about}): its row is left out")
-            continue
-        prov = about
-        # one run per seed
-        res[f"{m.name} ({prov['epochs']:g} epochs)"] = [
-            evaluate_stack(model, data.val, m, cfg, "rl", device=device)
-            for model in models.values()
-        ]
-    add_relative(res, "rl")
+    res, prov = shipped_rows(data.val, cfg, pretrained, device, log)
     if prov is not None:
         log(
             f"\nThe shipped predictors: `{prov['command']}` ({prov['date']}, commit "
