@@ -503,7 +503,8 @@ def train_stack(
     try:
         for step, rows in enumerate(batch_rows(len(data), cfg, shard, order, total), 1):
             batch = to_device(data[rows], next(model.parameters()).device)
-            terms, conv = objective(batch, rows, step - 1)
+            terms, conv = objective(batch, rows, step - 1)  # (L_pred, L_plan, L_ctr)
+            # L = a1 L_pred + a2 L_plan + a3 L_ctr (§3.2)
             loss = a1 * terms[0] + a2 * terms[1] + a3 * terms[2]
             where = f"{method.name}, seed {seed}: training diverged at step {step} of {total}"
             stop_if_diverged(where, shard, terms=terms)
