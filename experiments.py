@@ -30,46 +30,24 @@ import pickle
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 
 import torch
-from dataclasses import dataclass
 
 import data_real
 import data_synth
 from diffstack import (
     COST_TERMS,
-    project_to_lanes,
-    unicycle_step,
-    wrap_angle,
     Config,
     Predictor,
     cost_contexts,
     cost_terms,
     cost_weights,
+    project_to_lanes,
     route_goal,
     run_stack,
-)
-from lab.stats import markdown_table
-from train import (
-    CostWeights,
-    Method,
-    TABLE1_METHODS,
-    TrainingDiverged,
-    alphas,
-    evaluate_stack,
-    to_device,
-    train_predictor,
-    train_stack,
-)
-
-# hand-over: the command line's argument types and checks, shared with diffstack.py's
-
-# hand-over: the lab's run machinery (the resume store, files written whole, locks, workers)
-from lab.runs import (
-    first_non_finite,
-    load_json,
-    save_atomic,
-    write_atomic,
+    unicycle_step,
+    wrap_angle,
 )
 from specs import (
     CLOSE,
@@ -82,12 +60,26 @@ from specs import (
     TableSpec,
 )
 from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
+from train import (
+    CostWeights,
+    Method,
+    TABLE1_METHODS,
+    TrainingDiverged,
+    alphas,
+    evaluate_stack,
+    to_device,
+    train_predictor,
+    train_stack,
+)
 
-# hand-over: the tables' text (markdown, the claims' lines, the report) is lab/report.py's; the
-# notebook and the course read three of its functions as experiments'
+# hand-over to the lab: files written whole and JSON read safely (lab/runs.py), the table formatter
+# (lab/stats.py), the tables' text (lab/report.py: the notebook and the course read three of its
+# functions as experiments')
 from lab.report import behaviour_markdown as behaviour_markdown
 from lab.report import claim_line as claim_line
 from lab.report import gap_closed as gap_closed
+from lab.runs import first_non_finite, load_json, save_atomic, write_atomic
+from lab.stats import markdown_table
 
 
 # ============================================================================================
