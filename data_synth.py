@@ -1372,28 +1372,28 @@ PLAUSIBLE = {"speed_max": 20.5, "accel_p99": 4.0, "yaw_rate_p99": 0.7}
 included)."""
 
 
+def _kinematics(states, mask, dt: float):
+    """states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate| (by backward
+    differences; the yaw rate of moving vehicles only: headings of stopped ones mean little)."""
+    v, h = states[..., 3], states[..., 2]
+    acc, yaw = (v[..., 1:] - v[..., :-1]) / dt, wrap_angle(h[..., 1:] - h[..., :-1]) / dt
+    moving = (v[..., 1:] > 2.0) & mask[..., None]
+    return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
+
+
+def _summary(x) -> dict:
+    """Percentiles 1, 50, 99 and the maximum of a flat array ({} when empty)."""
+    x = x.double()
+    if x.numel() == 0:
+        return {}
+    q = torch.quantile(x[:100_000], torch.tensor([0.01, 0.5, 0.99], dtype=torch.float64)).tolist()
+    return {"p1": q[0], "p50": q[1], "p99": q[2], "max": x.max().item()}
+
+
 def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
     """Kinematics (from the states, by backward differences), the behaviour mix and how close the
     predicted vehicle comes to the ego's GT future (the collision cost exp(-d^2/4) matters within a
     few metres)."""
-
-    def kin(states, mask):
-        # states (..., T, 4), mask (...,) -> flat arrays of speed, |accel|, |yaw rate|
-        v, h = states[..., 3], states[..., 2]
-        acc, yaw = (v[..., 1:] - v[..., :-1]) / dt, wrap_angle(h[..., 1:] - h[..., :-1]) / dt
-        # headings of (near) stopped vehicles mean little
-        moving = (v[..., 1:] > 2.0) & mask[..., None]
-        return v[mask].flatten(), acc[mask].abs().flatten(), yaw[moving].abs().flatten()
-
-    def summary(x):
-        x = x.double()
-        if x.numel() == 0:
-            return {}
-        q = torch.quantile(
-            x[:100_000], torch.tensor([0.01, 0.5, 0.99], dtype=torch.float64)
-        ).tolist()
-        return {"p1": q[0], "p50": q[1], "p99": q[2], "max": x.max().item()}
-
     B = len(batch)
     groups = {
         "ego": (torch.cat([batch.ego_hist, batch.ego_fut], 1), torch.ones(B, dtype=torch.bool)),
@@ -1408,8 +1408,8 @@ def statistics(batch: Scenarios, dt: float = 0.5) -> dict:
     }
     out = {"samples": B}
     for name, (states, mask) in groups.items():
-        v, a, w = kin(states, mask)
-        out[name] = {"speed": summary(v), "|accel|": summary(a), "|yaw rate|": summary(w)}
+        v, a, w = _kinematics(states, mask, dt)
+        out[name] = {"speed": _summary(v), "|accel|": _summary(a), "|yaw rate|": _summary(w)}
     # (B,)
     d = torch.linalg.norm(batch.ego_fut[..., :2] - batch.agent_fut[..., :2], dim=-1).min(1).values
     rel = (_no_brake_plan(batch, dt) - batch.agent_fut[..., :2]).abs()  # (B, 6, 2), ego frame at t0
@@ -1482,17 +1482,8 @@ def format_statistics(st: dict) -> str:
 # === 8. Plot ================================================================================
 
 
-def plot_scenario(
-    ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)
-):
-    """Draw sample i in the ego frame: lanes (grey, arrows along the driving direction), other
-    vehicles and pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle
-    (orange), the ego (blue, GT future dashed) and its goal (star). Returns ax; callers overlay
-    predictions and plans with ax.plot."""
-    from matplotlib.patches import Rectangle
-
-    # plotted on the CPU, wherever the batch is
-    b = batch[torch.tensor([i])].to(torch.float64, device="cpu")
+def _draw_lanes(ax, b) -> None:
+    """The lanes of sample b (one sample, on the CPU): grey, arrows along the driving direction."""
     for lane, m in zip(b.lanes[0], b.lanes_mask[0]):
         pts = lane[m].numpy()
         if len(pts):
@@ -1506,55 +1497,71 @@ def plot_scenario(
                 zorder=1,
             )
 
-    def box(state, size, color, z):
-        (x, y, h), (w, length) = state[:3].tolist(), size
-        back_right = (
-            -np.array([np.cos(h), np.sin(h)]) * length / 2
-            + np.array([np.sin(h), -np.cos(h)]) * w / 2
-        )
-        corner = np.array([x, y]) + back_right
-        ax.add_patch(
-            Rectangle(
-                corner,
-                length,
-                w,
-                angle=math.degrees(h),
-                rotation_point="xy",
-                fc=color,
-                ec="k",
-                lw=0.5,
-                alpha=0.8,
-                zorder=z,
-            )
-        )
 
-    def track(hist, fut, color, z, dashed=False):
-        ax.plot(hist[:, 0], hist[:, 1], ":", color=color, lw=1.2, zorder=z)
-        ax.plot(
-            np.r_[hist[-1:, 0], fut[:, 0]],
-            np.r_[hist[-1:, 1], fut[:, 1]],
-            "--" if dashed else "-",
-            color=color,
-            lw=1.5,
+def _draw_box(ax, state, size, color, z) -> None:
+    """A vehicle's footprint (width, length) at state (x, y, h, ...)."""
+    from matplotlib.patches import Rectangle
+
+    (x, y, h), (w, length) = state[:3].tolist(), size
+    back_right = (
+        -np.array([np.cos(h), np.sin(h)]) * length / 2 + np.array([np.sin(h), -np.cos(h)]) * w / 2
+    )
+    corner = np.array([x, y]) + back_right
+    ax.add_patch(
+        Rectangle(
+            corner,
+            length,
+            w,
+            angle=math.degrees(h),
+            rotation_point="xy",
+            fc=color,
+            ec="k",
+            lw=0.5,
+            alpha=0.8,
             zorder=z,
-            marker=".",
-            ms=3,
         )
+    )
 
+
+def _draw_track(ax, hist, fut, color, z, dashed=False) -> None:
+    """A history (dotted) and its GT future (solid, or dashed)."""
+    ax.plot(hist[:, 0], hist[:, 1], ":", color=color, lw=1.2, zorder=z)
+    ax.plot(
+        np.r_[hist[-1:, 0], fut[:, 0]],
+        np.r_[hist[-1:, 1], fut[:, 1]],
+        "--" if dashed else "-",
+        color=color,
+        lw=1.5,
+        zorder=z,
+        marker=".",
+        ms=3,
+    )
+
+
+def plot_scenario(
+    ax, batch: Scenarios, i: int, title: str | None = None, extent: tuple = (-30, 60, -25, 25)
+):
+    """Draw sample i in the ego frame: lanes (grey, arrows along the driving direction), other
+    vehicles and pedestrians (history dotted, GT future solid, box at t0), the predicted vehicle
+    (orange), the ego (blue, GT future dashed) and its goal (star). Returns ax; callers overlay
+    predictions and plans with ax.plot."""
+    # plotted on the CPU, wherever the batch is
+    b = batch[torch.tensor([i])].to(torch.float64, device="cpu")
+    _draw_lanes(ax, b)
     for oh, of, m, ped in zip(
         b.others_hist[0], b.others_fut[0], b.others_mask[0], b.others_is_ped[0]
     ):
         if m:
             color = "tab:green" if ped else "tab:gray"
-            track(oh.numpy(), of.numpy(), color, 2)
+            _draw_track(ax, oh.numpy(), of.numpy(), color, 2)
             if ped:
                 ax.plot(*oh[-1, :2].tolist(), "o", color=color, ms=4, zorder=3)
             else:
-                box(oh[-1], (1.9, 4.6), "0.6", 3)
-    track(b.agent_hist[0].numpy(), b.agent_fut[0].numpy(), "tab:orange", 4)
-    box(b.agent_hist[0, -1], (1.9, 4.6), "tab:orange", 5)
-    track(b.ego_hist[0].numpy(), b.ego_fut[0].numpy(), "tab:blue", 4, dashed=True)
-    box(b.ego_hist[0, -1], (_EGO_W, _EGO_L), "tab:blue", 5)
+                _draw_box(ax, oh[-1], (1.9, 4.6), "0.6", 3)
+    _draw_track(ax, b.agent_hist[0].numpy(), b.agent_fut[0].numpy(), "tab:orange", 4)
+    _draw_box(ax, b.agent_hist[0, -1], (1.9, 4.6), "tab:orange", 5)
+    _draw_track(ax, b.ego_hist[0].numpy(), b.ego_fut[0].numpy(), "tab:blue", 4, dashed=True)
+    _draw_box(ax, b.ego_hist[0, -1], (_EGO_W, _EGO_L), "tab:blue", 5)
     ax.plot(*b.goal[0, :2].tolist(), "*", color="tab:blue", ms=12, mec="k", zorder=6)
     beh = int(b.behaviour[0])
     ax.set_title(
