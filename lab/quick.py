@@ -12,9 +12,9 @@ import pickle
 import statistics
 import sys
 import time
+from concurrent.futures.process import BrokenProcessPool
 
 import torch
-from concurrent.futures.process import BrokenProcessPool
 
 import data_synth
 from diffstack import Config, Predictor

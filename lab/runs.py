@@ -284,10 +284,9 @@ def code_version() -> str:
     not.
     (ast.unparse is Python's own: under another Python version the same code may read as new, a new
     run, never a mixed one.)"""
-    here = ROOT
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
-        h.update(name.encode() + b"\0" + code_of((here / name).read_text()).encode() + b"\0")
+        h.update(name.encode() + b"\0" + code_of((ROOT / name).read_text()).encode() + b"\0")
     return f"sha256:{h.hexdigest()[:16]}"
 
 
@@ -341,14 +340,13 @@ def command_line(launcher: str, argv) -> str:
 def git_commit() -> str | None:
     """The commit the code was run from, '+dirty' when the work tree differs from it; None
     outside git."""
-    here = ROOT
     try:
         head = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout.strip()
         dirty = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
+            cwd=ROOT,
             capture_output=True,
             text=True,
             check=True,

@@ -490,14 +490,13 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     """Before any work: out_dir must be writable, and no file a run of these tables would write may
     exist already unless overwrite or it is in ours (runs.refuse_existing). OutputRefused naming the
     folder or the files."""
-    here = ROOT
     out = pathlib.Path(out_dir).resolve()
 
     def inside(folder):
         return folder == out or folder in out.parents
 
     # before check_writable makes the folder
-    if REAL.name in names and inside(here) and not inside(here / "runs"):
+    if REAL.name in names and inside(ROOT) and not inside(ROOT / "runs"):
         raise OutputRefused(
             f"--out {out_dir}: the real-scene results derive from the Waymo Open Dataset, whose "
             "licence forbids committing them; inside this repository they go under runs/ "
