@@ -6,6 +6,8 @@ line."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import pathlib
 import pickle
@@ -20,10 +22,10 @@ import data_synth
 from diffstack import Config, Predictor
 from lab.cli import add_shared_options, check_writable, config_with, machine
 from lab.runs import (
-    ROOT,
     command_line,
     default_threads,
     folder_lock,
+    git_commit,
     load_json,
     one_line,
     ranks,
@@ -126,8 +128,6 @@ def _shipped_entries(prov_path, method: Method):
 def _load_shipped(path, sha256: str, prov_path, cfg: Config) -> Predictor:
     """The predictor in path, on the CPU, once its sha256 is the provenance's; ValueError naming
     the file otherwise, or when it does not load as a predictor of this version."""
-    import hashlib
-
     if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
         raise ValueError(
             f"{path}: missing, or not the file {prov_path} describes (sha256 differs); "
@@ -190,10 +190,6 @@ def pretrain(
     metrics). On one thread each, these are Table 1's predictors of the same seeds to the bit (the
     tables train each seed on one thread). `jobs` worker processes train them side by side. --quick
     evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
-    import hashlib
-    import json
-    import subprocess
-
     out = pathlib.Path(out)
     cfg = cfg or Config()
     seeds = tuple(seeds)
@@ -220,19 +216,10 @@ def pretrain(
             threads=threads,
             torch=torch.__version__,
             machine=machine(),
+            commit=git_commit(),
             config=dataclasses.asdict(cfg),
             files={},
         )
-        try:
-            about["commit"] = subprocess.run(
-                ["git", "rev-parse", "--short", "HEAD"],
-                capture_output=True,
-                text=True,
-                cwd=ROOT,
-                check=True,
-            ).stdout.strip()
-        except (OSError, subprocess.CalledProcessError):
-            about["commit"] = None
         args = [(m, seed, n, epochs, cfg, cache_dir, threads, val) for m, seed, _ in work]
         if jobs > 1:
             pool = worker_pool(min(jobs, len(work)))
@@ -320,12 +307,9 @@ def quick(
     epochs = epochs or QUICK["epochs"]
     learned = [m for m in QUICK_METHODS if m.predictor == "learned"]
     log(
-        f"DiffStack --quick: the tables' synthetic data, seed 0's draw of {n} scenarios and the "
-        f"validation set (generated once, then cached in {cache_dir}/).\n"
-        f"Standard and DiffStack trained for the tables' {PRETRAIN['epochs']:g} epochs (shipped in "
-        f"{pretrained}/), No prediction\n"
-        f"and GT prediction beside them; then both trained live for {epochs:g} epochs. About a "
-        "minute on 2 cores."
+        f"DiffStack --quick: the shipped {PRETRAIN['epochs']:g}-epoch predictors ({pretrained}/) "
+        f"beside No prediction and GT prediction, then Standard and DiffStack trained"
+        f" for {epochs:g} epochs."
     )
     t0 = time.time()
     data = experiment_data(n, (0,), cache_dir=cache_dir, log=log)
@@ -448,16 +432,12 @@ def parser():
 def main(argv=None):
     ap = parser()
     argv = sys.argv[1:] if argv is None else list(argv)
-    for moved in ("--experiment", "--bench"):
+    for moved, now in (
+        ("--experiment", "python experiments.py --experiment NAME"),
+        ("--bench", "python -m lab.bench"),
+    ):
         if any(a == moved or a.startswith(moved + "=") for a in argv):
-            ap.error(
-                f"{moved} moved: "
-                + (
-                    "python experiments.py --experiment NAME"
-                    if moved == "--experiment"
-                    else "python bench.py"
-                )
-            )
+            ap.error(f"{moved} moved: {now}")
     rank, world, misuse = ranks()
     if misuse:
         ap.error(misuse)
