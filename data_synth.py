@@ -857,10 +857,7 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     yields, or passes just after); never if the ego at constant speed would already be past it.
     IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
     s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))), a in [-4, a_max]."""
-    S, N = len(s_e0), len(t)
-    W = cfg.lane_width
-    kappa = lay["kappa"]
-    de = -(lay["ego_lane"] + 0.5) * W
+    kappa, de = lay["kappa"], _lane_d(lay["ego_lane"], cfg.lane_width)
     # the others in the road frame: position, speed along the road, half-extents along and across
     s_a, d_a = xy_to_frenet(others[..., 0], others[..., 1], kappa[:, None, None])  # (S, M, N)
     rel = others[..., 2] - kappa[:, None, None] * s_a
@@ -869,50 +866,53 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     ext_lat = abs(np.sin(rel)) * length + abs(np.cos(rel)) * w
     sdot_a = np.gradient(s_a, t, axis=-1)
     in_corr = exists[..., None] & (abs(d_a - de[:, None, None]) < ext_lat + _EGO_W / 2 + 0.3)
-    stride = int(round(cfg.dt / cfg.sim_dt))
-    u = s_e0 * (1 - kappa * de)  # ego arc position along its lane
+    u0 = s_e0 * (1 - kappa * de)  # the ego's arc position along its lane
+    us, vs = _follow(lay, u0, de, (s_a, ext_long, sdot_a, in_corr), cfg, len(t))
+    return _wander(kappa, de, us, vs, rng), us / (1 - kappa * de)[:, None]
+
+
+def _follow(lay, u, de, view, cfg, N):
+    """The ego's arc position and speed along its lane (S, N) from u: IDM behind what it must."""
+    kappa, v_des, dt = lay["kappa"], lay["v_des"], cfg.sim_dt
+    stride = int(round(cfg.dt / dt))
     v = lay["v_e0"].copy()
-    us, vs = np.empty((S, N)), np.empty((S, N))
+    us, vs = np.empty((len(u), N)), np.empty((len(u), N))
     sqrt_ab = 2 * math.sqrt(_IDM["a_max"] * _IDM["b"])
     for k in range(N):  # time loop, vectorised over scenes
         us[:, k], vs[:, k] = u, v
         idx = np.minimum(k + stride * np.arange(_IDM["look"] + 1), N - 1)
-        tau = (idx - k) * cfg.sim_dt  # (J,)
-        s_e = u / (1 - kappa * de)
-        sa, ex = s_a[..., idx], ext_long[..., idx]  # (S, M, J)
-        passed = (tau > 0) & (
-            s_e[:, None, None] + v[:, None, None] * tau - _EGO_L / 2 - 1.0 > sa + ex
-        )
-        gap = np.maximum(sa - ex - s_e[:, None, None] - _EGO_L / 2, 0.1)
-        # when the ego would reach it at its current speed
-        arrival = gap / np.maximum(v, 1.0)[:, None, None]
-        along = (sdot_a[..., idx] > 2.0) | (tau >= arrival - 0.6)
-        obstacle = in_corr[..., idx] & (sa > s_e[:, None, None]) & ~passed & along
+        tau = (idx - k) * dt  # (J,)
+        sa, ex, sdot, corr = (x[..., idx] for x in view)  # (S, M, J)
+        obstacle, gap = _obstacles(u / (1 - kappa * de), v, tau, sa, ex, sdot, corr)
         vv = v[:, None, None]
-        s_star = _IDM["s0"] + np.maximum(
-            0.0, vv * _IDM["T"] + vv * (vv - sdot_a[..., idx]) / sqrt_ab
-        )
+        s_star = _IDM["s0"] + np.maximum(0.0, vv * _IDM["T"] + vv * (vv - sdot) / sqrt_ab)
         interaction = np.where(obstacle, (s_star / gap) ** 2, 0.0).max((1, 2))
-        a = np.clip(
-            _IDM["a_max"] * (1 - (v / lay["v_des"]) ** 4 - interaction), -4.0, _IDM["a_max"]
-        )
-        v_new = np.maximum(v + a * cfg.sim_dt, 0.0)
-        u, v = u + 0.5 * (v + v_new) * cfg.sim_dt, v_new
-    # lane keeping with a smooth wander of the lateral offset along the lane (amplitude <= 0.2 m)
+        a = np.clip(_IDM["a_max"] * (1 - (v / v_des) ** 4 - interaction), -4.0, _IDM["a_max"])
+        v_new = np.maximum(v + a * dt, 0.0)
+        u, v = u + 0.5 * (v + v_new) * dt, v_new
+    return us, vs
+
+
+def _obstacles(s_e, v, tau, sa, ex, sdot, corr):
+    """Whom the ego follows or yields to (_drive_ego's rule), and the gaps to them: (S, M, J)."""
+    s_e, vv = s_e[:, None, None], v[:, None, None]
+    passed = (tau > 0) & (s_e + vv * tau - _EGO_L / 2 - 1.0 > sa + ex)
+    gap = np.maximum(sa - ex - s_e - _EGO_L / 2, 0.1)
+    arrival = gap / np.maximum(vv, 1.0)  # when the ego would reach it at its current speed
+    along = (sdot > 2.0) | (tau >= arrival - 0.6)
+    return corr & (sa > s_e) & ~passed & along, gap
+
+
+def _wander(kappa, de, us, vs, rng):
+    """The ego's world states (S, N, 4): its lane's centre line and a smooth wander (<= 0.2 m)."""
+    S = len(us)
     amp, lam, phase = rng.uniform(0, 0.2, S), rng.uniform(60, 150, S), rng.uniform(0, 2 * np.pi, S)
-    off = amp[:, None] * np.sin(2 * np.pi * us / lam[:, None] + phase[:, None])  # (S, N)
-    doff_du = (
-        amp[:, None]
-        * 2
-        * np.pi
-        / lam[:, None]
-        * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
-    )
+    wave = 2 * np.pi * us / lam[:, None] + phase[:, None]  # (S, N)
+    off = amp[:, None] * np.sin(wave)
+    doff_du = amp[:, None] * 2 * np.pi / lam[:, None] * np.cos(wave)
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
     x, y = pose[..., 0] - off * np.sin(pose[..., 2]), pose[..., 1] + off * np.cos(pose[..., 2])
-    # (S, N, 4)
-    ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)
-    return ego, us / (1 - kappa * de)[:, None]
+    return np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
