@@ -922,79 +922,63 @@ def _build_map(lay, s_lo, s_hi, cfg):
     ego side's right turn 21, the oncoming left turn 22. Routes: forward 0-2, oncoming 3-4, south 5,
     north 6, right turn 7, left turn 8; they are exactly the maximal chains of the graph, which is
     what the loader rebuilds from the connectivity."""
-    S = len(s_lo)
-    W = cfg.lane_width
-    kappa, inter = lay["kappa"], lay["inter"]
-    n_fwd, n_opp = lay["n_fwd"], lay["n_opp"]
-    one = np.ones(S)
-    bx, y_top, y_bot = W + _BOX_MARGIN, n_opp * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
-    Y = 60.0  # the crossing road's lanes reach this far from the main road
+    S, W, inter, n_fwd = len(s_lo), cfg.lane_width, lay["inter"], lay["n_fwd"]
+    bx, one = W + _BOX_MARGIN, np.ones(S)  # bx: half-length of the box along the main road
     paths, valid = np.zeros((S, 23, 10)), np.zeros((S, 23), bool)
     conn, routes = np.zeros((S, 23), bool), np.full((S, 9, 3), -1)
-    for i in range(3):
-        for d, fwd in [(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]:
-            if not fwd and i > 1:
-                continue
-            base, r = (3 * i, i) if fwd else (9 + 3 * i, 3 + i)
-            exists = (n_fwd > i) if fwd else (n_opp > i)
-            # one arc (or straight) over the whole road
-            s0 = np.where(fwd, s_lo, s_hi)
-            x, y, th = frenet_to_xy(s0, d, kappa)
-            length = (s_hi - s_lo) * (1 - kappa * d)
-            radius = np.where(kappa != 0, abs(1 / np.where(kappa != 0, kappa, 1) - d), 1000.0)
-            sign = np.sign(kappa) * (1 if fwd else -1)
-            curved = _arc_path(x, y, th + (0 if fwd else np.pi), radius, sign, length, 0 * one, one)
-            single = np.where(
-                (kappa != 0)[:, None],
-                curved,
-                _straight(x, y, th + (0 if fwd else np.pi), length, one),
-            )
-            # before / through / after the intersection (straight road)
-            sg = 1 if fwd else -1
-            ends = [s_lo, -bx * one, bx * one, s_hi] if fwd else [s_hi, bx * one, -bx * one, s_lo]
-            yaw = 0.0 if fwd else np.pi
-            for k in range(3):
-                piece = _straight(ends[k], d * one, yaw, sg * (ends[k + 1] - ends[k]), one)
-                paths[:, base + k] = np.where(
-                    inter[:, None], piece, single if k == 0 else 0 * single
-                )
-                valid[:, base + k] = exists & (inter | (k == 0))
-            conn[:, base + 1] = inter
-            routes[:, r] = np.where(
-                (exists & inter)[:, None],
-                base + np.arange(3),
-                np.where(exists[:, None], [base, -1, -1], -1),
-            )
-    # the crossing road: southbound at x = -W/2, northbound at x = +W/2
-    for base, x, yaw, ys in [
-        (15, -W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
-        (18, W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one]),
-    ]:
-        for k in range(3):
-            paths[:, base + k] = _straight(x, ys[k], yaw, abs(ys[k + 1] - ys[k]), one)
-        conn[:, base + 1] = True
-    # turns into the southbound lane: right from the outer forward one, left from the inner oncoming
-    paths[:, 21] = _arc_path(
-        -bx,
-        -(n_fwd - 0.5) * W,
-        0.0,
-        W / 2 + _BOX_MARGIN,
-        -1.0,
-        np.pi / 2 * (W / 2 + _BOX_MARGIN),
-        0 * one,
-        one,
-    )
-    paths[:, 22] = _arc_path(
-        bx, W / 2, np.pi, bx + W / 2, 1.0, np.pi / 2 * (bx + W / 2), (n_fwd - 1) * W, one
-    )
+    for i, fwd in [(0, True), (1, True), (2, True), (0, False), (1, False)]:
+        base, r = (3 * i, i) if fwd else (9 + 3 * i, 3 + i)
+        exists = (n_fwd > i) if fwd else (lay["n_opp"] > i)
+        d = _lane_d(i, W) if fwd else -_lane_d(i, W)
+        paths[:, base : base + 3] = _road_lane(lay, s_lo, s_hi, d, fwd, bx)
+        valid[:, base : base + 3] = exists[:, None] & (inter[:, None] | (np.arange(3) == 0))
+        conn[:, base + 1] = inter
+        whole = np.where(exists[:, None], [base, -1, -1], -1)
+        routes[:, r] = np.where((exists & inter)[:, None], base + np.arange(3), whole)
+    paths[:, 15:] = _crossing_road(lay, W, bx)
     valid[:, 15:] = inter[:, None]
-    conn[:, 21:] = True
+    conn[:, [16, 19, 21, 22]] = True  # the crossing lanes' middle pieces and the turns
     conn &= valid
     routes[:, 5] = np.where(inter[:, None], [15, 16, 17], -1)
     routes[:, 6] = np.where(inter[:, None], [18, 19, 20], -1)
     routes[:, 7] = np.where(inter[:, None], np.stack([3 * (n_fwd - 1), 21 * one, 17 * one], 1), -1)
     routes[:, 8] = np.where(inter[:, None], np.stack([9 * one, 22 * one, 17 * one], 1), -1)
     return paths * valid[..., None], conn, routes
+
+
+def _road_lane(lay, s_lo, s_hi, d, fwd, bx):
+    """A main-road lane at offset d (S, 3, 10): one arc over the road, or pieces around the box."""
+    kappa, one = lay["kappa"], np.ones(len(s_lo))
+    sg, yaw = (1, 0.0) if fwd else (-1, np.pi)  # driving along s, or against it
+    x, y, th = frenet_to_xy(np.where(fwd, s_lo, s_hi), d, kappa)
+    length = (s_hi - s_lo) * (1 - kappa * d)
+    radius = np.where(kappa != 0, abs(1 / np.where(kappa != 0, kappa, 1) - d), 1000.0)
+    curved = _arc_path(x, y, th + yaw, radius, np.sign(kappa) * sg, length, 0 * one, one)
+    single = np.where((kappa != 0)[:, None], curved, _straight(x, y, th + yaw, length, one))
+    # at an intersection (straight roads): before / through / after it
+    ends = [s_lo, -bx * one, bx * one, s_hi] if fwd else [s_hi, bx * one, -bx * one, s_lo]
+    pieces = [_straight(ends[k], d * one, yaw, sg * (ends[k + 1] - ends[k]), one) for k in range(3)]
+    whole = np.stack([single, 0 * single, 0 * single], 1)
+    return np.where(lay["inter"][:, None, None], np.stack(pieces, 1), whole)
+
+
+def _crossing_road(lay, W, bx):
+    """Path slots 15-22 (S, 8, 10): the crossing road's two lanes and the turns into it."""
+    n_fwd, one = lay["n_fwd"], np.ones(len(lay["n_fwd"]))
+    y_top, y_bot = lay["n_opp"] * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
+    Y = 60.0  # the crossing road's lanes reach this far from the main road
+    out = []  # southbound at x = -W/2, northbound at x = +W/2, in three pieces like the main road
+    for x, yaw, ys in [
+        (-W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
+        (W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one]),
+    ]:
+        out += [_straight(x, ys[k], yaw, abs(ys[k + 1] - ys[k]), one) for k in range(3)]
+    # turns into the southbound lane: right from the outer forward one, left from the inner oncoming
+    r_right, r_left = W / 2 + _BOX_MARGIN, bx + W / 2
+    d_out = _lane_d(n_fwd - 1, W)
+    out.append(_arc_path(-bx, d_out, 0.0, r_right, -1.0, np.pi / 2 * r_right, 0 * one, one))
+    out.append(_arc_path(bx, W / 2, np.pi, r_left, 1.0, np.pi / 2 * r_left, (n_fwd - 1) * W, one))
+    return np.stack(out, 1)
 
 
 def _bodies(states, sizes, is_ped):
