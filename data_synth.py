@@ -1160,8 +1160,47 @@ def sample_at(
     its history; the frame, the history and the others follow it, while the GT future, the goal and
     the lanes stay the logged ego's (paper §4.3)."""
     cfg = cfg or SynthConfig()
+    H = cfg.hist
+    frame, win, ego = _ego_window(scenes, frame, ego_state, cfg)  # (S,), (S, 15), (S, 15, 4) world
+    ar = torch.arange(len(frame), device=frame.device)
+    pred = scenes.pred_idx[ar, frame]  # (S,)
+    if (pred < 0).any():
+        raise ValueError(
+            f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames"
+        )
+    origin = ego[:, H].clone()  # (S, 4)
+    ego = _to_frame(ego, origin)
+    ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
+    ag = _to_frame(_fill_gaps(scenes.agents[ar, pred][ar[:, None], win], ag_mask), origin)
+    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real
+    # track can be occluded for a frame; differences across the gap would not be velocities, so
+    # steps before it count as missing)
+    hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
+    o, o_mask, o_is_ped = _nearest_others(scenes, frame, win, pred, origin, cfg)
+    lanes, lanes_mask = _nearby_lanes(scenes, origin, cfg)
+    out = Scenarios(
+        ego_hist=ego[:, : H + 1],
+        ego_fut=ego[:, H + 1 :],
+        agent_hist=ag[:, : H + 1],
+        agent_hist_mask=hist_mask,
+        agent_fut=ag[:, H + 1 :],
+        others_hist=o[:, :, : H + 1],
+        others_fut=o[:, :, H + 1 :],
+        others_mask=o_mask,
+        others_is_ped=o_is_ped,
+        lanes=lanes,
+        lanes_mask=lanes_mask,
+        goal=ego[:, -1].clone(),
+        behaviour=scenes.behaviour.clone(),
+    )
+    return out.to(dtype)
+
+
+def _ego_window(scenes, frame, ego_state, cfg):
+    """The sample's frames (S,), its window t0-8..t0+6 (S, 15) and the ego's world states there
+    (S, 15, 4): the logged ones, or in closed loop ego_state for the current state or history."""
     S, F = scenes.ego.shape[:2]
-    H, T, P = cfg.hist, cfg.fut, cfg.lane_points
+    H, T = cfg.hist, cfg.fut
     # every index made here lives with the scenes (the CPU, for the closed loop)
     dev = scenes.ego.device
     frame = torch.as_tensor(frame, dtype=torch.int64, device=dev).expand(S)
@@ -1170,9 +1209,8 @@ def sample_at(
             f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), "
             f"got {frame}"
         )
-    ar = torch.arange(S, device=dev)
     win = frame[:, None] + torch.arange(-H, T + 1, device=dev)  # (S, 15) the sample's frames
-    ego = scenes.ego[ar[:, None], win]  # (S, 15, 4) world
+    ego = scenes.ego[torch.arange(S, device=dev)[:, None], win]  # (S, 15, 4) world
     if ego_state is not None:
         es = torch.as_tensor(ego_state, dtype=ego.dtype, device=dev)
         if es.shape == (S, 4):
@@ -1183,72 +1221,50 @@ def sample_at(
             raise ValueError(
                 f"sample_at: ego_state must be ({S}, 4) or ({S}, {H + 1}, 4), got {tuple(es.shape)}"
             )
-    pred = scenes.pred_idx[ar, frame]  # (S,)
-    if (pred < 0).any():
-        raise ValueError(
-            f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames"
-        )
-    origin = ego[:, H].clone()  # (S, 4)
-    ego = _to_frame(ego, origin)
-    ag, ag_mask = (
-        scenes.agents[ar, pred][ar[:, None], win],
-        scenes.agents_mask[ar, pred][ar[:, None], win],
-    )
-    ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
-    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real
-    # track can be occluded for a frame; differences across the gap would not be velocities, so
-    # steps before it count as missing)
-    hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
-    M = scenes.agents.shape[1]  # the others: present at t0, near, closest first
+    return frame, win, ego
+
+
+def _closest(keep, dist, most):
+    """Indices (S, K) of the kept items, closest first: K = the most any scene keeps, <= most."""
+    K = int(min(keep.sum(1).max().item() if len(keep) else 0, most))
+    return torch.argsort(torch.where(keep, dist, math.inf), 1)[:, :K]
+
+
+def _nearest_others(scenes, frame, win, pred, origin, cfg):
+    """The others the planner sees: present at t0, near, closest first; (S, A, 15, 4) in the ego
+    frame at t0 (gaps filled), their mask and is_ped (S, A)."""
+    M, dev = scenes.agents.shape[1], frame.device
+    ar = torch.arange(len(frame), device=dev)
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
-    cand = (
-        scenes.agents_mask[ar, :, frame]
-        & (torch.arange(M, device=dev) != pred[:, None])
-        & (dist < cfg.others_radius)
-    )
-    A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
-    order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
+    other = torch.arange(M, device=dev) != pred[:, None]  # (S, M) not the predicted agent
+    cand = scenes.agents_mask[ar, :, frame] & other & (dist < cfg.others_radius)
+    order = _closest(cand, dist, cfg.max_others)  # (S, A)
     o_mask = torch.gather(cand, 1, order)  # (S, A)
     pick = (ar[:, None, None], order[..., None], win[:, None, :])  # -> (S, A, 15)
     o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
-    # the lanes near the ego (distances in the world frame; only the crop is transformed)
-    dx, dy = (
-        scenes.lanes[..., 0] - origin[:, 0, None, None],
-        scenes.lanes[..., 1] - origin[:, 1, None, None],
-    )
+    return o, o_mask, torch.gather(scenes.agents_is_ped, 1, order) & o_mask
+
+
+def _nearby_lanes(scenes, origin, cfg):
+    """The lanes near the ego, closest first, each P points from lane_behind behind its nearest:
+    (S, L, P, 3) in the ego frame at t0 (0 where invalid) and their mask (S, L, P)."""
+    dev, P, Pw = origin.device, cfg.lane_points, scenes.lanes.shape[2]
+    # distances in the world frame; only the crop is transformed
+    dx, dy = (scenes.lanes[..., :2] - origin[:, None, None, :2]).unbind(-1)
     d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
-    L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
-    lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
-    Pw = scenes.lanes.shape[2]
-    # (S, L, P)
-    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(
-        P, device=dev
-    )
+    lorder = _closest(near, dmin, cfg.max_lanes)  # (S, L)
+    first = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)  # (S, L)
+    pidx = first[..., None] + torch.arange(P, device=dev)  # (S, L, P)
     inside = pidx < Pw
     pidx = pidx.clamp(max=Pw - 1)
-    pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
+    pick = (torch.arange(len(origin), device=dev)[:, None, None], lorder[..., None], pidx)
     lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
-    out = Scenarios(
-        ego_hist=ego[:, : H + 1],
-        ego_fut=ego[:, H + 1 :],
-        agent_hist=ag[:, : H + 1],
-        agent_hist_mask=hist_mask,
-        agent_fut=ag[:, H + 1 :],
-        others_hist=o[:, :, : H + 1],
-        others_fut=o[:, :, H + 1 :],
-        others_mask=o_mask,
-        others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
-        lanes=lane_pts * lane_mask[..., None],
-        lanes_mask=lane_mask,
-        goal=ego[:, -1].clone(),
-        behaviour=scenes.behaviour.clone(),
-    )
-    return out.to(dtype)
+    return lane_pts * lane_mask[..., None], lane_mask
 
 
 def cut_samples(
