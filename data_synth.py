@@ -277,10 +277,8 @@ def _arc(kappa, u):
     ku = kappa * u
     small = np.abs(ku) < 1e-4
     ks = np.where(small, 1.0, kappa)
-    a, c = (
-        np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks),
-        np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks),
-    )
+    a = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks)
+    c = np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
     return a, c
 
 
@@ -436,24 +434,10 @@ def _straight(x, y, yaw, length, ones):
 
 
 def _arc_path(x, y, yaw, radius, sign, l_arc, l_straight, ones):
-    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSR (or LSL/RSL), as
-    (..., 10)."""
-    z = 0 * ones
-    return np.stack(
-        [
-            x * ones,
-            y * ones,
-            yaw * ones,
-            radius * ones,
-            l_arc * ones,
-            l_straight * ones,
-            z,
-            sign * ones,
-            z,
-            np.where(l_straight > 0, -sign, sign) * ones,
-        ],
-        -1,
-    )
+    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSL (LSL/RSR without the
+    straight), as (..., 10)."""
+    cols = [x, y, yaw, radius, l_arc, l_straight, 0, sign, 0, np.where(l_straight > 0, -sign, sign)]
+    return np.stack([c * ones for c in cols], -1)
 
 
 def _lane_d(i, W):
@@ -465,16 +449,8 @@ def _lane_path(d, kappa, forward):
     """The open-ended path of the lane at road offset d, u = 0 at s = 0: segments (..., 3, 5)."""
     one = np.ones_like(d * kappa)
     k_lane = kappa / (1 - kappa * d)
-    seg0 = np.stack(
-        [
-            0 * one,
-            d * one,
-            np.where(forward, 0.0, np.pi) * one,
-            np.where(forward, k_lane, -k_lane) * one,
-            _LONG * one,
-        ],
-        -1,
-    )
+    yaw, k = np.where(forward, 0.0, np.pi), np.where(forward, k_lane, -k_lane)
+    seg0 = np.stack([0 * one, d * one, yaw * one, k * one, _LONG * one], -1)
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
 
 
@@ -526,8 +502,7 @@ def _script_agents(lay, cfg, rng):
         d(t) = d0 + D S((t - t_lc)/T_lc) + c (S((t - t_up)/T_up) - S((t - t_dn)/T_dn))
     (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift
     and back). Agents with a finite anchor_t are shifted after simulation so that they are at
-    anchor_u at anchor_t. The steps below draw from rng in this order; reordering them changes the
-    data."""
+    anchor_u at anchor_t. Each step draws from rng in turn; reordering them changes the data."""
     # predicted; ego-lane leader + background; parked; peds
     p = _blank_programs(len(lay["beh"]), 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds)
     q = _twin_setup(lay, cfg, rng, p["size"])
@@ -559,7 +534,7 @@ def _blank_programs(S, M):
 
 
 def _twin_setup(lay, cfg, rng, size):
-    """The predicted vehicle's set-up, the same for both twins so that the history hides which."""
+    """lay and the predicted vehicle's set-up, the same for both twins: the history hides which."""
     S, W, t_e, v_e0 = len(lay["beh"]), cfg.lane_width, lay["t_e"], lay["v_e0"]
     q = SimpleNamespace(**lay, W=W)
 
@@ -833,11 +808,9 @@ def _agent_states(p, us, vs, t):
     def ramp(t0, T):
         return _smoothstep((t - t0[..., None]) / T[..., None])
 
-    (s_lc, ds_lc), (s_up, ds_up), (s_dn, ds_dn) = (
-        ramp(p["t_lc"], p["T_lc"]),
-        ramp(p["t_up"], p["T_up"]),
-        ramp(p["t_dn"], p["T_dn"]),
-    )
+    s_lc, ds_lc = ramp(p["t_lc"], p["T_lc"])  # the lane change, and the cue's drift up and down
+    s_up, ds_up = ramp(p["t_up"], p["T_up"])
+    s_dn, ds_dn = ramp(p["t_dn"], p["T_dn"])
     D, c = p["D"][..., None], p["c"][..., None]
     d = p["d0"][..., None] + D * s_lc + c * (s_up - s_dn)  # (S, M, N)
     d_dot = D * ds_lc / p["T_lc"][..., None] + c * (
@@ -1000,10 +973,8 @@ def _collides(ego, agents, sizes, is_ped, exists):
     S, M, F, _ = agents.shape
     states = np.concatenate([ego[:, None], agents], 1)  # (S, 1+M, F, 4)
     sz = np.concatenate([np.broadcast_to(np.array([_EGO_W, _EGO_L, 1.6]), (S, 1, 3)), sizes], 1)
-    ped, ex = (
-        np.concatenate([np.zeros((S, 1), bool), is_ped], 1),
-        np.concatenate([np.ones((S, 1), bool), exists], 1),
-    )
+    ped = np.concatenate([np.zeros((S, 1), bool), is_ped], 1)
+    ex = np.concatenate([np.ones((S, 1), bool), exists], 1)
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
     # only pairs whose centres come within reach (two car lengths) need the disc test
@@ -1133,11 +1104,8 @@ def _to_frame(states, origin):
     c, s = torch.cos(h0), torch.sin(h0)
     dx, dy = states[..., 0] - x0, states[..., 1] - y0
     out = states.clone()
-    out[..., 0], out[..., 1], out[..., 2] = (
-        c * dx + s * dy,
-        -s * dx + c * dy,
-        wrap_angle(states[..., 2] - h0),
-    )
+    out[..., 0], out[..., 1] = c * dx + s * dy, -s * dx + c * dy
+    out[..., 2] = wrap_angle(states[..., 2] - h0)
     return out
 
 
