@@ -21,6 +21,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -276,10 +277,8 @@ def _arc(kappa, u):
     ku = kappa * u
     small = np.abs(ku) < 1e-4
     ks = np.where(small, 1.0, kappa)
-    a, c = (
-        np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks),
-        np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks),
-    )
+    a = np.where(small, u * (1 - ku**2 / 6), np.sin(ku) / ks)
+    c = np.where(small, u * ku / 2, (1 - np.cos(ku)) / ks)
     return a, c
 
 
@@ -435,40 +434,23 @@ def _straight(x, y, yaw, length, ones):
 
 
 def _arc_path(x, y, yaw, radius, sign, l_arc, l_straight, ones):
-    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSR (or LSL/RSL), as
-    (..., 10)."""
-    z = 0 * ones
-    return np.stack(
-        [
-            x * ones,
-            y * ones,
-            yaw * ones,
-            radius * ones,
-            l_arc * ones,
-            l_straight * ones,
-            z,
-            sign * ones,
-            z,
-            np.where(l_straight > 0, -sign, sign) * ones,
-        ],
-        -1,
-    )
+    """An arc of the given sign (+1 left) followed by a straight: shape LSR/RSL (LSL/RSR without the
+    straight), as (..., 10)."""
+    cols = [x, y, yaw, radius, l_arc, l_straight, 0, sign, 0, np.where(l_straight > 0, -sign, sign)]
+    return np.stack([c * ones for c in cols], -1)
+
+
+def _lane_d(i, W):
+    """Road offset d of forward lane i (0 next to the divider); oncoming lane j: -_lane_d(j, W)."""
+    return -(i + 0.5) * W
 
 
 def _lane_path(d, kappa, forward):
     """The open-ended path of the lane at road offset d, u = 0 at s = 0: segments (..., 3, 5)."""
     one = np.ones_like(d * kappa)
     k_lane = kappa / (1 - kappa * d)
-    seg0 = np.stack(
-        [
-            0 * one,
-            d * one,
-            np.where(forward, 0.0, np.pi) * one,
-            np.where(forward, k_lane, -k_lane) * one,
-            _LONG * one,
-        ],
-        -1,
-    )
+    yaw, k = np.where(forward, 0.0, np.pi), np.where(forward, k_lane, -k_lane)
+    seg0 = np.stack([0 * one, d * one, yaw * one, k * one, _LONG * one], -1)
     return np.stack([seg0, 0 * seg0, 0 * seg0], -2)
 
 
@@ -520,178 +502,200 @@ def _script_agents(lay, cfg, rng):
         d(t) = d0 + D S((t - t_lc)/T_lc) + c (S((t - t_up)/T_up) - S((t - t_dn)/T_dn))
     (S the smoothstep): a lane change D, and a cue c (a drift to the lane line before it, or a drift
     and back). Agents with a finite anchor_t are shifted after simulation so that they are at
-    anchor_u at anchor_t."""
-    S = len(lay["beh"])
-    W = cfg.lane_width
+    anchor_u at anchor_t. Each step draws from rng in turn; reordering them changes the data."""
     # predicted; ego-lane leader + background; parked; peds
-    M = 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds
-    beh, kappa, t_e, v_e0 = lay["beh"], lay["kappa"], lay["t_e"], lay["v_e0"]
-    inf = np.inf
-    one = np.ones(S)
+    p = _blank_programs(len(lay["beh"]), 1 + cfg.n_vehicles + cfg.n_parked + cfg.n_peds)
+    q = _twin_setup(lay, cfg, rng, p["size"])
+    _ego_start(q, rng)
+    _place_predicted(p, q)
+    _adjacent_event(p, q)
+    _lead_event(p, q, rng)
+    _oncoming_event(p, q)
+    _crossing_event(p, q)
+    _leader(p, q, rng)
+    _background(p, q, cfg, rng)
+    _parked(p, q, cfg, rng)
+    _pedestrians(p, q, cfg, rng)
+    p["v1"] = np.where(np.isinf(p["t1"]), p["v0"], p["v1"])  # unused phases hold the initial speed
+    p["v2"] = np.where(np.isinf(p["t2"]), p["v0"], p["v2"])
+    return p, q.s_e0
 
-    def U(lo, hi, n=S):
-        return rng.uniform(lo, hi, n)
+
+def _blank_programs(S, M):
+    """Every slot (S, M) absent and idle (no phase, stop, lane change or anchor), until scripted."""
+    inf = np.inf
+    fill = dict(u_start=0.0, v0=0.0, v1=0.0, v2=0.0, d0=0.0, D=0.0, c=0.0, anchor_u=0.0)
+    fill |= dict(t1=inf, t2=inf, u_stop=inf, t_lc=inf, t_up=inf, t_dn=inf, anchor_t=inf)
+    fill |= dict(dec1=2.0, dec2=2.0, t_go=-inf, b_stop=2.0, T_lc=3.0, T_up=1.5, T_dn=1.5)
+    p = {k: np.full((S, M), x) for k, x in fill.items()}
+    p.update(exists=np.zeros((S, M), bool), is_ped=np.zeros((S, M), bool))
+    p.update(segs=np.zeros((S, M, 3, 5)), size=np.broadcast_to(np.array(_CAR), (S, M, 3)).copy())
+    return p
+
+
+def _twin_setup(lay, cfg, rng, size):
+    """lay and the predicted vehicle's set-up, the same for both twins: the history hides which."""
+    S, W, t_e, v_e0 = len(lay["beh"]), cfg.lane_width, lay["t_e"], lay["v_e0"]
+    q = SimpleNamespace(**lay, W=W)
+
+    def U(lo, hi):
+        return rng.uniform(lo, hi, S)
 
     def is_(*names):
-        return np.isin(beh, [_B[n] for n in names])
+        return np.isin(lay["beh"], [_B[n] for n in names])
 
-    p = {k: np.zeros((S, M)) for k in ("u_start", "v0", "v1", "v2", "d0", "D", "c")}
-    p.update(
-        {
-            k: np.full((S, M), inf)
-            for k in ("t1", "t2", "u_stop", "t_lc", "t_up", "t_dn", "anchor_t")
-        }
-    )
-    p.update(
-        dec1=np.full((S, M), 2.0),
-        dec2=np.full((S, M), 2.0),
-        t_go=np.full((S, M), -inf),
-        b_stop=np.full((S, M), 2.0),
-        T_lc=np.full((S, M), 3.0),
-        T_up=np.full((S, M), 1.5),
-        T_dn=np.full((S, M), 1.5),
-        anchor_u=np.zeros((S, M)),
-        exists=np.zeros((S, M), bool),
-        is_ped=np.zeros((S, M), bool),
-        segs=np.zeros((S, M, 3, 5)),
-    )
-    p["size"] = np.broadcast_to(np.array(_CAR), (S, M, 3)).copy()
-
-    def d_f(i):  # forward lane offsets
-        return -(i + 0.5) * W
-
-    def d_o(j):  # oncoming lane offsets
-        return (j + 0.5) * W
-
-    de, dj = d_f(lay["ego_lane"]), d_f(lay["adj_lane"])
-    bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
-    y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
-    R_left = bx + W / 2  # radius of the oncoming left turn
-    # --- slot 0, the predicted vehicle ------------------------------------------------------------
-    p["exists"][:, 0] = True
-    p["size"][:, 0, 0], p["size"][:, 0, 1] = U(1.8, 2.0), U(4.3, 4.9)
-    cue, false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
+    q.de, q.dj = _lane_d(lay["ego_lane"], W), _lane_d(lay["adj_lane"], W)
+    q.bx = W + _BOX_MARGIN  # half-length of the intersection box along the main road
+    q.y_bot = -(lay["n_fwd"] * W + _BOX_MARGIN)  # the box's edge on the ego's right
+    q.R_left = q.bx + W / 2  # radius of the oncoming left turn
+    size[:, 0, 0], size[:, 0, 1] = U(1.8, 2.0), U(4.3, 4.9)
+    q.cue, q.false_cue = rng.random(S) < cfg.cue_prob, rng.random(S) < cfg.false_cue_prob
     # (a) an agent in the adjacent forward lane: cut_in / keep_lane / far / behind.
     #     Its lane change starts 1 s before the event (the event: it reaches the ego's lane); in
     #     the middle of it (t_ref) it is `gap` ahead of the ego's nominal, constant-speed position.
-    adj = is_("cut_in", "keep_lane", "far", "behind")
-    T_lc = U(2.5, 4.0)
-    t_lc = t_e - 1.0
-    t_ref = t_lc + T_lc / 2
-    gap = np.select([is_("cut_in", "keep_lane"), is_("far")], [U(4, 10), U(35, 60)], U(-25, -10))
-    v_adj = np.select(
-        [is_("cut_in", "keep_lane"), is_("far")],
-        [v_e0 + U(-4, 0), v_e0 + U(-1, 1)],
-        v_e0 + U(-2, 0.5),
-    ).clip(5.0, 20.0)
-    changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
-    toward = np.sign(de - dj)
+    q.adj = is_("cut_in", "keep_lane", "far", "behind")
+    near, far = is_("cut_in", "keep_lane"), is_("far")
+    q.T_lc = U(2.5, 4.0)
+    q.t_lc = t_e - 1.0
+    q.t_ref = q.t_lc + q.T_lc / 2
+    q.gap = np.select([near, far], [U(4, 10), U(35, 60)], U(-25, -10))
+    v_adj = np.select([near, far], [v_e0 + U(-4, 0), v_e0 + U(-1, 1)], v_e0 + U(-2, 0.5))
+    q.v_adj = v_adj.clip(5.0, 20.0)
+    q.changes = is_("cut_in") | (is_("far", "behind") & (rng.random(S) < 0.5))
+    q.toward = np.sign(q.de - q.dj)
     # (b) the vehicle ahead in the ego's lane: lead_brake / lead_cruise
-    lead = is_("lead_brake", "lead_cruise")
-    v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
-    g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
+    q.lead, q.brake = is_("lead_brake", "lead_cruise"), is_("lead_brake")
+    q.v_lead = np.maximum(v_e0 + U(-1, 0.5), 4.0)
+    q.g_lead = _CAR[1] + (_IDM["s0"] + _IDM["T"] * v_e0) * U(0.7, 1.3)
     # (c) an oncoming vehicle at the intersection: turn_across / go_straight. The turner reaches the
     #     ego's lane at the event time, the box edge R acos(h / R) / v_turn earlier (h: see below).
-    turn, onc = is_("turn_across"), is_("turn_across", "go_straight")
-    v_onc, v_turn = U(7, 11), U(4.0, 5.5)
-    h = de - (W / 2 - R_left)  # the ego lane's offset from the turn's centre
-    t_box = t_e - R_left * np.arccos(np.clip(h / R_left, -1, 1)) / v_turn
+    q.turn, q.onc = is_("turn_across"), is_("turn_across", "go_straight")
+    q.v_onc, q.v_turn = U(7, 11), U(4.0, 5.5)
+    q.h = q.de - (W / 2 - q.R_left)  # the ego lane's offset from the turn's centre
+    t_box = t_e - q.R_left * np.arccos(np.clip(q.h / q.R_left, -1, 1)) / q.v_turn
     # (d) a crossing vehicle from the ego's right: cross_go / cross_yield; in the ego's lane at t_e
-    cross, yields = is_("cross_go", "cross_yield"), is_("cross_yield")
-    v_cross = U(6, 9)
-    t_box = np.where(cross, t_e - (de - y_bot) / v_cross, t_box)
-    # --- the ego's start (road s). Intersection situations: its front reaches the conflict point
-    #     delta after the other vehicle's centre (the expert then yields); the same delta for both
-    #     twins, so nothing leaks. Other scenes: 4-16 s before an intersection if any, else s = 0.
-    delta = U(-0.5, 1.0)
-    x_turn_conflict = bx - np.sqrt(np.maximum(R_left**2 - h**2, 0.0))
-    s_e0 = np.select(
-        [onc, cross, lay["inter"]],
+    q.cross, q.yields = is_("cross_go", "cross_yield"), is_("cross_yield")
+    q.v_cross = U(6, 9)
+    q.t_box = np.where(q.cross, t_e - (q.de - q.y_bot) / q.v_cross, t_box)
+    return q
+
+
+def _ego_start(q, rng):
+    """The ego's start q.s_e0 (road s), which decides whether and when it meets slot 0."""
+    # Intersection situations: its front reaches the conflict point delta after the other vehicle's
+    # centre (the expert then yields); the same delta for both twins, so nothing leaks. Other
+    # scenes: 4-16 s before an intersection if any, else s = 0.
+    S = len(q.beh)
+    q.delta = rng.uniform(-0.5, 1.0, S)
+    x_turn_conflict = q.bx - np.sqrt(np.maximum(q.R_left**2 - q.h**2, 0.0))
+    q.s_e0 = np.select(
+        [q.onc, q.cross, q.inter],
         [
-            x_turn_conflict - _EGO_L / 2 - 1.0 - v_e0 * (t_e + delta),
-            W / 2 - 1.0 - _EGO_L / 2 - v_e0 * (t_e + delta),
-            -v_e0 * U(4, 16),
+            x_turn_conflict - _EGO_L / 2 - 1.0 - q.v_e0 * (q.t_e + q.delta),
+            q.W / 2 - 1.0 - _EGO_L / 2 - q.v_e0 * (q.t_e + q.delta),
+            -q.v_e0 * rng.uniform(4, 16, S),
         ],
         0.0,
     )
+
+
+def _place_predicted(p, q):
+    """Slot 0's path, initial speed and start: the set-up made concrete for the simulation."""
+    S = len(q.beh)
+    p["exists"][:, 0] = True
     p["segs"][:, 0] = np.select(
-        [adj[:, None, None], lead[:, None, None], turn[:, None, None], onc[:, None, None]],
+        [m[:, None, None] for m in (q.adj, q.lead, q.turn, q.onc)],
         [
-            _lane_path(dj, kappa, True),
-            _lane_path(de, kappa, True),
-            _turn_path(S, W, bx, R_left, lay["n_fwd"]),
-            _turn_path(S, W, bx, R_left, lay["n_fwd"], turn=False),
+            _lane_path(q.dj, q.kappa, True),
+            _lane_path(q.de, q.kappa, True),
+            _turn_path(S, q.W, q.bx, q.R_left, q.n_fwd),
+            _turn_path(S, q.W, q.bx, q.R_left, q.n_fwd, turn=False),
         ],
-        _cross_path(S, W, y_bot),
+        _cross_path(S, q.W, q.y_bot),
     )
-    p["v0"][:, 0] = np.select([adj, lead, onc], [v_adj, v_lead, v_onc], v_cross)
-    # adjacent: placement, lane change, the cue (a drift to the line) or false cue (drift and back)
+    p["v0"][:, 0] = np.select([q.adj, q.lead, q.onc], [q.v_adj, q.v_lead, q.v_onc], q.v_cross)
     p["u_start"][:, 0] = np.where(
-        adj,
-        (s_e0 + v_e0 * t_ref + gap) * (1 - kappa * dj) - v_adj * t_ref,
-        np.where(lead, (s_e0 + g_lead) * (1 - kappa * de), 0.0),
+        q.adj,
+        (q.s_e0 + q.v_e0 * q.t_ref + q.gap) * (1 - q.kappa * q.dj) - q.v_adj * q.t_ref,
+        np.where(q.lead, (q.s_e0 + q.g_lead) * (1 - q.kappa * q.de), 0.0),
     )
-    p["D"][:, 0] = np.where(adj & changes, de - dj, 0.0)
-    p["t_lc"][:, 0], p["T_lc"][:, 0] = np.where(adj & changes, t_lc, inf), T_lc
-    drift = adj & np.where(changes, cue, false_cue)
-    p["c"][:, 0] = np.where(drift, 0.4 * toward, 0.0)
-    p["t_up"][:, 0] = np.where(drift, t_lc - 1.5, inf)
-    p["t_dn"][:, 0] = np.where(drift, np.where(changes, t_lc, t_lc + 0.5), inf)
-    p["T_dn"][:, 0] = np.where(changes, T_lc, 2.0)
-    # lead: brake 1 s before t_e (to 0-50 % of its speed, a third to a stop), cued by slowing gently
-    brake = is_("lead_brake")
-    t_brake = t_e - 1.0
-    slow_first = lead & np.where(brake, cue, false_cue)
-    p["t1"][:, 0] = np.where(slow_first, t_brake - 1.5, np.where(lead, t_brake, inf))
-    p["v1"][:, 0], p["dec1"][:, 0] = v_lead - 1.5, 1.0
-    p["t2"][:, 0] = np.where(lead, t_brake, p["t2"][:, 0])
-    p["v2"][:, 0] = np.where(brake, v_lead * U(0, 0.5) * (rng.random(S) > 0.33), v_lead)
-    p["dec2"][:, 0] = np.where(brake, U(2.5, 4.0), 2.0)
-    # oncoming: the turner slows to v_turn before the box (early and gently when cued, else late and
-    # harder); a go_straight vehicle with the false cue slows alike, then speeds up again at the box
-    gentle = np.where(turn, cue, false_cue)
+
+
+def _set_predicted(p, where, **fields):
+    """Slot 0's program fields in the scenes where `where` holds (the others keep theirs)."""
+    for k, v in fields.items():
+        p[k][:, 0] = np.where(where, v, p[k][:, 0])
+
+
+def _adjacent_event(p, q):
+    """Adjacent: a lane change and its cue (a drift to the line) or false cue (a drift and back)."""
+    change, drift = q.adj & q.changes, q.adj & np.where(q.changes, q.cue, q.false_cue)
+    t_dn = np.where(q.changes, q.t_lc, q.t_lc + 0.5)  # drift back as the change starts, or after
+    _set_predicted(p, change, D=q.de - q.dj, t_lc=q.t_lc)
+    _set_predicted(p, drift, c=0.4 * q.toward, t_up=q.t_lc - 1.5, t_dn=t_dn)
+    p["T_lc"][:, 0], p["T_dn"][:, 0] = q.T_lc, np.where(q.changes, q.T_lc, 2.0)
+
+
+def _lead_event(p, q, rng):
+    """Lead: brakes 1 s before t_e (to 0-50 % of its speed, a third to a stop), cued by slowing."""
+    S, t_brake = len(q.beh), q.t_e - 1.0
+    _set_predicted(p, q.lead, t1=t_brake, t2=t_brake)
+    _set_predicted(p, q.lead & np.where(q.brake, q.cue, q.false_cue), t1=t_brake - 1.5)
+    p["v1"][:, 0], p["dec1"][:, 0] = q.v_lead - 1.5, 1.0  # the cue: slowing gently first
+    keep = rng.uniform(0, 0.5, S)
+    p["v2"][:, 0] = np.where(q.brake, q.v_lead * keep * (rng.random(S) > 0.33), q.v_lead)
+    p["dec2"][:, 0] = np.where(q.brake, rng.uniform(2.5, 4.0, S), 2.0)
+
+
+def _oncoming_event(p, q):
+    """Oncoming: the turner slows to v_turn before the box and turns; a false cue slows alike."""
+    turn, onc, t_box = q.turn, q.onc, q.t_box
+    gentle = np.where(turn, q.cue, q.false_cue)  # early and gently when cued, else late and harder
     dec = np.where(gentle, 1.5, 3.0)
-    slows = turn | (onc & false_cue)
-    p["t1"][:, 0] = np.where(onc & slows, t_box - (v_onc - v_turn) / dec - 1.0, p["t1"][:, 0])
-    p["v1"][:, 0] = np.where(onc, v_turn, p["v1"][:, 0])
-    p["dec1"][:, 0] = np.where(onc, dec, p["dec1"][:, 0])
-    p["t2"][:, 0] = np.where(turn, t_box + 3.0, np.where(onc & slows, t_box, p["t2"][:, 0]))
-    p["v2"][:, 0] = np.where(onc, v_onc, p["v2"][:, 0])
-    # crossing: cross_go is at the box edge at t_box (a false cue: it slows to half speed first);
-    # cross_yield stops 1 m before the box at t_box (braking early when cued) and lets the ego pass
-    go_slow = cross & ~yields & false_cue
-    p["t1"][:, 0] = np.where(go_slow, t_box - 3.0, p["t1"][:, 0])
-    p["v1"][:, 0] = np.where(go_slow, 0.5 * v_cross, p["v1"][:, 0])
-    p["dec1"][:, 0] = np.where(go_slow, 1.5, p["dec1"][:, 0])
-    p["t2"][:, 0] = np.where(go_slow, t_box - 1.0, p["t2"][:, 0])
-    p["v2"][:, 0] = np.where(cross, v_cross, p["v2"][:, 0])
-    b_stop = np.where(cue, 1.2, 3.0)
+    slows = turn | (onc & q.false_cue)  # (a go_straight one speeds up again at the box)
+    _set_predicted(p, onc & slows, t1=t_box - (q.v_onc - q.v_turn) / dec - 1.0, t2=t_box)
+    _set_predicted(p, turn, t2=t_box + 3.0)
+    _set_predicted(p, onc, v1=q.v_turn, dec1=dec, v2=q.v_onc, anchor_t=t_box)
+    p["anchor_u"][:, 0] = _FAR  # anchored vehicles (oncoming, crossing) are at the box edge
+
+
+def _crossing_event(p, q):
+    """Crossing: cross_go is at the box edge at t_box; cross_yield stops and lets the ego pass."""
+    cross, yields, v_cross, t_box = q.cross, q.yields, q.v_cross, q.t_box
+    # cross_go with a false cue slows to half speed first
+    go_slow = cross & ~yields & q.false_cue
+    _set_predicted(p, go_slow, t1=t_box - 3.0, v1=0.5 * v_cross, dec1=1.5, t2=t_box - 1.0)
+    _set_predicted(p, cross, v2=v_cross)
+    _set_predicted(p, cross & ~yields, anchor_t=t_box)
+    # cross_yield stops 1 m before the box at t_box (braking early when cued), goes once the ego
+    # has passed
+    b_stop = np.where(q.cue, 1.2, 3.0)
     u_stop = _FAR - 1.0 - p["size"][:, 0, 1] / 2
-    p["u_stop"][:, 0], p["b_stop"][:, 0] = np.where(yields, u_stop, inf), b_stop
-    p["u_start"][:, 0] = np.where(
-        yields,
-        u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop),
-        p["u_start"][:, 0],
-    )
-    # once the ego has passed
-    p["t_go"][:, 0] = np.where(yields, t_e + delta + (2.0 + _EGO_L) / v_e0 + 2.0, -inf)
-    p["anchor_t"][:, 0], p["anchor_u"][:, 0] = np.where(onc | (cross & ~yields), t_box, inf), _FAR
-    # --- slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations) ---
-    p["exists"][:, 1] = ~lead & (rng.random(S) < 0.5)
-    p["segs"][:, 1] = _lane_path(de, kappa, True)
-    p["u_start"][:, 1] = (s_e0 + U(55, 90)) * (1 - kappa * de)
-    p["v0"][:, 1] = np.minimum(lay["v_des"] + U(1, 3), 20.0)
-    # --- background traffic on the lanes nobody else uses, each at its own speed, 25-45 m apart ---
-    # (S, 5)
-    lane_d = np.stack([d_f(0) * one, d_f(1) * one, d_f(2) * one, d_o(0) * one, d_o(1) * one], 1)
+    u_start = u_stop - v_cross**2 / (2 * b_stop) - v_cross * (t_box - v_cross / b_stop)
+    t_go = q.t_e + q.delta + (2.0 + _EGO_L) / q.v_e0 + 2.0
+    _set_predicted(p, yields, u_stop=u_stop, u_start=u_start, t_go=t_go)
+    p["b_stop"][:, 0] = b_stop
+
+
+def _leader(p, q, rng):
+    """Slot 1: a leader far ahead in the ego's lane that drives away (not in lead situations)."""
+    S = len(q.beh)
+    p["exists"][:, 1] = ~q.lead & (rng.random(S) < 0.5)
+    p["segs"][:, 1] = _lane_path(q.de, q.kappa, True)
+    p["u_start"][:, 1] = (q.s_e0 + rng.uniform(55, 90, S)) * (1 - q.kappa * q.de)
+    p["v0"][:, 1] = np.minimum(q.v_des + rng.uniform(1, 3, S), 20.0)
+
+
+def _background(p, q, cfg, rng):
+    """Traffic on the lanes nobody else uses, each lane at its own speed, 25-45 m apart."""
+    S = len(q.beh)
+    # forward lanes 0-2, oncoming lanes 0-1: (S, 5)
+    lane_d = np.array([-0.5, -1.5, -2.5, 0.5, 1.5]) * q.W * np.ones((S, 1))
     lane_fwd = np.array([True, True, True, False, False])
-    free = np.stack(
-        [lay["n_fwd"] > 0, lay["n_fwd"] > 1, lay["n_fwd"] > 2, lay["n_opp"] > 0, lay["n_opp"] > 1],
-        1,
-    )
-    free &= np.arange(5) != lay["ego_lane"][:, None]
-    free[:, :3] &= ~(adj[:, None] & (np.arange(3) == lay["adj_lane"][:, None]))
-    free[:, 3] &= ~onc
+    free = np.concatenate([q.n_fwd[:, None] > np.arange(3), q.n_opp[:, None] > np.arange(2)], 1)
+    free &= np.arange(5) != q.ego_lane[:, None]
+    free[:, :3] &= ~(q.adj[:, None] & (np.arange(3) == q.adj_lane[:, None]))
+    free[:, 3] &= ~q.onc
     lane_v = rng.uniform(7, 13, (S, 5))
     lane_s0 = np.where(lane_fwd, rng.uniform(-150, -60, (S, 5)), rng.uniform(20, 100, (S, 5)))
     lane_gap = rng.uniform(25, 45, (S, 5))
@@ -706,47 +710,47 @@ def _script_agents(lay, cfg, rng):
         def take(a):
             return np.take_along_axis(a, choice, 1)
 
-        s0 = s_e0[:, None] + take(lane_s0) + rank * take(lane_gap)
+        s0 = q.s_e0[:, None] + take(lane_s0) + rank * take(lane_gap)
         d, fwd = take(lane_d), lane_fwd[choice]
         p["exists"][:, bg] = np.arange(nb) < rng.integers((nb + 1) // 2, nb + 1, S)[:, None]
-        p["segs"][:, bg] = _lane_path(d, kappa[:, None], fwd)
+        p["segs"][:, bg] = _lane_path(d, q.kappa[:, None], fwd)
         p["u_start"][:, bg], p["v0"][:, bg] = (
-            np.where(fwd, s0, -s0) * (1 - kappa[:, None] * d),
+            np.where(fwd, s0, -s0) * (1 - q.kappa[:, None] * d),
             take(lane_v),
         )
-    # --- parked cars on the kerb of the outer forward lane (kept off the intersection) ------------
-    pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + cfg.n_parked)
-    d_out = d_f(lay["n_fwd"] - 1)[:, None]
-    s_pk = (
-        s_e0[:, None]
-        + rng.uniform(-20, 100, (S, 1))
-        + np.cumsum(rng.uniform(8, 60, (S, cfg.n_parked)), 1)
-    )
-    s_pk = np.where(lay["inter"][:, None] & (abs(s_pk) < 25), s_pk + 50, s_pk)
-    p["exists"][:, pk] = rng.random((S, cfg.n_parked)) < 0.5
-    p["segs"][:, pk] = _lane_path(d_out, kappa[:, None], True)
-    p["u_start"][:, pk] = s_pk * (1 - kappa[:, None] * d_out)
-    p["d0"][:, pk] = -(W / 2 + 1.0)  # centre 1 m outside the lane's edge
-    # --- pedestrians on the sidewalks, walking either way (at intersections: away from it) --------
-    pd = slice(M - cfg.n_peds, M)
-    left = rng.random((S, cfg.n_peds)) < 0.5
+
+
+def _parked(p, q, cfg, rng):
+    """Parked cars on the kerb of the outer forward lane (kept off the intersection)."""
+    S, n, kappa = len(q.beh), cfg.n_parked, q.kappa[:, None]
+    pk = slice(1 + cfg.n_vehicles, 1 + cfg.n_vehicles + n)
+    d_out = _lane_d(q.n_fwd - 1, q.W)[:, None]
+    first = q.s_e0[:, None] + rng.uniform(-20, 100, (S, 1))
+    s_pk = first + np.cumsum(rng.uniform(8, 60, (S, n)), 1)
+    s_pk = np.where(q.inter[:, None] & (abs(s_pk) < 25), s_pk + 50, s_pk)
+    p["exists"][:, pk] = rng.random((S, n)) < 0.5
+    p["segs"][:, pk] = _lane_path(d_out, kappa, True)
+    p["u_start"][:, pk] = s_pk * (1 - kappa * d_out)
+    p["d0"][:, pk] = -(q.W / 2 + 1.0)  # centre 1 m outside the lane's edge
+
+
+def _pedestrians(p, q, cfg, rng):
+    """Pedestrians on the sidewalks, walking either way (at intersections: away from it)."""
+    S, n, W, kappa = len(q.beh), cfg.n_peds, q.W, q.kappa[:, None]
+    pd = slice(p["exists"].shape[1] - n, None)
+    left = rng.random((S, n)) < 0.5
     # each pedestrian its own line: they never walk into each other
-    walkway = 2.5 + 0.7 * np.arange(cfg.n_peds)
-    d_sw = np.where(left, lay["n_opp"][:, None] * W + walkway, -lay["n_fwd"][:, None] * W - walkway)
-    s_pd = s_e0[:, None] + rng.uniform(-30, 200, (S, cfg.n_peds))
-    s_pd = np.where(lay["inter"][:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
-    fwd = np.where(lay["inter"][:, None], s_pd > 0, rng.random((S, cfg.n_peds)) < 0.5)
-    p["exists"][:, pd] = (
-        np.arange(cfg.n_peds) < rng.integers((cfg.n_peds + 1) // 2, cfg.n_peds + 1, S)[:, None]
-    )
+    walkway = 2.5 + 0.7 * np.arange(n)
+    d_sw = np.where(left, q.n_opp[:, None] * W + walkway, -q.n_fwd[:, None] * W - walkway)
+    s_pd = q.s_e0[:, None] + rng.uniform(-30, 200, (S, n))
+    s_pd = np.where(q.inter[:, None] & (abs(s_pd) < 15), s_pd + 30, s_pd)
+    fwd = np.where(q.inter[:, None], s_pd > 0, rng.random((S, n)) < 0.5)
+    p["exists"][:, pd] = np.arange(n) < rng.integers((n + 1) // 2, n + 1, S)[:, None]
     p["is_ped"][:, pd] = True
     p["size"][:, pd] = _PED
-    p["segs"][:, pd] = _lane_path(d_sw, kappa[:, None], fwd)
-    p["u_start"][:, pd] = np.where(fwd, s_pd, -s_pd) * (1 - kappa[:, None] * d_sw)
-    p["v0"][:, pd] = rng.uniform(0.8, 1.6, (S, cfg.n_peds))
-    p["v1"] = np.where(np.isinf(p["t1"]), p["v0"], p["v1"])  # unused phases hold the initial speed
-    p["v2"] = np.where(np.isinf(p["t2"]), p["v0"], p["v2"])
-    return p, s_e0
+    p["segs"][:, pd] = _lane_path(d_sw, kappa, fwd)
+    p["u_start"][:, pd] = np.where(fwd, s_pd, -s_pd) * (1 - kappa * d_sw)
+    p["v0"][:, pd] = rng.uniform(0.8, 1.6, (S, n))
 
 
 def _turn_path(S, W, bx, R, n_fwd, turn=True):
@@ -804,11 +808,9 @@ def _agent_states(p, us, vs, t):
     def ramp(t0, T):
         return _smoothstep((t - t0[..., None]) / T[..., None])
 
-    (s_lc, ds_lc), (s_up, ds_up), (s_dn, ds_dn) = (
-        ramp(p["t_lc"], p["T_lc"]),
-        ramp(p["t_up"], p["T_up"]),
-        ramp(p["t_dn"], p["T_dn"]),
-    )
+    s_lc, ds_lc = ramp(p["t_lc"], p["T_lc"])  # the lane change, and the cue's drift up and down
+    s_up, ds_up = ramp(p["t_up"], p["T_up"])
+    s_dn, ds_dn = ramp(p["t_dn"], p["T_dn"])
     D, c = p["D"][..., None], p["c"][..., None]
     d = p["d0"][..., None] + D * s_lc + c * (s_up - s_dn)  # (S, M, N)
     d_dot = D * ds_lc / p["T_lc"][..., None] + c * (
@@ -828,10 +830,7 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     yields, or passes just after); never if the ego at constant speed would already be past it.
     IDM (Treiber et al. 2000): a = a_max [1 - (v / v_des)^4 - (s*(v, dv) / gap)^2],
     s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b))), a in [-4, a_max]."""
-    S, N = len(s_e0), len(t)
-    W = cfg.lane_width
-    kappa = lay["kappa"]
-    de = -(lay["ego_lane"] + 0.5) * W
+    kappa, de = lay["kappa"], _lane_d(lay["ego_lane"], cfg.lane_width)
     # the others in the road frame: position, speed along the road, half-extents along and across
     s_a, d_a = xy_to_frenet(others[..., 0], others[..., 1], kappa[:, None, None])  # (S, M, N)
     rel = others[..., 2] - kappa[:, None, None] * s_a
@@ -840,50 +839,53 @@ def _drive_ego(lay, s_e0, others, exists, sizes, cfg, rng, t):
     ext_lat = abs(np.sin(rel)) * length + abs(np.cos(rel)) * w
     sdot_a = np.gradient(s_a, t, axis=-1)
     in_corr = exists[..., None] & (abs(d_a - de[:, None, None]) < ext_lat + _EGO_W / 2 + 0.3)
-    stride = int(round(cfg.dt / cfg.sim_dt))
-    u = s_e0 * (1 - kappa * de)  # ego arc position along its lane
+    u0 = s_e0 * (1 - kappa * de)  # the ego's arc position along its lane
+    us, vs = _follow(lay, u0, de, (s_a, ext_long, sdot_a, in_corr), cfg, len(t))
+    return _wander(kappa, de, us, vs, rng), us / (1 - kappa * de)[:, None]
+
+
+def _follow(lay, u, de, view, cfg, N):
+    """The ego's arc position and speed along its lane (S, N) from u: IDM behind what it must."""
+    kappa, v_des, dt = lay["kappa"], lay["v_des"], cfg.sim_dt
+    stride = int(round(cfg.dt / dt))
     v = lay["v_e0"].copy()
-    us, vs = np.empty((S, N)), np.empty((S, N))
+    us, vs = np.empty((len(u), N)), np.empty((len(u), N))
     sqrt_ab = 2 * math.sqrt(_IDM["a_max"] * _IDM["b"])
     for k in range(N):  # time loop, vectorised over scenes
         us[:, k], vs[:, k] = u, v
         idx = np.minimum(k + stride * np.arange(_IDM["look"] + 1), N - 1)
-        tau = (idx - k) * cfg.sim_dt  # (J,)
-        s_e = u / (1 - kappa * de)
-        sa, ex = s_a[..., idx], ext_long[..., idx]  # (S, M, J)
-        passed = (tau > 0) & (
-            s_e[:, None, None] + v[:, None, None] * tau - _EGO_L / 2 - 1.0 > sa + ex
-        )
-        gap = np.maximum(sa - ex - s_e[:, None, None] - _EGO_L / 2, 0.1)
-        # when the ego would reach it at its current speed
-        arrival = gap / np.maximum(v, 1.0)[:, None, None]
-        along = (sdot_a[..., idx] > 2.0) | (tau >= arrival - 0.6)
-        obstacle = in_corr[..., idx] & (sa > s_e[:, None, None]) & ~passed & along
+        tau = (idx - k) * dt  # (J,)
+        sa, ex, sdot, corr = (x[..., idx] for x in view)  # (S, M, J)
+        obstacle, gap = _obstacles(u / (1 - kappa * de), v, tau, sa, ex, sdot, corr)
         vv = v[:, None, None]
-        s_star = _IDM["s0"] + np.maximum(
-            0.0, vv * _IDM["T"] + vv * (vv - sdot_a[..., idx]) / sqrt_ab
-        )
+        s_star = _IDM["s0"] + np.maximum(0.0, vv * _IDM["T"] + vv * (vv - sdot) / sqrt_ab)
         interaction = np.where(obstacle, (s_star / gap) ** 2, 0.0).max((1, 2))
-        a = np.clip(
-            _IDM["a_max"] * (1 - (v / lay["v_des"]) ** 4 - interaction), -4.0, _IDM["a_max"]
-        )
-        v_new = np.maximum(v + a * cfg.sim_dt, 0.0)
-        u, v = u + 0.5 * (v + v_new) * cfg.sim_dt, v_new
-    # lane keeping with a smooth wander of the lateral offset along the lane (amplitude <= 0.2 m)
+        a = np.clip(_IDM["a_max"] * (1 - (v / v_des) ** 4 - interaction), -4.0, _IDM["a_max"])
+        v_new = np.maximum(v + a * dt, 0.0)
+        u, v = u + 0.5 * (v + v_new) * dt, v_new
+    return us, vs
+
+
+def _obstacles(s_e, v, tau, sa, ex, sdot, corr):
+    """Whom the ego follows or yields to (_drive_ego's rule), and the gaps to them: (S, M, J)."""
+    s_e, vv = s_e[:, None, None], v[:, None, None]
+    passed = (tau > 0) & (s_e + vv * tau - _EGO_L / 2 - 1.0 > sa + ex)
+    gap = np.maximum(sa - ex - s_e - _EGO_L / 2, 0.1)
+    arrival = gap / np.maximum(vv, 1.0)  # when the ego would reach it at its current speed
+    along = (sdot > 2.0) | (tau >= arrival - 0.6)
+    return corr & (sa > s_e) & ~passed & along, gap
+
+
+def _wander(kappa, de, us, vs, rng):
+    """The ego's world states (S, N, 4): its lane's centre line and a smooth wander (<= 0.2 m)."""
+    S = len(us)
     amp, lam, phase = rng.uniform(0, 0.2, S), rng.uniform(60, 150, S), rng.uniform(0, 2 * np.pi, S)
-    off = amp[:, None] * np.sin(2 * np.pi * us / lam[:, None] + phase[:, None])  # (S, N)
-    doff_du = (
-        amp[:, None]
-        * 2
-        * np.pi
-        / lam[:, None]
-        * np.cos(2 * np.pi * us / lam[:, None] + phase[:, None])
-    )
+    wave = 2 * np.pi * us / lam[:, None] + phase[:, None]  # (S, N)
+    off = amp[:, None] * np.sin(wave)
+    doff_du = amp[:, None] * 2 * np.pi / lam[:, None] * np.cos(wave)
     pose, k_lane = pose_along(_lane_path(de, kappa, True), us)  # (S, N, 3)
     x, y = pose[..., 0] - off * np.sin(pose[..., 2]), pose[..., 1] + off * np.cos(pose[..., 2])
-    # (S, N, 4)
-    ego = np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)
-    return ego, us / (1 - kappa * de)[:, None]
+    return np.stack([x, y, pose[..., 2] + np.arctan2(doff_du, 1 - k_lane * off), vs], -1)
 
 
 def _build_map(lay, s_lo, s_hi, cfg):
@@ -893,79 +895,63 @@ def _build_map(lay, s_lo, s_hi, cfg):
     ego side's right turn 21, the oncoming left turn 22. Routes: forward 0-2, oncoming 3-4, south 5,
     north 6, right turn 7, left turn 8; they are exactly the maximal chains of the graph, which is
     what the loader rebuilds from the connectivity."""
-    S = len(s_lo)
-    W = cfg.lane_width
-    kappa, inter = lay["kappa"], lay["inter"]
-    n_fwd, n_opp = lay["n_fwd"], lay["n_opp"]
-    one = np.ones(S)
-    bx, y_top, y_bot = W + _BOX_MARGIN, n_opp * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
-    Y = 60.0  # the crossing road's lanes reach this far from the main road
+    S, W, inter, n_fwd = len(s_lo), cfg.lane_width, lay["inter"], lay["n_fwd"]
+    bx, one = W + _BOX_MARGIN, np.ones(S)  # bx: half-length of the box along the main road
     paths, valid = np.zeros((S, 23, 10)), np.zeros((S, 23), bool)
     conn, routes = np.zeros((S, 23), bool), np.full((S, 9, 3), -1)
-    for i in range(3):
-        for d, fwd in [(-(i + 0.5) * W, True), (+(i + 0.5) * W, False)]:
-            if not fwd and i > 1:
-                continue
-            base, r = (3 * i, i) if fwd else (9 + 3 * i, 3 + i)
-            exists = (n_fwd > i) if fwd else (n_opp > i)
-            # one arc (or straight) over the whole road
-            s0 = np.where(fwd, s_lo, s_hi)
-            x, y, th = frenet_to_xy(s0, d, kappa)
-            length = (s_hi - s_lo) * (1 - kappa * d)
-            radius = np.where(kappa != 0, abs(1 / np.where(kappa != 0, kappa, 1) - d), 1000.0)
-            sign = np.sign(kappa) * (1 if fwd else -1)
-            curved = _arc_path(x, y, th + (0 if fwd else np.pi), radius, sign, length, 0 * one, one)
-            single = np.where(
-                (kappa != 0)[:, None],
-                curved,
-                _straight(x, y, th + (0 if fwd else np.pi), length, one),
-            )
-            # before / through / after the intersection (straight road)
-            sg = 1 if fwd else -1
-            ends = [s_lo, -bx * one, bx * one, s_hi] if fwd else [s_hi, bx * one, -bx * one, s_lo]
-            yaw = 0.0 if fwd else np.pi
-            for k in range(3):
-                piece = _straight(ends[k], d * one, yaw, sg * (ends[k + 1] - ends[k]), one)
-                paths[:, base + k] = np.where(
-                    inter[:, None], piece, single if k == 0 else 0 * single
-                )
-                valid[:, base + k] = exists & (inter | (k == 0))
-            conn[:, base + 1] = inter
-            routes[:, r] = np.where(
-                (exists & inter)[:, None],
-                base + np.arange(3),
-                np.where(exists[:, None], [base, -1, -1], -1),
-            )
-    # the crossing road: southbound at x = -W/2, northbound at x = +W/2
-    for base, x, yaw, ys in [
-        (15, -W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
-        (18, W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one]),
-    ]:
-        for k in range(3):
-            paths[:, base + k] = _straight(x, ys[k], yaw, abs(ys[k + 1] - ys[k]), one)
-        conn[:, base + 1] = True
-    # turns into the southbound lane: right from the outer forward one, left from the inner oncoming
-    paths[:, 21] = _arc_path(
-        -bx,
-        -(n_fwd - 0.5) * W,
-        0.0,
-        W / 2 + _BOX_MARGIN,
-        -1.0,
-        np.pi / 2 * (W / 2 + _BOX_MARGIN),
-        0 * one,
-        one,
-    )
-    paths[:, 22] = _arc_path(
-        bx, W / 2, np.pi, bx + W / 2, 1.0, np.pi / 2 * (bx + W / 2), (n_fwd - 1) * W, one
-    )
+    for i, fwd in [(0, True), (1, True), (2, True), (0, False), (1, False)]:
+        base, r = (3 * i, i) if fwd else (9 + 3 * i, 3 + i)
+        exists = (n_fwd > i) if fwd else (lay["n_opp"] > i)
+        d = _lane_d(i, W) if fwd else -_lane_d(i, W)
+        paths[:, base : base + 3] = _road_lane(lay, s_lo, s_hi, d, fwd, bx)
+        valid[:, base : base + 3] = exists[:, None] & (inter[:, None] | (np.arange(3) == 0))
+        conn[:, base + 1] = inter
+        whole = np.where(exists[:, None], [base, -1, -1], -1)
+        routes[:, r] = np.where((exists & inter)[:, None], base + np.arange(3), whole)
+    paths[:, 15:] = _crossing_road(lay, W, bx)
     valid[:, 15:] = inter[:, None]
-    conn[:, 21:] = True
+    conn[:, [16, 19, 21, 22]] = True  # the crossing lanes' middle pieces and the turns
     conn &= valid
     routes[:, 5] = np.where(inter[:, None], [15, 16, 17], -1)
     routes[:, 6] = np.where(inter[:, None], [18, 19, 20], -1)
     routes[:, 7] = np.where(inter[:, None], np.stack([3 * (n_fwd - 1), 21 * one, 17 * one], 1), -1)
     routes[:, 8] = np.where(inter[:, None], np.stack([9 * one, 22 * one, 17 * one], 1), -1)
     return paths * valid[..., None], conn, routes
+
+
+def _road_lane(lay, s_lo, s_hi, d, fwd, bx):
+    """A main-road lane at offset d (S, 3, 10): one arc over the road, or pieces around the box."""
+    kappa, one = lay["kappa"], np.ones(len(s_lo))
+    sg, yaw = (1, 0.0) if fwd else (-1, np.pi)  # driving along s, or against it
+    x, y, th = frenet_to_xy(np.where(fwd, s_lo, s_hi), d, kappa)
+    length = (s_hi - s_lo) * (1 - kappa * d)
+    radius = np.where(kappa != 0, abs(1 / np.where(kappa != 0, kappa, 1) - d), 1000.0)
+    curved = _arc_path(x, y, th + yaw, radius, np.sign(kappa) * sg, length, 0 * one, one)
+    single = np.where((kappa != 0)[:, None], curved, _straight(x, y, th + yaw, length, one))
+    # at an intersection (straight roads): before / through / after it
+    ends = [s_lo, -bx * one, bx * one, s_hi] if fwd else [s_hi, bx * one, -bx * one, s_lo]
+    pieces = [_straight(ends[k], d * one, yaw, sg * (ends[k + 1] - ends[k]), one) for k in range(3)]
+    whole = np.stack([single, 0 * single, 0 * single], 1)
+    return np.where(lay["inter"][:, None, None], np.stack(pieces, 1), whole)
+
+
+def _crossing_road(lay, W, bx):
+    """Path slots 15-22 (S, 8, 10): the crossing road's two lanes and the turns into it."""
+    n_fwd, one = lay["n_fwd"], np.ones(len(lay["n_fwd"]))
+    y_top, y_bot = lay["n_opp"] * W + _BOX_MARGIN, -(n_fwd * W + _BOX_MARGIN)
+    Y = 60.0  # the crossing road's lanes reach this far from the main road
+    out = []  # southbound at x = -W/2, northbound at x = +W/2, in three pieces like the main road
+    for x, yaw, ys in [
+        (-W / 2, -np.pi / 2, [Y * one, y_top, y_bot, -Y * one]),
+        (W / 2, np.pi / 2, [-Y * one, y_bot, y_top, Y * one]),
+    ]:
+        out += [_straight(x, ys[k], yaw, abs(ys[k + 1] - ys[k]), one) for k in range(3)]
+    # turns into the southbound lane: right from the outer forward one, left from the inner oncoming
+    r_right, r_left = W / 2 + _BOX_MARGIN, bx + W / 2
+    d_out = _lane_d(n_fwd - 1, W)
+    out.append(_arc_path(-bx, d_out, 0.0, r_right, -1.0, np.pi / 2 * r_right, 0 * one, one))
+    out.append(_arc_path(bx, W / 2, np.pi, r_left, 1.0, np.pi / 2 * r_left, (n_fwd - 1) * W, one))
+    return np.stack(out, 1)
 
 
 def _bodies(states, sizes, is_ped):
@@ -987,10 +973,8 @@ def _collides(ego, agents, sizes, is_ped, exists):
     S, M, F, _ = agents.shape
     states = np.concatenate([ego[:, None], agents], 1)  # (S, 1+M, F, 4)
     sz = np.concatenate([np.broadcast_to(np.array([_EGO_W, _EGO_L, 1.6]), (S, 1, 3)), sizes], 1)
-    ped, ex = (
-        np.concatenate([np.zeros((S, 1), bool), is_ped], 1),
-        np.concatenate([np.ones((S, 1), bool), exists], 1),
-    )
+    ped = np.concatenate([np.zeros((S, 1), bool), is_ped], 1)
+    ex = np.concatenate([np.ones((S, 1), bool), exists], 1)
     c, r = _bodies(states, sz[:, :, None], ped[:, :, None])  # (S, 1+M, F, 3, 2), (S, 1+M, 1)
     iu, ju = np.triu_indices(M + 1, 1)
     # only pairs whose centres come within reach (two car lengths) need the disc test
@@ -1120,11 +1104,8 @@ def _to_frame(states, origin):
     c, s = torch.cos(h0), torch.sin(h0)
     dx, dy = states[..., 0] - x0, states[..., 1] - y0
     out = states.clone()
-    out[..., 0], out[..., 1], out[..., 2] = (
-        c * dx + s * dy,
-        -s * dx + c * dy,
-        wrap_angle(states[..., 2] - h0),
-    )
+    out[..., 0], out[..., 1] = c * dx + s * dy, -s * dx + c * dy
+    out[..., 2] = wrap_angle(states[..., 2] - h0)
     return out
 
 
@@ -1147,8 +1128,47 @@ def sample_at(
     its history; the frame, the history and the others follow it, while the GT future, the goal and
     the lanes stay the logged ego's (paper §4.3)."""
     cfg = cfg or SynthConfig()
+    H = cfg.hist
+    frame, win, ego = _ego_window(scenes, frame, ego_state, cfg)  # (S,), (S, 15), (S, 15, 4) world
+    ar = torch.arange(len(frame), device=frame.device)
+    pred = scenes.pred_idx[ar, frame]  # (S,)
+    if (pred < 0).any():
+        raise ValueError(
+            f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames"
+        )
+    origin = ego[:, H].clone()  # (S, 4)
+    ego = _to_frame(ego, origin)
+    ag_mask = scenes.agents_mask[ar, pred][ar[:, None], win]  # (S, 15)
+    ag = _to_frame(_fill_gaps(scenes.agents[ar, pred][ar[:, None], win], ag_mask), origin)
+    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real
+    # track can be occluded for a frame; differences across the gap would not be velocities, so
+    # steps before it count as missing)
+    hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
+    o, o_mask, o_is_ped = _nearest_others(scenes, frame, win, pred, origin, cfg)
+    lanes, lanes_mask = _nearby_lanes(scenes, origin, cfg)
+    out = Scenarios(
+        ego_hist=ego[:, : H + 1],
+        ego_fut=ego[:, H + 1 :],
+        agent_hist=ag[:, : H + 1],
+        agent_hist_mask=hist_mask,
+        agent_fut=ag[:, H + 1 :],
+        others_hist=o[:, :, : H + 1],
+        others_fut=o[:, :, H + 1 :],
+        others_mask=o_mask,
+        others_is_ped=o_is_ped,
+        lanes=lanes,
+        lanes_mask=lanes_mask,
+        goal=ego[:, -1].clone(),
+        behaviour=scenes.behaviour.clone(),
+    )
+    return out.to(dtype)
+
+
+def _ego_window(scenes, frame, ego_state, cfg):
+    """The sample's frames (S,), its window t0-8..t0+6 (S, 15) and the ego's world states there
+    (S, 15, 4): the logged ones, or in closed loop ego_state for the current state or history."""
     S, F = scenes.ego.shape[:2]
-    H, T, P = cfg.hist, cfg.fut, cfg.lane_points
+    H, T = cfg.hist, cfg.fut
     # every index made here lives with the scenes (the CPU, for the closed loop)
     dev = scenes.ego.device
     frame = torch.as_tensor(frame, dtype=torch.int64, device=dev).expand(S)
@@ -1157,9 +1177,8 @@ def sample_at(
             f"sample_at: frames must be in [{H}, {F - T - 1}] (history {H}, future {T}), "
             f"got {frame}"
         )
-    ar = torch.arange(S, device=dev)
     win = frame[:, None] + torch.arange(-H, T + 1, device=dev)  # (S, 15) the sample's frames
-    ego = scenes.ego[ar[:, None], win]  # (S, 15, 4) world
+    ego = scenes.ego[torch.arange(S, device=dev)[:, None], win]  # (S, 15, 4) world
     if ego_state is not None:
         es = torch.as_tensor(ego_state, dtype=ego.dtype, device=dev)
         if es.shape == (S, 4):
@@ -1170,72 +1189,50 @@ def sample_at(
             raise ValueError(
                 f"sample_at: ego_state must be ({S}, 4) or ({S}, {H + 1}, 4), got {tuple(es.shape)}"
             )
-    pred = scenes.pred_idx[ar, frame]  # (S,)
-    if (pred < 0).any():
-        raise ValueError(
-            f"sample_at: no predicted agent in scenes {ar[pred < 0].tolist()} at these frames"
-        )
-    origin = ego[:, H].clone()  # (S, 4)
-    ego = _to_frame(ego, origin)
-    ag, ag_mask = (
-        scenes.agents[ar, pred][ar[:, None], win],
-        scenes.agents_mask[ar, pred][ar[:, None], win],
-    )
-    ag = _to_frame(_fill_gaps(ag, ag_mask), origin)
-    # the history the predictor may use: the unbroken run of observed steps that ends at t0 (a real
-    # track can be occluded for a frame; differences across the gap would not be velocities, so
-    # steps before it count as missing)
-    hist_mask = ag_mask[:, : H + 1].flip(-1).int().cumprod(-1).flip(-1).bool()  # (S, 9)
-    M = scenes.agents.shape[1]  # the others: present at t0, near, closest first
+    return frame, win, ego
+
+
+def _closest(keep, dist, most):
+    """Indices (S, K) of the kept items, closest first: K = the most any scene keeps, <= most."""
+    K = int(min(keep.sum(1).max().item() if len(keep) else 0, most))
+    return torch.argsort(torch.where(keep, dist, math.inf), 1)[:, :K]
+
+
+def _nearest_others(scenes, frame, win, pred, origin, cfg):
+    """The others the planner sees: present at t0, near, closest first; (S, A, 15, 4) in the ego
+    frame at t0 (gaps filled), their mask and is_ped (S, A)."""
+    M, dev = scenes.agents.shape[1], frame.device
+    ar = torch.arange(len(frame), device=dev)
     now = scenes.agents[ar, :, frame]  # (S, M, 4)
     dist = torch.linalg.norm(now[..., :2] - origin[:, None, :2], dim=-1)  # (S, M)
-    cand = (
-        scenes.agents_mask[ar, :, frame]
-        & (torch.arange(M, device=dev) != pred[:, None])
-        & (dist < cfg.others_radius)
-    )
-    A = int(min(cand.sum(1).max().item() if S else 0, cfg.max_others))
-    order = torch.argsort(torch.where(cand, dist, math.inf), 1)[:, :A]  # (S, A)
+    other = torch.arange(M, device=dev) != pred[:, None]  # (S, M) not the predicted agent
+    cand = scenes.agents_mask[ar, :, frame] & other & (dist < cfg.others_radius)
+    order = _closest(cand, dist, cfg.max_others)  # (S, A)
     o_mask = torch.gather(cand, 1, order)  # (S, A)
     pick = (ar[:, None, None], order[..., None], win[:, None, :])  # -> (S, A, 15)
     o, o_obs = scenes.agents[pick], scenes.agents_mask[pick]  # (S, A, 15, 4), (S, A, 15)
     o = _to_frame(_fill_gaps(o, o_obs), origin) * o_mask[..., None, None]
-    # the lanes near the ego (distances in the world frame; only the crop is transformed)
-    dx, dy = (
-        scenes.lanes[..., 0] - origin[:, 0, None, None],
-        scenes.lanes[..., 1] - origin[:, 1, None, None],
-    )
+    return o, o_mask, torch.gather(scenes.agents_is_ped, 1, order) & o_mask
+
+
+def _nearby_lanes(scenes, origin, cfg):
+    """The lanes near the ego, closest first, each P points from lane_behind behind its nearest:
+    (S, L, P, 3) in the ego frame at t0 (0 where invalid) and their mask (S, L, P)."""
+    dev, P, Pw = origin.device, cfg.lane_points, scenes.lanes.shape[2]
+    # distances in the world frame; only the crop is transformed
+    dx, dy = (scenes.lanes[..., :2] - origin[:, None, None, :2]).unbind(-1)
     d2 = torch.where(scenes.lanes_mask, dx**2 + dy**2, math.inf)  # (S, Lw, Pw)
     dmin, jmin = d2.min(-1)  # (S, Lw)
     near = dmin < cfg.lane_radius**2
-    L = int(min(near.sum(1).max().item() if S else 0, cfg.max_lanes))
-    lorder = torch.argsort(torch.where(near, dmin, math.inf), 1)[:, :L]  # (S, L)
-    Pw = scenes.lanes.shape[2]
-    # (S, L, P)
-    pidx = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)[..., None] + torch.arange(
-        P, device=dev
-    )
+    lorder = _closest(near, dmin, cfg.max_lanes)  # (S, L)
+    first = (torch.gather(jmin, 1, lorder) - cfg.lane_behind).clamp(min=0)  # (S, L)
+    pidx = first[..., None] + torch.arange(P, device=dev)  # (S, L, P)
     inside = pidx < Pw
     pidx = pidx.clamp(max=Pw - 1)
-    pick = (ar[:, None, None], lorder[..., None], pidx)  # -> (S, L, P)
+    pick = (torch.arange(len(origin), device=dev)[:, None, None], lorder[..., None], pidx)
     lane_pts = _to_frame(scenes.lanes[pick], origin)  # (S, L, P, 3)
     lane_mask = scenes.lanes_mask[pick] & inside & torch.gather(near, 1, lorder)[..., None]
-    out = Scenarios(
-        ego_hist=ego[:, : H + 1],
-        ego_fut=ego[:, H + 1 :],
-        agent_hist=ag[:, : H + 1],
-        agent_hist_mask=hist_mask,
-        agent_fut=ag[:, H + 1 :],
-        others_hist=o[:, :, : H + 1],
-        others_fut=o[:, :, H + 1 :],
-        others_mask=o_mask,
-        others_is_ped=torch.gather(scenes.agents_is_ped, 1, order) & o_mask,
-        lanes=lane_pts * lane_mask[..., None],
-        lanes_mask=lane_mask,
-        goal=ego[:, -1].clone(),
-        behaviour=scenes.behaviour.clone(),
-    )
-    return out.to(dtype)
+    return lane_pts * lane_mask[..., None], lane_mask
 
 
 def cut_samples(
