@@ -15,8 +15,8 @@ import sys
 import pytest
 import torch
 
-import bench
 import diffstack
+from lab import bench
 
 HINT = "pip install --no-deps mpc==0.0.6"
 PYPOSE_HINT = "pip install --no-deps pypose==0.9.5"
@@ -204,7 +204,7 @@ def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
     assert bench.compare_mpc(B=4, threads=(1,), reps=1) is None
     captured = capsys.readouterr()
     lines = captured.out.strip().splitlines()
-    assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python bench.py" in lines[0]
+    assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python -m lab.bench" in lines[0]
     assert "Traceback" not in captured.out + captured.err
 
 
@@ -367,6 +367,6 @@ def test_json_never_replaces_a_file_bench_did_not_make(tmp_path, monkeypatch, ca
     assert json.loads(committed.read_text())["meta"]["command"] == "python experiments.py"
     # an earlier bench result is replaced; anything else with --overwrite
     bench.main(["--quick", "--json", str(committed), "--overwrite"])
-    assert json.loads(committed.read_text())["meta"]["command"].startswith("python bench.py")
+    assert json.loads(committed.read_text())["meta"]["command"].startswith("python -m lab.bench")
     bench.main(["--quick", "--json", str(committed)])
     assert len(ran) == 2

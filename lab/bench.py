@@ -1,14 +1,14 @@
 """Benchmarks of the DiffStack reference: every timing of the project, in one module.
 
-    python bench.py                       # everything, 1 and 2 threads, B = 256 (about 15 minutes,
+    python -m lab.bench                   # everything, 1 and 2 threads, B = 256 (about 15 minutes,
                                           # most of it the bounded LQR)
-    python bench.py --threads 1 --reps 3 --skip-closed-loop
-    python bench.py --quick               # tiny sizes and reps, well under a minute (test_bench.py)
-    python bench.py --json runs/bench.json
+    python -m lab.bench --threads 1 --reps 3 --skip-closed-loop
+    python -m lab.bench --quick           # tiny sizes and reps, well under a minute (test_bench.py)
+    python -m lab.bench --json runs/bench.json
                                           # also every figure, in a JSON file
-    python bench.py --device cuda --threads 1
+    python -m lab.bench --device cuda --threads 1
                                           # our modules on a GPU (without the peers and closed loop)
-    python bench.py --bounded-lqr         # only the bounded LQR of differentiable_nmpc (minutes)
+    python -m lab.bench --bounded-lqr     # only the bounded LQR of differentiable_nmpc (minutes)
 
 What is timed (B = --batch scenarios or problems, default 256):
     controller    ilqr_solve's forward (box-constrained iLQR, up to 5 iterations, tol 0.01) and its
@@ -59,7 +59,7 @@ compare, install it in a throwaway venv (--no-deps keeps the torch of requiremen
     python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt
     /tmp/peers/bin/pip install --no-deps mpc==0.0.6
     /tmp/peers/bin/pip install --no-deps pypose==0.9.5
-    /tmp/peers/bin/python bench.py
+    /tmp/peers/bin/python -m lab.bench
 
 Map of the module:
     1. Measuring     measure(): Timer measurements taking turns; figure(): one row of the results
@@ -117,7 +117,7 @@ from experiments import closed_loop_scenes, simulate, stack_policy
 from lab.runs import command_line, one_line, write_atomic
 from specs import CLOSED_LOOP_METHODS
 
-DATA_CACHE = pathlib.Path(__file__).resolve().parent / "data_cache"
+DATA_CACHE = pathlib.Path(__file__).resolve().parent.parent / "data_cache"
 
 # ============================================================================================
 # 1. Measuring
@@ -526,7 +526,7 @@ def mpc_hint(why: str) -> str:
     """The one line printed instead of the mpc.pytorch comparison."""
     return (
         f"mpc.pytorch: {why}, comparison skipped (speedup_vs_mpc_pytorch: null). To run it: "
-        f"{PEER_VENV} then /tmp/peers/bin/python bench.py"
+        f"{PEER_VENV} then /tmp/peers/bin/python -m lab.bench"
     )
 
 
@@ -758,7 +758,7 @@ def pypose_hint(why: str) -> str:
     """The one line printed instead of the PyPose comparison."""
     return (
         f"pypose: {why}, comparison skipped (speedup_vs_pypose: null). To run it: {PEER_BASE} && "
-        f"{PYPOSE_VENV} then /tmp/peers/bin/python bench.py"
+        f"{PYPOSE_VENV} then /tmp/peers/bin/python -m lab.bench"
     )
 
 
@@ -1601,11 +1601,15 @@ def lqr_summary(res: dict) -> dict:
     return dict(table=res["table"], gradient_vs_mpc=res["gradient_vs_mpc"])
 
 
+# what made a --json file, now and before the move into lab/
+BENCH_COMMANDS = ("python -m lab.bench", "python bench.py")
+
+
 def bench_result(path) -> bool:
-    """Whether path holds what bench.py --json writes (which a later run may replace)."""
+    """Whether path holds what --json writes (which a later run may replace)."""
     try:
         doc = json.loads(pathlib.Path(path).read_text())
-        return str(doc["meta"]["command"]).startswith("python bench.py") and "figures" in doc
+        return str(doc["meta"]["command"]).startswith(BENCH_COMMANDS) and "figures" in doc
     except (OSError, ValueError, KeyError, TypeError, RecursionError):
         return False
 
@@ -1702,7 +1706,7 @@ def main(argv=None) -> dict:
                     device=args.device,
                 )
             doc["meta"]["command"] = command_line(
-                "python bench.py", sys.argv[1:] if argv is None else argv
+                "python -m lab.bench", sys.argv[1:] if argv is None else argv
             )
             if args.json is not None:
                 args.json.parent.mkdir(parents=True, exist_ok=True)
