@@ -1,5 +1,5 @@
-"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's
-hint, and PyPose's agreement with our controller where pypose is installed (skipped otherwise).
+"""Tests of lab/bench.py: the quick run and its JSON file, the command line's errors, a missing
+peer's hint, and PyPose's agreement with our controller where pypose is installed (else skipped).
 
     python -m pytest -q test_bench.py        # about half a minute on 2 cores
 
@@ -209,7 +209,7 @@ def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
 
 
 def test_missing_pypose_is_a_skipped_row_with_a_hint(monkeypatch, capsys):
-    monkeypatch.setattr(bench, "import_peer", lambda name: (None, "not installed"))
+    monkeypatch.setitem(sys.modules, "pypose", None)
     assert bench.compare_pypose(batches=(4,), reps=1) is None
     captured = capsys.readouterr()
     lines = captured.out.strip().splitlines()
@@ -362,7 +362,7 @@ def test_json_never_replaces_a_file_bench_did_not_make(tmp_path, monkeypatch, ca
         bench.main(["--quick", "--json", str(committed)])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert e.value.code == 2 and ran == []
-    assert f"argument --json: {committed} exists and is no bench.py result" in err
+    assert f"argument --json: {committed} exists and is no lab.bench result" in err
     assert "--overwrite" in err and "goal.json" in committed.read_text() + str(committed)
     assert json.loads(committed.read_text())["meta"]["command"] == "python experiments.py"
     # an earlier bench result is replaced; anything else with --overwrite
