@@ -1,8 +1,8 @@
-"""Every timing of the project, mpc.pytorch and PyPose side by side, and the bounded LQR of
+"""Every timing of the project, mpc.pytorch side by side, and the bounded LQR of
 FreyJo/differentiable_nmpc (docs/performance.md explains each figure). A figure is the median and
 IQR of --reps timed runs (torch.utils.benchmark), each after an untimed run of the same code, the
 benchmarks measured together taking turns so that a change in the machine's load hits them alike.
-The peers are no dependencies: each is imported when its comparison runs, or skipped with a hint."""
+mpc.pytorch is no dependency: it is imported when its comparisons run, or skipped with a hint."""
 
 from __future__ import annotations
 
@@ -72,11 +72,12 @@ def figure(key: str, name: str, times, threads: int, dtype="f32", batch=None, no
     return dict(row, median_ms=median, iqr_ms=iqr, runs=len(times), note=note)
 
 
-# ---- 2. The problem: unicycle tracking, shared with the peers -----------------------------------
+# ---- 2. The problem: unicycle tracking, shared with mpc.pytorch ---------------------------------
 
 
 def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
-    """B unicycle tracking problems (drawn on the CPU, moved to `device`); the start perturbed."""
+    """B unicycle tracking problems in the box: the reference rolled out from smooth random controls
+    (some outside the box), the start perturbed; drawn on the CPU, then moved to `device`."""
     g = torch.Generator().manual_seed(seed)
 
     def U(lo, hi, *shape):
@@ -102,7 +103,8 @@ def tracking_cost(x, u, x_ref, u_ref, Q, R):
 
 
 class TrackingCost:
-    """tracking_cost, its expansion in closed form (as the peers are handed the quadratic)."""
+    """tracking_cost with its expansion in closed form, as mpc.pytorch is handed the quadratic;
+    parameters per problem, so that the solver sets converged problems aside."""
 
     __call__ = staticmethod(tracking_cost)
 
@@ -149,9 +151,9 @@ def bench_controller(B, dtype, reps, threads, device, key="", iters=5, tol=0.01)
 
 
 def bench_modules(batch, cfg: Config, reps, threads) -> list:
-    """The planner's candidates, the predictor's training iteration (forward with q(z|x,y), InfoVAE
-    loss, backward, Adam step) and eval forward, a DiffStack training step (RL) as train_stack takes
-    it and the scene plan it reuses, taking turns. The step's parts are perf_counter laps over its
+    """The planner's candidates; the predictor's training iteration (forward with q(z|x,y), InfoVAE
+    loss, backward, Adam step) and eval forward; a DiffStack training step (RL) as train_stack takes
+    it and the scene plan it reuses. The step's parts are perf_counter laps over its
     runs but the first (first-call allocations): predict (a forward hook), plan (to
     diffstack.ilqr_solve, wrapped), control, backward (on a GPU: times to launch, not to finish)."""
     torch.manual_seed(0)
@@ -177,6 +179,7 @@ def bench_modules(batch, cfg: Config, reps, threads) -> list:
     method = Method("DiffStack", losses=(1, 1, 1))
     a1, a2, a3 = alphas(method, "rl", cfg)
     scene, solve, laps = scene_plan(batch, cfg), diffstack.ilqr_solve, []
+    scene_cost = functools.partial(scene_plan, batch, cfg)
 
     def step():
         t, clock = {}, [time.perf_counter()]
@@ -203,20 +206,19 @@ def bench_modules(batch, cfg: Config, reps, threads) -> list:
 
     s0, n = batch.ego_hist[:, -1], 24 * cfg.max_goal_lanes  # 8 accelerations x 3 offsets a lane
     what = f"K = {cfg.pred_modes}, decoder {cfg.pred_dec_hidden}"
-    fns = {
-        "candidates": (
-            f"planner: candidates (up to {n} per scenario)",
-            functools.partial(plan_candidates, s0, batch.goal, batch.lanes, batch.lanes_mask, cfg),
-        ),
-        "predictor_train": (f"predictor: training iteration ({what})", train_iteration),
-        "predictor_eval": ("predictor: eval forward", eval_forward),
-        "stack_step": ("DiffStack training step (RL)", step),
-        "stack_scene_plan": (
-            "scene plan (once per data set in training)",
-            functools.partial(scene_plan, batch, cfg),
-        ),
-    }
-    rows = timed(fns, reps, threads, batch=len(batch))[0]
+    plan = functools.partial(plan_candidates, s0, batch.goal, batch.lanes, batch.lanes_mask, cfg)
+    groups = (  # measured group by group, each taking turns
+        {"candidates": (f"planner: candidates (up to {n} per scenario)", plan)},
+        {
+            "predictor_train": (f"predictor: training iteration ({what})", train_iteration),
+            "predictor_eval": ("predictor: eval forward", eval_forward),
+        },
+        {
+            "stack_step": ("DiffStack training step (RL)", step),
+            "stack_scene_plan": ("scene plan (once per data set in training)", scene_cost),
+        },
+    )
+    rows = [r for fns in groups for r in timed(fns, reps, threads, batch=len(batch))[0]]
     for part in ("predict", "plan", "control", "backward"):
         name, times = f"DiffStack step: {part} (perf_counter lap)", [t[part] for t in laps[1:]]
         rows.append(figure(f"stack_{part}", name, times, threads, batch=len(batch)))
@@ -236,34 +238,24 @@ def bench_closed_loop(scenes, cfg: Config, n=100, sim_time=10.0, reps=3) -> list
     return timed(fns, reps, 1)[0]
 
 
-# ---- 4. The peers: mpc.pytorch (`mpc` 0.0.6) and PyPose (`pypose` 0.9.x), side by side ----------
+# ---- 4. The peer: mpc.pytorch (`mpc` 0.0.6), side by side ------------------------------------
 
-PEERS = dict(mpc=("mpc.pytorch", "mpc==0.0.6"), pypose=("pypose", "pypose==0.9.5"))
 PEER_VENV = "python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt"
 MPC_QUIET = dict(exit_unconverged=False, verbose=-1)  # mpc.pytorch: no assert, no printing
 
 
-def import_peer(name: str, key: str, hint=True):
-    """The peer's module, or None after one line saying why and (hint) how to install it."""
+def import_peer(what: str, hint=True):
+    """mpc.pytorch's module, or None after one line saying why and (hint) how to install it in a
+    throwaway venv (--no-deps: it imports only torch): a missing peer is a skip, not a traceback."""
     try:
-        return importlib.import_module(name)
+        return importlib.import_module("mpc.mpc")
     except ImportError:
         why = "not installed"
     except Exception as e:  # a peer built for another torch may fail any way on import
         why = f"import failed: {type(e).__name__}: {' '.join(str(e).split())}"
-    label, pip = PEERS[name.split(".")[0]]
-    install = f"{PEER_VENV} && /tmp/peers/bin/pip install --no-deps {pip}"
+    install = f"{PEER_VENV} && /tmp/peers/bin/pip install --no-deps mpc==0.0.6"
     how = f". To run it: {install}, then /tmp/peers/bin/python -m lab.bench" if hint else ""
-    print(f"{label}: {why}, skipped ({key}: null){how}")
-
-
-def peer_quadratic(P, x_ref):
-    """The problems as both peers take them: T+1 stages of 1/2 tau' C tau + c' tau, tau = (x, u),
-    the last control idle (reference 0) -> C (B, T+1, 6, 6), c (B, T+1, 6), u0 (B, T+1, 2)."""
-    B, T1, _ = x_ref.shape
-    C = torch.diag(torch.cat([P["Q"], P["R"]])).expand(B, T1, 6, 6)
-    c = torch.cat([-P["Q"] * x_ref, -P["R"] * F.pad(P["u_ref"], (0, 0, 0, 1))], -1)
-    return C, c, F.pad(P["u_init"], (0, 0, 0, 1))
+    print(f"mpc.pytorch: {why}, {what} skipped{how}")
 
 
 class UnicycleDx(torch.nn.Module):
@@ -277,156 +269,47 @@ class UnicycleDx(torch.nn.Module):
 
 
 def mpc_solve(P, x_init, x_ref, iters, eps):
-    """One mpc.MPC solve with our solver's settings (5 line-search steps of 1/5, its default)."""
+    """One mpc.MPC solve with our solver's settings (line search: its decay 1/5, 5 steps): x
+    (B, T+1, 4), u (B, T, 2). Its horizon is T+1 stages tau_t = (x_t, u_t), each costing
+    1/2 tau' C tau + c' tau (the constant left out); the last control, idle, has reference 0 (it
+    stays 0 and costs nothing). Time-major inside."""
     from mpc import mpc as mpc_lib
 
-    C, c, u0 = (t.transpose(0, 1) for t in peer_quadratic(P, x_ref))
-    T1, B = c.shape[:2]
+    B, T1, _ = x_ref.shape
+    C = torch.diag(torch.cat([P["Q"], P["R"]])).expand(T1, B, 6, 6)
+    c = torch.cat([-P["Q"] * x_ref, -P["R"] * F.pad(P["u_ref"], (0, 0, 0, 1))], -1)
+    u0 = F.pad(P["u_init"], (0, 0, 0, 1)).transpose(0, 1).contiguous()
     lo, hi = (P[k].expand(T1, B, 2).contiguous() for k in ("lo", "hi"))
     opts = dict(lqr_iter=iters, eps=eps, n_batch=B, max_linesearch_iter=5, **MPC_QUIET)
-    ctrl = mpc_lib.MPC(4, 2, T1, lo, hi, u_init=u0.contiguous(), **opts)
-    x, u, _ = ctrl(x_init, mpc_lib.QuadCost(C, c), UnicycleDx())
+    ctrl = mpc_lib.MPC(4, 2, T1, lo, hi, u_init=u0, **opts)
+    x, u, _ = ctrl(x_init, mpc_lib.QuadCost(C, c.transpose(0, 1)), UnicycleDx())
     return x.transpose(0, 1), u.transpose(0, 1)[:, :-1]
 
 
-def side_by_side(P, peer, solve, iters, eps, reps, threads, key="", name="") -> tuple[list, dict]:
-    """A peer and ours on P taking turns: rows (our fwd's note: speed-ups), medians, speed-up."""
-    runs = {}
-    for who, f in ((peer, solve), ("ours", ours_solve)):
-        runs[f"{who} fwd"], runs[f"{who} bwd"] = solver_runs(P, f, iters, eps)
-    what = f"{iters} iterations, tol {eps}{name}"
-    fns = {f"{k.replace(' ', '_')}_{iters}it{key}": (f"{k}, {what}", f) for k, f in runs.items()}
-    rows, m = timed(fns, reps, threads, "f64", len(P["x_init"]))
-    ms = {k.replace(" ", "_") + "_ms": 1e3 * v.median for k, v in zip(runs, m.values())}
-    peer_fwd, peer_bwd, ours_fwd, ours_bwd = ms.values()
-    total = (peer_fwd + peer_bwd) / (ours_fwd + ours_bwd)
-    rows[2]["note"] = f"speed-up fwd {peer_fwd / ours_fwd:.2f}x, fwd+bwd {total:.2f}x"
-    return rows, dict(ms, speedup=total)
-
-
 def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
-    """Ours against mpc.pytorch (None without it); speedup: at 5 iterations, the fewest threads."""
-    if import_peer("mpc.mpc", "speedup_vs_mpc_pytorch") is None:
+    """Ours against mpc.pytorch on tracking_problem(B), float64, box controls, the same initial
+    controls and settings, forward and backward (solver_runs) taking turns; the speed-up (its time
+    over ours) in the note of ours; speedup: at 5 iterations, the fewest threads (None without
+    mpc)."""
+    if import_peer("comparison (speedup_vs_mpc_pytorch: null)") is None:
         return None
     P, rows, speedups = tracking_problem(B), [], []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # mpc 0.0.6 uses deprecated torch APIs
         for nt, (iters, eps) in itertools.product(sorted(threads), ((5, 0.01), (10, 1e-3))):
-            r, res = side_by_side(P, "mpc", mpc_solve, iters, eps, reps, nt)
-            rows, speedups = rows + r, speedups + [res["speedup"]]
+            fns = {}
+            for who, solve in (("mpc", mpc_solve), ("ours", ours_solve)):
+                fwd, bwd = solver_runs(P, solve, iters, eps)
+                for part, f in (("fwd", fwd), ("bwd", bwd)):
+                    name = f"{who} {part}, {iters} iterations, tol {eps}"
+                    fns[f"{who}_{part}_{iters}it"] = (name, f)
+            r, m = timed(fns, reps, nt, "f64", B)
+            mpc_fwd, mpc_bwd, ours_fwd, ours_bwd = (v.median for v in m.values())
+            speedups.append((mpc_fwd + mpc_bwd) / (ours_fwd + ours_bwd))
+            r[2]["note"] = f"speed-up fwd {mpc_fwd / ours_fwd:.2f}x, fwd+bwd {speedups[-1]:.2f}x"
+            rows += r
     verdict = f"mpc.pytorch time / ours, fwd+bwd, 5 iterations, B = {B}: {speedups[0]:.2f}x"
     return dict(figures=rows, speedup=speedups[0], verdict=verdict)
-
-
-# PyPose's pp.module.MPC is iLQR with full steps, without bounds or line search: both solve the
-# problems with the box widened to +-WIDE, never active (checked). Stock PyPose cannot run them:
-# docs/performance.md lists the four changes made here (1, 2: PyPoseUnicycle; 3: pypose_solve;
-# 4: PyPoseMPC), and nothing else is changed.
-
-WIDE = 1e3
-PYPOSE_BATCHES = (64, 256, 1024, 4096)  # the full run's batch sizes; --quick: its --batch only
-PYPOSE_SPEEDUP_BATCH = 256  # speedup_vs_pypose: PyPose time / ours, forward + backward, at this B
-
-
-@functools.cache
-def pypose_classes(pp):
-    """(PyPoseUnicycle, PyPoseMPC): pp.module.NLS and pp.module.MPC with the changes 1, 2, 4."""
-
-    class PyPoseUnicycle(pp.module.NLS):
-        """Our step on a clone (rollouts write in place), closed-form Jacobians (changes 1, 2)."""
-
-        def __init__(self, dt):
-            super().__init__()
-            self.step = Unicycle(dt)
-
-        def state_transition(self, state, input, t=None):
-            return self.step(state.clone(), input)
-
-        def observation(self, state, input, t=None):
-            return state
-
-        def set_refpoint(self, state=None, input=None, t=None):
-            self._ref_state, self._ref_input, self._ref_t = state, input, t
-            self._A, self._B = self.step.jacobians(state.detach(), input.detach())
-            return self
-
-        A = property(lambda self: self._A)
-        B = property(lambda self: self._B)
-
-    class PyPoseMPC(pp.module.MPC):
-        """MPC.forward keeping each problem's best iterate, ties to the newer (change 4)."""
-
-        def forward(self, dt, x_init, u_init=None, u_lower=None, u_upper=None, du=None):
-            u, best_u, best = u_init, u_init, None
-            self.stepper.reset()
-            with torch.no_grad():
-                while self.stepper.continual():
-                    x, u, cost = self.lqr(x_init, dt, u)
-                    self.stepper.step(cost)
-                    best = cost if best is None else best
-                    win = cost <= best + 100 * torch.finfo(cost.dtype).eps * (1 + best.abs())
-                    best_u = torch.where(win[:, None, None], u, best_u)
-                    best = torch.where(win, cost, best)
-            return self.lqr(x_init, dt, u_traj=best_u)
-
-    return PyPoseUnicycle, PyPoseMPC
-
-
-def unconstrained(P: dict) -> dict:
-    """P with the box widened to +-WIDE (the initial controls: the reference's, unclipped)."""
-    lo, hi = torch.full_like(P["lo"], -WIDE), torch.full_like(P["hi"], WIDE)
-    return dict(P, lo=lo, hi=hi, u_init=P["u_ref"].clamp(lo, hi))
-
-
-def pypose_solve(P, x_init, x_ref, iters, eps):
-    """One PyPose MPC solve of exactly `iters` LQR passes (change 3: its default tol stops after one
-    pass when every cost is negative, as the constant-less cost is); eps unused."""
-    import pypose as pp
-    from pypose.utils.stepper import ReduceToBason
-
-    system, MPC = pypose_classes(pp)
-    Q, p, u0 = peer_quadratic(P, x_ref)
-    T1 = p.shape[1]
-    stepper = ReduceToBason(iters, tol=-math.inf, decreasing=-math.inf)
-    x, u, _ = MPC(system(0.5), Q, p, T1, stepper=stepper)(0.5, x_init, u_init=u0)
-    return x[:, :T1], u[:, : T1 - 1]
-
-
-def pypose_agreement(P, iters=50) -> dict:
-    """Both solvers to convergence on P: the largest differences in u and x, the largest |u|."""
-    xo, uo = ours_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
-    xp, up = pypose_solve(P, P["x_init"], P["x_ref"], iters, 1e-12)
-    du, dx = (up - uo).abs().max().item(), (xp - xo).abs().max().item()
-    max_abs_u = max(uo.abs().max().item(), up.abs().max().item())
-    return dict(iters=iters, problems=len(uo), max_du=du, max_dx=dx, max_abs_u=max_abs_u)
-
-
-def compare_pypose(batches=PYPOSE_BATCHES, reps=5, iters=5, tol=0.01) -> dict | None:
-    """Ours against PyPose (None without it), one thread (as it leaves torch): their agreement at
-    the smallest B, then timings at each; speedup at PYPOSE_SPEEDUP_BATCH or the nearest B below."""
-    if import_peer("pypose", "speedup_vs_pypose") is None:
-        return None
-    torch.set_num_threads(1)  # the untimed set-up too; the Timers set it for every run
-    agree = pypose_agreement(unconstrained(tracking_problem(min(batches))))
-    rows, table = [], []
-    for B in sorted(set(batches)):
-        P = unconstrained(tracking_problem(B))
-        r, res = side_by_side(
-            P, "pypose", pypose_solve, iters, tol, reps, 1, "_unconstrained", f", box +-{WIDE:g}"
-        )
-        # no bound near either solution at the timed settings
-        u = [f(P, P["x_init"], P["x_ref"], iters, tol)[1] for f in (ours_solve, pypose_solve)]
-        inactive = max(v.abs().max().item() for v in u) < WIDE / 2
-        rows, table = rows + r, table + [dict(batch=B, **res, bounds_inactive=inactive)]
-    at = ([t for t in table if t["batch"] <= PYPOSE_SPEEDUP_BATCH] or table[:1])[-1]
-    same, inactive = agree["max_du"] < 1e-8, all(t["bounds_inactive"] for t in table)
-    verdict = (
-        f"PyPose time / ours, fwd+bwd, B = {at['batch']}: {at['speedup']:.2f}x; same solution: "
-        f"{'yes' if same else 'NO'} (max |du| {agree['max_du']:.1e} at convergence); no bound "
-        f"active: {'yes' if inactive else 'NO'}"
-    )
-    res = dict(speedup=at["speedup"], speedup_batch=at["batch"], agreement=agree, verdict=verdict)
-    return dict(figures=rows, table=table, **res)
 
 
 # ---- 5. The bounded LQR of FreyJo/differentiable_nmpc (Table 1 of its README) -------------------
@@ -675,7 +558,7 @@ def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
     for k, s in LQR_SETTINGS.items():
         s = dict(s, iters=min(s["iters"], cap))
         solvers[f"diffstack, {k}"] = (s, functools.partial(ours_lqr, settings=s))
-    if import_peer("mpc.mpc", "its bounded-LQR rows", hint) is not None:
+    if import_peer("its bounded-LQR rows (gradient_vs_mpc: {})", hint) is not None:
         s = dict(LQR_MPC, lqr_iter=min(LQR_MPC["lqr_iter"], cap))
         solvers["mpc.pytorch"] = (s, functools.partial(mpc_lqr, **s))
     torch.set_num_threads(1)
@@ -686,11 +569,8 @@ def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
             r, entries, grads = bounded_lqr_at(umax, batch, min(reps, 3), solvers)
             rows, table = rows + r, table + entries
             if "mpc.pytorch" in grads:
-                conv = [
-                    e["converged"]
-                    for e in entries
-                    if e["solver"] in ("diffstack, tight", "mpc.pytorch")
-                ]
+                conv = {e["solver"]: e["converged"] for e in entries}
+                conv = [conv["diffstack, tight"], conv["mpc.pytorch"]]
                 ours, mpc = grads["diffstack, tight"], grads["mpc.pytorch"]
                 rel = ((ours - mpc).norm() / mpc.norm()).item() if conv == [batch] * 2 else None
                 gradient[f"{umax:g}"] = dict(relative_difference=rel, converged=conv)
@@ -747,16 +627,13 @@ def bench_ours(threads, reps, B, quick, closed_loop, device) -> tuple[list, floa
 def run(threads=(1, 2), reps=5, B=256, quick=False, closed_loop=True, device=torch.device("cpu")):
     """Every benchmark -> the JSON document; off the CPU, without the closed loop and the peers."""
     rows, per_problem = bench_ours(threads, reps, B, quick, closed_loop, device)
-    mpc = pp = lqr = None
+    mpc = lqr = None
     if device.type == "cpu":
         mpc = compare_mpc(B, threads, reps)
-        pp = compare_pypose((B,) if quick else PYPOSE_BATCHES, reps)
         lqr = compare_bounded_lqr(B, reps, quick, hint=False)
     else:
-        print(
-            f"--device {device}: the closed loop and the peers (compared on the CPU) are left out"
-        )
-    peers, meta = [p for p in (mpc, pp, lqr) if p], run_meta(threads, reps, B, quick, device)
+        print(f"--device {device}: the closed loop and mpc.pytorch (CPU only) are left out")
+    peers, meta = [p for p in (mpc, lqr) if p], run_meta(threads, reps, B, quick, device)
     title = f"DiffStack benchmarks on {meta['device_name']}, B = {B}, torch {torch.__version__}"
     print_results(
         title, rows + [r for p in peers for r in p["figures"]], [p["verdict"] for p in peers]
@@ -765,12 +642,10 @@ def run(threads=(1, 2), reps=5, B=256, quick=False, closed_loop=True, device=tor
     return dict(
         stack_step_ms_1thread=(step or [None])[0],  # None when --threads leaves out 1
         speedup_vs_mpc_pytorch=mpc and mpc["speedup"],
-        speedup_vs_pypose=pp and pp["speedup"],
         controller_ms_per_problem=per_problem,
         meta=meta,
         figures=rows + (lqr["figures"] if lqr else []),
         mpc_pytorch=mpc and pick(mpc, "figures"),
-        pypose=pp and pick(pp, "figures", "table", "speedup_batch", "agreement"),
         bounded_lqr=lqr and pick(lqr, "table", "gradient_vs_mpc"),
     )
 
@@ -844,12 +719,10 @@ def main(argv=None) -> dict:
             if args.bounded_lqr:
                 lqr = compare_bounded_lqr(B, reps, args.quick)
                 print_results("Bounded LQR", lqr["figures"], [lqr["verdict"]])
-                doc = dict(
-                    bounded_lqr=pick(lqr, "table", "gradient_vs_mpc"), figures=lqr["figures"]
-                )
-                doc["meta"] = run_meta(
-                    [1], min(reps, 3), lqr["table"][0]["batch"], args.quick, args.device
-                )
+                batch, figures = lqr["table"][0]["batch"], lqr["figures"]
+                meta = run_meta([1], min(reps, 3), batch, args.quick, args.device)
+                doc = dict(bounded_lqr=pick(lqr, "table", "gradient_vs_mpc"), figures=figures)
+                doc["meta"] = meta
             else:
                 threads = list(dict.fromkeys(args.threads))  # in the order given, once each
                 doc = run(threads, reps, B, args.quick, not args.skip_closed_loop, args.device)
