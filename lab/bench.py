@@ -327,7 +327,7 @@ LQR_SETTINGS = {  # ours at ilqr's defaults; run until the step is below 1e-6; a
 }
 LQR_MPC = dict(lqr_iter=100, eps=1e-6)  # mpc.pytorch as the reference script runs it
 LQR_CONVERGED = 1e-6  # a solve has converged when no control would move by more (kkt_residual)
-LQR_PUBLISHED = (  # not measured here: fwd+bwd (ms) at umax 1e4 and 1.0, an i7-8665U, 4 threads
+LQR_PUBLISHED = (  # the README's rows (mpc.pytorch's: its multiples of acados' times)
     "Published (i7-8665U laptop, up to 4 threads; not measured here): solve + gradient at umax "
     "1e4 / 1.0: acados 36.6 / 58.4 ms, mpc.pytorch 118.2 / 25 754 ms"
 )
@@ -667,14 +667,23 @@ def run_meta(threads, reps, batch, quick, device) -> dict:
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser("python -m lab.bench", description=__doc__.split(" (")[0])
     count = functools.partial(bounded, int, 1)
-    ap.add_argument("--threads", type=count(256, "--threads"), nargs="+", default=[1, 2])
-    ap.add_argument("--reps", type=count(10_000, "--reps"), help="timed runs a figure (default 5)")
+    threads = "torch thread counts (default 1 2)"
+    ap.add_argument(
+        "--threads", type=count(256, "--threads"), nargs="+", default=[1, 2], help=threads
+    )
+    reps = "timed runs per figure (default 5; closed loop at most 3; --quick 2)"
+    ap.add_argument("--reps", type=count(10_000, "--reps"), help=reps)
     ap.add_argument("--batch", type=count(10**6, "--batch"), help="B (default 256; --quick 16)")
-    ap.add_argument("--json", type=pathlib.Path, help="also write every figure to this file")
-    ap.add_argument("--skip-closed-loop", action="store_true")
+    ap.add_argument("--json", type=pathlib.Path, help="also write every figure to this JSON file")
+    ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed loop")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: under a minute")
-    ap.add_argument("--bounded-lqr", action="store_true", help="only the bounded LQR")
-    add_shared_options(ap, overwrite="let --json replace any file", device="where ours run")
+    ap.add_argument("--bounded-lqr", action="store_true", help="only the bounded LQR benchmark")
+    add_shared_options(
+        ap,
+        overwrite="let --json replace a file that is not an earlier result of this command",
+        device="where our modules run (cpu, cuda, cuda:N); elsewhere than the CPU the closed "
+        "loop and mpc.pytorch are left out",
+    )
     return ap
 
 
