@@ -1,5 +1,6 @@
-"""Tests of bench.py: the quick run and its JSON file, the command line's errors, a missing peer's
-hint, and PyPose's agreement with our controller where pypose is installed (skipped otherwise).
+"""Tests of lab/bench.py: the quick run and its JSON file, the command line's errors, a missing
+peer's hint, the bounded LQR's problems, reference and gradients (mpc.pytorch's parts skipped where
+it is not installed).
 
     python -m pytest -q test_bench.py        # about half a minute on 2 cores
 
@@ -15,11 +16,10 @@ import sys
 import pytest
 import torch
 
-import bench
 import diffstack
+from lab import bench
 
 HINT = "pip install --no-deps mpc==0.0.6"
-PYPOSE_HINT = "pip install --no-deps pypose==0.9.5"
 
 
 def installed(name):
@@ -45,27 +45,15 @@ def test_quick_run_writes_json(tmp_path, capsys):
     assert {"ilqr_forward_f64_B%d" % (bench.QUICK["batch"] * k) for k in (1, 2)} <= {
         f["key"] for f in on_disk["figures"]
     }
-    for peer, key in (("mpc", "speedup_vs_mpc_pytorch"), ("pypose", "speedup_vs_pypose")):
-        assert key in on_disk
-        if not installed(peer):
-            assert on_disk[key] is None
+    assert "speedup_vs_mpc_pytorch" in on_disk
     if installed("mpc"):
         assert (
             isinstance(on_disk["speedup_vs_mpc_pytorch"], float)
             and on_disk["speedup_vs_mpc_pytorch"] > 0
         )
     else:
-        assert on_disk["mpc_pytorch"] is None
+        assert on_disk["speedup_vs_mpc_pytorch"] is None and on_disk["mpc_pytorch"] is None
         assert out.count(HINT) == 1
-    if installed("pypose"):
-        assert isinstance(on_disk["speedup_vs_pypose"], float) and on_disk["speedup_vs_pypose"] > 0
-        pp = on_disk["pypose"]
-        assert [t["batch"] for t in pp["table"]] == [bench.QUICK["batch"]] == [pp["speedup_batch"]]
-        assert pp["agreement"]["max_du"] < 1e-8 and all(t["bounds_inactive"] for t in pp["table"])
-        assert "same solution: yes" in out
-    else:
-        assert on_disk["pypose"] is None
-        assert out.count(PYPOSE_HINT) == 1
     # every figure: positive, at the one thread asked for, nothing from the skipped closed loop
     keys = {f["key"] for f in on_disk["figures"]}
     assert {
@@ -193,7 +181,7 @@ def test_quick_run_on_cuda(tmp_path, capsys):
     } <= keys
     assert all(f["median_ms"] > 0 for f in doc["figures"])
     # the peers and the closed loop, compared on the CPU, are left out, saying so
-    assert doc["speedup_vs_mpc_pytorch"] is None and doc["speedup_vs_pypose"] is None
+    assert doc["speedup_vs_mpc_pytorch"] is None
     assert not any(k.startswith("closed_loop") for k in keys) and "are left out" in out
 
 
@@ -204,38 +192,22 @@ def test_missing_peer_prints_one_line_hint(monkeypatch, capsys):
     assert bench.compare_mpc(B=4, threads=(1,), reps=1) is None
     captured = capsys.readouterr()
     lines = captured.out.strip().splitlines()
-    assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python bench.py" in lines[0]
+    assert len(lines) == 1 and HINT in lines[0] and "/tmp/peers/bin/python -m lab.bench" in lines[0]
     assert "Traceback" not in captured.out + captured.err
 
 
-def test_missing_pypose_is_a_skipped_row_with_a_hint(monkeypatch, capsys):
-    monkeypatch.setattr(bench, "import_peer", lambda name: (None, "not installed"))
-    assert bench.compare_pypose(batches=(4,), reps=1) is None
-    captured = capsys.readouterr()
-    lines = captured.out.strip().splitlines()
-    assert len(lines) == 1 and PYPOSE_HINT in lines[0] and "speedup_vs_pypose: null" in lines[0]
-    assert "Traceback" not in captured.out + captured.err
-
-
-@pytest.mark.skipif(
-    not installed("pypose"), reason="pypose is not installed (a peer, never a dependency)"
-)
-def test_pypose_reaches_our_solution_with_no_bound_active():
-    P = bench.unconstrained(bench.tracking_problem(8))
-    agree = bench.pypose_agreement(P, iters=40)
-    assert agree["max_du"] < 1e-8 and agree["max_dx"] < 1e-8
-    assert agree["max_abs_u"] < bench.WIDE / 2  # the widened box is never active
-    # at the timed settings both give a gradient to x_init and the reference, finite everywhere
-    for solve in (bench.pypose_solve, bench.ours_solve):
-        x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
-        x, u = solve(P, x_init, x_ref, 5, 0.01)
-        assert x.shape == (8, 7, 4) and u.shape == (8, 6, 2)
-        x[:, -1, :2].sum().backward()
-        assert (
-            torch.isfinite(x_init.grad).all()
-            and torch.isfinite(x_ref.grad).all()
-            and x_ref.grad.abs().sum() > 0
-        )
+@pytest.mark.parametrize("peer", ["ours", "mpc"])
+def test_the_timed_solves_give_finite_gradients(peer):
+    # at the timed settings each solve gives a gradient to x_init and the reference
+    if peer == "mpc" and not installed("mpc"):
+        pytest.skip("mpc is not installed (a peer, never a dependency)")
+    P = bench.tracking_problem(8)
+    x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
+    x, u = (bench.ours_solve if peer == "ours" else bench.mpc_solve)(P, x_init, x_ref, 5, 0.01)
+    assert x.shape == (8, 7, 4) and u.shape == (8, 6, 2)
+    x[:, -1, :2].sum().backward()
+    assert torch.isfinite(x_init.grad).all() and torch.isfinite(x_ref.grad).all()
+    assert x_ref.grad.abs().sum() > 0
 
 
 def test_tracking_problem_is_reproducible():
@@ -362,11 +334,11 @@ def test_json_never_replaces_a_file_bench_did_not_make(tmp_path, monkeypatch, ca
         bench.main(["--quick", "--json", str(committed)])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert e.value.code == 2 and ran == []
-    assert f"argument --json: {committed} exists and is no bench.py result" in err
+    assert f"argument --json: {committed} exists and is no lab.bench result" in err
     assert "--overwrite" in err and "goal.json" in committed.read_text() + str(committed)
     assert json.loads(committed.read_text())["meta"]["command"] == "python experiments.py"
     # an earlier bench result is replaced; anything else with --overwrite
     bench.main(["--quick", "--json", str(committed), "--overwrite"])
-    assert json.loads(committed.read_text())["meta"]["command"].startswith("python bench.py")
+    assert json.loads(committed.read_text())["meta"]["command"].startswith("python -m lab.bench")
     bench.main(["--quick", "--json", str(committed)])
     assert len(ran) == 2
