@@ -2,10 +2,8 @@
 predictor and the end-to-end gradient, each checked against an independent computation. Gradient
 tests run in float64; every test runs on one thread (conftest.py).
 
-train.py's training, metrics and command line are tested in test_train.py, data_synth.py's synthetic
-scenes and nuScenes files in test_data_synth.py; experiments.py, bench.py and the notebook have test
-files of their own. The helpers and fixtures here (make_batch, make_model, TINY, small, ...) are
-shared with them."""
+Every other room has its test file (test_<room>.py); the shared helpers and fixtures are in
+conftest.py."""
 
 import dataclasses
 import math

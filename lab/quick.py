@@ -399,7 +399,7 @@ def parser():
         description="DiffStack (CoRL 2022), the readable reference: the method, and a quick run "
         "of it.",
         epilog="The paper's tables: python experiments.py --experiment NAME. Benchmarks: python "
-        "bench.py.",
+        "-m lab.bench.",
     )
     ap.add_argument(
         "--quick",
