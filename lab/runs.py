@@ -534,56 +534,13 @@ def one_line(ap, interrupted: str = "nothing half-written is left"):
         sys.exit(130)
 
 
-def refuse_existing(files, overwrite: bool, ours=()) -> None:
-    """OutputRefused naming them if any of files exists already, unless overwrite (a run never
-    replaces a result it did not make) or it is in ours (files this same run wrote before it was
-    interrupted, unchanged since: ours_files)."""
-    existing = [str(f) for f in files if f.exists() and f not in set(ours)]
+def refuse_existing(files, overwrite: bool) -> None:
+    """OutputRefused naming them if any of files exists already, unless overwrite: a run never
+    replaces a result it did not make (its own are written once it is complete)."""
+    existing = [str(f) for f in files if f.exists()]
     if existing and not overwrite:
         raise OutputRefused(
             f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
             f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
             f"replace them, or choose another --out"
         )
-
-
-# What a run wrote is listed, with each file's sha256, in a manifest of its own
-# (<out>/.runs/outputs/<hash of the experiment, seeds and run key>.json): the same command may
-# replace those files again as long as they are unchanged, and nothing else.
-
-
-def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
-    """Where a run (experiment name, seeds, run key) lists the outputs it wrote."""
-    return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{sha(name, list(seeds), key)[:16]}.json"
-
-
-def _manifest(path) -> dict:
-    """A run's manifest {file name: sha256} ({} when there is none)."""
-    made = load_json(path, "a manifest of a run's outputs") if pathlib.Path(path).exists() else {}
-    if not isinstance(made, dict) or not all(isinstance(v, str) for v in made.values()):
-        raise ValueError(f"{path}: not a manifest of a run's outputs ({{file: sha256}})")
-    return made
-
-
-def _file_sha(path) -> str:
-    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
-
-
-def record_outputs(manifest: pathlib.Path, files) -> None:
-    """Add files (as they are now) to a run's manifest of the outputs it wrote."""
-    made = _manifest(manifest)
-    made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
-    manifest.parent.mkdir(parents=True, exist_ok=True)
-    write_json(manifest, made, indent=1, sort_keys=True)
-
-
-def ours_files(out_dir, manifests) -> set:
-    """The files of out_dir that one of these manifests lists and that are unchanged since that run
-    wrote them."""
-    ours = set()
-    for manifest in manifests:
-        for name, digest in _manifest(manifest).items():
-            f = pathlib.Path(out_dir) / name
-            if f.exists() and _file_sha(f) == digest:
-                ours.add(f)
-    return ours

@@ -106,9 +106,8 @@ class Run:
 def _open_loop(run: Run, spec: TableSpec, piece: Piece, m, stack_kw: dict) -> tuple:
     """Tables 1, 2 and 4, an ablation section, the real scenes: one method and seed, open loop."""
     on = dict(setting=spec.setting, pred_offset=spec.pred_offset, **stack_kw)
-    return ex.open_loop_experiment(methods=(m,), seeds=(piece.seed,), **on, **vars(run))[m.name][
-        0
-    ], None
+    rows = ex.open_loop_experiment(methods=(m,), seeds=(piece.seed,), **on, **vars(run))
+    return rows[m.name][0], None
 
 
 def _cost(run: Run, spec: TableSpec, piece: Piece, m, stack_kw: dict) -> tuple:
@@ -264,15 +263,16 @@ def draw_figures(spec: TableSpec, run: Run, res: dict, loaded: dict, seeds, out)
         }
         scenes = closed_loop_scenes(data.val_scenes, cfg)
         figures.figure_closed_loop(scenes, rollouts, out / "closed_loop.png", cfg.dt)
-    pair = {"stack_example.png", "real_scenes.png"} & set(spec.figures)
+    pair = [f for f in ("stack_example.png", "real_scenes.png") if f in spec.figures]
     try:  # the first seed's Standard and DiffStack
-        first = (
-            ex.trained_predictor(m, setting="rl", seed=seeds[0], **vars(run))
-            for m in spec.methods[1:3]
-        )
-        models = {m.name: model for m, model in zip(spec.methods[1:3], first)} if pair else {}
+        models = {
+            m.name: ex.trained_predictor(m, setting="rl", seed=seeds[0], **vars(run))
+            for m in (spec.methods[1:3] if pair else ())
+        }
     except TrainingDiverged as e:
-        return run.log and run.log(f"{', '.join(pair)} not drawn: {e}")
+        if run.log:
+            run.log(f"{', '.join(pair)} not drawn: {e}")
+        return
     if "stack_example.png" in pair:
         figures.figure_stack_example(data, models, cfg, out / "stack_example.png")
     if "real_scenes.png" in pair:
@@ -283,38 +283,25 @@ def table_meta(run: Run, spec: TableSpec, seeds, command: str, seconds: float, j
     """A table's provenance (the meta of its results file): the command, seeds, data, machine,
     threads, device, commit and Config, and its computing time summed over its pieces whenever they
     ran (with the count per machine where they ran on more than one)."""
+    meta = dict(experiment=spec.name, command=command, seeds=list(seeds), epochs=run.epochs)
+    meta.update(seconds=seconds)
     timings = [run.store.timing(spec.name, p) for p in table_pieces(spec, seeds)]
-    piece_time = {}
     if all(timings):
-        piece_time = dict(
-            piece_seconds=sum(t["seconds"] for t in timings),
-            piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings),
-            pieces=len(timings),
-        )
+        meta.update(piece_seconds=sum(t["seconds"] for t in timings))
+        meta.update(piece_cpu_seconds=sum(t["cpu_seconds"] for t in timings), pieces=len(timings))
         computed_on = collections.Counter(t["machine"] for t in timings if "machine" in t)
         if len(computed_on) > 1:  # not all on one machine (a run resumed on another host, say)
-            piece_time["computed_on"] = dict(computed_on)
-    processes = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+            meta.update(computed_on=dict(computed_on))
+    world = dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
     threads = f"1 thread per process, {jobs} worker processes (--jobs)"
     threads = f"{torch.get_num_threads()} threads" if jobs == 1 else threads
-    ddp = f" per process, {processes} processes (DDP)" if processes > 1 else ""
+    threads += f" per process, {world} processes (DDP)" if world > 1 else ""
     data = run.data
-    return dict(
-        experiment=spec.name,
-        command=command,
-        seeds=list(seeds),
-        epochs=run.epochs,
-        seconds=seconds,
-        **piece_time,
-        date=time.strftime("%Y-%m-%d"),
-        train=len(data.train),
-        val=len(data.val),
-        data_seeds=list(seeds) if data.train_draws is not None else None,
-        machine=f"{machine()}, torch {torch.__version__}, {threads}{ddp}",
-        device=str(run.device),
-        git_commit=runs.git_commit(),
-        config=dataclasses.asdict(run.cfg),
-    )
+    meta.update(date=time.strftime("%Y-%m-%d"), train=len(data.train), val=len(data.val))
+    meta.update(data_seeds=list(seeds) if data.train_draws is not None else None)
+    meta.update(machine=f"{machine()}, torch {torch.__version__}, {threads}")
+    meta.update(device=str(run.device), git_commit=runs.git_commit())
+    return dict(meta, config=dataclasses.asdict(run.cfg))
 
 
 def run_experiment(
@@ -335,102 +322,83 @@ def run_experiment(
     out_dir/<name>.json (results, the full Config, the device, the git commit), .md and the figures
     (for 'all', report.md too) unless write=False (torchrun's other ranks). Every piece is kept in
     out_dir/.runs/: re-running the command resumes it. A progress bar while log and write.
-    OutputRefused when a file it would write exists, unless overwrite or this same run wrote
-    it as is."""
+    OutputRefused when a file it would write exists, unless overwrite or this same run wrote it as
+    it is."""
+    t0 = time.time()
     names = EXPERIMENTS if name == "all" else (name,)
     out = pathlib.Path(out_dir)
     tables = [(SPECS[one], table_seeds(SPECS[one], seeds)) for one in names]
+    check_outputs(names, out, overwrite)
     # under torchrun every rank trains the same pieces together: nothing is kept or resumed there
     keep = write and not (dist.is_available() and dist.is_initialized())
-    # any run's own files first, before the data is hashed; then this run's own
-    check_outputs(names, out, overwrite, runs.ours_files(out, out.glob(".runs/outputs/*.json")))
+    key = runs.run_key(data, cfg, epochs, device)
     with contextlib.ExitStack() as stack:
         root = out / runs.RUNS_DIR if keep else stack.enter_context(tempfile.TemporaryDirectory())
-        key = runs.run_key(data, cfg, epochs, device)
-        run = Run(
-            data,
-            cfg,
-            epochs,
-            runs.RunStore(root, key, {n: ex.spec_key(SPECS[n]) for n in names}),
-            device,
-            log,
-        )
-        manifest = runs.outputs_manifest(out, name, seeds or (), key)
-        check_outputs(names, out, overwrite, runs.ours_files(out, [manifest]) if keep else ())
+        store = runs.RunStore(root, key, {n: ex.spec_key(SPECS[n]) for n in names})
+        run = Run(data, cfg, epochs, store, device, log)
         pieces = [(s.name, p) for s, seeds_one in tables for p in table_pieces(s, seeds_one)]
         # worker processes only where there are seeds to share out (the goal table: one per row)
         jobs = max(1, min(jobs, len({p.seed for _, p in pieces}))) if keep else 1
-        reused = [(t, p) for t, p in pieces if run.store.has(t, p)]
+        reused = [(t, p) for t, p in pieces if store.has(t, p)]
         if log:
-            log(
-                f"run key {key[:16]}: {len(pieces)} pieces (table, method, seed), kept in "
-                f"{root} as they finish"
-                + (f"; {jobs} worker processes of one thread" if jobs > 1 else "")
-            )
-            for t in dict.fromkeys(t for t, _ in reused):
-                done = [p.stem for u, p in reused if u == t]
-                of = sum(u == t for u, _ in pieces)
-                log(
-                    f"{t}: {len(done)} of {of} pieces done by an earlier run of the same key, "
-                    f"reused from {run.store.table_dir(t)}: {', '.join(done)}"
-                )
-        bar = stack.enter_context(
-            tqdm(
-                total=len(pieces),
-                initial=len(reused),
-                unit="piece",
-                desc=f"pieces ({len(reused)} reused)",
-                disable=not (log and write),
-            )
+            _log_start(run, pieces, reused, jobs)
+        desc = f"pieces ({len(reused)} reused)"
+        bar = tqdm(
+            total=len(pieces),
+            initial=len(reused),
+            unit="piece",
+            desc=desc,
+            disable=not (log and write),
         )
-        run.log = runs.above(bar, log) if log else None
-        return _write_tables(
-            name, run, tables, out, command, write, jobs, bar, manifest if keep else None
-        )
-
-
-def _write_tables(name, run: Run, tables, out, command, write, jobs, bar, manifest) -> list:
-    """run_experiment's tables, each run and its files written (and listed in the run's manifest
-    of its outputs), then the report; the sections of the report."""
-    if jobs > 1 and len(tables) > 1:  # every table's pieces in one pool of workers
+        run.log = runs.above(stack.enter_context(bar), log) if log else None
+        # every piece first (in one pool of workers), then the files: a stopped run has written
+        # none, and its re-run replaces nothing
         compute_pieces(run, tables, jobs, bar)
-    sections, metas, results = [], [], {}
-    for spec, seeds in tables:
-        t0 = time.time()
-        results[spec.name], table = run_table(spec, run, seeds, out, write, jobs, bar)
-        if not write:
-            sections.append((spec.title, table, list(spec.figures)))
-            continue
-        metas.append(table_meta(run, spec, seeds, command, time.time() - t0, jobs))
-        md = section_markdown(spec, metas[-1], table)
-        files = [out / f"{spec.name}.json", out / f"{spec.name}.md"]
-        runs.write_json(files[0], dict(meta=metas[-1], results=results[spec.name]), indent=1)
-        runs.write_atomic(files[1], table_file_markdown(spec, md))
-        if manifest is not None:
-            runs.record_outputs(manifest, files + [out / f for f in spec.figures])
-        if run.log:
-            run.log(f"\n{spec.title}\n{table}")
-        sections.append((spec.title, md, list(spec.figures)))
-    if run.log and metas and all("piece_seconds" in m for m in metas):
-        total = sum(m["piece_seconds"] for m in metas)
+        sections, metas, results = [], [], {}
+        for spec, seeds_one in tables:
+            results[spec.name], table = run_table(spec, run, seeds_one, out, write)
+            if write:
+                metas.append(table_meta(run, spec, seeds_one, command, time.time() - t0, jobs))
+                sections.append(_write_table(spec, run, out, metas[-1], results[spec.name], table))
+        if name == "all" and write:
+            report = write_report(out, sections, metas, tables=results)
+            if log:
+                run.log(f"report: {report}")
+
+
+def _log_start(run: Run, pieces: list, reused: list, jobs: int) -> None:
+    """The run's first lines: its key, where its pieces are kept, and those an earlier run of the
+    same key finished, named."""
+    workers = f"; {jobs} worker processes of one thread" if jobs > 1 else ""
+    run.log(
+        f"run key {run.store.key[:16]}: {len(pieces)} pieces (table, method, seed), kept in "
+        f"{run.store.root} as they finish{workers}"
+    )
+    for table in dict.fromkeys(t for t, _ in reused):
+        done = [p.stem for t, p in reused if t == table]
         run.log(
-            f"computing time summed over the {sum(m['pieces'] for m in metas)} pieces (whenever "
-            f"they ran): {tqdm.format_interval(total)}"
+            f"{table}: {len(done)} of {sum(t == table for t, _ in pieces)} pieces done by an "
+            f"earlier run of the same key, reused from {run.store.table_dir(table)}: "
+            + ", ".join(done)
         )
-    if name == "all" and write:
-        report = write_report(out, sections, metas, tables=results)
-        if manifest is not None:
-            runs.record_outputs(manifest, [report])
-        if run.log:
-            run.log(f"report: {report}")
-    return sections
 
 
-def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
-    """Before any work: out_dir must be writable, and no file a run of these tables would write may
-    exist already unless overwrite or it is in ours (runs.refuse_existing): each table's <name>.json
-    and .md, its figures, and report.md where there are several tables. OutputRefused naming the
-    folder or the files."""
+def _write_table(spec: TableSpec, run: Run, out, meta: dict, res: dict, table: str) -> tuple:
+    """A table's files, <name>.json (its meta and results) and <name>.md; its section of the
+    report."""
+    md = section_markdown(spec, meta, table)
+    files = [out / f"{spec.name}.json", out / f"{spec.name}.md"]
+    runs.write_json(files[0], dict(meta=meta, results=res), indent=1)
+    runs.write_atomic(files[1], table_file_markdown(spec, md))
+    if run.log:
+        run.log(f"\n{spec.title}\n{table}")
+    return spec.title, md, list(spec.figures)
+
+
+def check_outputs(names, out_dir, overwrite: bool) -> None:
+    """Before any work: out_dir must be writable, and no file a run of these tables would write
+    (each table's <name>.json and .md, its figures, report.md where there are several) may exist
+    already unless overwrite (runs.refuse_existing). OutputRefused naming the folder or files."""
     out = pathlib.Path(out_dir).resolve()
 
     def inside(folder):
@@ -450,7 +418,7 @@ def check_outputs(names, out_dir, overwrite: bool, ours=()) -> None:
     out = pathlib.Path(out_dir)
     files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
     files += [out / f for n in names for f in SPECS[n].figures]
-    runs.refuse_existing(files + ([out / "report.md"] if len(names) > 1 else []), overwrite, ours)
+    runs.refuse_existing(files + ([out / "report.md"] if len(names) > 1 else []), overwrite)
 
 
 def rendered(name: str, out_dir) -> tuple:
@@ -657,9 +625,7 @@ def _main(args, world: int, rank: int, command: str, held):
         )
     if args.jobs is not None and args.jobs > 1 and world > 1:
         raise ValueError(f"--jobs {args.jobs}: under torchrun the processes train together (DDP)")
-    # an earlier run's files may be ours: run_experiment decides
-    ours = runs.ours_files(args.out, pathlib.Path(args.out).glob(".runs/outputs/*.json"))
-    check_outputs(names, args.out, args.overwrite, ours)
+    check_outputs(names, args.out, args.overwrite)
     check_writable("data_cache", "the data cache (./data_cache)")  # synthetic, nuScenes, Waymo
     if rank == 0:
         held.enter_context(runs.folder_lock(args.out, command))
