@@ -532,15 +532,3 @@ def one_line(ap, interrupted: str = "nothing half-written is left"):
     except KeyboardInterrupt:
         print(f"{ap.prog}: interrupted (Ctrl-C); {interrupted}", file=sys.stderr)
         sys.exit(130)
-
-
-def refuse_existing(files, overwrite: bool) -> None:
-    """OutputRefused naming them if any of files exists already, unless overwrite: a run never
-    replaces a result it did not make (its own are written once it is complete)."""
-    existing = [str(f) for f in files if f.exists()]
-    if existing and not overwrite:
-        raise OutputRefused(
-            f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
-            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
-            f"replace them, or choose another --out"
-        )

@@ -1,10 +1,8 @@
 """Running the paper's tables (experiments.py's command line hands over here): each table cut into
 pieces, one (method, seed) result each, computed alone (in worker processes with --jobs), kept as
 they finish and resumed by a re-run (lab/runs.py), assembled into the table, its files written and
-rendered; real Waymo scenes; torchrun's ranks.
-
-What differs between the kinds of table is in one place, KINDS: kind -> (what computes one piece,
-with the experiment's own function in experiments.py; how its pieces make the table)."""
+rendered; real Waymo scenes; torchrun's ranks. What differs between the kinds of table is in KINDS:
+kind -> (one piece, by experiments.py's function; the table from its pieces)."""
 
 from __future__ import annotations
 
@@ -398,7 +396,7 @@ def _write_table(spec: TableSpec, run: Run, out, meta: dict, res: dict, table: s
 def check_outputs(names, out_dir, overwrite: bool) -> None:
     """Before any work: out_dir must be writable, and no file a run of these tables would write
     (each table's <name>.json and .md, its figures, report.md where there are several) may exist
-    already unless overwrite (runs.refuse_existing). OutputRefused naming the folder or files."""
+    already unless overwrite. OutputRefused naming the folder or the files."""
     out = pathlib.Path(out_dir).resolve()
 
     def inside(folder):
@@ -418,7 +416,14 @@ def check_outputs(names, out_dir, overwrite: bool) -> None:
     out = pathlib.Path(out_dir)
     files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
     files += [out / f for n in names for f in SPECS[n].figures]
-    runs.refuse_existing(files + ([out / "report.md"] if len(names) > 1 else []), overwrite)
+    files += [out / "report.md"] if len(names) > 1 else []
+    existing = [str(f) for f in files if f.exists()]
+    if existing and not overwrite:  # a run never replaces a result it did not make
+        raise runs.OutputRefused(
+            f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
+            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
+            f"replace them, or choose another --out"
+        )
 
 
 def rendered(name: str, out_dir) -> tuple:
@@ -659,19 +664,9 @@ def _main(args, world: int, rank: int, command: str, held):
         if error is not None:
             raise ValueError(error)
         jobs = args.jobs or (1 if world > 1 else os.cpu_count() or 1)
+        opts = dict(overwrite=args.overwrite, device=device, write=rank == 0, jobs=jobs)
         return run_experiment(
-            args.experiment,
-            data,
-            cfg,
-            seeds,
-            args.epochs,
-            args.out,
-            command,
-            log,
-            overwrite=args.overwrite,
-            device=device,
-            write=rank == 0,
-            jobs=jobs,
+            args.experiment, data, cfg, seeds, args.epochs, args.out, command, log, **opts
         )
     finally:
         if world > 1:
