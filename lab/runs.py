@@ -360,7 +360,9 @@ def die_with_parent(parent: int) -> None:
     the run it belongs to and writes pieces for nobody."""
     import ctypes
 
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
+    libc = ctypes.CDLL(None, use_errno=True)
+    if hasattr(libc, "prctl"):  # (Linux; elsewhere a worker may outlive a run killed with -9)
+        libc.prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
     if os.getppid() != parent:  # the parent ended before the prctl
         os._exit(1)
 
