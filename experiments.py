@@ -78,7 +78,7 @@ from train import (
 from lab.report import behaviour_markdown as behaviour_markdown
 from lab.report import claim_line as claim_line
 from lab.report import gap_closed as gap_closed
-from lab.runs import first_non_finite, load_json, save_atomic, write_atomic
+from lab.runs import load_json, save_atomic, write_atomic
 from lab.stats import markdown_table
 
 
@@ -171,16 +171,6 @@ def stored_predictor(path, cfg: Config, device):
     return model
 
 
-def non_finite(o) -> str | None:
-    """The first number in o (nested dicts and lists) that is NaN or infinite, as 'a.1.b, not a
-    number' (or 'infinite'); None when every one is finite."""
-    found = first_non_finite(o)
-    if found is None:
-        return None
-    keys, v = found
-    return f"{'.'.join(map(str, keys)) or 'a value'}, " + ("not a number" if v != v else "infinite")
-
-
 def trained_predictor(
     m: Method,
     data,
@@ -226,12 +216,15 @@ def trained_predictor(
             curve_samples=CURVE_SAMPLES,
             **stack_kw,
         )
-        bad = non_finite(getattr(model, "learning_curve", None) or [])
-        if bad is not None:  # neither file is written: a result is never written with NaN
-            raise TrainingDiverged(f"{m.name}, seed {seed}: its learning curve holds {bad}")
+        try:  # neither file is written: a result is never written with NaN
+            curve = json.dumps(getattr(model, "learning_curve", None), allow_nan=False)
+        except ValueError:
+            raise TrainingDiverged(
+                f"{m.name}, seed {seed}: its learning curve holds NaN or infinity"
+            ) from None
         if path is not None:  # the curve first: a model file on disk always has its curve beside it
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(path.with_suffix(".curve.json"), json.dumps(model.learning_curve))
+            write_atomic(path.with_suffix(".curve.json"), curve)
             save_atomic(model.state_dict(), path)
     if models is not None:
         models[key] = model
@@ -249,13 +242,14 @@ def open_loop_experiment(
     log=print,
     models=None,
     device="cpu",
+    store=None,
     **stack_kw,
 ) -> dict:
-    """compare_methods with predictors shared through `models` (trained_predictor), run on
-    `device`."""
+    """compare_methods with predictors shared through `models` and kept in `store`, a RunStore
+    (trained_predictor), run on `device`."""
 
     def train(m, *a, **k):
-        return trained_predictor(m, *a, models=models, **k)
+        return trained_predictor(m, *a, models=models, store=store, **k)
 
     return compare_methods(
         data,

@@ -24,6 +24,11 @@ import train as tr
 TINY = dict(pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=8, pred_latent_hidden=8)
 
 
+def run_of(data, cfg, epochs, tmp_path) -> lt.Run:
+    """A run of one table's pieces, quiet, its store in tmp_path (lt.run_table's context)."""
+    return lt.Run(data, cfg, epochs, runs.RunStore(tmp_path / ".runs", "k"), log=None)
+
+
 # ---------------------------------------------------------------------------------------------
 # The command line
 # ---------------------------------------------------------------------------------------------
@@ -453,7 +458,9 @@ def test_experiments_end_to_end_tiny(clean, tmp_path):
     data, _ = clean
     cfg = ds.Config(**TINY10)
     small = data_synth.Dataset(data.train[:64], data.val[:32], data.val_scenes[:3])
-    res, table = lt.run_table(specs.TABLES["cost"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    res, table = lt.run_table(
+        specs.TABLES["cost"], run_of(small, cfg, 1.0, tmp_path), (0,), tmp_path
+    )
     assert set(res) == {"Hand-tuned", "Learned"} and "Learned" in table
     assert res["Hand-tuned"][0]["w"] == pytest.approx([5.0, 0.5, 0.3, 0.3, 1.0], rel=1e-5)
     # Table 3 as the paper: w'_1 fixed at 5, w'_2..5 moved but summing to 2.1
@@ -461,7 +468,7 @@ def test_experiments_end_to_end_tiny(clean, tmp_path):
     assert learned[0] == 5.0 and sum(learned[1:]) == pytest.approx(2.1, rel=1e-6)
     assert max(abs(a - b) for a, b in zip(learned[1:], (0.5, 0.3, 0.3, 1.0))) > 1e-4
     res, table = lt.run_table(
-        specs.TABLES["closed_loop"], small, cfg, (0,), 0.5, tmp_path, log=None
+        specs.TABLES["closed_loop"], run_of(small, cfg, 0.5, tmp_path), (0,), tmp_path
     )
     assert list(res) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
     assert res["No prediction"][0]["rel_trajectory"] == 0 and math.isfinite(
@@ -481,7 +488,7 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
     small = data_synth.Dataset(data.train[:32], data.val[:16])
     no_planner, dt01 = specs.ABLATION_SECTIONS[1], specs.ABLATION_SECTIONS[-1]
     # the shortest section and dt = 0.1 s
-    monkeypatch.setattr(lt, "ABLATION_SECTIONS", (no_planner, dt01))
+    spec = dataclasses.replace(specs.TABLES["ablation"], sections=(no_planner, dt01))
     trained = []
     train = tr.train_stack
     monkeypatch.setattr(
@@ -491,7 +498,7 @@ def test_ablation_table_has_a_reference_pair_per_section(clean, tmp_path, monkey
             1
         ],
     )
-    res, table = lt.run_table(specs.TABLES["ablation"], small, cfg, (0,), 1.0, tmp_path, log=None)
+    res, table = lt.run_table(spec, run_of(small, cfg, 1.0, tmp_path), (0,), tmp_path)
     assert list(res) == [no_planner[0], dt01[0]] and "dt = 0.1 s" in dt01[0]
     for rows in res.values():
         assert list(rows) == ["No prediction", "Standard", "DiffStack", "GT prediction"]
@@ -683,8 +690,8 @@ def test_a_claim_that_the_method_is_higher_against_a_baseline_of_one_run():
 
 
 def test_table_markdown_carries_the_claim_lines(tmp_path):
-    """A table's markdown (and render_markdown's file, re-made from its JSON) has one line per claim
-    of the paper."""
+    """A table's markdown (and --render's file, re-made from its JSON) has one line per claim of
+    the paper."""
 
     def runs(*v):
         return [
@@ -708,7 +715,8 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
         command="python experiments.py --experiment rl", date="2026-01-01", machine="m", seconds=1.0
     )
     (tmp_path / "rl.json").write_text(json.dumps(dict(meta=meta, results=res)))
-    text = lt.render_markdown("rl", tmp_path).read_text()
+    lt.render_outputs("rl", tmp_path, log=None)
+    text = (tmp_path / "rl.md").read_text()
     assert (
         text.startswith("# Table 1")
         and md in text
@@ -726,7 +734,7 @@ def test_table_markdown_carries_the_claim_lines(tmp_path):
         in md
     )
     with pytest.raises(ValueError, match="name: 'nope'"):
-        lt.render_markdown("nope", tmp_path)
+        lt.render_outputs("nope", tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -764,7 +772,8 @@ def test_behaviour_breakdown_is_relative_to_no_prediction_per_behaviour():
 def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_path):
     store = runs.RunStore(tmp_path, "k")
     names = ("rl", "ablation", "il")
-    units = lt.work_units(names, {n: (0, 1, 2) for n in names}, store)
+    tables = [(specs.SPECS[n], (0, 1, 2)) for n in names]
+    units = [(spec.name, ps) for spec, ps in lt.work_units(tables, store)]
     assert units[0][0] == "ablation" and {n for n, _ in units[-3:]} == {"il"}
     assert all(len({p.seed for p in ps}) == 1 for _, ps in units)  # one seed per unit
     seeds = [ps[0].seed for _, ps in units]
@@ -775,7 +784,7 @@ def test_work_units_put_the_longest_first_and_never_one_seed_twice_at_once(tmp_p
     done = units[0][1][0]
     store.save("ablation", done, {"x": 1})
     assert ("ablation", done) not in [
-        (n, p) for n, ps in lt.work_units(names, {n: (0, 1, 2) for n in names}, store) for p in ps
+        (spec.name, p) for spec, ps in lt.work_units(tables, store) for p in ps
     ]
 
 
@@ -912,7 +921,7 @@ def test_the_goal_table_shows_what_a_perfect_prediction_saves_and_why(clean, tmp
     hindsight cost."""
     data, _ = clean
     cfg = ds.Config()
-    res, md = lt.run_table(specs.GOAL_TABLE, data, cfg, (0, 1), 1.0, tmp_path, log=None)
+    res, md = lt.run_table(specs.GOAL_TABLE, run_of(data, cfg, 1.0, tmp_path), (0, 1), tmp_path)
     assert list(res) == list(specs.GOALS) and all(
         list(rows) == ["No prediction", "GT prediction"] for rows in res.values()
     )
@@ -1133,9 +1142,3 @@ def test_a_table_whose_trained_rows_all_diverged_names_them_and_tests_nothing():
     assert "No gap closed is given: every seed of Standard or DiffStack diverged." in md
     assert "Diverged, left out of the means: DiffStack, seed 0: its learning curve holds" in md
     assert "untested (no seed trained both rows)" in card
-
-
-def test_non_finite_names_the_first_value_that_is_not_a_number():
-    assert ex.non_finite({"a": [1.0, {"b": 2.0}], "c": "x"}) is None
-    assert ex.non_finite({"a": [1.0, {"b": float("nan")}]}) == "a.1.b, not a number"
-    assert ex.non_finite([{"epoch": 0, "nll": float("-inf")}]) == "0.nll, infinite"

@@ -8,7 +8,6 @@ import json
 import os
 import pathlib
 import re
-import threading
 import time
 
 import pytest
@@ -20,7 +19,6 @@ import diffstack as ds
 import experiments as ex
 from lab import tables as lt
 from lab import runs
-import specs
 import train as tr
 from lab import cli
 
@@ -111,7 +109,6 @@ def test_an_interrupted_run_resumes_and_trains_only_the_rest(small, tmp_path, tr
     assert meta["piece_seconds"] == pytest.approx(sum(t["seconds"] for t in kept))
     assert "s wall in this command" in (tmp_path / "cut" / "il.md").read_text()
     assert "s of computing summed over its 6 pieces" in (tmp_path / "cut" / "il.md").read_text()
-    assert any("computing time summed over the 6 pieces" in ln for ln in lines)
     assert numbers(tmp_path / "cut") == numbers(tmp_path / "whole")
     assert table_of(tmp_path / "cut") == table_of(tmp_path / "whole")
 
@@ -124,22 +121,22 @@ def test_a_changed_config_is_a_new_run_and_a_finished_run_reruns_from_its_pieces
     lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
     assert len(trainings.calls) == 2
     before = numbers(out)
-    # the same command again: its own outputs may be replaced, nothing is trained, the same
-    # numbers come out
-    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
-    assert len(trainings.calls) == 2 and numbers(out) == before
-    # another config is another run: its outputs are not ours (refused without --overwrite), and all
-    # is retrained
-    other = dataclasses.replace(cfg, beta=2 * cfg.beta)
+    # the same command again: its files exist, so only --overwrite replaces them; then nothing is
+    # trained and the same numbers come out
     with pytest.raises(ValueError, match="--overwrite"):
-        lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+        lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None, overwrite=True)
+    assert len(trainings.calls) == 2 and numbers(out) == before
+    # another config is another run, and all is retrained
+    other = dataclasses.replace(cfg, beta=2 * cfg.beta)
     lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None, overwrite=True)
     assert len(trainings.calls) == 4 and len(list((out / ".runs" / "il").iterdir())) == 2
     assert numbers(out) != before
-    # an output edited by hand is no longer the run's own: refused
+    # an output edited by hand (or any other file of the same name) is refused, and kept
     (out / "il.md").write_text("edited")
     with pytest.raises(ValueError, match="il.md"):
         lt.run_experiment("il", small, other, (0,), 0.5, out, "test", log=None)
+    assert (out / "il.md").read_text() == "edited"
 
 
 def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_path, trainings):
@@ -155,7 +152,7 @@ def test_a_run_resumed_on_another_machine_says_where_its_pieces_ran(small, tmp_p
     piece = json.loads(kept[-1].read_text())
     piece["timing"]["machine"] = "x86_64, another processor, AVX2, 2 cores"
     kept[-1].write_text(json.dumps(piece))
-    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None, overwrite=True)
     assert len(trainings.calls) == 2  # resumed: nothing trained again
     meta = json.loads((out / "il.json").read_text())["meta"]
     assert meta["computed_on"] == {cli.machine(): 3, "x86_64, another processor, AVX2, 2 cores": 1}
@@ -176,7 +173,7 @@ def test_a_resumed_closed_loop_draws_its_figure_from_the_kept_rollouts(
     monkeypatch.setattr(
         ex, "simulate", lambda *a, **k: pytest.fail("every piece is kept: nothing is simulated")
     )
-    lt.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None)
+    lt.run_experiment("closed_loop", small, cfg, (0,), 0.5, out, "test", log=None, overwrite=True)
     # Standard and DiffStack, once; the figure's predictors are loaded
     assert len(trainings.calls) == 2
     assert (
@@ -208,72 +205,27 @@ def test_bad_jobs_is_a_one_line_error_naming_it(jobs, capsys, tmp_path):
     assert e.value.code == 2 and "--jobs" in err[-1] and err[-1].startswith("usage") is False
 
 
-def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_others_up_to_the_total(tmp_path):
-    """Pieces saved to the store by another process (here a thread, as a worker process would) are
-    counted as they appear: the bar starts at those finished before it, and reaches the total while
-    the run is still in its with block, not only at the end."""
-    store = runs.RunStore(tmp_path, "k")
-    pieces = [("il", lt.Piece("Standard", s)) for s in range(4)]
-    store.save("il", pieces[0][1], {"ade": 1.0})
-    with runs.progress(store, pieces, every=0.01) as bar:
-        assert (bar.initial, bar.n, bar.total) == (1, 1, 4)
-        worker = threading.Thread(
-            target=lambda: [store.save("il", p, {"ade": 1.0}) for _, p in pieces[1:]]
-        )
-        worker.start()
-        worker.join()
-        deadline = time.time() + 5.0
-        while bar.n < 4 and time.time() < deadline:
-            time.sleep(0.01)
-        assert bar.n == 4
-    assert bar.n == bar.total == 4
+def test_the_progress_bar_starts_at_the_reused_pieces_and_counts_up_to_the_total(
+    small, tmp_path, monkeypatch
+):
+    """The bar (tqdm) counts the pieces of the run: those an earlier run finished from the start,
+    then each one as it is kept."""
+    bars = []
 
+    class Bar(lt.tqdm):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            if not self.disable:  # (the bar of a run that logs)
+                bars.append(self)
 
-def test_a_piece_records_whether_it_trained(small, tmp_path):
+    monkeypatch.setattr(lt, "tqdm", Bar)
     cfg = ds.Config(**TINY10)
-    out = tmp_path / "out"
-    lt.run_experiment("il", small, cfg, (0,), 0.5, out, "test", log=None)
-    lt.run_experiment("cost", small, cfg, (0,), 0.5, out, "test", log=None)
-    trained = {
-        f"{f.parent.parent.name} {f.stem}": json.loads(f.read_text())["timing"]["trained"]
-        for f in (out / ".runs").glob("*/*/*-seed*.json")
-    }
-    # Table 3 finds Table 4's Standard trained, and trains its cost weights
-    assert trained == {
-        "il No_prediction-seed0": False,
-        "il Standard-seed0": True,
-        "il DiffStack-seed0": True,
-        "il GT_prediction-seed0": False,
-        "cost Cost_weights-seed0": True,
-    }
-
-
-def test_piece_trainings_are_the_predictors_each_piece_asks_for(small, monkeypatch):
-    """timed_piece knows what a piece trains from piece_trainings, which must name the training_key
-    that the piece itself asks trained_predictor for, in every table (trainings replaced by
-    untrained models: only keys count)."""
-    cfg = ds.Config(**TINY10)
-    asked = []
-    key = ex.training_key
-    monkeypatch.setattr(ex, "training_key", lambda *a, **k: asked.append(key(*a, **k)) or asked[-1])
-    monkeypatch.setattr(ex, "train_predictor", lambda m, data, cfg, *a, **k: ds.Predictor(cfg))
-    monkeypatch.setattr(ex, "train_stack", lambda *a, **k: None)  # Table 3's cost weights
-    monkeypatch.setattr(ex, "CURVE_SAMPLES", 0)
-    kinds = set()
-    for name in ("rl", "biased", "il", "cost", "ablation", "closed_loop", "goal"):
-        spec = specs.SPECS[name]
-        for piece in lt.table_pieces(spec, (1,)):
-            asked.clear()
-            lt.compute_piece(spec, piece, small, cfg, 0.5, log=None)
-            used = list(asked)
-            named = lt.piece_trainings(spec, piece, cfg, 0.5)
-            assert used == [k for k in named if k[0] != "cost weights"], (name, piece)
-            assert all(k[2] == 1 for k in used)  # the piece's seed
-            kinds.update(k[:2] + k[3:] for k in used)
-    # the predictors the tables train, per seed: Table 1's five, Table 2's two, Table 4's DiffStack,
-    # the ablations' eight (Standard, DiffStack and DiffStack (no L_pred) are Table 1's; No
-    # controller's DiffStack is no L_ctr's)
-    assert len(kinds) == 5 + 2 + 1 + 8
+    lines = []  # (a run that logs has a bar)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=lines.append)
+    (piece,) = (tmp_path / ".runs" / "il").glob("*/Standard-seed0.json")
+    piece.unlink()
+    lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "t", log=lines.append, overwrite=True)
+    assert [(b.initial, b.n, b.total) for b in bars] == [(0, 4, 4), (3, 4, 4)]
 
 
 def test_a_refused_out_is_a_one_line_error_on_the_command_line(tmp_path, capsys):
@@ -339,7 +291,7 @@ def test_a_diverged_training_is_kept_as_a_result_and_named_in_the_table(
     assert "1 of 1 seeds better" in md or "0 of 1 seeds better" in md
     assert "1 diverged, left out" in md
     calls.clear()
-    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None)
+    lt.run_experiment("il", small, cfg, (0, 1), 0.5, tmp_path, "test", log=None, overwrite=True)
     assert calls == []  # every piece kept, the diverged one too
 
 
@@ -443,15 +395,12 @@ def test_a_predictor_whose_evaluation_is_not_finite_is_a_diverged_training(small
 
 
 def test_a_result_with_nan_or_infinity_is_never_written(tmp_path):
-    assert json.loads(runs.results_json({"a": [1.0, {"b": 2.0}]}, "x.json")) == {
-        "a": [1.0, {"b": 2.0}]
-    }
-    for bad, where in (
-        ({"a": [1.0, {"b": float("nan")}]}, "['a'][1]['b'] = nan"),
-        ({"c": float("-inf")}, "['c'] = -inf"),
-    ):
-        with pytest.raises(ValueError, match=re.escape(f"out/rl.json: {where} is not finite")):
-            runs.results_json(bad, "out/rl.json")
+    runs.write_json(tmp_path / "x.json", {"a": [1.0, {"b": 2.0}]})
+    assert json.loads((tmp_path / "x.json").read_text()) == {"a": [1.0, {"b": 2.0}]}
+    for bad in ({"a": [1.0, {"b": float("nan")}]}, {"c": float("-inf")}):
+        with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 'rl.json'}: Out of range")):
+            runs.write_json(tmp_path / "rl.json", bad)
+        assert not (tmp_path / "rl.json").exists()
 
 
 def _children(pid: int) -> set:
@@ -544,19 +493,16 @@ def test_a_killed_runs_workers_do_not_outlive_it(tmp_path, how):
     assert not alive, f"workers {alive} outlived their killed parent"
 
 
-def _dies(table, piece, log, models, store):
-    """A piece whose worker process dies (as one killed by the OOM killer would)."""
-    os._exit(3)
+def _dies(code):
+    """A unit of work whose worker process dies (as one killed by the OOM killer would)."""
+    os._exit(code)
 
 
 def test_a_worker_that_dies_stops_the_run_saying_so(tmp_path):
-    store = runs.RunStore(tmp_path, "k")
     with pytest.raises(
         runs.WorkerDied, match=r"a worker process died .*the same command resumes it"
     ):
-        runs.compute_in_workers(
-            _dies, [("rl", [lt.Piece("Standard", 0, None)])], store, jobs=1, verbose=False
-        )
+        runs.in_workers(_dies, [(3,), (3,)], 2, print, tmp_path)
 
 
 @pytest.mark.slow

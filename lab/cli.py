@@ -3,10 +3,12 @@ Config's fields, the checks of an output folder, and the machine a result names.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import os
 import pathlib
+import platform
 import tempfile
 
 import torch
@@ -20,14 +22,10 @@ def machine() -> str:
     on the same kind of processor only: torch's own vectorised kernels, MKL's and oneDNN's follow
     its instruction set (capping any one at AVX2 on an AVX-512 machine changes a few training steps'
     weights), and one rounding apart grows over a training like another seed."""
-    import platform
-
     name = platform.processor() or "unknown processor"
     try:
         with open("/proc/cpuinfo") as f:
-            name = next(
-                line.split(":", 1)[1].strip() for line in f if line.startswith("model name")
-            )
+            name = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
     capability = torch.backends.cpu.get_cpu_capability()
@@ -37,7 +35,6 @@ def machine() -> str:
 def check_writable(folder, what: str) -> None:
     """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and
     takes files."""
-
     try:
         pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
@@ -49,15 +46,13 @@ def check_writable(folder, what: str) -> None:
 def bounded(kind, lo, hi, name):
     """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi
     (lo excluded for floats)."""
-    import argparse
 
     def parse(text):
         try:
             x = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"{name} takes {'a whole number' if kind is int else 'a number'}, got {text!r}"
-            ) from None
+            what = "a whole number" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"{name} takes {what}, got {text!r}") from None
         if not math.isfinite(x) or x > hi or (x <= lo if kind is float else x < lo):
             bounds = f"> {lo:g} and <= {hi:g}" if kind is float else f"from {lo:,} to {hi:,}"
             raise argparse.ArgumentTypeError(f"{name} must be {bounds}, got {text!r}")
@@ -70,62 +65,46 @@ def device_arg(text):
     """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps),
     checked before any work; a name torch does not know, or a GPU that is not there, is a one-line
     argparse error."""
-    import argparse
-
     try:
         device = torch.device(text)
     except (RuntimeError, ValueError):
-        raise argparse.ArgumentTypeError(
-            f"--device takes a torch device (cpu, cuda, cuda:N or mps), got {text!r}"
-        ) from None
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise argparse.ArgumentTypeError(
-                f"--device {text}: no CUDA device here (torch.cuda.is_available() is False)"
-            )
-        if device.index is not None and device.index >= count:
-            raise argparse.ArgumentTypeError(
-                f"--device {text}: this machine has {count} CUDA device(s), cuda:0 to "
-                f"cuda:{count - 1}"
-            )
-    elif device.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise argparse.ArgumentTypeError(
-                f"--device {text}: no MPS device here (torch.backends.mps.is_available() is False)"
-            )
-    elif device.type != "cpu":
-        raise argparse.ArgumentTypeError(
-            f"--device {text}: the stack runs on cpu, cuda, cuda:N or mps, not {device.type}"
-        )
-    return device
+        device = None
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if device is None:
+        why = "not a torch device (cpu, cuda, cuda:N or mps)"
+    elif device.type not in ("cpu", "cuda", "mps"):
+        why = f"the stack runs on cpu, cuda, cuda:N or mps, not {device.type}"
+    elif device.type == "cuda" and count == 0:
+        why = "no CUDA device here (torch.cuda.is_available() is False)"
+    elif device.type == "cuda" and device.index is not None and device.index >= count:
+        why = f"this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}"
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        why = "no MPS device here (torch.backends.mps.is_available() is False)"
+    else:
+        return device
+    raise argparse.ArgumentTypeError(f"--device {text}: {why}")
 
 
 def config_with(cfg: Config, assignments) -> Config:
-    """cfg with fields overridden by 'key=value' strings (the CLIs' --set), each value parsed to the
-    field's type (a tuple as comma-separated numbers, brackets optional). ValueError naming the key
-    when it is not a Config field or the value does not parse."""
-    fields = {f.name: f for f in dataclasses.fields(Config)}
+    """cfg with fields overridden by 'key=value' strings (every command line's --set), each value
+    parsed to the field's type (a tuple as comma-separated numbers, brackets optional). ValueError
+    naming the key when it is not a Config field or the value does not parse."""
+    fields = [f.name for f in dataclasses.fields(Config)]
     changes = {}
     for item in assignments or ():
-        key, eq, text = item.partition("=")
-        key, text = key.strip(), text.strip()
+        key, eq, text = (part.strip() for part in item.partition("="))
         if not eq or key not in fields:
-            raise ValueError(
-                f"--set {item}: unknown Config field {key!r} (known: {', '.join(fields)})"
-                if eq
-                else f"--set {item}: expected key=value"
-            )
+            known = f"unknown Config field {key!r} (known: {', '.join(fields)})"
+            raise ValueError(f"--set {item}: {known if eq else 'expected key=value'}")
         default = getattr(cfg, key)
         try:
-            if isinstance(default, tuple):
-                # every tuple field holds floats
+            if isinstance(default, tuple):  # (every tuple field holds floats)
                 value = tuple(float(p) for p in text.strip("()[] ").split(",") if p.strip())
             elif isinstance(default, bool):
                 value = {"true": True, "1": True, "false": False, "0": False}[text.lower()]
             else:
                 value = type(default)(text)
-        except (ValueError, KeyError, IndexError):
+        except (ValueError, KeyError):
             raise ValueError(
                 f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
                 f"could not parse {text!r}"

@@ -1,19 +1,17 @@
-"""The run machinery under experiments.py, ignorant of tables: a run's pieces kept on disk as they
-finish and resumed (RunStore), atomic writes, provenance (the run key: config, data, code, device;
-the git commit), refusing to overwrite outputs a run did not make, the worker pool, and the
-progress bar.
+"""The run machinery under experiments.py, ignorant of tables: JSON read with checks and written
+without NaN, atomic writes, provenance (the run key: config, data, code, device; the git commit), a
+run's pieces kept on disk as they finish and resumed (RunStore), the worker processes
+(concurrent.futures), one run per output folder (filelock), never replacing outputs a run did not
+make.
 
 A piece is one result of a run under a name (a table): anything with a `stem` (its file name) and
-`_asdict()` (a NamedTuple; experiments.Piece). A run's pieces live next to its outputs, in
-<out>/.runs/<name>/<name key>/<piece stem>.json (with a .pt of tensors beside it where it has some),
-written atomically the moment the piece is made. The name key is a hash of the run key and the name;
-the run key, of everything that determines the numbers: the Config, the epochs, the data (a hash of
-its tensors), the code (a hash of the modules that make numbers, code_version) and the device.
-Re-running the same command loads the finished pieces and computes only the missing ones; any change
-to the config, data or code is another key, so nothing of another run is mixed in. The seeds are not
-part of the key (a piece is one seed), nor is the thread count (it moves only the last digits,
-README Usage). Trained models go in <out>/.runs/models/<run key>/ (RunStore.model_path).
-"""
+`_asdict()` (lab.tables.Piece). A run's pieces live in <out>/.runs/<name>/<name key>/<stem>.json (a
+.pt of tensors beside it where it has some), written atomically the moment the piece is made. The
+name key hashes the run key and the name; the run key, everything that determines the numbers: the
+Config, the epochs, the data (its tensors), the code (code_version) and the device. Re-running the
+same command loads the finished pieces and computes only the missing ones; another config, data or
+code is another key, so nothing of another run is mixed in. The seeds are not part of the key (a
+piece is one seed), nor is the thread count (it moves only the last digits)."""
 
 from __future__ import annotations
 
@@ -21,22 +19,23 @@ import ast
 import contextlib
 import dataclasses
 import errno
-import fcntl
 import functools
 import hashlib
 import json
-import math
+import multiprocessing
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 
+import filelock
 import torch
-from tqdm import tqdm
 
 RUNS_DIR = ".runs"
 # the repository: this file is lab/runs.py
@@ -52,13 +51,9 @@ def to_json(o):
     return o.tolist() if torch.is_tensor(o) else str(o)
 
 
-MAX_JSON_BYTES = 512 * 2**20  # the largest JSON file the project reads (its results: a few MB)
-MAX_JSON_DEPTH = 32  # and the deepest nesting (its results: 9)
-
-
 def load_json(path, what: str):
     """The JSON document in path, or one ValueError naming the file and what is wrong: unreadable,
-    larger than MAX_JSON_BYTES, not JSON, nested deeper than MAX_JSON_DEPTH, or holding NaN or
+    not JSON (json's message says where), nested deeper than the parser goes, or holding NaN or
     infinity (which the project never writes). what: what the file should be, for the message."""
     path = pathlib.Path(path)
 
@@ -66,33 +61,22 @@ def load_json(path, what: str):
         raise ValueError(f"it holds {name}, which no file of the project holds")
 
     try:
-        if path.stat().st_size > MAX_JSON_BYTES:
-            raise ValueError(f"larger than {MAX_JSON_BYTES // 2**20} MB")
-        doc = json.loads(path.read_text(), parse_constant=constant)
+        return json.loads(path.read_text(), parse_constant=constant)
     except OSError as e:
         raise ValueError(f"{path}: cannot read it ({e.strerror or e})") from None
     except RecursionError:
         raise ValueError(f"{path}: not {what} (nested too deeply)") from None
     except ValueError as e:  # (UnicodeDecodeError and JSONDecodeError too)
         raise ValueError(f"{path}: not {what} ({e})") from None
-    stack = [(doc, 0)]
-    while stack:
-        o, depth = stack.pop()
-        if depth > MAX_JSON_DEPTH:
-            raise ValueError(f"{path}: not {what} (nested deeper than {MAX_JSON_DEPTH} levels)")
-        items = o.values() if isinstance(o, dict) else o if isinstance(o, list) else ()
-        stack += [(v, depth + 1) for v in items]
-    return doc
 
 
 RESULTS_META = {"command": "text", "date": "text", "machine": "text", "seconds": "number"}
 _KINDS = {"text": str, "number": (int, float)}
 
 
-def read_results(path, meta_fields=RESULTS_META) -> dict:
-    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with the fields of
-    meta_fields {name: 'text' or 'number'}, by default those a table's header shows); ValueError
-    naming the file and the field otherwise."""
+def read_results(path) -> dict:
+    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with the fields a
+    table's header shows); ValueError naming the file and the field otherwise."""
     what = "a results file of python experiments.py"
     saved = load_json(path, what)
     if not isinstance(saved, dict) or not {"meta", "results"} <= saved.keys():
@@ -100,7 +84,7 @@ def read_results(path, meta_fields=RESULTS_META) -> dict:
     meta, results = saved["meta"], saved["results"]
     if not isinstance(meta, dict) or not isinstance(results, dict):
         raise ValueError(f"{path}: not {what} ('meta' and 'results' must be objects)")
-    for field, kind in meta_fields.items():
+    for field, kind in RESULTS_META.items():
         if not isinstance(meta.get(field), _KINDS[kind]) or isinstance(meta.get(field), bool):
             raise ValueError(f"{path}: meta.{field} is missing or not {kind}")
     stack = [(results, "results")]
@@ -109,52 +93,23 @@ def read_results(path, meta_fields=RESULTS_META) -> dict:
         if o is None:
             raise ValueError(f"{path}: {where} is null, where a result belongs")
         items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
-        stack += [
-            (v, f"{where}[{k!r}]" if isinstance(k, int) else f"{where}.{k}") for k, v in items
-        ]
+        stack += [(v, f"{where}[{k}]" if isinstance(k, int) else f"{where}.{k}") for k, v in items]
     return saved
 
 
-def first_non_finite(o, keys=()) -> tuple | None:
-    """(the keys down to it, the value) of the first NaN or infinite number in o (nested dicts and
-    lists), or None when every one is finite."""
-    if isinstance(o, float) and not math.isfinite(o):
-        return keys, o
-    items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
-    for k, v in items:
-        if (found := first_non_finite(v, (*keys, k))) is not None:
-            return found
-    return None
-
-
-def results_json(obj, name: str) -> str:
-    """obj as the text of the result file `name`; ValueError naming the first NaN or infinity,
-    never written."""
+def write_json(path, obj, **dumps) -> None:
+    """obj as JSON in path (write_atomic; tensors as lists); a NaN or infinity is refused
+    (json.dumps' allow_nan=False): ValueError naming the file, and nothing is written."""
     try:
-        return json.dumps(obj, indent=1, default=to_json, allow_nan=False)
-    except ValueError:
-        found = first_non_finite(json.loads(json.dumps(obj, default=to_json)))
-        where = "a value" if found is None else "".join(f"[{k!r}]" for k in found[0])
-        raise ValueError(
-            f"{name}: {where}{'' if found is None else f' = {found[1]}'} is not finite; a result "
-            "is never written with NaN or infinity"
-        ) from None
-
-
-# ============================================================================================
-# Atomic writes
-# ============================================================================================
+        text = json.dumps(obj, default=to_json, allow_nan=False, **dumps)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}; a result is never written with NaN or infinity") from None
+    write_atomic(path, text)
 
 
 # the process's umask, read once at import (reading it means setting it) and put back
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
-
-
-def _usual_permissions(path) -> None:
-    """The permissions open() would have given a new file (0666 less the umask): mkstemp makes its
-    files 0600, and a result only its owner can read is no use in a shared lab folder."""
-    os.chmod(path, 0o666 & ~_UMASK)
 
 
 class DiskFull(OSError):
@@ -177,13 +132,14 @@ def replace_atomic(path, write, needed: int) -> None:
     onto path: a kill mid-write leaves the old file intact, a failed write leaves nothing behind,
     and a full disk is one DiskFull line naming the file and the space it needs (about `needed`
     bytes). The same name keeps a figure's format and torch.save's bytes (its archive is named
-    after the file)."""
+    after the file). The file gets the permissions open() would give (mkstemp's 0600 is no use in
+    a shared lab folder)."""
     path = pathlib.Path(path)
     folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = os.path.join(folder, path.name)
     try:
         write(tmp)
-        _usual_permissions(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException as e:
         shutil.rmtree(folder, ignore_errors=True)
@@ -200,14 +156,9 @@ def replace_atomic(path, write, needed: int) -> None:
     os.rmdir(folder)
 
 
-def write_atomic(path: pathlib.Path, text: str) -> None:
+def write_atomic(path, text: str) -> None:
     """Write text to path through a temporary file and a rename (replace_atomic)."""
-
-    def write(tmp):
-        with open(tmp, "w") as f:
-            f.write(text)
-
-    replace_atomic(path, write, len(text.encode()))
+    replace_atomic(path, lambda tmp: pathlib.Path(tmp).write_text(text), len(text.encode()))
 
 
 def write_file_atomic(path, write) -> None:
@@ -221,11 +172,6 @@ def save_atomic(obj, path) -> None:
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     replace_atomic(path, lambda tmp: torch.save(obj, tmp), _nbytes(obj))
-
-
-# ============================================================================================
-# Provenance: the run key, the git commit
-# ============================================================================================
 
 
 # The modules whose code makes a run's numbers. specs.py is not one: what a table's spec sets that
@@ -263,7 +209,7 @@ class _NoText(ast.NodeTransformer):
         return node
 
 
-# parsing the three modules takes about 0.4 s; a run asks once per work unit
+# parsing the modules takes about 0.4 s; a run asks once per work unit
 @functools.lru_cache(maxsize=8)
 def code_of(source: str) -> str:
     """A module's code without what cannot change a number: its comments, layout and text. The
@@ -281,9 +227,8 @@ def code_version() -> str:
     """The code a run's numbers come from: a hash of the code of the modules that make them
     (NUMBER_MODULES, as code_of reads them), so that any change to their code is a new run, while a
     commit of the README, the tests or the notebook, or of a comment, docstring or log line, is
-    not.
-    (ast.unparse is Python's own: under another Python version the same code may read as new, a new
-    run, never a mixed one.)"""
+    not. (ast.unparse is Python's own: under another Python version the same code may read as new,
+    a new run, never a mixed one.)"""
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
         h.update(name.encode() + b"\0" + code_of((ROOT / name).read_text()).encode() + b"\0")
@@ -308,30 +253,22 @@ def data_fingerprint(data) -> str:
 
 
 def run_key(data, cfg, epochs, device="cpu") -> str:
-    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same
-    thread count)."""
-    return sha(
-        dict(
-            config=dataclasses.asdict(cfg),
-            epochs=float(epochs),
-            data=data_fingerprint(data),
-            code=code_version(),
-            device=str(device),
-        )
-    )
+    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same thread
+    count)."""
+    parts = dict(config=dataclasses.asdict(cfg), epochs=float(epochs), device=str(device))
+    return sha(dict(parts, data=data_fingerprint(data), code=code_version()))
 
 
 def command_line(launcher: str, argv) -> str:
-    """The command as a result records it: absolute paths inside the repository made relative to it,
-    so that the record reads the same on every machine (`--out /home/me/diffstack/results` -> `--out
-    results`)."""
-    root = ROOT
+    """The command as a result records it: absolute paths inside the repository made relative to
+    it, so that the record reads the same on every machine (`--out /home/me/diffstack/results` ->
+    `--out results`)."""
 
     def rel(token):
         key, eq, value = token.partition("=") if token.startswith("--") else ("", "", token)
         path = pathlib.Path(value)
-        if path.is_absolute() and path.resolve().is_relative_to(root):
-            value = str(path.resolve().relative_to(root)) or "."
+        if path.is_absolute() and path.resolve().is_relative_to(ROOT):
+            value = str(path.resolve().relative_to(ROOT)) or "."
         return key + eq + value
 
     return " ".join([launcher, *(rel(t) for t in argv)])
@@ -340,37 +277,28 @@ def command_line(launcher: str, argv) -> str:
 def git_commit() -> str | None:
     """The commit the code was run from, '+dirty' when the work tree differs from it; None
     outside git."""
+
+    def git(*args):
+        return subprocess.run(
+            ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+
     try:
-        head = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
+        head, dirty = git("rev-parse", "HEAD"), git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.CalledProcessError):
         return None
     return head + ("+dirty" if dirty else "")
 
 
-# ============================================================================================
-# The store of a run's pieces
-# ============================================================================================
-
-
 class RunStore:
-    """A run's pieces and models: under root (<out>/.runs) on disk, or in memory when root is None
-    (nothing is resumed)."""
+    """A run's pieces and models, under root (<out>/.runs; a temporary folder where nothing is kept,
+    under torchrun)."""
 
     def __init__(self, root, key: str, table_keys: dict | None = None):
-        self.root = pathlib.Path(root) if root is not None else None
+        self.root = pathlib.Path(root)
         self.key = key
         # {table: what its spec sets that moves numbers (by value)}: part of its folder's key
         self.table_keys = table_keys or {}
-        self.memory = {}
 
     def table_dir(self, table: str) -> pathlib.Path:
         return self.root / table / sha(self.key, table, self.table_keys.get(table))[:16]
@@ -381,84 +309,44 @@ class RunStore:
     def has(self, table: str, piece) -> bool:
         """Whether the piece is finished; one whose file cannot be read (a disk error, an edit) is
         named on stderr, set aside as <piece>.corrupt and computed again."""
-        if self.root is None:
-            return (table, piece) in self.memory
         path = self.path(table, piece)
         try:
-            return path.exists() and isinstance(
-                load_json(path, "a piece of a run").get("result"), dict
-            )
-        except (OSError, ValueError, AttributeError) as e:
+            return path.exists() and isinstance(self._read(table, piece).get("result"), dict)
+        except (ValueError, AttributeError) as e:
+            corrupt = path.with_suffix(".corrupt")
             print(
-                f"{path}: not a finished piece ({e}); set aside as "
-                f"{path.with_suffix('.corrupt').name}, computed again",
-                file=sys.stderr,
+                f"{path}: not a finished piece ({e}); set aside as {corrupt.name}", file=sys.stderr
             )
-            os.replace(path, path.with_suffix(".corrupt"))
+            os.replace(path, corrupt)
             return False
 
-    def load(self, table: str, piece):
-        """(result, extra) of a finished piece, or None."""
-        if self.root is None:
-            return self.memory.get((table, piece))
-        path = self.path(table, piece)
-        if not path.exists():
-            return None
-        saved = load_json(path, "a piece of a run")
-        extra = (
-            torch.load(path.with_suffix(".pt"), weights_only=True) if saved.get("extra") else None
-        )
-        return saved["result"], extra
+    def _read(self, table: str, piece) -> dict:
+        return load_json(self.path(table, piece), "a piece of a run")
+
+    def load(self, table: str, piece) -> tuple:
+        """(result, extra) of a finished piece."""
+        saved = self._read(table, piece)
+        pt = self.path(table, piece).with_suffix(".pt")
+        return saved["result"], torch.load(pt, weights_only=True) if saved.get("extra") else None
 
     def timing(self, table: str, piece) -> dict | None:
-        """How long a finished piece took to compute and where (the timing it was saved with), or
-        None (not finished, or in memory)."""
-        if self.root is None or not self.path(table, piece).exists():
-            return None
-        timing = load_json(self.path(table, piece), "a piece of a run").get("timing")
+        """How long a finished piece took to compute and where (the timing it was saved with)."""
+        timing = self._read(table, piece).get("timing")
         return timing if isinstance(timing, dict) else None
 
-    def save(self, table: str, piece, result: dict, extra=None, about=None, timing=None) -> None:
-        """The piece's result (JSON; its extra tensors first, in a .pt beside it), atomically;
-        about: what the key stands for, written once per table folder (run.json); timing: how long
-        it took (see `timing`)."""
-        if self.root is None:
-            self.memory[(table, piece)] = (json.loads(json.dumps(result, default=to_json)), extra)
-            return
+    def save(self, table: str, piece, result: dict, extra=None, timing=None) -> None:
+        """The piece's result (JSON, write_json; its extra tensors first, in a .pt beside it),
+        atomically; timing: how long it took and where."""
         path = self.path(table, piece)
         path.parent.mkdir(parents=True, exist_ok=True)
-        if about is not None and not (path.parent / "run.json").exists():
-            write_atomic(path.parent / "run.json", json.dumps(about, indent=1, default=str))
         if extra is not None:
             save_atomic(extra, path.with_suffix(".pt"))
-        write_atomic(
-            path,
-            json.dumps(
-                dict(
-                    table=table,
-                    piece=piece._asdict(),
-                    key=self.key,
-                    extra=extra is not None,
-                    timing=timing,
-                    result=result,
-                ),
-                indent=1,
-                default=to_json,
-            ),
-        )
+        saved = dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None)
+        write_json(path, dict(saved, timing=timing, result=result), indent=1)
 
-    def model_path(self, train_key) -> pathlib.Path | None:
-        """Where a model trained the way train_key says is kept (None: in memory only)."""
-        return (
-            None
-            if self.root is None
-            else self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
-        )
-
-
-# ============================================================================================
-# Worker processes, progress
-# ============================================================================================
+    def model_path(self, train_key) -> pathlib.Path:
+        """Where a model trained the way train_key says is kept."""
+        return self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
 
 
 class WorkerDied(ValueError):
@@ -467,120 +355,47 @@ class WorkerDied(ValueError):
 
 
 def die_with_parent(parent: int) -> None:
-    """A worker process's initializer: a thread that ends the worker once its parent is gone (killed
-    with SIGKILL, say), so that no worker outlives the run it belongs to and writes pieces
-    for nobody."""
+    """Have the kernel end this process (SIGKILL) when its parent ends, however it ends (Linux
+    prctl PR_SET_PDEATHSIG): a worker's initializer, and torchrun's ranks', so that none outlives
+    the run it belongs to and writes pieces for nobody."""
+    import ctypes
 
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(0.5)
+    libc = ctypes.CDLL(None, use_errno=True)
+    if hasattr(libc, "prctl"):  # (Linux; elsewhere a worker may outlive a run killed with -9)
+        libc.prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
+    if os.getppid() != parent:  # the parent ended before the prctl
         os._exit(1)
 
-    threading.Thread(target=watch, daemon=True).start()
+
+def pool(jobs: int) -> ProcessPoolExecutor:
+    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with this
+    one."""
+    spawn = multiprocessing.get_context("spawn")
+    return ProcessPoolExecutor(jobs, spawn, initializer=die_with_parent, initargs=(os.getpid(),))
 
 
-def pool(jobs: int):
-    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with
-    this one."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    return ProcessPoolExecutor(
-        jobs,
-        mp_context=torch.multiprocessing.get_context("spawn"),
-        initializer=die_with_parent,
-        initargs=(os.getpid(),),
-    )
-
-
-def _worker(compute, table: str, pieces: list, store: RunStore, about, verbose: bool) -> int:
-    """A worker process: compute and save some pieces of one table into the store (its root and
-    keys), on one thread. Returns how many."""
-    torch.set_num_threads(1)
-    store = RunStore(store.root, store.key, store.table_keys)
-    models = {}
-    log = (
-        (lambda text: print(f"[{table} seed {pieces[0].seed}] {text}", flush=True))
-        if verbose
-        else None
-    )
-    for piece in pieces:
-        result, extra, timing = compute(table, piece, log, models, store)
-        store.save(table, piece, result, extra, about, timing)
-    return len(pieces)
-
-
-def compute_in_workers(compute, units: list, store: RunStore, jobs: int, abouts=None, verbose=True):
-    """Compute units of work, each (table name, pieces of one seed), in `jobs` worker processes of
-    one thread each, in the order given; each piece is saved in `store` (on disk) as it finishes.
-    compute(table, piece, log, models, store) -> (result, extra, timing) makes a piece: a picklable
-    callable (a module's function, or a functools.partial of one), `models` a dict the pieces of one
-    unit share. abouts: {table: what its key stands for} (RunStore.save). Raises the first worker's
-    error; WorkerDied when a worker ended without one."""
-    from concurrent.futures import FIRST_EXCEPTION, wait
-    from concurrent.futures.process import BrokenProcessPool
-
-    abouts = abouts or {}
+def in_workers(work, units: list, jobs: int, done, kept) -> None:
+    """work(*unit) for each unit, in `jobs` worker processes (pool) in the order given; done(unit)
+    here as each one finishes. A worker's error stops the run and is raised; a worker that ended
+    without one (killed, out of memory) is one WorkerDied line; Ctrl-C (or SIGINT to this process
+    alone) ends the workers at once, not after their units. kept: where the finished work is kept,
+    for the message."""
     with pool(min(jobs, len(units))) as workers:
-        futures = [
-            workers.submit(_worker, compute, name, ps, store, abouts.get(name), verbose)
-            for name, ps in units
-        ]
+        futures = {workers.submit(work, *unit): unit for unit in units}
         try:
-            finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
-        except BaseException:
-            # Ctrl-C (or SIGINT to this process alone): stop the workers now, not after their pieces
+            for future in as_completed(futures):
+                future.result()
+                done(futures[future])
+        except BaseException as e:
             workers.shutdown(wait=False, cancel_futures=True)
-            for worker in torch.multiprocessing.active_children():
+            for worker in multiprocessing.active_children():
                 worker.terminate()
+            if isinstance(e, BrokenProcessPool):
+                raise WorkerDied(
+                    f"a worker process died ({e}); the run stops here: the same command resumes it "
+                    f"from the pieces kept in {kept}"
+                ) from None
             raise
-        for f in finished:
-            if f.exception() is not None:
-                workers.shutdown(cancel_futures=True)
-                if isinstance(f.exception(), BrokenProcessPool):
-                    raise WorkerDied(
-                        f"a worker process died ({f.exception()}); the run stops here: the same "
-                        f"command resumes it from the pieces kept in {store.root}"
-                    ) from None
-                raise f.exception()
-
-
-@contextlib.contextmanager
-def progress(store: RunStore, pieces: list, every: float = 2.0, disable: bool = False, **bar_kw):
-    """A tqdm bar over pieces [(table, piece)], for the length of the with block: those the store
-    has at the start count as done (reused), and the store is polled every `every` seconds (and at
-    the end) for those finished since, in this process or in worker processes. Yields the bar."""
-
-    def done():
-        return sum(store.has(t, p) for t, p in pieces)
-
-    reused = done()
-    bar = tqdm(
-        total=len(pieces),
-        initial=reused,
-        unit="piece",
-        desc=f"pieces ({reused} reused)",
-        disable=disable,
-        **bar_kw,
-    )
-    stop = threading.Event()
-
-    def poll():
-        if not bar.disable:
-            bar.update(done() - bar.n)
-
-    def run():
-        while not stop.wait(every):
-            poll()
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    try:
-        yield bar
-    finally:
-        stop.set()
-        thread.join()
-        poll()
-        bar.close()
 
 
 def above(bar, log):
@@ -594,69 +409,77 @@ def above(bar, log):
     return write
 
 
-# ============================================================================================
-# Outputs: refusing to replace a file a run did not write
-# ============================================================================================
-
-
 def ranks() -> tuple:
     """(rank, world size) from the launcher's environment (1 process: 0, 1), and why they cannot
     be used or None: RANK and WORLD_SIZE that neither torchrun (TORCHELASTIC_RUN_ID) nor a launcher
     giving the rendezvous (MASTER_ADDR, MASTER_PORT) set, or that are no numbers."""
-    names = ("RANK", "WORLD_SIZE")
-    given = {k: os.environ[k] for k in names if k in os.environ}
+    given = {k: os.environ[k] for k in ("RANK", "WORLD_SIZE") if k in os.environ}
+    said = " ".join(f"{k}={v}" for k, v in given.items())
     try:
         rank, world = int(given.get("RANK", 0)), int(given.get("WORLD_SIZE", 1))
     except ValueError:
-        return 0, 1, f"{' '.join(f'{k}={v}' for k, v in given.items())}: not numbers"
-    launched = "TORCHELASTIC_RUN_ID" in os.environ or {"MASTER_ADDR", "MASTER_PORT"} <= set(
-        os.environ
-    )
+        return 0, 1, f"{said}: not numbers"
+    env = set(os.environ)
+    launched = "TORCHELASTIC_RUN_ID" in env or {"MASTER_ADDR", "MASTER_PORT"} <= env
     if (world != 1 or rank != 0) and not launched:
-        return (
-            0,
-            1,
-            f"{' '.join(f'{k}={v}' for k, v in given.items())} are set, but no launcher started "
-            "this process (torchrun sets them with the rendezvous): run it under torchrun "
-            "--nproc_per_node N, or unset them",
+        why = (
+            f"{said} are set, but no launcher started this process (torchrun sets them with the "
+            "rendezvous): run it under torchrun --nproc_per_node N, or unset them"
         )
+        return 0, 1, why
     if not 0 <= rank < world:
         return 0, 1, f"RANK={rank} is not below WORLD_SIZE={world}"
     return rank, world, None
 
 
-def free_cores(seconds: float = 0.3) -> float:
-    """How many of this machine's cores other work leaves idle, from /proc/stat over `seconds`
-    (where there is none: the load average); 0 .. os.cpu_count()."""
-    cores = os.cpu_count() or 1
-
-    def idle_total():
-        with open("/proc/stat") as f:
-            ticks = [int(v) for v in f.readline().split()[1:]]
-        return ticks[3] + ticks[4], sum(ticks)  # idle + iowait, all
-
-    try:
-        idle0, total0 = idle_total()
-        time.sleep(seconds)
-        idle1, total1 = idle_total()
-        return cores * (idle1 - idle0) / max(total1 - total0, 1)
-    except (OSError, ValueError, IndexError):
-        return max(cores - os.getloadavg()[0], 0.0)
-
-
 def default_threads(most: int = 2) -> tuple:
-    """(torch threads, why): `most`, or fewer when other work keeps cores busy. Threads that wait
-    on each other at every operation run many times slower when one of them is descheduled (two
-    threads on 2 cores with one busy: 483 s for --quick, one thread 68 s)."""
-    free = free_cores()
-    threads = max(1, min(most, round(free)))
-    busy = (os.cpu_count() or 1) - free
-    why = (
-        f"{busy:.1f} of {os.cpu_count()} cores are busy with other work"
-        if threads < most
-        else "the default"
-    )
-    return threads, why
+    """(torch threads, why): `most`, fixed. On a machine where other work keeps a core busy, two
+    threads that wait on each other run slowly: pass --threads 1 there (docs/reproducibility.md)."""
+    return most, "the default"
+
+
+class OutputRefused(ValueError):
+    """A run's refusal to start: a bad --out, a folder another run holds, or result files it would
+    replace. The CLI prints it as one line."""
+
+
+@contextlib.contextmanager
+def folder_lock(folder, command: str, lock_name: str = ".lock"):
+    """Hold `folder` for one run: an exclusive lock (filelock's, flock underneath) on folder/.lock
+    for as long as the block runs, the holder (PID, command, start time) written into the lock file.
+    A second run on the same folder is refused with an OutputRefused naming the holder; the
+    operating system releases a lock with the process that held it, so one left by a killed run is
+    taken over. Re-entrant (one lock per path in a process): a run that holds the folder already
+    (--out data_cache, where the data cache is made too) goes on holding it. lock_name: the lock
+    file in folder (another name holds a part of the folder: write_folder's target)."""
+    path = pathlib.Path(folder) / lock_name
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock = filelock.FileLock(
+            path, is_singleton=True, thread_local=False, preserve_lock_file=True
+        )
+        ours = lock.is_locked  # (by this process, in an outer block)
+        lock.acquire(blocking=False)
+    except filelock.Timeout:
+        try:
+            holder = json.loads(path.read_text())
+        except (OSError, ValueError):
+            holder = None
+        holder = holder if isinstance(holder, dict) else {}
+        raise OutputRefused(
+            f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, "
+            f"`{holder.get('command', '?')}`, since {holder.get('start', '?')}); wait for it to "
+            "end, or use another folder"
+        ) from None
+    except OSError as e:
+        raise OutputRefused(f"{folder}: cannot hold it for this run ({e.strerror or e})") from None
+    try:
+        if not ours:
+            start = time.strftime("%Y-%m-%d %H:%M:%S")
+            path.write_text(json.dumps(dict(pid=os.getpid(), command=command, start=start)))
+        yield
+    finally:
+        lock.release()
 
 
 def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
@@ -667,7 +490,6 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
     holding any other file (besides those directly in `also`) is never replaced. who: the writer,
     for the messages."""
     root = pathlib.Path(root)
-    root.parent.mkdir(parents=True, exist_ok=True)
     with folder_lock(root.parent, f"{who} {root}", f".{root.name}.lock"):
         existing = [str(p) for p in files if p.exists()]
         if existing and not overwrite:
@@ -700,60 +522,6 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
             raise
 
 
-_HELD = {}  # the folders this process holds: resolved path -> how many blocks hold it
-
-
-@contextlib.contextmanager
-def folder_lock(folder, command: str, lock_name: str = ".lock"):
-    """Hold `folder` for one run: an exclusive lock (flock) on folder/.lock for as long as the block
-    runs. A second run on the same folder is refused with an OutputRefused naming the holder (its
-    PID, command and start time); the operating system releases a lock with the process that held
-    it, so one left by a killed run is taken over. Re-entrant: a run that holds the folder already
-    (--out data_cache, where the data cache is made too) goes on holding it. lock_name: the lock
-    file in folder (another name holds a part of the folder: write_nuscenes' target)."""
-    folder = pathlib.Path(folder)
-    held = str(folder.resolve() / lock_name)
-    if held in _HELD:  # this process holds it already
-        _HELD[held] += 1
-        try:
-            yield
-        finally:
-            _HELD[held] -= 1
-        return
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(folder / lock_name, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as e:
-        raise OutputRefused(f"{folder}: cannot hold it for this run ({e.strerror or e})") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        try:
-            holder = json.loads(os.read(fd, 65536) or b"{}")
-        except ValueError:
-            holder = {}
-        os.close(fd)
-        raise OutputRefused(
-            f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, "
-            f"`{holder.get('command', '?')}`, since {holder.get('start', '?')}); wait for it to "
-            "end, or use another folder"
-        ) from None
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(
-            fd,
-            json.dumps(
-                dict(pid=os.getpid(), command=command, start=time.strftime("%Y-%m-%d %H:%M:%S"))
-            ).encode(),
-            0,
-        )
-        _HELD[held] = 1
-        yield
-    finally:
-        _HELD.pop(held, None)
-        os.close(fd)  # (closing the descriptor releases the lock)
-
-
 @contextlib.contextmanager
 def one_line(ap, interrupted: str = "nothing half-written is left"):
     """A CLI's top level (ap: its argparse parser): the project's errors (all ValueError) and a
@@ -766,72 +534,3 @@ def one_line(ap, interrupted: str = "nothing half-written is left"):
     except KeyboardInterrupt:
         print(f"{ap.prog}: interrupted (Ctrl-C); {interrupted}", file=sys.stderr)
         sys.exit(130)
-
-
-class OutputRefused(ValueError):
-    """A run's refusal to start: a bad --out, or result files it would replace. The CLI prints it as
-    one line."""
-
-
-def planned_outputs(out_dir, figures: dict) -> list:
-    """Every file a run of some tables writes in out_dir: figures {table name: its figure file
-    names}; each table's <name>.json and .md, its figures, and report.md where there are
-    several tables."""
-    out = pathlib.Path(out_dir)
-    files = [out / f"{n}{ext}" for n in figures for ext in (".json", ".md")]
-    files += [out / f for fs in figures.values() for f in fs]
-    return files + ([out / "report.md"] if len(figures) > 1 else [])
-
-
-def refuse_existing(files, overwrite: bool, ours=()) -> None:
-    """OutputRefused naming them if any of files exists already, unless overwrite (a run never
-    replaces a result it did not make) or it is in ours (files this same run wrote before it was
-    interrupted, unchanged since: ours_files)."""
-    existing = [str(f) for f in files if f.exists() and f not in set(ours)]
-    if existing and not overwrite:
-        raise OutputRefused(
-            f"--out: {len(existing)} result file(s) of this run exist already and are kept: "
-            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
-            f"replace them, or choose another --out"
-        )
-
-
-def outputs_manifest(out_dir, name, seeds, key) -> pathlib.Path:
-    """Where a run (experiment name, seeds, run key) lists the outputs it wrote, with
-    their sha256."""
-    return pathlib.Path(out_dir) / RUNS_DIR / "outputs" / f"{sha(name, list(seeds), key)[:16]}.json"
-
-
-def _manifest(path) -> dict:
-    """A run's manifest {file name: sha256} ({} when there is none)."""
-    if not pathlib.Path(path).exists():
-        return {}
-    made = load_json(path, "a manifest of a run's outputs")
-    if not isinstance(made, dict) or not all(isinstance(v, str) for v in made.values()):
-        raise ValueError(f"{path}: not a manifest of a run's outputs ({{file: sha256}})")
-    return made
-
-
-def _file_sha(path) -> str:
-    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
-
-
-def record_outputs(manifest: pathlib.Path, files) -> None:
-    """Add files (as they are now) to a run's manifest of the outputs it wrote."""
-    made = _manifest(manifest)
-    made.update({pathlib.Path(f).name: _file_sha(f) for f in files if pathlib.Path(f).exists()})
-    manifest.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(manifest, json.dumps(made, indent=1, sort_keys=True))
-
-
-def ours_files(out_dir, manifests) -> set:
-    """The files of out_dir that one of these manifests lists and that are unchanged since that run
-    wrote them."""
-    ours = set()
-    for manifest in manifests:
-        made = _manifest(manifest)
-        for fname, sha_ in made.items():
-            f = pathlib.Path(out_dir) / fname
-            if f.exists() and _file_sha(f) == sha_:
-                ours.add(f)
-    return ours
