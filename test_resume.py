@@ -636,7 +636,7 @@ def test_the_data_cache_on_a_full_disk_is_one_line_and_leaves_nothing(full_disk)
 
 
 def test_bench_json_on_a_full_disk_is_one_line(full_disk, monkeypatch, capsys):
-    import bench
+    from lab import bench
 
     big = [dict(key=f"k{i}", note="x" * 1000) for i in range(1000)]
     monkeypatch.setattr(bench, "run", lambda *a, **k: dict(meta={}, figures=big))
