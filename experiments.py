@@ -57,13 +57,13 @@ from specs import (
     CURVE_SAMPLES,
     GOALS,
     RELATIVE_SCALE,
+    TABLE1_METHODS,
     TableSpec,
 )
 from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
 from train import (
     CostWeights,
     Method,
-    TABLE1_METHODS,
     TrainingDiverged,
     alphas,
     evaluate_stack,

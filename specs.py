@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from diffstack import COST_TERMS
-from train import GT_PREDICTION, NO_PREDICTION, TABLE1_METHODS, Method
+from train import GT_PREDICTION, NO_PREDICTION, Method
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,18 @@ def open_loop_columns(setting: str) -> tuple:
         *planning,
         Column("iLQR converged", "converged", "{:.3f}"),
     )
+
+
+# Table 1's rows; No prediction and GT prediction are named wherever they are meant
+TABLE1_METHODS = (
+    NO_PREDICTION,
+    Method("Standard"),
+    Method("Distance weighted", weighting="distance"),
+    Method("Grad-cost weighted", weighting="grad_cost"),
+    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
+    Method("DiffStack", losses=(1, 1, 1)),
+    GT_PREDICTION,
+)
 
 
 FOUR_METHODS = tuple(

@@ -55,7 +55,7 @@ def cases():
     lanes_mask = train.lanes_mask.clone()
     lanes_mask[5] = False  # no lanes: fewer than 2 candidates, so scenario 5 is not plannable
     train = dataclasses.replace(train, lanes_mask=lanes_mask)
-    methods = {m.name: m for m in tr.TABLE1_METHODS}
+    methods = {m.name: m for m in specs.TABLE1_METHODS}
     return [
         ("Standard", methods["Standard"], "rl", train, cfg, False),
         ("Distance weighted", methods["Distance weighted"], "rl", train, cfg, False),
@@ -363,7 +363,7 @@ def test_experiments_cli_on_two_processes(tmp_path):
     one, two = (json.loads((tmp_path / d / "rl.json").read_text()) for d in ("one", "two"))
     assert two["meta"]["command"].startswith(f"torchrun --nproc_per_node {WORLD} experiments.py")
     assert f"{WORLD} processes (DDP)" in two["meta"]["machine"]
-    assert list(two["results"]) == list(one["results"]) == [m.name for m in tr.TABLE1_METHODS]
+    assert list(two["results"]) == list(one["results"]) == [m.name for m in specs.TABLE1_METHODS]
     for method, runs in one["results"].items():
         (run,) = runs
         other = two["results"][method][0]

@@ -183,7 +183,7 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
     # the second draw, its validation side
     data = data_real.load_data(None, 300, ex.VAL_SEED + 2, tmp_path, log=None)
     gt, no = (
-        next(m for m in tr.TABLE1_METHODS if m.name == n)
+        next(m for m in specs.TABLE1_METHODS if m.name == n)
         for n in ("GT prediction", "No prediction")
     )
     rel = ex.add_relative(

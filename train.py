@@ -278,15 +278,6 @@ WEIGHTINGS = {
 # The two reference rows every table of the planner is read against, by name
 NO_PREDICTION = Method("No prediction", "none")
 GT_PREDICTION = Method("GT prediction", "gt")
-TABLE1_METHODS = (
-    NO_PREDICTION,
-    Method("Standard"),
-    Method("Distance weighted", weighting="distance"),
-    Method("Grad-cost weighted", weighting="grad_cost"),
-    Method("DiffStack (no L_pred)", losses=(0, 1, 1)),
-    Method("DiffStack", losses=(1, 1, 1)),
-    GT_PREDICTION,
-)
 
 
 # ============================================================================================

@@ -881,8 +881,8 @@ section_done("§6")
 # Table 1 (RL). Expected run time: ~5 s quick (4 methods), ~3 min full (all 7 methods).
 t0 = time.time()
 four = ("No prediction", "Standard", "DiffStack", "GT prediction")  # quick mode's (and Table 4's)
-methods4 = [m for m in tr.TABLE1_METHODS if m.name in four]
-methods1 = methods4 if QUICK else tr.TABLE1_METHODS
+methods4 = [m for m in xp.TABLE1_METHODS if m.name in four]
+methods1 = methods4 if QUICK else xp.TABLE1_METHODS
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
 print(f"({time.time() - t0:.0f}s)")
 display(Markdown(open_loop_table(res1, "rl")))

@@ -36,6 +36,7 @@ from lab.runs import (
 from lab.runs import pool as worker_pool
 from lab.stats import claim_verdict, p_value, paired_difference, plus_minus
 from lab.report import open_loop_table
+from specs import FOUR_METHODS
 from experiments import (
     VAL_N,
     add_relative,
@@ -46,7 +47,6 @@ from train import (
     NO_PREDICTION,
     Method,
     evaluate_stack,
-    TABLE1_METHODS,
     train_predictor,
 )
 
@@ -56,11 +56,7 @@ from train import (
 QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)
 
 
-QUICK_METHODS = tuple(
-    m
-    for m in TABLE1_METHODS
-    if m.name in ("No prediction", "Standard", "DiffStack", "GT prediction")
-)
+QUICK_METHODS = FOUR_METHODS
 
 
 # predictors trained at the paper's length, shipped with the code (pretrain, load_pretrained)
