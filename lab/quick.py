@@ -14,7 +14,6 @@ import pickle
 import statistics
 import sys
 import time
-from concurrent.futures.process import BrokenProcessPool
 
 import torch
 
@@ -30,10 +29,9 @@ from lab.runs import (
     one_line,
     ranks,
     save_atomic,
-    WorkerDied,
+    in_workers,
     write_atomic,
 )
-from lab.runs import pool as worker_pool
 from lab.stats import claim_verdict, p_value, paired_difference, plus_minus
 from lab.report import open_loop_table
 from specs import FOUR_METHODS
@@ -186,7 +184,7 @@ def pretrain(
     metrics). On one thread each, these are Table 1's predictors of the same seeds to the bit (the
     tables train each seed on one thread). `jobs` worker processes train them side by side. --quick
     evaluates them (load_pretrained). About 8 minutes a predictor on one core."""
-    out = pathlib.Path(out)
+    out, log = pathlib.Path(out), log or (lambda *_: None)
     cfg = cfg or Config()
     seeds = tuple(seeds)
     val = val or VAL_N
@@ -216,36 +214,26 @@ def pretrain(
             config=dataclasses.asdict(cfg),
             files={},
         )
-        args = [(m, seed, n, epochs, cfg, cache_dir, threads, val) for m, seed, _ in work]
+        paths = {(m.name, seed): path for m, seed, path in work}
+
+        def finished(unit, result):  # one predictor trained: its file and its provenance entry
+            (m, seed, *_), (state, metrics, seconds) = unit, result
+            path = paths[m.name, seed]
+            save_atomic(state, path)
+            about["files"][path.name] = dict(
+                method=m.name,
+                seed=seed,
+                sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                cpu_seconds=round(seconds),
+                **metrics,
+            )
+            log(f"{path}: {m.name}, seed {seed}: ADE {metrics['ade']:.3f} m ({seconds:.0f} CPU s)")
+
+        units = [(m, seed, n, epochs, cfg, cache_dir, threads, val) for m, seed, _ in work]
         if jobs > 1:
-            pool = worker_pool(min(jobs, len(work)))
-            finished = pool.map(_pretrain_one, *zip(*args))  # in the order of `work`
-        else:
-            pool = None
-            finished = (_pretrain_one(*a) for a in args)
-        try:
-            for (m, seed, path), (state, metrics, seconds) in zip(work, finished):
-                save_atomic(state, path)
-                about["files"][path.name] = dict(
-                    method=m.name,
-                    seed=seed,
-                    sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
-                    cpu_seconds=round(seconds),
-                    **metrics,
-                )
-                if log:
-                    log(
-                        f"{path}: {m.name}, {epochs:g} epochs, seed {seed}: ADE "
-                        f"{metrics['ade']:.3f} m, hindsight cost {metrics['hindsight']:.4f} "
-                        f"({seconds:.0f} s of CPU)"
-                    )
-        except BrokenProcessPool as e:
-            raise WorkerDied(
-                f"a worker process died ({e}); --pretrain stops, the finished predictors are kept"
-            ) from None
-        finally:
-            if pool is not None:
-                pool.shutdown()
+            in_workers(_pretrain_one, units, jobs, finished, out)
+        for unit in units if jobs == 1 else ():
+            finished(unit, _pretrain_one(*unit))
         write_atomic(out / "provenance.json", json.dumps(about, indent=1))
         return about
 

@@ -375,17 +375,16 @@ def pool(jobs: int) -> ProcessPoolExecutor:
 
 
 def in_workers(work, units: list, jobs: int, done, kept) -> None:
-    """work(*unit) for each unit, in `jobs` worker processes (pool) in the order given; done(unit)
-    here as each one finishes. A worker's error stops the run and is raised; a worker that ended
-    without one (killed, out of memory) is one WorkerDied line; Ctrl-C (or SIGINT to this process
-    alone) ends the workers at once, not after their units. kept: where the finished work is kept,
-    for the message."""
+    """work(*unit) for each unit, in `jobs` worker processes (pool) in the order given; done(unit,
+    its result) here as each one finishes. A worker's error stops the run and is raised; a worker
+    that ended without one (killed, out of memory) is one WorkerDied line; Ctrl-C (or SIGINT to
+    this process alone) ends the workers at once, not after their units. kept: where the finished
+    work is kept, for the message."""
     with pool(min(jobs, len(units))) as workers:
         futures = {workers.submit(work, *unit): unit for unit in units}
         try:
             for future in as_completed(futures):
-                future.result()
-                done(futures[future])
+                done(futures[future], future.result())
         except BaseException as e:
             workers.shutdown(wait=False, cancel_futures=True)
             for worker in multiprocessing.active_children():

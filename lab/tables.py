@@ -223,7 +223,7 @@ def compute_pieces(run: Run, tables: list, jobs: int, bar) -> None:
     if jobs > 1 and len(units) > 1:
         shipped = dataclasses.replace(run, log=print if run.log else None, models={})
         work = [(shipped, spec.name, pieces) for spec, pieces in units]
-        runs.in_workers(_in_worker, work, jobs, lambda u: bar.update(len(u[2])), run.store.root)
+        runs.in_workers(_in_worker, work, jobs, lambda u, _: bar.update(len(u[2])), run.store.root)
         return
     for spec, seeds in tables:  # in the order of the table
         for piece in [p for p in table_pieces(spec, seeds) if not run.store.has(spec.name, p)]:
