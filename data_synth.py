@@ -1573,7 +1573,8 @@ def plot_scenario(
 
 
 if __name__ == "__main__":
-    # the data's command line (generate, write-nuscenes, read-nuscenes, ...) is data_real.py's
-    import data_real
+    # a hand-over: the data's command line (generate, write-nuscenes, read-nuscenes, ...) is the
+    # lab's, python -m lab.data
+    from lab import data
 
-    data_real.main()
+    data.main()

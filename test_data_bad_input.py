@@ -1,4 +1,4 @@
-"""Bad input to data_synth.py and data_real.py gets a clear error naming the culprit, raised before
+"""Bad input to data_synth.py and lab_data.py gets a clear error naming the culprit, raised before
 any work where possible.
 
 The nuScenes loader (NaN / Infinity, time steps, sample chains, quaternions, duplicate tokens, map
@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import torch
 
-import data_real
+from lab import data as lab_data
 import data_synth
 from lab import nuscenes
 
-FormatError = data_real.NuScenesFormatError
+FormatError = lab_data.NuScenesFormatError
 TABLE_DIR = "v1.0-mini"
 
 
@@ -75,7 +75,7 @@ def a_map(root):
 
 
 def test_valid_folder_loads(valid):
-    scenes, report = data_real.load_nuscenes(valid)
+    scenes, report = lab_data.load_nuscenes(valid)
     assert report["loaded"] == 3 and len(scenes) == 3
     assert all(torch.isfinite(v).all() for v in scenes.tensors().values() if v.is_floating_point())
 
@@ -112,7 +112,7 @@ def test_non_finite_numbers_name_file_field_and_token(folder, name, index, field
     with pytest.raises(
         FormatError, match=rf"{name}\.json: {field} of (sample )?'{doc[index]['token']}'"
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_non_finite_numbers_in_the_map_name_the_lane(folder):
@@ -121,7 +121,7 @@ def test_non_finite_numbers_in_the_map_name_the_lane(folder):
     with pytest.raises(
         FormatError, match=rf"{path.name}: radius of an arcline path of lane '{lane}'"
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
     edit(
         path,
         lambda js: js["arcline_path_3"][lane][0].update(
@@ -131,7 +131,7 @@ def test_non_finite_numbers_in_the_map_name_the_lane(folder):
     with pytest.raises(
         FormatError, match=rf"{path.name}: segment_length of an arcline path of lane '{lane}'"
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_numbers_in_fields_the_loader_does_not_read_are_left_alone(folder):
@@ -141,7 +141,7 @@ def test_numbers_in_fields_the_loader_does_not_read_are_left_alone(folder):
     )
     # a LIDAR_TOP pose
     edit(table(folder, "ego_pose"), lambda d: d[1]["translation"].__setitem__(0, float("nan")))
-    assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
+    assert lab_data.load_nuscenes(folder)[1]["loaded"] == 3
 
 
 @pytest.mark.parametrize("step", [0, -500_000], ids=["zero", "negative"])
@@ -153,7 +153,7 @@ def test_time_step_between_samples_must_be_positive(folder, step):
         FormatError,
         match=rf"sample\.json: timestamp of sample '{samples[5]['token']}' .* must be > 0",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("back_to", [0, 17, 40], ids=["to-first", "to-middle", "to-itself"])
@@ -166,7 +166,7 @@ def test_cyclic_sample_chain(folder, back_to):
         match=rf"sample\.json: the next links of scene 'scene-0061' loop: sample "
         rf"'{samples[40]['token']}' links back to '{samples[back_to]['token']}'",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_broken_prev_link_and_dangling_next(folder):
@@ -178,14 +178,14 @@ def test_broken_prev_link_and_dangling_next(folder):
         match=rf"sample\.json: sample '{samples[6]['token']}' of scene 'scene-0061' has "
         rf"prev '{samples[3]['token']}' but follows '{samples[5]['token']}'",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
     samples[6]["prev"], samples[6]["next"] = samples[5]["token"], "f" * 32
     table(folder, "sample").write_text(json.dumps(samples))
     with pytest.raises(
         FormatError,
         match=rf"sample\.json: sample '{samples[6]['token']}' .* links next to 'f{{32}}'",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_sample_annotation_chains_are_not_followed(folder):
@@ -193,7 +193,7 @@ def test_sample_annotation_chains_are_not_followed(folder):
     # cannot hang it
     anns = edit(table(folder, "sample_annotation"), lambda d: d[3].update(next=d[0]["token"]))
     assert anns[3]["next"] == anns[0]["token"]
-    assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
+    assert lab_data.load_nuscenes(folder)[1]["loaded"] == 3
 
 
 def test_one_instance_annotated_twice_in_a_sample(folder):
@@ -204,7 +204,7 @@ def test_one_instance_annotated_twice_in_a_sample(folder):
     with pytest.raises(
         FormatError, match=r"sample_annotation\.json: instance '.*' is annotated twice in sample"
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("name, index", [("ego_pose", 4), ("sample_annotation", 9)])
@@ -221,14 +221,14 @@ def test_one_instance_annotated_twice_in_a_sample(folder):
 def test_quaternion_norm(folder, name, index, q, ok):
     doc = edit(table(folder, name), lambda d: d[index].update(rotation=q))
     if ok:
-        assert data_real.load_nuscenes(folder)[1]["loaded"] == 3
+        assert lab_data.load_nuscenes(folder)[1]["loaded"] == 3
     else:
         with pytest.raises(
             FormatError,
             match=rf"{name}\.json: rotation of '{doc[index]['token']}' is not a unit "
             rf"quaternion \(norm",
         ):
-            data_real.load_nuscenes(folder)
+            lab_data.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("name", nuscenes.NUSC_TABLES)
@@ -239,7 +239,7 @@ def test_duplicate_tokens(folder, name):
         match=rf"{name}\.json: token '{doc[-1]['token']}' appears twice \(records "
         rf"{len(doc) - 2} and {len(doc) - 1}\)",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_duplicate_lane_tokens_in_the_map(folder):
@@ -248,7 +248,7 @@ def test_duplicate_lane_tokens_in_the_map(folder):
     with pytest.raises(
         FormatError, match=rf"{path.name}: lane / lane_connector token '{lane}' appears twice"
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 @pytest.mark.parametrize("location", ["../../x", "/etc/passwd", "a/b", "..", "a\\b", "", 7, None])
@@ -261,13 +261,13 @@ def test_log_location_must_be_a_plain_map_name(folder, location):
         match=rf"log\.json: location {re.escape(repr(location))} of log "
         rf"'{doc[1]['token']}' is not a plain map name",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_log_location_of_a_map_that_is_not_there(folder):
     edit(table(folder, "log"), lambda d: d[0].update(location="atlantis"))
     with pytest.raises(FormatError, match=r"expansion/atlantis\.json: missing"):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 # one test per class of malformed table: (file, how to break it, what the message must name)
@@ -390,7 +390,7 @@ def test_malformed_tables_name_the_file(folder, case):
     name, corrupt, message = MALFORMED[case]
     corrupt(table(folder, name) if name in nuscenes.NUSC_TABLES else folder / name)
     with pytest.raises(FormatError, match=message):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -406,7 +406,7 @@ def test_lane_longer_than_the_point_limit_names_the_lane(folder):
         match=rf"{path.name}: lane '{lane}' is 1e\+09 m long: 500000001 points at 2\.0 m "
         rf"spacing, more than MAX_LANE_POINTS = {data_synth.MAX_LANE_POINTS}",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
     assert time.perf_counter() - t < 5  # refused before allocating, not after
 
 
@@ -427,7 +427,7 @@ def test_route_longer_than_the_point_limit_names_the_lanes(folder):
         match=rf"{path.name}: the route of scene 'scene-0061' through lanes '\w+' \.\. "
         rf"'\w+' is \d+ m long: \d+ points, more than MAX_LANE_POINTS = 20000",
     ):
-        data_real.load_nuscenes(folder)
+        lab_data.load_nuscenes(folder)
 
 
 def test_discretize_refuses_too_many_points_and_bad_spacing():
@@ -540,7 +540,7 @@ def test_generator_seed_chunk_and_samples_per_scene(tmp_path):
 def test_cli_bad_arguments_exit_2_naming_the_argument(argv, culprit, tmp_path, capsys):
     argv = [str(tmp_path / "out") if a == "OUT" else a for a in argv]
     with pytest.raises(SystemExit) as e:
-        data_real.main(argv)
+        lab_data.main(argv)
     assert e.value.code == 2 and culprit in capsys.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing was written
 
@@ -548,11 +548,11 @@ def test_cli_bad_arguments_exit_2_naming_the_argument(argv, culprit, tmp_path, c
 def test_cli_bad_folder_exits_2_naming_the_file(folder, capsys):
     edit(table(folder, "ego_pose"), lambda d: d[0]["rotation"].__setitem__(0, float("nan")))
     with pytest.raises(SystemExit) as e:
-        data_real.main(["read-nuscenes", str(folder)])
+        lab_data.main(["read-nuscenes", str(folder)])
     assert e.value.code == 2 and "ego_pose.json: rotation of" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         # would replace the folder's files
-        data_real.main(["write-nuscenes", str(folder), "--scenes", "1"])
+        lab_data.main(["write-nuscenes", str(folder), "--scenes", "1"])
     assert (
         e.value.code == 2
         and "category.json exists (18 files would be replaced)" in capsys.readouterr().err
@@ -560,7 +560,7 @@ def test_cli_bad_folder_exits_2_naming_the_file(folder, capsys):
 
 
 def test_cli_valid_folder_reads(valid, capsys):
-    data_real.main(["read-nuscenes", str(valid)])  # returns normally: exit 0
+    lab_data.main(["read-nuscenes", str(valid)])  # returns normally: exit 0
     assert "loaded" in capsys.readouterr().out
 
 
@@ -569,7 +569,7 @@ def test_cli_valid_folder_reads(valid, capsys):
 
 
 def test_official_split_literal():
-    train, val = data_real.NUSC_TRAIN, data_real.NUSC_VAL
+    train, val = lab_data.NUSC_TRAIN, lab_data.NUSC_VAL
     assert len(train) == 700 and len(val) == 150 and not train & val
 
     # sha1 of the sorted names of the devkit's lists (nuscenes-devkit 1.2.0,
@@ -584,7 +584,7 @@ def test_official_split_literal():
         "scene-1073",
         "scene-0103",
     } <= val
-    assert data_real.MINI_VAL == ("scene-0103", "scene-0916")  # the devkit's mini_val
+    assert lab_data.MINI_VAL == ("scene-0103", "scene-0916")  # the devkit's mini_val
 
 
 def test_load_data_uses_the_official_split(tmp_path):
@@ -592,21 +592,21 @@ def test_load_data_uses_the_official_split(tmp_path):
     scenes = data_synth.generate_scenes(3, seed=1)
     lines = []
     nuscenes.write_nuscenes(scenes, tmp_path / "tv", "v1.0-trainval")
-    d = data_real.load_data(tmp_path / "tv", log=lines.append)
+    d = lab_data.load_data(tmp_path / "tv", log=lines.append)
     assert sorted(d.val_scenes.names) == ["scene-0103", "scene-0553"]
     assert "validation: the official v1.0-trainval val scenes" in lines[-1]
     nuscenes.write_nuscenes(scenes, tmp_path / "mini", "v1.0-mini")
-    d = data_real.load_data(tmp_path / "mini", log=lines.append)
+    d = lab_data.load_data(tmp_path / "mini", log=lines.append)
     assert d.val_scenes.names == ["scene-0103"] and "official v1.0-mini val" in lines[-1]
     # names in neither list: the fallback, the last 15 % of the scenes by name (at least one)
     edit(
         tmp_path / "tv" / "v1.0-trainval" / "scene.json",
         lambda d: [r.update(name=f"mine-{k}") for k, r in enumerate(d)],
     )
-    d = data_real.load_data(tmp_path / "tv", log=lines.append)
+    d = lab_data.load_data(tmp_path / "tv", log=lines.append)
     assert d.val_scenes.names == ["mine-2"] and "the last 15 % of the scenes by name" in lines[-1]
     with pytest.raises(ValueError, match="load_data: seed must be"):
-        data_real.load_data(tmp_path / "tv", seed=-2)
+        lab_data.load_data(tmp_path / "tv", seed=-2)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -849,7 +849,7 @@ def test_random_corruptions_load_or_fail_cleanly(valid, tmp_path):
         shutil.copytree(valid, root)
         what = corrupt(rng, root)
         try:
-            scenes, _ = data_real.load_nuscenes(root)
+            scenes, _ = lab_data.load_nuscenes(root)
         except (ValueError, FileNotFoundError) as e:
             outcome = type(e).__name__
             if not str(e).startswith(str(root)) or not re.search(
@@ -946,7 +946,7 @@ def test_random_mutations_of_a_folder_are_read_or_refused_by_name(valid, tmp_pat
             rec[key] = rng.choice(MUTANTS)
         path.write_text(json.dumps(doc))
         try:
-            scenes, _ = data_real.load_nuscenes(root)
+            scenes, _ = lab_data.load_nuscenes(root)
         except FormatError as e:
             assert f"{name}.json" in str(e) or "json" in str(e), (trial, name, key, str(e))
         else:
@@ -983,7 +983,7 @@ def test_random_corruption_of_resume_pieces_is_named_and_recomputed(tmp_path, ca
 
 
 def test_a_nan_inside_the_data_cache_is_refused_naming_the_cache(tmp_path):
-    data_real.load_data(n=40, seed=3, cache_dir=tmp_path)  # makes the cache
+    lab_data.load_data(n=40, seed=3, cache_dir=tmp_path)  # makes the cache
     (path,) = tmp_path.glob("scenarios-n40-s3-*.pt")
     blob = torch.load(path, weights_only=True)
     blob["train"]["agent_hist"][0, 0, 0] = float("nan")
@@ -992,7 +992,7 @@ def test_a_nan_inside_the_data_cache_is_refused_naming_the_cache(tmp_path):
         ValueError,
         match=rf"{re.escape(str(path))}: the data cache holds NaN or inf in train\.agent_hist",
     ):
-        data_real.load_data(n=40, seed=3, cache_dir=tmp_path)
+        lab_data.load_data(n=40, seed=3, cache_dir=tmp_path)
 
 
 def test_a_data_cache_being_made_by_another_process_is_refused_naming_it(tmp_path):
@@ -1022,28 +1022,28 @@ def test_a_data_cache_being_made_by_another_process_is_refused_naming_it(tmp_pat
             ValueError,
             match=rf"{re.escape(str(tmp_path))}: another run is writing here \(PID {holder.pid}",
         ):
-            data_real.load_data(n=40, seed=4, cache_dir=tmp_path)
+            lab_data.load_data(n=40, seed=4, cache_dir=tmp_path)
     finally:
         holder.kill()
         holder.wait()
     # the holder gone: made here
-    assert len(data_real.load_data(n=40, seed=4, cache_dir=tmp_path).train) > 0
+    assert len(lab_data.load_data(n=40, seed=4, cache_dir=tmp_path).train) > 0
 
 
 def test_render_never_replaces_a_file_and_names_the_png_it_writes(tmp_path, capsys, monkeypatch):
-    import data_real
+    from lab import data as lab_data
 
     kept = tmp_path / "learning_curves.png"
     kept.write_bytes(b"a committed figure")
     with pytest.raises(SystemExit) as e:
-        data_real.main(["render", str(kept), "--n", "1"])
+        lab_data.main(["render", str(kept), "--n", "1"])
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert e.value.code == 2 and f"{kept} exists" in err and "--overwrite" in err
     assert kept.read_bytes() == b"a committed figure"
-    data_real.main(["render", str(tmp_path / "grid"), "--n", "1"])
+    lab_data.main(["render", str(tmp_path / "grid"), "--n", "1"])
     out = capsys.readouterr().out
     assert (tmp_path / "grid.png").exists() and not (tmp_path / "grid").exists()
     assert f"to {tmp_path / 'grid.png'}" in out
     assert sorted(p.name for p in tmp_path.iterdir()) == ["grid.png", "learning_curves.png"]
-    data_real.main(["render", str(kept), "--n", "1", "--overwrite"])
+    lab_data.main(["render", str(kept), "--n", "1", "--overwrite"])
     assert kept.read_bytes()[:4] == b"\x89PNG"

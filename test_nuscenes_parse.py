@@ -1,4 +1,4 @@
-"""Reading nuScenes folders at scale (data_real.py section 1): the scenes parsed by a process pool,
+"""Reading nuScenes folders at scale (lab_data.py section 1): the scenes parsed by a process pool,
 and the parse cached keyed by the sha256 of the folder's files."""
 
 import json
@@ -7,7 +7,7 @@ import shutil
 import pytest
 import torch
 
-import data_real
+from lab import data as lab_data
 import data_synth
 from lab import nuscenes
 
@@ -36,27 +36,27 @@ def same(a: data_synth.Scenes, b: data_synth.Scenes) -> bool:
 
 
 def test_the_pool_gives_the_scenes_of_one_process(folder):
-    assert data_real.PARSE_CHUNK * 2 < SCENES  # the pool really runs with 2 workers
-    one, report1 = data_real.load_nuscenes(folder, workers=1)
-    two, report2 = data_real.load_nuscenes(folder, workers=2)
+    assert lab_data.PARSE_CHUNK * 2 < SCENES  # the pool really runs with 2 workers
+    one, report1 = lab_data.load_nuscenes(folder, workers=1)
+    two, report2 = lab_data.load_nuscenes(folder, workers=2)
     assert report1 == report2 and report1["loaded"] == SCENES
     assert same(one, two)
 
 
 def test_workers_must_be_a_whole_number(folder):
     with pytest.raises(ValueError, match="workers must be a whole number >= 1, got 0"):
-        data_real.load_nuscenes(folder, workers=0)
+        lab_data.load_nuscenes(folder, workers=0)
 
 
 def test_a_cache_hit_gives_the_fresh_parse(folder, tmp_path):
     lines = []
-    fresh, report = data_real.load_nuscenes(folder, workers=1)
-    first, _ = data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
+    fresh, report = lab_data.load_nuscenes(folder, workers=1)
+    first, _ = lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
     assert "parsed in" in lines[-1]
-    second, report2 = data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
+    second, report2 = lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
     assert "read from the cache" in lines[-1]
     assert report2 == report and same(fresh, first) and same(fresh, second)
-    assert _files(tmp_path) == [data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
+    assert _files(tmp_path) == [lab_data.nuscenes_cache_path(folder, "v1.0-mini", tmp_path).name]
 
 
 @pytest.mark.slow
@@ -70,10 +70,10 @@ def test_a_second_parse_into_a_cache_being_written_is_refused(
         with pytest.raises(
             runs.OutputRefused, match=r"another run is writing here .*`another parse`"
         ):
-            data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
+            lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path)
     assert not list(tmp_path.glob("*.pt"))
     # once the first has ended, it goes ahead
-    data_real.load_nuscenes_cached(folder, cache_dir=tmp_path)
+    lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path)
     assert len(list(tmp_path.glob("*.pt"))) == 1
 
 
@@ -83,25 +83,25 @@ def test_a_changed_table_invalidates_the_cache(folder, tmp_path):
     shutil.copytree(folder, changed)
     cache = tmp_path / "cache"
     lines = []
-    before, _ = data_real.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
+    before, _ = lab_data.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
     table = changed / "v1.0-mini" / "sample_annotation.json"
     anns = json.loads(table.read_text())
     anns[0]["translation"][0] += 0.5  # one box 0.5 m further
     table.write_text(json.dumps(anns))
-    after, _ = data_real.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
+    after, _ = lab_data.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
     assert "out of date (v1.0-mini/sample_annotation.json changed); parsing again" in lines[-2]
-    assert not same(before, after) and same(after, data_real.load_nuscenes(changed, workers=1)[0])
+    assert not same(before, after) and same(after, lab_data.load_nuscenes(changed, workers=1)[0])
     # and the replaced cache now holds the new parse
-    again, _ = data_real.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
+    again, _ = lab_data.load_nuscenes_cached(changed, cache_dir=cache, log=lines.append)
     assert "read from the cache" in lines[-1] and same(after, again)
     assert len(_files(cache)) == 1  # one cache per folder, replaced (no temporary file left)
 
 
 def test_a_foreign_file_under_the_cache_name_is_refused_and_kept(folder, tmp_path):
-    path = data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path)
+    path = lab_data.nuscenes_cache_path(folder, "v1.0-mini", tmp_path)
     path.write_text("my notes")
     with pytest.raises(ValueError, match="not a readable data_synth nuScenes cache"):
-        data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lambda s: None)
+        lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lambda s: None)
     assert path.read_text() == "my notes"
 
 
@@ -112,14 +112,14 @@ def test_a_failed_cache_write_leaves_nothing(folder, tmp_path, monkeypatch):
 
     monkeypatch.setattr(data_synth.torch, "save", full_disk)
     with pytest.raises(OSError, match="No space left"):
-        data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lambda s: None)
+        lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lambda s: None)
     assert _files(tmp_path) == []
 
 
 def test_load_data_parses_once_then_reads_the_cache(folder, tmp_path):
     lines = []
-    a = data_real.load_data(folder, cache_dir=tmp_path, log=lines.append)
-    b = data_real.load_data(folder, cache_dir=tmp_path, log=lines.append)
+    a = lab_data.load_data(folder, cache_dir=tmp_path, log=lines.append)
+    b = lab_data.load_data(folder, cache_dir=tmp_path, log=lines.append)
     assert any("parsed in" in s for s in lines[:2]) and any(
         "read from the cache" in s for s in lines[2:]
     )
@@ -129,10 +129,10 @@ def test_load_data_parses_once_then_reads_the_cache(folder, tmp_path):
 def test_a_cache_of_an_earlier_version_is_parsed_again(folder, tmp_path):
     import torch
 
-    path = data_real.nuscenes_cache_path(folder, "v1.0-mini", tmp_path)
+    path = lab_data.nuscenes_cache_path(folder, "v1.0-mini", tmp_path)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"key": '{"version": "v1.0-mini", "sums": {}}', "scenes": {}}, path)  # other keys
     lines = []
-    scenes, _ = data_real.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
+    scenes, _ = lab_data.load_nuscenes_cached(folder, cache_dir=tmp_path, log=lines.append)
     assert len(scenes.ego) == SCENES
     assert any("an earlier version of the project wrote it" in s for s in lines)

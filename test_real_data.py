@@ -1,4 +1,4 @@
-"""Real driving scenes: the three Waymo logs of the metadrive-simulator 0.3.0.1 wheel (data_real.py
+"""Real driving scenes: the three Waymo logs of the metadrive-simulator 0.3.0.1 wheel (lab_data.py
 section 2).
 
 The download is fetched once into data_cache/waymo (or reused); where it cannot be fetched (no
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-import data_real as dr
+from lab import data as dr
 import data_synth as ds
 import diffstack
 import experiments as ex

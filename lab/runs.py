@@ -236,7 +236,7 @@ NUMBER_MODULES = (
     "train.py",
     "lab/ddp.py",
     "data_synth.py",
-    "data_real.py",
+    "lab/data.py",
     "experiments.py",
     "lab/tables.py",
 )

@@ -22,7 +22,7 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-import data_real
+from lab import data as lab_data
 import data_synth
 import figures
 from diffstack import Config
@@ -743,11 +743,11 @@ class RealData(NamedTuple):
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
     """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the
     validation side."""
-    real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    real, report = lab_data.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(
         f"real: {report['samples']} samples from {report['files']} Waymo logs "
         f"({len(tuple(phases))} 2 Hz phase(s) each), training on {len(data.train)} synthetic "
-        f"samples. {data_real.WAYMO_LICENCE}"
+        f"samples. {lab_data.WAYMO_LICENCE}"
     )
     return RealData(data.train, real, None, report["samples_per_scene"], data.train_draws)
 
@@ -780,7 +780,7 @@ def data_options(ap) -> None:
     """experiments.py's options of what a table trains on: seeds, epochs, the data."""
     ap.add_argument(
         "--phases",
-        type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"),
+        type=bounded(int, 1, lab_data.WAYMO_PHASES, "--phases"),
         default=1,
         help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: "
         "78 samples)",
@@ -916,14 +916,14 @@ def _main(ap, args, names, world, rank, command, held):
         try:
             # (its validation scenes draw the learning curves' reference lines)
             if args.data is not None:
-                data_real.nuscenes_version(args.data)
+                lab_data.nuscenes_version(args.data)
             held.enter_context(folder_lock(args.out, command))
         except ValueError as e:
             ap.error(str(e))
         data = (
             experiment_data(args.n, (0,), args.val, log=print)
             if args.data is None
-            else data_real.load_data(args.data, args.n, log=print)
+            else lab_data.load_data(args.data, args.n, log=print)
         )
         return render_outputs(args.experiment, args.out, data)
     try:  # everything that can be checked before the data is made and the first model trained
@@ -939,7 +939,7 @@ def _main(ap, args, names, world, rank, command, held):
                 "without --jobs"
             )
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
-            data_real.nuscenes_version(args.data)
+            lab_data.nuscenes_version(args.data)
         check_outputs(
             names,
             args.out,
@@ -967,7 +967,7 @@ def _main(ap, args, names, world, rank, command, held):
             data = (
                 experiment_data(args.n, range(most), args.val, log=log)
                 if args.data is None
-                else data_real.load_data(args.data, args.n, log=log)
+                else lab_data.load_data(args.data, args.n, log=log)
             )
             if args.experiment == REAL.name:
                 data = real_data(data, range(args.phases), log=log)
