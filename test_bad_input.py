@@ -17,12 +17,12 @@ import sys
 import pytest
 import torch
 
-from lab import data as lab_data
 import data_synth
 import diffstack as ds
 import experiments as ex
 from lab import tables as lt
 from lab import checks, runs
+from lab import data as lab_data
 import specs
 import train as tr
 from lab import quick as lq

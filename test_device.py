@@ -71,7 +71,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 # data_synth: sample_at
 AUDITED = {
     str(HERE / name): name
-    for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "lab_data.py")
+    for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py")
+    + ("lab/data.py", "lab/nuscenes.py", "lab/waymo.py")
 }
 
 

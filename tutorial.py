@@ -92,8 +92,7 @@ from IPython.display import Image, Markdown, display
 
 import course
 import data_synth
-from lab.data import load_nuscenes
-from lab.nuscenes import write_nuscenes
+from lab.nuscenes import load_nuscenes, write_nuscenes
 import diffstack as ds
 import experiments as xp
 import figures

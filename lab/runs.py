@@ -237,6 +237,8 @@ NUMBER_MODULES = (
     "lab/ddp.py",
     "data_synth.py",
     "lab/data.py",
+    "lab/nuscenes.py",
+    "lab/waymo.py",
     "experiments.py",
     "lab/tables.py",
 )

@@ -23,6 +23,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from lab import data as lab_data
+from lab import waymo
 import data_synth
 import figures
 from diffstack import Config
@@ -743,11 +744,11 @@ class RealData(NamedTuple):
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> RealData:
     """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the
     validation side."""
-    real, report = lab_data.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    real, report = waymo.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(
         f"real: {report['samples']} samples from {report['files']} Waymo logs "
         f"({len(tuple(phases))} 2 Hz phase(s) each), training on {len(data.train)} synthetic "
-        f"samples. {lab_data.WAYMO_LICENCE}"
+        f"samples. {waymo.WAYMO_LICENCE}"
     )
     return RealData(data.train, real, None, report["samples_per_scene"], data.train_draws)
 
@@ -780,7 +781,7 @@ def data_options(ap) -> None:
     """experiments.py's options of what a table trains on: seeds, epochs, the data."""
     ap.add_argument(
         "--phases",
-        type=bounded(int, 1, lab_data.WAYMO_PHASES, "--phases"),
+        type=bounded(int, 1, waymo.WAYMO_PHASES, "--phases"),
         default=1,
         help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1: "
         "78 samples)",
