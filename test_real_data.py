@@ -384,7 +384,7 @@ MALFORMED = {
             p, lambda d: d[0]["translation"].__setitem__(0, d[0]["translation"][0] + 500.0)
         ),
         r"sample_annotation\.json: record '\w+': translation: puts the instance at \S+ m/s at "
-        r"sample '\w+' of scene 'scene-\d+': nothing on a road",
+        r"sample '\w+' of scene 'scene-\d+': too fast",
     ),
     "timestamps in milliseconds": (
         "sample",
@@ -1097,6 +1097,41 @@ def test_the_pool_gives_the_scenes_of_one_process(folder40):
 def test_workers_must_be_a_whole_number(folder40):
     with pytest.raises(ValueError, match="workers must be a whole number >= 1, got 0"):
         nuscenes.load_nuscenes(folder40, workers=0)
+
+
+def test_ctrl_c_ends_the_pool_at_once_in_one_line(folder40):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the pool's workers
+    parse: the command ends at once (the workers would parse for a minute), exit 130, one line, no
+    worker's traceback."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, time\nfrom lab import nuscenes, data\n"
+        "def slow(job, ctx):\n    print('parsing', flush=True)\n    time.sleep(60)\n"
+        "nuscenes._parse_scene = slow\n"
+        "data.main(['read-nuscenes', sys.argv[1], '--workers', '2'])\n"
+    )
+    run = subprocess.Popen(
+        [sys.executable, "-c", code, str(folder40)],
+        cwd=pathlib.Path(__file__).parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert "parsing" in run.stdout.readline()  # a worker has started
+        os.killpg(run.pid, signal.SIGINT)
+        _, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+    assert run.returncode == 130 and err.strip().splitlines() == [
+        "python -m lab.data: interrupted (Ctrl-C); nothing half-written is left"
+    ]
 
 
 def test_a_cache_hit_gives_the_fresh_parse(folder40, tmp_path):

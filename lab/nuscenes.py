@@ -1,28 +1,20 @@
-"""The nuScenes v1.0 format, read and written (json + numpy: the devkit is never needed).
-
-    Scenes --write_nuscenes--> a v1.0 folder --load_nuscenes--> the same Scenes, exactly
+"""The nuScenes v1.0 format, read and written (json + numpy: the devkit is never needed): Scenes
+written by write_nuscenes come back from load_nuscenes exactly.
 
 The format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
 maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with
-polygons and connectivity), the map PNGs named by map.json, maps/prediction/prediction_scenes.json.
-load_nuscenes reads any v1.0 folder (written here, or the real v1.0-mini / v1.0-trainval with the
-map expansion):
-  ego        the CAM_FRONT key-frame ego_pose of every sample; speed by backward differences
-  agents     vehicle.* and human.pedestrian.* instances, one track each, masked where not annotated
-  predicted  at each frame t0: among vehicles observed at t0 with a complete 3 s future, the one
-             listed in maps/prediction/prediction_scenes.json for that sample if the file lists the
-             scene, else the moving ones (>= 1 m over the sample's window); the one that comes
-             closest to the ego over t0..t6
-  lanes      the lanes and lane connectors within cfg.map_radius of the ego's logged path form a
-             graph (connectivity); every maximal chain through it is a route, discretised every 2 m
-Scenes too short for one sample, without lanes, or without a predicted vehicle are skipped, named
-with the reason (report["skipped"]); a scene the prediction split lists but whose entries name no
-vehicle with a complete future is refused. A bad file is one NuScenesFormatError line naming the
-file, the record and the field (Reading).
+polygons and connectivity), maps/prediction/prediction_scenes.json. load_nuscenes reads any v1.0
+folder (written here, or the real v1.0-mini / v1.0-trainval with the map expansion): the ego is the
+CAM_FRONT key-frame ego_pose of every sample; the agents are the vehicle.* and human.pedestrian.*
+instances; the predicted vehicle at t0 is, among vehicles observed at t0 with a complete 3 s
+future, the one the prediction split lists for that sample (if it lists the scene) or else the
+moving ones (>= 1 m over the sample's window), whichever comes closest to the ego over t0..t6; the
+lanes and lane connectors near the ego's path, chained along the connectivity, are the routes.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import gc
 import hashlib
@@ -70,9 +62,8 @@ def _short(v, n: int = 60) -> str:
 
 
 class Reading:
-    """The one way a bad field is reported: inside `with Reading(path) as r:`, with records read
-    through r.each(records) (or set as r.rec), a KeyError, TypeError, ValueError, ... (a field
-    missing or of the wrong type, a bad number, a token naming no record) becomes one `error` line
+    """The one way a bad field is reported: inside `with Reading(path) as r`, a KeyError, TypeError,
+    ValueError, ... raised reading r.rec (set, or by r.each) becomes one `error` line
     "<path>: record <token>: <field>: <what>" (r.name, when set, names the record)."""
 
     def __init__(self, path, error=NuScenesFormatError):
@@ -107,30 +98,23 @@ def _read_json(path: Path):
     try:
         with open(path) as f:
             return json.load(f)
-    except (ValueError, RecursionError) as e:  # (an int of > 4300 digits is a ValueError)
-        raise NuScenesFormatError(f"{path}: malformed JSON ({e})") from e
-    except OSError as e:
-        raise NuScenesFormatError(f"{path}: cannot be read ({e})") from e
+    except (ValueError, RecursionError, OSError) as e:  # (an int of > 4300 digits: a ValueError)
+        raise NuScenesFormatError(f"{path}: malformed JSON or unreadable ({e})") from e
 
 
 def _unique(path, tokens: list, what: str = "token") -> None:
-    """Tokens are primary keys: a repeated one is an error naming it."""
-    first = {}
-    for i, t in enumerate(tokens if len(set(tokens)) != len(tokens) else ()):
-        if t in first:
-            raise NuScenesFormatError(
-                f"{path}: {what} {t!r} appears twice (records {first[t]} and {i})"
-            )
-        first[t] = i
+    """Tokens are primary keys: a repeated one is an error naming it and its first two records."""
+    if len(set(tokens)) < len(tokens):
+        t = next(t for t, n in collections.Counter(tokens).items() if n > 1)
+        i, j = [i for i, u in enumerate(tokens) if u == t][:2]
+        raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {i} and {j})")
 
 
 def _table(path: Path) -> list:
     """A table: a JSON list of records (objects), each with a unique string token."""
     recs = _read_json(path)
     if not isinstance(recs, list):
-        raise NuScenesFormatError(
-            f"{path}: a table must be a JSON list, got a {type(recs).__name__}"
-        )
+        raise NuScenesFormatError(f"{path}: a table must be a JSON list, not {type(recs).__name__}")
     for i, r in enumerate(recs):
         if not isinstance(r, dict) or not isinstance(r.get("token"), str):
             raise NuScenesFormatError(f"{path}: record {i} is not an object with a string token")
@@ -141,8 +125,7 @@ def _table(path: Path) -> list:
 def _numbers(rec: dict, key: str, n: int | None = None, lo: float = -_BIG, hi: float = _BIG):
     """rec[key] as n floats (n None: one float), each a JSON number from lo to hi: not a bool, a
     string or null, nor NaN or Infinity (Python's json reads them; JSON does not allow them)."""
-    v = rec[key]
-    xs = [v] if n is None else v
+    xs = [rec[key]] if n is None else rec[key]
     if not (
         isinstance(xs, list)
         and len(xs) == (n or 1)
@@ -150,8 +133,8 @@ def _numbers(rec: dict, key: str, n: int | None = None, lo: float = -_BIG, hi: f
     ):
         span = f" from {lo:g} to {hi:g}" if (lo, hi) != (-_BIG, _BIG) else ""
         many = f"{n} finite numbers" if n else "a finite number"
-        raise ValueError(f"{key}: must be {many}{span}, got {_short(v)}")
-    return float(v) if n is None else [float(x) for x in xs]
+        raise ValueError(f"{key}: must be {many}{span}, got {_short(rec[key])}")
+    return float(xs[0]) if n is None else [float(x) for x in xs]
 
 
 def _text(rec: dict, key: str) -> str:
@@ -171,15 +154,12 @@ def _pose(rec: dict) -> list:
 
 
 def _map_path(root: Path, location) -> Path:
-    """maps/expansion/<location>.json, confined to the folder: a location is a plain map name
-    (boston-seaport, ...); one with a path separator or '..', or a path that does not normalise to a
-    file under <root>/maps, is an error (links inside the folder are followed like any file)."""
+    """maps/expansion/<location>.json, confined to the folder: a location is a plain map name; one
+    with a path separator or '..', or a path that does not normalise to a file under <root>/maps,
+    is an error (links inside the folder are followed like any file)."""
     maps = Path(os.path.abspath(root / "maps"))
-    if (
-        isinstance(location, str)
-        and location
-        and not any(s in location for s in {"/", "\\", "..", "\0", os.sep, os.altsep or "/"})
-    ):
+    seps = {"/", "\\", "..", "\0", os.sep, os.altsep or "/"}
+    if isinstance(location, str) and location and not any(s in location for s in seps):
         path = Path(os.path.abspath(maps / "expansion" / f"{location}.json"))
         if maps in path.parents:
             return path
@@ -187,9 +167,8 @@ def _map_path(root: Path, location) -> Path:
 
 
 def _read_map(path: Path, cfg: SynthConfig) -> dict:
-    """A map expansion's lanes and lane connectors: arcline paths (n, 10) each, lengths,
-    connectivity (index lists), points and bounding boxes (_lane_boxes). A lane of more than
-    MAX_LANE_POINTS points is an error naming it, before anything is allocated for it."""
+    """A map expansion's lanes and connectors (arcline paths (n, 10) each, lengths, connectivity,
+    points and boxes); a lane of more than MAX_LANE_POINTS points is refused before allocating."""
     js = _read_json(path)
     with Reading(path) as r:
         if not isinstance(js, dict) or str(js.get("version", "1.0")) < "1.3":
@@ -199,8 +178,7 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
         tokens = [t for t, _ in records]
         _unique(path, tokens, "lane / lane_connector token")
         index = {t: k for k, t in enumerate(tokens)}
-        arclines, conn = js["arcline_path_3"], js["connectivity"]
-        paths, lengths = [], []
+        arclines, conn, paths = js["arcline_path_3"], js["connectivity"], []
         for t in tokens:
             r.name = f"lane {t!r}"
             rows = [
@@ -213,45 +191,37 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
                 for a in r.each(arclines.get(t, []))
             ]
             paths.append(np.array(rows, dtype=np.float64).reshape(-1, 10))
-            lengths.append(float(paths[-1][:, 4:7].sum()))
-            n_pts = ds._lane_points(lengths[-1], cfg.lane_spacing)
-            if n_pts > MAX_LANE_POINTS:
+            length = paths[-1][:, 4:7].sum()
+            if (n_pts := ds._lane_points(length, cfg.lane_spacing)) > MAX_LANE_POINTS:
                 raise ValueError(
-                    f"{lengths[-1]:.6g} m long: {n_pts} points at {cfg.lane_spacing} m spacing, "
-                    f"more than MAX_LANE_POINTS = {MAX_LANE_POINTS}"
+                    f"{length:.6g} m long: {n_pts} points at {cfg.lane_spacing} m spacing, more "
+                    f"than MAX_LANE_POINTS = {MAX_LANE_POINTS}"
                 )
         r.name = ""
         nxt, prv = (
             [[index[o] for o in conn.get(t, {}).get(way, []) if o in index] for t in tokens]
             for way in ("outgoing", "incoming")
         )
+    lengths = [float(p[:, 4:7].sum()) for p in paths]
     lanes = dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), path=path)
     return lanes | dict(paths=paths, length=lengths, next=nxt, prev=prv) | _lane_boxes(paths, cfg)
 
 
 def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
-    """Every lane's points every 2 m (n, P, 2), their mask, and each lane's bounding box (n, 4:
-    lo_x,
-    lo_y, hi_x, hi_y; +inf to -inf without points) for _lanes_near. In chunks: real maps have ~10^4
-    lanes."""
-    pts, mask = [], []
+    """Every lane's points every 2 m (n, P, 2) and mask, and its bounding box (n, 4: lo, hi; +inf to
+    -inf without points): for _lanes_near. In chunks: real maps have ~10^4 lanes."""
+    chunks = []
     for c in range(0, len(paths), 1024):
-        chunk = paths[c : c + 1024]
-        R = max([len(p) for p in chunk] + [1])
-        padded = np.zeros((len(chunk), R, 10))
-        for k, p in enumerate(chunk):
+        R = max([len(p) for p in paths[c : c + 1024]] + [1])
+        padded = np.zeros((len(paths[c : c + 1024]), R, 10))
+        for k, p in enumerate(paths[c : c + 1024]):
             padded[k, : len(p)] = p
-        segs = ds.arcline_segments(padded).reshape(len(chunk), 3 * R, 5)
-        p, m = ds.discretize(segs, cfg.lane_spacing)
-        pts.append(p[..., :2])
-        mask.append(m)
-    P = max([p.shape[1] for p in pts] + [1])
-    pts = np.concatenate(
-        [np.pad(x, [(0, 0), (0, P - x.shape[1]), (0, 0)]) for x in pts] + [np.zeros((0, P, 2))]
-    )
-    mask = np.concatenate(
-        [np.pad(x, [(0, 0), (0, P - x.shape[1])]) for x in mask] + [np.zeros((0, P), bool)]
-    )
+        segs = ds.arcline_segments(padded).reshape(len(padded), 3 * R, 5)
+        chunks.append(ds.discretize(segs, cfg.lane_spacing))
+    P = max([p.shape[1] for p, _ in chunks] + [1])
+    pts, mask = np.zeros((len(paths), P, 2)), np.zeros((len(paths), P), bool)
+    for c, (p, m) in zip(range(0, len(paths), 1024), chunks):
+        pts[c : c + len(p), : p.shape[1]], mask[c : c + len(p), : p.shape[1]] = p[..., :2], m
     lo = np.where(mask[..., None], pts, np.inf).min(1)
     hi = np.where(mask[..., None], pts, -np.inf).max(1)
     return dict(pts=pts, mask=mask, box=np.concatenate([lo, hi], 1))
@@ -259,8 +229,8 @@ def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
 
 def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
     """Maximal chains (lists of lane indices) through the graph lmap (next, prev: index lists)
-    restricted to `near`, following outgoing links; started from the lanes without an incoming link
-    inside it (and from lanes left over, for cycles)."""
+    restricted to `near`, from the lanes without an incoming link inside it (then any left, for
+    cycles)."""
     inside = set(near)
     out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
     sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
@@ -281,9 +251,8 @@ def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
 
 
 def _sample_chain(r: Reading, samples: dict, first: str, name: str) -> tuple[list, list]:
-    """(tokens, timestamps) of a scene's samples, following `next` from its first: each sample's
-    `prev` must be the one before it, the chain must not loop, the timestamps (microseconds) must
-    increase, 0.1 to 2 s apart (2 Hz key frames; in ms or ns they are 1000 times off)."""
+    """(tokens, timestamps) of a scene's samples along `next`: each `prev` the sample before, no
+    loop, timestamps (microseconds) increasing 0.1 to 2 s apart (ms or ns are 1000 times off)."""
     tokens, times, seen, tok = [], [], set(), first
     while tok:
         if tok in seen:
@@ -291,7 +260,7 @@ def _sample_chain(r: Reading, samples: dict, first: str, name: str) -> tuple[lis
         rec = r.rec = samples[tok]  # (a KeyError names the `next` of the sample before)
         before = tokens[-1] if tokens else ""
         if rec["prev"] != before:
-            raise ValueError(f"prev: {_short(rec['prev'])}, but it follows {before!r} (next links)")
+            raise ValueError(f"prev: {_short(rec['prev'])}, but it follows {before!r}")
         _numbers(rec, "timestamp")  # (kept as written: an int)
         if times and not rec["timestamp"] > times[-1]:
             raise ValueError(f"timestamp: not after {times[-1]}, the sample before's: a step <= 0")
@@ -350,25 +319,19 @@ def _index(root: Path, version: str, cfg: SynthConfig):
     return ctx, tab, map_file
 
 
-def load_nuscenes(
-    root, version: str = "v1.0-mini", cfg: SynthConfig | None = None, workers: int | None = None
-) -> tuple[Scenes, dict]:
-    """A nuScenes v1.0 folder as Scenes (world frame) and a report of what was read and skipped.
-    The tables are read and indexed here; the scenes, independent of each other then, are parsed by
-    a pool of `workers` processes (default: the cores this process may use), at most one per
-    PARSE_CHUNK scenes. The result does not depend on `workers`. Bad input (a missing or malformed
-    file, a missing field or one of the wrong type, a repeated token, a number that is not finite,
-    a rotation that is not a unit quaternion, a broken sample chain, a location that is not a plain
-    map name, a lane or route of more than MAX_LANE_POINTS points) is a NuScenesFormatError."""
+def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Scenes, dict]:
+    """A nuScenes v1.0 folder as Scenes (world frame) and a report, which names each scene skipped
+    (too short for a sample, no lane near the ego, no vehicle to predict) with its reason. The
+    scenes are parsed by a pool of `workers` processes (default: the cores this process may use),
+    at most one per PARSE_CHUNK scenes; the result does not depend on `workers`. A bad file is a
+    NuScenesFormatError naming the file, the record and the field."""
     cfg = cfg or SynthConfig()
     ctx, tab, map_file = _index(Path(root), version, cfg)
     samples = {s["token"]: s for s in tab["sample"]}
     report = dict(scenes=len(tab["scene"]), loaded=0, skipped_short=0, skipped_no_lanes=0)
     report |= dict(skipped_no_agent=0, skipped=[])
     jobs = []
-    # here, in order: every scene's sample chain, the scenes too short for a sample skipped, the
-    # maps of the others read once
-    for sc in tab["scene"]:
+    for sc in tab["scene"]:  # here, in order: the sample chains, the maps read once
         with Reading(ctx.tdir / "scene.json") as r:
             r.rec, name = sc, _text(sc, "name")
             first = samples[sc["first_sample_token"]]["token"]  # (a KeyError: no such sample)
@@ -377,10 +340,8 @@ def load_nuscenes(
             tokens, times = _sample_chain(r, samples, first, name)
         if len(tokens) < cfg.hist + cfg.fut + 1:
             report["skipped_short"] += 1
-            report["skipped"].append(
-                f"{name}: {len(tokens)} samples in {ctx.tdir / 'sample.json'}, a sample needs "
-                f"{cfg.hist + cfg.fut + 1}"
-            )
+            need = f"a sample needs {cfg.hist + cfg.fut + 1}"
+            report["skipped"].append(f"{name}: {len(tokens)} samples in {r.path}, {need}")
             continue
         if mpath not in ctx.maps:
             ctx.maps[mpath] = _read_map(mpath, cfg)
@@ -388,21 +349,14 @@ def load_nuscenes(
     out = []
     for outcome, arrays in _map_scenes(jobs, ctx, workers):
         report[outcome] += 1
-        if outcome != "loaded":
-            report["skipped"].append(arrays)  # (its reason)
-        else:
+        if outcome == "loaded":
             tensors = {k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"}
             out.append(Scenes(**tensors, names=arrays["names"]))
+        else:
+            report["skipped"].append(arrays)  # (its reason)
     if not out:
         raise NuScenesFormatError(f"{ctx.tdir}: no usable scene ({report})")
     return Scenes.cat(out), report
-
-
-def parse_workers() -> int:
-    """The default size of load_nuscenes's process pool: the cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
 
 
 _CONTEXT = None  # the context the pool's workers parse with: inherited when they fork
@@ -420,11 +374,14 @@ def _parse_in_worker(job):
 
 def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
     """[_parse_scene(job, ctx) for job in jobs], in order, on a pool of up to `workers` processes
-    (at most one per PARSE_CHUNK scenes) where the platform forks: the workers inherit ctx (the
-    tables, hundreds of MB for v1.0-trainval) instead of receiving a copy, and gc.freeze keeps their
-    garbage collector from touching (and so copying, page by page) its millions of objects."""
+    where the platform forks: the workers inherit ctx (the tables, hundreds of MB for v1.0-trainval)
+    instead of receiving a copy, and gc.freeze keeps their garbage collector from touching (and so
+    copying, page by page) its millions of objects."""
     global _CONTEXT
-    workers = parse_workers() if workers is None else workers
+    if workers is None:  # the cores this process may run on
+        workers = (
+            len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        )
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"load_nuscenes: workers must be a whole number >= 1, got {workers!r}")
     workers = min(workers, math.ceil(len(jobs) / PARSE_CHUNK))
@@ -435,16 +392,21 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
     try:
         fork = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(workers, fork, initializer=_start_worker) as pool:
-            return list(pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK))
+            try:
+                return list(pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK))
+            except KeyboardInterrupt:  # the workers ignore Ctrl-C: they end here, now
+                pool.shutdown(wait=False, cancel_futures=True)
+                for worker in multiprocessing.active_children():
+                    worker.terminate()
+                raise
     finally:
         gc.unfreeze()
         _CONTEXT = None
 
 
 def _parse_scene(job, ctx) -> tuple[str, dict | str]:
-    """One scene: ('loaded', its Scenes of length 1 as numpy arrays and names) or
-    ('skipped_no_lanes' | 'skipped_no_agent', the reason naming the scene and file). Numpy crosses
-    the pool's pipes: torch would send every tensor as a shared-memory file."""
+    """One scene: ('loaded', its Scenes' numpy arrays; numpy crosses the pool's pipes, tensors would
+    go as shared-memory files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
     name, mpath, tokens, times = job
     cfg, afile = ctx.cfg, ctx.tdir / "sample_annotation.json"
     t = np.array(times, np.float64)
@@ -453,10 +415,7 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
     lmap = ctx.maps[mpath]
     routes = routes_through(lmap, _lanes_near(lmap, ego[:, :2], cfg.map_radius))
     if not routes:
-        return (
-            "skipped_no_lanes",
-            f"{name}: no lane of {mpath} within {cfg.map_radius:g} m of the ego's path",
-        )
+        return "skipped_no_lanes", f"{name}: no lane of {mpath} within {cfg.map_radius:g} m"
     listed = name in ctx.split_scenes
     pred = choose_predicted(ego, tracks, inst, tokens, listed, ctx.listed, cfg)
     if (pred < 0).all() and listed:  # the split promises a vehicle
@@ -464,16 +423,11 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
         if entry is not None:
             raise NuScenesFormatError(
                 f"{ctx.tdir.parent / 'maps/prediction/prediction_scenes.json'}: scene {name!r} is "
-                f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries "
-                f"observed over a whole {cfg.fut}-frame future"
+                f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
             )
     if (pred < 0).all():
-        return (
-            "skipped_no_agent",
-            f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future",
-        )
-    arrays = _lanes_of(name, lmap, routes, cfg) | dict(ego=ego, pred_idx=pred) | tracks
-    scene = scene_of(name, **arrays)
+        return "skipped_no_agent", f"{name}: no vehicle in {afile} moves >= 1 m, a future whole"
+    scene = scene_of(name, **_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
     arrays = {k: v.numpy() for k, v in scene.tensors().items()}
     bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
     if bad:  # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
@@ -482,16 +436,12 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
 
 
 def _tracks(ctx, name: str, tokens: list, t) -> tuple:
-    """The ego's CAM_FRONT key-frame poses (F, 4), the vehicle and pedestrian tracks in order of
-    first appearance (Scenes' agents fields), their instance tokens. Speeds by backward
-    differences, at most MAX_SPEED."""
+    """The ego's CAM_FRONT key-frame poses (F, 4); the vehicles and pedestrians in order of first
+    appearance (Scenes' agents fields); their instance tokens. Speeds by backward differences."""
     missing = [k for k in tokens if k not in ctx.ego_of]
     if missing:
-        raise NuScenesFormatError(
-            f"{ctx.tdir / 'sample_data.json'}: no CAM_FRONT key frame for sample {missing[0]}"
-        )
-    F = len(tokens)
-    poses = {(f,): ctx.ego_of[k] for f, k in enumerate(tokens)}
+        raise NuScenesFormatError(f"{ctx.tdir}/sample_data.json: no CAM_FRONT for {missing[0]}")
+    F, poses = len(tokens), {(f,): ctx.ego_of[k] for f, k in enumerate(tokens)}
     with Reading(ctx.tdir / "ego_pose.json") as r:
         ego = np.array([[*_pose(p), 0.0] for p in r.each(poses.values())])
         ego[:, 2] = ds.wrap_angle(ego[:, 2])
@@ -515,25 +465,20 @@ def _tracks(ctx, name: str, tokens: list, t) -> tuple:
         agents[..., 3] = ds.backward_speed(agents[..., :2], amask, t) * amask
         _check_speed(r, agents[..., 3], ann_at, "the instance", tokens, name)
     is_ped = np.array([ctx.inst_cat[i].startswith("human.") for i in inst], bool).reshape(M)
-    tracks = dict(agents=agents, agents_mask=amask, agents_is_ped=is_ped, agents_size=size)
-    return ego, tracks, inst
+    return ego, dict(agents=agents, agents_mask=amask, agents_is_ped=is_ped, agents_size=size), inst
 
 
 def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name: str) -> None:
     """A track faster than MAX_SPEED since the key frame before: an error naming the record."""
     if (np.abs(speed) > MAX_SPEED).any():
         k = tuple(np.argwhere(np.abs(speed) > MAX_SPEED)[0].tolist())
-        r.rec = records[k]
-        raise ValueError(
-            f"translation: puts {who} at {abs(speed[k]):.3g} m/s at sample {tokens[k[-1]]!r} of "
-            f"scene {name!r}: nothing on a road moves so fast"
-        )
+        r.rec, at = records[k], f"at sample {tokens[k[-1]]!r} of scene {name!r}"
+        raise ValueError(f"translation: puts {who} at {abs(speed[k]):.3g} m/s {at}: too fast")
 
 
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
-    """Indices of the lanes with a point within radius of any of the positions path_xy (F, 2):
-    first those whose bounding box meets the path's (a real map has ~10^4 lanes, a scene uses a
-    few dozen), then their points."""
+    """The lanes with a point within radius of a position of path_xy (F, 2): first those whose box
+    meets the path's (a real map has ~10^4 lanes, a scene uses dozens), then their points."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
     b = lmap["box"]  # (n, 4)
     cand = np.nonzero(
@@ -542,27 +487,23 @@ def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
     p, m = lmap["pts"][cand], lmap["mask"][cand]
     cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
     d = np.linalg.norm(lmap["pts"][cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
-    ok = (np.where(lmap["mask"][cand][..., None], d, np.inf) < radius).any((1, 2))
-    return cand[ok].tolist()
+    return cand[(np.where(lmap["mask"][cand][..., None], d, np.inf) < radius).any((1, 2))].tolist()
 
 
 def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed: set, cfg):
     """pred (F,): the predicted vehicle per frame t0 (-1: none), the rule of the module docstring
     (scene_listed: the prediction split lists the scene; `listed`: its (instance, sample) pairs)."""
     agents, amask, is_ped = tracks["agents"], tracks["agents_mask"], tracks["agents_is_ped"]
-    H, T = cfg.hist, cfg.fut
-    M, F = amask.shape
+    (M, F), H, T = amask.shape, cfg.hist, cfg.fut
     pred = np.full(F, -1)
     for f in range(H, F - T):
         fut = amask[:, f : f + T + 1].all(1) & ~is_ped  # observed at t0 and the whole future
         if scene_listed:
             ok = fut & np.array([(i, tokens[f]) in listed for i in inst], bool).reshape(M)
         else:
-            w = agents[:, f - H : f + T + 1, :2]
-            wm = amask[:, f - H : f + T + 1]
+            w, wm = agents[:, f - H : f + T + 1, :2], amask[:, f - H : f + T + 1]
             first = np.take_along_axis(w, np.argmax(wm, 1)[:, None, None], 1)
-            moved = np.where(wm, np.linalg.norm(w - first, axis=-1), 0.0).max(1)
-            ok = fut & (moved >= 1.0)
+            ok = fut & (np.where(wm, np.linalg.norm(w - first, axis=-1), 0.0).max(1) >= 1.0)
         if ok.any():
             near = agents[:, f : f + T + 1, :2] - ego[None, f : f + T + 1, :2]
             pred[f] = int(np.argmin(np.where(ok, np.linalg.norm(near, axis=-1).min(1), np.inf)))
@@ -570,8 +511,8 @@ def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed
 
 
 def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
-    """A scene's map as Scenes' fields: the paths of the lanes its routes use, the routes through
-    them, discretised. A route of more than MAX_LANE_POINTS points is an error naming its lanes."""
+    """A scene's map as Scenes' fields: the arcline paths of the lanes its routes use, the routes
+    through them, discretised; a route of more than MAX_LANE_POINTS points is refused."""
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
@@ -589,14 +530,12 @@ def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
     R = max(len(c) for c in chains)
     routes = np.array([c + [-1] * (R - len(c)) for c in chains])  # (L, R)
     lanes, mask = ds.discretize(ds.route_segments(paths[None], routes[None]), cfg.lane_spacing)
-    return dict(
-        lanes=lanes[0], lanes_mask=mask[0], paths=paths, paths_is_connector=conn, routes=routes
-    )
+    out = dict(lanes=lanes[0], lanes_mask=mask[0], paths=paths, paths_is_connector=conn)
+    return out | dict(routes=routes)
 
 
 def scene_of(name: str, **arrays) -> Scenes:
-    """One real scene's numpy arrays (Scenes' fields) as a Scenes of length 1: no behaviour, no
-    event."""
+    """A real scene's numpy arrays (Scenes' fields) as a Scenes of length 1: no behaviour, event."""
     t = {k: torch.from_numpy(np.ascontiguousarray(v))[None] for k, v in arrays.items()}
     t["pred_idx"], t["routes"] = t["pred_idx"].long(), t["routes"].long()
     return Scenes(**t, event_frame=torch.tensor([-1]), behaviour=torch.tensor([-1]), names=[name])
@@ -613,9 +552,8 @@ def sha256_of(path) -> str:
 
 
 def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of every file load_nuscenes reads, relative to root (those there): the parse
-    cache's key, which a change of a byte changes (sizes and modification times would be cheaper,
-    but a copy or an edit within the same second could keep them)."""
+    """{file: sha256} of the files load_nuscenes reads (relative to root): the parse cache's key,
+    which a byte changes (a size or modification time can survive a copy or a quick edit)."""
     root = Path(root)
     files = [root / version / f"{t}.json" for t in NUSC_TABLES]
     files += sorted((root / "maps" / "expansion").glob("*.json"))
@@ -632,10 +570,10 @@ def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
 def load_nuscenes_cached(
     root, version="v1.0-mini", cfg=None, cache_dir="data_cache", workers=None, log=print
 ) -> tuple[Scenes, dict]:
-    """load_nuscenes through a cache in cache_dir keyed by the sha256 of every file the parse reads
-    (nuscenes_checksums), the SynthConfig and the cache format: a matching key reads the parse back
-    (seconds, not minutes); another parses again and replaces the cache (atomically, holding
-    cache_dir). A file of the cache's name that is not such a cache is an error, never replaced."""
+    """load_nuscenes through a cache in cache_dir keyed by the sha256 of every file the parse reads,
+    the SynthConfig and the cache format: a matching key reads the parse back (seconds, not
+    minutes); another parses again and replaces it (atomically, holding cache_dir). A file of the
+    cache's name that is not such a cache is an error, never replaced."""
     cfg, t0, what = cfg or SynthConfig(), time.perf_counter(), f"{root}/{version}"
     sums = nuscenes_checksums(root, version)
     key = dict(version=version, files=sums, cfg=dataclasses.asdict(cfg), format=_NUSC_CACHE_FORMAT)
@@ -645,9 +583,7 @@ def load_nuscenes_cached(
             blob = torch.load(path, weights_only=True)
             stored = blob["key"]
         except Exception as e:  # any failure means: not our cache
-            raise ValueError(
-                f"{path}: not a readable data_synth nuScenes cache ({e}); move it away"
-            ) from e
+            raise ValueError(f"{path}: not a readable data_synth nuScenes cache ({e})") from e
         if stored == key:
             log(f"{what}: parsed scenes read from the cache {path} ({len(sums)} sha256 match)")
             return Scenes(**blob["scenes"]), blob["report"]
@@ -660,10 +596,8 @@ def load_nuscenes_cached(
         log(f"{what}: the cache {path} is out of date ({changed} changed); parsing again")
     with folder_lock(path.parent, f"parsing {what} into {path.name}"):
         scenes, report = load_nuscenes(root, version, cfg, workers)
-        save_atomic(
-            {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report},
-            path,
-        )
+        blob = {"key": key, "scenes": {**scenes.tensors(), "names": scenes.names}, "report": report}
+        save_atomic(blob, path)
     log(f"{what}: parsed in {time.perf_counter() - t0:.1f} s, cached in {path}")
     return scenes, report
 
@@ -694,21 +628,33 @@ MINI_SCENES = tuple(
 )
 """The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only
 those); later ones are scene-9xxx."""
+_FIELDS = {  # the fields of the records written, in the devkit's order
+    "log": "token logfile vehicle date_captured location",
+    "scene": "token log_token nbr_samples first_sample_token last_sample_token name description",
+    "sample": "token timestamp scene_token prev next",
+    "ego_pose": "token timestamp rotation translation",
+    "sample_data": "token sample_token ego_pose_token calibrated_sensor_token timestamp fileformat "
+    "is_key_frame height width filename prev next",
+    "instance": "token category_token nbr_annotations first_annotation_token last_annotation_token",
+    "sample_annotation": "token sample_token instance_token visibility_token attribute_tokens "
+    "translation size rotation prev next num_lidar_pts num_radar_pts",
+    "category": "token name description index",
+    "attribute": "token name description",
+    "visibility": "token level description",
+    "sensor": "token channel modality",
+    "calibrated_sensor": "token translation sensor_token rotation camera_intrinsic",
+    "map": "token category filename log_tokens",
+}
+# channel: modality, file format, image height, width; translation, rotation, camera intrinsic
+_SENSORS = {"CAM_FRONT": ("camera", "jpg", 900, 1600), "LIDAR_TOP": ("lidar", "pcd.bin", 0, 0)}
+_CAM_INTRINSIC = [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]]
+_CALIBRATION = {
+    "CAM_FRONT": ([1.70, 0.016, 1.51], [0.4998, -0.5031, 0.4998, -0.4972], _CAM_INTRINSIC),
+    "LIDAR_TOP": ([0.943, 0.0, 1.84], [0.7071, 0.0, 0.0, -0.7071], []),
+}
+_CAR, _PED = "Vehicle designed primarily for personal use.", "human.pedestrian.adult"
 _SIGNS_SHAPE = {v: k for k, v in ds._SHAPE_SIGNS.items()}
 _T0_US = 1_600_000_000_000_000  # timestamp of the first written frame (microseconds)
-# channel: modality, translation, rotation, camera intrinsic, file format, height, width
-_SENSORS = {
-    "CAM_FRONT": (
-        "camera",
-        [1.70, 0.016, 1.51],
-        [0.4998, -0.5031, 0.4998, -0.4972],
-        [[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]],
-        "jpg",
-        900,
-        1600,
-    ),
-    "LIDAR_TOP": ("lidar", [0.943, 0.0, 1.84], [0.7071, 0.0, 0.0, -0.7071], [], "pcd.bin", 0, 0),
-}
 
 
 def _token(*parts) -> str:
@@ -716,9 +662,13 @@ def _token(*parts) -> str:
     return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
 
 
+def _add(tables: dict, table: str, *values) -> None:
+    """A record appended to a table: its fields (_FIELDS) in order, with these values."""
+    tables[table].append(dict(zip(_FIELDS[table].split(), values, strict=True)))
+
+
 def _quat(yaw: float) -> list:
-    """Planar yaw -> quaternion [w, x, y, z]."""
-    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]  # planar yaw: [w, x, y, z]
 
 
 def _links(tokens: list, k: int) -> tuple:
@@ -731,14 +681,10 @@ def _dump(obj, path: Path) -> None:
     write_atomic(path, json.dumps(obj, allow_nan=False))
 
 
-def write_nuscenes(
-    scenes: Scenes, root, version="v1.0-mini", cfg: SynthConfig | None = None, overwrite=False
-) -> Path:
-    """Write scenes as a nuScenes v1.0 dataset folder under root; returns root. The folder is
-    written whole (lab.runs.write_folder): into a temporary sibling, renamed into place when
-    complete, under a lock on the target; an interrupted or killed write leaves the old folder (or
-    none). Existing files are replaced only with overwrite=True, a folder holding files it does not
-    make never."""
+def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrite=False) -> Path:
+    """Scenes written as a nuScenes v1.0 folder under root (returned), whole (runs.write_folder): in
+    a temporary sibling renamed into place, under a lock on the target; an interrupted write leaves
+    the old folder (or none). Its files are replaced only with overwrite, another's never."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -752,147 +698,83 @@ def write_nuscenes(
 
 
 def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) -> None:
-    """write_nuscenes' work: every file of the dataset under root. Scenes go round-robin to the four
-    map locations and sit side by side (300 m apart) in their map's canvas."""
+    """Every file of the folder: scenes go round-robin to the four map locations, side by side (300
+    m apart) in their map's canvas; each map has a record, a tiny PNG and its expansion."""
     S = len(scenes)
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
     locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
     offsets, canvas = np.zeros((S, 2)), {loc: [300.0, 300.0] for loc in NUSC_LOCATIONS}
     for i, loc in enumerate(locs):  # a translation that puts the scene beside the one before
-        pts = np.concatenate(
-            [
-                scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy(),
-                scenes.ego[i, :, :2].numpy(),
-                scenes.agents[i][scenes.agents_mask[i]][:, :2].numpy(),
-            ]
-        )
+        lanes = scenes.lanes[i][scenes.lanes_mask[i]][:, :2].numpy()
+        agents = scenes.agents[i][scenes.agents_mask[i]][:, :2].numpy()
+        pts = np.concatenate([lanes, scenes.ego[i, :, :2].numpy(), agents])
         lo, hi = pts.min(0), pts.max(0)
         offsets[i] = (canvas[loc][0] - lo[0], 300.0 - lo[1])
         canvas[loc][0] += hi[0] - lo[0] + 300.0
         canvas[loc][1] = max(canvas[loc][1], hi[1] - lo[1] + 600.0)
-    tables = _fixed_tables()
-    split = {}
+    tables, split = _fixed_tables(), {}
     for i in range(S):
         sample_tok = _write_scene(tables, scenes, i, names[i], locs[i], offsets[i], cfg)
         split[names[i]] = _write_annotations(tables, scenes, i, names[i], sample_tok, offsets[i])
     import matplotlib.image
 
-    for loc in NUSC_LOCATIONS:  # a map record (with its logs and a tiny PNG), its expansion
+    for loc in NUSC_LOCATIONS:
         tok, mine = _token("map", loc), [i for i in range(S) if locs[i] == loc]
         logs = [_token(names[i], "log") for i in mine]
-        tables["map"].append(
-            dict(token=tok, category="semantic_prior", filename=f"maps/{tok}.png", log_tokens=logs)
-        )
+        _add(tables, "map", tok, "semantic_prior", f"maps/{tok}.png", logs)
         (root / "maps").mkdir(parents=True, exist_ok=True)
         png = lambda tmp: matplotlib.image.imsave(tmp, np.zeros((8, 8)), cmap="gray")  # noqa: E731
         write_file_atomic(root / "maps" / f"{tok}.png", png)
-        expansion = {"version": "1.3", "canvas_edge": [canvas[loc][0] + 300.0, canvas[loc][1]]}
-        expansion |= {layer: [] for layer in MAP_LAYERS} | {
-            "arcline_path_3": {},
-            "connectivity": {},
-        }
+        exp = {"version": "1.3", "canvas_edge": [canvas[loc][0] + 300.0, canvas[loc][1]]}
+        exp |= {layer: [] for layer in MAP_LAYERS} | {"arcline_path_3": {}, "connectivity": {}}
         for i in mine:
-            _write_scene_map(expansion, scenes, i, names[i], offsets[i], cfg)
-        _dump(expansion, root / "maps" / "expansion" / f"{loc}.json")
+            _write_scene_map(exp, scenes, i, names[i], offsets[i], cfg)
+        _dump(exp, root / "maps" / "expansion" / f"{loc}.json")
     for t in NUSC_TABLES:
         _dump(tables[t], root / version / f"{t}.json")
     _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
 
 
 def _fixed_tables() -> dict:
-    """The 13 tables: those every folder shares (category, attribute, visibility, sensor,
-    calibrated_sensor) filled, the others empty."""
+    """The 13 tables, those every folder shares filled (categories, attributes, visibilities,
+    sensors)."""
     tables = {t: [] for t in NUSC_TABLES}
-    cats = [
-        ("vehicle.car", "Vehicle designed primarily for personal use.", 17),
-        ("human.pedestrian.adult", "Adult subcategory.", 2),
-    ]
-    tables["category"] = [
-        dict(token=_token("category", n), name=n, description=d, index=k) for n, d, k in cats
-    ]
-    attrs = ("vehicle.moving", "vehicle.stopped", "pedestrian.moving", "pedestrian.standing")
-    tables["attribute"] = [
-        dict(token=_token("attribute", n), name=n, description=n.replace(".", " ")) for n in attrs
-    ]
-    tables["visibility"] = [
-        dict(token=str(k + 1), level=lvl, description=f"visibility of whole object is {lvl}")
-        for k, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"))
-    ]
-    for ch, (modality, trans, rot, intr, *_) in _SENSORS.items():
-        sensor = _token("sensor", ch)
-        tables["sensor"].append(dict(token=sensor, channel=ch, modality=modality))
-        tables["calibrated_sensor"].append(
-            dict(
-                token=_token("calibrated_sensor", ch),
-                translation=trans,
-                sensor_token=sensor,
-                rotation=rot,
-                camera_intrinsic=intr,
-            )
-        )
+    _add(tables, "category", _token("category", "vehicle.car"), "vehicle.car", _CAR, 17)
+    _add(tables, "category", _token("category", _PED), _PED, "Adult subcategory.", 2)
+    for n in ("vehicle.moving", "vehicle.stopped", "pedestrian.moving", "pedestrian.standing"):
+        _add(tables, "attribute", _token("attribute", n), n, n.replace(".", " "))
+    for k, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100")):
+        _add(tables, "visibility", str(k + 1), lvl, f"visibility of whole object is {lvl}")
+    for ch, (modality, *_) in _SENSORS.items():
+        trans, rot, intrinsic = _CALIBRATION[ch]
+        _add(tables, "sensor", _token("sensor", ch), ch, modality)
+        cs = (_token("calibrated_sensor", ch), trans, _token("sensor", ch), rot, intrinsic)
+        _add(tables, "calibrated_sensor", *cs)
     return tables
 
 
 def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offset, cfg) -> list:
-    """Scene i's log, scene, samples, and key-frame sample_data with their ego poses; its sample
-    tokens."""
+    """Scene i's log, scene, samples, key-frame sample_data and ego poses; its sample tokens."""
     F, b, (ox, oy) = scenes.ego.shape[1], int(scenes.behaviour[i]), offset
     log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
-    tables["log"].append(
-        dict(
-            token=log_tok,
-            logfile=f"synthetic-{scenes.names[i]}",
-            vehicle="synthetic",
-            date_captured="2026-01-01",
-            location=loc,
-        )
-    )
+    _add(tables, "log", log_tok, f"synthetic-{scenes.names[i]}", "synthetic", "2026-01-01", loc)
     ts = [_T0_US + (i * (F + 20) + f) * int(round(cfg.dt * 1e6)) for f in range(F)]
     sample_tok = [_token(name, "sample", f) for f in range(F)]
-    tables["scene"].append(
-        dict(
-            token=scene_tok,
-            log_token=log_tok,
-            nbr_samples=F,
-            first_sample_token=sample_tok[0],
-            last_sample_token=sample_tok[-1],
-            name=name,
-            description=f"synthetic; {ds.BEHAVIOURS[b] if b >= 0 else 'real'}",
-        )
-    )
+    about = f"synthetic; {ds.BEHAVIOURS[b] if b >= 0 else 'real'}"
+    ends = (sample_tok[0], sample_tok[-1])
+    _add(tables, "scene", scene_tok, log_tok, F, *ends, name, about)
     ego = scenes.ego[i].numpy()
     for f in range(F):
-        prev, nxt = _links(sample_tok, f)
-        tables["sample"].append(
-            dict(token=sample_tok[f], timestamp=ts[f], scene_token=scene_tok, prev=prev, next=nxt)
-        )
+        _add(tables, "sample", sample_tok[f], ts[f], scene_tok, *_links(sample_tok, f))
         x, y, h = (float(v) for v in ego[f, :3])
-        for ch, (*_, fmt, height, width) in _SENSORS.items():
-            sd_toks = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
-            pose_tok = _token(name, ch, "ego_pose", f)
-            pose = dict(
-                token=pose_tok,
-                timestamp=ts[f],
-                rotation=_quat(h),
-                translation=[x + ox, y + oy, 0.0],
-            )
-            tables["ego_pose"].append(pose)
-            tables["sample_data"].append(
-                dict(
-                    token=sd_toks[1],
-                    sample_token=sample_tok[f],
-                    ego_pose_token=pose_tok,
-                    calibrated_sensor_token=_token("calibrated_sensor", ch),
-                    timestamp=ts[f],
-                    fileformat=fmt,
-                    is_key_frame=True,
-                    height=height,
-                    width=width,
-                    filename=f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}",
-                    prev=sd_toks[0] if f else "",
-                    next=sd_toks[2] if f < F - 1 else "",
-                )
-            )
+        for ch, (_, fmt, height, width) in _SENSORS.items():
+            sd = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
+            pose = _token(name, ch, "ego_pose", f)
+            _add(tables, "ego_pose", pose, ts[f], _quat(h), [x + ox, y + oy, 0.0])
+            row = (sd[1], sample_tok[f], pose, _token("calibrated_sensor", ch), ts[f], fmt, True)
+            file = f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}"
+            links = (sd[0] if f else "", sd[2] if f < F - 1 else "")
+            _add(tables, "sample_data", *row, height, width, file, *links)
     return sample_tok
 
 
@@ -900,46 +782,21 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
     """Scene i's instances and their annotations; its entries of the prediction split."""
     agents, amask, (ox, oy) = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy(), offset
     for m in np.nonzero(amask.any(-1))[0]:
-        frames = np.nonzero(amask[m])[0]
-        inst = _token(name, "instance", m)
-        ann = [_token(name, "annotation", m, f) for f in frames]
-        ped = bool(scenes.agents_is_ped[i, m])
-        tables["instance"].append(
-            dict(
-                token=inst,
-                category_token=_token(
-                    "category", "human.pedestrian.adult" if ped else "vehicle.car"
-                ),
-                nbr_annotations=len(frames),
-                first_annotation_token=ann[0],
-                last_annotation_token=ann[-1],
-            )
+        frames, inst = np.nonzero(amask[m])[0], _token(name, "instance", m)
+        ann, ped = (
+            [_token(name, "annotation", m, f) for f in frames],
+            bool(scenes.agents_is_ped[i, m]),
         )
+        cat = _token("category", _PED if ped else "vehicle.car")
+        _add(tables, "instance", inst, cat, len(frames), ann[0], ann[-1])
         w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
         for k, f in enumerate(frames):
             x, y, h, v = (float(q) for q in agents[m, f])
-            moving = (
-                ("moving" if v > 0.5 else "standing")
-                if ped
-                else ("moving" if v > 0.5 else "stopped")
-            )
-            attr = f"{'pedestrian' if ped else 'vehicle'}.{moving}"
-            tables["sample_annotation"].append(
-                dict(
-                    token=ann[k],
-                    sample_token=sample_tok[f],
-                    instance_token=inst,
-                    visibility_token="4",
-                    attribute_tokens=[_token("attribute", attr)],
-                    translation=[x + ox, y + oy, hgt / 2],
-                    size=[w, length, hgt],
-                    rotation=_quat(h),
-                    prev=_links(ann, k)[0],
-                    next=_links(ann, k)[1],
-                    num_lidar_pts=20,
-                    num_radar_pts=0,
-                )
-            )
+            moving = "moving" if v > 0.5 else "standing" if ped else "stopped"
+            attr = _token("attribute", f"{'pedestrian' if ped else 'vehicle'}.{moving}")
+            box = ([x + ox, y + oy, hgt / 2], [w, length, hgt], _quat(h))
+            ids = (ann[k], sample_tok[f], inst, "4", [attr])
+            _add(tables, "sample_annotation", *ids, *box, *_links(ann, k), 20, 0)
     pred = scenes.pred_idx[i].numpy()
     return [
         f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}"
@@ -949,9 +806,8 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
 
 
 def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) -> None:
-    """Add scene i's arcline paths to a map expansion: each path a lane (or lane connector) with a
-    polygon (the centre line +- W/2), edge lines, and connectivity from consecutive paths of the
-    routes."""
+    """Scene i's arcline paths added to a map expansion: each a lane (or lane connector) with a
+    polygon (the centre line +- W/2), edge lines, and the links of consecutive paths of routes."""
     paths, is_conn = scenes.paths[i].numpy(), scenes.paths_is_connector[i].numpy()
     tok = {q: _token(name, "lane", q) for q in np.nonzero(paths[..., 4:7].sum(-1) > 0)[0]}
     links = {q: {"incoming": [], "outgoing": []} for q in tok}
@@ -964,16 +820,11 @@ def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) 
     segs = ds.arcline_segments(paths)  # (Q, 3, 5)
     for q, t in tok.items():
         x, y, yaw, radius, *lengths = (float(v) for v in paths[q, :7])
-        end = ds._segment_pose(segs[q, 2], lengths[2]) + [*offset, 0.0]
-        exp["arcline_path_3"][t] = [
-            {
-                "start_pose": [x + offset[0], y + offset[1], yaw],
-                "end_pose": [float(end[0]), float(end[1]), float(ds.wrap_angle(end[2]))],
-                "shape": _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])],
-                "radius": radius,
-                "segment_length": lengths,
-            }
-        ]
+        end = ds._segment_pose(segs[q, 2], lengths[2])
+        end = [float(end[0] + offset[0]), float(end[1] + offset[1]), float(ds.wrap_angle(end[2]))]
+        arc = dict(start_pose=[x + offset[0], y + offset[1], yaw], end_pose=end)
+        arc["shape"] = _SIGNS_SHAPE[tuple(int(s) for s in paths[q, 7:10])]
+        exp["arcline_path_3"][t] = [arc | dict(radius=radius, segment_length=lengths)]
         exp["connectivity"][t] = links[q]
         # polygon: the centre line every 2 m (and its end), offset by half a lane to either side
         u = np.append(np.arange(0.0, sum(lengths), cfg.lane_spacing), sum(lengths))

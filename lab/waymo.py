@@ -1,19 +1,14 @@
-"""Three real driving scenes: the Waymo Open Motion Dataset logs of a public wheel.
+"""Three real driving scenes: the Waymo Open Motion Dataset logs (20 s, 10 Hz, with lane maps)
+that the metadrive-simulator 0.3.0.1 wheel ships as metadrive/assets/waymo/{0,1,2}.pkl.
 
-The metadrive-simulator 0.3.0.1 wheel on PyPI ships three scenarios with their lane maps
-(metadrive/assets/waymo/{0,1,2}.pkl). fetch_waymo downloads the wheel (never installed: it pins an
-old numpy and a game engine), checks its sha256, keeps only the three pickles, each checked on every
-load, in the git-ignored <cache>/waymo/: the Waymo Open Dataset licence (non-commercial) forbids
-committing the data or anything derived from it. A pickle can run any importable callable, so they
-are read by an unpickler that resolves only a whitelist: builtin containers and scalars, numpy
-arrays, and the writer's three enums (AgentType, RoadLineType, RoadEdgeType) as WaymoEnum.
-
-A scenario is a dict: ts (F10,) seconds at ~10 Hz; tracks {id: {type, state (F10, 10): x, y, z,
-length, width, height, heading, vx, vy, valid}}; sdc_index, the ego's track id; map {id: feature},
-lane centre lines {"type": "center_lane", "polyline" (P, 3), "exit": [ids]}. waymo_scenes makes
-the nuScenes reader's Scenes of it: every 5th frame (2 Hz), speeds by backward differences of
+fetch_waymo downloads the wheel (never installed: it pins an old numpy and a game engine) and keeps
+the three pickles, their sha256 checked on every load, in the git-ignored <cache>/waymo/: the
+licence (non-commercial) forbids committing them or anything derived from them. A pickle can run
+any importable callable, so they are read by an unpickler that resolves only a whitelist (builtin
+containers and scalars, numpy arrays, and the writer's enums as WaymoEnum). waymo_scenes makes the
+nuScenes reader's Scenes of them: every 5th frame (2 Hz), speeds by backward differences of
 positions (the logged vx, vy unused), vehicles, cyclists and pedestrians as agents, the predicted
-vehicle by the nuScenes rule, the lanes near the ego's path chained through their exits, every 2 m.
+vehicle by the nuScenes rule, the lane centre lines near the ego chained through their exits.
 """
 
 from __future__ import annotations
