@@ -3,7 +3,7 @@ experiments.py).
 
 One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that
 the message names the argument, field or file. The nuScenes loader and the data CLI have their own
-file, test_data_bad_input.py.
+file, test_real_data.py.
 """
 
 import dataclasses
