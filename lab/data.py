@@ -145,17 +145,13 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
         if v.is_floating_point() and not torch.isfinite(v).all()
     ]
     if bad:
-        raise ValueError(
-            f"{made}: the data cache holds NaN or inf in {', '.join(bad)}; move it away"
-        )
+        raise ValueError(f"{made}: the data cache holds NaN or inf in {', '.join(bad)}")
     return data
 
 
 # === the command line ===========================================================================
 
-MAX_RENDER = 400
-"""Most samples `render` draws: 100 rows of 4 panels make a PNG about 29 000 pixels tall; Agg draws
-at most 2^16 pixels a side."""
+MAX_RENDER = 400  # samples `render` draws at most: a PNG ~29 000 pixels tall (Agg draws < 2^16)
 COMMANDS = {
     "generate": "generate --n samples (default 10 000; train + val) into --cache-dir",
     "stats": "statistics of --n generated samples (default 4 000) against plausible ranges",

@@ -279,9 +279,7 @@ def _index(root: Path, version: str, cfg: SynthConfig):
     """The folder's tables, read and indexed: (what parsing a scene reads, tables, log -> map)."""
     tdir = root / version
     if version not in NUSC_VERSIONS:
-        raise NuScenesFormatError(
-            f"{tdir}: unknown version folder; expected one of {NUSC_VERSIONS}"
-        )
+        raise NuScenesFormatError(f"{tdir}: unknown version; expected one of {NUSC_VERSIONS}")
     if not tdir.is_dir():
         found = sorted(p.name for p in root.glob("v1.0-*")) if root.is_dir() else []
         raise NuScenesFormatError(f"{tdir}: no such version folder (found: {found or 'none'})")
