@@ -332,7 +332,8 @@ def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Sc
     for sc in tab["scene"]:  # here, in order: the sample chains, the maps read once
         with Reading(ctx.tdir / "scene.json") as r:
             r.rec, name = sc, _text(sc, "name")
-            first = samples[sc["first_sample_token"]]["token"]  # (a KeyError: no such sample)
+            first = sc["first_sample_token"]
+            first = first and samples[first]["token"]  # (a KeyError: no such sample; "": none)
             mpath = map_file[sc["log_token"]]
         with Reading(ctx.tdir / "sample.json") as r:
             tokens, times = _sample_chain(r, samples, first, name)
@@ -413,7 +414,8 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
     lmap = ctx.maps[mpath]
     routes = routes_through(lmap, _lanes_near(lmap, ego[:, :2], cfg.map_radius))
     if not routes:
-        return "skipped_no_lanes", f"{name}: no lane of {mpath} within {cfg.map_radius:g} m"
+        why = f"{name}: no lane of {mpath} within {cfg.map_radius:g} m of the ego's path"
+        return "skipped_no_lanes", why
     listed = name in ctx.split_scenes
     pred = choose_predicted(ego, tracks, inst, tokens, listed, ctx.listed, cfg)
     if (pred < 0).all() and listed:  # the split promises a vehicle
@@ -424,7 +426,8 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
                 f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
             )
     if (pred < 0).all():
-        return "skipped_no_agent", f"{name}: no vehicle in {afile} moves >= 1 m, a future whole"
+        why = f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future"
+        return "skipped_no_agent", why
     scene = scene_of(name, **_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
     arrays = {k: v.numpy() for k, v in scene.tensors().items()}
     bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
