@@ -603,21 +603,21 @@ def test_load_data_uses_the_official_split(tmp_path):
     scenes = data_synth.generate_scenes(3, seed=1)
     lines = []
     nuscenes.write_nuscenes(scenes, tmp_path / "tv", "v1.0-trainval")
-    d = lab_data.load_data(tmp_path / "tv", log=lines.append)
+    d = lab_data.load_data(tmp_path / "tv", cache_dir=tmp_path, log=lines.append)
     assert sorted(d.val_scenes.names) == ["scene-0103", "scene-0553"]
     assert "validation: the official v1.0-trainval val scenes" in lines[-1]
     nuscenes.write_nuscenes(scenes, tmp_path / "mini", "v1.0-mini")
-    d = lab_data.load_data(tmp_path / "mini", log=lines.append)
+    d = lab_data.load_data(tmp_path / "mini", cache_dir=tmp_path, log=lines.append)
     assert d.val_scenes.names == ["scene-0103"] and "official v1.0-mini val" in lines[-1]
     # names in neither list: the fallback, the last 15 % of the scenes by name (at least one)
     edit(
         tmp_path / "tv" / "v1.0-trainval" / "scene.json",
         lambda d: [r.update(name=f"mine-{k}") for k, r in enumerate(d)],
     )
-    d = lab_data.load_data(tmp_path / "tv", log=lines.append)
+    d = lab_data.load_data(tmp_path / "tv", cache_dir=tmp_path, log=lines.append)
     assert d.val_scenes.names == ["mine-2"] and "the last 15 % of the scenes by name" in lines[-1]
     with pytest.raises(ValueError, match="load_data: seed must be"):
-        lab_data.load_data(tmp_path / "tv", seed=-2)
+        lab_data.load_data(tmp_path / "tv", seed=-2, cache_dir=tmp_path)
 
 
 # --------------------------------------------------------------------------------------------------
