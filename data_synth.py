@@ -2,9 +2,9 @@
 
 The stack (diffstack.py) trains on *planning samples* (paper §4.1, App. D): 4 s of history and 3 s
 of future at 2 Hz in the ego frame at t0, with one predicted vehicle, the other agents, the lanes
-near the ego and a goal. Scenes, generated here or read by data_real.py, give Scenarios through
-sample_at; write_nuscenes stores scenes as a nuScenes folder that data_real.load_nuscenes reads back
-exactly. The command line is data_real.py's.
+near the ego and a goal. Scenes, generated here or read by lab/nuscenes.py and lab/waymo.py, give
+Scenarios through sample_at; lab/nuscenes.py writes scenes as a nuScenes folder and reads them back
+exactly. The command line is lab/data.py's (python -m lab.data).
 
 Shapes: S scenes, F frames (41 = 20 s at 2 Hz), M agents per scene, B samples, A other agents, L
 lanes, P points per lane, Q arcline paths per scene, R paths per lane (a route), N fine simulation
@@ -1570,7 +1570,8 @@ def plot_scenario(
 
 
 if __name__ == "__main__":
-    # the data's command line (generate, write-nuscenes, read-nuscenes, ...) is data_real.py's
-    import data_real
+    # a hand-over: the data's command line (generate, write-nuscenes, read-nuscenes, ...) is the
+    # lab's, python -m lab.data
+    from lab import data
 
-    data_real.main()
+    data.main()

@@ -1721,8 +1721,8 @@ def run_stack(
 
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
 # The method takes what Config, the command lines and the loaders (train.py, data_synth.py,
-# data_real.py) have checked; the math does not check its input again. Every number of Config has a
-# range (inclusive): no NaN or petabyte later.
+# lab/nuscenes.py) have checked; the math does not check its input again. Every number of Config has
+# a range (inclusive): no NaN or petabyte later.
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
     **dict.fromkeys(["hist_len", "horizon"], (1, 100)),

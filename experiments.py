@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
-import data_real
+import lab.data  # hand-over: load_data, the data made or read (lab/data.py)
 import data_synth
 from diffstack import (
     COST_TERMS,
@@ -292,9 +292,9 @@ def experiment_data(
             f"--seeds: training seeds must be 0..{VAL_SEED - 1} (data seed {VAL_SEED} is the "
             f"validation set's), got {seeds}"
         )
-    common = data_real.load_data(None, n_val, VAL_SEED, cache_dir, log)
+    common = lab.data.load_data(None, n_val, VAL_SEED, cache_dir, log)
     draws = tuple(
-        data_real.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1)
+        lab.data.load_data(None, n, s, cache_dir, log).train for s in range(max(seeds) + 1)
     )
     return data_synth.Dataset(
         draws[0], data_synth.Scenarios.cat([common.train, common.val]), common.val_scenes, draws
@@ -755,7 +755,7 @@ def validation_spread(draws=5, n=VAL_N, cache_dir="data_cache", log=print) -> st
     rows = {}
     cfg = Config()
     for seed in range(VAL_SEED + 1, VAL_SEED + 1 + draws):
-        data = data_real.load_data(None, n, seed, cache_dir, log)
+        data = lab.data.load_data(None, n, seed, cache_dir, log)
         for size, val in (
             ("old", data.val),
             ("new", data_synth.Scenarios.cat([data.train, data.val])),

@@ -404,7 +404,7 @@ CLOSE = 5.0  # m, centre to centre: a car's length (the goal table's "close" sha
 TABLES = {t.name: t for t in (TABLE1, TABLE2, TABLE4, TABLE3, TABLE5, TABLE6, GOAL_TABLE)}
 EXPERIMENTS = tuple(TABLES)
 
-# Real driving scenes: the three Waymo logs of data_real.fetch_waymo, evaluated with predictors
+# Real driving scenes: the three Waymo logs of lab/waymo.py's fetch_waymo, evaluated with predictors
 # trained on synthetic data (experiments.real_data). Not a table of the paper, so not in `all`; its
 # outputs derive from data whose licence forbids committing them, so they go to REAL_OUT
 # (git-ignored) by default and never to results/ (experiments.check_outputs).

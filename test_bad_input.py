@@ -3,7 +3,7 @@ experiments.py).
 
 One test per class of bad input: each asserts the exception type (or the CLI's exit code 2) and that
 the message names the argument, field or file. The nuScenes loader and the data CLI have their own
-file, test_data_bad_input.py.
+file, test_real_data.py.
 """
 
 import dataclasses
@@ -17,12 +17,12 @@ import sys
 import pytest
 import torch
 
-import data_real
 import data_synth
 import diffstack as ds
 import experiments as ex
 from lab import tables as lt
 from lab import checks, runs
+from lab import data as lab_data
 import specs
 import train as tr
 from lab import quick as lq
@@ -73,7 +73,7 @@ def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
 def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(blocker / "out")], capsys)
     assert "--out" in err and "a_file" in err
     monkeypatch.chdir(tmp_path)
@@ -92,7 +92,7 @@ def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
     out = tmp_path / "out"
     with lock_held_elsewhere(out, "the other run") as holder:
         monkeypatch.setattr(
-            data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made")
+            lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made")
         )
         for argv in (
             ["--experiment", "rl", "--out", str(out), "--n", "100"],
@@ -366,7 +366,7 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
     err = cli_error(lq.main, ["--pretrain"], capsys)
     assert "--overwrite" in err and "pretrained" in err
     with pytest.raises(ValueError, match="provenance.json: not a provenance file"):
@@ -392,9 +392,7 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
         "config": dataclasses.asdict(ds.Config()),  # the defaults: the file listed, but missing
     }
     (tmp_path / "pretrained" / "provenance.json").write_text(json.dumps(prov))
-    monkeypatch.setattr(
-        data_real, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5)
-    )
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5))
     # (the rows before the shipped ones)
     monkeypatch.setattr(lq, "evaluate_stack", lambda *a, **k: {})
     monkeypatch.setattr(lq, "add_relative", lambda res, setting: res)
@@ -440,7 +438,7 @@ def _launcher_env(monkeypatch, **env):
 @pytest.mark.parametrize("rank", ["0", "1"])
 def test_rank_variables_without_a_launcher_are_refused_in_one_line(rank, monkeypatch, capsys):
     _launcher_env(monkeypatch, RANK=rank, WORLD_SIZE="2")
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: pytest.fail("work started"))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("work started"))
     for main in (ex.main, lq.main):
         err = cli_error(main, ["--experiment", "rl"] if main is ex.main else ["--quick"], capsys)
         lines = err.strip().splitlines()

@@ -1,4 +1,4 @@
-"""Tests of data_synth.py (and data_real.py's nuScenes loader): the synthetic scenes and samples,
+"""Tests of data_synth.py (and lab/nuscenes.py's loader): the synthetic scenes and samples,
 their statistics, the nuScenes format written and read back, bad files named, the cache, the plot,
 the road geometry. Every test runs on one thread (conftest.py)."""
 
@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-import data_real
 import data_synth
 from lab import nuscenes
 import diffstack as ds
@@ -161,7 +160,7 @@ def _same_lanes(a, am, b, bm, tol):
 def test_nuscenes_round_trip(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     nuscenes.write_nuscenes(scenes, tmp_path, "v1.0-mini", cfg)
-    loaded, report = data_real.load_nuscenes(tmp_path, "v1.0-mini", cfg)
+    loaded, report = nuscenes.load_nuscenes(tmp_path, "v1.0-mini", cfg)
     assert report == dict(
         scenes=6, loaded=6, skipped_short=0, skipped_no_lanes=0, skipped_no_agent=0, skipped=[]
     )
@@ -207,14 +206,14 @@ def folder(tmp_path, scenes_mixed):
 
 def test_bad_input_names_the_file(folder):
     (folder / "v1.0-mini" / "sample.json").unlink()
-    with pytest.raises(data_real.NuScenesFormatError, match=r"sample\.json: missing"):
-        data_real.load_nuscenes(folder)
+    with pytest.raises(nuscenes.NuScenesFormatError, match=r"sample\.json: missing"):
+        nuscenes.load_nuscenes(folder)
 
 
 def test_malformed_json_names_the_file(folder):
     (folder / "v1.0-mini" / "scene.json").write_text('[{"token": "x", ')
     with pytest.raises(ValueError, match=r"scene\.json: malformed JSON"):
-        data_real.load_nuscenes(folder)
+        nuscenes.load_nuscenes(folder)
 
 
 def test_missing_key_names_the_file(folder):
@@ -222,25 +221,25 @@ def test_missing_key_names_the_file(folder):
     poses = json.loads(path.read_text())
     del poses[4]["translation"]  # a CAM_FRONT pose (the writer alternates CAM_FRONT, LIDAR_TOP)
     path.write_text(json.dumps(poses))
-    with pytest.raises(data_real.NuScenesFormatError, match=r"ego_pose\.json"):
-        data_real.load_nuscenes(folder)
+    with pytest.raises(nuscenes.NuScenesFormatError, match=r"ego_pose\.json"):
+        nuscenes.load_nuscenes(folder)
 
 
 def test_missing_map_expansion_names_the_file(folder):
     loc = json.loads((folder / "v1.0-mini" / "log.json").read_text())[0]["location"]
     (folder / "maps" / "expansion" / f"{loc}.json").unlink()
-    with pytest.raises(data_real.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
-        data_real.load_nuscenes(folder)
+    with pytest.raises(nuscenes.NuScenesFormatError, match=rf"expansion/{loc}\.json: missing"):
+        nuscenes.load_nuscenes(folder)
 
 
 def test_unknown_or_missing_version_folder(folder):
-    with pytest.raises(data_real.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
-        data_real.load_nuscenes(folder, "v2.0-beta")
+    with pytest.raises(nuscenes.NuScenesFormatError, match=r"v2\.0-beta: unknown version"):
+        nuscenes.load_nuscenes(folder, "v2.0-beta")
     with pytest.raises(
-        data_real.NuScenesFormatError,
+        nuscenes.NuScenesFormatError,
         match=r"v1\.0-trainval: no such version folder \(found: \['v1\.0-mini",
     ):
-        data_real.load_nuscenes(folder, "v1.0-trainval")
+        nuscenes.load_nuscenes(folder, "v1.0-trainval")
 
 
 def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
@@ -259,7 +258,7 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
         rec = next(r for r in samples if r["token"] == rec["next"])
     rec["next"] = ""
     path.write_text(json.dumps(samples))
-    loaded, report = data_real.load_nuscenes(tmp_path, cfg=cfg)
+    loaded, report = nuscenes.load_nuscenes(tmp_path, cfg=cfg)
     why = report.pop("skipped")
     assert report == dict(
         scenes=4, loaded=1, skipped_short=1, skipped_no_lanes=1, skipped_no_agent=1
@@ -273,7 +272,7 @@ def test_skipped_scenes_are_counted(tmp_path, scenes_mixed):
     )
     assert why[1].startswith(f"{names[1]}: no lane of ") and "expansion" in why[1]
     assert why[2].startswith(f"{names[2]}: no vehicle in ") and "sample_annotation.json" in why[2]
-    batch, report = data_real.load_nuscenes_scenarios(tmp_path, cfg=cfg)
+    batch, report = nuscenes.load_nuscenes_scenarios(tmp_path, cfg=cfg)
     assert report["samples"] == len(batch) == 27 and report["samples_skipped_no_lanes"] == 0
 
 
@@ -290,18 +289,18 @@ def test_a_listed_scene_without_its_vehicle_is_refused(tmp_path, scenes_mixed):
     split[name] = ["nosuchinstance_" + e.split("_")[1] for e in split[name]]
     path.write_text(json.dumps(split))
     with pytest.raises(
-        data_real.NuScenesFormatError,
+        nuscenes.NuScenesFormatError,
         match=rf"prediction_scenes\.json: scene '{name}' is listed "
         r"\(first entry 'nosuchinstance_\w+'\) but .*sample_annotation\.json has no vehicle",
     ):
-        data_real.load_nuscenes(tmp_path, cfg=cfg)
+        nuscenes.load_nuscenes(tmp_path, cfg=cfg)
 
 
 def test_loader_without_split_takes_the_closest_moving_vehicle(tmp_path, scenes_mixed):
     scenes, cfg = scenes_mixed
     nuscenes.write_nuscenes(scenes[:2], tmp_path, cfg=cfg)
     (tmp_path / "maps" / "prediction" / "prediction_scenes.json").unlink()
-    loaded, _ = data_real.load_nuscenes(tmp_path, cfg=cfg)
+    loaded, _ = nuscenes.load_nuscenes(tmp_path, cfg=cfg)
     for i in range(2):
         for f in range(8, 35):
             p = int(loaded.pred_idx[i, f])

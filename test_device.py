@@ -26,7 +26,7 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
-import data_real
+from lab import data as lab_data
 import data_synth
 import diffstack as ds
 import experiments as ex
@@ -71,7 +71,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 # data_synth: sample_at
 AUDITED = {
     str(HERE / name): name
-    for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py", "data_real.py")
+    for name in ("diffstack.py", "train.py", "experiments.py", "data_synth.py")
+    + ("lab/data.py", "lab/nuscenes.py", "lab/waymo.py")
 }
 
 
@@ -311,7 +312,7 @@ def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monk
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     work = []
     monkeypatch.setattr(lq, "quick", lambda *a, **k: work.append(1))
-    monkeypatch.setattr(data_real, "load_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: work.append(1))
     monkeypatch.setattr(lt, "experiment_data", lambda *a, **k: work.append(1))
     if cli == "diffstack":
         err = cli_error(lq.main, ["--quick", "--device", name], capsys)

@@ -10,7 +10,7 @@ import time
 import pytest
 import torch
 
-import data_real
+from lab import data as lab_data
 import data_synth
 from lab import nuscenes
 import diffstack as ds
@@ -148,7 +148,7 @@ def test_each_seed_trains_on_its_own_draw_and_every_one_is_judged_on_one_validat
     assert all(data.train_for(s) is data.train_draws[s] for s in range(3))
     assert torch.equal(
         data.train_draws[2].ego_fut,
-        data_real.load_data(None, 200, 2, tmp_path, log=None).train.ego_fut,
+        lab_data.load_data(None, 200, 2, tmp_path, log=None).train.ego_fut,
     )
     val, draws = _samples(data.val), [_samples(d) for d in data.train_draws]
     # no validation sample comes from a training draw
@@ -181,7 +181,7 @@ def test_validation_spread_evaluates_gt_prediction_on_unseen_draws_at_both_sizes
         and large.startswith("| 300 |")
     )
     # the second draw, its validation side
-    data = data_real.load_data(None, 300, ex.VAL_SEED + 2, tmp_path, log=None)
+    data = lab_data.load_data(None, 300, ex.VAL_SEED + 2, tmp_path, log=None)
     gt, no = (
         next(m for m in specs.TABLE1_METHODS if m.name == n)
         for n in ("GT prediction", "No prediction")
@@ -794,7 +794,9 @@ def test_the_code_version_follows_the_number_making_modules_only(tmp_path, monke
         "train.py",
         "lab/ddp.py",
         "data_synth.py",
-        "data_real.py",
+        "lab/data.py",
+        "lab/nuscenes.py",
+        "lab/waymo.py",
         "experiments.py",
         "lab/tables.py",
     }

@@ -91,9 +91,8 @@ import torch
 from IPython.display import Image, Markdown, display
 
 import course
-import data_real
 import data_synth
-from lab.nuscenes import write_nuscenes
+from lab.nuscenes import load_nuscenes, write_nuscenes
 import diffstack as ds
 import experiments as xp
 import figures
@@ -198,7 +197,7 @@ with tempfile.TemporaryDirectory() as tmp:
     write_nuscenes(scenes, tmp, "v1.0-mini")
     files = sorted(str(p.relative_to(tmp)) for p in Path(tmp).rglob("*.json"))
     print(f"{len(files)} JSON files, e.g.", files[:3], "...", files[-3:])
-    loaded, report = data_real.load_nuscenes(tmp, "v1.0-mini")
+    loaded, report = load_nuscenes(tmp, "v1.0-mini")
 print("loader report:", report)
 frame = (scenes.event_frame - 2).clamp(8, 34)  # a frame per scene, just before the manoeuvre
 a = data_synth.sample_at(scenes, frame, dtype=torch.float64)

@@ -33,7 +33,7 @@ from diffstack import Config, Predictor, Unicycle, ilqr, ilqr_solve, plan_candid
 from diffstack import run_stack, scene_plan, unicycle_jacobians, unicycle_rollout
 from experiments import closed_loop_scenes, simulate, stack_policy
 from lab.cli import add_shared_options, bounded, check_writable, machine
-from lab.runs import ROOT, command_line, load_json, one_line, results_json, write_atomic
+from lab.runs import ROOT, command_line, load_json, one_line, write_json
 from lab.stats import markdown_table
 from specs import CLOSED_LOOP_METHODS
 from train import Method, alphas
@@ -737,7 +737,7 @@ def main(argv=None) -> dict:
                 doc = run(threads, reps, B, args.quick, not args.skip_closed_loop, args.device)
             doc["meta"]["command"] = command_line(ap.prog, sys.argv[1:] if argv is None else argv)
             if args.json is not None:
-                write_atomic(args.json, results_json(doc, f"--json {args.json}"))
+                write_json(args.json, doc, indent=1)
                 print(f"\nwrote {args.json}")
     finally:
         torch.set_num_threads(before)  # main() may run inside another process (the tests)

@@ -11,7 +11,7 @@ import time
 
 import torch
 
-import data_real
+from lab import waymo
 import data_synth
 from lab.cli import machine
 from lab.runs import write_atomic
@@ -472,7 +472,7 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
     return f"`{meta['command']}` ({', '.join(where)}{note})\n\n{table}\n\n" + (
         f"The paper's numbers:\n\n{paper_markdown(spec)}\n"
         if spec.paper
-        else f"{data_real.WAYMO_LICENCE}.\n"
+        else f"{waymo.WAYMO_LICENCE}.\n"
         if spec.kind == "real"
         else ""
     )

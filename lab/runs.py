@@ -182,7 +182,9 @@ NUMBER_MODULES = (
     "train.py",
     "lab/ddp.py",
     "data_synth.py",
-    "data_real.py",
+    "lab/data.py",
+    "lab/nuscenes.py",
+    "lab/waymo.py",
     "experiments.py",
     "lab/tables.py",
 )

@@ -24,7 +24,8 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
-import data_real
+from lab import data as lab_data
+from lab import waymo
 import data_synth
 import experiments as ex
 from experiments import closed_loop_scenes, experiment_data, validation_spread
@@ -481,11 +482,11 @@ def render_outputs(name: str, out_dir="results", data=None, log=print) -> list:
 def real_data(data, phases=(0,), cache_dir="data_cache", log=print) -> data_synth.Dataset:
     """data's (synthetic) training side, and the Waymo samples (fetched on the first call) as the
     validation side (no scene logs: no closed loop)."""
-    real, report = data_real.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
+    real, report = waymo.load_waymo_scenarios(cache_dir, tuple(phases), log=log)
     log(
         f"real: {report['samples']} samples from {report['files']} Waymo logs "
         f"({len(tuple(phases))} 2 Hz phase(s) each), training on {len(data.train)} synthetic "
-        f"samples. {data_real.WAYMO_LICENCE}"
+        f"samples. {waymo.WAYMO_LICENCE}"
     )
     return data_synth.Dataset(data.train, real, None, data.train_draws)
 
@@ -529,7 +530,7 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--phases",
-        type=bounded(int, 1, data_real.WAYMO_PHASES, "--phases"),
+        type=bounded(int, 1, waymo.WAYMO_PHASES, "--phases"),
         default=1,
         help="real: how many of the five 2 Hz clocks of each 10 Hz log give samples (default 1)",
     )
@@ -610,7 +611,7 @@ def main(argv=None):
     kept = "the pieces finished so far are kept, and the same command resumes the run"
     with contextlib.ExitStack() as held, runs.one_line(ap, kept):
         if args.data is not None:  # before --out is made: a folder that holds a nuScenes version
-            data_real.nuscenes_version(args.data)
+            lab_data.nuscenes_version(args.data)
         if args.render:  # derived files only, from the JSON an earlier run wrote
             held.enter_context(runs.folder_lock(args.out, command))
             return render_outputs(args.experiment, args.out, lambda: _load(args, (0,), print))
@@ -679,5 +680,5 @@ def _load(args, seeds, log):
     if args.data is None:
         data = experiment_data(args.n, seeds, args.val, log=log)
     else:
-        data = data_real.load_data(args.data, args.n, log=log)
+        data = lab_data.load_data(args.data, args.n, log=log)
     return real_data(data, range(args.phases), log=log) if args.experiment == REAL.name else data
