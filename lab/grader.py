@@ -1,0 +1,283 @@
+"""The course's grader: every exercise's check (course.CHECKS) on a student's answers, each in its
+own Python process with a time limit, a line per exercise and the score, the class's grades as CSV.
+
+    python -m lab.grader submissions/*.ipynb --csv grades.csv
+
+A notebook is read as Jupyter runs it (nbformat; IPython's own transformation of magics and shell
+lines), and only its definitions are kept (definitions): a student's test calls and analyses need
+values the grader never makes. It runs the students' code: grade in a throwaway container or VM
+(docs/teaching.md)."""
+
+import argparse
+import ast
+import csv
+import io
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import nbformat
+
+from lab import runs
+
+EXERCISES = {
+    1: ("my_collision", "the collision term"),
+    2: ("my_plan_loss", "the relaxed planner's loss"),
+    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
+    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32"),
+    5: ("my_riccati_step", "one step of the Riccati recursion"),
+    6: ("my_kkt_backward", "the controller's gradient, the KKT backward"),
+}
+TIMEOUT = 120.0  # seconds per exercise (the checks take about a second)
+# cell magics whose body is Python that the kernel runs (the others' is not Python: %%bash, ...)
+PYTHON_CELL_MAGICS = ("time", "timeit", "capture", "prun")
+
+
+# --- what a student's file defines ----------------------------------------------------------------
+
+
+def cell_python(cell: str) -> str:
+    """A cell's Python as the kernel runs it: %%time and its kind dropped from the first line, a
+    cell under any other cell magic (%%bash, %%html) left out; line magics and shell lines
+    (%pip, !ls, x = !ls) become IPython's own calls, which the grader does not run."""
+    from IPython.core.inputtransformer2 import TransformerManager
+
+    lines = cell.splitlines(keepends=True)
+    first = next((i for i, line in enumerate(lines) if line.strip()), None)
+    if first is not None and lines[first].lstrip().startswith("%%"):
+        if lines[first].lstrip()[2:].split(maxsplit=1)[0] not in PYTHON_CELL_MAGICS:
+            return ""
+        lines[first] = "\n"  # (keeps the line numbers)
+    return TransformerManager().transform_cell("".join(lines))
+
+
+def code_cells(path: Path) -> list:
+    """[(where, Python)]: a notebook's code cells as the kernel runs them (cell_python), or a .py
+    file as one cell. ValueError, in one line, for a notebook that nbformat cannot read."""
+    if path.suffix != ".ipynb":
+        return [(str(path), path.read_text())]
+    try:
+        with warnings.catch_warnings():  # (a cell without an id is read all the same)
+            warnings.simplefilter("ignore")
+            nb = nbformat.read(path, as_version=4)
+        cells = [c.source for c in nb.cells if c.cell_type == "code"]
+    except Exception as e:  # nbformat's reasons are of many kinds (JSON, schema, structure)
+        why = (str(e).splitlines() or [""])[0]
+        raise ValueError(f"not a notebook that Jupyter can read ({type(e).__name__}: {why})")
+    return [(f"{path.name}, code cell {i + 1}", cell_python(c)) for i, c in enumerate(cells)]
+
+
+def _calls_something(node) -> bool:
+    """Whether evaluating the expression calls a function (a lambda's body is not evaluated)."""
+    if isinstance(node, ast.Call):
+        return True
+    children = [node.args] if isinstance(node, ast.Lambda) else ast.iter_child_nodes(node)
+    return any(_calls_something(c) for c in children)
+
+
+def _imports_solutions(node) -> bool:
+    """Whether a statement imports the reference answers (solutions.py)."""
+    if isinstance(node, ast.ImportFrom):
+        return (node.module or "").split(".")[0] == "solutions"
+    return isinstance(node, ast.Import) and any(a.name == "solutions" for a in node.names)
+
+
+def _kept(node) -> bool:
+    """Whether a cell's statement is a definition: an import (not of the reference answers), a
+    function, a class, an assignment that calls nothing (a constant, a lambda)."""
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return not _imports_solutions(node)
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return True
+    assigns = isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None
+    return assigns and not _calls_something(node.value)
+
+
+def definitions(path) -> tuple[list, list]:
+    """What a student's file defines, as Jupyter has it after running every cell: from each code
+    cell in order (a .py file is one cell), its imports, functions, classes and the assignments
+    that call nothing (_kept). Their test calls, prints, loops and analyses are left out, and so is
+    an import of the reference answers (solutions.py). Returns ([(where, code)], [a cell that does
+    not parse, with why]); code keeps the cell's line numbers. Raises SyntaxError for a .py file
+    that does not parse, ValueError for a notebook that cannot be read."""
+    path = Path(path)
+    kept, unparsed = [], []
+    for where, source in code_cells(path):
+        try:
+            tree = ast.parse(source)
+        except SyntaxError as e:
+            if path.suffix != ".ipynb":
+                raise
+            unparsed.append(f"{where} does not parse: {e.msg}, line {e.lineno}")
+            continue
+        lines = source.splitlines(keepends=True)
+        for node in filter(_kept, tree.body):
+            start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
+            kept.append((where, "\n" * (start - 1) + "".join(lines[start - 1 : node.end_lineno])))
+    return kept, unparsed
+
+
+def _defines(code, name) -> bool:
+    return any(
+        isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name == name
+        for _, c in code
+        for n in ast.parse(c).body
+    )
+
+
+# --- one exercise's check in its own process ------------------------------------------------------
+
+
+def check_in_this_process(spec_file):
+    """The grader's worker: run the student's definitions (each alone: one that fails is left out,
+    as a cell that failed), then one exercise's check, and write the verdict as JSON. Whatever the
+    answer prints goes nowhere; an exit from inside it is the answer's failure."""
+    import torch
+
+    import course
+
+    spec = json.loads(Path(spec_file).read_text())
+    torch.set_num_threads(1)
+    sys.path.append(spec["folder"])  # the student's own modules, after the course's
+    space = {"__name__": "answers", "SOLUTIONS": False}
+    for where, code in spec["code"]:
+        try:
+            exec(compile(code, where, "exec"), space)
+        except (Exception, SystemExit):  # a definition that needs a value from the analysis
+            pass
+    name, number = spec["name"], spec["number"]
+    try:
+        if not callable(space.get(name)):
+            raise AssertionError(f"{name} is defined, but its definition does not run on its own")
+        verdict = [True, course.CHECKS[number](space[name])]
+    except NotImplementedError:
+        verdict = [False, "not done (the stub still raises NotImplementedError)"]
+    except AssertionError as e:
+        verdict = [False, f"FAIL: {e}"]
+    except SystemExit as e:
+        verdict = [False, f"FAIL: {name} ended the process (sys.exit({e.code!r}))"]
+    except Exception as e:  # an answer that breaks the check itself (a strange return value)
+        verdict = [False, f"FAIL: {name} broke the check: {type(e).__name__}: {e}"]
+    runs.write_atomic(Path(spec["verdict"]), json.dumps(verdict))
+
+
+def check_in_a_process(number, code, folder, tmp, timeout):
+    """One exercise's check in a fresh Python process (check_in_this_process): (True, what it
+    measured) or (False, why it scores nothing: its failure, a time-out, an exit before its
+    verdict)."""
+    name = EXERCISES[number][0]
+    spec, verdict = Path(tmp) / f"spec{number}.json", Path(tmp) / f"verdict{number}.json"
+    about = dict(name=name, number=number, code=code, folder=str(folder), verdict=str(verdict))
+    spec.write_text(json.dumps(about))
+    worker = "import sys\nfrom lab import grader\ngrader.check_in_this_process(sys.argv[1])"
+    python_path = os.pathsep.join([str(runs.ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
+    with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
+        try:
+            run = subprocess.run(
+                [sys.executable, "-c", worker, str(spec)],
+                cwd=runs.ROOT,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=err,
+                timeout=timeout,
+                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path},
+            )
+        except subprocess.TimeoutExpired:
+            return False, f"FAIL: did not finish in {timeout:g} s (an endless loop?)"
+        if verdict.is_file():
+            return tuple(json.loads(verdict.read_text()))
+        err.seek(0)
+        last = [line for line in err.read().splitlines() if line.strip()][-1:]
+    return False, (
+        f"FAIL: the process ended (exit status {run.returncode}) before the check finished: "
+        f"{name} exits or crashes ({last[0] if last else 'nothing on stderr'})"
+    )
+
+
+# --- a file's grade, the class's grades, the command line -----------------------------------------
+
+
+def grade(path, out=print, timeout=TIMEOUT) -> dict:
+    """Grade the answers in `path` (a notebook or a .py file) exercise by exercise: the student's
+    definitions (definitions), then each exercise's check in its own process
+    (check_in_a_process), so that an error, a NaN, a time-out or an exit in one answer fails
+    that exercise alone. Prints one line per exercise (PASS with the error measured, not done, or
+    what failed) and the score. Returns {number: True, or the reason it scores nothing}."""
+    path = Path(path)
+    try:
+        code, unparsed = definitions(path)
+    except (SyntaxError, ValueError, OSError) as e:  # nothing to grade, saying why
+        code, unparsed, broken = None, [], f"the file does not run: {type(e).__name__}: {e}"
+    result = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (name, title) in EXERCISES.items():
+            if code is None:
+                passed, said = False, broken
+            elif not _defines(code, name):
+                passed, said = False, f"no function {name}" + "".join(f"; {u}" for u in unparsed)
+            else:
+                passed, said = check_in_a_process(k, code, path.resolve().parent, tmp, timeout)
+            result[k] = True if passed else said
+            out(f"  exercise {k} ({title}): {f'PASS ({said})' if passed else said}")
+    out(f"{path}: score {sum(v is True for v in result.values())}/{len(EXERCISES)}")
+    return result
+
+
+def write_grades(graded, csv_path):
+    """The class's grades as CSV, written atomically: a row per file, 1 or 0 per exercise, the
+    score."""
+    text = io.StringIO()
+    rows = csv.writer(text)
+    rows.writerow(["file", *(f"exercise {k}" for k in EXERCISES), "score"])
+    for f, result in graded.items():
+        passed = [int(result[k] is True) for k in EXERCISES]
+        rows.writerow([f, *passed, sum(passed)])
+    runs.write_atomic(Path(csv_path), text.getvalue())
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(
+        prog="python -m lab.grader",
+        description="Grade the course's exercises: run every exercise's check on the answers "
+        "in each file (a student's tutorial.ipynb, or a .py that defines the my_* functions), "
+        "each check in its own process, and print a line per exercise and the score. It runs "
+        "the students' code: grade in a throwaway container or VM. Exit status 0 when every "
+        "exercise of every file passes, 1 otherwise.",
+    )
+    ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
+    ap.add_argument(
+        "--timeout",
+        type=float,
+        default=TIMEOUT,
+        help=f"seconds one exercise's check may take (default {TIMEOUT:g})",
+    )
+    ap.add_argument("--csv", help="also write the grades to this CSV file, a row per file")
+    ap.add_argument("--overwrite", action="store_true", help="let --csv replace an existing file")
+    args = ap.parse_args(argv)
+    for f in args.files:
+        if not Path(f).is_file():
+            ap.error(f"{f}: no such file")
+        if Path(f).suffix not in (".ipynb", ".py"):
+            ap.error(f"{f}: not a notebook (.ipynb) or a Python file (.py)")
+    if not 0 < args.timeout < math.inf:
+        ap.error(f"--timeout {args.timeout:g}: a number of seconds above 0")
+    if args.csv is not None:
+        if Path(args.csv).exists() and not args.overwrite:
+            ap.error(f"--csv {args.csv}: the file exists (--overwrite replaces it)")
+        if not Path(args.csv).resolve().parent.is_dir():
+            ap.error(f"--csv {args.csv}: no folder {Path(args.csv).parent}")
+    with runs.one_line(ap, "no grades file is half-written"):
+        graded = {f: grade(f, timeout=args.timeout) for f in args.files}
+        if args.csv is not None:
+            write_grades(graded, args.csv)
+            print(f"grades of {len(graded)} file(s) written to {args.csv}")
+    return 0 if all(v is True for g in graded.values() for v in g.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
