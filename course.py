@@ -11,24 +11,27 @@ and compares with an independent answer (the module's function, autograd, or a c
 answer raises AssertionError with what differs and a hint; a stub that still raises
 NotImplementedError is reported as not done, so that *Run All* goes on past an exercise the student
 has not tried yet. test_tutorial.py feeds every check known-wrong answers and asserts that it
-catches each one.
+catches each one; lab/grader.py runs the checks on a student's notebook, each in its own process.
 """
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
+from IPython.display import Markdown, display
+from matplotlib.lines import Line2D
 
 import data_synth
 import diffstack as ds
 
 F64 = torch.float64
-HERE = Path(__file__).resolve().parent
 
 
 # --- the harness: section clock -------------------------------------------------------------------
@@ -40,8 +43,6 @@ _CLOCK = {}
 def start():
     """One torch thread (reproducible numbers, and the machine stays usable), the figures' style,
     and the clock that section_done and report_times read."""
-    import matplotlib.pyplot as plt
-
     torch.set_num_threads(1)
     plt.rcParams.update(
         {"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8}
@@ -76,28 +77,19 @@ class CheckpointError(AssertionError):
     going on."""
 
 
-def checkpoint(
-    name,
-    measured,
-    expected,
-    tol,
-    rel=False,
-    hint="re-run the section's cells in order from a fresh kernel",
-):
+RERUN = "re-run the section's cells in order from a fresh kernel"
+
+
+def checkpoint(name, measured, expected, tol, rel=False, hint=RERUN):
     """For what is deterministic (no training: gradient errors, a file's round trip, a solver on
     fixed data): the measured value, the expected one, whether they agree within tol; a disagreement
     stops the notebook."""
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
-    ok = err <= tol
-    print(
-        f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
-        f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}"
-    )
-    if not ok:
-        raise CheckpointError(
-            f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
-            f"{'%g%%' % (100 * tol) if rel else tol}; {hint}"
-        )
+    within = "%g%%" % (100 * tol) if rel else tol
+    said = f"measured {measured:.4g}, expected {expected:.4g}"
+    print(f"CHECKPOINT {name}: {said} (tolerance {within}) -> {'OK' if err <= tol else 'FAILED'}")
+    if err > tol:
+        raise CheckpointError(f"{name}: {said} within {within}; {hint}")
 
 
 def check_order(name, values, order, margin=0.0):
@@ -138,17 +130,11 @@ def check_claim(table, method, baseline, column, expect, section=None):
 
 def results_table(name):
     """Display the committed table of results/<name>.md (mean ± standard error over its seeds)."""
-    from IPython.display import Markdown, display
-
     text = (Path("results") / f"{name}.md").read_text()
     seeds = len(json.loads((Path("results") / f"{name}.json").read_text())["meta"]["seeds"])
     # without the title line and the figure links
     body = text.split("\n", 1)[1].split("![")[0].strip()
     display(Markdown(f"**{seeds} seeds, from `results/{name}.md`:** " + body))
-
-
-def rel_err(a, b):
-    return ((a - b).norm() / b.norm()).item()
 
 
 # --- the harness: helpers that several cells use --------------------------------------------------
@@ -157,8 +143,7 @@ def rel_err(a, b):
 def gt_context(batch):
     """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT
     prediction")."""
-    B = len(batch)
-    one = torch.ones(B, dtype=batch.ego_hist.dtype)
+    one = torch.ones(len(batch), dtype=batch.ego_hist.dtype)
     return ds.CostContext(
         batch.agent_fut[:, None, :, :2],
         one[:, None],
@@ -178,15 +163,6 @@ def first_of(batch, behaviour, where=None):
     return int((sel if where is None else sel & where).nonzero()[0])
 
 
-def smooth(v, n=10):
-    """An n-step moving average (the whole series when it is shorter than n)."""
-    v = np.asarray(v, dtype=float)
-    return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
-
-
-# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ---------
-
-
 def behaviour_rows(behaviour, mask, row):
     """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that
     behaviour's mask."""
@@ -198,6 +174,28 @@ def behaviour_rows(behaviour, mask, row):
     return rows
 
 
+# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ---------
+
+
+def _scene(ax, batch, i, title=None, extent=(-30, 60, -25, 25)):
+    """Sample i drawn in the ego frame (data_synth.plot_scenario), on axes in metres."""
+    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
+    ax.set(xlabel="x (m)", ylabel="y (m)")
+
+
+def _around(pts, left, right, below, above):
+    """An extent (x0, x1, y0, y1) around the points pts (n, 2), with these margins (m)."""
+    lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+    return (lo[0] - left, hi[0] + right, lo[1] - below, hi[1] + above)
+
+
+def _colorbar(fig, axes, cmap, norm, label, shrink, **kw):
+    """A colour bar for lines coloured by cmap under norm (no image to take it from)."""
+    fig.colorbar(
+        plt.cm.ScalarMappable(cmap=cmap, norm=norm), ax=axes, shrink=shrink, label=label, **kw
+    )
+
+
 def _legend_right(ax):
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
 
@@ -205,84 +203,55 @@ def _legend_right(ax):
 def figure_stack():
     """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack
     (red, dashed)."""
-    import matplotlib.pyplot as plt
     from matplotlib.patches import FancyBboxPatch
 
     _, ax = plt.subplots(figsize=(10, 4.2))
     ax.set(xlim=(0, 10), ylim=(-0.55, 4.45))
     ax.axis("off")
-    boxes = {
-        "inputs": (0.1, 1.7, "history of all agents\nlanes, goal"),
-        "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
-        "plan": (4.8, 1.7, "Planner\nsplines + argmin"),
-        "ctrl": (7.15, 1.7, "Controller\nbox-iLQR"),
-    }
-    for key, (x, y, text) in boxes.items():
-        color = "#e8e8e8" if key == "inputs" else ("#ffd9b3" if key == "pred" else "#cfe2f3")
-        ax.add_patch(FancyBboxPatch((x, y), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k"))
-        ax.text(x + 0.95, y + 0.5, text, ha="center", va="center", fontsize=9)
+    boxes = (
+        (0.1, "#e8e8e8", "history of all agents\nlanes, goal"),
+        (2.45, "#ffd9b3", "Predictor\n(CVAE, learned θ)"),
+        (4.8, "#cfe2f3", "Planner\nsplines + argmin"),
+        (7.15, "#cfe2f3", "Controller\nbox-iLQR"),
+    )
+    for x, color, text in boxes:
+        box = FancyBboxPatch((x, 1.7), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k")
+        ax.add_patch(box)
+        ax.text(x + 0.95, 1.7 + 0.5, text, ha="center", va="center", fontsize=9)
 
     def arrow(x0, y0, x1, y1, **kw):
         return ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
 
-    for x0, x1, label in (
-        (2.0, 2.45, ""),
-        (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"),
-        (6.7, 7.15, r"plan $u^{(0)}$"),
-    ):
+    flow = ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$"))
+    for x0, x1, label in flow:
         arrow(x0, 2.2, x1, 2.2, lw=1.5)
         ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
     arrow(9.05, 2.2, 9.6, 2.2, lw=1.5)
     ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
     # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
-    for x, text in (
+    losses = (
         (3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
         (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
         (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)"),
-    ):
-        ax.text(
-            x, 0.45, text, ha="center", va="center", fontsize=9, bbox=dict(fc="white", ec="tab:red")
-        )
+    )
+    for x, text in losses:
+        frame = dict(fc="white", ec="tab:red")
+        ax.text(x, 0.45, text, ha="center", va="center", fontsize=9, bbox=frame)
         arrow(x, 1.65, x, 0.9, lw=1)
-    red = dict(color="tab:red", lw=1.8, ls="--")
-    ax.annotate(
-        "",
-        (3.55, 2.8),
-        (5.75, 2.8),
-        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.45", **red),
+    for x0, x1, rad in ((5.75, 3.55, 0.45), (8.1, 3.25, 0.35)):
+        arrow(x0, 2.8, x1, 2.8, connectionstyle=f"arc3,rad={rad}", color="tab:red", lw=1.8, ls="--")
+    gradients = (
+        (4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$"),
+        (6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)"),
     )
-    ax.annotate(
-        "",
-        (3.25, 2.8),
-        (8.1, 2.8),
-        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.35", **red),
-    )
-    ax.text(
-        4.65,
-        2.93,
-        r"$\partial\mathcal{L}_{plan} / \partial \hat s$",
-        color="tab:red",
-        ha="center",
-        fontsize=9,
-    )
-    ax.text(
-        6.9,
-        3.85,
-        r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)",
-        color="tab:red",
-        ha="center",
-        fontsize=9,
-    )
+    for x, y, text in gradients:
+        ax.text(x, y, text, color="tab:red", ha="center", fontsize=9)
     ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
-    ax.text(
-        5.0,
-        -0.4,
+    backward = (
         "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the "
-        "iLQR solution (KKT, §5); both reach θ through the predictions",
-        ha="center",
-        fontsize=8.5,
-        color="tab:red",
+        "iLQR solution (KKT, §5); both reach θ through the predictions"
     )
+    ax.text(5.0, -0.4, backward, ha="center", fontsize=8.5, color="tab:red")
     plt.show()
 
 
@@ -297,13 +266,12 @@ PAIRS = (
 def scene_legend(fig, extra=(), ncol=4):
     """A figure legend for data_synth.plot_scenario's drawing (proxy artists), and `extra` (handles)
     below the panels."""
-    from matplotlib.lines import Line2D
-
+    box = dict(marker="s", ms=7)
     handles = [
-        Line2D([], [], color="tab:blue", ls="--", marker="s", ms=7, label="ego (GT future dashed)"),
+        Line2D([], [], color="tab:blue", ls="--", label="ego (GT future dashed)", **box),
         Line2D([], [], color="tab:blue", ls="", marker="*", ms=12, mec="k", label="goal g"),
-        Line2D([], [], color="tab:orange", marker="s", ms=7, label="predicted vehicle (GT future)"),
-        Line2D([], [], color="0.6", marker="s", ms=7, label="other vehicles"),
+        Line2D([], [], color="tab:orange", label="predicted vehicle (GT future)", **box),
+        Line2D([], [], color="0.6", label="other vehicles", **box),
         Line2D([], [], color="tab:green", marker="o", ms=5, label="pedestrians"),
         Line2D([], [], color="k", ls=":", label="history (4 s)"),
         Line2D([], [], color="k", marker=".", label="GT future (3 s, dots every 0.5 s)"),
@@ -316,16 +284,13 @@ def scene_legend(fig, extra=(), ncol=4):
 def figure_scenarios(val, extent=(-20, 50, -20, 20)):
     """§2: the first validation sample of each behaviour of the four PAIRS, one column per pair
     (top: the vehicle acts, bottom: its twin does not), in the ego frame at t0, with a legend."""
-    import matplotlib.pyplot as plt
-
     fig, axes = plt.subplots(
         2, len(PAIRS), figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True
     )
     for col, pair in enumerate(PAIRS):
         for row, name in enumerate(pair):
             i = first_of(val, name)
-            title = f"{name} (val sample {i})"
-            data_synth.plot_scenario(axes[row, col], val, i, title=title, extent=extent)
+            data_synth.plot_scenario(axes[row, col], val, i, f"{name} (val sample {i})", extent)
             axes[row, col].set(xlabel="x (m)" if row else "", ylabel="y (m)" if col == 0 else "")
     scene_legend(fig)
     fig.suptitle(
@@ -340,9 +305,7 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     """§3: one step of the cost over the ego's position (grid gx, gy): C_coll, C_goal, C_lat on
     their own colour scales, the weighted sum on a log scale with contours of w_coll * C_coll over
     it; the vehicles' positions at t (the step) marked where their bumps are."""
-    import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
-    from matplotlib.lines import Line2D
 
     coll = w_coll * c_coll
     terms = {
@@ -353,33 +316,29 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
         r"contours: $w_1C_{coll}$": (c_sum, LogNorm(max(c_sum.min().item(), 0.1), c_sum.max())),
     }
     fig, axes = plt.subplots(2, 2, figsize=(12, 6.6), layout="constrained")
-    at_t = dict(ms=11, mec="k", ls="", zorder=9)
+    at_t = dict(marker="X", ms=11, mec="k", ls="", zorder=9)
     for ax, (name, (val, norm)) in zip(axes.flat, terms.items()):
         vmax = val.quantile(0.95).item() if "lat" in name else None
         kw = dict(norm=norm) if norm else dict(vmax=vmax)
         im = ax.pcolormesh(gx, gy, val.reshape(gx.shape), shading="auto", cmap="magma_r", **kw)
-        data_synth.plot_scenario(ax, ex, 0, title=name, extent=(-10, 45, -12, 12))
+        _scene(ax, ex, 0, name, (-10, 45, -12, 12))
         fig.colorbar(im, ax=ax, shrink=0.9, label="cost")
-        ax.plot(*ctx_t.preds[0, 0, 0].tolist(), "X", color="tab:orange", **at_t)
+        ax.plot(*ctx_t.preds[0, 0, 0].tolist(), color="tab:orange", **at_t)
         for ped, color in ((False, "0.6"), (True, "tab:green")):
             sel = (ctx_t.others_mask[0] > 0) & (ex.others_is_ped[0] == ped)
-            xy = ctx_t.others[0, sel, 0]  # (agents, 2) at t
-            ax.plot(xy[:, 0], xy[:, 1], "X", color=color, **at_t)
-        ax.set(xlabel="x (m)", ylabel="y (m)")
+            ax.plot(*ctx_t.others[0, sel, 0].T, color=color, **at_t)  # the agents at t
     levels = [v for v in (0.5, 1.0, 2.0, 4.0) if v < coll.max()]
     cs = axes[1, 1].contour(gx, gy, coll.reshape(gx.shape), levels, colors="tab:cyan", zorder=8)
     axes[1, 1].clabel(cs, fontsize=7)
-    marker = dict(marker="X", ms=10, mec="k", ls="")
-    scene_legend(
-        fig,
-        [
-            Line2D([], [], color="tab:orange", label=f"predicted vehicle at t = {t:g} s", **marker),
-            Line2D([], [], color="0.6", label=f"other vehicles at t = {t:g} s", **marker),
-            Line2D([], [], color="tab:green", label=f"pedestrians at t = {t:g} s", **marker),
-            Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"),
-        ],
-        ncol=6,
+    at = dict(marker="X", ms=10, mec="k", ls="")
+    agents = (
+        ("tab:orange", "predicted vehicle"),
+        ("0.6", "other vehicles"),
+        ("tab:green", "pedestrians"),
     )
+    extra = [Line2D([], [], color=c, label=f"{who} at t = {t:g} s", **at) for c, who in agents]
+    extra.append(Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"))
+    scene_legend(fig, extra, ncol=6)
     fig.suptitle(
         f"One step of the cost (t = {t:g} s) over the ego's position, a cut-in: the collision "
         f"term adds at most {coll.max():.1f} (bumps at the vehicles' positions at {t:g} s, "
@@ -393,70 +352,43 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
     (argmin) black dashed, axes zoomed on the candidates."""
-    import math
+    from matplotlib.colors import LogNorm
 
-    import matplotlib.pyplot as plt
-
-    xy = cands.x[0][cands.valid[0]][..., :2]  # (N_valid, T+1, 2)
-    box = (
-        xy[..., 0].min().item() - 3,
-        xy[..., 0].max().item() + 6,
-        xy[..., 1].min().item() - 3,
-        xy[..., 1].max().item() + 3,
-    )
-    norm = plt.matplotlib.colors.LogNorm(1e-4, 1)
+    box = _around(cands.x[0][cands.valid[0]][..., :2].reshape(-1, 2), 3, 6, 3, 3)
+    norm, valid = LogNorm(1e-4, 1), int(cands.valid.sum())
     fig, axes = plt.subplots(
         len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True
     )
     for ax, beta in zip(axes, betas):
         p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
-        data_synth.plot_scenario(ax, ex, 0, extent=box)
-        ax.set(xlabel="x (m)" if ax is axes[-1] else "", ylabel="y (m)")
+        _scene(ax, ex, 0, extent=box)
+        ax.set(xlabel="x (m)" if ax is axes[-1] else "")
         for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
             if cands.valid[0, n]:
+                colour = plt.cm.viridis(norm(max(p[n].item(), 1e-4)))
                 ax.plot(
-                    cands.x[0, n, :, 0],
-                    cands.x[0, n, :, 1],
-                    color=plt.cm.viridis(norm(max(p[n].item(), 1e-4))),
-                    lw=1.0 + 2 * p[n].item() ** 0.5,
-                    zorder=7,
+                    *cands.x[0, n, :, :2].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7
                 )
-        ax.plot(
-            cands.x[0, best[0], :, 0],
-            cands.x[0, best[0], :, 1],
-            "k--",
-            lw=1.5,
-            zorder=8,
-            label="plan (argmin)",
-        )
+        ax.plot(*cands.x[0, best[0], :, :2].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
         ax.set_title(
             f"β = {beta}: max p_n = {p.max():.2f}, entropy "
             f"{-(p[p > 0] * p[p > 0].log()).sum():.2f} nats (uniform over "
-            f"{int(cands.valid.sum())}: {math.log(int(cands.valid.sum())):.2f})",
+            f"{valid}: {math.log(valid):.2f})",
             fontsize=9,
         )
         _legend_right(ax)
-    fig.colorbar(
-        plt.cm.ScalarMappable(cmap="viridis", norm=norm),
-        ax=axes,
-        shrink=0.6,
-        label="p_n (log scale)",
-    )
+    _colorbar(fig, axes, "viridis", norm, "p_n (log scale)", 0.6)
     plt.show()
 
 
 def figure_beta_signal(betas, extra, beta_paper, n):
     """§4: what ignoring the vehicle adds to the mean L_plan (`extra`, nats) at each β of `betas`,
     the title read off the curve: from which β on it grows monotonically, and any bump below."""
-    import matplotlib.pyplot as plt
-
     e = np.asarray(extra)
     up = next(i for i in range(len(e)) if (np.diff(e[i:]) > 0).all())  # monotone from betas[up]
     at = float(np.interp(np.log(beta_paper), np.log(betas), e))
-    bump = ""
-    if up > 0:
-        k = int(e[: up + 1].argmax())
-        bump = f"; below, a bump at β = {betas[k]:.2g} ({e[k]:.3f})" if k < up else ""
+    k = int(e[: up + 1].argmax())  # (a bump below betas[up]: k < up)
+    bump = f"; below, a bump at β = {betas[k]:.2g} ({e[k]:.3f})" if k < up else ""
     _, ax = plt.subplots(figsize=(8, 3.8), layout="constrained")
     ax.plot(betas, e, "o-", ms=3, color="tab:red", label="mean over the samples")
     ax.set(xscale="log", yscale="log", xlabel="β (1/cost)")
@@ -475,33 +407,25 @@ def figure_beta_signal(betas, extra, beta_paper, n):
 def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
     """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
     (three), with the prediction, the target n* and the plan."""
-    import matplotlib.pyplot as plt
-
     scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
     fig, axd = plt.subplot_mosaic(
         [["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1)
     )
     for ax, j in zip(axd.values(), show):
-        P = preds[j, 0].detach()
-        pts = torch.cat(
-            [P, bg.agent_fut[j, :, :2], cands.x[j, target[j], :, :2], bg.ego_hist[j, -1:, :2]]
+        P, aim, plan = (
+            preds[j, 0].detach(),
+            cands.x[j, target[j], :, :2],
+            cands.x[j, best[j], :, :2],
         )
-        lo, hi = pts.min(0).values, pts.max(0).values
-        data_synth.plot_scenario(
-            ax,
-            bg,
-            j,
-            extent=(lo[0].item() - 6, hi[0].item() + 6, lo[1].item() - 5, hi[1].item() + 5),
-            title=(
-                f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
-                f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
-                f"{'=' if best[j] == target[j] else '≠'} target n*"
-            ),
+        pts = torch.cat([P, bg.agent_fut[j, :, :2], aim, bg.ego_hist[j, -1:, :2]])
+        title = (
+            f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
+            f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
+            f"{'=' if best[j] == target[j] else '≠'} target n*"
         )
-        ax.set(xlabel="x (m)", ylabel="y (m)")
+        _scene(ax, bg, j, title, _around(pts, 6, 6, 5, 5))
         ax.plot(
-            P[:, 0],
-            P[:, 1],
+            *P.T,
             "o-",
             color="tab:red",
             ms=4,
@@ -509,36 +433,16 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
             zorder=8,
             label="prediction (constant velocity)",
         )
+        arrows = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9)
         ax.quiver(
-            P[:, 0],
-            P[:, 1],
-            -scale * grad[j, 0, :, 0],
-            -scale * grad[j, 0, :, 1],
+            *P.T,
+            *(-scale * grad[j, 0]).T,
             color="tab:red",
-            angles="xy",
-            scale_units="xy",
-            scale=1,
-            width=0.004,
-            zorder=9,
             label="-dL_plan/dŝ_t (one scale)",
+            **arrows,
         )
-        ax.plot(
-            cands.x[j, target[j], :, 0],
-            cands.x[j, target[j], :, 1],
-            "g-",
-            lw=3,
-            alpha=0.6,
-            zorder=7,
-            label="target n* (cheapest in hindsight)",
-        )
-        ax.plot(
-            cands.x[j, best[j], :, 0],
-            cands.x[j, best[j], :, 1],
-            "k--",
-            lw=1.5,
-            zorder=7,
-            label="plan with this prediction",
-        )
+        ax.plot(*aim.T, "g-", lw=3, alpha=0.6, zorder=7, label="target n* (cheapest in hindsight)")
+        ax.plot(*plan.T, "k--", lw=1.5, zorder=7, label="plan with this prediction")
     axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
     fig.suptitle(
         "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a "
@@ -553,19 +457,14 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
     mean); right, sample i: the controller's position minus the plan's over time (x, y, distance),
     and the controls over time (the plan's dashed, the controller's solid; grey band: the box)."""
-    import matplotlib.pyplot as plt
-
     _, axd = plt.subplot_mosaic(
         [["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained"
     )
     ax = axd["cost"]
     ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
     ax.plot(rel.mean(0), color="k", lw=2, label="mean")
-    ax.set(
-        xlabel="iteration",
-        ylabel="cost / cost of the plan",
-        title="iLQR: the true cost never rises\n(line search), mean in black",
-    )
+    title = "iLQR: the true cost never rises\n(line search), mean in black"
+    ax.set(xlabel="iteration", ylabel="cost / cost of the plan", title=title)
     ax.legend(loc="lower left")
     ax.grid(alpha=0.3)
     ax = axd["map"]
@@ -599,81 +498,56 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     plt.show()
 
 
-def figure_modes(sub, pred, label):
-    """§6: a predictor's (`label`: which) K modes on the samples of `sub`, coloured and widened by
-    p(z = k | x) (one colour scale), the most likely labelled, the three largest probabilities in
-    each title, 1σ ellipses of the most likely mode; zoomed on the predicted vehicle (its last
-    history steps, the modes and its true future); the title says how far apart the modes end and
-    how close the closest comes to the truth."""
-    import matplotlib.pyplot as plt
-
+def _modes_panel(ax, sub, pred, j, norm_p):
+    """figure_modes' panel of sample j: zoomed on the predicted vehicle (its last history steps, the
+    modes, its true future) at the panels' aspect, the modes coloured and widened by p, the 1σ
+    ellipses of the most likely, which is labelled."""
     import figures
 
+    K = pred.probs.shape[1]
+    P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
+    pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
+    c = (pts.max(0).values + pts.min(0).values) / 2
+    half = (pts.max(0).values - pts.min(0).values) / 2 + 1.5
+    hx = max(half[0].item(), 1.3 * half[1].item())  # the panels' shape
+    hy = max(half[1].item(), half[0].item() / 1.3)
+    top3 = ", ".join(f"{q:.2f}" for q in pred.probs[j].sort(descending=True).values[:3].tolist())
+    title = f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = {top3}"
+    extent = (c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy)
+    _scene(ax, sub, j, title, extent)
+    figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # 1σ ellipses, faint modes
+    for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
+        pk = pred.probs[j, k].item()
+        colour, width = plt.cm.viridis_r(norm_p(pk)), 0.6 + 3 * pk / norm_p.vmax
+        ax.plot(*P[k].T, color=colour, lw=width, zorder=8)
+    k = int(pred.probs[j].argmax())
+    ax.annotate(
+        f"most likely, p = {pred.probs[j, k]:.2f}",
+        P[k, -1].tolist(),
+        xytext=(0, 14),
+        textcoords="offset points",
+        fontsize=8,
+        ha="center",
+        zorder=10,
+        arrowprops=dict(arrowstyle="-", lw=0.6),
+        bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1),
+    )
+
+
+def figure_modes(sub, pred, label):
+    """§6: a predictor's (`label`: which) K modes on the samples of `sub` (_modes_panel), one colour
+    scale for p(z = k | x), the three largest probabilities in each title; the title says how far
+    apart the modes end and how close the closest comes to the truth."""
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
-        # P: (K, 1+T, 2)
-        P = torch.cat(
-            [pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1
-        )
-        # the vehicle, not the ego
-        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
-        c, half = (
-            (pts.max(0).values + pts.min(0).values) / 2,
-            (pts.max(0).values - pts.min(0).values) / 2 + 1.5,
-        )
-        # the panels' shape
-        hx, hy = (
-            max(half[0].item(), 1.3 * half[1].item()),
-            max(half[1].item(), half[0].item() / 1.3),
-        )
-        top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
-        data_synth.plot_scenario(
-            ax,
-            sub,
-            j,
-            extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
-            title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
-            + ", ".join(f"{q:.2f}" for q in top3),
-        )
-        # the 1σ ellipses (and faint modes)
-        figures.plot_prediction(ax, pred, j, color="tab:red", label=None)
-        for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
-            pk = pred.probs[j, k].item()
-            ax.plot(
-                P[k, :, 0],
-                P[k, :, 1],
-                color=plt.cm.viridis_r(norm_p(pk)),
-                lw=0.6 + 3 * pk / norm_p.vmax,
-                zorder=8,
-            )
-        k = int(pred.probs[j].argmax())
-        ax.annotate(
-            f"most likely, p = {pred.probs[j, k]:.2f}",
-            P[k, -1].tolist(),
-            xytext=(0, 14),
-            textcoords="offset points",
-            fontsize=8,
-            ha="center",
-            zorder=10,
-            arrowprops=dict(arrowstyle="-", lw=0.6),
-            bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1),
-        )
-    fig.colorbar(
-        plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p),
-        ax=axes,
-        shrink=0.8,
-        label="mode probability p(z = k | x)",
-    )
-    from matplotlib.lines import Line2D
-
-    for ax in axes:
-        ax.set(xlabel="x (m)", ylabel="y (m)")
-    kinds = (("tab:blue", "-", "a mode (colour, width: p)"), ("tab:orange", ".-", "true future"))
+        _modes_panel(ax, sub, pred, j, norm_p)
+    _colorbar(fig, axes, "viridis_r", norm_p, "mode probability p(z = k | x)", 0.8)
     handles = [
-        Line2D([], [], color=c, ls=ls[-1], marker=ls[:-1] or None, label=t) for c, ls, t in kinds
+        Line2D([], [], color="tab:blue", ls="-", label="a mode (colour, width: p)"),
+        Line2D([], [], color="tab:orange", ls="-", marker=".", label="true future"),
+        Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"),
     ]
-    handles.append(Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"))
     axes[0].legend(handles=handles, loc="lower left", fontsize=7)
     ends = pred.means[:, :, -1, :2]  # (B, K, 2) the modes' positions at T
     likely = pred.probs >= 0.05  # (B, K) the modes drawn thick enough to see
@@ -694,31 +568,21 @@ def figure_goal(goal_res):
     """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene
     mean), the paper's goal against a route goal, from results/goal.json; the title names the
     behaviours with a quarter or more of each saving. Returns route's saving / the paper goal's."""
-    import matplotlib.pyplot as plt
-
     # one scale: compare the sizes
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
-    behaviours = [
-        b
-        for b in data_synth.BEHAVIOURS
-        if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]
-    ]
+    by = goal_res["logged"]["No prediction"][0]["by_behaviour"]
+    behaviours = [b for b in data_synth.BEHAVIOURS if b in by]
+    colours = ["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours]
     total, most = {}, {}
     for ax, goal in zip(axes, ("logged", "route")):
         none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
+        nb, gb = none["by_behaviour"], gt["by_behaviour"]
+        # each behaviour's part of the all-scene mean
         saved = [
-            (gt["by_behaviour"][b]["hindsight"] - none["by_behaviour"][b]["hindsight"])
-            * none["by_behaviour"][b]["n"]
-            # each behaviour's part of the all-scene mean
-            / none["n"]
-            / 1e-2
+            (gb[b]["hindsight"] - nb[b]["hindsight"]) * nb[b]["n"] / none["n"] / 1e-2
             for b in behaviours
         ]
-        ax.barh(
-            behaviours,
-            saved,
-            color=["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours],
-        )
+        ax.barh(behaviours, saved, color=colours)
         ax.axvline(0, color="k", lw=0.8)
         name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
         ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
@@ -731,14 +595,19 @@ def figure_goal(goal_res):
     ratio = total["route"] / total["logged"]
     fig.suptitle(
         f"What a perfect prediction saves: under the paper's goal {total['logged']:.2f}e-2, most "
-        f"in "
-        f"{' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most in "
-        f"{' and '.join(most['route'])} (red: cut_in, lead_brake)",
+        f"in {' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most "
+        f"in {' and '.join(most['route'])} (red: cut_in, lead_brake)",
         fontsize=10,
     )
     plt.tight_layout()
     plt.show()
     return ratio
+
+
+def smooth(v, n=10):
+    """An n-step moving average (the whole series when it is shorter than n)."""
+    v = np.asarray(v, dtype=float)
+    return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
 
 
 def curve_change(v):
@@ -756,15 +625,14 @@ def figure_learning_curves(histories):
     (solid); a method that does not run the stack in training (no l_plan) has only an
     L_pred curve. Each panel's title: the mean of the first and the last quarter of the steps, and
     whether the change exceeds the batch-to-batch noise (curve_change)."""
-    import matplotlib.pyplot as plt
-
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
     moved, steps = [], 0
-    for key, ax, label in (
-        ("l_pred", axes[0], "L_pred (nats)"),
-        ("l_plan", axes[1], "L_plan (nats)"),
-        ("l_ctr", axes[2], "L_ctr = hindsight cost"),
-    ):
+    curves = (
+        ("l_pred", "L_pred (nats)"),
+        ("l_plan", "L_plan (nats)"),
+        ("l_ctr", "L_ctr = hindsight cost"),
+    )
+    for ax, (key, label) in zip(axes, curves):
         title = []
         for name, (h, color) in histories.items():
             if key != "l_pred" and name == "Standard":
@@ -796,43 +664,21 @@ def figure_stacks(batch, i, outs, cfg, at="", also=None):
     """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack:
     predictions, candidates coloured by p_n, plan, controller); `also` (outs of another run) adds
     that run's controller states as circles."""
-    import matplotlib.pyplot as plt
-
     import figures
 
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
-        figures.plot_stack(
-            ax,
-            batch,
-            i,
-            outs[name],
-            cfg,
-            f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
-            extent=(-12, 48, -10, 10),
-        )
+        title = f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}"
+        figures.plot_stack(ax, batch, i, outs[name], cfg, title, extent=(-12, 48, -10, 10))
         ax.set(xlabel="x (m)", ylabel="y (m)")
         if also is not None:
-            ax.plot(
-                also[name].x[i, :, 0],
-                also[name].x[i, :, 1],
-                "o",
-                color="tab:purple",
-                ms=6,
-                mfc="none",
-                zorder=10,
-                label="controller at 0.5 s",
-            )
+            circles = dict(color="tab:purple", ms=6, mfc="none", zorder=10)
+            ax.plot(*also[name].x[i, :, :2].T, "o", label="controller at 0.5 s", **circles)
         _legend_right(ax)
     if also is None:
-        fig.colorbar(
-            plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1)),
-            ax=axes,
-            shrink=0.5,
-            label="candidate p_n / max p_n",
-            boundaries=np.linspace(0, 1, 101),
-            ticks=[0, 0.5, 1],
-        )
+        ticks = dict(boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
+        norm = plt.Normalize(-1 / 3, 1)
+        _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
     plt.show()
 
 
@@ -852,6 +698,10 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
+def rel_err(a, b):
+    return ((a - b).norm() / b.norm()).item()
+
+
 def kkt_gradient_check(val, cfg, seed, out=print):
     """§5's gradient check: on three validation samples where the predicted vehicle comes within
     6 m (float64), iLQR solved to 1e-11, the gradient of a random linear function of its solution
@@ -862,29 +712,26 @@ def kkt_gradient_check(val, cfg, seed, out=print):
     torch.manual_seed(seed)
     d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
     pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
-    b64 = val[pick].to(torch.float64)
+    b64 = val[pick].to(F64)
     ctx64 = gt_context(b64)
-    w64 = ds.cost_weights(cfg, torch.float64)
-    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (cfg.u_lower, cfg.u_upper))
+    leaves = (b64.ego_hist[:, -1], ds.cost_weights(cfg, F64), ctx64.preds)  # s0, w, prediction
+    lo, hi = (torch.tensor(v, dtype=F64) for v in (cfg.u_lower, cfg.u_upper))
     uni = ds.Unicycle(cfg.dt)
 
     def fn(x, u, w, preds):
         return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
 
-    s0 = b64.ego_hist[:, -1]
-    u0 = torch.zeros(3, 6, 2, dtype=torch.float64)
-    _, u_star, info = ds.ilqr(fn, uni, s0, u0, (w64, ctx64.preds), lo, hi, iters=50, tol=1e-11)
+    u0 = torch.zeros(3, 6, 2, dtype=F64)
+    _, u_star, info = ds.ilqr(fn, uni, leaves[0], u0, leaves[1:], lo, hi, iters=50, tol=1e-11)
     assert info.converged.all()
     g = torch.Generator().manual_seed(seed)
-    wx = torch.randn(3, 7, 4, generator=g, dtype=torch.float64)  # the loss's weights on x, u
-    wu = torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
-    leaves = (s0, w64, ctx64.preds)
+    wx = torch.randn(3, 7, 4, generator=g, dtype=F64)  # the loss's weights on x, u
+    wu = torch.randn(3, 6, 2, generator=g, dtype=F64)
 
     def kkt_grads(exact):
         ls = [v.clone().requires_grad_() for v in leaves]
-        x, u, _ = ds.ilqr_solve(
-            fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact
-        )
+        solve = dict(iters=30, tol=1e-11, exact=exact)
+        x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
         return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
 
     def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
@@ -925,8 +772,6 @@ def show_source(fn):
     imported), under a line naming where it is."""
     import inspect
 
-    from IPython.display import Markdown, display
-
     lines, first = inspect.getsourcelines(fn)
     where = f"`{fn.__module__}.{fn.__qualname__}`, {Path(inspect.getfile(fn)).name} line {first}"
     display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
@@ -959,12 +804,18 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
     )
 
 
-def draw_planner_view(ax, ex, view, title=""):
-    """One planner_view drawn: the candidates coloured by p_n (log scale), the plan (black
-    dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as arrows."""
-    import matplotlib.pyplot as plt
-
-    data_synth.plot_scenario(ax, ex, 0, title=title, extent=(-10, 45, -12, 12))
+def draw_planner_view(ax, ex, cfg, shift, beta):
+    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n (log scale), the
+    plan (black dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as
+    arrows; the title says the setting, L_plan, whether the plan is the target, the largest
+    |dL_plan/dŝ_t|."""
+    view = planner_view(ex, cfg, shift, beta)
+    hit = "plan = n*" if view["plan"] == view["target"] else f"plan {view['plan']} ≠ n*"
+    title = (
+        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {view['l_plan']:.2f}, "
+        f"{hit},\nlargest |dL/dŝ_t| {view['grad'].norm(dim=-1).max():.2f} 1/m"
+    )
+    _scene(ax, ex, 0, title, (-10, 45, -12, 12))
     x = view["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
     colour = plt.cm.viridis(np.clip(1 + np.log10(view["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
     for n in torch.nonzero(view["cands"].valid[0]).flatten().tolist():
@@ -974,19 +825,15 @@ def draw_planner_view(ax, ex, view, title=""):
     ax.plot(*view["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
     arrows = -view["grad"] / max(view["grad"].norm(dim=-1).max().item(), 1e-12) * 3
     ax.quiver(*view["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
-    ax.set(xlabel="x (m)", ylabel="y (m)")
 
 
 def interactive_planner(ex, cfg, settings):
-    """The static figure: one panel per (shift, beta) in settings, each its planner_view; then,
-    where ipywidgets is installed, sliders that move the prediction and change beta and redraw
-    one panel. Returns the widget, or None without ipywidgets."""
-    import matplotlib.pyplot as plt
-
+    """The static figure: one panel per (shift, beta) in settings (draw_planner_view); then, where
+    ipywidgets is installed, sliders that move the prediction and change beta and redraw one
+    panel. Returns the widget, or None without ipywidgets."""
     fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
     for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
-        v = planner_view(ex, cfg, shift, beta)
-        draw_planner_view(ax, ex, v, planner_title(v, shift, beta))
+        draw_planner_view(ax, ex, cfg, shift, beta)
     np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=7)
     fig.suptitle(
         "Move the prediction or change β: the costs, p_n (colour), the plan and -dL_plan/dŝ "
@@ -1000,9 +847,8 @@ def interactive_planner(ex, cfg, settings):
         return None
 
     def redraw(dx=0.0, dy=0.0, beta=1.0):
-        fig, ax = plt.subplots(figsize=(7, 3.6))
-        v = planner_view(ex, cfg, (dx, dy), beta)
-        draw_planner_view(ax, ex, v, planner_title(v, (dx, dy), beta))
+        _, ax = plt.subplots(figsize=(7, 3.6))
+        draw_planner_view(ax, ex, cfg, (dx, dy), beta)
         ax.legend(loc="lower left", fontsize=7)
         plt.show()
 
@@ -1014,17 +860,7 @@ def interactive_planner(ex, cfg, settings):
     )
 
 
-def planner_title(view, shift, beta):
-    """A panel's title: the setting, L_plan, whether the plan is the target, the largest
-    |dL_plan/dŝ_t|."""
-    hit = "plan = n*" if view["plan"] == view["target"] else f"plan {view['plan']} ≠ n*"
-    return (
-        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {view['l_plan']:.2f}, "
-        f"{hit},\nlargest |dL/dŝ_t| {view['grad'].norm(dim=-1).max():.2f} 1/m"
-    )
-
-
-# --- the exercises' checks ------------------------------------------------------------------------
+# --- the exercises' checks: the common part -------------------------------------------------------
 
 
 class Forbidden(AssertionError):
@@ -1055,7 +891,7 @@ def _relation(mine, ref, factors):
     return f" Yours is {c:.4g} times the reference" + (f": {why}." if why else ".")
 
 
-def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagnose=None):
+def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, diagnose=None):
     """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
     where allowed is tol for a float64 answer and grows with the answer's rounding unit otherwise
     (16 eps cond: a correct float32 answer passes, a wrong one still fails); cond: how much the
@@ -1063,14 +899,13 @@ def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagn
     in, where that is not mine's (a gradient autograd cast back). A failure says what differs: the
     ratio to the reference where one number explains it (factors: {c: why}, beside the sign and a
     factor 2), and diagnose(mine) where the check knows more (which term, which stage)."""
-    if not isinstance(mine, torch.Tensor):
-        try:
-            mine = torch.as_tensor(mine)
-        except (TypeError, ValueError, RuntimeError):
-            raise AssertionError(
-                f"{name}: expected a tensor of shape {tuple(ref.shape)}, got "
-                f"{type(mine).__name__}. {hint}"
-            ) from None
+    try:
+        mine = torch.as_tensor(mine)
+    except (TypeError, ValueError, RuntimeError):
+        raise AssertionError(
+            f"{name}: expected a tensor of shape {tuple(ref.shape)}, got "
+            f"{type(mine).__name__}. {hint}"
+        ) from None
     assert mine.shape == ref.shape, (
         f"{name}: shape {tuple(mine.shape)}, expected {tuple(ref.shape)}. {hint}"
     )
@@ -1111,6 +946,15 @@ def _call(name, fn, *args, returns=""):
             f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
             f"{returns})"
         ) from None
+
+
+def _parts(name, out, count, parts, hint):
+    """An answer that returns several tensors: assert it returned `count` of them (parts: what)."""
+    got = f"{type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}"
+    assert isinstance(out, (tuple, list)) and len(out) == count, (
+        f"{name}: returned {got}, expected the {parts}. {hint}"
+    )
+    return out
 
 
 @contextlib.contextmanager
@@ -1227,16 +1071,8 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     others_mask[::2, 0] = 0  # some other agents absent
     lanes = torch.zeros(B, 1, 5, 3, dtype=F64)
     lanes[..., 0] = torch.linspace(-10, 30, 5, dtype=F64)
-    ctx = ds.CostContext(
-        preds,
-        probs,
-        pred_mask,
-        others,
-        others_mask,
-        torch.zeros(B, 2, dtype=F64),
-        lanes,
-        torch.ones(B, 1, 5, dtype=torch.bool),
-    )
+    goal, lanes_mask = torch.zeros(B, 2, dtype=F64), torch.ones(B, 1, 5, dtype=torch.bool)
+    ctx = ds.CostContext(preds, probs, pred_mask, others, others_mask, goal, lanes, lanes_mask)
     pos = 3 * torch.randn(B, N, T, 2, generator=g, dtype=F64)
     return pos, ctx
 
@@ -1258,13 +1094,11 @@ def collision_terms_at_fault(fn, pos, ctx, rbf_var):
         all_ones = dataclasses.replace(ctx, **{mask: torch.ones_like(getattr(ctx, mask))})
         if agrees(ctx, all_ones):
             return f" Yours equals C_coll with every {mask} entry 1: it ignores {mask}."
+    no_others = dataclasses.replace(ctx, others_mask=torch.zeros_like(ctx.others_mask))
+    no_vehicle = dataclasses.replace(ctx, pred_mask=torch.zeros_like(ctx.pred_mask))
     alone = {
-        "the predicted vehicle's term (preds, probs, pred_mask)": dataclasses.replace(
-            ctx, others_mask=torch.zeros_like(ctx.others_mask)
-        ),
-        "the other agents' term (others, others_mask)": dataclasses.replace(
-            ctx, pred_mask=torch.zeros_like(ctx.pred_mask)
-        ),
+        "the predicted vehicle's term (preds, probs, pred_mask)": no_others,
+        "the other agents' term (others, others_mask)": no_vehicle,
     }
     wrong = [term for term, c in alone.items() if not agrees(c, c)]
     if len(wrong) != 1:
@@ -1283,17 +1117,13 @@ def check_collision(fn):
     for seed, rbf_var in ((0, 2.0), (1, 3.5)):
         pos, ctx = collision_problem(seed)
         mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
-        T = pos.shape[2]
-        err = _close(
-            "my_collision",
-            mine,
-            ds.collision_term(pos, ctx, rbf_var),
-            1e-9,
-            hint,
-            cond=10,
-            factors={1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"},
-            diagnose=lambda _: collision_terms_at_fault(fn, pos, ctx, rbf_var),
-        )
+        T, ref = pos.shape[2], ds.collision_term(pos, ctx, rbf_var)
+        mean = {1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"}
+
+        def why(_):  # which mask or term, by running the answer on other contexts
+            return collision_terms_at_fault(fn, pos, ctx, rbf_var)
+
+        err = _close("my_collision", mine, ref, hint, cond=10, factors=mean, diagnose=why)
         worst = max(worst, err)
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
@@ -1310,12 +1140,8 @@ def plan_problem(seed=0, B=8, N=12):
     valid = torch.rand(B, N, generator=g) > 0.3
     valid[:, :2] = True  # at least two valid candidates
     cost = torch.where(valid, cost, cost - 20)
-    target = torch.stack(
-        [
-            torch.nonzero(v).flatten()[torch.randint(int(v.sum()), (1,), generator=g)][0]
-            for v in valid
-        ]
-    )
+    pick = [torch.randint(int(v.sum()), (1,), generator=g) for v in valid]
+    target = torch.stack([torch.nonzero(v).flatten()[k][0] for v, k in zip(valid, pick)])
     return cost, valid, target
 
 
@@ -1352,49 +1178,33 @@ def check_plan_loss(fn, name="my_plan_loss"):
         "L_plan = -log p_{n*}, p_n = exp(-beta C_n) / sum over the *valid* n' of exp(-beta "
         "C_n'); use a stable log-softmax (logsumexp): exp(-2000) underflows."
     )
-    worst = 0.0
+    returns, worst = "L_plan of shape (B,)", 0.0
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c1, c2 = cost.clone().requires_grad_(), cost.clone().requires_grad_()
-        mine = _call(name, fn, c1, valid, target, beta, returns="L_plan of shape (B,)")
+        mine = _call(name, fn, c1, valid, target, beta, returns=returns)
         ref = ds.plan_loss(c2, valid, target, beta)
         cond = beta * cost.abs().max().item()  # the costs' rounding, magnified by beta
         factors = {beta: "beta applied twice?", 1 / beta: "beta left out"}
-        worst = max(
-            worst,
-            _close(
-                f"{name} (beta = {beta})",
-                mine,
-                ref,
-                1e-9,
-                hint,
-                cond,
-                factors=factors,
-                diagnose=lambda m: target_off_by_one(m, cost, valid, target, beta),
-            ),
-        )
+        off = functools.partial(target_off_by_one, cost=cost, valid=valid, target=target, beta=beta)
+        at = f"(beta = {beta})"
+        err = _close(f"{name} {at}", mine, ref, hint, cond=cond, factors=factors, diagnose=off)
+        worst = max(worst, err)
         ref.sum().backward()
         assert mine.requires_grad, (
             f"{name}: the result has no gradient (keep it a torch expression). {hint}"
         )
         mine.sum().backward()
         _close(
-            f"gradient of {name} wrt the costs (beta = {beta})",
-            c1.grad,
-            c2.grad,
-            1e-9,
-            hint,
-            cond,
-            mine.dtype,
+            f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
         )
     # the fragile case: float32, an invalid candidate far cheaper than the valid ones
     cost, valid, target = float32_plan_problem()
-    mine = _call(name, fn, cost, valid, target, 1.0, returns="L_plan of shape (B,)")
+    mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
     _close(
         f"{name} in float32, an invalid candidate 200 cheaper than every valid one",
         mine,
         ds.plan_loss(cost.double(), valid, target, 1.0),
-        1e-9,
         "A softmax over all candidates, renormalised over the valid ones, is 0/0 here: every valid "
         "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
         "softmax itself (their logits -inf, then logsumexp).",
@@ -1423,37 +1233,19 @@ def check_plan_grad(fn):
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c = cost.clone().requires_grad_()
-        # autograd's answer
-        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)
+        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)  # autograd's
+        returns = "dL_plan/dC of shape (B, N)"
         with no_autograd("my_plan_loss_grad"):
-            mine = _call(
-                "my_plan_loss_grad",
-                fn,
-                cost,
-                valid,
-                target,
-                beta,
-                returns="dL_plan/dC of shape (B, N)",
-            )
-        B = len(cost)
+            mine = _call("my_plan_loss_grad", fn, cost, valid, target, beta, returns=returns)
+        B, cond = len(cost), beta * cost.abs().max().item()
         factors = {
             1 / B: f"divided by B = {B} (the gradient of the batch's mean; the check asks for each "
             "sample's own)",
             1 / beta: "beta left out",
             beta: "beta applied twice",
         }
-        worst = max(
-            worst,
-            _close(
-                f"my_plan_loss_grad (beta = {beta})",
-                mine,
-                ref,
-                1e-9,
-                hint,
-                beta * cost.abs().max().item(),
-                factors=factors,
-            ),
-        )
+        name = f"my_plan_loss_grad (beta = {beta})"
+        worst = max(worst, _close(name, mine, ref, hint, cond=cond, factors=factors))
     return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
@@ -1478,26 +1270,16 @@ def check_riccati(fn):
     worst = 0.0
     for seed in (0, 1):
         H, gv, A, Bm = riccati_problem(seed, n=n, m=m)
-        B = len(H)
-        free = torch.ones(B, 1, m, dtype=torch.bool)
+        free = torch.ones(len(H), 1, m, dtype=torch.bool)
         k_ref, K_ref, _, p0_ref = ds.lqr_backward(A, Bm, H, gv, free=free)
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
         F = torch.cat([A[:, 0], Bm[:, 0]], -1)
         Q = H[:, 0] + F.transpose(-1, -2) @ H[:, 1, :n, :n] @ F
         P_ref = Q[:, :n, :n] - Q[:, :n, n:] @ torch.linalg.solve(Q[:, n:, n:], Q[:, n:, :n])
         args = (H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
-        out = _call(
-            "my_riccati_step",
-            fn,
-            *args,
-            returns=f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))",
-        )
-        assert isinstance(out, (tuple, list)) and len(out) == 4, (
-            "my_riccati_step: returned "
-            f"{type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}, "
-            f"expected the four (k, K, P_new, p_new). {hint}"
-        )
-        k, K, P_new, p_new = out
+        returns = f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))"
+        out = _call("my_riccati_step", fn, *args, returns=returns)
+        k, K, P_new, p_new = _parts("my_riccati_step", out, 4, "four (k, K, P_new, p_new)", hint)
         cond = torch.linalg.cond(Q[:, n:, n:]).max().item()  # the solves with Q_uu
         for name, mine, ref in (
             ("k (feed-forward)", k, k_ref[:, 0]),
@@ -1505,7 +1287,7 @@ def check_riccati(fn):
             ("P_new", P_new, P_ref),
             ("p_new", p_new, p0_ref),
         ):
-            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, 1e-8, hint, cond))
+            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, hint, 1e-8, cond))
     return f"k, K, P_new, p_new, max error {worst:.1e}"
 
 
@@ -1565,6 +1347,25 @@ def kkt_stage_at_fault(mine, ref, free, n, allowed):
     return found
 
 
+def kkt_reference(A, Bm, H, g, x_init, free, grad_x, grad_u):
+    """dL/dx_init and dL/dg of L = <grad_x, x*> + <grad_u, u*> by autograd through lqr_solve,
+    itself checked against central differences on two coordinates of x_init."""
+    xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
+
+    def loss(xi, gg):
+        return sum(
+            (a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free))
+        )
+
+    ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
+    for b, i in ((0, 1), (2, 0)):
+        e = torch.zeros_like(x_init)
+        e[b, i] = 1e-6
+        fd = (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * 1e-6)
+        assert abs(fd - ref_x[b, i].item()) < 1e-6
+    return ref_x, ref_g
+
+
 def check_kkt(fn):
     hint = (
         "the backward pass is the same LQR (A, B, H, the active set) with the incoming gradient "
@@ -1573,61 +1374,19 @@ def check_kkt(fn):
     worst = 0.0
     for seed in (0, 1):
         A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
-        B, T1, nm = g.shape
+        _, T1, nm = g.shape
         n = x_init.shape[-1]
-        # the reference: autograd through the module's solver, dL/dx_init and dL/dg of
-        # L = <grad_x, x*> + <grad_u, u*>
-        xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
-
-        def loss(xi, gg):
-            return sum(
-                (a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free))
-            )
-
-        ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
-        # ... itself against central finite differences on a few coordinates
-        for (b, i), h in (((0, 1), 1e-6), ((2, 0), 1e-6)):
-            e = torch.zeros_like(x_init)
-            e[b, i] = h
-            assert (
-                abs(
-                    (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * h)
-                    - ref_x[b, i].item()
-                )
-                < 1e-6
-            )
-        out = _call(
-            "my_kkt_backward",
-            fn,
-            A,
-            Bm,
-            H,
-            grad_x,
-            grad_u,
-            free,
-            n,
-            returns=f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))",
-        )
-        assert isinstance(out, (tuple, list)) and len(out) == 2, (
-            f"my_kkt_backward: returned {type(out).__name__}, expected the two (dL/dx_init, "
-            f"dL/dg). {hint}"
-        )
+        ref_x, ref_g = kkt_reference(A, Bm, H, g, x_init, free, grad_x, grad_u)
+        returns = f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))"
+        out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n, returns=returns)
+        out = _parts("my_kkt_backward", out, 2, "two (dL/dx_init, dL/dg)", hint)
         cond = torch.linalg.cond(H).max().item()
-        costate = {-1.0: "p_0 with the wrong sign"}
         allowed = max(1e-9, 16 * torch.finfo(torch.as_tensor(out[1]).dtype).eps * cond)
         allowed *= max(1.0, ref_g.abs().max().item())
-        err_g = _close(
-            "my_kkt_backward: dL/dg",
-            out[1],
-            ref_g,
-            1e-9,
-            hint,
-            cond,
-            diagnose=lambda m: kkt_stage_at_fault(m, ref_g, free, n, allowed),
-        )
-        err = _close(
-            "my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond, factors=costate
-        )
+        stage = functools.partial(kkt_stage_at_fault, ref=ref_g, free=free, n=n, allowed=allowed)
+        err_g = _close("my_kkt_backward: dL/dg", out[1], ref_g, hint, cond=cond, diagnose=stage)
+        costate = {-1.0: "p_0 with the wrong sign"}
+        err = _close("my_kkt_backward: dL/dx_init", out[0], ref_x, hint, cond=cond, factors=costate)
         worst = max(worst, err, err_g)
     return (
         "dL/dx_init and dL/dg against autograd through the solver (itself against finite "
