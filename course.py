@@ -1,17 +1,15 @@
 """The course's harness for tutorial.ipynb, and the checks of its exercises.
 
-The harness: the section clock (start, section_done, report_times), the notebook's checks
-(checkpoint, check_order, check_claim: each prints a line and raises CheckpointError when it fails,
-so that the notebook stops at that cell), the committed tables over seeds (results_table), the
-helpers that several cells use (gt_context, first_of, behaviour_rows), and the notebook's larger
-figures (figure_*: drawing only, each cell computes what it shows).
+The harness: the section clock, the notebook's checks (checkpoint, check_order, check_claim: each
+prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
+the committed tables (results_table), helpers that several cells use, and the larger figures
+(figure_*: drawing only, each cell computes what it shows).
 
 Each check_* builds its own small problems (seeded, float64), runs the student's function on them
-and compares with an independent answer (the module's function, autograd, or a closed form). A wrong
-answer raises AssertionError with what differs and a hint; a stub that still raises
-NotImplementedError is reported as not done, so that *Run All* goes on past an exercise the student
-has not tried yet. test_tutorial.py feeds every check known-wrong answers and asserts that it
-catches each one; lab/grader.py runs the checks on a student's notebook, each in its own process.
+and compares with an independent answer (the module's function, autograd, or a closed form): a wrong
+answer raises AssertionError saying what differs; a stub that still raises NotImplementedError is
+reported as not done, so that *Run All* goes on past it. test_tutorial.py feeds every check
+known-wrong answers; lab/grader.py runs the checks on a student's notebook.
 """
 
 import contextlib
@@ -26,27 +24,27 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from IPython.display import Markdown, display
+from matplotlib.colors import LogNorm
 from matplotlib.lines import Line2D
 
 import data_synth
 import diffstack as ds
+import figures
 
 F64 = torch.float64
-
-
-# --- the harness: section clock -------------------------------------------------------------------
-
 SECTION_TIMES = {}
 _CLOCK = {}
+
+
+# --- the harness ----------------------------------------------------------------------------------
 
 
 def start():
     """One torch thread (reproducible numbers, and the machine stays usable), the figures' style,
     and the clock that section_done and report_times read."""
     torch.set_num_threads(1)
-    plt.rcParams.update(
-        {"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8}
-    )
+    plt.rcParams.update({"figure.dpi": 100, "savefig.dpi": 100})
+    plt.rcParams.update({"font.size": 9, "legend.fontsize": 8})
     SECTION_TIMES.clear()
     _CLOCK.update(wall=time.time(), cpu=time.process_time(), section=time.time())
 
@@ -69,18 +67,12 @@ def report_times(quick):
     )
 
 
-# --- the harness: the notebook's checks -----------------------------------------------------------
-
-
 class CheckpointError(AssertionError):
     """A failed check: the notebook stops at the cell (and CI fails) instead of printing and
     going on."""
 
 
-RERUN = "re-run the section's cells in order from a fresh kernel"
-
-
-def checkpoint(name, measured, expected, tol, rel=False, hint=RERUN):
+def checkpoint(name, measured, expected, tol, rel=False):
     """For what is deterministic (no training: gradient errors, a file's round trip, a solver on
     fixed data): the measured value, the expected one, whether they agree within tol; a disagreement
     stops the notebook."""
@@ -89,7 +81,8 @@ def checkpoint(name, measured, expected, tol, rel=False, hint=RERUN):
     said = f"measured {measured:.4g}, expected {expected:.4g}"
     print(f"CHECKPOINT {name}: {said} (tolerance {within}) -> {'OK' if err <= tol else 'FAILED'}")
     if err > tol:
-        raise CheckpointError(f"{name}: {said} within {within}; {hint}")
+        rerun = "re-run the section's cells in order from a fresh kernel"
+        raise CheckpointError(f"{name}: {said} within {within}; {rerun}")
 
 
 def check_order(name, values, order, margin=0.0):
@@ -106,20 +99,16 @@ def check_order(name, values, order, margin=0.0):
         )
 
 
-def check_claim(table, method, baseline, column, expect, section=None):
+def check_claim(table, method, baseline, column, expect):
     """A finding the notebook states, checked on the committed table results/<table>.json: its
     paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at
-    p < 0.05 in the paper's direction) must be what the text says.
-    If a re-run of the tables changes the verdict, this stops the notebook until the text is changed
-    with it."""
+    p < 0.05 in the paper's direction) must be what the text says. If a re-run of the tables
+    changes the verdict, this stops the notebook until the text is changed with it."""
     import experiments as xp
     import specs
 
-    spec = specs.TABLES[table]
     saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
-    line = xp.claim_line(
-        specs.Claim(method, baseline, column, section), spec, saved[section] if section else saved
-    )
+    line = xp.claim_line(specs.Claim(method, baseline, column), specs.TABLES[table], saved)
     verdict = line.rsplit("): ", 1)[-1]
     print(f"CLAIM {line} -> {'OK' if verdict.startswith(expect) else 'FAILED'}")
     if not verdict.startswith(expect):
@@ -132,12 +121,8 @@ def results_table(name):
     """Display the committed table of results/<name>.md (mean ± standard error over its seeds)."""
     text = (Path("results") / f"{name}.md").read_text()
     seeds = len(json.loads((Path("results") / f"{name}.json").read_text())["meta"]["seeds"])
-    # without the title line and the figure links
-    body = text.split("\n", 1)[1].split("![")[0].strip()
+    body = text.split("\n", 1)[1].split("![")[0].strip()  # without the title and figure links
     display(Markdown(f"**{seeds} seeds, from `results/{name}.md`:** " + body))
-
-
-# --- the harness: helpers that several cells use --------------------------------------------------
 
 
 def gt_context(batch):
@@ -166,15 +151,11 @@ def first_of(batch, behaviour, where=None):
 def behaviour_rows(behaviour, mask, row):
     """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that
     behaviour's mask."""
-    rows = []
-    for b, name in enumerate(data_synth.BEHAVIOURS):
-        sel = mask & (behaviour == b)
-        if sel.any():
-            rows.append([name, str(int(sel.sum())), *row(sel)])
-    return rows
+    sels = [(name, mask & (behaviour == b)) for b, name in enumerate(data_synth.BEHAVIOURS)]
+    return [[name, str(int(sel.sum())), *row(sel)] for name, sel in sels if sel.any()]
 
 
-# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ---------
+# --- the notebook's figures (drawing only: each cell computes what it shows) ----------------------
 
 
 def _scene(ax, batch, i, title=None, extent=(-30, 60, -25, 25)):
@@ -191,13 +172,13 @@ def _around(pts, left, right, below, above):
 
 def _colorbar(fig, axes, cmap, norm, label, shrink, **kw):
     """A colour bar for lines coloured by cmap under norm (no image to take it from)."""
-    fig.colorbar(
-        plt.cm.ScalarMappable(cmap=cmap, norm=norm), ax=axes, shrink=shrink, label=label, **kw
-    )
+    bar = plt.cm.ScalarMappable(cmap=cmap, norm=norm)
+    fig.colorbar(bar, ax=axes, shrink=shrink, label=label, **kw)
 
 
-def _legend_right(ax):
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+def _show(fig, title):
+    fig.suptitle(title, fontsize=10)
+    plt.show()
 
 
 def figure_stack():
@@ -215,18 +196,16 @@ def figure_stack():
         (7.15, "#cfe2f3", "Controller\nbox-iLQR"),
     )
     for x, color, text in boxes:
-        box = FancyBboxPatch((x, 1.7), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k")
-        ax.add_patch(box)
+        ax.add_patch(FancyBboxPatch((x, 1.7), 1.9, 1, boxstyle="round,pad=0.05", fc=color, ec="k"))
         ax.text(x + 0.95, 1.7 + 0.5, text, ha="center", va="center", fontsize=9)
 
     def arrow(x0, y0, x1, y1, **kw):
         return ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
 
     flow = ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$"))
-    for x0, x1, label in flow:
+    for x0, x1, label in (*flow, (9.05, 9.6, "")):
         arrow(x0, 2.2, x1, 2.2, lw=1.5)
         ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
-    arrow(9.05, 2.2, 9.6, 2.2, lw=1.5)
     ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
     # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
     losses = (
@@ -234,17 +213,16 @@ def figure_stack():
         (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
         (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)"),
     )
+    frame = dict(fc="white", ec="tab:red")
     for x, text in losses:
-        frame = dict(fc="white", ec="tab:red")
         ax.text(x, 0.45, text, ha="center", va="center", fontsize=9, bbox=frame)
         arrow(x, 1.65, x, 0.9, lw=1)
-    for x0, x1, rad in ((5.75, 3.55, 0.45), (8.1, 3.25, 0.35)):
-        arrow(x0, 2.8, x1, 2.8, connectionstyle=f"arc3,rad={rad}", color="tab:red", lw=1.8, ls="--")
     gradients = (
-        (4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$"),
-        (6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)"),
+        (5.75, 3.55, 0.45, 4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$"),
+        (8.1, 3.25, 0.35, 6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)"),
     )
-    for x, y, text in gradients:
+    for x0, x1, rad, x, y, text in gradients:
+        arrow(x0, 2.8, x1, 2.8, connectionstyle=f"arc3,rad={rad}", color="tab:red", lw=1.8, ls="--")
         ax.text(x, y, text, color="tab:red", ha="center", fontsize=9)
     ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
     backward = (
@@ -276,37 +254,32 @@ def scene_legend(fig, extra=(), ncol=4):
         Line2D([], [], color="k", ls=":", label="history (4 s)"),
         Line2D([], [], color="k", marker=".", label="GT future (3 s, dots every 0.5 s)"),
         Line2D([], [], color="0.75", label="lanes (arrow: direction)"),
-        *extra,
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8)
+    fig.legend(handles=handles + list(extra), loc="outside lower center", ncol=ncol, fontsize=8)
 
 
 def figure_scenarios(val, extent=(-20, 50, -20, 20)):
     """§2: the first validation sample of each behaviour of the four PAIRS, one column per pair
     (top: the vehicle acts, bottom: its twin does not), in the ego frame at t0, with a legend."""
-    fig, axes = plt.subplots(
-        2, len(PAIRS), figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True
-    )
+    kw = dict(figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True)
+    fig, axes = plt.subplots(2, len(PAIRS), **kw)
     for col, pair in enumerate(PAIRS):
         for row, name in enumerate(pair):
             i = first_of(val, name)
             data_synth.plot_scenario(axes[row, col], val, i, f"{name} (val sample {i})", extent)
             axes[row, col].set(xlabel="x (m)" if row else "", ylabel="y (m)" if col == 0 else "")
     scene_legend(fig)
-    fig.suptitle(
+    title = (
         "The four pairs of behaviours (columns): the same set-up, then the predicted vehicle acts "
-        "(top: cuts in, brakes, turns across, crosses) or does not (bottom)",
-        fontsize=10,
+        "(top: cuts in, brakes, turns across, crosses) or does not (bottom)"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1.5):
     """§3: one step of the cost over the ego's position (grid gx, gy): C_coll, C_goal, C_lat on
     their own colour scales, the weighted sum on a log scale with contours of w_coll * C_coll over
     it; the vehicles' positions at t (the step) marked where their bumps are."""
-    from matplotlib.colors import LogNorm
-
     coll = w_coll * c_coll
     terms = {
         f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
@@ -331,34 +304,26 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     cs = axes[1, 1].contour(gx, gy, coll.reshape(gx.shape), levels, colors="tab:cyan", zorder=8)
     axes[1, 1].clabel(cs, fontsize=7)
     at = dict(marker="X", ms=10, mec="k", ls="")
-    agents = (
-        ("tab:orange", "predicted vehicle"),
-        ("0.6", "other vehicles"),
-        ("tab:green", "pedestrians"),
-    )
-    extra = [Line2D([], [], color=c, label=f"{who} at t = {t:g} s", **at) for c, who in agents]
+    who = {"tab:orange": "predicted vehicle", "0.6": "other vehicles", "tab:green": "pedestrians"}
+    extra = [Line2D([], [], color=c, label=f"{w} at t = {t:g} s", **at) for c, w in who.items()]
     extra.append(Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"))
     scene_legend(fig, extra, ncol=6)
-    fig.suptitle(
+    title = (
         f"One step of the cost (t = {t:g} s) over the ego's position, a cut-in: the collision "
         f"term adds at most {coll.max():.1f} (bumps at the vehicles' positions at {t:g} s, "
         f"crosses) to a sum of {c_sum.min():.1f} .. {c_sum.max():.0f},\nmostly the goal's bowl: it "
-        "decides only between positions that the goal and the lanes rate alike",
-        fontsize=10,
+        "decides only between positions that the goal and the lanes rate alike"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
     (argmin) black dashed, axes zoomed on the candidates."""
-    from matplotlib.colors import LogNorm
-
     box = _around(cands.x[0][cands.valid[0]][..., :2].reshape(-1, 2), 3, 6, 3, 3)
-    norm, valid = LogNorm(1e-4, 1), int(cands.valid.sum())
-    fig, axes = plt.subplots(
-        len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True
-    )
+    norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
+    kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
+    fig, axes = plt.subplots(len(betas), 1, **kw)
     for ax, beta in zip(axes, betas):
         p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
         _scene(ax, ex, 0, extent=box)
@@ -366,17 +331,13 @@ def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
         for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
             if cands.valid[0, n]:
                 colour = plt.cm.viridis(norm(max(p[n].item(), 1e-4)))
-                ax.plot(
-                    *cands.x[0, n, :, :2].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7
-                )
-        ax.plot(*cands.x[0, best[0], :, :2].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
-        ax.set_title(
-            f"β = {beta}: max p_n = {p.max():.2f}, entropy "
-            f"{-(p[p > 0] * p[p > 0].log()).sum():.2f} nats (uniform over "
-            f"{valid}: {math.log(valid):.2f})",
-            fontsize=9,
-        )
-        _legend_right(ax)
+                ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
+        ax.plot(*x[best[0]].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
+        entropy = -(p[p > 0] * p[p > 0].log()).sum()
+        uniform = f"uniform over {valid}: {math.log(valid):.2f}"
+        title = f"β = {beta}: max p_n = {p.max():.2f}, entropy {entropy:.2f} nats ({uniform})"
+        ax.set_title(title, fontsize=9)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _colorbar(fig, axes, "viridis", norm, "p_n (log scale)", 0.6)
     plt.show()
 
@@ -408,15 +369,11 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
     """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
     (three), with the prediction, the target n* and the plan."""
     scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
-    fig, axd = plt.subplot_mosaic(
-        [["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1)
-    )
+    kw = dict(figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
+    fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], **kw)
     for ax, j in zip(axd.values(), show):
-        P, aim, plan = (
-            preds[j, 0].detach(),
-            cands.x[j, target[j], :, :2],
-            cands.x[j, best[j], :, :2],
-        )
+        P, x = preds[j, 0].detach(), cands.x[j, :, :, :2]
+        aim = x[target[j]]  # the target n*
         pts = torch.cat([P, bg.agent_fut[j, :, :2], aim, bg.ego_hist[j, -1:, :2]])
         title = (
             f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
@@ -424,49 +381,34 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
             f"{'=' if best[j] == target[j] else '≠'} target n*"
         )
         _scene(ax, bg, j, title, _around(pts, 6, 6, 5, 5))
-        ax.plot(
-            *P.T,
-            "o-",
-            color="tab:red",
-            ms=4,
-            lw=1,
-            zorder=8,
-            label="prediction (constant velocity)",
-        )
+        red = dict(color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
+        ax.plot(*P.T, "o-", **red)
         arrows = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9)
-        ax.quiver(
-            *P.T,
-            *(-scale * grad[j, 0]).T,
-            color="tab:red",
-            label="-dL_plan/dŝ_t (one scale)",
-            **arrows,
-        )
+        label = "-dL_plan/dŝ_t (one scale)"
+        ax.quiver(*P.T, *(-scale * grad[j, 0]).T, color="tab:red", label=label, **arrows)
         ax.plot(*aim.T, "g-", lw=3, alpha=0.6, zorder=7, label="target n* (cheapest in hindsight)")
-        ax.plot(*plan.T, "k--", lw=1.5, zorder=7, label="plan with this prediction")
+        ax.plot(*x[best[j]].T, "k--", lw=1.5, zorder=7, label="plan with this prediction")
     axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
-    fig.suptitle(
+    title = (
         "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a "
         "constant-velocity prediction\n(orange: the vehicle's true future; red arrows: where a "
-        "gradient step moves each predicted position)",
-        fontsize=10,
+        "gradient step moves each predicted position)"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
     mean); right, sample i: the controller's position minus the plan's over time (x, y, distance),
     and the controls over time (the plan's dashed, the controller's solid; grey band: the box)."""
-    _, axd = plt.subplot_mosaic(
-        [["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained"
-    )
+    mosaic = [["cost", "map", "map"], ["cost", "w", "a"]]
+    _, axd = plt.subplot_mosaic(mosaic, figsize=(13, 6), layout="constrained")
     ax = axd["cost"]
     ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
     ax.plot(rel.mean(0), color="k", lw=2, label="mean")
     title = "iLQR: the true cost never rises\n(line search), mean in black"
     ax.set(xlabel="iteration", ylabel="cost / cost of the plan", title=title)
     ax.legend(loc="lower left")
-    ax.grid(alpha=0.3)
     ax = axd["map"]
     tt = cfg.dt * torch.arange(len(plan_x))  # (T+1,) s
     diff = ctrl_x[:, :2] - plan_x[:, :2]  # (T+1, 2) m
@@ -475,7 +417,6 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     ax.plot(tt, diff.norm(dim=-1), "k:", lw=1.5, label="distance")
     ax.axhline(0, color="0.5", lw=0.8)
     ax.set(xlabel="time (s)", ylabel="controller − plan (m)")
-    ax.grid(alpha=0.3)
     big = int(diff.abs().max(0).values.argmax())
     ax.set_title(
         f"sample {i} ({data_synth.BEHAVIOURS[int(batch.behaviour[i])]}): the controller's position "
@@ -484,7 +425,7 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
         f"(along {'yx'[big]}: at most {diff[:, 1 - big].abs().max():.2f} m)",
         fontsize=9,
     )
-    _legend_right(ax)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
     tt_u = cfg.dt * torch.arange(len(plan_u))
     for key, j, label in (("w", 0, "yaw rate ω (rad/s)"), ("a", 1, "acceleration a (m/s²)")):
         ax = axd[key]
@@ -493,6 +434,7 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
         ax.step(tt_u, ctrl_u[:, j], "-", where="post", color="purple", lw=2, label="controller")
         lim = max(plan_u[:, j].abs().max().item(), ctrl_u[:, j].abs().max().item()) * 1.3 + 0.05
         ax.set(ylim=(-lim, lim), xlabel="time (s)", ylabel=label)
+    for ax in axd.values():
         ax.grid(alpha=0.3)
     axd["w"].legend(loc="best")
     plt.show()
@@ -502,24 +444,21 @@ def _modes_panel(ax, sub, pred, j, norm_p):
     """figure_modes' panel of sample j: zoomed on the predicted vehicle (its last history steps, the
     modes, its true future) at the panels' aspect, the modes coloured and widened by p, the 1σ
     ellipses of the most likely, which is labelled."""
-    import figures
-
     K = pred.probs.shape[1]
     P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
     pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
-    c = (pts.max(0).values + pts.min(0).values) / 2
+    c = ((pts.max(0).values + pts.min(0).values) / 2).tolist()
     half = (pts.max(0).values - pts.min(0).values) / 2 + 1.5
     hx = max(half[0].item(), 1.3 * half[1].item())  # the panels' shape
     hy = max(half[1].item(), half[0].item() / 1.3)
     top3 = ", ".join(f"{q:.2f}" for q in pred.probs[j].sort(descending=True).values[:3].tolist())
     title = f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = {top3}"
-    extent = (c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy)
-    _scene(ax, sub, j, title, extent)
+    _scene(ax, sub, j, title, (c[0] - hx, c[0] + hx, c[1] - hy, c[1] + hy))
     figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # 1σ ellipses, faint modes
     for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
         pk = pred.probs[j, k].item()
-        colour, width = plt.cm.viridis_r(norm_p(pk)), 0.6 + 3 * pk / norm_p.vmax
-        ax.plot(*P[k].T, color=colour, lw=width, zorder=8)
+        colour = plt.cm.viridis_r(norm_p(pk))
+        ax.plot(*P[k].T, color=colour, lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
     k = int(pred.probs[j].argmax())
     ax.annotate(
         f"most likely, p = {pred.probs[j, k]:.2f}",
@@ -536,8 +475,8 @@ def _modes_panel(ax, sub, pred, j, norm_p):
 
 def figure_modes(sub, pred, label):
     """§6: a predictor's (`label`: which) K modes on the samples of `sub` (_modes_panel), one colour
-    scale for p(z = k | x), the three largest probabilities in each title; the title says how far
-    apart the modes end and how close the closest comes to the truth."""
+    scale for p(z = k | x); the title says how far apart the modes end and how close the closest
+    comes to the truth."""
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
@@ -554,14 +493,13 @@ def figure_modes(sub, pred, label):
     spread = max(torch.cdist(e[m], e[m]).max().item() for e, m in zip(ends, likely))
     closest = (ends - sub.agent_fut[:, None, -1, :2]).norm(dim=-1).min(-1).values  # (B,)
     top = pred.probs.max(-1).values
-    fig.suptitle(
+    title = (
         f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future). "
         f"The most likely mode has p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 "
         f"end up to {spread:.1f} m apart,\nand the closest mode ends {closest.min():.1f} .. "
-        f"{closest.max():.1f} m from the true position at T = 3 s",
-        fontsize=10,
+        f"{closest.max():.1f} m from the true position at T = 3 s"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_goal(goal_res):
@@ -604,12 +542,6 @@ def figure_goal(goal_res):
     return ratio
 
 
-def smooth(v, n=10):
-    """An n-step moving average (the whole series when it is shorter than n)."""
-    v = np.asarray(v, dtype=float)
-    return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
-
-
 def curve_change(v):
     """How a per-batch loss curve moved: (mean of its first quarter, of its last quarter, whether
     the change exceeds twice its standard error from the batch-to-batch spread)."""
@@ -622,25 +554,22 @@ def curve_change(v):
 
 def figure_learning_curves(histories):
     """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean
-    (solid); a method that does not run the stack in training (no l_plan) has only an
-    L_pred curve. Each panel's title: the mean of the first and the last quarter of the steps, and
+    (solid); a method that does not run the stack in training (no l_plan) has only an L_pred
+    curve. Each panel's title: the mean of the first and the last quarter of the steps, and
     whether the change exceeds the batch-to-batch noise (curve_change)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
     moved, steps = [], 0
-    curves = (
-        ("l_pred", "L_pred (nats)"),
-        ("l_plan", "L_plan (nats)"),
-        ("l_ctr", "L_ctr = hindsight cost"),
-    )
-    for ax, (key, label) in zip(axes, curves):
+    ylab = {"l_pred": "L_pred (nats)", "l_plan": "L_plan (nats)", "l_ctr": "L_ctr = hindsight cost"}
+    for ax, (key, label) in zip(axes, ylab.items()):
         title = []
         for name, (h, color) in histories.items():
             if key != "l_pred" and name == "Standard":
                 continue
-            v = [r[key] for r in h]
+            v = np.asarray([r[key] for r in h], dtype=float)
             steps = len(v)
             ax.plot(range(1, len(v) + 1), v, color=color, alpha=0.25, lw=0.8)
-            sm = smooth(v)
+            # the 10-step mean (the whole series when it is shorter)
+            sm = np.convolve(v, np.ones(10) / 10, mode="valid") if len(v) >= 10 else v
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
             first, last, real = curve_change(v)
             fmt = "{:.3f}" if abs(first) < 10 else "{:.1f}"
@@ -651,55 +580,38 @@ def figure_learning_curves(histories):
         ax.set_title("\n".join(title), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
-    fig.suptitle(
+    title = (
         f"Training losses per batch over {steps} steps (faint; solid: 10-step mean), first quarter "
         "→ last quarter of the steps; beyond the batch-to-batch noise (2 s.e.): "
-        + (", ".join(moved) or "none"),
-        fontsize=10,
     )
-    plt.show()
+    _show(fig, title + (", ".join(moved) or "none"))
 
 
-def figure_stacks(batch, i, outs, cfg, at="", also=None):
+def figure_stacks(batch, i, outs, cfg):
     """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack:
-    predictions, candidates coloured by p_n, plan, controller); `also` (outs of another run) adds
-    that run's controller states as circles."""
-    import figures
-
+    predictions, candidates coloured by p_n, plan, controller)."""
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
-        title = f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}"
+        title = f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}"
         figures.plot_stack(ax, batch, i, outs[name], cfg, title, extent=(-12, 48, -10, 10))
         ax.set(xlabel="x (m)", ylabel="y (m)")
-        if also is not None:
-            circles = dict(color="tab:purple", ms=6, mfc="none", zorder=10)
-            ax.plot(*also[name].x[i, :, :2].T, "o", label="controller at 0.5 s", **circles)
-        _legend_right(ax)
-    if also is None:
-        ticks = dict(boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
-        norm = plt.Normalize(-1 / 3, 1)
-        _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ticks = dict(boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
+    norm = plt.Normalize(-1 / 3, 1)
+    _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
     plt.show()
 
 
 def closed_loop_spread(rollouts):
     """(S,) m: per closed-loop scene, the largest distance between two methods' executed egos at
     the same time."""
-    import figures
-
     return figures.widest_pair(rollouts).amax(-1)
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
     """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory,
     how far each is from No prediction's in cm, the ego's speed over time)."""
-    import figures
-
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
-
-
-def rel_err(a, b):
-    return ((a - b).norm() / b.norm()).item()
 
 
 def kkt_gradient_check(val, cfg, seed, out=print):
@@ -728,24 +640,19 @@ def kkt_gradient_check(val, cfg, seed, out=print):
     wx = torch.randn(3, 7, 4, generator=g, dtype=F64)  # the loss's weights on x, u
     wu = torch.randn(3, 6, 2, generator=g, dtype=F64)
 
-    def kkt_grads(exact):
-        ls = [v.clone().requires_grad_() for v in leaves]
-        solve = dict(iters=30, tol=1e-11, exact=exact)
-        x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
-        return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
-
-    def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
-        ls = [*leaves[:i], v, *leaves[i + 1 :]]
-        x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+    def loss(ls, exact=None):  # the loss of the problem with these leaves, re-solved
+        if exact is None:  # iLQR alone, for finite differences
+            x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+        else:  # and its KKT backward, exact or curvature-free
+            solve = dict(iters=30, tol=1e-11, exact=exact)
+            x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
         return (x * wx).sum() + (u * wu).sum()
 
-    def central_fd(i, idx, h=1e-4):
-        e = torch.zeros_like(leaves[i])
-        e[idx] = h
-        return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
-
     t0 = time.time()
-    exact, gn = kkt_grads(True), kkt_grads(False)
+    grads = []
+    for exact in (True, False):
+        ls = [v.clone().requires_grad_() for v in leaves]
+        grads.append(torch.autograd.grad(loss(ls, exact), ls))
     on_pred = [(b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)]  # (B, K, T, 2)
     coords = {
         "initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
@@ -754,12 +661,17 @@ def kkt_gradient_check(val, cfg, seed, out=print):
     }
     errs = {}
     for name, (i, idx) in coords.items():
-        fd = torch.stack([central_fd(i, j) for j in idx])
-        errs[name] = [rel_err(torch.stack([grad[i][j] for j in idx]), fd) for grad in (exact, gn)]
-        out(
-            f"  {name:22s} relative error vs finite differences: exact KKT {errs[name][0]:.1e}   "
-            f"curvature-free {errs[name][1]:.1e}"
-        )
+        fd = []
+        for j in idx:  # central differences, h = 1e-4
+            e = torch.zeros_like(leaves[i])
+            e[j] = 1e-4
+            moved = [[*leaves[:i], leaves[i] + s * e, *leaves[i + 1 :]] for s in (1, -1)]
+            fd.append((loss(moved[0]) - loss(moved[1])) / (2 * 1e-4))
+        fd = torch.stack(fd)
+        rel = [(torch.stack([g[i][j] for j in idx]) - fd).norm() / fd.norm() for g in grads]
+        errs[name] = [r.item() for r in rel]
+        said = f"exact KKT {errs[name][0]:.1e}   curvature-free {errs[name][1]:.1e}"
+        out(f"  {name:22s} relative error vs finite differences: {said}")
     out(f"({time.time() - t0:.1f}s)")
     return errs
 
@@ -791,40 +703,31 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
     target = ds.masked_argmin(ds.total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var), cands.valid)
     l_plan = ds.plan_loss(cost, cands.valid, target, beta)
     (grad,) = torch.autograd.grad(l_plan.sum(), preds)  # (1, K=1, T, 2)
-    logits = torch.where(cands.valid, -beta * cost.detach(), -math.inf)
-    return dict(
-        cost=cost.detach()[0],
-        p=torch.softmax(logits, -1)[0],
-        plan=int(plan[0]),
-        target=int(target[0]),
-        l_plan=l_plan.item(),
-        grad=grad[0, 0],
-        pred=preds.detach()[0, 0],
-        cands=cands,
-    )
+    p = torch.softmax(torch.where(cands.valid, -beta * cost.detach(), -math.inf), -1)[0]
+    view = dict(cost=cost.detach()[0], p=p, plan=int(plan[0]), target=int(target[0]))
+    return dict(view, l_plan=l_plan.item(), grad=grad[0, 0], pred=preds.detach()[0, 0], cands=cands)
 
 
 def draw_planner_view(ax, ex, cfg, shift, beta):
     """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n (log scale), the
     plan (black dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as
-    arrows; the title says the setting, L_plan, whether the plan is the target, the largest
-    |dL_plan/dŝ_t|."""
-    view = planner_view(ex, cfg, shift, beta)
-    hit = "plan = n*" if view["plan"] == view["target"] else f"plan {view['plan']} ≠ n*"
+    arrows; the title says L_plan, whether the plan is the target, the largest |dL_plan/dŝ_t|."""
+    v = planner_view(ex, cfg, shift, beta)
+    hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
     title = (
-        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {view['l_plan']:.2f}, "
-        f"{hit},\nlargest |dL/dŝ_t| {view['grad'].norm(dim=-1).max():.2f} 1/m"
+        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {v['l_plan']:.2f}, "
+        f"{hit},\nlargest |dL/dŝ_t| {v['grad'].norm(dim=-1).max():.2f} 1/m"
     )
     _scene(ax, ex, 0, title, (-10, 45, -12, 12))
-    x = view["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
-    colour = plt.cm.viridis(np.clip(1 + np.log10(view["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
-    for n in torch.nonzero(view["cands"].valid[0]).flatten().tolist():
+    x = v["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
+    colour = plt.cm.viridis(np.clip(1 + np.log10(v["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
+    for n in torch.nonzero(v["cands"].valid[0]).flatten().tolist():
         ax.plot(*x[n].T, color=colour[n], lw=1, zorder=2)
-    ax.plot(*x[view["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
-    ax.plot(*x[view["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
-    ax.plot(*view["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
-    arrows = -view["grad"] / max(view["grad"].norm(dim=-1).max().item(), 1e-12) * 3
-    ax.quiver(*view["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
+    ax.plot(*x[v["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
+    ax.plot(*x[v["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
+    ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
+    arrows = -v["grad"] / max(v["grad"].norm(dim=-1).max().item(), 1e-12) * 3
+    ax.quiver(*v["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
 
 
 def interactive_planner(ex, cfg, settings):
@@ -979,16 +882,12 @@ def no_autograd(name):
 
         return refused
 
-    recorded = []
-
-    def pack(t):  # autograd saves a tensor for a backward pass: a graph is being recorded
-        recorded.append(True)
-        return t
-
+    recorded = []  # autograd saves a tensor for a backward pass: a graph is being recorded
+    pack = torch.autograd.graph.saved_tensors_hooks(lambda t: recorded.append(1) or t, lambda t: t)
     try:
         for owner, attr, _ in saved:
             setattr(owner, attr, refuse(f"{owner.__name__}.{attr}"))
-        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t), torch.no_grad():
+        with pack, torch.no_grad():
             yield
     finally:
         for owner, attr, value in saved:
@@ -1025,9 +924,6 @@ def show_failure(check, fn):
         return str(e)
     print("the check passes")
     return ""
-
-
-# --- a gradient check for your own functions (as CS231n's eval_numerical_gradient) ---------------
 
 
 def eval_numerical_gradient(f, x, h=1e-6):
