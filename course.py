@@ -1,20 +1,14 @@
-"""The course's harness for tutorial.ipynb, and the checks of its exercises.
-
-The harness: the section clock, the notebook's checks (checkpoint, check_order, check_claim: each
-prints a line and raises CheckpointError when it fails, so that the notebook stops at that cell),
-the committed tables (results_table), helpers that several cells use, and the larger figures
-(figure_*: drawing only, each cell computes what it shows).
-
-Each check_* builds its own small problems (seeded, float64), runs the student's function on them
-and compares with an independent answer (the module's function, autograd, or a closed form): a wrong
-answer raises AssertionError saying what differs; a stub that still raises NotImplementedError is
-reported as not done, so that *Run All* goes on past it. test_tutorial.py feeds every check
-known-wrong answers; lab/grader.py runs the checks on a student's notebook.
-"""
+"""The course's harness for tutorial.ipynb (the section clock, the checks that stop the notebook,
+helpers, the larger figures: drawing only, each cell computes what it shows), and the checks of its
+exercises: each check_* runs the student's function on its own small problems (seeded, float64)
+against an independent answer (the module's, autograd's, a closed form's); a wrong answer raises
+AssertionError saying what differs, a stub (NotImplementedError) is not done, so that *Run All*
+goes on past it. lab/grader.py runs the checks on a student's notebook."""
 
 import contextlib
 import dataclasses
 import functools
+import inspect
 import json
 import math
 import time
@@ -26,10 +20,13 @@ import torch
 from IPython.display import Markdown, display
 from matplotlib.colors import LogNorm
 from matplotlib.lines import Line2D
+from matplotlib.patches import FancyBboxPatch
 
 import data_synth
 import diffstack as ds
+import experiments as xp
 import figures
+import specs
 
 F64 = torch.float64
 SECTION_TIMES = {}
@@ -40,8 +37,7 @@ _CLOCK = {}
 
 
 def start():
-    """One torch thread (reproducible numbers, and the machine stays usable), the figures' style,
-    and the clock that section_done and report_times read."""
+    """One torch thread (reproducible numbers), the figures' style, the section clock."""
     torch.set_num_threads(1)
     plt.rcParams.update({"figure.dpi": 100, "savefig.dpi": 100})
     plt.rcParams.update({"font.size": 9, "legend.fontsize": 8})
@@ -50,16 +46,14 @@ def start():
 
 
 def section_done(name):
-    """Record and print the wall time since the previous section ended (the notebook's first table
-    quotes these)."""
+    """Print and record the wall time since the previous section ended."""
     SECTION_TIMES[name] = time.time() - _CLOCK["section"]
     _CLOCK["section"] = time.time()
     print(f"{name}: {SECTION_TIMES[name]:.0f} s")
 
 
 def report_times(quick):
-    """Wall clock per section and in all, and the kernel's CPU time (one thread: about the wall
-    clock when idle)."""
+    """Wall clock per section and in all, and the kernel's CPU time."""
     print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
     print(
         f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, "
@@ -68,14 +62,12 @@ def report_times(quick):
 
 
 class CheckpointError(AssertionError):
-    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and
-    going on."""
+    """A failed check: the notebook stops at the cell (and CI fails)."""
 
 
 def checkpoint(name, measured, expected, tol, rel=False):
-    """For what is deterministic (no training: gradient errors, a file's round trip, a solver on
-    fixed data): the measured value, the expected one, whether they agree within tol; a disagreement
-    stops the notebook."""
+    """For what is deterministic (no training): the measured value against the expected one
+    within tol; a disagreement stops the notebook."""
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
     within = "%g%%" % (100 * tol) if rel else tol
     said = f"measured {measured:.4g}, expected {expected:.4g}"
@@ -102,11 +94,8 @@ def check_order(name, values, order, margin=0.0):
 def check_claim(table, method, baseline, column, expect):
     """A finding the notebook states, checked on the committed table results/<table>.json: its
     paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at
-    p < 0.05 in the paper's direction) must be what the text says. If a re-run of the tables
-    changes the verdict, this stops the notebook until the text is changed with it."""
-    import experiments as xp
-    import specs
-
+    p < 0.05 in the paper's direction) must be what the text says: a re-run that changes it stops
+    the notebook until the text is changed with it."""
     saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
     line = xp.claim_line(specs.Claim(method, baseline, column), specs.TABLES[table], saved)
     verdict = line.rsplit("): ", 1)[-1]
@@ -126,31 +115,21 @@ def results_table(name):
 
 
 def gt_context(batch):
-    """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT
-    prediction")."""
+    """The cost's view of a batch with the GT future as a one-mode prediction (GT prediction)."""
     one = torch.ones(len(batch), dtype=batch.ego_hist.dtype)
-    return ds.CostContext(
-        batch.agent_fut[:, None, :, :2],
-        one[:, None],
-        one,
-        batch.others_fut[..., :2],
-        batch.others_mask.to(one.dtype),
-        batch.goal[:, :2],
-        batch.lanes,
-        batch.lanes_mask,
-    )
+    others, mask = batch.others_fut[..., :2], batch.others_mask.to(one.dtype)
+    scene = (batch.goal[:, :2], batch.lanes, batch.lanes_mask)
+    return ds.CostContext(batch.agent_fut[:, None, :, :2], one[:, None], one, others, mask, *scene)
 
 
 def first_of(batch, behaviour, where=None):
-    """The index of the first sample of `batch` whose predicted vehicle does `behaviour` (and
-    `where` holds)."""
+    """The index of the first sample of `batch` doing `behaviour` (and where `where` holds)."""
     sel = batch.behaviour == data_synth.BEHAVIOURS.index(behaviour)
     return int((sel if where is None else sel & where).nonzero()[0])
 
 
 def behaviour_rows(behaviour, mask, row):
-    """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that
-    behaviour's mask."""
+    """A table row [name, count, *row(sel)] per behaviour with samples under `mask` (sel)."""
     sels = [(name, mask & (behaviour == b)) for b, name in enumerate(data_synth.BEHAVIOURS)]
     return [[name, str(int(sel.sum())), *row(sel)] for name, sel in sels if sel.any()]
 
@@ -182,10 +161,7 @@ def _show(fig, title):
 
 
 def figure_stack():
-    """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack
-    (red, dashed)."""
-    from matplotlib.patches import FancyBboxPatch
-
+    """§1: the modules, the forward data flow (black), DiffStack's gradient path (red)."""
     _, ax = plt.subplots(figsize=(10, 4.2))
     ax.set(xlim=(0, 10), ylim=(-0.55, 4.45))
     ax.axis("off")
@@ -233,17 +209,8 @@ def figure_stack():
     plt.show()
 
 
-PAIRS = (
-    ("cut_in", "keep_lane"),
-    ("lead_brake", "lead_cruise"),
-    ("turn_across", "go_straight"),
-    ("cross_go", "cross_yield"),
-)
-
-
 def scene_legend(fig, extra=(), ncol=4):
-    """A figure legend for data_synth.plot_scenario's drawing (proxy artists), and `extra` (handles)
-    below the panels."""
+    """A legend for data_synth.plot_scenario's drawing, and `extra` handles, below the panels."""
     box = dict(marker="s", ms=7)
     handles = [
         Line2D([], [], color="tab:blue", ls="--", label="ego (GT future dashed)", **box),
@@ -259,11 +226,12 @@ def scene_legend(fig, extra=(), ncol=4):
 
 
 def figure_scenarios(val, extent=(-20, 50, -20, 20)):
-    """§2: the first validation sample of each behaviour of the four PAIRS, one column per pair
-    (top: the vehicle acts, bottom: its twin does not), in the ego frame at t0, with a legend."""
+    """§2: the first validation sample of each of four pairs of behaviours, a pair a column."""
+    acts = ("cut_in", "lead_brake", "turn_across", "cross_go")
+    twins = ("keep_lane", "lead_cruise", "go_straight", "cross_yield")
     kw = dict(figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True)
-    fig, axes = plt.subplots(2, len(PAIRS), **kw)
-    for col, pair in enumerate(PAIRS):
+    fig, axes = plt.subplots(2, len(acts), **kw)
+    for col, pair in enumerate(zip(acts, twins)):
         for row, name in enumerate(pair):
             i = first_of(val, name)
             data_synth.plot_scenario(axes[row, col], val, i, f"{name} (val sample {i})", extent)
@@ -277,9 +245,7 @@ def figure_scenarios(val, extent=(-20, 50, -20, 20)):
 
 
 def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1.5):
-    """§3: one step of the cost over the ego's position (grid gx, gy): C_coll, C_goal, C_lat on
-    their own colour scales, the weighted sum on a log scale with contours of w_coll * C_coll over
-    it; the vehicles' positions at t (the step) marked where their bumps are."""
+    """§3: one step t of the cost over the ego's position, term by term and weighted."""
     coll = w_coll * c_coll
     terms = {
         f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
@@ -318,8 +284,7 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
 
 
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
-    """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
-    (argmin) black dashed, axes zoomed on the candidates."""
+    """§4: one sample's candidates coloured by p_n under several β, and the plan."""
     box = _around(cands.x[0][cands.valid[0]][..., :2].reshape(-1, 2), 3, 6, 3, 3)
     norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
     kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
@@ -366,8 +331,7 @@ def figure_beta_signal(betas, extra, beta_paper, n):
 
 
 def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
-    """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
-    (three), with the prediction, the target n* and the plan."""
+    """§4: -dL_plan/d(prediction) as arrows (one scale) on the samples `show`."""
     scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
     kw = dict(figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
     fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], **kw)
@@ -398,9 +362,8 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
-    """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
-    mean); right, sample i: the controller's position minus the plan's over time (x, y, distance),
-    and the controls over time (the plan's dashed, the controller's solid; grey band: the box)."""
+    """§5: the cost over iLQR's iterations relative to the plan's (`rel`); for sample i, the
+    controller's position minus the plan's, and both controls over time (grey band: the box)."""
     mosaic = [["cost", "map", "map"], ["cost", "w", "a"]]
     _, axd = plt.subplot_mosaic(mosaic, figsize=(13, 6), layout="constrained")
     ax = axd["cost"]
@@ -417,12 +380,12 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     ax.plot(tt, diff.norm(dim=-1), "k:", lw=1.5, label="distance")
     ax.axhline(0, color="0.5", lw=0.8)
     ax.set(xlabel="time (s)", ylabel="controller − plan (m)")
-    big = int(diff.abs().max(0).values.argmax())
+    top = diff.abs().max(0).values  # (2,) m the largest change along x, along y
+    big = int(top.argmax())
     ax.set_title(
         f"sample {i} ({data_synth.BEHAVIOURS[int(batch.behaviour[i])]}): the controller's position "
-        f"minus the plan's;\nthe change is along {'xy'[big]}, up to "
-        f"{diff[:, big].abs().max():.2f} m "
-        f"(along {'yx'[big]}: at most {diff[:, 1 - big].abs().max():.2f} m)",
+        f"minus the plan's;\nthe change is along {'xy'[big]}, up to {top[big]:.2f} m (along "
+        f"{'yx'[big]}: at most {top[1 - big]:.2f} m)",
         fontsize=9,
     )
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
@@ -441,9 +404,7 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
 
 
 def _modes_panel(ax, sub, pred, j, norm_p):
-    """figure_modes' panel of sample j: zoomed on the predicted vehicle (its last history steps, the
-    modes, its true future) at the panels' aspect, the modes coloured and widened by p, the 1σ
-    ellipses of the most likely, which is labelled."""
+    """figure_modes' panel of sample j, zoomed on the predicted vehicle."""
     K = pred.probs.shape[1]
     P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
     pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
@@ -460,23 +421,14 @@ def _modes_panel(ax, sub, pred, j, norm_p):
         colour = plt.cm.viridis_r(norm_p(pk))
         ax.plot(*P[k].T, color=colour, lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
     k = int(pred.probs[j].argmax())
-    ax.annotate(
-        f"most likely, p = {pred.probs[j, k]:.2f}",
-        P[k, -1].tolist(),
-        xytext=(0, 14),
-        textcoords="offset points",
-        fontsize=8,
-        ha="center",
-        zorder=10,
-        arrowprops=dict(arrowstyle="-", lw=0.6),
-        bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1),
-    )
+    label = f"most likely, p = {pred.probs[j, k]:.2f}"
+    above = dict(xytext=(0, 14), textcoords="offset points", fontsize=8, ha="center", zorder=10)
+    arrow, frame = dict(arrowstyle="-", lw=0.6), dict(fc="white", ec="0.5", alpha=0.9, pad=1)
+    ax.annotate(label, P[k, -1].tolist(), arrowprops=arrow, bbox=frame, **above)
 
 
 def figure_modes(sub, pred, label):
-    """§6: a predictor's (`label`: which) K modes on the samples of `sub` (_modes_panel), one colour
-    scale for p(z = k | x); the title says how far apart the modes end and how close the closest
-    comes to the truth."""
+    """§6: a predictor's (`label`) K modes on the samples of `sub`, coloured by p(z = k | x)."""
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
@@ -503,9 +455,8 @@ def figure_modes(sub, pred, label):
 
 
 def figure_goal(goal_res):
-    """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene
-    mean), the paper's goal against a route goal, from results/goal.json; the title names the
-    behaviours with a quarter or more of each saving. Returns route's saving / the paper goal's."""
+    """§7: what the GT future saves per behaviour (x1e-2), the paper's goal against a route goal
+    (results/goal.json). Returns route's saving / the paper goal's."""
     # one scale: compare the sizes
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
     by = goal_res["logged"]["No prediction"][0]["by_behaviour"]
@@ -542,21 +493,9 @@ def figure_goal(goal_res):
     return ratio
 
 
-def curve_change(v):
-    """How a per-batch loss curve moved: (mean of its first quarter, of its last quarter, whether
-    the change exceeds twice its standard error from the batch-to-batch spread)."""
-    v = np.asarray(v, dtype=float)
-    n = max(2, len(v) // 4)
-    first, last = v[:n].mean(), v[-n:].mean()
-    se = np.sqrt(v[:n].var(ddof=1) / n + v[-n:].var(ddof=1) / n)
-    return first, last, abs(last - first) > 2 * se
-
-
 def figure_learning_curves(histories):
-    """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean
-    (solid); a method that does not run the stack in training (no l_plan) has only an L_pred
-    curve. Each panel's title: the mean of the first and the last quarter of the steps, and
-    whether the change exceeds the batch-to-batch noise (curve_change)."""
+    """§7: per-batch training losses of {name: (history, colour)} and their 10-step mean (Standard,
+    which does not run the stack in training, has only L_pred)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
     moved, steps = [], 0
     ylab = {"l_pred": "L_pred (nats)", "l_plan": "L_plan (nats)", "l_ctr": "L_ctr = hindsight cost"}
@@ -571,7 +510,11 @@ def figure_learning_curves(histories):
             # the 10-step mean (the whole series when it is shorter)
             sm = np.convolve(v, np.ones(10) / 10, mode="valid") if len(v) >= 10 else v
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
-            first, last, real = curve_change(v)
+            # the means of the first and the last quarter, and whether their difference exceeds
+            # twice its standard error from the batch-to-batch spread
+            q = max(2, len(v) // 4)
+            first, last = v[:q].mean(), v[-q:].mean()
+            real = abs(last - first) > 2 * np.sqrt(v[:q].var(ddof=1) / q + v[-q:].var(ddof=1) / q)
             fmt = "{:.3f}" if abs(first) < 10 else "{:.1f}"
             change = f"{fmt.format(first)} → {fmt.format(last)}"
             title.append(f"{name} {change}" + ("" if real else " (noise)"))
@@ -588,8 +531,7 @@ def figure_learning_curves(histories):
 
 
 def figure_stacks(batch, i, outs, cfg):
-    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack:
-    predictions, candidates coloured by p_n, plan, controller)."""
+    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack)."""
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
         title = f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}"
@@ -603,24 +545,20 @@ def figure_stacks(batch, i, outs, cfg):
 
 
 def closed_loop_spread(rollouts):
-    """(S,) m: per closed-loop scene, the largest distance between two methods' executed egos at
-    the same time."""
+    """(S,) m: per scene, the largest distance between two methods' executed egos."""
     return figures.widest_pair(rollouts).amax(-1)
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory,
-    how far each is from No prediction's in cm, the ego's speed over time)."""
+    """§8: closed-loop scene sc (figures.figure_closed_loop)."""
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
 def kkt_gradient_check(val, cfg, seed, out=print):
-    """§5's gradient check: on three validation samples where the predicted vehicle comes within
-    6 m (float64), iLQR solved to 1e-11, the gradient of a random linear function of its solution
-    with respect to the initial state, the cost weights and the prediction, by ds.ilqr_solve's KKT
-    backward (exact, and curvature-free as mpc.pytorch's) and by central differences of the
-    re-solved problem. Prints a line per input; returns {input: (exact's relative error,
-    curvature-free's)}."""
+    """§5: the gradient of a random linear function of iLQR's solution (float64, three samples
+    with the vehicle near) with respect to s0, the cost weights and the prediction, by the KKT
+    backward (exact, and curvature-free as mpc.pytorch's) against central differences. Returns
+    {input: (exact's relative error, curvature-free's)}."""
     torch.manual_seed(seed)
     d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
     pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
@@ -676,14 +614,8 @@ def kkt_gradient_check(val, cfg, seed, out=print):
     return errs
 
 
-# --- the module's code beside its equation, and the interactive planner ---------------------------
-
-
 def show_source(fn):
-    """Display a function's source, as the module has it (inspect reads the file the notebook
-    imported), under a line naming where it is."""
-    import inspect
-
+    """Display a function's source as the module has it, naming its file and line."""
     lines, first = inspect.getsourcelines(fn)
     where = f"`{fn.__module__}.{fn.__qualname__}`, {Path(inspect.getfile(fn)).name} line {first}"
     display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
@@ -691,10 +623,8 @@ def show_source(fn):
 
 def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
     """The relaxed planner of eq. (2) on one scenario `ex` (a batch of 1), its prediction the GT
-    future moved by `shift` (m, ego frame): the candidates' costs C (N,), their p_n (N,; softmax
-    of -beta C over the valid ones), the plan (argmin C) and the target n* (argmin of the
-    hindsight cost, with the true future), L_plan = -log p_{n*}, its gradient with respect to the
-    prediction (T, 2), and the candidates. A dict."""
+    future moved by `shift` (m): the costs C, p_n, the plan, the target n* (hindsight),
+    L_plan = -log p_{n*} and its gradient with respect to the prediction (T, 2). A dict."""
     ctx = gt_context(ex)
     preds = (ctx.preds + torch.tensor(shift, dtype=ctx.preds.dtype)).requires_grad_()
     w = ds.cost_weights(cfg, ctx.preds.dtype)
@@ -709,9 +639,8 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
 
 
 def draw_planner_view(ax, ex, cfg, shift, beta):
-    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n (log scale), the
-    plan (black dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as
-    arrows; the title says L_plan, whether the plan is the target, the largest |dL_plan/dŝ_t|."""
+    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n, the plan, the
+    target n*, the moved prediction and -dL_plan/dŝ as arrows."""
     v = planner_view(ex, cfg, shift, beta)
     hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
     title = (
@@ -731,9 +660,8 @@ def draw_planner_view(ax, ex, cfg, shift, beta):
 
 
 def interactive_planner(ex, cfg, settings):
-    """The static figure: one panel per (shift, beta) in settings (draw_planner_view); then, where
-    ipywidgets is installed, sliders that move the prediction and change beta and redraw one
-    panel. Returns the widget, or None without ipywidgets."""
+    """A panel per (shift, beta) of settings; then, with ipywidgets, sliders that move the
+    prediction and change beta. Returns the widget, or None without ipywidgets."""
     fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
     for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
         draw_planner_view(ax, ex, cfg, shift, beta)
@@ -842,12 +770,10 @@ def _call(name, fn, *args, returns=""):
     except (NotImplementedError, Forbidden):
         raise
     except Exception as e:  # whatever the student's code raises is the answer's failure
-        shapes = ", ".join(
-            str(tuple(a.shape)) if isinstance(a, torch.Tensor) else type(a).__name__ for a in args
-        )
+        shapes = [str(tuple(a.shape)) if torch.is_tensor(a) else type(a).__name__ for a in args]
         raise AssertionError(
-            f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
-            f"{returns})"
+            f"{name} raised {type(e).__name__}: {e} (its inputs: {', '.join(shapes)}; it should "
+            f"return {returns})"
         ) from None
 
 
@@ -865,13 +791,11 @@ def no_autograd(name):
     """Within it, autograd is off limits: its entry points raise Forbidden naming the one called,
     and an answer that records a graph anyway (torch.enable_grad, a function imported by name) is
     caught by a saved-tensors hook when it returns."""
-    entries = [
-        (torch.autograd, "grad"),
-        (torch.autograd, "backward"),
-        (torch.Tensor, "backward"),
-        *((torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")),
-        *((torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")),
+    entries = [(torch.autograd, "grad"), (torch.autograd, "backward"), (torch.Tensor, "backward")]
+    entries += [
+        (torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")
     ]
+    entries += [(torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")]
     saved = [(owner, attr, getattr(owner, attr)) for owner, attr in entries]
 
     def refuse(what):
@@ -899,9 +823,8 @@ def no_autograd(name):
 
 
 def exercise(number, check, fn):
-    """Run one exercise's check from a notebook cell: PASS, not done yet (the stub raised
-    NotImplementedError), or AssertionError (a wrong answer: the message says what differs). Returns
-    True on PASS."""
+    """One exercise's check from a notebook cell: PASS (True), not done yet (the stub raised
+    NotImplementedError: False), or AssertionError (a wrong answer: what differs)."""
     try:
         detail = check(fn)
     except NotImplementedError:
@@ -927,15 +850,13 @@ def show_failure(check, fn):
 
 
 def eval_numerical_gradient(f, x, h=1e-6):
-    """The gradient of a scalar function f at x by central differences, entry by entry, in
-    float64: (f(x + h e_i) - f(x - h e_i)) / 2h. x is left as it is. For small problems: one pair
-    of calls of f per entry of x."""
+    """The gradient of a scalar f at x (float64) by central differences, entry by entry:
+    (f(x + h e_i) - f(x - h e_i)) / 2h, a pair of calls of f per entry (for small problems)."""
     x = x.detach().to(F64)
     grad = torch.zeros_like(x)
     for i in range(x.numel()):
-        e = torch.zeros_like(x).flatten()
-        e[i] = h
-        e = e.view_as(x)
+        e = torch.zeros_like(x)
+        e.view(-1)[i] = h
         grad.view(-1)[i] = (float(f(x + e)) - float(f(x - e))) / (2 * h)
     return grad
 
@@ -950,9 +871,6 @@ def grad_check(f, x, analytic, h=1e-6, out=print):
     rel = ((a - numeric).abs() / (a.abs() + numeric.abs()).clamp_min(1e-12)).max().item()
     out(f"gradient check: largest relative error {rel:.1e} over {x.numel()} entries")
     return rel
-
-
-# --- exercise 1: the collision term ---------------------------------------------------------------
 
 
 def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
@@ -973,10 +891,11 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     return pos, ctx
 
 
-def collision_terms_at_fault(fn, pos, ctx, rbf_var):
+def collision_terms_at_fault(mine, fn, pos, ctx, rbf_var):
     """Which part of C_coll a wrong answer gets wrong: a mask it ignores (it equals C_coll with that
     mask all 1), or one of the two terms, each scored alone (the other agents masked out, then the
-    predicted vehicle). A sentence, or '' when none of these explains it."""
+    predicted vehicle), found by running the answer (fn) again: mine, its output, is not needed. A
+    sentence, or '' when none of these explains it."""
 
     def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
         try:
@@ -1015,22 +934,15 @@ def check_collision(fn):
         mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
         T, ref = pos.shape[2], ds.collision_term(pos, ctx, rbf_var)
         mean = {1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"}
-
-        def why(_):  # which mask or term, by running the answer on other contexts
-            return collision_terms_at_fault(fn, pos, ctx, rbf_var)
-
+        why = functools.partial(collision_terms_at_fault, fn=fn, pos=pos, ctx=ctx, rbf_var=rbf_var)
         err = _close("my_collision", mine, ref, hint, cond=10, factors=mean, diagnose=why)
         worst = max(worst, err)
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
 
-# --- exercise 2: the relaxed planner's loss (and exercise 4, its bug found) -----------------------
-
-
 def plan_problem(seed=0, B=8, N=12):
-    """Candidate costs in the thousands (B, N), a valid mask with invalid candidates cheaper than
-    every valid one (a softmax that ignores the mask picks them), and targets n* among the
-    valid ones."""
+    """Candidate costs near 2000 (B, N), invalid candidates cheaper than every valid one (a
+    softmax that ignores the mask picks them), and targets n* among the valid ones."""
     g = torch.Generator().manual_seed(seed)
     cost = 2000 + 3 * torch.randn(B, N, generator=g, dtype=F64)
     valid = torch.rand(B, N, generator=g) > 0.3
@@ -1041,21 +953,8 @@ def plan_problem(seed=0, B=8, N=12):
     return cost, valid, target
 
 
-def float32_plan_problem(B=4, N=6):
-    """float32 costs near 500 where an invalid candidate is 200 cheaper than every valid one: next
-    to it, exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32), so a
-    softmax over all candidates renormalised over the valid ones is 0/0."""
-    g = torch.Generator().manual_seed(3)
-    cost = 500 + 5 * torch.rand(B, N, generator=g)
-    valid = torch.ones(B, N, dtype=torch.bool)
-    valid[:, 0] = False
-    cost[:, 0] = cost[:, 1:].min(-1).values - 200
-    return cost, valid, torch.randint(1, N, (B,), generator=g)
-
-
 def target_off_by_one(mine, cost, valid, target, beta):
-    """Whether the answer is the loss of the candidate next to n* (an off-by-one in the target
-    index): a sentence, or ''."""
+    """A sentence if the answer is the loss of the candidate next to n* (off by one), or ''."""
     m = mine.detach().double()
     for shift in (1, -1):
         other = (target + shift).clamp(0, cost.shape[-1] - 1)
@@ -1094,30 +993,31 @@ def check_plan_loss(fn, name="my_plan_loss"):
         _close(
             f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
         )
-    # the fragile case: float32, an invalid candidate far cheaper than the valid ones
-    cost, valid, target = float32_plan_problem()
+    # the fragile case: float32 costs near 500, an invalid candidate 200 cheaper than every valid
+    # one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32),
+    # so a softmax over all candidates renormalised over the valid ones is 0/0
+    g = torch.Generator().manual_seed(3)
+    cost = 500 + 5 * torch.rand(4, 6, generator=g)
+    valid = torch.ones(4, 6, dtype=torch.bool)
+    valid[:, 0] = False
+    cost[:, 0] = cost[:, 1:].min(-1).values - 200
+    target = torch.randint(1, 6, (4,), generator=g)
     mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
-    _close(
-        f"{name} in float32, an invalid candidate 200 cheaper than every valid one",
-        mine,
-        ds.plan_loss(cost.double(), valid, target, 1.0),
+    fix = (
         "A softmax over all candidates, renormalised over the valid ones, is 0/0 here: every valid "
         "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
-        "softmax itself (their logits -inf, then logsumexp).",
-        cond=500,
+        "softmax itself (their logits -inf, then logsumexp)."
     )
+    at = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
+    _close(at, mine, ds.plan_loss(cost.double(), valid, target, 1.0), fix, cond=500)
     return (
         f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
         "float32 with a far cheaper invalid candidate"
     )
 
 
-def check_plan_loss_fixed(fn):
-    """Exercise 4 (find the bug): the fixed loss passes exercise 2's check."""
-    return check_plan_loss(fn, "my_plan_loss_fixed")
-
-
-# --- exercise 3: the gradient through the relaxed argmin ------------------------------------------
+# exercise 4 (find the bug): the fixed loss passes exercise 2's check
+check_plan_loss_fixed = functools.partial(check_plan_loss, name="my_plan_loss_fixed")
 
 
 def check_plan_grad(fn):
@@ -1145,27 +1045,18 @@ def check_plan_grad(fn):
     return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
 
 
-# --- exercise 5: one step of the Riccati recursion ------------------------------------------------
-
-
-def riccati_problem(seed=0, B=6, n=4, m=2):
-    """A random one-step LQR (positive definite cost), as ds.lqr_backward takes it: H (B, 2,
-    n+m, n+m), g (B, 2, n+m), A (B, 1, n, n), B (B, 1, n, m)."""
-    g = torch.Generator().manual_seed(seed)
-    R = torch.randn(B, 2, n + m, n + m, generator=g, dtype=F64)
-    H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)
-    gv = torch.randn(B, 2, n + m, generator=g, dtype=F64)
-    A = torch.randn(B, 1, n, n, generator=g, dtype=F64)
-    Bm = torch.randn(B, 1, n, m, generator=g, dtype=F64)
-    return H, gv, A, Bm
-
-
 def check_riccati(fn):
     hint = "see the formulas above the iLQR cell: Q = H_t + F'PF, q = g_t + F'p with F = [A_t B_t]."
     n, m = 4, 2
     worst = 0.0
     for seed in (0, 1):
-        H, gv, A, Bm = riccati_problem(seed, n=n, m=m)
+        # a random one-step LQR (positive definite cost), as ds.lqr_backward takes it
+        g = torch.Generator().manual_seed(seed)
+        R = torch.randn(6, 2, n + m, n + m, generator=g, dtype=F64)
+        H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)  # (B, 2, n+m, n+m)
+        gv = torch.randn(6, 2, n + m, generator=g, dtype=F64)
+        A = torch.randn(6, 1, n, n, generator=g, dtype=F64)
+        Bm = torch.randn(6, 1, n, m, generator=g, dtype=F64)
         free = torch.ones(len(H), 1, m, dtype=torch.bool)
         k_ref, K_ref, _, p0_ref = ds.lqr_backward(A, Bm, H, gv, free=free)
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
@@ -1175,19 +1066,12 @@ def check_riccati(fn):
         args = (H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
         returns = f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))"
         out = _call("my_riccati_step", fn, *args, returns=returns)
-        k, K, P_new, p_new = _parts("my_riccati_step", out, 4, "four (k, K, P_new, p_new)", hint)
+        out = _parts("my_riccati_step", out, 4, "four (k, K, P_new, p_new)", hint)
         cond = torch.linalg.cond(Q[:, n:, n:]).max().item()  # the solves with Q_uu
-        for name, mine, ref in (
-            ("k (feed-forward)", k, k_ref[:, 0]),
-            ("K (feedback gain)", K, K_ref[:, 0]),
-            ("P_new", P_new, P_ref),
-            ("p_new", p_new, p0_ref),
-        ):
+        names = ("k (feed-forward)", "K (feedback gain)", "P_new", "p_new")
+        for name, mine, ref in zip(names, out, (k_ref[:, 0], K_ref[:, 0], P_ref, p0_ref)):
             worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, hint, 1e-8, cond))
     return f"k, K, P_new, p_new, max error {worst:.1e}"
-
-
-# --- exercise 6: the controller's gradient, the KKT backward (App. C.3) ---------------------------
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
@@ -1196,10 +1080,7 @@ def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
     z_t = [x_t; u_t] (t = 0..T, the last control block unused), some controls held at their bound
     (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
     gen = torch.Generator().manual_seed(seed)
-
-    def randn(*shape):
-        return torch.randn(*shape, generator=gen, dtype=F64)
-
+    randn = functools.partial(torch.randn, generator=gen, dtype=F64)
     A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
     Bm = randn(B, T, n, m)
     R = randn(B, T + 1, n + m, n + m)
@@ -1235,31 +1116,12 @@ def kkt_stage_at_fault(mine, ref, free, n, allowed):
         "controls held at a bound (free False; there d holds du = 0, so dL/dg is 0)": held,
     }
     where = [p for p, sel in parts.items() if (bad[:, t] & sel[:, t]).any()]
-    if T in bad.any(0).any(-1).nonzero().flatten().tolist() and (bad[:, T, n:]).any():
+    if bad[:, T, n:].any():
         where.append("the last stage's control block (it has no control: 0)")
     found = f" It differs first at stage t = {t} (of 0..{T}), in its {' and in its '.join(where)}."
     if (mine.detach().double()[:, :T, n:][~free].abs() > allowed).any():
         found += " At the held controls yours is not 0: the backward pass keeps the active set."
     return found
-
-
-def kkt_reference(A, Bm, H, g, x_init, free, grad_x, grad_u):
-    """dL/dx_init and dL/dg of L = <grad_x, x*> + <grad_u, u*> by autograd through lqr_solve,
-    itself checked against central differences on two coordinates of x_init."""
-    xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
-
-    def loss(xi, gg):
-        return sum(
-            (a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free))
-        )
-
-    ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
-    for b, i in ((0, 1), (2, 0)):
-        e = torch.zeros_like(x_init)
-        e[b, i] = 1e-6
-        fd = (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * 1e-6)
-        assert abs(fd - ref_x[b, i].item()) < 1e-6
-    return ref_x, ref_g
 
 
 def check_kkt(fn):
@@ -1272,7 +1134,19 @@ def check_kkt(fn):
         A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
         _, T1, nm = g.shape
         n = x_init.shape[-1]
-        ref_x, ref_g = kkt_reference(A, Bm, H, g, x_init, free, grad_x, grad_u)
+        # the reference: autograd through lqr_solve of L = <grad_x, x*> + <grad_u, u*> ...
+        xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
+
+        def loss(xi, gg):
+            x, u = lqr_solve(A, Bm, H, gg, xi, free)
+            return (grad_x * x).sum() + (grad_u * u).sum()
+
+        ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
+        for b, i in ((0, 1), (2, 0)):  # ... itself against central differences
+            e = torch.zeros_like(x_init)
+            e[b, i] = 1e-6
+            fd = (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * 1e-6)
+            assert abs(fd - ref_x[b, i].item()) < 1e-6
         returns = f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))"
         out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n, returns=returns)
         out = _parts("my_kkt_backward", out, 2, "two (dL/dx_init, dL/dg)", hint)

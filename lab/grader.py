@@ -1,12 +1,8 @@
-"""The course's grader: every exercise's check (course.CHECKS) on a student's answers, each in its
-own Python process with a time limit, a line per exercise and the score, the class's grades as CSV.
-
-    python -m lab.grader submissions/*.ipynb --csv grades.csv
-
-A notebook is read as Jupyter runs it (nbformat; IPython's own transformation of magics and shell
-lines), and only its definitions are kept (definitions): a student's test calls and analyses need
-values the grader never makes. It runs the students' code: grade in a throwaway container or VM
-(docs/teaching.md)."""
+"""The course's grader, `python -m lab.grader submissions/*.ipynb --csv grades.csv`: each exercise's
+check (course.CHECKS) on a student's answers in its own Python process with a time limit, so that
+an error, a NaN, a time-out or an exit in one answer fails that exercise alone. A notebook is read
+as Jupyter runs it, and only its definitions are kept: its test calls and analyses need values the
+grader never makes. It runs the students' code: grade in a throwaway container or VM."""
 
 import argparse
 import ast
@@ -36,9 +32,6 @@ EXERCISES = {
 TIMEOUT = 120.0  # seconds per exercise (the checks take about a second)
 # cell magics whose body is Python that the kernel runs (the others' is not Python: %%bash, ...)
 PYTHON_CELL_MAGICS = ("time", "timeit", "capture", "prun")
-
-
-# --- what a student's file defines ----------------------------------------------------------------
 
 
 def cell_python(cell: str) -> str:
@@ -80,18 +73,13 @@ def _calls_something(node) -> bool:
     return any(_calls_something(c) for c in children)
 
 
-def _imports_solutions(node) -> bool:
-    """Whether a statement imports the reference answers (solutions.py)."""
-    if isinstance(node, ast.ImportFrom):
-        return (node.module or "").split(".")[0] == "solutions"
-    return isinstance(node, ast.Import) and any(a.name == "solutions" for a in node.names)
-
-
 def _kept(node) -> bool:
-    """Whether a cell's statement is a definition: an import (not of the reference answers), a
-    function, a class, an assignment that calls nothing (a constant, a lambda)."""
-    if isinstance(node, (ast.Import, ast.ImportFrom)):
-        return not _imports_solutions(node)
+    """Whether a cell's statement is a definition: an import (not of the reference answers,
+    solutions.py), a function, a class, an assignment that calls nothing (a constant, a lambda)."""
+    if isinstance(node, ast.ImportFrom):
+        return (node.module or "").split(".")[0] != "solutions"
+    if isinstance(node, ast.Import):
+        return not any(a.name == "solutions" for a in node.names)
     if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
         return True
     assigns = isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None
@@ -130,19 +118,13 @@ def _defines(code, name) -> bool:
     )
 
 
-# --- one exercise's check in its own process ------------------------------------------------------
-
-
 def check_in_this_process(spec_file):
     """The grader's worker: run the student's definitions (each alone: one that fails is left out,
     as a cell that failed), then one exercise's check, and write the verdict as JSON. Whatever the
     answer prints goes nowhere; an exit from inside it is the answer's failure."""
-    import torch
-
     import course
 
-    spec = json.loads(Path(spec_file).read_text())
-    torch.set_num_threads(1)
+    spec = json.loads(Path(spec_file).read_text())  # (on one thread: OMP_NUM_THREADS=1)
     sys.path.append(spec["folder"])  # the student's own modules, after the course's
     space = {"__name__": "answers", "SOLUTIONS": False}
     for where, code in spec["code"]:
@@ -199,9 +181,6 @@ def check_in_a_process(number, code, folder, tmp, timeout):
     )
 
 
-# --- a file's grade, the class's grades, the command line -----------------------------------------
-
-
 def grade(path, out=print, timeout=TIMEOUT) -> dict:
     """Grade the answers in `path` (a notebook or a .py file) exercise by exercise: the student's
     definitions (definitions), then each exercise's check in its own process
@@ -243,11 +222,10 @@ def write_grades(graded, csv_path):
 def main(argv=None):
     ap = argparse.ArgumentParser(
         prog="python -m lab.grader",
-        description="Grade the course's exercises: run every exercise's check on the answers "
-        "in each file (a student's tutorial.ipynb, or a .py that defines the my_* functions), "
-        "each check in its own process, and print a line per exercise and the score. It runs "
-        "the students' code: grade in a throwaway container or VM. Exit status 0 when every "
-        "exercise of every file passes, 1 otherwise.",
+        description="Grade the course's exercises in each file (a student's tutorial.ipynb, or a "
+        ".py that defines the my_* functions): a line per exercise and the score. It runs the "
+        "students' code: grade in a throwaway container or VM. Exit status 0 when every exercise "
+        "of every file passes, 1 otherwise.",
     )
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
     ap.add_argument(
