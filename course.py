@@ -55,9 +55,9 @@ def section_done(name):
 def report_times(quick):
     """Wall clock per section and in all, and the kernel's CPU time."""
     print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
+    wall, cpu = time.time() - _CLOCK["wall"], time.process_time() - _CLOCK["cpu"]
     print(
-        f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, "
-        f"{time.process_time() - _CLOCK['cpu']:.0f}s CPU ({'quick' if quick else 'full'} mode)"
+        f"notebook run time: {wall:.0f}s wall, {cpu:.0f}s CPU ({'quick' if quick else 'full'} mode)"
     )
 
 
@@ -141,12 +141,6 @@ def _scene(ax, batch, i, title=None, extent=(-30, 60, -25, 25)):
     """Sample i drawn in the ego frame (data_synth.plot_scenario), on axes in metres."""
     data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
     ax.set(xlabel="x (m)", ylabel="y (m)")
-
-
-def _around(pts, left, right, below, above):
-    """An extent (x0, x1, y0, y1) around the points pts (n, 2), with these margins (m)."""
-    lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
-    return (lo[0] - left, hi[0] + right, lo[1] - below, hi[1] + above)
 
 
 def _colorbar(fig, axes, cmap, norm, label, shrink, **kw):
@@ -285,7 +279,9 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
 
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
     """§4: one sample's candidates coloured by p_n under several β, and the plan."""
-    box = _around(cands.x[0][cands.valid[0]][..., :2].reshape(-1, 2), 3, 6, 3, 3)
+    xy = cands.x[0][cands.valid[0]][..., :2].flatten(0, 1)  # the valid candidates' positions
+    lo, hi = xy.min(0).values.tolist(), xy.max(0).values.tolist()
+    box = (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3)  # zoomed on the candidates
     norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
     kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
     fig, axes = plt.subplots(len(betas), 1, **kw)
@@ -344,7 +340,8 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
             f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
             f"{'=' if best[j] == target[j] else '≠'} target n*"
         )
-        _scene(ax, bg, j, title, _around(pts, 6, 6, 5, 5))
+        lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+        _scene(ax, bg, j, title, (lo[0] - 6, hi[0] + 6, lo[1] - 5, hi[1] + 5))
         red = dict(color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
         ax.plot(*P.T, "o-", **red)
         arrows = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9)
@@ -796,30 +793,25 @@ def no_autograd(name):
         (torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")
     ]
     entries += [(torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")]
-    saved = [(owner, attr, getattr(owner, attr)) for owner, attr in entries]
-
-    def refuse(what):
-        def refused(*args, **kwargs):
-            raise Forbidden(
-                f"{name} used autograd ({what}): this exercise asks for the closed form"
-            )
-
-        return refused
-
+    saved = {(owner, attr): getattr(owner, attr) for owner, attr in entries}
     recorded = []  # autograd saves a tensor for a backward pass: a graph is being recorded
     pack = torch.autograd.graph.saved_tensors_hooks(lambda t: recorded.append(1) or t, lambda t: t)
     try:
-        for owner, attr, _ in saved:
-            setattr(owner, attr, refuse(f"{owner.__name__}.{attr}"))
+        for owner, attr in saved:
+            refused = f"{name} used autograd ({owner.__name__}.{attr})"
+            setattr(owner, attr, functools.partial(_refuse, refused))
         with pack, torch.no_grad():
             yield
     finally:
-        for owner, attr, value in saved:
+        for (owner, attr), value in saved.items():
             setattr(owner, attr, value)
     if recorded:
-        raise Forbidden(
-            f"{name} recorded a graph for autograd: this exercise asks for the closed form"
-        )
+        _refuse(f"{name} recorded a graph for autograd")
+
+
+def _refuse(what, *args, **kwargs):
+    """no_autograd's stand-in for autograd's entry points: Forbidden, saying what was used."""
+    raise Forbidden(f"{what}: this exercise asks for the closed form")
 
 
 def exercise(number, check, fn):

@@ -49,22 +49,6 @@ def cell_python(cell: str) -> str:
     return TransformerManager().transform_cell("".join(lines))
 
 
-def code_cells(path: Path) -> list:
-    """[(where, Python)]: a notebook's code cells as the kernel runs them (cell_python), or a .py
-    file as one cell. ValueError, in one line, for a notebook that nbformat cannot read."""
-    if path.suffix != ".ipynb":
-        return [(str(path), path.read_text())]
-    try:
-        with warnings.catch_warnings():  # (a cell without an id is read all the same)
-            warnings.simplefilter("ignore")
-            nb = nbformat.read(path, as_version=4)
-        cells = [c.source for c in nb.cells if c.cell_type == "code"]
-    except Exception as e:  # nbformat's reasons are of many kinds (JSON, schema, structure)
-        why = (str(e).splitlines() or [""])[0]
-        raise ValueError(f"not a notebook that Jupyter can read ({type(e).__name__}: {why})")
-    return [(f"{path.name}, code cell {i + 1}", cell_python(c)) for i, c in enumerate(cells)]
-
-
 def _calls_something(node) -> bool:
     """Whether evaluating the expression calls a function (a lambda's body is not evaluated)."""
     if isinstance(node, ast.Call):
@@ -93,9 +77,19 @@ def definitions(path) -> tuple[list, list]:
     an import of the reference answers (solutions.py). Returns ([(where, code)], [a cell that does
     not parse, with why]); code keeps the cell's line numbers. Raises SyntaxError for a .py file
     that does not parse, ValueError for a notebook that cannot be read."""
-    path = Path(path)
-    kept, unparsed = [], []
-    for where, source in code_cells(path):
+    path, kept, unparsed = Path(path), [], []
+    if path.suffix != ".ipynb":
+        sources = [(str(path), path.read_text())]
+    else:
+        try:
+            with warnings.catch_warnings():  # (a cell without an id is read all the same)
+                warnings.simplefilter("ignore")
+                cells = [c.source for c in nbformat.read(path, 4).cells if c.cell_type == "code"]
+        except Exception as e:  # nbformat's reasons are of many kinds (JSON, schema, structure)
+            why = (str(e).splitlines() or [""])[0]
+            raise ValueError(f"not a notebook that Jupyter can read ({type(e).__name__}: {why})")
+        sources = [(f"{path.name}, code cell {i + 1}", cell_python(c)) for i, c in enumerate(cells)]
+    for where, source in sources:
         try:
             tree = ast.parse(source)
         except SyntaxError as e:
@@ -158,17 +152,12 @@ def check_in_a_process(number, code, folder, tmp, timeout):
     spec.write_text(json.dumps(about))
     worker = "import sys\nfrom lab import grader\ngrader.check_in_this_process(sys.argv[1])"
     python_path = os.pathsep.join([str(runs.ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path}
+    quiet = dict(stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, cwd=runs.ROOT, env=env)
     with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
         try:
-            run = subprocess.run(
-                [sys.executable, "-c", worker, str(spec)],
-                cwd=runs.ROOT,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                timeout=timeout,
-                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path},
-            )
+            cmd = [sys.executable, "-c", worker, str(spec)]
+            run = subprocess.run(cmd, stderr=err, timeout=timeout, **quiet)
         except subprocess.TimeoutExpired:
             return False, f"FAIL: did not finish in {timeout:g} s (an endless loop?)"
         if verdict.is_file():
@@ -182,11 +171,9 @@ def check_in_a_process(number, code, folder, tmp, timeout):
 
 
 def grade(path, out=print, timeout=TIMEOUT) -> dict:
-    """Grade the answers in `path` (a notebook or a .py file) exercise by exercise: the student's
-    definitions (definitions), then each exercise's check in its own process
-    (check_in_a_process), so that an error, a NaN, a time-out or an exit in one answer fails
-    that exercise alone. Prints one line per exercise (PASS with the error measured, not done, or
-    what failed) and the score. Returns {number: True, or the reason it scores nothing}."""
+    """Grade the answers in `path` (a notebook or a .py file): the student's definitions, then
+    each exercise's check in its own process. Prints a line per exercise (PASS with the error
+    measured, not done, or what failed) and the score; returns {number: True, or why not}."""
     path = Path(path)
     try:
         code, unparsed = definitions(path)
@@ -228,12 +215,7 @@ def main(argv=None):
         "of every file passes, 1 otherwise.",
     )
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
-    ap.add_argument(
-        "--timeout",
-        type=float,
-        default=TIMEOUT,
-        help=f"seconds one exercise's check may take (default {TIMEOUT:g})",
-    )
+    ap.add_argument("--timeout", type=float, default=TIMEOUT, help="per check, in s (%(default)g)")
     ap.add_argument("--csv", help="also write the grades to this CSV file, a row per file")
     ap.add_argument("--overwrite", action="store_true", help="let --csv replace an existing file")
     args = ap.parse_args(argv)
