@@ -1,9 +1,8 @@
-"""The course's harness for tutorial.ipynb (the section clock, the checks that stop the notebook,
-helpers, the larger figures: drawing only, each cell computes what it shows), and the checks of its
-exercises: each check_* runs the student's function on its own small problems (seeded, float64)
-against an independent answer (the module's, autograd's, a closed form's); a wrong answer raises
-AssertionError saying what differs, a stub (NotImplementedError) is not done, so that *Run All*
-goes on past it. lab/grader.py runs the checks on a student's notebook."""
+"""tutorial.ipynb's harness (section clock, checks that stop the notebook, helpers, the larger
+figures: drawing only, each cell computes what it shows) and its exercises' checks: each check_*
+runs the student's function on its own small problems (seeded, float64) against an independent
+answer; a wrong answer raises AssertionError saying what differs, a stub (NotImplementedError) is
+not done, so that *Run All* goes on past it. lab/grader.py runs them on students' notebooks."""
 
 import contextlib
 import dataclasses
@@ -31,9 +30,6 @@ import specs
 F64 = torch.float64
 SECTION_TIMES = {}
 _CLOCK = {}
-
-
-# --- the harness ----------------------------------------------------------------------------------
 
 
 def start():
@@ -92,10 +88,9 @@ def check_order(name, values, order, margin=0.0):
 
 
 def check_claim(table, method, baseline, column, expect):
-    """A finding the notebook states, checked on the committed table results/<table>.json: its
-    paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at
-    p < 0.05 in the paper's direction) must be what the text says: a re-run that changes it stops
-    the notebook until the text is changed with it."""
+    """A finding the notebook states, checked on results/<table>.json: the verdict of its paired
+    difference over seeds (two-sided paired t-test, reproduced at p < 0.05 in the paper's
+    direction) must be the text's, so that a re-run that changes it stops the notebook."""
     saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
     line = xp.claim_line(specs.Claim(method, baseline, column), specs.TABLES[table], saved)
     verdict = line.rsplit("): ", 1)[-1]
@@ -332,8 +327,7 @@ def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gma
     kw = dict(figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
     fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], **kw)
     for ax, j in zip(axd.values(), show):
-        P, x = preds[j, 0].detach(), cands.x[j, :, :, :2]
-        aim = x[target[j]]  # the target n*
+        P, x, aim = preds[j, 0].detach(), cands.x[j, :, :, :2], cands.x[j, target[j], :, :2]
         pts = torch.cat([P, bg.agent_fut[j, :, :2], aim, bg.ego_hist[j, -1:, :2]])
         title = (
             f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
@@ -406,9 +400,8 @@ def _modes_panel(ax, sub, pred, j, norm_p):
     P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
     pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
     c = ((pts.max(0).values + pts.min(0).values) / 2).tolist()
-    half = (pts.max(0).values - pts.min(0).values) / 2 + 1.5
-    hx = max(half[0].item(), 1.3 * half[1].item())  # the panels' shape
-    hy = max(half[1].item(), half[0].item() / 1.3)
+    half = ((pts.max(0).values - pts.min(0).values) / 2 + 1.5).tolist()
+    hx, hy = max(half[0], 1.3 * half[1]), max(half[1], half[0] / 1.3)  # the panels' shape
     top3 = ", ".join(f"{q:.2f}" for q in pred.probs[j].sort(descending=True).values[:3].tolist())
     title = f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = {top3}"
     _scene(ax, sub, j, title, (c[0] - hx, c[0] + hx, c[1] - hy, c[1] + hy))
@@ -473,8 +466,7 @@ def figure_goal(goal_res):
         name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
         ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
         total[goal] = -sum(saved)
-        order = np.argsort(saved)  # the largest savings first
-        most[goal] = [behaviours[k] for k in order if saved[k] < -0.25 * total[goal]]
+        most[goal] = [behaviours[k] for k in np.argsort(saved) if saved[k] < -0.25 * total[goal]]
         ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
         ax.grid(axis="x", alpha=0.3)
     axes[0].invert_yaxis()
@@ -507,14 +499,13 @@ def figure_learning_curves(histories):
             # the 10-step mean (the whole series when it is shorter)
             sm = np.convolve(v, np.ones(10) / 10, mode="valid") if len(v) >= 10 else v
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
-            # the means of the first and the last quarter, and whether their difference exceeds
-            # twice its standard error from the batch-to-batch spread
+            # first and last quarter's means; real: they differ by over 2 s.e. (batch-to-batch)
             q = max(2, len(v) // 4)
             first, last = v[:q].mean(), v[-q:].mean()
             real = abs(last - first) > 2 * np.sqrt(v[:q].var(ddof=1) / q + v[-q:].var(ddof=1) / q)
             fmt = "{:.3f}" if abs(first) < 10 else "{:.1f}"
-            change = f"{fmt.format(first)} → {fmt.format(last)}"
-            title.append(f"{name} {change}" + ("" if real else " (noise)"))
+            change = f"{fmt.format(first)} → {fmt.format(last)}" + ("" if real else " (noise)")
+            title.append(f"{name} {change}")
             moved += [f"{name}'s {label.split()[0]}"] if real else []
         ax.set(xlabel="training step", ylabel=label)
         ax.set_title("\n".join(title), fontsize=9)
@@ -553,9 +544,8 @@ def figure_closed_loop(rollouts, cl_scenes, sc):
 
 def kkt_gradient_check(val, cfg, seed, out=print):
     """§5: the gradient of a random linear function of iLQR's solution (float64, three samples
-    with the vehicle near) with respect to s0, the cost weights and the prediction, by the KKT
-    backward (exact, and curvature-free as mpc.pytorch's) against central differences. Returns
-    {input: (exact's relative error, curvature-free's)}."""
+    with the vehicle near) with respect to s0, w and the prediction, by the KKT backward (exact, and
+    curvature-free as mpc.pytorch's) against eval_numerical_gradient: {input: (their errors)}."""
     torch.manual_seed(seed)
     d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
     pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
@@ -583,28 +573,16 @@ def kkt_gradient_check(val, cfg, seed, out=print):
             x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
         return (x * wx).sum() + (u * wu).sum()
 
-    t0 = time.time()
-    grads = []
+    t0, grads = time.time(), []
     for exact in (True, False):
         ls = [v.clone().requires_grad_() for v in leaves]
         grads.append(torch.autograd.grad(loss(ls, exact), ls))
-    on_pred = [(b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)]  # (B, K, T, 2)
-    coords = {
-        "initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
-        "cost weights w": (1, [(j,) for j in range(5)]),
-        "predicted trajectory": (2, on_pred),
-    }
     errs = {}
-    for name, (i, idx) in coords.items():
-        fd = []
-        for j in idx:  # central differences, h = 1e-4
-            e = torch.zeros_like(leaves[i])
-            e[j] = 1e-4
-            moved = [[*leaves[:i], leaves[i] + s * e, *leaves[i + 1 :]] for s in (1, -1)]
-            fd.append((loss(moved[0]) - loss(moved[1])) / (2 * 1e-4))
-        fd = torch.stack(fd)
-        rel = [(torch.stack([g[i][j] for j in idx]) - fd).norm() / fd.norm() for g in grads]
-        errs[name] = [r.item() for r in rel]
+    for i, name in enumerate(("initial state s0", "cost weights w", "predicted trajectory")):
+        fd = eval_numerical_gradient(
+            lambda v: loss([*leaves[:i], v, *leaves[i + 1 :]]), leaves[i], 1e-4
+        )
+        errs[name] = [((g[i] - fd).norm() / fd.norm()).item() for g in grads]
         said = f"exact KKT {errs[name][0]:.1e}   curvature-free {errs[name][1]:.1e}"
         out(f"  {name:22s} relative error vs finite differences: {said}")
     out(f"({time.time() - t0:.1f}s)")
@@ -619,9 +597,8 @@ def show_source(fn):
 
 
 def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
-    """The relaxed planner of eq. (2) on one scenario `ex` (a batch of 1), its prediction the GT
-    future moved by `shift` (m): the costs C, p_n, the plan, the target n* (hindsight),
-    L_plan = -log p_{n*} and its gradient with respect to the prediction (T, 2). A dict."""
+    """The relaxed planner of eq. (2) on `ex` (a batch of 1), its prediction the GT future moved
+    by `shift` (m): C, p_n, the plan, the target n*, L_plan and dL_plan/d(prediction) (T, 2)."""
     ctx = gt_context(ex)
     preds = (ctx.preds + torch.tensor(shift, dtype=ctx.preds.dtype)).requires_grad_()
     w = ds.cost_weights(cfg, ctx.preds.dtype)
@@ -696,17 +673,12 @@ class Forbidden(AssertionError):
 
 
 # the relations between an answer and the reference that one number explains (mine = c * ref)
-COMMON_FACTORS = {
-    -1.0: "the sign is flipped",
-    2.0: "a factor 2 too many",
-    0.5: "a factor 2 missing",
-}
+FACTORS = {-1.0: "the sign is flipped", 2.0: "a factor 2 too many", 0.5: "a factor 2 missing"}
 
 
 def _relation(mine, ref, factors):
     """How mine relates to ref when one number c explains the whole difference, mine = c ref (a
-    sign, a factor 2, a mean where a sum is asked): a sentence naming c and, where factors knows
-    it, why; '' when no single c fits."""
+    sign, a factor 2, a mean for a sum): a sentence naming c and, from factors, why; or ''."""
     m, r = mine.detach().double().flatten(), ref.detach().double().flatten()
     if not torch.isfinite(m).all() or (r @ r).item() == 0:
         return ""
@@ -721,12 +693,10 @@ def _relation(mine, ref, factors):
 
 def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, diagnose=None):
     """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
-    where allowed is tol for a float64 answer and grows with the answer's rounding unit otherwise
-    (16 eps cond: a correct float32 answer passes, a wrong one still fails); cond: how much the
-    problem magnifies a rounding error (its conditioning); dtype: the one the answer was computed
-    in, where that is not mine's (a gradient autograd cast back). A failure says what differs: the
-    ratio to the reference where one number explains it (factors: {c: why}, beside the sign and a
-    factor 2), and diagnose(mine) where the check knows more (which term, which stage)."""
+    allowed = max(tol, 16 eps cond): a right float32 answer passes, a wrong one still fails (cond:
+    how much the problem magnifies a rounding error; eps: of dtype, the answer's where mine was cast
+    back). A failure says what differs: the ratio to the reference where one number explains it
+    (factors: {c: why}), and diagnose(mine) where the check knows more (which term, which stage)."""
     try:
         mine = torch.as_tensor(mine)
     except (TypeError, ValueError, RuntimeError):
@@ -750,7 +720,7 @@ def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, 
     scale = max(1.0, ref.abs().max().item())
     allowed = max(tol, 16 * torch.finfo(dtype or mine.dtype).eps * cond) * scale
     if err > allowed:
-        ratio = _relation(mine, ref, {**COMMON_FACTORS, **(factors or {})})
+        ratio = _relation(mine, ref, {**FACTORS, **(factors or {})})
         raise AssertionError(
             f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}).{ratio}"
             f"{diagnose(mine) if diagnose else ''} {hint}"
@@ -759,9 +729,8 @@ def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, 
 
 
 def _call(name, fn, *args, returns=""):
-    """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned
-    into a failed check that names the inputs' shapes and what it should return; NotImplementedError
-    (a stub) and Forbidden pass through."""
+    """fn(*args); an exception inside it (a shape that does not broadcast) is a failed check naming
+    the inputs' shapes and what to return. NotImplementedError (a stub) and Forbidden pass."""
     try:
         return fn(*args)
     except (NotImplementedError, Forbidden):
@@ -776,18 +745,16 @@ def _call(name, fn, *args, returns=""):
 
 def _parts(name, out, count, parts, hint):
     """An answer that returns several tensors: assert it returned `count` of them (parts: what)."""
-    got = f"{type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}"
-    assert isinstance(out, (tuple, list)) and len(out) == count, (
-        f"{name}: returned {got}, expected the {parts}. {hint}"
-    )
+    many = isinstance(out, (tuple, list))
+    got = f"{type(out).__name__}{f' of {len(out)}' if many else ''}"
+    assert many and len(out) == count, f"{name}: returned {got}, expected the {parts}. {hint}"
     return out
 
 
 @contextlib.contextmanager
 def no_autograd(name):
-    """Within it, autograd is off limits: its entry points raise Forbidden naming the one called,
-    and an answer that records a graph anyway (torch.enable_grad, a function imported by name) is
-    caught by a saved-tensors hook when it returns."""
+    """Within it, autograd's entry points raise Forbidden naming the one called, and an answer
+    that records a graph anyway (enable_grad, a name imported) is caught by a saved-tensors hook."""
     entries = [(torch.autograd, "grad"), (torch.autograd, "backward"), (torch.Tensor, "backward")]
     entries += [
         (torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")
@@ -830,8 +797,7 @@ def exercise(number, check, fn):
 
 
 def show_failure(check, fn):
-    """Run a check on an answer known to be wrong and print what it reports (the find-the-bug
-    exercise), without stopping the notebook. Returns the message ('' if it passed)."""
+    """Print and return what a check says of a wrong answer, without stopping the notebook."""
     try:
         check(fn)
     except AssertionError as e:
@@ -854,9 +820,8 @@ def eval_numerical_gradient(f, x, h=1e-6):
 
 
 def grad_check(f, x, analytic, h=1e-6, out=print):
-    """Your gradient `analytic` (x's shape) against eval_numerical_gradient(f, x): prints and
-    returns the largest relative error, |a - n| / max(|a| + |n|, 1e-12) over the entries. Around
-    1e-7 or below: right; 1e-2 or above: almost surely wrong."""
+    """Your gradient `analytic` against eval_numerical_gradient(f, x): the largest relative error
+    |a - n| / (|a| + |n|), printed; 1e-7 or below: right, 1e-2 or above: almost surely wrong."""
     numeric = eval_numerical_gradient(f, x, h)
     a = torch.as_tensor(analytic).detach().to(F64)
     assert a.shape == numeric.shape, f"the gradient's shape {tuple(a.shape)}, x's {tuple(x.shape)}"
@@ -884,10 +849,9 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
 
 
 def collision_terms_at_fault(mine, fn, pos, ctx, rbf_var):
-    """Which part of C_coll a wrong answer gets wrong: a mask it ignores (it equals C_coll with that
-    mask all 1), or one of the two terms, each scored alone (the other agents masked out, then the
-    predicted vehicle), found by running the answer (fn) again: mine, its output, is not needed. A
-    sentence, or '' when none of these explains it."""
+    """Which part of C_coll a wrong answer gets wrong, by running it (fn) again: a mask it
+    ignores (it equals C_coll with that mask all 1), or one of the two terms, each scored alone
+    (the other masked out). A sentence, or '' (mine, its output, is not needed)."""
 
     def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
         try:
@@ -1039,16 +1003,14 @@ def check_plan_grad(fn):
 
 def check_riccati(fn):
     hint = "see the formulas above the iLQR cell: Q = H_t + F'PF, q = g_t + F'p with F = [A_t B_t]."
-    n, m = 4, 2
-    worst = 0.0
+    n, m, worst = 4, 2, 0.0
     for seed in (0, 1):
         # a random one-step LQR (positive definite cost), as ds.lqr_backward takes it
         g = torch.Generator().manual_seed(seed)
-        R = torch.randn(6, 2, n + m, n + m, generator=g, dtype=F64)
+        randn = functools.partial(torch.randn, generator=g, dtype=F64)
+        R = randn(6, 2, n + m, n + m)
         H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)  # (B, 2, n+m, n+m)
-        gv = torch.randn(6, 2, n + m, generator=g, dtype=F64)
-        A = torch.randn(6, 1, n, n, generator=g, dtype=F64)
-        Bm = torch.randn(6, 1, n, m, generator=g, dtype=F64)
+        gv, A, Bm = randn(6, 2, n + m), randn(6, 1, n, n), randn(6, 1, n, m)
         free = torch.ones(len(H), 1, m, dtype=torch.bool)
         k_ref, K_ref, _, p0_ref = ds.lqr_backward(A, Bm, H, gv, free=free)
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
@@ -1067,10 +1029,9 @@ def check_riccati(fn):
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
-    """An LQR as the controller's backward pass sees one, its active set fixed:
-    x_{t+1} = A_t x_t + B_t u_t from x_init, the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over
-    z_t = [x_t; u_t] (t = 0..T, the last control block unused), some controls held at their bound
-    (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
+    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t
+    x_t + B_t u_t from x_init, cost sum_t 1/2 z_t' H_t z_t + g_t' z_t, z_t = [x_t; u_t] (t = 0..T,
+    the last u unused), some controls held (free False), the incoming gradient (grad_x, grad_u)."""
     gen = torch.Generator().manual_seed(seed)
     randn = functools.partial(torch.randn, generator=gen, dtype=F64)
     A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
@@ -1097,10 +1058,8 @@ def kkt_stage_at_fault(mine, ref, free, n, allowed):
     the free controls or the held ones (free False). A sentence."""
     T = free.shape[1]
     bad = (mine.detach().double() - ref).abs() > allowed  # (B, T+1, n+m)
-    held, free_u = torch.zeros_like(bad), torch.zeros_like(bad)
-    held[:, :T, n:], free_u[:, :T, n:] = ~free, free
-    states = torch.zeros_like(bad)
-    states[..., :n] = True
+    held, free_u, states = (torch.zeros_like(bad) for _ in range(3))
+    held[:, :T, n:], free_u[:, :T, n:], states[..., :n] = ~free, free, True
     t = int(bad.any(0).any(-1).nonzero()[0])
     parts = {
         "state entries": states,
@@ -1124,8 +1083,7 @@ def check_kkt(fn):
     worst = 0.0
     for seed in (0, 1):
         A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
-        _, T1, nm = g.shape
-        n = x_init.shape[-1]
+        (_, T1, nm), n = g.shape, x_init.shape[-1]
         # the reference: autograd through lqr_solve of L = <grad_x, x*> + <grad_u, u*> ...
         xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
 
@@ -1156,11 +1114,13 @@ def check_kkt(fn):
     )
 
 
-CHECKS = {
-    1: check_collision,
-    2: check_plan_loss,
-    3: check_plan_grad,
-    4: check_plan_loss_fixed,
-    5: check_riccati,
-    6: check_kkt,
+# the exercises: the function each asks for, what it is, its check (lab/grader.py grades them)
+EXERCISES = {
+    1: ("my_collision", "the collision term", check_collision),
+    2: ("my_plan_loss", "the relaxed planner's loss", check_plan_loss),
+    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin", check_plan_grad),
+    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32", check_plan_loss_fixed),
+    5: ("my_riccati_step", "one step of the Riccati recursion", check_riccati),
+    6: ("my_kkt_backward", "the controller's gradient, the KKT backward", check_kkt),
 }
+CHECKS = {number: check for number, (_, _, check) in EXERCISES.items()}

@@ -11,11 +11,12 @@ import sys
 
 import pytest
 
+import course
 from lab import grader
 
 REPO = pathlib.Path(__file__).resolve().parent
 SOLUTIONS_SOURCE = (REPO / "solutions.py").read_text()
-NAMES = [name for name, _ in grader.EXERCISES.values()]
+NAMES = [name for name, _, _ in course.EXERCISES.values()]
 
 
 def solution(name):

@@ -1,5 +1,5 @@
 """The course's grader, `python -m lab.grader submissions/*.ipynb --csv grades.csv`: each exercise's
-check (course.CHECKS) on a student's answers in its own Python process with a time limit, so that
+check (course.EXERCISES) on a student's answers in its own Python process with a time limit, so that
 an error, a NaN, a time-out or an exit in one answer fails that exercise alone. A notebook is read
 as Jupyter runs it, and only its definitions are kept: its test calls and analyses need values the
 grader never makes. It runs the students' code: grade in a throwaway container or VM."""
@@ -19,25 +19,17 @@ from pathlib import Path
 
 import nbformat
 
+import course
 from lab import runs
 
-EXERCISES = {
-    1: ("my_collision", "the collision term"),
-    2: ("my_plan_loss", "the relaxed planner's loss"),
-    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
-    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32"),
-    5: ("my_riccati_step", "one step of the Riccati recursion"),
-    6: ("my_kkt_backward", "the controller's gradient, the KKT backward"),
-}
 TIMEOUT = 120.0  # seconds per exercise (the checks take about a second)
 # cell magics whose body is Python that the kernel runs (the others' is not Python: %%bash, ...)
 PYTHON_CELL_MAGICS = ("time", "timeit", "capture", "prun")
 
 
 def cell_python(cell: str) -> str:
-    """A cell's Python as the kernel runs it: %%time and its kind dropped from the first line, a
-    cell under any other cell magic (%%bash, %%html) left out; line magics and shell lines
-    (%pip, !ls, x = !ls) become IPython's own calls, which the grader does not run."""
+    """A cell's Python as the kernel runs it: %%time dropped, a cell under another cell magic
+    (%%bash) left out, line magics and shell lines (%pip, x = !ls) as IPython's calls (not run)."""
     from IPython.core.inputtransformer2 import TransformerManager
 
     lines = cell.splitlines(keepends=True)
@@ -71,12 +63,10 @@ def _kept(node) -> bool:
 
 
 def definitions(path) -> tuple[list, list]:
-    """What a student's file defines, as Jupyter has it after running every cell: from each code
-    cell in order (a .py file is one cell), its imports, functions, classes and the assignments
-    that call nothing (_kept). Their test calls, prints, loops and analyses are left out, and so is
-    an import of the reference answers (solutions.py). Returns ([(where, code)], [a cell that does
-    not parse, with why]); code keeps the cell's line numbers. Raises SyntaxError for a .py file
-    that does not parse, ValueError for a notebook that cannot be read."""
+    """What a student's file defines, as Jupyter has it after running every cell: each code
+    cell's statements that _kept keeps (a .py file is one cell), with the cell's line numbers; its
+    test calls and analyses are left out. Returns ([(where, code)], [a cell that does not parse, and
+    why]); SyntaxError for a .py file that does not parse, ValueError for an unreadable notebook."""
     path, kept, unparsed = Path(path), [], []
     if path.suffix != ".ipynb":
         sources = [(str(path), path.read_text())]
@@ -105,19 +95,13 @@ def definitions(path) -> tuple[list, list]:
 
 
 def _defines(code, name) -> bool:
-    return any(
-        isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name == name
-        for _, c in code
-        for n in ast.parse(c).body
-    )
+    defs = (ast.FunctionDef, ast.AsyncFunctionDef)
+    return any(isinstance(n, defs) and n.name == name for _, c in code for n in ast.parse(c).body)
 
 
 def check_in_this_process(spec_file):
-    """The grader's worker: run the student's definitions (each alone: one that fails is left out,
-    as a cell that failed), then one exercise's check, and write the verdict as JSON. Whatever the
-    answer prints goes nowhere; an exit from inside it is the answer's failure."""
-    import course
-
+    """The grader's worker: the student's definitions run each alone (one that fails is left out,
+    as a failed cell), then one exercise's check; its verdict written as JSON (an exit fails it)."""
     spec = json.loads(Path(spec_file).read_text())  # (on one thread: OMP_NUM_THREADS=1)
     sys.path.append(spec["folder"])  # the student's own modules, after the course's
     space = {"__name__": "answers", "SOLUTIONS": False}
@@ -143,10 +127,9 @@ def check_in_this_process(spec_file):
 
 
 def check_in_a_process(number, code, folder, tmp, timeout):
-    """One exercise's check in a fresh Python process (check_in_this_process): (True, what it
-    measured) or (False, why it scores nothing: its failure, a time-out, an exit before its
-    verdict)."""
-    name = EXERCISES[number][0]
+    """One exercise's check in a fresh process (check_in_this_process): (True, what it
+    measured) or (False, why not: its failure, a time-out, an exit before its verdict)."""
+    name = course.EXERCISES[number][0]
     spec, verdict = Path(tmp) / f"spec{number}.json", Path(tmp) / f"verdict{number}.json"
     about = dict(name=name, number=number, code=code, folder=str(folder), verdict=str(verdict))
     spec.write_text(json.dumps(about))
@@ -181,7 +164,7 @@ def grade(path, out=print, timeout=TIMEOUT) -> dict:
         code, unparsed, broken = None, [], f"the file does not run: {type(e).__name__}: {e}"
     result = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (name, title) in EXERCISES.items():
+        for k, (name, title, _) in course.EXERCISES.items():
             if code is None:
                 passed, said = False, broken
             elif not _defines(code, name):
@@ -190,18 +173,16 @@ def grade(path, out=print, timeout=TIMEOUT) -> dict:
                 passed, said = check_in_a_process(k, code, path.resolve().parent, tmp, timeout)
             result[k] = True if passed else said
             out(f"  exercise {k} ({title}): {f'PASS ({said})' if passed else said}")
-    out(f"{path}: score {sum(v is True for v in result.values())}/{len(EXERCISES)}")
+    out(f"{path}: score {sum(v is True for v in result.values())}/{len(course.EXERCISES)}")
     return result
 
 
 def write_grades(graded, csv_path):
-    """The class's grades as CSV, written atomically: a row per file, 1 or 0 per exercise, the
-    score."""
-    text = io.StringIO()
-    rows = csv.writer(text)
-    rows.writerow(["file", *(f"exercise {k}" for k in EXERCISES), "score"])
+    """The class's grades as CSV, written atomically: a row per file, 1/0 per exercise, score."""
+    rows = csv.writer(text := io.StringIO())
+    rows.writerow(["file", *(f"exercise {k}" for k in course.EXERCISES), "score"])
     for f, result in graded.items():
-        passed = [int(result[k] is True) for k in EXERCISES]
+        passed = [int(result[k] is True) for k in course.EXERCISES]
         rows.writerow([f, *passed, sum(passed)])
     runs.write_atomic(Path(csv_path), text.getvalue())
 
@@ -209,10 +190,9 @@ def write_grades(graded, csv_path):
 def main(argv=None):
     ap = argparse.ArgumentParser(
         prog="python -m lab.grader",
-        description="Grade the course's exercises in each file (a student's tutorial.ipynb, or a "
-        ".py that defines the my_* functions): a line per exercise and the score. It runs the "
-        "students' code: grade in a throwaway container or VM. Exit status 0 when every exercise "
-        "of every file passes, 1 otherwise.",
+        description="Grade the course's exercises in each file (a tutorial.ipynb, or a .py that "
+        "defines the my_* functions): a line per exercise, the score. It runs the students' code: "
+        "grade in a throwaway container or VM. Exit status 0 when every exercise passes, else 1.",
     )
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
     ap.add_argument("--timeout", type=float, default=TIMEOUT, help="per check, in s (%(default)g)")
