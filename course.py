@@ -52,9 +52,8 @@ def report_times(quick):
     """Wall clock per section and in all, and the kernel's CPU time."""
     print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
     wall, cpu = time.time() - _CLOCK["wall"], time.process_time() - _CLOCK["cpu"]
-    print(
-        f"notebook run time: {wall:.0f}s wall, {cpu:.0f}s CPU ({'quick' if quick else 'full'} mode)"
-    )
+    mode = "quick" if quick else "full"
+    print(f"notebook run time: {wall:.0f}s wall, {cpu:.0f}s CPU ({mode} mode)")
 
 
 class CheckpointError(AssertionError):
@@ -848,10 +847,10 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     return pos, ctx
 
 
-def collision_terms_at_fault(mine, fn, pos, ctx, rbf_var):
-    """Which part of C_coll a wrong answer gets wrong, by running it (fn) again: a mask it
-    ignores (it equals C_coll with that mask all 1), or one of the two terms, each scored alone
-    (the other masked out). A sentence, or '' (mine, its output, is not needed)."""
+def collision_terms_at_fault(_, fn, pos, ctx, rbf_var):
+    """Which part of C_coll a wrong answer gets wrong, by running it (fn) again (its output, the
+    first argument, is not needed): a mask it ignores (it equals C_coll with that mask all 1), or
+    one of the two terms, each scored alone (the other masked out). A sentence, or ''."""
 
     def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
         try:
@@ -964,8 +963,8 @@ def check_plan_loss(fn, name="my_plan_loss"):
         "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
         "softmax itself (their logits -inf, then logsumexp)."
     )
-    at = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
-    _close(at, mine, ds.plan_loss(cost.double(), valid, target, 1.0), fix, cond=500)
+    case = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
+    _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), fix, cond=500)
     return (
         f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
         "float32 with a far cheaper invalid candidate"

@@ -102,7 +102,7 @@ def _defines(code, name) -> bool:
 def check_in_this_process(spec_file):
     """The grader's worker: the student's definitions run each alone (one that fails is left out,
     as a failed cell), then one exercise's check; its verdict written as JSON (an exit fails it)."""
-    spec = json.loads(Path(spec_file).read_text())  # (on one thread: OMP_NUM_THREADS=1)
+    spec = json.loads(Path(spec_file).read_text())
     sys.path.append(spec["folder"])  # the student's own modules, after the course's
     space = {"__name__": "answers", "SOLUTIONS": False}
     for where, code in spec["code"]:
@@ -135,7 +135,7 @@ def check_in_a_process(number, code, folder, tmp, timeout):
     spec.write_text(json.dumps(about))
     worker = "import sys\nfrom lab import grader\ngrader.check_in_this_process(sys.argv[1])"
     python_path = os.pathsep.join([str(runs.ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path}  # one thread a check
     quiet = dict(stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, cwd=runs.ROOT, env=env)
     with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
         try:
