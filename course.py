@@ -1,109 +1,75 @@
-"""The course's harness for tutorial.ipynb, and the checks of its exercises.
+"""tutorial.ipynb's harness (section clock, checks that stop the notebook, helpers, the larger
+figures: drawing only, each cell computes what it shows) and its exercises' checks: each check_*
+runs the student's function on its own small problems (seeded, float64) against an independent
+answer; a wrong answer raises AssertionError saying what differs, a stub (NotImplementedError) is
+not done, so that *Run All* goes on past it. lab/grader.py runs them on students' notebooks."""
 
-The harness: the section clock (start, section_done, report_times), the notebook's checks
-(checkpoint, check_order, check_claim: each prints a line and raises CheckpointError when it fails,
-so that the notebook stops at that cell), the committed tables over seeds (results_table), the
-helpers that several cells use (gt_context, first_of, behaviour_rows), and the notebook's larger
-figures (figure_*: drawing only, each cell computes what it shows).
-
-Each check_* builds its own small problems (seeded, float64), runs the student's function on them
-and compares with an independent answer (the module's function, autograd, or a closed form). A wrong
-answer raises AssertionError with what differs and a hint; a stub that still raises
-NotImplementedError is reported as not done, so that *Run All* goes on past an exercise the student
-has not tried yet. test_tutorial.py feeds every check known-wrong answers and asserts that it
-catches each one.
-"""
-
-import ast
 import contextlib
 import dataclasses
+import functools
+import inspect
 import json
 import math
-import os
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
+from IPython.display import Markdown, display
+from matplotlib.colors import LogNorm
+from matplotlib.lines import Line2D
+from matplotlib.patches import FancyBboxPatch
 
 import data_synth
 import diffstack as ds
-from lab import runs
+import experiments as xp
+import figures
+import specs
 
 F64 = torch.float64
-HERE = Path(__file__).resolve().parent
-
-
-# --- the harness: section clock -------------------------------------------------------------------
-
 SECTION_TIMES = {}
 _CLOCK = {}
 
 
 def start():
-    """One torch thread (reproducible numbers, and the machine stays usable), the figures' style,
-    and the clock that section_done and report_times read."""
-    import matplotlib.pyplot as plt
-
+    """One torch thread (reproducible numbers), the figures' style, the section clock."""
     torch.set_num_threads(1)
-    plt.rcParams.update(
-        {"figure.dpi": 100, "savefig.dpi": 100, "font.size": 9, "legend.fontsize": 8}
-    )
+    plt.rcParams.update({"figure.dpi": 100, "savefig.dpi": 100})
+    plt.rcParams.update({"font.size": 9, "legend.fontsize": 8})
     SECTION_TIMES.clear()
     _CLOCK.update(wall=time.time(), cpu=time.process_time(), section=time.time())
 
 
 def section_done(name):
-    """Record and print the wall time since the previous section ended (the notebook's first table
-    quotes these)."""
+    """Print and record the wall time since the previous section ended."""
     SECTION_TIMES[name] = time.time() - _CLOCK["section"]
     _CLOCK["section"] = time.time()
     print(f"{name}: {SECTION_TIMES[name]:.0f} s")
 
 
 def report_times(quick):
-    """Wall clock per section and in all, and the kernel's CPU time (one thread: about the wall
-    clock when idle)."""
+    """Wall clock per section and in all, and the kernel's CPU time."""
     print("  ".join(f"{k} {v:.0f} s" for k, v in SECTION_TIMES.items()))
-    print(
-        f"notebook run time: {time.time() - _CLOCK['wall']:.0f}s wall, "
-        f"{time.process_time() - _CLOCK['cpu']:.0f}s CPU ({'quick' if quick else 'full'} mode)"
-    )
-
-
-# --- the harness: the notebook's checks -----------------------------------------------------------
+    wall, cpu = time.time() - _CLOCK["wall"], time.process_time() - _CLOCK["cpu"]
+    mode = "quick" if quick else "full"
+    print(f"notebook run time: {wall:.0f}s wall, {cpu:.0f}s CPU ({mode} mode)")
 
 
 class CheckpointError(AssertionError):
-    """A failed check: the notebook stops at the cell (and CI fails) instead of printing and
-    going on."""
+    """A failed check: the notebook stops at the cell (and CI fails)."""
 
 
-def checkpoint(
-    name,
-    measured,
-    expected,
-    tol,
-    rel=False,
-    hint="re-run the section's cells in order from a fresh kernel",
-):
-    """For what is deterministic (no training: gradient errors, a file's round trip, a solver on
-    fixed data): the measured value, the expected one, whether they agree within tol; a disagreement
-    stops the notebook."""
+def checkpoint(name, measured, expected, tol, rel=False):
+    """For what is deterministic (no training): the measured value against the expected one
+    within tol; a disagreement stops the notebook."""
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
-    ok = err <= tol
-    print(
-        f"CHECKPOINT {name}: measured {measured:.4g}, expected {expected:.4g} "
-        f"(tolerance {'%g%%' % (100 * tol) if rel else tol}) -> {'OK' if ok else 'FAILED'}"
-    )
-    if not ok:
-        raise CheckpointError(
-            f"{name}: measured {measured:.4g}, expected {expected:.4g} within "
-            f"{'%g%%' % (100 * tol) if rel else tol}; {hint}"
-        )
+    within = "%g%%" % (100 * tol) if rel else tol
+    said = f"measured {measured:.4g}, expected {expected:.4g}"
+    print(f"CHECKPOINT {name}: {said} (tolerance {within}) -> {'OK' if err <= tol else 'FAILED'}")
+    if err > tol:
+        rerun = "re-run the section's cells in order from a fresh kernel"
+        raise CheckpointError(f"{name}: {said} within {within}; {rerun}")
 
 
 def check_order(name, values, order, margin=0.0):
@@ -120,20 +86,12 @@ def check_order(name, values, order, margin=0.0):
         )
 
 
-def check_claim(table, method, baseline, column, expect, section=None):
-    """A finding the notebook states, checked on the committed table results/<table>.json: its
-    paired difference over seeds and the verdict (a two-sided paired t-test: reproduced only at
-    p < 0.05 in the paper's direction) must be what the text says.
-    If a re-run of the tables changes the verdict, this stops the notebook until the text is changed
-    with it."""
-    import experiments as xp
-    import specs
-
-    spec = specs.TABLES[table]
+def check_claim(table, method, baseline, column, expect):
+    """A finding the notebook states, checked on results/<table>.json: the verdict of its paired
+    difference over seeds (two-sided paired t-test, reproduced at p < 0.05 in the paper's
+    direction) must be the text's, so that a re-run that changes it stops the notebook."""
     saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
-    line = xp.claim_line(
-        specs.Claim(method, baseline, column, section), spec, saved[section] if section else saved
-    )
+    line = xp.claim_line(specs.Claim(method, baseline, column), specs.TABLES[table], saved)
     verdict = line.rsplit("): ", 1)[-1]
     print(f"CLAIM {line} -> {'OK' if verdict.startswith(expect) else 'FAILED'}")
     if not verdict.startswith(expect):
@@ -144,212 +102,138 @@ def check_claim(table, method, baseline, column, expect, section=None):
 
 def results_table(name):
     """Display the committed table of results/<name>.md (mean ± standard error over its seeds)."""
-    from IPython.display import Markdown, display
-
     text = (Path("results") / f"{name}.md").read_text()
     seeds = len(json.loads((Path("results") / f"{name}.json").read_text())["meta"]["seeds"])
-    # without the title line and the figure links
-    body = text.split("\n", 1)[1].split("![")[0].strip()
+    body = text.split("\n", 1)[1].split("![")[0].strip()  # without the title and figure links
     display(Markdown(f"**{seeds} seeds, from `results/{name}.md`:** " + body))
 
 
-def rel_err(a, b):
-    return ((a - b).norm() / b.norm()).item()
-
-
-# --- the harness: helpers that several cells use --------------------------------------------------
-
-
 def gt_context(batch):
-    """The cost's view of a batch with the GT future as a one-mode prediction (the oracle, "GT
-    prediction")."""
-    B = len(batch)
-    one = torch.ones(B, dtype=batch.ego_hist.dtype)
-    return ds.CostContext(
-        batch.agent_fut[:, None, :, :2],
-        one[:, None],
-        one,
-        batch.others_fut[..., :2],
-        batch.others_mask.to(one.dtype),
-        batch.goal[:, :2],
-        batch.lanes,
-        batch.lanes_mask,
-    )
+    """The cost's view of a batch with the GT future as a one-mode prediction (GT prediction)."""
+    one = torch.ones(len(batch), dtype=batch.ego_hist.dtype)
+    others, mask = batch.others_fut[..., :2], batch.others_mask.to(one.dtype)
+    scene = (batch.goal[:, :2], batch.lanes, batch.lanes_mask)
+    return ds.CostContext(batch.agent_fut[:, None, :, :2], one[:, None], one, others, mask, *scene)
 
 
 def first_of(batch, behaviour, where=None):
-    """The index of the first sample of `batch` whose predicted vehicle does `behaviour` (and
-    `where` holds)."""
+    """The index of the first sample of `batch` doing `behaviour` (and where `where` holds)."""
     sel = batch.behaviour == data_synth.BEHAVIOURS.index(behaviour)
     return int((sel if where is None else sel & where).nonzero()[0])
 
 
-def smooth(v, n=10):
-    """An n-step moving average (the whole series when it is shorter than n)."""
-    v = np.asarray(v, dtype=float)
-    return np.convolve(v, np.ones(n) / n, mode="valid") if len(v) >= n else v
-
-
-# --- the harness: the notebook's figures (drawing only: each cell computes what it shows) ---------
-
-
 def behaviour_rows(behaviour, mask, row):
-    """One table row per behaviour with samples under `mask`: [name, count, *row(sel)], sel that
-    behaviour's mask."""
-    rows = []
-    for b, name in enumerate(data_synth.BEHAVIOURS):
-        sel = mask & (behaviour == b)
-        if sel.any():
-            rows.append([name, str(int(sel.sum())), *row(sel)])
-    return rows
+    """A table row [name, count, *row(sel)] per behaviour with samples under `mask` (sel)."""
+    sels = [(name, mask & (behaviour == b)) for b, name in enumerate(data_synth.BEHAVIOURS)]
+    return [[name, str(int(sel.sum())), *row(sel)] for name, sel in sels if sel.any()]
 
 
-def _legend_right(ax):
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+# --- the notebook's figures (drawing only: each cell computes what it shows) ----------------------
+
+
+def _scene(ax, batch, i, title=None, extent=(-30, 60, -25, 25)):
+    """Sample i drawn in the ego frame (data_synth.plot_scenario), on axes in metres."""
+    data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
+    ax.set(xlabel="x (m)", ylabel="y (m)")
+
+
+def _colorbar(fig, axes, cmap, norm, label, shrink, **kw):
+    """A colour bar for lines coloured by cmap under norm (no image to take it from)."""
+    bar = plt.cm.ScalarMappable(cmap=cmap, norm=norm)
+    fig.colorbar(bar, ax=axes, shrink=shrink, label=label, **kw)
+
+
+def _show(fig, title):
+    fig.suptitle(title, fontsize=10)
+    plt.show()
 
 
 def figure_stack():
-    """§1: the modules (boxes), the forward data flow (black) and the gradient path of DiffStack
-    (red, dashed)."""
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import FancyBboxPatch
-
+    """§1: the modules, the forward data flow (black), DiffStack's gradient path (red)."""
     _, ax = plt.subplots(figsize=(10, 4.2))
     ax.set(xlim=(0, 10), ylim=(-0.55, 4.45))
     ax.axis("off")
-    boxes = {
-        "inputs": (0.1, 1.7, "history of all agents\nlanes, goal"),
-        "pred": (2.45, 1.7, "Predictor\n(CVAE, learned θ)"),
-        "plan": (4.8, 1.7, "Planner\nsplines + argmin"),
-        "ctrl": (7.15, 1.7, "Controller\nbox-iLQR"),
-    }
-    for key, (x, y, text) in boxes.items():
-        color = "#e8e8e8" if key == "inputs" else ("#ffd9b3" if key == "pred" else "#cfe2f3")
-        ax.add_patch(FancyBboxPatch((x, y), 1.9, 1.0, boxstyle="round,pad=0.05", fc=color, ec="k"))
-        ax.text(x + 0.95, y + 0.5, text, ha="center", va="center", fontsize=9)
+    boxes = (
+        (0.1, "#e8e8e8", "history of all agents\nlanes, goal"),
+        (2.45, "#ffd9b3", "Predictor\n(CVAE, learned θ)"),
+        (4.8, "#cfe2f3", "Planner\nsplines + argmin"),
+        (7.15, "#cfe2f3", "Controller\nbox-iLQR"),
+    )
+    for x, color, text in boxes:
+        ax.add_patch(FancyBboxPatch((x, 1.7), 1.9, 1, boxstyle="round,pad=0.05", fc=color, ec="k"))
+        ax.text(x + 0.95, 1.7 + 0.5, text, ha="center", va="center", fontsize=9)
 
     def arrow(x0, y0, x1, y1, **kw):
         return ax.annotate("", (x1, y1), (x0, y0), arrowprops=dict(arrowstyle="->", **kw))
 
-    for x0, x1, label in (
-        (2.0, 2.45, ""),
-        (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"),
-        (6.7, 7.15, r"plan $u^{(0)}$"),
-    ):
+    flow = ((2.0, 2.45, ""), (4.35, 4.8, r"$\hat s_{k,t},\ \pi_k$"), (6.7, 7.15, r"plan $u^{(0)}$"))
+    for x0, x1, label in (*flow, (9.05, 9.6, "")):
         arrow(x0, 2.2, x1, 2.2, lw=1.5)
         ax.text((x0 + x1) / 2, 1.4, label, ha="center", fontsize=9)
-    arrow(9.05, 2.2, 9.6, 2.2, lw=1.5)
     ax.text(9.65, 2.2, "$s_{ctr}, u_{ctr}$", va="center", fontsize=9)
     # the losses, the arrows into them (black) and the gradient paths back to the predictor (red)
-    for x, text in (
+    losses = (
         (3.4, r"$\mathcal{L}_{pred}$" "\n(GT future)"),
         (5.75, r"$\mathcal{L}_{plan} = -\log p_{n^*}$" "\n" r"$p_n \propto e^{-\beta C_n}$"),
         (8.1, r"$\mathcal{L}_{ctr}$" "\n(hindsight cost / MSE)"),
-    ):
-        ax.text(
-            x, 0.45, text, ha="center", va="center", fontsize=9, bbox=dict(fc="white", ec="tab:red")
-        )
+    )
+    frame = dict(fc="white", ec="tab:red")
+    for x, text in losses:
+        ax.text(x, 0.45, text, ha="center", va="center", fontsize=9, bbox=frame)
         arrow(x, 1.65, x, 0.9, lw=1)
-    red = dict(color="tab:red", lw=1.8, ls="--")
-    ax.annotate(
-        "",
-        (3.55, 2.8),
-        (5.75, 2.8),
-        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.45", **red),
+    gradients = (
+        (5.75, 3.55, 0.45, 4.65, 2.93, r"$\partial\mathcal{L}_{plan} / \partial \hat s$"),
+        (8.1, 3.25, 0.35, 6.9, 3.85, r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)"),
     )
-    ax.annotate(
-        "",
-        (3.25, 2.8),
-        (8.1, 2.8),
-        arrowprops=dict(arrowstyle="->", connectionstyle="arc3,rad=0.35", **red),
-    )
-    ax.text(
-        4.65,
-        2.93,
-        r"$\partial\mathcal{L}_{plan} / \partial \hat s$",
-        color="tab:red",
-        ha="center",
-        fontsize=9,
-    )
-    ax.text(
-        6.9,
-        3.85,
-        r"$\partial\mathcal{L}_{ctr} / \partial \hat s$ (KKT)",
-        color="tab:red",
-        ha="center",
-        fontsize=9,
-    )
+    for x0, x1, rad, x, y, text in gradients:
+        arrow(x0, 2.8, x1, 2.8, connectionstyle=f"arc3,rad={rad}", color="tab:red", lw=1.8, ls="--")
+        ax.text(x, y, text, color="tab:red", ha="center", fontsize=9)
     ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
-    ax.text(
-        5.0,
-        -0.4,
+    backward = (
         "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the "
-        "iLQR solution (KKT, §5); both reach θ through the predictions",
-        ha="center",
-        fontsize=8.5,
-        color="tab:red",
+        "iLQR solution (KKT, §5); both reach θ through the predictions"
     )
+    ax.text(5.0, -0.4, backward, ha="center", fontsize=8.5, color="tab:red")
     plt.show()
 
 
-PAIRS = (
-    ("cut_in", "keep_lane"),
-    ("lead_brake", "lead_cruise"),
-    ("turn_across", "go_straight"),
-    ("cross_go", "cross_yield"),
-)
-
-
 def scene_legend(fig, extra=(), ncol=4):
-    """A figure legend for data_synth.plot_scenario's drawing (proxy artists), and `extra` (handles)
-    below the panels."""
-    from matplotlib.lines import Line2D
-
+    """A legend for data_synth.plot_scenario's drawing, and `extra` handles, below the panels."""
+    box = dict(marker="s", ms=7)
     handles = [
-        Line2D([], [], color="tab:blue", ls="--", marker="s", ms=7, label="ego (GT future dashed)"),
+        Line2D([], [], color="tab:blue", ls="--", label="ego (GT future dashed)", **box),
         Line2D([], [], color="tab:blue", ls="", marker="*", ms=12, mec="k", label="goal g"),
-        Line2D([], [], color="tab:orange", marker="s", ms=7, label="predicted vehicle (GT future)"),
-        Line2D([], [], color="0.6", marker="s", ms=7, label="other vehicles"),
+        Line2D([], [], color="tab:orange", label="predicted vehicle (GT future)", **box),
+        Line2D([], [], color="0.6", label="other vehicles", **box),
         Line2D([], [], color="tab:green", marker="o", ms=5, label="pedestrians"),
         Line2D([], [], color="k", ls=":", label="history (4 s)"),
         Line2D([], [], color="k", marker=".", label="GT future (3 s, dots every 0.5 s)"),
         Line2D([], [], color="0.75", label="lanes (arrow: direction)"),
-        *extra,
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8)
+    fig.legend(handles=handles + list(extra), loc="outside lower center", ncol=ncol, fontsize=8)
 
 
 def figure_scenarios(val, extent=(-20, 50, -20, 20)):
-    """§2: the first validation sample of each behaviour of the four PAIRS, one column per pair
-    (top: the vehicle acts, bottom: its twin does not), in the ego frame at t0, with a legend."""
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(
-        2, len(PAIRS), figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True
-    )
-    for col, pair in enumerate(PAIRS):
+    """§2: the first validation sample of each of four pairs of behaviours, a pair a column."""
+    acts = ("cut_in", "lead_brake", "turn_across", "cross_go")
+    twins = ("keep_lane", "lead_cruise", "go_straight", "cross_yield")
+    kw = dict(figsize=(15, 5.8), layout="constrained", sharex=True, sharey=True)
+    fig, axes = plt.subplots(2, len(acts), **kw)
+    for col, pair in enumerate(zip(acts, twins)):
         for row, name in enumerate(pair):
             i = first_of(val, name)
-            title = f"{name} (val sample {i})"
-            data_synth.plot_scenario(axes[row, col], val, i, title=title, extent=extent)
+            data_synth.plot_scenario(axes[row, col], val, i, f"{name} (val sample {i})", extent)
             axes[row, col].set(xlabel="x (m)" if row else "", ylabel="y (m)" if col == 0 else "")
     scene_legend(fig)
-    fig.suptitle(
+    title = (
         "The four pairs of behaviours (columns): the same set-up, then the predicted vehicle acts "
-        "(top: cuts in, brakes, turns across, crosses) or does not (bottom)",
-        fontsize=10,
+        "(top: cuts in, brakes, turns across, crosses) or does not (bottom)"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1.5):
-    """§3: one step of the cost over the ego's position (grid gx, gy): C_coll, C_goal, C_lat on
-    their own colour scales, the weighted sum on a log scale with contours of w_coll * C_coll over
-    it; the vehicles' positions at t (the step) marked where their bumps are."""
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-    from matplotlib.lines import Line2D
-
+    """§3: one step t of the cost over the ego's position, term by term and weighted."""
     coll = w_coll * c_coll
     terms = {
         f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
@@ -359,110 +243,68 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
         r"contours: $w_1C_{coll}$": (c_sum, LogNorm(max(c_sum.min().item(), 0.1), c_sum.max())),
     }
     fig, axes = plt.subplots(2, 2, figsize=(12, 6.6), layout="constrained")
-    at_t = dict(ms=11, mec="k", ls="", zorder=9)
+    at_t = dict(marker="X", ms=11, mec="k", ls="", zorder=9)
     for ax, (name, (val, norm)) in zip(axes.flat, terms.items()):
         vmax = val.quantile(0.95).item() if "lat" in name else None
         kw = dict(norm=norm) if norm else dict(vmax=vmax)
         im = ax.pcolormesh(gx, gy, val.reshape(gx.shape), shading="auto", cmap="magma_r", **kw)
-        data_synth.plot_scenario(ax, ex, 0, title=name, extent=(-10, 45, -12, 12))
+        _scene(ax, ex, 0, name, (-10, 45, -12, 12))
         fig.colorbar(im, ax=ax, shrink=0.9, label="cost")
-        ax.plot(*ctx_t.preds[0, 0, 0].tolist(), "X", color="tab:orange", **at_t)
+        ax.plot(*ctx_t.preds[0, 0, 0].tolist(), color="tab:orange", **at_t)
         for ped, color in ((False, "0.6"), (True, "tab:green")):
             sel = (ctx_t.others_mask[0] > 0) & (ex.others_is_ped[0] == ped)
-            xy = ctx_t.others[0, sel, 0]  # (agents, 2) at t
-            ax.plot(xy[:, 0], xy[:, 1], "X", color=color, **at_t)
-        ax.set(xlabel="x (m)", ylabel="y (m)")
+            ax.plot(*ctx_t.others[0, sel, 0].T, color=color, **at_t)  # the agents at t
     levels = [v for v in (0.5, 1.0, 2.0, 4.0) if v < coll.max()]
     cs = axes[1, 1].contour(gx, gy, coll.reshape(gx.shape), levels, colors="tab:cyan", zorder=8)
     axes[1, 1].clabel(cs, fontsize=7)
-    marker = dict(marker="X", ms=10, mec="k", ls="")
-    scene_legend(
-        fig,
-        [
-            Line2D([], [], color="tab:orange", label=f"predicted vehicle at t = {t:g} s", **marker),
-            Line2D([], [], color="0.6", label=f"other vehicles at t = {t:g} s", **marker),
-            Line2D([], [], color="tab:green", label=f"pedestrians at t = {t:g} s", **marker),
-            Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"),
-        ],
-        ncol=6,
-    )
-    fig.suptitle(
+    at = dict(marker="X", ms=10, mec="k", ls="")
+    who = {"tab:orange": "predicted vehicle", "0.6": "other vehicles", "tab:green": "pedestrians"}
+    extra = [Line2D([], [], color=c, label=f"{w} at t = {t:g} s", **at) for c, w in who.items()]
+    extra.append(Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"))
+    scene_legend(fig, extra, ncol=6)
+    title = (
         f"One step of the cost (t = {t:g} s) over the ego's position, a cut-in: the collision "
         f"term adds at most {coll.max():.1f} (bumps at the vehicles' positions at {t:g} s, "
         f"crosses) to a sum of {c_sum.min():.1f} .. {c_sum.max():.0f},\nmostly the goal's bowl: it "
-        "decides only between positions that the goal and the lanes rate alike",
-        fontsize=10,
+        "decides only between positions that the goal and the lanes rate alike"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
-    """§4: one sample's candidates under several β, coloured by p_n (one log scale), the plan
-    (argmin) black dashed, axes zoomed on the candidates."""
-    import math
-
-    import matplotlib.pyplot as plt
-
-    xy = cands.x[0][cands.valid[0]][..., :2]  # (N_valid, T+1, 2)
-    box = (
-        xy[..., 0].min().item() - 3,
-        xy[..., 0].max().item() + 6,
-        xy[..., 1].min().item() - 3,
-        xy[..., 1].max().item() + 3,
-    )
-    norm = plt.matplotlib.colors.LogNorm(1e-4, 1)
-    fig, axes = plt.subplots(
-        len(betas), 1, figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True
-    )
+    """§4: one sample's candidates coloured by p_n under several β, and the plan."""
+    xy = cands.x[0][cands.valid[0]][..., :2].flatten(0, 1)  # the valid candidates' positions
+    lo, hi = xy.min(0).values.tolist(), xy.max(0).values.tolist()
+    box = (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3)  # zoomed on the candidates
+    norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
+    kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
+    fig, axes = plt.subplots(len(betas), 1, **kw)
     for ax, beta in zip(axes, betas):
         p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
-        data_synth.plot_scenario(ax, ex, 0, extent=box)
-        ax.set(xlabel="x (m)" if ax is axes[-1] else "", ylabel="y (m)")
+        _scene(ax, ex, 0, extent=box)
+        ax.set(xlabel="x (m)" if ax is axes[-1] else "")
         for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
             if cands.valid[0, n]:
-                ax.plot(
-                    cands.x[0, n, :, 0],
-                    cands.x[0, n, :, 1],
-                    color=plt.cm.viridis(norm(max(p[n].item(), 1e-4))),
-                    lw=1.0 + 2 * p[n].item() ** 0.5,
-                    zorder=7,
-                )
-        ax.plot(
-            cands.x[0, best[0], :, 0],
-            cands.x[0, best[0], :, 1],
-            "k--",
-            lw=1.5,
-            zorder=8,
-            label="plan (argmin)",
-        )
-        ax.set_title(
-            f"β = {beta}: max p_n = {p.max():.2f}, entropy "
-            f"{-(p[p > 0] * p[p > 0].log()).sum():.2f} nats (uniform over "
-            f"{int(cands.valid.sum())}: {math.log(int(cands.valid.sum())):.2f})",
-            fontsize=9,
-        )
-        _legend_right(ax)
-    fig.colorbar(
-        plt.cm.ScalarMappable(cmap="viridis", norm=norm),
-        ax=axes,
-        shrink=0.6,
-        label="p_n (log scale)",
-    )
+                colour = plt.cm.viridis(norm(max(p[n].item(), 1e-4)))
+                ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
+        ax.plot(*x[best[0]].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
+        entropy = -(p[p > 0] * p[p > 0].log()).sum()
+        uniform = f"uniform over {valid}: {math.log(valid):.2f}"
+        title = f"β = {beta}: max p_n = {p.max():.2f}, entropy {entropy:.2f} nats ({uniform})"
+        ax.set_title(title, fontsize=9)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    _colorbar(fig, axes, "viridis", norm, "p_n (log scale)", 0.6)
     plt.show()
 
 
 def figure_beta_signal(betas, extra, beta_paper, n):
     """§4: what ignoring the vehicle adds to the mean L_plan (`extra`, nats) at each β of `betas`,
     the title read off the curve: from which β on it grows monotonically, and any bump below."""
-    import matplotlib.pyplot as plt
-
     e = np.asarray(extra)
     up = next(i for i in range(len(e)) if (np.diff(e[i:]) > 0).all())  # monotone from betas[up]
     at = float(np.interp(np.log(beta_paper), np.log(betas), e))
-    bump = ""
-    if up > 0:
-        k = int(e[: up + 1].argmax())
-        bump = f"; below, a bump at β = {betas[k]:.2g} ({e[k]:.3f})" if k < up else ""
+    k = int(e[: up + 1].argmax())  # (a bump below betas[up]: k < up)
+    bump = f"; below, a bump at β = {betas[k]:.2g} ({e[k]:.3f})" if k < up else ""
     _, ax = plt.subplots(figsize=(8, 3.8), layout="constrained")
     ax.plot(betas, e, "o-", ms=3, color="tab:red", label="mean over the samples")
     ax.set(xscale="log", yscale="log", xlabel="β (1/cost)")
@@ -479,101 +321,47 @@ def figure_beta_signal(betas, extra, beta_paper, n):
 
 
 def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
-    """§4: -dL_plan/d(prediction) as arrows (one scale, the longest 6 m) on the samples `show`
-    (three), with the prediction, the target n* and the plan."""
-    import matplotlib.pyplot as plt
-
+    """§4: -dL_plan/d(prediction) as arrows (one scale) on the samples `show`."""
     scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
-    fig, axd = plt.subplot_mosaic(
-        [["a", "b"], ["c", "c"]], figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1)
-    )
+    kw = dict(figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
+    fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], **kw)
     for ax, j in zip(axd.values(), show):
-        P = preds[j, 0].detach()
-        pts = torch.cat(
-            [P, bg.agent_fut[j, :, :2], cands.x[j, target[j], :, :2], bg.ego_hist[j, -1:, :2]]
+        P, x, aim = preds[j, 0].detach(), cands.x[j, :, :, :2], cands.x[j, target[j], :, :2]
+        pts = torch.cat([P, bg.agent_fut[j, :, :2], aim, bg.ego_hist[j, -1:, :2]])
+        title = (
+            f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
+            f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
+            f"{'=' if best[j] == target[j] else '≠'} target n*"
         )
-        lo, hi = pts.min(0).values, pts.max(0).values
-        data_synth.plot_scenario(
-            ax,
-            bg,
-            j,
-            extent=(lo[0].item() - 6, hi[0].item() + 6, lo[1].item() - 5, hi[1].item() + 5),
-            title=(
-                f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
-                f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
-                f"{'=' if best[j] == target[j] else '≠'} target n*"
-            ),
-        )
-        ax.set(xlabel="x (m)", ylabel="y (m)")
-        ax.plot(
-            P[:, 0],
-            P[:, 1],
-            "o-",
-            color="tab:red",
-            ms=4,
-            lw=1,
-            zorder=8,
-            label="prediction (constant velocity)",
-        )
-        ax.quiver(
-            P[:, 0],
-            P[:, 1],
-            -scale * grad[j, 0, :, 0],
-            -scale * grad[j, 0, :, 1],
-            color="tab:red",
-            angles="xy",
-            scale_units="xy",
-            scale=1,
-            width=0.004,
-            zorder=9,
-            label="-dL_plan/dŝ_t (one scale)",
-        )
-        ax.plot(
-            cands.x[j, target[j], :, 0],
-            cands.x[j, target[j], :, 1],
-            "g-",
-            lw=3,
-            alpha=0.6,
-            zorder=7,
-            label="target n* (cheapest in hindsight)",
-        )
-        ax.plot(
-            cands.x[j, best[j], :, 0],
-            cands.x[j, best[j], :, 1],
-            "k--",
-            lw=1.5,
-            zorder=7,
-            label="plan with this prediction",
-        )
+        lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+        _scene(ax, bg, j, title, (lo[0] - 6, hi[0] + 6, lo[1] - 5, hi[1] + 5))
+        red = dict(color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
+        ax.plot(*P.T, "o-", **red)
+        arrows = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9)
+        label = "-dL_plan/dŝ_t (one scale)"
+        ax.quiver(*P.T, *(-scale * grad[j, 0]).T, color="tab:red", label=label, **arrows)
+        ax.plot(*aim.T, "g-", lw=3, alpha=0.6, zorder=7, label="target n* (cheapest in hindsight)")
+        ax.plot(*x[best[j]].T, "k--", lw=1.5, zorder=7, label="plan with this prediction")
     axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
-    fig.suptitle(
+    title = (
         "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a "
         "constant-velocity prediction\n(orange: the vehicle's true future; red arrows: where a "
-        "gradient step moves each predicted position)",
-        fontsize=10,
+        "gradient step moves each predicted position)"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
-    """§5: left, the cost over iLQR's iterations relative to the plan's (`rel`, every sample and the
-    mean); right, sample i: the controller's position minus the plan's over time (x, y, distance),
-    and the controls over time (the plan's dashed, the controller's solid; grey band: the box)."""
-    import matplotlib.pyplot as plt
-
-    _, axd = plt.subplot_mosaic(
-        [["cost", "map", "map"], ["cost", "w", "a"]], figsize=(13, 6), layout="constrained"
-    )
+    """§5: the cost over iLQR's iterations relative to the plan's (`rel`); for sample i, the
+    controller's position minus the plan's, and both controls over time (grey band: the box)."""
+    mosaic = [["cost", "map", "map"], ["cost", "w", "a"]]
+    _, axd = plt.subplot_mosaic(mosaic, figsize=(13, 6), layout="constrained")
     ax = axd["cost"]
     ax.plot(rel.T, color="tab:blue", alpha=0.15, lw=0.8)
     ax.plot(rel.mean(0), color="k", lw=2, label="mean")
-    ax.set(
-        xlabel="iteration",
-        ylabel="cost / cost of the plan",
-        title="iLQR: the true cost never rises\n(line search), mean in black",
-    )
+    title = "iLQR: the true cost never rises\n(line search), mean in black"
+    ax.set(xlabel="iteration", ylabel="cost / cost of the plan", title=title)
     ax.legend(loc="lower left")
-    ax.grid(alpha=0.3)
     ax = axd["map"]
     tt = cfg.dt * torch.arange(len(plan_x))  # (T+1,) s
     diff = ctrl_x[:, :2] - plan_x[:, :2]  # (T+1, 2) m
@@ -582,16 +370,15 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     ax.plot(tt, diff.norm(dim=-1), "k:", lw=1.5, label="distance")
     ax.axhline(0, color="0.5", lw=0.8)
     ax.set(xlabel="time (s)", ylabel="controller − plan (m)")
-    ax.grid(alpha=0.3)
-    big = int(diff.abs().max(0).values.argmax())
+    top = diff.abs().max(0).values  # (2,) m the largest change along x, along y
+    big = int(top.argmax())
     ax.set_title(
         f"sample {i} ({data_synth.BEHAVIOURS[int(batch.behaviour[i])]}): the controller's position "
-        f"minus the plan's;\nthe change is along {'xy'[big]}, up to "
-        f"{diff[:, big].abs().max():.2f} m "
-        f"(along {'yx'[big]}: at most {diff[:, 1 - big].abs().max():.2f} m)",
+        f"minus the plan's;\nthe change is along {'xy'[big]}, up to {top[big]:.2f} m (along "
+        f"{'yx'[big]}: at most {top[1 - big]:.2f} m)",
         fontsize=9,
     )
-    _legend_right(ax)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
     tt_u = cfg.dt * torch.arange(len(plan_u))
     for key, j, label in (("w", 0, "yaw rate ω (rad/s)"), ("a", 1, "acceleration a (m/s²)")):
         ax = axd[key]
@@ -600,146 +387,93 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
         ax.step(tt_u, ctrl_u[:, j], "-", where="post", color="purple", lw=2, label="controller")
         lim = max(plan_u[:, j].abs().max().item(), ctrl_u[:, j].abs().max().item()) * 1.3 + 0.05
         ax.set(ylim=(-lim, lim), xlabel="time (s)", ylabel=label)
+    for ax in axd.values():
         ax.grid(alpha=0.3)
     axd["w"].legend(loc="best")
     plt.show()
 
 
+def _modes_panel(ax, sub, pred, j, norm_p):
+    """figure_modes' panel of sample j, zoomed on the predicted vehicle."""
+    K = pred.probs.shape[1]
+    P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
+    pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
+    c = ((pts.max(0).values + pts.min(0).values) / 2).tolist()
+    half = ((pts.max(0).values - pts.min(0).values) / 2 + 1.5).tolist()
+    hx, hy = max(half[0], 1.3 * half[1]), max(half[1], half[0] / 1.3)  # the panels' shape
+    top3 = ", ".join(f"{q:.2f}" for q in pred.probs[j].sort(descending=True).values[:3].tolist())
+    title = f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = {top3}"
+    _scene(ax, sub, j, title, (c[0] - hx, c[0] + hx, c[1] - hy, c[1] + hy))
+    figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # 1σ ellipses, faint modes
+    for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
+        pk = pred.probs[j, k].item()
+        colour = plt.cm.viridis_r(norm_p(pk))
+        ax.plot(*P[k].T, color=colour, lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
+    k = int(pred.probs[j].argmax())
+    label = f"most likely, p = {pred.probs[j, k]:.2f}"
+    above = dict(xytext=(0, 14), textcoords="offset points", fontsize=8, ha="center", zorder=10)
+    arrow, frame = dict(arrowstyle="-", lw=0.6), dict(fc="white", ec="0.5", alpha=0.9, pad=1)
+    ax.annotate(label, P[k, -1].tolist(), arrowprops=arrow, bbox=frame, **above)
+
+
 def figure_modes(sub, pred, label):
-    """§6: a predictor's (`label`: which) K modes on the samples of `sub`, coloured and widened by
-    p(z = k | x) (one colour scale), the most likely labelled, the three largest probabilities in
-    each title, 1σ ellipses of the most likely mode; zoomed on the predicted vehicle (its last
-    history steps, the modes and its true future); the title says how far apart the modes end and
-    how close the closest comes to the truth."""
-    import matplotlib.pyplot as plt
-
-    import figures
-
+    """§6: a predictor's (`label`) K modes on the samples of `sub`, coloured by p(z = k | x)."""
     norm_p = plt.Normalize(0, pred.probs.max().item())
     fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
     for j, ax in enumerate(axes):
-        # P: (K, 1+T, 2)
-        P = torch.cat(
-            [pred.s0[j, None, None, :2].expand(pred.probs.shape[1], 1, 2), pred.means[j]], 1
-        )
-        # the vehicle, not the ego
-        pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
-        c, half = (
-            (pts.max(0).values + pts.min(0).values) / 2,
-            (pts.max(0).values - pts.min(0).values) / 2 + 1.5,
-        )
-        # the panels' shape
-        hx, hy = (
-            max(half[0].item(), 1.3 * half[1].item()),
-            max(half[1].item(), half[0].item() / 1.3),
-        )
-        top3 = pred.probs[j].sort(descending=True).values[:3].tolist()
-        data_synth.plot_scenario(
-            ax,
-            sub,
-            j,
-            extent=(c[0].item() - hx, c[0].item() + hx, c[1].item() - hy, c[1].item() + hy),
-            title=f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = "
-            + ", ".join(f"{q:.2f}" for q in top3),
-        )
-        # the 1σ ellipses (and faint modes)
-        figures.plot_prediction(ax, pred, j, color="tab:red", label=None)
-        for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
-            pk = pred.probs[j, k].item()
-            ax.plot(
-                P[k, :, 0],
-                P[k, :, 1],
-                color=plt.cm.viridis_r(norm_p(pk)),
-                lw=0.6 + 3 * pk / norm_p.vmax,
-                zorder=8,
-            )
-        k = int(pred.probs[j].argmax())
-        ax.annotate(
-            f"most likely, p = {pred.probs[j, k]:.2f}",
-            P[k, -1].tolist(),
-            xytext=(0, 14),
-            textcoords="offset points",
-            fontsize=8,
-            ha="center",
-            zorder=10,
-            arrowprops=dict(arrowstyle="-", lw=0.6),
-            bbox=dict(fc="white", ec="0.5", alpha=0.9, pad=1),
-        )
-    fig.colorbar(
-        plt.cm.ScalarMappable(cmap="viridis_r", norm=norm_p),
-        ax=axes,
-        shrink=0.8,
-        label="mode probability p(z = k | x)",
-    )
-    from matplotlib.lines import Line2D
-
-    for ax in axes:
-        ax.set(xlabel="x (m)", ylabel="y (m)")
-    kinds = (("tab:blue", "-", "a mode (colour, width: p)"), ("tab:orange", ".-", "true future"))
+        _modes_panel(ax, sub, pred, j, norm_p)
+    _colorbar(fig, axes, "viridis_r", norm_p, "mode probability p(z = k | x)", 0.8)
     handles = [
-        Line2D([], [], color=c, ls=ls[-1], marker=ls[:-1] or None, label=t) for c, ls, t in kinds
+        Line2D([], [], color="tab:blue", ls="-", label="a mode (colour, width: p)"),
+        Line2D([], [], color="tab:orange", ls="-", marker=".", label="true future"),
+        Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"),
     ]
-    handles.append(Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"))
     axes[0].legend(handles=handles, loc="lower left", fontsize=7)
     ends = pred.means[:, :, -1, :2]  # (B, K, 2) the modes' positions at T
     likely = pred.probs >= 0.05  # (B, K) the modes drawn thick enough to see
     spread = max(torch.cdist(e[m], e[m]).max().item() for e, m in zip(ends, likely))
     closest = (ends - sub.agent_fut[:, None, -1, :2]).norm(dim=-1).min(-1).values  # (B,)
     top = pred.probs.max(-1).values
-    fig.suptitle(
+    title = (
         f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future). "
         f"The most likely mode has p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 "
         f"end up to {spread:.1f} m apart,\nand the closest mode ends {closest.min():.1f} .. "
-        f"{closest.max():.1f} m from the true position at T = 3 s",
-        fontsize=10,
+        f"{closest.max():.1f} m from the true position at T = 3 s"
     )
-    plt.show()
+    _show(fig, title)
 
 
 def figure_goal(goal_res):
-    """§7: what the GT future saves per behaviour (x1e-2, each behaviour's part of the all-scene
-    mean), the paper's goal against a route goal, from results/goal.json; the title names the
-    behaviours with a quarter or more of each saving. Returns route's saving / the paper goal's."""
-    import matplotlib.pyplot as plt
-
+    """§7: what the GT future saves per behaviour (x1e-2), the paper's goal against a route goal
+    (results/goal.json). Returns route's saving / the paper goal's."""
     # one scale: compare the sizes
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
-    behaviours = [
-        b
-        for b in data_synth.BEHAVIOURS
-        if b in goal_res["logged"]["No prediction"][0]["by_behaviour"]
-    ]
+    by = goal_res["logged"]["No prediction"][0]["by_behaviour"]
+    behaviours = [b for b in data_synth.BEHAVIOURS if b in by]
+    colours = ["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours]
     total, most = {}, {}
     for ax, goal in zip(axes, ("logged", "route")):
         none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
+        nb, gb = none["by_behaviour"], gt["by_behaviour"]
+        # each behaviour's part of the all-scene mean
         saved = [
-            (gt["by_behaviour"][b]["hindsight"] - none["by_behaviour"][b]["hindsight"])
-            * none["by_behaviour"][b]["n"]
-            # each behaviour's part of the all-scene mean
-            / none["n"]
-            / 1e-2
+            (gb[b]["hindsight"] - nb[b]["hindsight"]) * nb[b]["n"] / none["n"] / 1e-2
             for b in behaviours
         ]
-        ax.barh(
-            behaviours,
-            saved,
-            color=["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours],
-        )
+        ax.barh(behaviours, saved, color=colours)
         ax.axvline(0, color="k", lw=0.8)
         name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
         ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
         total[goal] = -sum(saved)
-        order = np.argsort(saved)  # the largest savings first
-        most[goal] = [behaviours[k] for k in order if saved[k] < -0.25 * total[goal]]
+        most[goal] = [behaviours[k] for k in np.argsort(saved) if saved[k] < -0.25 * total[goal]]
         ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
         ax.grid(axis="x", alpha=0.3)
     axes[0].invert_yaxis()
     ratio = total["route"] / total["logged"]
     fig.suptitle(
         f"What a perfect prediction saves: under the paper's goal {total['logged']:.2f}e-2, most "
-        f"in "
-        f"{' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most in "
-        f"{' and '.join(most['route'])} (red: cut_in, lead_brake)",
+        f"in {' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most "
+        f"in {' and '.join(most['route'])} (red: cut_in, lead_brake)",
         fontsize=10,
     )
     plt.tight_layout()
@@ -747,203 +481,123 @@ def figure_goal(goal_res):
     return ratio
 
 
-def curve_change(v):
-    """How a per-batch loss curve moved: (mean of its first quarter, of its last quarter, whether
-    the change exceeds twice its standard error from the batch-to-batch spread)."""
-    v = np.asarray(v, dtype=float)
-    n = max(2, len(v) // 4)
-    first, last = v[:n].mean(), v[-n:].mean()
-    se = np.sqrt(v[:n].var(ddof=1) / n + v[-n:].var(ddof=1) / n)
-    return first, last, abs(last - first) > 2 * se
-
-
 def figure_learning_curves(histories):
-    """§7: per-batch training losses of {name: (history, colour)} (faint) and their 10-step mean
-    (solid); a method that does not run the stack in training (no l_plan) has only an
-    L_pred curve. Each panel's title: the mean of the first and the last quarter of the steps, and
-    whether the change exceeds the batch-to-batch noise (curve_change)."""
-    import matplotlib.pyplot as plt
-
+    """§7: per-batch training losses of {name: (history, colour)} and their 10-step mean (Standard,
+    which does not run the stack in training, has only L_pred)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
     moved, steps = [], 0
-    for key, ax, label in (
-        ("l_pred", axes[0], "L_pred (nats)"),
-        ("l_plan", axes[1], "L_plan (nats)"),
-        ("l_ctr", axes[2], "L_ctr = hindsight cost"),
-    ):
+    ylab = {"l_pred": "L_pred (nats)", "l_plan": "L_plan (nats)", "l_ctr": "L_ctr = hindsight cost"}
+    for ax, (key, label) in zip(axes, ylab.items()):
         title = []
         for name, (h, color) in histories.items():
             if key != "l_pred" and name == "Standard":
                 continue
-            v = [r[key] for r in h]
+            v = np.asarray([r[key] for r in h], dtype=float)
             steps = len(v)
             ax.plot(range(1, len(v) + 1), v, color=color, alpha=0.25, lw=0.8)
-            sm = smooth(v)
+            # the 10-step mean (the whole series when it is shorter)
+            sm = np.convolve(v, np.ones(10) / 10, mode="valid") if len(v) >= 10 else v
             ax.plot(np.arange(len(v) - len(sm) + 1, len(v) + 1), sm, color=color, lw=2, label=name)
-            first, last, real = curve_change(v)
+            # first and last quarter's means; real: they differ by over 2 s.e. (batch-to-batch)
+            q = max(2, len(v) // 4)
+            first, last = v[:q].mean(), v[-q:].mean()
+            real = abs(last - first) > 2 * np.sqrt(v[:q].var(ddof=1) / q + v[-q:].var(ddof=1) / q)
             fmt = "{:.3f}" if abs(first) < 10 else "{:.1f}"
-            change = f"{fmt.format(first)} → {fmt.format(last)}"
-            title.append(f"{name} {change}" + ("" if real else " (noise)"))
+            change = f"{fmt.format(first)} → {fmt.format(last)}" + ("" if real else " (noise)")
+            title.append(f"{name} {change}")
             moved += [f"{name}'s {label.split()[0]}"] if real else []
         ax.set(xlabel="training step", ylabel=label)
         ax.set_title("\n".join(title), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
-    fig.suptitle(
+    title = (
         f"Training losses per batch over {steps} steps (faint; solid: 10-step mean), first quarter "
         "→ last quarter of the steps; beyond the batch-to-batch noise (2 s.e.): "
-        + (", ".join(moved) or "none"),
-        fontsize=10,
     )
-    plt.show()
+    _show(fig, title + (", ".join(moved) or "none"))
 
 
-def figure_stacks(batch, i, outs, cfg, at="", also=None):
-    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack:
-    predictions, candidates coloured by p_n, plan, controller); `also` (outs of another run) adds
-    that run's controller states as circles."""
-    import matplotlib.pyplot as plt
-
-    import figures
-
+def figure_stacks(batch, i, outs, cfg):
+    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack)."""
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
     for ax, name in zip(axes, ("Standard", "DiffStack")):
-        figures.plot_stack(
-            ax,
-            batch,
-            i,
-            outs[name],
-            cfg,
-            f"{name}{at}: hindsight cost {outs[name].hindsight[i]:.2f}",
-            extent=(-12, 48, -10, 10),
-        )
+        title = f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}"
+        figures.plot_stack(ax, batch, i, outs[name], cfg, title, extent=(-12, 48, -10, 10))
         ax.set(xlabel="x (m)", ylabel="y (m)")
-        if also is not None:
-            ax.plot(
-                also[name].x[i, :, 0],
-                also[name].x[i, :, 1],
-                "o",
-                color="tab:purple",
-                ms=6,
-                mfc="none",
-                zorder=10,
-                label="controller at 0.5 s",
-            )
-        _legend_right(ax)
-    if also is None:
-        fig.colorbar(
-            plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1)),
-            ax=axes,
-            shrink=0.5,
-            label="candidate p_n / max p_n",
-            boundaries=np.linspace(0, 1, 101),
-            ticks=[0, 0.5, 1],
-        )
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ticks = dict(boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
+    norm = plt.Normalize(-1 / 3, 1)
+    _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
     plt.show()
 
 
 def closed_loop_spread(rollouts):
-    """(S,) m: per closed-loop scene, the largest distance between two methods' executed egos at
-    the same time."""
-    import figures
-
+    """(S,) m: per scene, the largest distance between two methods' executed egos."""
     return figures.widest_pair(rollouts).amax(-1)
 
 
 def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc (figures.figure_closed_loop: every method's executed ego trajectory,
-    how far each is from No prediction's in cm, the ego's speed over time)."""
-    import figures
-
+    """§8: closed-loop scene sc (figures.figure_closed_loop)."""
     figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
 def kkt_gradient_check(val, cfg, seed, out=print):
-    """§5's gradient check: on three validation samples where the predicted vehicle comes within
-    6 m (float64), iLQR solved to 1e-11, the gradient of a random linear function of its solution
-    with respect to the initial state, the cost weights and the prediction, by ds.ilqr_solve's KKT
-    backward (exact, and curvature-free as mpc.pytorch's) and by central differences of the
-    re-solved problem. Prints a line per input; returns {input: (exact's relative error,
-    curvature-free's)}."""
+    """§5: the gradient of a random linear function of iLQR's solution (float64, three samples
+    with the vehicle near) with respect to s0, w and the prediction, by the KKT backward (exact, and
+    curvature-free as mpc.pytorch's) against eval_numerical_gradient: {input: (their errors)}."""
     torch.manual_seed(seed)
     d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
     pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
-    b64 = val[pick].to(torch.float64)
+    b64 = val[pick].to(F64)
     ctx64 = gt_context(b64)
-    w64 = ds.cost_weights(cfg, torch.float64)
-    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in (cfg.u_lower, cfg.u_upper))
+    leaves = (b64.ego_hist[:, -1], ds.cost_weights(cfg, F64), ctx64.preds)  # s0, w, prediction
+    lo, hi = (torch.tensor(v, dtype=F64) for v in (cfg.u_lower, cfg.u_upper))
     uni = ds.Unicycle(cfg.dt)
 
     def fn(x, u, w, preds):
         return ds.total_cost(x, u, dataclasses.replace(ctx64, preds=preds), w, cfg.rbf_var)
 
-    s0 = b64.ego_hist[:, -1]
-    u0 = torch.zeros(3, 6, 2, dtype=torch.float64)
-    _, u_star, info = ds.ilqr(fn, uni, s0, u0, (w64, ctx64.preds), lo, hi, iters=50, tol=1e-11)
+    u0 = torch.zeros(3, 6, 2, dtype=F64)
+    _, u_star, info = ds.ilqr(fn, uni, leaves[0], u0, leaves[1:], lo, hi, iters=50, tol=1e-11)
     assert info.converged.all()
     g = torch.Generator().manual_seed(seed)
-    wx = torch.randn(3, 7, 4, generator=g, dtype=torch.float64)  # the loss's weights on x, u
-    wu = torch.randn(3, 6, 2, generator=g, dtype=torch.float64)
-    leaves = (s0, w64, ctx64.preds)
+    wx = torch.randn(3, 7, 4, generator=g, dtype=F64)  # the loss's weights on x, u
+    wu = torch.randn(3, 6, 2, generator=g, dtype=F64)
 
-    def kkt_grads(exact):
-        ls = [v.clone().requires_grad_() for v in leaves]
-        x, u, _ = ds.ilqr_solve(
-            fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=30, tol=1e-11, exact=exact
-        )
-        return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), ls)
-
-    def loss(i, v):  # the same loss, re-solved with leaf i replaced by v
-        ls = [*leaves[:i], v, *leaves[i + 1 :]]
-        x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+    def loss(ls, exact=None):  # the loss of the problem with these leaves, re-solved
+        if exact is None:  # iLQR alone, for finite differences
+            x, u, _ = ds.ilqr(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, iters=50, tol=1e-11)
+        else:  # and its KKT backward, exact or curvature-free
+            solve = dict(iters=30, tol=1e-11, exact=exact)
+            x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
         return (x * wx).sum() + (u * wu).sum()
 
-    def central_fd(i, idx, h=1e-4):
-        e = torch.zeros_like(leaves[i])
-        e[idx] = h
-        return (loss(i, leaves[i] + e) - loss(i, leaves[i] - e)) / (2 * h)
-
-    t0 = time.time()
-    exact, gn = kkt_grads(True), kkt_grads(False)
-    on_pred = [(b, 0, t, j) for b in range(3) for t in (1, 3, 5) for j in range(2)]  # (B, K, T, 2)
-    coords = {
-        "initial state s0": (0, [(b, j) for b in range(3) for j in range(4)]),
-        "cost weights w": (1, [(j,) for j in range(5)]),
-        "predicted trajectory": (2, on_pred),
-    }
+    t0, grads = time.time(), []
+    for exact in (True, False):
+        ls = [v.clone().requires_grad_() for v in leaves]
+        grads.append(torch.autograd.grad(loss(ls, exact), ls))
     errs = {}
-    for name, (i, idx) in coords.items():
-        fd = torch.stack([central_fd(i, j) for j in idx])
-        errs[name] = [rel_err(torch.stack([grad[i][j] for j in idx]), fd) for grad in (exact, gn)]
-        out(
-            f"  {name:22s} relative error vs finite differences: exact KKT {errs[name][0]:.1e}   "
-            f"curvature-free {errs[name][1]:.1e}"
+    for i, name in enumerate(("initial state s0", "cost weights w", "predicted trajectory")):
+        fd = eval_numerical_gradient(
+            lambda v: loss([*leaves[:i], v, *leaves[i + 1 :]]), leaves[i], 1e-4
         )
+        errs[name] = [((g[i] - fd).norm() / fd.norm()).item() for g in grads]
+        said = f"exact KKT {errs[name][0]:.1e}   curvature-free {errs[name][1]:.1e}"
+        out(f"  {name:22s} relative error vs finite differences: {said}")
     out(f"({time.time() - t0:.1f}s)")
     return errs
 
 
-# --- the module's code beside its equation, and the interactive planner ---------------------------
-
-
 def show_source(fn):
-    """Display a function's source, as the module has it (inspect reads the file the notebook
-    imported), under a line naming where it is."""
-    import inspect
-
-    from IPython.display import Markdown, display
-
+    """Display a function's source as the module has it, naming its file and line."""
     lines, first = inspect.getsourcelines(fn)
     where = f"`{fn.__module__}.{fn.__qualname__}`, {Path(inspect.getfile(fn)).name} line {first}"
     display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
 
 
 def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
-    """The relaxed planner of eq. (2) on one scenario `ex` (a batch of 1), its prediction the GT
-    future moved by `shift` (m, ego frame): the candidates' costs C (N,), their p_n (N,; softmax
-    of -beta C over the valid ones), the plan (argmin C) and the target n* (argmin of the
-    hindsight cost, with the true future), L_plan = -log p_{n*}, its gradient with respect to the
-    prediction (T, 2), and the candidates. A dict."""
+    """The relaxed planner of eq. (2) on `ex` (a batch of 1), its prediction the GT future moved
+    by `shift` (m): C, p_n, the plan, the target n*, L_plan and dL_plan/d(prediction) (T, 2)."""
     ctx = gt_context(ex)
     preds = (ctx.preds + torch.tensor(shift, dtype=ctx.preds.dtype)).requires_grad_()
     w = ds.cost_weights(cfg, ctx.preds.dtype)
@@ -952,47 +606,38 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
     target = ds.masked_argmin(ds.total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var), cands.valid)
     l_plan = ds.plan_loss(cost, cands.valid, target, beta)
     (grad,) = torch.autograd.grad(l_plan.sum(), preds)  # (1, K=1, T, 2)
-    logits = torch.where(cands.valid, -beta * cost.detach(), -math.inf)
-    return dict(
-        cost=cost.detach()[0],
-        p=torch.softmax(logits, -1)[0],
-        plan=int(plan[0]),
-        target=int(target[0]),
-        l_plan=l_plan.item(),
-        grad=grad[0, 0],
-        pred=preds.detach()[0, 0],
-        cands=cands,
+    p = torch.softmax(torch.where(cands.valid, -beta * cost.detach(), -math.inf), -1)[0]
+    view = dict(cost=cost.detach()[0], p=p, plan=int(plan[0]), target=int(target[0]))
+    return dict(view, l_plan=l_plan.item(), grad=grad[0, 0], pred=preds.detach()[0, 0], cands=cands)
+
+
+def draw_planner_view(ax, ex, cfg, shift, beta):
+    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n, the plan, the
+    target n*, the moved prediction and -dL_plan/dŝ as arrows."""
+    v = planner_view(ex, cfg, shift, beta)
+    hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
+    title = (
+        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {v['l_plan']:.2f}, "
+        f"{hit},\nlargest |dL/dŝ_t| {v['grad'].norm(dim=-1).max():.2f} 1/m"
     )
-
-
-def draw_planner_view(ax, ex, view, title=""):
-    """One planner_view drawn: the candidates coloured by p_n (log scale), the plan (black
-    dashed), the target n* (green), the moved prediction (red) and -dL_plan/dŝ as arrows."""
-    import matplotlib.pyplot as plt
-
-    data_synth.plot_scenario(ax, ex, 0, title=title, extent=(-10, 45, -12, 12))
-    x = view["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
-    colour = plt.cm.viridis(np.clip(1 + np.log10(view["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
-    for n in torch.nonzero(view["cands"].valid[0]).flatten().tolist():
+    _scene(ax, ex, 0, title, (-10, 45, -12, 12))
+    x = v["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
+    colour = plt.cm.viridis(np.clip(1 + np.log10(v["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
+    for n in torch.nonzero(v["cands"].valid[0]).flatten().tolist():
         ax.plot(*x[n].T, color=colour[n], lw=1, zorder=2)
-    ax.plot(*x[view["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
-    ax.plot(*x[view["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
-    ax.plot(*view["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
-    arrows = -view["grad"] / max(view["grad"].norm(dim=-1).max().item(), 1e-12) * 3
-    ax.quiver(*view["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
-    ax.set(xlabel="x (m)", ylabel="y (m)")
+    ax.plot(*x[v["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
+    ax.plot(*x[v["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
+    ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
+    arrows = -v["grad"] / max(v["grad"].norm(dim=-1).max().item(), 1e-12) * 3
+    ax.quiver(*v["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
 
 
 def interactive_planner(ex, cfg, settings):
-    """The static figure: one panel per (shift, beta) in settings, each its planner_view; then,
-    where ipywidgets is installed, sliders that move the prediction and change beta and redraw
-    one panel. Returns the widget, or None without ipywidgets."""
-    import matplotlib.pyplot as plt
-
+    """A panel per (shift, beta) of settings; then, with ipywidgets, sliders that move the
+    prediction and change beta. Returns the widget, or None without ipywidgets."""
     fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
     for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
-        v = planner_view(ex, cfg, shift, beta)
-        draw_planner_view(ax, ex, v, planner_title(v, shift, beta))
+        draw_planner_view(ax, ex, cfg, shift, beta)
     np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=7)
     fig.suptitle(
         "Move the prediction or change β: the costs, p_n (colour), the plan and -dL_plan/dŝ "
@@ -1006,9 +651,8 @@ def interactive_planner(ex, cfg, settings):
         return None
 
     def redraw(dx=0.0, dy=0.0, beta=1.0):
-        fig, ax = plt.subplots(figsize=(7, 3.6))
-        v = planner_view(ex, cfg, (dx, dy), beta)
-        draw_planner_view(ax, ex, v, planner_title(v, (dx, dy), beta))
+        _, ax = plt.subplots(figsize=(7, 3.6))
+        draw_planner_view(ax, ex, cfg, (dx, dy), beta)
         ax.legend(loc="lower left", fontsize=7)
         plt.show()
 
@@ -1020,17 +664,7 @@ def interactive_planner(ex, cfg, settings):
     )
 
 
-def planner_title(view, shift, beta):
-    """A panel's title: the setting, L_plan, whether the plan is the target, the largest
-    |dL_plan/dŝ_t|."""
-    hit = "plan = n*" if view["plan"] == view["target"] else f"plan {view['plan']} ≠ n*"
-    return (
-        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {view['l_plan']:.2f}, "
-        f"{hit},\nlargest |dL/dŝ_t| {view['grad'].norm(dim=-1).max():.2f} 1/m"
-    )
-
-
-# --- the exercises' checks ------------------------------------------------------------------------
+# --- the exercises' checks: the common part -------------------------------------------------------
 
 
 class Forbidden(AssertionError):
@@ -1038,17 +672,12 @@ class Forbidden(AssertionError):
 
 
 # the relations between an answer and the reference that one number explains (mine = c * ref)
-COMMON_FACTORS = {
-    -1.0: "the sign is flipped",
-    2.0: "a factor 2 too many",
-    0.5: "a factor 2 missing",
-}
+FACTORS = {-1.0: "the sign is flipped", 2.0: "a factor 2 too many", 0.5: "a factor 2 missing"}
 
 
 def _relation(mine, ref, factors):
     """How mine relates to ref when one number c explains the whole difference, mine = c ref (a
-    sign, a factor 2, a mean where a sum is asked): a sentence naming c and, where factors knows
-    it, why; '' when no single c fits."""
+    sign, a factor 2, a mean for a sum): a sentence naming c and, from factors, why; or ''."""
     m, r = mine.detach().double().flatten(), ref.detach().double().flatten()
     if not torch.isfinite(m).all() or (r @ r).item() == 0:
         return ""
@@ -1061,22 +690,19 @@ def _relation(mine, ref, factors):
     return f" Yours is {c:.4g} times the reference" + (f": {why}." if why else ".")
 
 
-def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagnose=None):
+def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, diagnose=None):
     """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
-    where allowed is tol for a float64 answer and grows with the answer's rounding unit otherwise
-    (16 eps cond: a correct float32 answer passes, a wrong one still fails); cond: how much the
-    problem magnifies a rounding error (its conditioning); dtype: the one the answer was computed
-    in, where that is not mine's (a gradient autograd cast back). A failure says what differs: the
-    ratio to the reference where one number explains it (factors: {c: why}, beside the sign and a
-    factor 2), and diagnose(mine) where the check knows more (which term, which stage)."""
-    if not isinstance(mine, torch.Tensor):
-        try:
-            mine = torch.as_tensor(mine)
-        except (TypeError, ValueError, RuntimeError):
-            raise AssertionError(
-                f"{name}: expected a tensor of shape {tuple(ref.shape)}, got "
-                f"{type(mine).__name__}. {hint}"
-            ) from None
+    allowed = max(tol, 16 eps cond): a right float32 answer passes, a wrong one still fails (cond:
+    how much the problem magnifies a rounding error; eps: of dtype, the answer's where mine was cast
+    back). A failure says what differs: the ratio to the reference where one number explains it
+    (factors: {c: why}), and diagnose(mine) where the check knows more (which term, which stage)."""
+    try:
+        mine = torch.as_tensor(mine)
+    except (TypeError, ValueError, RuntimeError):
+        raise AssertionError(
+            f"{name}: expected a tensor of shape {tuple(ref.shape)}, got "
+            f"{type(mine).__name__}. {hint}"
+        ) from None
     assert mine.shape == ref.shape, (
         f"{name}: shape {tuple(mine.shape)}, expected {tuple(ref.shape)}. {hint}"
     )
@@ -1093,7 +719,7 @@ def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagn
     scale = max(1.0, ref.abs().max().item())
     allowed = max(tol, 16 * torch.finfo(dtype or mine.dtype).eps * cond) * scale
     if err > allowed:
-        ratio = _relation(mine, ref, {**COMMON_FACTORS, **(factors or {})})
+        ratio = _relation(mine, ref, {**FACTORS, **(factors or {})})
         raise AssertionError(
             f"{name}: max |yours - reference| = {err:.3g} (allowed {allowed:.1g}).{ratio}"
             f"{diagnose(mine) if diagnose else ''} {hint}"
@@ -1102,69 +728,61 @@ def _close(name, mine, ref, tol, hint, cond=1.0, dtype=None, factors=None, diagn
 
 
 def _call(name, fn, *args, returns=""):
-    """fn(*args), with an exception raised inside it (a shape that does not broadcast, say) turned
-    into a failed check that names the inputs' shapes and what it should return; NotImplementedError
-    (a stub) and Forbidden pass through."""
+    """fn(*args); an exception inside it (a shape that does not broadcast) is a failed check naming
+    the inputs' shapes and what to return. NotImplementedError (a stub) and Forbidden pass."""
     try:
         return fn(*args)
     except (NotImplementedError, Forbidden):
         raise
     except Exception as e:  # whatever the student's code raises is the answer's failure
-        shapes = ", ".join(
-            str(tuple(a.shape)) if isinstance(a, torch.Tensor) else type(a).__name__ for a in args
-        )
+        shapes = [str(tuple(a.shape)) if torch.is_tensor(a) else type(a).__name__ for a in args]
         raise AssertionError(
-            f"{name} raised {type(e).__name__}: {e} (its inputs: {shapes}; it should return "
-            f"{returns})"
+            f"{name} raised {type(e).__name__}: {e} (its inputs: {', '.join(shapes)}; it should "
+            f"return {returns})"
         ) from None
+
+
+def _parts(name, out, count, parts, hint):
+    """An answer that returns several tensors: assert it returned `count` of them (parts: what)."""
+    many = isinstance(out, (tuple, list))
+    got = f"{type(out).__name__}{f' of {len(out)}' if many else ''}"
+    assert many and len(out) == count, f"{name}: returned {got}, expected the {parts}. {hint}"
+    return out
 
 
 @contextlib.contextmanager
 def no_autograd(name):
-    """Within it, autograd is off limits: its entry points raise Forbidden naming the one called,
-    and an answer that records a graph anyway (torch.enable_grad, a function imported by name) is
-    caught by a saved-tensors hook when it returns."""
-    entries = [
-        (torch.autograd, "grad"),
-        (torch.autograd, "backward"),
-        (torch.Tensor, "backward"),
-        *((torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")),
-        *((torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")),
+    """Within it, autograd's entry points raise Forbidden naming the one called, and an answer
+    that records a graph anyway (enable_grad, a name imported) is caught by a saved-tensors hook."""
+    entries = [(torch.autograd, "grad"), (torch.autograd, "backward"), (torch.Tensor, "backward")]
+    entries += [
+        (torch.func, f) for f in ("grad", "grad_and_value", "vjp", "jvp", "jacrev", "jacfwd")
     ]
-    saved = [(owner, attr, getattr(owner, attr)) for owner, attr in entries]
-
-    def refuse(what):
-        def refused(*args, **kwargs):
-            raise Forbidden(
-                f"{name} used autograd ({what}): this exercise asks for the closed form"
-            )
-
-        return refused
-
-    recorded = []
-
-    def pack(t):  # autograd saves a tensor for a backward pass: a graph is being recorded
-        recorded.append(True)
-        return t
-
+    entries += [(torch.autograd.functional, f) for f in ("jacobian", "vjp", "jvp", "hessian")]
+    saved = {(owner, attr): getattr(owner, attr) for owner, attr in entries}
+    recorded = []  # autograd saves a tensor for a backward pass: a graph is being recorded
+    pack = torch.autograd.graph.saved_tensors_hooks(lambda t: recorded.append(1) or t, lambda t: t)
     try:
-        for owner, attr, _ in saved:
-            setattr(owner, attr, refuse(f"{owner.__name__}.{attr}"))
-        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t), torch.no_grad():
+        for owner, attr in saved:
+            refused = f"{name} used autograd ({owner.__name__}.{attr})"
+            setattr(owner, attr, functools.partial(_refuse, refused))
+        with pack, torch.no_grad():
             yield
     finally:
-        for owner, attr, value in saved:
+        for (owner, attr), value in saved.items():
             setattr(owner, attr, value)
     if recorded:
-        raise Forbidden(
-            f"{name} recorded a graph for autograd: this exercise asks for the closed form"
-        )
+        _refuse(f"{name} recorded a graph for autograd")
+
+
+def _refuse(what, *args, **kwargs):
+    """no_autograd's stand-in for autograd's entry points: Forbidden, saying what was used."""
+    raise Forbidden(f"{what}: this exercise asks for the closed form")
 
 
 def exercise(number, check, fn):
-    """Run one exercise's check from a notebook cell: PASS, not done yet (the stub raised
-    NotImplementedError), or AssertionError (a wrong answer: the message says what differs). Returns
-    True on PASS."""
+    """One exercise's check from a notebook cell: PASS (True), not done yet (the stub raised
+    NotImplementedError: False), or AssertionError (a wrong answer: what differs)."""
     try:
         detail = check(fn)
     except NotImplementedError:
@@ -1178,8 +796,7 @@ def exercise(number, check, fn):
 
 
 def show_failure(check, fn):
-    """Run a check on an answer known to be wrong and print what it reports (the find-the-bug
-    exercise), without stopping the notebook. Returns the message ('' if it passed)."""
+    """Print and return what a check says of a wrong answer, without stopping the notebook."""
     try:
         check(fn)
     except AssertionError as e:
@@ -1189,36 +806,27 @@ def show_failure(check, fn):
     return ""
 
 
-# --- a gradient check for your own functions (as CS231n's eval_numerical_gradient) ---------------
-
-
 def eval_numerical_gradient(f, x, h=1e-6):
-    """The gradient of a scalar function f at x by central differences, entry by entry, in
-    float64: (f(x + h e_i) - f(x - h e_i)) / 2h. x is left as it is. For small problems: one pair
-    of calls of f per entry of x."""
+    """The gradient of a scalar f at x (float64) by central differences, entry by entry:
+    (f(x + h e_i) - f(x - h e_i)) / 2h, a pair of calls of f per entry (for small problems)."""
     x = x.detach().to(F64)
     grad = torch.zeros_like(x)
     for i in range(x.numel()):
-        e = torch.zeros_like(x).flatten()
-        e[i] = h
-        e = e.view_as(x)
+        e = torch.zeros_like(x)
+        e.view(-1)[i] = h
         grad.view(-1)[i] = (float(f(x + e)) - float(f(x - e))) / (2 * h)
     return grad
 
 
 def grad_check(f, x, analytic, h=1e-6, out=print):
-    """Your gradient `analytic` (x's shape) against eval_numerical_gradient(f, x): prints and
-    returns the largest relative error, |a - n| / max(|a| + |n|, 1e-12) over the entries. Around
-    1e-7 or below: right; 1e-2 or above: almost surely wrong."""
+    """Your gradient `analytic` against eval_numerical_gradient(f, x): the largest relative error
+    |a - n| / (|a| + |n|), printed; 1e-7 or below: right, 1e-2 or above: almost surely wrong."""
     numeric = eval_numerical_gradient(f, x, h)
     a = torch.as_tensor(analytic).detach().to(F64)
     assert a.shape == numeric.shape, f"the gradient's shape {tuple(a.shape)}, x's {tuple(x.shape)}"
     rel = ((a - numeric).abs() / (a.abs() + numeric.abs()).clamp_min(1e-12)).max().item()
     out(f"gradient check: largest relative error {rel:.1e} over {x.numel()} entries")
     return rel
-
-
-# --- exercise 1: the collision term ---------------------------------------------------------------
 
 
 def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
@@ -1233,24 +841,16 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
     others_mask[::2, 0] = 0  # some other agents absent
     lanes = torch.zeros(B, 1, 5, 3, dtype=F64)
     lanes[..., 0] = torch.linspace(-10, 30, 5, dtype=F64)
-    ctx = ds.CostContext(
-        preds,
-        probs,
-        pred_mask,
-        others,
-        others_mask,
-        torch.zeros(B, 2, dtype=F64),
-        lanes,
-        torch.ones(B, 1, 5, dtype=torch.bool),
-    )
+    goal, lanes_mask = torch.zeros(B, 2, dtype=F64), torch.ones(B, 1, 5, dtype=torch.bool)
+    ctx = ds.CostContext(preds, probs, pred_mask, others, others_mask, goal, lanes, lanes_mask)
     pos = 3 * torch.randn(B, N, T, 2, generator=g, dtype=F64)
     return pos, ctx
 
 
-def collision_terms_at_fault(fn, pos, ctx, rbf_var):
-    """Which part of C_coll a wrong answer gets wrong: a mask it ignores (it equals C_coll with that
-    mask all 1), or one of the two terms, each scored alone (the other agents masked out, then the
-    predicted vehicle). A sentence, or '' when none of these explains it."""
+def collision_terms_at_fault(_, fn, pos, ctx, rbf_var):
+    """Which part of C_coll a wrong answer gets wrong, by running it (fn) again (its output, the
+    first argument, is not needed): a mask it ignores (it equals C_coll with that mask all 1), or
+    one of the two terms, each scored alone (the other masked out). A sentence, or ''."""
 
     def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
         try:
@@ -1264,13 +864,11 @@ def collision_terms_at_fault(fn, pos, ctx, rbf_var):
         all_ones = dataclasses.replace(ctx, **{mask: torch.ones_like(getattr(ctx, mask))})
         if agrees(ctx, all_ones):
             return f" Yours equals C_coll with every {mask} entry 1: it ignores {mask}."
+    no_others = dataclasses.replace(ctx, others_mask=torch.zeros_like(ctx.others_mask))
+    no_vehicle = dataclasses.replace(ctx, pred_mask=torch.zeros_like(ctx.pred_mask))
     alone = {
-        "the predicted vehicle's term (preds, probs, pred_mask)": dataclasses.replace(
-            ctx, others_mask=torch.zeros_like(ctx.others_mask)
-        ),
-        "the other agents' term (others, others_mask)": dataclasses.replace(
-            ctx, pred_mask=torch.zeros_like(ctx.pred_mask)
-        ),
+        "the predicted vehicle's term (preds, probs, pred_mask)": no_others,
+        "the other agents' term (others, others_mask)": no_vehicle,
     }
     wrong = [term for term, c in alone.items() if not agrees(c, c)]
     if len(wrong) != 1:
@@ -1289,57 +887,29 @@ def check_collision(fn):
     for seed, rbf_var in ((0, 2.0), (1, 3.5)):
         pos, ctx = collision_problem(seed)
         mine = _call("my_collision", fn, pos, ctx, rbf_var, returns="C_coll of shape (B, N)")
-        T = pos.shape[2]
-        err = _close(
-            "my_collision",
-            mine,
-            ds.collision_term(pos, ctx, rbf_var),
-            1e-9,
-            hint,
-            cond=10,
-            factors={1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"},
-            diagnose=lambda _: collision_terms_at_fault(fn, pos, ctx, rbf_var),
-        )
+        T, ref = pos.shape[2], ds.collision_term(pos, ctx, rbf_var)
+        mean = {1 / T: f"a mean over the T = {T} steps, where eq. (3) sums them"}
+        why = functools.partial(collision_terms_at_fault, fn=fn, pos=pos, ctx=ctx, rbf_var=rbf_var)
+        err = _close("my_collision", mine, ref, hint, cond=10, factors=mean, diagnose=why)
         worst = max(worst, err)
     return f"max error {worst:.1e}, 2 problems, masks and rbf_var varied"
 
 
-# --- exercise 2: the relaxed planner's loss (and exercise 4, its bug found) -----------------------
-
-
 def plan_problem(seed=0, B=8, N=12):
-    """Candidate costs in the thousands (B, N), a valid mask with invalid candidates cheaper than
-    every valid one (a softmax that ignores the mask picks them), and targets n* among the
-    valid ones."""
+    """Candidate costs near 2000 (B, N), invalid candidates cheaper than every valid one (a
+    softmax that ignores the mask picks them), and targets n* among the valid ones."""
     g = torch.Generator().manual_seed(seed)
     cost = 2000 + 3 * torch.randn(B, N, generator=g, dtype=F64)
     valid = torch.rand(B, N, generator=g) > 0.3
     valid[:, :2] = True  # at least two valid candidates
     cost = torch.where(valid, cost, cost - 20)
-    target = torch.stack(
-        [
-            torch.nonzero(v).flatten()[torch.randint(int(v.sum()), (1,), generator=g)][0]
-            for v in valid
-        ]
-    )
+    pick = [torch.randint(int(v.sum()), (1,), generator=g) for v in valid]
+    target = torch.stack([torch.nonzero(v).flatten()[k][0] for v, k in zip(valid, pick)])
     return cost, valid, target
 
 
-def float32_plan_problem(B=4, N=6):
-    """float32 costs near 500 where an invalid candidate is 200 cheaper than every valid one: next
-    to it, exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32), so a
-    softmax over all candidates renormalised over the valid ones is 0/0."""
-    g = torch.Generator().manual_seed(3)
-    cost = 500 + 5 * torch.rand(B, N, generator=g)
-    valid = torch.ones(B, N, dtype=torch.bool)
-    valid[:, 0] = False
-    cost[:, 0] = cost[:, 1:].min(-1).values - 200
-    return cost, valid, torch.randint(1, N, (B,), generator=g)
-
-
 def target_off_by_one(mine, cost, valid, target, beta):
-    """Whether the answer is the loss of the candidate next to n* (an off-by-one in the target
-    index): a sentence, or ''."""
+    """A sentence if the answer is the loss of the candidate next to n* (off by one), or ''."""
     m = mine.detach().double()
     for shift in (1, -1):
         other = (target + shift).clamp(0, cost.shape[-1] - 1)
@@ -1358,66 +928,51 @@ def check_plan_loss(fn, name="my_plan_loss"):
         "L_plan = -log p_{n*}, p_n = exp(-beta C_n) / sum over the *valid* n' of exp(-beta "
         "C_n'); use a stable log-softmax (logsumexp): exp(-2000) underflows."
     )
-    worst = 0.0
+    returns, worst = "L_plan of shape (B,)", 0.0
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c1, c2 = cost.clone().requires_grad_(), cost.clone().requires_grad_()
-        mine = _call(name, fn, c1, valid, target, beta, returns="L_plan of shape (B,)")
+        mine = _call(name, fn, c1, valid, target, beta, returns=returns)
         ref = ds.plan_loss(c2, valid, target, beta)
         cond = beta * cost.abs().max().item()  # the costs' rounding, magnified by beta
         factors = {beta: "beta applied twice?", 1 / beta: "beta left out"}
-        worst = max(
-            worst,
-            _close(
-                f"{name} (beta = {beta})",
-                mine,
-                ref,
-                1e-9,
-                hint,
-                cond,
-                factors=factors,
-                diagnose=lambda m: target_off_by_one(m, cost, valid, target, beta),
-            ),
-        )
+        off = functools.partial(target_off_by_one, cost=cost, valid=valid, target=target, beta=beta)
+        at = f"(beta = {beta})"
+        err = _close(f"{name} {at}", mine, ref, hint, cond=cond, factors=factors, diagnose=off)
+        worst = max(worst, err)
         ref.sum().backward()
         assert mine.requires_grad, (
             f"{name}: the result has no gradient (keep it a torch expression). {hint}"
         )
         mine.sum().backward()
         _close(
-            f"gradient of {name} wrt the costs (beta = {beta})",
-            c1.grad,
-            c2.grad,
-            1e-9,
-            hint,
-            cond,
-            mine.dtype,
+            f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
         )
-    # the fragile case: float32, an invalid candidate far cheaper than the valid ones
-    cost, valid, target = float32_plan_problem()
-    mine = _call(name, fn, cost, valid, target, 1.0, returns="L_plan of shape (B,)")
-    _close(
-        f"{name} in float32, an invalid candidate 200 cheaper than every valid one",
-        mine,
-        ds.plan_loss(cost.double(), valid, target, 1.0),
-        1e-9,
+    # the fragile case: float32 costs near 500, an invalid candidate 200 cheaper than every valid
+    # one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32),
+    # so a softmax over all candidates renormalised over the valid ones is 0/0
+    g = torch.Generator().manual_seed(3)
+    cost = 500 + 5 * torch.rand(4, 6, generator=g)
+    valid = torch.ones(4, 6, dtype=torch.bool)
+    valid[:, 0] = False
+    cost[:, 0] = cost[:, 1:].min(-1).values - 200
+    target = torch.randint(1, 6, (4,), generator=g)
+    mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
+    fix = (
         "A softmax over all candidates, renormalised over the valid ones, is 0/0 here: every valid "
         "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
-        "softmax itself (their logits -inf, then logsumexp).",
-        cond=500,
+        "softmax itself (their logits -inf, then logsumexp)."
     )
+    case = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
+    _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), fix, cond=500)
     return (
         f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
         "float32 with a far cheaper invalid candidate"
     )
 
 
-def check_plan_loss_fixed(fn):
-    """Exercise 4 (find the bug): the fixed loss passes exercise 2's check."""
-    return check_plan_loss(fn, "my_plan_loss_fixed")
-
-
-# --- exercise 3: the gradient through the relaxed argmin ------------------------------------------
+# exercise 4 (find the bug): the fixed loss passes exercise 2's check
+check_plan_loss_fixed = functools.partial(check_plan_loss, name="my_plan_loss_fixed")
 
 
 def check_plan_grad(fn):
@@ -1429,105 +984,55 @@ def check_plan_grad(fn):
     for seed, beta in ((0, 1.0), (1, 0.3), (2, 2.5)):
         cost, valid, target = plan_problem(seed)
         c = cost.clone().requires_grad_()
-        # autograd's answer
-        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)
+        (ref,) = torch.autograd.grad(ds.plan_loss(c, valid, target, beta).sum(), c)  # autograd's
+        returns = "dL_plan/dC of shape (B, N)"
         with no_autograd("my_plan_loss_grad"):
-            mine = _call(
-                "my_plan_loss_grad",
-                fn,
-                cost,
-                valid,
-                target,
-                beta,
-                returns="dL_plan/dC of shape (B, N)",
-            )
-        B = len(cost)
+            mine = _call("my_plan_loss_grad", fn, cost, valid, target, beta, returns=returns)
+        B, cond = len(cost), beta * cost.abs().max().item()
         factors = {
             1 / B: f"divided by B = {B} (the gradient of the batch's mean; the check asks for each "
             "sample's own)",
             1 / beta: "beta left out",
             beta: "beta applied twice",
         }
-        worst = max(
-            worst,
-            _close(
-                f"my_plan_loss_grad (beta = {beta})",
-                mine,
-                ref,
-                1e-9,
-                hint,
-                beta * cost.abs().max().item(),
-                factors=factors,
-            ),
-        )
+        name = f"my_plan_loss_grad (beta = {beta})"
+        worst = max(worst, _close(name, mine, ref, hint, cond=cond, factors=factors))
     return f"against autograd, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates"
-
-
-# --- exercise 5: one step of the Riccati recursion ------------------------------------------------
-
-
-def riccati_problem(seed=0, B=6, n=4, m=2):
-    """A random one-step LQR (positive definite cost), as ds.lqr_backward takes it: H (B, 2,
-    n+m, n+m), g (B, 2, n+m), A (B, 1, n, n), B (B, 1, n, m)."""
-    g = torch.Generator().manual_seed(seed)
-    R = torch.randn(B, 2, n + m, n + m, generator=g, dtype=F64)
-    H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)
-    gv = torch.randn(B, 2, n + m, generator=g, dtype=F64)
-    A = torch.randn(B, 1, n, n, generator=g, dtype=F64)
-    Bm = torch.randn(B, 1, n, m, generator=g, dtype=F64)
-    return H, gv, A, Bm
 
 
 def check_riccati(fn):
     hint = "see the formulas above the iLQR cell: Q = H_t + F'PF, q = g_t + F'p with F = [A_t B_t]."
-    n, m = 4, 2
-    worst = 0.0
+    n, m, worst = 4, 2, 0.0
     for seed in (0, 1):
-        H, gv, A, Bm = riccati_problem(seed, n=n, m=m)
-        B = len(H)
-        free = torch.ones(B, 1, m, dtype=torch.bool)
+        # a random one-step LQR (positive definite cost), as ds.lqr_backward takes it
+        g = torch.Generator().manual_seed(seed)
+        randn = functools.partial(torch.randn, generator=g, dtype=F64)
+        R = randn(6, 2, n + m, n + m)
+        H = R @ R.transpose(-1, -2) + 0.5 * torch.eye(n + m, dtype=F64)  # (B, 2, n+m, n+m)
+        gv, A, Bm = randn(6, 2, n + m), randn(6, 1, n, n), randn(6, 1, n, m)
+        free = torch.ones(len(H), 1, m, dtype=torch.bool)
         k_ref, K_ref, _, p0_ref = ds.lqr_backward(A, Bm, H, gv, free=free)
         # P_new independently: the Schur complement of Q's control block, Q_ss - Q_su Q_uu^-1 Q_us
         F = torch.cat([A[:, 0], Bm[:, 0]], -1)
         Q = H[:, 0] + F.transpose(-1, -2) @ H[:, 1, :n, :n] @ F
         P_ref = Q[:, :n, :n] - Q[:, :n, n:] @ torch.linalg.solve(Q[:, n:, n:], Q[:, n:, :n])
         args = (H[:, 1, :n, :n], gv[:, 1, :n], H[:, 0], gv[:, 0], A[:, 0], Bm[:, 0], n)
-        out = _call(
-            "my_riccati_step",
-            fn,
-            *args,
-            returns=f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))",
-        )
-        assert isinstance(out, (tuple, list)) and len(out) == 4, (
-            "my_riccati_step: returned "
-            f"{type(out).__name__}{f' of {len(out)}' if isinstance(out, (tuple, list)) else ''}, "
-            f"expected the four (k, K, P_new, p_new). {hint}"
-        )
-        k, K, P_new, p_new = out
+        returns = f"(k (B, {m}), K (B, {m}, {n}), P_new (B, {n}, {n}), p_new (B, {n}))"
+        out = _call("my_riccati_step", fn, *args, returns=returns)
+        out = _parts("my_riccati_step", out, 4, "four (k, K, P_new, p_new)", hint)
         cond = torch.linalg.cond(Q[:, n:, n:]).max().item()  # the solves with Q_uu
-        for name, mine, ref in (
-            ("k (feed-forward)", k, k_ref[:, 0]),
-            ("K (feedback gain)", K, K_ref[:, 0]),
-            ("P_new", P_new, P_ref),
-            ("p_new", p_new, p0_ref),
-        ):
-            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, 1e-8, hint, cond))
+        names = ("k (feed-forward)", "K (feedback gain)", "P_new", "p_new")
+        for name, mine, ref in zip(names, out, (k_ref[:, 0], K_ref[:, 0], P_ref, p0_ref)):
+            worst = max(worst, _close(f"my_riccati_step: {name}", mine, ref, hint, 1e-8, cond))
     return f"k, K, P_new, p_new, max error {worst:.1e}"
 
 
-# --- exercise 6: the controller's gradient, the KKT backward (App. C.3) ---------------------------
-
-
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
-    """An LQR as the controller's backward pass sees one, its active set fixed:
-    x_{t+1} = A_t x_t + B_t u_t from x_init, the cost sum_t 1/2 z_t' H_t z_t + g_t' z_t over
-    z_t = [x_t; u_t] (t = 0..T, the last control block unused), some controls held at their bound
-    (free False), and the incoming gradient (grad_x, grad_u) of a loss on the solution."""
+    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t
+    x_t + B_t u_t from x_init, cost sum_t 1/2 z_t' H_t z_t + g_t' z_t, z_t = [x_t; u_t] (t = 0..T,
+    the last u unused), some controls held (free False), the incoming gradient (grad_x, grad_u)."""
     gen = torch.Generator().manual_seed(seed)
-
-    def randn(*shape):
-        return torch.randn(*shape, generator=gen, dtype=F64)
-
+    randn = functools.partial(torch.randn, generator=gen, dtype=F64)
     A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
     Bm = randn(B, T, n, m)
     R = randn(B, T + 1, n + m, n + m)
@@ -1552,10 +1057,8 @@ def kkt_stage_at_fault(mine, ref, free, n, allowed):
     the free controls or the held ones (free False). A sentence."""
     T = free.shape[1]
     bad = (mine.detach().double() - ref).abs() > allowed  # (B, T+1, n+m)
-    held, free_u = torch.zeros_like(bad), torch.zeros_like(bad)
-    held[:, :T, n:], free_u[:, :T, n:] = ~free, free
-    states = torch.zeros_like(bad)
-    states[..., :n] = True
+    held, free_u, states = (torch.zeros_like(bad) for _ in range(3))
+    held[:, :T, n:], free_u[:, :T, n:], states[..., :n] = ~free, free, True
     t = int(bad.any(0).any(-1).nonzero()[0])
     parts = {
         "state entries": states,
@@ -1563,7 +1066,7 @@ def kkt_stage_at_fault(mine, ref, free, n, allowed):
         "controls held at a bound (free False; there d holds du = 0, so dL/dg is 0)": held,
     }
     where = [p for p, sel in parts.items() if (bad[:, t] & sel[:, t]).any()]
-    if T in bad.any(0).any(-1).nonzero().flatten().tolist() and (bad[:, T, n:]).any():
+    if bad[:, T, n:].any():
         where.append("the last stage's control block (it has no control: 0)")
     found = f" It differs first at stage t = {t} (of 0..{T}), in its {' and in its '.join(where)}."
     if (mine.detach().double()[:, :T, n:][~free].abs() > allowed).any():
@@ -1579,61 +1082,30 @@ def check_kkt(fn):
     worst = 0.0
     for seed in (0, 1):
         A, Bm, H, g, x_init, free, grad_x, grad_u = kkt_problem(seed)
-        B, T1, nm = g.shape
-        n = x_init.shape[-1]
-        # the reference: autograd through the module's solver, dL/dx_init and dL/dg of
-        # L = <grad_x, x*> + <grad_u, u*>
+        (_, T1, nm), n = g.shape, x_init.shape[-1]
+        # the reference: autograd through lqr_solve of L = <grad_x, x*> + <grad_u, u*> ...
         xi, gg = x_init.clone().requires_grad_(), g.clone().requires_grad_()
 
         def loss(xi, gg):
-            return sum(
-                (a * b).sum() for a, b in zip((grad_x, grad_u), lqr_solve(A, Bm, H, gg, xi, free))
-            )
+            x, u = lqr_solve(A, Bm, H, gg, xi, free)
+            return (grad_x * x).sum() + (grad_u * u).sum()
 
         ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
-        # ... itself against central finite differences on a few coordinates
-        for (b, i), h in (((0, 1), 1e-6), ((2, 0), 1e-6)):
+        for b, i in ((0, 1), (2, 0)):  # ... itself against central differences
             e = torch.zeros_like(x_init)
-            e[b, i] = h
-            assert (
-                abs(
-                    (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * h)
-                    - ref_x[b, i].item()
-                )
-                < 1e-6
-            )
-        out = _call(
-            "my_kkt_backward",
-            fn,
-            A,
-            Bm,
-            H,
-            grad_x,
-            grad_u,
-            free,
-            n,
-            returns=f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))",
-        )
-        assert isinstance(out, (tuple, list)) and len(out) == 2, (
-            f"my_kkt_backward: returned {type(out).__name__}, expected the two (dL/dx_init, "
-            f"dL/dg). {hint}"
-        )
+            e[b, i] = 1e-6
+            fd = (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * 1e-6)
+            assert abs(fd - ref_x[b, i].item()) < 1e-6
+        returns = f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))"
+        out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n, returns=returns)
+        out = _parts("my_kkt_backward", out, 2, "two (dL/dx_init, dL/dg)", hint)
         cond = torch.linalg.cond(H).max().item()
-        costate = {-1.0: "p_0 with the wrong sign"}
         allowed = max(1e-9, 16 * torch.finfo(torch.as_tensor(out[1]).dtype).eps * cond)
         allowed *= max(1.0, ref_g.abs().max().item())
-        err_g = _close(
-            "my_kkt_backward: dL/dg",
-            out[1],
-            ref_g,
-            1e-9,
-            hint,
-            cond,
-            diagnose=lambda m: kkt_stage_at_fault(m, ref_g, free, n, allowed),
-        )
-        err = _close(
-            "my_kkt_backward: dL/dx_init", out[0], ref_x, 1e-9, hint, cond, factors=costate
-        )
+        stage = functools.partial(kkt_stage_at_fault, ref=ref_g, free=free, n=n, allowed=allowed)
+        err_g = _close("my_kkt_backward: dL/dg", out[1], ref_g, hint, cond=cond, diagnose=stage)
+        costate = {-1.0: "p_0 with the wrong sign"}
+        err = _close("my_kkt_backward: dL/dx_init", out[0], ref_x, hint, cond=cond, factors=costate)
         worst = max(worst, err, err_g)
     return (
         "dL/dx_init and dL/dg against autograd through the solver (itself against finite "
@@ -1641,260 +1113,13 @@ def check_kkt(fn):
     )
 
 
-CHECKS = {
-    1: check_collision,
-    2: check_plan_loss,
-    3: check_plan_grad,
-    4: check_plan_loss_fixed,
-    5: check_riccati,
-    6: check_kkt,
-}
-
-
-# --- the grader: every exercise's check on a student's answers, each in its own process -----------
-
+# the exercises: the function each asks for, what it is, its check (lab/grader.py grades them)
 EXERCISES = {
-    1: ("my_collision", "the collision term"),
-    2: ("my_plan_loss", "the relaxed planner's loss"),
-    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin"),
-    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32"),
-    5: ("my_riccati_step", "one step of the Riccati recursion"),
-    6: ("my_kkt_backward", "the controller's gradient, the KKT backward"),
+    1: ("my_collision", "the collision term", check_collision),
+    2: ("my_plan_loss", "the relaxed planner's loss", check_plan_loss),
+    3: ("my_plan_loss_grad", "the gradient through the relaxed argmin", check_plan_grad),
+    4: ("my_plan_loss_fixed", "find the bug: the planner's loss in float32", check_plan_loss_fixed),
+    5: ("my_riccati_step", "one step of the Riccati recursion", check_riccati),
+    6: ("my_kkt_backward", "the controller's gradient, the KKT backward", check_kkt),
 }
-TIMEOUT = 120.0  # seconds per exercise (the checks take about a second)
-# cell magics whose body is Python that the kernel runs (the others' is not Python: %%bash, ...)
-PYTHON_CELL_MAGICS = ("time", "timeit", "capture", "prun")
-
-
-def cell_python(cell: str) -> str:
-    """A cell's Python as the kernel runs it: %%time and its kind dropped from the first line, a
-    cell under any other cell magic (%%bash, %%html) left out; line magics and shell lines
-    (%pip, !ls, x = !ls) become IPython's own calls, which the grader does not run."""
-    from IPython.core.inputtransformer2 import TransformerManager
-
-    lines = cell.splitlines(keepends=True)
-    first = next((i for i, line in enumerate(lines) if line.strip()), None)
-    if first is not None and lines[first].lstrip().startswith("%%"):
-        if lines[first].lstrip()[2:].split(maxsplit=1)[0] not in PYTHON_CELL_MAGICS:
-            return ""
-        lines[first] = "\n"  # (keeps the line numbers)
-    return TransformerManager().transform_cell("".join(lines))
-
-
-def _calls_something(node) -> bool:
-    """Whether evaluating the expression calls a function (a lambda's body is not evaluated)."""
-    if isinstance(node, ast.Call):
-        return True
-    children = [node.args] if isinstance(node, ast.Lambda) else ast.iter_child_nodes(node)
-    return any(_calls_something(c) for c in children)
-
-
-def definitions(path) -> tuple[list, list]:
-    """What a student's file defines, as Jupyter has it after running every cell: from each code
-    cell in order (a .py file is one cell), its imports, functions, classes and the assignments
-    that call nothing (a constant, a lambda). Their test calls, prints, loops and analyses are
-    left out, and so is an import of the reference answers (solutions.py). Returns
-    ([(where, code)], [a cell that does not parse, with why]); code keeps the cell's line
-    numbers. Raises SyntaxError for a .py file that does not parse, ValueError for a notebook
-    that cannot be read."""
-    path = Path(path)
-    if path.suffix == ".ipynb":
-        try:
-            nb = json.loads(path.read_text())
-            cells = [
-                "".join(c["source"]) if isinstance(c["source"], list) else c["source"]
-                for c in nb["cells"]
-                if c["cell_type"] == "code"
-            ]
-        except (ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"not a notebook that Jupyter can read ({type(e).__name__}: {e})")
-        sources = [(f"{path.name}, code cell {i + 1}", cell_python(c)) for i, c in enumerate(cells)]
-    else:
-        sources = [(str(path), path.read_text())]
-    kept, unparsed = [], []
-    for where, source in sources:
-        try:
-            tree = ast.parse(source)
-        except SyntaxError as e:
-            if path.suffix != ".ipynb":
-                raise
-            unparsed.append(f"{where} does not parse: {e.msg}, line {e.lineno}")
-            continue
-        lines = source.splitlines(keepends=True)
-        for node in tree.body:
-            defines = isinstance(
-                node,
-                (ast.Import, ast.ImportFrom, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef),
-            )
-            assigns = isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None
-            if defines and _imports_solutions(node):  # the reference answers are not an answer
-                continue
-            if defines or (assigns and not _calls_something(node.value)):
-                start = min([node.lineno] + [d.lineno for d in getattr(node, "decorator_list", [])])
-                code = "\n" * (start - 1) + "".join(lines[start - 1 : node.end_lineno])
-                kept.append((where, code))
-    return kept, unparsed
-
-
-def _imports_solutions(node) -> bool:
-    """Whether a statement imports the reference answers (solutions.py)."""
-    if isinstance(node, ast.ImportFrom):
-        return (node.module or "").split(".")[0] == "solutions"
-    return isinstance(node, ast.Import) and any(a.name == "solutions" for a in node.names)
-
-
-def _defines(code, name) -> bool:
-    return any(
-        isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name == name
-        for _, c in code
-        for n in ast.parse(c).body
-    )
-
-
-def check_in_this_process(spec_file):
-    """The grader's worker: run the student's definitions (each alone: one that fails is left out,
-    as a cell that failed), then one exercise's check, and write the verdict as JSON. Whatever the
-    answer prints goes nowhere; an exit from inside it is the answer's failure."""
-    spec = json.loads(Path(spec_file).read_text())
-    torch.set_num_threads(1)
-    sys.path.append(spec["folder"])  # the student's own modules, after the course's
-    space = {"__name__": "answers", "SOLUTIONS": False}
-    for where, code in spec["code"]:
-        try:
-            exec(compile(code, where, "exec"), space)
-        except (Exception, SystemExit):  # a definition that needs a value from the analysis
-            pass
-    name, number = spec["name"], spec["number"]
-    try:
-        if not callable(space.get(name)):
-            raise AssertionError(f"{name} is defined, but its definition does not run on its own")
-        verdict = [True, CHECKS[number](space[name])]
-    except NotImplementedError:
-        verdict = [False, "not done (the stub still raises NotImplementedError)"]
-    except AssertionError as e:
-        verdict = [False, f"FAIL: {e}"]
-    except SystemExit as e:
-        verdict = [False, f"FAIL: {name} ended the process (sys.exit({e.code!r}))"]
-    except Exception as e:  # an answer that breaks the check itself (a strange return value)
-        verdict = [False, f"FAIL: {name} broke the check: {type(e).__name__}: {e}"]
-    runs.write_file_atomic(spec["verdict"], lambda p: Path(p).write_text(json.dumps(verdict)))
-
-
-def _check_in_a_process(number, code, folder, tmp, timeout):
-    """One exercise's check in a fresh Python process (check_in_this_process): (True, what it
-    measured) or (False, why it scores nothing: its failure, a time-out, an exit before its
-    verdict)."""
-    name = EXERCISES[number][0]
-    spec, verdict = Path(tmp) / f"spec{number}.json", Path(tmp) / f"verdict{number}.json"
-    spec.write_text(
-        json.dumps(
-            dict(name=name, number=number, code=code, folder=str(folder), verdict=str(verdict))
-        )
-    )
-    worker = "import sys, course; course.check_in_this_process(sys.argv[1])"
-    python_path = os.pathsep.join([str(HERE), *filter(None, [os.environ.get("PYTHONPATH")])])
-    with open(Path(tmp) / f"stderr{number}.txt", "w+") as err:
-        try:
-            run = subprocess.run(
-                [sys.executable, "-c", worker, str(spec)],
-                cwd=HERE,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL,
-                stderr=err,
-                timeout=timeout,
-                env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": python_path},
-            )
-        except subprocess.TimeoutExpired:
-            return False, f"FAIL: did not finish in {timeout:g} s (an endless loop?)"
-        if verdict.is_file():
-            return tuple(json.loads(verdict.read_text()))
-        err.seek(0)
-        last = [line for line in err.read().splitlines() if line.strip()][-1:]
-    return False, (
-        f"FAIL: the process ended (exit status {run.returncode}) before the check finished: "
-        f"{name} exits or crashes ({last[0] if last else 'nothing on stderr'})"
-    )
-
-
-def grade(path, out=print, timeout=TIMEOUT) -> dict:
-    """Grade the answers in `path` (a notebook or a .py file) exercise by exercise: the student's
-    definitions (definitions), then each exercise's check in its own process
-    (check_in_this_process), so that an error, a NaN, a time-out or an exit in one answer fails
-    that exercise alone. Prints one line per exercise (PASS with the error measured, not done, or
-    what failed) and the score. Returns {number: True, or the reason it scores nothing}."""
-    path = Path(path)
-    try:
-        code, unparsed = definitions(path)
-    except (SyntaxError, ValueError, OSError) as e:  # nothing to grade, saying why
-        code, unparsed, broken = None, [], f"the file does not run: {type(e).__name__}: {e}"
-    result = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        for k, (name, title) in EXERCISES.items():
-            if code is None:
-                passed, said = False, broken
-            elif not _defines(code, name):
-                passed, said = False, f"no function {name}" + "".join(f"; {u}" for u in unparsed)
-            else:
-                passed, said = _check_in_a_process(k, code, path.resolve().parent, tmp, timeout)
-            result[k] = True if passed else said
-            out(f"  exercise {k} ({title}): {f'PASS ({said})' if passed else said}")
-    out(f"{path}: score {sum(v is True for v in result.values())}/{len(EXERCISES)}")
-    return result
-
-
-def write_grades(graded, csv_path):
-    """The class's grades as CSV: a row per file, 1 or 0 per exercise, the score."""
-    import csv
-    import io
-
-    text = io.StringIO()
-    rows = csv.writer(text)
-    rows.writerow(["file", *(f"exercise {k}" for k in EXERCISES), "score"])
-    for f, result in graded.items():
-        passed = [int(result[k] is True) for k in EXERCISES]
-        rows.writerow([f, *passed, sum(passed)])
-    runs.write_file_atomic(csv_path, lambda p: Path(p).write_text(text.getvalue()))
-
-
-def main(argv=None):
-    import argparse
-
-    ap = argparse.ArgumentParser(
-        description="Grade the course's exercises: run every exercise's check on the answers "
-        "in each file (a student's tutorial.ipynb, or a .py that defines the my_* functions), "
-        "each check in its own process, and print a line per exercise and the score. It runs "
-        "the students' code: grade in a throwaway container or VM. Exit status 0 when every "
-        "exercise of every file passes, 1 otherwise."
-    )
-    ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
-    ap.add_argument(
-        "--timeout",
-        type=float,
-        default=TIMEOUT,
-        help=f"seconds one exercise's check may take (default {TIMEOUT:g})",
-    )
-    ap.add_argument("--csv", help="also write the grades to this CSV file, a row per file")
-    ap.add_argument("--overwrite", action="store_true", help="let --csv replace an existing file")
-    args = ap.parse_args(argv)
-    for f in args.files:
-        if not Path(f).is_file():
-            ap.error(f"{f}: no such file")
-        if Path(f).suffix not in (".ipynb", ".py"):
-            ap.error(f"{f}: not a notebook (.ipynb) or a Python file (.py)")
-    if not 0 < args.timeout < math.inf:
-        ap.error(f"--timeout {args.timeout:g}: a number of seconds above 0")
-    if args.csv is not None:
-        if Path(args.csv).exists() and not args.overwrite:
-            ap.error(f"--csv {args.csv}: the file exists (--overwrite replaces it)")
-        if not Path(args.csv).resolve().parent.is_dir():
-            ap.error(f"--csv {args.csv}: no folder {Path(args.csv).parent}")
-    torch.set_num_threads(1)
-    graded = {f: grade(f, timeout=args.timeout) for f in args.files}
-    if args.csv is not None:
-        write_grades(graded, args.csv)
-        print(f"grades of {len(graded)} file(s) written to {args.csv}")
-    return 0 if all(v is True for g in graded.values() for v in g.values()) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+CHECKS = {number: check for number, (_, _, check) in EXERCISES.items()}

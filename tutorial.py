@@ -54,7 +54,7 @@
 # what factor), or *not done* (the notebook goes on). `course.grad_check(f, x, your_gradient)`
 # checks a gradient you derived against central differences, on any function of your own. The
 # answers are in [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them);
-# `python course.py tutorial.ipynb` grades a notebook's answers, exercise by exercise.
+# `python -m lab.grader tutorial.ipynb` grades a notebook's answers, exercise by exercise.
 #
 # **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True` (the stored outputs)
 # trains 16 steps on small data, `QUICK = False` longer. Neither gives the paper's findings: each
