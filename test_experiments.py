@@ -1039,24 +1039,6 @@ def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
     )
 
 
-def test_the_learning_curves_caption_is_read_off_the_curves():
-    def runs(level, ade):
-        return [dict(curve=[dict(epoch=float(e), hindsight=level(e), ade=ade) for e in range(6)])]
-
-    res = {
-        "Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1),
-        "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3),
-    }
-    assert figures.learning_curves_caption(res) == (
-        "DiffStack plans better than Standard from epoch 2 on (right), with a "
-        "higher ADE at the end (left)"
-    )
-    # above Standard at the end
-    res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)
-    assert figures.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
-    assert figures.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
-
-
 def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
     # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say
     # so, not drop it
