@@ -1007,58 +1007,6 @@ def test_render_rewrites_every_derived_output_from_the_json(clean, tmp_path):
     )
 
 
-def test_the_plateau_line_tells_a_falling_curve_from_a_flat_one():
-    # one seed per slope: the metric falls by `slope` per epoch over 10 epochs, plus seed noise
-    def runs(*slopes):
-        return [
-            dict(
-                curve=[
-                    dict(epoch=float(e), ade=2.0 - s * e + 0.001 * i, hindsight=1.9 - s * e / 10)
-                    for e in range(11)
-                ]
-            )
-            for i, s in enumerate(slopes)
-        ]
-
-    md = report.plateau_markdown(
-        {"Standard": runs(0.0, 0.0, 0.0), "DiffStack": runs(0.05, 0.04, 0.06)}, last=5
-    )
-    std, dif = [ln for ln in md.splitlines() if ln.startswith("- ")]
-    assert (
-        std.startswith("- Standard, over the last 5 of 10 epochs (3 seeds")
-        and std.count("(flat)") == 2
-    )
-    assert "ADE -0.250 ± 0.029 m (still falling)" in dif
-    assert report.plateau_markdown({"Standard": [dict(ade=1.0)]}) == ""
-    assert f"{ex.CURVE_SAMPLES} validation scenes" in std  # curves without a count: the default's
-    # a short run on a small validation set says what it had: 0.5 epochs, 40 + 14 scenes
-    short = [
-        dict(curve=[dict(epoch=e, ade=1.0, hindsight=1.0, n=40, skipped=14) for e in (0.0, 0.5)])
-    ]
-    line = report.plateau_markdown({"Standard": short}).splitlines()[-1]
-    assert line.startswith(
-        "- Standard, over the last 0.5 of 0.5 epochs (1 seeds, 54 validation scenes)"
-    )
-
-
-def test_the_learning_curves_caption_is_read_off_the_curves():
-    def runs(level, ade):
-        return [dict(curve=[dict(epoch=float(e), hindsight=level(e), ade=ade) for e in range(6)])]
-
-    res = {
-        "Standard": runs(lambda e: 2.0 - 0.01 * e, 1.1),
-        "DiffStack": runs(lambda e: 2.0 - 0.01 * e - 0.02 * (e >= 2), 1.3),
-    }
-    assert figures.learning_curves_caption(res) == (
-        "DiffStack plans better than Standard from epoch 2 on (right), with a "
-        "higher ADE at the end (left)"
-    )
-    # above Standard at the end
-    res["DiffStack"] = runs(lambda e: 2.0 - 0.01 * e + 0.02 * (e == 5), 1.0)
-    assert figures.learning_curves_caption(res).startswith("DiffStack does not stay below Standard")
-    assert figures.learning_curves_caption(res).endswith("with a lower ADE at the end (left)")
-
-
 def test_the_cost_weights_figure_writes_a_scale_it_cannot_draw(tmp_path):
     # a negative alpha (Table 3 at 20 epochs) has no bar on the log axis: the figure must say
     # so, not drop it
@@ -1120,7 +1068,6 @@ def test_a_one_seed_table_says_its_standard_errors_are_not_available():
     assert "paired difference -0.50 ± n/a (1 seed) (one seed" in md
     assert "untested (one seed: no standard error)" in md
     assert "DiffStack closes 17 ± n/a (1 seed) % of the Standard" in md
-    assert "ADE -0.400 ± n/a (1 seed) m (still falling)" in md
 
 
 def test_a_table_whose_trained_rows_all_diverged_names_them_and_tests_nothing():
