@@ -28,6 +28,7 @@ import figures
 import specs
 
 F64 = torch.float64
+P_NORM = LogNorm(1e-4, 1)  # the colour scale of the candidates' p_n
 SECTION_TIMES = {}
 _CLOCK = {}
 
@@ -271,32 +272,6 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     _show(fig, title)
 
 
-def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
-    """§4: one sample's candidates coloured by p_n under several β, and the plan."""
-    xy = cands.x[0][cands.valid[0]][..., :2].flatten(0, 1)  # the valid candidates' positions
-    lo, hi = xy.min(0).values.tolist(), xy.max(0).values.tolist()
-    box = (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3)  # zoomed on the candidates
-    norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
-    kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
-    fig, axes = plt.subplots(len(betas), 1, **kw)
-    for ax, beta in zip(axes, betas):
-        p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
-        _scene(ax, ex, 0, extent=box)
-        ax.set(xlabel="x (m)" if ax is axes[-1] else "")
-        for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
-            if cands.valid[0, n]:
-                colour = plt.cm.viridis(norm(max(p[n].item(), 1e-4)))
-                ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
-        ax.plot(*x[best[0]].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
-        entropy = -(p[p > 0] * p[p > 0].log()).sum()
-        uniform = f"uniform over {valid}: {math.log(valid):.2f}"
-        title = f"β = {beta}: max p_n = {p.max():.2f}, entropy {entropy:.2f} nats ({uniform})"
-        ax.set_title(title, fontsize=9)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _colorbar(fig, axes, "viridis", norm, "p_n (log scale)", 0.6)
-    plt.show()
-
-
 def figure_beta_signal(betas, extra, beta_paper, n):
     """§4: what ignoring the vehicle adds to the mean L_plan (`extra`, nats) at each β of `betas`,
     the title read off the curve: from which β on it grows monotonically, and any bump below."""
@@ -443,44 +418,6 @@ def figure_modes(sub, pred, label):
     _show(fig, title)
 
 
-def figure_goal(goal_res):
-    """§7: what the GT future saves per behaviour (x1e-2), the paper's goal against a route goal
-    (results/goal.json). Returns route's saving / the paper goal's."""
-    # one scale: compare the sizes
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
-    by = goal_res["logged"]["No prediction"][0]["by_behaviour"]
-    behaviours = [b for b in data_synth.BEHAVIOURS if b in by]
-    colours = ["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours]
-    total, most = {}, {}
-    for ax, goal in zip(axes, ("logged", "route")):
-        none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
-        nb, gb = none["by_behaviour"], gt["by_behaviour"]
-        # each behaviour's part of the all-scene mean
-        saved = [
-            (gb[b]["hindsight"] - nb[b]["hindsight"]) * nb[b]["n"] / none["n"] / 1e-2
-            for b in behaviours
-        ]
-        ax.barh(behaviours, saved, color=colours)
-        ax.axvline(0, color="k", lw=0.8)
-        name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
-        ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
-        total[goal] = -sum(saved)
-        most[goal] = [behaviours[k] for k in np.argsort(saved) if saved[k] < -0.25 * total[goal]]
-        ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
-        ax.grid(axis="x", alpha=0.3)
-    axes[0].invert_yaxis()
-    ratio = total["route"] / total["logged"]
-    fig.suptitle(
-        f"What a perfect prediction saves: under the paper's goal {total['logged']:.2f}e-2, most "
-        f"in {' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most "
-        f"in {' and '.join(most['route'])} (red: cut_in, lead_brake)",
-        fontsize=10,
-    )
-    plt.tight_layout()
-    plt.show()
-    return ratio
-
-
 def figure_learning_curves(histories):
     """§7: per-batch training losses of {name: (history, colour)} and their 10-step mean (Standard,
     which does not run the stack in training, has only L_pred)."""
@@ -529,16 +466,6 @@ def figure_stacks(batch, i, outs, cfg):
     norm = plt.Normalize(-1 / 3, 1)
     _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
     plt.show()
-
-
-def closed_loop_spread(rollouts):
-    """(S,) m: per scene, the largest distance between two methods' executed egos."""
-    return figures.widest_pair(rollouts).amax(-1)
-
-
-def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc (figures.figure_closed_loop)."""
-    figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 
 
 def kkt_gradient_check(val, cfg, seed, out=print):
@@ -612,19 +539,26 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
 
 
 def draw_planner_view(ax, ex, cfg, shift, beta):
-    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n, the plan, the
-    target n*, the moved prediction and -dL_plan/dŝ as arrows."""
+    """planner_view(ex, cfg, shift, beta) drawn, zoomed on the candidates: the valid ones coloured
+    and widened by p_n, the plan, the target n*, the moved prediction and -dL_plan/dŝ as arrows."""
     v = planner_view(ex, cfg, shift, beta)
+    p, valid, x = v["p"], v["cands"].valid[0], v["cands"].x[0, :, :, :2].detach()  # x (N, T+1, 2)
     hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
+    moved = f"the GT future moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m" if any(shift) else "GT"
+    entropy = -(p[p > 0] * p[p > 0].log()).sum()
+    uniform = f"uniform over {int(valid.sum())}: {math.log(valid.sum()):.2f}"
     title = (
-        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {v['l_plan']:.2f}, "
-        f"{hit},\nlargest |dL/dŝ_t| {v['grad'].norm(dim=-1).max():.2f} 1/m"
+        f"β = {beta:g}, prediction {moved}: L_plan {v['l_plan']:.2f}, {hit}, largest |dL/dŝ_t| "
+        f"{v['grad'].norm(dim=-1).max():.2f} 1/m\nmax p_n = {p.max():.2f}, entropy {entropy:.2f} "
+        f"nats ({uniform})"
     )
-    _scene(ax, ex, 0, title, (-10, 45, -12, 12))
-    x = v["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
-    colour = plt.cm.viridis(np.clip(1 + np.log10(v["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
-    for n in torch.nonzero(v["cands"].valid[0]).flatten().tolist():
-        ax.plot(*x[n].T, color=colour[n], lw=1, zorder=2)
+    pts = torch.cat([x[valid].flatten(0, 1), v["pred"]])  # what the panel zooms on
+    lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+    _scene(ax, ex, 0, title, (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3))
+    for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
+        if valid[n]:
+            colour = plt.cm.viridis(P_NORM(max(p[n].item(), 1e-4)))
+            ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=2)
     ax.plot(*x[v["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
     ax.plot(*x[v["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
     ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
@@ -632,29 +566,29 @@ def draw_planner_view(ax, ex, cfg, shift, beta):
     ax.quiver(*v["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
 
 
-def interactive_planner(ex, cfg, settings):
-    """A panel per (shift, beta) of settings; then, with ipywidgets, sliders that move the
-    prediction and change beta. Returns the widget, or None without ipywidgets."""
-    fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
-    for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
+def planner_panels(ex, cfg, settings, title):
+    """A draw_planner_view panel per (shift, beta) of settings, under one p_n colour bar."""
+    kw = dict(figsize=(10, 2.9 * len(settings)), layout="constrained", squeeze=False)
+    fig, axes = plt.subplots(len(settings), 1, **kw)
+    for ax, (shift, beta) in zip(axes[:, 0], settings):
         draw_planner_view(ax, ex, cfg, shift, beta)
-    np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=7)
-    fig.suptitle(
-        "Move the prediction or change β: the costs, p_n (colour), the plan and -dL_plan/dŝ "
-        "(arrows, scaled per panel) follow"
-    )
-    fig.tight_layout()
-    plt.show()
+    axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    _colorbar(fig, axes, "viridis", P_NORM, "p_n (log scale)", 0.6)
+    _show(fig, title)
+
+
+def interactive_planner(ex, cfg, settings):
+    """planner_panels of settings; then, with ipywidgets, sliders that move the prediction and
+    change beta. Returns the widget, or None without ipywidgets."""
+    title = "Move the prediction or change β: C, p_n, the plan and -dL_plan/dŝ (arrows) follow"
+    planner_panels(ex, cfg, settings, title)
     try:
         import ipywidgets as widgets
     except ImportError:
         return None
 
     def redraw(dx=0.0, dy=0.0, beta=1.0):
-        _, ax = plt.subplots(figsize=(7, 3.6))
-        draw_planner_view(ax, ex, cfg, (dx, dy), beta)
-        ax.legend(loc="lower left", fontsize=7)
-        plt.show()
+        planner_panels(ex, cfg, [((dx, dy), beta)], "")
 
     return widgets.interactive(
         redraw,
