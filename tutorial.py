@@ -51,10 +51,8 @@
 # **Exercises.** Six functions to fill in (stubs until you do), in the order they build on each
 # other; one of them fixes a realistic bug. A check runs each on its own test problems against the
 # module, autograd or a closed form: `PASS`, a stop that says what differs (which term or stage, by
-# what factor), or *not done* (the notebook goes on). `course.grad_check(f, x, your_gradient)`
-# checks a gradient you derived against central differences, on any function of your own. The
-# answers are in [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them);
-# `python -m lab.grader tutorial.ipynb` grades a notebook's answers, exercise by exercise.
+# what factor), or *not done* (the notebook goes on). The answers are in
+# [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them).
 #
 # **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True` (the stored outputs)
 # trains 16 steps on small data, `QUICK = False` longer. Neither gives the paper's findings: each
@@ -366,8 +364,8 @@ print(
     f"N = {cands.x.shape[1]} candidates, {len(vc)} valid; plan = candidate {int(best)}, cost "
     f"{cost[0, best].item():.2f} (valid ones: {vc.min():.2f} .. {vc.max():.2f})"
 )
-temperatures = [((0.0, 0.0), beta) for beta in (0.1, 1.0, 10.0)]  # the GT future as prediction
-course.planner_panels(ex, cfg, temperatures, "Three β: how sharp the relaxed argmin p_n is")
+temperatures = [dict(ex=ex, beta=beta) for beta in (0.1, 1.0, 10.0)]  # GT future as prediction
+course.planner_panels(temperatures, cfg, "Three β: how sharp the relaxed argmin p_n is")
 
 # %%
 # What ignoring the vehicle adds to L_plan over β (validation set; n* = argmin with the GT future).
@@ -518,7 +516,7 @@ display(Markdown(markdown_table(head, rows)))
 # Figure: the two samples with the largest gradient, and a "far" vehicle; one arrow scale for all.
 top2 = torch.argsort(torch.where(ok_g, gmax, -1.0), descending=True)[:2].tolist()
 show_g = [*top2, first_of(bg, "far", ok_g)]
-course.figure_plan_gradient(bg, show_g, preds_cv, grad_g, cands_g, best_g, target_g, l_plan_g, gmax)
+course.figure_plan_gradient(bg, show_g, preds_cv, gmax, cfg)
 
 # %% [markdown]
 # **Try it.** A *keep_lane* sample (the vehicle stays in the next lane), its prediction the GT
@@ -563,7 +561,7 @@ section_done("§4")
 #
 # ($\kappa_t$ the feed-forward step, $\Gamma_t$ the feedback gain: `k` and `K` in the code.)
 # `ds.lqr_backward` computes exactly these formulas, block by block: the Q-function form of iLQR (Li
-# & Todorov 2004; Tassa, Mansard, Todorov 2014), with $P$, $p$ its `V_xx`, `V_x`; exercise 3 asks
+# & Todorov 2004; Tassa, Mansard, Todorov 2014), with $P$, $p$ its `V_xx`, `V_x`; exercise 5 asks
 # for one step. With the box, $\kappa_t$ solves a small box QP and the gain rows of clamped controls
 # are zero. The new controls $u_t + \varepsilon \kappa_t + \Gamma_t(s'_t - s_t)$ are rolled out for
 # $\varepsilon = 1, 1/5, 1/25, \dots$ and the largest step that does not raise the true cost is
