@@ -1,8 +1,7 @@
 """tutorial.ipynb's harness (section clock, checks that stop the notebook, helpers, the larger
-figures: drawing only, each cell computes what it shows) and its exercises' checks: each check_*
-runs the student's function on its own small problems (seeded, float64) against an independent
-answer; a wrong answer raises AssertionError saying what differs, a stub (NotImplementedError) is
-not done, so that *Run All* goes on past it. lab/grader.py runs them on students' notebooks."""
+figures) and its exercises' checks (lab/grader.py runs them): each runs the student's function on
+its own seeded float64 problems against an independent answer; a wrong one raises AssertionError
+saying what differs, a stub (NotImplementedError) is not done, so *Run All* goes on past it."""
 
 import contextlib
 import dataclasses
@@ -28,6 +27,7 @@ import figures
 import specs
 
 F64 = torch.float64
+P_NORM = LogNorm(1e-4, 1)  # the colour scale of the candidates' p_n
 SECTION_TIMES = {}
 _CLOCK = {}
 
@@ -61,8 +61,7 @@ class CheckpointError(AssertionError):
 
 
 def checkpoint(name, measured, expected, tol, rel=False):
-    """For what is deterministic (no training): the measured value against the expected one
-    within tol; a disagreement stops the notebook."""
+    """For what is deterministic (no training): measured within tol of expected, or a stop."""
     err = abs(measured - expected) / max(abs(expected), 1e-12) if rel else abs(measured - expected)
     within = "%g%%" % (100 * tol) if rel else tol
     said = f"measured {measured:.4g}, expected {expected:.4g}"
@@ -73,9 +72,8 @@ def checkpoint(name, measured, expected, tol, rel=False):
 
 
 def check_order(name, values, order, margin=0.0):
-    """For what training makes (it differs in the last digits between machines and thread counts,
-    and a short training can go either way): only an ordering that holds on any machine, lowest
-    first, each value at least `margin` below the next. A wrong order stops the notebook."""
+    """For what training makes (its last digits differ between machines): only an ordering that
+    holds on any machine, lowest first, each value at least `margin` below the next, or a stop."""
     print(f"CHECK {name}: " + " < ".join(f"{k} {values[k]:.4g}" for k in order), end=" -> ")
     bad = [(a, b) for a, b in zip(order, order[1:]) if not values[a] + margin <= values[b]]
     print("OK" if not bad else "FAILED")
@@ -87,9 +85,8 @@ def check_order(name, values, order, margin=0.0):
 
 
 def check_claim(table, method, baseline, column, expect):
-    """A finding the notebook states, checked on results/<table>.json: the verdict of its paired
-    difference over seeds (two-sided paired t-test, reproduced at p < 0.05 in the paper's
-    direction) must be the text's, so that a re-run that changes it stops the notebook."""
+    """A finding the notebook states: the verdict on results/<table>.json of its paired t-test
+    over seeds (p < 0.05 in the paper's direction: reproduced) must be the text's, or a stop."""
     saved = json.loads((Path("results") / f"{table}.json").read_text())["results"]
     line = xp.claim_line(specs.Claim(method, baseline, column), specs.TABLES[table], saved)
     verdict = line.rsplit("): ", 1)[-1]
@@ -189,10 +186,7 @@ def figure_stack():
         arrow(x0, 2.8, x1, 2.8, connectionstyle=f"arc3,rad={rad}", color="tab:red", lw=1.8, ls="--")
         ax.text(x, y, text, color="tab:red", ha="center", fontsize=9)
     ax.text(5.0, 4.3, "forward (black): predict → plan → control", ha="center", fontsize=10)
-    backward = (
-        "backward (red): ∂L_plan through the softmax over candidate costs;  ∂L_ctr through the "
-        "iLQR solution (KKT, §5); both reach θ through the predictions"
-    )
+    backward = "backward (red): through the softmax over the candidates and iLQR's KKT (§5) to θ"
     ax.text(5.0, -0.4, backward, ha="center", fontsize=8.5, color="tab:red")
     plt.show()
 
@@ -257,9 +251,8 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     levels = [v for v in (0.5, 1.0, 2.0, 4.0) if v < coll.max()]
     cs = axes[1, 1].contour(gx, gy, coll.reshape(gx.shape), levels, colors="tab:cyan", zorder=8)
     axes[1, 1].clabel(cs, fontsize=7)
-    at = dict(marker="X", ms=10, mec="k", ls="")
     who = {"tab:orange": "predicted vehicle", "0.6": "other vehicles", "tab:green": "pedestrians"}
-    extra = [Line2D([], [], color=c, label=f"{w} at t = {t:g} s", **at) for c, w in who.items()]
+    extra = [Line2D([], [], color=c, label=f"{w} at t = {t:g} s", **at_t) for c, w in who.items()]
     extra.append(Line2D([], [], color="tab:cyan", label=r"contours of $w_1 C_{coll}$"))
     scene_legend(fig, extra, ncol=6)
     title = (
@@ -269,32 +262,6 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
         "decides only between positions that the goal and the lanes rate alike"
     )
     _show(fig, title)
-
-
-def figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0)):
-    """§4: one sample's candidates coloured by p_n under several β, and the plan."""
-    xy = cands.x[0][cands.valid[0]][..., :2].flatten(0, 1)  # the valid candidates' positions
-    lo, hi = xy.min(0).values.tolist(), xy.max(0).values.tolist()
-    box = (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3)  # zoomed on the candidates
-    norm, valid, x = LogNorm(1e-4, 1), int(cands.valid.sum()), cands.x[0, :, :, :2]
-    kw = dict(figsize=(10, 2.8 * len(betas)), layout="constrained", sharex=True)
-    fig, axes = plt.subplots(len(betas), 1, **kw)
-    for ax, beta in zip(axes, betas):
-        p = torch.softmax(torch.where(cands.valid, -beta * cost, -math.inf), -1)[0]  # (N,)
-        _scene(ax, ex, 0, extent=box)
-        ax.set(xlabel="x (m)" if ax is axes[-1] else "")
-        for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
-            if cands.valid[0, n]:
-                colour = plt.cm.viridis(norm(max(p[n].item(), 1e-4)))
-                ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=7)
-        ax.plot(*x[best[0]].T, "k--", lw=1.5, zorder=8, label="plan (argmin)")
-        entropy = -(p[p > 0] * p[p > 0].log()).sum()
-        uniform = f"uniform over {valid}: {math.log(valid):.2f}"
-        title = f"β = {beta}: max p_n = {p.max():.2f}, entropy {entropy:.2f} nats ({uniform})"
-        ax.set_title(title, fontsize=9)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _colorbar(fig, axes, "viridis", norm, "p_n (log scale)", 0.6)
-    plt.show()
 
 
 def figure_beta_signal(betas, extra, beta_paper, n):
@@ -320,40 +287,22 @@ def figure_beta_signal(betas, extra, beta_paper, n):
     plt.show()
 
 
-def figure_plan_gradient(bg, show, preds, grad, cands, best, target, l_plan, gmax):
-    """§4: -dL_plan/d(prediction) as arrows (one scale) on the samples `show`."""
-    scale = 6.0 / gmax[show].max().item()  # the longest arrow is 6 m
-    kw = dict(figsize=(12, 9), layout="constrained", height_ratios=(1.5, 1))
-    fig, axd = plt.subplot_mosaic([["a", "b"], ["c", "c"]], **kw)
-    for ax, j in zip(axd.values(), show):
-        P, x, aim = preds[j, 0].detach(), cands.x[j, :, :, :2], cands.x[j, target[j], :, :2]
-        pts = torch.cat([P, bg.agent_fut[j, :, :2], aim, bg.ego_hist[j, -1:, :2]])
-        title = (
-            f"{data_synth.BEHAVIOURS[int(bg.behaviour[j])]} (val sample {j}): L_plan = "
-            f"{l_plan[j]:.2f},\nlargest |dL_plan/dŝ_t| = {gmax[j]:.1e} per m, plan "
-            f"{'=' if best[j] == target[j] else '≠'} target n*"
-        )
-        lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
-        _scene(ax, bg, j, title, (lo[0] - 6, hi[0] + 6, lo[1] - 5, hi[1] + 5))
-        red = dict(color="tab:red", ms=4, lw=1, zorder=8, label="prediction (constant velocity)")
-        ax.plot(*P.T, "o-", **red)
-        arrows = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=9)
-        label = "-dL_plan/dŝ_t (one scale)"
-        ax.quiver(*P.T, *(-scale * grad[j, 0]).T, color="tab:red", label=label, **arrows)
-        ax.plot(*aim.T, "g-", lw=3, alpha=0.6, zorder=7, label="target n* (cheapest in hindsight)")
-        ax.plot(*x[best[j]].T, "k--", lw=1.5, zorder=7, label="plan with this prediction")
-    axd["c"].legend(loc="upper left", bbox_to_anchor=(0.0, -0.25), ncol=4)
+def figure_plan_gradient(bg, show, preds, gmax, cfg):
+    """§4: -dL_plan/d(prediction) at one arrow scale (the longest 6 m) on the samples `show` of
+    `bg`, with the predictions `preds` (B, 1, T, 2)."""
+    kw = dict(beta=cfg.beta, what="constant velocity")
+    panels = [dict(ex=bg[j : j + 1], preds=preds[j : j + 1], **kw) for j in show]
     title = (
-        "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a "
-        "constant-velocity prediction\n(orange: the vehicle's true future; red arrows: where a "
-        "gradient step moves each predicted position)"
+        "Which prediction errors the planner cares about: -dL_plan/d(prediction) on a constant-"
+        "velocity prediction\n(orange: the vehicle's true future; red arrows, at one scale: where "
+        "a gradient step moves each predicted position)"
     )
-    _show(fig, title)
+    planner_panels(panels, cfg, title, scale=6.0 / gmax[show].max().item())
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
-    """§5: the cost over iLQR's iterations relative to the plan's (`rel`); for sample i, the
-    controller's position minus the plan's, and both controls over time (grey band: the box)."""
+    """§5: the cost over iLQR's iterations relative to the plan's (`rel`); sample i's controller
+    minus plan, and both controls over time (grey band: the box)."""
     mosaic = [["cost", "map", "map"], ["cost", "w", "a"]]
     _, axd = plt.subplot_mosaic(mosaic, figsize=(13, 6), layout="constrained")
     ax = axd["cost"]
@@ -443,47 +392,8 @@ def figure_modes(sub, pred, label):
     _show(fig, title)
 
 
-def figure_goal(goal_res):
-    """§7: what the GT future saves per behaviour (x1e-2), the paper's goal against a route goal
-    (results/goal.json). Returns route's saving / the paper goal's."""
-    # one scale: compare the sizes
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), dpi=100, sharey=True, sharex=True)
-    by = goal_res["logged"]["No prediction"][0]["by_behaviour"]
-    behaviours = [b for b in data_synth.BEHAVIOURS if b in by]
-    colours = ["tab:red" if b in ("cut_in", "lead_brake") else "tab:gray" for b in behaviours]
-    total, most = {}, {}
-    for ax, goal in zip(axes, ("logged", "route")):
-        none, gt = goal_res[goal]["No prediction"][0], goal_res[goal]["GT prediction"][0]
-        nb, gb = none["by_behaviour"], gt["by_behaviour"]
-        # each behaviour's part of the all-scene mean
-        saved = [
-            (gb[b]["hindsight"] - nb[b]["hindsight"]) * nb[b]["n"] / none["n"] / 1e-2
-            for b in behaviours
-        ]
-        ax.barh(behaviours, saved, color=colours)
-        ax.axvline(0, color="k", lw=0.8)
-        name = "the paper's goal (GT ego state at T)" if goal == "logged" else "a route goal"
-        ax.set_title(f"{name}: GT saves {-sum(saved):.2f}e-2 in all", fontsize=9)
-        total[goal] = -sum(saved)
-        most[goal] = [behaviours[k] for k in np.argsort(saved) if saved[k] < -0.25 * total[goal]]
-        ax.set_xlabel("GT minus No prediction, hindsight cost (x1e-2)")
-        ax.grid(axis="x", alpha=0.3)
-    axes[0].invert_yaxis()
-    ratio = total["route"] / total["logged"]
-    fig.suptitle(
-        f"What a perfect prediction saves: under the paper's goal {total['logged']:.2f}e-2, most "
-        f"in {' and '.join(most['logged'])};\nunder a route goal {ratio:.1f} times as much, most "
-        f"in {' and '.join(most['route'])} (red: cut_in, lead_brake)",
-        fontsize=10,
-    )
-    plt.tight_layout()
-    plt.show()
-    return ratio
-
-
 def figure_learning_curves(histories):
-    """§7: per-batch training losses of {name: (history, colour)} and their 10-step mean (Standard,
-    which does not run the stack in training, has only L_pred)."""
+    """§7: per-batch training losses of {name: (history, colour)} and their 10-step mean."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.7), layout="constrained")
     moved, steps = [], 0
     ylab = {"l_pred": "L_pred (nats)", "l_plan": "L_plan (nats)", "l_ctr": "L_ctr = hindsight cost"}
@@ -531,20 +441,9 @@ def figure_stacks(batch, i, outs, cfg):
     plt.show()
 
 
-def closed_loop_spread(rollouts):
-    """(S,) m: per scene, the largest distance between two methods' executed egos."""
-    return figures.widest_pair(rollouts).amax(-1)
-
-
-def figure_closed_loop(rollouts, cl_scenes, sc):
-    """§8: closed-loop scene sc (figures.figure_closed_loop)."""
-    figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
-
-
 def kkt_gradient_check(val, cfg, seed, out=print):
-    """§5: the gradient of a random linear function of iLQR's solution (float64, three samples
-    with the vehicle near) with respect to s0, w and the prediction, by the KKT backward (exact, and
-    curvature-free as mpc.pytorch's) against eval_numerical_gradient: {input: (their errors)}."""
+    """§5: the gradient of a random linear function of iLQR's solution (float64) wrt s0, w, the
+    prediction, by the KKT backward (exact, curvature-free) vs finite differences: their errors."""
     torch.manual_seed(seed)
     d_min = (val.ego_fut[..., :2] - val.agent_fut[..., :2]).norm(dim=-1).min(-1).values
     pick = torch.nonzero(d_min < 6).flatten()[:3]  # three samples where the vehicle comes near
@@ -572,7 +471,7 @@ def kkt_gradient_check(val, cfg, seed, out=print):
             x, u, _ = ds.ilqr_solve(fn, uni, ls[0], u_star, tuple(ls[1:]), lo, hi, **solve)
         return (x * wx).sum() + (u * wu).sum()
 
-    t0, grads = time.time(), []
+    grads = []
     for exact in (True, False):
         ls = [v.clone().requires_grad_() for v in leaves]
         grads.append(torch.autograd.grad(loss(ls, exact), ls))
@@ -584,7 +483,6 @@ def kkt_gradient_check(val, cfg, seed, out=print):
         errs[name] = [((g[i] - fd).norm() / fd.norm()).item() for g in grads]
         said = f"exact KKT {errs[name][0]:.1e}   curvature-free {errs[name][1]:.1e}"
         out(f"  {name:22s} relative error vs finite differences: {said}")
-    out(f"({time.time() - t0:.1f}s)")
     return errs
 
 
@@ -595,11 +493,12 @@ def show_source(fn):
     display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
 
 
-def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
-    """The relaxed planner of eq. (2) on `ex` (a batch of 1), its prediction the GT future moved
-    by `shift` (m): C, p_n, the plan, the target n*, L_plan and dL_plan/d(prediction) (T, 2)."""
+def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0, preds=None):
+    """The relaxed planner of eq. (2) on `ex` (a batch of 1), its prediction `preds` (None: the GT
+    future) moved by `shift` (m): C, p_n, the plan, the target n*, L_plan and dL_plan/dŝ (T, 2)."""
     ctx = gt_context(ex)
-    preds = (ctx.preds + torch.tensor(shift, dtype=ctx.preds.dtype)).requires_grad_()
+    preds = ctx.preds if preds is None else preds.detach()
+    preds = (preds + torch.tensor(shift, dtype=preds.dtype)).requires_grad_()
     w = ds.cost_weights(cfg, ctx.preds.dtype)
     start = ex.ego_hist[:, -1]
     cands, cost, plan, _, _ = ds.plan(start, dataclasses.replace(ctx, preds=preds), ex.goal, w, cfg)
@@ -611,50 +510,58 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0):
     return dict(view, l_plan=l_plan.item(), grad=grad[0, 0], pred=preds.detach()[0, 0], cands=cands)
 
 
-def draw_planner_view(ax, ex, cfg, shift, beta):
-    """planner_view(ex, cfg, shift, beta) drawn: the candidates coloured by p_n, the plan, the
-    target n*, the moved prediction and -dL_plan/dŝ as arrows."""
-    v = planner_view(ex, cfg, shift, beta)
+def draw_planner_view(ax, cfg, ex, beta, shift=(0.0, 0.0), preds=None, what="GT", scale=None):
+    """planner_view drawn (`what`: the prediction): the valid candidates coloured and widened by
+    p_n, the plan, n*, the prediction, -dL_plan/dŝ as arrows (scale m per 1/m, or longest 3 m)."""
+    v = planner_view(ex, cfg, shift, beta, preds)
+    p, valid, x = v["p"], v["cands"].valid[0], v["cands"].x[0, :, :, :2].detach()  # x (N, T+1, 2)
     hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
+    moved = f" moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m" if any(shift) else ""
+    gmax = v["grad"].norm(dim=-1).max().item()
+    entropy = -(p[p > 0] * p[p > 0].log()).sum()
+    uniform = f"uniform over {int(valid.sum())}: {math.log(valid.sum()):.2f}"
     title = (
-        f"moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m, β = {beta:g}: L_plan {v['l_plan']:.2f}, "
-        f"{hit},\nlargest |dL/dŝ_t| {v['grad'].norm(dim=-1).max():.2f} 1/m"
+        f"{data_synth.BEHAVIOURS[int(ex.behaviour[0])]}, β = {beta:g}, {what}{moved}: L_plan "
+        f"{v['l_plan']:.2f}, {hit}, largest |dL/dŝ_t| {gmax:.1e} 1/m\nmax p_n = {p.max():.2f}, "
+        f"entropy {entropy:.2f} nats ({uniform})"
     )
-    _scene(ax, ex, 0, title, (-10, 45, -12, 12))
-    x = v["cands"].x[0, :, :, :2].detach()  # (N, T+1, 2)
-    colour = plt.cm.viridis(np.clip(1 + np.log10(v["p"].clamp_min(1e-3).numpy()) / 3, 0, 1))
-    for n in torch.nonzero(v["cands"].valid[0]).flatten().tolist():
-        ax.plot(*x[n].T, color=colour[n], lw=1, zorder=2)
+    pts = torch.cat([x[valid].flatten(0, 1), v["pred"], ex.agent_fut[0, :, :2]])  # the zoom's
+    lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+    _scene(ax, ex, 0, title, (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3))
+    for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
+        if valid[n]:
+            colour = plt.cm.viridis(P_NORM(max(p[n].item(), 1e-4)))
+            ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=2)
     ax.plot(*x[v["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
     ax.plot(*x[v["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
     ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
-    arrows = -v["grad"] / max(v["grad"].norm(dim=-1).max().item(), 1e-12) * 3
+    arrows = -v["grad"] * (scale or 3 / max(gmax, 1e-12))
     ax.quiver(*v["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
 
 
+def planner_panels(panels, cfg, title, scale=None):
+    """A draw_planner_view panel per dict of its arguments (ex, shift, beta, preds, what) in
+    panels, stacked, under one p_n colour bar; scale: one arrow scale for all."""
+    kw = dict(figsize=(10, 2.9 * len(panels)), layout="constrained", squeeze=False)
+    fig, axes = plt.subplots(len(panels), 1, **kw)
+    for ax, panel in zip(axes[:, 0], panels):
+        draw_planner_view(ax, cfg, scale=scale, **panel)
+    axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    _colorbar(fig, axes, "viridis", P_NORM, "p_n (log scale)", 0.6)
+    _show(fig, title)
+
+
 def interactive_planner(ex, cfg, settings):
-    """A panel per (shift, beta) of settings; then, with ipywidgets, sliders that move the
-    prediction and change beta. Returns the widget, or None without ipywidgets."""
-    fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 3.6))
-    for ax, (shift, beta) in zip(np.atleast_1d(axes), settings):
-        draw_planner_view(ax, ex, cfg, shift, beta)
-    np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=7)
-    fig.suptitle(
-        "Move the prediction or change β: the costs, p_n (colour), the plan and -dL_plan/dŝ "
-        "(arrows, scaled per panel) follow"
-    )
-    fig.tight_layout()
-    plt.show()
+    """planner_panels of settings (shift, beta), then ipywidgets' sliders (or None without)."""
+    title = "Move the prediction or change β: C, p_n, the plan and -dL_plan/dŝ (arrows) follow"
+    planner_panels([dict(ex=ex, shift=shift, beta=beta) for shift, beta in settings], cfg, title)
     try:
         import ipywidgets as widgets
     except ImportError:
         return None
 
     def redraw(dx=0.0, dy=0.0, beta=1.0):
-        _, ax = plt.subplots(figsize=(7, 3.6))
-        draw_planner_view(ax, ex, cfg, (dx, dy), beta)
-        ax.legend(loc="lower left", fontsize=7)
-        plt.show()
+        planner_panels([dict(ex=ex, shift=(dx, dy), beta=beta)], cfg, "")
 
     return widgets.interactive(
         redraw,
@@ -691,11 +598,9 @@ def _relation(mine, ref, factors):
 
 
 def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, diagnose=None):
-    """Assert mine ~ ref: the same shape, finite, max |mine - ref| <= allowed * max(1, |ref|max),
-    allowed = max(tol, 16 eps cond): a right float32 answer passes, a wrong one still fails (cond:
-    how much the problem magnifies a rounding error; eps: of dtype, the answer's where mine was cast
-    back). A failure says what differs: the ratio to the reference where one number explains it
-    (factors: {c: why}), and diagnose(mine) where the check knows more (which term, which stage)."""
+    """Assert mine ~ ref: same shape, finite, max error <= max(tol, 16 eps cond) max(1, |ref|),
+    so a right float32 answer passes (cond: how much the problem magnifies rounding). A failure says
+    what differs: a ratio to the reference (factors: {c: why}), diagnose(mine) (the term, stage)."""
     try:
         mine = torch.as_tensor(mine)
     except (TypeError, ValueError, RuntimeError):
@@ -728,8 +633,7 @@ def _close(name, mine, ref, hint, tol=1e-9, cond=1.0, dtype=None, factors=None, 
 
 
 def _call(name, fn, *args, returns=""):
-    """fn(*args); an exception inside it (a shape that does not broadcast) is a failed check naming
-    the inputs' shapes and what to return. NotImplementedError (a stub) and Forbidden pass."""
+    """fn(*args); its error (but a stub's, or Forbidden) is a failure naming the inputs' shapes."""
     try:
         return fn(*args)
     except (NotImplementedError, Forbidden):
@@ -781,8 +685,7 @@ def _refuse(what, *args, **kwargs):
 
 
 def exercise(number, check, fn):
-    """One exercise's check from a notebook cell: PASS (True), not done yet (the stub raised
-    NotImplementedError: False), or AssertionError (a wrong answer: what differs)."""
+    """A check from a notebook cell: PASS (True), not done (a stub: False), or AssertionError."""
     try:
         detail = check(fn)
     except NotImplementedError:
@@ -796,19 +699,16 @@ def exercise(number, check, fn):
 
 
 def show_failure(check, fn):
-    """Print and return what a check says of a wrong answer, without stopping the notebook."""
+    """Print what a check says of a wrong answer, without stopping the notebook."""
     try:
         check(fn)
+        print("the check passes")
     except AssertionError as e:
         print(f"the check says: {e}")
-        return str(e)
-    print("the check passes")
-    return ""
 
 
 def eval_numerical_gradient(f, x, h=1e-6):
-    """The gradient of a scalar f at x (float64) by central differences, entry by entry:
-    (f(x + h e_i) - f(x - h e_i)) / 2h, a pair of calls of f per entry (for small problems)."""
+    """The gradient of a scalar f at x (float64) by central differences, entry by entry."""
     x = x.detach().to(F64)
     grad = torch.zeros_like(x)
     for i in range(x.numel()):
@@ -848,9 +748,8 @@ def collision_problem(seed=0, B=6, N=7, K=5, T=6, A=3):
 
 
 def collision_terms_at_fault(_, fn, pos, ctx, rbf_var):
-    """Which part of C_coll a wrong answer gets wrong, by running it (fn) again (its output, the
-    first argument, is not needed): a mask it ignores (it equals C_coll with that mask all 1), or
-    one of the two terms, each scored alone (the other masked out). A sentence, or ''."""
+    """Which part of C_coll the answer fn gets wrong, run again: a mask it ignores (it equals C_coll
+    with that mask all 1), or one of the two terms, each scored alone. A sentence, or ''."""
 
     def agrees(answer_ctx, reference_ctx):  # the answer on one context, the module on another
         try:
@@ -941,9 +840,7 @@ def check_plan_loss(fn, name="my_plan_loss"):
         err = _close(f"{name} {at}", mine, ref, hint, cond=cond, factors=factors, diagnose=off)
         worst = max(worst, err)
         ref.sum().backward()
-        assert mine.requires_grad, (
-            f"{name}: the result has no gradient (keep it a torch expression). {hint}"
-        )
+        assert mine.requires_grad, f"{name}: the result carries no gradient. {hint}"
         mine.sum().backward()
         _close(
             f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
@@ -1028,9 +925,8 @@ def check_riccati(fn):
 
 
 def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
-    """An LQR as the controller's backward pass sees one, its active set fixed: x_{t+1} = A_t
-    x_t + B_t u_t from x_init, cost sum_t 1/2 z_t' H_t z_t + g_t' z_t, z_t = [x_t; u_t] (t = 0..T,
-    the last u unused), some controls held (free False), the incoming gradient (grad_x, grad_u)."""
+    """An LQR as the KKT backward sees one: x_{t+1} = A_t x_t + B_t u_t, cost sum_t z_t'H_t z_t / 2
+    + g_t'z_t (z_t = [x_t; u_t], t = 0..T), some controls held (free False), grad_x and grad_u."""
     gen = torch.Generator().manual_seed(seed)
     randn = functools.partial(torch.randn, generator=gen, dtype=F64)
     A = torch.eye(n, dtype=F64) + 0.3 * randn(B, T, n, n)
@@ -1042,8 +938,7 @@ def kkt_problem(seed=0, B=4, T=5, n=3, m=2):
 
 
 def lqr_solve(A, Bm, H, g, x_init, free):
-    """The problem's solution (x* (B, T+1, n), u* (B, T, m)): the module's Riccati recursion, then
-    the policy u_t = k_t + K_t x_t rolled out from x_init; held controls stay at 0."""
+    """The problem's solution (x*, u*): the module's Riccati policy rolled out from x_init."""
     k, K, _, _ = ds.lqr_backward(A, Bm, H, g, free=free)
     x, u = [x_init], []
     for t in range(A.shape[1]):
@@ -1053,8 +948,7 @@ def lqr_solve(A, Bm, H, g, x_init, free):
 
 
 def kkt_stage_at_fault(mine, ref, free, n, allowed):
-    """Where a wrong dL/dg (B, T+1, n+m) first differs: the stage t and, in it, the state entries,
-    the free controls or the held ones (free False). A sentence."""
+    """Where a wrong dL/dg first differs: the stage, and its states, free or held controls."""
     T = free.shape[1]
     bad = (mine.detach().double() - ref).abs() > allowed  # (B, T+1, n+m)
     held, free_u, states = (torch.zeros_like(bad) for _ in range(3))
@@ -1091,11 +985,8 @@ def check_kkt(fn):
             return (grad_x * x).sum() + (grad_u * u).sum()
 
         ref_x, ref_g = torch.autograd.grad(loss(xi, gg), (xi, gg))
-        for b, i in ((0, 1), (2, 0)):  # ... itself against central differences
-            e = torch.zeros_like(x_init)
-            e[b, i] = 1e-6
-            fd = (loss(x_init + e, g) - loss(x_init - e, g)).item() / (2 * 1e-6)
-            assert abs(fd - ref_x[b, i].item()) < 1e-6
+        fd = eval_numerical_gradient(lambda v: loss(v, g), x_init)  # ... itself against FD
+        assert (fd - ref_x).abs().max() < 1e-6
         returns = f"(dL/dx_init (B, {n}), dL/dg (B, {T1}, {nm}))"
         out = _call("my_kkt_backward", fn, A, Bm, H, grad_x, grad_u, free, n, returns=returns)
         out = _parts("my_kkt_backward", out, 2, "two (dL/dx_init, dL/dg)", hint)

@@ -198,7 +198,7 @@ def _plan_grad(mutation):
 
 
 def _kkt(mutation):
-    """Exercise 5's answer with one plausible mistake (the rollout and the LQR call as a student
+    """Exercise 6's answer with one plausible mistake (the rollout and the LQR call as a student
     would write them)."""
     import diffstack as ds
 

@@ -51,10 +51,8 @@
 # **Exercises.** Six functions to fill in (stubs until you do), in the order they build on each
 # other; one of them fixes a realistic bug. A check runs each on its own test problems against the
 # module, autograd or a closed form: `PASS`, a stop that says what differs (which term or stage, by
-# what factor), or *not done* (the notebook goes on). `course.grad_check(f, x, your_gradient)`
-# checks a gradient you derived against central differences, on any function of your own. The
-# answers are in [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them);
-# `python -m lab.grader tutorial.ipynb` grades a notebook's answers, exercise by exercise.
+# what factor), or *not done* (the notebook goes on). The answers are in
+# [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them).
 #
 # **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True` (the stored outputs)
 # trains 16 steps on small data, `QUICK = False` longer. Neither gives the paper's findings: each
@@ -83,7 +81,6 @@ import dataclasses
 import json
 import math
 import tempfile
-import time
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -138,8 +135,6 @@ print(f"{N_DATA} samples, {TRAIN_STEPS} training steps of batch {cfg.batch_size}
 
 # %%
 course.figure_stack()  # the modules, the data flow (black), DiffStack's gradient path (red, dashed)
-
-# %%
 section_done("§1")
 
 # %% [markdown]
@@ -169,21 +164,17 @@ section_done("§1")
 
 # %%
 # Data: generated once (a few seconds), then read from data_cache/.
-t0 = time.time()
 data = data_synth.load_or_generate(N_DATA, seed=SEED, cache_dir="data_cache")
 EPOCHS = TRAIN_STEPS / max(1, len(data.train) // cfg.batch_size)  # train_stack counts in epochs
 print(
     f"{len(data.train)} training and {len(data.val)} validation samples from "
-    f"{len(data.val_scenes)} validation scenes ({time.time() - t0:.1f}s); {TRAIN_STEPS} steps = "
-    f"{EPOCHS:.2f} epochs"
+    f"{len(data.val_scenes)} validation scenes; {TRAIN_STEPS} steps = {EPOCHS:.2f} epochs"
 )
 fields = ("ego_hist", "agent_fut", "others_fut", "lanes", "goal")
 print("shapes:", ", ".join(f"{k} {tuple(getattr(data.val, k).shape)}" for k in fields))
 print(data_synth.format_statistics(data_synth.statistics(data.val)))
 
 # %%
-# One validation sample of each behaviour of the four pairs that share a set-up (columns), in the
-# ego frame at t0 (course.figure_scenarios).
 course.figure_scenarios(data.val)
 
 # %% [markdown]
@@ -205,15 +196,11 @@ b = data_synth.sample_at(loaded, frame, dtype=torch.float64)
 compared = ("ego_hist", "ego_fut", "agent_hist", "agent_fut", "goal")
 diff = max((getattr(a, k) - getattr(b, k)).abs().max().item() for k in compared)
 checkpoint("max |written-and-read - original| over ego/agent states, goals (m)", diff, 0.0, 1e-9)
-
-# %%
 section_done("§2")
 
 # %% [markdown]
-# **Summary of §2.** A planning sample is 4 s of history and 3 s of future of the ego, of one
-# predicted vehicle and of the other agents, with the lanes and a goal, in the ego frame at $t_0$.
-# The synthetic manoeuvres come in pairs that share a set-up, so a history does not tell which one
-# follows; the nuScenes writer and loader carry them through the real format unchanged.
+# **Summary of §2.** The manoeuvres come in pairs that share a set-up, so a history does not tell
+# which one follows; the nuScenes writer and loader carry the scenes through the real format.
 #
 # **For discussion (§2).**
 #
@@ -241,9 +228,7 @@ section_done("§2")
 course.show_source(ds.unicycle_step)
 
 # %%
-# Figure: what one control pair does over 3 s. From (0, 0, heading 0, 8 m/s), nine constant yaw
-# rates (colour) and three constant accelerations (line style): braking shortens the arc, the yaw
-# rate bends it.
+# What one control pair does over 3 s: braking shortens the arc, the yaw rate bends it.
 w = torch.linspace(-0.7, 0.7, 9, dtype=torch.float64)
 s_start = torch.tensor([0.0, 0.0, 0.0, 8.0], dtype=torch.float64).expand(9, 4)
 fig, ax = plt.subplots(figsize=(9, 4.2), layout="constrained")
@@ -255,7 +240,6 @@ for a_, style in ((-3.0, ":"), (0.0, "-"), (2.0, "--")):
     ax.plot([], [], style, color="k", lw=1.6, label=f"a = {a_:+.0f} m/s²")  # the legend's, in black
 ax.plot(0, 0, "ks", ms=6, label="start, 8 m/s")
 ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)")
-ax.grid(alpha=0.3)
 ax.legend(loc="upper left", bbox_to_anchor=(1.17, 1.0), title="acceleration (line style)")
 yaw_rates = plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-0.7, 0.7))
 fig.colorbar(yaw_rates, ax=ax, label="yaw rate ω (rad/s)")
@@ -288,9 +272,7 @@ checkpoint("max |closed-form Jacobians - autograd|", err, 0.0, 1e-12)
 #
 # The predicted vehicle enters through its $K$ modes $\hat s_{k,t}$ and weights $\pi_k$, the other
 # agents through their GT futures ($a$), the lanes through the closest lane point $s_{\ell,\perp}$
-# and its heading $h_\ell$. The figure below shows one step of the cost (1.5 s ahead, GT future as
-# the prediction) over the ego's position in a cut-in: a bump around each vehicle, a bowl around the
-# goal, valleys along the lanes, and their weighted sum.
+# and its heading $h_\ell$.
 
 # %%
 ex = data.val[torch.tensor([first_of(data.val, "cut_in")])]  # a cut-in
@@ -306,9 +288,8 @@ c_goal = ((flat[0] - ctx.goal) ** 2).sum(-1)
 d2, herr, _ = ds.project_to_lanes(flat, torch.zeros(flat.shape[:2]), ex.lanes, ex.lanes_mask)
 c_sum = w_hand[0] * c_coll + w_hand[1] * c_goal + w_hand[2] * d2[0] + w_hand[3] * herr[0] ** 2
 print(
-    f"C_head over the grid (heading 0): {(herr**2).min():.2g} .. {(herr**2).max():.2g}; C_lat: "
-    f"{d2.min():.2g} .. {d2.max():.3g}: C_head is nearly flat here, so it has no panel of its "
-    "own (it is in the sum)"
+    f"C_head over the grid (heading 0): {(herr**2).min():.2g} .. {(herr**2).max():.2g}, C_lat "
+    f"{d2.min():.2g} .. {d2.max():.3g}: C_head is nearly flat, so it has no panel (it's in the sum)"
 )
 course.figure_cost_map(ex, gx, gy, c_coll, c_goal, d2[0], c_sum, w_hand[0], ctx_t)
 
@@ -343,8 +324,6 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 # then the module's version, in the mean + spread form.
 course.exercise(1, course.check_collision, my_collision)
 course.show_source(ds.collision_term)
-
-# %%
 section_done("§3")
 
 # %% [markdown]
@@ -376,20 +355,17 @@ section_done("§3")
 # \mathcal L_\text{plan} = -\log p_{n^*}.$$
 #
 # $\beta$ (1 in the paper) sets how sharp it is: as $\beta \to \infty$ the argmin
-# ($\mathcal L_\text{plan}$ 0 or huge), as $\beta \to 0$ uniform (no signal). The figures: the
-# candidates under three $\beta$ (GT prediction), and what ignoring the vehicle adds to the mean
-# $\mathcal L_\text{plan}$, over $\beta$: the signal a prediction gets.
+# ($\mathcal L_\text{plan}$ 0 or huge), as $\beta \to 0$ uniform (no signal).
 
 # %%
-# Figure: candidates coloured by p_n (one log scale), the plan (argmin) black dashed, zoomed in.
 cands, cost, best, plannable, _ = ds.plan(ex.ego_hist[:, -1], ctx, ex.goal, w_hand, cfg)
-valid_cost = cost[cands.valid]
+vc = cost[cands.valid]
 print(
-    f"N = {cands.x.shape[1]} candidates, {int(cands.valid.sum())} valid; plan = candidate "
-    f"{int(best)}, cost {cost[0, best].item():.2f} (valid ones: {valid_cost.min():.2f} .. "
-    f"{valid_cost.max():.2f})"
+    f"N = {cands.x.shape[1]} candidates, {len(vc)} valid; plan = candidate {int(best)}, cost "
+    f"{cost[0, best].item():.2f} (valid ones: {vc.min():.2f} .. {vc.max():.2f})"
 )
-course.figure_temperatures(ex, cands, cost, best, betas=(0.1, 1.0, 10.0))
+temperatures = [dict(ex=ex, beta=beta) for beta in (0.1, 1.0, 10.0)]  # GT future as prediction
+course.planner_panels(temperatures, cfg, "Three β: how sharp the relaxed argmin p_n is")
 
 # %%
 # What ignoring the vehicle adds to L_plan over β (validation set; n* = argmin with the GT future).
@@ -457,12 +433,10 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 # %%
 # Your own gradient check first (course.grad_check: central differences of ds.plan_loss, entry by
 # entry), then exercise 3's check against autograd (three β, masked candidates).
-c_small, valid_small, target_small = course.plan_problem(SEED, B=2, N=5)
+c3, valid3, target3 = course.plan_problem(SEED, B=2, N=5)
 try:
-    mine = my_plan_loss_grad(c_small, valid_small, target_small, 1.0)
-    course.grad_check(
-        lambda c: ds.plan_loss(c, valid_small, target_small, 1.0).sum(), c_small, mine
-    )
+    mine = my_plan_loss_grad(c3, valid3, target3, 1.0)
+    course.grad_check(lambda c: ds.plan_loss(c, valid3, target3, 1.0).sum(), c3, mine)
 except NotImplementedError:
     print("exercise 3 not done yet: nothing to check")
 ex3_done = course.exercise(3, course.check_plan_grad, my_plan_loss_grad)
@@ -510,9 +484,8 @@ course.exercise(4, course.check_plan_loss_fixed, my_plan_loss_fixed)
 # but its gradient is zero to the printed digits; Standard training weighs every error alike.
 
 # %%
-# -dL_plan/d(prediction) for a constant-velocity prediction, on every validation sample at once; by
-# behaviour, the largest gradient over a sample's predicted steps (median and max over the samples
-# of that behaviour).
+# -dL_plan/d(prediction) for a constant-velocity prediction on every validation sample; by
+# behaviour, the largest gradient over a sample's predicted steps (median and max over samples).
 bg = data.val
 preds_cv = tr.constant_velocity(bg, cfg)[:, None].clone().requires_grad_()  # (B, K=1, T, 2)
 ctx_cv = dataclasses.replace(gt_context(bg), preds=preds_cv)
@@ -536,35 +509,23 @@ rows = course.behaviour_rows(
     ok_g,
     lambda sel: [f"{gmax[sel].median():.1e}", f"{gmax[sel].max():.1e}", f"{wrong[sel].mean():.0%}"],
 )
-# (a | inside a markdown table's cell is escaped)
-head = [
-    "behaviour",
-    "samples",
-    r"median of max \|dL_plan/dŝ_t\| (1/m)",
-    "largest",
-    "plan ≠ target n*",
-]
+head = ["behaviour", "samples", r"median of max \|dL_plan/dŝ_t\| (1/m)", "largest", "plan ≠ n*"]
 display(Markdown(markdown_table(head, rows)))
 
 # %%
 # Figure: the two samples with the largest gradient, and a "far" vehicle; one arrow scale for all.
 top2 = torch.argsort(torch.where(ok_g, gmax, -1.0), descending=True)[:2].tolist()
 show_g = [*top2, first_of(bg, "far", ok_g)]
-course.figure_plan_gradient(bg, show_g, preds_cv, grad_g, cands_g, best_g, target_g, l_plan_g, gmax)
+course.figure_plan_gradient(bg, show_g, preds_cv, gmax, cfg)
 
 # %% [markdown]
 # **Try it.** A *keep_lane* sample (the vehicle stays in the next lane), its prediction the GT
-# future *moved*: the candidates' costs, their $p_n$, the plan and
-# $-\partial\mathcal L_\text{plan}/\partial\hat s$ follow (each panel's title gives $\mathcal
-# L_\text{plan}$, whether the plan is still $n^*$, and the largest gradient). Three settings are
-# drawn: the truth, the vehicle moved 1.5 m toward the ego's lane, and the same at $\beta = 10$;
-# in a live kernel with ipywidgets, the sliders below move the prediction and change $\beta$.
+# future *moved*: the truth, the vehicle moved 1.5 m toward the ego's lane, and the same at
+# $\beta = 10$; in a live kernel with ipywidgets, sliders move the prediction and change $\beta$.
 
 # %%
 settings = [((0.0, 0.0), 1.0), ((0.0, -1.5), 1.0), ((0.0, -1.5), 10.0)]  # (shift (m), β)
 course.interactive_planner(data.val[torch.tensor([first_of(data.val, "keep_lane")])], cfg, settings)
-
-# %%
 section_done("§4")
 
 # %% [markdown]
@@ -600,7 +561,7 @@ section_done("§4")
 #
 # ($\kappa_t$ the feed-forward step, $\Gamma_t$ the feedback gain: `k` and `K` in the code.)
 # `ds.lqr_backward` computes exactly these formulas, block by block: the Q-function form of iLQR (Li
-# & Todorov 2004; Tassa, Mansard, Todorov 2014), with $P$, $p$ its `V_xx`, `V_x`; exercise 3 asks
+# & Todorov 2004; Tassa, Mansard, Todorov 2014), with $P$, $p$ its `V_xx`, `V_x`; exercise 5 asks
 # for one step. With the box, $\kappa_t$ solves a small box QP and the gain rows of clamped controls
 # are zero. The new controls $u_t + \varepsilon \kappa_t + \Gamma_t(s'_t - s_t)$ are rolled out for
 # $\varepsilon = 1, 1/5, 1/25, \dots$ and the largest step that does not raise the true cost is
@@ -620,24 +581,16 @@ def cost_fn(x, u, w):  # the solver's interface: cost(x, u, *params)
     return ds.total_cost(x, u, ctx_b, w, cfg.rbf_var)
 
 
-t0 = time.time()
 x, u, info = ds.ilqr(
     cost_fn, uni, batch.ego_hist[:, -1], u_plan, (w_hand,), *box, iters=10, tol=cfg.ilqr_tol
 )
 conv = info.converged[ok_b].float().mean()
 used = torch.bincount(info.iters[ok_b]).tolist()
-print(
-    f"{time.time() - t0:.2f}s; converged {conv:.3f} of {int(ok_b.sum())} plannable samples; "
-    f"iterations used: {used} (count per number of iterations)"
-)
+print(f"converged {conv:.3f} of {int(ok_b.sum())}; samples per number of iterations: {used}")
 rel = (info.costs / info.costs[:, :1])[ok_b]  # (B, I+1) cost relative to the plan's
 i = int((info.costs[:, 0] - info.costs[:, -1]).argmax())  # the sample iLQR improves most
 xp_, xi_ = cands.x[i, best_b[i]], x[i]  # (T+1, 4) the plan's and the controller's states
-print(
-    f"sample {i}: cost of the plan {info.costs[i, 0]:.3f} -> after iLQR {info.costs[i, -1]:.3f}; "
-    f"largest position change {(xi_[:, :2] - xp_[:, :2]).norm(dim=-1).max():.2f} m"
-)
-# the cost per iteration; sample i's trajectories and controls
+print(f"sample {i}: cost of the plan {info.costs[i, 0]:.3f} -> after iLQR {info.costs[i, -1]:.3f}")
 course.figure_ilqr(batch, i, rel, xp_, u_plan[i], xi_, u[i], cfg)
 ratio = rel[:, -1].mean().item()
 checkpoint("mean cost after iLQR / cost of the plan", ratio, 0.70 if QUICK else 0.62, 0.05)
@@ -772,8 +725,6 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_kkt_backward
 course.exercise(6, course.check_kkt, my_kkt_backward)
 course.show_source(ds.kkt_backward)  # the module's, for the nonlinear controller
-
-# %%
 section_done("§5")
 
 # %% [markdown]
@@ -810,7 +761,6 @@ section_done("§5")
 
 # %%
 # Train the Standard predictor (L_pred only). Expected run time: ~2 s quick, ~20 s full.
-t0 = time.time()
 torch.manual_seed(SEED)  # the initialisation (as open_loop_experiment does)
 model_std = ds.Predictor(cfg)
 log = None if QUICK else print
@@ -821,14 +771,10 @@ m_std = tr.evaluate_predictor(model_std, data.val, cfg)
 # and a Standard predictor trained for the tables' 40 epochs (8 500 samples, seed 0): pretrained/
 model_pre = load_pretrained(tr.Method("Standard"), ds.Config())[0][SEED].eval()
 m_pre = tr.evaluate_predictor(model_pre, data.val, cfg)
-print(f"trained {len(hist_std)} steps in {time.time() - t0:.0f}s (learning curves: §7)")
-print("            ADE    FDE    min-ADE  NLL")
-for name, m in (("Standard", m_std), ("pretrained", m_pre)):
+cv = dict(ade=m_std["cv_ade"], fde=m_std["cv_fde"], min_ade=math.nan, nll=m_std["cv_nll"])
+print("            ADE    FDE    min-ADE  NLL  (const vel's NLL: its variance fit to this set)")
+for name, m in (("Standard", m_std), ("pretrained", m_pre), ("const vel", cv)):
     print(f"{name:<11} {m['ade']:.2f}   {m['fde']:.2f}   {m['min_ade']:.2f}     {m['nll']:.2f}")
-print(
-    f"const vel   {m_std['cv_ade']:.2f}   {m_std['cv_fde']:.2f}   --       {m_std['cv_nll']:.2f}  "
-    "(cv NLL: variance fit to this set)"
-)
 # trained to the tables' length, the learned model is ahead of constant velocity in every metric
 ades = dict(best_mode=m_pre["min_ade"], most_likely=m_pre["ade"], CV=m_std["cv_ade"])
 check_order("pretrained's ADEs vs constant velocity's (m)", ades, [*ades], margin=0.1)
@@ -839,9 +785,7 @@ if not QUICK:  # 100 steps put the best mode well below constant velocity (16 qu
     check_order("best mode's ADE vs constant velocity's (m)", ades, ["Standard", "CV"], margin=0.1)
 
 # %%
-# Figure: what a Standard predictor says on three validation samples: its K = 25 modes coloured
-# and widened by p(z = k | x), 1σ ellipses of the most likely mode, the vehicle's true future in
-# orange. Quick mode draws the pretrained one (16 steps leave the 25 modes on top of each other).
+# Quick mode draws the pretrained predictor (16 steps leave the 25 modes on top of each other).
 model_std.eval()
 idx = torch.tensor([first_of(data.val, n) for n in ("cut_in", "lead_brake", "turn_across")])
 sub = data.val[idx]
@@ -849,8 +793,6 @@ with torch.no_grad():
     pred = (model_pre if QUICK else model_std)(sub, use_posterior=False)
 label = "pretrained/ (40 epochs)" if QUICK else f"trained here ({TRAIN_STEPS} steps)"
 course.figure_modes(sub, pred, label)
-
-# %%
 section_done("§6")
 
 # %% [markdown]
@@ -878,29 +820,21 @@ section_done("§6")
 
 # %%
 # Table 1 (RL). Expected run time: ~5 s quick (4 methods), ~3 min full (all 7 methods).
-t0 = time.time()
 four = ("No prediction", "Standard", "DiffStack", "GT prediction")  # quick mode's (and Table 4's)
 methods4 = [m for m in xp.TABLE1_METHODS if m.name in four]
 methods1 = methods4 if QUICK else xp.TABLE1_METHODS
 res1 = xp.open_loop_experiment(data, cfg, "rl", methods1, seeds=(SEED,), epochs=EPOCHS, log=None)
-print(f"({time.time() - t0:.0f}s)")
 display(Markdown(open_loop_table(res1, "rl")))
 gap, _ = xp.gap_closed(res1)
-print(
-    f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT gap in hindsight cost (paper: 39 %)"
-)
+print(f"DiffStack closes {100 * gap:.0f} % of the Standard -> GT gap (paper: 39 %)")
 rel = {n: r[0]["rel_hindsight"] for n, r in res1.items()}
 # one seed of a short training: whether DiffStack beats Standard here varies between machines, so it
 # is not checked; what a perfect prediction is worth needs no training and is (GT prediction below
 # No prediction)
 check_order("Table 1, relative hindsight cost (x1e-2)", rel, ["GT prediction", "No prediction"])
-if QUICK:
-    ade_ds = res1["DiffStack"][0]["ade"]
-    print(
-        f"quick mode: {TRAIN_STEPS} steps of {cfg.batch_size}, DiffStack's ADE {ade_ds:.2f} m "
-        f"(constant velocity: {m_std['cv_ade']:.2f} m): barely trained, these numbers test the "
-        "code. Read the 10-seed table below."
-    )
+if QUICK:  # barely trained: these numbers test the code; read the 10-seed table below
+    ade = res1["DiffStack"][0]["ade"]
+    print(f"DiffStack's ADE {ade:.2f} m, constant velocity's {m_std['cv_ade']:.2f} m")
 results_table("rl")
 check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced")
 
@@ -933,35 +867,23 @@ check_claim("rl", "DiffStack", "Standard", "Hindsight cost (x1e-2)", "reproduced
 # Standard's ADE was still falling.
 #
 # ![Learning curves of Standard and DiffStack over 40 epochs](results/learning_curves.png)
-
-# %% [markdown]
+#
 # **Where a perfect prediction is worth something (`results/goal.md`, no training).** Every
 # validation scene planned with no prediction and with the GT future, under the paper's goal (the GT
 # ego state at T) and under a *route* goal (where the ego would be at T keeping its speed along its
 # lane, `Config.goal = "route"`).
 
 # %%
-# Figure: what the GT future saves per behaviour, the paper's goal vs a route goal
-# (results/goal.json).
-goal_res = json.loads(Path("results/goal.json").read_text())["results"]
-course.figure_goal(goal_res)
-cut = goal_res["logged"]["No prediction"][0]["by_behaviour"]["cut_in"]
-parts = " + ".join(
-    f"{n} {v:.2f}" for n, v in zip(("collision", "goal", "lane", "heading"), cut["terms"])
-)
-print(
-    f"cut_in under the paper's goal, No prediction: hindsight cost {cut['hindsight']:.2f} = "
-    f"{parts} + control effort {cut['terms'][4]:.2f}"
-)
+display(Markdown(Path("results/goal.md").read_text().split("\n", 1)[1]))
 
 # %% [markdown]
 # In a cut-in, the plan *without* prediction costs 7.26, of which collision 0.08: the rest is the
 # goal and the control effort of braking to where the logged driver ended up, because the paper's
 # goal is the logged ego state at T. The goal hands every planner the reaction, so the car's future
 # adds little; what is left for a prediction is mostly where the vehicle in the next lane will be
-# (*keep_lane*). With a route goal the same GT futures are worth several times as much (the factor
-# is in the figure's title), most of it in cut-ins. The paper names this limit ("alternative goal
-# definitions ... future work", §4.2); the tables keep its goal.
+# (*keep_lane*). With a route goal the same GT futures are worth eight times as much (the tables'
+# last rows: −11.24 against −1.36 ×10⁻²), most of it in cut-ins. The paper names this limit
+# ("alternative goal definitions ... future work", §4.2); the tables keep its goal.
 #
 # *Questions.* Why does the route goal make the collision term, not the goal term, carry most of No
 # prediction's cost? Would a learned predictor's errors cost more or less under the route goal than
@@ -976,15 +898,9 @@ breakdown = xp.behaviour_markdown(xp.TABLES["rl"], table1)
 missing = "*results/rl.json predates the breakdown by behaviour: re-run Table 1 to see it.*"
 display(Markdown(breakdown or missing))
 
-# %% [markdown]
-# **The two models.** `open_loop_experiment` returns metrics, not models, so DiffStack is trained
-# again, same seed (`train_stack` is deterministic: the checkpoints confirm Table 1's rows; §6's
-# predictor *is* Table 1's Standard).
-
 # %%
-# DiffStack trained again (Table 1's seed); No prediction, Standard and DiffStack on the validation
-# set. ~3 s quick, ~40 s full.
-t0 = time.time()
+# open_loop_experiment returns metrics, not models: DiffStack trained again, Table 1's seed (~3 s
+# quick, ~40 s full); No prediction, Standard and DiffStack on the validation set.
 torch.manual_seed(SEED)
 model_ds = ds.Predictor(cfg)
 method_ds = tr.Method("DiffStack", losses=(1, 1, 1))
@@ -1002,7 +918,6 @@ for name, (model, method) in stacks.items():
         model.eval()
     with torch.no_grad():
         outs[name] = ds.run_stack(data.val, model, method, cfg, "rl")
-print(f"({time.time() - t0:.0f}s)")
 ok = outs["Standard"].plannable
 # §6's Standard and this DiffStack are the very models behind Table 1's rows
 for name in ("Standard", "DiffStack"):
@@ -1010,22 +925,19 @@ for name in ("Standard", "DiffStack"):
     checkpoint(f"{name}: mean hindsight cost here vs in Table 1", here, in_table, 1e-3, rel=True)
 
 # %% [markdown]
-# **Learning curves** of this run, per training batch: each panel's title gives a loss's mean
-# over the first and the last quarter of the steps, and *(noise)* where the change is within the
-# batch-to-batch spread. That spread is large next to what a short training changes: the gain
-# shows on a fixed set, relative to No prediction, which is why the tables report relative numbers
-# and why the tables' curves above (10 seeds, 512 fixed scenes) are the ones to read.
+# **Learning curves** of this run, per training batch. The batch-to-batch spread is large next to
+# what a short training changes: the gain shows on a fixed set, relative to No prediction, which is
+# why the tables report relative numbers and why the tables' curves above (10 seeds, 512 fixed
+# scenes) are the ones to read.
 
 # %%
-# Figure: learning curves of Standard and DiffStack (per batch faint, 10-step moving average solid).
 course.figure_learning_curves(
     {"Standard": (hist_std, "tab:orange"), "DiffStack": (hist_ds, "tab:green")}
 )
 
 # %%
 # Where Standard loses what it gains: the hindsight cost minus No prediction's by behaviour (x1e-2,
-# mean over the plannable validation samples of each behaviour), and how many samples carry the
-# difference.
+# mean over the plannable samples), and how many samples carry the difference.
 d = {m: outs[m].hindsight - outs["No prediction"].hindsight for m in ("Standard", "DiffStack")}
 rows = course.behaviour_rows(
     data.val.behaviour, ok, lambda sel: [f"{100 * d[m][sel].mean():+.2f}" for m in d]
@@ -1043,8 +955,7 @@ print(
 
 # %% [markdown]
 # **An example where they differ** (the paper's Fig. 3): of the samples where the two stacks plan
-# differently, the one where DiffStack's hindsight cost is lowest relative to Standard's:
-# predictions (red), candidates coloured by $p_n$, the plan (black dashed), the controller (purple).
+# differently, the one where DiffStack's hindsight cost is lowest relative to Standard's.
 
 # %%
 # the candidate each stack plans, and how much lower DiffStack's hindsight cost is than Standard's
@@ -1059,8 +970,6 @@ print(
     f"{1 - lower - higher:.0%}"
 )
 course.figure_stacks(data.val, i, outs, cfg)
-
-# %%
 section_done("§7")
 
 # %% [markdown]
@@ -1087,13 +996,11 @@ section_done("§7")
 
 # %%
 # Table 2 (biased targets, RL). Expected run time: ~5 s quick, ~75 s full.
-t0 = time.time()
 biased = (tr.Method("Standard-biased"), tr.Method("DiffStack-biased", losses=(1, 1, 1)))
 methods2 = (tr.Method("No prediction", "none"), *biased, tr.Method("GT prediction", "gt"))
 res2 = xp.open_loop_experiment(
     data, cfg, "rl", methods2, seeds=(SEED,), epochs=EPOCHS, pred_offset=1.0, log=None
 )
-print(f"({time.time() - t0:.0f}s)")
 display(Markdown(open_loop_table(res2, "rl")))
 rel = {n: r[0]["rel_hindsight"] for n, r in res2.items()}
 # one seed of this training is chaotic (see below): only the 5-seed claim under the table is checked
@@ -1121,9 +1028,7 @@ check_claim("biased", "DiffStack-biased", "Standard-biased", "Hindsight cost (x1
 
 # %%
 # Table 4 (IL). Expected run time: ~5 s quick, ~75 s full.
-t0 = time.time()
 res_il = xp.open_loop_experiment(data, cfg, "il", methods4, seeds=(SEED,), epochs=EPOCHS, log=None)
-print(f"({time.time() - t0:.0f}s)")
 display(Markdown(open_loop_table(res_il, "il")))
 # one seed of a short training again: nothing here is checked but the 5-seed claim under the table
 # (even a perfect prediction need not bring the plan closer to the expert's: on the quick data GT
@@ -1140,9 +1045,7 @@ check_claim("il", "DiffStack", "Standard", "MSE (x1e-2)", "reproduced")
 
 # %%
 # Table 3 (cost learning). Expected run time: ~3 s quick, ~50 s full.
-t0 = time.time()
 res_cost = xp.cost_learning_experiment(data, cfg, seeds=(SEED,), epochs=EPOCHS, log=None)
-print(f"({time.time() - t0:.0f}s)")
 display(Markdown(results_markdown(xp.TABLES["cost"], res_cost)))
 with tempfile.TemporaryDirectory() as tmp:  # quick mode: the committed 5 seeds (results/cost.json)
     res_w = json.loads(Path("results/cost.json").read_text())["results"] if QUICK else res_cost
@@ -1163,8 +1066,7 @@ check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 # exact minimum. Trained as a plain number, $\rho$ drifted through zero (every weight negative, the
 # controller maximising the cost); as $\rho = e^\lambda$ it stays positive and harmless. A parameter
 # the loss cannot see still gets a gradient from an inexact solver.
-
-# %% [markdown]
+#
 # **Closed loop (Table 5).** Log replay (§4.3): every 0.5 s for 10 s the stack replans from the
 # *simulated* ego state, the ego executes the first control, the other agents replay their logs.
 # Metrics over the executed trajectory (trajectory cost = eq. 3 without the goal term, each step's
@@ -1173,19 +1075,17 @@ check_claim("cost", "Learned", "Hand-tuned", "MSE (m^2)", "reproduced")
 
 # %%
 # Table 5 (closed loop). Expected run time: ~7 s quick, ~80 s full.
-t0 = time.time()
 cl = data.val_scenes[:N_CLOSED_LOOP]
 res5, rollouts, cl_scenes = xp.closed_loop_experiment(
     data, cl, cfg, seeds=(SEED,), epochs=EPOCHS, log=None
 )
-print(f"{len(cl_scenes)} scenes x 10 s ({time.time() - t0:.0f}s)")
 display(Markdown(results_markdown(xp.TABLES["closed_loop"], res5)))
 results_table("closed_loop")
 check_claim("closed_loop", "DiffStack", "Standard", "Trajectory cost (x1e-2)", "not reproduced")
 # Figure: the scene where the methods' executed trajectories come furthest apart.
-spread = course.closed_loop_spread(rollouts)  # (scenes,) m, the widest pair of methods
+spread = figures.widest_pair(rollouts).amax(-1)  # (scenes,) m, the widest pair of methods
 sc = int(spread.argmax())
-course.figure_closed_loop(rollouts, cl_scenes, sc)
+figures.figure_closed_loop(cl_scenes, rollouts, None, 0.5, sc)
 print(
     f"the methods' executed egos, at most {100 * spread.max():.1f} cm apart over the "
     f"{len(spread)} scenes (median scene {100 * spread.median():.1f} cm)"
@@ -1209,22 +1109,16 @@ check_order("Table 5, relative trajectory cost (x1e-2)", rel, ["GT prediction", 
 # −0.89 ± 0.04, DiffStack −1.09 ± 0.02, GT −1.30 ± 0.00).
 
 # %%
-# Standard and DiffStack (trained at 0.5 s) planned and controlled at 0.1 s. Expected run time: ~2 s
-# quick, ~15 s full.
-t0 = time.time()
-fine = {}  # §7's stacks and GT prediction; relative to No prediction, as open_loop_experiment's
+# §7's stacks (trained at 0.5 s) and GT prediction planned and controlled at 0.1 s (~2 s quick,
+# ~15 s full); relative to No prediction, as open_loop_experiment's
+fine = {}
 stacks_gt = {**stacks, "GT prediction": (None, tr.Method("GT prediction", "gt"))}
 for name, (model, method) in stacks_gt.items():
     fine[name] = [tr.evaluate_stack(model, data.val, method, cfg, "rl", plan_dt=0.1)]
 xp.add_relative(fine, "rl")
-print(f"({time.time() - t0:.0f}s)")
 display(Markdown(open_loop_table(fine, "rl")))
 rel01 = {n: r[0]["rel_hindsight"] for n, r in fine.items()}
-check_order(
-    "dt = 0.1 s, relative hindsight cost (x1e-2)", rel01, ["GT prediction", "No prediction"]
-)
-
-# %%
+check_order("dt = 0.1 s, relative hindsight cost", rel01, ["GT prediction", "No prediction"])
 section_done("§8")
 
 # %% [markdown]
@@ -1240,8 +1134,7 @@ section_done("§8")
 #    that the metric rewards something else? What experiment would tell the two apart?
 # 2. Standard's plans are better than DiffStack's in open loop and worse once executed. Which of the
 #    closed-loop columns tells you why, and what would you change in Standard's training to fix it?
-
-# %% [markdown]
+#
 # ## Where to go from here
 #
 # * `python experiments.py --experiment rl --seeds 5 --out runs` runs Table 1 with several seeds
