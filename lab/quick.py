@@ -63,7 +63,8 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
     for name, (seed, sha256) in sorted(shas.items(), key=lambda item: item[1][0]):
         path = folder / name
         if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
-            raise ValueError(f"{path}: missing, or not the file {prov_path} describes; {AGAIN}")
+            why = f"missing, or not the file {prov_path} describes (sha256 differs)"
+            raise ValueError(f"{path}: {why}; {AGAIN}")
         models[seed] = Predictor(cfg)
         try:
             models[seed].load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
