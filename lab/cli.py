@@ -75,7 +75,9 @@ def device_arg(text):
     count = torch.cuda.device_count() if torch.cuda.is_available() else 0
     if device is None or device.type not in ("cpu", "cuda", "mps"):
         why = "not a torch device the stack runs on (cpu, cuda, cuda:N or mps)"
-    elif device.type == "cuda" and (count == 0 or (device.index or 0) >= count):
+    elif device.type == "cuda" and count == 0:
+        why = "no CUDA device here"
+    elif device.type == "cuda" and (device.index or 0) >= count:
         why = f"this machine has {count} CUDA device(s)"
     elif device.type == "mps" and not torch.backends.mps.is_available():
         why = "no MPS device here"
