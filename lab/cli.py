@@ -1,5 +1,5 @@
-"""What the command lines share: their argument types (bounded numbers, --device), `--set` over
-Config's fields, the checks of an output folder, and the machine a result names."""
+"""What the command lines share: bounded numbers, --device, --set over Config's fields, the torch
+threads, the checks of an output folder, and the machine a result names."""
 
 from __future__ import annotations
 
@@ -17,11 +17,9 @@ from diffstack import Config
 
 
 def machine() -> str:
-    """This machine in a few words, for a result's provenance: architecture, processor, the vector
-    instruction set of torch's kernels, cores. The same seed and thread count give the same numbers
-    on the same kind of processor only: torch's own vectorised kernels, MKL's and oneDNN's follow
-    its instruction set (capping any one at AVX2 on an AVX-512 machine changes a few training steps'
-    weights), and one rounding apart grows over a training like another seed."""
+    """This machine for a result's provenance: architecture, processor, the instruction set of
+    torch's kernels, cores. The same seed gives the same numbers on the same kind of processor only:
+    torch's, MKL's and oneDNN's kernels follow its instruction set (docs/reproducibility.md)."""
     name = platform.processor() or "unknown processor"
     try:
         with open("/proc/cpuinfo") as f:
@@ -32,9 +30,17 @@ def machine() -> str:
     return f"{platform.machine()}, {name}, {capability}, {os.cpu_count()} cores"
 
 
+def torch_threads(given: int | None, log=print) -> int:
+    """The torch threads of a run, said: --threads, else 2 (two threads that wait on each other run
+    slowly where other work keeps a core busy: --threads 1 there)."""
+    why = "--threads" if given else "the default"
+    log(f"torch threads: {given or 2} ({why}; --threads N to choose)")
+    return given or 2
+
+
 def check_writable(folder, what: str) -> None:
-    """Before any work: ValueError naming the argument unless `folder` exists (or can be made) and
-    takes files."""
+    """Before any work: ValueError naming `what` unless folder exists (or can be made) and takes
+    files."""
     try:
         pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
@@ -44,8 +50,7 @@ def check_writable(folder, what: str) -> None:
 
 
 def bounded(kind, lo, hi, name):
-    """An argparse type: a finite number of `kind` (int or float) with lo <= x <= hi
-    (lo excluded for floats)."""
+    """An argparse type: a finite `kind` (int or float) in [lo, hi] (lo excluded for floats)."""
 
     def parse(text):
         try:
@@ -62,33 +67,32 @@ def bounded(kind, lo, hi, name):
 
 
 def device_arg(text):
-    """An argparse type for --device: a torch device that this machine has (cpu, cuda, cuda:N, mps),
-    checked before any work; a name torch does not know, or a GPU that is not there, is a one-line
-    argparse error."""
+    """An argparse type for --device: a torch device this machine has (cpu, cuda, cuda:N, mps)."""
     try:
         device = torch.device(text)
     except (RuntimeError, ValueError):
         device = None
     count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    if device is None:
-        why = "not a torch device (cpu, cuda, cuda:N or mps)"
-    elif device.type not in ("cpu", "cuda", "mps"):
-        why = f"the stack runs on cpu, cuda, cuda:N or mps, not {device.type}"
+    if device is None or device.type not in ("cpu", "cuda", "mps"):
+        why = "not a torch device the stack runs on (cpu, cuda, cuda:N or mps)"
     elif device.type == "cuda" and count == 0:
-        why = "no CUDA device here (torch.cuda.is_available() is False)"
-    elif device.type == "cuda" and device.index is not None and device.index >= count:
-        why = f"this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}"
+        why = "no CUDA device here"
+    elif device.type == "cuda" and (device.index or 0) >= count:
+        why = f"this machine has {count} CUDA device(s)"
     elif device.type == "mps" and not torch.backends.mps.is_available():
-        why = "no MPS device here (torch.backends.mps.is_available() is False)"
+        why = "no MPS device here"
     else:
         return device
     raise argparse.ArgumentTypeError(f"--device {text}: {why}")
 
 
+# Config fields every data source fixes (2 Hz, 4 s of history, 3 s of future): --set refuses them
+SET_BY_DATA = dict(dt=0.5, hist_len=8, horizon=6)
+
+
 def config_with(cfg: Config, assignments) -> Config:
-    """cfg with fields overridden by 'key=value' strings (every command line's --set), each value
-    parsed to the field's type (a tuple as comma-separated numbers, brackets optional). ValueError
-    naming the key when it is not a Config field or the value does not parse."""
+    """cfg with fields overridden by --set's 'key=value' strings, each parsed to the field's type (a
+    tuple: comma-separated numbers); ValueError naming the key otherwise."""
     fields = [f.name for f in dataclasses.fields(Config)]
     changes = {}
     for item in assignments or ():
@@ -112,26 +116,14 @@ def config_with(cfg: Config, assignments) -> Config:
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"--set {item}: {key} must be finite")
         if key in SET_BY_DATA and value != SET_BY_DATA[key]:
-            raise ValueError(
-                f"--set {item}: {key} is the data's ({SET_BY_DATA[key]:g}), which every command "
-                "reads: the synthetic scenes, nuScenes' key frames and the Waymo scenes are "
-                "sampled at 2 Hz into 4 s of history (8 steps and the current one) and 3 s of "
-                "future (6 steps)"
-            )
+            raise ValueError(f"--set {item}: {key} is the data's ({SET_BY_DATA[key]:g})")
         changes[key] = value
     return dataclasses.replace(cfg, **changes)
 
 
-SET_BY_DATA = dict(dt=0.5, hist_len=8, horizon=6)
-"""Config fields every data source fixes: a command run at another value would read 2 Hz samples
-as if they were another rate (dt), or samples of another length (refused only after the data is
-made): --set refuses them at once."""
-
-
 def add_shared_options(ap, **helps) -> None:
-    """The options the command lines share, declared once: each one named (jobs, threads, device,
-    overwrite, set) is added to the parser `ap` with its help text, the same type and default in
-    every command line (--set: Config fields, read by config_with)."""
+    """Add the options named (jobs, threads, device, overwrite, set) to `ap` with their help texts,
+    of the same type and default in every command line."""
     shared = {
         "jobs": dict(type=bounded(int, 1, 256, "--jobs"), default=None),
         "threads": dict(type=bounded(int, 1, 256, "--threads"), default=None),

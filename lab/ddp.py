@@ -37,10 +37,8 @@ from torch.utils.data.distributed import DistributedSampler
 
 
 class AllReduceSum(torch.autograd.Function):
-    """y = the sum of x over the ranks of `group`, on every rank, differentiable: y feeds every
-    rank's loss, so dL/dx on a rank is the sum over the ranks of their dL/dy -- the backward is the
-    same all_reduce. (What torch.distributed.nn.functional.all_reduce does; torch 2.13 deprecates it
-    for a private module.)"""
+    """y = the sum of x over the ranks, on every rank, differentiable: y feeds every rank's loss,
+    so the backward is the same all_reduce (torch.distributed.nn's, which torch 2.13 deprecates)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, group) -> torch.Tensor:
@@ -56,10 +54,8 @@ class AllReduceSum(torch.autograd.Function):
 
 @dataclass(frozen=True)
 class Shard:
-    """The rows of a global batch this process holds: positions rank, rank + world, ...
-    (DistributedSampler's). Shard() is one process holding the whole batch; batch statistics then
-    use the plain single-process expressions. group: the process group of the loss's all_reduces,
-    kept apart from DDP's own so that the two never interleave."""
+    """The rows of a global batch this process holds: positions rank, rank + world, ... Shard():
+    one process, the whole batch. group: the loss's all_reduces', apart from DDP's own."""
 
     rank: int = 0
     world: int = 1
@@ -67,8 +63,7 @@ class Shard:
 
     @staticmethod
     def of_process_group() -> "Shard":
-        """This process's shard under torch.distributed (torchrun): Shard() when it is not
-        initialised or has one rank."""
+        """This process's shard under torchrun; Shard() in one process."""
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
             return Shard()
         return Shard(
@@ -76,7 +71,6 @@ class Shard:
         )
 
     def check_split(self, batch_size: int) -> None:
-        """ValueError naming cfg.batch_size unless it splits evenly over the processes."""
         if batch_size % self.world:
             raise ValueError(
                 f"cfg.batch_size: {batch_size} scenarios per step do not split evenly over "
@@ -85,53 +79,45 @@ class Shard:
             )
 
     def mean(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its mean over the global batch (every rank holds b rows);
-        autograd-aware."""
+        """x (b, ...) -> (...) its mean over the global batch, autograd-aware."""
         if self.world == 1:
             return x.mean(0)
         return AllReduceSum.apply(x.sum(0), self.group) / (self.world * len(x))
 
     def total(self, x: torch.Tensor) -> torch.Tensor:
-        """x (b, ...) -> (...) its sum over the global batch, without gradient
-        (counts, logged values)."""
+        """x (b, ...) -> (...) its sum over the global batch, without gradient (counts, logs)."""
         s = x.detach().sum(0)
         if self.world > 1:
             dist.all_reduce(s, group=self.group)
         return s
 
     def decoder_noise(self, model, b: int, cfg, like: torch.Tensor):
-        """The decoder's training noise (T, b, K, 2) for this rank's b scenarios: its rows of the
-        draw the whole global batch (world * b scenarios, in global order) gets, one step at a time
-        as the decoder draws it in one process (cfg: a diffstack.Config, read for its horizon and
-        modes). None in one process or when the model does not sample (eval mode): the decoder
-        then draws from torch's generator itself."""
+        """The decoder's training noise (T, b, K, 2) for this rank's b rows: its rows of the draw
+        of the whole global batch, step by step as one process draws it; None where the decoder
+        draws itself (one process, eval mode)."""
         if self.world == 1 or not model.training:
             return None
         K = cfg.pred_modes
         steps = []
         for _ in range(cfg.horizon):
             noise = torch.randn(b * self.world * K, 2, dtype=like.dtype, device=like.device)
-            # global scenario rank + world j is this rank's scenario j: view the draw as
-            # (b, world, K, 2)
+            # global scenario rank + world j is this rank's scenario j
             steps.append(noise.view(b, self.world, K, 2)[:, self.rank])
         return torch.stack(steps)
 
     def positions(self, n: int) -> torch.Tensor:
-        """(n // world,) this rank's positions in an ordering of n items: rank, rank + world, ...
-        (DistributedSampler without its shuffling; the ordering, a permutation drawn the same on
-        every rank, is the shuffle)."""
+        """(n // world,) this rank's positions in an ordering of n items (DistributedSampler,
+        unshuffled: the permutation every rank draws alike is the shuffle)."""
         sampler = DistributedSampler(range(n), self.world, self.rank, shuffle=False, drop_last=True)
         # they index the permutation, drawn on the CPU
         return torch.tensor(list(sampler), dtype=torch.long, device="cpu")
 
     def close(self) -> None:
-        """Release the loss's process group (train_stack makes one per call)."""
         if self.group is not None:
             dist.destroy_process_group(self.group)
 
 
 def wrap(module: torch.nn.Module, shard: Shard) -> torch.nn.Module:
-    """What the forward pass calls: the module itself in one process, or a DistributedDataParallel
-    around it (it broadcasts rank 0's parameters now and averages the ranks' gradients in every
-    backward)."""
+    """The module in one process, else DDP around it (rank 0's parameters now, and the ranks'
+    gradients averaged in every backward)."""
     return module if shard.world == 1 else DistributedDataParallel(module)

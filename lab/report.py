@@ -1,6 +1,5 @@
 """The tables' text: each table's markdown beside the paper's numbers, its claims judged by the
-paired t-test (claim_test), one line each, the breakdowns under it, and the report of a run. What
-the tables show is said in docs/results.md; nothing here makes a number the tables hold."""
+paired t-test, the breakdowns, the report of a run (what they show: docs/results.md)."""
 
 import math
 import pathlib
@@ -18,23 +17,21 @@ from lab.stats import PairedDifference, cell, claim_verdict, markdown_table, mea
 from lab.stats import p_value, paired_difference, plus_minus
 
 
-def gap_closed(
-    results: dict, standard="Standard", diffstack="DiffStack", metric="rel_hindsight"
-) -> tuple:
-    """Share of the Standard -> GT prediction gap that DiffStack closes, seed by seed: mean and s.e.
-    over the seeds where there is a gap; (nan, nan) where there is none in any seed."""
-    gt = results["GT prediction"][0][metric]
+def gap_closed(results: dict, standard="Standard", diffstack="DiffStack") -> tuple:
+    """The share of the Standard -> GT prediction gap (hindsight cost) DiffStack closes, mean and
+    s.e. over the seeds with a gap; (nan, nan) with none."""
+    key = "rel_hindsight"
+    gt = results["GT prediction"][0][key]
     pairs = [
-        (s[metric], d[metric])
+        (s[key], d[key])
         for s, d in zip(results[standard], results[diffstack])
-        if metric in s and metric in d and s[metric] != gt  # (a diverged seed has no metrics)
+        if key in s and key in d and s[key] != gt  # (a diverged seed has no metrics)
     ]
     return mean_se([(s - d) / (s - gt) for s, d in pairs]) if pairs else (math.nan, math.nan)
 
 
 def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
-    """(the claim's Column, the PairedDifference of its rows over the seeds, or None where no seed
-    has both: they diverged); results: those its rows are in."""
+    """(the claim's Column, the PairedDifference of its rows, or None where no seed has both)."""
     col = next((c for c in spec.columns if c.header == claim.column), None)
     if col is None:
         raise ValueError(f"claim.column: {claim.column!r} is not a column of {spec.name}")
@@ -49,7 +46,7 @@ def claim_test(claim: Claim, spec: TableSpec, results: dict) -> tuple:
 
 
 def claims_of(spec: TableSpec, results: dict):
-    """(claim, the results its rows are in) for every claim of spec whose two rows were run."""
+    """(claim, the results its rows are in) for each claim whose two rows were run."""
     for c in spec.claims:
         runs = results.get(c.section, {}) if c.section else results
         if c.method in runs and c.baseline in runs:
@@ -57,12 +54,12 @@ def claims_of(spec: TableSpec, results: dict):
 
 
 def t_test(p: PairedDifference) -> str | None:
-    """'t = .., p = ..' of a paired difference; None without one (one seed, no spread)."""
+    """'t = .., p = ..'; None without one (one seed, no spread)."""
     return f"t = {p.t:.2f}, {p_value(p.p)}" if math.isfinite(p.t) else None
 
 
 def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
-    """A claim's line: the paired difference (method - baseline), t, the seeds, the verdict."""
+    """The paired difference (method - baseline), t, the seeds, the verdict."""
     col, p = claim_test(claim, spec, results)
     c = claim.column
     name = c[0].lower() + c[1:] if c[1:2].islower() else c  # 'hindsight cost', 'MSE'
@@ -83,25 +80,24 @@ def claim_line(claim: Claim, spec: TableSpec, results: dict) -> str:
 
 
 def claims_markdown(spec: TableSpec, results: dict) -> str:
-    """The claim lines of a table, a markdown list; '' when it makes no claim (or none was run)."""
+    """The claim lines of a table, a markdown list; '' for none."""
     return "\n".join(f"- {claim_line(c, spec, runs)}" for c, runs in claims_of(spec, results))
 
 
 def claims_card(tables: dict) -> str:
-    """The paper against this run, one row per claim of tables {table name: its results}: the two
-    rows' values in the paper and here (means over seeds), the paired test and its verdict."""
+    """One row per claim of tables {name: results}: its rows in the paper and here (means), the
+    paired test and its verdict."""
     rows = []
     for name, results in tables.items():
         spec = SPECS[name]
         for c, runs in claims_of(spec, results):
             col, p = claim_test(c, spec, runs)
-            if p is None:  # every seed of a row diverged: nothing to pair
+            if p is None:  # nothing to pair
                 p = PairedDifference(math.nan, math.nan, math.nan, math.nan, 0, 0, 0)
             paper = spec.paper.get(c.section, {}) if c.section else spec.paper
             two = (c.method, c.baseline)
             was = [paper.get(row, {}).get(col.header) for row in two]
             ours = [statistics.fmean(v) if (v := col.values(runs[row])) else None for row in two]
-            # 'method vs baseline', in the paper and here
             vs = [
                 " vs ".join("--" if v is None else col.fmt.format(v) for v in x)
                 for x in (was, ours)
@@ -115,8 +111,8 @@ def claims_card(tables: dict) -> str:
 
 
 def ablation_markdown(spec: TableSpec, results: dict) -> str:
-    """The ablation table: the loss multipliers (x1, x1e2, x1e3 as in the paper) and the columns
-    (relative to the section's No prediction); '--' where a loss or metric does not apply."""
+    """The ablation table: the loss multipliers as the paper's and the columns, per section; '--'
+    where a loss or metric does not apply."""
     head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3"] + [c.header for c in spec.columns]
     rows = []
     for title, stack_kw, methods in spec.sections:
@@ -135,8 +131,7 @@ def ablation_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def goal_markdown(results: dict) -> str:
-    """The goal table, per goal (Config.goal) and behaviour: No prediction's hindsight cost and its
-    terms, and what a perfect prediction saves (GT minus No prediction, x1e-2, and its share)."""
+    """Per goal and behaviour: No prediction's hindsight cost and terms, and GT's saving."""
     head = ["Behaviour (scenes)", "No prediction: hindsight cost", "of which collision", "goal"]
     head += ["control effort", "GT prediction: collision"]
     head += [f"within {CLOSE:g} m of the vehicle (No prediction / GT)"]
@@ -161,7 +156,7 @@ def goal_markdown(results: dict) -> str:
 
 
 def results_markdown(spec: TableSpec, results: dict) -> str:
-    """A spec's table, its claim lines, what diverged and (open loop) the breakdown by behaviour."""
+    """A spec's table, its claims, what diverged and (open loop) the breakdown by behaviour."""
     if spec.kind == "goal":
         return goal_markdown(results)
     table = ablation_markdown if spec.kind == "ablation" else table_markdown
@@ -173,23 +168,17 @@ def results_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def diverged_markdown(results: dict) -> str:
-    """The trainings that diverged, one line (their seeds are left out of the means and tests)."""
-    found = sorted(set(diverged_runs(results)))
-    return "Diverged, left out of the means: " + "; ".join(found) if found else ""
-
-
-def diverged_runs(item):
-    """The 'diverged' messages anywhere in results (sections, methods, runs), depth first."""
-    for v in item.values() if isinstance(item, dict) else item:
-        if isinstance(v, dict) and "diverged" in v:
-            yield v["diverged"]
-        elif isinstance(v, (dict, list)):
-            yield from diverged_runs(v)
+    """The trainings that diverged, anywhere in results, one line."""
+    found, stack = set(), [results]
+    while stack:
+        item = stack.pop()
+        found |= {item["diverged"]} if isinstance(item, dict) and "diverged" in item else set()
+        stack += item.values() if isinstance(item, dict) else item if isinstance(item, list) else []
+    return "Diverged, left out of the means: " + "; ".join(sorted(found)) if found else ""
 
 
 def behaviour_markdown(spec: TableSpec, results: dict) -> str:
-    """The planning metric (RL: hindsight cost, IL: MSE) relative to No prediction per behaviour
-    of the predicted vehicle and over all scenes; '' without the breakdown (real data)."""
+    """RL's hindsight cost or IL's MSE relative to No prediction per behaviour; '' without one."""
     key = "hindsight" if spec.setting == "rl" else "mse"
     none = results.get("No prediction", [{}])[0]
     if not none.get("by_behaviour"):
@@ -212,12 +201,12 @@ def behaviour_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def has_curves(results: dict) -> bool:
-    """Whether a table's results carry learning curves (runs from before they existed do not)."""
+    """Whether results carry learning curves (runs from before they existed do not)."""
     return any(r.get("curve") for runs in results.values() if isinstance(runs, list) for r in runs)
 
 
 def method_table(columns, results: dict) -> str:
-    """One row per method of {method: [per-seed metrics]}, a cell per column: 'mean ± s.e.'."""
+    """One row per method of {method: [per-seed metrics]}, a cell per column."""
     rows = [
         [name] + [cell(c.values(runs), c.fmt, name) for c in columns]
         for name, runs in results.items()
@@ -231,7 +220,7 @@ def open_loop_table(results: dict, setting="rl") -> str:
 
 
 def table_markdown(spec: TableSpec, results: dict) -> str:
-    """A non-ablation spec's table, the gap closed and the closed loop's absolute baseline below."""
+    """A table, the gap closed and the closed loop's absolute baseline below."""
     md = method_table(spec.columns, results)
     trained = [any("rel_hindsight" in r for r in results.get(row, [])) for row in (spec.gap or ())]
     if spec.gap and not all(trained):
@@ -270,9 +259,8 @@ def paper_markdown(spec: TableSpec) -> str:
 
 
 def write_report(out_dir, sections, metas=(), rendered=False, tables=None) -> pathlib.Path:
-    """out_dir/report.md: the claims card of tables {name: results}, then sections [(title,
-    markdown, [figure files in out_dir])]; its first line: when, where and on which device the
-    tables were made (their metas) and re-rendered (--render), else this process's date, machine."""
+    """out_dir/report.md: the claims card of tables {name: results}, then sections [(title, md,
+    [figures])], under when and where the tables were made (metas) and rendered."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if metas:
@@ -298,8 +286,7 @@ def write_report(out_dir, sections, metas=(), rendered=False, tables=None) -> pa
 
 
 def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
-    """A table's provenance line (command, date, machine, device, seconds, commit, a note), the
-    table and the paper's numbers: its .md file's text and its section of the report."""
+    """A table's provenance line, the table and the paper's numbers: its .md and report text."""
     where = [meta["date"], meta["machine"]]
     where += [f"device {meta['device']}"] if "device" in meta else []
     where += [f"{meta['seconds']:.0f} s"]
@@ -324,5 +311,5 @@ def section_markdown(spec: TableSpec, meta: dict, table: str) -> str:
 
 
 def table_file_markdown(spec: TableSpec, md: str) -> str:
-    """out_dir/<name>.md: the title, section_markdown's text and links to the table's figures."""
+    """out_dir/<name>.md: the title, section_markdown's text and the figures."""
     return f"# {spec.title}\n\n{md}" + "".join(f"\n![{f}]({f})\n" for f in spec.figures)

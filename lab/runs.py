@@ -1,17 +1,10 @@
 """The run machinery under experiments.py, ignorant of tables: JSON read with checks and written
-without NaN, atomic writes, provenance (the run key: config, data, code, device; the git commit), a
-run's pieces kept on disk as they finish and resumed (RunStore), the worker processes
-(concurrent.futures), one run per output folder (filelock), never replacing outputs a run did not
-make.
+without NaN, atomic writes, the run key and provenance, a run's pieces kept and resumed (RunStore),
+worker processes, one run per output folder, never replacing outputs a run did not make.
 
-A piece is one result of a run under a name (a table): anything with a `stem` (its file name) and
-`_asdict()` (lab.tables.Piece). A run's pieces live in <out>/.runs/<name>/<name key>/<stem>.json (a
-.pt of tensors beside it where it has some), written atomically the moment the piece is made. The
-name key hashes the run key and the name; the run key, everything that determines the numbers: the
-Config, the epochs, the data (its tensors), the code (code_version) and the device. Re-running the
-same command loads the finished pieces and computes only the missing ones; another config, data or
-code is another key, so nothing of another run is mixed in. The seeds are not part of the key (a
-piece is one seed), nor is the thread count (it moves only the last digits)."""
+A piece (lab.tables.Piece: a `stem`, `_asdict()`) lives in <out>/.runs/<table>/<key>/<stem>.json,
+written the moment it is made. The key hashes everything that sets the numbers (Config, epochs,
+data, code, device, the table's spec), not the seeds (a piece is one seed) nor the thread count."""
 
 from __future__ import annotations
 
@@ -38,8 +31,7 @@ import filelock
 import torch
 
 RUNS_DIR = ".runs"
-# the repository: this file is lab/runs.py
-ROOT = pathlib.Path(__file__).resolve().parent.parent
+ROOT = pathlib.Path(__file__).resolve().parent.parent  # the repository
 
 
 def sha(*parts) -> str:
@@ -52,9 +44,8 @@ def to_json(o):
 
 
 def load_json(path, what: str):
-    """The JSON document in path, or one ValueError naming the file and what is wrong: unreadable,
-    not JSON (json's message says where), nested deeper than the parser goes, or holding NaN or
-    infinity (which the project never writes). what: what the file should be, for the message."""
+    """The JSON in path, or one ValueError naming the file: unreadable, not JSON (json's message
+    says where), nested too deeply, or holding NaN or infinity. what: what it should be."""
     path = pathlib.Path(path)
 
     def constant(name):
@@ -70,13 +61,9 @@ def load_json(path, what: str):
         raise ValueError(f"{path}: not {what} ({e})") from None
 
 
-RESULTS_META = {"command": "text", "date": "text", "machine": "text", "seconds": "number"}
-_KINDS = {"text": str, "number": (int, float)}
-
-
 def read_results(path) -> dict:
-    """A results file an earlier run wrote ({'meta': ..., 'results': ...}, meta with the fields a
-    table's header shows); ValueError naming the file and the field otherwise."""
+    """A results file of experiments.py, its header's meta fields checked and no null in its
+    results; ValueError naming the file and the field otherwise."""
     what = "a results file of python experiments.py"
     saved = load_json(path, what)
     if not isinstance(saved, dict) or not {"meta", "results"} <= saved.keys():
@@ -84,9 +71,10 @@ def read_results(path) -> dict:
     meta, results = saved["meta"], saved["results"]
     if not isinstance(meta, dict) or not isinstance(results, dict):
         raise ValueError(f"{path}: not {what} ('meta' and 'results' must be objects)")
-    for field, kind in RESULTS_META.items():
-        if not isinstance(meta.get(field), _KINDS[kind]) or isinstance(meta.get(field), bool):
-            raise ValueError(f"{path}: meta.{field} is missing or not {kind}")
+    for field in ("command", "date", "machine", "seconds"):
+        kind, name = ((int, float), "a number") if field == "seconds" else (str, "text")
+        if not isinstance(meta.get(field), kind) or isinstance(meta.get(field), bool):
+            raise ValueError(f"{path}: meta.{field} is missing or not {name}")
     stack = [(results, "results")]
     while stack:  # a result is numbers, text and lists and objects of them: never null
         o, where = stack.pop()
@@ -98,8 +86,8 @@ def read_results(path) -> dict:
 
 
 def write_json(path, obj, **dumps) -> None:
-    """obj as JSON in path (write_atomic; tensors as lists); a NaN or infinity is refused
-    (json.dumps' allow_nan=False): ValueError naming the file, and nothing is written."""
+    """obj as JSON in path, atomically (tensors as lists); NaN or infinity is refused
+    (allow_nan=False): ValueError naming the file, nothing written."""
     try:
         text = json.dumps(obj, default=to_json, allow_nan=False, **dumps)
     except ValueError as e:
@@ -127,13 +115,11 @@ def _nbytes(obj) -> int:
     return sum(_nbytes(v) for v in items)
 
 
-def replace_atomic(path, write, needed: int) -> None:
-    """write(a temporary file of the same name, in a temporary folder beside path), then rename it
-    onto path: a kill mid-write leaves the old file intact, a failed write leaves nothing behind,
-    and a full disk is one DiskFull line naming the file and the space it needs (about `needed`
-    bytes). The same name keeps a figure's format and torch.save's bytes (its archive is named
-    after the file). The file gets the permissions open() would give (mkstemp's 0600 is no use in
-    a shared lab folder)."""
+def write_file_atomic(path, write, needed: int = 0) -> None:
+    """write(a file of path's name in a temporary folder beside it), then rename it onto path: a
+    kill mid-write leaves the old file, a failed write nothing, and a full disk is one DiskFull line
+    (the file, about `needed` bytes). The same name keeps a figure's format and torch.save's bytes;
+    the file gets open()'s permissions, not mkstemp's 0600 (a shared lab folder)."""
     path = pathlib.Path(path)
     folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = os.path.join(folder, path.name)
@@ -157,44 +143,25 @@ def replace_atomic(path, write, needed: int) -> None:
 
 
 def write_atomic(path, text: str) -> None:
-    """Write text to path through a temporary file and a rename (replace_atomic)."""
-    replace_atomic(path, lambda tmp: pathlib.Path(tmp).write_text(text), len(text.encode()))
-
-
-def write_file_atomic(path, write) -> None:
-    """write(temporary path) then a rename onto path (replace_atomic), for writers that take a
-    path (a figure's savefig)."""
-    replace_atomic(path, write, 0)
+    write_file_atomic(path, lambda tmp: pathlib.Path(tmp).write_text(text), len(text.encode()))
 
 
 def save_atomic(obj, path) -> None:
-    """torch.save through a temporary file and a rename (replace_atomic)."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    replace_atomic(path, lambda tmp: torch.save(obj, tmp), _nbytes(obj))
+    """torch.save, atomically (write_file_atomic)."""
+    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
+    write_file_atomic(path, lambda tmp: torch.save(obj, tmp), _nbytes(obj))
 
 
 # The modules whose code makes a run's numbers. specs.py is not one: what a table's spec sets that
-# moves numbers (its methods, setting, offset, sections) is part of the table's own key, by value
-# (experiments.spec_key), and its titles, columns and the paper's numbers are text.
-NUMBER_MODULES = (
-    "diffstack.py",
-    "train.py",
-    "lab/ddp.py",
-    "data_synth.py",
-    "lab/data.py",
-    "lab/nuscenes.py",
-    "lab/waymo.py",
-    "experiments.py",
-    "lab/tables.py",
-)
+# moves numbers is in the table's own key, by value (experiments.spec_key); the rest is text.
+NUMBER_MODULES = ("diffstack.py", "train.py", "data_synth.py", "experiments.py", "lab/ddp.py")
+NUMBER_MODULES += ("lab/data.py", "lab/nuscenes.py", "lab/waymo.py", "lab/tables.py")
 
 
 class _NoText(ast.NodeTransformer):
-    """Drops what is text for people: every statement that is a string and nothing else (a
-    docstring, or a field's docstring in Config), and every string or f-string with a space in its
-    text (a log line, an error message, a title, markdown), which becomes ''. A string without a
-    space (a key, a name such as 'rl', 'distance' or f'rel_{key}') is code."""
+    """Drops what is text for people: a statement that is only a string (a docstring, a field's),
+    and a string or f-string with a space in it (a log line, a message, a title) becomes ''. A
+    string without a space ('rl', f'rel_{key}') is code."""
 
     def visit_Expr(self, node):
         if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
@@ -211,13 +178,10 @@ class _NoText(ast.NodeTransformer):
         return node
 
 
-# parsing the modules takes about 0.4 s; a run asks once per work unit
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=8)  # (parsing the modules takes about 0.4 s)
 def code_of(source: str) -> str:
-    """A module's code without what cannot change a number: its comments, layout and text. The
-    source is parsed, its text dropped (_NoText: docstrings, log lines, messages, titles) and the
-    tree written back out by ast.unparse, so a re-wrapped line or an edited comment, docstring, log
-    line or title gives the same code; any other change does not."""
+    """A module's code without comments, layout and text (_NoText), as ast.unparse writes it: a
+    re-wrapped line or an edited docstring or log line gives the same code."""
     tree = _NoText().visit(ast.parse(source))
     for node in ast.walk(tree):
         if getattr(node, "body", None) == []:  # a function or class that held only its docstring
@@ -226,11 +190,8 @@ def code_of(source: str) -> str:
 
 
 def code_version() -> str:
-    """The code a run's numbers come from: a hash of the code of the modules that make them
-    (NUMBER_MODULES, as code_of reads them), so that any change to their code is a new run, while a
-    commit of the README, the tests or the notebook, or of a comment, docstring or log line, is
-    not. (ast.unparse is Python's own: under another Python version the same code may read as new,
-    a new run, never a mixed one.)"""
+    """A hash of the code of NUMBER_MODULES (code_of): a commit of the README, the tests or a log
+    line is the same run. (Another Python's ast.unparse may read as new code: a new run.)"""
     h = hashlib.sha256()
     for name in NUMBER_MODULES:
         h.update(name.encode() + b"\0" + code_of((ROOT / name).read_text()).encode() + b"\0")
@@ -238,16 +199,14 @@ def code_version() -> str:
 
 
 def data_fingerprint(data) -> str:
-    """A hash of the data's tensors (each part of `data` with a tensors() dict; a part that is a
-    dict or None, as JSON): the same samples give the same fingerprint whichever file or folder they
-    came from. About 0.1 s for 10 000 samples."""
+    """A hash of the data's tensors (a part that is a dict or None: as JSON): the same samples give
+    the same fingerprint whichever file they came from."""
     h = hashlib.sha256()
     for part in data:
         if part is None or isinstance(part, dict):
             h.update(json.dumps(part, sort_keys=True).encode())
             continue
-        # (a tuple: the training draws, one per seed)
-        for one in part if isinstance(part, tuple) else (part,):
+        for one in part if isinstance(part, tuple) else (part,):  # (a tuple: the training draws)
             for name, t in sorted(one.tensors().items()):
                 h.update(f"{name} {t.dtype} {tuple(t.shape)}".encode())
                 h.update(t.detach().cpu().contiguous().numpy().tobytes())
@@ -255,16 +214,13 @@ def data_fingerprint(data) -> str:
 
 
 def run_key(data, cfg, epochs, device="cpu") -> str:
-    """The key of a run (cfg: a dataclass): the same key, the same numbers (at the same thread
-    count)."""
+    """The same key, the same numbers (at the same thread count)."""
     parts = dict(config=dataclasses.asdict(cfg), epochs=float(epochs), device=str(device))
     return sha(dict(parts, data=data_fingerprint(data), code=code_version()))
 
 
 def command_line(launcher: str, argv) -> str:
-    """The command as a result records it: absolute paths inside the repository made relative to
-    it, so that the record reads the same on every machine (`--out /home/me/diffstack/results` ->
-    `--out results`)."""
+    """The command as a result records it: paths inside the repository relative to it."""
 
     def rel(token):
         key, eq, value = token.partition("=") if token.startswith("--") else ("", "", token)
@@ -277,8 +233,7 @@ def command_line(launcher: str, argv) -> str:
 
 
 def git_commit() -> str | None:
-    """The commit the code was run from, '+dirty' when the work tree differs from it; None
-    outside git."""
+    """The commit the code runs from, '+dirty' when the work tree differs; None outside git."""
 
     def git(*args):
         return subprocess.run(
@@ -293,14 +248,11 @@ def git_commit() -> str | None:
 
 
 class RunStore:
-    """A run's pieces and models, under root (<out>/.runs; a temporary folder where nothing is kept,
-    under torchrun)."""
+    """A run's pieces and models under root (<out>/.runs; under torchrun a temporary folder).
+    table_keys: {table: what its spec sets that moves numbers}, part of its folder's key."""
 
     def __init__(self, root, key: str, table_keys: dict | None = None):
-        self.root = pathlib.Path(root)
-        self.key = key
-        # {table: what its spec sets that moves numbers (by value)}: part of its folder's key
-        self.table_keys = table_keys or {}
+        self.root, self.key, self.table_keys = pathlib.Path(root), key, table_keys or {}
 
     def table_dir(self, table: str) -> pathlib.Path:
         return self.root / table / sha(self.key, table, self.table_keys.get(table))[:16]
@@ -309,11 +261,10 @@ class RunStore:
         return self.table_dir(table) / f"{piece.stem}.json"
 
     def has(self, table: str, piece) -> bool:
-        """Whether the piece is finished; one whose file cannot be read (a disk error, an edit) is
-        named on stderr, set aside as <piece>.corrupt and computed again."""
+        """Whether the piece is finished; an unreadable one is named, set aside as .corrupt."""
         path = self.path(table, piece)
         try:
-            return path.exists() and isinstance(self._read(table, piece).get("result"), dict)
+            return path.exists() and isinstance(self.read(table, piece).get("result"), dict)
         except (ValueError, AttributeError) as e:
             corrupt = path.with_suffix(".corrupt")
             print(
@@ -322,23 +273,18 @@ class RunStore:
             os.replace(path, corrupt)
             return False
 
-    def _read(self, table: str, piece) -> dict:
+    def read(self, table: str, piece) -> dict:
+        """A finished piece's file: its result, timing (seconds, CPU seconds, machine) and more."""
         return load_json(self.path(table, piece), "a piece of a run")
 
     def load(self, table: str, piece) -> tuple:
-        """(result, extra) of a finished piece."""
-        saved = self._read(table, piece)
+        """(result, extra tensors or None) of a finished piece."""
+        saved = self.read(table, piece)
         pt = self.path(table, piece).with_suffix(".pt")
         return saved["result"], torch.load(pt, weights_only=True) if saved.get("extra") else None
 
-    def timing(self, table: str, piece) -> dict | None:
-        """How long a finished piece took to compute and where (the timing it was saved with)."""
-        timing = self._read(table, piece).get("timing")
-        return timing if isinstance(timing, dict) else None
-
     def save(self, table: str, piece, result: dict, extra=None, timing=None) -> None:
-        """The piece's result (JSON, write_json; its extra tensors first, in a .pt beside it),
-        atomically; timing: how long it took and where."""
+        """The piece's result as JSON (its extra tensors first, in a .pt beside it), atomically."""
         path = self.path(table, piece)
         path.parent.mkdir(parents=True, exist_ok=True)
         if extra is not None:
@@ -347,19 +293,16 @@ class RunStore:
         write_json(path, dict(saved, timing=timing, result=result), indent=1)
 
     def model_path(self, train_key) -> pathlib.Path:
-        """Where a model trained the way train_key says is kept."""
         return self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
 
 
 class WorkerDied(ValueError):
-    """A worker process of the run ended without its result (killed, out of memory): the run stops,
-    saying so."""
+    """A worker process ended without its result (killed, out of memory): the run stops."""
 
 
 def die_with_parent(parent: int) -> None:
-    """Have the kernel end this process (SIGKILL) when its parent ends, however it ends (Linux
-    prctl PR_SET_PDEATHSIG): a worker's initializer, and torchrun's ranks', so that none outlives
-    the run it belongs to and writes pieces for nobody."""
+    """Have the kernel SIGKILL this process when its parent ends (Linux PR_SET_PDEATHSIG): no worker
+    or torchrun rank outlives its run, writing pieces for nobody."""
     import ctypes
 
     libc = ctypes.CDLL(None, use_errno=True)
@@ -369,20 +312,13 @@ def die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-def pool(jobs: int) -> ProcessPoolExecutor:
-    """A pool of `jobs` worker processes (spawned: a fresh interpreter each) that die with this
-    one."""
-    spawn = multiprocessing.get_context("spawn")
-    return ProcessPoolExecutor(jobs, spawn, initializer=die_with_parent, initargs=(os.getpid(),))
-
-
 def in_workers(work, units: list, jobs: int, done, kept) -> None:
-    """work(*unit) for each unit, in `jobs` worker processes (pool) in the order given; done(unit,
-    its result) here as each one finishes. A worker's error stops the run and is raised; a worker
-    that ended without one (killed, out of memory) is one WorkerDied line; Ctrl-C (or SIGINT to
-    this process alone) ends the workers at once, not after their units. kept: where the finished
-    work is kept, for the message."""
-    with pool(min(jobs, len(units))) as workers:
+    """work(*unit) for each unit in `jobs` spawned worker processes that die with this one;
+    done(unit, result) here as each finishes. A worker's error is raised, a dead worker is one
+    WorkerDied line, Ctrl-C ends the workers at once. kept: where the work is kept, for messages."""
+    spawn = multiprocessing.get_context("spawn")
+    init = dict(initializer=die_with_parent, initargs=(os.getpid(),))
+    with ProcessPoolExecutor(min(jobs, len(units)), spawn, **init) as workers:
         futures = {workers.submit(work, *unit): unit for unit in units}
         try:
             for future in as_completed(futures):
@@ -399,21 +335,9 @@ def in_workers(work, units: list, jobs: int, done, kept) -> None:
             raise
 
 
-def above(bar, log):
-    """log, writing above the bar: the bar is cleared first and drawn again after
-    (tqdm.external_write_mode)."""
-
-    def write(*a, **k):
-        with bar.external_write_mode():
-            log(*a, **k)
-
-    return write
-
-
 def ranks() -> tuple:
-    """(rank, world size) from the launcher's environment (1 process: 0, 1), and why they cannot
-    be used or None: RANK and WORLD_SIZE that neither torchrun (TORCHELASTIC_RUN_ID) nor a launcher
-    giving the rendezvous (MASTER_ADDR, MASTER_PORT) set, or that are no numbers."""
+    """(rank, world size, None) from the launcher's environment (one process: 0, 1), or (0, 1, why
+    not): RANK and WORLD_SIZE that no launcher set (torchrun, or MASTER_ADDR and MASTER_PORT)."""
     given = {k: os.environ[k] for k in ("RANK", "WORLD_SIZE") if k in os.environ}
     said = " ".join(f"{k}={v}" for k, v in given.items())
     try:
@@ -423,36 +347,25 @@ def ranks() -> tuple:
     env = set(os.environ)
     launched = "TORCHELASTIC_RUN_ID" in env or {"MASTER_ADDR", "MASTER_PORT"} <= env
     if (world != 1 or rank != 0) and not launched:
-        why = (
-            f"{said} are set, but no launcher started this process (torchrun sets them with the "
-            "rendezvous): run it under torchrun --nproc_per_node N, or unset them"
+        return (
+            0,
+            1,
+            f"{said} are set, but no launcher started this process: use torchrun or unset them",
         )
-        return 0, 1, why
     if not 0 <= rank < world:
         return 0, 1, f"RANK={rank} is not below WORLD_SIZE={world}"
     return rank, world, None
 
 
-def default_threads(most: int = 2) -> tuple:
-    """(torch threads, why): `most`, fixed. On a machine where other work keeps a core busy, two
-    threads that wait on each other run slowly: pass --threads 1 there (docs/reproducibility.md)."""
-    return most, "the default"
-
-
 class OutputRefused(ValueError):
-    """A run's refusal to start: a bad --out, a folder another run holds, or result files it would
-    replace. The CLI prints it as one line."""
+    """A run's refusal to start: a bad --out, a folder another run holds, files it would replace."""
 
 
 @contextlib.contextmanager
 def folder_lock(folder, command: str, lock_name: str = ".lock"):
-    """Hold `folder` for one run: an exclusive lock (filelock's, flock underneath) on folder/.lock
-    for as long as the block runs, the holder (PID, command, start time) written into the lock file.
-    A second run on the same folder is refused with an OutputRefused naming the holder; the
-    operating system releases a lock with the process that held it, so one left by a killed run is
-    taken over. Re-entrant (one lock per path in a process): a run that holds the folder already
-    (--out data_cache, where the data cache is made too) goes on holding it. lock_name: the lock
-    file in folder (another name holds a part of the folder: write_folder's target)."""
+    """Hold `folder` for one run: filelock's lock on folder/<lock_name>, the holder (PID, command,
+    start) written in it; a second run is refused naming the holder. The OS releases it with its
+    process (a killed run's folder is taken over); re-entrant in one process (--out data_cache)."""
     path = pathlib.Path(folder) / lock_name
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -484,12 +397,10 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
 
 
 def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
-    """A folder of several files written whole: write(tmp) fills a temporary sibling, renamed into
-    place when complete, while a lock on the target (.<name>.lock beside it) refuses a second
-    writer. An interrupted or killed write leaves the old folder (a killed writer's sibling is
-    removed by the next). files: those the writer makes, which only overwrite replaces; a folder
-    holding any other file (besides those directly in `also`) is never replaced. who: the writer,
-    for the messages."""
+    """A folder written whole: write(tmp) fills a temporary sibling, renamed into place when done,
+    under a lock on the target (.<name>.lock beside it). files: those the writer makes, replaced
+    only with overwrite; a folder holding any other file (but directly in `also`) is never replaced.
+    who: the writer, for the messages."""
     root = pathlib.Path(root)
     with folder_lock(root.parent, f"{who} {root}", f".{root.name}.lock"):
         existing = [str(p) for p in files if p.exists()]
@@ -506,7 +417,7 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
                 f"{who}: {foreign[0]} is no file of what it writes ({len(foreign)} such); {root} "
                 "is written whole, replacing what is in it: write elsewhere"
             )
-        for stale in root.parent.glob(f".{root.name}.writing-*"):
+        for stale in root.parent.glob(f".{root.name}.writing-*"):  # a killed writer's
             shutil.rmtree(stale)
         tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
         try:
@@ -525,9 +436,8 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
 
 @contextlib.contextmanager
 def one_line(ap, interrupted: str = "nothing half-written is left"):
-    """A CLI's top level (ap: its argparse parser): the project's errors (all ValueError) and a
-    file's (OSError) become one line naming the argument or file, exit 2 as argparse's own; Ctrl-C
-    one line saying what is kept, exit 130."""
+    """A CLI's top level: the project's errors (ValueError) and a file's (OSError) are argparse's
+    one line, exit 2; Ctrl-C one line saying what is kept, exit 130."""
     try:
         yield
     except (ValueError, OSError) as e:

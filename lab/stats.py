@@ -1,6 +1,5 @@
 """The statistics every claim is judged by, and the one table formatter: mean ± standard error over
-seeds, the paired difference of two rows and its two-sided paired t-test (scipy.stats), the verdict
-against the paper's direction, and markdown cells and tables."""
+seeds, the paired t-test of two rows (scipy.stats), the verdict, markdown cells and tables."""
 
 from __future__ import annotations
 
@@ -10,25 +9,23 @@ from typing import NamedTuple
 
 import scipy.stats
 
+NOTHING_TO_TRAIN = ("No prediction", "GT prediction")  # one run, the same every seed: s.e. 0
+P_REPRODUCED = 0.05  # a claim is reproduced only below this two-sided p, in the paper's direction
+
 
 def mean_se(xs):
-    """Mean and standard error of a list of numbers; the s.e. of one number is unknown (nan)."""
+    """Mean and standard error; the s.e. of one number is unknown (nan)."""
     xs = list(xs)
     return statistics.fmean(xs), (float(scipy.stats.sem(xs)) if len(xs) > 1 else math.nan)
 
 
 def plus_minus(fmt: str, mean: float, se: float) -> str:
-    """'mean ± s.e.' in fmt; 'mean ± n/a (1 seed)' where one seed cannot give the s.e. (nan)."""
+    """'mean ± s.e.' in fmt; 'mean ± n/a (1 seed)' where the s.e. is nan."""
     return f"{fmt.format(mean)} ± " + ("n/a (1 seed)" if math.isnan(se) else fmt.format(se))
 
 
-NOTHING_TO_TRAIN = ("No prediction", "GT prediction")
-"""Rows whose one run is the same for every seed (no predictor is trained): their s.e. is 0."""
-
-
 class PairedDifference(NamedTuple):
-    """method - baseline over seeds paired by index: the mean difference, its standard error, t =
-    mean / s.e., the two-sided p-value of the paired t-test (n - 1 degrees of freedom), and in how
+    """method - baseline over seeds: mean, s.e., t, the paired t-test's two-sided p, and in how
     many of the n seeds the method is lower (better, for a cost) or higher (worse)."""
 
     mean: float
@@ -40,16 +37,10 @@ class PairedDifference(NamedTuple):
     n: int
 
 
-P_REPRODUCED = 0.05
-"""A claim is reproduced only when the paired t-test's two-sided p-value is below this, in the
-paper's direction."""
-
-
 def paired_difference(baseline: list, method: list) -> PairedDifference:
-    """method[i] - baseline[i] for seed i (the lists align by seed): pairing removes what the two
-    share in a seed (the same data and evaluation set), so the spread left is the difference's own;
-    the two-sided paired t-test is scipy.stats.ttest_rel. With one seed the s.e. is unknown (t, p
-    nan); with no spread it is 0 and t is -inf / +inf, p = 0 (t and p nan for a zero difference)."""
+    """method[i] - baseline[i] for seed i: pairing removes what a seed's two runs share (data,
+    evaluation set). One seed: s.e., t and p nan; no spread: s.e. 0, t = ±inf, p = 0 (nan for a
+    zero difference)."""
     if len(baseline) != len(method):
         raise ValueError(
             f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by "
@@ -58,20 +49,18 @@ def paired_difference(baseline: list, method: list) -> PairedDifference:
     if not baseline:
         raise ValueError("baseline: no seeds to compare")
     d = [b - a for a, b in zip(baseline, method)]
-    n = len(d)
     m, se = mean_se(d)
     if se > 0:
         test = scipy.stats.ttest_rel(method, baseline)  # two-sided
         t, p = float(test.statistic), float(test.pvalue)
     else:
         t, p = (math.copysign(math.inf, m), 0.0) if m != 0 and se == 0 else (math.nan, math.nan)
-    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), n)
+    return PairedDifference(m, se, t, p, sum(x < 0 for x in d), sum(x > 0 for x in d), len(d))
 
 
 def claim_verdict(p: PairedDifference, direction: int = -1) -> str:
-    """'reproduced' only when the paired t-test gives p < P_REPRODUCED in the paper's direction
-    (-1: the method is lower, +1: higher); 'contradicted' when it gives p < P_REPRODUCED the other
-    way."""
+    """'reproduced' only when p < P_REPRODUCED in the paper's direction (-1: the method lower, +1:
+    higher); 'contradicted' when so the other way."""
     if p.n == 0:
         return "untested (no seed trained both rows)"
     if not p.se >= 0:  # nan: one seed
@@ -86,8 +75,7 @@ def p_value(p: float) -> str:
 
 
 def cell(values, fmt="{:.2f}", row: str = "") -> str:
-    """'mean ± s.e.' of the per-seed values of one table cell of `row`; '--' for none; one value:
-    its s.e. is n/a (1 seed), or 0 for a row with nothing to train (NOTHING_TO_TRAIN)."""
+    """'mean ± s.e.' of a cell's per-seed values; '--' for none; s.e. 0 for NOTHING_TO_TRAIN."""
     if not values:
         return "--"
     mean, se = mean_se(values)
@@ -95,6 +83,6 @@ def cell(values, fmt="{:.2f}", row: str = "") -> str:
 
 
 def markdown_table(head, rows) -> str:
-    """A markdown table: head [str], rows [[str]]. The only table formatter of the project."""
+    """A markdown table: head [str], rows [[str]]."""
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
