@@ -1,27 +1,23 @@
-"""The data the stack trains on, made or read (load_data), and the data's command line:
+"""The data the stack trains on, made or read (load_data), and its command line (docs/data.md):
 
-    python -m lab.data {generate,stats,render,write-nuscenes,read-nuscenes,fetch-waymo} [PATH] ...
-
-load_data gives synthetic samples (data_synth.load_or_generate, cached in data_cache/) or reads a
-nuScenes folder (lab/nuscenes.py) and splits it by scene.
+python -m lab.data {generate,write-nuscenes,read-nuscenes,fetch-waymo} [PATH] ...
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
 import data_synth
-from data_synth import Dataset, Scenarios, SynthConfig
+from data_synth import Dataset, SynthConfig
 from lab.cli import add_shared_options, bounded
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
-from lab.runs import folder_lock, one_line, write_file_atomic
+from lab.runs import folder_lock, one_line
 from lab.waymo import WAYMO_PHASES, load_waymo_scenarios
 
 MINI_VAL = ("scene-0103", "scene-0916")
@@ -54,7 +50,9 @@ NUSC_VAL = _scene_names("""
 
 
 def _split_scenes(names: list, version: str) -> tuple:
-    """(is_val (S,) bool tensor, the rule used) for the scenes of a nuScenes folder: load_data's."""
+    """(is_val (S,) bool tensor, the rule used): v1.0-mini's official mini_val scenes; v1.0-trainval
+    the devkit's split (scenes in neither list split among themselves by the fallback); fallback
+    (no scene listed, or a side empty): the last 15 % of the scenes by name."""
 
     def by_name(idx):
         return set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))) :])
@@ -75,8 +73,7 @@ def _split_scenes(names: list, version: str) -> tuple:
 
 
 def nuscenes_version(path) -> str:
-    """The nuScenes version a --data folder holds (v1.0-mini, else v1.0-trainval); a ValueError
-    naming --data otherwise. Cheap: the command lines call it before they make anything."""
+    """The version a --data folder holds (v1.0-mini, else v1.0-trainval); cheap: checked first."""
     if not Path(path).is_dir():
         raise ValueError(f"--data: {path} is not a folder")
     for version in ("v1.0-mini", "v1.0-trainval"):
@@ -91,16 +88,8 @@ def load_data(
     path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None
 ) -> Dataset:
     """Training and validation samples: synthetic (n samples of data seed `seed`, cached in
-    cache_dir), or read from the nuScenes folder at `path` (real, or written by write_nuscenes; its
-    parse cached in cache_dir by the checksums of its files, on a pool of `workers` processes) and
-    split by scene:
-      v1.0-mini      the official mini_val scenes (MINI_VAL) are validation, the rest training;
-      v1.0-trainval  the devkit's official split: the folder's scenes in NUSC_VAL are validation,
-                     those in NUSC_TRAIN training, those in neither split by the fallback among
-                     themselves;
-      fallback       when no scene is in the official lists, or one side would be empty: the last
-                     15 % of the scenes by name are validation.
-    The rule used is logged."""
+    cache_dir), or the nuScenes folder at `path` (its parse cached in cache_dir, on `workers`
+    processes) split by scene (_split_scenes; the rule used is logged)."""
     if path is None:
         return _synthetic(n, seed, cache_dir)
     data_synth._check_seed("load_data", seed)
@@ -124,9 +113,8 @@ def load_data(
 
 
 def _synthetic(n, seed, cache_dir) -> Dataset:
-    """load_or_generate, holding cache_dir while a missing cache is made (another process asking
-    for it meanwhile is told who makes it); a cache holding NaN or inf (edited or damaged since: the
-    generator makes none) is refused, naming it."""
+    """load_or_generate, holding cache_dir while a missing cache is made; a cache holding NaN or inf
+    (damaged: the generator makes none) is refused, naming it."""
     try:
         made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
     except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
@@ -151,11 +139,8 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
 
 # === the command line ===========================================================================
 
-MAX_RENDER = 400  # samples `render` draws at most: a PNG ~29 000 pixels tall (Agg draws < 2^16)
 COMMANDS = {
     "generate": "generate --n samples (default 10 000; train + val) into --cache-dir",
-    "stats": "statistics of --n generated samples (default 4 000) against plausible ranges",
-    "render": "draw --n samples (default 12; synthetic, or from --nuscenes DIR) as the PNG PATH",
     "write-nuscenes": "write --scenes synthetic scenes as the nuScenes v1.0 folder PATH",
     "read-nuscenes": "read the nuScenes v1.0 folder PATH (generated or real) and summarise it",
     "fetch-waymo": "download (once) the three Waymo scenes into --cache-dir and summarise them",
@@ -166,12 +151,11 @@ def main(argv=None) -> None:
     """python -m lab.data COMMAND [PATH] [options]."""
     ap = argparse.ArgumentParser(
         prog="python -m lab.data",
-        description="DiffStack's scenario data: synthetic scenes, the nuScenes v1.0 format written "
-        "and read, three Waymo logs. " + "; ".join(f"{c}: {h}" for c, h in COMMANDS.items()),
+        description="; ".join(f"{c}: {h}" for c, h in COMMANDS.items()),
     )
     ap.add_argument("command", choices=COMMANDS)
-    ap.add_argument("path", nargs="?", help="the output (write-nuscenes, render) or folder to read")
-    ap.add_argument("--n", type=bounded(int, 1, data_synth.MAX_SAMPLES, "--n"), help="samples")
+    ap.add_argument("path", nargs="?", help="the folder to write or read")
+    ap.add_argument("--n", type=bounded(int, 1, data_synth.MAX_SAMPLES, "--n"), default=10_000)
     ap.add_argument("--seed", type=bounded(int, 0, 2**63 - 1, "--seed"), default=0)
     ap.add_argument("--scenes", type=bounded(int, 1, data_synth.MAX_SCENES, "--scenes"), default=10)
     ap.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
@@ -179,73 +163,30 @@ def main(argv=None) -> None:
     ap.add_argument("--cache-dir", help="default data_cache (read-nuscenes: no parse cache)")
     phases = bounded(int, 1, WAYMO_PHASES, "--phases")
     ap.add_argument("--phases", type=phases, default=1, help="2 Hz clocks per 10 Hz Waymo log")
-    ap.add_argument("--nuscenes", metavar="DIR", help="render: draw from a nuScenes folder")
-    add_shared_options(ap, overwrite="write-nuscenes, render: replace what is there")
+    add_shared_options(ap, overwrite="write-nuscenes: replace what is there")
     args = ap.parse_args(argv)
-    if args.command in ("render", "write-nuscenes", "read-nuscenes") and args.path is None:
-        ap.error(f"argument path: {args.command} needs PATH")
-    if args.command == "render" and (args.n or 0) > MAX_RENDER:
-        ap.error(f"argument --n: render draws at most {MAX_RENDER} samples (MAX_RENDER)")
-    with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
-        _run(ap, args)
-
-
-def _run(ap, args) -> None:
     cmd, path, cache_dir = args.command, args.path, args.cache_dir or "data_cache"
-    if cmd == "generate":
-        data = data_synth.load_or_generate(args.n or 10_000, args.seed, cache_dir)
-        print(f"{len(data.train)} train + {len(data.val)} val samples, cached in {cache_dir}")
-    elif cmd == "stats":
-        data = data_synth.make_dataset(args.n or 4000, seed=args.seed)
-        st = data_synth.statistics(Scenarios.cat([data.train, data.val]))
-        print(data_synth.format_statistics(st))
-    elif cmd == "write-nuscenes":
-        scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
-        write_nuscenes(scenes, path, args.version, overwrite=args.overwrite)
-        print(f"wrote {args.scenes} scenes to {path}/{args.version} and {path}/maps")
-    elif cmd == "render":
-        _render(ap, args)
-    else:
+    if cmd in ("write-nuscenes", "read-nuscenes") and path is None:
+        ap.error(f"argument path: {cmd} needs PATH")
+    with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
+        if cmd == "generate":
+            data = data_synth.load_or_generate(args.n, args.seed, cache_dir)
+            print(f"{len(data.train)} train + {len(data.val)} val samples, cached in {cache_dir}")
+            return
+        if cmd == "write-nuscenes":
+            scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
+            write_nuscenes(scenes, path, args.version, overwrite=args.overwrite)
+            print(f"wrote {args.scenes} scenes to {path}/{args.version} and {path}/maps")
+            return
         if cmd == "read-nuscenes":
             batch, report = load_nuscenes_scenarios(
                 path, args.version, workers=args.workers, cache_dir=args.cache_dir
             )
         else:
-            phases = tuple(range(args.phases))
-            batch, report = load_waymo_scenarios(cache_dir, phases)
+            batch, report = load_waymo_scenarios(cache_dir, tuple(range(args.phases)))
         print(data_synth.format_statistics(data_synth.statistics(batch)))
         print("".join(f"skipped {why}\n" for why in report.pop("skipped", [])), end="")
         print(f"{len(batch)} samples: {report}")
-
-
-def _render(ap, args) -> None:
-    """`render`: a grid of data_synth.plot_scenario panels, 4 a row; never over a file it did not
-    make (--overwrite)."""
-    out = Path(args.path)
-    out = out if out.suffix.lower() == ".png" else out.with_name(out.name + ".png")
-    if out.is_dir() or (out.exists() and not args.overwrite):
-        ap.error(f"argument path: {out} exists; keep it (another PATH) or replace it (--overwrite)")
-    if not out.parent.is_dir():
-        ap.error(f"argument path: {out.parent} is no folder")
-    n = args.n or 12
-    if args.nuscenes:
-        batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
-    else:
-        scenes = data_synth.generate_scenes(math.ceil(n / 4) + 1, seed=args.seed)
-        batch, _ = data_synth.cut_samples(scenes, 4, np.random.default_rng(args.seed))
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n, rows = min(n, len(batch)), math.ceil(min(n, len(batch)) / 4)
-    fig, axes = plt.subplots(rows, 4, figsize=(16, 2.6 * rows), squeeze=False)
-    for k, ax in enumerate(axes.flat):
-        data_synth.plot_scenario(ax, batch, k) if k < n else ax.axis("off")
-    fig.tight_layout()
-    write_file_atomic(out, lambda tmp: fig.savefig(tmp, dpi=110))
-    plt.close(fig)
-    print(f"wrote {n} samples to {out}")
 
 
 if __name__ == "__main__":
