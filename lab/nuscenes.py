@@ -1,16 +1,6 @@
-"""The nuScenes v1.0 format, read and written (json + numpy: the devkit is never needed): Scenes
-written by write_nuscenes come back from load_nuscenes exactly.
-
-The format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
-maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with
-polygons and connectivity), maps/prediction/prediction_scenes.json. load_nuscenes reads any v1.0
-folder (written here, or the real v1.0-mini / v1.0-trainval with the map expansion): the ego is the
-CAM_FRONT key-frame ego_pose of every sample; the agents are the vehicle.* and human.pedestrian.*
-instances; the predicted vehicle at t0 is, among vehicles observed at t0 with a complete 3 s
-future, the one the prediction split lists for that sample (if it lists the scene) or else the
-moving ones (>= 1 m over the sample's window), whichever comes closest to the ego over t0..t6; the
-lanes and lane connectors near the ego's path, chained along the connectivity, are the routes.
-"""
+"""The nuScenes v1.0 format read (load_nuscenes: any v1.0 folder, real or written here; json +
+numpy, no devkit) and written (write_nuscenes: read back exactly, by this reader and the devkit).
+How a sample is made of a real scene (ego, agents, the predicted vehicle, lanes): docs/data.md."""
 
 from __future__ import annotations
 
@@ -48,9 +38,8 @@ QUAT_TOL = 1e-3  # a rotation must be a unit quaternion within this: never a sil
 MAX_POSITION = 1e6  # m: a translation beyond this is no place on a nuScenes map
 MAX_SPEED = 100.0  # m/s between two key frames: faster is a wrong position or timestamp
 _BIG = 1e300  # a JSON number beyond this would overflow float64 arithmetic
+# scenes per pool task, and per worker at least: a worker takes ~0.1 s to start, a real scene ~30 ms
 PARSE_CHUNK = 16
-"""Scenes a pool worker parses per task, and the fewest scenes per worker: a worker costs about a
-tenth of a second to start, a scene of a real log about 30 ms to parse."""
 
 
 class NuScenesFormatError(ValueError):
@@ -62,9 +51,8 @@ def _short(v, n: int = 60) -> str:
 
 
 class Reading:
-    """The one way a bad field is reported: inside `with Reading(path) as r`, a KeyError, TypeError,
-    ValueError, ... raised reading r.rec (set, or by r.each) becomes one `error` line
-    "<path>: record <token>: <field>: <what>" (r.name, when set, names the record)."""
+    """Inside `with Reading(path) as r`, a KeyError, ValueError, ... raised reading r.rec (set, or
+    by r.each) is one `error` line "<path>: record <token>: <field>: <what>" (or r.name's)."""
 
     def __init__(self, path, error=NuScenesFormatError):
         self.path, self.error, self.rec, self.name = path, error, None, ""
@@ -154,9 +142,7 @@ def _pose(rec: dict) -> list:
 
 
 def _map_path(root: Path, location) -> Path:
-    """maps/expansion/<location>.json, confined to the folder: a location is a plain map name; one
-    with a path separator or '..', or a path that does not normalise to a file under <root>/maps,
-    is an error (links inside the folder are followed like any file)."""
+    """maps/expansion/<location>.json, confined to <root>/maps: a location is a plain map name."""
     maps = Path(os.path.abspath(root / "maps"))
     seps = {"/", "\\", "..", "\0", os.sep, os.altsep or "/"}
     if isinstance(location, str) and location and not any(s in location for s in seps):
@@ -167,8 +153,8 @@ def _map_path(root: Path, location) -> Path:
 
 
 def _read_map(path: Path, cfg: SynthConfig) -> dict:
-    """A map expansion's lanes and connectors (arcline paths (n, 10) each, lengths, connectivity,
-    points and boxes); a lane of more than MAX_LANE_POINTS points is refused before allocating."""
+    """A map expansion's lanes and connectors (arcline paths, lengths, links, points, boxes); a lane
+    of more than MAX_LANE_POINTS points is refused before allocating."""
     js = _read_json(path)
     with Reading(path) as r:
         if not isinstance(js, dict) or str(js.get("version", "1.0")) < "1.3":
@@ -208,8 +194,8 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
 
 
 def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
-    """Every lane's points every 2 m (n, P, 2) and mask, and its bounding box (n, 4: lo, hi; +inf to
-    -inf without points): for _lanes_near. In chunks: real maps have ~10^4 lanes."""
+    """Every lane's points (n, P, 2), mask and box (n, 4: lo, hi), for _lanes_near; in chunks: real
+    maps have ~10^4 lanes."""
     chunks = []
     for c in range(0, len(paths), 1024):
         R = max([len(p) for p in paths[c : c + 1024]] + [1])
@@ -228,9 +214,8 @@ def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
 
 
 def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
-    """Maximal chains (lists of lane indices) through the graph lmap (next, prev: index lists)
-    restricted to `near`, from the lanes without an incoming link inside it (then any left, for
-    cycles)."""
+    """Maximal chains of lane indices through the graph lmap (next, prev) restricted to `near`, from
+    the lanes without an incoming link inside it (then any left: cycles)."""
     inside = set(near)
     out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
     sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
@@ -251,8 +236,8 @@ def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
 
 
 def _sample_chain(r: Reading, samples: dict, first: str, name: str) -> tuple[list, list]:
-    """(tokens, timestamps) of a scene's samples along `next`: each `prev` the sample before, no
-    loop, timestamps (microseconds) increasing 0.1 to 2 s apart (ms or ns are 1000 times off)."""
+    """(tokens, timestamps) of a scene's samples along `next`, checked: links, no loop, timestamps
+    (microseconds) increasing 0.1 to 2 s apart (ms or ns are 1000 times off)."""
     tokens, times, seen, tok = [], [], set(), first
     while tok:
         if tok in seen:
@@ -318,11 +303,9 @@ def _index(root: Path, version: str, cfg: SynthConfig):
 
 
 def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Scenes, dict]:
-    """A nuScenes v1.0 folder as Scenes (world frame) and a report, which names each scene skipped
-    (too short for a sample, no lane near the ego, no vehicle to predict) with its reason. The
-    scenes are parsed by a pool of `workers` processes (default: the cores this process may use),
-    at most one per PARSE_CHUNK scenes; the result does not depend on `workers`. A bad file is a
-    NuScenesFormatError naming the file, the record and the field."""
+    """A nuScenes v1.0 folder as Scenes (world frame) and a report naming each scene skipped, why,
+    parsed by `workers` processes (default: this process's cores), the same whatever their number.
+    A bad file is a NuScenesFormatError naming the file, the record and the field."""
     cfg = cfg or SynthConfig()
     ctx, tab, map_file = _index(Path(root), version, cfg)
     samples = {s["token"]: s for s in tab["sample"]}
@@ -372,10 +355,8 @@ def _parse_in_worker(job):
 
 
 def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
-    """[_parse_scene(job, ctx) for job in jobs], in order, on a pool of up to `workers` processes
-    where the platform forks: the workers inherit ctx (the tables, hundreds of MB for v1.0-trainval)
-    instead of receiving a copy, and gc.freeze keeps their garbage collector from touching (and so
-    copying, page by page) its millions of objects."""
+    """[_parse_scene(job, ctx) for job in jobs] on a pool where the platform forks: the workers
+    inherit ctx (hundreds of MB for v1.0-trainval), gc.freeze keeps their gc from copying it."""
     global _CONTEXT
     if workers is None:  # the cores this process may run on
         workers = (
@@ -404,8 +385,8 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
 
 
 def _parse_scene(job, ctx) -> tuple[str, dict | str]:
-    """One scene: ('loaded', its Scenes' numpy arrays; numpy crosses the pool's pipes, tensors would
-    go as shared-memory files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
+    """('loaded', a scene's arrays: numpy crosses the pool's pipes, tensors would go as shared
+    memory files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
     name, mpath, tokens, times = job
     cfg, afile = ctx.cfg, ctx.tdir / "sample_annotation.json"
     t = np.array(times, np.float64)
@@ -437,8 +418,7 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
 
 
 def _tracks(ctx, name: str, tokens: list, t) -> tuple:
-    """The ego's CAM_FRONT key-frame poses (F, 4); the vehicles and pedestrians in order of first
-    appearance (Scenes' agents fields); their instance tokens. Speeds by backward differences."""
+    """The ego (F, 4), the agents (Scenes' fields, by first appearance), their instance tokens."""
     missing = [k for k in tokens if k not in ctx.ego_of]
     if missing:
         raise NuScenesFormatError(f"{ctx.tdir}/sample_data.json: no CAM_FRONT for {missing[0]}")
@@ -470,7 +450,7 @@ def _tracks(ctx, name: str, tokens: list, t) -> tuple:
 
 
 def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name: str) -> None:
-    """A track faster than MAX_SPEED since the key frame before: an error naming the record."""
+    """A track faster than MAX_SPEED: an error naming the record."""
     if (np.abs(speed) > MAX_SPEED).any():
         k = tuple(np.argwhere(np.abs(speed) > MAX_SPEED)[0].tolist())
         r.rec, at = records[k], f"at sample {tokens[k[-1]]!r} of scene {name!r}"
@@ -478,8 +458,8 @@ def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name:
 
 
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
-    """The lanes with a point within radius of a position of path_xy (F, 2): first those whose box
-    meets the path's (a real map has ~10^4 lanes, a scene uses dozens), then their points."""
+    """The lanes with a point within radius of path_xy (F, 2): by box first (a real map has ~10^4
+    lanes, a scene uses dozens), then by point."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
     b = lmap["box"]  # (n, 4)
     cand = np.nonzero(
@@ -492,8 +472,8 @@ def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
 
 
 def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed: set, cfg):
-    """pred (F,): the predicted vehicle per frame t0 (-1: none), the rule of the module docstring
-    (scene_listed: the prediction split lists the scene; `listed`: its (instance, sample) pairs)."""
+    """The predicted vehicle per frame t0 (F,; -1: none) by docs/data.md's rule (`listed`: the
+    prediction split's (instance, sample) pairs, used if scene_listed)."""
     agents, amask, is_ped = tracks["agents"], tracks["agents_mask"], tracks["agents_is_ped"]
     (M, F), H, T = amask.shape, cfg.hist, cfg.fut
     pred = np.full(F, -1)
@@ -512,8 +492,8 @@ def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed
 
 
 def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
-    """A scene's map as Scenes' fields: the arcline paths of the lanes its routes use, the routes
-    through them, discretised; a route of more than MAX_LANE_POINTS points is refused."""
+    """A scene's map as Scenes' fields (arcline paths, routes, lanes); a route of more than
+    MAX_LANE_POINTS points is refused."""
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
@@ -553,8 +533,8 @@ def sha256_of(path) -> str:
 
 
 def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of the files load_nuscenes reads (relative to root): the parse cache's key,
-    which a byte changes (a size or modification time can survive a copy or a quick edit)."""
+    """{file: sha256} of the files load_nuscenes reads: the cache's key (a size or time can survive
+    an edit)."""
     root = Path(root)
     files = [root / version / f"{t}.json" for t in NUSC_TABLES]
     files += sorted((root / "maps" / "expansion").glob("*.json"))
@@ -563,7 +543,7 @@ def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
 
 
 def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
-    """The cache of root/version's parse: one file per folder (named by its absolute path)."""
+    """The cache of root/version's parse: one file per folder (by its absolute path)."""
     where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
     return Path(cache_dir) / f"nuscenes-{version}-{where}.pt"
 
@@ -571,10 +551,8 @@ def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
 def load_nuscenes_cached(
     root, version="v1.0-mini", cfg=None, cache_dir="data_cache", workers=None, log=print
 ) -> tuple[Scenes, dict]:
-    """load_nuscenes through a cache in cache_dir keyed by the sha256 of every file the parse reads,
-    the SynthConfig and the cache format: a matching key reads the parse back (seconds, not
-    minutes); another parses again and replaces it (atomically, holding cache_dir). A file of the
-    cache's name that is not such a cache is an error, never replaced."""
+    """load_nuscenes cached in cache_dir, keyed by the sha256 of the files it reads, the SynthConfig
+    and the format; another key parses again and replaces it. A foreign file is refused, kept."""
     cfg, t0, what = cfg or SynthConfig(), time.perf_counter(), f"{root}/{version}"
     sums = nuscenes_checksums(root, version)
     key = dict(version=version, files=sums, cfg=dataclasses.asdict(cfg), format=_NUSC_CACHE_FORMAT)
@@ -606,8 +584,7 @@ def load_nuscenes_cached(
 def load_nuscenes_scenarios(
     root, version="v1.0-mini", cfg=None, workers=None, cache_dir=None, log=print
 ):
-    """A nuScenes folder as planning samples at every usable frame: (Scenarios, report); cache_dir:
-    cache the parse there (load_nuscenes_cached)."""
+    """A nuScenes folder as planning samples at every usable frame (parse cached in cache_dir)."""
     if cache_dir is None:
         scenes, report = load_nuscenes(root, version, cfg, workers)
     else:
@@ -623,12 +600,11 @@ MAP_LAYERS = tuple(
     "polygon line node drivable_area road_segment road_block lane ped_crossing walkway stop_line "
     "carpark_area road_divider lane_divider traffic_light lane_connector".split()
 )
+# the first 10 scenes written take v1.0-mini's names (the devkit's prediction split knows them)
 MINI_SCENES = tuple(
     "scene-0061 scene-0103 scene-0553 scene-0655 scene-0757 scene-0796 scene-0916 scene-1077 "
     "scene-1094 scene-1100".split()
 )
-"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only
-those); later ones are scene-9xxx."""
 _FIELDS = {  # the fields of the records written, in the devkit's order
     "log": "token logfile vehicle date_captured location",
     "scene": "token log_token nbr_samples first_sample_token last_sample_token name description",
@@ -683,9 +659,8 @@ def _dump(obj, path: Path) -> None:
 
 
 def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrite=False) -> Path:
-    """Scenes written as a nuScenes v1.0 folder under root (returned), whole (runs.write_folder): in
-    a temporary sibling renamed into place, under a lock on the target; an interrupted write leaves
-    the old folder (or none). Its files are replaced only with overwrite, another's never."""
+    """Scenes written as a nuScenes v1.0 folder under root (returned), whole (runs.write_folder);
+    its files are replaced only with overwrite."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -699,8 +674,7 @@ def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrit
 
 
 def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) -> None:
-    """Every file of the folder: scenes go round-robin to the four map locations, side by side (300
-    m apart) in their map's canvas; each map has a record, a tiny PNG and its expansion."""
+    """Every file: scenes go round-robin to the four maps, 300 m apart in their map's canvas."""
     S = len(scenes)
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
     locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
@@ -737,8 +711,7 @@ def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) 
 
 
 def _fixed_tables() -> dict:
-    """The 13 tables, those every folder shares filled (categories, attributes, visibilities,
-    sensors)."""
+    """The 13 tables, those every folder shares filled (categories, attributes, sensors...)."""
     tables = {t: [] for t in NUSC_TABLES}
     _add(tables, "category", _token("category", "vehicle.car"), "vehicle.car", _CAR, 17)
     _add(tables, "category", _token("category", _PED), _PED, "Adult subcategory.", 2)
@@ -807,8 +780,8 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
 
 
 def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) -> None:
-    """Scene i's arcline paths added to a map expansion: each a lane (or lane connector) with a
-    polygon (the centre line +- W/2), edge lines, and the links of consecutive paths of routes."""
+    """Scene i's arcline paths added to a map expansion: lanes (or connectors), polygons (the
+    centre line +- W/2), edge lines, the links along routes."""
     paths, is_conn = scenes.paths[i].numpy(), scenes.paths_is_connector[i].numpy()
     tok = {q: _token(name, "lane", q) for q in np.nonzero(paths[..., 4:7].sum(-1) > 0)[0]}
     links = {q: {"incoming": [], "outgoing": []} for q in tok}
