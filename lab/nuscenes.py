@@ -4,7 +4,6 @@ How a sample is made of a real scene (ego, agents, the predicted vehicle, lanes)
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import gc
 import hashlib
@@ -92,10 +91,10 @@ def _read_json(path: Path):
 
 def _unique(path, tokens: list, what: str = "token") -> None:
     """Tokens are primary keys: a repeated one is an error naming it and its first two records."""
-    if len(set(tokens)) < len(tokens):
-        t = next(t for t, n in collections.Counter(tokens).items() if n > 1)
-        i, j = [i for i, u in enumerate(tokens) if u == t][:2]
-        raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {i} and {j})")
+    first = {}
+    for j, t in enumerate(tokens):
+        if (i := first.setdefault(t, j)) != j:
+            raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {i} and {j})")
 
 
 def _table(path: Path) -> list:
@@ -114,11 +113,8 @@ def _numbers(rec: dict, key: str, n: int | None = None, lo: float = -_BIG, hi: f
     """rec[key] as n floats (n None: one float), each a JSON number from lo to hi: not a bool, a
     string or null, nor NaN or Infinity (Python's json reads them; JSON does not allow them)."""
     xs = [rec[key]] if n is None else rec[key]
-    if not (
-        isinstance(xs, list)
-        and len(xs) == (n or 1)
-        and all(type(x) in (int, float) and lo <= x <= hi for x in xs)
-    ):
+    ok = isinstance(xs, list) and len(xs) == (n or 1)
+    if not (ok and all(type(x) in (int, float) and lo <= x <= hi for x in xs)):
         span = f" from {lo:g} to {hi:g}" if (lo, hi) != (-_BIG, _BIG) else ""
         many = f"{n} finite numbers" if n else "a finite number"
         raise ValueError(f"{key}: must be {many}{span}, got {_short(rec[key])}")
@@ -167,27 +163,20 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
         arclines, conn, paths = js["arcline_path_3"], js["connectivity"], []
         for t in tokens:
             r.name = f"lane {t!r}"
-            rows = [
-                [
-                    *_numbers(a, "start_pose", 3),
-                    _numbers(a, "radius", lo=0.0),
-                    *_numbers(a, "segment_length", 3, lo=0.0),
-                    *ds._SHAPE_SIGNS[a["shape"]],
-                ]
-                for a in r.each(arclines.get(t, []))
-            ]
+            rows = []
+            for a in r.each(arclines.get(t, [])):
+                pose, radius = _numbers(a, "start_pose", 3), _numbers(a, "radius", lo=0.0)
+                lengths = _numbers(a, "segment_length", 3, lo=0.0)
+                rows.append([*pose, radius, *lengths, *ds._SHAPE_SIGNS[a["shape"]]])
             paths.append(np.array(rows, dtype=np.float64).reshape(-1, 10))
             length = paths[-1][:, 4:7].sum()
             if (n_pts := ds._lane_points(length, cfg.lane_spacing)) > MAX_LANE_POINTS:
-                raise ValueError(
-                    f"{length:.6g} m long: {n_pts} points at {cfg.lane_spacing} m spacing, more "
-                    f"than MAX_LANE_POINTS = {MAX_LANE_POINTS}"
-                )
+                at = f"{n_pts} points at {cfg.lane_spacing} m spacing"
+                raise ValueError(f"{length:.6g} m long: {at}, more than {MAX_LANE_POINTS = }")
         r.name = ""
-        nxt, prv = (
-            [[index[o] for o in conn.get(t, {}).get(way, []) if o in index] for t in tokens]
-            for way in ("outgoing", "incoming")
-        )
+        links = [conn.get(t, {}) for t in tokens]
+        nxt = [[index[o] for o in c.get("outgoing", []) if o in index] for c in links]
+        prv = [[index[o] for o in c.get("incoming", []) if o in index] for c in links]
     lengths = [float(p[:, 4:7].sum()) for p in paths]
     lanes = dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), path=path)
     return lanes | dict(paths=paths, length=lengths, next=nxt, prev=prv) | _lane_boxes(paths, cfg)
@@ -402,10 +391,9 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
     if (pred < 0).all() and listed:  # the split promises a vehicle
         entry = next((f"{i}_{k}" for i, k in sorted(ctx.listed) if k in set(tokens)), None)
         if entry is not None:
-            raise NuScenesFormatError(
-                f"{ctx.tdir.parent / 'maps/prediction/prediction_scenes.json'}: scene {name!r} is "
-                f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
-            )
+            split = ctx.tdir.parent / "maps/prediction/prediction_scenes.json"
+            why = f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
+            raise NuScenesFormatError(f"{split}: scene {name!r} is {why}")
     if (pred < 0).all():
         why = f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future"
         return "skipped_no_agent", why
@@ -461,10 +449,8 @@ def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
     """The lanes with a point within radius of path_xy (F, 2): by box first (a real map has ~10^4
     lanes, a scene uses dozens), then by point."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
-    b = lmap["box"]  # (n, 4)
-    cand = np.nonzero(
-        (b[:, 2] >= lo[0]) & (b[:, 0] <= hi[0]) & (b[:, 3] >= lo[1]) & (b[:, 1] <= hi[1])
-    )[0]
+    b = lmap["box"]  # (n, 4): lo, hi
+    cand = np.nonzero((b[:, 2:] >= lo).all(1) & (b[:, :2] <= hi).all(1))[0]
     p, m = lmap["pts"][cand], lmap["mask"][cand]
     cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
     d = np.linalg.norm(lmap["pts"][cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
@@ -497,10 +483,10 @@ def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
+            ends = f"lanes {lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r}"
+            why = f"is {length:.6g} m long: more than {MAX_LANE_POINTS = } points"
             raise NuScenesFormatError(
-                f"{lmap['path']}: the route of scene {name!r} through lanes "
-                f"{lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r} is {length:.6g} m long: "
-                f"more than MAX_LANE_POINTS = {MAX_LANE_POINTS} points"
+                f"{lmap['path']}: the route of scene {name!r} through {ends} {why}"
             )
     used = sorted({i for r in routes for i in r})
     first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path of each used lane
@@ -757,10 +743,8 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
     agents, amask, (ox, oy) = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy(), offset
     for m in np.nonzero(amask.any(-1))[0]:
         frames, inst = np.nonzero(amask[m])[0], _token(name, "instance", m)
-        ann, ped = (
-            [_token(name, "annotation", m, f) for f in frames],
-            bool(scenes.agents_is_ped[i, m]),
-        )
+        ann = [_token(name, "annotation", m, f) for f in frames]
+        ped = bool(scenes.agents_is_ped[i, m])
         cat = _token("category", _PED if ped else "vehicle.car")
         _add(tables, "instance", inst, cat, len(frames), ann[0], ann[-1])
         w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
@@ -819,8 +803,7 @@ def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) 
         ]
         lane = dict(token=t, polygon_token=poly, lane_type="CAR")
         lane |= dict(from_edge_line_token=edges[0], to_edge_line_token=edges[1])
-        exp["lane"].append(
-            lane | dict(left_lane_divider_segments=[], right_lane_divider_segments=[])
-        )
+        lane |= dict(left_lane_divider_segments=[], right_lane_divider_segments=[])
+        exp["lane"].append(lane)
     polys = [_token(t, "polygon") for t in tok.values()]
     exp["drivable_area"].append(dict(token=_token(name, "drivable_area"), polygon_tokens=polys))
