@@ -20,22 +20,17 @@ from lab.nuscenes import write_nuscenes
 from lab.runs import folder_lock, one_line
 from lab.waymo import WAYMO_PHASES, load_waymo_scenarios
 
-MINI_VAL = ("scene-0103", "scene-0916")
-"""The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
+MINI_VAL = ("scene-0103", "scene-0916")  # v1.0-mini's official mini_val (the rest: mini_train)
 
 
 def _scene_names(ranges: str) -> frozenset:
     """'1-2 4' -> {'scene-0001', 'scene-0002', 'scene-0004'}."""
-    out = set()
-    for part in ranges.split():
-        lo, _, hi = part.partition("-")
-        out.update(f"scene-{k:04d}" for k in range(int(lo), int(hi or lo) + 1))
-    return frozenset(out)
+    spans = [(int(p.split("-")[0]), int(p.split("-")[-1])) for p in ranges.split()]
+    return frozenset(f"scene-{k:04d}" for lo, hi in spans for k in range(lo, hi + 1))
 
 
-# The official v1.0-trainval split of the nuScenes devkit (nuscenes/utils/splits.py, v1.2.0:
-# `train`, the union of train_detect and train_track, 700 scenes; `val`, 150 scenes), as runs of
-# consecutive scene numbers.
+# The devkit's official v1.0-trainval split (nuscenes/utils/splits.py, v1.2.0: `train`, the union
+# of train_detect and train_track, 700 scenes; `val`, 150), as runs of consecutive scene numbers.
 NUSC_TRAIN = _scene_names("""
     1-2 4-11 19-34 41-76 120-135 138-139 149-152 154-155 157-168 170-185 187-188 190-196 199-200
     202-204 206-214 218-220 222 224-264 283-306 315-318 321 323-324 328 347-386 388-403 405-408
@@ -58,16 +53,15 @@ def _split_scenes(names: list, version: str) -> tuple:
         return set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))) :])
 
     if version == "v1.0-trainval":
-        listed = [i for i, nm in enumerate(names) if nm in NUSC_TRAIN or nm in NUSC_VAL]
         others = [i for i, nm in enumerate(names) if nm not in NUSC_TRAIN and nm not in NUSC_VAL]
-        val = {i for i in listed if names[i] in NUSC_VAL}
-        val |= by_name(others) if listed and others else set()
+        val = {i for i, nm in enumerate(names) if nm in NUSC_VAL}
+        val |= by_name(others) if 0 < len(others) < len(names) else set()
         rule = "the official v1.0-trainval val scenes"
         rule += " (+ the last 15 % by name of the others)" if others else ""
     else:
-        listed = val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
+        val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
         rule = "the official v1.0-mini val scenes"
-    if not listed or not val or len(val) == len(names):
+    if not val or len(val) == len(names):  # (no scene listed: none is val)
         val, rule = by_name(list(range(len(names)))), "the last 15 % of the scenes by name"
     return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
 
@@ -79,9 +73,7 @@ def nuscenes_version(path) -> str:
     for version in ("v1.0-mini", "v1.0-trainval"):
         if (Path(path) / version).is_dir():
             return version
-    raise ValueError(
-        f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)"
-    )
+    raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini, v1.0-trainval)")
 
 
 def load_data(
@@ -94,9 +86,7 @@ def load_data(
         return _synthetic(n, seed, cache_dir)
     data_synth._check_seed("load_data", seed)
     version = nuscenes_version(path)
-    scenes, report = load_nuscenes_cached(
-        Path(path), version, cache_dir=cache_dir, workers=workers, log=log
-    )
+    scenes, report = load_nuscenes_cached(Path(path), version, None, cache_dir, workers, log)
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs 2")
     is_val, rule = _split_scenes(scenes.names, version)
@@ -104,11 +94,9 @@ def load_data(
     train, _ = data_synth.cut_samples(scenes[~is_val], None, rng)
     val, _ = data_synth.cut_samples(scenes[is_val], None, rng)
     counts = {k: v for k, v in report.items() if k != "skipped"}
-    log(
-        f"read {path} ({version}): {len(train)} training and {len(val)} validation samples "
-        f"(validation: {rule}); {counts}"
-        + "".join(f"\n  skipped {why}" for why in report.get("skipped", []))
-    )
+    skipped = "".join(f"\n  skipped {why}" for why in report.get("skipped", []))
+    what = f"{len(train)} training and {len(val)} validation samples (validation: {rule})"
+    log(f"read {path} ({version}): {what}; {counts}{skipped}")
     return Dataset(train, val, scenes[is_val])
 
 
@@ -119,19 +107,13 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
         made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
     except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
         made = None
-    with (
-        contextlib.nullcontext()
-        if made is None or made.exists()
-        else folder_lock(cache_dir, f"making the data cache {made.name}")
-    ):
+    lock = contextlib.nullcontext()
+    if made is not None and not made.exists():
+        lock = folder_lock(cache_dir, f"making the data cache {made.name}")
+    with lock:
         data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-    bad = [
-        f"{part}.{k}"
-        for part, b in zip(data._fields, data)
-        if b is not None
-        for k, v in b.tensors().items()
-        if v.is_floating_point() and not torch.isfinite(v).all()
-    ]
+    parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
+    bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]
     if bad:
         raise ValueError(f"{made}: the data cache holds NaN or inf in {', '.join(bad)}")
     return data
