@@ -1,6 +1,5 @@
-"""The nuScenes v1.0 format read (load_nuscenes: any v1.0 folder, real or written here; json +
-numpy, no devkit) and written (write_nuscenes: read back exactly, by this reader and the devkit).
-How a sample is made of a real scene (ego, agents, the predicted vehicle, lanes): docs/data.md."""
+"""The nuScenes v1.0 format read (load_nuscenes, no devkit) and written (write_nuscenes: read back
+exactly, here and by the devkit); docs/data.md says how a sample is made of a real scene."""
 
 from __future__ import annotations
 
@@ -149,8 +148,7 @@ def _map_path(root: Path, location) -> Path:
 
 
 def _read_map(path: Path, cfg: SynthConfig) -> dict:
-    """A map expansion's lanes and connectors (arcline paths, lengths, links, points, boxes); a lane
-    of more than MAX_LANE_POINTS points is refused before allocating."""
+    """A map expansion's lanes and connectors; one over MAX_LANE_POINTS refused first."""
     js = _read_json(path)
     with Reading(path) as r:
         if not isinstance(js, dict) or str(js.get("version", "1.0")) < "1.3":
@@ -160,31 +158,29 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
         tokens = [t for t, _ in records]
         _unique(path, tokens, "lane / lane_connector token")
         index = {t: k for k, t in enumerate(tokens)}
-        arclines, conn, paths = js["arcline_path_3"], js["connectivity"], []
+        arclines, conn, paths, lengths = js["arcline_path_3"], js["connectivity"], [], []
         for t in tokens:
             r.name = f"lane {t!r}"
             rows = []
             for a in r.each(arclines.get(t, [])):
                 pose, radius = _numbers(a, "start_pose", 3), _numbers(a, "radius", lo=0.0)
-                lengths = _numbers(a, "segment_length", 3, lo=0.0)
-                rows.append([*pose, radius, *lengths, *ds._SHAPE_SIGNS[a["shape"]]])
+                seg = _numbers(a, "segment_length", 3, lo=0.0)
+                rows.append([*pose, radius, *seg, *ds._SHAPE_SIGNS[a["shape"]]])
             paths.append(np.array(rows, dtype=np.float64).reshape(-1, 10))
-            length = paths[-1][:, 4:7].sum()
-            if (n_pts := ds._lane_points(length, cfg.lane_spacing)) > MAX_LANE_POINTS:
+            lengths.append(float(paths[-1][:, 4:7].sum()))
+            if (n_pts := ds._lane_points(lengths[-1], cfg.lane_spacing)) > MAX_LANE_POINTS:
                 at = f"{n_pts} points at {cfg.lane_spacing} m spacing"
-                raise ValueError(f"{length:.6g} m long: {at}, more than {MAX_LANE_POINTS = }")
+                raise ValueError(f"{lengths[-1]:.6g} m long: {at}, more than {MAX_LANE_POINTS = }")
         r.name = ""
         links = [conn.get(t, {}) for t in tokens]
         nxt = [[index[o] for o in c.get("outgoing", []) if o in index] for c in links]
         prv = [[index[o] for o in c.get("incoming", []) if o in index] for c in links]
-    lengths = [float(p[:, 4:7].sum()) for p in paths]
     lanes = dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), path=path)
     return lanes | dict(paths=paths, length=lengths, next=nxt, prev=prv) | _lane_boxes(paths, cfg)
 
 
 def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
-    """Every lane's points (n, P, 2), mask and box (n, 4: lo, hi), for _lanes_near; in chunks: real
-    maps have ~10^4 lanes."""
+    """Every lane's points (n, P, 2), mask, box (n, 4) for _lanes_near; in chunks (~10^4 lanes)."""
     chunks = []
     for c in range(0, len(paths), 1024):
         R = max([len(p) for p in paths[c : c + 1024]] + [1])
@@ -203,8 +199,7 @@ def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
 
 
 def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
-    """Maximal chains of lane indices through the graph lmap (next, prev) restricted to `near`, from
-    the lanes without an incoming link inside it (then any left: cycles)."""
+    """Maximal chains of lane indices through lmap's links within `near`, from its sources first."""
     inside = set(near)
     out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
     sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
@@ -293,8 +288,7 @@ def _index(root: Path, version: str, cfg: SynthConfig):
 
 def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Scenes, dict]:
     """A nuScenes v1.0 folder as Scenes (world frame) and a report naming each scene skipped, why,
-    parsed by `workers` processes (default: this process's cores), the same whatever their number.
-    A bad file is a NuScenesFormatError naming the file, the record and the field."""
+    parsed by `workers` processes (default: this process's cores), the same whatever their count."""
     cfg = cfg or SynthConfig()
     ctx, tab, map_file = _index(Path(root), version, cfg)
     samples = {s["token"]: s for s in tab["sample"]}
@@ -399,16 +393,15 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
         return "skipped_no_agent", why
     scene = scene_of(name, **_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
     arrays = {k: v.numpy() for k, v in scene.tensors().items()}
-    bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
-    if bad:  # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
+    if bad := [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]:
+        # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
         raise NuScenesFormatError(f"{ctx.tdir}: scene {name!r} gives non-finite {', '.join(bad)}")
     return "loaded", {**arrays, "names": scene.names}
 
 
 def _tracks(ctx, name: str, tokens: list, t) -> tuple:
     """The ego (F, 4), the agents (Scenes' fields, by first appearance), their instance tokens."""
-    missing = [k for k in tokens if k not in ctx.ego_of]
-    if missing:
+    if missing := [k for k in tokens if k not in ctx.ego_of]:
         raise NuScenesFormatError(f"{ctx.tdir}/sample_data.json: no CAM_FRONT for {missing[0]}")
     F, poses = len(tokens), {(f,): ctx.ego_of[k] for f, k in enumerate(tokens)}
     with Reading(ctx.tdir / "ego_pose.json") as r:
@@ -446,8 +439,7 @@ def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name:
 
 
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
-    """The lanes with a point within radius of path_xy (F, 2): by box first (a real map has ~10^4
-    lanes, a scene uses dozens), then by point."""
+    """The lanes with a point within radius of path_xy (F, 2): by box first, then by point."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
     b = lmap["box"]  # (n, 4): lo, hi
     cand = np.nonzero((b[:, 2:] >= lo).all(1) & (b[:, :2] <= hi).all(1))[0]
@@ -458,8 +450,7 @@ def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
 
 
 def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed: set, cfg):
-    """The predicted vehicle per frame t0 (F,; -1: none) by docs/data.md's rule (`listed`: the
-    prediction split's (instance, sample) pairs, used if scene_listed)."""
+    """The predicted vehicle per frame t0 (-1: none), docs/data.md's rule; `listed`: the split's."""
     agents, amask, is_ped = tracks["agents"], tracks["agents_mask"], tracks["agents_is_ped"]
     (M, F), H, T = amask.shape, cfg.hist, cfg.fut
     pred = np.full(F, -1)
@@ -478,8 +469,7 @@ def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed
 
 
 def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
-    """A scene's map as Scenes' fields (arcline paths, routes, lanes); a route of more than
-    MAX_LANE_POINTS points is refused."""
+    """A scene's map as Scenes' fields; a route of more than MAX_LANE_POINTS points is refused."""
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
@@ -519,8 +509,7 @@ def sha256_of(path) -> str:
 
 
 def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of the files load_nuscenes reads: the cache's key (a size or time can survive
-    an edit)."""
+    """{file: sha256} of the files load_nuscenes reads (a size or time can survive an edit)."""
     root = Path(root)
     files = [root / version / f"{t}.json" for t in NUSC_TABLES]
     files += sorted((root / "maps" / "expansion").glob("*.json"))
@@ -645,8 +634,7 @@ def _dump(obj, path: Path) -> None:
 
 
 def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrite=False) -> Path:
-    """Scenes written as a nuScenes v1.0 folder under root (returned), whole (runs.write_folder);
-    its files are replaced only with overwrite."""
+    """Scenes as a nuScenes v1.0 folder, written whole (runs.write_folder); returns root."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -683,14 +671,13 @@ def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) 
         tok, mine = _token("map", loc), [i for i in range(S) if locs[i] == loc]
         logs = [_token(names[i], "log") for i in mine]
         _add(tables, "map", tok, "semantic_prior", f"maps/{tok}.png", logs)
-        (root / "maps").mkdir(parents=True, exist_ok=True)
-        png = lambda tmp: matplotlib.image.imsave(tmp, np.zeros((8, 8)), cmap="gray")  # noqa: E731
-        write_file_atomic(root / "maps" / f"{tok}.png", png)
         exp = {"version": "1.3", "canvas_edge": [canvas[loc][0] + 300.0, canvas[loc][1]]}
         exp |= {layer: [] for layer in MAP_LAYERS} | {"arcline_path_3": {}, "connectivity": {}}
         for i in mine:
             _write_scene_map(exp, scenes, i, names[i], offsets[i], cfg)
-        _dump(exp, root / "maps" / "expansion" / f"{loc}.json")
+        _dump(exp, root / "maps" / "expansion" / f"{loc}.json")  # (makes maps/)
+        png = lambda tmp: matplotlib.image.imsave(tmp, np.zeros((8, 8)), cmap="gray")  # noqa: E731
+        write_file_atomic(root / "maps" / f"{tok}.png", png)
     for t in NUSC_TABLES:
         _dump(tables[t], root / version / f"{t}.json")
     _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
@@ -724,17 +711,16 @@ def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offs
     ends = (sample_tok[0], sample_tok[-1])
     _add(tables, "scene", scene_tok, log_tok, F, *ends, name, about)
     ego = scenes.ego[i].numpy()
+    sd = {ch: [_token(name, ch, "sample_data", f) for f in range(F)] for ch in _SENSORS}
     for f in range(F):
         _add(tables, "sample", sample_tok[f], ts[f], scene_tok, *_links(sample_tok, f))
         x, y, h = (float(v) for v in ego[f, :3])
         for ch, (_, fmt, height, width) in _SENSORS.items():
-            sd = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
-            pose = _token(name, ch, "ego_pose", f)
+            pose, sensor = _token(name, ch, "ego_pose", f), _token("calibrated_sensor", ch)
             _add(tables, "ego_pose", pose, ts[f], _quat(h), [x + ox, y + oy, 0.0])
-            row = (sd[1], sample_tok[f], pose, _token("calibrated_sensor", ch), ts[f], fmt, True)
+            row = (sd[ch][f], sample_tok[f], pose, sensor, ts[f], fmt, True, height, width)
             file = f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}"
-            links = (sd[0] if f else "", sd[2] if f < F - 1 else "")
-            _add(tables, "sample_data", *row, height, width, file, *links)
+            _add(tables, "sample_data", *row, file, *_links(sd[ch], f))
     return sample_tok
 
 
@@ -756,16 +742,12 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
             ids = (ann[k], sample_tok[f], inst, "4", [attr])
             _add(tables, "sample_annotation", *ids, *box, *_links(ann, k), 20, 0)
     pred = scenes.pred_idx[i].numpy()
-    return [
-        f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}"
-        for f in range(len(sample_tok))
-        if pred[f] >= 0 and amask[pred[f], f]
-    ]
+    listed = [f for f in range(len(sample_tok)) if pred[f] >= 0 and amask[pred[f], f]]
+    return [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in listed]
 
 
 def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) -> None:
-    """Scene i's arcline paths added to a map expansion: lanes (or connectors), polygons (the
-    centre line +- W/2), edge lines, the links along routes."""
+    """Scene i's arcline paths as lanes (or connectors) of a map expansion, with polygons, links."""
     paths, is_conn = scenes.paths[i].numpy(), scenes.paths_is_connector[i].numpy()
     tok = {q: _token(name, "lane", q) for q in np.nonzero(paths[..., 4:7].sum(-1) > 0)[0]}
     links = {q: {"incoming": [], "outgoing": []} for q in tok}
@@ -797,13 +779,10 @@ def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) 
             exp["lane_connector"].append(dict(token=t, polygon_token=poly))
             continue
         edges = [_token(t, "from_edge"), _token(t, "to_edge")]
-        exp["line"] += [
-            dict(token=edges[0], node_tokens=[nodes[0], nodes[-1]]),
-            dict(token=edges[1], node_tokens=[nodes[len(u) - 1], nodes[len(u)]]),
-        ]
-        lane = dict(token=t, polygon_token=poly, lane_type="CAR")
-        lane |= dict(from_edge_line_token=edges[0], to_edge_line_token=edges[1])
-        lane |= dict(left_lane_divider_segments=[], right_lane_divider_segments=[])
-        exp["lane"].append(lane)
+        exp["line"].append(dict(token=edges[0], node_tokens=[nodes[0], nodes[-1]]))
+        exp["line"].append(dict(token=edges[1], node_tokens=[nodes[len(u) - 1], nodes[len(u)]]))
+        lane = dict(token=t, polygon_token=poly, lane_type="CAR", from_edge_line_token=edges[0])
+        lane |= dict(to_edge_line_token=edges[1], left_lane_divider_segments=[])
+        exp["lane"].append(lane | dict(right_lane_divider_segments=[]))
     polys = [_token(t, "polygon") for t in tok.values()]
     exp["drivable_area"].append(dict(token=_token(name, "drivable_area"), polygon_tokens=polys))
