@@ -1,7 +1,5 @@
-"""The data the stack trains on, made or read (load_data), and its command line (docs/data.md):
-
-python -m lab.data {generate,write-nuscenes,read-nuscenes,fetch-waymo} [PATH] ...
-"""
+"""The data the stack trains on, made or read (load_data), and the nuScenes format's command line:
+python -m lab.data {write-nuscenes,read-nuscenes} PATH (docs/data.md)."""
 
 from __future__ import annotations
 
@@ -18,7 +16,6 @@ from lab.cli import add_shared_options, bounded
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
 from lab.runs import folder_lock, one_line
-from lab.waymo import WAYMO_PHASES, load_waymo_scenarios
 
 MINI_VAL = ("scene-0103", "scene-0916")  # v1.0-mini's official mini_val (the rest: mini_train)
 
@@ -121,53 +118,34 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
 
 # === the command line ===========================================================================
 
-COMMANDS = {
-    "generate": "generate --n samples (default 10 000; train + val) into --cache-dir",
-    "write-nuscenes": "write --scenes synthetic scenes as the nuScenes v1.0 folder PATH",
-    "read-nuscenes": "read the nuScenes v1.0 folder PATH (generated or real) and summarise it",
-    "fetch-waymo": "download (once) the three Waymo scenes into --cache-dir and summarise them",
-}
-
 
 def main(argv=None) -> None:
-    """python -m lab.data COMMAND [PATH] [options]."""
+    """python -m lab.data {write-nuscenes,read-nuscenes} PATH [options]."""
     ap = argparse.ArgumentParser(
         prog="python -m lab.data",
-        description="; ".join(f"{c}: {h}" for c, h in COMMANDS.items()),
+        description="write-nuscenes: write --scenes synthetic scenes as the nuScenes v1.0 folder "
+        "PATH; read-nuscenes: read the nuScenes v1.0 folder PATH (generated or real), summarised",
     )
-    ap.add_argument("command", choices=COMMANDS)
-    ap.add_argument("path", nargs="?", help="the folder to write or read")
-    ap.add_argument("--n", type=bounded(int, 1, data_synth.MAX_SAMPLES, "--n"), default=10_000)
+    ap.add_argument("command", choices=("write-nuscenes", "read-nuscenes"))
+    ap.add_argument("path", help="the folder to write or read")
     ap.add_argument("--seed", type=bounded(int, 0, 2**63 - 1, "--seed"), default=0)
     ap.add_argument("--scenes", type=bounded(int, 1, data_synth.MAX_SCENES, "--scenes"), default=10)
     ap.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
     ap.add_argument("--workers", type=bounded(int, 1, 1024, "--workers"), help="parsing processes")
-    ap.add_argument("--cache-dir", help="default data_cache (read-nuscenes: no parse cache)")
-    phases = bounded(int, 1, WAYMO_PHASES, "--phases")
-    ap.add_argument("--phases", type=phases, default=1, help="2 Hz clocks per 10 Hz Waymo log")
+    ap.add_argument("--cache-dir", help="read-nuscenes: cache the parse there")
     add_shared_options(ap, overwrite="write-nuscenes: replace what is there")
     args = ap.parse_args(argv)
-    cmd, path, cache_dir = args.command, args.path, args.cache_dir or "data_cache"
-    if cmd in ("write-nuscenes", "read-nuscenes") and path is None:
-        ap.error(f"argument path: {cmd} needs PATH")
     with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
-        if cmd == "generate":
-            data = data_synth.load_or_generate(args.n, args.seed, cache_dir)
-            print(f"{len(data.train)} train + {len(data.val)} val samples, cached in {cache_dir}")
-            return
-        if cmd == "write-nuscenes":
+        if args.command == "write-nuscenes":
             scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
-            write_nuscenes(scenes, path, args.version, overwrite=args.overwrite)
-            print(f"wrote {args.scenes} scenes to {path}/{args.version} and {path}/maps")
+            write_nuscenes(scenes, args.path, args.version, overwrite=args.overwrite)
+            print(f"wrote {args.scenes} scenes to {args.path}/{args.version} and {args.path}/maps")
             return
-        if cmd == "read-nuscenes":
-            batch, report = load_nuscenes_scenarios(
-                path, args.version, workers=args.workers, cache_dir=args.cache_dir
-            )
-        else:
-            batch, report = load_waymo_scenarios(cache_dir, tuple(range(args.phases)))
+        batch, report = load_nuscenes_scenarios(
+            args.path, args.version, workers=args.workers, cache_dir=args.cache_dir
+        )
         print(data_synth.format_statistics(data_synth.statistics(batch)))
-        print("".join(f"skipped {why}\n" for why in report.pop("skipped", [])), end="")
+        print("".join(f"skipped {why}\n" for why in report.pop("skipped")), end="")
         print(f"{len(batch)} samples: {report}")
 
 

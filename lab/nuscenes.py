@@ -312,13 +312,12 @@ def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Sc
             ctx.maps[mpath] = _read_map(mpath, cfg)
         jobs.append((name, mpath, tokens, times))
     out = []
-    for outcome, arrays in _map_scenes(jobs, ctx, workers):
+    for outcome, got in _map_scenes(jobs, ctx, workers):
         report[outcome] += 1
         if outcome == "loaded":
-            tensors = {k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"}
-            out.append(Scenes(**tensors, names=arrays["names"]))
+            out.append(scene_of(got[0], **got[1]))
         else:
-            report["skipped"].append(arrays)  # (its reason)
+            report["skipped"].append(got)  # (its reason)
     if not out:
         raise NuScenesFormatError(f"{ctx.tdir}: no usable scene ({report})")
     return Scenes.cat(out), report
@@ -368,8 +367,8 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
 
 
 def _parse_scene(job, ctx) -> tuple[str, dict | str]:
-    """('loaded', a scene's arrays: numpy crosses the pool's pipes, tensors would go as shared
-    memory files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
+    """('loaded', (name, arrays): numpy crosses the pool's pipes, tensors would go as shared memory
+    files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
     name, mpath, tokens, times = job
     cfg, afile = ctx.cfg, ctx.tdir / "sample_annotation.json"
     t = np.array(times, np.float64)
@@ -391,12 +390,11 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
     if (pred < 0).all():
         why = f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future"
         return "skipped_no_agent", why
-    scene = scene_of(name, **_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
-    arrays = {k: v.numpy() for k, v in scene.tensors().items()}
+    arrays = dict(_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
     if bad := [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]:
         # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
         raise NuScenesFormatError(f"{ctx.tdir}: scene {name!r} gives non-finite {', '.join(bad)}")
-    return "loaded", {**arrays, "names": scene.names}
+    return "loaded", (name, arrays)
 
 
 def _tracks(ctx, name: str, tokens: list, t) -> tuple:
