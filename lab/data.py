@@ -1,5 +1,6 @@
-"""The data the stack trains on, made or read (load_data), and the nuScenes format's command line:
-python -m lab.data {write-nuscenes,read-nuscenes} PATH (docs/data.md)."""
+"""The data the stack trains on, made or read (load_data), and the nuScenes format's command line,
+python -m lab.data {write-nuscenes,read-nuscenes} PATH: write --scenes synthetic scenes as a v1.0
+folder, or read one (generated or real) and summarise it (docs/data.md)."""
 
 from __future__ import annotations
 
@@ -73,12 +74,10 @@ def nuscenes_version(path) -> str:
     raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini, v1.0-trainval)")
 
 
-def load_data(
-    path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None
-) -> Dataset:
-    """Training and validation samples: synthetic (n samples of data seed `seed`, cached in
-    cache_dir), or the nuScenes folder at `path` (its parse cached in cache_dir, on `workers`
-    processes) split by scene (_split_scenes; the rule used is logged)."""
+def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None):
+    """A Dataset: synthetic samples (n of data seed `seed`, cached in cache_dir), or the nuScenes
+    folder at `path` (its parse cached in cache_dir, on `workers` processes) split by scene
+    (_split_scenes; the rule used is logged)."""
     if path is None:
         return _synthetic(n, seed, cache_dir)
     data_synth._check_seed("load_data", seed)
@@ -121,11 +120,7 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
 
 def main(argv=None) -> None:
     """python -m lab.data {write-nuscenes,read-nuscenes} PATH [options]."""
-    ap = argparse.ArgumentParser(
-        prog="python -m lab.data",
-        description="write-nuscenes: write --scenes synthetic scenes as the nuScenes v1.0 folder "
-        "PATH; read-nuscenes: read the nuScenes v1.0 folder PATH (generated or real), summarised",
-    )
+    ap = argparse.ArgumentParser(prog="python -m lab.data", description=__doc__)
     ap.add_argument("command", choices=("write-nuscenes", "read-nuscenes"))
     ap.add_argument("path", help="the folder to write or read")
     ap.add_argument("--seed", type=bounded(int, 0, 2**63 - 1, "--seed"), default=0)

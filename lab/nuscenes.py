@@ -340,10 +340,8 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
     """[_parse_scene(job, ctx) for job in jobs] on a pool where the platform forks: the workers
     inherit ctx (hundreds of MB for v1.0-trainval), gc.freeze keeps their gc from copying it."""
     global _CONTEXT
-    if workers is None:  # the cores this process may run on
-        workers = (
-            len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        )
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
+    workers = len(cores) if workers is None else workers  # default: the cores this process may use
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"load_nuscenes: workers must be a whole number >= 1, got {workers!r}")
     workers = min(workers, math.ceil(len(jobs) / PARSE_CHUNK))
@@ -506,15 +504,6 @@ def sha256_of(path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of the files load_nuscenes reads (a size or time can survive an edit)."""
-    root = Path(root)
-    files = [root / version / f"{t}.json" for t in NUSC_TABLES]
-    files += sorted((root / "maps" / "expansion").glob("*.json"))
-    files.append(root / "maps" / "prediction" / "prediction_scenes.json")
-    return {f.relative_to(root).as_posix(): sha256_of(f) for f in files if f.is_file()}
-
-
 def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
     """The cache of root/version's parse: one file per folder (by its absolute path)."""
     where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
@@ -524,10 +513,13 @@ def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
 def load_nuscenes_cached(
     root, version="v1.0-mini", cfg=None, cache_dir="data_cache", workers=None, log=print
 ) -> tuple[Scenes, dict]:
-    """load_nuscenes cached in cache_dir, keyed by the sha256 of the files it reads, the SynthConfig
-    and the format; another key parses again and replaces it. A foreign file is refused, kept."""
+    """load_nuscenes cached in cache_dir, keyed by the sha256 of the files it reads (a size or time
+    can survive an edit), the SynthConfig and the format. A foreign file is refused, kept."""
     cfg, t0, what = cfg or SynthConfig(), time.perf_counter(), f"{root}/{version}"
-    sums = nuscenes_checksums(root, version)
+    files = [Path(root) / version / f"{t}.json" for t in NUSC_TABLES]  # what load_nuscenes reads
+    files += sorted((Path(root) / "maps" / "expansion").glob("*.json"))
+    files.append(Path(root) / "maps" / "prediction" / "prediction_scenes.json")
+    sums = {f.relative_to(root).as_posix(): sha256_of(f) for f in files if f.is_file()}
     key = dict(version=version, files=sums, cfg=dataclasses.asdict(cfg), format=_NUSC_CACHE_FORMAT)
     key, path = json.dumps(key, sort_keys=True), nuscenes_cache_path(root, version, cache_dir)
     if path.exists():

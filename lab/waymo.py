@@ -254,11 +254,9 @@ def _waymo_lanes(path, lanes: dict, ego, cfg: SynthConfig) -> tuple:
     prv = [[k for k, succ in enumerate(nxt) if j in succ] for j in range(len(ids))]
     dist = [np.linalg.norm(lanes[fid][0][:, None] - ego[None, :, :2], axis=-1) for fid in ids]
     near = [k for k, d in enumerate(dist) if (d < cfg.map_radius).any()]
-    polys = [
-        _resample(np.concatenate([lanes[ids[k]][0] for k in r]), cfg.lane_spacing)
-        for r in routes_through(dict(next=nxt, prev=prv), near)
-    ]
-    polys = [p for p in polys if p is not None]
+    graph = dict(next=nxt, prev=prv)
+    routes = [np.concatenate([lanes[ids[k]][0] for k in r]) for r in routes_through(graph, near)]
+    polys = [p for r in routes if (p := _resample(r, cfg.lane_spacing)) is not None]
     if not polys:
         return None, None
     P = max(len(p) for p in polys)
@@ -312,10 +310,8 @@ def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg=None, log=prin
     cfg = cfg or SynthConfig()
     scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
     wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
-    parts = [
-        ds.cut_samples(scenes[s : s + 1], None, np.random.default_rng(0), wide)
-        for s in range(len(scenes))
-    ]
+    one_by_one = [scenes[s : s + 1] for s in range(len(scenes))]
+    parts = [ds.cut_samples(s, None, np.random.default_rng(0), wide) for s in one_by_one]
     batch = distinct_lanes(Scenarios.cat([p for p, _ in parts]), cfg.max_lanes)
     report.update(samples=len(batch), samples_skipped_no_lanes=sum(n for _, n in parts))
     report["samples_per_scene"] = {name: len(p) for name, (p, _) in zip(scenes.names, parts)}
