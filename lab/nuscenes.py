@@ -3,6 +3,7 @@ exactly, here and by the devkit); docs/data.md says how a sample is made of a re
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import hashlib
@@ -48,7 +49,7 @@ def _short(v, n: int = 60) -> str:
     return repr(v) if len(repr(v)) <= n else repr(v)[:n] + "..."
 
 
-class Reading:
+class Reading(contextlib.AbstractContextManager):
     """Inside `with Reading(path) as r`, a KeyError, ValueError, ... raised reading r.rec (set, or
     by r.each) is one `error` line "<path>: record <token>: <field>: <what>" (or r.name's)."""
 
@@ -59,9 +60,6 @@ class Reading:
         for self.rec in records:
             yield self.rec
         self.rec = None
-
-    def __enter__(self):
-        return self
 
     def __exit__(self, kind, err, tb):
         bad = (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError)
@@ -469,11 +467,9 @@ def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
-            ends = f"lanes {lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r}"
+            ends = f"through lanes {lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r}"
             why = f"is {length:.6g} m long: more than {MAX_LANE_POINTS = } points"
-            raise NuScenesFormatError(
-                f"{lmap['path']}: the route of scene {name!r} through {ends} {why}"
-            )
+            raise NuScenesFormatError(f"{lmap['path']}: the route of scene {name!r} {ends} {why}")
     used = sorted({i for r in routes for i in r})
     first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path of each used lane
     where = {i: k for k, i in enumerate(used)}
@@ -653,8 +649,7 @@ def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) 
         canvas[loc][1] = max(canvas[loc][1], hi[1] - lo[1] + 600.0)
     tables, split = _fixed_tables(), {}
     for i in range(S):
-        sample_tok = _write_scene(tables, scenes, i, names[i], locs[i], offsets[i], cfg)
-        split[names[i]] = _write_annotations(tables, scenes, i, names[i], sample_tok, offsets[i])
+        split[names[i]] = _write_scene(tables, scenes, i, names[i], locs[i], offsets[i], cfg)
     import matplotlib.image
 
     for loc in NUSC_LOCATIONS:
@@ -691,15 +686,15 @@ def _fixed_tables() -> dict:
 
 
 def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offset, cfg) -> list:
-    """Scene i's log, scene, samples, key-frame sample_data and ego poses; its sample tokens."""
+    """Scene i's log, scene, samples, key-frame sample_data, ego poses, instances and annotations;
+    its entries of the prediction split."""
     F, b, (ox, oy) = scenes.ego.shape[1], int(scenes.behaviour[i]), offset
     log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
     _add(tables, "log", log_tok, f"synthetic-{scenes.names[i]}", "synthetic", "2026-01-01", loc)
     ts = [_T0_US + (i * (F + 20) + f) * int(round(cfg.dt * 1e6)) for f in range(F)]
     sample_tok = [_token(name, "sample", f) for f in range(F)]
     about = f"synthetic; {ds.BEHAVIOURS[b] if b >= 0 else 'real'}"
-    ends = (sample_tok[0], sample_tok[-1])
-    _add(tables, "scene", scene_tok, log_tok, F, *ends, name, about)
+    _add(tables, "scene", scene_tok, log_tok, F, sample_tok[0], sample_tok[-1], name, about)
     ego = scenes.ego[i].numpy()
     sd = {ch: [_token(name, ch, "sample_data", f) for f in range(F)] for ch in _SENSORS}
     for f in range(F):
@@ -711,12 +706,7 @@ def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offs
             row = (sd[ch][f], sample_tok[f], pose, sensor, ts[f], fmt, True, height, width)
             file = f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}"
             _add(tables, "sample_data", *row, file, *_links(sd[ch], f))
-    return sample_tok
-
-
-def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_tok, offset) -> list:
-    """Scene i's instances and their annotations; its entries of the prediction split."""
-    agents, amask, (ox, oy) = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy(), offset
+    agents, amask = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy()
     for m in np.nonzero(amask.any(-1))[0]:
         frames, inst = np.nonzero(amask[m])[0], _token(name, "instance", m)
         ann = [_token(name, "annotation", m, f) for f in frames]
@@ -732,7 +722,7 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
             ids = (ann[k], sample_tok[f], inst, "4", [attr])
             _add(tables, "sample_annotation", *ids, *box, *_links(ann, k), 20, 0)
     pred = scenes.pred_idx[i].numpy()
-    listed = [f for f in range(len(sample_tok)) if pred[f] >= 0 and amask[pred[f], f]]
+    listed = [f for f in range(F) if pred[f] >= 0 and amask[pred[f], f]]
     return [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in listed]
 
 

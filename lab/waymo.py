@@ -75,10 +75,6 @@ def _enum(kind: str, value) -> WaymoEnum:
 class _WaymoUnpickler(pickle.Unpickler):
     """A pickle.Unpickler that resolves the whitelisted globals only (WaymoForbiddenClass)."""
 
-    def __init__(self, file, path):
-        super().__init__(file)
-        self.path = path
-
     def find_class(self, module, name):
         if module == "builtins" and name in _BUILTINS:
             return getattr(__import__("builtins"), name)
@@ -89,16 +85,18 @@ class _WaymoUnpickler(pickle.Unpickler):
         if module == "__main__" and name in _ENUMS:
             return functools.partial(_enum, name)
         why = "which is not on the whitelist (builtins, numpy arrays, the enums); nothing ran"
-        raise WaymoForbiddenClass(f"{self.path}: the pickle references {module}.{name}, {why}")
+        raise WaymoForbiddenClass(f"the pickle references {module}.{name}, {why}")
 
 
 def load_waymo_pickle(path) -> dict:
     """One scenario pickle, read by _WaymoUnpickler."""
     try:
         with open(path, "rb") as f:
-            return _WaymoUnpickler(f, path).load()
-    except (WaymoFormatError, OSError):
+            return _WaymoUnpickler(f).load()
+    except OSError:
         raise
+    except WaymoFormatError as e:  # (the unpickler's, naming the file here)
+        raise type(e)(f"{path}: {e}") from None
     except Exception as e:  # a truncated or corrupt pickle raises many kinds
         raise WaymoFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
 
