@@ -43,9 +43,8 @@ NUSC_VAL = _scene_names("""
 
 
 def _split_scenes(names: list, version: str) -> tuple:
-    """(is_val (S,) bool tensor, the rule used): v1.0-mini's official mini_val scenes; v1.0-trainval
-    the devkit's split (scenes in neither list split among themselves by the fallback); fallback
-    (no scene listed, or a side empty): the last 15 % of the scenes by name."""
+    """(is_val (S,) bool, rule): v1.0-mini's mini_val scenes; v1.0-trainval the devkit's split (the
+    others split by name); fallback (none listed, a side empty): the last 15 % by name."""
 
     def by_name(idx):
         return set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))) :])

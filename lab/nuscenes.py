@@ -686,8 +686,7 @@ def _fixed_tables() -> dict:
 
 
 def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offset, cfg) -> list:
-    """Scene i's log, scene, samples, key-frame sample_data, ego poses, instances and annotations;
-    its entries of the prediction split."""
+    """Scene i's records (log, scene, samples, poses, annotations); its split entries."""
     F, b, (ox, oy) = scenes.ego.shape[1], int(scenes.behaviour[i]), offset
     log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
     _add(tables, "log", log_tok, f"synthetic-{scenes.names[i]}", "synthetic", "2026-01-01", loc)

@@ -1,7 +1,6 @@
-"""Three real driving scenes: the Waymo Open Motion Dataset logs in the metadrive-simulator 0.3.0.1
-wheel, fetched (never installed) into the git-ignored <cache>/waymo/ (the licence forbids
-committing them), read by a whitelisting unpickler (a pickle can run any importable callable) and
-converted to Scenes like nuScenes folders (docs/data.md says how)."""
+"""Three real driving scenes, the Waymo Open Motion Dataset logs of the metadrive-simulator 0.3.0.1
+wheel: fetched into the git-ignored <cache>/waymo/ (the licence forbids committing them), read by a
+whitelisting unpickler (a pickle can run any callable), converted to Scenes (docs/data.md)."""
 
 from __future__ import annotations
 
@@ -59,11 +58,8 @@ class WaymoDownloadError(OSError):
     """The wheel could not be downloaded (no network, no registry): the tests skip on this alone."""
 
 
-class WaymoEnum(NamedTuple):
-    """The stand-in for the writer's enums: the class name ('AgentType', ...) and the value."""
-
-    kind: str
-    value: int
+# the stand-in for the writer's enums: the class name ('AgentType', ...) and the value
+WaymoEnum = NamedTuple("WaymoEnum", [("kind", str), ("value", int)])
 
 
 def _enum(kind: str, value) -> WaymoEnum:
