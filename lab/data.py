@@ -1,45 +1,34 @@
-"""The data the stack trains on, made or read (load_data), and the data's command line:
-
-    python -m lab.data {generate,stats,render,write-nuscenes,read-nuscenes,fetch-waymo} [PATH] ...
-
-load_data gives synthetic samples (data_synth.load_or_generate, cached in data_cache/) or reads a
-nuScenes folder (lab/nuscenes.py) and splits it by scene.
-"""
+"""The data the stack trains on, made or read (load_data), and the nuScenes format's command line,
+python -m lab.data {write-nuscenes,read-nuscenes} PATH: write --scenes synthetic scenes as a v1.0
+folder, or read one (generated or real) and summarise it (docs/data.md)."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
 import data_synth
-from data_synth import Dataset, Scenarios, SynthConfig
+from data_synth import Dataset, SynthConfig
 from lab.cli import add_shared_options, bounded
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
-from lab.runs import folder_lock, one_line, write_file_atomic
-from lab.waymo import WAYMO_PHASES, load_waymo_scenarios
+from lab.runs import folder_lock, one_line
 
-MINI_VAL = ("scene-0103", "scene-0916")
-"""The official mini_val scenes of v1.0-mini (the other eight are mini_train)."""
+MINI_VAL = ("scene-0103", "scene-0916")  # v1.0-mini's official mini_val (the rest: mini_train)
 
 
 def _scene_names(ranges: str) -> frozenset:
     """'1-2 4' -> {'scene-0001', 'scene-0002', 'scene-0004'}."""
-    out = set()
-    for part in ranges.split():
-        lo, _, hi = part.partition("-")
-        out.update(f"scene-{k:04d}" for k in range(int(lo), int(hi or lo) + 1))
-    return frozenset(out)
+    spans = [(int(p.split("-")[0]), int(p.split("-")[-1])) for p in ranges.split()]
+    return frozenset(f"scene-{k:04d}" for lo, hi in spans for k in range(lo, hi + 1))
 
 
-# The official v1.0-trainval split of the nuScenes devkit (nuscenes/utils/splits.py, v1.2.0:
-# `train`, the union of train_detect and train_track, 700 scenes; `val`, 150 scenes), as runs of
-# consecutive scene numbers.
+# The devkit's official v1.0-trainval split (nuscenes/utils/splits.py, v1.2.0: `train`, the union
+# of train_detect and train_track, 700 scenes; `val`, 150), as runs of consecutive scene numbers.
 NUSC_TRAIN = _scene_names("""
     1-2 4-11 19-34 41-76 120-135 138-139 149-152 154-155 157-168 170-185 187-188 190-196 199-200
     202-204 206-214 218-220 222 224-264 283-306 315-318 321 323-324 328 347-386 388-403 405-408
@@ -54,60 +43,45 @@ NUSC_VAL = _scene_names("""
 
 
 def _split_scenes(names: list, version: str) -> tuple:
-    """(is_val (S,) bool tensor, the rule used) for the scenes of a nuScenes folder: load_data's."""
+    """(is_val (S,) bool, rule): v1.0-mini's mini_val scenes; v1.0-trainval the devkit's split (the
+    others split by name); fallback (none listed, a side empty): the last 15 % by name."""
 
     def by_name(idx):
         return set(sorted(idx, key=lambda i: names[i])[-max(1, round(0.15 * len(idx))) :])
 
     if version == "v1.0-trainval":
-        listed = [i for i, nm in enumerate(names) if nm in NUSC_TRAIN or nm in NUSC_VAL]
         others = [i for i, nm in enumerate(names) if nm not in NUSC_TRAIN and nm not in NUSC_VAL]
-        val = {i for i in listed if names[i] in NUSC_VAL}
-        val |= by_name(others) if listed and others else set()
+        val = {i for i, nm in enumerate(names) if nm in NUSC_VAL}
+        val |= by_name(others) if 0 < len(others) < len(names) else set()
         rule = "the official v1.0-trainval val scenes"
         rule += " (+ the last 15 % by name of the others)" if others else ""
     else:
-        listed = val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
+        val = {i for i, nm in enumerate(names) if nm in MINI_VAL}
         rule = "the official v1.0-mini val scenes"
-    if not listed or not val or len(val) == len(names):
+    if not val or len(val) == len(names):  # (no scene listed: none is val)
         val, rule = by_name(list(range(len(names)))), "the last 15 % of the scenes by name"
     return torch.tensor([i in val for i in range(len(names))], dtype=torch.bool), rule
 
 
 def nuscenes_version(path) -> str:
-    """The nuScenes version a --data folder holds (v1.0-mini, else v1.0-trainval); a ValueError
-    naming --data otherwise. Cheap: the command lines call it before they make anything."""
+    """The version a --data folder holds (v1.0-mini, else v1.0-trainval); cheap: checked first."""
     if not Path(path).is_dir():
         raise ValueError(f"--data: {path} is not a folder")
     for version in ("v1.0-mini", "v1.0-trainval"):
         if (Path(path) / version).is_dir():
             return version
-    raise ValueError(
-        f"--data: {path} holds no nuScenes version folder (v1.0-mini or v1.0-trainval)"
-    )
+    raise ValueError(f"--data: {path} holds no nuScenes version folder (v1.0-mini, v1.0-trainval)")
 
 
-def load_data(
-    path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None
-) -> Dataset:
-    """Training and validation samples: synthetic (n samples of data seed `seed`, cached in
-    cache_dir), or read from the nuScenes folder at `path` (real, or written by write_nuscenes; its
-    parse cached in cache_dir by the checksums of its files, on a pool of `workers` processes) and
-    split by scene:
-      v1.0-mini      the official mini_val scenes (MINI_VAL) are validation, the rest training;
-      v1.0-trainval  the devkit's official split: the folder's scenes in NUSC_VAL are validation,
-                     those in NUSC_TRAIN training, those in neither split by the fallback among
-                     themselves;
-      fallback       when no scene is in the official lists, or one side would be empty: the last
-                     15 % of the scenes by name are validation.
-    The rule used is logged."""
+def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None):
+    """A Dataset: synthetic samples (n of data seed `seed`, cached in cache_dir), or the nuScenes
+    folder at `path` (its parse cached in cache_dir, on `workers` processes) split by scene
+    (_split_scenes; the rule used is logged)."""
     if path is None:
         return _synthetic(n, seed, cache_dir)
     data_synth._check_seed("load_data", seed)
     version = nuscenes_version(path)
-    scenes, report = load_nuscenes_cached(
-        Path(path), version, cache_dir=cache_dir, workers=workers, log=log
-    )
+    scenes, report = load_nuscenes_cached(Path(path), version, None, cache_dir, workers, log)
     if len(scenes) < 2:
         raise ValueError(f"--data: {path} has {len(scenes)} usable scene(s); training needs 2")
     is_val, rule = _split_scenes(scenes.names, version)
@@ -115,35 +89,26 @@ def load_data(
     train, _ = data_synth.cut_samples(scenes[~is_val], None, rng)
     val, _ = data_synth.cut_samples(scenes[is_val], None, rng)
     counts = {k: v for k, v in report.items() if k != "skipped"}
-    log(
-        f"read {path} ({version}): {len(train)} training and {len(val)} validation samples "
-        f"(validation: {rule}); {counts}"
-        + "".join(f"\n  skipped {why}" for why in report.get("skipped", []))
-    )
+    skipped = "".join(f"\n  skipped {why}" for why in report.get("skipped", []))
+    what = f"{len(train)} training and {len(val)} validation samples (validation: {rule})"
+    log(f"read {path} ({version}): {what}; {counts}{skipped}")
     return Dataset(train, val, scenes[is_val])
 
 
 def _synthetic(n, seed, cache_dir) -> Dataset:
-    """load_or_generate, holding cache_dir while a missing cache is made (another process asking
-    for it meanwhile is told who makes it); a cache holding NaN or inf (edited or damaged since: the
-    generator makes none) is refused, naming it."""
+    """load_or_generate, holding cache_dir while a missing cache is made; a cache holding NaN or inf
+    (damaged: the generator makes none) is refused, naming it."""
     try:
         made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
     except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
         made = None
-    with (
-        contextlib.nullcontext()
-        if made is None or made.exists()
-        else folder_lock(cache_dir, f"making the data cache {made.name}")
-    ):
+    lock = contextlib.nullcontext()
+    if made is not None and not made.exists():
+        lock = folder_lock(cache_dir, f"making the data cache {made.name}")
+    with lock:
         data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-    bad = [
-        f"{part}.{k}"
-        for part, b in zip(data._fields, data)
-        if b is not None
-        for k, v in b.tensors().items()
-        if v.is_floating_point() and not torch.isfinite(v).all()
-    ]
+    parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
+    bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]
     if bad:
         raise ValueError(f"{made}: the data cache holds NaN or inf in {', '.join(bad)}")
     return data
@@ -151,101 +116,31 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
 
 # === the command line ===========================================================================
 
-MAX_RENDER = 400  # samples `render` draws at most: a PNG ~29 000 pixels tall (Agg draws < 2^16)
-COMMANDS = {
-    "generate": "generate --n samples (default 10 000; train + val) into --cache-dir",
-    "stats": "statistics of --n generated samples (default 4 000) against plausible ranges",
-    "render": "draw --n samples (default 12; synthetic, or from --nuscenes DIR) as the PNG PATH",
-    "write-nuscenes": "write --scenes synthetic scenes as the nuScenes v1.0 folder PATH",
-    "read-nuscenes": "read the nuScenes v1.0 folder PATH (generated or real) and summarise it",
-    "fetch-waymo": "download (once) the three Waymo scenes into --cache-dir and summarise them",
-}
-
 
 def main(argv=None) -> None:
-    """python -m lab.data COMMAND [PATH] [options]."""
-    ap = argparse.ArgumentParser(
-        prog="python -m lab.data",
-        description="DiffStack's scenario data: synthetic scenes, the nuScenes v1.0 format written "
-        "and read, three Waymo logs. " + "; ".join(f"{c}: {h}" for c, h in COMMANDS.items()),
-    )
-    ap.add_argument("command", choices=COMMANDS)
-    ap.add_argument("path", nargs="?", help="the output (write-nuscenes, render) or folder to read")
-    ap.add_argument("--n", type=bounded(int, 1, data_synth.MAX_SAMPLES, "--n"), help="samples")
+    """python -m lab.data {write-nuscenes,read-nuscenes} PATH [options]."""
+    ap = argparse.ArgumentParser(prog="python -m lab.data", description=__doc__)
+    ap.add_argument("command", choices=("write-nuscenes", "read-nuscenes"))
+    ap.add_argument("path", help="the folder to write or read")
     ap.add_argument("--seed", type=bounded(int, 0, 2**63 - 1, "--seed"), default=0)
     ap.add_argument("--scenes", type=bounded(int, 1, data_synth.MAX_SCENES, "--scenes"), default=10)
     ap.add_argument("--version", default="v1.0-mini", choices=NUSC_VERSIONS)
     ap.add_argument("--workers", type=bounded(int, 1, 1024, "--workers"), help="parsing processes")
-    ap.add_argument("--cache-dir", help="default data_cache (read-nuscenes: no parse cache)")
-    phases = bounded(int, 1, WAYMO_PHASES, "--phases")
-    ap.add_argument("--phases", type=phases, default=1, help="2 Hz clocks per 10 Hz Waymo log")
-    ap.add_argument("--nuscenes", metavar="DIR", help="render: draw from a nuScenes folder")
-    add_shared_options(ap, overwrite="write-nuscenes, render: replace what is there")
+    ap.add_argument("--cache-dir", help="read-nuscenes: cache the parse there")
+    add_shared_options(ap, overwrite="write-nuscenes: replace what is there")
     args = ap.parse_args(argv)
-    if args.command in ("render", "write-nuscenes", "read-nuscenes") and args.path is None:
-        ap.error(f"argument path: {args.command} needs PATH")
-    if args.command == "render" and (args.n or 0) > MAX_RENDER:
-        ap.error(f"argument --n: render draws at most {MAX_RENDER} samples (MAX_RENDER)")
     with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
-        _run(ap, args)
-
-
-def _run(ap, args) -> None:
-    cmd, path, cache_dir = args.command, args.path, args.cache_dir or "data_cache"
-    if cmd == "generate":
-        data = data_synth.load_or_generate(args.n or 10_000, args.seed, cache_dir)
-        print(f"{len(data.train)} train + {len(data.val)} val samples, cached in {cache_dir}")
-    elif cmd == "stats":
-        data = data_synth.make_dataset(args.n or 4000, seed=args.seed)
-        st = data_synth.statistics(Scenarios.cat([data.train, data.val]))
-        print(data_synth.format_statistics(st))
-    elif cmd == "write-nuscenes":
-        scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
-        write_nuscenes(scenes, path, args.version, overwrite=args.overwrite)
-        print(f"wrote {args.scenes} scenes to {path}/{args.version} and {path}/maps")
-    elif cmd == "render":
-        _render(ap, args)
-    else:
-        if cmd == "read-nuscenes":
-            batch, report = load_nuscenes_scenarios(
-                path, args.version, workers=args.workers, cache_dir=args.cache_dir
-            )
-        else:
-            phases = tuple(range(args.phases))
-            batch, report = load_waymo_scenarios(cache_dir, phases)
+        if args.command == "write-nuscenes":
+            scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
+            write_nuscenes(scenes, args.path, args.version, overwrite=args.overwrite)
+            print(f"wrote {args.scenes} scenes to {args.path}/{args.version} and {args.path}/maps")
+            return
+        batch, report = load_nuscenes_scenarios(
+            args.path, args.version, workers=args.workers, cache_dir=args.cache_dir
+        )
         print(data_synth.format_statistics(data_synth.statistics(batch)))
-        print("".join(f"skipped {why}\n" for why in report.pop("skipped", [])), end="")
+        print("".join(f"skipped {why}\n" for why in report.pop("skipped")), end="")
         print(f"{len(batch)} samples: {report}")
-
-
-def _render(ap, args) -> None:
-    """`render`: a grid of data_synth.plot_scenario panels, 4 a row; never over a file it did not
-    make (--overwrite)."""
-    out = Path(args.path)
-    out = out if out.suffix.lower() == ".png" else out.with_name(out.name + ".png")
-    if out.is_dir() or (out.exists() and not args.overwrite):
-        ap.error(f"argument path: {out} exists; keep it (another PATH) or replace it (--overwrite)")
-    if not out.parent.is_dir():
-        ap.error(f"argument path: {out.parent} is no folder")
-    n = args.n or 12
-    if args.nuscenes:
-        batch, _ = load_nuscenes_scenarios(args.nuscenes, args.version)
-    else:
-        scenes = data_synth.generate_scenes(math.ceil(n / 4) + 1, seed=args.seed)
-        batch, _ = data_synth.cut_samples(scenes, 4, np.random.default_rng(args.seed))
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n, rows = min(n, len(batch)), math.ceil(min(n, len(batch)) / 4)
-    fig, axes = plt.subplots(rows, 4, figsize=(16, 2.6 * rows), squeeze=False)
-    for k, ax in enumerate(axes.flat):
-        data_synth.plot_scenario(ax, batch, k) if k < n else ax.axis("off")
-    fig.tight_layout()
-    write_file_atomic(out, lambda tmp: fig.savefig(tmp, dpi=110))
-    plt.close(fig)
-    print(f"wrote {n} samples to {out}")
 
 
 if __name__ == "__main__":

@@ -1,20 +1,9 @@
-"""The nuScenes v1.0 format, read and written (json + numpy: the devkit is never needed): Scenes
-written by write_nuscenes come back from load_nuscenes exactly.
-
-The format (Caesar et al. 2020; the devkit's schema): <version>/ with 13 JSON tables,
-maps/expansion/<location>.json (map expansion 1.3: lanes and lane connectors as arcline paths, with
-polygons and connectivity), maps/prediction/prediction_scenes.json. load_nuscenes reads any v1.0
-folder (written here, or the real v1.0-mini / v1.0-trainval with the map expansion): the ego is the
-CAM_FRONT key-frame ego_pose of every sample; the agents are the vehicle.* and human.pedestrian.*
-instances; the predicted vehicle at t0 is, among vehicles observed at t0 with a complete 3 s
-future, the one the prediction split lists for that sample (if it lists the scene) or else the
-moving ones (>= 1 m over the sample's window), whichever comes closest to the ego over t0..t6; the
-lanes and lane connectors near the ego's path, chained along the connectivity, are the routes.
-"""
+"""The nuScenes v1.0 format read (load_nuscenes, no devkit) and written (write_nuscenes: read back
+exactly, here and by the devkit); docs/data.md says how a sample is made of a real scene."""
 
 from __future__ import annotations
 
-import collections
+import contextlib
 import dataclasses
 import gc
 import hashlib
@@ -48,9 +37,8 @@ QUAT_TOL = 1e-3  # a rotation must be a unit quaternion within this: never a sil
 MAX_POSITION = 1e6  # m: a translation beyond this is no place on a nuScenes map
 MAX_SPEED = 100.0  # m/s between two key frames: faster is a wrong position or timestamp
 _BIG = 1e300  # a JSON number beyond this would overflow float64 arithmetic
+# scenes per pool task, and per worker at least: a worker takes ~0.1 s to start, a real scene ~30 ms
 PARSE_CHUNK = 16
-"""Scenes a pool worker parses per task, and the fewest scenes per worker: a worker costs about a
-tenth of a second to start, a scene of a real log about 30 ms to parse."""
 
 
 class NuScenesFormatError(ValueError):
@@ -61,10 +49,9 @@ def _short(v, n: int = 60) -> str:
     return repr(v) if len(repr(v)) <= n else repr(v)[:n] + "..."
 
 
-class Reading:
-    """The one way a bad field is reported: inside `with Reading(path) as r`, a KeyError, TypeError,
-    ValueError, ... raised reading r.rec (set, or by r.each) becomes one `error` line
-    "<path>: record <token>: <field>: <what>" (r.name, when set, names the record)."""
+class Reading(contextlib.AbstractContextManager):
+    """Inside `with Reading(path) as r`, a KeyError, ValueError, ... raised reading r.rec (set, or
+    by r.each) is one `error` line "<path>: record <token>: <field>: <what>" (or r.name's)."""
 
     def __init__(self, path, error=NuScenesFormatError):
         self.path, self.error, self.rec, self.name = path, error, None, ""
@@ -73,9 +60,6 @@ class Reading:
         for self.rec in records:
             yield self.rec
         self.rec = None
-
-    def __enter__(self):
-        return self
 
     def __exit__(self, kind, err, tb):
         bad = (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError)
@@ -104,10 +88,10 @@ def _read_json(path: Path):
 
 def _unique(path, tokens: list, what: str = "token") -> None:
     """Tokens are primary keys: a repeated one is an error naming it and its first two records."""
-    if len(set(tokens)) < len(tokens):
-        t = next(t for t, n in collections.Counter(tokens).items() if n > 1)
-        i, j = [i for i, u in enumerate(tokens) if u == t][:2]
-        raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {i} and {j})")
+    first = {}
+    for j, t in enumerate(tokens):
+        if (i := first.setdefault(t, j)) != j:
+            raise NuScenesFormatError(f"{path}: {what} {t!r} appears twice (records {i} and {j})")
 
 
 def _table(path: Path) -> list:
@@ -126,11 +110,8 @@ def _numbers(rec: dict, key: str, n: int | None = None, lo: float = -_BIG, hi: f
     """rec[key] as n floats (n None: one float), each a JSON number from lo to hi: not a bool, a
     string or null, nor NaN or Infinity (Python's json reads them; JSON does not allow them)."""
     xs = [rec[key]] if n is None else rec[key]
-    if not (
-        isinstance(xs, list)
-        and len(xs) == (n or 1)
-        and all(type(x) in (int, float) and lo <= x <= hi for x in xs)
-    ):
+    ok = isinstance(xs, list) and len(xs) == (n or 1)
+    if not (ok and all(type(x) in (int, float) and lo <= x <= hi for x in xs)):
         span = f" from {lo:g} to {hi:g}" if (lo, hi) != (-_BIG, _BIG) else ""
         many = f"{n} finite numbers" if n else "a finite number"
         raise ValueError(f"{key}: must be {many}{span}, got {_short(rec[key])}")
@@ -154,9 +135,7 @@ def _pose(rec: dict) -> list:
 
 
 def _map_path(root: Path, location) -> Path:
-    """maps/expansion/<location>.json, confined to the folder: a location is a plain map name; one
-    with a path separator or '..', or a path that does not normalise to a file under <root>/maps,
-    is an error (links inside the folder are followed like any file)."""
+    """maps/expansion/<location>.json, confined to <root>/maps: a location is a plain map name."""
     maps = Path(os.path.abspath(root / "maps"))
     seps = {"/", "\\", "..", "\0", os.sep, os.altsep or "/"}
     if isinstance(location, str) and location and not any(s in location for s in seps):
@@ -167,8 +146,7 @@ def _map_path(root: Path, location) -> Path:
 
 
 def _read_map(path: Path, cfg: SynthConfig) -> dict:
-    """A map expansion's lanes and connectors (arcline paths (n, 10) each, lengths, connectivity,
-    points and boxes); a lane of more than MAX_LANE_POINTS points is refused before allocating."""
+    """A map expansion's lanes and connectors; one over MAX_LANE_POINTS refused first."""
     js = _read_json(path)
     with Reading(path) as r:
         if not isinstance(js, dict) or str(js.get("version", "1.0")) < "1.3":
@@ -178,38 +156,29 @@ def _read_map(path: Path, cfg: SynthConfig) -> dict:
         tokens = [t for t, _ in records]
         _unique(path, tokens, "lane / lane_connector token")
         index = {t: k for k, t in enumerate(tokens)}
-        arclines, conn, paths = js["arcline_path_3"], js["connectivity"], []
+        arclines, conn, paths, lengths = js["arcline_path_3"], js["connectivity"], [], []
         for t in tokens:
             r.name = f"lane {t!r}"
-            rows = [
-                [
-                    *_numbers(a, "start_pose", 3),
-                    _numbers(a, "radius", lo=0.0),
-                    *_numbers(a, "segment_length", 3, lo=0.0),
-                    *ds._SHAPE_SIGNS[a["shape"]],
-                ]
-                for a in r.each(arclines.get(t, []))
-            ]
+            rows = []
+            for a in r.each(arclines.get(t, [])):
+                pose, radius = _numbers(a, "start_pose", 3), _numbers(a, "radius", lo=0.0)
+                seg = _numbers(a, "segment_length", 3, lo=0.0)
+                rows.append([*pose, radius, *seg, *ds._SHAPE_SIGNS[a["shape"]]])
             paths.append(np.array(rows, dtype=np.float64).reshape(-1, 10))
-            length = paths[-1][:, 4:7].sum()
-            if (n_pts := ds._lane_points(length, cfg.lane_spacing)) > MAX_LANE_POINTS:
-                raise ValueError(
-                    f"{length:.6g} m long: {n_pts} points at {cfg.lane_spacing} m spacing, more "
-                    f"than MAX_LANE_POINTS = {MAX_LANE_POINTS}"
-                )
+            lengths.append(float(paths[-1][:, 4:7].sum()))
+            if (n_pts := ds._lane_points(lengths[-1], cfg.lane_spacing)) > MAX_LANE_POINTS:
+                at = f"{n_pts} points at {cfg.lane_spacing} m spacing"
+                raise ValueError(f"{lengths[-1]:.6g} m long: {at}, more than {MAX_LANE_POINTS = }")
         r.name = ""
-        nxt, prv = (
-            [[index[o] for o in conn.get(t, {}).get(way, []) if o in index] for t in tokens]
-            for way in ("outgoing", "incoming")
-        )
-    lengths = [float(p[:, 4:7].sum()) for p in paths]
+        links = [conn.get(t, {}) for t in tokens]
+        nxt = [[index[o] for o in c.get("outgoing", []) if o in index] for c in links]
+        prv = [[index[o] for o in c.get("incoming", []) if o in index] for c in links]
     lanes = dict(tokens=tokens, is_connector=np.array([c for _, c in records], bool), path=path)
     return lanes | dict(paths=paths, length=lengths, next=nxt, prev=prv) | _lane_boxes(paths, cfg)
 
 
 def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
-    """Every lane's points every 2 m (n, P, 2) and mask, and its bounding box (n, 4: lo, hi; +inf to
-    -inf without points): for _lanes_near. In chunks: real maps have ~10^4 lanes."""
+    """Every lane's points (n, P, 2), mask, box (n, 4) for _lanes_near; in chunks (~10^4 lanes)."""
     chunks = []
     for c in range(0, len(paths), 1024):
         R = max([len(p) for p in paths[c : c + 1024]] + [1])
@@ -228,9 +197,7 @@ def _lane_boxes(paths: list, cfg: SynthConfig) -> dict:
 
 
 def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
-    """Maximal chains (lists of lane indices) through the graph lmap (next, prev: index lists)
-    restricted to `near`, from the lanes without an incoming link inside it (then any left, for
-    cycles)."""
+    """Maximal chains of lane indices through lmap's links within `near`, from its sources first."""
     inside = set(near)
     out = {i: [j for j in lmap["next"][i] if j in inside] for i in near}
     sources = [i for i in near if not any(j in inside for j in lmap["prev"][i])]
@@ -251,8 +218,8 @@ def routes_through(lmap: dict, near: list, max_routes: int = 256) -> list:
 
 
 def _sample_chain(r: Reading, samples: dict, first: str, name: str) -> tuple[list, list]:
-    """(tokens, timestamps) of a scene's samples along `next`: each `prev` the sample before, no
-    loop, timestamps (microseconds) increasing 0.1 to 2 s apart (ms or ns are 1000 times off)."""
+    """(tokens, timestamps) of a scene's samples along `next`, checked: links, no loop, timestamps
+    (microseconds) increasing 0.1 to 2 s apart (ms or ns are 1000 times off)."""
     tokens, times, seen, tok = [], [], set(), first
     while tok:
         if tok in seen:
@@ -318,11 +285,8 @@ def _index(root: Path, version: str, cfg: SynthConfig):
 
 
 def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Scenes, dict]:
-    """A nuScenes v1.0 folder as Scenes (world frame) and a report, which names each scene skipped
-    (too short for a sample, no lane near the ego, no vehicle to predict) with its reason. The
-    scenes are parsed by a pool of `workers` processes (default: the cores this process may use),
-    at most one per PARSE_CHUNK scenes; the result does not depend on `workers`. A bad file is a
-    NuScenesFormatError naming the file, the record and the field."""
+    """A nuScenes v1.0 folder as Scenes (world frame) and a report naming each scene skipped, why,
+    parsed by `workers` processes (default: this process's cores), the same whatever their count."""
     cfg = cfg or SynthConfig()
     ctx, tab, map_file = _index(Path(root), version, cfg)
     samples = {s["token"]: s for s in tab["sample"]}
@@ -346,13 +310,12 @@ def load_nuscenes(root, version="v1.0-mini", cfg=None, workers=None) -> tuple[Sc
             ctx.maps[mpath] = _read_map(mpath, cfg)
         jobs.append((name, mpath, tokens, times))
     out = []
-    for outcome, arrays in _map_scenes(jobs, ctx, workers):
+    for outcome, got in _map_scenes(jobs, ctx, workers):
         report[outcome] += 1
         if outcome == "loaded":
-            tensors = {k: torch.from_numpy(v) for k, v in arrays.items() if k != "names"}
-            out.append(Scenes(**tensors, names=arrays["names"]))
+            out.append(scene_of(got[0], **got[1]))
         else:
-            report["skipped"].append(arrays)  # (its reason)
+            report["skipped"].append(got)  # (its reason)
     if not out:
         raise NuScenesFormatError(f"{ctx.tdir}: no usable scene ({report})")
     return Scenes.cat(out), report
@@ -372,15 +335,11 @@ def _parse_in_worker(job):
 
 
 def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
-    """[_parse_scene(job, ctx) for job in jobs], in order, on a pool of up to `workers` processes
-    where the platform forks: the workers inherit ctx (the tables, hundreds of MB for v1.0-trainval)
-    instead of receiving a copy, and gc.freeze keeps their garbage collector from touching (and so
-    copying, page by page) its millions of objects."""
+    """[_parse_scene(job, ctx) for job in jobs] on a pool where the platform forks: the workers
+    inherit ctx (hundreds of MB for v1.0-trainval), gc.freeze keeps their gc from copying it."""
     global _CONTEXT
-    if workers is None:  # the cores this process may run on
-        workers = (
-            len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        )
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count())
+    workers = len(cores) if workers is None else workers  # default: the cores this process may use
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"load_nuscenes: workers must be a whole number >= 1, got {workers!r}")
     workers = min(workers, math.ceil(len(jobs) / PARSE_CHUNK))
@@ -404,8 +363,8 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
 
 
 def _parse_scene(job, ctx) -> tuple[str, dict | str]:
-    """One scene: ('loaded', its Scenes' numpy arrays; numpy crosses the pool's pipes, tensors would
-    go as shared-memory files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
+    """('loaded', (name, arrays): numpy crosses the pool's pipes, tensors would go as shared memory
+    files) or ('skipped_no_lanes' | 'skipped_no_agent', the reason)."""
     name, mpath, tokens, times = job
     cfg, afile = ctx.cfg, ctx.tdir / "sample_annotation.json"
     t = np.array(times, np.float64)
@@ -421,26 +380,22 @@ def _parse_scene(job, ctx) -> tuple[str, dict | str]:
     if (pred < 0).all() and listed:  # the split promises a vehicle
         entry = next((f"{i}_{k}" for i, k in sorted(ctx.listed) if k in set(tokens)), None)
         if entry is not None:
-            raise NuScenesFormatError(
-                f"{ctx.tdir.parent / 'maps/prediction/prediction_scenes.json'}: scene {name!r} is "
-                f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
-            )
+            split = ctx.tdir.parent / "maps/prediction/prediction_scenes.json"
+            why = f"listed (first entry {_short(entry)}) but {afile} has no vehicle of its entries"
+            raise NuScenesFormatError(f"{split}: scene {name!r} is {why}")
     if (pred < 0).all():
         why = f"{name}: no vehicle in {afile} moves >= 1 m with a complete {cfg.fut}-frame future"
         return "skipped_no_agent", why
-    scene = scene_of(name, **_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
-    arrays = {k: v.numpy() for k, v in scene.tensors().items()}
-    bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
-    if bad:  # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
+    arrays = dict(_lanes_of(name, lmap, routes, cfg), ego=ego, pred_idx=pred, **tracks)
+    if bad := [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]:
+        # finite inputs can still overflow (coordinates near 1e308): never a silent inf/NaN
         raise NuScenesFormatError(f"{ctx.tdir}: scene {name!r} gives non-finite {', '.join(bad)}")
-    return "loaded", {**arrays, "names": scene.names}
+    return "loaded", (name, arrays)
 
 
 def _tracks(ctx, name: str, tokens: list, t) -> tuple:
-    """The ego's CAM_FRONT key-frame poses (F, 4); the vehicles and pedestrians in order of first
-    appearance (Scenes' agents fields); their instance tokens. Speeds by backward differences."""
-    missing = [k for k in tokens if k not in ctx.ego_of]
-    if missing:
+    """The ego (F, 4), the agents (Scenes' fields, by first appearance), their instance tokens."""
+    if missing := [k for k in tokens if k not in ctx.ego_of]:
         raise NuScenesFormatError(f"{ctx.tdir}/sample_data.json: no CAM_FRONT for {missing[0]}")
     F, poses = len(tokens), {(f,): ctx.ego_of[k] for f, k in enumerate(tokens)}
     with Reading(ctx.tdir / "ego_pose.json") as r:
@@ -470,7 +425,7 @@ def _tracks(ctx, name: str, tokens: list, t) -> tuple:
 
 
 def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name: str) -> None:
-    """A track faster than MAX_SPEED since the key frame before: an error naming the record."""
+    """A track faster than MAX_SPEED: an error naming the record."""
     if (np.abs(speed) > MAX_SPEED).any():
         k = tuple(np.argwhere(np.abs(speed) > MAX_SPEED)[0].tolist())
         r.rec, at = records[k], f"at sample {tokens[k[-1]]!r} of scene {name!r}"
@@ -478,13 +433,10 @@ def _check_speed(r: Reading, speed, records: dict, who: str, tokens: list, name:
 
 
 def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
-    """The lanes with a point within radius of a position of path_xy (F, 2): first those whose box
-    meets the path's (a real map has ~10^4 lanes, a scene uses dozens), then their points."""
+    """The lanes with a point within radius of path_xy (F, 2): by box first, then by point."""
     lo, hi = path_xy.min(0) - radius, path_xy.max(0) + radius
-    b = lmap["box"]  # (n, 4)
-    cand = np.nonzero(
-        (b[:, 2] >= lo[0]) & (b[:, 0] <= hi[0]) & (b[:, 3] >= lo[1]) & (b[:, 1] <= hi[1])
-    )[0]
+    b = lmap["box"]  # (n, 4): lo, hi
+    cand = np.nonzero((b[:, 2:] >= lo).all(1) & (b[:, :2] <= hi).all(1))[0]
     p, m = lmap["pts"][cand], lmap["mask"][cand]
     cand = cand[(m[..., None] & (p >= lo) & (p <= hi)).all(-1).any(-1)]
     d = np.linalg.norm(lmap["pts"][cand][:, :, None] - path_xy[None, None], axis=-1)  # (n, P, F)
@@ -492,8 +444,7 @@ def _lanes_near(lmap: dict, path_xy, radius: float) -> list:
 
 
 def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed: set, cfg):
-    """pred (F,): the predicted vehicle per frame t0 (-1: none), the rule of the module docstring
-    (scene_listed: the prediction split lists the scene; `listed`: its (instance, sample) pairs)."""
+    """The predicted vehicle per frame t0 (-1: none), docs/data.md's rule; `listed`: the split's."""
     agents, amask, is_ped = tracks["agents"], tracks["agents_mask"], tracks["agents_is_ped"]
     (M, F), H, T = amask.shape, cfg.hist, cfg.fut
     pred = np.full(F, -1)
@@ -512,16 +463,13 @@ def choose_predicted(ego, tracks: dict, inst, tokens, scene_listed: bool, listed
 
 
 def _lanes_of(name: str, lmap: dict, routes: list, cfg) -> dict:
-    """A scene's map as Scenes' fields: the arcline paths of the lanes its routes use, the routes
-    through them, discretised; a route of more than MAX_LANE_POINTS points is refused."""
+    """A scene's map as Scenes' fields; a route of more than MAX_LANE_POINTS points is refused."""
     for r in routes:
         length = sum(lmap["length"][i] for i in r)
         if ds._lane_points(length, cfg.lane_spacing) > MAX_LANE_POINTS:
-            raise NuScenesFormatError(
-                f"{lmap['path']}: the route of scene {name!r} through lanes "
-                f"{lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r} is {length:.6g} m long: "
-                f"more than MAX_LANE_POINTS = {MAX_LANE_POINTS} points"
-            )
+            ends = f"through lanes {lmap['tokens'][r[0]]!r} .. {lmap['tokens'][r[-1]]!r}"
+            why = f"is {length:.6g} m long: more than {MAX_LANE_POINTS = } points"
+            raise NuScenesFormatError(f"{lmap['path']}: the route of scene {name!r} {ends} {why}")
     used = sorted({i for r in routes for i in r})
     first = np.cumsum([0] + [len(lmap["paths"][i]) for i in used])  # first path of each used lane
     where = {i: k for k, i in enumerate(used)}
@@ -552,18 +500,8 @@ def sha256_of(path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
-def nuscenes_checksums(root, version: str = "v1.0-mini") -> dict:
-    """{file: sha256} of the files load_nuscenes reads (relative to root): the parse cache's key,
-    which a byte changes (a size or modification time can survive a copy or a quick edit)."""
-    root = Path(root)
-    files = [root / version / f"{t}.json" for t in NUSC_TABLES]
-    files += sorted((root / "maps" / "expansion").glob("*.json"))
-    files.append(root / "maps" / "prediction" / "prediction_scenes.json")
-    return {f.relative_to(root).as_posix(): sha256_of(f) for f in files if f.is_file()}
-
-
 def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
-    """The cache of root/version's parse: one file per folder (named by its absolute path)."""
+    """The cache of root/version's parse: one file per folder (by its absolute path)."""
     where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
     return Path(cache_dir) / f"nuscenes-{version}-{where}.pt"
 
@@ -571,12 +509,13 @@ def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
 def load_nuscenes_cached(
     root, version="v1.0-mini", cfg=None, cache_dir="data_cache", workers=None, log=print
 ) -> tuple[Scenes, dict]:
-    """load_nuscenes through a cache in cache_dir keyed by the sha256 of every file the parse reads,
-    the SynthConfig and the cache format: a matching key reads the parse back (seconds, not
-    minutes); another parses again and replaces it (atomically, holding cache_dir). A file of the
-    cache's name that is not such a cache is an error, never replaced."""
+    """load_nuscenes cached in cache_dir, keyed by the sha256 of the files it reads (a size or time
+    can survive an edit), the SynthConfig and the format. A foreign file is refused, kept."""
     cfg, t0, what = cfg or SynthConfig(), time.perf_counter(), f"{root}/{version}"
-    sums = nuscenes_checksums(root, version)
+    files = [Path(root) / version / f"{t}.json" for t in NUSC_TABLES]  # what load_nuscenes reads
+    files += sorted((Path(root) / "maps" / "expansion").glob("*.json"))
+    files.append(Path(root) / "maps" / "prediction" / "prediction_scenes.json")
+    sums = {f.relative_to(root).as_posix(): sha256_of(f) for f in files if f.is_file()}
     key = dict(version=version, files=sums, cfg=dataclasses.asdict(cfg), format=_NUSC_CACHE_FORMAT)
     key, path = json.dumps(key, sort_keys=True), nuscenes_cache_path(root, version, cache_dir)
     if path.exists():
@@ -606,8 +545,7 @@ def load_nuscenes_cached(
 def load_nuscenes_scenarios(
     root, version="v1.0-mini", cfg=None, workers=None, cache_dir=None, log=print
 ):
-    """A nuScenes folder as planning samples at every usable frame: (Scenarios, report); cache_dir:
-    cache the parse there (load_nuscenes_cached)."""
+    """A nuScenes folder as planning samples at every usable frame (parse cached in cache_dir)."""
     if cache_dir is None:
         scenes, report = load_nuscenes(root, version, cfg, workers)
     else:
@@ -623,12 +561,11 @@ MAP_LAYERS = tuple(
     "polygon line node drivable_area road_segment road_block lane ped_crossing walkway stop_line "
     "carpark_area road_divider lane_divider traffic_light lane_connector".split()
 )
+# the first 10 scenes written take v1.0-mini's names (the devkit's prediction split knows them)
 MINI_SCENES = tuple(
     "scene-0061 scene-0103 scene-0553 scene-0655 scene-0757 scene-0796 scene-0916 scene-1077 "
     "scene-1094 scene-1100".split()
 )
-"""The first 10 written scenes take the v1.0-mini names (the devkit's prediction split knows only
-those); later ones are scene-9xxx."""
 _FIELDS = {  # the fields of the records written, in the devkit's order
     "log": "token logfile vehicle date_captured location",
     "scene": "token log_token nbr_samples first_sample_token last_sample_token name description",
@@ -683,9 +620,7 @@ def _dump(obj, path: Path) -> None:
 
 
 def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrite=False) -> Path:
-    """Scenes written as a nuScenes v1.0 folder under root (returned), whole (runs.write_folder): in
-    a temporary sibling renamed into place, under a lock on the target; an interrupted write leaves
-    the old folder (or none). Its files are replaced only with overwrite, another's never."""
+    """Scenes as a nuScenes v1.0 folder, written whole (runs.write_folder); returns root."""
     cfg = cfg or SynthConfig()
     if version not in NUSC_VERSIONS:
         raise ValueError(f"write_nuscenes: version must be one of {NUSC_VERSIONS}, got {version!r}")
@@ -699,8 +634,7 @@ def write_nuscenes(scenes: Scenes, root, version="v1.0-mini", cfg=None, overwrit
 
 
 def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) -> None:
-    """Every file of the folder: scenes go round-robin to the four map locations, side by side (300
-    m apart) in their map's canvas; each map has a record, a tiny PNG and its expansion."""
+    """Every file: scenes go round-robin to the four maps, 300 m apart in their map's canvas."""
     S = len(scenes)
     names = [MINI_SCENES[i] if i < len(MINI_SCENES) else f"scene-{9000 + i}" for i in range(S)]
     locs = [NUSC_LOCATIONS[i % 4] for i in range(S)]
@@ -715,30 +649,27 @@ def _write_nuscenes(scenes: Scenes, root: Path, version: str, cfg: SynthConfig) 
         canvas[loc][1] = max(canvas[loc][1], hi[1] - lo[1] + 600.0)
     tables, split = _fixed_tables(), {}
     for i in range(S):
-        sample_tok = _write_scene(tables, scenes, i, names[i], locs[i], offsets[i], cfg)
-        split[names[i]] = _write_annotations(tables, scenes, i, names[i], sample_tok, offsets[i])
+        split[names[i]] = _write_scene(tables, scenes, i, names[i], locs[i], offsets[i], cfg)
     import matplotlib.image
 
     for loc in NUSC_LOCATIONS:
         tok, mine = _token("map", loc), [i for i in range(S) if locs[i] == loc]
         logs = [_token(names[i], "log") for i in mine]
         _add(tables, "map", tok, "semantic_prior", f"maps/{tok}.png", logs)
-        (root / "maps").mkdir(parents=True, exist_ok=True)
-        png = lambda tmp: matplotlib.image.imsave(tmp, np.zeros((8, 8)), cmap="gray")  # noqa: E731
-        write_file_atomic(root / "maps" / f"{tok}.png", png)
         exp = {"version": "1.3", "canvas_edge": [canvas[loc][0] + 300.0, canvas[loc][1]]}
         exp |= {layer: [] for layer in MAP_LAYERS} | {"arcline_path_3": {}, "connectivity": {}}
         for i in mine:
             _write_scene_map(exp, scenes, i, names[i], offsets[i], cfg)
-        _dump(exp, root / "maps" / "expansion" / f"{loc}.json")
+        _dump(exp, root / "maps" / "expansion" / f"{loc}.json")  # (makes maps/)
+        png = lambda tmp: matplotlib.image.imsave(tmp, np.zeros((8, 8)), cmap="gray")  # noqa: E731
+        write_file_atomic(root / "maps" / f"{tok}.png", png)
     for t in NUSC_TABLES:
         _dump(tables[t], root / version / f"{t}.json")
     _dump(split, root / "maps" / "prediction" / "prediction_scenes.json")
 
 
 def _fixed_tables() -> dict:
-    """The 13 tables, those every folder shares filled (categories, attributes, visibilities,
-    sensors)."""
+    """The 13 tables, those every folder shares filled (categories, attributes, sensors...)."""
     tables = {t: [] for t in NUSC_TABLES}
     _add(tables, "category", _token("category", "vehicle.car"), "vehicle.car", _CAR, 17)
     _add(tables, "category", _token("category", _PED), _PED, "Adult subcategory.", 2)
@@ -755,39 +686,30 @@ def _fixed_tables() -> dict:
 
 
 def _write_scene(tables: dict, scenes: Scenes, i: int, name: str, loc: str, offset, cfg) -> list:
-    """Scene i's log, scene, samples, key-frame sample_data and ego poses; its sample tokens."""
+    """Scene i's records (log, scene, samples, poses, annotations); its split entries."""
     F, b, (ox, oy) = scenes.ego.shape[1], int(scenes.behaviour[i]), offset
     log_tok, scene_tok = _token(name, "log"), _token(name, "scene")
     _add(tables, "log", log_tok, f"synthetic-{scenes.names[i]}", "synthetic", "2026-01-01", loc)
     ts = [_T0_US + (i * (F + 20) + f) * int(round(cfg.dt * 1e6)) for f in range(F)]
     sample_tok = [_token(name, "sample", f) for f in range(F)]
     about = f"synthetic; {ds.BEHAVIOURS[b] if b >= 0 else 'real'}"
-    ends = (sample_tok[0], sample_tok[-1])
-    _add(tables, "scene", scene_tok, log_tok, F, *ends, name, about)
+    _add(tables, "scene", scene_tok, log_tok, F, sample_tok[0], sample_tok[-1], name, about)
     ego = scenes.ego[i].numpy()
+    sd = {ch: [_token(name, ch, "sample_data", f) for f in range(F)] for ch in _SENSORS}
     for f in range(F):
         _add(tables, "sample", sample_tok[f], ts[f], scene_tok, *_links(sample_tok, f))
         x, y, h = (float(v) for v in ego[f, :3])
         for ch, (_, fmt, height, width) in _SENSORS.items():
-            sd = [_token(name, ch, "sample_data", g) for g in (f - 1, f, f + 1)]
-            pose = _token(name, ch, "ego_pose", f)
+            pose, sensor = _token(name, ch, "ego_pose", f), _token("calibrated_sensor", ch)
             _add(tables, "ego_pose", pose, ts[f], _quat(h), [x + ox, y + oy, 0.0])
-            row = (sd[1], sample_tok[f], pose, _token("calibrated_sensor", ch), ts[f], fmt, True)
+            row = (sd[ch][f], sample_tok[f], pose, sensor, ts[f], fmt, True, height, width)
             file = f"samples/{ch}/{name}__{ch}__{ts[f]}.{fmt}"
-            links = (sd[0] if f else "", sd[2] if f < F - 1 else "")
-            _add(tables, "sample_data", *row, height, width, file, *links)
-    return sample_tok
-
-
-def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_tok, offset) -> list:
-    """Scene i's instances and their annotations; its entries of the prediction split."""
-    agents, amask, (ox, oy) = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy(), offset
+            _add(tables, "sample_data", *row, file, *_links(sd[ch], f))
+    agents, amask = scenes.agents[i].numpy(), scenes.agents_mask[i].numpy()
     for m in np.nonzero(amask.any(-1))[0]:
         frames, inst = np.nonzero(amask[m])[0], _token(name, "instance", m)
-        ann, ped = (
-            [_token(name, "annotation", m, f) for f in frames],
-            bool(scenes.agents_is_ped[i, m]),
-        )
+        ann = [_token(name, "annotation", m, f) for f in frames]
+        ped = bool(scenes.agents_is_ped[i, m])
         cat = _token("category", _PED if ped else "vehicle.car")
         _add(tables, "instance", inst, cat, len(frames), ann[0], ann[-1])
         w, length, hgt = (float(v) for v in scenes.agents_size[i, m])
@@ -799,16 +721,12 @@ def _write_annotations(tables: dict, scenes: Scenes, i: int, name: str, sample_t
             ids = (ann[k], sample_tok[f], inst, "4", [attr])
             _add(tables, "sample_annotation", *ids, *box, *_links(ann, k), 20, 0)
     pred = scenes.pred_idx[i].numpy()
-    return [
-        f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}"
-        for f in range(len(sample_tok))
-        if pred[f] >= 0 and amask[pred[f], f]
-    ]
+    listed = [f for f in range(F) if pred[f] >= 0 and amask[pred[f], f]]
+    return [f"{_token(name, 'instance', pred[f])}_{sample_tok[f]}" for f in listed]
 
 
 def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) -> None:
-    """Scene i's arcline paths added to a map expansion: each a lane (or lane connector) with a
-    polygon (the centre line +- W/2), edge lines, and the links of consecutive paths of routes."""
+    """Scene i's arcline paths as lanes (or connectors) of a map expansion, with polygons, links."""
     paths, is_conn = scenes.paths[i].numpy(), scenes.paths_is_connector[i].numpy()
     tok = {q: _token(name, "lane", q) for q in np.nonzero(paths[..., 4:7].sum(-1) > 0)[0]}
     links = {q: {"incoming": [], "outgoing": []} for q in tok}
@@ -840,14 +758,10 @@ def _write_scene_map(exp: dict, scenes: Scenes, i: int, name: str, offset, cfg) 
             exp["lane_connector"].append(dict(token=t, polygon_token=poly))
             continue
         edges = [_token(t, "from_edge"), _token(t, "to_edge")]
-        exp["line"] += [
-            dict(token=edges[0], node_tokens=[nodes[0], nodes[-1]]),
-            dict(token=edges[1], node_tokens=[nodes[len(u) - 1], nodes[len(u)]]),
-        ]
-        lane = dict(token=t, polygon_token=poly, lane_type="CAR")
-        lane |= dict(from_edge_line_token=edges[0], to_edge_line_token=edges[1])
-        exp["lane"].append(
-            lane | dict(left_lane_divider_segments=[], right_lane_divider_segments=[])
-        )
+        exp["line"].append(dict(token=edges[0], node_tokens=[nodes[0], nodes[-1]]))
+        exp["line"].append(dict(token=edges[1], node_tokens=[nodes[len(u) - 1], nodes[len(u)]]))
+        lane = dict(token=t, polygon_token=poly, lane_type="CAR", from_edge_line_token=edges[0])
+        lane |= dict(to_edge_line_token=edges[1], left_lane_divider_segments=[])
+        exp["lane"].append(lane | dict(right_lane_divider_segments=[]))
     polys = [_token(t, "polygon") for t in tok.values()]
     exp["drivable_area"].append(dict(token=_token(name, "drivable_area"), polygon_tokens=polys))

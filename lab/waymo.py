@@ -1,15 +1,6 @@
-"""Three real driving scenes: the Waymo Open Motion Dataset logs (20 s, 10 Hz, with lane maps)
-that the metadrive-simulator 0.3.0.1 wheel ships as metadrive/assets/waymo/{0,1,2}.pkl.
-
-fetch_waymo downloads the wheel (never installed: it pins an old numpy and a game engine) and keeps
-the three pickles, their sha256 checked on every load, in the git-ignored <cache>/waymo/: the
-licence (non-commercial) forbids committing them or anything derived from them. A pickle can run
-any importable callable, so they are read by an unpickler that resolves only a whitelist (builtin
-containers and scalars, numpy arrays, and the writer's enums as WaymoEnum). waymo_scenes makes the
-nuScenes reader's Scenes of them: every 5th frame (2 Hz), speeds by backward differences of
-positions (the logged vx, vy unused), vehicles, cyclists and pedestrians as agents, the predicted
-vehicle by the nuScenes rule, the lane centre lines near the ego chained through their exits.
-"""
+"""Three real driving scenes, the Waymo Open Motion Dataset logs of the metadrive-simulator 0.3.0.1
+wheel: fetched into the git-ignored <cache>/waymo/ (the licence forbids committing them), read by a
+whitelisting unpickler (a pickle can run any callable), converted to Scenes (docs/data.md)."""
 
 from __future__ import annotations
 
@@ -67,11 +58,8 @@ class WaymoDownloadError(OSError):
     """The wheel could not be downloaded (no network, no registry): the tests skip on this alone."""
 
 
-class WaymoEnum(NamedTuple):
-    """The stand-in for the writer's enums: the class name ('AgentType', ...) and the value."""
-
-    kind: str
-    value: int
+# the stand-in for the writer's enums: the class name ('AgentType', ...) and the value
+WaymoEnum = NamedTuple("WaymoEnum", [("kind", str), ("value", int)])
 
 
 def _enum(kind: str, value) -> WaymoEnum:
@@ -83,10 +71,6 @@ def _enum(kind: str, value) -> WaymoEnum:
 class _WaymoUnpickler(pickle.Unpickler):
     """A pickle.Unpickler that resolves the whitelisted globals only (WaymoForbiddenClass)."""
 
-    def __init__(self, file, path):
-        super().__init__(file)
-        self.path = path
-
     def find_class(self, module, name):
         if module == "builtins" and name in _BUILTINS:
             return getattr(__import__("builtins"), name)
@@ -96,25 +80,25 @@ class _WaymoUnpickler(pickle.Unpickler):
             return getattr(np, name)
         if module == "__main__" and name in _ENUMS:
             return functools.partial(_enum, name)
-        raise WaymoForbiddenClass(
-            f"{self.path}: the pickle references {module}.{name}, which is not on the whitelist "
-            f"(builtin containers and scalars, numpy arrays, {', '.join(_ENUMS)}); nothing was run"
-        )
+        why = "which is not on the whitelist (builtins, numpy arrays, the enums); nothing ran"
+        raise WaymoForbiddenClass(f"the pickle references {module}.{name}, {why}")
 
 
 def load_waymo_pickle(path) -> dict:
     """One scenario pickle, read by _WaymoUnpickler."""
     try:
         with open(path, "rb") as f:
-            return _WaymoUnpickler(f, path).load()
-    except (WaymoFormatError, OSError):
+            return _WaymoUnpickler(f).load()
+    except OSError:
         raise
+    except WaymoFormatError as e:  # (the unpickler's, naming the file here)
+        raise type(e)(f"{path}: {e}") from None
     except Exception as e:  # a truncated or corrupt pickle raises many kinds
         raise WaymoFormatError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
 
 
 def _pip_download(requirement: str, dest: Path) -> None:
-    """`pip download` of one requirement's wheel (a wheel only: an sdist would run setup code)."""
+    """`pip download` of one wheel (a wheel only: an sdist would run setup code)."""
     options = "--no-deps --only-binary=:all: --no-cache-dir --disable-pip-version-check --quiet"
     cmd = [sys.executable, "-m", "pip", "download", *options.split(), "--dest", dest, requirement]
     try:
@@ -123,9 +107,7 @@ def _pip_download(requirement: str, dest: Path) -> None:
         raise WaymoDownloadError(f"pip download {requirement}: {e}") from e
     if run.returncode != 0:
         tail = " | ".join((run.stderr or run.stdout).strip().splitlines()[-3:])
-        raise WaymoDownloadError(
-            f"pip download {requirement} failed (exit {run.returncode}): {tail}"
-        )
+        raise WaymoDownloadError(f"pip download {requirement} failed ({run.returncode}): {tail}")
 
 
 def waymo_paths(cache_dir="data_cache") -> list:
@@ -136,18 +118,13 @@ def waymo_paths(cache_dir="data_cache") -> list:
 def _extract(z: zipfile.ZipFile, member: str, out) -> None:
     with z.open(member) as src, open(out, "wb") as dst:
         shutil.copyfileobj(src, dst)
-    if (got := sha256_of(out)) != WAYMO_PICKLES[member]:
-        raise ValueError(
-            f"{WAYMO_WHEEL_FILE}: {member} has sha256 {got}, expected {WAYMO_PICKLES[member]}"
-        )
+    if (got := sha256_of(out)) != (want := WAYMO_PICKLES[member]):
+        raise ValueError(f"{WAYMO_WHEEL_FILE}: {member} has sha256 {got}, expected {want}")
 
 
 def fetch_waymo(cache_dir="data_cache", log=print) -> list:
-    """The paths of the three scenario pickles in <cache_dir>/waymo/, checked (sha256), downloaded
-    on the first call: the wheel into a temporary folder beside them, checked (size, sha256), the
-    pickles extracted by name (the archive's other paths are never written), each checked and
-    written atomically; a failed download (WaymoDownloadError) or a wrong hash (ValueError) leaves
-    nothing under a pickle's name."""
+    """The three pickles in <cache_dir>/waymo/, sha256 checked; the first call downloads the wheel
+    beside them, checks it and extracts them by name: a failure leaves no pickle."""
     paths = waymo_paths(cache_dir)
     if all(p.is_file() for p in paths):
         for p, want in zip(paths, WAYMO_PICKLES.values()):
@@ -156,20 +133,16 @@ def fetch_waymo(cache_dir="data_cache", log=print) -> list:
         return paths
     folder = paths[0].parent
     folder.mkdir(parents=True, exist_ok=True)
-    log(
-        f"fetching {WAYMO_WHEEL} ({WAYMO_WHEEL_BYTES / 1e6:.1f} MB) into {folder}/: {WAYMO_LICENCE}"
-    )
+    log(f"fetching {WAYMO_WHEEL} ({WAYMO_WHEEL_BYTES / 1e6:.1f} MB) into {folder}: {WAYMO_LICENCE}")
     with tempfile.TemporaryDirectory(prefix=".fetch-", dir=folder) as tmp:
         _pip_download(WAYMO_WHEEL, Path(tmp))
         wheel = Path(tmp) / WAYMO_WHEEL_FILE
         if not wheel.is_file():
             raise WaymoDownloadError(f"pip download {WAYMO_WHEEL} left no {WAYMO_WHEEL_FILE}")
-        size, digest = wheel.stat().st_size, sha256_of(wheel)
-        if (size, digest) != (WAYMO_WHEEL_BYTES, WAYMO_WHEEL_SHA256):
-            raise ValueError(
-                f"{WAYMO_WHEEL_FILE}: {size:,} bytes, sha256 {digest}; expected "
-                f"{WAYMO_WHEEL_BYTES:,} bytes, sha256 {WAYMO_WHEEL_SHA256}: refused"
-            )
+        size, got = wheel.stat().st_size, sha256_of(wheel)
+        if (size, got) != (WAYMO_WHEEL_BYTES, WAYMO_WHEEL_SHA256):
+            want = f"{WAYMO_WHEEL_BYTES:,} bytes, sha256 {WAYMO_WHEEL_SHA256}"
+            raise ValueError(f"{WAYMO_WHEEL_FILE}: {size:,} bytes, sha256 {got}, expected {want}")
         try:
             with zipfile.ZipFile(wheel) as z:
                 for member, path in zip(WAYMO_PICKLES, paths):
@@ -189,8 +162,7 @@ def _array(d: dict, key: str, tail: tuple) -> np.ndarray:
 
 
 def _read_log(path, cfg: SynthConfig) -> tuple:
-    """A scenario's timestamps, frames per 2 Hz step, the kept tracks' states and types, the ego's
-    track id and the lane centre lines ({id: (polyline (P, 2), exits)})."""
+    """A log's timestamps, frames per 2 Hz step, tracks' states and types, the ego's id, lanes."""
     raw = load_waymo_pickle(path)
     with Reading(path, WaymoFormatError) as r:
         ts = _array(raw, "ts", ())
@@ -218,9 +190,8 @@ def _read_log(path, cfg: SynthConfig) -> tuple:
 
 
 def waymo_scenes(paths, phases=(0,), cfg: SynthConfig | None = None) -> tuple[Scenes, dict]:
-    """Waymo scenario pickles -> Scenes at 2 Hz, one per (file, phase): phase p takes every 5th
-    logged frame from frame p. A malformed file is a WaymoFormatError naming the file, the track or
-    map feature, and the field."""
+    """Waymo pickles -> Scenes at 2 Hz, one per (file, phase p: every 5th frame from frame p); a bad
+    file is a WaymoFormatError naming the file, the track or map feature, and the field."""
     cfg = cfg or SynthConfig()
     if not phases or any(type(p) is not int or not 0 <= p < WAYMO_PHASES for p in phases):
         raise ValueError(f"phases: whole numbers in 0..{WAYMO_PHASES - 1}, got {phases!r}")
@@ -235,8 +206,7 @@ def waymo_scenes(paths, phases=(0,), cfg: SynthConfig | None = None) -> tuple[Sc
 
 
 def _waymo_scene(path, log: tuple, phase: int, cfg: SynthConfig, report: dict) -> Scenes | None:
-    """One (file, phase) as a Scenes of length 1; None (counted in report) without lanes or a
-    vehicle to predict."""
+    """One (file, phase) as Scenes; None (counted) without lanes or a vehicle to predict."""
     ts, stride, states, kinds, ego_id, lanes = log
     frames = np.arange(phase, len(ts), stride)  # (F,) the 2 Hz frames
     t, F = ts[frames] - ts[frames[0]], len(frames)
@@ -248,9 +218,8 @@ def _waymo_scene(path, log: tuple, phase: int, cfg: SynthConfig, report: dict) -
     ids = [tid for tid in states if tid != ego_id and states[tid][frames, 9].any()]
     st = np.stack([states[tid][frames] for tid in ids]) if ids else np.zeros((0, F, 10))
     amask = st[..., 9] > 0.5  # (M, F)
-    agents = np.concatenate(
-        [st[..., [0, 1]], ds.wrap_angle(st[..., 6:7]), np.zeros(amask.shape + (1,))], -1
-    )
+    agents = st[..., [0, 1, 6, 6]]  # x, y, heading, speed (below)
+    agents[..., 2] = ds.wrap_angle(agents[..., 2])
     agents[..., 3] = ds.backward_speed(agents[..., :2], amask, t) * amask
     agents *= amask[..., None]  # Waymo fills unobserved steps with placeholders; ours are 0
     is_ped = np.array([WAYMO_AGENT_TYPES[kinds[tid]] == "pedestrian" for tid in ids], bool)
@@ -272,24 +241,16 @@ def _waymo_scene(path, log: tuple, phase: int, cfg: SynthConfig, report: dict) -
 
 
 def _waymo_lanes(path, lanes: dict, ego, cfg: SynthConfig) -> tuple:
-    """The lanes within map_radius of the ego's path, chained through their exits into routes
-    (routes_through), resampled every 2 m: points (L, P, 3) and mask; (None, None) if none."""
+    """The lanes near the ego's path chained into routes, resampled: points (L, P, 3), mask."""
     ids = list(lanes)
     index = {fid: k for k, fid in enumerate(ids)}
     nxt = [[index[e] for e in lanes[fid][1] if e in index] for fid in ids]
     prv = [[k for k, succ in enumerate(nxt) if j in succ] for j in range(len(ids))]
-    near = [
-        k
-        for k, fid in enumerate(ids)
-        if (
-            np.linalg.norm(lanes[fid][0][:, None] - ego[None, :, :2], axis=-1) < cfg.map_radius
-        ).any()
-    ]
-    polys = [
-        _resample(np.concatenate([lanes[ids[k]][0] for k in r]), cfg.lane_spacing)
-        for r in routes_through(dict(next=nxt, prev=prv), near)
-    ]
-    polys = [p for p in polys if p is not None]
+    dist = [np.linalg.norm(lanes[fid][0][:, None] - ego[None, :, :2], axis=-1) for fid in ids]
+    near = [k for k, d in enumerate(dist) if (d < cfg.map_radius).any()]
+    graph = dict(next=nxt, prev=prv)
+    routes = [np.concatenate([lanes[ids[k]][0] for k in r]) for r in routes_through(graph, near)]
+    polys = [p for r in routes if (p := _resample(r, cfg.lane_spacing)) is not None]
     if not polys:
         return None, None
     P = max(len(p) for p in polys)
@@ -302,9 +263,8 @@ def _waymo_lanes(path, lanes: dict, ego, cfg: SynthConfig) -> tuple:
 
 
 def _resample(xy, spacing: float):
-    """Points every `spacing` m along a polyline (N, 2) from its start: (P, 3) x, y, heading of the
-    segment they lie on; repeated points (where chained lanes meet) dropped first; None if it has no
-    length."""
+    """Points (P, 3: x, y, heading) every `spacing` m along a polyline (N, 2), repeated points
+    (where lanes meet) dropped; None without length."""
     xy = xy[np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]]
     if len(xy) < 2:
         return None
@@ -317,14 +277,9 @@ def _resample(xy, spacing: float):
 
 
 def distinct_lanes(batch: Scenarios, max_lanes: int, tol=1.0, share=0.9) -> Scenarios:
-    """The batch with at most max_lanes lanes per sample, none running along a nearer one.
-
-    Routes are every chain through the lane graph, so where real lanes fork and merge, many routes
-    share the stretch the ego is on, and sample_at's max_lanes nearest can all be copies of the
-    ego's lane (offset along it by their own 2 m grids), crowding out the next lane, where a lane
-    change's goal lies. A lane is dropped when at least `share` of its points lie within `tol` m of
-    a point of a nearer lane that is kept (a branch that leaves within the crop's first ~70 m is
-    kept). sample_at orders lanes nearest first, so the nearest copy stays."""
+    """At most max_lanes lanes per sample, none with `share` of its points within `tol` m of a
+    nearer kept one: where lanes fork and merge, many routes share the ego's lane, and the nearest
+    would all be copies of it, crowding out the lane a lane change's goal lies on."""
     lanes, mask = batch.lanes, batch.lanes_mask  # (B, L, P, 3), (B, L, P)
     B, L, P, _ = lanes.shape
     n_pts = mask.sum(-1)  # (B, L)
@@ -344,20 +299,14 @@ def distinct_lanes(batch: Scenarios, max_lanes: int, tol=1.0, share=0.9) -> Scen
 
 
 def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg=None, log=print):
-    """The Waymo scenes (fetched first if needed) as float32 planning samples at every usable frame,
-    scene by scene: (Scenarios, report; report['samples_per_scene']: {scene name: count}). Of the
-    WAYMO_CANDIDATE_LANES nearest lanes, distinct_lanes keeps cfg.max_lanes that are not copies."""
+    """The Waymo scenes (fetched if needed) as planning samples at every usable frame, and a report
+    (samples_per_scene too); of the WAYMO_CANDIDATE_LANES nearest lanes, the distinct ones."""
     cfg = cfg or SynthConfig()
     scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
     wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
-    parts = [
-        ds.cut_samples(scenes[s : s + 1], None, np.random.default_rng(0), wide)
-        for s in range(len(scenes))
-    ]
+    one_by_one = [scenes[s : s + 1] for s in range(len(scenes))]
+    parts = [ds.cut_samples(s, None, np.random.default_rng(0), wide) for s in one_by_one]
     batch = distinct_lanes(Scenarios.cat([p for p, _ in parts]), cfg.max_lanes)
-    report.update(
-        samples=len(batch),
-        samples_skipped_no_lanes=sum(n for _, n in parts),
-        samples_per_scene={name: len(p) for name, (p, _) in zip(scenes.names, parts)},
-    )
+    report.update(samples=len(batch), samples_skipped_no_lanes=sum(n for _, n in parts))
+    report["samples_per_scene"] = {name: len(p) for name, (p, _) in zip(scenes.names, parts)}
     return batch, report
