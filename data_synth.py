@@ -1570,8 +1570,8 @@ def plot_scenario(
 
 
 if __name__ == "__main__":
-    # a hand-over: the data's command line (generate, write-nuscenes, read-nuscenes, ...) is the
-    # lab's, python -m lab.data
+    # a hand-over: the nuScenes format's command line (write-nuscenes, read-nuscenes) is the lab's,
+    # python -m lab.data
     from lab import data
 
     data.main()
