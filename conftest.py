@@ -179,6 +179,12 @@ def small():
     return small_dataset()
 
 
+@pytest.fixture(scope="module")
+def batch():
+    """8 validation samples of the default generator (seed 5): bad-input tests corrupt them."""
+    return data_synth.make_dataset(120, seed=5).val[:8]
+
+
 def cast(batch, dtype):
     fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(batch)}
     return dataclasses.replace(
@@ -189,3 +195,19 @@ def cast(batch, dtype):
             if torch.is_tensor(v) and v.is_floating_point()
         },
     )
+
+
+def cli_error(main, argv, capsys) -> str:
+    """Run a CLI that must refuse argv: exit code 2, and the message on stderr."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    return capsys.readouterr().err
+
+
+def launcher_env(monkeypatch, **env):
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.delenv("TORCHELASTIC_RUN_ID", raising=False)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)

@@ -1091,3 +1091,26 @@ def test_a_table_whose_trained_rows_all_diverged_names_them_and_tests_nothing():
     assert "No gap closed is given: every seed of Standard or DiffStack diverged." in md
     assert "Diverged, left out of the means: DiffStack, seed 0: its learning curve holds" in md
     assert "untested (no seed trained both rows)" in card
+
+
+def test_closed_loop_needs_long_enough_scenes():
+    scenes = data_synth.make_dataset(120, seed=5).val_scenes
+    assert len(ex.closed_loop_scenes(scenes, ds.Config())) == len(scenes)
+    cut = {
+        k: (
+            v[:, :20]
+            if k in ("ego", "pred_idx")
+            else v[:, :, :20]
+            if k in ("agents", "agents_mask")
+            else v
+        )
+        for k, v in scenes.tensors().items()
+    }
+    short = data_synth.Scenes(**cut, names=scenes.names)
+    with pytest.raises(
+        ValueError,
+        match=r"at least 34 frames .* the data has \d+ validation scene\(s\) of 20 frames",
+    ):
+        ex.closed_loop_scenes(short, ds.Config())
+    with pytest.raises(ValueError, match="of 0 .*|0 validation"):
+        ex.closed_loop_scenes(scenes[:0], ds.Config())

@@ -10,11 +10,8 @@ import torch
 
 import data_synth
 import diffstack as ds
-import experiments as ex
 import train as tr
-from lab import quick as lq
-from lab import cli
-from conftest import DT, TINY, cast, make_batch, make_model, small_cfg
+from conftest import DT, cast, make_batch, make_model, small_cfg
 
 
 # ---------------------------------------------------------------------------------------------
@@ -409,189 +406,38 @@ def test_trained_predictor_beats_constant_velocity():
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.slow
-def test_quick_runs_and_same_seed_same_table(tmp_path):
-    cfg = ds.Config(**TINY)
-    lines = []
-    first = lq.quick(
-        threads=1,
-        n=300,
-        epochs=1,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=lines.append,
-        pretrained=tmp_path / "none",
-    )
-    text = "\n".join(lines)
-    assert (
-        "| DiffStack (1 epochs) |" in text
-        and "| Standard (1 epochs) |" in text
-        and "| GT prediction |" in text
-    )
-    # none shipped here: said, and its row left out
-    assert "Standard: no pre-trained predictor" in text
-    second = lq.quick(
-        threads=1,
-        n=300,
-        epochs=1,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=lambda s: None,
-        pretrained=tmp_path / "none",
-    )
-
-    def strip(res):  # the results without their wall times
-        return {
-            k: [{m: v for m, v in r.items() if m != "seconds"} for r in runs]
-            for k, runs in res.items()
-        }
-
-    assert [strip(r) for r in first] == [strip(r) for r in second]
-
-
-@pytest.mark.slow
-def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path):
-    """--pretrain writes the predictors and their provenance; --quick loads them
-    (sha256 checked, weights_only) and shows them beside the baselines; a changed file, or another
-    Config, is refused or left out, never misused."""
-    cfg = ds.Config(**TINY)
-    out = tmp_path / "pre"
-    about = lq.pretrain(
-        out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
-    )
-    assert sorted(about["files"]) == [
-        "diffstack-seed0.pt",
-        "diffstack-seed1.pt",
-        "standard-seed0.pt",
-        "standard-seed1.pt",
-    ]
-    assert about["threads"] == 1 and about["seeds"] == [0, 1]
-    with pytest.raises(ValueError, match="--overwrite"):
-        lq.pretrain(
-            out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
-        )
-    models, prov = lq.load_pretrained(tr.Method("DiffStack"), cfg, out)
-    assert sorted(models) == [0, 1]
-    again = tr.train_predictor(
-        tr.Method("DiffStack", losses=(1, 1, 1)),  # seed 1 on its draw: the shipped seed 1
-        ex.experiment_data(300, (0, 1), 200, tmp_path, log=None),
-        cfg,
-        "rl",
-        0.5,
-        1,
-        None,
-    )
-    assert all(
-        torch.equal(a, b)
-        for a, b in zip(models[1].state_dict().values(), again.state_dict().values())
-    )
-    assert not all(
-        torch.equal(a, b)
-        for a, b in zip(models[0].state_dict().values(), again.state_dict().values())
-    )
-    # two worker processes make the same files, byte for byte
-    pooled = lq.pretrain(
-        tmp_path / "pooled",
-        n=300,
-        epochs=0.5,
-        seeds=(0, 1),
-        jobs=2,
-        cfg=cfg,
-        cache_dir=tmp_path,
-        log=None,
-        val=200,
-    )
-    assert {k: v["sha256"] for k, v in pooled["files"].items()} == {
-        k: v["sha256"] for k, v in about["files"].items()
-    }
-    # another Config
-    assert (
-        lq.load_pretrained(tr.Method("DiffStack"), dataclasses.replace(cfg, beta=2.0), out)[0]
-        is None
-    )
-    lines = []
-    res, _ = lq.quick(
-        threads=1, n=300, epochs=0.5, cfg=cfg, cache_dir=tmp_path, log=lines.append, pretrained=out
-    )
-    # a row per seed
-    assert len(res["Standard (0.5 epochs)"]) == 2 and len(res["DiffStack (0.5 epochs)"]) == 2
-    assert "\nHindsight cost: " in "\n".join(lines) and "seeds [0, 1], 1 thread each" in "\n".join(
-        lines
-    )
-    with open(out / "standard-seed1.pt", "ab") as f:
-        f.write(b"tampered")
-    with pytest.raises(ValueError, match="standard-seed1.pt.*sha256"):
-        lq.load_pretrained(tr.Method("Standard"), cfg, out)
-
-
-def test_quick_verdicts_are_computed_from_its_numbers():
-    """The order of the hindsight costs against the paper's, and DiffStack against Standard by the
-    paired t-test over the shipped seeds (a shipped method's rows are read by their mean)."""
-
-    def rows(*hs):
-        return [dict(rel_hindsight=h) for h in hs]
-
-    res = {
-        "No prediction": rows(0.0),
-        "Standard (40 epochs)": rows(-0.5, -0.6, -0.4),
-        "DiffStack (40 epochs)": rows(-0.9, -1.1, -0.8),
-        "GT prediction": rows(-2.0),
-    }
-    order, test = lq.quick_verdicts(res)
-    assert order == (
-        "Hindsight cost: GT < DiffStack < Standard < No prediction: the paper's order "
-        "(its Table 1)."
-    )
-    # differences -0.4, -0.5, -0.4: mean -0.43, s.e. 0.033, t = -13, p = 0.006
-    assert test == (
-        "DiffStack vs Standard, hindsight cost (x1e-2): paired difference -0.43 ± 0.03 (t = "
-        "-13.00, p = 0.006, 3 of 3 seeds better): reproduced (the shipped seeds; Table 1's 10: "
-        "results/rl.md)"
-    )
-    # one seed better, two worse: the mean above Standard's, the order and the test say so
-    res["DiffStack (40 epochs)"] = rows(-1.0, -0.3, -0.1)
-    order, test = lq.quick_verdicts(res)
-    assert "GT < Standard < DiffStack < No prediction: NOT the paper's order" in order
-    assert "1 of 3 seeds better, 2 worse): not reproduced" in test
-    # one seed: no standard error, untested
-    one = dict(res, **{"Standard (40 epochs)": rows(-0.5), "DiffStack (40 epochs)": rows(-0.9)})
-    assert "untested (one seed" in lq.quick_verdicts(one)[1]
-    assert lq.quick_verdicts({k: v for k, v in res.items() if "DiffStack" not in k}) == []
-
-
 @pytest.mark.parametrize(
-    "argv, message",
+    "kw, culprit",
     [
-        ([], "--quick"),
-        (["--quick", "--seeds", "0"], "--seeds"),
-        (["--experiment", "rl"], "experiments.py"),
-        (["--bench"], "python -m lab.bench"),
-        (["--quick", "--threads", "0"], "--threads"),
-        (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
-        (["--pretrain", "--jobs", "0"], "--jobs"),
-        (["--quick", "--set", "no_such_field=1"], "no_such_field"),
+        (dict(predictor="Learned"), "predictor"),
+        (dict(predictor="oracle"), "predictor"),
+        (dict(losses=(1, 1)), "losses"),
+        (dict(losses=(1, math.nan, 1)), "losses"),
+        (dict(losses=(1, -1, 1)), "losses"),
+        (dict(weighting="grad-cost"), "weighting"),
     ],
 )
-def test_bad_cli_input_exits_with_a_message(argv, message, capsys):
-    with pytest.raises(SystemExit) as e:
-        lq.main(argv)
-    assert e.value.code != 0 and message in capsys.readouterr().err
+def test_method_refuses_unknown_names(kw, culprit):
+    with pytest.raises(ValueError, match=culprit):
+        tr.Method("m", **kw)
 
 
-def test_set_overrides_config_fields_with_their_types():
-    cfg = cli.config_with(
-        ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
-    )
-    assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
-    assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
-    assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
-    assert cli.config_with(ds.Config(), []) == ds.Config()
-    for bad, culprit in (
-        (["nope=1"], "nope"),
-        (["beta"], "beta"),
-        (["ilqr_iters=2.5"], "ilqr_iters"),
-        (["beta=nan"], "beta"),
-        (["u_upper=a,b"], "u_upper"),
+def test_unknown_setting_is_refused(batch):
+    cfg = ds.Config()
+    for call in (
+        lambda: ds.run_stack(batch, None, tr.Method("GT", "gt"), cfg, "xx"),
+        lambda: tr.alphas(tr.Method("DiffStack", losses=(1, 1, 1)), "RL", cfg),
+        lambda: tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), cfg, "Il"),
     ):
-        with pytest.raises(ValueError, match=culprit):
-            cli.config_with(ds.Config(), bad)
+        with pytest.raises(ValueError, match="setting"):
+            call()
+
+
+def test_an_evaluation_with_no_plannable_scenario_is_an_error_not_a_table_of_zeros(batch):
+    import dataclasses
+
+    # no goal lane anywhere
+    no_lanes = dataclasses.replace(batch, lanes_mask=torch.zeros_like(batch.lanes_mask))
+    with pytest.raises(ValueError, match=r"GT: none of the 8 scenarios is plannable"):
+        tr.evaluate_stack(None, no_lanes, tr.Method("GT", "gt"), ds.Config())
+    assert tr.evaluate_stack(None, batch, tr.Method("GT", "gt"), ds.Config())["n"] > 0

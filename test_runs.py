@@ -21,6 +21,14 @@ from lab import tables as lt
 from lab import runs
 import train as tr
 from lab import cli
+import math
+from lab import quick as lq
+from conftest import TINY, cli_error, launcher_env, make_batch, small_cfg
+from lab import checks
+import sys
+from lab import data as lab_data
+import subprocess
+import specs
 
 TINY10 = dict(
     pred_modes=5, pred_dec_hidden=16, pred_enc_hidden=16, pred_latent_hidden=16, batch_size=32
@@ -646,3 +654,398 @@ def test_bench_json_on_a_full_disk_is_one_line(full_disk, monkeypatch, capsys):
     assert e.value.code == 2 and "Traceback" not in err
     assert f"{full_disk / 'b.json'}: cannot write it, No space" in err.strip().splitlines()[-1]
     assert list(full_disk.iterdir()) == []
+
+
+def test_set_overrides_config_fields_with_their_types():
+    cfg = cli.config_with(
+        ds.Config(), ["beta=2", "ilqr_iters=7", "u_upper=0.5,3", "plan_offsets=(-1, 0, 1, 2)"]
+    )
+    assert cfg.beta == 2.0 and isinstance(cfg.beta, float)
+    assert cfg.ilqr_iters == 7 and isinstance(cfg.ilqr_iters, int)
+    assert cfg.u_upper == (0.5, 3.0) and cfg.plan_offsets == (-1.0, 0.0, 1.0, 2.0)
+    assert cli.config_with(ds.Config(), []) == ds.Config()
+    for bad, culprit in (
+        (["nope=1"], "nope"),
+        (["beta"], "beta"),
+        (["ilqr_iters=2.5"], "ilqr_iters"),
+        (["beta=nan"], "beta"),
+        (["u_upper=a,b"], "u_upper"),
+    ):
+        with pytest.raises(ValueError, match=culprit):
+            cli.config_with(ds.Config(), bad)
+
+
+def test_batches_with_inf_or_no_scenarios_are_refused(batch):
+    cfg = ds.Config(**TINY)
+    model = (
+        ds.Predictor(cfg).double() if batch.agent_hist.dtype == torch.float64 else ds.Predictor(cfg)
+    )
+    import dataclasses
+
+    method = tr.Method("DiffStack", losses=(1, 1, 1))
+    for field in ("agent_hist", "others_hist", "ego_fut", "others_fut", "goal", "lanes"):
+        bad = getattr(batch, field).clone()
+        bad.view(-1)[0] = math.inf
+        with pytest.raises(ValueError, match=field):
+            tr.evaluate_stack(model, dataclasses.replace(batch, **{field: bad}), method, cfg)
+        with pytest.raises(ValueError, match=field):
+            tr.train_stack(
+                model, dataclasses.replace(batch, **{field: bad}), method, cfg, epochs=0.1
+            )
+    with pytest.raises(ValueError, match="batch"):
+        checks.check_batch(batch[:0], cfg, need_future=False)
+    with pytest.raises(ValueError, match="batch"):
+        checks.check_batch(batch[:0], cfg, need_future=True, stack=True)
+    # the valid batch runs
+    ds.run_stack(batch, model, method, cfg, train=True, step=0)
+
+
+def test_bad_input_names_the_argument():
+    """The data check where data enters a run (checks.check_batch, before training and
+    evaluation)."""
+    cfg = small_cfg()
+    b = make_batch(4)
+    checks.check_batch(b, cfg, need_future=True)  # the valid batch passes
+    with pytest.raises(ValueError, match="agent_hist"):
+        checks.check_batch(
+            b.replace(agent_hist=b.agent_hist[:, 1:], agent_hist_mask=b.agent_hist_mask[:, 1:]),
+            cfg,
+            False,
+        )
+    with pytest.raises(ValueError, match="others_hist"):
+        checks.check_batch(b.replace(others_hist=b.others_hist[:, :, :5]), cfg, False)
+    with pytest.raises(ValueError, match="agent_fut"):
+        checks.check_batch(b.replace(agent_fut=b.agent_fut[:, :4]), cfg, True)
+    for name in ("agent_hist", "ego_hist", "others_hist", "agent_fut"):
+        x = getattr(b, name).clone()
+        x.view(-1)[5] = float("nan")
+        with pytest.raises(ValueError, match=f"{name} contains NaN"):
+            checks.check_batch(b.replace(**{name: x}), cfg, True)
+    bad = b.agent_hist_mask.clone()
+    bad[0, 4] = False  # a gap in the middle
+    with pytest.raises(ValueError, match="agent_hist_mask"):
+        checks.check_batch(b.replace(agent_hist_mask=bad), cfg, False)
+
+
+@pytest.mark.parametrize("name", ["gpu", "cuda", "cuda:0", "meta", ""])
+@pytest.mark.parametrize("cli", ["diffstack", "experiments"])
+def test_a_device_this_machine_lacks_is_a_one_line_error(cli, name, capsys, monkeypatch, tmp_path):
+    # the same on a machine with a GPU
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    work = []
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: work.append(1))
+    monkeypatch.setattr(lt, "experiment_data", lambda *a, **k: work.append(1))
+    if cli == "diffstack":
+        err = cli_error(lq.main, ["--quick", "--device", name], capsys)
+    else:
+        err = cli_error(
+            ex.main, ["--experiment", "rl", "--out", str(tmp_path), "--device", name], capsys
+        )
+    last = err.strip().splitlines()[-1]
+    assert "argument --device" in last and (name in last if name else "torch device" in last), err
+    assert "cuda" in last and not work  # it says what would do, and refused before any work
+
+
+def test_device_reaches_the_work(capsys, monkeypatch, tmp_path):
+    seen = {}
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: seen.update(quick=k["device"]))
+    lq.main(["--quick"])
+    lq.main(["--quick", "--device", "cpu"])
+    monkeypatch.setattr(lt, "experiment_data", lambda *a, **k: "data")
+    monkeypatch.setattr(lt, "run_experiment", lambda *a, **k: seen.update(experiment=k["device"]))
+    ex.main(["--experiment", "rl", "--out", str(tmp_path), "--device", "cpu"])
+    assert seen == {"quick": torch.device("cpu"), "experiment": torch.device("cpu")}
+
+
+def test_device_arg_takes_the_devices_that_are_there(monkeypatch):
+    import argparse
+
+    assert cli.device_arg("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert cli.device_arg("cuda") == torch.device("cuda") and cli.device_arg(
+        "cuda:1"
+    ) == torch.device("cuda", 1)
+    with pytest.raises(argparse.ArgumentTypeError, match="2 CUDA device"):
+        cli.device_arg("cuda:2")
+
+
+def test_existing_results_are_never_replaced_without_overwrite(tmp_path, capsys):
+    (tmp_path / "rl.json").write_text('{"mine": 1}')
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), "--n", "10"], capsys)
+    assert "rl.json" in err and "--overwrite" in err
+    assert (tmp_path / "rl.json").read_text() == '{"mine": 1}'
+    # 'all' also protects the report and the figures
+    (tmp_path / "rl.json").unlink()
+    (tmp_path / "closed_loop.png").write_bytes(b"png")
+    with pytest.raises(ValueError, match="closed_loop.png"):
+        lt.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=False)
+    lt.check_outputs(specs.EXPERIMENTS, tmp_path, overwrite=True)  # --overwrite lets the run start
+    # an unrelated file does not block another table
+    lt.check_outputs(("rl",), tmp_path, overwrite=False)
+
+
+def test_run_experiment_refuses_before_training(tmp_path, monkeypatch):
+    (tmp_path / "il.md").write_text("# mine")
+    monkeypatch.setattr(lt, "run_table", lambda *a, **k: pytest.fail("no work may start"))
+    with pytest.raises(ValueError, match="il.md"):
+        lt.run_experiment("il", None, ds.Config(), (0,), 1.0, tmp_path)
+
+
+def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(blocker / "out")], capsys)
+    assert "--out" in err and "a_file" in err
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data_cache").write_text("a file where the cache folder should be")
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
+    assert "data cache" in err
+    err = cli_error(lq.main, ["--quick"], capsys)
+    assert "data cache" in err
+
+
+def test_one_run_per_output_folder_and_a_killed_runs_lock_is_taken_over(
+    tmp_path, monkeypatch, capsys, lock_held_elsewhere
+):
+    """A second run on a folder another run holds is refused before any work, naming the holder
+    (PID, command); when the holder is killed (SIGKILL), the next run takes the folder over."""
+    out = tmp_path / "out"
+    with lock_held_elsewhere(out, "the other run") as holder:
+        monkeypatch.setattr(
+            lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made")
+        )
+        for argv in (
+            ["--experiment", "rl", "--out", str(out), "--n", "100"],
+            ["--experiment", "rl", "--out", str(out)],
+        ):
+            err = cli_error(ex.main, argv, capsys)
+            assert f"PID {holder.pid}" in err and "the other run" in err and str(out) in err
+        (out / "rl.json").write_text("{}")
+        # --render writes too
+        err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
+        assert f"PID {holder.pid}" in err
+    with runs.folder_lock(out, "this run"):  # the killed run's lock, taken over
+        assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
+
+
+def test_a_run_holding_a_folder_may_hold_it_again_inside(tmp_path):
+    # --out data_cache: the run holds its output folder, and making the data cache holds the same
+    # folder again (spelled another way); another process is still refused while the run holds it
+    out = tmp_path / "data_cache"
+    with runs.folder_lock(out, "the run"):
+        with runs.folder_lock(tmp_path / "x" / ".." / "data_cache", "the data cache"):
+            assert json.loads((out / ".lock").read_text())["command"] == "the run"
+        other = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "import sys\nfrom lab import runs\n"
+                "with runs.folder_lock(sys.argv[1], 'other'): pass",
+                str(out),
+            ],
+            cwd=runs.ROOT,
+            capture_output=True,
+            text=True,
+        )
+        assert other.returncode != 0 and "another run is writing here" in other.stderr
+    with runs.folder_lock(out, "the next run"):  # released when the outer block ended
+        pass
+
+
+def test_a_kill_mid_write_leaves_the_old_result(tmp_path, monkeypatch):
+    path = tmp_path / "rl.json"
+    path.write_text("old")
+
+    def killed(src, dst):
+        # the process dies between writing the temporary file and the rename
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        runs.write_atomic(path, json.dumps({"new": 1}))
+    assert path.read_text() == "old"
+    # and no half-written temporary file is left
+    assert [p.name for p in tmp_path.iterdir()] == ["rl.json"]
+
+
+def test_atomic_writes_give_results_the_usual_permissions(tmp_path, monkeypatch):
+    """A result written through a temporary file (mkstemp: 0600) ends up readable as open() would
+    have made it (0666 less the umask), so that others in a shared lab folder can read it; a plain
+    file is the reference."""
+    # the umask lab/runs.py read at import, here the common one
+    monkeypatch.setattr(runs, "_UMASK", 0o022)
+    old = os.umask(0o022)
+    try:
+        (tmp_path / "plain.txt").write_text("x")
+        runs.write_atomic(tmp_path / "rl.json", "{}")
+        runs.save_atomic({"w": 1}, tmp_path / "model.pt")
+    finally:
+        os.umask(old)
+
+    def mode(name):
+        return (tmp_path / name).stat().st_mode & 0o777
+
+    assert mode("plain.txt") == 0o644
+    assert mode("rl.json") == mode("model.pt") == mode("plain.txt")
+
+
+@pytest.mark.parametrize(
+    "argv, culprit",
+    [
+        (["--epochs", "nan"], "--epochs"),
+        (["--epochs", "inf"], "--epochs"),
+        (["--epochs", "0"], "--epochs"),
+        (["--epochs", "1e9"], "--epochs"),
+        (["--threads", "0"], "--threads"),
+        (["--seeds", "0"], "--seeds"),
+        (["--seeds", "1000"], "--seeds"),
+        (["--n", "5"], "--n"),
+        (["--n", "100000000"], "--n"),
+        (["--n", "1e8"], "--n"),
+        (["--set", "dt=0"], "dt"),
+        (["--set", "horizon=-1"], "horizon"),
+        (["--set", "dt=10"], "dt is the data's (0.5)"),
+        (["--set", "dt=0.001"], "dt is the data's (0.5)"),
+        (["--set", "horizon=7"], "horizon is the data's (6)"),
+        (["--set", "hist_len=4"], "hist_len is the data's (8)"),
+        (["--set", "nope=1"], "nope"),
+    ],
+)
+def test_experiments_cli_numbers(argv, culprit, capsys, tmp_path):
+    err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path), *argv], capsys)
+    assert culprit in err.splitlines()[-1]
+
+
+@pytest.mark.slow
+def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatch, capsys, batch):
+    """--render of a truncated results file, and --quick over a broken shipped predictor: one line
+    naming the file, exit code 2, no traceback."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rl.json").write_text('{"meta": {"command"')  # cut off mid-write
+    err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
+    assert (
+        f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
+    )
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pretrained").mkdir()
+    entry = {"method": "Standard", "seed": 0, "sha256": "0", "cpu_seconds": 1}
+    prov = {
+        "files": {"standard-seed0.pt": entry},
+        "config": dataclasses.asdict(ds.Config()),  # the defaults: the file listed, but missing
+        **dict(command="c", date="d", commit="x", epochs=1, seeds=[0], threads=1),
+    }
+    (tmp_path / "pretrained" / "provenance.json").write_text(json.dumps(prov))
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: data_synth.make_dataset(120, seed=5))
+    # (the rows before the shipped ones)
+    monkeypatch.setattr(lq, "evaluate_stack", lambda *a, **k: {})
+    monkeypatch.setattr(lq, "add_relative", lambda res, setting: res)
+    monkeypatch.setattr(lq, "open_loop_table", lambda *a, **k: "")
+    err = cli_error(lq.main, ["--quick"], capsys)
+    assert "standard-seed0.pt: missing" in err.splitlines()[-1] and "Traceback" not in err
+
+
+def test_a_corrupt_piece_of_the_resume_store_is_named_and_computed_again(tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = lt.Piece("Standard", 0, None)
+    store.save("rl", piece, {"ade": 1.0})
+    assert store.has("rl", piece)
+    store.path("rl", piece).write_text('{"table": "rl", "res')  # a disk error cut it
+    assert not store.has("rl", piece)  # computed again
+    assert f"{store.path('rl', piece)}: not a finished piece" in capsys.readouterr().err
+    assert store.path("rl", piece).with_suffix(".corrupt").exists()
+
+
+@pytest.mark.parametrize("rank", ["0", "1"])
+def test_rank_variables_without_a_launcher_are_refused_in_one_line(rank, monkeypatch, capsys):
+    launcher_env(monkeypatch, RANK=rank, WORLD_SIZE="2")
+    monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("work started"))
+    for main in (ex.main, lq.main):
+        err = cli_error(main, ["--experiment", "rl"] if main is ex.main else ["--quick"], capsys)
+        lines = err.strip().splitlines()
+        assert (
+            f"RANK={rank} WORLD_SIZE=2 are set, but no launcher started this process" in (lines[-1])
+        )
+        assert "Traceback" not in err
+
+
+META = dict(command="python experiments.py --experiment rl", date="d", machine="m", seconds=1.0)
+
+
+@pytest.mark.parametrize(
+    "text, why",
+    [
+        ('{"meta": {}, "results": {}}', "meta.command is missing or not text"),
+        (
+            json.dumps(dict(meta=META, results={"Standard": [{"ade": None}]})),
+            "results.Standard[0].ade is null",
+        ),
+        ('{"meta": {"command": "c"}, "results": {"Standard": [{"ade": NaN}]}}', "it holds NaN"),
+        ("[" * 5000 + "]" * 5000, "nested too deeply"),
+        ("\xff\xfe not text", "not a results file"),
+        (
+            json.dumps(dict(meta=dict(META, config={"no_such_field": 1}), results={})),
+            "no_such_field",
+        ),
+    ],
+)
+def test_render_of_a_file_of_the_wrong_schema_is_one_line(text, why, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "rl.json").write_text(text, errors="surrogateescape")
+    (out / "rl.md").write_text("kept")
+    if "no_such_field" in text:  # the committed Table 1, its Config from a later version
+        saved = json.loads(pathlib.Path("results/rl.json").read_text())
+        saved["meta"]["config"]["no_such_field"] = 1
+        (out / "rl.json").write_text(json.dumps(saved))
+    err = cli_error(ex.main, ["--experiment", "rl", "--render", "--out", str(out)], capsys)
+    last = err.strip().splitlines()[-1]
+    assert str(out / "rl.json") in last and why in last, err
+    assert "Traceback" not in err and (out / "rl.md").read_text() == "kept"
+
+
+def test_render_all_checks_every_file_before_writing_any(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in specs.EXPERIMENTS:  # the committed results, the last one damaged
+        (out / f"{name}.json").write_text((pathlib.Path("results") / f"{name}.json").read_text())
+        (out / f"{name}.md").write_text("kept")
+    (out / f"{specs.EXPERIMENTS[-1]}.json").write_text('{"meta": {}, "results": {}}')
+    err = cli_error(ex.main, ["--experiment", "all", "--render", "--out", str(out)], capsys)
+    assert f"{specs.EXPERIMENTS[-1]}.json: meta.command" in err.strip().splitlines()[-1]
+    assert all((out / f"{n}.md").read_text() == "kept" for n in specs.EXPERIMENTS)
+
+
+def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = lt.Piece("Standard", 0)
+    path = store.path("rl", piece)
+    path.parent.mkdir(parents=True)
+    path.write_text("[" * 100 + "]" * 100)
+    assert not store.has("rl", piece) and path.with_suffix(".corrupt").exists()
+    assert f"{path}: not a finished piece" in capsys.readouterr().err
+    # a model file of the run store that is not a model: set aside, trained again
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"not a model")
+    assert ex.stored_predictor(model, ds.Config(**TINY), "cpu") is None
+    assert (tmp_path / "m.pt.corrupt").exists() and not model.exists()
+    assert "m.pt: not a stored predictor" in capsys.readouterr().err
+    # a provenance entry without its sha256
+    folder = tmp_path / "pretrained"
+    folder.mkdir()
+    prov = dict(
+        files={"s0.pt": dict(method="Standard", seed=0)},
+        config={},
+        command="c",
+        date="d",
+        commit="x",
+        epochs=1,
+        seeds=[0],
+        threads=1,
+    )
+    (folder / "provenance.json").write_text(json.dumps(prov))
+    with pytest.raises(ValueError, match=r"provenance.json: not a provenance file .*sha256"):
+        lq.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
