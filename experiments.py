@@ -308,6 +308,7 @@ def compare_methods(
 
 
 def metrics_line(r: dict) -> str:
+    """A run's numbers on one line of the log."""
     return "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
 
 
