@@ -23,6 +23,7 @@ simulation steps.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -52,16 +53,18 @@ from diffstack import (
 from specs import (
     CLOSE,
     CLOSED_LOOP_METHODS,
-    CLOSED_LOOP_METRICS,
     COST_WEIGHTS_ROW,
     CURVE_SAMPLES,
     GOALS,
     RELATIVE_SCALE,
+    STANDARD,
     TABLE1_METHODS,
     TableSpec,
 )
 from specs import TABLES as TABLES  # tutorial.py reads them as experiments.TABLES
 from train import (
+    GT_PREDICTION,
+    NO_PREDICTION,
     CostWeights,
     Method,
     TrainingDiverged,
@@ -82,9 +85,7 @@ from lab.runs import load_json, save_atomic, write_atomic
 from lab.stats import markdown_table
 
 
-# ============================================================================================
-# 1. Training, shared between tables
-# ============================================================================================
+# ---- 1. Training, shared between tables ----------------------------------------------------------
 
 
 def method_key(m: Method) -> tuple:
@@ -122,24 +123,12 @@ def training_key(
     stack (L_plan or L_ctr on) the setting and the stack options, less the controller's when
     L_ctr is off."""
     a = alphas(m, setting, cfg)
-    kw = dict(stack_kw)
-    runs_stack = True
-    if a[1:] == (0, 0):
-        kw = {}
-        runs_stack = False
-    elif a[2] == 0:
-        kw.pop("controller", None)
+    runs_stack = a[1:] != (0, 0)
+    kw = {k: v for k, v in stack_kw.items() if runs_stack and (a[2] != 0 or k != "controller")}
+    weighting = method_key(m)[3]  # by name
+    key = (a, weighting, seed, epochs, pred_offset, str(device))
+    key += (setting if runs_stack else None, tuple(sorted(kw.items())))
     plan_weights = (m.train_plan_weights or cfg.train_plan_weights) if runs_stack else None
-    key = (
-        a,
-        method_key(m)[3],  # the weighting, by name
-        seed,
-        epochs,
-        pred_offset,
-        str(device),
-        setting if runs_stack else None,
-        tuple(sorted(kw.items())),
-    )
     # (the default, the posterior, adds nothing)
     return key + ((plan_weights,) if plan_weights == "prior" else ())
 
@@ -198,24 +187,10 @@ def trained_predictor(
     model = stored_predictor(path, cfg, device) if path is not None else None
     if model is not None:
         if log:
-            log(
-                f"  [{m.name}] seed {seed}: trained by an earlier piece of this run, loaded from "
-                f"{path}"
-            )
+            log(f"  [{m.name}] seed {seed}: loaded from {path}, trained by an earlier piece")
     else:
-        model = train_predictor(
-            m,
-            data,
-            cfg,
-            setting,
-            epochs,
-            seed,
-            log,
-            pred_offset,
-            device=device,
-            curve_samples=CURVE_SAMPLES,
-            **stack_kw,
-        )
+        kw = dict(device=device, curve_samples=CURVE_SAMPLES, **stack_kw)
+        model = train_predictor(m, data, cfg, setting, epochs, seed, log, pred_offset, **kw)
         try:  # neither file is written: a result is never written with NaN
             curve = json.dumps(getattr(model, "learning_curve", None), allow_nan=False)
         except ValueError:
@@ -247,23 +222,9 @@ def open_loop_experiment(
 ) -> dict:
     """compare_methods with predictors shared through `models` and kept in `store`, a RunStore
     (trained_predictor), run on `device`."""
-
-    def train(m, *a, **k):
-        return trained_predictor(m, *a, models=models, store=store, **k)
-
-    return compare_methods(
-        data,
-        cfg,
-        setting,
-        methods,
-        tuple(seeds),
-        epochs,
-        pred_offset,
-        log,
-        train,
-        device,
-        **stack_kw,
-    )
+    train = functools.partial(trained_predictor, models=models, store=store)
+    args = (data, cfg, setting, methods, tuple(seeds), epochs, pred_offset, log, train, device)
+    return compare_methods(*args, **stack_kw)
 
 
 VAL_SEED = 1000
@@ -314,16 +275,11 @@ def compare_methods(
     device="cpu",
     **stack_kw,
 ) -> dict:
-    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4 and the
-    ablations).
-
-    Returns {method name: [metrics dict per seed]}, the planning metrics also relative to No
-    prediction on the same validation set ('rel_<metric>', scaled as in the paper's tables,
-    RELATIVE_SCALE). train(method, data, cfg, setting, epochs, seed, log, pred_offset,
-    device=device, **stack_kw) -> a trained predictor on `device` (experiments.py passes one that
-    shares predictors between tables). Training and evaluation run on `device`; the data stays on
-    the CPU and the metrics come back as Python numbers.
-    """
+    """Train every method for every seed on data.train, evaluate on data.val (Tables 1, 2, 4, the
+    ablations): {method name: [metrics dict per seed]}, with 'rel_<metric>' (add_relative).
+    train(method, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw) ->
+    a trained predictor on `device`, where training and evaluation run; the data stays on the CPU
+    and the metrics come back as Python numbers."""
     results = {}
     for m in methods:
         runs = []
@@ -335,11 +291,8 @@ def compare_methods(
                     m, data, cfg, setting, epochs, seed, log, pred_offset, device=device, **stack_kw
                 )
             r = evaluate_stack(model, data.val, m, cfg, setting, device=device, **stack_kw)
-            bad = [
-                k
-                for k in ("ade", "fde", "min_ade", "min_fde", "nll")
-                if k in r and not math.isfinite(r[k])
-            ]
+            predicted = [k for k in ("ade", "fde", "min_ade", "min_fde", "nll") if k in r]
+            bad = [k for k in predicted if not math.isfinite(r[k])]
             if bad:  # a predictor that trained to finite losses can still predict NaN
                 raise TrainingDiverged(
                     f"{m.name}, seed {seed}: its evaluation is not finite ({', '.join(bad)})"
@@ -349,12 +302,14 @@ def compare_methods(
                 r["curve"] = model.learning_curve
             runs.append(r)
             if log:
-                log(
-                    f"{m.name:24s} seed {seed}: "
-                    + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
-                )
+                log(f"{m.name:24s} seed {seed}: {metrics_line(r)}")
         results[m.name] = runs
     return add_relative(results, setting)
+
+
+def metrics_line(r: dict) -> str:
+    """A run's numbers on one line of the log."""
+    return "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
 
 
 def add_relative(results: dict, setting: str) -> dict:
@@ -370,9 +325,7 @@ def add_relative(results: dict, setting: str) -> dict:
     return results
 
 
-# ============================================================================================
-# 2. Cost learning (§4.2, Table 3; App. A.2, Table 7)
-# ============================================================================================
+# ---- 2. Cost learning (§4.2, Table 3; App. A.2, Table 7) -----------------------------------------
 
 
 def cost_learning_experiment(
@@ -392,52 +345,29 @@ def cost_learning_seed(
     """One seed of Table 3: {'Hand-tuned': metrics, 'Learned': metrics}
     (cost_learning_experiment)."""
     res = {}
-    model = trained_predictor(
-        Method("Standard"),
-        data,
-        cfg,
-        "il",
-        epochs,
-        seed,
-        log,
-        models=models,
-        device=device,
-        store=store,
-    )
+    kw = dict(models=models, device=device, store=store)
+    model = trained_predictor(STANDARD, data, cfg, "il", epochs, seed, log, **kw)
     weights = CostWeights(cfg).to(device)
-    for name in ("Hand-tuned", "Learned"):
-        if name == "Learned":
-            train_stack(
-                model,
-                data.train_for(seed),
-                COST_WEIGHTS_ROW,
-                cfg,
-                "il",
-                epochs,
-                seed,
-                log,
-                weights=weights,
-            )
+
+    def evaluate(name):  # the stack under the weights as they stand, IL, on data.val
         with torch.no_grad():
-            w = weights()
-            w_norm = weights.normalised()
-            alpha = weights.alpha.item()
-        res[name] = r = evaluate_stack(
-            model, data.val, Method("Standard"), cfg, "il", w=w, device=device
-        )
-        r.update(w=w_norm.tolist(), alpha=alpha)
+            w, w_norm, alpha = weights(), weights.normalised().tolist(), weights.alpha.item()
+        res[name] = r = evaluate_stack(model, data.val, STANDARD, cfg, "il", w=w, device=device)
+        r.update(w=w_norm, alpha=alpha)
         if log:
-            log(
-                f"{name:10s} seed {seed}: w' "
-                + " ".join(f"{v:.3f}" for v in r["w"])
-                + f"  alpha {alpha:.3f}  plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}"
-            )
+            terms = " ".join(f"{v:.3f}" for v in w_norm)
+            losses = f"plan_loss {r['plan_loss']:.4f}  mse {r['mse']:.4f}"
+            log(f"{name:10s} seed {seed}: w' {terms}  alpha {alpha:.3f}  {losses}")
+
+    evaluate("Hand-tuned")
+    train_stack(
+        model, data.train_for(seed), COST_WEIGHTS_ROW, cfg, "il", epochs, seed, log, weights=weights
+    )
+    evaluate("Learned")
     return res
 
 
-# ============================================================================================
-# 3. Closed loop: log replay (§4.3, Table 5, App. D.3)
-# ============================================================================================
+# ---- 3. Closed loop: log replay (§4.3, Table 5, App. D.3) ----------------------------------------
 # Every dt = 0.5 s for T_sim = 10 s: cut a planning sample at the current frame around the SIMULATED
 # ego (its simulated 4 s history; the goal and lanes from the logged ego), run the stack, move the
 # ego by the first control; the other agents replay their logs. 4 s history + 10 s + the 3 s horizon
@@ -543,11 +473,8 @@ def simulate(
         plans.append(from_frame(x.to(s), s))
         open_loop.append(hindsight.to(s))
         plannable.append(ok.to(s.device))
-
-    def st(xs):
-        return torch.stack(xs, 1)
-
-    return Rollout(st(ego), st(controls), st(plans), st(open_loop), st(plannable), f0)
+    stacked = (torch.stack(xs, 1) for xs in (ego, controls, plans, open_loop, plannable))
+    return Rollout(*stacked, f0)
 
 
 def closed_loop_metrics(scenes, roll: Rollout, cfg: Config) -> dict:
@@ -666,27 +593,16 @@ def closed_loop_run(
     r = {k: v.mean().item() for k, v in per_scene.items()}
     r.update(seconds=time.time() - t0, sim_seconds=time.time() - t1, scenes=len(scenes))
     if log:
-        log(
-            f"{m.name:14s} seed {seed}: "
-            + "  ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
-        )
+        log(f"{m.name:14s} seed {seed}: {metrics_line(r)}")
     return r, roll, per_scene
 
 
 def closed_loop_relative(results: dict) -> dict:
-    """Add 'rel_<metric>' (x1e-2 vs No prediction's first run) to every run of {method: [per seed]},
-    in place."""
-    base = results["No prediction"][0]
-    for r in (r for runs in results.values() for r in runs):
-        for k in CLOSED_LOOP_METRICS:
-            if k in r:  # (a diverged seed has no metrics)
-                r["rel_" + k] = (r[k] - base[k]) / 1e-2
-    return results
+    """add_relative for Table 5: 'rel_<metric>' (x1e-2 vs No prediction's first run), in place."""
+    return add_relative(results, "closed_loop")
 
 
-# ============================================================================================
-# 4. Ablations (App. A.1, Table 6), and where a perfect prediction is worth something
-# ============================================================================================
+# ---- 4. Ablations (App. A.1, Table 6), and where a perfect prediction is worth something ---------
 
 
 def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) -> dict:
@@ -748,38 +664,24 @@ def validation_spread(draws=5, n=VAL_N, cache_dir="data_cache", log=print) -> st
     tables uses (data seeds after VAL_SEED), each at the old size (the validation side of an
     n-sample draw: 1,500 of 10,000) and at n. A markdown table: each draw's value, and the mean and
     standard deviation over draws."""
-    gt, no = (
-        next(m for m in TABLE1_METHODS if m.name == name)
-        for name in ("GT prediction", "No prediction")
-    )
-    rows = {}
-    cfg = Config()
-    for seed in range(VAL_SEED + 1, VAL_SEED + 1 + draws):
+    seeds = range(VAL_SEED + 1, VAL_SEED + 1 + draws)
+    pair = (NO_PREDICTION, GT_PREDICTION)  # nothing trained
+    cfg, rows = Config(), {}
+    for seed in seeds:
         data = lab.data.load_data(None, n, seed, cache_dir, log)
-        for size, val in (
-            ("old", data.val),
-            ("new", data_synth.Scenarios.cat([data.train, data.val])),
-        ):
-            res = add_relative(
-                {m.name: [evaluate_stack(None, val, m, cfg, "rl")] for m in (no, gt)}, "rl"
-            )
-            rows.setdefault(size, []).append((len(val), res["GT prediction"][0]["rel_hindsight"]))
-    return markdown_table(
-        [
-            "Validation samples",
-            *(f"data seed {s}" for s in range(VAL_SEED + 1, VAL_SEED + 1 + draws)),
-            "mean ± s.d. over draws",
-        ],
-        [
-            [
-                f"{statistics.fmean(n for n, _ in r):,.0f}",
-                *(f"{v:.2f}" for _, v in r),
-                f"{statistics.fmean(v for _, v in r):.2f} ± "
-                f"{statistics.stdev(v for _, v in r):.2f}",
-            ]
-            for r in rows.values()
-        ],
-    )
+        whole = data_synth.Scenarios.cat([data.train, data.val])
+        for size, val in (("old", data.val), ("new", whole)):
+            runs = {m.name: [evaluate_stack(None, val, m, cfg, "rl")] for m in pair}
+            rel = add_relative(runs, "rl")["GT prediction"][0]["rel_hindsight"]
+            rows.setdefault(size, []).append((len(val), rel))
+    table = []
+    for r in rows.values():
+        values = [v for _, v in r]
+        spread = f"{statistics.fmean(values):.2f} ± {statistics.stdev(values):.2f}"
+        samples = f"{statistics.fmean(n for n, _ in r):,.0f}"
+        table.append([samples, *(f"{v:.2f}" for v in values), spread])
+    header = ["Validation samples", *(f"data seed {s}" for s in seeds), "mean ± s.d. over draws"]
+    return markdown_table(header, table)
 
 
 def main(argv=None):

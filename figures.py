@@ -1,16 +1,8 @@
-"""The figures of the experiments (lab/tables.py draws them into results/, the notebook some).
-
-    plot_prediction, plot_stack  panels: the predicted modes; Fig. 3's kind of panel
-    figure_stack_example         Fig. 3: one validation scenario under Standard and DiffStack
-    figure_real_scenes           real (Waymo) scenes where the two predictors' plans differ most
-    figure_closed_loop           one closed-loop scene: every method's executed trajectory
-    figure_learning_curves       validation ADE and hindsight cost after every epoch
-    figure_cost_weights          learned vs hand-tuned cost weights (Table 3)
-
-Drawing only: the numbers drawn come from experiments.py's results (or from running the stack on
-a batch), and no number written to results/ comes from here. What the figures show is said in
-docs/results.md. matplotlib is imported only when drawing.
-"""
+"""The figures of the experiments (lab/tables.py draws them into results/, the notebook some):
+panels (plot_prediction, plot_stack: Fig. 3's kind), Fig. 3 itself, real scenes, a closed-loop
+scene, learning curves and the cost weights. Drawing only: the numbers drawn come from
+experiments.py's results (or from running the stack on a batch), none written to results/ comes
+from here; docs/results.md says what the figures show. matplotlib is imported only when drawing."""
 
 from __future__ import annotations
 
@@ -52,14 +44,7 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
-def plot_prediction(
-    ax,
-    pred: Prediction,
-    i: int,
-    color: str = "tab:red",
-    cov: bool = True,
-    label: str | None = "prediction",
-):
+def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="prediction"):
     """Draw scenario i's K modes from the agent's current position; alpha and line width grow with
     the mode's probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode.
     Meant to go over plot_scenario."""
@@ -80,15 +65,7 @@ def plot_prediction(
             ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
 
 
-def plot_stack(
-    ax,
-    batch,
-    i: int,
-    out: StackOutput,
-    cfg: Config,
-    title: str | None = None,
-    extent=(-10, 45, -12, 14),
-):
+def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(-10, 45, -12, 14)):
     """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted
     modes (alpha by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the
     plan (argmin) and the controller's trajectory."""
@@ -238,9 +215,7 @@ def widest_pair(rollouts):
     return (xy[:, None] - xy[None]).norm(dim=-1).amax((0, 1))
 
 
-def figure_closed_loop(
-    scenes, rollouts: dict, path=None, dt: float = 0.5, scene: int | None = None
-):
+def figure_closed_loop(scenes, rollouts: dict, path=None, dt=0.5, scene=None):
     """One closed-loop scene, its point: replanning every dt keeps the methods' executed
     trajectories within centimetres of each other. Left, every method's executed ego over the
     logged ego and the predicted vehicle, with a zoom where they are furthest apart; right, each
@@ -257,11 +232,9 @@ def figure_closed_loop(
     frames = slice(f0, f0 + N + 1)
     tt = dt * torch.arange(N + 1)  # (N+1,) seconds
     apart = widest_pair(rollouts)[scene]  # (N+1,)
+    mosaic = [["map", "dist"], ["zoom", "speed"]]
     fig, axd = plt.subplot_mosaic(
-        [["map", "dist"], ["zoom", "speed"]],
-        figsize=(13, 7),
-        layout="constrained",
-        width_ratios=(1.6, 1),
+        mosaic, figsize=(13, 7), layout="constrained", width_ratios=(1.6, 1)
     )
     _closed_loop_map(axd["map"], scenes, scene, frames, rollouts)
     _closed_loop_zoom(axd["zoom"], axd["map"], rollouts, scene, apart, tt)
@@ -338,9 +311,7 @@ def _mean_curve(runs, key):
     return epoch, np.array([[c[i][key] for i in range(n)] for c in curves])
 
 
-def figure_learning_curves(
-    results: dict, path, reference: dict | None = None, methods=("Standard", "DiffStack")
-):
+def figure_learning_curves(results: dict, path, reference=None, methods=("Standard", "DiffStack")):
     """Validation ADE and hindsight cost after every epoch (experiments.CURVE_SAMPLES scenes), mean
     and s.e. band over seeds, of the methods whose runs have a learning curve. reference: {name:
     hindsight cost on the same scenes}, drawn as horizontal lines (No prediction, GT prediction)."""
@@ -407,9 +378,8 @@ def figure_cost_weights(results: dict, path, source: str = ""):
     ax.set_ylabel("weight (log scale)")
     ax.legend(fontsize=8)
     seeds = len(next(iter(results.values())))
-    title = f"Cost weights: hand-tuned vs learned (IL, L_ctr = MSE), {seeds} seed" + "s" * (
-        seeds > 1
-    )
+    title = f"Cost weights: hand-tuned vs learned (IL, L_ctr = MSE), {seeds} seed"
+    title += "s" if seeds > 1 else ""
     title += f", {source}" if source else ""
     if notes:
         title += "\nnot positive, written not drawn: " + ", ".join(notes)

@@ -220,7 +220,7 @@ def test_tracking_problem_is_reproducible():
     assert not torch.equal(a["x_init"], c["x_init"])
     # the reference is a rollout of its controls, and costs nothing to track
     assert a["x_ref"].shape == (8, 7, 4) and a["u_ref"].shape == (8, 6, 2)
-    zero = bench.tracking_cost(a["x_ref"], a["u_ref"], a["x_ref"], a["u_ref"], a["Q"], a["R"])
+    zero = bench.TrackingCost()(a["x_ref"], a["u_ref"], a["x_ref"], a["u_ref"], a["Q"], a["R"])
     assert torch.equal(zero, torch.zeros(8, dtype=torch.float64))
 
 

@@ -1,8 +1,6 @@
 """Every timing of the project, mpc.pytorch side by side, and the bounded LQR of
-FreyJo/differentiable_nmpc (docs/performance.md explains each figure). A figure is the median and
-IQR of --reps timed runs (torch.utils.benchmark), each after an untimed run of the same code, the
-benchmarks measured together taking turns so that a change in the machine's load hits them alike.
-mpc.pytorch is no dependency: it is imported when its comparisons run, or skipped with a hint."""
+FreyJo/differentiable_nmpc (docs/performance.md): the median and IQR of --reps timed runs, each
+after an untimed run, taking turns. mpc.pytorch, no dependency, is imported when its turn comes."""
 
 from __future__ import annotations
 
@@ -12,7 +10,6 @@ import functools
 import importlib
 import io
 import itertools
-import math
 import os
 import pathlib
 import statistics
@@ -35,15 +32,14 @@ from experiments import closed_loop_scenes, simulate, stack_policy
 from lab.cli import add_shared_options, bounded, check_writable, machine
 from lab.runs import ROOT, command_line, load_json, one_line, write_json
 from lab.stats import markdown_table
-from specs import CLOSED_LOOP_METHODS
-from train import Method, alphas
+from specs import CLOSED_LOOP_METHODS, DIFFSTACK
+from train import alphas
 
 DATA_CACHE = ROOT / "data_cache"
 QUICK = dict(batch=16, reps=2)  # --quick: seconds, not minutes
 
+
 # ---- 1. Measuring ------------------------------------------------------------------------------
-
-
 def timed(fns: dict, reps, threads, dtype="f32", batch=None, notes=None) -> tuple[list, dict]:
     """fns {key: (name, callable)} taking turns at `threads` torch threads, each timed run after an
     untimed run of itself (blocked_autorange sizes its block with it): rows, Measurements by key."""
@@ -51,11 +47,9 @@ def timed(fns: dict, reps, threads, dtype="f32", batch=None, notes=None) -> tupl
         key: benchmark.Timer("fn()", globals={"fn": fn}, description=key, num_threads=threads)
         for key, (_, fn) in fns.items()
     }
-    runs = {key: [] for key in fns}
-    for _ in range(reps):
-        for key, timer in timers.items():
-            runs[key].append(timer.blocked_autorange(min_run_time=0))
-    m = {key: benchmark.Measurement.merge(ms)[0] for key, ms in runs.items()}
+    # reps rounds, the timers taking turns in each
+    runs = [[t.blocked_autorange(min_run_time=0) for t in timers.values()] for _ in range(reps)]
+    m = {key: benchmark.Measurement.merge(ms)[0] for key, ms in zip(timers, zip(*runs))}
     rows = [
         figure(key, name, m[key].times, threads, dtype, batch, (notes or {}).get(key, ""))
         for key, (name, _) in fns.items()
@@ -65,7 +59,6 @@ def timed(fns: dict, reps, threads, dtype="f32", batch=None, notes=None) -> tupl
 
 def figure(key: str, name: str, times, threads: int, dtype="f32", batch=None, note="") -> dict:
     """One row of the results: median and IQR (ms, interpolated as Measurement.iqr) of times (s)."""
-    times = sorted(times)
     q1, q3 = statistics.quantiles(times, n=4, method="inclusive")[::2] if len(times) > 1 else [0, 0]
     row = dict(key=key, benchmark=name, dtype=dtype, threads=threads, batch=batch)
     median, iqr = 1e3 * statistics.median(times), 1e3 * (q3 - q1)
@@ -73,8 +66,6 @@ def figure(key: str, name: str, times, threads: int, dtype="f32", batch=None, no
 
 
 # ---- 2. The problem: unicycle tracking, shared with mpc.pytorch ---------------------------------
-
-
 def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
     """B unicycle tracking problems in the box: the reference rolled out from smooth random controls
     (some outside the box), the start perturbed; drawn on the CPU, then moved to `device`."""
@@ -83,7 +74,7 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
     def U(lo, hi, *shape):
         return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=dtype)
 
-    x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-math.pi, math.pi, B), U(2.0, 15.0, B)], -1)
+    x0 = torch.stack([U(-20, 20, B), U(-20, 20, B), U(-torch.pi, torch.pi, B), U(2.0, 15.0, B)], -1)
     tt = torch.arange(T, dtype=dtype) / (T - 1)
     yaw_rate = U(-0.5, 0.5, B, 1) + U(-0.6, 0.6, B, 1) * tt
     u_ref = torch.stack([yaw_rate, U(-3.0, 2.5, B, 1) + U(-3.5, 3.5, B, 1) * tt], -1)
@@ -96,17 +87,14 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
     return {k: v.to(device) for k, v in dict(P, u_init=u_ref.clamp(lo, hi)).items()}
 
 
-def tracking_cost(x, u, x_ref, u_ref, Q, R):
-    """sum_t 1/2 |x_t - r_t|^2_Q + 1/2 |u_t - ur_t|^2_R -> (B,); Q, R shared or (B, 4), (B, 2)."""
-    Q, R = (Q[:, None], R[:, None]) if Q.dim() == 2 else (Q, R)
-    return 0.5 * ((x - x_ref) ** 2 * Q).sum((-1, -2)) + 0.5 * ((u - u_ref) ** 2 * R).sum((-1, -2))
-
-
 class TrackingCost:
-    """tracking_cost with its expansion in closed form, as mpc.pytorch is handed the quadratic;
-    parameters per problem, so that the solver sets converged problems aside."""
+    """sum_t 1/2 |x_t - r_t|^2_Q + 1/2 |u_t - ur_t|^2_R -> (B,), Q, R shared or per problem (so that
+    the solver sets converged ones aside); its expansion in closed form, as mpc.pytorch gets it."""
 
-    __call__ = staticmethod(tracking_cost)
+    def __call__(self, x, u, x_ref, u_ref, Q, R):
+        Q, R = (Q[:, None], R[:, None]) if Q.dim() == 2 else (Q, R)
+        dx, du = x - x_ref, u - u_ref
+        return 0.5 * (dx**2 * Q).sum((-1, -2)) + 0.5 * (du**2 * R).sum((-1, -2))
 
     def expansion(self, x, u, x_ref, u_ref, Q, R):
         """Gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6), the last control a zero pad."""
@@ -117,31 +105,24 @@ class TrackingCost:
 
 def ours_solve(P, x_init, x_ref, iters, eps):
     """P solved by our controller: x (B, T+1, 4), u (B, T, 2)."""
-    B = len(P["x_init"])
-    params = (x_ref, P["u_ref"], P["Q"].expand(B, 4), P["R"].expand(B, 2))
-    bounds = (P["lo"], P["hi"])
-    x, u, _ = ilqr_solve(
-        TrackingCost(), Unicycle(0.5), x_init, P["u_init"], params, *bounds, iters=iters, tol=eps
-    )
-    return x, u
+    params = (x_ref, P["u_ref"], P["Q"].expand(len(x_init), 4), P["R"].expand(len(x_init), 2))
+    solve = functools.partial(ilqr_solve, iters=iters, tol=eps)
+    return solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], params, P["lo"], P["hi"])[:2]
 
 
 def solver_runs(P, solve, iters, eps):
-    """(forward, backward): a solve with x_init and x_ref requiring grad; the backward of the final
-    positions' sum (the gradient crosses every step) on one prebuilt graph."""
+    """(forward, backward): a solve, x_init and x_ref requiring grad; the final positions' sum's
+    backward (crossing every step) on one prebuilt graph."""
     x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
     loss = solve(P, x_init, x_ref, iters, eps)[0][:, -1, :2].sum()
     return (lambda: solve(P, x_init, x_ref, iters, eps)), (lambda: loss.backward(retain_graph=True))
 
 
 # ---- 3. Our modules ----------------------------------------------------------------------------
-
-
 def bench_controller(B, dtype, reps, threads, device, key="", iters=5, tol=0.01) -> list:
     """iLQR forward and KKT backward on the tracking problems."""
-    forward, backward = solver_runs(
-        tracking_problem(B, dtype=dtype, device=device), ours_solve, iters, tol
-    )
+    P = tracking_problem(B, dtype=dtype, device=device)
+    forward, backward = solver_runs(P, ours_solve, iters, tol)
     dt = str(dtype).replace("torch.float", "f")
     fns = {
         f"ilqr_forward_{dt}{key}": (f"iLQR forward ({iters} iterations, tol {tol})", forward),
@@ -151,11 +132,9 @@ def bench_controller(B, dtype, reps, threads, device, key="", iters=5, tol=0.01)
 
 
 def bench_modules(batch, cfg: Config, reps, threads) -> list:
-    """The planner's candidates; the predictor's training iteration (forward with q(z|x,y), InfoVAE
-    loss, backward, Adam step) and eval forward; a DiffStack training step (RL) as train_stack takes
-    it and the scene plan it reuses. The step's parts are perf_counter laps over its
-    runs but the first (first-call allocations): predict (a forward hook), plan (to
-    diffstack.ilqr_solve, wrapped), control, backward (on a GPU: times to launch, not to finish)."""
+    """Candidates; the predictor's training iteration (q(z|x,y), InfoVAE loss, backward, Adam) and
+    eval forward; a DiffStack training step (RL) as train_stack takes it, the scene plan it reuses,
+    its parts as laps (but the first run's): predict, plan, control, backward (GPU: launch)."""
     torch.manual_seed(0)
     model = Predictor(cfg).to(batch.agent_hist.device, batch.agent_hist.dtype)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -176,8 +155,7 @@ def bench_modules(batch, cfg: Config, reps, threads) -> list:
 
     torch.manual_seed(0)
     stack = Predictor(cfg).to(batch.agent_hist.device)
-    method = Method("DiffStack", losses=(1, 1, 1))
-    a1, a2, a3 = alphas(method, "rl", cfg)
+    a1, a2, a3 = alphas(DIFFSTACK, "rl", cfg)
     scene, solve, laps = scene_plan(batch, cfg), diffstack.ilqr_solve, []
     scene_cost = functools.partial(scene_plan, batch, cfg)
 
@@ -188,14 +166,10 @@ def bench_modules(batch, cfg: Config, reps, threads) -> list:
             clock.append(time.perf_counter())
             t[name] = clock[-1] - clock[-2]
 
-        def timed_solve(*args, **kw):
-            lap("plan")
-            return solve(*args, **kw)
-
         hook = stack.register_forward_hook(lambda *_: lap("predict"))
-        diffstack.ilqr_solve = timed_solve
+        diffstack.ilqr_solve = lambda *a, **kw: lap("plan") or solve(*a, **kw)
         try:
-            out = run_stack(batch, stack, method, cfg, "rl", step=0, train=True, scene=scene)
+            out = run_stack(batch, stack, DIFFSTACK, cfg, "rl", step=0, train=True, scene=scene)
         finally:
             diffstack.ilqr_solve = solve
             hook.remove()
@@ -225,21 +199,7 @@ def bench_modules(batch, cfg: Config, reps, threads) -> list:
     return rows
 
 
-def bench_closed_loop(scenes, cfg: Config, n=100, sim_time=10.0, reps=3) -> list:
-    """Log replay of n scenes with each stack of Table 5, one thread (the predictor untrained)."""
-    scenes = closed_loop_scenes(scenes, cfg, sim_time)[:n]
-    torch.manual_seed(0)
-    model, fns = Predictor(cfg), {}
-    for m in CLOSED_LOOP_METHODS:
-        policy = stack_policy(model if m.predictor == "learned" else None, m, cfg)
-        name = f"closed loop, {m.name} ({len(scenes)} scenes x {sim_time:g} s)"
-        replay = functools.partial(simulate, scenes, policy, cfg, sim_time)
-        fns["closed_loop_" + m.name.lower().replace(" ", "_")] = (name, replay)
-    return timed(fns, reps, 1)[0]
-
-
 # ---- 4. The peer: mpc.pytorch (`mpc` 0.0.6), side by side ------------------------------------
-
 PEER_VENV = "python3 -m venv /tmp/peers && /tmp/peers/bin/pip install -r requirements.txt"
 MPC_QUIET = dict(exit_unconverged=False, verbose=-1)  # mpc.pytorch: no assert, no printing
 
@@ -270,11 +230,9 @@ class UnicycleDx(torch.nn.Module):
 
 def mpc_solve(P, x_init, x_ref, iters, eps):
     """One mpc.MPC solve with our solver's settings (line search: its decay 1/5, 5 steps): x
-    (B, T+1, 4), u (B, T, 2). Its horizon is T+1 stages tau_t = (x_t, u_t), each costing
-    1/2 tau' C tau + c' tau (the constant left out); the last control, idle, has reference 0 (it
-    stays 0 and costs nothing). Time-major inside."""
-    from mpc import mpc as mpc_lib
-
+    (B, T+1, 4), u (B, T, 2). Time-major, T+1 stages tau_t = (x_t, u_t) costing 1/2 tau' C tau +
+    c' tau (less the constant); the last control, idle, has reference 0 (stays 0, costs nothing)."""
+    mpc_lib = importlib.import_module("mpc.mpc")
     B, T1, _ = x_ref.shape
     C = torch.diag(torch.cat([P["Q"], P["R"]])).expand(T1, B, 6, 6)
     c = torch.cat([-P["Q"] * x_ref, -P["R"] * F.pad(P["u_ref"], (0, 0, 0, 1))], -1)
@@ -287,10 +245,8 @@ def mpc_solve(P, x_init, x_ref, iters, eps):
 
 
 def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
-    """Ours against mpc.pytorch on tracking_problem(B), float64, box controls, the same initial
-    controls and settings, forward and backward (solver_runs) taking turns; the speed-up (its time
-    over ours) in the note of ours; speedup: at 5 iterations, the fewest threads (None without
-    mpc)."""
+    """Ours against mpc.pytorch on tracking_problem(B), float64, same settings, fwd and bwd taking
+    turns; the speed-up (its time / ours) in our note; speedup: 5 iterations, fewest threads."""
     if import_peer("comparison (speedup_vs_mpc_pytorch: null)") is None:
         return None
     P, rows, speedups = tracking_problem(B), [], []
@@ -299,8 +255,7 @@ def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
         for nt, (iters, eps) in itertools.product(sorted(threads), ((5, 0.01), (10, 1e-3))):
             fns = {}
             for who, solve in (("mpc", mpc_solve), ("ours", ours_solve)):
-                fwd, bwd = solver_runs(P, solve, iters, eps)
-                for part, f in (("fwd", fwd), ("bwd", bwd)):
+                for part, f in zip(("fwd", "bwd"), solver_runs(P, solve, iters, eps)):
                     name = f"{who} {part}, {iters} iterations, tol {eps}"
                     fns[f"{who}_{part}_{iters}it"] = (name, f)
             r, m = timed(fns, reps, nt, "f64", B)
@@ -313,11 +268,8 @@ def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
 
 
 # ---- 5. The bounded LQR of FreyJo/differentiable_nmpc (Table 1 of its README) -------------------
-# 128 problems of one affine system x' = A x + B u + b (8 states, 4 controls), horizon 20, stage
-# cost 1/2 tau_t' H tau_t (tau_t = (x_t, u_t), H = I), |u| <= umax, from zero controls; the loss:
-# the sum of the first controls, its gradient wrt A, B, b and H. mpc.pytorch's 21st control is
-# idle; ours costs x_N by H's state block: the same problem, checked against scipy's solution.
-
+# 128 problems x' = A x + B u + b (8 states, 4 controls, horizon 20), stage cost 1/2 tau' H tau,
+# |u| <= umax; loss sum u_0. mpc.pytorch's u_20 is idle, ours costs x_20 by H: the same problem.
 LQR_UMAX = (1e4, 1.0)  # the two configurations, in the order the reference script draws them
 LQR_N, LQR_NX, LQR_NU, LQR_BATCH = 20, 8, 4, 128
 LQR_SETTINGS = {  # ours at ilqr's defaults; run until the step is below 1e-6; and with a finer
@@ -336,16 +288,14 @@ LQR_PUBLISHED = (  # the README's rows (mpc.pytorch's: its multiples of acados' 
 def bounded_lqr_problem(umax: float, batch=LQR_BATCH, seed=42, horizon=LQR_N) -> dict:
     """The problems for umax as the script draws them: A, B, b, then x0 twice (its timing run, its
     sensitivity run: ours) for umax 1e4, then again for 1.0; zero initial controls."""
+    if umax not in LQR_UMAX:
+        raise ValueError(f"umax: {umax} is none of the benchmark's {LQR_UMAX}")
     rng = np.random.RandomState(seed)
-    for drawn in LQR_UMAX:
+    for _ in LQR_UMAX[: LQR_UMAX.index(umax) + 1]:  # the draws up to umax's
         A = np.eye(LQR_NX) + 0.2 * rng.randn(LQR_NX, LQR_NX)
         B, b = rng.randn(LQR_NX, LQR_NU), rng.randn(LQR_NX)
         rng.randn(batch, LQR_NX)  # the timing run's x0
         x0 = rng.randn(batch, LQR_NX)
-        if drawn == umax:
-            break
-    else:
-        raise ValueError(f"umax: {umax} is none of the benchmark's {LQR_UMAX}")
     P = dict(A=A, B=B, b=b, H=np.eye(LQR_NX + LQR_NU), x_init=x0, lo=-umax * np.ones(LQR_NU))
     P = dict(P, hi=-P["lo"], u_init=np.zeros((batch, horizon, LQR_NU)))
     return {k: torch.tensor(v, dtype=torch.float64) for k, v in P.items()}
@@ -392,12 +342,7 @@ def costates(g_x, A):
 class AffineLQR(torch.autograd.Function):
     """diffstack.ilqr on the bounded LQR, differentiable in x_init, A, B, b and H: the KKT backward
     of diffstack.py §5 (same active set held, same LQR), plus the dynamics' gradients from the
-    costates (Amos et al. 2018, eq. 8): with lambda the forward problem's costates and (dx, du,
-    dlambda) the backward LQR's solution and costates,
-        dL/dA = sum_t dlambda_{t+1} x_t' + lambda_{t+1} dx_t'
-        dL/dB = sum_t dlambda_{t+1} u_t' + lambda_{t+1} du_t'
-        dL/db = sum_t dlambda_{t+1}
-    Scenarios that did not converge pass no gradient, as in diffstack."""
+    costates (Amos et al. 2018, eq. 8). Unconverged scenarios pass no gradient, as in diffstack."""
 
     @staticmethod
     def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
@@ -428,7 +373,9 @@ class AffineLQR(torch.autograd.Function):
         lam = costates(g[..., :n], A_t)[:, 1:]  # (B, N, n): lambda_1 .. lambda_N
         dlam = costates(((Hz @ d[..., None])[..., 0] + rhs)[..., :n], A_t)[:, 1:]
         (grad_H,) = diffstack.params_gradients(cost, x, u, (H.detach().requires_grad_(),), dx, du)
-        # the gradients wrt the dynamics (above), summed over the batch and the steps
+        # lambda, dlambda: the forward problem's and the backward LQR's costates; summed over b, t:
+        # dL/dA = sum_t dlambda_{t+1} x_t' + lambda_{t+1} dx_t',  dL/db = sum_t dlambda_{t+1}
+        # dL/dB = sum_t dlambda_{t+1} u_t' + lambda_{t+1} du_t'
         outer = functools.partial(torch.einsum, "bti,btj->ij")
         grad_A = outer(dlam, x[:, :-1]) + outer(lam, dx[:, :-1])
         grad_B = outer(dlam, u) + outer(lam, du)
@@ -451,18 +398,16 @@ def condensed_qp(P) -> tuple:
 
 def kkt_residual(u, M, q, lo, hi):
     """How far controls u (batch, N, m) are from the box QP's solution: the largest move of a
-    projected coordinate-Newton step |U - clamp(U - (M U + q) / diag M)| -> (batch,). Scaled by
-    diag M: the unstable system makes the gradient wrt u_0 some 1e5 times that wrt u_19."""
+    projected coordinate-Newton step |U - clamp(U - (M U + q) / diag M)| -> (batch,)."""
     U = u.reshape(len(u), -1)
-    grad = U @ M + q  # (batch, N m); M is symmetric
+    grad = U @ M + q  # (batch, N m), M symmetric; by diag M as d/du_0 is ~1e5 d/du_19 here
     lo, hi = lo.repeat(u.shape[1]), hi.repeat(u.shape[1])
     return (U - (U - grad / M.diagonal()).clamp(lo, hi)).abs().amax(-1)
 
 
 def reference_controls(M, q, lo, hi) -> torch.Tensor:
-    """The box QP solved another way: scipy's bounded-variable least squares (lsq_linear 'bvls',
-    active-set, ending at the exact solution) on 1/2 ||L'U + L^-1 q||^2, M = L L'; its default cap
-    of N m iterations stops it short on some problems here."""
+    """The box QP solved another way: scipy's bounded-variable least squares (active-set, exact) on
+    1/2 ||L'U + L^-1 q||^2, M = L L' (its default cap of N m iterations stops it short here)."""
     L = scipy.linalg.cholesky(M.numpy(), lower=True)
     N = len(M) // len(lo)
     bounds = (lo.repeat(N).numpy(), hi.repeat(N).numpy())
@@ -491,9 +436,8 @@ def ours_lqr(P, settings, grad=False):
 
 def mpc_lqr(P, grad=False, **settings):
     """mpc.pytorch's solve: x, u (21st control idle), iterations (LQR passes but the last)."""
-    from mpc import mpc as mpc_lib
-    from mpc.dynamics import AffineDynamics
-
+    mpc_lib = importlib.import_module("mpc.mpc")
+    AffineDynamics = importlib.import_module("mpc.dynamics").AffineDynamics
     B, T1 = len(P["x_init"]), LQR_N + 1
     x_init, *dynamics, H = args = lqr_args(P, grad)
     lo, hi = (P[k].expand(T1, B, LQR_NU).contiguous() for k in ("lo", "hi"))
@@ -507,41 +451,33 @@ def mpc_lqr(P, grad=False, **settings):
     return x.transpose(0, 1), u.transpose(0, 1), len(passes) - 1, args
 
 
-def lqr_check(solve, P, M, q, ref) -> tuple[dict, torch.Tensor]:
-    """An untimed solve: iterations, problems converged, distance to u*; grad of sum u_0 (248,)."""
-    _, u, iters, args = solve(P, grad=True)
-    u = u[:, :LQR_N]  # mpc.pytorch's idle 21st control dropped
-    u[:, 0].sum().backward()
-    iters = torch.as_tensor(iters).double()
-    converged = int((kkt_residual(u.detach(), M, q, P["lo"], P["hi"]) < LQR_CONVERGED).sum())
-    check = dict(iterations_median=iters.median().item(), iterations_max=iters.max().item())
-    check.update(converged=converged, max_du=(u.detach() - ref).abs().max().item())
-    return check, torch.cat([a.grad.flatten() for a in args[1:]])
-
-
-def lqr_forward_backward(solve, P):
-    """A solve and the gradient of sum u_0: the published "solution + adjoint sensitivities"."""
-    solve(P, grad=True)[1][:, 0].sum().backward()
-
-
 def bounded_lqr_at(umax, batch, reps, solvers) -> tuple[list, list, dict]:
-    """Every solver {name: (settings, solve)} at umax checked, then timed: rows, entries, grads."""
+    """Every solver {name: (settings, solve)} at umax checked by an untimed solve (iterations,
+    converged, distance to u*, d sum u_0 / d(A, B, b, H)), then timed: rows, entries, gradients."""
     P = bounded_lqr_problem(umax, batch)
     M, q = condensed_qp(P)
     ref = reference_controls(M, q, P["lo"], P["hi"])
     fns, notes, entries, grads = {}, {}, {}, {}
     for n, (s, f) in solvers.items():
-        check, grads[n] = lqr_check(f, P, M, q, ref)
+        _, u, iters, args = f(P, grad=True)
+        u = u[:, :LQR_N]  # mpc.pytorch's idle 21st control dropped
+        u[:, 0].sum().backward()
+        grads[n] = torch.cat([a.grad.flatten() for a in args[1:]])
+        iters = torch.as_tensor(iters).double()
+        med, most = iters.median().item(), iters.max().item()
+        converged = int((kkt_residual(u.detach(), M, q, P["lo"], P["hi"]) < LQR_CONVERGED).sum())
         key = "lqr_" + n.replace(".", "_").replace(", ", "_") + f"_umax{umax:g}"
-        entries[key] = dict(solver=n, settings=s, **check, umax=umax, batch=batch)
+        e = dict(solver=n, settings=s, iterations_median=med, iterations_max=most)
+        e.update(converged=converged, max_du=(u.detach() - ref).abs().max().item())
+        entries[key] = dict(e, umax=umax, batch=batch)
         what = f"bounded LQR umax {umax:g}: {n} forward"
         fns[key + "_fwd"] = (what, functools.partial(f, P))
-        fns[key + "_fwd_bwd"] = (
-            f"{what} + backward",
-            functools.partial(lqr_forward_backward, f, P),
-        )
-        its = f"{check['iterations_median']:g} / {check['iterations_max']:g}"
-        notes[key + "_fwd"] = f"iterations {its}, converged {check['converged']} / {batch}"
+
+        def with_grad(f=f):  # and the gradient of sum u_0: "solution + adjoint sensitivities"
+            f(P, grad=True)[1][:, 0].sum().backward()
+
+        fns[key + "_fwd_bwd"] = (f"{what} + backward", with_grad)
+        notes[key + "_fwd"] = f"iterations {med:g} / {most:g}, converged {converged} / {batch}"
     rows, m = timed(fns, reps, 1, "f64", batch, notes)
     for key, e in entries.items():
         fwd, both = m[key + "_fwd"].median, m[key + "_fwd_bwd"].median
@@ -551,8 +487,8 @@ def bounded_lqr_at(umax, batch, reps, solvers) -> tuple[list, list, dict]:
 
 
 def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
-    """The bounded LQR at one thread (as it leaves torch), the published size (--quick: B, 20
-    iterations at most); gradients compared where both converged on every problem."""
+    """The bounded LQR at one thread (as it leaves torch), the published size (--quick: B, at most
+    20 iterations): figures, verdict, doc (its JSON); gradients compared where all converged."""
     batch, cap = (B, 20) if quick else (LQR_BATCH, 10**9)
     solvers = {}
     for k, s in LQR_SETTINGS.items():
@@ -563,43 +499,42 @@ def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
         solvers["mpc.pytorch"] = (s, functools.partial(mpc_lqr, **s))
     torch.set_num_threads(1)
     rows, table, gradient = [], [], {}
+    verdict = f"bounded LQR: converged = no control moves by more than {LQR_CONVERGED:g}"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # mpc 0.0.6 uses deprecated torch APIs
         for umax in LQR_UMAX:
             r, entries, grads = bounded_lqr_at(umax, batch, min(reps, 3), solvers)
             rows, table = rows + r, table + entries
             if "mpc.pytorch" in grads:
-                conv = {e["solver"]: e["converged"] for e in entries}
-                conv = [conv["diffstack, tight"], conv["mpc.pytorch"]]
+                conv = [
+                    e["converged"]
+                    for e in entries
+                    if e["solver"] in ("diffstack, tight", "mpc.pytorch")
+                ]
                 ours, mpc = grads["diffstack, tight"], grads["mpc.pytorch"]
                 rel = ((ours - mpc).norm() / mpc.norm()).item() if conv == [batch] * 2 else None
                 gradient[f"{umax:g}"] = dict(relative_difference=rel, converged=conv)
-    verdict = f"bounded LQR: converged = no control moves by more than {LQR_CONVERGED:g}"
-    for umax, g in gradient.items():
-        rel = g["relative_difference"]
-        rel = "n/a (not all converged)" if rel is None else f"{rel:.1e}"
-        verdict += f"; umax {umax}: gradient vs mpc.pytorch's, relative difference {rel}"
-    verdict += f"\n{LQR_PUBLISHED}"
-    return dict(figures=rows, table=table, gradient_vs_mpc=gradient, verdict=verdict)
+                rel = "n/a (not all converged)" if rel is None else f"{rel:.1e}"
+                verdict += f"; umax {umax:g}: gradient vs mpc.pytorch's, relative difference {rel}"
+    doc = dict(table=table, gradient_vs_mpc=gradient)
+    return dict(figures=rows, verdict=f"{verdict}\n{LQR_PUBLISHED}", doc=doc)
 
 
 # ---- 6. Running: the table, the JSON file, the command line -------------------------------------
-
-
-def print_results(title: str, rows, verdicts) -> None:
-    """The figures as one markdown table under a title, then the comparisons' verdicts."""
+def print_results(title: str, rows, peers=()) -> None:
+    """Our figures and the peers' as one markdown table under a title, then the peers' verdicts."""
     lines = []
-    for r in rows:
+    for r in rows + [r for p in peers for r in p["figures"]]:
         med, iqr = (f"{v:.1f}" if v < 100 else f"{v:.0f}" for v in (r["median_ms"], r["iqr_ms"]))
         first = [r["benchmark"], "" if r["batch"] is None else str(r["batch"]), r["dtype"]]
         lines.append(first + [str(r["threads"]), med, iqr, str(r["runs"]), r["note"]])
     head = ["benchmark", "B", "dtype", "threads", "median (ms)", "IQR (ms)", "runs", "note"]
     print(f"\n{title}; median and IQR (ms) of the timed runs\n{markdown_table(head, lines)}")
-    print("\n".join(verdicts))
+    print(*(p["verdict"] for p in peers), sep="\n")
 
 
-def bench_ours(threads, reps, B, quick, closed_loop, device) -> tuple[list, float]:
-    """Our modules: the rows, and what one more problem costs the controller (ms, the slope)."""
+def run(threads=(1, 2), reps=5, B=256, quick=False, closed_loop=True, device=torch.device("cpu")):
+    """Every benchmark -> the JSON document; off the CPU, without the closed loop and the peers."""
     if quick:  # a small dataset in memory: nothing written to the cache
         data = data_synth.make_dataset(max(2 * B, 64), seed=0)
     else:
@@ -611,22 +546,24 @@ def bench_ours(threads, reps, B, quick, closed_loop, device) -> tuple[list, floa
         for dtype in (torch.float64, torch.float32):
             rows += bench_controller(B, dtype, reps, nt, device)
         rows += bench_modules(batch, cfg, reps, nt)
-    total = {}
+    total = {}  # what one more problem costs the controller (ms, the slope)
     for b in (B, 2 * B) if quick else (1024, 4096):
         rows += bench_controller(b, torch.float64, min(reps, 3), 1, device, f"_B{b}")
         total[b] = rows[-2]["median_ms"] + rows[-1]["median_ms"]
-    if closed_loop and device.type == "cpu":
+    if closed_loop and device.type == "cpu":  # log replay with each stack of Table 5, one thread
         n, sim_time, cl_reps = (2, 2.0, 1) if quick else (100, 10.0, min(reps, 3))
         if not quick:
             data = data_synth.load_or_generate(10000, seed=0, cache_dir=DATA_CACHE)
-        rows += bench_closed_loop(data.val_scenes, cfg, n, sim_time, cl_reps)
+        scenes = closed_loop_scenes(data.val_scenes, cfg, sim_time)[:n]
+        torch.manual_seed(0)
+        model, fns = Predictor(cfg), {}  # untrained
+        for m in CLOSED_LOOP_METHODS:
+            policy = stack_policy(model if m.predictor == "learned" else None, m, cfg)
+            name = f"closed loop, {m.name} ({len(scenes)} scenes x {sim_time:g} s)"
+            replay = functools.partial(simulate, scenes, policy, cfg, sim_time)
+            fns["closed_loop_" + m.name.lower().replace(" ", "_")] = (name, replay)
+        rows += timed(fns, cl_reps, 1)[0]
     (lo, t_lo), (hi, t_hi) = total.items()
-    return rows, (t_hi - t_lo) / (hi - lo)
-
-
-def run(threads=(1, 2), reps=5, B=256, quick=False, closed_loop=True, device=torch.device("cpu")):
-    """Every benchmark -> the JSON document; off the CPU, without the closed loop and the peers."""
-    rows, per_problem = bench_ours(threads, reps, B, quick, closed_loop, device)
     mpc = lqr = None
     if device.type == "cpu":
         mpc = compare_mpc(B, threads, reps)
@@ -635,45 +572,56 @@ def run(threads=(1, 2), reps=5, B=256, quick=False, closed_loop=True, device=tor
         print(f"--device {device}: the closed loop and mpc.pytorch (CPU only) are left out")
     peers, meta = [p for p in (mpc, lqr) if p], run_meta(threads, reps, B, quick, device)
     title = f"DiffStack benchmarks on {meta['device_name']}, B = {B}, torch {torch.__version__}"
-    print_results(
-        title, rows + [r for p in peers for r in p["figures"]], [p["verdict"] for p in peers]
-    )
+    print_results(title, rows, peers)
     step = [r["median_ms"] for r in rows if r["key"] == "stack_step" and r["threads"] == 1]
     return dict(
         stack_step_ms_1thread=(step or [None])[0],  # None when --threads leaves out 1
         speedup_vs_mpc_pytorch=mpc and mpc["speedup"],
-        controller_ms_per_problem=per_problem,
+        controller_ms_per_problem=(t_hi - t_lo) / (hi - lo),
         meta=meta,
         figures=rows + (lqr["figures"] if lqr else []),
-        mpc_pytorch=mpc and pick(mpc, "figures"),
-        bounded_lqr=lqr and pick(lqr, "table", "gradient_vs_mpc"),
+        mpc_pytorch=mpc and {"figures": mpc["figures"]},
+        bounded_lqr=lqr and lqr["doc"],
     )
-
-
-def pick(d: dict, *keys) -> dict:
-    return {k: d[k] for k in keys}
 
 
 def run_meta(threads, reps, batch, quick, device) -> dict:
     """Where and how the figures were taken."""
-    name = (
-        f"{device}, {torch.cuda.get_device_name(device)}" if device.type == "cuda" else str(device)
-    )
+    gpu = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
     where = dict(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine(), cores=os.cpu_count())
     how = dict(threads=list(threads), reps=reps, batch=batch, quick=quick, device=str(device))
-    return dict(where, torch=torch.__version__, **how, device_name=name)
+    return dict(where, torch=torch.__version__, **how, device_name=f"{device}{gpu}")
 
 
-def parser() -> argparse.ArgumentParser:
+def check_args(args) -> None:
+    """Before the minutes of work, ValueError naming the argument: a device without float64, a
+    --json path that is a folder, no file can take, or holds a file this command did not make."""
+    if args.device.type == "mps":
+        raise ValueError("argument --device: mps has no float64, which the solvers here use")
+    if args.json is None:
+        return
+    if args.json.is_dir():
+        raise ValueError(f"argument --json: {args.json} is a folder, expected a file path")
+    if args.json.exists() and not args.overwrite:
+        command = ""  # this command's (or bench.py's, before the move into lab/)
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            command = str(load_json(args.json, "--json")["meta"]["command"])
+        if not command.startswith(("python -m lab.bench", "python bench.py")):
+            raise ValueError(
+                f"argument --json: {args.json} exists and is no lab.bench result; to keep it, "
+                "name another file; to replace it, add --overwrite"
+            )
+    check_writable(args.json.parent, "argument --json")
+
+
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser("python -m lab.bench", description=__doc__.split(" (")[0])
-    count = functools.partial(bounded, int, 1)
+    n = functools.partial(bounded, int, 1)
     threads = "torch thread counts (default 1 2)"
-    ap.add_argument(
-        "--threads", type=count(256, "--threads"), nargs="+", default=[1, 2], help=threads
-    )
+    ap.add_argument("--threads", type=n(256, "--threads"), nargs="+", default=[1, 2], help=threads)
     reps = "timed runs per figure (default 5; closed loop at most 3; --quick 2)"
-    ap.add_argument("--reps", type=count(10_000, "--reps"), help=reps)
-    ap.add_argument("--batch", type=count(10**6, "--batch"), help="B (default 256; --quick 16)")
+    ap.add_argument("--reps", type=n(10_000, "--reps"), help=reps)
+    ap.add_argument("--batch", type=n(10**6, "--batch"), help="B (default 256; --quick 16)")
     ap.add_argument("--json", type=pathlib.Path, help="also write every figure to this JSON file")
     ap.add_argument("--skip-closed-loop", action="store_true", help="leave out the closed loop")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and reps: under a minute")
@@ -681,57 +629,21 @@ def parser() -> argparse.ArgumentParser:
     add_shared_options(
         ap,
         overwrite="let --json replace a file that is not an earlier result of this command",
-        device="where our modules run (cpu, cuda, cuda:N); elsewhere than the CPU the closed "
-        "loop and mpc.pytorch are left out",
+        device="where our modules run (cpu, cuda, cuda:N); elsewhere without closed loop and peers",
     )
-    return ap
-
-
-def bench_result(path) -> bool:
-    """Whether path holds what --json writes (now, or as bench.py before the move into lab/)."""
-    try:
-        command = str(load_json(path, "--json")["meta"]["command"])
-    except (ValueError, KeyError, TypeError):
-        return False
-    return command.startswith(("python -m lab.bench", "python bench.py"))
-
-
-def check_args(ap, args) -> None:
-    """Before the minutes of work: a device without float64; a --json path that is a folder, no
-    file can take, or holds a file this command did not make."""
-    if args.device.type == "mps":
-        ap.error("argument --device: mps has no float64, which the controller's benchmarks use")
-    if args.json is not None and args.json.is_dir():
-        ap.error(f"argument --json: {args.json} is a folder, expected a file path")
-    if args.json is not None and args.json.exists() and not args.overwrite:
-        if not bench_result(args.json):
-            ap.error(
-                f"argument --json: {args.json} exists and is no lab.bench result; to keep it, "
-                "name another file; to replace it, add --overwrite"
-            )
-    try:
-        if args.json is not None:
-            check_writable(args.json.parent, "--json")
-    except ValueError as e:
-        ap.error(f"argument {e}")
-
-
-def main(argv=None) -> dict:
-    ap = parser()
     args = ap.parse_args(argv)
-    check_args(ap, args)
     reps = args.reps or (QUICK["reps"] if args.quick else 5)
     B = args.batch or (QUICK["batch"] if args.quick else 256)
     before = torch.get_num_threads()
     try:  # the project's errors and a file's (the data cache, --json) as one line
         with one_line(ap):
+            check_args(args)
             if args.bounded_lqr:
                 lqr = compare_bounded_lqr(B, reps, args.quick)
-                print_results("Bounded LQR", lqr["figures"], [lqr["verdict"]])
-                batch, figures = lqr["table"][0]["batch"], lqr["figures"]
+                print_results("Bounded LQR", [], [lqr])
+                batch = B if args.quick else LQR_BATCH
                 meta = run_meta([1], min(reps, 3), batch, args.quick, args.device)
-                doc = dict(bounded_lqr=pick(lqr, "table", "gradient_vs_mpc"), figures=figures)
-                doc["meta"] = meta
+                doc = dict(bounded_lqr=lqr["doc"], figures=lqr["figures"], meta=meta)
             else:
                 threads = list(dict.fromkeys(args.threads))  # in the order given, once each
                 doc = run(threads, reps, B, args.quick, not args.skip_closed_loop, args.device)
