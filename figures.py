@@ -12,11 +12,13 @@ import numpy as np
 import torch
 
 import data_synth
-from lab.runs import write_file_atomic
 from diffstack import COST_TERMS, Config, Prediction, StackOutput, masked_argmin, run_stack
 from specs import COST_LABELS
-from lab.stats import mean_se
 from train import GT_PREDICTION, NO_PREDICTION, Method, evaluate_stack, to_device
+
+# hand-over to the lab: figures written whole (lab/runs.py), mean and s.e. (lab/stats.py)
+from lab.runs import write_file_atomic
+from lab.stats import mean_se
 
 # one colour per method in every figure
 COLORS = {

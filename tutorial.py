@@ -89,11 +89,13 @@ from IPython.display import Image, Markdown, display
 
 import course
 import data_synth
-from lab.nuscenes import load_nuscenes, write_nuscenes
 import diffstack as ds
 import experiments as xp
 import figures
 import train as tr
+
+# from the lab: the nuScenes format, the shipped predictors, the tables' text
+from lab.nuscenes import load_nuscenes, write_nuscenes
 from lab.quick import load_pretrained
 from lab.report import open_loop_table, results_markdown
 from lab.stats import markdown_table
