@@ -10,6 +10,7 @@ import torch
 
 from lab import waymo
 import data_synth
+from diffstack import COST_TERMS
 from lab.cli import machine
 from lab.runs import write_atomic
 from specs import CLOSE, SPECS, Claim, TableSpec, open_loop_columns
@@ -136,7 +137,7 @@ def goal_markdown(results: dict) -> str:
     head += ["control effort", "GT prediction: collision"]
     head += [f"within {CLOSE:g} m of the vehicle (No prediction / GT)"]
     head += ["GT minus No prediction (x1e-2)", "share of GT's saving"]
-    parts = []
+    parts, i_coll = [], COST_TERMS.index("coll")
     for goal, rows in results.items():
         none, gt = rows["No prediction"][0], rows["GT prediction"][0]
         saved_all = (gt["hindsight"] - none["hindsight"]) * none["n"]
@@ -144,7 +145,8 @@ def goal_markdown(results: dict) -> str:
         for b in [b for b in data_synth.BEHAVIOURS if b in none["by_behaviour"]]:
             a, g = none["by_behaviour"][b], gt["by_behaviour"][b]
             saved = g["hindsight"] - a["hindsight"]
-            costs = [a["hindsight"], a["terms"][0], a["terms"][1], a["terms"][4], g["terms"][0]]
+            of = dict(zip(COST_TERMS, a["terms"]))  # eq. (3)'s terms, by name
+            costs = [a["hindsight"], of["coll"], of["goal"], of["ctrl"], g["terms"][i_coll]]
             close = f"{100 * a['close']:.0f} % / {100 * g['close']:.0f} %"
             share = f"{saved * a['n'] / saved_all:.2f}" if saved_all else "--"
             gain = f"{saved / 1e-2:+.2f}"
