@@ -1049,3 +1049,21 @@ def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, 
     (folder / "provenance.json").write_text(json.dumps(prov))
     with pytest.raises(ValueError, match=r"provenance.json: not a provenance file .*sha256"):
         lq.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing", "edited"])
+def test_a_pieces_tensors_and_fields_are_checked_before_they_are_trusted(damage, tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = lt.Piece("Standard", 0, None)
+    store.save("rl", piece, {"ade": 1.0, "hindsight": 2.0}, extra={"x": torch.ones(3)})
+    path, pt = store.path("rl", piece), store.path("rl", piece).with_suffix(".pt")
+    assert store.has("rl", piece) and store.load("rl", piece)[0]["hindsight"] == 2.0
+    if damage == "truncated":
+        pt.write_bytes(pt.read_bytes()[:40])
+    elif damage == "missing":
+        pt.unlink()
+    else:  # the JSON edited to another shape
+        path.write_text(path.read_text().replace('"hindsight"', '"other"'))
+    assert not store.has("rl", piece)  # set aside, computed again
+    assert f"{path}: not a finished piece" in capsys.readouterr().err
+    assert path.with_suffix(".corrupt").exists() and not path.exists() and not pt.exists()
