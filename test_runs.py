@@ -1067,3 +1067,24 @@ def test_a_pieces_tensors_and_fields_are_checked_before_they_are_trusted(damage,
     assert not store.has("rl", piece)  # set aside, computed again
     assert f"{path}: not a finished piece" in capsys.readouterr().err
     assert path.with_suffix(".corrupt").exists() and not path.exists() and not pt.exists()
+
+
+def test_a_run_stopped_among_its_tables_files_is_resumed_by_the_same_command(
+    small, tmp_path, monkeypatch
+):
+    cfg, write = ds.Config(**TINY10), runs.write_atomic
+
+    def ctrl_c_after_the_json(path, text):
+        if str(path).endswith("il.md"):
+            raise KeyboardInterrupt
+        write(path, text)
+
+    monkeypatch.setattr(runs, "write_atomic", ctrl_c_after_the_json)
+    with pytest.raises(KeyboardInterrupt):
+        lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)
+    assert (tmp_path / "il.json").exists() and not (tmp_path / "il.md").exists()
+    monkeypatch.setattr(runs, "write_atomic", write)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)  # not refused
+    assert (tmp_path / "il.md").exists() and not (tmp_path / ".writing.json").exists()
+    with pytest.raises(runs.OutputRefused, match="exist and are kept"):  # now a finished run's
+        lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)
