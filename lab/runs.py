@@ -426,8 +426,15 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
     under a lock on the target (.<name>.lock beside it). files: those the writer makes, replaced
     only with overwrite; a folder holding any other file (but directly in `also`) is never replaced.
     who: the writer, for the messages."""
-    root = pathlib.Path(root)
-    with folder_lock(root.parent, f"{who} {root}", f".{root.name}.lock"):
+    root, real = pathlib.Path(root), pathlib.Path(root).resolve()  # (a symlink: its target)
+    with folder_lock(real.parent, f"{who} {root}", f".{real.name}.lock"):
+        for stale in real.parent.glob(f".{real.name}.old-*"):  # killed between its renames
+            if real.exists():
+                shutil.rmtree(stale)
+            else:
+                os.rename(stale, real)
+        for stale in real.parent.glob(f".{real.name}.writing-*"):  # a killed writer's
+            shutil.rmtree(stale)
         existing = [str(p) for p in files if p.exists()]
         if existing and not overwrite:
             raise FileExistsError(
@@ -442,21 +449,21 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
                 f"{who}: {foreign[0]} is no file of what it writes ({len(foreign)} such); {root} "
                 "is written whole, replacing what is in it: write elsewhere"
             )
-        for stale in root.parent.glob(f".{root.name}.writing-*"):  # a killed writer's
-            shutil.rmtree(stale)
-        tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
+        tmp = real.parent / f".{real.name}.writing-{os.getpid()}"
         try:
             write(tmp)
-            if root.is_dir() and any(root.iterdir()):  # aside, then the new one in, then away
-                old = root.parent / f".{root.name}.old-{os.getpid()}"
-                os.rename(root, old)
-                os.rename(tmp, root)
+            if real.is_dir() and any(real.iterdir()):  # aside, then the new one in, then away
+                old = real.parent / f".{real.name}.old-{os.getpid()}"
+                os.rename(real, old)
+                os.rename(tmp, real)
                 shutil.rmtree(old)
+            elif real == pathlib.Path.cwd():  # (`.`: filled, so that it stays the shell's folder)
+                for p in tmp.iterdir():
+                    os.rename(p, real / p.name)
             else:
-                os.rename(tmp, root)  # (onto an empty folder too)
-        except BaseException:
+                os.rename(tmp, real)  # (onto an empty folder too)
+        finally:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise
 
 
 @contextlib.contextmanager
