@@ -39,6 +39,7 @@ from lab import checks
 from lab import data as lab_data
 from lab import nuscenes, waymo
 from lab import tables as lt
+from conftest import cli_error
 
 FormatError = nuscenes.NuScenesFormatError
 TABLE_DIR = "v1.0-mini"
@@ -1637,3 +1638,16 @@ def test_write_nuscenes_onto_a_symlink_and_onto_dot(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path / "empty")
     nuscenes.write_nuscenes(scenes, ".")
     assert pathlib.Path("v1.0-mini").is_dir() and pathlib.Path.cwd() == tmp_path / "empty"
+
+
+def test_a_tampered_nuscenes_cache_is_refused_in_one_line(folder40, tmp_path):
+    path = nuscenes.nuscenes_cache_path(folder40, "v1.0-mini", tmp_path)
+    path.write_bytes(pickle.dumps(collections.Counter()))  # a pickle of what is not tensors
+    with pytest.raises(ValueError, match="not a readable data_synth nuScenes cache") as e:
+        nuscenes.load_nuscenes_cached(folder40, cache_dir=tmp_path, log=lambda s: None)
+    assert "\n" not in str(e.value) and "weights_only" not in str(e.value)
+
+
+def test_a_path_that_is_not_utf8_is_refused_by_name(capsys):
+    err = cli_error(lab_data.main, ["write-nuscenes", os.fsdecode(b"/tmp/n-\xff")], capsys)
+    assert "path: b'/tmp/n-\\xff' is not a UTF-8 name" in err

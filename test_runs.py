@@ -1088,3 +1088,36 @@ def test_a_run_stopped_among_its_tables_files_is_resumed_by_the_same_command(
     assert (tmp_path / "il.md").exists() and not (tmp_path / ".writing.json").exists()
     with pytest.raises(runs.OutputRefused, match="exist and are kept"):  # now a finished run's
         lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)
+
+
+def test_paths_that_are_not_utf8_and_lock_files_that_are_symlinks_are_refused(tmp_path):
+    bad = tmp_path / os.fsdecode(b"out-\xff")
+    with pytest.raises(runs.OutputRefused, match=r"not a UTF-8 name") as e:
+        lt.check_outputs(("il",), bad, False)
+    assert len(str(e.value).splitlines()) == 1 and not bad.exists()
+    (tmp_path / "victim").write_text("precious")
+    (tmp_path / "held").mkdir()
+    (tmp_path / "held" / ".lock").symlink_to(tmp_path / "victim")
+    with pytest.raises(runs.OutputRefused, match="cannot hold it"):
+        with runs.folder_lock(tmp_path / "held", "test"):
+            pass
+    assert (tmp_path / "victim").read_text() == "precious"
+
+
+def test_a_tuple_set_is_bounded_in_length():
+    with pytest.raises(ValueError, match="at most 64 values") as e:
+        cli.config_with(ds.Config(), ["plan_accels=" + ",".join(["1"] * 20000)])
+    assert len(str(e.value)) < 300
+
+
+def test_a_tampered_data_cache_is_refused_in_one_line_without_torchs_advice(tmp_path):
+    class Payload:
+        def __reduce__(self):
+            return (os.getcwd, ())
+
+    path = data_synth._cache_path(200, 0, data_synth.SynthConfig(), tmp_path)[0]
+    path.write_bytes(__import__("pickle").dumps(Payload()))
+    with pytest.raises(ValueError) as e:
+        lab_data.load_data(None, 200, 0, tmp_path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+    assert "weights_only" not in str(e.value) and "objects other than tensors" in str(e.value)

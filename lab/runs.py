@@ -415,7 +415,9 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
     try:
         if not ours:
             start = time.strftime("%Y-%m-%d %H:%M:%S")
-            path.write_text(json.dumps(dict(pid=os.getpid(), command=command, start=start)))
+            fd = os.open(path, os.O_WRONLY | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0))  # (held)
+            with open(fd, "w") as f:
+                f.write(json.dumps(dict(pid=os.getpid(), command=command, start=start)))
         yield
     finally:
         lock.release()
