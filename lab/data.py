@@ -111,9 +111,7 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
             data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
     except ValueError as e:  # (a cache holding objects other than tensors: never torch's advice)
         if isinstance(e.__cause__, pickle.UnpicklingError):
-            raise ValueError(
-                f"{made}: not a data cache (it holds objects other than tensors)"
-            ) from None
+            raise ValueError(f"{made}: not a data cache (objects other than tensors)") from None
         raise
     parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
     bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]

@@ -372,11 +372,8 @@ def ranks() -> tuple:
     env = set(os.environ)
     launched = "TORCHELASTIC_RUN_ID" in env or {"MASTER_ADDR", "MASTER_PORT"} <= env
     if (world != 1 or rank != 0) and not launched:
-        return (
-            0,
-            1,
-            f"{said} are set, but no launcher started this process: use torchrun or unset them",
-        )
+        why = f"{said} are set, but no launcher started this process: use torchrun or unset them"
+        return 0, 1, why
     if not 0 <= rank < world:
         return 0, 1, f"RANK={rank} is not below WORLD_SIZE={world}"
     return rank, world, None
