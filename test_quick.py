@@ -71,7 +71,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         "standard-seed1.pt",
     ]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
-    with pytest.raises(ValueError, match="--overwrite"):
+    with pytest.raises(FileExistsError, match="--overwrite"):
         lq.pretrain(
             out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
         )

@@ -803,6 +803,7 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     (tmp_path / "data_cache").write_text("a file where the cache folder should be")
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
     assert "data cache" in err
+    monkeypatch.setattr(lq, "CACHE", tmp_path / "data_cache")  # (beside the module otherwise)
     err = cli_error(lq.main, ["--quick"], capsys)
     assert "data cache" in err
 
@@ -930,7 +931,8 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
     assert (
         f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
     )
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lq, "PRETRAINED", tmp_path / "pretrained")
+    monkeypatch.setattr(lq, "CACHE", tmp_path / "data_cache")
     (tmp_path / "pretrained").mkdir()
     entry = {"method": "Standard", "seed": 0, "sha256": "0", "cpu_seconds": 1}
     prov = {
