@@ -3,6 +3,8 @@ their provenance, the verdicts, and diffstack.py's command line."""
 
 import pytest
 import dataclasses
+import json
+import pathlib
 import torch
 import diffstack as ds
 import experiments as ex
@@ -69,7 +71,7 @@ def test_pretrained_predictors_round_trip_and_refuse_what_does_not_fit(tmp_path)
         "standard-seed1.pt",
     ]
     assert about["threads"] == 1 and about["seeds"] == [0, 1]
-    with pytest.raises(ValueError, match="--overwrite"):
+    with pytest.raises(FileExistsError, match="--overwrite"):
         lq.pretrain(
             out, n=300, epochs=0.5, seeds=(0, 1), cfg=cfg, cache_dir=tmp_path, log=None, val=200
         )
@@ -200,7 +202,8 @@ def test_pretrain_refuses_to_replace_shipped_predictors_and_quick_names_a_broken
     """--pretrain never replaces pretrained/ without --overwrite (a one-line error before any data
     is made); a provenance file that is not one is an error naming it, not a traceback from inside
     json or torch."""
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lq, "PRETRAINED", tmp_path / "pretrained")
+    monkeypatch.setattr(lq, "CACHE", tmp_path / "data_cache")
     (tmp_path / "pretrained").mkdir()
     (tmp_path / "pretrained" / "provenance.json").write_text("{}")
     monkeypatch.setattr(lab_data, "load_data", lambda *a, **k: pytest.fail("no data may be made"))
@@ -234,3 +237,37 @@ def test_the_default_thread_count_is_said_and_threads_overrides_it(monkeypatch, 
         "torch threads: 1 (--threads; --threads N to choose)",
         "quick at 1",
     ]
+
+
+def test_pretrain_overwrite_replaces_the_folder_whole_or_not_at_all(tmp_path, monkeypatch):
+    out, calls = tmp_path / "pre", []
+    out.mkdir()
+    for name in ("standard-seed0.pt", "diffstack-seed0.pt", "provenance.json"):
+        (out / name).write_text("old")
+
+    def one(m, seed, *_):  # the second predictor is interrupted (Ctrl-C)
+        calls.append(m.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return {"w": torch.ones(1)}, dict(ade=1.0, nll=0.0, hindsight=0.0), 1.0
+
+    monkeypatch.setattr(lq, "_pretrain_one", one)
+    monkeypatch.setattr(lq, "experiment_data", lambda *a, **k: None)
+    kw = dict(seeds=(0,), cfg=ds.Config(**TINY), cache_dir=tmp_path, log=None, overwrite=True)
+    with pytest.raises(KeyboardInterrupt):
+        lq.pretrain(out, **kw)
+    assert all(f.read_text() == "old" for f in out.iterdir()) and len(list(out.iterdir())) == 3
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".pre.")) == [".pre.lock"]
+    about = lq.pretrain(out, **kw)  # the same command, to its end: the new folder whole
+    assert sorted(about["files"]) == sorted(p.name for p in out.glob("*.pt"))
+    assert json.loads((out / "provenance.json").read_text())["files"] == about["files"]
+
+
+def test_quick_and_pretrain_find_their_folders_beside_the_module(tmp_path, monkeypatch, capsys):
+    root = pathlib.Path(lq.__file__).resolve().parent.parent
+    monkeypatch.chdir(tmp_path)  # python /path/to/diffstack.py --quick from another folder
+    seen = {}
+    monkeypatch.setattr(lq, "quick", lambda *a, **k: seen.update(k))
+    lq.main(["--quick"])
+    assert seen["pretrained"] == root / "pretrained" and seen["cache_dir"] == root / "data_cache"
+    assert not (tmp_path / "data_cache").exists()

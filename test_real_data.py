@@ -15,6 +15,7 @@ converter's own rules; the fetch's failure paths and the unpickler's whitelist n
 import collections
 import hashlib
 import json
+import os
 import pathlib
 import pickle
 import random
@@ -38,6 +39,7 @@ from lab import checks
 from lab import data as lab_data
 from lab import nuscenes, waymo
 from lab import tables as lt
+from conftest import cli_error
 
 FormatError = nuscenes.NuScenesFormatError
 TABLE_DIR = "v1.0-mini"
@@ -1617,3 +1619,35 @@ def test_the_real_scenes_experiment_offline_is_one_line_before_training(
     assert e.value.code == 2 and f"pip download {waymo.WAYMO_WHEEL} failed (exit 1)" in err[-1]
     assert "Traceback" not in "\n".join(err)
     assert not [f for f in (tmp_path / "out").rglob("*") if f.is_file() and f.name != ".lock"]
+
+
+def test_write_nuscenes_onto_a_symlink_and_onto_dot(tmp_path, monkeypatch):
+    scenes = data_synth.generate_scenes(2, seed=0)
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    for _ in range(2):  # the second replaces the first through the link
+        nuscenes.write_nuscenes(scenes, tmp_path / "link", overwrite=True)
+    assert (tmp_path / "link").is_symlink() and (tmp_path / "real" / "v1.0-mini").is_dir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".real.lock", "link", "real"]
+    # a killed writer's folder moved aside is put back by the next writer
+    os.rename(tmp_path / "real", tmp_path / ".real.old-1")
+    with pytest.raises(FileExistsError, match="exists"):
+        nuscenes.write_nuscenes(scenes, tmp_path / "real")
+    assert (tmp_path / "real" / "v1.0-mini").is_dir() and not (tmp_path / ".real.old-1").exists()
+    (tmp_path / "empty").mkdir()
+    monkeypatch.chdir(tmp_path / "empty")
+    nuscenes.write_nuscenes(scenes, ".")
+    assert pathlib.Path("v1.0-mini").is_dir() and pathlib.Path.cwd() == tmp_path / "empty"
+
+
+def test_a_tampered_nuscenes_cache_is_refused_in_one_line(folder40, tmp_path):
+    path = nuscenes.nuscenes_cache_path(folder40, "v1.0-mini", tmp_path)
+    path.write_bytes(pickle.dumps(collections.Counter()))  # a pickle of what is not tensors
+    with pytest.raises(ValueError, match="not a readable data_synth nuScenes cache") as e:
+        nuscenes.load_nuscenes_cached(folder40, cache_dir=tmp_path, log=lambda s: None)
+    assert "\n" not in str(e.value) and "weights_only" not in str(e.value)
+
+
+def test_a_path_that_is_not_utf8_is_refused_by_name(capsys):
+    err = cli_error(lab_data.main, ["write-nuscenes", os.fsdecode(b"/tmp/n-\xff")], capsys)
+    assert "path: b'/tmp/n-\\xff' is not a UTF-8 name" in err

@@ -803,6 +803,7 @@ def test_unwritable_out_and_cache_are_refused_before_any_work(tmp_path, monkeypa
     (tmp_path / "data_cache").write_text("a file where the cache folder should be")
     err = cli_error(ex.main, ["--experiment", "rl", "--out", str(tmp_path / "out")], capsys)
     assert "data cache" in err
+    monkeypatch.setattr(lq, "CACHE", tmp_path / "data_cache")  # (beside the module otherwise)
     err = cli_error(lq.main, ["--quick"], capsys)
     assert "data cache" in err
 
@@ -930,7 +931,8 @@ def test_the_command_lines_answer_a_broken_file_in_one_line(tmp_path, monkeypatc
     assert (
         f"{out / 'rl.json'}: not a results file" in err.splitlines()[-1] and "Traceback" not in err
     )
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lq, "PRETRAINED", tmp_path / "pretrained")
+    monkeypatch.setattr(lq, "CACHE", tmp_path / "data_cache")
     (tmp_path / "pretrained").mkdir()
     entry = {"method": "Standard", "seed": 0, "sha256": "0", "cpu_seconds": 1}
     prov = {
@@ -1049,3 +1051,75 @@ def test_damaged_pieces_models_and_provenance_are_named_and_set_aside(tmp_path, 
     (folder / "provenance.json").write_text(json.dumps(prov))
     with pytest.raises(ValueError, match=r"provenance.json: not a provenance file .*sha256"):
         lq.load_pretrained(tr.Method("Standard"), ds.Config(), folder)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing", "edited"])
+def test_a_pieces_tensors_and_fields_are_checked_before_they_are_trusted(damage, tmp_path, capsys):
+    store = runs.RunStore(tmp_path, "k")
+    piece = lt.Piece("Standard", 0, None)
+    store.save("rl", piece, {"ade": 1.0, "hindsight": 2.0}, extra={"x": torch.ones(3)})
+    path, pt = store.path("rl", piece), store.path("rl", piece).with_suffix(".pt")
+    assert store.has("rl", piece) and store.load("rl", piece)[0]["hindsight"] == 2.0
+    if damage == "truncated":
+        pt.write_bytes(pt.read_bytes()[:40])
+    elif damage == "missing":
+        pt.unlink()
+    else:  # the JSON edited to another shape
+        path.write_text(path.read_text().replace('"hindsight"', '"other"'))
+    assert not store.has("rl", piece)  # set aside, computed again
+    assert f"{path}: not a finished piece" in capsys.readouterr().err
+    assert path.with_suffix(".corrupt").exists() and not path.exists() and not pt.exists()
+
+
+def test_a_run_stopped_among_its_tables_files_is_resumed_by_the_same_command(
+    small, tmp_path, monkeypatch
+):
+    cfg, write = ds.Config(**TINY10), runs.write_atomic
+
+    def ctrl_c_after_the_json(path, text):
+        if str(path).endswith("il.md"):
+            raise KeyboardInterrupt
+        write(path, text)
+
+    monkeypatch.setattr(runs, "write_atomic", ctrl_c_after_the_json)
+    with pytest.raises(KeyboardInterrupt):
+        lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)
+    assert (tmp_path / "il.json").exists() and not (tmp_path / "il.md").exists()
+    monkeypatch.setattr(runs, "write_atomic", write)
+    lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)  # not refused
+    assert (tmp_path / "il.md").exists() and not (tmp_path / ".writing.json").exists()
+    with pytest.raises(runs.OutputRefused, match="exist and are kept"):  # now a finished run's
+        lt.run_experiment("il", small, cfg, (0,), 0.5, tmp_path, "test", log=None)
+
+
+def test_paths_that_are_not_utf8_and_lock_files_that_are_symlinks_are_refused(tmp_path):
+    bad = tmp_path / os.fsdecode(b"out-\xff")
+    with pytest.raises(runs.OutputRefused, match=r"not a UTF-8 name") as e:
+        lt.check_outputs(("il",), bad, False)
+    assert len(str(e.value).splitlines()) == 1 and not bad.exists()
+    (tmp_path / "victim").write_text("precious")
+    (tmp_path / "held").mkdir()
+    (tmp_path / "held" / ".lock").symlink_to(tmp_path / "victim")
+    with pytest.raises(runs.OutputRefused, match="cannot hold it"):
+        with runs.folder_lock(tmp_path / "held", "test"):
+            pass
+    assert (tmp_path / "victim").read_text() == "precious"
+
+
+def test_a_tuple_set_is_bounded_in_length():
+    with pytest.raises(ValueError, match="at most 64 values") as e:
+        cli.config_with(ds.Config(), ["plan_accels=" + ",".join(["1"] * 20000)])
+    assert len(str(e.value)) < 300
+
+
+def test_a_tampered_data_cache_is_refused_in_one_line_without_torchs_advice(tmp_path):
+    class Payload:
+        def __reduce__(self):
+            return (os.getcwd, ())
+
+    path = data_synth._cache_path(200, 0, data_synth.SynthConfig(), tmp_path)[0]
+    path.write_bytes(__import__("pickle").dumps(Payload()))
+    with pytest.raises(ValueError) as e:
+        lab_data.load_data(None, 200, 0, tmp_path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+    assert "weights_only" not in str(e.value) and "objects other than tensors" in str(e.value)

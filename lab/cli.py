@@ -41,12 +41,21 @@ def torch_threads(given: int | None, log=print) -> int:
 def check_writable(folder, what: str) -> None:
     """Before any work: ValueError naming `what` unless folder exists (or can be made) and takes
     files."""
+    check_name(folder, what)
     try:
         pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
             pass
     except OSError as e:
         raise ValueError(f"{what}: {folder} is not a writable folder ({e.strerror or e})") from None
+
+
+def check_name(path, what: str) -> None:
+    """ValueError naming `what` unless path's name is UTF-8 (files name it in results and logs)."""
+    try:
+        str(path).encode()
+    except UnicodeEncodeError:
+        raise ValueError(f"{what}: {os.fsencode(path)!r} is not a UTF-8 name") from None
 
 
 def bounded(kind, lo, hi, name):
@@ -113,6 +122,8 @@ def config_with(cfg: Config, assignments) -> Config:
                 f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
                 f"could not parse {text!r}"
             ) from None
+        if isinstance(value, tuple) and len(value) > 64:
+            raise ValueError(f"--set {key}=...: a tuple field takes at most 64 values")
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"--set {item}: {key} must be finite")
         if key in SET_BY_DATA and value != SET_BY_DATA[key]:

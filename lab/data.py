@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import torch
 
 import data_synth
 from data_synth import Dataset, SynthConfig
-from lab.cli import add_shared_options, bounded
+from lab.cli import add_shared_options, bounded, check_name
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
 from lab.runs import folder_lock, one_line
@@ -105,8 +106,13 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
     lock = contextlib.nullcontext()
     if made is not None and not made.exists():
         lock = folder_lock(cache_dir, f"making the data cache {made.name}")
-    with lock:
-        data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
+    try:
+        with lock:
+            data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
+    except ValueError as e:  # (a cache holding objects other than tensors: never torch's advice)
+        if isinstance(e.__cause__, pickle.UnpicklingError):
+            raise ValueError(f"{made}: not a data cache (objects other than tensors)") from None
+        raise
     parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
     bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]
     if bad:
@@ -130,6 +136,7 @@ def main(argv=None) -> None:
     add_shared_options(ap, overwrite="write-nuscenes: replace what is there")
     args = ap.parse_args(argv)
     with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
+        check_name(args.path, "path")
         if args.command == "write-nuscenes":
             scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
             write_nuscenes(scenes, args.path, args.version, overwrite=args.overwrite)

@@ -23,7 +23,8 @@ import torch
 
 import data_synth as ds
 from data_synth import MAX_LANE_POINTS, Scenes, SynthConfig
-from lab.runs import folder_lock, save_atomic, write_atomic, write_file_atomic, write_folder
+from lab.runs import folder_lock, load_tensors, save_atomic, sha256_of, write_atomic
+from lab.runs import write_file_atomic, write_folder
 
 NUSC_VERSIONS = ("v1.0-mini", "v1.0-trainval", "v1.0-test")
 NUSC_TABLES = tuple(
@@ -495,11 +496,6 @@ def scene_of(name: str, **arrays) -> Scenes:
 _NUSC_CACHE_FORMAT = 2  # bump when load_nuscenes's output changes, so old caches are not reused
 
 
-def sha256_of(path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def nuscenes_cache_path(root, version: str, cache_dir) -> Path:
     """The cache of root/version's parse: one file per folder (by its absolute path)."""
     where = hashlib.sha1(f"{Path(root).resolve()}/{version}".encode()).hexdigest()[:12]
@@ -519,11 +515,10 @@ def load_nuscenes_cached(
     key = dict(version=version, files=sums, cfg=dataclasses.asdict(cfg), format=_NUSC_CACHE_FORMAT)
     key, path = json.dumps(key, sort_keys=True), nuscenes_cache_path(root, version, cache_dir)
     if path.exists():
-        try:
-            blob = torch.load(path, weights_only=True)
-            stored = blob["key"]
-        except Exception as e:  # any failure means: not our cache
-            raise ValueError(f"{path}: not a readable data_synth nuScenes cache ({e})") from e
+        blob = load_tensors(path, "a readable data_synth nuScenes cache")
+        if not isinstance(blob, dict) or "key" not in blob:
+            raise ValueError(f"{path}: not a readable data_synth nuScenes cache (no key)")
+        stored = blob["key"]
         if stored == key:
             log(f"{what}: parsed scenes read from the cache {path} ({len(sums)} sha256 match)")
             return Scenes(**blob["scenes"]), blob["report"]

@@ -19,8 +19,8 @@ import torch
 import data_synth
 from diffstack import Config, Predictor
 from lab.cli import add_shared_options, check_writable, config_with, machine, torch_threads
-from lab.runs import command_line, folder_lock, git_commit, in_workers, load_json, one_line, ranks
-from lab.runs import save_atomic, write_atomic
+from lab.runs import command_line, git_commit, in_workers, load_json, one_line, ranks
+from lab.runs import ROOT, save_atomic, write_atomic, write_folder
 from lab.report import claim_line, open_loop_table
 from specs import FOUR_METHODS, TABLE1
 from experiments import VAL_N, add_relative, compare_methods, experiment_data
@@ -29,7 +29,9 @@ from train import NO_PREDICTION, Method, evaluate_stack, train_predictor
 # --quick: the tables' data, the live runs on a part of it, everything evaluated on the first 1,500
 # samples of the tables' validation set
 QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)
-PRETRAINED = "pretrained"  # the predictors --pretrain ships: Table 1's five seeds, 40 epochs
+# beside the module, wherever it runs from: the predictors --pretrain ships (Table 1's five seeds,
+# 40 epochs), and the data cache of --quick and --pretrain
+PRETRAINED, CACHE = ROOT / "pretrained", ROOT / "data_cache"
 PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
 LEARNED = [m for m in FOUR_METHODS if m.predictor == "learned"]  # Standard, DiffStack
 AGAIN = "re-make it with python diffstack.py --pretrain --overwrite"
@@ -105,33 +107,34 @@ def pretrain(
     20 left Standard's ADE still falling here), on one thread each (then they are Table 1's own, bit
     for bit), `jobs` side by side, into out/<name>-seed<seed>.pt with out/provenance.json."""
     out, log, cfg, val = pathlib.Path(out), log or (lambda *_: None), cfg or Config(), val or VAL_N
-    work = {(m.name, s): out / f"{m.name.lower()}-seed{s}.pt" for s in seeds for m in LEARNED}
-    if not overwrite and any(f.exists() for f in [*work.values(), out / "provenance.json"]):
-        raise ValueError(f"--pretrain: {out}/ holds predictors already; --overwrite replaces them")
-    check_writable(out, f"the pre-trained predictors' folder ({out})")
-    with folder_lock(out, command):
+    names = {(m.name, s): f"{m.name.lower()}-seed{s}.pt" for s in seeds for m in LEARNED}
+    about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, val=val, epochs=epochs)
+    about.update(seeds=list(seeds), setting="rl", threads=threads, torch=torch.__version__)
+    about.update(machine=machine(), commit=git_commit(), config=dataclasses.asdict(cfg), files={})
+
+    def write(tmp):  # every predictor and the provenance into tmp, renamed onto out when done
         experiment_data(n, seeds, val, cache_dir)  # made here, before the workers read it
-        about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, val=val, epochs=epochs)
-        about.update(seeds=list(seeds), setting="rl", threads=threads, torch=torch.__version__)
-        about.update(machine=machine(), commit=git_commit(), config=dataclasses.asdict(cfg))
-        about["files"] = {}
 
         def finished(unit, result):  # one predictor trained: its file and its provenance entry
             (m, seed, *_), (state, metrics, seconds) = unit, result
-            path = work[m.name, seed]
+            path = tmp / names[m.name, seed]
             save_atomic(state, path)
             sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
             entry = dict(method=m.name, seed=seed, sha256=sha256, cpu_seconds=round(seconds))
             about["files"][path.name] = dict(entry, **metrics)
-            log(f"{path}: {m.name}, seed {seed}: ADE {metrics['ade']:.3f} m ({seconds:.0f} CPU s)")
+            ade = f"ADE {metrics['ade']:.3f} m ({seconds:.0f} CPU s)"
+            log(f"{out}/{path.name}: {m.name}, seed {seed}: {ade}")
 
         units = [(m, s, n, epochs, cfg, cache_dir, threads, val) for s in seeds for m in LEARNED]
         if jobs > 1:
             in_workers(_pretrain_one, units, jobs, finished, out)
         for unit in units if jobs == 1 else ():
             finished(unit, _pretrain_one(*unit))
-        write_atomic(out / "provenance.json", json.dumps(about, indent=1))
-        return about
+        write_atomic(tmp / "provenance.json", json.dumps(about, indent=1))
+
+    files = [out / f for f in [*names.values(), "provenance.json"]]
+    write_folder(out, write, "--pretrain", files, overwrite)  # whole, or not at all
+    return about
 
 
 def quick(
@@ -247,14 +250,14 @@ def main(argv=None):
         ap.error("choose --quick or --pretrain (the paper's tables: python experiments.py)")
     if args.jobs is not None and not args.pretrain:
         ap.error("--jobs is an option of --pretrain")
-    kept = "the predictors written so far stay; --overwrite trains them all again"
-    with one_line(ap, kept if args.pretrain else "nothing half-written is left"):
+    kept = f"{PRETRAINED} is as it was" if args.pretrain else "nothing half-written is left"
+    with one_line(ap, kept):
         cfg = config_with(Config(), args.set)
-        check_writable("data_cache", "the data cache (./data_cache)")
+        check_writable(CACHE, f"the data cache ({CACHE})")
         if args.pretrain:
             jobs, threads = args.jobs or os.cpu_count() or 1, args.threads or 1
+            kw = dict(jobs=jobs, overwrite=args.overwrite, cache_dir=CACHE)
             command = command_line("python diffstack.py", argv)
-            return pretrain(
-                threads=threads, jobs=jobs, cfg=cfg, overwrite=args.overwrite, command=command
-            )
-        return quick(torch_threads(args.threads), cfg=cfg, device=args.device)
+            return pretrain(PRETRAINED, threads, cfg=cfg, command=command, **kw)
+        kw = dict(cfg=cfg, device=args.device, cache_dir=CACHE, pretrained=PRETRAINED)
+        return quick(torch_threads(args.threads), **kw)

@@ -18,6 +18,7 @@ import json
 import multiprocessing
 import os
 import pathlib
+import pickle
 import shutil
 import signal
 import subprocess
@@ -36,6 +37,22 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent  # the repository
 
 def sha(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def sha256_of(path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def load_tensors(path, what: str):
+    """torch.load(path, weights_only=True), or one ValueError naming the file: missing, damaged, or
+    holding objects other than tensors (torch's advice to load those unsafely is not repeated)."""
+    try:
+        return torch.load(path, weights_only=True)
+    except pickle.UnpicklingError:
+        raise ValueError(f"{path}: not {what} (it holds objects other than tensors)") from None
+    except (OSError, RuntimeError, EOFError, ValueError) as e:
+        raise ValueError(f"{path}: not {what} ({' '.join(str(e).split())[:160]})") from None
 
 
 def to_json(o):
@@ -261,16 +278,16 @@ class RunStore:
         return self.table_dir(table) / f"{piece.stem}.json"
 
     def has(self, table: str, piece) -> bool:
-        """Whether the piece is finished; an unreadable one is named, set aside as .corrupt."""
+        """Whether the piece is finished and whole (load); a damaged or missing part is named, and
+        the piece set aside as .corrupt."""
         path = self.path(table, piece)
         try:
-            return path.exists() and isinstance(self.read(table, piece).get("result"), dict)
-        except (ValueError, AttributeError) as e:
-            corrupt = path.with_suffix(".corrupt")
-            print(
-                f"{path}: not a finished piece ({e}); set aside as {corrupt.name}", file=sys.stderr
-            )
-            os.replace(path, corrupt)
+            return path.exists() and bool(self.load(table, piece))
+        except ValueError as e:
+            print(f"{path}: not a finished piece ({e}); set aside as .corrupt", file=sys.stderr)
+            os.replace(path, path.with_suffix(".corrupt"))
+            with contextlib.suppress(FileNotFoundError):
+                os.replace(path.with_suffix(".pt"), path.with_suffix(".pt.corrupt"))
             return False
 
     def read(self, table: str, piece) -> dict:
@@ -278,19 +295,27 @@ class RunStore:
         return load_json(self.path(table, piece), "a piece of a run")
 
     def load(self, table: str, piece) -> tuple:
-        """(result, extra tensors or None) of a finished piece."""
-        saved = self.read(table, piece)
-        pt = self.path(table, piece).with_suffix(".pt")
-        return saved["result"], torch.load(pt, weights_only=True) if saved.get("extra") else None
+        """(result, extra tensors or None) of a finished piece, its result and tensors' file checked
+        against the sha256 written with them: ValueError otherwise."""
+        saved, pt = self.read(table, piece), self.path(table, piece).with_suffix(".pt")
+        if not isinstance(saved, dict) or not isinstance(saved.get("result"), dict):
+            raise ValueError("no result")
+        extra = load_tensors(pt, "a piece's tensors") if saved.get("extra") else None
+        if saved.get("sha256") != sha(saved["result"], extra is not None and sha256_of(pt)):
+            raise ValueError(f"its result or {pt.name} changed since it was written (sha256)")
+        return saved["result"], extra
 
     def save(self, table: str, piece, result: dict, extra=None, timing=None) -> None:
-        """The piece's result as JSON (its extra tensors first, in a .pt beside it), atomically."""
+        """The piece's result as JSON (its extra tensors first, in a .pt beside it), atomically,
+        with the sha256 of both."""
         path = self.path(table, piece)
         path.parent.mkdir(parents=True, exist_ok=True)
         if extra is not None:
             save_atomic(extra, path.with_suffix(".pt"))
+        result = json.loads(json.dumps(result, default=to_json))  # (as it reads back)
+        digest = sha(result, extra is not None and sha256_of(path.with_suffix(".pt")))
         saved = dict(table=table, piece=piece._asdict(), key=self.key, extra=extra is not None)
-        write_json(path, dict(saved, timing=timing, result=result), indent=1)
+        write_json(path, dict(saved, timing=timing, result=result, sha256=digest), indent=1)
 
     def model_path(self, train_key) -> pathlib.Path:
         return self.root / "models" / self.key[:16] / f"{sha(repr(train_key))[:16]}.pt"
@@ -347,11 +372,8 @@ def ranks() -> tuple:
     env = set(os.environ)
     launched = "TORCHELASTIC_RUN_ID" in env or {"MASTER_ADDR", "MASTER_PORT"} <= env
     if (world != 1 or rank != 0) and not launched:
-        return (
-            0,
-            1,
-            f"{said} are set, but no launcher started this process: use torchrun or unset them",
-        )
+        why = f"{said} are set, but no launcher started this process: use torchrun or unset them"
+        return 0, 1, why
     if not 0 <= rank < world:
         return 0, 1, f"RANK={rank} is not below WORLD_SIZE={world}"
     return rank, world, None
@@ -390,7 +412,9 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
     try:
         if not ours:
             start = time.strftime("%Y-%m-%d %H:%M:%S")
-            path.write_text(json.dumps(dict(pid=os.getpid(), command=command, start=start)))
+            fd = os.open(path, os.O_WRONLY | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0))  # (held)
+            with open(fd, "w") as f:
+                f.write(json.dumps(dict(pid=os.getpid(), command=command, start=start)))
         yield
     finally:
         lock.release()
@@ -401,8 +425,15 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
     under a lock on the target (.<name>.lock beside it). files: those the writer makes, replaced
     only with overwrite; a folder holding any other file (but directly in `also`) is never replaced.
     who: the writer, for the messages."""
-    root = pathlib.Path(root)
-    with folder_lock(root.parent, f"{who} {root}", f".{root.name}.lock"):
+    root, real = pathlib.Path(root), pathlib.Path(root).resolve()  # (a symlink: its target)
+    with folder_lock(real.parent, f"{who} {root}", f".{real.name}.lock"):
+        for stale in real.parent.glob(f".{real.name}.old-*"):  # killed between its renames
+            if real.exists():
+                shutil.rmtree(stale)
+            else:
+                os.rename(stale, real)
+        for stale in real.parent.glob(f".{real.name}.writing-*"):  # a killed writer's
+            shutil.rmtree(stale)
         existing = [str(p) for p in files if p.exists()]
         if existing and not overwrite:
             raise FileExistsError(
@@ -417,21 +448,21 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
                 f"{who}: {foreign[0]} is no file of what it writes ({len(foreign)} such); {root} "
                 "is written whole, replacing what is in it: write elsewhere"
             )
-        for stale in root.parent.glob(f".{root.name}.writing-*"):  # a killed writer's
-            shutil.rmtree(stale)
-        tmp = root.parent / f".{root.name}.writing-{os.getpid()}"
+        tmp = real.parent / f".{real.name}.writing-{os.getpid()}"
         try:
             write(tmp)
-            if root.is_dir() and any(root.iterdir()):  # aside, then the new one in, then away
-                old = root.parent / f".{root.name}.old-{os.getpid()}"
-                os.rename(root, old)
-                os.rename(tmp, root)
+            if real.is_dir() and any(real.iterdir()):  # aside, then the new one in, then away
+                old = real.parent / f".{real.name}.old-{os.getpid()}"
+                os.rename(real, old)
+                os.rename(tmp, real)
                 shutil.rmtree(old)
+            elif real == pathlib.Path.cwd():  # (`.`: filled, so that it stays the shell's folder)
+                for p in tmp.iterdir():
+                    os.rename(p, real / p.name)
             else:
-                os.rename(tmp, root)  # (onto an empty folder too)
-        except BaseException:
+                os.rename(tmp, real)  # (onto an empty folder too)
+        finally:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise
 
 
 @contextlib.contextmanager

@@ -336,8 +336,10 @@ def run_experiment(
                 log(*a, **k)
 
         run.log = above_bar if log else None
-        # every piece first, then the files: a stopped run has written none
+        # every piece first, then the files, listed first: a run stopped among them resumes
         compute_pieces(run, tables, jobs, bar)
+        if write:
+            runs.write_json(out / WRITING, [str(f) for f in output_files(names, out)])
         sections, metas, results = [], [], {}
         for spec, seeds_one in tables:
             results[spec.name], table = run_table(spec, run, seeds_one, out, write)
@@ -348,6 +350,8 @@ def run_experiment(
             report = write_report(out, sections, metas, tables=results)
             if log:
                 run.log(f"report: {report}")
+        if write:
+            (out / WRITING).unlink()
 
 
 def _write_table(spec: TableSpec, run: Run, out, meta: dict, res: dict, table: str) -> tuple:
@@ -358,6 +362,15 @@ def _write_table(spec: TableSpec, run: Run, out, meta: dict, res: dict, table: s
     if run.log:
         run.log(f"\n{spec.title}\n{table}")
     return spec.title, md, list(spec.figures)
+
+
+WRITING = ".writing.json"  # the files a run is writing, until every one is written
+
+
+def output_files(names, out) -> list:
+    files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
+    files += [out / f for n in names for f in SPECS[n].figures]
+    return files + ([out / "report.md"] if len(names) > 1 else [])
 
 
 def check_outputs(names, out_dir, overwrite: bool) -> None:
@@ -377,11 +390,9 @@ def check_outputs(names, out_dir, overwrite: bool) -> None:
         check_writable(out_dir, "--out")
     except ValueError as e:
         raise runs.OutputRefused(str(e)) from None
-    out = pathlib.Path(out_dir)
-    files = [out / f"{n}{ext}" for n in names for ext in (".json", ".md")]
-    files += [out / f for n in names for f in SPECS[n].figures]
-    files += [out / "report.md"] if len(names) > 1 else []
-    existing = [str(f) for f in files if f.exists()]
+    half, files = pathlib.Path(out_dir) / WRITING, output_files(names, pathlib.Path(out_dir))
+    stopped = runs.load_json(half, "a list of files") if half.exists() else []  # a stopped run's
+    existing = [str(f) for f in files if f.exists() and str(f) not in stopped]
     if existing and not overwrite:  # a run never replaces a result it did not make
         raise runs.OutputRefused(
             f"--out: {len(existing)} result file(s) exist and are kept: "
