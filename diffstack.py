@@ -26,7 +26,7 @@ dims a function broadcasts over. Notation, one meaning per letter (the paper's w
   z; K, k, pi_k     the CVAE's latent; its K values (the modes), a mode, its weight
   p(z|x), q(z|x,y)  prior and posterior given the condition x (history) and the future y
   lambda; G         costates (lambda_0 = dL/ds_init); iLQR's feedback gain, du = k + G dx
-  alpha_1..3; beta  the loss weights of L (stack_loss); the relaxed argmin's temperature
+  a1..a3; beta      the paper's alpha_i, L's weights (stack_loss); the relaxed argmin's temperature
   b; Sigma; sigma   the KL weight of L_pred; covariances; the collision RBF's width
 """
 
@@ -549,8 +549,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
 
 class StackCost:
     """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every
-    argument per scenario, with its closed-form `expansion`, which the solver takes instead of
-    autodiff."""
+    argument per scenario, and its closed-form `expansion`, which the solver takes over autodiff."""
 
     def __init__(self, rbf_var: float):
         self.rbf_var = rbf_var
@@ -796,12 +795,16 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
 #   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),
 #                                                      lo <= u_t <= hi
+# The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
+# of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's
+# exact=False), whose Hessian lacks the dynamics' curvature sum_i lambda_i d2 f_i: exact on linear
+# dynamics only; tracking with the unicycle, 45 % off. The default (exact=True) adds it, the
+# Lagrangian's Hessian, and so differentiates the converged solution itself: test_diffstack.py
+# holds it to central differences within 1e-6 and prints the paper's variant's error beside it.
 # General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms
-# (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m); ... are extra dims), and
-# `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable step. Gradients reach x_init and every
-# tensor in `params`. Closed forms where the cost or dynamics bring them (`expansion`,
-# `jacobians`, `curvature`: StackCost, Unicycle; the tests hold each to autodiff), autodiff
-# otherwise.
+# (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m)), `dynamics(x_t, u_t) -> x_{t+1}` any
+# twice-differentiable step; gradients reach x_init and every tensor in `params`. Closed forms
+# where cost or dynamics bring them (`expansion`, `jacobians`, `curvature`), autodiff otherwise.
 
 
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
@@ -824,11 +827,8 @@ def cost_expansion(cost_fn, x, u, params):
     n, T = x.shape[-1], u.shape[1]
     u_padded = torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)  # u_T is padding
     z = torch.cat([x, u_padded], -1)  # (B, T+1, n+m)
-
-    def total(z):
-        return cost_fn(z[..., :n], z[:, :T, n:], *params).sum()
-
-    H, g = _stagewise_jacobian(torch.func.grad(total), z, with_value=True)
+    grad = torch.func.grad(lambda z: cost_fn(z[..., :n], z[:, :T, n:], *params).sum())
+    H, g = _stagewise_jacobian(grad, z, with_value=True)
     return g, H
 
 
@@ -837,11 +837,8 @@ def dynamics_jacobians(dynamics, x, u):
     if hasattr(dynamics, "jacobians"):
         return dynamics.jacobians(x[:, :-1], u)
     n = x.shape[-1]
-
-    def step(z):
-        return dynamics(z[..., :n], z[..., n:])
-
-    J = _stagewise_jacobian(step, torch.cat([x[:, :-1], u], -1))
+    zs = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
+    J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), zs)
     return J[..., :n], J[..., n:]
 
 
@@ -1059,12 +1056,9 @@ def lagrangian_curvature(dynamics, x, u, g, A):
     lam = torch.stack(lam[::-1], 1)  # (B, T, n): lambda_1 .. lambda_T
     if hasattr(dynamics, "curvature"):  # closed form (Unicycle)
         Hf = dynamics.curvature(x[:, :-1], u, lam)  # (B, T, n+m, n+m)
-    else:
-
-        def weighted(z):  # sum_t lambda_{t+1}' f(z_t)
-            return (lam * dynamics(z[..., :n], z[..., n:])).sum()
-
-        Hf = _stagewise_jacobian(torch.func.grad(weighted), torch.cat([x[:, :-1], u], -1))
+    else:  # autodiff: the Hessian of sum_t lambda_{t+1}' f(z_t)
+        grad = torch.func.grad(lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum())
+        Hf = _stagewise_jacobian(grad, torch.cat([x[:, :-1], u], -1))
     return torch.cat([Hf, torch.zeros_like(Hf[:, :1])], 1)
 
 
@@ -1076,12 +1070,16 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
     gradient as right-hand side, an LQR problem:
         min_d 1/2 d'H d + (dloss/dz)'d   s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t,
                                                du_active = 0,
-    H the Hessian of the Lagrangian L = C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
+    H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
         H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(x_t, u_t)      (lagrangian_curvature)
-    mpc.pytorch and the authors' code drop the curvature (exact=False): exact on linear dynamics
-    only. Then
+    (exact=False drops the curvature: the paper's variant). Amos et al.'s gradients, for the
+    quadratic cost 1/2 z'C z + c'z of their LQR, with d their d*_tau and z the solution:
+        dloss/dc = d,   dloss/dC = (d z' + z d') / 2,   dloss/dx_init = d*_lambda_0 = lambda_0.
+    Both are the gradient of <grad_z cost, d> = <C z + c, d> in (C, c), z and d fixed. For any
+    cost(z; params), expanded at z (C its Hessian, c = grad_z cost - C z), the chain rule through
+    C and c leaves the gradient in params of the same product, params_gradients' double backward:
         dloss/dparams = d/dparams [ sum_t dl_t/dz_t(params) . d_t ]     (d fixed)
-        dloss/dx_init = lambda_0, the costate of the LQR at t = 0 (its value function's gradient).
+    and dloss/dx_init = lambda_0, the LQR's costate at t = 0 (its value function's gradient).
     x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u."""
     g, H = cost_expansion(cost_fn, x, u, params)
     A, B = dynamics_jacobians(dynamics, x, u)
@@ -1103,26 +1101,21 @@ def params_gradients(cost_fn, x, u, params, dx, du):
     """d/dparams [ sum_t dl_t/dz_t(params) . d_t ] with d = (dx, du) fixed: one gradient per
     entry of params (None where it is no tensor that requires grad)."""
     needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
-    grads = [None] * len(params)
     if not needs:
-        return grads
+        return [None] * len(params)
     with torch.enable_grad():
-        ps = [
-            p.detach().requires_grad_(i in needs) if torch.is_tensor(p) else p
-            for i, p in enumerate(params)
-        ]
+        ps = list(params)
+        for i in needs:
+            ps[i] = params[i].detach().requires_grad_()
         xg, ug = x.detach().requires_grad_(), u.detach().requires_grad_()
         gx, gu = torch.autograd.grad(cost_fn(xg, ug, *ps).sum(), (xg, ug), create_graph=True)
         inner = (gx * dx).sum() + (gu * du).sum()  # < dC/dz (params), d >
         found = torch.autograd.grad(inner, [ps[i] for i in needs], allow_unused=True)
-    for i, gi in zip(needs, found):
-        grads[i] = gi
-    return grads
+    return [dict(zip(needs, found)).get(i) for i in range(len(params))]
 
 
 class ILQR(torch.autograd.Function):
-    """iLQR with the KKT backward (use `ilqr_solve`); scenarios that did not converge pass no
-    gradient (§3.1)."""
+    """iLQR with the KKT backward (use `ilqr_solve`); the unconverged pass no gradient (§3.1)."""
 
     @staticmethod
     def forward(fctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
@@ -1496,18 +1489,12 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_
     b0, centre, width = cfg.pred_beta
     kl_w = b0 / (1 + math.exp(-(step - centre) / width))  # b0 sigmoid((step - b1) / b2)
     loss = -(ll - kl_w * kl_fb + mi)  # (B,)
-    parts = {
-        "loss": loss.mean().item(),
-        "ll": ll.mean().item(),
-        "kl": kl.mean().item(),
-        "mi": mi.item(),
-        "beta": kl_w,
-    }
-    return loss, parts
+    parts = {name: v.mean().item() for name, v in dict(loss=loss, ll=ll, kl=kl, mi=mi).items()}
+    return loss, {**parts, "beta": kl_w}
 
 
 # ===== 7. The stack: predict -> plan -> control, §3.2 ============================================
-#   L = a1 L_pred + a2 L_plan + a3 L_ctr
+#   L = a1 L_pred + a2 L_plan + a3 L_ctr (stack_loss; a_i the paper's alpha_i, Config.alpha_rl/il)
 #   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights), planner
 #       target argmin_n C_H
 #   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
@@ -1719,6 +1706,19 @@ def run_stack(
     losses = (l_pred, l_plan, l_ctr)
     metrics = (hindsight, mse, plan_out.plannable, converged)
     return StackOutput(*losses, *metrics, x, u, plan_out.cands, plan_out.cost, pred)
+
+
+def stack_loss(out: StackOutput, alphas, pred_weights=1.0, count=None):
+    """The training loss of §3.2, L = a1 L_pred + a2 L_plan + a3 L_ctr, and its terms, each a mean
+    over the plannable scenarios (the others are flagged, not trained on): (L, (L_pred, L_plan,
+    L_ctr)). alphas (a1, a2, a3): Config.alpha_rl or alpha_il switched by the method; pred_weights:
+    L_pred's per-scenario weights (B,) (§4.1); count: what the sums divide by (default: this batch's
+    plannable scenarios; under DDP train.py passes the global batch's over the ranks)."""
+    keep = out.plannable.to(out.l_plan.dtype)  # (B,)
+    count = keep.sum().clamp_min(1) if count is None else count
+    per_scenario = (out.l_pred * pred_weights, out.l_plan, out.l_ctr)  # (B,) each
+    terms = tuple((term * keep).sum() / count for term in per_scenario)
+    return sum(a * term for a, term in zip(alphas, terms)), terms
 
 
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
