@@ -354,16 +354,18 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     First the nearest lane point (no gradient: it only picks an index), ranked by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2
     so that an oncoming lane beside the state's own is not 'closest' (no lane within 90 degrees:
-    no lane cost); then the closer of the two segments that meet there. The ranking is one product
-    of features (below), the fast form of these distances; a test holds the two to one point."""
+    no lane cost; the heading term is beyond the paper's "closest lane point"); then the closer of
+    the two segments that meet there. As u(h_q).u(h_p) = cos(h_q - h_p), u(h) = (cos h, sin h),
+        |q - p|^2 + lam (1 - cos(h_q - h_p))
+            = |q|^2 + [-2q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam],
+    one product of features for all pairs; |q|^2 drops out (a test holds the two to one point)."""
     B, L, P, _ = lanes.shape
     q = pos.reshape(B, -1, 2).detach()  # (B, Q, 2)
     hq = heading.reshape(B, -1).detach()  # (B, Q)
     pts = lanes.reshape(B, L * P, 3)
     p = pts.detach()
     mask = lanes_mask.reshape(B, L * P)
-    # 1. the nearest point: |q|^2 is the same for every p and drops out; the rest is one product
-    #    [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam], u(h) = (cos h, sin h); padding: 1e30
+    # 1. the nearest point, by the product above (padding ranks at 1e30, last)
     p_norm = torch.where(mask, (p[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
     u_p = torch.cat([torch.cos(p[..., 2:]), torch.sin(p[..., 2:])], -1)  # (B, L*P, 2)
     p_feat = torch.cat([p[..., :2], u_p, p_norm[..., None]], -1)  # (B, L*P, 5)
@@ -400,7 +402,7 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
 
 def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
     """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26, nothing at the
-    cost's precision; docs/performance.md says why)."""
+    cost's precision): far agents would send exp into its underflow path, 10-25x slower."""
     return torch.exp((-d2 / (2 * rbf_var)).clamp_min(-60.0))
 
 
@@ -440,7 +442,7 @@ def scene_terms(pos, head, u, goal, lanes, lanes_mask) -> torch.Tensor:
     to_goal = ((pos[..., -1, :] - per_scenario(goal, pos)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
     lat, head_err, _ = project_to_lanes(pos, head, lanes, lanes_mask)
-    # C_u = sum_t w_t^2 + a_t^2
+    # C_u = sum_t omega_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
@@ -512,7 +514,7 @@ def _lane_expansion(p, h, ctx: CostContext):
 
 def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
-    z_t = (x, y, h, v, w, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
+    z_t = (x, y, h, v, omega, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
     closed form: what cost_expansion computes by autodiff (the tests hold the two together).
     x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
 
@@ -526,7 +528,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
               clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
       C_head  e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,
               de/dp = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
-      C_u     w^2 + a^2:  grad = 2 u,  Hess = 2 I"""
+      C_u     omega^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
     eye = torch.eye(2, dtype=x.dtype, device=x.device)
     w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
@@ -610,6 +612,7 @@ def _hermite(p0, m0, p1, m1, tau):
     value, first and second derivative, each (..., Q, 2), as one product of the basis functions
     (3 Q, 4) with the control points."""
     t = tau[:, None]  # (Q, 1)
+    # the Hermite basis h00, h10, h01, h11: p(t) = h00 p0 + h10 m0 + h01 p1 + h11 m1
     h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
     dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
     ddh = [12 * t - 6, 6 * t - 4, -12 * t + 6, 6 * t - 2]
@@ -623,14 +626,13 @@ def _goal_lanes(goal, lanes, lanes_mask, cum, cfg: Config):
     """The goal lanes: within goal_lane_dist of the goal and heading within goal_lane_heading of
     the goal's, up to max_goal_lanes, closest first. goal (B, 4) -> the lanes (B, G, P, 3), their
     arc lengths (B, G, P) and masks (B, G, P), and whether each is a goal lane at all (B, G)."""
-    B = len(goal)
+    B, _, P, _ = lanes.shape
     d2_goal, _, h_goal = _project_each_lane(goal[:, :2], lanes, lanes_mask, cum)  # (B, L)
     near = d2_goal < cfg.goal_lane_dist**2
     aligned = wrap_angle(h_goal - goal[:, 2:3]).abs() < cfg.goal_lane_heading
     G = min(cfg.max_goal_lanes, lanes.shape[1])
     ranked = torch.where(near & aligned, d2_goal, math.inf)
     score, idx = ranked.topk(G, -1, largest=False)  # (B, G)
-    P = lanes.shape[2]
     g_lanes = lanes.gather(1, idx[:, :, None, None].expand(B, G, P, 3))  # (B, G, P, 3)
     g_cum = cum.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
     g_mask = lanes_mask.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
@@ -681,11 +683,13 @@ def _spline_trajectories(s0, p1, h1, v1, cfg: Config):
     pos, dpos, ddpos = _hermite(p0, m0, p1, m1, tau)  # (B, N, T+1, 2) each
     vel, accel = dpos / dur, ddpos / dur**2
     speed = vel.norm(dim=-1)  # (B, N, T+1)
-    # heading = direction of travel; undefined near standstill, so blended from h0 to h1 there
+    # heading = direction of travel; below 0.1 m/s (5 cm a step) that direction is the spline's
+    # rounding, so the heading blends from h0 to h1 there and the rates divide by at least 0.1
     h0 = s0[:, None, None, 2]  # (B, 1, 1)
     h_blend = h0 + tau * wrap_angle(h1 - s0[:, None, 2])[..., None]
     yaw = torch.where(speed > 0.1, torch.atan2(vel[..., 1], vel[..., 0]), h_blend)
     yaw = h0 + wrap_angle(yaw - h0)  # continuous from h0
+    # yaw rate = (v x a) / |v|^2 (the path's curvature times speed), acceleration = v . a / |v|
     cross = vel[..., 0] * accel[..., 1] - vel[..., 1] * accel[..., 0]
     yaw_rate = cross / speed.clamp_min(0.1) ** 2
     lon_acc = (vel * accel).sum(-1) / speed.clamp_min(0.1)
@@ -703,7 +707,7 @@ def _feasible(u, speed, cfg: Config):
     v_mid = (speed[..., 1:] + speed[..., :-1]) / 2  # (B, N, T)
     in_box = ((u >= lo) & (u <= hi)).all(-1)
     lateral_ok = (u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel
-    yaw_ok = u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3
+    yaw_ok = u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3  # 1e-3: a stop's rounding
     return (in_box & lateral_ok & yaw_ok).all(-1)
 
 
@@ -724,6 +728,7 @@ def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
     B = s0.shape[0]
     cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
     d2, arc_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
+    # 40 degrees: a lane through a bend is still the ego's, a crossing one (~90) is not
     heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
     lane = torch.where(heading_ok, d2, math.inf).argmin(-1)  # (B,) the nearest such lane
     rows = torch.arange(B, device=s0.device)
@@ -771,8 +776,7 @@ class ScenePlan:
 
     def __getitem__(self, rows):
         """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
-        c = self.cands
-        cands = Candidates(c.x[rows], c.u[rows], c.valid[rows])
+        cands = Candidates(self.cands.x[rows], self.cands.u[rows], self.cands.valid[rows])
         return ScenePlan(self.goal[rows], cands, self.terms[rows])
 
 
@@ -810,13 +814,8 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
     """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z)
     with_value). Step t's output depends on step t's input only, so one perturbation d shared by
-    all steps gives every block."""
-
-    def shifted(d):
-        value = fn(z + d)
-        return value, value
-
-    jac = torch.func.jacfwd(shifted, has_aux=True)(z.new_zeros(z.shape[-1]))
+    all steps gives every block (has_aux: fn(z) comes back beside it)."""
+    jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
     return jac if with_value else jac[0]
 
 
@@ -843,8 +842,9 @@ def dynamics_jacobians(dynamics, x, u):
 
 
 def solve_small(M, rhs):
-    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2 (why:
-    docs/results.md, Table 4)."""
+    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2: in Table 4's
+    imitation trainings no seed of 14 landed above -13.5 with it, 4 of 10 above -3 with
+    torch.linalg.solve (docs/results.md)."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
     a, b = M[..., 0, 0, None], M[..., 0, 1, None]  # (..., 1) each
@@ -982,7 +982,9 @@ def ilqr(
     u = u_init.clamp(lo, hi)
     x = rollout(dynamics, x_init, u)
     cost = cost_fn(x, u, *params)  # (B,)
-    pd_eps = 1e-6 if x.dtype == torch.float64 else 1e-3  # the least eigenvalue of Q_uu
+    # Q_uu's least eigenvalue: > 0 for a descent step, and in float32 well above the rounding
+    # of Q_uu's entries (eps 1.2e-7 times up to ~1e3)
+    pd_eps = 1e-6 if x.dtype == torch.float64 else 1e-3
     scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # 1, 1/5, ...
     moving = torch.ones(Bsz, dtype=torch.bool, device=x.device)
     iters_run = torch.zeros(Bsz, dtype=torch.long, device=x.device)
@@ -1033,7 +1035,8 @@ def line_search(cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales):
         cost_eta = cost_fn(x_eta, u_eta, *params)  # (B,)
         if i == 0:
             full_step = (u_eta - u).flatten(1).norm(dim=-1)  # (B,)
-        no_rise = cost_eta <= cost + 100 * eps * (1 + cost.abs())  # up to rounding
+        # no rise up to rounding: the cost sums ~T (1 + A) terms, each rounded to eps
+        no_rise = cost_eta <= cost + 100 * eps * (1 + cost.abs())
         take = no_rise & ~accepted  # (B,)
         x_new = torch.where(take[:, None, None], x_eta, x_new)
         u_new = torch.where(take[:, None, None], u_eta, u_new)
@@ -1131,7 +1134,8 @@ class ILQR(torch.autograd.Function):
     def backward(fctx, grad_x, grad_u, _):
         cost_fn, dynamics, exact = fctx.fns
         x, u, converged, lo, hi, *params = fctx.saved_tensors
-        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # active bounds are held fixed
+        # held fixed: the controls at a bound, where clamp() put them exactly (1e-8: rounding)
+        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)
         keep = converged.to(x.dtype)[:, None, None]  # the unconverged pass no gradient
         lam0, grads = kkt_backward(
             cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact
@@ -1151,8 +1155,8 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, exact=True, **
 # From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego),
 # K = 25 futures, one per value of a discrete latent z:
 #     p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
-# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate w,
-# acceleration a); the mean controls are integrated by the planner's unicycle and the control
+# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate
+# omega, acceleration a); the mean controls are integrated by the planner's unicycle and the control
 # covariances pushed through its Jacobians (EKF): a K-component GMM over positions per step.
 # Training maximises Trajectron++'s InfoVAE objective, q(z | x, y) from a bidirectional LSTM over
 # the true future; all K values of z are enumerated, none sampled. The GRU's next input is the
@@ -1333,9 +1337,8 @@ class Predictor(nn.Module):
             g  = sigmoid(W_ig i + b_ig + W_hg h + b_hg)   (Cho's update gate z: z is the latent)
             n  = tanh(W_in i + b_in + r * (W_hn h + b_hn))
             h' = (1 - g) * n + g * h
-        The input's [one_hot(z); x] part is the same at every step: its projection is computed
-        once (one_hot(k) picks column k of W). noise: the training sample's standard normal
-        draws, a tensor (T, B, K, 2), or a torch.Generator to draw them from (None: torch's)."""
+        noise: the training sample's standard normal draws, a tensor (T, B, K, 2), or a
+        torch.Generator to draw them from (None: torch's)."""
         K, T, Hd = self.cfg.pred_modes, self.cfg.horizon, self.cfg.pred_dec_hidden
         B, X = x.shape
         # the input's constant part: W_i [one_hot(k); x] + b_i = W_ik[:, k] + W_ix x + b_i, per gate
@@ -1403,9 +1406,7 @@ class Predictor(nn.Module):
 def integrate_modes(s0, u, cov_u, cfg: Config):
     """unicycle_rollout(s0, u) and the EKF's position covariances along it: s0 (..., 4),
     u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4), covariances (..., T, 2, 2) (plus
-    pred_pos_std_min^2 I). The states: headings and speeds are cumulative sums (h_{t+1} = h_t +
-    omega_t dt, v_{t+1} = v_t + a_t dt), then each step's displacement at once. The covariance is
-    the EKF's recursion, Sigma_0 = 0 and
+    pred_pos_std_min^2 I). The covariance is the EKF's recursion, Sigma_0 = 0 and
         Sigma_{t+1} = A_t Sigma_t A_t' + B_t Sigma_u,t B_t',   A = df/ds, B = df/du at the mean,
     in 2x2 blocks: A = [[I, Mq], [0, I]] and B = [[Mu], [dt I]] (only the controls move q = (h, v)),
     so with Sigma = [[Spp, Spq], [Spq', Sqq]] (p: position) each step updates (<-: the next value)
@@ -1471,12 +1472,13 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_
         LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
         KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
         I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p
-    The KL weight b anneals with the step. batch_mean: the batch's mean (B, ...) -> (...); under DDP
-    the global batch's (train.py passes one)."""
+    Beside the ELBO, log p(y|x) >= E_q[log p(y|x,z)] - KL(q || p): LL takes the log of the
+    q-weighted mixture instead (>= the ELBO's first term, by Jensen) and clamps each step's (no
+    reward past a near-exact fit), KL is weighted by b, annealed from 0 (the decoder learns first),
+    with free bits, and I_p (InfoVAE) keeps p(z|x) from collapsing onto one mode. batch_mean: the
+    batch's mean (B, ...) -> (...); under DDP the global batch's (train.py passes one)."""
     if pred.log_q is None:
-        raise ValueError(
-            "pred: pred_loss needs the posterior; call the predictor with use_posterior=True"
-        )
+        raise ValueError("pred: pred_loss needs the posterior (the predictor's use_posterior=True)")
     y = batch.agent_fut[..., :2]  # (B, T, 2)
     log_p_y = gmm_log_prob(pred, y, pred.log_q, cfg.pred_pos_std_min**2)  # (B, T)
     ll = log_p_y.clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
@@ -1495,9 +1497,8 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_
 
 # ===== 7. The stack: predict -> plan -> control, §3.2 ============================================
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr (stack_loss; a_i the paper's alpha_i, Config.alpha_rl/il)
-#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights), planner
-#       target argmin_n C_H
-#   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
+#   RL: L_ctr = C_H(s_ctr, u_ctr), the hindsight cost (eq. 3, GT futures), target n* = argmin C_H
+#   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, target n* = the candidate closest to the GT
 
 SETTINGS = ("rl", "il")  # the planner target and L_ctr: hindsight cost (RL) or imitation (IL)
 
@@ -1678,11 +1679,10 @@ def run_stack(
     and the schedules at `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,),
     default the hand-tuned ones. planner=False: iLQR starts from zero controls; controller=False:
     the plan is final; plan_others=False: planner and controller ignore the others (ablations).
-    pred_target: what the predictor is trained towards (Table 2 shifts it). plan_dt: a finer
-    planner and controller step (ablation: 0.1 s); the per-step cost terms (all but the goal's)
-    are then scaled by 1/substeps, so that eq. (3) sums the same costs per second. scene: the
-    batch's scene_plan, if already computed. noise: the decoder's (Predictor.decode);
-    batch_mean: the loss's (pred_loss)."""
+    pred_target: the predictor's target (Table 2 shifts it). plan_dt: a finer planner and
+    controller step (ablation: 0.1 s), the per-step terms (all but C_goal) scaled by 1/substeps so
+    that eq. (3) sums the same costs per second. scene: the batch's scene_plan, if computed;
+    noise, batch_mean: Predictor.decode's, pred_loss's."""
     check_setting(setting)
     sub = planner_substeps(cfg, plan_dt)
     like = dict(dtype=batch.ego_hist.dtype, device=batch.ego_hist.device)
