@@ -3,13 +3,14 @@
 The stack predicts the future of a nearby vehicle (eq. 1), plans with a sampling planner (eq. 2)
 that minimises a hand-crafted cost (eq. 3), and refines the plan with a box-constrained iLQR
 controller (eq. 4). Planner and controller are differentiable, so the predictor can be trained with
-the planning and control losses.
+the planning and control losses. The sections run in the order of their dependencies, each using
+only those above it (the checks, called by Config, stand last), not the paper's order:
 
     1. Config        every default of the paper, in one dataclass
     2. Dynamics      the dynamically-extended unicycle (exact integration)
     3. Cost          eq. (3): collision, goal, lane, heading, control effort
     4. Planner       eq. (2): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
-    5. Controller    eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
+    5. Controller    eq. (4): box-constrained iLQR (eq. 3's closed-form expansion), its KKT backward
     6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
     8. Checks        every Config field in its range, refused by name at construction
@@ -235,39 +236,6 @@ def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     return A, B
 
 
-def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
-    """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
-    lam (..., 4).
-
-    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, omega, a). With
-    nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
-        d2/dh2 = -nu'd,   d2/dh dq = (J'nu)' dd/dq,   d2/dq dr = nu' d2d/dq dr
-    (q, r in (v, omega, a)); the moments' rule above gives every derivative of d."""
-    h, v = s[..., 2], s[..., 3]
-    omega, a = u.unbind(-1)
-    (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
-    cos_h, sin_h = torch.cos(h), torch.sin(h)
-    nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
-    nu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
-    d = (v * cm0 + a * cm1, v * sm0 + a * sm1)
-    # first derivatives of d, by q
-    dd = {"v": (cm0, sm0), "omega": (-(v * sm1 + a * sm2), v * cm1 + a * cm2), "a": (cm1, sm1)}
-    # second derivatives of d that are not zero, by (q, r)
-    d2 = {
-        ("v", "omega"): (-sm1, cm1),
-        ("omega", "a"): (-sm2, cm2),
-        ("omega", "omega"): (-(v * cm2 + a * cm3), -(v * sm2 + a * sm3)),
-    }
-    index = {"h": 2, "v": 3, "omega": 4, "a": 5}  # positions in z = (x, y, h, v, omega, a)
-    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
-    H[..., 2, 2] = -(nu_x * d[0] + nu_y * d[1])  # -nu'd
-    for q, e in dd.items():
-        H[..., 2, index[q]] = H[..., index[q], 2] = nu_y * e[0] - nu_x * e[1]  # (J'nu)' e
-    for (q, r), e in d2.items():
-        H[..., index[q], index[r]] = H[..., index[r], index[q]] = nu_x * e[0] + nu_y * e[1]
-    return H
-
-
 def rollout(dynamics, x0, u):
     """Integrate controls u (..., T, m) from x0 (..., n) with a step function: (..., T+1, n)."""
     xs = [x0]
@@ -474,95 +442,6 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
 
 
-def outer(a, b):
-    """a b' for vectors a (..., i), b (..., j) -> (..., i, j)."""
-    return a[..., :, None] * b[..., None, :]
-
-
-def _collision_expansion(p, ctx: CostContext, rbf_var: float):
-    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions p (B, T, 2) (see
-    cost_expansion_closed_form)."""
-    eye = torch.eye(2, dtype=p.dtype, device=p.device)
-    mu, spread = prediction_moments(ctx)  # (B, T, 2), (B, T)
-    # the predicted mean first, then the other agents: (B, 1+A, ...)
-    diff = p[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
-    offset = torch.cat([spread[:, None], torch.zeros_like(ctx.others[..., 0])], 1)  # (B, 1+A, T)
-    mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
-    phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
-    grad = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
-    hess = outer(diff, diff) / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
-    return grad, (phi[..., None, None] * hess).sum(1)
-
-
-def _lane_expansion(p, h, ctx: CostContext):
-    """The gradients and Hessians of C_lat in p (B, T, 2) and of C_head in (p, h) (B, T, 3) (see
-    cost_expansion_closed_form): (B, T, 2), (B, T, 2, 2), (B, T, 3), (B, T, 3, 3)."""
-    eye = torch.eye(2, dtype=p.dtype, device=p.device)
-    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2, (B, T)
-    _, r, lane_h, df = segment_projection(p, a, b)  # (B, T, 2), (B, T), (B, T, 2)
-    on = has_lane.to(p.dtype)  # (B, T)
-    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dp
-    g_lat = 2 * (J.mT @ r[..., None])[..., 0] * on[..., None]
-    H_lat = 2 * J.mT @ J * on[..., None, None]
-    e = wrap_angle(h - lane_h) * on  # (B, T)
-    de_dp = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
-    de = torch.cat([de_dp, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(p, h)
-    g_head = 2 * e[..., None] * de
-    H_head = 2 * outer(de, de) * on[..., None, None]
-    return g_lat, H_lat, g_head, H_head
-
-
-def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
-    """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
-    z_t = (x, y, h, v, omega, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
-    closed form: what cost_expansion computes by autodiff (the tests hold the two together).
-    x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
-
-    With p, h a state's position and heading (sigma^2 = rbf_var):
-      C_coll  phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t
-              (c = exp(-spread / 2 sigma^2)) and per other agent:
-              grad = -phi (p - m) / sigma^2,  Hess = phi ((p - m)(p - m)' / sigma^4 - I / sigma^2)
-      C_goal  |p_T - g|^2:  grad = 2 (p_T - g),  Hess = 2 I
-      C_lat   |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b
-              (d = b - a, f the fraction along it, linear in p: df = d / |d|^2, or 0 where
-              clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
-      C_head  e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,
-              de/dp = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
-      C_u     omega^2 + a^2:  grad = 2 u,  Hess = 2 I"""
-    B, T = u.shape[:2]
-    eye = torch.eye(2, dtype=x.dtype, device=x.device)
-    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
-    p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
-    g_coll, H_coll = _collision_expansion(p, ctx, rbf_var)
-    g_lat, H_lat, g_head, H_head = _lane_expansion(p, h, ctx)
-    # the states t1..T in rows 1..T, the controls t0..T-1 in rows 0..T-1
-    g = torch.zeros(B, T + 1, 6, dtype=x.dtype, device=x.device)
-    H = torch.zeros(B, T + 1, 6, 6, dtype=x.dtype, device=x.device)
-    g[:, 1:, :2] = w_coll * g_coll + w_lat * g_lat
-    g[:, 1:, :3] += w_head * g_head
-    g[:, T, :2] += 2 * w_goal[:, 0] * (p[:, -1] - ctx.goal)
-    g[:, :T, 4:] = 2 * w_u * u
-    H[:, 1:, :2, :2] = w_coll[..., None] * H_coll + w_lat[..., None] * H_lat
-    H[:, 1:, :3, :3] += w_head[..., None] * H_head
-    H[:, T, :2, :2] += 2 * w_goal * eye
-    H[:, :T, 4:, 4:] = 2 * w_u[..., None] * eye
-    return g, H
-
-
-class StackCost:
-    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every
-    argument per scenario, and its closed-form `expansion`, which the solver takes over autodiff."""
-
-    def __init__(self, rbf_var: float):
-        self.rbf_var = rbf_var
-
-    def __call__(self, x, u, w, *context):
-        return weigh(cost_terms(x, u, CostContext(*context), self.rbf_var), w)
-
-    def expansion(self, x, u, w, *context):
-        return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
-
-
 # ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2), App. C.1 =======
 
 
@@ -721,27 +600,6 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     return Candidates(x, u, valid & _feasible(u, speed, cfg))
 
 
-def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
-    """The 'route' goal (Config.goal), which unlike the logged one holds no reaction of the driver
-    to the others: where the ego reaches at T keeping its speed along its lane (the nearest heading
-    its way, within 40 degrees). (B, 4)."""
-    B = s0.shape[0]
-    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
-    d2, arc_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
-    # 40 degrees: a lane through a bend is still the ego's, a crossing one (~90) is not
-    heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
-    lane = torch.where(heading_ok, d2, math.inf).argmin(-1)  # (B,) the nearest such lane
-    rows = torch.arange(B, device=s0.device)
-    distance = s0[:, 3] * cfg.horizon * cfg.dt  # (B,) at its speed until T
-    ahead = arc_on[rows, lane] + distance  # (B,) arc length at T
-    p = _point_at_arclength(lanes[rows, lane, None], cum[rows, lane, None], ahead[:, None, None])
-    route = torch.cat([p[:, 0, 0], s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
-    # no lane heading the ego's way (real data can lack one): straight ahead at its speed
-    direction = _heading_vector(s0[:, 2])  # (B, 2)
-    straight = torch.cat([s0[:, :2] + direction * distance[:, None], s0[:, 2:]], -1)
-    return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
-
-
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float):
     """The relaxed argmin (§3.1): P(n) = exp(-beta C_n) / sum_valid exp(-beta C_m),
     L_plan = -log P(n*): (B,)."""
@@ -762,22 +620,6 @@ class Plan(NamedTuple):
     best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
     plannable: torch.Tensor  # (B,)    bool: at least 2 valid candidates (others: flagged)
     terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
-
-
-@dataclass
-class ScenePlan:
-    """What the planner computes from the scene alone: the goal g, the candidates and every term of
-    eq. (3) but C_coll for each. A prediction reaches the plan through C_coll only, so training
-    computes these once."""
-
-    goal: torch.Tensor  # (B, 4)       the goal state
-    cands: Candidates
-    terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
-
-    def __getitem__(self, rows):
-        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
-        cands = Candidates(self.cands.x[rows], self.cands.u[rows], self.cands.valid[rows])
-        return ScenePlan(self.goal[rows], cands, self.terms[rows])
 
 
 def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
@@ -829,6 +671,95 @@ def cost_expansion(cost_fn, x, u, params):
     grad = torch.func.grad(lambda z: cost_fn(z[..., :n], z[:, :T, n:], *params).sum())
     H, g = _stagewise_jacobian(grad, z, with_value=True)
     return g, H
+
+
+def outer(a, b):
+    """a b' for vectors a (..., i), b (..., j) -> (..., i, j)."""
+    return a[..., :, None] * b[..., None, :]
+
+
+def _collision_expansion(p, ctx: CostContext, rbf_var: float):
+    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions p (B, T, 2) (see
+    cost_expansion_closed_form)."""
+    eye = torch.eye(2, dtype=p.dtype, device=p.device)
+    mu, spread = prediction_moments(ctx)  # (B, T, 2), (B, T)
+    # the predicted mean first, then the other agents: (B, 1+A, ...)
+    diff = p[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
+    offset = torch.cat([spread[:, None], torch.zeros_like(ctx.others[..., 0])], 1)  # (B, 1+A, T)
+    mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
+    phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
+    grad = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
+    hess = outer(diff, diff) / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
+    return grad, (phi[..., None, None] * hess).sum(1)
+
+
+def _lane_expansion(p, h, ctx: CostContext):
+    """The gradients and Hessians of C_lat in p (B, T, 2) and of C_head in (p, h) (B, T, 3) (see
+    cost_expansion_closed_form): (B, T, 2), (B, T, 2, 2), (B, T, 3), (B, T, 3, 3)."""
+    eye = torch.eye(2, dtype=p.dtype, device=p.device)
+    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2, (B, T)
+    _, r, lane_h, df = segment_projection(p, a, b)  # (B, T, 2), (B, T), (B, T, 2)
+    on = has_lane.to(p.dtype)  # (B, T)
+    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dp
+    g_lat = 2 * (J.mT @ r[..., None])[..., 0] * on[..., None]
+    H_lat = 2 * J.mT @ J * on[..., None, None]
+    e = wrap_angle(h - lane_h) * on  # (B, T)
+    de_dp = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
+    de = torch.cat([de_dp, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(p, h)
+    g_head = 2 * e[..., None] * de
+    H_head = 2 * outer(de, de) * on[..., None, None]
+    return g_lat, H_lat, g_head, H_head
+
+
+def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
+    """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
+    z_t = (x, y, h, v, omega, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
+    closed form: what cost_expansion computes by autodiff (the tests hold the two together).
+    x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
+
+    With p, h a state's position and heading (sigma^2 = rbf_var):
+      C_coll  phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t
+              (c = exp(-spread / 2 sigma^2)) and per other agent:
+              grad = -phi (p - m) / sigma^2,  Hess = phi ((p - m)(p - m)' / sigma^4 - I / sigma^2)
+      C_goal  |p_T - g|^2:  grad = 2 (p_T - g),  Hess = 2 I
+      C_lat   |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b
+              (d = b - a, f the fraction along it, linear in p: df = d / |d|^2, or 0 where
+              clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
+      C_head  e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,
+              de/dp = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
+      C_u     omega^2 + a^2:  grad = 2 u,  Hess = 2 I"""
+    B, T = u.shape[:2]
+    eye = torch.eye(2, dtype=x.dtype, device=x.device)
+    w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
+    p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
+    g_coll, H_coll = _collision_expansion(p, ctx, rbf_var)
+    g_lat, H_lat, g_head, H_head = _lane_expansion(p, h, ctx)
+    # the states t1..T in rows 1..T, the controls t0..T-1 in rows 0..T-1
+    g = torch.zeros(B, T + 1, 6, dtype=x.dtype, device=x.device)
+    H = torch.zeros(B, T + 1, 6, 6, dtype=x.dtype, device=x.device)
+    g[:, 1:, :2] = w_coll * g_coll + w_lat * g_lat
+    g[:, 1:, :3] += w_head * g_head
+    g[:, T, :2] += 2 * w_goal[:, 0] * (p[:, -1] - ctx.goal)
+    g[:, :T, 4:] = 2 * w_u * u
+    H[:, 1:, :2, :2] = w_coll[..., None] * H_coll + w_lat[..., None] * H_lat
+    H[:, 1:, :3, :3] += w_head[..., None] * H_head
+    H[:, T, :2, :2] += 2 * w_goal * eye
+    H[:, :T, 4:, 4:] = 2 * w_u[..., None] * eye
+    return g, H
+
+
+class StackCost:
+    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every
+    argument per scenario, and its closed-form `expansion`, which the solver takes over autodiff."""
+
+    def __init__(self, rbf_var: float):
+        self.rbf_var = rbf_var
+
+    def __call__(self, x, u, w, *context):
+        return weigh(cost_terms(x, u, CostContext(*context), self.rbf_var), w)
+
+    def expansion(self, x, u, w, *context):
+        return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
 
 
 def dynamics_jacobians(dynamics, x, u):
@@ -1045,6 +976,39 @@ def line_search(cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales):
         if accepted.all():
             break
     return x_new, u_new, cost_new, accepted, full_step
+
+
+def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
+    """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
+    lam (..., 4).
+
+    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, omega, a). With
+    nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
+        d2/dh2 = -nu'd,   d2/dh dq = (J'nu)' dd/dq,   d2/dq dr = nu' d2d/dq dr
+    (q, r in (v, omega, a)); the moments' rule above gives every derivative of d."""
+    h, v = s[..., 2], s[..., 3]
+    omega, a = u.unbind(-1)
+    (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
+    nu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
+    d = (v * cm0 + a * cm1, v * sm0 + a * sm1)
+    # first derivatives of d, by q
+    dd = {"v": (cm0, sm0), "omega": (-(v * sm1 + a * sm2), v * cm1 + a * cm2), "a": (cm1, sm1)}
+    # second derivatives of d that are not zero, by (q, r)
+    d2 = {
+        ("v", "omega"): (-sm1, cm1),
+        ("omega", "a"): (-sm2, cm2),
+        ("omega", "omega"): (-(v * cm2 + a * cm3), -(v * sm2 + a * sm3)),
+    }
+    index = {"h": 2, "v": 3, "omega": 4, "a": 5}  # positions in z = (x, y, h, v, omega, a)
+    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
+    H[..., 2, 2] = -(nu_x * d[0] + nu_y * d[1])  # -nu'd
+    for q, e in dd.items():
+        H[..., 2, index[q]] = H[..., index[q], 2] = nu_y * e[0] - nu_x * e[1]  # (J'nu)' e
+    for (q, r), e in d2.items():
+        H[..., index[q], index[r]] = H[..., index[r], index[q]] = nu_x * e[0] + nu_y * e[1]
+    return H
 
 
 def lagrangian_curvature(dynamics, x, u, g, A):
@@ -1562,6 +1526,43 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, 
     return ctx, hctx
 
 
+def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
+    """The 'route' goal (Config.goal), which unlike the logged one holds no reaction of the driver
+    to the others: where the ego reaches at T keeping its speed along its lane (the nearest heading
+    its way, within 40 degrees). (B, 4)."""
+    B = s0.shape[0]
+    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
+    d2, arc_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
+    # 40 degrees: a lane through a bend is still the ego's, a crossing one (~90) is not
+    heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
+    lane = torch.where(heading_ok, d2, math.inf).argmin(-1)  # (B,) the nearest such lane
+    rows = torch.arange(B, device=s0.device)
+    distance = s0[:, 3] * cfg.horizon * cfg.dt  # (B,) at its speed until T
+    ahead = arc_on[rows, lane] + distance  # (B,) arc length at T
+    p = _point_at_arclength(lanes[rows, lane, None], cum[rows, lane, None], ahead[:, None, None])
+    route = torch.cat([p[:, 0, 0], s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
+    # no lane heading the ego's way (real data can lack one): straight ahead at its speed
+    direction = _heading_vector(s0[:, 2])  # (B, 2)
+    straight = torch.cat([s0[:, :2] + direction * distance[:, None], s0[:, 2:]], -1)
+    return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
+
+
+@dataclass
+class ScenePlan:
+    """What the planner computes from the scene alone: the goal g, the candidates and every term of
+    eq. (3) but C_coll for each. A prediction reaches the plan through C_coll only, so training
+    computes these once."""
+
+    goal: torch.Tensor  # (B, 4)       the goal state
+    cands: Candidates
+    terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
+
+    def __getitem__(self, rows):
+        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
+        cands = Candidates(self.cands.x[rows], self.cands.u[rows], self.cands.valid[rows])
+        return ScenePlan(self.goal[rows], cands, self.terms[rows])
+
+
 def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     """A batch's ScenePlan on the planner's clock: the goal (Config.goal), the candidates, their
     prediction-free terms."""
@@ -1722,9 +1723,8 @@ def stack_loss(out: StackOutput, alphas, pred_weights=1.0, count=None):
 
 
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
-# The method takes what Config, the command lines and the loaders (train.py, data_synth.py,
-# lab/nuscenes.py) have checked; the math does not check its input again. Every number of Config has
-# a range (inclusive): no NaN or petabyte later.
+# The math does not check its input again: Config, the command lines and the loaders (train.py,
+# data_synth.py, lab/nuscenes.py) do. Every number of Config has an inclusive range.
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
     **dict.fromkeys(["hist_len", "horizon"], (1, 100)),
