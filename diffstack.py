@@ -3,22 +3,32 @@
 The stack predicts the future of a nearby vehicle (eq. 1), plans with a sampling planner (eq. 2)
 that minimises a hand-crafted cost (eq. 3), and refines the plan with a box-constrained iLQR
 controller (eq. 4). Planner and controller are differentiable, so the predictor can be trained with
-the planning and control losses.
+the planning and control losses. The sections run in the order of their dependencies, each using
+only those above it (the checks, called by Config, stand last), not the paper's order:
 
     1. Config        every default of the paper, in one dataclass
     2. Dynamics      the dynamically-extended unicycle (exact integration)
     3. Cost          eq. (3): collision, goal, lane, heading, control effort
     4. Planner       eq. (2): lane-centric spline candidates, argmin, relaxed argmin (L_plan)
-    5. Controller    eq. (4): box-constrained iLQR, and its exact KKT backward (Amos et al. 2018)
+    5. Controller    eq. (4): box-constrained iLQR (eq. 3's closed-form expansion), its KKT backward
     6. Predictor     eq. (1): a Trajectron++-style CVAE over controls, and its InfoVAE loss
     7. Stack         predict -> plan -> control, L = a1 L_pred + a2 L_plan + a3 L_ctr
     8. Checks        every Config field in its range, refused by name at construction
 Training and evaluation are in train.py (`python diffstack.py --quick` hands over to lab/quick.py).
 
 Shapes in comments: B scenarios, A other agents, K prediction modes, N planner candidates,
-T time steps, L lanes, P points per lane, S line-search step scales, n = 4 state and m = 2
-control dims; ... extra batch dims a function broadcasts over.
-A state is s = (x, y, heading h, speed v); a control is u = (yaw rate w, acceleration a).
+T time steps, L lanes, P points per lane, n = 4 state and m = 2 control dims; ... extra batch
+dims a function broadcasts over. Notation, one meaning per letter (the paper's where it has one):
+  s = (x, y, h, v)  state: position (x, y), heading h, speed v; s0 now. The controller, general,
+                    writes trajectories x (T+1, n), u (T, m), as Amos et al. and Tassa et al.
+  u = (omega, a)    control: yaw rate omega, acceleration a; dt (tau) one step's duration
+  f; A_t, B_t       dynamics s_t+1 = f(s_t, u_t); its Jacobians df/ds, df/du (B alone: the batch)
+  C, w, g           the cost of eq. (3), its weights w1..w5, the goal
+  z; K, k, pi_k     the CVAE's latent; its K values (the modes), a mode, its weight
+  p(z|x), q(z|x,y)  prior and posterior given the condition x (history) and the future y
+  lambda; G         costates (lambda_0 = dL/ds_init); iLQR's feedback gain, du = k + G dx
+  a1..a3; beta      the paper's alpha_i, L's weights (stack_loss); the relaxed argmin's temperature
+  b; Sigma; sigma   the KL weight of L_pred; covariances; the collision RBF's width
 """
 
 from __future__ import annotations
@@ -66,7 +76,7 @@ class Config:
     max_goal_lanes: int = 2
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # terminal accelerations
     plan_offsets: tuple = (-0.5, 0.0, 0.5)  # terminal lateral offsets from the lane centre (m)
-    beta: float = 1.0  # temperature of the relaxed argmin p_n = softmax(-beta C_n)
+    beta: float = 1.0  # temperature of the relaxed argmin P(n) = softmax(-beta C_n)
     # feasible |w v| (m/s^2), authors' code; and the controller's box (authors': a in [-6, 4])
     feas_lat_accel: float = 8.0
     feas_yaw_per_speed: float = 0.5  # feasible |w| <= this * |v| (1/m), authors' code
@@ -93,7 +103,7 @@ class Config:
     pred_pos_std_min: float = 0.05
     pred_log_p_max: float = 6.0  # the loss's per-step log-likelihood is clamped above at this
     pred_kl_min: float = 0.07  # free bits: the batch-mean KL(q || p) is clamped below at this
-    pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight beta(step) = b0 sigmoid((step - b1) / b2)
+    pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight b(step) = b0 sigmoid((step - b1) / b2)
     # logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3)
     pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
     pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(y_t) below at this
@@ -113,20 +123,24 @@ class Config:
 
 # ===== 2. Dynamics: the dynamically-extended unicycle =============================================
 #
-# With constant yaw rate w and acceleration a over one step tau = dt, starting from (x, y, h, v):
-#     h' = h + w tau,   v' = v + a tau,   [x', y'] = [x, y] + R(h) [along, lateral],
-#     along   = int_0^tau (v + a s) cos(w s) ds = v c_0 + a c_1,
-#     lateral = int_0^tau (v + a s) sin(w s) ds = v s_0 + a s_1,
-# with the moments c_j = int_0^tau s^j cos(w s) ds and s_j = int_0^tau s^j sin(w s) ds, whose
-# derivatives are moments again, d c_j / dw = -s_{j+1} and d s_j / dw = c_{j+1}: the Jacobians in
-# closed form too. The closed forms divide by w^(j+1); for |th| = |w tau| < 0.3 their Taylor series
-# (seven terms, error < 1e-16) replaces them:
-#     c_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),
-#     s_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2)),
-# and the closed forms get a safe w = 1 there (a tiny w inside torch.where would put NaN into the
-# gradient).
+# The textbook's ODE, x. = v cos h, y. = v sin h, h. = omega, v. = a, is usually stepped by Euler:
+#     s_t+1 = s_t + dt (v cos h, v sin h, omega, a).
+# Here it is integrated exactly, with omega and a constant over the step tau = dt (the controls are
+# zero-order held): one Euler step is over 1 m off at 10 m/s under the box's controls (0.7 rad/s,
+# -5 m/s^2) over the paper's 0.5 s, and predictor, planner and controller share this f. Exactly:
+#     h_t+1 = h + omega tau,   v_t+1 = v + a tau,   (x, y)_t+1 = (x, y) + R(h) (along, lateral),
+#     along   = int_0^tau (v + a r) cos(omega r) dr = v cm_0 + a cm_1,
+#     lateral = int_0^tau (v + a r) sin(omega r) dr = v sm_0 + a sm_1,
+# with the moments cm_j = int_0^tau r^j cos(omega r) dr and sm_j = int_0^tau r^j sin(omega r) dr,
+# whose derivatives are moments again, d cm_j/domega = -sm_j+1 and d sm_j/domega = cm_j+1: the
+# Jacobians in closed form too. The closed forms divide by omega^(j+1); for |th| = |omega tau| < 0.3
+# their Taylor series (seven terms, error < 1e-16) replaces them:
+#     cm_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),
+#     sm_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2)),
+# and the closed forms get a safe omega = 1 there (a tiny omega inside torch.where would put NaN
+# into the gradient).
 
-_SERIES_SWITCH = 0.3  # |w tau| below which the series replaces the closed forms
+_SERIES_SWITCH = 0.3  # |omega tau| below which the series replaces the closed forms
 _SERIES_TERMS = 7  # k = 0 .. 6
 
 
@@ -143,52 +157,40 @@ def _series_coefficients(jmax, dtype, device):
     return torch.tensor(rows, dtype=dtype, device=device)
 
 
-def _moments(w, tau, jmax):
-    """[c_0..c_jmax], [s_0..s_jmax] for yaw rates w (...,) over tau: exact and smooth at w = 0."""
-    th = w * tau
+def _moments(omega, tau, jmax):
+    """[cm_0..cm_jmax], [sm_0..sm_jmax] for yaw rates omega (...,) over tau: exact, smooth at 0."""
+    th = omega * tau
     small = th.abs() < _SERIES_SWITCH
     J = jmax + 1
-    tau_pow = tau ** torch.arange(1, J + 1, dtype=w.dtype, device=w.device)  # (J,) tau^(j+1)
+    tau_pow = tau ** torch.arange(
+        1, J + 1, dtype=omega.dtype, device=omega.device
+    )  # (J,) tau^(j+1)
     # the series, term by term (th = 0 where the closed form is taken):
-    #     c_j = tau^(j+1) sum_k a_kj th^2k,   s_j = tau^(j+1) th sum_k b_kj th^2k
+    #     cm_j = tau^(j+1) sum_k a_kj th^2k,   sm_j = tau^(j+1) th sum_k b_kj th^2k
     th_s = torch.where(small, th, 0.0)
-    coef = _series_coefficients(jmax, w.dtype, w.device)  # (terms, 2J)
+    coef = _series_coefficients(jmax, omega.dtype, omega.device)  # (terms, 2J)
     th2 = th_s**2
     power = torch.ones_like(th_s)  # th^2k, from k = 0
     series = 0.0
     for k in range(_SERIES_TERMS):
         series = series + power[..., None] * coef[k]  # (..., 2J)
         power = power * th2
-    c_series = series[..., :J] * tau_pow
-    s_series = series[..., J:] * th_s[..., None] * tau_pow
+    cm_series = series[..., :J] * tau_pow
+    sm_series = series[..., J:] * th_s[..., None] * tau_pow
     # the closed forms, by parts:
-    #     c_j = (tau^j sin - j s_{j-1}) / w,   s_j = (j c_{j-1} - tau^j cos) / w
-    ws = torch.where(small, 1.0, w)
-    sin = torch.sin(ws * tau)
-    cos = torch.cos(ws * tau)
-    c = [sin / ws]
-    s = [(1.0 - cos) / ws]
+    #     cm_j = (tau^j sin - j sm_{j-1}) / omega,   sm_j = (j cm_{j-1} - tau^j cos) / omega
+    om_safe = torch.where(small, 1.0, omega)
+    sin = torch.sin(om_safe * tau)
+    cos = torch.cos(om_safe * tau)
+    cm = [sin / om_safe]
+    sm = [(1.0 - cos) / om_safe]
     for i in range(1, J):
-        c.append((tau**i * sin - i * s[-1]) / ws)
-        s.append((i * c[-2] - tau**i * cos) / ws)
+        cm.append((tau**i * sin - i * sm[-1]) / om_safe)
+        sm.append((i * cm[-2] - tau**i * cos) / om_safe)
     small = small[..., None]
-    c = torch.where(small, c_series, torch.stack(c, -1))  # (..., J)
-    s = torch.where(small, s_series, torch.stack(s, -1))  # (..., J)
-    return c.unbind(-1), s.unbind(-1)
-
-
-def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
-    """One exact step of the unicycle: s (..., 4) = (x, y, h, v), u (..., 2) = (w, a) -> s'."""
-    x, y, h, v = s.unbind(-1)
-    w, a = u.unbind(-1)
-    (c0, c1), (s0, s1) = _moments(w, dt, 1)
-    along = v * c0 + a * c1
-    lateral = v * s0 + a * s1
-    cos_h, sin_h = torch.cos(h), torch.sin(h)
-    # [x', y'] = [x, y] + R(h) [along, lateral]
-    x_next = x + cos_h * along - sin_h * lateral
-    y_next = y + sin_h * along + cos_h * lateral
-    return torch.stack([x_next, y_next, h + w * dt, v + a * dt], -1)
+    cm = torch.where(small, cm_series, torch.stack(cm, -1))  # (..., J)
+    sm = torch.where(small, sm_series, torch.stack(sm, -1))  # (..., J)
+    return cm.unbind(-1), sm.unbind(-1)
 
 
 def _rotate(h, along, lateral):
@@ -197,63 +199,41 @@ def _rotate(h, along, lateral):
     return cos_h * along - sin_h * lateral, sin_h * along + cos_h * lateral
 
 
-def _position_jacobians(h, v, w, a, dt: float):
-    """A unicycle step from h, v under w, a (...): its displacement dx, dy (...) and the position
-    rows of its Jacobians, M = d(x, y)/d(h, v) and N = d(x, y)/d(w, a), each (..., 2, 2)."""
-    (c0, c1, c2), (s0, s1, s2) = _moments(w, dt, 2)
-    dx, dy = _rotate(h, v * c0 + a * c1, v * s0 + a * s1)  # the displacement R(h) d
-    x_v, y_v = _rotate(h, c0, s0)  # d/dv
-    # d/dw, by d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1}
-    x_w, y_w = _rotate(h, -(v * s1 + a * s2), v * c1 + a * c2)
-    x_a, y_a = _rotate(h, c1, s1)  # d/da
+def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
+    """f: one exact step, s (..., 4) = (x, y, h, v), u (..., 2) = (omega, a) -> s_t+1 (..., 4)."""
+    x, y, h, v = s.unbind(-1)
+    omega, a = u.unbind(-1)
+    (cm0, cm1), (sm0, sm1) = _moments(omega, dt, 1)
+    dx, dy = _rotate(h, v * cm0 + a * cm1, v * sm0 + a * sm1)  # R(h) (along, lateral)
+    return torch.stack([x + dx, y + dy, h + omega * dt, v + a * dt], -1)
+
+
+def _position_jacobians(h, v, omega, a, dt: float):
+    """A unicycle step from h, v under omega, a (...): its displacement dx, dy (...) and the
+    position rows of its Jacobians, Mq = d(x, y)/d(h, v), Mu = d(x, y)/d(omega, a) (..., 2, 2)."""
+    (cm0, cm1, cm2), (sm0, sm1, sm2) = _moments(omega, dt, 2)
+    dx, dy = _rotate(h, v * cm0 + a * cm1, v * sm0 + a * sm1)  # the displacement R(h) d
+    x_v, y_v = _rotate(h, cm0, sm0)  # d/dv
+    # d/domega, by d cm_j/domega = -sm_{j+1}, d sm_j/domega = cm_{j+1}
+    x_om, y_om = _rotate(h, -(v * sm1 + a * sm2), v * cm1 + a * cm2)
+    x_a, y_a = _rotate(h, cm1, sm1)  # d/da
     # d/dh of R(h) d is J R(h) d = (-dy, dx)
-    M = torch.stack([torch.stack([-dy, x_v], -1), torch.stack([dx, y_v], -1)], -2)  # (..., 2, 2)
-    N = torch.stack([torch.stack([x_w, x_a], -1), torch.stack([y_w, y_a], -1)], -2)  # (..., 2, 2)
-    return dx, dy, M, N
+    Mq = torch.stack([torch.stack([-dy, x_v], -1), torch.stack([dx, y_v], -1)], -2)  # (..., 2, 2)
+    Mu = torch.stack(
+        [torch.stack([x_om, x_a], -1), torch.stack([y_om, y_a], -1)], -2
+    )  # (..., 2, 2)
+    return dx, dy, Mq, Mu
 
 
 def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
     """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form:
-    A = [[I, M], [0, I]] and B = [[N], [dt I]] (only the controls move h and v)."""
-    _, _, M, N = _position_jacobians(s[..., 2], s[..., 3], u[..., 0], u[..., 1], dt)
-    eye = torch.eye(2, dtype=s.dtype, device=s.device).expand_as(M)  # (..., 2, 2)
-    zero = torch.zeros_like(M)
-    A = torch.cat([torch.cat([eye, M], -1), torch.cat([zero, eye], -1)], -2)  # (..., 4, 4)
-    B = torch.cat([N, dt * eye], -2)  # (..., 4, 2)
+    A = [[I, Mq], [0, I]] and B = [[Mu], [dt I]] (only the controls move h and v)."""
+    _, _, Mq, Mu = _position_jacobians(s[..., 2], s[..., 3], u[..., 0], u[..., 1], dt)
+    eye = torch.eye(2, dtype=s.dtype, device=s.device).expand_as(Mq)  # (..., 2, 2)
+    zero = torch.zeros_like(Mq)
+    A = torch.cat([torch.cat([eye, Mq], -1), torch.cat([zero, eye], -1)], -2)  # (..., 4, 4)
+    B = torch.cat([Mu, dt * eye], -2)  # (..., 4, 2)
     return A, B
-
-
-def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
-    """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
-    lam (..., 4).
-
-    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, w, a). With
-    mu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
-        d2/dh2 = -mu'd,   d2/dh dq = (J'mu)' dd/dq,   d2/dq dr = mu' d2d/dq dr,   q, r in (v, w, a),
-    and the moments' rule d c_j/dw = -s_{j+1}, d s_j/dw = c_{j+1} gives every derivative of d."""
-    h, v = s[..., 2], s[..., 3]
-    w, a = u.unbind(-1)
-    (c0, c1, c2, c3), (s0, s1, s2, s3) = _moments(w, dt, 3)
-    cos_h, sin_h = torch.cos(h), torch.sin(h)
-    mu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # mu = R(h)' lam_xy
-    mu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
-    d = (v * c0 + a * c1, v * s0 + a * s1)
-    # first derivatives of d, by q
-    dd = {"v": (c0, s0), "w": (-(v * s1 + a * s2), v * c1 + a * c2), "a": (c1, s1)}
-    # second derivatives of d that are not zero, by (q, r)
-    d2 = {
-        ("v", "w"): (-s1, c1),
-        ("w", "a"): (-s2, c2),
-        ("w", "w"): (-(v * c2 + a * c3), -(v * s2 + a * s3)),
-    }
-    index = {"h": 2, "v": 3, "w": 4, "a": 5}  # positions in z = (x, y, h, v, w, a)
-    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
-    H[..., 2, 2] = -(mu_x * d[0] + mu_y * d[1])  # -mu'd
-    for q, e in dd.items():
-        H[..., 2, index[q]] = H[..., index[q], 2] = mu_y * e[0] - mu_x * e[1]  # (J'mu)' e
-    for (q, r), e in d2.items():
-        H[..., index[q], index[r]] = H[..., index[r], index[q]] = mu_x * e[0] + mu_y * e[1]
-    return H
 
 
 def rollout(dynamics, x0, u):
@@ -312,8 +292,7 @@ class CostContext:
 
 
 def per_scenario(t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """t (B, *rest) viewed as (B, 1, ..., 1, *rest), to broadcast over the extra dims of like
-    (B, ..., T, 2)."""
+    """t (B, *rest) viewed as (B, 1, ..., 1, *rest), to broadcast over like's (B, ..., T, 2)."""
     return t.reshape(t.shape[0], *([1] * (like.dim() - 3)), *t.shape[1:])
 
 
@@ -343,16 +322,18 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     First the nearest lane point (no gradient: it only picks an index), ranked by
         |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2
     so that an oncoming lane beside the state's own is not 'closest' (no lane within 90 degrees:
-    no lane cost); then the closer of the two segments that meet there. The ranking is one product
-    of features (below), the fast form of these distances; a test holds the two to one point."""
+    no lane cost; the heading term is beyond the paper's "closest lane point"); then the closer of
+    the two segments that meet there. As u(h_q).u(h_p) = cos(h_q - h_p), u(h) = (cos h, sin h),
+        |q - p|^2 + lam (1 - cos(h_q - h_p))
+            = |q|^2 + [-2q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam],
+    one product of features for all pairs; |q|^2 drops out (a test holds the two to one point)."""
     B, L, P, _ = lanes.shape
     q = pos.reshape(B, -1, 2).detach()  # (B, Q, 2)
     hq = heading.reshape(B, -1).detach()  # (B, Q)
     pts = lanes.reshape(B, L * P, 3)
     p = pts.detach()
     mask = lanes_mask.reshape(B, L * P)
-    # 1. the nearest point: |q|^2 is the same for every p and drops out; the rest is one product
-    #    [-2 q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam], u(h) = (cos h, sin h); padding: 1e30
+    # 1. the nearest point, by the product above (padding ranks at 1e30, last)
     p_norm = torch.where(mask, (p[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
     u_p = torch.cat([torch.cos(p[..., 2:]), torch.sin(p[..., 2:])], -1)  # (B, L*P, 2)
     p_feat = torch.cat([p[..., :2], u_p, p_norm[..., None]], -1)  # (B, L*P, 5)
@@ -389,7 +370,7 @@ def project_to_lanes(pos, heading, lanes, lanes_mask):
 
 def rbf(d2: torch.Tensor, rbf_var: float) -> torch.Tensor:
     """phi(d2) = exp(-d2 / 2 sigma^2), its exponent floored at -60 (phi < 1e-26, nothing at the
-    cost's precision; docs/performance.md says why)."""
+    cost's precision): far agents would send exp into its underflow path, 10-25x slower."""
     return torch.exp((-d2 / (2 * rbf_var)).clamp_min(-60.0))
 
 
@@ -429,7 +410,7 @@ def scene_terms(pos, head, u, goal, lanes, lanes_mask) -> torch.Tensor:
     to_goal = ((pos[..., -1, :] - per_scenario(goal, pos)) ** 2).sum(-1)
     # C_lat = sum_t ||s_t - s_lane||^2,   C_head = sum_t wrap(h_t - h_lane)^2
     lat, head_err, _ = project_to_lanes(pos, head, lanes, lanes_mask)
-    # C_u = sum_t w_t^2 + a_t^2
+    # C_u = sum_t omega_t^2 + a_t^2
     effort = (u**2).sum((-1, -2))
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
@@ -459,6 +440,237 @@ def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
     """Eq. (3): x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
     return weigh(cost_terms(x, u, ctx, rbf_var), w)
+
+
+# ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2), App. C.1 =======
+
+
+@dataclass
+class Candidates:
+    """The planner's candidate trajectories for a batch."""
+
+    x: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
+    u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
+    valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
+
+
+def _lane_arclength(lanes, lanes_mask):
+    """Cumulative arc length along each lane, flat past its last valid point. -> (B, L, P)."""
+    seg = (lanes[:, :, 1:, :2] - lanes[:, :, :-1, :2]).norm(dim=-1)
+    seg = torch.where(lanes_mask[:, :, 1:] & lanes_mask[:, :, :-1], seg, 0.0)  # (B, L, P-1)
+    return torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)
+
+
+def _project_each_lane(p, lanes, lanes_mask, cum):
+    """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each
+    (B, L)."""
+    seg_ok = lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:]  # (B, L, P-1)
+    q = p[:, None, None, :]  # (B, 1, 1, 2)
+    frac, r, lane_h, _ = segment_projection(q, lanes[:, :, :-1], lanes[:, :, 1:])  # (B, L, P-1)
+    d2 = torch.where(seg_ok, (r**2).sum(-1), torch.full_like(r[..., 0], 1e9))
+    best = d2.argmin(-1, keepdim=True)  # (B, L, 1) the closest segment of each lane
+    arclength = cum[..., :-1] + frac * (cum[..., 1:] - cum[..., :-1])  # (B, L, P-1)
+    return tuple(t.gather(-1, best).squeeze(-1) for t in (d2, arclength, lane_h))
+
+
+def _point_at_arclength(lanes, cum, arc):
+    """Lane points at arc lengths arc (B, G, Q) on lanes (B, G, P, 3), interpolated (B, G, Q, 3)."""
+    i = torch.searchsorted(cum.contiguous(), arc.contiguous())  # the segment's end point
+    i = i.clamp(1, cum.shape[-1] - 1)
+    arc0, arc1 = cum.gather(-1, i - 1), cum.gather(-1, i)
+    a = lanes.gather(-2, (i - 1)[..., None].expand(*i.shape, 3))
+    b = lanes.gather(-2, i[..., None].expand(*i.shape, 3))
+    f = ((arc - arc0) / (arc1 - arc0).clamp_min(1e-6)).clamp(0, 1)[..., None]
+    xy = a[..., :2] + f * (b[..., :2] - a[..., :2])
+    h = a[..., 2:] + f * wrap_angle(b[..., 2:] - a[..., 2:])
+    return torch.cat([xy, h], -1)
+
+
+def _hermite(p0, m0, p1, m1, tau):
+    """Cubic Hermite curves p0 -> p1 with end tangents m0, m1 (..., 2) at tau (Q,) in [0, 1]:
+    value, first and second derivative, each (..., Q, 2), as one product of the basis functions
+    (3 Q, 4) with the control points."""
+    t = tau[:, None]  # (Q, 1)
+    # the Hermite basis h00, h10, h01, h11: p(t) = h00 p0 + h10 m0 + h01 p1 + h11 m1
+    h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
+    dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
+    ddh = [12 * t - 6, 6 * t - 4, -12 * t + 6, 6 * t - 2]
+    basis = torch.cat([torch.cat(b, 1) for b in (h, dh, ddh)], 0)  # (3 Q, 4)
+    ctrl = torch.stack([p0, m0, p1, m1]).reshape(4, -1)  # (4, ... * 2)
+    out = (basis @ ctrl).reshape(3, len(tau), *p0.shape)  # (3, Q, ..., 2)
+    return list(out.movedim(1, -2))  # value, first, second derivative, each (..., Q, 2)
+
+
+def _goal_lanes(goal, lanes, lanes_mask, cum, cfg: Config):
+    """The goal lanes: within goal_lane_dist of the goal and heading within goal_lane_heading of
+    the goal's, up to max_goal_lanes, closest first. goal (B, 4) -> the lanes (B, G, P, 3), their
+    arc lengths (B, G, P) and masks (B, G, P), and whether each is a goal lane at all (B, G)."""
+    B, _, P, _ = lanes.shape
+    d2_goal, _, h_goal = _project_each_lane(goal[:, :2], lanes, lanes_mask, cum)  # (B, L)
+    near = d2_goal < cfg.goal_lane_dist**2
+    aligned = wrap_angle(h_goal - goal[:, 2:3]).abs() < cfg.goal_lane_heading
+    G = min(cfg.max_goal_lanes, lanes.shape[1])
+    ranked = torch.where(near & aligned, d2_goal, math.inf)
+    score, idx = ranked.topk(G, -1, largest=False)  # (B, G)
+    g_lanes = lanes.gather(1, idx[:, :, None, None].expand(B, G, P, 3))  # (B, G, P, 3)
+    g_cum = cum.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
+    g_mask = lanes_mask.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
+    return g_lanes, g_cum, g_mask, torch.isfinite(score)
+
+
+def _terminal_states(s0, goal, lanes, lanes_mask, cfg: Config):
+    """The candidates' terminal states on the goal lanes: each lane x 8 terminal accelerations x 3
+    lateral offsets, flattened to N. s0, goal (B, 4) -> position (B, N, 2), heading (B, N),
+    speed (B, N), valid (B, N): a goal lane and the terminal on it."""
+    B, dur = len(s0), cfg.horizon * cfg.dt
+    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
+    g_lanes, g_cum, g_mask, lane_ok = _goal_lanes(goal, lanes, lanes_mask, cum, cfg)
+    _, arc_ego, _ = _project_each_lane(s0[:, :2], g_lanes, g_mask, g_cum)  # (B, G) ego's arc length
+    acc = s0.new_tensor(cfg.plan_accels)  # (n_acc,)
+    off = s0.new_tensor(cfg.plan_offsets)  # (n_off,)
+    v0 = s0[:, 3:4]  # (B, 1)
+    # v_f = max(v0 + a T dt, 0), and the distance (v0 + v_f) / 2 * T dt along the lane
+    v_f = (v0 + acc * dur).clamp_min(0)  # (B, n_acc)
+    arc_end = arc_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, n_acc)
+    on_lane = arc_end <= g_cum[..., -1:]  # the terminal lies on the lane
+    lp = _point_at_arclength(g_lanes, g_cum, arc_end)  # (B, G, n_acc, 3)
+    # then the lateral offset along the lane's normal
+    normal = torch.stack([-torch.sin(lp[..., 2]), torch.cos(lp[..., 2])], -1)  # (B, G, n_acc, 2)
+    p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, n_acc, n_off, 2)
+    h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, n_acc, n_off)
+    v1 = v_f[:, None, :, None].expand_as(h1)
+    valid = (lane_ok[:, :, None] & on_lane)[..., None].expand_as(h1)
+    return p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1), valid.reshape(B, -1)
+
+
+def _heading_vector(h):
+    """(cos h, sin h): the unit vector of heading h (...,) -> (..., 2)."""
+    return torch.stack([torch.cos(h), torch.sin(h)], -1)
+
+
+def _spline_trajectories(s0, p1, h1, v1, cfg: Config):
+    """The cubic Hermite curve from s0 (B, 4) to each terminal state (p1 (B, N, 2), h1, v1 (B, N)),
+    position and velocity matched at both ends, sampled at the T+1 steps: its states
+    (B, N, T+1, 4), the controls derived from it (B, N, T, 2) and its speed (B, N, T+1)."""
+    B, N = h1.shape
+    T, dur = cfg.horizon, cfg.horizon * cfg.dt
+    p0 = s0[:, None, :2].expand(B, N, 2)
+    # the tangents scale with the duration
+    m0 = (s0[:, 3:4] * _heading_vector(s0[:, 2]))[:, None].expand(B, N, 2) * dur
+    m1 = v1[..., None] * _heading_vector(h1) * dur
+    tau = torch.linspace(0, 1, T + 1, dtype=s0.dtype, device=s0.device)
+    pos, dpos, ddpos = _hermite(p0, m0, p1, m1, tau)  # (B, N, T+1, 2) each
+    vel, accel = dpos / dur, ddpos / dur**2
+    speed = vel.norm(dim=-1)  # (B, N, T+1)
+    # heading = direction of travel; below 0.1 m/s (5 cm a step) that direction is the spline's
+    # rounding, so the heading blends from h0 to h1 there and the rates divide by at least 0.1
+    h0 = s0[:, None, None, 2]  # (B, 1, 1)
+    h_blend = h0 + tau * wrap_angle(h1 - s0[:, None, 2])[..., None]
+    yaw = torch.where(speed > 0.1, torch.atan2(vel[..., 1], vel[..., 0]), h_blend)
+    yaw = h0 + wrap_angle(yaw - h0)  # continuous from h0
+    # yaw rate = (v x a) / |v|^2 (the path's curvature times speed), acceleration = v . a / |v|
+    cross = vel[..., 0] * accel[..., 1] - vel[..., 1] * accel[..., 0]
+    yaw_rate = cross / speed.clamp_min(0.1) ** 2
+    lon_acc = (vel * accel).sum(-1) / speed.clamp_min(0.1)
+    x = torch.stack([pos[..., 0], pos[..., 1], yaw, speed], -1)  # (B, N, T+1, 4)
+    # controls of step t = average of the derived values at t and t+1
+    both = torch.stack([yaw_rate, lon_acc], -1)  # (B, N, T+1, 2)
+    u = (both[..., 1:, :] + both[..., :-1, :]) / 2  # (B, N, T, 2)
+    return x, u, speed
+
+
+def _feasible(u, speed, cfg: Config):
+    """Dynamic feasibility (B, N) of controls u (B, N, T, 2) at speeds (B, N, T+1): the
+    controller's box, the lateral acceleration, the yaw rate per unit speed."""
+    lo, hi = u.new_tensor(cfg.u_lower), u.new_tensor(cfg.u_upper)
+    v_mid = (speed[..., 1:] + speed[..., :-1]) / 2  # (B, N, T)
+    in_box = ((u >= lo) & (u <= hi)).all(-1)
+    lateral_ok = (u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel
+    yaw_ok = u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3  # 1e-3: a stop's rounding
+    return (in_box & lateral_ok & yaw_ok).all(-1)
+
+
+def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
+    """Candidate trajectories (App. C.1) from the ego state s0 (B, 4) towards goal (B, 4): on up to
+    max_goal_lanes goal lanes, 8 terminal accelerations x 3 lateral offsets, each joined to s0 by
+    the cubic Hermite curve fixed by position and velocity at both ends (as the authors' code; the
+    paper's spline "minimizes mean control effort")."""
+    p1, h1, v1, valid = _terminal_states(s0, goal, lanes, lanes_mask, cfg)  # N = G x 8 x 3
+    x, u, speed = _spline_trajectories(s0, p1, h1, v1, cfg)
+    return Candidates(x, u, valid & _feasible(u, speed, cfg))
+
+
+def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float):
+    """The relaxed argmin (§3.1): P(n) = exp(-beta C_n) / sum_valid exp(-beta C_m),
+    L_plan = -log P(n*): (B,)."""
+    log_P = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
+    return -log_P.gather(-1, target[:, None]).squeeze(-1)
+
+
+def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """argmin over the last dim among the valid entries: (B, N) -> (B,)."""
+    return torch.where(valid, values, math.inf).argmin(-1)
+
+
+class Plan(NamedTuple):
+    """The planner's output for a batch."""
+
+    cands: Candidates
+    cost: torch.Tensor  # (B, N)       C_n, eq. (3) with the given weights
+    best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
+    plannable: torch.Tensor  # (B,)    bool: at least 2 valid candidates (others: flagged)
+    terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
+
+
+def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
+    """Eq. (2): the candidates, their costs C_n and the argmin, as Plan. s0 (B, 4), goal_state
+    (B, 4), w (5,) or (B, 5); scene: the candidates and their prediction-free terms if already
+    computed."""
+    if scene is None:
+        cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
+        terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+    else:  # with the scene's terms known, C_coll is the one term a prediction moves
+        cands = scene.cands
+        coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N)
+        terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
+    cost = weigh(terms, w)  # (B, N)
+    plannable = cands.valid.sum(-1) >= 2
+    return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
+
+
+# ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
+#   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),
+#                                                      lo <= u_t <= hi
+# The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
+# of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's
+# exact=False), whose Hessian lacks the dynamics' curvature sum_i lambda_i d2 f_i: exact on linear
+# dynamics only; tracking with the unicycle, 45 % off. The default (exact=True) adds it, the
+# Lagrangian's Hessian, and so differentiates the converged solution itself: test_diffstack.py
+# holds it to central differences within 1e-6 and prints the paper's variant's error beside it.
+# General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms
+# (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m)), `dynamics(x_t, u_t) -> x_{t+1}` any
+# twice-differentiable step; gradients reach x_init and every tensor in `params`. Closed forms
+# where cost or dynamics bring them (`expansion`, `jacobians`, `curvature`), autodiff otherwise.
+
+
+def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
+    """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z)
+    with_value). Step t's output depends on step t's input only, so one perturbation d shared by
+    all steps gives every block (has_aux: fn(z) comes back beside it)."""
+    jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
+    return jac if with_value else jac[0]
+
+
+def cost_expansion(cost_fn, x, u, params):
+    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
+    if hasattr(cost_fn, "expansion"):
+        return cost_fn.expansion(x, u, *params)
+    n, T = x.shape[-1], u.shape[1]
+    u_padded = torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)  # u_T is padding
+    z = torch.cat([x, u_padded], -1)  # (B, T+1, n+m)
+    grad = torch.func.grad(lambda z: cost_fn(z[..., :n], z[:, :T, n:], *params).sum())
+    H, g = _stagewise_jacobian(grad, z, with_value=True)
+    return g, H
 
 
 def outer(a, b):
@@ -501,7 +713,7 @@ def _lane_expansion(p, h, ctx: CostContext):
 
 def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
     """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
-    z_t = (x, y, h, v, w, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
+    z_t = (x, y, h, v, omega, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
     closed form: what cost_expansion computes by autodiff (the tests hold the two together).
     x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
 
@@ -515,7 +727,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
               clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
       C_head  e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,
               de/dp = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
-      C_u     w^2 + a^2:  grad = 2 u,  Hess = 2 I"""
+      C_u     omega^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
     eye = torch.eye(2, dtype=x.dtype, device=x.device)
     w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
@@ -538,8 +750,7 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
 
 class StackCost:
     """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every
-    argument per scenario, with its closed-form `expansion`, which the solver takes instead of
-    autodiff."""
+    argument per scenario, and its closed-form `expansion`, which the solver takes over autodiff."""
 
     def __init__(self, rbf_var: float):
         self.rbf_var = rbf_var
@@ -551,296 +762,20 @@ class StackCost:
         return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
 
 
-# ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2), App. C.1 =======
-
-
-@dataclass
-class Candidates:
-    """The planner's candidate trajectories for a batch."""
-
-    x: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
-    u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
-    valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
-
-
-def _lane_arclength(lanes, lanes_mask):
-    """Cumulative arc length along each lane, flat past its last valid point. -> (B, L, P)."""
-    seg = (lanes[:, :, 1:, :2] - lanes[:, :, :-1, :2]).norm(dim=-1)
-    seg = torch.where(lanes_mask[:, :, 1:] & lanes_mask[:, :, :-1], seg, 0.0)  # (B, L, P-1)
-    return torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)
-
-
-def _project_each_lane(p, lanes, lanes_mask, cum):
-    """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each
-    (B, L)."""
-    seg_ok = lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:]  # (B, L, P-1)
-    q = p[:, None, None, :]  # (B, 1, 1, 2)
-    frac, r, lane_h, _ = segment_projection(q, lanes[:, :, :-1], lanes[:, :, 1:])  # (B, L, P-1)
-    d2 = torch.where(seg_ok, (r**2).sum(-1), torch.full_like(r[..., 0], 1e9))
-    best = d2.argmin(-1, keepdim=True)  # (B, L, 1) the closest segment of each lane
-    arclength = cum[..., :-1] + frac * (cum[..., 1:] - cum[..., :-1])  # (B, L, P-1)
-    return tuple(t.gather(-1, best).squeeze(-1) for t in (d2, arclength, lane_h))
-
-
-def _point_at_arclength(lanes, cum, s):
-    """Interpolate lane points at arc lengths s (B, G, Q) on lanes (B, G, P, 3) -> (B, G, Q, 3)."""
-    i = torch.searchsorted(cum.contiguous(), s.contiguous())  # the segment's end point
-    i = i.clamp(1, cum.shape[-1] - 1)
-    s0, s1 = cum.gather(-1, i - 1), cum.gather(-1, i)
-    a = lanes.gather(-2, (i - 1)[..., None].expand(*i.shape, 3))
-    b = lanes.gather(-2, i[..., None].expand(*i.shape, 3))
-    f = ((s - s0) / (s1 - s0).clamp_min(1e-6)).clamp(0, 1)[..., None]
-    xy = a[..., :2] + f * (b[..., :2] - a[..., :2])
-    h = a[..., 2:] + f * wrap_angle(b[..., 2:] - a[..., 2:])
-    return torch.cat([xy, h], -1)
-
-
-def _hermite(p0, m0, p1, m1, tau):
-    """Cubic Hermite curves p0 -> p1 with end tangents m0, m1 (..., 2) at tau (Q,) in [0, 1]:
-    value, first and second derivative, each (..., Q, 2), as one product of the basis functions
-    (3 Q, 4) with the control points."""
-    t = tau[:, None]  # (Q, 1)
-    h = [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
-    dh = [6 * t**2 - 6 * t, 3 * t**2 - 4 * t + 1, -6 * t**2 + 6 * t, 3 * t**2 - 2 * t]
-    ddh = [12 * t - 6, 6 * t - 4, -12 * t + 6, 6 * t - 2]
-    basis = torch.cat([torch.cat(b, 1) for b in (h, dh, ddh)], 0)  # (3 Q, 4)
-    ctrl = torch.stack([p0, m0, p1, m1]).reshape(4, -1)  # (4, ... * 2)
-    out = (basis @ ctrl).reshape(3, len(tau), *p0.shape)  # (3, Q, ..., 2)
-    return list(out.movedim(1, -2))  # value, first, second derivative, each (..., Q, 2)
-
-
-def _goal_lanes(goal, lanes, lanes_mask, cum, cfg: Config):
-    """The goal lanes: within goal_lane_dist of the goal and heading within goal_lane_heading of
-    the goal's, up to max_goal_lanes, closest first. goal (B, 4) -> the lanes (B, G, P, 3), their
-    arc lengths (B, G, P) and masks (B, G, P), and whether each is a goal lane at all (B, G)."""
-    B = len(goal)
-    d2_goal, _, h_goal = _project_each_lane(goal[:, :2], lanes, lanes_mask, cum)  # (B, L)
-    near = d2_goal < cfg.goal_lane_dist**2
-    aligned = wrap_angle(h_goal - goal[:, 2:3]).abs() < cfg.goal_lane_heading
-    G = min(cfg.max_goal_lanes, lanes.shape[1])
-    ranked = torch.where(near & aligned, d2_goal, math.inf)
-    score, idx = ranked.topk(G, -1, largest=False)  # (B, G)
-    P = lanes.shape[2]
-    g_lanes = lanes.gather(1, idx[:, :, None, None].expand(B, G, P, 3))  # (B, G, P, 3)
-    g_cum = cum.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
-    g_mask = lanes_mask.gather(1, idx[:, :, None].expand(B, G, P))  # (B, G, P)
-    return g_lanes, g_cum, g_mask, torch.isfinite(score)
-
-
-def _terminal_states(s0, goal, lanes, lanes_mask, cfg: Config):
-    """The candidates' terminal states on the goal lanes: each lane x 8 terminal accelerations x 3
-    lateral offsets, flattened to N. s0, goal (B, 4) -> position (B, N, 2), heading (B, N),
-    speed (B, N), valid (B, N): a goal lane and the terminal on it."""
-    B, dur = len(s0), cfg.horizon * cfg.dt
-    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
-    g_lanes, g_cum, g_mask, lane_ok = _goal_lanes(goal, lanes, lanes_mask, cum, cfg)
-    _, s_ego, _ = _project_each_lane(s0[:, :2], g_lanes, g_mask, g_cum)  # (B, G) ego's arc length
-    acc = s0.new_tensor(cfg.plan_accels)  # (n_acc,)
-    off = s0.new_tensor(cfg.plan_offsets)  # (n_off,)
-    v0 = s0[:, 3:4]  # (B, 1)
-    # v_f = max(v0 + a T dt, 0), and the distance (v0 + v_f) / 2 * T dt along the lane
-    v_f = (v0 + acc * dur).clamp_min(0)  # (B, n_acc)
-    s_end = s_ego[:, :, None] + ((v0 + v_f) / 2 * dur)[:, None, :]  # (B, G, n_acc)
-    on_lane = s_end <= g_cum[..., -1:]  # the terminal lies on the lane
-    lp = _point_at_arclength(g_lanes, g_cum, s_end)  # (B, G, n_acc, 3)
-    # then the lateral offset along the lane's normal
-    normal = torch.stack([-torch.sin(lp[..., 2]), torch.cos(lp[..., 2])], -1)  # (B, G, n_acc, 2)
-    p1 = lp[..., None, :2] + off[:, None] * normal[..., None, :]  # (B, G, n_acc, n_off, 2)
-    h1 = lp[..., 2, None].expand(*p1.shape[:-1])  # (B, G, n_acc, n_off)
-    v1 = v_f[:, None, :, None].expand_as(h1)
-    valid = (lane_ok[:, :, None] & on_lane)[..., None].expand_as(h1)
-    return p1.reshape(B, -1, 2), h1.reshape(B, -1), v1.reshape(B, -1), valid.reshape(B, -1)
-
-
-def _heading_vector(h):
-    """(cos h, sin h): the unit vector of heading h (...,) -> (..., 2)."""
-    return torch.stack([torch.cos(h), torch.sin(h)], -1)
-
-
-def _spline_trajectories(s0, p1, h1, v1, cfg: Config):
-    """The cubic Hermite curve from s0 (B, 4) to each terminal state (p1 (B, N, 2), h1, v1 (B, N)),
-    position and velocity matched at both ends, sampled at the T+1 steps: its states
-    (B, N, T+1, 4), the controls derived from it (B, N, T, 2) and its speed (B, N, T+1)."""
-    B, N = h1.shape
-    T, dur = cfg.horizon, cfg.horizon * cfg.dt
-    p0 = s0[:, None, :2].expand(B, N, 2)
-    # the tangents scale with the duration
-    m0 = (s0[:, 3:4] * _heading_vector(s0[:, 2]))[:, None].expand(B, N, 2) * dur
-    m1 = v1[..., None] * _heading_vector(h1) * dur
-    tau = torch.linspace(0, 1, T + 1, dtype=s0.dtype, device=s0.device)
-    pos, dpos, ddpos = _hermite(p0, m0, p1, m1, tau)  # (B, N, T+1, 2) each
-    vel, accel = dpos / dur, ddpos / dur**2
-    speed = vel.norm(dim=-1)  # (B, N, T+1)
-    # heading = direction of travel; undefined near standstill, so blended from h0 to h1 there
-    h0 = s0[:, None, None, 2]  # (B, 1, 1)
-    h_blend = h0 + tau * wrap_angle(h1 - s0[:, None, 2])[..., None]
-    yaw = torch.where(speed > 0.1, torch.atan2(vel[..., 1], vel[..., 0]), h_blend)
-    yaw = h0 + wrap_angle(yaw - h0)  # continuous from h0
-    cross = vel[..., 0] * accel[..., 1] - vel[..., 1] * accel[..., 0]
-    yaw_rate = cross / speed.clamp_min(0.1) ** 2
-    lon_acc = (vel * accel).sum(-1) / speed.clamp_min(0.1)
-    x = torch.stack([pos[..., 0], pos[..., 1], yaw, speed], -1)  # (B, N, T+1, 4)
-    # controls of step t = average of the derived values at t and t+1
-    both = torch.stack([yaw_rate, lon_acc], -1)  # (B, N, T+1, 2)
-    u = (both[..., 1:, :] + both[..., :-1, :]) / 2  # (B, N, T, 2)
-    return x, u, speed
-
-
-def _feasible(u, speed, cfg: Config):
-    """Dynamic feasibility (B, N) of controls u (B, N, T, 2) at speeds (B, N, T+1): the
-    controller's box, the lateral acceleration, the yaw rate per unit speed."""
-    lo, hi = u.new_tensor(cfg.u_lower), u.new_tensor(cfg.u_upper)
-    v_mid = (speed[..., 1:] + speed[..., :-1]) / 2  # (B, N, T)
-    in_box = ((u >= lo) & (u <= hi)).all(-1)
-    lateral_ok = (u[..., 0] * v_mid).abs() <= cfg.feas_lat_accel
-    yaw_ok = u[..., 0].abs() <= cfg.feas_yaw_per_speed * v_mid + 1e-3
-    return (in_box & lateral_ok & yaw_ok).all(-1)
-
-
-def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
-    """Candidate trajectories (App. C.1) from the ego state s0 (B, 4) towards goal (B, 4): on up to
-    max_goal_lanes goal lanes, 8 terminal accelerations x 3 lateral offsets, each joined to s0 by
-    the cubic Hermite curve fixed by position and velocity at both ends (as the authors' code; the
-    paper's spline "minimizes mean control effort")."""
-    p1, h1, v1, valid = _terminal_states(s0, goal, lanes, lanes_mask, cfg)  # N = G x 8 x 3
-    x, u, speed = _spline_trajectories(s0, p1, h1, v1, cfg)
-    return Candidates(x, u, valid & _feasible(u, speed, cfg))
-
-
-def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
-    """The 'route' goal (Config.goal), which unlike the logged one holds no reaction of the driver
-    to the others: where the ego reaches at T keeping its speed along its lane (the nearest heading
-    its way, within 40 degrees). (B, 4)."""
-    B = s0.shape[0]
-    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
-    d2, s_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
-    heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
-    lane = torch.where(heading_ok, d2, math.inf).argmin(-1)  # (B,) the nearest such lane
-    rows = torch.arange(B, device=s0.device)
-    distance = s0[:, 3] * cfg.horizon * cfg.dt  # (B,) at its speed until T
-    ahead = s_on[rows, lane] + distance  # (B,) arc length at T
-    p = _point_at_arclength(
-        lanes[rows, lane][:, None], cum[rows, lane][:, None], ahead[:, None, None]
-    )
-    route = torch.cat([p[:, 0, 0], s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
-    # no lane heading the ego's way (real data can lack one): straight ahead at its speed
-    direction = _heading_vector(s0[:, 2])  # (B, 2)
-    straight = torch.cat([s0[:, :2] + direction * distance[:, None], s0[:, 2:]], -1)
-    return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
-
-
-def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float):
-    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / Z over the valid candidates,
-    L_plan = -log p_{n*}: (B,)."""
-    logp = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
-    return -logp.gather(-1, target[:, None]).squeeze(-1)
-
-
-def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """argmin over the last dim among the valid entries: (B, N) -> (B,)."""
-    return torch.where(valid, values, math.inf).argmin(-1)
-
-
-class Plan(NamedTuple):
-    """The planner's output for a batch."""
-
-    cands: Candidates
-    cost: torch.Tensor  # (B, N)       C_n, eq. (3) with the given weights
-    best: torch.Tensor  # (B,)         the plan: argmin_n C_n over the valid candidates, eq. (2)
-    plannable: torch.Tensor  # (B,)    bool: at least 2 valid candidates (others: flagged)
-    terms: torch.Tensor  # (B, N, 5)   the unweighted terms of eq. (3) per candidate
-
-
-@dataclass
-class ScenePlan:
-    """What the planner computes from the scene alone: the goal g, the candidates and every term of
-    eq. (3) but C_coll for each. A prediction reaches the plan through C_coll only, so training
-    computes these once."""
-
-    goal: torch.Tensor  # (B, 4)       the goal state
-    cands: Candidates
-    terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
-
-    def __getitem__(self, rows):
-        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
-        c = self.cands
-        cands = Candidates(c.x[rows], c.u[rows], c.valid[rows])
-        return ScenePlan(self.goal[rows], cands, self.terms[rows])
-
-
-def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | None = None) -> Plan:
-    """Eq. (2): the candidates, their costs C_n and the argmin, as Plan. s0 (B, 4), goal_state
-    (B, 4), w (5,) or (B, 5); scene: the candidates and their prediction-free terms if already
-    computed."""
-    if scene is None:
-        cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
-    else:
-        cands = scene.cands
-    if scene is None:
-        terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
-    else:  # with the scene's terms known, C_coll is the one term a prediction moves
-        coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N)
-        terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
-    cost = weigh(terms, w)  # (B, N)
-    plannable = cands.valid.sum(-1) >= 2
-    return Plan(cands, cost, masked_argmin(cost.detach(), cands.valid), plannable, terms)
-
-
-# ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
-#   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),
-#                                                      lo <= u_t <= hi
-# General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms
-# (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m); ... are extra dims), and
-# `dynamics(x_t, u_t) -> x_{t+1}` any twice-differentiable step. Gradients reach x_init and every
-# tensor in `params`. Closed forms where the cost or dynamics bring them (`expansion`,
-# `jacobians`, `curvature`: StackCost, Unicycle; the tests hold each to autodiff), autodiff
-# otherwise.
-
-
-def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
-    """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z)
-    with_value). Step t's output depends on step t's input only, so one perturbation d shared by
-    all steps gives every block."""
-
-    def shifted(d):
-        value = fn(z + d)
-        return value, value
-
-    jac = torch.func.jacfwd(shifted, has_aux=True)(z.new_zeros(z.shape[-1]))
-    return jac if with_value else jac[0]
-
-
-def cost_expansion(cost_fn, x, u, params):
-    """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
-    if hasattr(cost_fn, "expansion"):
-        return cost_fn.expansion(x, u, *params)
-    n, T = x.shape[-1], u.shape[1]
-    u_padded = torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)  # u_T is padding
-    z = torch.cat([x, u_padded], -1)  # (B, T+1, n+m)
-
-    def total(z):
-        return cost_fn(z[..., :n], z[:, :T, n:], *params).sum()
-
-    H, g = _stagewise_jacobian(torch.func.grad(total), z, with_value=True)
-    return g, H
-
-
 def dynamics_jacobians(dynamics, x, u):
     """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along x (B, T+1, n), u (B, T, m)."""
     if hasattr(dynamics, "jacobians"):
         return dynamics.jacobians(x[:, :-1], u)
     n = x.shape[-1]
-
-    def step(z):
-        return dynamics(z[..., :n], z[..., n:])
-
-    J = _stagewise_jacobian(step, torch.cat([x[:, :-1], u], -1))
+    zs = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
+    J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), zs)
     return J[..., :n], J[..., n:]
 
 
 def solve_small(M, rhs):
-    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2 (why:
-    docs/results.md, Table 4)."""
+    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2: in Table 4's
+    imitation trainings no seed of 14 landed above -13.5 with it, 4 of 10 above -3 with
+    torch.linalg.solve (docs/results.md)."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
     a, b = M[..., 0, 0, None], M[..., 0, 1, None]  # (..., 1) each
@@ -897,21 +832,21 @@ def make_pd(Q, eps):
 def box_policy(Q_u, Q_ux, Q_uu, lo, hi, pd_eps):
     """Control-limited DDP's step (Tassa et al. 2014, §III.B): k solves the box QP
         min_k 1/2 k'Q_uu k + Q_u'k   s.t.  lo <= k <= hi
-    with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and K = -Q_uu^-1 Q_ux on the
+    with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and G = -Q_uu^-1 Q_ux on the
     controls it leaves free, 0 on the clamped ones. Q_u (B, m, 1), Q_ux (B, m, n), Q_uu (B, m, m),
-    lo, hi (B, m) -> k (B, m, 1), K (B, m, n), free (B, m)."""
+    lo, hi (B, m) -> k (B, m, 1), G (B, m, n), free (B, m)."""
     Q_uu = make_pd(Q_uu, pd_eps)
     k, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
-    K = solve_masked(Q_uu, torch.where(free[..., None], -Q_ux, 0.0), free)  # (B, m, n)
-    return k[..., None], K, free
+    G = solve_masked(Q_uu, torch.where(free[..., None], -Q_ux, 0.0), free)  # (B, m, n)
+    return k[..., None], G, free
 
 
 def fixed_policy(Q_u, Q_ux, Q_uu, free):
-    """The step with the active set given (free (B, m) bool): [k K] = -Q_uu^-1 [Q_u Q_ux] on the
+    """The step with the active set given (free (B, m) bool): [k G] = -Q_uu^-1 [Q_u Q_ux] on the
     free controls, 0 on the held ones. Shapes as box_policy's."""
     rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_ux], -1), 0.0)  # (B, m, 1+n)
-    kK = solve_masked(Q_uu, rhs, free)
-    return kK[..., :1], kK[..., 1:], free
+    kG = solve_masked(Q_uu, rhs, free)
+    return kG[..., :1], kG[..., 1:], free
 
 
 def lqr_backward(A, B, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
@@ -921,17 +856,17 @@ def lqr_backward(A, B, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
     From V_T = l_T, for t = T-1 .. 0 (V' is V_{t+1}):
         Q_x  = l_x  + A'V'_x            Q_xx = l_xx + A'V'_xx A
         Q_u  = l_u  + B'V'_x            Q_uu = l_uu + B'V'_xx B        Q_ux = l_ux + B'V'_xx A
-        du   = k + K dx                 the step that minimises Q (box_policy or fixed_policy)
-        V_x  = Q_x  + K'Q_uu k + K'Q_u  + Q_ux'k
-        V_xx = Q_xx + K'Q_uu K + K'Q_ux + Q_ux'K
+        du   = k + G dx                 the step that minimises Q (box_policy or fixed_policy)
+        V_x  = Q_x  + G'Q_uu k + G'Q_u  + Q_ux'k
+        V_xx = Q_xx + G'Q_uu G + G'Q_ux + Q_ux'G
     iLQR's pass bounds du by lo, hi (B, T, m) (box_policy); the KKT backward's holds the controls
     that are not free (B, T, m) at du = 0 (fixed_policy). A (B, T, n, n), B (B, T, n, m),
     H (B, T+1, n+m, n+m), g (B, T+1, n+m) (the last step has no control). Returns k (B, T, m),
-    K (B, T, m, n), free (B, T, m) and V_x at t = 0 (B, n): the costate p_0 = dV_0/dx_0."""
+    G (B, T, m, n), free (B, T, m) and V_x at t = 0 (B, n): the costate lambda_0 = dV_0/dx_0."""
     T, n = A.shape[1], A.shape[-1]
     V_x = g[:, T, :n, None]  # (B, n, 1)
     V_xx = H[:, T, :n, :n]  # (B, n, n)
-    ks, Ks, frees = [], [], []
+    steps = []  # (k, G, free) of t = T-1 .. 0
     for t in reversed(range(T)):
         A_t, B_t = A[:, t], B[:, t]  # (B, n, n), (B, n, m)
         l_x, l_u = g[:, t, :n, None], g[:, t, n:, None]  # (B, n, 1), (B, m, 1)
@@ -942,17 +877,15 @@ def lqr_backward(A, B, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
         Q_uu = l_uu + B_t.mT @ V_xx @ B_t  # (B, m, m)
         Q_ux = l_ux + B_t.mT @ V_xx @ A_t  # (B, m, n)
         if free is None:
-            k, K, free_t = box_policy(Q_u, Q_ux, Q_uu, lo[:, t], hi[:, t], pd_eps)
+            k, G, free_t = box_policy(Q_u, Q_ux, Q_uu, lo[:, t], hi[:, t], pd_eps)
         else:
-            k, K, free_t = fixed_policy(Q_u, Q_ux, Q_uu, free[:, t])
-        V_x = Q_x + K.mT @ Q_uu @ k + K.mT @ Q_u + Q_ux.mT @ k  # (B, n, 1)
-        V_xx = Q_xx + K.mT @ Q_uu @ K + K.mT @ Q_ux + Q_ux.mT @ K  # (B, n, n)
+            k, G, free_t = fixed_policy(Q_u, Q_ux, Q_uu, free[:, t])
+        V_x = Q_x + G.mT @ Q_uu @ k + G.mT @ Q_u + Q_ux.mT @ k  # (B, n, 1)
+        V_xx = Q_xx + G.mT @ Q_uu @ G + G.mT @ Q_ux + Q_ux.mT @ G  # (B, n, n)
         V_xx = (V_xx + V_xx.mT) / 2  # symmetric up to rounding; kept exactly symmetric
-        ks.append(k[..., 0])
-        Ks.append(K)
-        frees.append(free_t)
-    k, K, free_out = (torch.stack(v[::-1], 1) for v in (ks, Ks, frees))
-    return k, K, free_out, V_x[..., 0]
+        steps.append((k[..., 0], G, free_t))
+    k, G, free_out = (torch.stack(v[::-1], 1) for v in zip(*steps))
+    return k, G, free_out, V_x[..., 0]
 
 
 @dataclass
@@ -972,7 +905,7 @@ def ilqr(
     gradient instead). x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m)
     -> x (B, T+1, n), u (B, T, m), ILQRInfo. Each iteration
         1. expands the cost to second and the dynamics to first order along (x, u),
-        2. solves the box-constrained LQR of the step du = k + K dx (lqr_backward),
+        2. solves the box-constrained LQR of the step du = k + G dx (lqr_backward),
         3. line-searches the step's scale (line_search);
     a scenario whose full step is below tol has converged and stops moving."""
     Bsz, T, m = u_init.shape
@@ -980,7 +913,9 @@ def ilqr(
     u = u_init.clamp(lo, hi)
     x = rollout(dynamics, x_init, u)
     cost = cost_fn(x, u, *params)  # (B,)
-    pd_eps = 1e-6 if x.dtype == torch.float64 else 1e-3  # the least eigenvalue of Q_uu
+    # Q_uu's least eigenvalue: > 0 for a descent step, and in float32 well above the rounding
+    # of Q_uu's entries (eps 1.2e-7 times up to ~1e3)
+    pd_eps = 1e-6 if x.dtype == torch.float64 else 1e-3
     scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # 1, 1/5, ...
     moving = torch.ones(Bsz, dtype=torch.bool, device=x.device)
     iters_run = torch.zeros(Bsz, dtype=torch.long, device=x.device)
@@ -989,9 +924,9 @@ def ilqr(
     for _ in range(iters):
         g, H = cost_expansion(cost_fn, x, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
         A, B = dynamics_jacobians(dynamics, x, u)  # (B, T, n, n), (B, T, n, m)
-        k, K, _, _ = lqr_backward(A, B, H, g, lo - u, hi - u, pd_eps)
+        k, G, _, _ = lqr_backward(A, B, H, g, lo - u, hi - u, pd_eps)
         x_new, u_new, cost_new, accepted, full_step = line_search(
-            cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales
+            cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales
         )
         take = moving & accepted  # (B,): a converged scenario stays where it is
         x = torch.where(take[:, None, None], x_new, x)
@@ -1006,40 +941,74 @@ def ilqr(
     return x, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
 
 
-def closed_loop_rollout(dynamics, x, u, k, K, lo, hi):
+def closed_loop_rollout(dynamics, x, u, k, G, lo, hi):
     """The LQR step applied with feedback from x_0' = x_0:
-        u_t' = clamp(u_t + k_t + K_t (x_t' - x_t), lo_t, hi_t),   x_{t+1}' = f(x_t', u_t').
-    x (B, T+1, n), u, k, lo, hi (B, T, m), K (B, T, m, n) -> x' (B, T+1, n), u' (B, T, m)."""
+        u_t' = clamp(u_t + k_t + G_t (x_t' - x_t), lo_t, hi_t),   x_{t+1}' = f(x_t', u_t').
+    x (B, T+1, n), u, k, lo, hi (B, T, m), G (B, T, m, n) -> x' (B, T+1, n), u' (B, T, m)."""
     xs, us = [x[:, 0]], []
     for t in range(u.shape[1]):
-        feedback = (K[:, t] @ (xs[-1] - x[:, t])[..., None])[..., 0]  # (B, m)
+        feedback = (G[:, t] @ (xs[-1] - x[:, t])[..., None])[..., 0]  # (B, m)
         us.append((u[:, t] + k[:, t] + feedback).clamp(lo[:, t], hi[:, t]))
         xs.append(dynamics(xs[-1], us[-1]))
     return torch.stack(xs, 1), torch.stack(us, 1)
 
 
-def line_search(cost_fn, dynamics, x, u, cost, k, K, lo, hi, params, scales):
-    """Backtracking (App. C.2): the closed-loop rollout of the step s k + K dx at s = 1, then at
+def line_search(cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales):
+    """Backtracking (App. C.2): the closed-loop rollout of the step eta k + G dx at eta = 1, then at
     1/5, 1/25, ... where the true cost rose; the first scale that does not raise it is taken.
-    x (B, T+1, n), u, k, lo, hi (B, T, m), K (B, T, m, n), cost (B,) -> the new x, u, cost (the
+    x (B, T+1, n), u, k, lo, hi (B, T, m), G (B, T, m, n), cost (B,) -> the new x, u, cost (the
     old ones where no scale was accepted), accepted (B,), and the norm of the full step (B,)."""
     eps = torch.finfo(x.dtype).eps
     x_new, u_new, cost_new = x, u, cost
     accepted = torch.zeros_like(cost, dtype=torch.bool)
-    for i, s in enumerate(scales):
-        x_s, u_s = closed_loop_rollout(dynamics, x, u, s * k, K, lo, hi)
-        cost_s = cost_fn(x_s, u_s, *params)  # (B,)
+    for i, eta in enumerate(scales):
+        x_eta, u_eta = closed_loop_rollout(dynamics, x, u, eta * k, G, lo, hi)
+        cost_eta = cost_fn(x_eta, u_eta, *params)  # (B,)
         if i == 0:
-            full_step = (u_s - u).flatten(1).norm(dim=-1)  # (B,)
-        no_rise = cost_s <= cost + 100 * eps * (1 + cost.abs())  # up to rounding
+            full_step = (u_eta - u).flatten(1).norm(dim=-1)  # (B,)
+        # no rise up to rounding: the cost sums ~T (1 + A) terms, each rounded to eps
+        no_rise = cost_eta <= cost + 100 * eps * (1 + cost.abs())
         take = no_rise & ~accepted  # (B,)
-        x_new = torch.where(take[:, None, None], x_s, x_new)
-        u_new = torch.where(take[:, None, None], u_s, u_new)
-        cost_new = torch.where(take, cost_s, cost_new)
+        x_new = torch.where(take[:, None, None], x_eta, x_new)
+        u_new = torch.where(take[:, None, None], u_eta, u_new)
+        cost_new = torch.where(take, cost_eta, cost_new)
         accepted = accepted | take
         if accepted.all():
             break
     return x_new, u_new, cost_new, accepted, full_step
+
+
+def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
+    """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
+    lam (..., 4).
+
+    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, omega, a). With
+    nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
+        d2/dh2 = -nu'd,   d2/dh dq = (J'nu)' dd/dq,   d2/dq dr = nu' d2d/dq dr
+    (q, r in (v, omega, a)); the moments' rule above gives every derivative of d."""
+    h, v = s[..., 2], s[..., 3]
+    omega, a = u.unbind(-1)
+    (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
+    nu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
+    d = (v * cm0 + a * cm1, v * sm0 + a * sm1)
+    # first derivatives of d, by q
+    dd = {"v": (cm0, sm0), "omega": (-(v * sm1 + a * sm2), v * cm1 + a * cm2), "a": (cm1, sm1)}
+    # second derivatives of d that are not zero, by (q, r)
+    d2 = {
+        ("v", "omega"): (-sm1, cm1),
+        ("omega", "a"): (-sm2, cm2),
+        ("omega", "omega"): (-(v * cm2 + a * cm3), -(v * sm2 + a * sm3)),
+    }
+    index = {"h": 2, "v": 3, "omega": 4, "a": 5}  # positions in z = (x, y, h, v, omega, a)
+    H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
+    H[..., 2, 2] = -(nu_x * d[0] + nu_y * d[1])  # -nu'd
+    for q, e in dd.items():
+        H[..., 2, index[q]] = H[..., index[q], 2] = nu_y * e[0] - nu_x * e[1]  # (J'nu)' e
+    for (q, r), e in d2.items():
+        H[..., index[q], index[r]] = H[..., index[r], index[q]] = nu_x * e[0] + nu_y * e[1]
+    return H
 
 
 def lagrangian_curvature(dynamics, x, u, g, A):
@@ -1054,12 +1023,9 @@ def lagrangian_curvature(dynamics, x, u, g, A):
     lam = torch.stack(lam[::-1], 1)  # (B, T, n): lambda_1 .. lambda_T
     if hasattr(dynamics, "curvature"):  # closed form (Unicycle)
         Hf = dynamics.curvature(x[:, :-1], u, lam)  # (B, T, n+m, n+m)
-    else:
-
-        def weighted(z):  # sum_t lambda_{t+1}' f(z_t)
-            return (lam * dynamics(z[..., :n], z[..., n:])).sum()
-
-        Hf = _stagewise_jacobian(torch.func.grad(weighted), torch.cat([x[:, :-1], u], -1))
+    else:  # autodiff: the Hessian of sum_t lambda_{t+1}' f(z_t)
+        grad = torch.func.grad(lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum())
+        Hf = _stagewise_jacobian(grad, torch.cat([x[:, :-1], u], -1))
     return torch.cat([Hf, torch.zeros_like(Hf[:, :1])], 1)
 
 
@@ -1071,12 +1037,16 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
     gradient as right-hand side, an LQR problem:
         min_d 1/2 d'H d + (dloss/dz)'d   s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t,
                                                du_active = 0,
-    H the Hessian of the Lagrangian L = C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
+    H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
         H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(x_t, u_t)      (lagrangian_curvature)
-    mpc.pytorch and the authors' code drop the curvature (exact=False): exact on linear dynamics
-    only. Then
+    (exact=False drops the curvature: the paper's variant). Amos et al.'s gradients, for the
+    quadratic cost 1/2 z'C z + c'z of their LQR, with d their d*_tau and z the solution:
+        dloss/dc = d,   dloss/dC = (d z' + z d') / 2,   dloss/dx_init = d*_lambda_0 = lambda_0.
+    Both are the gradient of <grad_z cost, d> = <C z + c, d> in (C, c), z and d fixed. For any
+    cost(z; params), expanded at z (C its Hessian, c = grad_z cost - C z), the chain rule through
+    C and c leaves the gradient in params of the same product, params_gradients' double backward:
         dloss/dparams = d/dparams [ sum_t dl_t/dz_t(params) . d_t ]     (d fixed)
-        dloss/dx_init = p_0, the costate of the LQR at t = 0 (its value function's gradient).
+    and dloss/dx_init = lambda_0, the LQR's costate at t = 0 (its value function's gradient).
     x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u."""
     g, H = cost_expansion(cost_fn, x, u, params)
     A, B = dynamics_jacobians(dynamics, x, u)
@@ -1084,61 +1054,57 @@ def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=Tr
         H = H + lagrangian_curvature(dynamics, x, u, g, A)
     grad_u_padded = torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)
     rhs = torch.cat([grad_x, grad_u_padded], -1)  # (B, T+1, n+m)
-    k, K, _, p0 = lqr_backward(A, B, H, rhs, free=free)
+    k, G, _, lam0 = lqr_backward(A, B, H, rhs, free=free)
     # the LQR's solution d = (dx, du) from dx_0 = 0
     dx, du = [torch.zeros_like(x[:, 0])], []
     for t in range(u.shape[1]):
-        du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
+        du.append(k[:, t] + (G[:, t] @ dx[-1][..., None])[..., 0])
         dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
     dx, du = torch.stack(dx, 1), torch.stack(du, 1)
-    return p0, params_gradients(cost_fn, x, u, params, dx, du)
+    return lam0, params_gradients(cost_fn, x, u, params, dx, du)
 
 
 def params_gradients(cost_fn, x, u, params, dx, du):
     """d/dparams [ sum_t dl_t/dz_t(params) . d_t ] with d = (dx, du) fixed: one gradient per
     entry of params (None where it is no tensor that requires grad)."""
     needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
-    grads = [None] * len(params)
     if not needs:
-        return grads
+        return [None] * len(params)
     with torch.enable_grad():
-        ps = [
-            p.detach().requires_grad_(i in needs) if torch.is_tensor(p) else p
-            for i, p in enumerate(params)
-        ]
+        ps = list(params)
+        for i in needs:
+            ps[i] = params[i].detach().requires_grad_()
         xg, ug = x.detach().requires_grad_(), u.detach().requires_grad_()
         gx, gu = torch.autograd.grad(cost_fn(xg, ug, *ps).sum(), (xg, ug), create_graph=True)
         inner = (gx * dx).sum() + (gu * du).sum()  # < dC/dz (params), d >
         found = torch.autograd.grad(inner, [ps[i] for i in needs], allow_unused=True)
-    for i, gi in zip(needs, found):
-        grads[i] = gi
-    return grads
+    return [dict(zip(needs, found)).get(i) for i in range(len(params))]
 
 
 class ILQR(torch.autograd.Function):
-    """iLQR with the KKT backward (use `ilqr_solve`); scenarios that did not converge pass no
-    gradient (§3.1)."""
+    """iLQR with the KKT backward (use `ilqr_solve`); the unconverged pass no gradient (§3.1)."""
 
     @staticmethod
-    def forward(ctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
+    def forward(fctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
         with torch.no_grad():
             x, u, info = ilqr(cost_fn, dynamics, x_init, u_init, params, **settings)
-        ctx.fns = (cost_fn, dynamics, exact)
+        fctx.fns = (cost_fn, dynamics, exact)
         lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
-        ctx.save_for_backward(x, u, info.converged, lo, hi, *params)
-        ctx.mark_non_differentiable(info.converged)
+        fctx.save_for_backward(x, u, info.converged, lo, hi, *params)
+        fctx.mark_non_differentiable(info.converged)
         return x, u, info.converged
 
     @staticmethod
-    def backward(ctx, grad_x, grad_u, _):
-        cost_fn, dynamics, exact = ctx.fns
-        x, u, converged, lo, hi, *params = ctx.saved_tensors
-        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # active bounds are held fixed
+    def backward(fctx, grad_x, grad_u, _):
+        cost_fn, dynamics, exact = fctx.fns
+        x, u, converged, lo, hi, *params = fctx.saved_tensors
+        # held fixed: the controls at a bound, where clamp() put them exactly (1e-8: rounding)
+        free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)
         keep = converged.to(x.dtype)[:, None, None]  # the unconverged pass no gradient
-        p0, grads = kkt_backward(
+        lam0, grads = kkt_backward(
             cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact
         )
-        return (None, None, None, None, p0, None, *grads)
+        return (None, None, None, None, lam0, None, *grads)
 
 
 def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, exact=True, **settings):
@@ -1153,8 +1119,8 @@ def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, exact=True, **
 # From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego),
 # K = 25 futures, one per value of a discrete latent z:
 #     p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
-# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate w,
-# acceleration a); the mean controls are integrated by the planner's unicycle and the control
+# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate
+# omega, acceleration a); the mean controls are integrated by the planner's unicycle and the control
 # covariances pushed through its Jacobians (EKF): a K-component GMM over positions per step.
 # Training maximises Trajectron++'s InfoVAE objective, q(z | x, y) from a bidirectional LSTM over
 # the true future; all K values of z are enumerated, none sampled. The GRU's next input is the
@@ -1234,28 +1200,27 @@ def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Te
     if step is None:
         return logits
     c0, c1, centre, width = cfg.pred_logit_clip
-    # c(step) = c0 + (c1 - c0) sigmoid((step - b) / w)
     c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))
     return (logits - logits.mean(-1, keepdim=True)).clamp(-c, c)
 
 
 def control_sample(out: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
     """The reparameterised sample u = mu + L eps of the decoder's Gaussian over controls, out
-    (..., 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh), eps (..., 2) standard normal, with
-    L = [[s_w, 0], [rho s_a, s_a sqrt(1 - rho^2)]] the Cholesky factor of Sigma_u."""
+    (..., 5) = (mu_om, mu_a, log sd_om, log sd_a, rho before tanh), eps (..., 2) standard normal,
+    with L = [[sd_om, 0], [rho sd_a, sd_a sqrt(1 - rho^2)]] the Cholesky factor of Sigma_u."""
     mu = out[..., :2]
-    s_w, s_a = out[..., 2].exp(), out[..., 3].exp()
+    sd_om, sd_a = out[..., 2].exp(), out[..., 3].exp()
     rho = bounded_correlation(out[..., 4])  # inside (-1, 1): the sqrt below stays finite
     e1, e2 = eps.unbind(-1)
-    return mu + torch.stack([s_w * e1, s_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)
+    return mu + torch.stack([sd_om * e1, sd_a * (rho * e1 + torch.sqrt(1 - rho**2) * e2)], -1)
 
 
 def control_covariance(out: torch.Tensor) -> torch.Tensor:
-    """Sigma_u = [[s_w^2, rho s_w s_a], [rho s_w s_a, s_a^2]] (..., 2, 2) of the decoder's output
-    out (..., 5); the same rho as the sample's."""
-    s_w, s_a = out[..., 2].exp(), out[..., 3].exp()
-    c = bounded_correlation(out[..., 4]) * s_w * s_a
-    return torch.stack([torch.stack([s_w**2, c], -1), torch.stack([c, s_a**2], -1)], -2)
+    """Sigma_u = [[sd_om^2, rho sd_om sd_a], [rho sd_om sd_a, sd_a^2]] (..., 2, 2) of the decoder's
+    output out (..., 5); the same rho as the sample's."""
+    sd_om, sd_a = out[..., 2].exp(), out[..., 3].exp()
+    c = bounded_correlation(out[..., 4]) * sd_om * sd_a
+    return torch.stack([torch.stack([sd_om**2, c], -1), torch.stack([c, sd_a**2], -1)], -2)
 
 
 class Predictor(nn.Module):
@@ -1266,7 +1231,7 @@ class Predictor(nn.Module):
         self.cfg = cfg
         K = cfg.pred_modes
         E = cfg.pred_enc_hidden  # the encoders' width
-        Z = cfg.pred_latent_hidden  # the latent MLPs' width
+        Hz = cfg.pred_latent_hidden  # the latent MLPs' width
         Hd = cfg.pred_dec_hidden  # the decoder's width
         X = 2 * E  # x = (history encoding, neighbour context)
         n_hist = cfg.hist_len + 1  # steps of history
@@ -1275,8 +1240,8 @@ class Predictor(nn.Module):
         self.att_q = nn.Linear(E, E, bias=False)
         self.att_k = nn.Linear(E, E, bias=False)
         self.fut_lstm = nn.LSTM(8, E, batch_first=True, bidirectional=True)
-        self.p_z = nn.Sequential(nn.Linear(X, Z), nn.ReLU(), nn.Linear(Z, K))
-        self.q_z = nn.Sequential(nn.Linear(X + 2 * E, Z), nn.ReLU(), nn.Linear(Z, K))
+        self.p_z = nn.Sequential(nn.Linear(X, Hz), nn.ReLU(), nn.Linear(Hz, K))
+        self.q_z = nn.Sequential(nn.Linear(X + 2 * E, Hz), nn.ReLU(), nn.Linear(Hz, K))
         # the decoder GRU (see decode): h_0 = dec_h0([z; x]), input [z; x; u_prev]
         self.dec_h0 = nn.Linear(K + X, Hd)
         self.dec_u0 = nn.Linear(8, 2)  # u_prev at t0 from the current state (Trajectron++'s)
@@ -1315,9 +1280,9 @@ class Predictor(nn.Module):
         e = self.nbr_mlp(torch.cat([nf.flatten(-2), flags], -1))  # (B, A+1, E)
         # masked dot-product attention, query = the agent's history encoding
         scores = (self.att_k(e) @ self.att_q(h)[:, :, None])[..., 0] / math.sqrt(e.shape[-1])
-        alpha = torch.softmax(scores.masked_fill(~near, -1e9), -1) * near  # all masked: all 0
-        ctx = (alpha[..., None] * e).sum(1)  # (B, E); zero for an agent without neighbours
-        return torch.cat([h, ctx], -1), f  # (B, 2E), (B, H, 8)
+        att_w = torch.softmax(scores.masked_fill(~near, -1e9), -1) * near  # all masked: all 0
+        att = (att_w[..., None] * e).sum(1)  # (B, E); zero for an agent without neighbours
+        return torch.cat([h, att], -1), f  # (B, 2E), (B, H, 8)
 
     def encode_future(self, batch, x: torch.Tensor) -> torch.Tensor:
         """The q(z|x,y) logits (B, K): a bidirectional LSTM over the GT future's 8-D states."""
@@ -1333,32 +1298,31 @@ class Predictor(nn.Module):
         (B, K, T, 2, 2). A GRU (Cho et al. 2014) over the steps, all K values of z at once as B*K
         rows, with input i = [one_hot(z); x; u_prev] and h_0 = W_0 [one_hot(z); x] + b_0:
             r  = sigmoid(W_ir i + b_ir + W_hr h + b_hr)
-            z  = sigmoid(W_iz i + b_iz + W_hz h + b_hz)
+            g  = sigmoid(W_ig i + b_ig + W_hg h + b_hg)   (Cho's update gate z: z is the latent)
             n  = tanh(W_in i + b_in + r * (W_hn h + b_hn))
-            h' = (1 - z) * n + z * h
-        The input's [one_hot(z); x] part is the same at every step: its projection is computed
-        once (one_hot(k) picks column k of W). noise: the training sample's standard normal
-        draws, a tensor (T, B, K, 2), or a torch.Generator to draw them from (None: torch's)."""
+            h' = (1 - g) * n + g * h
+        noise: the training sample's standard normal draws, a tensor (T, B, K, 2), or a
+        torch.Generator to draw them from (None: torch's)."""
         K, T, Hd = self.cfg.pred_modes, self.cfg.horizon, self.cfg.pred_dec_hidden
         B, X = x.shape
-        # the input's constant part: W_i [one_hot(k); x] + b_i = W_iz[:, k] + W_ix x + b_i, per gate
-        W_iz, W_ix, W_iu = self.dec_in.weight.split([K, X, 2], 1)  # (3Hd, K), (3Hd, X), (3Hd, 2)
-        zx = ((x @ W_ix.T + self.dec_in.bias)[:, None] + W_iz.T).reshape(B * K, 3 * Hd)
-        zx_r, zx_z, zx_n = zx.chunk(3, 1)  # (B*K, Hd) each
-        W_ur, W_uz, W_un = W_iu.chunk(3, 0)  # (Hd, 2) each: the input's u_prev part
-        W_hr, W_hz, W_hn = self.dec_hh.weight.chunk(3, 0)  # (Hd, Hd) each
-        b_hr, b_hz, b_hn = self.dec_hh.bias.chunk(3)  # (Hd,) each
-        W_0z, W_0x = self.dec_h0.weight.split([K, X], 1)  # (Hd, K), (Hd, X)
-        h = ((x @ W_0x.T + self.dec_h0.bias)[:, None] + W_0z.T).reshape(B * K, Hd)  # h_0
+        # the input's constant part: W_i [one_hot(k); x] + b_i = W_ik[:, k] + W_ix x + b_i, per gate
+        W_ik, W_ix, W_iu = self.dec_in.weight.split([K, X, 2], 1)  # (3Hd, K), (3Hd, X), (3Hd, 2)
+        zx = ((x @ W_ix.T + self.dec_in.bias)[:, None] + W_ik.T).reshape(B * K, 3 * Hd)
+        zx_r, zx_g, zx_n = zx.chunk(3, 1)  # (B*K, Hd) each
+        W_ur, W_ug, W_un = W_iu.chunk(3, 0)  # (Hd, 2) each: the input's u_prev part
+        W_hr, W_hg, W_hn = self.dec_hh.weight.chunk(3, 0)  # (Hd, Hd) each
+        b_hr, b_hg, b_hn = self.dec_hh.bias.chunk(3)  # (Hd,) each
+        W_0k, W_0x = self.dec_h0.weight.split([K, X], 1)  # (Hd, K), (Hd, X)
+        h = ((x @ W_0x.T + self.dec_h0.bias)[:, None] + W_0k.T).reshape(B * K, Hd)  # h_0
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
         outs = []
         for t in range(T):
             # W_h h + b_h, gate by gate (as nn.Linear computes it: addmm)
             r = torch.sigmoid(zx_r + u_prev @ W_ur.T + torch.addmm(b_hr, h, W_hr.T))  # (B*K, Hd)
-            z = torch.sigmoid(zx_z + u_prev @ W_uz.T + torch.addmm(b_hz, h, W_hz.T))  # (B*K, Hd)
+            g = torch.sigmoid(zx_g + u_prev @ W_ug.T + torch.addmm(b_hg, h, W_hg.T))  # (B*K, Hd)
             n = torch.tanh(zx_n + u_prev @ W_un.T + r * torch.addmm(b_hn, h, W_hn.T))  # (B*K, Hd)
-            h = torch.lerp(n, h, z)  # (B*K, Hd)  = (1 - z) * n + z * h
-            out = self.dec_out(h)  # (B*K, 5) = (mu_w, mu_a, log s_w, log s_a, rho before tanh)
+            h = torch.lerp(n, h, g)  # (B*K, Hd)  = (1 - g) * n + g * h
+            out = self.dec_out(h)  # (B*K, 5) = (mu_om, mu_a, log sd_om, log sd_a, rho before tanh)
             outs.append(out)
             if self.training:  # the sample of u_t is the next input (Trajectron++)
                 u_prev = control_sample(out, self._noise(noise, t, out))
@@ -1373,8 +1337,7 @@ class Predictor(nn.Module):
         from the generator noise (None: torch's)."""
         if torch.is_tensor(noise):
             return noise[t].reshape(-1, 2)
-        shape = (out.shape[0], 2)
-        return torch.randn(shape, generator=noise, dtype=out.dtype, device=out.device)
+        return torch.randn(out.shape[0], 2, generator=noise, dtype=out.dtype, device=out.device)
 
     def initial_state(self, batch, x: torch.Tensor) -> torch.Tensor:
         """s0 = (x0, y0, heading, v0) (B, 4): heading = velocity direction + a learned correction
@@ -1407,38 +1370,36 @@ class Predictor(nn.Module):
 def integrate_modes(s0, u, cov_u, cfg: Config):
     """unicycle_rollout(s0, u) and the EKF's position covariances along it: s0 (..., 4),
     u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4), covariances (..., T, 2, 2) (plus
-    pred_pos_std_min^2 I). The states: headings and speeds are cumulative sums (h_{t+1} = h_t +
-    w_t dt, v_{t+1} = v_t + a_t dt), then each step's displacement at once. The covariance is the
-    EKF's recursion, Sigma_0 = 0 and
+    pred_pos_std_min^2 I). The covariance is the EKF's recursion, Sigma_0 = 0 and
         Sigma_{t+1} = A_t Sigma_t A_t' + B_t Sigma_u,t B_t',   A = df/ds, B = df/du at the mean,
-    in 2x2 blocks: A = [[I, M], [0, I]] and B = [[N], [dt I]] (only the controls move h and v), so
-    with Sigma = [[P, C], [C', S]] (P: position, S: heading-speed):
-        P' = P + M C' + C M' + M S M' + N Su N'
-        C' = C + M S + dt N Su
-        S' = S + dt^2 Su"""
+    in 2x2 blocks: A = [[I, Mq], [0, I]] and B = [[Mu], [dt I]] (only the controls move q = (h, v)),
+    so with Sigma = [[Spp, Spq], [Spq', Sqq]] (p: position) each step updates (<-: the next value)
+        Spp <- Spp + Mq Spq' + Spq Mq' + Mq Sqq Mq' + Mu Su Mu'
+        Spq <- Spq + Mq Sqq + dt Mu Su
+        Sqq <- Sqq + dt^2 Su"""
     dt = cfg.dt
-    w, a = u.unbind(-1)  # (..., T) each
-    h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (w * dt).cumsum(-1)], -1)  # (..., T+1)
+    omega, a = u.unbind(-1)  # (..., T) each
+    h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (omega * dt).cumsum(-1)], -1)  # (..., T+1)
     v = torch.cat([s0[..., 3:4], s0[..., 3:4] + (a * dt).cumsum(-1)], -1)  # (..., T+1)
-    dx, dy, M, N = _position_jacobians(
-        h[..., :-1], v[..., :-1], w, a, dt
+    dx, dy, Mq, Mu = _position_jacobians(
+        h[..., :-1], v[..., :-1], omega, a, dt
     )  # (..., T), (..., T, 2, 2)
     x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
     y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
-    # B Su B' of every step at once (it does not depend on Sigma): N Su N' and dt N Su
-    NSuN = N @ cov_u @ N.mT  # (..., T, 2, 2)
-    NSu = dt * N @ cov_u  # (..., T, 2, 2)
-    P = C = S = torch.zeros_like(M[..., 0, :, :])  # (..., 2, 2) Sigma_0 = 0
+    # B Su B' of every step at once (it does not depend on Sigma): Mu Su Mu' and dt Mu Su
+    MuSuMu = Mu @ cov_u @ Mu.mT  # (..., T, 2, 2)
+    MuSu = dt * Mu @ cov_u  # (..., T, 2, 2)
+    Spp = Spq = Sqq = torch.zeros_like(Mq[..., 0, :, :])  # (..., 2, 2) Sigma_0 = 0
     pos_cov = []
     for t in range(u.shape[-2]):
-        M_t = M[..., t, :, :]  # (..., 2, 2)
-        MS = M_t @ S
-        MC = M_t @ C.mT
-        P = P + MC + MC.mT + MS @ M_t.mT + NSuN[..., t, :, :]
-        C = C + MS + NSu[..., t, :, :]
-        S = S + dt**2 * cov_u[..., t, :, :]
-        pos_cov.append(P)
-    floor = cfg.pred_pos_std_min**2 * torch.eye(2, dtype=M.dtype, device=M.device)
+        Mq_t = Mq[..., t, :, :]  # (..., 2, 2)
+        MqSqq = Mq_t @ Sqq
+        MqSpq = Mq_t @ Spq.mT
+        Spp = Spp + MqSpq + MqSpq.mT + MqSqq @ Mq_t.mT + MuSuMu[..., t, :, :]
+        Spq = Spq + MqSqq + MuSu[..., t, :, :]
+        Sqq = Sqq + dt**2 * cov_u[..., t, :, :]
+        pos_cov.append(Spp)
+    floor = cfg.pred_pos_std_min**2 * torch.eye(2, dtype=Mq.dtype, device=Mq.device)
     return torch.stack([x, y, h, v], -1), torch.stack(pos_cov, -3) + floor
 
 
@@ -1471,16 +1432,17 @@ def batch_average(x: torch.Tensor) -> torch.Tensor:
 
 def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_average):
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats):
-        L = -(LL - beta KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
+        L = -(LL - b KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
         LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
         KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
         I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p
-    beta anneals with the step. batch_mean: the batch's mean (B, ...) -> (...); under DDP the
-    global batch's (train.py passes one)."""
+    Beside the ELBO, log p(y|x) >= E_q[log p(y|x,z)] - KL(q || p): LL takes the log of the
+    q-weighted mixture instead (>= the ELBO's first term, by Jensen) and clamps each step's (no
+    reward past a near-exact fit), KL is weighted by b, annealed from 0 (the decoder learns first),
+    with free bits, and I_p (InfoVAE) keeps p(z|x) from collapsing onto one mode. batch_mean: the
+    batch's mean (B, ...) -> (...); under DDP the global batch's (train.py passes one)."""
     if pred.log_q is None:
-        raise ValueError(
-            "pred: pred_loss needs the posterior; call the predictor with use_posterior=True"
-        )
+        raise ValueError("pred: pred_loss needs the posterior (the predictor's use_posterior=True)")
     y = batch.agent_fut[..., :2]  # (B, T, 2)
     log_p_y = gmm_log_prob(pred, y, pred.log_q, cfg.pred_pos_std_min**2)  # (B, T)
     ll = log_p_y.clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
@@ -1491,23 +1453,16 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_
     p_bar = batch_mean(p)  # (K,)
     mi = -(p_bar * torch.log(p_bar)).sum() + batch_mean((p * pred.log_p).sum(-1))  # scalar
     b0, centre, width = cfg.pred_beta
-    beta = b0 / (1 + math.exp(-(step - centre) / width))  # b0 sigmoid((step - b1) / b2)
-    loss = -(ll - beta * kl_fb + mi)  # (B,)
-    parts = {
-        "loss": loss.mean().item(),
-        "ll": ll.mean().item(),
-        "kl": kl.mean().item(),
-        "mi": mi.item(),
-        "beta": beta,
-    }
-    return loss, parts
+    kl_w = b0 / (1 + math.exp(-(step - centre) / width))  # b0 sigmoid((step - b1) / b2)
+    loss = -(ll - kl_w * kl_fb + mi)  # (B,)
+    parts = {name: v.mean().item() for name, v in dict(loss=loss, ll=ll, kl=kl, mi=mi).items()}
+    return loss, {**parts, "beta": kl_w}
 
 
 # ===== 7. The stack: predict -> plan -> control, §3.2 ============================================
-#   L = a1 L_pred + a2 L_plan + a3 L_ctr
-#   RL: L_ctr = hindsight cost C_H(s_ctr, u_ctr) (eq. 3 with GT futures, fixed weights), planner
-#       target argmin_n C_H
-#   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, planner target n* = the candidate closest to the GT
+#   L = a1 L_pred + a2 L_plan + a3 L_ctr (stack_loss; a_i the paper's alpha_i, Config.alpha_rl/il)
+#   RL: L_ctr = C_H(s_ctr, u_ctr), the hindsight cost (eq. 3, GT futures), target n* = argmin C_H
+#   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, target n* = the candidate closest to the GT
 
 SETTINGS = ("rl", "il")  # the planner target and L_ctr: hindsight cost (RL) or imitation (IL)
 
@@ -1543,8 +1498,7 @@ def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tenso
 
 
 def planner_substeps(cfg: Config, plan_dt) -> int:
-    """How many planner/controller steps of plan_dt make one prediction step cfg.dt (1 for
-    plan_dt None)."""
+    """Planner/controller steps of plan_dt per prediction step cfg.dt (1 for plan_dt None)."""
     if plan_dt is None:
         return 1
     substeps = round(cfg.dt / plan_dt) if plan_dt > 0 else 0
@@ -1570,6 +1524,43 @@ def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, 
     agent = upsample(batch.agent_hist[:, -1, :2], batch.agent_fut[..., :2], substeps)  # (B, T, 2)
     hctx = CostContext(agent[:, None], ones[:, None], ones, others_mask=others_mask, **common)
     return ctx, hctx
+
+
+def route_goal(s0, lanes, lanes_mask, cfg: Config) -> torch.Tensor:
+    """The 'route' goal (Config.goal), which unlike the logged one holds no reaction of the driver
+    to the others: where the ego reaches at T keeping its speed along its lane (the nearest heading
+    its way, within 40 degrees). (B, 4)."""
+    B = s0.shape[0]
+    cum = _lane_arclength(lanes, lanes_mask)  # (B, L, P)
+    d2, arc_on, h_lane = _project_each_lane(s0[:, :2], lanes, lanes_mask, cum)  # (B, L) each
+    # 40 degrees: a lane through a bend is still the ego's, a crossing one (~90) is not
+    heading_ok = wrap_angle(h_lane - s0[:, 2:3]).abs() < math.radians(40)
+    lane = torch.where(heading_ok, d2, math.inf).argmin(-1)  # (B,) the nearest such lane
+    rows = torch.arange(B, device=s0.device)
+    distance = s0[:, 3] * cfg.horizon * cfg.dt  # (B,) at its speed until T
+    ahead = arc_on[rows, lane] + distance  # (B,) arc length at T
+    p = _point_at_arclength(lanes[rows, lane, None], cum[rows, lane, None], ahead[:, None, None])
+    route = torch.cat([p[:, 0, 0], s0[:, 3:4]], -1)  # (B, 4): x, y, lane heading, speed
+    # no lane heading the ego's way (real data can lack one): straight ahead at its speed
+    direction = _heading_vector(s0[:, 2])  # (B, 2)
+    straight = torch.cat([s0[:, :2] + direction * distance[:, None], s0[:, 2:]], -1)
+    return torch.where(heading_ok.any(-1, keepdim=True), route, straight)
+
+
+@dataclass
+class ScenePlan:
+    """What the planner computes from the scene alone: the goal g, the candidates and every term of
+    eq. (3) but C_coll for each. A prediction reaches the plan through C_coll only, so training
+    computes these once."""
+
+    goal: torch.Tensor  # (B, 4)       the goal state
+    cands: Candidates
+    terms: torch.Tensor  # (B, N, 4)   (C_goal, C_lat, C_head, C_u) per candidate, unweighted
+
+    def __getitem__(self, rows):
+        """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
+        cands = Candidates(self.cands.x[rows], self.cands.u[rows], self.cands.valid[rows])
+        return ScenePlan(self.goal[rows], cands, self.terms[rows])
 
 
 def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
@@ -1689,11 +1680,10 @@ def run_stack(
     and the schedules at `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,),
     default the hand-tuned ones. planner=False: iLQR starts from zero controls; controller=False:
     the plan is final; plan_others=False: planner and controller ignore the others (ablations).
-    pred_target: what the predictor is trained towards (Table 2 shifts it). plan_dt: a finer
-    planner and controller step (ablation: 0.1 s); the per-step cost terms (all but the goal's)
-    are then scaled by 1/substeps, so that eq. (3) sums the same costs per second. scene: the
-    batch's scene_plan, if already computed. noise: the decoder's (Predictor.decode);
-    batch_mean: the loss's (pred_loss)."""
+    pred_target: the predictor's target (Table 2 shifts it). plan_dt: a finer planner and
+    controller step (ablation: 0.1 s), the per-step terms (all but C_goal) scaled by 1/substeps so
+    that eq. (3) sums the same costs per second. scene: the batch's scene_plan, if computed;
+    noise, batch_mean: Predictor.decode's, pred_loss's."""
     check_setting(setting)
     sub = planner_substeps(cfg, plan_dt)
     like = dict(dtype=batch.ego_hist.dtype, device=batch.ego_hist.device)
@@ -1719,30 +1709,40 @@ def run_stack(
     return StackOutput(*losses, *metrics, x, u, plan_out.cands, plan_out.cost, pred)
 
 
+def stack_loss(out: StackOutput, alphas, pred_weights=1.0, count=None):
+    """The training loss of §3.2, L = a1 L_pred + a2 L_plan + a3 L_ctr, and its terms, each a mean
+    over the plannable scenarios (the others are flagged, not trained on): (L, (L_pred, L_plan,
+    L_ctr)). alphas (a1, a2, a3): Config.alpha_rl or alpha_il switched by the method; pred_weights:
+    L_pred's per-scenario weights (B,) (§4.1); count: what the sums divide by (default: this batch's
+    plannable scenarios; under DDP train.py passes the global batch's over the ranks)."""
+    keep = out.plannable.to(out.l_plan.dtype)  # (B,)
+    count = keep.sum().clamp_min(1) if count is None else count
+    per_scenario = (out.l_pred * pred_weights, out.l_plan, out.l_ctr)  # (B,) each
+    terms = tuple((term * keep).sum() / count for term in per_scenario)
+    return sum(a * term for a, term in zip(alphas, terms)), terms
+
+
 # ===== 8. Config's checks: every field in its range, refused by name at construction =============
-# The method takes what Config, the command lines and the loaders (train.py, data_synth.py,
-# lab/nuscenes.py) have checked; the math does not check its input again. Every number of Config has
-# a range (inclusive): no NaN or petabyte later.
+# The math does not check its input again: Config, the command lines and the loaders (train.py,
+# data_synth.py, lab/nuscenes.py) do. Every number of Config has an inclusive range.
 CONFIG_RANGES = {
     "dt": (1e-3, 10),
     **dict.fromkeys(["hist_len", "horizon"], (1, 100)),
-    **dict.fromkeys([f"w_{name}" for name in COST_TERMS], (0, 1e6)),
+    **dict.fromkeys([*[f"w_{name}" for name in COST_TERMS], "pred_kl_min"], (0, 1e6)),
     **dict.fromkeys(["rbf_var", "beta"], (1e-6, 1e6)),
     **dict.fromkeys(["goal_lane_dist", "feas_lat_accel", "feas_yaw_per_speed"], (1e-6, 1e4)),
+    "pred_radius": (1e-6, 1e4),
     "goal_lane_heading": (1e-6, 7),
     "max_goal_lanes": (1, 64),
     "ilqr_iters": (1, 1000),
-    "ilqr_tol": (1e-12, 1e6),
+    **dict.fromkeys(["ilqr_tol", "pred_grad_clip"], (1e-12, 1e6)),
     "line_search_steps": (1, 60),
     "line_search_decay": (1.01, 1e6),
     "pred_modes": (1, 1024),
     **dict.fromkeys(["pred_enc_hidden", "pred_latent_hidden", "pred_dec_hidden"], (1, 4096)),
-    "pred_radius": (1e-6, 1e4),
     **dict.fromkeys(["pred_min_speed", "pred_pos_std_min"], (0, 1e3)),
     **dict.fromkeys(["pred_log_p_max", "pred_nll_min"], (-1e6, 1e6)),
-    "pred_kl_min": (0, 1e6),
     "pred_lr_decay": (1e-9, 1),
-    "pred_grad_clip": (1e-12, 1e6),
     "lr": (1e-12, 1e3),
     "batch_size": (1, 100_000),
 }

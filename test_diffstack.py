@@ -476,6 +476,54 @@ def test_kkt_gradients_unicycle_full_cost_match_finite_differences(unicycle_prob
             assert rel_err(torch.stack([gauss_newton[i][j] for j in idx]), fd) > 1e-3
 
 
+def test_kkt_backward_default_and_papers_variant_against_central_differences():
+    """The controller's section states it: the default backward (exact=True, the Lagrangian's
+    Hessian) is the derivative of the converged solution, within 1e-6 of central differences on a
+    unicycle tracking a circle too tight for the yaw-rate bound (most controls at a bound); the
+    paper's variant (exact=False, "the KKT conditions of the last LQR approximation") is printed
+    beside it, and larger."""
+    d, T = dict(dtype=torch.float64), 6
+    s0 = torch.tensor([[0.0, 0.0, 0.0, 8.0], [0.0, 0.0, 0.3, 6.0]], **d)
+    angle = torch.arange(1, T + 1, **d) * DT * 8 / 6  # radius 6 m at 8 m/s: 1.3 rad/s > 0.7
+    circle = torch.stack([6 * torch.sin(angle), 6 * (1 - torch.cos(angle))], -1)  # (T, 2)
+    ref = torch.stack([circle, 0.8 * circle])  # (2, T, 2)
+    lo, hi = torch.tensor([-0.7, -5.0], **d), torch.tensor([0.7, 4.0], **d)
+    g = torch.Generator().manual_seed(0)
+    wx, wu = torch.randn(2, T + 1, 4, generator=g, **d), torch.randn(2, T, 2, generator=g, **d)
+    u0, kw = torch.zeros(2, T, 2, **d), dict(iters=200, tol=1e-13)
+
+    def cost_fn(x, u, ref):  # tracking: sum_t |p_t - ref_t|^2 + 0.1 |u_t|^2
+        return ((x[..., 1:, :2] - ref) ** 2).sum((-1, -2)) + 0.1 * (u**2).sum((-1, -2))
+
+    def loss(s, r):  # a random linear functional of the converged solution
+        x, u, info = ds.ilqr(cost_fn, ds.Unicycle(DT), s, u0, (r,), lo, hi, **kw)
+        assert info.converged.all()
+        return (x * wx).sum() + (u * wu).sum()
+
+    def kkt(exact):
+        s, r = s0.clone().requires_grad_(), ref.clone().requires_grad_()
+        x, u, conv = ds.ilqr_solve(cost_fn, ds.Unicycle(DT), s, u0, (r,), lo, hi, exact, **kw)
+        assert conv.all() and ((u == lo) | (u == hi)).sum() >= 10  # bounds active
+        return torch.autograd.grad((x * wx).sum() + (u * wu).sum(), (s, r))
+
+    idx_s = [(b, j) for b in range(2) for j in range(4)]
+    idx_r = [(0, 1, 0), (0, 4, 1), (1, 2, 1), (1, 5, 0)]
+    fd_s = torch.stack([central_fd(lambda v: loss(v, ref), s0, i) for i in idx_s])
+    fd_r = torch.stack([central_fd(lambda v: loss(s0, v), ref, i) for i in idx_r])
+    errors = {}
+    for exact in (True, False):
+        grad_s, grad_r = kkt(exact)
+        errors[exact] = max(
+            rel_err(torch.stack([grad_s[i] for i in idx_s]), fd_s),
+            rel_err(torch.stack([grad_r[i] for i in idx_r]), fd_r),
+        )
+    print(
+        f"KKT backward vs central differences: default {errors[True]:.1e}, paper's variant "
+        f"{errors[False]:.1e}"
+    )
+    assert errors[True] < 1e-6 and errors[False] > 100 * errors[True]
+
+
 def test_kkt_gradients_match_autograd_through_unrolled_solver(unicycle_problem):
     P = unicycle_problem
     kkt = _kkt_grads(P)

@@ -144,6 +144,33 @@ def test_collision_cost_gradient_reaches_all_decoder_parameters():
         assert grad is not None and grad.abs().sum() > 0, name
 
 
+def test_the_papers_loss_is_stack_loss_and_training_minimises_it(small, monkeypatch):
+    """L = a1 L_pred + a2 L_plan + a3 L_ctr (§3.2), each term a mean over the plannable
+    scenarios: ds.stack_loss against the sum written out, and the training step's loss is its L."""
+    cfg = small_cfg()
+    b = cast(small.train[:16], torch.float64)
+    out = ds.run_stack(b, make_model(cfg), tr.Method("DiffStack"), cfg, "rl", step=0, train=True)
+    out.plannable[:3] = False  # the unplannable count for nothing
+    keep, a = out.plannable.double(), (2.0, 30.0, 500.0)
+    w = torch.rand(16, dtype=torch.float64)
+    loss, terms = ds.stack_loss(out, a, w)
+    m = keep.sum()
+    mine = [(out.l_pred * w * keep).sum() / m, (out.l_plan * keep).sum() / m]
+    mine.append((out.l_ctr * keep).sum() / m)
+    assert all(torch.equal(x, y) for x, y in zip(terms, mine))
+    assert torch.equal(loss, a[0] * mine[0] + a[1] * mine[1] + a[2] * mine[2])
+    seen = []
+
+    def spy(*args, **kw):
+        seen.append(ds.stack_loss(*args, **kw))
+        return seen[-1]
+
+    monkeypatch.setattr(tr, "stack_loss", spy)
+    method = tr.Method("DiffStack", losses=(1, 1, 1))
+    hist = tr.train_stack(make_model(cfg), b, method, cfg, log=None)
+    assert len(seen) == 1 and math.isclose(hist[0]["loss"], seen[0][0].item(), rel_tol=1e-6)
+
+
 @pytest.mark.parametrize("weights", ["posterior", "prior"])
 def test_the_planner_losses_reach_the_prior_only_with_prior_weights(small, weights):
     """In training the planner weighs the modes by q(z|x,y) (the authors' code, the default), so

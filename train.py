@@ -41,6 +41,7 @@ from diffstack import (
     pred_loss,
     run_stack,
     scene_plan,
+    stack_loss,
 )
 
 # --------------------------------------------------------------------------------------------
@@ -374,9 +375,9 @@ def stop_if_diverged(where: str, shard: Shard, terms=None, grads=None, params=No
 
 @dataclass
 class Objective:
-    """What a training step minimises on a batch: the terms (L_pred, L_plan, L_ctr) of
-    L = a1 L_pred + a2 L_plan + a3 L_ctr, means over the batch's plannable scenarios (the predictor
-    alone, over all, when a2 = a3 = 0), and iLQR's convergence rate among them.
+    """What a training step minimises on a batch: L = a1 L_pred + a2 L_plan + a3 L_ctr (stack_loss),
+    its terms, means over the batch's plannable scenarios (the predictor alone, over all, when
+    a2 = a3 = 0), and iLQR's convergence rate among them. alphas: (a1, a2, a3).
 
     predictor, cost_w: what the forward pass calls (under DDP the wrapped modules); cost_w None:
     the hand-tuned weights. scenes: the data's scene_plans (None without planning)."""
@@ -390,8 +391,9 @@ class Objective:
     scenes: ScenePlan | None
     pred_offset: float
     stack_kw: dict
+    alphas: tuple
 
-    def __call__(self, batch, rows, step: int) -> tuple[tuple, float]:
+    def __call__(self, batch, rows, step: int) -> tuple[torch.Tensor, tuple, float]:
         target = offset_targets(batch, self.pred_offset) if self.pred_offset else None
         noise = self.shard.decoder_noise(self.predictor, len(batch), self.cfg, batch.ego_hist)
         if self.scenes is None:
@@ -399,7 +401,7 @@ class Objective:
         return self.stack_terms(batch, rows, target, noise, step)
 
     def prediction_terms(self, batch, target, noise, step):
-        """(L_pred, 0, 0) of the predictor alone (Standard and the weighted baselines)."""
+        """a1 L_pred and (L_pred, 0, 0): the predictor alone (Standard, the weighted baselines)."""
         pred = self.predictor(batch, use_posterior=True, step=step, noise=noise)
         truth = batch if target is None else dataclasses.replace(batch, agent_fut=target)
         l_pred_b, _ = pred_loss(pred, truth, step, self.cfg, self.shard.mean)
@@ -408,10 +410,10 @@ class Objective:
         weights = scenario_weights(batch, self.method.weighting, self.cfg, self.shard)
         l_pred = (l_pred_b * weights).mean()
         zero = torch.zeros((), dtype=l_pred.dtype, device=l_pred.device)
-        return (l_pred, zero, zero), float("nan")
+        return self.alphas[0] * l_pred, (l_pred, zero, zero), float("nan")
 
     def stack_terms(self, batch, rows, target, noise, step):
-        """(L_pred, L_plan, L_ctr) of the whole stack, means over the plannable scenarios."""
+        """L and (L_pred, L_plan, L_ctr) of the whole stack, means over the plannable scenarios."""
         learn_cost = self.cost_w is not None
         out = run_stack(
             batch,
@@ -432,14 +434,13 @@ class Objective:
         # this rank's sums divided by the global number of plannable scenarios / world (lab/ddp.py)
         m = self.shard.total(keep).clamp_min(1) / self.shard.world
         weights = scenario_weights(batch, self.method.weighting, self.cfg, self.shard)
-        l_pred = (out.l_pred * weights * keep).sum() / m
-        l_plan, l_ctr = (out.l_plan * keep).sum() / m, (out.l_ctr * keep).sum() / m
+        loss, terms = stack_loss(out, self.alphas, weights, m)
         if self.shard.world == 1:
             conv = out.converged[out.plannable].float().mean().item()
         else:  # converged among the plannable scenarios of the global batch
             converged = (out.converged & out.plannable).to(keep.dtype)
             conv = (self.shard.total(converged) / self.shard.total(keep)).item()
-        return (l_pred, l_plan, l_ctr), conv
+        return loss, terms, conv
 
 
 def batch_rows(n: int, cfg: Config, shard: Shard, order: torch.Generator, total: int):
@@ -480,7 +481,6 @@ def train_stack(
     log = log if shard.rank == 0 else None  # the other ranks stay quiet
     torch.manual_seed(seed)  # the decoder's sampled controls, the same on every rank
     order = torch.Generator().manual_seed(seed)  # the order of the scenarios, on the CPU
-    a1, a2, a3 = alphas(method, setting, cfg)
     params, objective = objective_for(
         model, data, method, cfg, setting, shard, weights, pred_offset, stack_kw
     )
@@ -494,9 +494,8 @@ def train_stack(
     try:
         for step, rows in enumerate(batch_rows(len(data), cfg, shard, order, total), 1):
             batch = to_device(data[rows], next(model.parameters()).device)
-            terms, conv = objective(batch, rows, step - 1)  # (L_pred, L_plan, L_ctr)
-            # L = a1 L_pred + a2 L_plan + a3 L_ctr (§3.2)
-            loss = a1 * terms[0] + a2 * terms[1] + a3 * terms[2]
+            # L = a1 L_pred + a2 L_plan + a3 L_ctr (§3.2) and its terms
+            loss, terms, conv = objective(batch, rows, step - 1)
             where = f"{method.name}, seed {seed}: training diverged at step {step} of {total}"
             stop_if_diverged(where, shard, terms=terms)
             opt.zero_grad()
@@ -531,15 +530,15 @@ def objective_for(model, data, method, cfg, setting, shard, weights, pred_offset
     else:
         model.train()
         params, predictor, cost_w = list(model.parameters()), wrap(model, shard), None
-    _, a2, a3 = alphas(method, setting, cfg)
+    a = alphas(method, setting, cfg)
     scenes = None
-    if a2 > 0 or a3 > 0:
+    if a[1] > 0 or a[2] > 0:
         scenes = scene_plans(data, cfg, stack_kw.get("plan_dt"))
     else:
         for i in range(0, len(data), 1024):
             check_batch(data[i : i + 1024], cfg, need_future=True)
     objective = Objective(
-        predictor, cost_w, method, cfg, setting, shard, scenes, pred_offset, stack_kw
+        predictor, cost_w, method, cfg, setting, shard, scenes, pred_offset, stack_kw, a
     )
     return params, objective
 
