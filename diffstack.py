@@ -204,8 +204,11 @@ def unicycle_step(s: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
     x, y, h, v = s.unbind(-1)
     omega, a = u.unbind(-1)
     (cm0, cm1), (sm0, sm1) = _moments(omega, dt, 1)
-    dx, dy = _rotate(h, v * cm0 + a * cm1, v * sm0 + a * sm1)  # R(h) (along, lateral)
-    return torch.stack([x + dx, y + dy, h + omega * dt, v + a * dt], -1)
+    along, lateral = v * cm0 + a * cm1, v * sm0 + a * sm1
+    cos_h, sin_h = torch.cos(h), torch.sin(h)
+    x_next = x + cos_h * along - sin_h * lateral  # [x, y] + R(h) [along, lateral]
+    y_next = y + sin_h * along + cos_h * lateral
+    return torch.stack([x_next, y_next, h + omega * dt, v + a * dt], -1)
 
 
 def _position_jacobians(h, v, omega, a, dt: float):
@@ -1779,18 +1782,14 @@ def check_config(cfg: Config) -> None:
         if bad:
             raise ValueError(f"Config.{f.name}: must be {bad}, got {v!r}")
     if any(lo >= hi for lo, hi in zip(cfg.u_lower, cfg.u_upper)):
-        raise ValueError(
-            f"Config.u_lower: must be below u_upper, got {cfg.u_lower} and {cfg.u_upper}"
-        )
+        raise ValueError(f"Config.u_lower: must be below u_upper {cfg.u_upper}, got {cfg.u_lower}")
     if any(x <= 0 for x in cfg.pred_scales) or any(x < 0 for x in cfg.alpha_rl + cfg.alpha_il):
         raise ValueError("Config.pred_scales must be > 0 and Config.alpha_rl, alpha_il >= 0")
 
 
 def check_setting(setting) -> str:
     if setting not in SETTINGS:
-        raise ValueError(
-            f"setting: expected 'rl' (hindsight cost) or 'il' (imitation), got {setting!r}"
-        )
+        raise ValueError(f"setting: expected 'rl' (hindsight) or 'il' (imitation), got {setting!r}")
     return setting
 
 
