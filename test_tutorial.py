@@ -453,3 +453,15 @@ def test_the_student_notebook_holds_stubs_not_solutions():
             f"{f.name} in tutorial.py is not a stub"
         )
         assert "NotImplementedError" in ast.unparse(body[0])
+
+
+def test_no_stored_output_shows_an_answer():
+    """tutorial.ipynb's outputs hold neither the module's functions that answer exercises (shown
+    only once an exercise passes) nor a check message that names exercise 4's fix."""
+    import diffstack as ds
+
+    nb = nbformat.read(REPO / "tutorial.ipynb", as_version=4)
+    text = json.dumps([c.get("outputs", []) for c in nb.cells])
+    for fn in (ds.collision_term, ds.plan_loss, ds.lqr_backward, ds.kkt_backward):
+        assert f"def {fn.__name__}(" not in text, fn.__name__
+    assert "EXERCISE 4: not done yet" in text and "logsumexp" not in text

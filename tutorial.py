@@ -51,8 +51,11 @@
 # **Exercises.** Six functions to fill in (stubs until you do), in the order they build on each
 # other; one of them fixes a realistic bug. A check runs each on its own test problems against the
 # module, autograd or a closed form: `PASS`, a stop that says what differs (which term or stage, by
-# what factor), or *not done* (the notebook goes on). The answers are in
-# [`solutions.py`](solutions.py) (`DIFFSTACK_SOLUTIONS=1`, as CI, uses them).
+# what factor), or *not done* (the notebook goes on). Once yours passes, the cell shows the module's
+# own version to compare. Write your own: the modules implement what five exercises ask, in other
+# forms, and an answer that calls them is not yours. **Grading:** an exercise is graded by the
+# function of its name defined by a `def` in a code cell, run in a fresh process with only the
+# notebook's imports and `def`/constant cells: compute inside it what it needs.
 #
 # **Running it.** `jupyter lab tutorial.ipynb`, *Run All*. `QUICK = True` (the stored outputs)
 # trains 16 steps on small data, `QUICK = False` longer. Neither gives the paper's findings: each
@@ -323,9 +326,8 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 
 # %%
 # Check exercise 1 against ds.collision_term (multi-mode predictions, masked vehicles, two rbf_var);
-# then the module's version, in the mean + spread form.
-course.exercise(1, course.check_collision, my_collision)
-course.show_source(ds.collision_term)
+# once yours passes, the module's version (the mean + spread form).
+course.exercise(1, course.check_collision, my_collision, reveal=ds.collision_term)
 section_done("§3")
 
 # %% [markdown]
@@ -408,9 +410,8 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 
 # %%
 # Check exercise 2: values and gradients against ds.plan_loss, three β, costs near 2000, invalid
-# candidates cheaper than the valid ones, and float32; then the module's relaxed argmin.
-course.exercise(2, course.check_plan_loss, my_plan_loss)
-course.show_source(ds.plan_loss)
+# candidates cheaper than the valid ones, and float32; once yours passes, the module's.
+course.exercise(2, course.check_plan_loss, my_plan_loss, reveal=ds.plan_loss)
 
 # %% [markdown]
 # ### Exercise 3: the gradient through the relaxed argmin
@@ -621,9 +622,8 @@ if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
 
 # %%
 # Check exercise 5 on random one-step problems (n = 4, m = 2, float64): k, K, P_new and p_new;
-# then the module's recursion over all stages (with the box: a small QP per stage, held rows).
-course.exercise(5, course.check_riccati, my_riccati_step)
-course.show_source(ds.lqr_backward)
+# once yours passes, the module's recursion over all stages (the box: a QP per stage, held rows).
+course.exercise(5, course.check_riccati, my_riccati_step, reveal=ds.lqr_backward)
 
 # %% [markdown]
 # **The backward pass, derived** (Amos et al. 2018). Hold the active set: the controls at a bound
@@ -725,8 +725,7 @@ def my_kkt_backward(A, B, H, grad_x, grad_u, free, n):
 
 if SOLUTIONS:  # CI: the reference answer from solutions.py (not shown here)
     from solutions import my_kkt_backward
-course.exercise(6, course.check_kkt, my_kkt_backward)
-course.show_source(ds.kkt_backward)  # the module's, for the nonlinear controller
+course.exercise(6, course.check_kkt, my_kkt_backward, reveal=ds.kkt_backward)  # iLQR's, once passed
 section_done("§5")
 
 # %% [markdown]
