@@ -685,8 +685,8 @@ def _refuse(what, *args, **kwargs):
 
 
 def exercise(number, check, fn, reveal=None):
-    """A check from a notebook cell: PASS (True), not done (a stub: False), or AssertionError;
-    once it passes, the module's function that answers it (reveal), never before."""
+    """A check from a notebook cell, printed: PASS (True), not done (a stub) or FAIL and what is
+    wrong (False: Run All goes on); once it passes, reveal's source (the module's answer)."""
     try:
         detail = check(fn)
     except NotImplementedError:
@@ -694,6 +694,9 @@ def exercise(number, check, fn, reveal=None):
             f"EXERCISE {number}: not done yet: fill in `{fn.__name__}` in the cell above, run "
             "it, then this cell. (The rest of the notebook does not need it.)"
         )
+        return False
+    except Exception as e:  # a wrong answer: said, and the notebook goes on (the grader decides)
+        print(f"EXERCISE {number}: FAIL ✗ {type(e).__name__}: {e}\n(the notebook goes on)")
         return False
     print(f"EXERCISE {number}: PASS ({detail})")
     if reveal is not None:
