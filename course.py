@@ -852,19 +852,21 @@ def check_plan_loss(fn, name="my_plan_loss"):
         _close(
             f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
         )
-    # the fragile case: float32 costs near 500, an invalid candidate 200 cheaper than every valid
-    # one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32),
-    # so a softmax over all candidates renormalised over the valid ones is 0/0
+    # the fragile cases: float32 costs near 500, an invalid candidate 200, then 1000, cheaper than
+    # every valid one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) in
+    # float32, exp(-1000) in float64 too), so a softmax over all candidates renormalised over the
+    # valid ones is 0/0, in whatever float type it is computed
     g = torch.Generator().manual_seed(3)
     cost = 500 + 5 * torch.rand(4, 6, generator=g)
     valid = torch.ones(4, 6, dtype=torch.bool)
     valid[:, 0] = False
-    cost[:, 0] = cost[:, 1:].min(-1).values - 200
     target = torch.randint(1, 6, (4,), generator=g)
-    mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
-    wrong = "Every target here is valid, so its loss is finite; yours is not, in float32 alone."
-    case = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
-    _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), wrong, cond=500)
+    wrong = "Every target here is valid, so its loss is finite; yours is not."
+    for gap in (200, 1000):
+        cost[:, 0] = cost[:, 1:].min(-1).values - gap
+        mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
+        case = f"{name} in float32, an invalid candidate {gap} cheaper than every valid one"
+        _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), wrong, cond=500)
     return (
         f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
         "float32 with a far cheaper invalid candidate"

@@ -279,6 +279,10 @@ WRONG = {
     "2: the target off by one": (2, lambda c, v, t, b: _plan_loss(c, v, t, b, shift=1)),
     "2: a softmax over all candidates, renormalised": (2, lambda *a: _renormalised(*a)),
     "4: the notebook's buggy_plan_loss, unchanged": (4, lambda *a: _notebook_buggy()(*a)),
+    "4: buggy_plan_loss computed in float64": (
+        4,
+        lambda c, v, t, b: _notebook_buggy()(c.double(), v, t, b).to(c.dtype),
+    ),
     **{
         f"5: {m}": (5, _riccati(m))
         for m in (
