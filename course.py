@@ -232,7 +232,7 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     terms = {
         f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
         r"$C_{goal}$ (its own scale)": (c_goal, None),
-        r"$C_{lat}$ (distance² to the nearest lane; clipped at its 95 % quantile)": (c_lat, None),
+        r"$C_{lat}$: distance² to the nearest lane going the ego's way (clipped)": (c_lat, None),
         r"weighted sum $w_1C_{coll} + w_2C_{goal} + w_3C_{lat} + w_4C_{head}$ (log scale); "
         r"contours: $w_1C_{coll}$": (c_sum, LogNorm(max(c_sum.min().item(), 0.1), c_sum.max())),
     }
