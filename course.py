@@ -232,7 +232,7 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
     terms = {
         f"$C_{{coll}}$ at t = {t:g} s (GT future as prediction)": (c_coll, None),
         r"$C_{goal}$ (its own scale)": (c_goal, None),
-        r"$C_{lat}$ (distance² to the nearest lane; clipped at its 95 % quantile)": (c_lat, None),
+        r"$C_{lat}$: distance² to the nearest lane going the ego's way (clipped)": (c_lat, None),
         r"weighted sum $w_1C_{coll} + w_2C_{goal} + w_3C_{lat} + w_4C_{head}$ (log scale); "
         r"contours: $w_1C_{coll}$": (c_sum, LogNorm(max(c_sum.min().item(), 0.1), c_sum.max())),
     }
@@ -684,8 +684,9 @@ def _refuse(what, *args, **kwargs):
     raise Forbidden(f"{what}: this exercise asks for the closed form")
 
 
-def exercise(number, check, fn):
-    """A check from a notebook cell: PASS (True), not done (a stub: False), or AssertionError."""
+def exercise(number, check, fn, reveal=None):
+    """A check from a notebook cell, printed: PASS (True), not done (a stub) or FAIL and what is
+    wrong (False: Run All goes on); once it passes, reveal's source (the module's answer)."""
     try:
         detail = check(fn)
     except NotImplementedError:
@@ -694,7 +695,13 @@ def exercise(number, check, fn):
             "it, then this cell. (The rest of the notebook does not need it.)"
         )
         return False
+    except Exception as e:  # a wrong answer: said, and the notebook goes on (the grader decides)
+        print(f"EXERCISE {number}: FAIL ✗ {type(e).__name__}: {e}\n(the notebook goes on)")
+        return False
     print(f"EXERCISE {number}: PASS ({detail})")
+    if reveal is not None:
+        print("Now that yours passes, the module's own version, to compare:")
+        show_source(reveal)
     return True
 
 
@@ -845,23 +852,21 @@ def check_plan_loss(fn, name="my_plan_loss"):
         _close(
             f"gradient of {name} wrt the costs {at}", c1.grad, c2.grad, hint, 1e-9, cond, mine.dtype
         )
-    # the fragile case: float32 costs near 500, an invalid candidate 200 cheaper than every valid
-    # one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) is 0 in float32),
-    # so a softmax over all candidates renormalised over the valid ones is 0/0
+    # the fragile cases: float32 costs near 500, an invalid candidate 200, then 1000, cheaper than
+    # every valid one; next to it exp(-beta C) of every valid candidate underflows (exp(-200) in
+    # float32, exp(-1000) in float64 too), so a softmax over all candidates renormalised over the
+    # valid ones is 0/0, in whatever float type it is computed
     g = torch.Generator().manual_seed(3)
     cost = 500 + 5 * torch.rand(4, 6, generator=g)
     valid = torch.ones(4, 6, dtype=torch.bool)
     valid[:, 0] = False
-    cost[:, 0] = cost[:, 1:].min(-1).values - 200
     target = torch.randint(1, 6, (4,), generator=g)
-    mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
-    fix = (
-        "A softmax over all candidates, renormalised over the valid ones, is 0/0 here: every valid "
-        "exp(-beta C) underflows next to the invalid one. Leave the invalid candidates out of the "
-        "softmax itself (their logits -inf, then logsumexp)."
-    )
-    case = f"{name} in float32, an invalid candidate 200 cheaper than every valid one"
-    _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), fix, cond=500)
+    wrong = "Every target here is valid, so its loss is finite; yours is not."
+    for gap in (200, 1000):
+        cost[:, 0] = cost[:, 1:].min(-1).values - gap
+        mine = _call(name, fn, cost, valid, target, 1.0, returns=returns)
+        case = f"{name} in float32, an invalid candidate {gap} cheaper than every valid one"
+        _close(case, mine, ds.plan_loss(cost.double(), valid, target, 1.0), wrong, cond=500)
     return (
         f"values and gradients, max error {worst:.1e}, beta in (0.3, 1, 2.5), masked candidates, "
         "float32 with a far cheaper invalid candidate"

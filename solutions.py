@@ -33,7 +33,7 @@ def my_plan_loss(cost, valid, target, beta):
     return -logp.gather(-1, target[:, None])[:, 0]
 
 
-# Exercise 3: one step of the unconstrained Riccati recursion
+# Exercise 5: one step of the unconstrained Riccati recursion
 def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
     F = torch.cat([A_t, B_t], -1)  # (B, n, n+m)
     Q = H_t + F.transpose(-1, -2) @ P @ F  # (B, n+m, n+m)
@@ -53,7 +53,7 @@ def my_riccati_step(P, p, H_t, g_t, A_t, B_t, n):
     return k, K, P_new, p_new
 
 
-# Exercise 4: the gradient of L_plan = -log p_{n*} with respect to the candidate costs C_n.
+# Exercise 3: the gradient of L_plan = -log p_{n*} with respect to the candidate costs C_n.
 #   log p_n = -beta C_n - log sum_{n' valid} exp(-beta C_n'),  so
 #   dL_plan/dC_n = beta (1[n = n*] - p_n) on valid candidates, 0 on invalid ones.
 def my_plan_loss_grad(cost, valid, target, beta):
@@ -65,7 +65,7 @@ def my_plan_loss_grad(cost, valid, target, beta):
     return beta * (onehot - p)
 
 
-# Exercise 5: the controller's gradient. At the solution, the KKT conditions hold; differentiating
+# Exercise 6: the controller's gradient. At the solution, the KKT conditions hold; differentiating
 # them gives the same LQR with the incoming gradient as its linear term (Amos et al. 2018):
 #   d = argmin 1/2 d'Hd + [grad_x; grad_u]'d  s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t,
 # held controls du = 0. Then dL/dg_t = d_t and dL/dx_init = p_0.

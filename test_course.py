@@ -88,3 +88,33 @@ def test_the_interactive_planner_computes_what_it_draws(monkeypatch):
     matplotlib.use("Agg")
     monkeypatch.setitem(sys.modules, "ipywidgets", None)  # import ipywidgets fails
     assert course.interactive_planner(ex, cfg, [((0.0, 0.0), 1.0)]) is None
+
+
+def test_the_module_answer_is_shown_only_once_the_exercise_passes(monkeypatch, capsys):
+    """course.exercise shows `reveal`'s source after a PASS, never for a stub or a wrong answer;
+    exercise 4's message on the notebook's buggy loss says what is wrong, not the fix."""
+    import diffstack as ds
+    import solutions
+
+    shown = []
+    monkeypatch.setattr(course, "display", shown.append)
+
+    def stub(*args):
+        raise NotImplementedError
+
+    assert not course.exercise(2, course.check_plan_loss, stub, reveal=ds.plan_loss)
+    assert not course.exercise(2, course.check_plan_loss, lambda c, v, t, b: -c[:, 0], ds.plan_loss)
+    assert "EXERCISE 2: FAIL ✗ AssertionError: my_plan_loss" in capsys.readouterr().out
+    assert shown == []
+    assert course.exercise(2, course.check_plan_loss, solutions.my_plan_loss, ds.plan_loss)
+    assert len(shown) == 1 and "def plan_loss(" in shown[0].data
+
+    def buggy(cost, valid, target, beta):  # tutorial.py's buggy_plan_loss
+        p = torch.softmax(-beta * cost, -1)
+        p = p * valid / (p * valid).sum(-1, keepdim=True)
+        return -torch.log(p.gather(-1, target[:, None])[:, 0])
+
+    course.show_failure(course.check_plan_loss_fixed, buggy)
+    said = capsys.readouterr().out.split("the check says:")[-1]
+    assert "float32" in said and "inf or NaN" in said
+    assert not any(w in said for w in ("logsumexp", "-inf", "underflow", "renormalis", "Leave"))

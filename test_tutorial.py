@@ -279,6 +279,10 @@ WRONG = {
     "2: the target off by one": (2, lambda c, v, t, b: _plan_loss(c, v, t, b, shift=1)),
     "2: a softmax over all candidates, renormalised": (2, lambda *a: _renormalised(*a)),
     "4: the notebook's buggy_plan_loss, unchanged": (4, lambda *a: _notebook_buggy()(*a)),
+    "4: buggy_plan_loss computed in float64": (
+        4,
+        lambda c, v, t, b: _notebook_buggy()(c.double(), v, t, b).to(c.dtype),
+    ),
     **{
         f"5: {m}": (5, _riccati(m))
         for m in (
@@ -453,3 +457,35 @@ def test_the_student_notebook_holds_stubs_not_solutions():
             f"{f.name} in tutorial.py is not a stub"
         )
         assert "NotImplementedError" in ast.unparse(body[0])
+
+
+def test_no_stored_output_shows_an_answer():
+    """tutorial.ipynb's outputs hold neither the module's functions that answer exercises (shown
+    only once an exercise passes) nor a check message that names exercise 4's fix."""
+    import diffstack as ds
+
+    nb = nbformat.read(REPO / "tutorial.ipynb", as_version=4)
+    text = json.dumps([c.get("outputs", []) for c in nb.cells])
+    for fn in (ds.collision_term, ds.plan_loss, ds.lqr_backward, ds.kkt_backward):
+        assert f"def {fn.__name__}(" not in text, fn.__name__
+    assert "EXERCISE 4: not done yet" in text and "logsumexp" not in text
+
+
+def test_a_wrong_answer_cannot_stop_run_all(capsys):
+    """Every call of a student's my_* function in tutorial.py is made by course.exercise (which
+    prints FAIL and returns False), inside a try that catches Exception, or once it has passed."""
+    tree = ast.parse((REPO / "tutorial.py").read_text())
+    parent = {c: p for p in ast.walk(tree) for c in ast.iter_child_nodes(p)}
+    for call in ast.walk(tree):
+        if not (isinstance(call, ast.Call) and getattr(call.func, "id", "").startswith("my_")):
+            continue
+        node, safe = call, False
+        while node in parent and not safe:
+            node = parent[node]
+            caught = isinstance(node, ast.Try) and any(
+                ast.unparse(h.type) == "Exception" for h in node.handlers
+            )
+            safe = caught or (isinstance(node, ast.If) and ast.unparse(node.test) == "ex3_done")
+        assert safe, f"line {call.lineno}: {ast.unparse(call)} can stop the notebook"
+    assert not course.exercise(1, course.check_collision, lambda pos, ctx, v: pos[..., 0, 0])
+    assert "EXERCISE 1: FAIL ✗ AssertionError: my_collision" in capsys.readouterr().out
