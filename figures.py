@@ -103,9 +103,8 @@ def stack_outputs(batch, models: dict, cfg: Config) -> dict:
 
 
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
-    """Fig. 3, returning its scenario: of the first n_search, the one where the first model's
-    hindsight cost exceeds the second's most. The stacks mostly plan the same candidate; the
-    predictions act through the controller (the bottom panel stretches y to show how far apart)."""
+    """Fig. 3 (returns its scenario: the first model's hindsight cost over the second's most): the
+    stacks mostly plan the same candidate, the predictions acting through the controller."""
     import matplotlib.pyplot as plt
 
     batch = data.val[:n_search]
@@ -152,20 +151,17 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
 
 
 def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
-    """Real scenes (rows) under each model (columns), returning the indices: the plannable samples
-    where the first model's hindsight cost exceeds the second's most (as Fig. 3), at least `apart`
-    apart (neighbours are the same moment 0.5 s later)."""
+    """Real scenes (rows) under each model (columns), returned: the plannable samples where the
+    first's hindsight cost exceeds the second's most, `apart` apart (neighbours: 0.5 s later)."""
     import matplotlib.pyplot as plt
 
     outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
     plannable = oa.plannable & ob.plannable  # (B,)
-    # score: (B,) lowest: the first model's worst
-    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)
+    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # lowest: first's worst
     ade = {name: _ade(out.pred, batch) for name, out in outs.items()}  # (B,) each
     picks = []
-    # a few rows: the worst gap, then the worst away from it, ...
-    for _ in range(min(rows, int(plannable.sum()))):
+    for _ in range(min(rows, int(plannable.sum()))):  # the worst gap, then the worst away from it
         i = int(score.argmin())
         picks.append(i)
         score[max(0, i - apart + 1) : i + apart] = math.inf
@@ -208,9 +204,8 @@ def widest_pair(rollouts):
 
 
 def figure_closed_loop(scenes, rollouts: dict, path=None, dt=0.5, scene=None):
-    """One closed-loop scene (default: Standard's trajectory cost over DiffStack's most), its point:
-    replanning every dt keeps the methods' executed trajectories centimetres apart. rollouts:
-    {method: (Rollout, per-scene metrics)}."""
+    """One closed-loop scene (default: Standard's trajectory cost over DiffStack's most): replanning
+    keeps the executed trajectories centimetres apart. rollouts: {method: (Rollout, per-scene)}."""
     import matplotlib.pyplot as plt
 
     if scene is None:

@@ -446,8 +446,7 @@ def mpc_lqr(P, grad=False, **settings):
 
 
 def bounded_lqr_at(umax, batch, reps, solvers) -> tuple[list, list, dict]:
-    """Every solver {name: (settings, solve)} at umax checked by an untimed solve, then timed: rows,
-    entries, gradients."""
+    """Each solver {name: (settings, solve)} at umax checked, then timed: rows, entries, grads."""
     P = bounded_lqr_problem(umax, batch)
     M, q = condensed_qp(P)
     ref = reference_controls(M, q, P["lo"], P["hi"])

@@ -140,8 +140,7 @@ KINDS = {
 
 
 def compute_piece(run: Run, spec: TableSpec, piece: Piece) -> tuple:
-    """(result, tensors or None, timing) of one piece; a diverged training (or a NaN evaluation) is
-    a result too: {'diverged': why}, never retrained."""
+    """(result, tensors or None, timing) of a piece; a divergence is a result: {'diverged': why}."""
     _, stack_kw, methods = next(s for s in table_sections(spec) if s[0] == piece.section)
     m = next(m for m in methods if m.name == piece.method)
     t0, c0 = time.time(), time.process_time()
@@ -369,8 +368,7 @@ def output_files(names, out) -> list:
 
 
 def check_outputs(names, out_dir, overwrite: bool) -> None:
-    """Before any work, OutputRefused unless out_dir takes the tables' files (the real scenes': only
-    under runs/ in the repository)."""
+    """Before any work, OutputRefused unless out_dir takes its files (real scenes: under runs/)."""
     out = pathlib.Path(out_dir).resolve()
 
     def inside(folder):
@@ -390,9 +388,8 @@ def check_outputs(names, out_dir, overwrite: bool) -> None:
     existing = [str(f) for f in files if f.exists() and str(f) not in stopped]
     if existing and not overwrite:  # a run never replaces a result it did not make
         raise runs.OutputRefused(
-            f"--out: {len(existing)} result file(s) exist and are kept: "
-            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
-            f"replace them, or choose another --out"
+            f"--out: {len(existing)} result file(s) exist and are kept: {', '.join(existing[:6])}"
+            f"{' ...' if len(existing) > 6 else ''}; pass --overwrite, or choose another --out"
         )
 
 
