@@ -1,8 +1,6 @@
-"""The figures of the experiments (lab/tables.py draws them into results/, the notebook some):
-panels (plot_prediction, plot_stack: Fig. 3's kind), Fig. 3 itself, real scenes, a closed-loop
-scene, learning curves and the cost weights. Drawing only: the numbers drawn come from
-experiments.py's results (or from running the stack on a batch), none written to results/ comes
-from here; docs/results.md says what the figures show. matplotlib is imported only when drawing."""
+"""The figures of the experiments (lab/tables.py draws them into results/, the notebook some), and
+drawing only: the numbers come from experiments.py's results or the stack run on a batch; what they
+show: docs/results.md. matplotlib is imported only when drawing."""
 
 from __future__ import annotations
 
@@ -35,8 +33,7 @@ STACK_KEY = (
 
 
 def save_figure(fig, path) -> None:
-    """fig.savefig at 130 dpi through the project's one atomic writer (a full disk is one line, a
-    kill leaves the old file), or shown where path is None (the notebook); closes the figure."""
+    """fig.savefig at 130 dpi, atomically, or shown where path is None (the notebook); closed."""
     import matplotlib.pyplot as plt
 
     if path is None:
@@ -47,9 +44,8 @@ def save_figure(fig, path) -> None:
 
 
 def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="prediction"):
-    """Draw scenario i's K modes from the agent's current position; alpha and line width grow with
-    the mode's probability (pred.probs), and (cov) the 1-sigma ellipses of the most likely mode.
-    Meant to go over plot_scenario."""
+    """Scenario i's K modes from the agent's position, alpha and width by probability, and (cov)
+    the 1-sigma ellipses of the most likely mode; over plot_scenario."""
     p = pred.probs[i].detach().cpu()  # (K,)
     start = pred.s0[i, None, None, :2].expand(len(p), 1, 2)
     xy = torch.cat([start, pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
@@ -68,9 +64,8 @@ def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="p
 
 
 def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(-10, 45, -12, 14)):
-    """Fig. 3's kind of panel for scenario i: the scene (data_synth.plot_scenario), the predicted
-    modes (alpha by probability), the planner's candidates coloured by p_n = softmax(-beta C_n), the
-    plan (argmin) and the controller's trajectory."""
+    """Fig. 3's kind of panel for scenario i: the scene, the predicted modes, the candidates by
+    p_n = softmax(-beta C_n), the plan (argmin) and the controller's trajectory."""
     import matplotlib.pyplot as plt
 
     data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
@@ -96,8 +91,7 @@ def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(
 
 
 def stack_outputs(batch, models: dict, cfg: Config) -> dict:
-    """{name: StackOutput}: the stack of each (name -> predictor) in models on a batch, in
-    evaluation mode (RL), run on the predictor's device and brought back to the CPU for plotting."""
+    """{name: StackOutput} of each predictor in models on a batch (eval mode, RL), on the CPU."""
     outs = {}
     with torch.no_grad():
         for name, model in models.items():
@@ -109,11 +103,8 @@ def stack_outputs(batch, models: dict, cfg: Config) -> dict:
 
 
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
-    """Fig. 3: the same validation scenario under two (name -> predictor) models (Standard,
-    DiffStack), the one of the first n_search where the first's hindsight cost exceeds the second's
-    the most. Its point: the two stacks mostly plan the same candidate; the predictions reach the
-    outcome through the controller (the bottom panel stretches the lateral scale to show how far
-    apart the executed trajectories end). Returns the scenario's index."""
+    """Fig. 3 (returns its scenario: the first model's hindsight cost over the second's most): the
+    stacks mostly plan the same candidate, the predictions acting through the controller."""
     import matplotlib.pyplot as plt
 
     batch = data.val[:n_search]
@@ -160,22 +151,17 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
 
 
 def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
-    """A few real scenes under each (name -> predictor) in models, one row per scene, one column per
-    model: plot_stack's panel. The rows are the plannable samples where the first model's hindsight
-    cost exceeds the second's the most (as Fig. 3 picks), at least `apart` samples from each other
-    (neighbours are the same moment 0.5 s later). The title gives both models' mean ADE and
-    hindsight cost over the batch. Returns the indices drawn."""
+    """Real scenes (rows) under each model (columns), returned: the plannable samples where the
+    first's hindsight cost exceeds the second's most, `apart` apart (neighbours: 0.5 s later)."""
     import matplotlib.pyplot as plt
 
     outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
     plannable = oa.plannable & ob.plannable  # (B,)
-    # score: (B,) lowest: the first model's worst
-    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)
+    score = torch.where(plannable, ob.hindsight - oa.hindsight, math.inf)  # lowest: first's worst
     ade = {name: _ade(out.pred, batch) for name, out in outs.items()}  # (B,) each
     picks = []
-    # a few rows: the worst gap, then the worst away from it, ...
-    for _ in range(min(rows, int(plannable.sum()))):
+    for _ in range(min(rows, int(plannable.sum()))):  # the worst gap, then the worst away from it
         i = int(score.argmin())
         picks.append(i)
         score[max(0, i - apart + 1) : i + apart] = math.inf
@@ -218,12 +204,8 @@ def widest_pair(rollouts):
 
 
 def figure_closed_loop(scenes, rollouts: dict, path=None, dt=0.5, scene=None):
-    """One closed-loop scene, its point: replanning every dt keeps the methods' executed
-    trajectories within centimetres of each other. Left, every method's executed ego over the
-    logged ego and the predicted vehicle, with a zoom where they are furthest apart; right, each
-    one's distance from No prediction's ego and the widest pair's (cm), and the ego's speed.
-    rollouts: {method: (Rollout, per-scene metrics)}; default scene: the one where Standard's
-    trajectory cost exceeds DiffStack's the most. path None: shown (the notebook), else saved."""
+    """One closed-loop scene (default: Standard's trajectory cost over DiffStack's most): replanning
+    keeps the executed trajectories centimetres apart. rollouts: {method: (Rollout, per-scene)}."""
     import matplotlib.pyplot as plt
 
     if scene is None:
@@ -255,8 +237,7 @@ def figure_closed_loop(scenes, rollouts: dict, path=None, dt=0.5, scene=None):
 
 
 def _closed_loop_map(ax, scenes, sc, frames, rollouts) -> None:
-    """The map: lanes, the logged ego, the predicted vehicle's log, each method's executed ego
-    (its trajectory cost in the legend), framed on the egos and the vehicle where within 12 m."""
+    """The map: lanes, logs, each method's executed ego, framed on the egos and the near vehicle."""
     logged = scenes.ego[sc, frames, :2]  # (N+1, 2)
     agent = scenes.agents[sc, int(scenes.pred_idx[sc, frames.start]), frames, :2]  # (N+1, 2)
     egos = torch.cat([r.ego[sc, :, :2] for r, _ in rollouts.values()] + [logged])
@@ -266,8 +247,7 @@ def _closed_loop_map(ax, scenes, sc, frames, rollouts) -> None:
     for lane, m in zip(scenes.lanes[sc], scenes.lanes_mask[sc]):
         ax.plot(lane[m, 0], lane[m, 1], color="0.85", lw=0.8)
     ax.plot(*logged.T, "k--", lw=1.2, label="logged ego")
-    vehicle = "predicted vehicle (log)"
-    ax.plot(*agent.T, "s-", color="tab:orange", ms=3, lw=0.8, label=vehicle)
+    ax.plot(*agent.T, "s-", color="tab:orange", ms=3, lw=0.8, label="predicted vehicle (log)")
     for name, (roll, per) in rollouts.items():
         label = f"{name} (cost {per['trajectory'][sc]:.3f})"
         ax.plot(*roll.ego[sc, :, :2].T, "o-", color=COLORS.get(name), ms=2.5, lw=1.2, label=label)
@@ -275,8 +255,7 @@ def _closed_loop_map(ax, scenes, sc, frames, rollouts) -> None:
 
 
 def _closed_loop_zoom(zoom, ax, rollouts, sc, apart, tt) -> None:
-    """A zoom on where the executed egos are furthest apart (a box 6 x 2 times twice the spread,
-    at least 4 cm high), marked on the map ax."""
+    """A zoom on where the executed egos are furthest apart, marked on the map ax."""
     t = int(apart.argmax())
     half = max(2 * apart.max().item(), 0.02)
     xy = torch.stack([r.ego[sc, :, :2] for r, _ in rollouts.values()])  # (M, N+1, 2)
@@ -291,8 +270,7 @@ def _closed_loop_zoom(zoom, ax, rollouts, sc, apart, tt) -> None:
 
 
 def _closed_loop_series(ax_d, ax_v, rollouts, sc, apart, tt) -> None:
-    """Over time: each method's distance from No prediction's ego and the widest pair's (cm);
-    each method's speed."""
+    """Over time: each method's distance from No prediction's ego (cm) and speed."""
     first, _ = next(iter(rollouts.values()))
     base = rollouts.get("No prediction", (first, None))[0].ego[sc, :, :2]
     for name, (roll, _) in rollouts.items():
@@ -314,9 +292,8 @@ def _mean_curve(runs, key):
 
 
 def figure_learning_curves(results: dict, path, reference=None, methods=("Standard", "DiffStack")):
-    """Validation ADE and hindsight cost after every epoch (experiments.CURVE_SAMPLES scenes), mean
-    and s.e. band over seeds, of the methods whose runs have a learning curve. reference: {name:
-    hindsight cost on the same scenes}, drawn as horizontal lines (No prediction, GT prediction)."""
+    """Validation ADE and hindsight cost after every epoch, mean and s.e. over seeds; reference:
+    {name: hindsight cost on the same scenes}, drawn as horizontal lines."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110, layout="constrained")
@@ -340,8 +317,7 @@ def figure_learning_curves(results: dict, path, reference=None, methods=("Standa
 
 
 def learning_curve_reference(data, cfg: Config, samples: int) -> dict:
-    """No prediction's and GT prediction's hindsight cost on the learning curves' scenes, the first
-    `samples` of data.val (figure_learning_curves' reference lines)."""
+    """No and GT prediction's hindsight cost on the first `samples` of data.val (the curves')."""
     subset = data.val[:samples]
     return {
         m.name: evaluate_stack(None, subset, m, cfg, "rl")["hindsight"]
@@ -350,9 +326,8 @@ def learning_curve_reference(data, cfg: Config, samples: int) -> dict:
 
 
 def figure_cost_weights(results: dict, path, source: str = ""):
-    """Learned vs hand-tuned normalised weights w' and alpha, bars with standard errors over seeds
-    (`source`: where the results come from, added to the title). A mean that is not positive has no
-    bar on the log scale: it is written in its place instead (returned too), never dropped."""
+    """Learned vs hand-tuned weights w' and alpha, with s.e. over seeds; a mean that is not positive
+    has no bar on the log scale: it is written in its place (and returned), never dropped."""
     import matplotlib.pyplot as plt
 
     names = [f"w'{i + 1} {COST_LABELS.get(t, t)}" for i, t in enumerate(COST_TERMS)] + ["alpha"]

@@ -1,6 +1,5 @@
-"""The paper's tables as declarative specs (TableSpec): their methods (the rows), setting, loss
-weights, metrics (the columns), the findings the paper claims and the paper's own numbers.
-experiments.py computes their numbers, lab/tables.py runs any of them."""
+"""The paper's tables as declarative specs (TableSpec): rows (methods), setting, columns (metrics),
+the paper's claims and numbers; experiments.py computes them, lab/tables.py runs them."""
 
 from __future__ import annotations
 
@@ -28,9 +27,8 @@ class Column:
 
 @dataclass(frozen=True)
 class Claim:
-    """A finding of the paper on one column of a table: `method` lower than `baseline` (direction
-    -1: it beats it, every metric claimed on being a cost or a loss), or higher (+1). section: the
-    ablation section of the rows (or None)."""
+    """A finding of the paper on a column: `method` lower than `baseline` (direction -1: each metric
+    claimed on is a cost), or higher (+1); section: the ablation's section (or None)."""
 
     method: str
     baseline: str
@@ -41,10 +39,9 @@ class Claim:
 
 @dataclass(frozen=True)
 class TableSpec:
-    """A table of the paper, as run here. kind: 'open_loop' (train every method, evaluate open loop:
-    Tables 1, 2, 4), 'cost' (Table 3), 'closed_loop' (Table 5), 'ablation' (App. A.1, Table 6),
-    'goal' or 'real'. methods: the rows. paper: the paper's numbers {row: {column header: value}}
-    in the units of the columns (absent: not reported)."""
+    """A table of the paper, as run here. kind: 'open_loop' (Tables 1, 2, 4), 'cost' (Table 3),
+    'closed_loop' (Table 5), 'ablation' (App. A.1, Table 6), 'goal' or 'real'; methods: the rows;
+    paper: {row: {column header: value}} in the columns' units (absent: not reported)."""
 
     name: str
     title: str
@@ -347,10 +344,9 @@ TABLE6 = TableSpec(
     ),
 )
 
-# Not a table of the paper: why a prediction is worth little to the planner in most scenes. No
-# prediction and GT prediction (the best any predictor can do) by behaviour of the predicted
-# vehicle, under the paper's goal (the GT ego state at T, which already holds the driver's reaction)
-# and under a route goal (Config.goal = 'route').
+# Not a table of the paper: why a prediction is worth little to the planner in most scenes. No and
+# GT prediction (the best any predictor can do) by behaviour, under the paper's goal (the GT ego
+# state at T, which already holds the driver's reaction) and a route goal (Config.goal = 'route').
 GOALS = ("logged", "route")
 GOAL_TABLE = TableSpec(
     "goal",

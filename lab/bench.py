@@ -41,8 +41,8 @@ QUICK = dict(batch=16, reps=2)  # --quick: seconds, not minutes
 
 # ---- 1. Measuring ------------------------------------------------------------------------------
 def timed(fns: dict, reps, threads, dtype="f32", batch=None, notes=None) -> tuple[list, dict]:
-    """fns {key: (name, callable)} taking turns at `threads` torch threads, each timed run after an
-    untimed run of itself (blocked_autorange sizes its block with it): rows, Measurements by key."""
+    """fns {key: (name, callable)} taking turns at `threads` threads, each timed run after an
+    untimed one (blocked_autorange's sizing): rows, Measurements by key."""
     timers = {
         key: benchmark.Timer("fn()", globals={"fn": fn}, description=key, num_threads=threads)
         for key, (_, fn) in fns.items()
@@ -67,8 +67,8 @@ def figure(key: str, name: str, times, threads: int, dtype="f32", batch=None, no
 
 # ---- 2. The problem: unicycle tracking, shared with mpc.pytorch ---------------------------------
 def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
-    """B unicycle tracking problems in the box: the reference rolled out from smooth random controls
-    (some outside the box), the start perturbed; drawn on the CPU, then moved to `device`."""
+    """B unicycle tracking problems: the reference rolled out from smooth random controls (some
+    outside the box), the start perturbed; drawn on the CPU, then moved to `device`."""
     g = torch.Generator().manual_seed(seed)
 
     def U(lo, hi, *shape):
@@ -89,7 +89,7 @@ def tracking_problem(B=256, T=6, dtype=torch.float64, seed=0, device="cpu"):
 
 class TrackingCost:
     """sum_t 1/2 |x_t - r_t|^2_Q + 1/2 |u_t - ur_t|^2_R -> (B,), Q, R shared or per problem (so that
-    the solver sets converged ones aside); its expansion in closed form, as mpc.pytorch gets it."""
+    the solver sets converged ones aside); its expansion in closed form, as mpc.pytorch's."""
 
     def __call__(self, x, u, x_ref, u_ref, Q, R):
         Q, R = (Q[:, None], R[:, None]) if Q.dim() == 2 else (Q, R)
@@ -111,8 +111,7 @@ def ours_solve(P, x_init, x_ref, iters, eps):
 
 
 def solver_runs(P, solve, iters, eps):
-    """(forward, backward): a solve, x_init and x_ref requiring grad; the final positions' sum's
-    backward (crossing every step) on one prebuilt graph."""
+    """(forward, backward): a solve from leaves requiring grad; the final positions' backward."""
     x_init, x_ref = P["x_init"].clone().requires_grad_(), P["x_ref"].clone().requires_grad_()
     loss = solve(P, x_init, x_ref, iters, eps)[0][:, -1, :2].sum()
     return (lambda: solve(P, x_init, x_ref, iters, eps)), (lambda: loss.backward(retain_graph=True))
@@ -132,9 +131,8 @@ def bench_controller(B, dtype, reps, threads, device, key="", iters=5, tol=0.01)
 
 
 def bench_modules(batch, cfg: Config, reps, threads) -> list:
-    """Candidates; the predictor's training iteration (q(z|x,y), InfoVAE loss, backward, Adam) and
-    eval forward; a DiffStack training step (RL) as train_stack takes it, the scene plan it reuses,
-    its parts as laps (but the first run's): predict, plan, control, backward (GPU: launch)."""
+    """Candidates; the predictor's training iteration and eval forward; a DiffStack training step
+    (RL), the scene plan it reuses, and its parts as laps: predict, plan, control, backward."""
     torch.manual_seed(0)
     model = Predictor(cfg).to(batch.agent_hist.device, batch.agent_hist.dtype)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -205,8 +203,7 @@ MPC_QUIET = dict(exit_unconverged=False, verbose=-1)  # mpc.pytorch: no assert, 
 
 
 def import_peer(what: str, hint=True):
-    """mpc.pytorch's module, or None after one line saying why and (hint) how to install it in a
-    throwaway venv (--no-deps: it imports only torch): a missing peer is a skip, not a traceback."""
+    """mpc.pytorch's module, or None after one line saying why and (hint) how to install it."""
     try:
         return importlib.import_module("mpc.mpc")
     except ImportError:
@@ -229,9 +226,8 @@ class UnicycleDx(torch.nn.Module):
 
 
 def mpc_solve(P, x_init, x_ref, iters, eps):
-    """One mpc.MPC solve with our solver's settings (line search: its decay 1/5, 5 steps): x
-    (B, T+1, 4), u (B, T, 2). Time-major, T+1 stages tau_t = (x_t, u_t) costing 1/2 tau' C tau +
-    c' tau (less the constant); the last control, idle, has reference 0 (stays 0, costs nothing)."""
+    """One mpc.MPC solve with our solver's settings: x (B, T+1, 4), u (B, T, 2). T+1 stages costing
+    1/2 tau' C tau + c' tau; the last control, idle, has reference 0 (stays 0, costs nothing)."""
     mpc_lib = importlib.import_module("mpc.mpc")
     B, T1, _ = x_ref.shape
     C = torch.diag(torch.cat([P["Q"], P["R"]])).expand(T1, B, 6, 6)
@@ -245,8 +241,8 @@ def mpc_solve(P, x_init, x_ref, iters, eps):
 
 
 def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
-    """Ours against mpc.pytorch on tracking_problem(B), float64, same settings, fwd and bwd taking
-    turns; the speed-up (its time / ours) in our note; speedup: 5 iterations, fewest threads."""
+    """Ours against mpc.pytorch on tracking_problem(B), float64, taking turns; speedup (its time /
+    ours): 5 iterations, fewest threads."""
     if import_peer("comparison (speedup_vs_mpc_pytorch: null)") is None:
         return None
     P, rows, speedups = tracking_problem(B), [], []
@@ -286,8 +282,7 @@ LQR_PUBLISHED = (  # the README's rows (mpc.pytorch's: its multiples of acados' 
 
 
 def bounded_lqr_problem(umax: float, batch=LQR_BATCH, seed=42, horizon=LQR_N) -> dict:
-    """The problems for umax as the script draws them: A, B, b, then x0 twice (its timing run, its
-    sensitivity run: ours) for umax 1e4, then again for 1.0; zero initial controls."""
+    """The problems for umax as the reference script draws them (A, B, b, x0 twice, per umax)."""
     if umax not in LQR_UMAX:
         raise ValueError(f"umax: {umax} is none of the benchmark's {LQR_UMAX}")
     rng = np.random.RandomState(seed)
@@ -340,9 +335,8 @@ def costates(g_x, A):
 
 
 class AffineLQR(torch.autograd.Function):
-    """diffstack.ilqr on the bounded LQR, differentiable in x_init, A, B, b and H: the KKT backward
-    of diffstack.py §5 (same active set held, same LQR), plus the dynamics' gradients from the
-    costates (Amos et al. 2018, eq. 8). Unconverged scenarios pass no gradient, as in diffstack."""
+    """diffstack.ilqr on the bounded LQR, differentiable in x_init, A, B, b and H: diffstack.py §5's
+    KKT backward, and the dynamics' gradients from the costates (Amos et al. 2018, eq. 8)."""
 
     @staticmethod
     def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
@@ -397,8 +391,8 @@ def condensed_qp(P) -> tuple:
 
 
 def kkt_residual(u, M, q, lo, hi):
-    """How far controls u (batch, N, m) are from the box QP's solution: the largest move of a
-    projected coordinate-Newton step |U - clamp(U - (M U + q) / diag M)| -> (batch,)."""
+    """How far controls u (batch, N, m) are from the box QP's solution (batch,): the largest move
+    of a projected coordinate-Newton step."""
     U = u.reshape(len(u), -1)
     grad = U @ M + q  # (batch, N m), M symmetric; by diag M as d/du_0 is ~1e5 d/du_19 here
     lo, hi = lo.repeat(u.shape[1]), hi.repeat(u.shape[1])
@@ -406,8 +400,8 @@ def kkt_residual(u, M, q, lo, hi):
 
 
 def reference_controls(M, q, lo, hi) -> torch.Tensor:
-    """The box QP solved another way: scipy's bounded-variable least squares (active-set, exact) on
-    1/2 ||L'U + L^-1 q||^2, M = L L' (its default cap of N m iterations stops it short here)."""
+    """The box QP solved another way: scipy's bounded-variable least squares on 1/2 ||L'U + L^-1
+    q||^2, M = L L' (its default cap of N m iterations stops it short here)."""
     L = scipy.linalg.cholesky(M.numpy(), lower=True)
     N = len(M) // len(lo)
     bounds = (lo.repeat(N).numpy(), hi.repeat(N).numpy())
@@ -452,8 +446,7 @@ def mpc_lqr(P, grad=False, **settings):
 
 
 def bounded_lqr_at(umax, batch, reps, solvers) -> tuple[list, list, dict]:
-    """Every solver {name: (settings, solve)} at umax checked by an untimed solve (iterations,
-    converged, distance to u*, d sum u_0 / d(A, B, b, H)), then timed: rows, entries, gradients."""
+    """Each solver {name: (settings, solve)} at umax checked, then timed: rows, entries, grads."""
     P = bounded_lqr_problem(umax, batch)
     M, q = condensed_qp(P)
     ref = reference_controls(M, q, P["lo"], P["hi"])
@@ -487,8 +480,8 @@ def bounded_lqr_at(umax, batch, reps, solvers) -> tuple[list, list, dict]:
 
 
 def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
-    """The bounded LQR at one thread (as it leaves torch), the published size (--quick: B, at most
-    20 iterations): figures, verdict, doc (its JSON); gradients compared where all converged."""
+    """The bounded LQR at one thread, the published size (--quick: B, 20 iterations at most):
+    figures, verdict, doc; gradients compared where all converged."""
     batch, cap = (B, 20) if quick else (LQR_BATCH, 10**9)
     solvers = {}
     for k, s in LQR_SETTINGS.items():
@@ -506,12 +499,9 @@ def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
             r, entries, grads = bounded_lqr_at(umax, batch, min(reps, 3), solvers)
             rows, table = rows + r, table + entries
             if "mpc.pytorch" in grads:
-                conv = [
-                    e["converged"]
-                    for e in entries
-                    if e["solver"] in ("diffstack, tight", "mpc.pytorch")
-                ]
-                ours, mpc = grads["diffstack, tight"], grads["mpc.pytorch"]
+                pair = ("diffstack, tight", "mpc.pytorch")
+                conv = [e["converged"] for e in entries if e["solver"] in pair]
+                ours, mpc = (grads[name] for name in pair)
                 rel = ((ours - mpc).norm() / mpc.norm()).item() if conv == [batch] * 2 else None
                 gradient[f"{umax:g}"] = dict(relative_difference=rel, converged=conv)
                 rel = "n/a (not all converged)" if rel is None else f"{rel:.1e}"
@@ -594,8 +584,7 @@ def run_meta(threads, reps, batch, quick, device) -> dict:
 
 
 def check_args(args) -> None:
-    """Before the minutes of work, ValueError naming the argument: a device without float64, a
-    --json path that is a folder, no file can take, or holds a file this command did not make."""
+    """Before the minutes of work, ValueError naming the bad --device or --json."""
     if args.device.type == "mps":
         raise ValueError("argument --device: mps has no float64, which the solvers here use")
     if args.json is None:

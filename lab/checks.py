@@ -7,9 +7,8 @@ import torch
 
 
 def check_batch(batch, cfg, need_future: bool, stack: bool = False) -> None:
-    """A batch of Scenarios: not empty, of cfg's history and future lengths, one dtype, finite.
-    need_future: the agent's GT future is read (training); stack: the ego's future, the other
-    agents, the goal and the lanes too."""
+    """A batch of Scenarios: not empty, of cfg's lengths, one dtype, finite. need_future: the
+    agent's GT future is read (training); stack: the ego's, the others', the goal and lanes too."""
     B, H, T = len(batch), cfg.hist_len + 1, cfg.horizon
     if B == 0:
         raise ValueError("batch: no scenarios (a batch of size 0)")
@@ -32,7 +31,4 @@ def check_batch(batch, cfg, need_future: bool, stack: bool = False) -> None:
     if tuple(m.shape) != (B, H):
         raise ValueError(f"agent_hist_mask: expected shape ({B}, {H}), got {tuple(m.shape)}")
     if not m[:, -1].all() or (m[:, 1:].int() < m[:, :-1].int()).any():
-        raise ValueError(
-            "agent_hist_mask: the current step must be observed and missing steps must be "
-            "the earliest"
-        )
+        raise ValueError("agent_hist_mask: t0 must be observed and missing steps the earliest")

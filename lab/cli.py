@@ -17,9 +17,8 @@ from diffstack import Config
 
 
 def machine() -> str:
-    """This machine for a result's provenance: architecture, processor, the instruction set of
-    torch's kernels, cores. The same seed gives the same numbers on the same kind of processor only:
-    torch's, MKL's and oneDNN's kernels follow its instruction set (docs/reproducibility.md)."""
+    """This machine for a result's provenance: architecture, processor, torch's instruction set,
+    cores (the same seed gives the same numbers only on the same: docs/reproducibility.md)."""
     name = platform.processor() or "unknown processor"
     try:
         with open("/proc/cpuinfo") as f:
@@ -39,8 +38,7 @@ def torch_threads(given: int | None, log=print) -> int:
 
 
 def check_writable(folder, what: str) -> None:
-    """Before any work: ValueError naming `what` unless folder exists (or can be made) and takes
-    files."""
+    """Before any work, ValueError naming `what` unless folder can be made and takes files."""
     check_name(folder, what)
     try:
         pathlib.Path(folder).mkdir(parents=True, exist_ok=True)
@@ -133,8 +131,7 @@ def config_with(cfg: Config, assignments) -> Config:
 
 
 def add_shared_options(ap, **helps) -> None:
-    """Add the options named (jobs, threads, device, overwrite, set) to `ap` with their help texts,
-    of the same type and default in every command line."""
+    """The options named (jobs, threads, device, overwrite, set), alike in every command line."""
     shared = {
         "jobs": dict(type=bounded(int, 1, 256, "--jobs"), default=None),
         "threads": dict(type=bounded(int, 1, 256, "--threads"), default=None),

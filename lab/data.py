@@ -1,6 +1,5 @@
-"""The data the stack trains on, made or read (load_data), and the nuScenes format's command line,
-python -m lab.data {write-nuscenes,read-nuscenes} PATH: write --scenes synthetic scenes as a v1.0
-folder, or read one (generated or real) and summarise it (docs/data.md)."""
+"""The data the stack trains on, made or read (load_data), and python -m lab.data: write --scenes
+synthetic scenes as a nuScenes v1.0 folder, or read one and summarise it (docs/data.md)."""
 
 from __future__ import annotations
 
@@ -75,9 +74,8 @@ def nuscenes_version(path) -> str:
 
 
 def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None):
-    """A Dataset: synthetic samples (n of data seed `seed`, cached in cache_dir), or the nuScenes
-    folder at `path` (its parse cached in cache_dir, on `workers` processes) split by scene
-    (_split_scenes; the rule used is logged)."""
+    """A Dataset: synthetic samples (n of data seed `seed`), or the nuScenes folder at `path` split
+    by scene (the rule logged), cached in cache_dir."""
     if path is None:
         return _synthetic(n, seed, cache_dir)
     data_synth._check_seed("load_data", seed)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import os
 import pathlib
@@ -20,7 +19,7 @@ import data_synth
 from diffstack import Config, Predictor
 from lab.cli import add_shared_options, check_writable, config_with, machine, torch_threads
 from lab.runs import command_line, git_commit, in_workers, load_json, one_line, ranks
-from lab.runs import ROOT, save_atomic, write_atomic, write_folder
+from lab.runs import ROOT, save_atomic, sha256_of, write_atomic, write_folder
 from lab.report import claim_line, open_loop_table
 from specs import FOUR_METHODS, TABLE1
 from experiments import VAL_N, add_relative, compare_methods, experiment_data
@@ -38,8 +37,8 @@ AGAIN = "re-make it with python diffstack.py --pretrain --overwrite"
 
 
 def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"):
-    """({seed: model}, provenance) of `method` from `pretrain`'s folder, every field checked, each
-    file's sha256 too, loaded with weights_only=True; (None, why) where they do not fit cfg."""
+    """({seed: model}, provenance) of `method` from `pretrain`'s folder, every field and sha256
+    checked; (None, why) where they do not fit cfg."""
     folder = pathlib.Path(folder)
     prov_path = folder / "provenance.json"
     if not prov_path.exists():
@@ -64,7 +63,7 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
     models = {}
     for name, (seed, sha256) in sorted(shas.items(), key=lambda item: item[1][0]):
         path = folder / name
-        if not path.exists() or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+        if not path.exists() or sha256_of(path) != sha256:
             why = f"missing, or not the file {prov_path} describes (sha256 differs)"
             raise ValueError(f"{path}: {why}; {AGAIN}")
         models[seed] = Predictor(cfg)
@@ -78,8 +77,8 @@ def load_pretrained(method: Method, cfg: Config, folder=PRETRAINED, device="cpu"
 
 
 def _pretrain_one(m: Method, seed: int, n: int, epochs, cfg: Config, cache_dir, threads, val):
-    """One predictor of `pretrain` (in a worker when --jobs > 1), trained as the tables train it:
-    (state_dict, validation metrics, CPU seconds: not the wall clock, which depends on the load)."""
+    """One predictor of `pretrain`, trained as the tables train it: (state_dict, validation metrics,
+    CPU seconds: the wall clock depends on the load)."""
     torch.set_num_threads(threads)
     t0 = time.process_time()
     data = experiment_data(n, range(seed + 1), val, cache_dir, log=None)  # its draw, as the tables'
@@ -103,9 +102,8 @@ def pretrain(
     command="python diffstack.py --pretrain",
     val=None,
 ):
-    """`--pretrain`: Standard and DiffStack (RL) trained as Table 1's seeds (40 epochs: the paper's
-    20 left Standard's ADE still falling here), on one thread each (then they are Table 1's own, bit
-    for bit), `jobs` side by side, into out/<name>-seed<seed>.pt with out/provenance.json."""
+    """`--pretrain`: Standard and DiffStack (RL) trained as Table 1's seeds, bit for bit on one
+    thread (40 epochs: after the paper's 20 Standard's ADE still falls), into out/."""
     out, log, cfg, val = pathlib.Path(out), log or (lambda *_: None), cfg or Config(), val or VAL_N
     names = {(m.name, s): f"{m.name.lower()}-seed{s}.pt" for s in seeds for m in LEARNED}
     about = dict(command=command, date=time.strftime("%Y-%m-%d"), n=n, val=val, epochs=epochs)
@@ -119,9 +117,8 @@ def pretrain(
             (m, seed, *_), (state, metrics, seconds) = unit, result
             path = tmp / names[m.name, seed]
             save_atomic(state, path)
-            sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
-            entry = dict(method=m.name, seed=seed, sha256=sha256, cpu_seconds=round(seconds))
-            about["files"][path.name] = dict(entry, **metrics)
+            entry = dict(method=m.name, seed=seed, sha256=sha256_of(path))
+            about["files"][path.name] = dict(entry, cpu_seconds=round(seconds), **metrics)
             ade = f"ADE {metrics['ade']:.3f} m ({seconds:.0f} CPU s)"
             log(f"{out}/{path.name}: {m.name}, seed {seed}: {ade}")
 
@@ -147,9 +144,8 @@ def quick(
     device="cpu",
     pretrained=PRETRAINED,
 ):
-    """`--quick`, about a minute on 2 cores: the shipped Standard and DiffStack (Table 1's five
-    seeds) beside No prediction and GT prediction; both trained live for a few epochs, to watch the
-    losses fall; the verdicts from the numbers (quick_verdicts). (results, live results)"""
+    """`--quick`, a minute on 2 cores: the shipped Standard and DiffStack beside No and GT
+    prediction, both trained live for a few epochs, the verdicts: (results, live results)."""
     torch.set_num_threads(threads)
     cfg, n, epochs = cfg or Config(), n or QUICK["n"], epochs or QUICK["epochs"]
     log(

@@ -19,8 +19,7 @@ from lab.stats import p_value, paired_difference, plus_minus
 
 
 def gap_closed(results: dict, standard="Standard", diffstack="DiffStack") -> tuple:
-    """The share of the Standard -> GT prediction gap (hindsight cost) DiffStack closes, mean and
-    s.e. over the seeds with a gap; (nan, nan) with none."""
+    """The share of the Standard -> GT prediction gap DiffStack closes: mean, s.e. (nan: no gap)."""
     key = "rel_hindsight"
     gt = results["GT prediction"][0][key]
     pairs = [
@@ -86,8 +85,7 @@ def claims_markdown(spec: TableSpec, results: dict) -> str:
 
 
 def claims_card(tables: dict) -> str:
-    """One row per claim of tables {name: results}: its rows in the paper and here (means), the
-    paired test and its verdict."""
+    """One row per claim of tables {name: results}: paper vs here, the paired test, the verdict."""
     rows = []
     for name, results in tables.items():
         spec = SPECS[name]
@@ -112,8 +110,7 @@ def claims_card(tables: dict) -> str:
 
 
 def ablation_markdown(spec: TableSpec, results: dict) -> str:
-    """The ablation table: the loss multipliers as the paper's and the columns, per section; '--'
-    where a loss or metric does not apply."""
+    """The ablation table per section: loss multipliers and columns ('--': does not apply)."""
     head = ["Method", "L_pred x1", "L_plan x1e2", "L_ctr x1e3"] + [c.header for c in spec.columns]
     rows = []
     for title, stack_kw, methods in spec.sections:

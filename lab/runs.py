@@ -1,10 +1,7 @@
-"""The run machinery under experiments.py, ignorant of tables: JSON read with checks and written
-without NaN, atomic writes, the run key and provenance, a run's pieces kept and resumed (RunStore),
-worker processes, one run per output folder, never replacing outputs a run did not make.
-
-A piece (lab.tables.Piece: a `stem`, `_asdict()`) lives in <out>/.runs/<table>/<key>/<stem>.json,
-written the moment it is made. The key hashes everything that sets the numbers (Config, epochs,
-data, code, device, the table's spec), not the seeds (a piece is one seed) nor the thread count."""
+"""The run machinery under experiments.py, ignorant of tables: checked JSON, atomic writes, the run
+key and provenance, a run's pieces kept in <out>/.runs/<table>/<key>/<stem>.json as they are made
+and resumed (RunStore), worker processes, one run per output folder, outputs never replaced. The key
+hashes all that sets the numbers (Config, epochs, data, code, device, the spec), not the seeds."""
 
 from __future__ import annotations
 
@@ -61,8 +58,8 @@ def to_json(o):
 
 
 def load_json(path, what: str):
-    """The JSON in path, or one ValueError naming the file: unreadable, not JSON (json's message
-    says where), nested too deeply, or holding NaN or infinity. what: what it should be."""
+    """The JSON in path (`what`), or one ValueError naming the file: unreadable, not JSON, nested
+    too deeply, or holding NaN or infinity."""
     path = pathlib.Path(path)
 
     def constant(name):
@@ -103,8 +100,7 @@ def read_results(path) -> dict:
 
 
 def write_json(path, obj, **dumps) -> None:
-    """obj as JSON in path, atomically (tensors as lists); NaN or infinity is refused
-    (allow_nan=False): ValueError naming the file, nothing written."""
+    """obj as JSON in path, atomically (tensors as lists); NaN or infinity: ValueError, no file."""
     try:
         text = json.dumps(obj, default=to_json, allow_nan=False, **dumps)
     except ValueError as e:
@@ -133,10 +129,9 @@ def _nbytes(obj) -> int:
 
 
 def write_file_atomic(path, write, needed: int = 0) -> None:
-    """write(a file of path's name in a temporary folder beside it), then rename it onto path: a
-    kill mid-write leaves the old file, a failed write nothing, and a full disk is one DiskFull line
-    (the file, about `needed` bytes). The same name keeps a figure's format and torch.save's bytes;
-    the file gets open()'s permissions, not mkstemp's 0600 (a shared lab folder)."""
+    """write(a file of path's name in a temporary folder beside it: a figure's format kept), then
+    rename it onto path: a kill leaves the old file, a full disk is one DiskFull line. The file gets
+    open()'s permissions, not mkstemp's 0600 (a shared lab folder)."""
     path = pathlib.Path(path)
     folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = os.path.join(folder, path.name)
@@ -176,9 +171,8 @@ NUMBER_MODULES += ("lab/data.py", "lab/nuscenes.py", "lab/waymo.py", "lab/tables
 
 
 class _NoText(ast.NodeTransformer):
-    """Drops what is text for people: a statement that is only a string (a docstring, a field's),
-    and a string or f-string with a space in it (a log line, a message, a title) becomes ''. A
-    string without a space ('rl', f'rel_{key}') is code."""
+    """Drops text for people: a statement that is only a string (a docstring); a string or f-string
+    with a space in it (a message) becomes ''. One without a space ('rl', f'rel_{key}') is code."""
 
     def visit_Expr(self, node):
         if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
@@ -197,8 +191,7 @@ class _NoText(ast.NodeTransformer):
 
 @functools.lru_cache(maxsize=8)  # (parsing the modules takes about 0.4 s)
 def code_of(source: str) -> str:
-    """A module's code without comments, layout and text (_NoText), as ast.unparse writes it: a
-    re-wrapped line or an edited docstring or log line gives the same code."""
+    """A module's code without comments, layout and text (_NoText), as ast.unparse writes it."""
     tree = _NoText().visit(ast.parse(source))
     for node in ast.walk(tree):
         if getattr(node, "body", None) == []:  # a function or class that held only its docstring
@@ -216,8 +209,7 @@ def code_version() -> str:
 
 
 def data_fingerprint(data) -> str:
-    """A hash of the data's tensors (a part that is a dict or None: as JSON): the same samples give
-    the same fingerprint whichever file they came from."""
+    """A hash of the data's tensors (a dict or None: its JSON), whichever file they came from."""
     h = hashlib.sha256()
     for part in data:
         if part is None or isinstance(part, dict):
@@ -265,8 +257,7 @@ def git_commit() -> str | None:
 
 
 class RunStore:
-    """A run's pieces and models under root (<out>/.runs; under torchrun a temporary folder).
-    table_keys: {table: what its spec sets that moves numbers}, part of its folder's key."""
+    """A run's pieces and models under root; table_keys: {table: its spec's part of the key}."""
 
     def __init__(self, root, key: str, table_keys: dict | None = None):
         self.root, self.key, self.table_keys = pathlib.Path(root), key, table_keys or {}
@@ -278,8 +269,7 @@ class RunStore:
         return self.table_dir(table) / f"{piece.stem}.json"
 
     def has(self, table: str, piece) -> bool:
-        """Whether the piece is finished and whole (load); a damaged or missing part is named, and
-        the piece set aside as .corrupt."""
+        """Whether the piece is finished and whole (load); a damaged one is put aside (.corrupt)."""
         path = self.path(table, piece)
         try:
             return path.exists() and bool(self.load(table, piece))
@@ -295,8 +285,7 @@ class RunStore:
         return load_json(self.path(table, piece), "a piece of a run")
 
     def load(self, table: str, piece) -> tuple:
-        """(result, extra tensors or None) of a finished piece, its result and tensors' file checked
-        against the sha256 written with them: ValueError otherwise."""
+        """(result, extra tensors or None) of a finished piece, checked by sha256: ValueError."""
         saved, pt = self.read(table, piece), self.path(table, piece).with_suffix(".pt")
         if not isinstance(saved, dict) or not isinstance(saved.get("result"), dict):
             raise ValueError("no result")
@@ -306,8 +295,7 @@ class RunStore:
         return saved["result"], extra
 
     def save(self, table: str, piece, result: dict, extra=None, timing=None) -> None:
-        """The piece's result as JSON (its extra tensors first, in a .pt beside it), atomically,
-        with the sha256 of both."""
+        """The piece's result as JSON (extra tensors first, in a .pt beside it), and sha256."""
         path = self.path(table, piece)
         path.parent.mkdir(parents=True, exist_ok=True)
         if extra is not None:
@@ -326,8 +314,7 @@ class WorkerDied(ValueError):
 
 
 def die_with_parent(parent: int) -> None:
-    """Have the kernel SIGKILL this process when its parent ends (Linux PR_SET_PDEATHSIG): no worker
-    or torchrun rank outlives its run, writing pieces for nobody."""
+    """SIGKILL this process when its parent ends (PR_SET_PDEATHSIG): none writes for nobody."""
     import ctypes
 
     libc = ctypes.CDLL(None, use_errno=True)
@@ -338,9 +325,8 @@ def die_with_parent(parent: int) -> None:
 
 
 def in_workers(work, units: list, jobs: int, done, kept) -> None:
-    """work(*unit) for each unit in `jobs` spawned worker processes that die with this one;
-    done(unit, result) here as each finishes. A worker's error is raised, a dead worker is one
-    WorkerDied line, Ctrl-C ends the workers at once. kept: where the work is kept, for messages."""
+    """work(*unit) in `jobs` spawned workers that die with this one, done(unit, result) here as each
+    finishes; a dead worker is one WorkerDied line naming `kept`; Ctrl-C ends the workers now."""
     spawn = multiprocessing.get_context("spawn")
     init = dict(initializer=die_with_parent, initargs=(os.getpid(),))
     with ProcessPoolExecutor(min(jobs, len(units)), spawn, **init) as workers:
@@ -361,8 +347,7 @@ def in_workers(work, units: list, jobs: int, done, kept) -> None:
 
 
 def ranks() -> tuple:
-    """(rank, world size, None) from the launcher's environment (one process: 0, 1), or (0, 1, why
-    not): RANK and WORLD_SIZE that no launcher set (torchrun, or MASTER_ADDR and MASTER_PORT)."""
+    """(rank, world size, None) from torchrun's environment, or (0, 1, why not)."""
     given = {k: os.environ[k] for k in ("RANK", "WORLD_SIZE") if k in os.environ}
     said = " ".join(f"{k}={v}" for k, v in given.items())
     try:
@@ -385,9 +370,8 @@ class OutputRefused(ValueError):
 
 @contextlib.contextmanager
 def folder_lock(folder, command: str, lock_name: str = ".lock"):
-    """Hold `folder` for one run: filelock's lock on folder/<lock_name>, the holder (PID, command,
-    start) written in it; a second run is refused naming the holder. The OS releases it with its
-    process (a killed run's folder is taken over); re-entrant in one process (--out data_cache)."""
+    """Hold `folder` for one run (filelock, the holder written in folder/<lock_name>); a second run
+    is refused naming it. The OS releases it with its process; re-entrant (--out data_cache)."""
     path = pathlib.Path(folder) / lock_name
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -421,10 +405,9 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
 
 
 def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
-    """A folder written whole: write(tmp) fills a temporary sibling, renamed into place when done,
-    under a lock on the target (.<name>.lock beside it). files: those the writer makes, replaced
-    only with overwrite; a folder holding any other file (but directly in `also`) is never replaced.
-    who: the writer, for the messages."""
+    """A folder written whole: write(tmp) fills a temporary sibling, renamed into place, under a
+    lock. files: those the writer (`who`) makes, replaced only with overwrite; a folder holding any
+    other file (but directly in `also`) is never replaced."""
     root, real = pathlib.Path(root), pathlib.Path(root).resolve()  # (a symlink: its target)
     with folder_lock(real.parent, f"{who} {root}", f".{real.name}.lock"):
         for stale in real.parent.glob(f".{real.name}.old-*"):  # killed between its renames
@@ -467,8 +450,7 @@ def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> No
 
 @contextlib.contextmanager
 def one_line(ap, interrupted: str = "nothing half-written is left"):
-    """A CLI's top level: the project's errors (ValueError) and a file's (OSError) are argparse's
-    one line, exit 2; Ctrl-C one line saying what is kept, exit 130."""
+    """A CLI's top level: ValueError and OSError as argparse's one line, exit 2; Ctrl-C exit 130."""
     try:
         yield
     except (ValueError, OSError) as e:

@@ -39,12 +39,10 @@ class PairedDifference(NamedTuple):
 
 def paired_difference(baseline: list, method: list) -> PairedDifference:
     """method[i] - baseline[i] for seed i: pairing removes what a seed's two runs share (data,
-    evaluation set). One seed: s.e., t and p nan; no spread: s.e. 0, t = ±inf, p = 0 (nan for a
-    zero difference)."""
+    evaluation set). One seed: s.e., t and p nan; no spread: s.e. 0, t = ±inf, p = 0 (or nan)."""
     if len(baseline) != len(method):
         raise ValueError(
-            f"method: {len(method)} seeds, but baseline has {len(baseline)}; the seeds pair by "
-            "index"
+            f"method: {len(method)} seeds, but baseline has {len(baseline)}; seeds pair by index"
         )
     if not baseline:
         raise ValueError("baseline: no seeds to compare")

@@ -61,8 +61,8 @@ def table_seeds(spec: TableSpec, seeds=None) -> tuple:
 
 
 def table_sections(spec: TableSpec) -> list:
-    """(title, run_stack options, rows) per section: the ablation's, each between its own No and
-    GT prediction; the goal table's goals; one untitled section elsewhere."""
+    """(title, run_stack options, rows) per section: the ablation's (each with No and GT
+    prediction), the goal table's goals, else one untitled."""
     if spec.kind == "goal":
         return [(goal, {}, spec.methods) for goal in GOALS]
     sections = [(t, kw, (NO_PREDICTION, *ms, GT_PREDICTION)) for t, kw, ms in spec.sections]
@@ -84,8 +84,7 @@ def table_pieces(spec: TableSpec, seeds) -> list:
 
 @dataclasses.dataclass
 class Run:
-    """What the pieces of a run share, named as experiments.py's functions take them (**vars(run)):
-    models, the predictors trained so far in this process; log None: quiet."""
+    """What the pieces of a run share, named as experiments.py's functions take them."""
 
     data: object
     cfg: Config
@@ -141,8 +140,7 @@ KINDS = {
 
 
 def compute_piece(run: Run, spec: TableSpec, piece: Piece) -> tuple:
-    """(result, tensors or None, timing) of one piece, trained or loaded. A diverged training, or
-    an evaluation with NaN or infinity, is a result too: {'diverged': why}, never retrained."""
+    """(result, tensors or None, timing) of a piece; a divergence is a result: {'diverged': why}."""
     _, stack_kw, methods = next(s for s in table_sections(spec) if s[0] == piece.section)
     m = next(m for m in methods if m.name == piece.method)
     t0, c0 = time.time(), time.process_time()
@@ -175,8 +173,8 @@ def assemble(spec: TableSpec, results: dict, seeds) -> dict:
 
 def work_units(tables: list, store: runs.RunStore) -> list:
     """The missing pieces of tables [(spec, seeds)] as units (spec, pieces) of one (table, section,
-    seed): the ablation's first, so that short ones fill the workers at the end; the seeds
-    alternate, so that two workers never train the same predictor side by side."""
+    seed): the ablation's first (short ones fill the workers at the end), the seeds alternating (no
+    two workers train the same predictor side by side)."""
     units = []
     for spec, seeds in sorted(tables, key=lambda t: not t[0].sections):
         missing = [p for p in table_pieces(spec, seeds) if not store.has(spec.name, p)]
@@ -201,8 +199,7 @@ def _in_worker(run: Run, table: str, pieces: list) -> None:
 
 
 def compute_pieces(run: Run, tables: list, jobs: int, bar) -> None:
-    """The missing pieces of tables [(spec, seeds)], each kept as it finishes: in `jobs` worker
-    processes where there are several units, else here in order; bar counts them."""
+    """The missing pieces of tables [(spec, seeds)], each kept as it finishes, in `jobs` workers."""
     units = work_units(tables, run.store)
     if jobs > 1 and len(units) > 1:
         shipped = dataclasses.replace(run, log=print if run.log else None, models={})
@@ -227,8 +224,7 @@ def run_table(spec: TableSpec, run: Run, seeds, out_dir="results", write=True, j
 
 
 def draw_figures(spec: TableSpec, run: Run, res: dict, loaded: dict, seeds, out) -> None:
-    """The figures a spec names: from its results, the kept rollouts, or the first seed's Standard
-    and DiffStack."""
+    """The figures a spec names: from its results, the kept rollouts, or the first seed's models."""
     data, cfg = run.data, run.cfg
     if "cost_weights.png" in spec.figures:
         figures.figure_cost_weights(res, out / "cost_weights.png")
@@ -260,8 +256,7 @@ def draw_figures(spec: TableSpec, run: Run, res: dict, loaded: dict, seeds, out)
 
 
 def table_meta(run: Run, spec: TableSpec, seeds, command: str, seconds: float, jobs: int) -> dict:
-    """A table's provenance: command, seeds, data, machine, threads, device, commit, Config, and the
-    computing time summed over its pieces (with the machines, where they ran on several)."""
+    """A table's provenance, and the computing time summed over its pieces (and their machines)."""
     meta = dict(experiment=spec.name, command=command, seeds=list(seeds), epochs=run.epochs)
     meta.update(seconds=seconds)
     timings = [run.store.read(spec.name, p).get("timing") for p in table_pieces(spec, seeds)]
@@ -297,9 +292,8 @@ def run_experiment(
     write=True,
     jobs=1,
 ):
-    """Run one table (or 'all', each predictor trained once) into out_dir: <name>.json, .md and
-    figures (report.md for 'all') unless write=False (torchrun's other ranks). Every piece is kept
-    in out_dir/.runs/ (a re-run resumes); OutputRefused where a file exists, unless overwrite."""
+    """Run one table (or 'all', each predictor trained once) into out_dir (write=False: torchrun's
+    other ranks), every piece kept in out_dir/.runs/; OutputRefused where a file exists."""
     t0 = time.time()
     names = EXPERIMENTS if name == "all" else (name,)
     out = pathlib.Path(out_dir)
@@ -374,8 +368,7 @@ def output_files(names, out) -> list:
 
 
 def check_outputs(names, out_dir, overwrite: bool) -> None:
-    """Before any work: out_dir writable, and no file these tables write there exists unless
-    overwrite (OutputRefused naming them); the real scenes never inside the repository but runs/."""
+    """Before any work, OutputRefused unless out_dir takes its files (real scenes: under runs/)."""
     out = pathlib.Path(out_dir).resolve()
 
     def inside(folder):
@@ -395,15 +388,13 @@ def check_outputs(names, out_dir, overwrite: bool) -> None:
     existing = [str(f) for f in files if f.exists() and str(f) not in stopped]
     if existing and not overwrite:  # a run never replaces a result it did not make
         raise runs.OutputRefused(
-            f"--out: {len(existing)} result file(s) exist and are kept: "
-            f"{', '.join(existing[:6])}{' ...' if len(existing) > 6 else ''}; pass --overwrite to "
-            f"replace them, or choose another --out"
+            f"--out: {len(existing)} result file(s) exist and are kept: {', '.join(existing[:6])}"
+            f"{' ...' if len(existing) > 6 else ''}; pass --overwrite, or choose another --out"
         )
 
 
 def rendered(name: str, out_dir) -> tuple:
-    """(out_dir/<name>.json, its contents, its markdown, its learning curves' Config or None), every
-    field checked: ValueError naming the file and the field."""
+    """(out_dir/<name>.json, its contents, markdown, curves' Config or None), or ValueError."""
     if name not in SPECS:
         raise ValueError(f"name: {name!r} is not an experiment ({', '.join(SPECS)})")
     src = pathlib.Path(out_dir) / f"{name}.json"
@@ -426,8 +417,7 @@ def rendered(name: str, out_dir) -> tuple:
 
 
 def render_outputs(name: str, out_dir="results", data=None, log=print) -> list:
-    """--render: the .md files, learning curves (with their reference when `data()` gives the data)
-    and report of `name` ('all') from its JSON, each checked before any is written; the paths."""
+    """--render: the .md files, learning curves and report of `name` from its JSON; the paths."""
     names = EXPERIMENTS if name == "all" else (name,)
     out = pathlib.Path(out_dir)
     done = {one: rendered(one, out) for one in names}
@@ -451,8 +441,7 @@ def render_outputs(name: str, out_dir="results", data=None, log=print) -> list:
 
 
 def start_distributed(device: torch.device) -> torch.device:
-    """Join torchrun's process group: gloo on CPUs, nccl on GPUs (cuda:LOCAL_RANK); this rank's
-    device, on which train_stack trains with DDP."""
+    """Join torchrun's process group (gloo on CPUs, nccl on cuda:LOCAL_RANK): this rank's device."""
     if device.type == "cuda":
         local = int(os.environ.get("LOCAL_RANK", 0))
         if local >= torch.cuda.device_count():

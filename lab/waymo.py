@@ -1,6 +1,5 @@
-"""Three real driving scenes, the Waymo Open Motion Dataset logs of the metadrive-simulator 0.3.0.1
-wheel: fetched into the git-ignored <cache>/waymo/ (the licence forbids committing them), read by a
-whitelisting unpickler (a pickle can run any callable), converted to Scenes (docs/data.md)."""
+"""Three real driving scenes, Waymo Open Motion Dataset logs of the metadrive-simulator wheel:
+fetched into the git-ignored <cache>/waymo/ (their licence), read by a whitelisting unpickler."""
 
 from __future__ import annotations
 
@@ -263,8 +262,7 @@ def _waymo_lanes(path, lanes: dict, ego, cfg: SynthConfig) -> tuple:
 
 
 def _resample(xy, spacing: float):
-    """Points (P, 3: x, y, heading) every `spacing` m along a polyline (N, 2), repeated points
-    (where lanes meet) dropped; None without length."""
+    """Points (P, 3: x, y, heading) every `spacing` m along a polyline (N, 2); None if no length."""
     xy = xy[np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]]
     if len(xy) < 2:
         return None
@@ -299,8 +297,7 @@ def distinct_lanes(batch: Scenarios, max_lanes: int, tol=1.0, share=0.9) -> Scen
 
 
 def load_waymo_scenarios(cache_dir="data_cache", phases=(0,), cfg=None, log=print):
-    """The Waymo scenes (fetched if needed) as planning samples at every usable frame, and a report
-    (samples_per_scene too); of the WAYMO_CANDIDATE_LANES nearest lanes, the distinct ones."""
+    """The Waymo scenes (fetched if needed) as planning samples and a report; the distinct lanes."""
     cfg = cfg or SynthConfig()
     scenes, report = waymo_scenes(fetch_waymo(cache_dir, log), phases, cfg)
     wide = dataclasses.replace(cfg, max_lanes=max(cfg.max_lanes, WAYMO_CANDIDATE_LANES))
