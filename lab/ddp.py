@@ -1,7 +1,30 @@
 """Training on many processes: DistributedDataParallel (DDP) under torchrun, handed to
-train.train_stack as a Shard, the rows of each global batch this process holds. Why its gradients
-are exactly the single-process loss's on the global batch (the same permutation, draws of the global
-batch, global counts, all_reduces autograd differentiates through): docs/scaling.md."""
+train.train_stack as a Shard, the rows of each global batch this process holds.
+
+Under torchrun every process (a rank) runs the same program. train_stack then splits each global
+batch of cfg.batch_size scenarios over the world of W ranks, cfg.batch_size / W each, and wraps
+the module it trains in DistributedDataParallel (DDP), which averages the ranks' gradients during
+backward. That average is exactly the gradient of the single-process loss on the global batch (up
+to the order floats are summed in) because:
+  - the ranks' batches together are the single-process batch: every rank draws the same
+    permutation of the data (same seed) and takes positions rank, rank + W, rank + 2W, ... of it
+    (DistributedSampler, without its own shuffling), so step i's shards together are
+    perm[i B:(i + 1) B], the single-process batch i;
+  - every random draw is of the global batch: the decoder's sampled controls are drawn for all B
+    rows on every rank (same seed) and each keeps its own rows (Shard.decoder_noise);
+  - each rank's loss is its share of the global mean, scaled by W: DDP averages the ranks'
+    gradients, so the rank's sum over its scenarios is divided by (global count / W), never by its
+    own count. L_plan and L_ctr are means over the *plannable* scenarios, whose number differs
+    from rank to rank: the global count is all-reduced;
+  - the batch statistics inside L_pred (the KL free-bits test, the mutual information's mean
+    p(z|x)) and the scenario weights' normaliser are taken over the global batch, by an all_reduce
+    that autograd differentiates through (AllReduceSum: its backward sums the ranks' gradients),
+    so each rank's parameters also get the other ranks' share of the gradient of those statistics.
+With autograd-aware all_reduces inside the ranks' losses, what DDP minimises is the mean of the
+ranks' losses (each a function of every rank's rows): here W x share / W = the single-process
+loss. The gradients are then the same on every rank, so gradient clipping, Adam and the lr
+schedule stay in step.
+"""
 
 from __future__ import annotations
 
