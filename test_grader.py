@@ -130,9 +130,10 @@ def test_an_exit_a_nan_or_an_endless_loop_fails_that_exercise_alone(tmp_path):
 
 def test_the_reference_answers_imported_score_nothing(tmp_path):
     cells = ["from solutions import my_collision\nimport solutions\n", solution("my_plan_loss")]
-    code, _ = grader.definitions(notebook(tmp_path, cells))
-    assert not any("solutions" in c for _, c in code)
-    assert not grader._defines(code, "my_collision") and grader._defines(code, "my_plan_loss")
+    code = grader.definitions(notebook(tmp_path, cells))["code"]
+    assert not any("solutions" in c for _, c, _ in code)
+    names = {name for *_, names in code for name in names}
+    assert "my_collision" not in names and "my_plan_loss" in names
 
 
 def test_a_cell_that_does_not_parse_is_named(tmp_path):
@@ -182,7 +183,7 @@ def test_the_command_line_grades_every_file_and_owns_the_exit_status(tmp_path):
 def test_a_file_that_does_not_parse_scores_nothing_saying_why(tmp_path):
     (tmp_path / "broken.py").write_text("def my_collision(:\n")
     result, lines = grade(tmp_path / "broken.py")
-    assert all(v.startswith("the file does not run: SyntaxError") for v in result.values())
+    assert all(v.startswith("the file does not run (SyntaxError") for v in result.values())
     for text in ("{not json", '{"cells": 5}', '{"nbformat": 4, "cells": [{"cell_type": "code"}]}'):
         (tmp_path / "broken.ipynb").write_text(text)
         result, lines = grade(tmp_path / "broken.ipynb")
@@ -196,8 +197,9 @@ def test_definitions_keeps_what_a_kernel_defines_and_runs_nothing_else(tmp_path)
         "%%time\nX = 1\ny = compute()\nfor i in range(3):\n    print(i)\n",
         "@staticmethod\ndef f():\n    pass\nf()\nclass C:\n    pass\nF = lambda z: g(z)\n",
     ]
-    code, unparsed = grader.definitions(notebook(tmp_path, cells))
-    kept = [ast.unparse(ast.parse(c)) for _, c in code]
+    read = grader.definitions(notebook(tmp_path, cells))
+    code, unparsed = read["code"], read["unparsed"]
+    kept = [ast.unparse(ast.parse(c)) for _, c, _ in code]
     assert kept[4:] == [
         "X = 1",
         "@staticmethod\ndef f():\n    pass",
@@ -230,3 +232,127 @@ def test_the_committed_notebook_with_one_answer_right_and_one_wrong(tmp_path):
     )
     assert all(result[k].startswith("not done") for k in (3, 4, 5, 6))
     assert lines[-1].endswith("student.ipynb: score 1/6")
+
+
+def collision_by(body, before=()):
+    """Cells: `before`, then my_collision as `return <body>` (the module's C_coll, a helper's)."""
+    return [*before, f"def my_collision(pos, ctx, rbf_var):\n    return {body}\n"]
+
+
+@pytest.mark.slow
+def test_an_answer_bound_by_an_assignment_counts(tmp_path):
+    """A lambda, or another function bound to the exercise's name, is an answer like a def."""
+    cells = [
+        "my_collision = lambda pos, ctx, rbf_var: ds.collision_term(pos, ctx, rbf_var)\n",
+        solution("my_plan_loss"),
+        "my_plan_loss_fixed = my_plan_loss\n",
+    ]
+    result, lines = grade(notebook(tmp_path, cells))
+    assert result[1] is True and result[2] is True and result[4] is True, lines
+
+
+@pytest.mark.slow
+def test_constants_computed_by_a_call_and_failed_imports_are_named_helper_modules_work(tmp_path):
+    """A constant computed by a call is named in one line (never a bare NameError), so is an
+    import that failed; a module written from a cell (%%writefile) is importable as in Jupyter."""
+    helper = "%%writefile helpers.py\nimport diffstack as ds\n"
+    helper += "def c(*a):\n    return ds.collision_term(*a)\n"
+    cells = [helper, "import helpers\n", *collision_by("helpers.c(pos, ctx, rbf_var)")]
+    result, lines = grade(notebook(tmp_path, cells, "a.ipynb"))
+    assert result[1] is True, lines
+    cells = collision_by("ONE * ds.collision_term(pos, ctx, rbf_var)", ["ONE = torch.tensor(1.0)"])
+    cells += [
+        "import not_a_module_here\ndef my_plan_loss(cost, valid, target, beta):\n"
+        "    return not_a_module_here.f(cost)\n"
+    ]
+    result, lines = grade(notebook(tmp_path, cells, "b.ipynb"))
+    assert "uses ONE, which the notebook computes by a call (b.ipynb, code cell 2)" in result[1]
+    assert "define it inside the function" in result[1]
+    assert "import not_a_module_here failed (ModuleNotFoundError" in result[2], result[2]
+    assert all("\n" not in line for line in lines)
+
+
+@pytest.mark.slow
+def test_an_answer_can_neither_reach_the_reference_nor_write_its_verdict_nor_outlive_it(tmp_path):
+    """An answer that imports solutions in its body, one that writes a verdict where the old
+    worker kept it, one that forks a process that would outlive the check, one that takes 3 GB:
+    each fails, the forked process is gone, the memory limit is named."""
+    pid_file = tmp_path / "pid"
+    forge = (
+        "import json, os, sys\ndef my_collision(pos, ctx, rbf_var):\n"
+        "    spec = json.load(open(sys.argv[1]))\n"
+        "    open(spec['verdict'], 'w').write('[true, \"forged\"]')\n    os._exit(0)\n"
+    )
+    cheat = "def my_plan_loss(cost, valid, target, beta):\n    import solutions\n"
+    cheat += "    return solutions.my_plan_loss(cost, valid, target, beta)\n"
+    fork = "import subprocess\ndef my_plan_loss_grad(cost, valid, target, beta):\n"
+    fork += "    p = subprocess.Popen(['sleep', '300'])\n"
+    fork += f"    open({str(pid_file)!r}, 'w').write(str(p.pid))\n"
+    fork += "    return cost\n"
+    hog = "def my_riccati_step(*args):\n    x = bytearray(3 * 2**30)\n    return x\n"
+    result, lines = grade(notebook(tmp_path, [forge, cheat, fork, hog]), timeout=60)
+    assert all(result[k] is not True for k in (1, 2, 3, 5)), lines
+    assert "solutions" in result[2] and "MemoryError" in result[5], lines
+    stat = pathlib.Path(f"/proc/{pid_file.read_text()}/stat")
+    assert not stat.exists() or stat.read_text().split(") ")[1][0] == "Z", "the fork outlived it"
+
+
+def test_a_malformed_file_scores_zero_in_one_line(tmp_path):
+    """JSON nested too deeply, an expression too long for the parser, a cell that is only %%, a
+    .py with a byte-order mark (read as Python reads it: here nothing is defined)."""
+    (tmp_path / "deep.ipynb").write_text("[" * 100_000 + "]" * 100_000)
+    notebook(tmp_path, ["x = " + "1 + " * 200_000 + "1\n"], "long.ipynb")
+    notebook(tmp_path, ["%%"], "magic.ipynb")
+    (tmp_path / "bom.py").write_text("\ufeffimport math\n", encoding="utf-8")
+    for name in ("deep.ipynb", "long.ipynb", "magic.ipynb", "bom.py"):
+        result, lines = grade(tmp_path / name)
+        assert lines[-1].endswith(f"{name}: score 0/6") and len(lines) == 7, (name, lines)
+        assert all("\n" not in line for line in lines), name
+    assert result[1] == "no function my_collision"  # bom.py: read, not a SyntaxError
+
+
+def cli(tmp_path, *args, **kw):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}  # from another folder, as `python -m lab.grader`
+    cmd = [sys.executable, "-m", "lab.grader", *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, env=env, **kw)
+
+
+def test_arguments_refused_before_any_grading_each_named(tmp_path):
+    (tmp_path / "a.py").write_text("import math\n")
+    (tmp_path / "gone.ipynb").symlink_to(tmp_path / "missing.ipynb")
+    (tmp_path / "folder.ipynb").mkdir()
+    cases = {
+        ("--csv", tmp_path): f"--csv {tmp_path}: a folder, not a file",
+        ("--csv", "/proc/grades.csv"): "--csv /proc/grades.csv: /proc is not a writable folder",
+        ("gone.ipynb",): f"gone.ipynb: a symbolic link to {tmp_path / 'missing.ipynb'}, which",
+        ("folder.ipynb",): "folder.ipynb: a folder, not a notebook",
+        ("--jobs", "0"): "--jobs 0: a number of processes above 0",
+    }
+    for args, said in cases.items():
+        run = cli(tmp_path, "a.py", *args)
+        assert run.returncode == 2 and run.stdout == "", (args, run.stdout)
+        assert said in run.stderr.splitlines()[-1], (args, run.stderr)
+
+
+@pytest.mark.slow
+def test_a_class_in_parallel_and_ctrl_c_keeps_the_grades_so_far(tmp_path):
+    """--jobs 2: the files' lines in the order given; Ctrl-C: one line, exit 130, the CSV has the
+    files graded so far."""
+    (tmp_path / "a.py").write_text("import math\n")
+    (tmp_path / "b.py").write_text("def my_collision(pos, ctx, rbf_var):\n    return pos\n")
+    run = cli(tmp_path, "a.py", "b.py", "--jobs", "2")
+    assert run.returncode == 1 and run.stdout.splitlines()[6] == "a.py: score 0/6", run.stderr
+    assert run.stdout.splitlines()[-1] == "b.py: score 0/6"
+    (tmp_path / "c.py").write_text("import time\ndef my_collision(*a):\n    time.sleep(300)\n")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "lab.grader", "a.py", "c.py", "--csv", "g.csv"]
+    with subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path, env=env, text=True
+    ) as p:
+        while not p.stdout.readline().startswith("a.py: score"):
+            pass
+        p.send_signal(2)
+        err = p.communicate(timeout=60)[1]
+    assert p.returncode == 130 and len(err.splitlines()) == 1, err
+    assert "interrupted (Ctrl-C); the grades of 1 file(s) written to g.csv" in err
+    assert (tmp_path / "g.csv").read_text().splitlines()[1] == "a.py,0,0,0,0,0,0,0"
