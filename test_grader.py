@@ -326,7 +326,7 @@ def test_arguments_refused_before_any_grading_each_named(tmp_path):
         ("--csv", "/proc/grades.csv"): "--csv /proc/grades.csv: /proc is not a writable folder",
         ("gone.ipynb",): f"gone.ipynb: a symbolic link to {tmp_path / 'missing.ipynb'}, which",
         ("folder.ipynb",): "folder.ipynb: a folder, not a notebook",
-        ("--jobs", "0"): "--jobs 0: a number of processes above 0",
+        ("--jobs", "0"): "--jobs must be from 1 to 256, got '0'",
     }
     for args, said in cases.items():
         run = cli(tmp_path, "a.py", *args)

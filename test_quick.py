@@ -169,8 +169,6 @@ def test_quick_verdicts_are_computed_from_its_numbers():
     [
         ([], "--quick"),
         (["--quick", "--seeds", "0"], "--seeds"),
-        (["--experiment", "rl"], "experiments.py"),
-        (["--bench"], "python -m lab.bench"),
         (["--quick", "--threads", "0"], "--threads"),
         (["--quick", "--jobs", "2"], "--jobs is an option of --pretrain"),
         (["--pretrain", "--jobs", "0"], "--jobs"),

@@ -295,7 +295,8 @@ def main(argv=None):
     ap.add_argument("files", nargs="+", help="notebooks (.ipynb) or Python files with the answers")
     seconds = cli.bounded(float, 0, 86400, "--timeout")
     ap.add_argument("--timeout", type=seconds, default=TIMEOUT, help="per check (%(default)g s)")
-    ap.add_argument("--jobs", type=int, default=1, help="files graded at once (%(default)s)")
+    jobs = cli.bounded(int, 1, 256, "--jobs")
+    ap.add_argument("--jobs", type=jobs, default=1, help="files graded at once (%(default)s)")
     ap.add_argument("--csv", type=Path, help="also write the grades to this CSV, a row per file")
     ap.add_argument("--overwrite", action="store_true", help="let --csv replace an existing file")
     args = ap.parse_args(argv)
@@ -307,8 +308,6 @@ def main(argv=None):
         if f.suffix not in (".ipynb", ".py") or not f.is_file():
             what = "a folder, not" if f.is_dir() else "not"
             ap.error(f"{f}: {what} a notebook (.ipynb) or a Python file (.py)")
-    if args.jobs < 1:
-        ap.error(f"--jobs {args.jobs}: a number of processes above 0")
     if args.csv is not None:
         if args.csv.is_dir():
             ap.error(f"--csv {args.csv}: a folder, not a file")

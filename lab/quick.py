@@ -25,11 +25,9 @@ from specs import FOUR_METHODS, TABLE1
 from experiments import VAL_N, add_relative, compare_methods, experiment_data
 from train import NO_PREDICTION, Method, evaluate_stack, train_predictor
 
-# --quick: the tables' data, the live runs on a part of it, everything evaluated on the first 1,500
-# samples of the tables' validation set
+# --quick: the tables' data; the live runs on part of it; evaluated on 1,500 validation samples
 QUICK = dict(n=10000, live_train=2560, epochs=8.0, val=1500)
-# beside the module, wherever it runs from: the predictors --pretrain ships (Table 1's five seeds,
-# 40 epochs), and the data cache of --quick and --pretrain
+# beside the module, wherever it runs from: --pretrain's predictors (Table 1's), the data cache
 PRETRAINED, CACHE = ROOT / "pretrained", ROOT / "data_cache"
 PRETRAIN = dict(n=10000, epochs=40.0, seeds=(0, 1, 2, 3, 4))
 LEARNED = [m for m in FOUR_METHODS if m.predictor == "learned"]  # Standard, DiffStack
@@ -231,9 +229,6 @@ def parser():
 def main(argv=None):
     ap = parser()
     argv = sys.argv[1:] if argv is None else list(argv)
-    for flag, now in dict(experiment="python experiments.py", bench="python -m lab.bench").items():
-        if any(a == f"--{flag}" or a.startswith(f"--{flag}=") for a in argv):
-            ap.error(f"--{flag} moved: {now}")
     rank, world, misuse = ranks()
     if misuse:
         ap.error(misuse)
