@@ -36,6 +36,7 @@ from lab.ddp import Shard
 from lab.report import has_curves, results_markdown, section_markdown, table_file_markdown
 from lab.report import write_report
 from specs import CURVE_SAMPLES, EXPERIMENTS, GOALS, REAL, REAL_OUT, SPECS, TableSpec
+from specs import COST_WEIGHTS_ROW
 from train import GT_PREDICTION, NO_PREDICTION, TrainingDiverged
 
 
@@ -123,7 +124,7 @@ def _relative(spec: TableSpec, rows: dict) -> dict:
 
 def _cost_rows(spec: TableSpec, rows: dict) -> dict:
     """Table 3's rows, hand-tuned and learned, from its pieces (a diverged seed in both)."""
-    seeds = rows[spec.methods[0].name]
+    seeds = rows[COST_WEIGHTS_ROW.name]
     return {name: [r.get(name, r) for r in seeds] for name in ("Hand-tuned", "Learned")}
 
 
