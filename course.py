@@ -502,7 +502,7 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0, preds=None):
     w = ds.cost_weights(cfg, ctx.preds.dtype)
     start = ex.ego_hist[:, -1]
     cands, cost, plan, _, _ = ds.plan(start, dataclasses.replace(ctx, preds=preds), ex.goal, w, cfg)
-    target = ds.masked_argmin(ds.total_cost(cands.x, cands.u, ctx, w, cfg.rbf_var), cands.valid)
+    target = ds.masked_argmin(ds.total_cost(cands.s, cands.u, ctx, w, cfg.rbf_var), cands.valid)
     l_plan = ds.plan_loss(cost, cands.valid, target, beta)
     (grad,) = torch.autograd.grad(l_plan.sum(), preds)  # (1, K=1, T, 2)
     p = torch.softmax(torch.where(cands.valid, -beta * cost.detach(), -math.inf), -1)[0]
@@ -514,7 +514,7 @@ def draw_planner_view(ax, cfg, ex, beta, shift=(0.0, 0.0), preds=None, what="GT"
     """planner_view drawn (`what`: the prediction): the valid candidates coloured and widened by
     p_n, the plan, n*, the prediction, -dL_plan/dŝ as arrows (scale m per 1/m, or longest 3 m)."""
     v = planner_view(ex, cfg, shift, beta, preds)
-    p, valid, x = v["p"], v["cands"].valid[0], v["cands"].x[0, :, :, :2].detach()  # x (N, T+1, 2)
+    p, valid, x = v["p"], v["cands"].valid[0], v["cands"].s[0, :, :, :2].detach()  # x (N, T+1, 2)
     hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
     moved = f" moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m" if any(shift) else ""
     gmax = v["grad"].norm(dim=-1).max().item()

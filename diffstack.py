@@ -17,18 +17,22 @@ only those above it (the checks, called by Config, stand last), not the paper's 
 Training and evaluation are in train.py (`python diffstack.py --quick` hands over to lab/quick.py).
 
 Shapes in comments: B scenarios, A other agents, K prediction modes, N planner candidates,
-T time steps, L lanes, P points per lane, n = 4 state and m = 2 control dims; ... extra batch
-dims a function broadcasts over. Notation, one meaning per letter (the paper's where it has one):
-  s = (x, y, h, v)  state: position (x, y), heading h, speed v; s0 now. The controller, general,
-                    writes trajectories x (T+1, n), u (T, m), as Amos et al. and Tassa et al.
+T time steps, H history steps, L lanes, P points per lane, n = 4 state and m = 2 control dims (n
+and m only in shapes); ... extra batch dims a function broadcasts over. Notation, one meaning per
+letter (the paper's where it has one):
+  s = (x, y, h, v)  state: position (x, y), heading h, speed v; s0 now; also a trajectory of
+                    states, s (T+1, 4), as the paper's s_plan, s_ctr; s_gt the logged one
   u = (omega, a)    control: yaw rate omega, acceleration a; dt (tau) one step's duration
-  f; A_t, B_t       dynamics s_t+1 = f(s_t, u_t); its Jacobians df/ds, df/du (B alone: the batch)
+  f; f_s, f_u       dynamics s_t+1 = f(s_t, u_t); its Jacobians df/ds, df/du
   C, w, g           the cost of eq. (3), its weights w1..w5, the goal
+  p_n; beta         the relaxed argmin's probability of candidate n; its temperature
   z; K, k, pi_k     the CVAE's latent; its K values (the modes), a mode, its weight
-  p(z|x), q(z|x,y)  prior and posterior given the condition x (history) and the future y
-  lambda; G         costates (lambda_0 = dL/ds_init); iLQR's feedback gain, du = k + G dx
-  a1..a3; beta      the paper's alpha_i, L's weights (stack_loss); the relaxed argmin's temperature
-  b; Sigma; sigma   the KL weight of L_pred; covariances; the collision RBF's width
+  c; p(z|c)         the CVAE's condition (the encoded histories); prior p(z|c), posterior
+                    q(z|c,s_gt) given the predicted agent's logged future s_gt
+  lambda; ff, G     costates (lambda_0 = dL/ds_init); iLQR's step du = ff + G ds (feed-forward,
+                    feedback gain); delta the solution of a QP (box_qp, the KKT backward's LQR)
+  a1..a3; b         the paper's alpha_i, L's weights (stack_loss); the KL weight of L_pred
+  Sigma; sigma      covariances; the collision RBF's width
 """
 
 from __future__ import annotations
@@ -76,7 +80,7 @@ class Config:
     max_goal_lanes: int = 2
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # terminal accelerations
     plan_offsets: tuple = (-0.5, 0.0, 0.5)  # terminal lateral offsets from the lane centre (m)
-    beta: float = 1.0  # temperature of the relaxed argmin P(n) = softmax(-beta C_n)
+    beta: float = 1.0  # temperature of the relaxed argmin p_n = softmax(-beta C)_n
     # feasible |w v| (m/s^2), authors' code; and the controller's box (authors': a in [-6, 4])
     feas_lat_accel: float = 8.0
     feas_yaw_per_speed: float = 0.5  # feasible |w| <= this * |v| (1/m), authors' code
@@ -92,7 +96,7 @@ class Config:
     pred_modes: int = 25
     # width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM
     pred_enc_hidden: int = 32
-    pred_latent_hidden: int = 32  # hidden width of the p(z|x) and q(z|x,y) MLPs
+    pred_latent_hidden: int = 32  # hidden width of the p(z|c) and q(z|c,s_gt) MLPs
     pred_dec_hidden: int = 64  # decoder GRU width (Trajectron++: 128; halved for CPU training)
     pred_radius: float = 30.0  # neighbours within this distance (m) at t0 are attended to
     # input scales: position, velocity, acceleration, heading (and its rate)
@@ -104,9 +108,9 @@ class Config:
     pred_log_p_max: float = 6.0  # the loss's per-step log-likelihood is clamped above at this
     pred_kl_min: float = 0.07  # free bits: the batch-mean KL(q || p) is clamped below at this
     pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight b(step) = b0 sigmoid((step - b1) / b2)
-    # logit clip c(step) = c0 + (c1 - c0) sigmoid((step - c2) / c3)
+    # logit clip lc(step) = lc0 + (lc1 - lc0) sigmoid((step - lc2) / lc3)
     pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
-    pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(y_t) below at this
+    pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(pos_t) below at this
     pred_lr_decay: float = 0.9999  # learning rate multiplied by this after every iteration
     pred_grad_clip: float = 1.0  # gradients clipped to [-c, c] elementwise, as Trajectron++
     # --- training, §3.2, App. D ---
@@ -114,7 +118,7 @@ class Config:
     alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
     lr: float = 3e-3  # Adam learning rate
     batch_size: int = 256  # scenarios per training step
-    # the planner's mode weights in training: q(z|x,y) (authors' code) or 'prior'
+    # the planner's mode weights in training: q(z|c,s_gt) (authors' code) or 'prior'
     train_plan_weights: str = "posterior"
 
     def __post_init__(self):
@@ -122,7 +126,6 @@ class Config:
 
 
 # ===== 2. Dynamics: the dynamically-extended unicycle =============================================
-#
 # The textbook's ODE, x. = v cos h, y. = v sin h, h. = omega, v. = a, is usually stepped by Euler:
 #     s_t+1 = s_t + dt (v cos h, v sin h, omega, a).
 # Here it is integrated exactly, with omega and a constant over the step tau = dt (the controls are
@@ -134,11 +137,8 @@ class Config:
 # with the moments cm_j = int_0^tau r^j cos(omega r) dr and sm_j = int_0^tau r^j sin(omega r) dr,
 # whose derivatives are moments again, d cm_j/domega = -sm_j+1 and d sm_j/domega = cm_j+1: the
 # Jacobians in closed form too. The closed forms divide by omega^(j+1); for |th| = |omega tau| < 0.3
-# their Taylor series (seven terms, error < 1e-16) replaces them:
-#     cm_j = tau^(j+1) sum_k (-1)^k th^2k / ((2k)! (2k+j+1)),
-#     sm_j = tau^(j+1) sum_k (-1)^k th^(2k+1) / ((2k+1)! (2k+j+2)),
-# and the closed forms get a safe omega = 1 there (a tiny omega inside torch.where would put NaN
-# into the gradient).
+# their Taylor series (seven terms, error < 1e-16: _moments) replaces them, and the closed forms get
+# a safe omega = 1 there (a tiny omega inside torch.where would put NaN into the gradient).
 
 _SERIES_SWITCH = 0.3  # |omega tau| below which the series replaces the closed forms
 _SERIES_TERMS = 7  # k = 0 .. 6
@@ -162,9 +162,8 @@ def _moments(omega, tau, jmax):
     th = omega * tau
     small = th.abs() < _SERIES_SWITCH
     J = jmax + 1
-    tau_pow = tau ** torch.arange(
-        1, J + 1, dtype=omega.dtype, device=omega.device
-    )  # (J,) tau^(j+1)
+    powers = torch.arange(1, J + 1, dtype=omega.dtype, device=omega.device)  # (J,) 1 .. j+1
+    tau_pow = tau**powers  # (J,) tau^(j+1)
     # the series, term by term (th = 0 where the closed form is taken):
     #     cm_j = tau^(j+1) sum_k a_kj th^2k,   sm_j = tau^(j+1) th sum_k b_kj th^2k
     th_s = torch.where(small, th, 0.0)
@@ -215,36 +214,34 @@ def _position_jacobians(h, v, omega, a, dt: float):
     """A unicycle step from h, v under omega, a (...): its displacement dx, dy (...) and the
     position rows of its Jacobians, Mq = d(x, y)/d(h, v), Mu = d(x, y)/d(omega, a) (..., 2, 2)."""
     (cm0, cm1, cm2), (sm0, sm1, sm2) = _moments(omega, dt, 2)
-    dx, dy = _rotate(h, v * cm0 + a * cm1, v * sm0 + a * sm1)  # the displacement R(h) d
+    dx, dy = _rotate(h, v * cm0 + a * cm1, v * sm0 + a * sm1)  # the displacement R(h) disp
     x_v, y_v = _rotate(h, cm0, sm0)  # d/dv
     # d/domega, by d cm_j/domega = -sm_{j+1}, d sm_j/domega = cm_{j+1}
     x_om, y_om = _rotate(h, -(v * sm1 + a * sm2), v * cm1 + a * cm2)
     x_a, y_a = _rotate(h, cm1, sm1)  # d/da
-    # d/dh of R(h) d is J R(h) d = (-dy, dx)
+    # d/dh of R(h) disp is J R(h) disp = (-dy, dx)
     Mq = torch.stack([torch.stack([-dy, x_v], -1), torch.stack([dx, y_v], -1)], -2)  # (..., 2, 2)
-    Mu = torch.stack(
-        [torch.stack([x_om, x_a], -1), torch.stack([y_om, y_a], -1)], -2
-    )  # (..., 2, 2)
+    Mu = torch.stack([torch.stack([x_om, x_a], -1), torch.stack([y_om, y_a], -1)], -2)
     return dx, dy, Mq, Mu
 
 
 def unicycle_jacobians(s: torch.Tensor, u: torch.Tensor, dt: float):
-    """A = df/ds (..., 4, 4) and B = df/du (..., 4, 2) of unicycle_step, in closed form:
-    A = [[I, Mq], [0, I]] and B = [[Mu], [dt I]] (only the controls move h and v)."""
+    """f_s = df/ds (..., 4, 4) and f_u = df/du (..., 4, 2) of unicycle_step, in closed form:
+    f_s = [[I, Mq], [0, I]] and f_u = [[Mu], [dt I]] (only the controls move h and v)."""
     _, _, Mq, Mu = _position_jacobians(s[..., 2], s[..., 3], u[..., 0], u[..., 1], dt)
     eye = torch.eye(2, dtype=s.dtype, device=s.device).expand_as(Mq)  # (..., 2, 2)
     zero = torch.zeros_like(Mq)
-    A = torch.cat([torch.cat([eye, Mq], -1), torch.cat([zero, eye], -1)], -2)  # (..., 4, 4)
-    B = torch.cat([Mu, dt * eye], -2)  # (..., 4, 2)
-    return A, B
+    f_s = torch.cat([torch.cat([eye, Mq], -1), torch.cat([zero, eye], -1)], -2)  # (..., 4, 4)
+    f_u = torch.cat([Mu, dt * eye], -2)  # (..., 4, 2)
+    return f_s, f_u
 
 
-def rollout(dynamics, x0, u):
-    """Integrate controls u (..., T, m) from x0 (..., n) with a step function: (..., T+1, n)."""
-    xs = [x0]
+def rollout(dynamics, s0, u):
+    """Integrate controls u (..., T, m) from s0 (..., n) with a step function: (..., T+1, n)."""
+    states = [s0]
     for t in range(u.shape[-2]):
-        xs.append(dynamics(xs[-1], u[..., t, :]))
-    return torch.stack(xs, -2)
+        states.append(dynamics(states[-1], u[..., t, :]))
+    return torch.stack(states, -2)
 
 
 def unicycle_rollout(s0: torch.Tensor, u: torch.Tensor, dt: float) -> torch.Tensor:
@@ -303,18 +300,18 @@ def segment_projection(q, a, b):
     """The closest point to q (..., 2) on a -> b (..., 3) (x, y, heading): frac (...,) along the
     segment (clamped to [0, 1]), r = q - that point (..., 2), the lane heading there
     (interpolated) and dfrac/dq (..., 2) (0 where clamped)."""
-    d = b[..., :2] - a[..., :2]  # (..., 2)
-    length2 = (d * d).sum(-1).clamp_min(1e-9)  # (...)
-    raw = ((q - a[..., :2]) * d).sum(-1) / length2  # the fraction before the clamp
+    seg = b[..., :2] - a[..., :2]  # (..., 2)
+    length2 = (seg * seg).sum(-1).clamp_min(1e-9)  # (...)
+    raw = ((q - a[..., :2]) * seg).sum(-1) / length2  # the fraction before the clamp
     frac = raw.clamp(0, 1)
-    r = q - a[..., :2] - frac[..., None] * d
+    r = q - a[..., :2] - frac[..., None] * seg
     lane_h = a[..., 2] + frac * wrap_angle(b[..., 2] - a[..., 2])
     on_segment = ((raw >= 0) & (raw <= 1))[..., None]
-    dfrac = torch.where(on_segment, d / length2[..., None], 0.0)  # as clamp's gradient
+    dfrac = torch.where(on_segment, seg / length2[..., None], 0.0)  # as clamp's gradient
     return frac, r, lane_h, dfrac
 
 
-# m^2: a lane point heading the other way at distance d ranks as one at sqrt(d^2 + 100 m^2)
+# m^2: a lane point heading the other way at a distance r ranks as one at sqrt(r^2 + 100 m^2)
 _SEARCH_LAM = 50.0
 
 
@@ -323,26 +320,26 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     and has_lane (B, Q).
 
     First the nearest lane point (no gradient: it only picks an index), ranked by
-        |q - p|^2 + lam (1 - cos(h_q - h_p)),   lam = 50 m^2
+        |q - l|^2 + lam (1 - cos(h_q - h_l)),   lam = 50 m^2 (q a state's position, l a lane point)
     so that an oncoming lane beside the state's own is not 'closest' (no lane within 90 degrees:
     no lane cost; the heading term is beyond the paper's "closest lane point"); then the closer of
-    the two segments that meet there. As u(h_q).u(h_p) = cos(h_q - h_p), u(h) = (cos h, sin h),
-        |q - p|^2 + lam (1 - cos(h_q - h_p))
-            = |q|^2 + [-2q, -lam u(h_q), 1] . [p, u(h_p), |p|^2 + lam],
+    the two segments that meet there. As u(h_q).u(h_l) = cos(h_q - h_l), u(h) = (cos h, sin h),
+        |q - l|^2 + lam (1 - cos(h_q - h_l))
+            = |q|^2 + [-2q, -lam u(h_q), 1] . [l, u(h_l), |l|^2 + lam],
     one product of features for all pairs; |q|^2 drops out (a test holds the two to one point)."""
     B, L, P, _ = lanes.shape
     q = pos.reshape(B, -1, 2).detach()  # (B, Q, 2)
     hq = heading.reshape(B, -1).detach()  # (B, Q)
     pts = lanes.reshape(B, L * P, 3)
-    p = pts.detach()
+    lp = pts.detach()
     mask = lanes_mask.reshape(B, L * P)
     # 1. the nearest point, by the product above (padding ranks at 1e30, last)
-    p_norm = torch.where(mask, (p[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
-    u_p = torch.cat([torch.cos(p[..., 2:]), torch.sin(p[..., 2:])], -1)  # (B, L*P, 2)
-    p_feat = torch.cat([p[..., :2], u_p, p_norm[..., None]], -1)  # (B, L*P, 5)
+    lp_norm = torch.where(mask, (lp[..., :2] ** 2).sum(-1) + _SEARCH_LAM, 1e30)  # (B, L*P)
+    u_lp = torch.cat([torch.cos(lp[..., 2:]), torch.sin(lp[..., 2:])], -1)  # (B, L*P, 2)
+    lp_feat = torch.cat([lp[..., :2], u_lp, lp_norm[..., None]], -1)  # (B, L*P, 5)
     u_q = torch.stack([torch.cos(hq), torch.sin(hq)], -1)  # (B, Q, 2)
     q_feat = torch.cat([-2 * q, -_SEARCH_LAM * u_q, torch.ones_like(q[..., :1])], -1)  # (B, Q, 5)
-    j = (q_feat @ p_feat.mT).argmin(-1)  # (B, Q) the nearest point's index
+    j = (q_feat @ lp_feat.mT).argmin(-1)  # (B, Q) the nearest point's index
     near = pts.gather(1, j[..., None].expand(B, -1, 3))  # (B, Q, 3)
     has_lane = mask.gather(1, j) & (torch.cos(hq - near[..., 2].detach()) > 0)
     # 2. the closer of the segments before and after that point (a lane's valid points: a prefix)
@@ -418,10 +415,10 @@ def scene_terms(pos, head, u, goal, lanes, lanes_mask) -> torch.Tensor:
     return torch.stack([to_goal, lat.sum(-1), (head_err**2).sum(-1), effort], -1)
 
 
-def cost_terms(x: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0):
-    """The five unweighted terms of eq. (3) (B, ..., 5) of states x (B, ..., T+1, 4) (s0 first,
+def cost_terms(s: torch.Tensor, u: torch.Tensor, ctx: CostContext, rbf_var: float = 2.0):
+    """The five unweighted terms of eq. (3) (B, ..., 5) of states s (B, ..., T+1, 4) (s0 first,
     not costed) and controls u (B, ..., T, 2): (C_coll, C_goal, C_lat, C_head, C_u)."""
-    pos, head = x[..., 1:, :2], x[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
+    pos, head = s[..., 1:, :2], s[..., 1:, 2]  # (B, ..., T, 2), (B, ..., T): the cost skips t0
     coll = collision_term(pos, ctx, rbf_var)  # (B, ...)
     rest = scene_terms(pos, head, u, ctx.goal, ctx.lanes, ctx.lanes_mask)  # (B, ..., 4)
     return torch.cat([coll[..., None], rest], -1)
@@ -440,9 +437,9 @@ def weigh(terms: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return (terms * w).sum(-1)
 
 
-def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
-    """Eq. (3): x (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
-    return weigh(cost_terms(x, u, ctx, rbf_var), w)
+def total_cost(s, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) -> torch.Tensor:
+    """Eq. (3): s (B, ..., T+1, 4), u (B, ..., T, 2), w (5,) or (B, 5) -> (B, ...)."""
+    return weigh(cost_terms(s, u, ctx, rbf_var), w)
 
 
 # ===== 4. Planner: lane-centric spline candidates and the relaxed argmin, eq. (2), App. C.1 =======
@@ -452,7 +449,7 @@ def total_cost(x, u, ctx: CostContext, w: torch.Tensor, rbf_var: float = 2.0) ->
 class Candidates:
     """The planner's candidate trajectories for a batch."""
 
-    x: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
+    s: torch.Tensor  # (B, N, T+1, 4) states along the splines, s0 first
     u: torch.Tensor  # (B, N, T, 2)   controls derived from the splines
     valid: torch.Tensor  # (B, N)     lane found, terminal on the lane, dynamically feasible
 
@@ -464,11 +461,11 @@ def _lane_arclength(lanes, lanes_mask):
     return torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)
 
 
-def _project_each_lane(p, lanes, lanes_mask, cum):
-    """Closest point of p (B, 2) on every lane: squared distance, arc length and heading, each
+def _project_each_lane(pos, lanes, lanes_mask, cum):
+    """Closest point of pos (B, 2) on every lane: squared distance, arc length and heading, each
     (B, L)."""
     seg_ok = lanes_mask[:, :, :-1] & lanes_mask[:, :, 1:]  # (B, L, P-1)
-    q = p[:, None, None, :]  # (B, 1, 1, 2)
+    q = pos[:, None, None, :]  # (B, 1, 1, 2)
     frac, r, lane_h, _ = segment_projection(q, lanes[:, :, :-1], lanes[:, :, 1:])  # (B, L, P-1)
     d2 = torch.where(seg_ok, (r**2).sum(-1), torch.full_like(r[..., 0], 1e9))
     best = d2.argmin(-1, keepdim=True)  # (B, L, 1) the closest segment of each lane
@@ -575,11 +572,11 @@ def _spline_trajectories(s0, p1, h1, v1, cfg: Config):
     cross = vel[..., 0] * accel[..., 1] - vel[..., 1] * accel[..., 0]
     yaw_rate = cross / speed.clamp_min(0.1) ** 2
     lon_acc = (vel * accel).sum(-1) / speed.clamp_min(0.1)
-    x = torch.stack([pos[..., 0], pos[..., 1], yaw, speed], -1)  # (B, N, T+1, 4)
+    s = torch.stack([pos[..., 0], pos[..., 1], yaw, speed], -1)  # (B, N, T+1, 4)
     # controls of step t = average of the derived values at t and t+1
     both = torch.stack([yaw_rate, lon_acc], -1)  # (B, N, T+1, 2)
     u = (both[..., 1:, :] + both[..., :-1, :]) / 2  # (B, N, T, 2)
-    return x, u, speed
+    return s, u, speed
 
 
 def _feasible(u, speed, cfg: Config):
@@ -599,15 +596,15 @@ def plan_candidates(s0, goal, lanes, lanes_mask, cfg: Config) -> Candidates:
     the cubic Hermite curve fixed by position and velocity at both ends (as the authors' code; the
     paper's spline "minimizes mean control effort")."""
     p1, h1, v1, valid = _terminal_states(s0, goal, lanes, lanes_mask, cfg)  # N = G x 8 x 3
-    x, u, speed = _spline_trajectories(s0, p1, h1, v1, cfg)
-    return Candidates(x, u, valid & _feasible(u, speed, cfg))
+    s, u, speed = _spline_trajectories(s0, p1, h1, v1, cfg)
+    return Candidates(s, u, valid & _feasible(u, speed, cfg))
 
 
 def plan_loss(cost: torch.Tensor, valid: torch.Tensor, target: torch.Tensor, beta: float):
-    """The relaxed argmin (§3.1): P(n) = exp(-beta C_n) / sum_valid exp(-beta C_m),
-    L_plan = -log P(n*): (B,)."""
-    log_P = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
-    return -log_P.gather(-1, target[:, None]).squeeze(-1)
+    """The relaxed argmin (§3.1): p_n = exp(-beta C_n) / sum_valid exp(-beta C), and
+    L_plan = -log p_n* (B,)."""
+    log_p_n = torch.log_softmax(torch.where(valid, -beta * cost, -math.inf), -1)  # (B, N)
+    return -log_p_n.gather(-1, target[:, None]).squeeze(-1)
 
 
 def masked_argmin(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -631,10 +628,10 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
     computed."""
     if scene is None:
         cands = plan_candidates(s0, goal_state, ctx.lanes, ctx.lanes_mask, cfg)
-        terms = cost_terms(cands.x, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
+        terms = cost_terms(cands.s, cands.u, ctx, cfg.rbf_var)  # (B, N, 5)
     else:  # with the scene's terms known, C_coll is the one term a prediction moves
         cands = scene.cands
-        coll = collision_term(cands.x[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N)
+        coll = collision_term(cands.s[..., 1:, :2], ctx, cfg.rbf_var)  # (B, N)
         terms = torch.cat([coll[..., None], scene.terms], -1)  # (B, N, 5)
     cost = weigh(terms, w)  # (B, N)
     plannable = cands.valid.sum(-1) >= 2
@@ -642,7 +639,7 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 
 
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
-#   min_{x, u}  sum_t l_t(x_t, u_t) + l_T(x_T)   s.t.  x_0 = x_init,  x_{t+1} = f(x_t, u_t),
+#   min_{s, u}  sum_t l_t(s_t, u_t) + l_T(s_T)   s.t.  s_0 = s_init,  s_{t+1} = f(s_t, u_t),
 #                                                      lo <= u_t <= hi
 # The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
 # of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's
@@ -650,29 +647,29 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # dynamics only; tracking with the unicycle, 45 % off. The default (exact=True) adds it, the
 # Lagrangian's Hessian, and so differentiates the converged solution itself: test_diffstack.py
 # holds it to central differences within 1e-6 and prints the paper's variant's error beside it.
-# General: `cost_fn(x, u, *params) -> (B, ...)` is any twice-differentiable sum of per-step terms
-# (x (B, ..., T+1, n) with x_0 first, u (B, ..., T, m)), `dynamics(x_t, u_t) -> x_{t+1}` any
-# twice-differentiable step; gradients reach x_init and every tensor in `params`. Closed forms
-# where cost or dynamics bring them (`expansion`, `jacobians`, `curvature`), autodiff otherwise.
+# General: `cost_fn(s, u, *params) -> (B, ...)` any twice-differentiable sum of per-step terms,
+# `dynamics(s_t, u_t) -> s_{t+1}` any twice-differentiable step; gradients reach s_init and every
+# tensor in `params`. Closed forms where they bring them (`expansion`, `jacobians`, `curvature`).
 
 
-def _stagewise_jacobian(fn, z: torch.Tensor, with_value=False):
-    """d fn(z)[..., t, :] / d z[..., t, :] for every t, z (B, T, k) -> (B, T, out, k) (and fn(z)
-    with_value). Step t's output depends on step t's input only, so one perturbation d shared by
-    all steps gives every block (has_aux: fn(z) comes back beside it)."""
-    jac = torch.func.jacfwd(lambda d: (fn(z + d),) * 2, has_aux=True)(z.new_zeros(z.shape[-1]))
+def _stagewise_jacobian(fn, su: torch.Tensor, with_value=False):
+    """d fn(su)[..., t, :] / d su[..., t, :] for every t, su (B, T, D) -> (B, T, out, D) (and
+    fn(su) with_value). Step t's output depends on step t's input only, so one perturbation delta
+    (D,) shared by all steps gives every block (has_aux: fn(su) comes back beside it)."""
+    zero = su.new_zeros(su.shape[-1])  # (D,)
+    jac = torch.func.jacfwd(lambda delta: (fn(su + delta),) * 2, has_aux=True)(zero)
     return jac if with_value else jac[0]
 
 
-def cost_expansion(cost_fn, x, u, params):
+def cost_expansion(cost_fn, s, u, params):
     """Gradient (B, T+1, n+m) and block Hessian (B, T+1, n+m, n+m) of the cost, step by step."""
     if hasattr(cost_fn, "expansion"):
-        return cost_fn.expansion(x, u, *params)
-    n, T = x.shape[-1], u.shape[1]
+        return cost_fn.expansion(s, u, *params)
+    n, T = s.shape[-1], u.shape[1]
     u_padded = torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)  # u_T is padding
-    z = torch.cat([x, u_padded], -1)  # (B, T+1, n+m)
-    grad = torch.func.grad(lambda z: cost_fn(z[..., :n], z[:, :T, n:], *params).sum())
-    H, g = _stagewise_jacobian(grad, z, with_value=True)
+    su = torch.cat([s, u_padded], -1)  # (B, T+1, n+m)
+    grad = torch.func.grad(lambda su: cost_fn(su[..., :n], su[:, :T, n:], *params).sum())
+    H, g = _stagewise_jacobian(grad, su, with_value=True)
     return g, H
 
 
@@ -681,13 +678,13 @@ def outer(a, b):
     return a[..., :, None] * b[..., None, :]
 
 
-def _collision_expansion(p, ctx: CostContext, rbf_var: float):
-    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions p (B, T, 2) (see
+def _collision_expansion(pos, ctx: CostContext, rbf_var: float):
+    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions pos (B, T, 2) (see
     cost_expansion_closed_form)."""
-    eye = torch.eye(2, dtype=p.dtype, device=p.device)
+    eye = torch.eye(2, dtype=pos.dtype, device=pos.device)
     mu, spread = prediction_moments(ctx)  # (B, T, 2), (B, T)
     # the predicted mean first, then the other agents: (B, 1+A, ...)
-    diff = p[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
+    diff = pos[:, None] - torch.cat([mu[:, None], ctx.others], 1)  # (B, 1+A, T, 2)
     offset = torch.cat([spread[:, None], torch.zeros_like(ctx.others[..., 0])], 1)  # (B, 1+A, T)
     mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
     phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
@@ -696,53 +693,53 @@ def _collision_expansion(p, ctx: CostContext, rbf_var: float):
     return grad, (phi[..., None, None] * hess).sum(1)
 
 
-def _lane_expansion(p, h, ctx: CostContext):
-    """The gradients and Hessians of C_lat in p (B, T, 2) and of C_head in (p, h) (B, T, 3) (see
+def _lane_expansion(pos, h, ctx: CostContext):
+    """The gradients and Hessians of C_lat in pos (B, T, 2) and of C_head in (pos, h) (B, T, 3) (see
     cost_expansion_closed_form): (B, T, 2), (B, T, 2, 2), (B, T, 3), (B, T, 3, 3)."""
-    eye = torch.eye(2, dtype=p.dtype, device=p.device)
-    a, b, has_lane = nearest_lane_segment(p, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2, (B, T)
-    _, r, lane_h, df = segment_projection(p, a, b)  # (B, T, 2), (B, T), (B, T, 2)
-    on = has_lane.to(p.dtype)  # (B, T)
-    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dp
+    eye = torch.eye(2, dtype=pos.dtype, device=pos.device)
+    a, b, has_lane = nearest_lane_segment(pos, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2
+    _, r, lane_h, df = segment_projection(pos, a, b)  # (B, T, 2), (B, T), (B, T, 2)
+    on = has_lane.to(pos.dtype)  # (B, T)
+    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dpos
     g_lat = 2 * (J.mT @ r[..., None])[..., 0] * on[..., None]
     H_lat = 2 * J.mT @ J * on[..., None, None]
     e = wrap_angle(h - lane_h) * on  # (B, T)
-    de_dp = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
-    de = torch.cat([de_dp, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(p, h)
+    de_dpos = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
+    de = torch.cat([de_dpos, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(pos, h)
     g_head = 2 * e[..., None] * de
     H_head = 2 * outer(de, de) * on[..., None, None]
     return g_lat, H_lat, g_head, H_head
 
 
-def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
+def cost_expansion_closed_form(s, u, ctx: CostContext, w, rbf_var: float = 2.0):
     """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
-    z_t = (x, y, h, v, omega, a), step by step (x_0 costs nothing; u_T = 0 pads the last step), in
-    closed form: what cost_expansion computes by autodiff (the tests hold the two together).
-    x (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
+    (s_t, u_t) = (x, y, h, v, omega, a), step by step (s_0 costs nothing; u_T = 0 pads the last
+    step), in closed form: what cost_expansion computes by autodiff (the tests hold the two
+    together). s (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
 
-    With p, h a state's position and heading (sigma^2 = rbf_var):
-      C_coll  phi = c exp(-|p - m|^2 / 2 sigma^2) per predicted mean m = mu_t
-              (c = exp(-spread / 2 sigma^2)) and per other agent:
-              grad = -phi (p - m) / sigma^2,  Hess = phi ((p - m)(p - m)' / sigma^4 - I / sigma^2)
-      C_goal  |p_T - g|^2:  grad = 2 (p_T - g),  Hess = 2 I
-      C_lat   |r|^2, r = p - a - f d the offset from the closest point on the segment a -> b
-              (d = b - a, f the fraction along it, linear in p: df = d / |d|^2, or 0 where
-              clamped):  J = dr/dp = I - d df',  grad = 2 J'r,  Hess = 2 J'J
+    With pos, h a state's position and heading (sigma^2 = rbf_var):
+      C_coll  phi = exp(-(|pos - mu|^2 + spread) / 2 sigma^2) per predicted mean mu = mu_t, and
+              with spread 0 per other agent (mu its position): grad = -phi (pos - mu) / sigma^2,
+              Hess = phi ((pos - mu)(pos - mu)' / sigma^4 - I / sigma^2)
+      C_goal  |pos_T - g|^2:  grad = 2 (pos_T - g),  Hess = 2 I
+      C_lat   |r|^2, r = pos - a - f (b - a) the offset from the closest point on the segment
+              a -> b (f the fraction along it, linear in pos: df = (b - a) / |b - a|^2, or 0
+              where clamped):  J = dr/dpos = I - (b - a) df',  grad = 2 J'r,  Hess = 2 J'J
       C_head  e^2, e = h - h_lane, h_lane = h_a + f (h_b - h_a):  de/dh = 1,
-              de/dp = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
+              de/dpos = -(h_b - h_a) df,  grad = 2 e de,  Hess = 2 de de'
       C_u     omega^2 + a^2:  grad = 2 u,  Hess = 2 I"""
     B, T = u.shape[:2]
-    eye = torch.eye(2, dtype=x.dtype, device=x.device)
+    eye = torch.eye(2, dtype=s.dtype, device=s.device)
     w_coll, w_goal, w_lat, w_head, w_u = w.expand(B, -1)[:, :, None, None].unbind(1)  # (B, 1, 1)
-    p, h = x[:, 1:, :2], x[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
-    g_coll, H_coll = _collision_expansion(p, ctx, rbf_var)
-    g_lat, H_lat, g_head, H_head = _lane_expansion(p, h, ctx)
+    pos, h = s[:, 1:, :2], s[:, 1:, 2]  # (B, T, 2), (B, T): the states t1..T
+    g_coll, H_coll = _collision_expansion(pos, ctx, rbf_var)
+    g_lat, H_lat, g_head, H_head = _lane_expansion(pos, h, ctx)
     # the states t1..T in rows 1..T, the controls t0..T-1 in rows 0..T-1
-    g = torch.zeros(B, T + 1, 6, dtype=x.dtype, device=x.device)
-    H = torch.zeros(B, T + 1, 6, 6, dtype=x.dtype, device=x.device)
+    g = torch.zeros(B, T + 1, 6, dtype=s.dtype, device=s.device)
+    H = torch.zeros(B, T + 1, 6, 6, dtype=s.dtype, device=s.device)
     g[:, 1:, :2] = w_coll * g_coll + w_lat * g_lat
     g[:, 1:, :3] += w_head * g_head
-    g[:, T, :2] += 2 * w_goal[:, 0] * (p[:, -1] - ctx.goal)
+    g[:, T, :2] += 2 * w_goal[:, 0] * (pos[:, -1] - ctx.goal)
     g[:, :T, 4:] = 2 * w_u * u
     H[:, 1:, :2, :2] = w_coll[..., None] * H_coll + w_lat[..., None] * H_lat
     H[:, 1:, :3, :3] += w_head[..., None] * H_head
@@ -752,26 +749,26 @@ def cost_expansion_closed_form(x, u, ctx: CostContext, w, rbf_var: float = 2.0):
 
 
 class StackCost:
-    """Eq. (3) as the controller sees it: cost(x, u, w, *ctx.tensors()) -> (B, ...), every
+    """Eq. (3) as the controller sees it: cost(s, u, w, *ctx.tensors()) -> (B, ...), every
     argument per scenario, and its closed-form `expansion`, which the solver takes over autodiff."""
 
     def __init__(self, rbf_var: float):
         self.rbf_var = rbf_var
 
-    def __call__(self, x, u, w, *context):
-        return weigh(cost_terms(x, u, CostContext(*context), self.rbf_var), w)
+    def __call__(self, s, u, w, *context):
+        return weigh(cost_terms(s, u, CostContext(*context), self.rbf_var), w)
 
-    def expansion(self, x, u, w, *context):
-        return cost_expansion_closed_form(x, u, CostContext(*context), w, self.rbf_var)
+    def expansion(self, s, u, w, *context):
+        return cost_expansion_closed_form(s, u, CostContext(*context), w, self.rbf_var)
 
 
-def dynamics_jacobians(dynamics, x, u):
-    """A_t = df/dx (B, T, n, n), B_t = df/du (B, T, n, m) along x (B, T+1, n), u (B, T, m)."""
+def dynamics_jacobians(dynamics, s, u):
+    """f_s,t = df/ds (B, T, n, n), f_u,t = df/du (B, T, n, m) along s (B, T+1, n), u (B, T, m)."""
     if hasattr(dynamics, "jacobians"):
-        return dynamics.jacobians(x[:, :-1], u)
-    n = x.shape[-1]
-    zs = torch.cat([x[:, :-1], u], -1)  # (B, T, n+m)
-    J = _stagewise_jacobian(lambda z: dynamics(z[..., :n], z[..., n:]), zs)
+        return dynamics.jacobians(s[:, :-1], u)
+    n = s.shape[-1]
+    su = torch.cat([s[:, :-1], u], -1)  # (B, T, n+m)
+    J = _stagewise_jacobian(lambda su: dynamics(su[..., :n], su[..., n:]), su)
     return J[..., :n], J[..., n:]
 
 
@@ -781,48 +778,48 @@ def solve_small(M, rhs):
     torch.linalg.solve (docs/results.md)."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
-    a, b = M[..., 0, 0, None], M[..., 0, 1, None]  # (..., 1) each
-    c, d = M[..., 1, 0, None], M[..., 1, 1, None]
+    m00, m01 = M[..., 0, 0, None], M[..., 0, 1, None]  # (..., 1) each
+    m10, m11 = M[..., 1, 0, None], M[..., 1, 1, None]
     r0, r1 = rhs[..., 0, :], rhs[..., 1, :]  # (..., r) each
-    det = (a * d - b * c)[..., None]  # (..., 1, 1)
-    return torch.stack([d * r0 - b * r1, a * r1 - c * r0], -2) / det
+    det = (m00 * m11 - m01 * m10)[..., None]  # (..., 1, 1)
+    return torch.stack([m11 * r0 - m01 * r1, m00 * r1 - m10 * r0], -2) / det
 
 
 def solve_masked(Q, rhs, free):
-    """Solve the free rows of Q y = rhs, with y = rhs on the others: Q (..., m, m), rhs (..., m, r),
-    free (..., m)."""
+    """Solve the free rows of Q sol = rhs, with sol = rhs on the others: Q (..., m, m),
+    rhs (..., m, r), free (..., m)."""
     eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
     both_free = free[..., :, None] & free[..., None, :]
     return solve_small(torch.where(both_free, Q, eye), rhs)
 
 
 def box_qp(Q, q, lo, hi):
-    """min_d 1/2 d'Q d + q'd  s.t. lo <= d <= hi, exactly, for small m and Q positive definite:
+    """min 1/2 delta'Q delta + q'delta  s.t. lo <= delta <= hi, exactly, for small m and Q > 0:
     the unconstrained minimiser where it is inside the box, else the best feasible one of the 3^m
-    active sets (each control free, at lo or at hi). Q (B, m, m), q, lo, hi (B, m) -> d (B, m),
+    active sets (each control free, at lo or at hi). Q (B, m, m), q, lo, hi (B, m) -> delta (B, m),
     free (B, m) bool: the controls not held at a bound."""
     B, m = q.shape
-    d = solve_small(Q, -q[..., None])[..., 0]  # (B, m)
-    inside = ((d >= lo) & (d <= hi)).all(-1)  # (B,)
+    delta = solve_small(Q, -q[..., None])[..., 0]  # (B, m)
+    inside = ((delta >= lo) & (delta <= hi)).all(-1)  # (B,)
     if inside.all():
-        return d, torch.ones_like(d, dtype=torch.bool)
+        return delta, torch.ones_like(delta, dtype=torch.bool)
     assert m <= 4, "box_qp enumerates 3^m active sets: meant for few controls"
     # (3^m, m): each control free (0), at lo (1) or at hi (2)
     sets = torch.cartesian_prod(*[torch.arange(3, device=q.device)] * m).reshape(-1, m)
     free = sets == 0
     fixed_val = torch.where(sets[None] == 1, lo[:, None], hi[:, None])  # (B, 3^m, m)
     Qs, qs = Q[:, None], q[:, None]  # (B, 1, m, m), (B, 1, m)
-    # free rows: Q_ff d_f = -(q_f + Q_fc d_c); fixed rows: d_c = fixed value
-    d_fixed = torch.where(free, 0.0, fixed_val)[..., None]  # (B, 3^m, m, 1)
-    rhs = torch.where(free, -(qs + (Qs @ d_fixed)[..., 0]), fixed_val)  # (B, 3^m, m)
+    # free rows: Q_ff delta_f = -(q_f + Q_fc delta_c); fixed rows: delta_c = fixed value
+    delta_fixed = torch.where(free, 0.0, fixed_val)[..., None]  # (B, 3^m, m, 1)
+    rhs = torch.where(free, -(qs + (Qs @ delta_fixed)[..., 0]), fixed_val)  # (B, 3^m, m)
     Q_all = Qs.expand(-1, len(sets), m, m)
-    ds = solve_masked(Q_all, rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
-    feasible = ((ds >= lo[:, None] - 1e-9) & (ds <= hi[:, None] + 1e-9)).all(-1)
-    obj = ((0.5 * (Qs @ ds[..., None])[..., 0] + qs) * ds).sum(-1)  # (B, 3^m) 1/2 d'Q d + q'd
+    deltas = solve_masked(Q_all, rhs[..., None], free.expand_as(rhs))[..., 0]  # (B, 3^m, m)
+    feasible = ((deltas >= lo[:, None] - 1e-9) & (deltas <= hi[:, None] + 1e-9)).all(-1)
+    obj = ((0.5 * (Qs @ deltas[..., None])[..., 0] + qs) * deltas).sum(-1)  # (B, 3^m)
     best = torch.where(feasible, obj, math.inf).argmin(-1)  # (B,)
     rows = torch.arange(B, device=q.device)
-    d_box, free_box = ds[rows, best], free.expand(B, -1, -1)[rows, best]
-    return torch.where(inside[:, None], d, d_box), free_box | inside[:, None]
+    delta_box, free_box = deltas[rows, best], free.expand(B, -1, -1)[rows, best]
+    return torch.where(inside[:, None], delta, delta_box), free_box | inside[:, None]
 
 
 def make_pd(Q, eps):
@@ -832,63 +829,64 @@ def make_pd(Q, eps):
     return Q + (eps - lam).clamp_min(0.0)[:, None, None] * eye
 
 
-def box_policy(Q_u, Q_ux, Q_uu, lo, hi, pd_eps):
-    """Control-limited DDP's step (Tassa et al. 2014, §III.B): k solves the box QP
-        min_k 1/2 k'Q_uu k + Q_u'k   s.t.  lo <= k <= hi
-    with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and G = -Q_uu^-1 Q_ux on the
-    controls it leaves free, 0 on the clamped ones. Q_u (B, m, 1), Q_ux (B, m, n), Q_uu (B, m, m),
-    lo, hi (B, m) -> k (B, m, 1), G (B, m, n), free (B, m)."""
+def box_policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps):
+    """Control-limited DDP's step (Tassa et al. 2014, §III.B): the feed-forward ff solves the box QP
+        min_ff 1/2 ff'Q_uu ff + Q_u'ff   s.t.  lo <= ff <= hi
+    with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and G = -Q_uu^-1 Q_us on the
+    controls it leaves free, 0 on the clamped ones. Q_u (B, m, 1), Q_us (B, m, n), Q_uu (B, m, m),
+    lo, hi (B, m) -> ff (B, m, 1), G (B, m, n), free (B, m)."""
     Q_uu = make_pd(Q_uu, pd_eps)
-    k, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
-    G = solve_masked(Q_uu, torch.where(free[..., None], -Q_ux, 0.0), free)  # (B, m, n)
-    return k[..., None], G, free
+    ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
+    G = solve_masked(Q_uu, torch.where(free[..., None], -Q_us, 0.0), free)  # (B, m, n)
+    return ff[..., None], G, free
 
 
-def fixed_policy(Q_u, Q_ux, Q_uu, free):
-    """The step with the active set given (free (B, m) bool): [k G] = -Q_uu^-1 [Q_u Q_ux] on the
+def fixed_policy(Q_u, Q_us, Q_uu, free):
+    """The step with the active set given (free (B, m) bool): [ff G] = -Q_uu^-1 [Q_u Q_us] on the
     free controls, 0 on the held ones. Shapes as box_policy's."""
-    rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_ux], -1), 0.0)  # (B, m, 1+n)
-    kG = solve_masked(Q_uu, rhs, free)
-    return kG[..., :1], kG[..., 1:], free
+    rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_us], -1), 0.0)  # (B, m, 1+n)
+    ffG = solve_masked(Q_uu, rhs, free)
+    return ffG[..., :1], ffG[..., 1:], free
 
 
-def lqr_backward(A, B, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
+def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
     """The backward pass of a time-varying LQR in the Q-function form of iLQR (Li, Todorov 2004;
-    Tassa, Mansard, Todorov 2014). The stage cost of z_t = (dx_t, du_t) is 1/2 z'H_t z + g_t'z
-    (l_x, l_u = g's blocks, l_xx, l_ux, l_uu = H's), the dynamics dx_{t+1} = A_t dx_t + B_t du_t.
-    From V_T = l_T, for t = T-1 .. 0 (V' is V_{t+1}):
-        Q_x  = l_x  + A'V'_x            Q_xx = l_xx + A'V'_xx A
-        Q_u  = l_u  + B'V'_x            Q_uu = l_uu + B'V'_xx B        Q_ux = l_ux + B'V'_xx A
-        du   = k + G dx                 the step that minimises Q (box_policy or fixed_policy)
-        V_x  = Q_x  + G'Q_uu k + G'Q_u  + Q_ux'k
-        V_xx = Q_xx + G'Q_uu G + G'Q_ux + Q_ux'G
+    Tassa, Mansard, Todorov 2014). The stage cost of (ds_t, du_t) is 1/2 [ds; du]'H_t [ds; du] +
+    g_t'[ds; du] (l_s, l_u = g's blocks, l_ss, l_us, l_uu = H's), the dynamics
+    ds_{t+1} = f_s,t ds_t + f_u,t du_t. From V_T = l_T, for t = T-1 .. 0 (V+ is V_{t+1}, ' the
+    transpose, f_s and f_u at t):
+        Q_s  = l_s  + f_s'V+_s          Q_ss = l_ss + f_s'V+_ss f_s
+        Q_u  = l_u  + f_u'V+_s          Q_uu = l_uu + f_u'V+_ss f_u     Q_us = l_us + f_u'V+_ss f_s
+        du   = ff + G ds                the step that minimises Q (box_policy or fixed_policy)
+        V_s  = Q_s  + G'Q_uu ff + G'Q_u + Q_us'ff
+        V_ss = Q_ss + G'Q_uu G + G'Q_us + Q_us'G
     iLQR's pass bounds du by lo, hi (B, T, m) (box_policy); the KKT backward's holds the controls
-    that are not free (B, T, m) at du = 0 (fixed_policy). A (B, T, n, n), B (B, T, n, m),
-    H (B, T+1, n+m, n+m), g (B, T+1, n+m) (the last step has no control). Returns k (B, T, m),
-    G (B, T, m, n), free (B, T, m) and V_x at t = 0 (B, n): the costate lambda_0 = dV_0/dx_0."""
-    T, n = A.shape[1], A.shape[-1]
-    V_x = g[:, T, :n, None]  # (B, n, 1)
-    V_xx = H[:, T, :n, :n]  # (B, n, n)
-    steps = []  # (k, G, free) of t = T-1 .. 0
+    that are not free (B, T, m) at du = 0 (fixed_policy). f_s (B, T, n, n), f_u (B, T, n, m),
+    H (B, T+1, n+m, n+m), g (B, T+1, n+m) (the last step has no control). Returns ff (B, T, m),
+    G (B, T, m, n), free (B, T, m) and V_s at t = 0 (B, n): the costate lambda_0 = dV_0/ds_0."""
+    T, n = f_s.shape[1], f_s.shape[-1]
+    V_s = g[:, T, :n, None]  # (B, n, 1)
+    V_ss = H[:, T, :n, :n]  # (B, n, n)
+    steps = []  # (ff, G, free) of t = T-1 .. 0
     for t in reversed(range(T)):
-        A_t, B_t = A[:, t], B[:, t]  # (B, n, n), (B, n, m)
-        l_x, l_u = g[:, t, :n, None], g[:, t, n:, None]  # (B, n, 1), (B, m, 1)
-        l_xx, l_ux, l_uu = H[:, t, :n, :n], H[:, t, n:, :n], H[:, t, n:, n:]
-        Q_x = l_x + A_t.mT @ V_x  # (B, n, 1)
-        Q_u = l_u + B_t.mT @ V_x  # (B, m, 1)
-        Q_xx = l_xx + A_t.mT @ V_xx @ A_t  # (B, n, n)
-        Q_uu = l_uu + B_t.mT @ V_xx @ B_t  # (B, m, m)
-        Q_ux = l_ux + B_t.mT @ V_xx @ A_t  # (B, m, n)
+        f_s_t, f_u_t = f_s[:, t], f_u[:, t]  # (B, n, n), (B, n, m)
+        l_s, l_u = g[:, t, :n, None], g[:, t, n:, None]  # (B, n, 1), (B, m, 1)
+        l_ss, l_us, l_uu = H[:, t, :n, :n], H[:, t, n:, :n], H[:, t, n:, n:]
+        Q_s = l_s + f_s_t.mT @ V_s  # (B, n, 1)
+        Q_u = l_u + f_u_t.mT @ V_s  # (B, m, 1)
+        Q_ss = l_ss + f_s_t.mT @ V_ss @ f_s_t  # (B, n, n)
+        Q_uu = l_uu + f_u_t.mT @ V_ss @ f_u_t  # (B, m, m)
+        Q_us = l_us + f_u_t.mT @ V_ss @ f_s_t  # (B, m, n)
         if free is None:
-            k, G, free_t = box_policy(Q_u, Q_ux, Q_uu, lo[:, t], hi[:, t], pd_eps)
+            ff, G, free_t = box_policy(Q_u, Q_us, Q_uu, lo[:, t], hi[:, t], pd_eps)
         else:
-            k, G, free_t = fixed_policy(Q_u, Q_ux, Q_uu, free[:, t])
-        V_x = Q_x + G.mT @ Q_uu @ k + G.mT @ Q_u + Q_ux.mT @ k  # (B, n, 1)
-        V_xx = Q_xx + G.mT @ Q_uu @ G + G.mT @ Q_ux + Q_ux.mT @ G  # (B, n, n)
-        V_xx = (V_xx + V_xx.mT) / 2  # symmetric up to rounding; kept exactly symmetric
-        steps.append((k[..., 0], G, free_t))
-    k, G, free_out = (torch.stack(v[::-1], 1) for v in zip(*steps))
-    return k, G, free_out, V_x[..., 0]
+            ff, G, free_t = fixed_policy(Q_u, Q_us, Q_uu, free[:, t])
+        V_s = Q_s + G.mT @ Q_uu @ ff + G.mT @ Q_u + Q_us.mT @ ff  # (B, n, 1)
+        V_ss = Q_ss + G.mT @ Q_uu @ G + G.mT @ Q_us + Q_us.mT @ G  # (B, n, n)
+        V_ss = (V_ss + V_ss.mT) / 2  # symmetric up to rounding; kept exactly symmetric
+        steps.append((ff[..., 0], G, free_t))
+    ff, G, free_out = (torch.stack(v[::-1], 1) for v in zip(*steps))
+    return ff, G, free_out, V_s[..., 0]
 
 
 @dataclass
@@ -902,37 +900,37 @@ class ILQRInfo:
 
 
 def ilqr(
-    cost_fn, dynamics, x_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0
+    cost_fn, dynamics, s_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0
 ):
     """iLQR with box controls (App. C.2); differentiable by unrolling (`ILQR` gives the exact KKT
-    gradient instead). x_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m)
-    -> x (B, T+1, n), u (B, T, m), ILQRInfo. Each iteration
-        1. expands the cost to second and the dynamics to first order along (x, u),
-        2. solves the box-constrained LQR of the step du = k + G dx (lqr_backward),
+    gradient instead). s_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m)
+    -> s (B, T+1, n), u (B, T, m), ILQRInfo. Each iteration
+        1. expands the cost to second and the dynamics to first order along (s, u),
+        2. solves the box-constrained LQR of the step du = ff + G ds (lqr_backward),
         3. line-searches the step's scale (line_search);
     a scenario whose full step is below tol has converged and stops moving."""
-    Bsz, T, m = u_init.shape
-    lo, hi = lo.expand(Bsz, T, m), hi.expand(Bsz, T, m)
+    B, T, m = u_init.shape
+    lo, hi = lo.expand(B, T, m), hi.expand(B, T, m)
     u = u_init.clamp(lo, hi)
-    x = rollout(dynamics, x_init, u)
-    cost = cost_fn(x, u, *params)  # (B,)
+    s = rollout(dynamics, s_init, u)
+    cost = cost_fn(s, u, *params)  # (B,)
     # Q_uu's least eigenvalue: > 0 for a descent step, and in float32 well above the rounding
     # of Q_uu's entries (eps 1.2e-7 times up to ~1e3)
-    pd_eps = 1e-6 if x.dtype == torch.float64 else 1e-3
-    scales = ls_decay ** -torch.arange(ls_steps, dtype=x.dtype, device=x.device)  # 1, 1/5, ...
-    moving = torch.ones(Bsz, dtype=torch.bool, device=x.device)
-    iters_run = torch.zeros(Bsz, dtype=torch.long, device=x.device)
-    step_norm = torch.full((Bsz,), math.inf, dtype=x.dtype, device=x.device)
+    pd_eps = 1e-6 if s.dtype == torch.float64 else 1e-3
+    scales = ls_decay ** -torch.arange(ls_steps, dtype=s.dtype, device=s.device)  # 1, 1/5, ...
+    moving = torch.ones(B, dtype=torch.bool, device=s.device)
+    iters_run = torch.zeros(B, dtype=torch.long, device=s.device)
+    step_norm = torch.full((B,), math.inf, dtype=s.dtype, device=s.device)
     costs = [cost]
     for _ in range(iters):
-        g, H = cost_expansion(cost_fn, x, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
-        A, B = dynamics_jacobians(dynamics, x, u)  # (B, T, n, n), (B, T, n, m)
-        k, G, _, _ = lqr_backward(A, B, H, g, lo - u, hi - u, pd_eps)
-        x_new, u_new, cost_new, accepted, full_step = line_search(
-            cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales
+        g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
+        f_s, f_u = dynamics_jacobians(dynamics, s, u)  # (B, T, n, n), (B, T, n, m)
+        ff, G, _, _ = lqr_backward(f_s, f_u, H, g, lo - u, hi - u, pd_eps)
+        s_new, u_new, cost_new, accepted, full_step = line_search(
+            cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales
         )
         take = moving & accepted  # (B,): a converged scenario stays where it is
-        x = torch.where(take[:, None, None], x_new, x)
+        s = torch.where(take[:, None, None], s_new, s)
         u = torch.where(take[:, None, None], u_new, u)
         cost = torch.where(take, cost_new, cost)
         step_norm = torch.where(moving, full_step, step_norm)
@@ -941,134 +939,134 @@ def ilqr(
         moving = moving & (step_norm >= tol)
         if not moving.any():
             break
-    return x, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
+    return s, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
 
 
-def closed_loop_rollout(dynamics, x, u, k, G, lo, hi):
-    """The LQR step applied with feedback from x_0' = x_0:
-        u_t' = clamp(u_t + k_t + G_t (x_t' - x_t), lo_t, hi_t),   x_{t+1}' = f(x_t', u_t').
-    x (B, T+1, n), u, k, lo, hi (B, T, m), G (B, T, m, n) -> x' (B, T+1, n), u' (B, T, m)."""
-    xs, us = [x[:, 0]], []
+def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
+    """The LQR step applied with feedback, from s_new,0 = s_0:
+        u_new,t = clamp(u_t + ff_t + G_t (s_new,t - s_t), lo_t, hi_t),
+        s_new,t+1 = f(s_new,t, u_new,t).
+    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n) -> s_new (B, T+1, n), u_new (B, T, m)."""
+    s_out, u_out = [s[:, 0]], []
     for t in range(u.shape[1]):
-        feedback = (G[:, t] @ (xs[-1] - x[:, t])[..., None])[..., 0]  # (B, m)
-        us.append((u[:, t] + k[:, t] + feedback).clamp(lo[:, t], hi[:, t]))
-        xs.append(dynamics(xs[-1], us[-1]))
-    return torch.stack(xs, 1), torch.stack(us, 1)
+        feedback = (G[:, t] @ (s_out[-1] - s[:, t])[..., None])[..., 0]  # (B, m)
+        u_out.append((u[:, t] + ff[:, t] + feedback).clamp(lo[:, t], hi[:, t]))
+        s_out.append(dynamics(s_out[-1], u_out[-1]))
+    return torch.stack(s_out, 1), torch.stack(u_out, 1)
 
 
-def line_search(cost_fn, dynamics, x, u, cost, k, G, lo, hi, params, scales):
-    """Backtracking (App. C.2): the closed-loop rollout of the step eta k + G dx at eta = 1, then at
-    1/5, 1/25, ... where the true cost rose; the first scale that does not raise it is taken.
-    x (B, T+1, n), u, k, lo, hi (B, T, m), G (B, T, m, n), cost (B,) -> the new x, u, cost (the
+def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales):
+    """Backtracking (App. C.2): the closed-loop rollout of the step eta ff + G ds at eta = 1, then
+    at 1/5, 1/25, ... where the true cost rose; the first scale that does not raise it is taken.
+    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n), cost (B,) -> the new s, u, cost (the
     old ones where no scale was accepted), accepted (B,), and the norm of the full step (B,)."""
-    eps = torch.finfo(x.dtype).eps
-    x_new, u_new, cost_new = x, u, cost
+    eps = torch.finfo(s.dtype).eps
+    s_new, u_new, cost_new = s, u, cost
     accepted = torch.zeros_like(cost, dtype=torch.bool)
     for i, eta in enumerate(scales):
-        x_eta, u_eta = closed_loop_rollout(dynamics, x, u, eta * k, G, lo, hi)
-        cost_eta = cost_fn(x_eta, u_eta, *params)  # (B,)
+        s_eta, u_eta = closed_loop_rollout(dynamics, s, u, eta * ff, G, lo, hi)
+        cost_eta = cost_fn(s_eta, u_eta, *params)  # (B,)
         if i == 0:
             full_step = (u_eta - u).flatten(1).norm(dim=-1)  # (B,)
         # no rise up to rounding: the cost sums ~T (1 + A) terms, each rounded to eps
         no_rise = cost_eta <= cost + 100 * eps * (1 + cost.abs())
         take = no_rise & ~accepted  # (B,)
-        x_new = torch.where(take[:, None, None], x_eta, x_new)
+        s_new = torch.where(take[:, None, None], s_eta, s_new)
         u_new = torch.where(take[:, None, None], u_eta, u_new)
         cost_new = torch.where(take, cost_eta, cost_new)
         accepted = accepted | take
         if accepted.all():
             break
-    return x_new, u_new, cost_new, accepted, full_step
+    return s_new, u_new, cost_new, accepted, full_step
 
 
 def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
     """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
     lam (..., 4).
 
-    Only the displacement D = R(h) d, d = (along, lateral), is curved, in (h, v, omega, a). With
+    Only the displacement R(h) disp, disp = (along, lateral), is curved, in (h, v, omega, a). With
     nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
-        d2/dh2 = -nu'd,   d2/dh dq = (J'nu)' dd/dq,   d2/dq dr = nu' d2d/dq dr
-    (q, r in (v, omega, a)); the moments' rule above gives every derivative of d."""
+        d2/dh2 = -nu'disp,   d2/dh dq = (J'nu)' ddisp/dq,   d2/dq dr = nu' d2disp/dq dr
+    (q, r in (v, omega, a)); the moments' rule above gives every derivative of disp."""
     h, v = s[..., 2], s[..., 3]
     omega, a = u.unbind(-1)
     (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
     nu_y = -sin_h * lam[..., 0] + cos_h * lam[..., 1]
-    d = (v * cm0 + a * cm1, v * sm0 + a * sm1)
-    # first derivatives of d, by q
-    dd = {"v": (cm0, sm0), "omega": (-(v * sm1 + a * sm2), v * cm1 + a * cm2), "a": (cm1, sm1)}
-    # second derivatives of d that are not zero, by (q, r)
-    d2 = {
+    disp = (v * cm0 + a * cm1, v * sm0 + a * sm1)
+    # first derivatives of disp, by q
+    ddisp = {"v": (cm0, sm0), "omega": (-(v * sm1 + a * sm2), v * cm1 + a * cm2), "a": (cm1, sm1)}
+    # second derivatives of disp that are not zero, by (q, r)
+    d2disp = {
         ("v", "omega"): (-sm1, cm1),
         ("omega", "a"): (-sm2, cm2),
         ("omega", "omega"): (-(v * cm2 + a * cm3), -(v * sm2 + a * sm3)),
     }
-    index = {"h": 2, "v": 3, "omega": 4, "a": 5}  # positions in z = (x, y, h, v, omega, a)
+    index = {"h": 2, "v": 3, "omega": 4, "a": 5}  # positions in (s, u) = (x, y, h, v, omega, a)
     H = torch.zeros(*h.shape, 6, 6, dtype=s.dtype, device=s.device)
-    H[..., 2, 2] = -(nu_x * d[0] + nu_y * d[1])  # -nu'd
-    for q, e in dd.items():
+    H[..., 2, 2] = -(nu_x * disp[0] + nu_y * disp[1])  # -nu'disp
+    for q, e in ddisp.items():
         H[..., 2, index[q]] = H[..., index[q], 2] = nu_y * e[0] - nu_x * e[1]  # (J'nu)' e
-    for (q, r), e in d2.items():
+    for (q, r), e in d2disp.items():
         H[..., index[q], index[r]] = H[..., index[r], index[q]] = nu_x * e[0] + nu_y * e[1]
     return H
 
 
-def lagrangian_curvature(dynamics, x, u, g, A):
-    """The dynamics' part of the Lagrangian's Hessian, sum_i lambda_{t+1, i} d2 f_i / dz_t^2
-    (B, T+1, n+m, n+m) (0 at t = T), with the costates of stationarity in x:
-        lambda_T = dl_T/dx_T,   lambda_t = dl_t/dx_t + A_t' lambda_{t+1}.
-    g (B, T+1, n+m) the cost's gradient along x (B, T+1, n), u (B, T, m); A (B, T, n, n)."""
-    n, T = x.shape[-1], u.shape[1]
+def lagrangian_curvature(dynamics, s, u, g, f_s):
+    """The dynamics' part of the Lagrangian's Hessian, sum_i lambda_{t+1, i} d2 f_i / d(s_t, u_t)^2
+    (B, T+1, n+m, n+m) (0 at t = T), with the costates of stationarity in s:
+        lambda_T = dl_T/ds_T,   lambda_t = dl_t/ds_t + f_s,t' lambda_{t+1}.
+    g (B, T+1, n+m) the cost's gradient along s (B, T+1, n), u (B, T, m); f_s (B, T, n, n)."""
+    n, T = s.shape[-1], u.shape[1]
     lam = [g[:, T, :n]]  # lambda_T .. lambda_1
     for t in reversed(range(1, T)):
-        lam.append(g[:, t, :n] + (A[:, t].mT @ lam[-1][..., None])[..., 0])
+        lam.append(g[:, t, :n] + (f_s[:, t].mT @ lam[-1][..., None])[..., 0])
     lam = torch.stack(lam[::-1], 1)  # (B, T, n): lambda_1 .. lambda_T
     if hasattr(dynamics, "curvature"):  # closed form (Unicycle)
-        Hf = dynamics.curvature(x[:, :-1], u, lam)  # (B, T, n+m, n+m)
-    else:  # autodiff: the Hessian of sum_t lambda_{t+1}' f(z_t)
-        grad = torch.func.grad(lambda z: (lam * dynamics(z[..., :n], z[..., n:])).sum())
-        Hf = _stagewise_jacobian(grad, torch.cat([x[:, :-1], u], -1))
+        Hf = dynamics.curvature(s[:, :-1], u, lam)  # (B, T, n+m, n+m)
+    else:  # autodiff: the Hessian of sum_t lambda_{t+1}' f(s_t, u_t)
+        grad = torch.func.grad(lambda su: (lam * dynamics(su[..., :n], su[..., n:])).sum())
+        Hf = _stagewise_jacobian(grad, torch.cat([s[:, :-1], u], -1))
     return torch.cat([Hf, torch.zeros_like(Hf[:, :1])], 1)
 
 
-def kkt_backward(cost_fn, dynamics, x, u, params, free, grad_x, grad_u, exact=True):
-    """Gradients of a loss on the solution (x, u) wrt x_init and params (Amos et al. 2018).
+def kkt_backward(cost_fn, dynamics, s, u, params, free, grad_s, grad_u, exact=True):
+    """Gradients of a loss on the solution tau = (s, u) wrt s_init and params (Amos et al. 2018).
 
-    At the solution the KKT conditions F(x, u, lambda; params) = 0 hold; by the implicit function
-    theorem dloss/dparams = d' dF/dparams, where d solves the KKT system with the incoming
+    At the solution the KKT conditions F(s, u, lambda; params) = 0 hold; by the implicit function
+    theorem dloss/dparams = delta' dF/dparams, where delta solves the KKT system with the incoming
     gradient as right-hand side, an LQR problem:
-        min_d 1/2 d'H d + (dloss/dz)'d   s.t.  dx_0 = 0, dx_{t+1} = A_t dx_t + B_t du_t,
-                                               du_active = 0,
-    H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(x_t, u_t) - x_{t+1}):
-        H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(x_t, u_t)      (lagrangian_curvature)
+        min_delta 1/2 delta'H delta + (dloss/dtau)'delta   s.t.  ds_0 = 0, du_active = 0,
+                                                                 ds_{t+1} = f_s ds_t + f_u du_t,
+    H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(s_t, u_t) - s_{t+1}):
+        H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(s_t, u_t)      (lagrangian_curvature)
     (exact=False drops the curvature: the paper's variant). Amos et al.'s gradients, for the
-    quadratic cost 1/2 z'C z + c'z of their LQR, with d their d*_tau and z the solution:
-        dloss/dc = d,   dloss/dC = (d z' + z d') / 2,   dloss/dx_init = d*_lambda_0 = lambda_0.
-    Both are the gradient of <grad_z cost, d> = <C z + c, d> in (C, c), z and d fixed. For any
-    cost(z; params), expanded at z (C its Hessian, c = grad_z cost - C z), the chain rule through
-    C and c leaves the gradient in params of the same product, params_gradients' double backward:
-        dloss/dparams = d/dparams [ sum_t dl_t/dz_t(params) . d_t ]     (d fixed)
-    and dloss/dx_init = lambda_0, the LQR's costate at t = 0 (its value function's gradient).
-    x (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_x, grad_u like x, u."""
-    g, H = cost_expansion(cost_fn, x, u, params)
-    A, B = dynamics_jacobians(dynamics, x, u)
+    quadratic cost 1/2 tau'C tau + c'tau of their LQR, with delta their d*_tau:
+        dloss/dc = delta,  dloss/dC = (delta tau' + tau delta') / 2,  dloss/ds_init = lambda_0,
+    the LQR's costate at t = 0. Both are the gradient of <grad_tau cost, delta> = <C tau + c, delta>
+    in (C, c), tau and delta fixed; for any cost(tau; params), expanded at tau, the chain rule
+    through C and c gives params_gradients' double backward of the same product:
+        dloss/dparams = d/dparams [ sum_t dl_t/dtau_t(params) . delta_t ]     (delta fixed)
+    s (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_s, grad_u like s, u."""
+    g, H = cost_expansion(cost_fn, s, u, params)
+    f_s, f_u = dynamics_jacobians(dynamics, s, u)
     if exact:
-        H = H + lagrangian_curvature(dynamics, x, u, g, A)
+        H = H + lagrangian_curvature(dynamics, s, u, g, f_s)
     grad_u_padded = torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)
-    rhs = torch.cat([grad_x, grad_u_padded], -1)  # (B, T+1, n+m)
-    k, G, _, lam0 = lqr_backward(A, B, H, rhs, free=free)
-    # the LQR's solution d = (dx, du) from dx_0 = 0
-    dx, du = [torch.zeros_like(x[:, 0])], []
+    rhs = torch.cat([grad_s, grad_u_padded], -1)  # (B, T+1, n+m)
+    ff, G, _, lam0 = lqr_backward(f_s, f_u, H, rhs, free=free)
+    # the LQR's solution delta = (ds, du) from ds_0 = 0
+    ds, du = [torch.zeros_like(s[:, 0])], []
     for t in range(u.shape[1]):
-        du.append(k[:, t] + (G[:, t] @ dx[-1][..., None])[..., 0])
-        dx.append((A[:, t] @ dx[-1][..., None] + B[:, t] @ du[-1][..., None])[..., 0])
-    dx, du = torch.stack(dx, 1), torch.stack(du, 1)
-    return lam0, params_gradients(cost_fn, x, u, params, dx, du)
+        du.append(ff[:, t] + (G[:, t] @ ds[-1][..., None])[..., 0])
+        ds.append((f_s[:, t] @ ds[-1][..., None] + f_u[:, t] @ du[-1][..., None])[..., 0])
+    ds, du = torch.stack(ds, 1), torch.stack(du, 1)
+    return lam0, params_gradients(cost_fn, s, u, params, ds, du)
 
 
-def params_gradients(cost_fn, x, u, params, dx, du):
-    """d/dparams [ sum_t dl_t/dz_t(params) . d_t ] with d = (dx, du) fixed: one gradient per
+def params_gradients(cost_fn, s, u, params, ds, du):
+    """d/dparams [ sum_t dl_t/dtau_t(params) . delta_t ], delta = (ds, du) fixed: one gradient per
     entry of params (None where it is no tensor that requires grad)."""
     needs = [i for i, p in enumerate(params) if torch.is_tensor(p) and p.requires_grad]
     if not needs:
@@ -1077,9 +1075,9 @@ def params_gradients(cost_fn, x, u, params, dx, du):
         ps = list(params)
         for i in needs:
             ps[i] = params[i].detach().requires_grad_()
-        xg, ug = x.detach().requires_grad_(), u.detach().requires_grad_()
-        gx, gu = torch.autograd.grad(cost_fn(xg, ug, *ps).sum(), (xg, ug), create_graph=True)
-        inner = (gx * dx).sum() + (gu * du).sum()  # < dC/dz (params), d >
+        sg, ug = s.detach().requires_grad_(), u.detach().requires_grad_()
+        gs, gu = torch.autograd.grad(cost_fn(sg, ug, *ps).sum(), (sg, ug), create_graph=True)
+        inner = (gs * ds).sum() + (gu * du).sum()  # < dC/dtau (params), delta >
         found = torch.autograd.grad(inner, [ps[i] for i in needs], allow_unused=True)
     return [dict(zip(needs, found)).get(i) for i in range(len(params))]
 
@@ -1088,64 +1086,61 @@ class ILQR(torch.autograd.Function):
     """iLQR with the KKT backward (use `ilqr_solve`); the unconverged pass no gradient (§3.1)."""
 
     @staticmethod
-    def forward(fctx, cost_fn, dynamics, settings, exact, x_init, u_init, *params):
+    def forward(fctx, cost_fn, dynamics, settings, exact, s_init, u_init, *params):
         with torch.no_grad():
-            x, u, info = ilqr(cost_fn, dynamics, x_init, u_init, params, **settings)
+            s, u, info = ilqr(cost_fn, dynamics, s_init, u_init, params, **settings)
         fctx.fns = (cost_fn, dynamics, exact)
         lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
-        fctx.save_for_backward(x, u, info.converged, lo, hi, *params)
+        fctx.save_for_backward(s, u, info.converged, lo, hi, *params)
         fctx.mark_non_differentiable(info.converged)
-        return x, u, info.converged
+        return s, u, info.converged
 
     @staticmethod
-    def backward(fctx, grad_x, grad_u, _):
+    def backward(fctx, grad_s, grad_u, _):
         cost_fn, dynamics, exact = fctx.fns
-        x, u, converged, lo, hi, *params = fctx.saved_tensors
+        s, u, converged, lo, hi, *params = fctx.saved_tensors
         # held fixed: the controls at a bound, where clamp() put them exactly (1e-8: rounding)
         free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)
-        keep = converged.to(x.dtype)[:, None, None]  # the unconverged pass no gradient
-        lam0, grads = kkt_backward(
-            cost_fn, dynamics, x, u, params, free, grad_x * keep, grad_u * keep, exact
-        )
+        keep = converged.to(s.dtype)[:, None, None]  # the unconverged pass no gradient
+        grads_in = (grad_s * keep, grad_u * keep)
+        lam0, grads = kkt_backward(cost_fn, dynamics, s, u, params, free, *grads_in, exact)
         return (None, None, None, None, lam0, None, *grads)
 
 
-def ilqr_solve(cost_fn, dynamics, x_init, u_init, params, lo, hi, exact=True, **settings):
-    """The differentiable controller, eq. (4): x (B, T+1, n), u (B, T, m), converged (B,);
+def ilqr_solve(cost_fn, dynamics, s_init, u_init, params, lo, hi, exact=True, **settings):
+    """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,);
     arguments and settings (iters, tol, ls_steps, ls_decay) as `ilqr`'s."""
-    settings["lo"] = torch.as_tensor(lo, dtype=x_init.dtype, device=x_init.device)
-    settings["hi"] = torch.as_tensor(hi, dtype=x_init.dtype, device=x_init.device)
-    return ILQR.apply(cost_fn, dynamics, settings, exact, x_init, u_init, *params)
+    settings["lo"] = torch.as_tensor(lo, dtype=s_init.dtype, device=s_init.device)
+    settings["hi"] = torch.as_tensor(hi, dtype=s_init.dtype, device=s_init.device)
+    return ILQR.apply(cost_fn, dynamics, settings, exact, s_init, u_init, *params)
 
 
 # ===== 6. Predictor, eq. (1): a Trajectron++-style CVAE over controls (§3.1, Salzmann et al.) ====
-# From 4 s of history of the predicted vehicle and its neighbours (the other agents and the ego),
-# K = 25 futures, one per value of a discrete latent z:
-#     p(y | x) = sum_k p(z = k | x) p(y | x, z = k).
-# For each k a GRU emits per step a bivariate Gaussian over the controls u = (yaw rate
-# omega, acceleration a); the mean controls are integrated by the planner's unicycle and the control
-# covariances pushed through its Jacobians (EKF): a K-component GMM over positions per step.
-# Training maximises Trajectron++'s InfoVAE objective, q(z | x, y) from a bidirectional LSTM over
-# the true future; all K values of z are enumerated, none sampled. The GRU's next input is the
-# reparameterised sample of u_t in training (Trajectron++), the mean at evaluation; the modes are
-# the integrated mean controls either way, weighted by q(z|x,y) in training (the authors' code),
-# p(z|x) at evaluation. Where this differs from Trajectron++ (no map, no ego-future conditioning,
-# ...): docs/method.md.
+# From 4 s of history of the predicted vehicle and its neighbours (the others and the ego), K = 25
+# futures, one per value of a discrete latent z: p(s_gt | c) = sum_k p(z=k | c) p(s_gt | c, z=k).
+# For each k a GRU emits per step a bivariate Gaussian over the controls u = (omega, a); the mean
+# controls are integrated by the planner's unicycle and the control covariances pushed through its
+# Jacobians (EKF): a K-component GMM over positions per step. Training maximises Trajectron++'s
+# InfoVAE objective, q(z | c, s_gt) from a bidirectional LSTM over the true future; all K values of
+# z are enumerated, none sampled. The GRU's next input is the reparameterised sample of u_t in
+# training (Trajectron++), the mean at evaluation; the modes are the integrated mean controls,
+# weighted by q(z|c,s_gt) in training (the authors' code), p(z|c) at evaluation. Where this differs
+# from Trajectron++ (no map, no ego-future conditioning, ...): docs/method.md.
 
 # ---- 6.1 Inputs: the 8-D state history, by backward differences ------------------------------
 
 
-def backward_diff(x: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
-    """d_t = (x_t - x_{t-1}) / dt for x (..., H, D); steps t <= first (...,) (the first observed
-    step) copy d_{first+1}. Backward, never central: a central difference at t0 would read x_{t1},
-    the future."""
-    H = x.shape[-2]
-    diff = (x[..., 1:, :] - x[..., :-1, :]) / dt  # (..., H-1, D)
-    d = torch.cat([torch.zeros_like(x[..., :1, :]), diff], -2)  # (..., H, D)
+def backward_diff(track: torch.Tensor, first: torch.Tensor, dt: float) -> torch.Tensor:
+    """rate_t = (track_t - track_{t-1}) / dt for a track (..., H, D); steps t <= first (...,) (the
+    first observed step) copy rate_{first+1}. Backward, never central: a central difference at t0
+    would read track_{t1}, the future."""
+    H = track.shape[-2]
+    diff = (track[..., 1:, :] - track[..., :-1, :]) / dt  # (..., H-1, D)
+    rate = torch.cat([torch.zeros_like(track[..., :1, :]), diff], -2)  # (..., H, D)
     idx = (first + 1).clamp(max=H - 1)[..., None, None]  # (..., 1, 1)
-    d_first = torch.take_along_dim(d, idx, dim=-2)  # (..., 1, D)
-    t = torch.arange(H, device=x.device)
-    return torch.where((t <= first[..., None])[..., None], d_first, d)  # (..., H, D)
+    rate_first = torch.take_along_dim(rate, idx, dim=-2)  # (..., 1, D)
+    t = torch.arange(H, device=track.device)
+    return torch.where((t <= first[..., None])[..., None], rate_first, rate)  # (..., H, D)
 
 
 def state_features(hist, origin, first, cfg: Config) -> torch.Tensor:
@@ -1176,9 +1171,9 @@ class Prediction:
     states: torch.Tensor  # (B, K, T, 4) mode trajectories t1..T: mean controls integrated
     controls: torch.Tensor  # (B, K, T, 2) mean controls (yaw rate, acceleration) of each mode
     pos_cov: torch.Tensor  # (B, K, T, 2, 2) position covariance of each GMM component
-    log_p: torch.Tensor  # (B, K) log p(z|x) (logits clipped when a training step is given)
-    log_q: torch.Tensor | None  # (B, K) log q(z|x,y), or None when the future was not used
-    probs: torch.Tensor  # (B, K) the mode weights: q(z|x,y) with use_posterior, else p(z|x)
+    log_p: torch.Tensor  # (B, K) log p(z|c) (logits clipped when a training step is given)
+    log_q: torch.Tensor | None  # (B, K) log q(z|c,s_gt), or None when the future was not used
+    probs: torch.Tensor  # (B, K) the mode weights: q(z|c,s_gt) with use_posterior, else p(z|c)
 
     @property
     def means(self) -> torch.Tensor:
@@ -1199,12 +1194,12 @@ def bounded_correlation(pre_tanh: torch.Tensor) -> torch.Tensor:
 
 
 def clip_logits(logits: torch.Tensor, step: int | None, cfg: Config) -> torch.Tensor:
-    """Trajectron++'s z-logit clipping, in training only: zero-mean logits clamped to +-c(step)."""
+    """Trajectron++'s z-logit clipping, in training only: zero-mean logits clamped to +-lc(step)."""
     if step is None:
         return logits
-    c0, c1, centre, width = cfg.pred_logit_clip
-    c = c0 + (c1 - c0) / (1 + math.exp(-(step - centre) / width))
-    return (logits - logits.mean(-1, keepdim=True)).clamp(-c, c)
+    lc0, lc1, centre, width = cfg.pred_logit_clip
+    lc = lc0 + (lc1 - lc0) / (1 + math.exp(-(step - centre) / width))
+    return (logits - logits.mean(-1, keepdim=True)).clamp(-lc, lc)
 
 
 def control_sample(out: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
@@ -1222,8 +1217,8 @@ def control_covariance(out: torch.Tensor) -> torch.Tensor:
     """Sigma_u = [[sd_om^2, rho sd_om sd_a], [rho sd_om sd_a, sd_a^2]] (..., 2, 2) of the decoder's
     output out (..., 5); the same rho as the sample's."""
     sd_om, sd_a = out[..., 2].exp(), out[..., 3].exp()
-    c = bounded_correlation(out[..., 4]) * sd_om * sd_a
-    return torch.stack([torch.stack([sd_om**2, c], -1), torch.stack([c, sd_a**2], -1)], -2)
+    off = bounded_correlation(out[..., 4]) * sd_om * sd_a  # the off-diagonal
+    return torch.stack([torch.stack([sd_om**2, off], -1), torch.stack([off, sd_a**2], -1)], -2)
 
 
 class Predictor(nn.Module):
@@ -1236,26 +1231,26 @@ class Predictor(nn.Module):
         E = cfg.pred_enc_hidden  # the encoders' width
         Hz = cfg.pred_latent_hidden  # the latent MLPs' width
         Hd = cfg.pred_dec_hidden  # the decoder's width
-        X = 2 * E  # x = (history encoding, neighbour context)
+        Dc = 2 * E  # the condition c = (history encoding, neighbour context)
         n_hist = cfg.hist_len + 1  # steps of history
         self.hist_lstm = nn.LSTMCell(8, E)
         self.nbr_mlp = nn.Sequential(nn.Linear(n_hist * 8 + 2, E), nn.ReLU(), nn.Linear(E, E))
         self.att_q = nn.Linear(E, E, bias=False)
         self.att_k = nn.Linear(E, E, bias=False)
         self.fut_lstm = nn.LSTM(8, E, batch_first=True, bidirectional=True)
-        self.p_z = nn.Sequential(nn.Linear(X, Hz), nn.ReLU(), nn.Linear(Hz, K))
-        self.q_z = nn.Sequential(nn.Linear(X + 2 * E, Hz), nn.ReLU(), nn.Linear(Hz, K))
-        # the decoder GRU (see decode): h_0 = dec_h0([z; x]), input [z; x; u_prev]
-        self.dec_h0 = nn.Linear(K + X, Hd)
+        self.p_z = nn.Sequential(nn.Linear(Dc, Hz), nn.ReLU(), nn.Linear(Hz, K))
+        self.q_z = nn.Sequential(nn.Linear(Dc + 2 * E, Hz), nn.ReLU(), nn.Linear(Hz, K))
+        # the decoder GRU (see decode): h_0 = dec_h0([z; c]), input [z; c; u_prev]
+        self.dec_h0 = nn.Linear(K + Dc, Hd)
         self.dec_u0 = nn.Linear(8, 2)  # u_prev at t0 from the current state (Trajectron++'s)
-        self.dec_in = nn.Linear(K + X + 2, 3 * Hd)  # W_i, b_i: the gates' rows r, z, n
+        self.dec_in = nn.Linear(K + Dc + 2, 3 * Hd)  # W_i, b_i: the gates' rows r, z, n
         self.dec_hh = nn.Linear(Hd, 3 * Hd)  # W_h, b_h
         self.dec_out = nn.Linear(Hd, 5)
-        self.heading_fix = nn.Linear(X + 1, 1)  # Trajectron++'s Unicycle p0_model (initial_state)
+        self.heading_fix = nn.Linear(Dc + 1, 1)  # Trajectron++'s Unicycle p0_model (initial_state)
 
     def encode(self, batch) -> tuple[torch.Tensor, torch.Tensor]:
-        """x (B, 2E) = (history LSTM state, attention over neighbours), and the agent's features
-        (B, H, 8)."""
+        """The condition c (B, 2E) = (history LSTM state, attention over neighbours), and the
+        agent's features (B, H, 8)."""
         cfg = self.cfg
         hist, mask = batch.agent_hist, batch.agent_hist_mask  # (B, H, 4), (B, H)
         B, H = mask.shape
@@ -1287,19 +1282,19 @@ class Predictor(nn.Module):
         att = (att_w[..., None] * e).sum(1)  # (B, E); zero for an agent without neighbours
         return torch.cat([h, att], -1), f  # (B, 2E), (B, H, 8)
 
-    def encode_future(self, batch, x: torch.Tensor) -> torch.Tensor:
-        """The q(z|x,y) logits (B, K): a bidirectional LSTM over the GT future's 8-D states."""
+    def encode_future(self, batch, c: torch.Tensor) -> torch.Tensor:
+        """The q(z|c,s_gt) logits (B, K): a bidirectional LSTM over the GT future's 8-D states."""
         cur_fut = torch.cat([batch.agent_hist[:, -1:], batch.agent_fut], 1)  # (B, 1+T, 4)
         zero = torch.zeros(len(cur_fut), dtype=torch.long, device=cur_fut.device)
         fy = state_features(cur_fut, batch.agent_hist[:, -1, :2], zero, self.cfg)[:, 1:]
         _, (h_n, _) = self.fut_lstm(fy)  # h_n (2, B, E): the last state of each direction
         y_enc = torch.cat([h_n[0], h_n[1]], -1)  # (B, 2E)
-        return self.q_z(torch.cat([x, y_enc], -1))  # (B, K)
+        return self.q_z(torch.cat([c, y_enc], -1))  # (B, K)
 
-    def decode(self, x: torch.Tensor, f0: torch.Tensor, noise=None):
+    def decode(self, c: torch.Tensor, f0: torch.Tensor, noise=None):
         """Per mode k and step t a Gaussian over controls: means (B, K, T, 2), covariances
         (B, K, T, 2, 2). A GRU (Cho et al. 2014) over the steps, all K values of z at once as B*K
-        rows, with input i = [one_hot(z); x; u_prev] and h_0 = W_0 [one_hot(z); x] + b_0:
+        rows, with input i = [one_hot(z); c; u_prev] and h_0 = W_0 [one_hot(z); c] + b_0:
             r  = sigmoid(W_ir i + b_ir + W_hr h + b_hr)
             g  = sigmoid(W_ig i + b_ig + W_hg h + b_hg)   (Cho's update gate z: z is the latent)
             n  = tanh(W_in i + b_in + r * (W_hn h + b_hn))
@@ -1307,23 +1302,23 @@ class Predictor(nn.Module):
         noise: the training sample's standard normal draws, a tensor (T, B, K, 2), or a
         torch.Generator to draw them from (None: torch's)."""
         K, T, Hd = self.cfg.pred_modes, self.cfg.horizon, self.cfg.pred_dec_hidden
-        B, X = x.shape
-        # the input's constant part: W_i [one_hot(k); x] + b_i = W_ik[:, k] + W_ix x + b_i, per gate
-        W_ik, W_ix, W_iu = self.dec_in.weight.split([K, X, 2], 1)  # (3Hd, K), (3Hd, X), (3Hd, 2)
-        zx = ((x @ W_ix.T + self.dec_in.bias)[:, None] + W_ik.T).reshape(B * K, 3 * Hd)
-        zx_r, zx_g, zx_n = zx.chunk(3, 1)  # (B*K, Hd) each
+        B, Dc = c.shape
+        # the input's constant part: W_i [one_hot(k); c] + b_i = W_ik[:, k] + W_ic c + b_i, per gate
+        W_ik, W_ic, W_iu = self.dec_in.weight.split([K, Dc, 2], 1)  # (3Hd, K), (3Hd, X), (3Hd, 2)
+        zc = ((c @ W_ic.T + self.dec_in.bias)[:, None] + W_ik.T).reshape(B * K, 3 * Hd)
+        zc_r, zc_g, zc_n = zc.chunk(3, 1)  # (B*K, Hd) each
         W_ur, W_ug, W_un = W_iu.chunk(3, 0)  # (Hd, 2) each: the input's u_prev part
         W_hr, W_hg, W_hn = self.dec_hh.weight.chunk(3, 0)  # (Hd, Hd) each
         b_hr, b_hg, b_hn = self.dec_hh.bias.chunk(3)  # (Hd,) each
-        W_0k, W_0x = self.dec_h0.weight.split([K, X], 1)  # (Hd, K), (Hd, X)
-        h = ((x @ W_0x.T + self.dec_h0.bias)[:, None] + W_0k.T).reshape(B * K, Hd)  # h_0
+        W_0k, W_0c = self.dec_h0.weight.split([K, Dc], 1)  # (Hd, K), (Hd, X)
+        h = ((c @ W_0c.T + self.dec_h0.bias)[:, None] + W_0k.T).reshape(B * K, Hd)  # h_0
         u_prev = self.dec_u0(f0).repeat_interleave(K, 0)  # (B*K, 2)
         outs = []
         for t in range(T):
             # W_h h + b_h, gate by gate (as nn.Linear computes it: addmm)
-            r = torch.sigmoid(zx_r + u_prev @ W_ur.T + torch.addmm(b_hr, h, W_hr.T))  # (B*K, Hd)
-            g = torch.sigmoid(zx_g + u_prev @ W_ug.T + torch.addmm(b_hg, h, W_hg.T))  # (B*K, Hd)
-            n = torch.tanh(zx_n + u_prev @ W_un.T + r * torch.addmm(b_hn, h, W_hn.T))  # (B*K, Hd)
+            r = torch.sigmoid(zc_r + u_prev @ W_ur.T + torch.addmm(b_hr, h, W_hr.T))  # (B*K, Hd)
+            g = torch.sigmoid(zc_g + u_prev @ W_ug.T + torch.addmm(b_hg, h, W_hg.T))  # (B*K, Hd)
+            n = torch.tanh(zc_n + u_prev @ W_un.T + r * torch.addmm(b_hn, h, W_hn.T))  # (B*K, Hd)
             h = torch.lerp(n, h, g)  # (B*K, Hd)  = (1 - g) * n + g * h
             out = self.dec_out(h)  # (B*K, 5) = (mu_om, mu_a, log sd_om, log sd_a, rho before tanh)
             outs.append(out)
@@ -1342,28 +1337,28 @@ class Predictor(nn.Module):
             return noise[t].reshape(-1, 2)
         return torch.randn(out.shape[0], 2, generator=noise, dtype=out.dtype, device=out.device)
 
-    def initial_state(self, batch, x: torch.Tensor) -> torch.Tensor:
+    def initial_state(self, batch, c: torch.Tensor) -> torch.Tensor:
         """s0 = (x0, y0, heading, v0) (B, 4): heading = velocity direction + a learned correction
         in (-1, 1) rad; the tracked speed."""
         hist = batch.agent_hist  # (B, H, 4)
         vel = (hist[:, -1, :2] - hist[:, -2, :2]) / self.cfg.dt  # (B, 2) backward difference
         moving = vel.norm(dim=-1) > self.cfg.pred_min_speed  # (B,)
         phi = torch.where(moving, torch.atan2(vel[:, 1], vel[:, 0]), hist[:, -1, 2])  # (B,)
-        phi = phi + torch.tanh(self.heading_fix(torch.cat([x, phi[:, None]], -1)))[:, 0]  # (B,)
+        phi = phi + torch.tanh(self.heading_fix(torch.cat([c, phi[:, None]], -1)))[:, 0]  # (B,)
         return torch.stack([hist[:, -1, 0], hist[:, -1, 1], phi, hist[:, -1, 3]], -1)  # (B, 4)
 
     def forward(self, batch, use_posterior: bool, step: int | None = None, noise=None):
         """K mode trajectories, their probabilities and the position GMM, as Prediction.
-        use_posterior: weigh the modes by q(z|x,y) (needs batch.agent_fut) instead of p(z|x).
+        use_posterior: weigh the modes by q(z|c,s_gt) (needs batch.agent_fut) instead of p(z|c).
         step: the training iteration, for clip_logits. noise: see decode."""
         cfg = self.cfg
-        x, f = self.encode(batch)  # (B, 2E), (B, H, 8)
-        log_p = torch.log_softmax(clip_logits(self.p_z(x), step, cfg), -1)  # (B, K)
+        c, f = self.encode(batch)  # (B, 2E), (B, H, 8)
+        log_p = torch.log_softmax(clip_logits(self.p_z(c), step, cfg), -1)  # (B, K)
         log_q = None
         if use_posterior:
-            log_q = torch.log_softmax(clip_logits(self.encode_future(batch, x), step, cfg), -1)
-        s0 = self.initial_state(batch, x)  # (B, 4)
-        mu, cov_u = self.decode(x, f[:, -1], noise)  # (B, K, T, 2), (B, K, T, 2, 2)
+            log_q = torch.log_softmax(clip_logits(self.encode_future(batch, c), step, cfg), -1)
+        s0 = self.initial_state(batch, c)  # (B, 4)
+        mu, cov_u = self.decode(c, f[:, -1], noise)  # (B, K, T, 2), (B, K, T, 2, 2)
         s0_modes = s0[:, None].expand(-1, cfg.pred_modes, -1)  # (B, K, 4)
         traj, pos_cov = integrate_modes(s0_modes, mu, cov_u, cfg)  # (B, K, T+1, 4), (B, K, T, 2, 2)
         probs = (log_q if use_posterior else log_p).exp()  # (B, K)
@@ -1374,9 +1369,10 @@ def integrate_modes(s0, u, cov_u, cfg: Config):
     """unicycle_rollout(s0, u) and the EKF's position covariances along it: s0 (..., 4),
     u (..., T, 2), cov_u (..., T, 2, 2) -> states (..., T+1, 4), covariances (..., T, 2, 2) (plus
     pred_pos_std_min^2 I). The covariance is the EKF's recursion, Sigma_0 = 0 and
-        Sigma_{t+1} = A_t Sigma_t A_t' + B_t Sigma_u,t B_t',   A = df/ds, B = df/du at the mean,
-    in 2x2 blocks: A = [[I, Mq], [0, I]] and B = [[Mu], [dt I]] (only the controls move q = (h, v)),
-    so with Sigma = [[Spp, Spq], [Spq', Sqq]] (p: position) each step updates (<-: the next value)
+        Sigma_{t+1} = f_s Sigma_t f_s' + f_u Sigma_u,t f_u',   f_s = df/ds, f_u = df/du at the mean,
+    in 2x2 blocks: f_s = [[I, Mq], [0, I]], f_u = [[Mu], [dt I]] (the controls move q = (h, v)), so
+    with Sigma = [[Spp, Spq], [Spq', Sqq]] (subscript p: the position) each step updates (<-: the
+    next value)
         Spp <- Spp + Mq Spq' + Spq Mq' + Mq Sqq Mq' + Mu Su Mu'
         Spq <- Spq + Mq Sqq + dt Mu Su
         Sqq <- Sqq + dt^2 Su"""
@@ -1384,9 +1380,8 @@ def integrate_modes(s0, u, cov_u, cfg: Config):
     omega, a = u.unbind(-1)  # (..., T) each
     h = torch.cat([s0[..., 2:3], s0[..., 2:3] + (omega * dt).cumsum(-1)], -1)  # (..., T+1)
     v = torch.cat([s0[..., 3:4], s0[..., 3:4] + (a * dt).cumsum(-1)], -1)  # (..., T+1)
-    dx, dy, Mq, Mu = _position_jacobians(
-        h[..., :-1], v[..., :-1], omega, a, dt
-    )  # (..., T), (..., T, 2, 2)
+    # the displacements dx, dy (..., T) and the Jacobians' blocks Mq, Mu (..., T, 2, 2)
+    dx, dy, Mq, Mu = _position_jacobians(h[..., :-1], v[..., :-1], omega, a, dt)
     x = torch.cat([s0[..., 0:1], s0[..., 0:1] + dx.cumsum(-1)], -1)  # (..., T+1)
     y = torch.cat([s0[..., 1:2], s0[..., 1:2] + dy.cumsum(-1)], -1)  # (..., T+1)
     # B Su B' of every step at once (it does not depend on Sigma): Mu Su Mu' and dt Mu Su
@@ -1409,45 +1404,45 @@ def integrate_modes(s0, u, cov_u, cfg: Config):
 # ---- 6.3 Loss: Trajectron++'s InfoVAE objective -----------------------------------------------
 
 
-def gaussian2_log_prob(y, mean, cov, min_var: float = 0.0) -> torch.Tensor:
-    """log N(y; mean, cov) of 2-D Gaussians: y, mean (..., 2), cov (..., 2, 2) -> (...); cov is
+def gaussian2_log_prob(pt, mean, cov, min_var: float = 0.0) -> torch.Tensor:
+    """log N(pt; mean, cov) of 2-D Gaussians: pt, mean (..., 2), cov (..., 2, 2) -> (...); cov is
     known to be positive semi-definite plus min_var I."""
-    d = y - mean  # (..., 2)
-    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    # det(P0 + s I) = det P0 + s tr P0 + s^2 >= s (a + c) - s^2: for a long thin ellipse a c - b^2
-    # cancels to 0 or below in float32 (NaN log), and the bound restores the floor
-    det = torch.maximum(a * c - b * b, min_var * (a + c) - min_var**2)  # (...)
-    # d' Sigma^-1 d with Sigma^-1 = [[c, -b], [-b, a]] / det
-    maha = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
+    ex, ey = (pt - mean).unbind(-1)  # (...) each: e = pt - mean
+    vxx, vxy, vyy = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    # det(P0 + eps I) = det P0 + eps tr P0 + eps^2 >= eps tr - eps^2 (eps = min_var): for a long
+    # thin ellipse vxx vyy - vxy^2 cancels to 0 or below in float32 (NaN log); the bound restores it
+    det = torch.maximum(vxx * vyy - vxy * vxy, min_var * (vxx + vyy) - min_var**2)  # (...)
+    # e' Sigma^-1 e with Sigma^-1 = [[vyy, -vxy], [-vxy, vxx]] / det
+    maha = (vyy * ex**2 - 2 * vxy * ex * ey + vxx * ey**2) / det
     return -0.5 * maha - 0.5 * torch.log(det) - math.log(2 * math.pi)
 
 
-def gmm_log_prob(pred: Prediction, y, log_w, min_var: float = 0.0) -> torch.Tensor:
-    """log sum_k w_k N(y_t; mu_kt, Sigma_kt) per step: y (B, T, 2), log_w (B, K) -> (B, T)."""
-    log_n = gaussian2_log_prob(y[:, None], pred.means, pred.pos_cov, min_var)  # (B, K, T)
+def gmm_log_prob(pred: Prediction, pos, log_w, min_var: float = 0.0) -> torch.Tensor:
+    """log sum_k w_k N(pos_t; mu_kt, Sigma_kt) per step: pos (B, T, 2), log_w (B, K) -> (B, T)."""
+    log_n = gaussian2_log_prob(pos[:, None], pred.means, pred.pos_cov, min_var)  # (B, K, T)
     return torch.logsumexp(log_w[..., None] + log_n, 1)  # (B, T)
 
 
-def batch_average(x: torch.Tensor) -> torch.Tensor:
-    """x (B, ...) -> (...): the mean over the batch (pred_loss's default batch_mean)."""
-    return x.mean(0)
+def batch_average(v: torch.Tensor) -> torch.Tensor:
+    """v (B, ...) -> (...): the mean over the batch (pred_loss's default batch_mean)."""
+    return v.mean(0)
 
 
 def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_average):
     """L_pred per scenario (B,) (its mean is Trajectron++'s loss), and its parts (floats):
         L = -(LL - b KL + I_p)   (InfoVAE variant, Zhao et al. 2019, as in Trajectron++)
-        LL   = sum_t min(log sum_k q_k N(y_t; mu_kt, Sigma_kt), 6)
+        LL   = sum_t min(log sum_k q_k N(pos_gt,t; mu_kt, Sigma_kt), 6)
         KL   = max(mean_batch KL(q || p), 0.07)   free bits: below 0.07 the term is a constant
-        I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and x under p
-    Beside the ELBO, log p(y|x) >= E_q[log p(y|x,z)] - KL(q || p): LL takes the log of the
+        I_p  = H(mean_batch p) - mean_batch H(p)   mutual information of z and c under p
+    Beside the ELBO, log p(s_gt|c) >= E_q[log p(s_gt|c,z)] - KL(q || p): LL takes the log of the
     q-weighted mixture instead (>= the ELBO's first term, by Jensen) and clamps each step's (no
     reward past a near-exact fit), KL is weighted by b, annealed from 0 (the decoder learns first),
-    with free bits, and I_p (InfoVAE) keeps p(z|x) from collapsing onto one mode. batch_mean: the
+    with free bits, and I_p (InfoVAE) keeps p(z|c) from collapsing onto one mode. batch_mean: the
     batch's mean (B, ...) -> (...); under DDP the global batch's (train.py passes one)."""
     if pred.log_q is None:
         raise ValueError("pred: pred_loss needs the posterior (the predictor's use_posterior=True)")
-    y = batch.agent_fut[..., :2]  # (B, T, 2)
-    log_p_y = gmm_log_prob(pred, y, pred.log_q, cfg.pred_pos_std_min**2)  # (B, T)
+    pos_gt = batch.agent_fut[..., :2]  # (B, T, 2)
+    log_p_y = gmm_log_prob(pred, pos_gt, pred.log_q, cfg.pred_pos_std_min**2)  # (B, T)
     ll = log_p_y.clamp(max=cfg.pred_log_p_max).sum(-1)  # (B,)
     q = pred.log_q.exp()  # (B, K)
     kl = (q * (pred.log_q - pred.log_p)).sum(-1)  # (B,)
@@ -1466,6 +1461,10 @@ def pred_loss(pred: Prediction, batch, step: int, cfg: Config, batch_mean=batch_
 #   L = a1 L_pred + a2 L_plan + a3 L_ctr (stack_loss; a_i the paper's alpha_i, Config.alpha_rl/il)
 #   RL: L_ctr = C_H(s_ctr, u_ctr), the hindsight cost (eq. 3, GT futures), target n* = argmin C_H
 #   IL: L_ctr = sum_t ||s_ctr,t - s_gt,t||^2, target n* = the candidate closest to the GT
+# It reads a `batch` (data_synth.Scenarios) of B scenarios: the (x, y, h, v) tracks ego_hist,
+# agent_hist (B, H, 4), others_hist (B, A, H, 4), the futures ego_fut, agent_fut (B, T, 4),
+# others_fut (B, A, T, 4), masks, lanes (B, L, P, 3), the goal (B, 4); and a `method` (train.Method,
+# a row of Table 1): its `predictor` ('learned', 'gt': the GT future, 'none'), `train_plan_weights`.
 
 SETTINGS = ("rl", "il")  # the planner target and L_ctr: hindsight cost (RL) or imitation (IL)
 
@@ -1481,11 +1480,17 @@ class StackOutput:
     mse: torch.Tensor  # sum_t ||s_t - s_gt,t||^2 of the final trajectory
     plannable: torch.Tensor  # bool: at least 2 planner candidates
     converged: torch.Tensor  # bool: iLQR converged
-    x: torch.Tensor  # (B, T+1, 4) the final ego trajectory
+    s: torch.Tensor  # (B, T+1, 4) the final ego trajectory
     u: torch.Tensor  # (B, T, 2) its controls
     cands: Candidates | None = None
     cand_cost: torch.Tensor | None = None  # (B, N)
     pred: object = None  # the predictor's output
+
+
+# ---- 7.1 The planner's clock: the paper's is the prediction step dt; the ablation's finer -------
+# The dt = 0.1 s ablation (plan_dt) plans and controls `substeps` times per prediction step: the
+# futures interpolated (upsample), the horizon in fine steps (planner_config), the per-step terms of
+# eq. (3) divided by substeps (clock_weights). With substeps = 1, the paper's, each is the identity.
 
 
 def upsample(now: torch.Tensor, fut: torch.Tensor, substeps: int) -> torch.Tensor:
@@ -1506,11 +1511,24 @@ def planner_substeps(cfg: Config, plan_dt) -> int:
         return 1
     substeps = round(cfg.dt / plan_dt) if plan_dt > 0 else 0
     if substeps < 1 or abs(substeps * plan_dt - cfg.dt) > 1e-9:
-        raise ValueError(
-            f"plan_dt: must divide the prediction step dt = {cfg.dt} s into whole steps, "
-            f"got {plan_dt}"
-        )
+        raise ValueError(f"plan_dt: must divide dt = {cfg.dt} s into whole steps, got {plan_dt}")
     return substeps
+
+
+def planner_config(cfg: Config, substeps: int) -> Config:
+    """cfg on the planner's and the controller's clock: substeps per prediction step."""
+    return dataclasses.replace(cfg, dt=cfg.dt / substeps, horizon=cfg.horizon * substeps)
+
+
+def clock_weights(cfg: Config, w, substeps: int, like: dict):
+    """The weights of eq. (3) on the planner's clock: the hand-tuned ones and w (default: those),
+    each term per step divided by substeps but C_goal, a terminal one. (5,) each."""
+    per_step = torch.tensor([1 / substeps, 1, 1 / substeps, 1 / substeps, 1 / substeps], **like)
+    w_fixed = cost_weights(cfg, **like) * per_step
+    return w_fixed, w_fixed if w is None else w * per_step
+
+
+# ---- 7.2 The three stages and their losses -----------------------------------------------------
 
 
 def cost_contexts(batch, preds, probs, pred_mask, plan_others=True, substeps=1, goal=None):
@@ -1562,7 +1580,7 @@ class ScenePlan:
 
     def __getitem__(self, rows):
         """The scenarios `rows` (a slice or an index tensor), as a Scenarios batch is indexed."""
-        cands = Candidates(self.cands.x[rows], self.cands.u[rows], self.cands.valid[rows])
+        cands = Candidates(self.cands.s[rows], self.cands.u[rows], self.cands.valid[rows])
         return ScenePlan(self.goal[rows], cands, self.terms[rows])
 
 
@@ -1571,47 +1589,37 @@ def scene_plan(batch, cfg: Config, plan_dt=None) -> ScenePlan:
     prediction-free terms."""
     sub = planner_substeps(cfg, plan_dt)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    goal = (
-        batch.goal if cfg.goal == "logged" else route_goal(s0, batch.lanes, batch.lanes_mask, cfg)
-    )
+    route = cfg.goal == "route"
+    goal = route_goal(s0, batch.lanes, batch.lanes_mask, cfg) if route else batch.goal
     pcfg = planner_config(cfg, sub)
     cands = plan_candidates(s0, goal, batch.lanes, batch.lanes_mask, pcfg)
-    pos, head = cands.x[..., 1:, :2], cands.x[..., 1:, 2]
+    pos, head = cands.s[..., 1:, :2], cands.s[..., 1:, 2]
     terms = scene_terms(pos, head, cands.u, goal[:, :2], batch.lanes, batch.lanes_mask)
     return ScenePlan(goal, cands, terms)
 
 
-def planner_config(cfg: Config, substeps: int) -> Config:
-    """cfg on the planner's and the controller's clock: substeps per prediction step."""
-    if substeps == 1:
-        return cfg
-    return dataclasses.replace(cfg, dt=cfg.dt / substeps, horizon=cfg.horizon * substeps)
-
-
-def predict(
-    batch, model, method, cfg: Config, substeps, train, step, pred_target, noise, batch_mean
-):
+def predict(batch, model, method, cfg: Config, train=False, step=None, substeps=1, **options):
     """The stack's first stage, eq. (1): what the planner sees of the predicted agent, on the
     planner's clock: the modes' positions (B, K, T, 2), their weights (B, K) and whether the agent
     counts (B,); and the predictor's output and its loss L_pred (B,) (0 unless learned and
-    training)."""
+    training). options: pred_target, noise, batch_mean (run_stack's)."""
     B, T = len(batch), cfg.horizon * substeps
     like = dict(dtype=batch.ego_hist.dtype, device=batch.ego_hist.device)
     pred, l_pred = None, torch.zeros(B, **like)
     now = batch.agent_hist[:, -1, :2]  # (B, 2)
     if method.predictor == "learned":
-        pred = model(batch, use_posterior=train, step=step, noise=noise)
+        pred = model(batch, use_posterior=train, step=step, noise=options.get("noise"))
         K = pred.probs.shape[1]
         preds = upsample(now[:, None].expand(B, K, 2), pred.states[..., :2], substeps).contiguous()
-        probs = pred.probs  # (B, K) q(z|x,y) in training, p(z|x) otherwise
+        probs = pred.probs  # (B, K) q(z|c,s_gt) in training, p(z|c) otherwise
         if train and (method.train_plan_weights or cfg.train_plan_weights) == "prior":
-            # the planner sees what it will see at evaluation, and its losses reach p(z|x)
+            # the planner sees what it will see at evaluation, and its losses reach p(z|c)
             probs = pred.log_p.exp()
         if train:
             target = batch
-            if pred_target is not None:
-                target = dataclasses.replace(batch, agent_fut=pred_target)
-            l_pred, _ = pred_loss(pred, target, step, cfg, batch_mean)
+            if options.get("pred_target") is not None:
+                target = dataclasses.replace(batch, agent_fut=options["pred_target"])
+            l_pred, _ = pred_loss(pred, target, step, cfg, options.get("batch_mean", batch_average))
         return preds, probs, torch.ones(B, **like), pred, l_pred
     if method.predictor == "gt":
         preds = upsample(now, batch.agent_fut[..., :2], substeps)[:, None]  # (B, 1, T, 2)
@@ -1621,35 +1629,35 @@ def predict(
     return preds, torch.ones(B, 1, **like), torch.zeros(B, **like), pred, l_pred
 
 
-def plan_with_target(batch, s0, ctx, hctx, scene, w, w_fixed, setting, cfg, substeps):
+def plan_with_target(batch, s0, ctx, hctx, scene, w, w_fixed, setting, cfg, substeps=1):
     """The stack's second stage, eq. (2): the plan, and L_plan (B,) against the planner's target
     n*: RL, the candidate cheapest in hindsight (the agent's GT future in the collision term, the
     other terms as planned); IL, the candidate closest to the GT ego trajectory."""
     plan_out = plan(s0, ctx, scene.goal, w, planner_config(cfg, substeps), scene)
     cands = plan_out.cands
     if setting == "rl":
-        h_coll = collision_term(cands.x[..., 1:, :2], hctx, cfg.rbf_var)  # (B, N)
+        h_coll = collision_term(cands.s[..., 1:, :2], hctx, cfg.rbf_var)  # (B, N)
         h_terms = torch.cat([h_coll[..., None], plan_out.terms[..., 1:]], -1)  # (B, N, 5)
         target = masked_argmin((h_terms.detach() * w_fixed).sum(-1), cands.valid)
     else:
         gt_pos = upsample(s0[:, :2], batch.ego_fut[..., :2], substeps)  # (B, T, 2)
-        error = ((cands.x[..., 1:, :2] - gt_pos[:, None]) ** 2).sum(-1).mean(-1)  # (B, N)
+        error = ((cands.s[..., 1:, :2] - gt_pos[:, None]) ** 2).sum(-1).mean(-1)  # (B, N)
         target = masked_argmin(error, cands.valid)
     valid = cands.valid | ~plan_out.plannable[:, None]  # the softmax finite where nothing plans
     l_plan = plan_loss(plan_out.cost, valid, target, cfg.beta)
     return plan_out, torch.where(plan_out.plannable, l_plan, 0.0)
 
 
-def control(s0, plan_out: Plan, ctx, w, cfg: Config, substeps, planner=True, controller=True):
+def control(s0, plan_out: Plan, ctx, w, cfg: Config, substeps=1, planner=True, controller=True):
     """The stack's third stage, eq. (4): iLQR from the plan (from zero controls without a
     planner), gradients by the KKT backward; without a controller the plan is final.
-    -> x (B, T+1, 4), u (B, T, 2), converged (B,)."""
+    -> s (B, T+1, 4), u (B, T, 2), converged (B,)."""
     B = len(s0)
     rows = torch.arange(B, device=s0.device)
-    x_plan = plan_out.cands.x[rows, plan_out.best]  # (B, T+1, 4)
+    s_plan = plan_out.cands.s[rows, plan_out.best]  # (B, T+1, 4)
     u_plan = plan_out.cands.u[rows, plan_out.best]  # (B, T, 2)
     if not controller:
-        return x_plan, u_plan, torch.ones(B, dtype=torch.bool, device=s0.device)
+        return s_plan, u_plan, torch.ones(B, dtype=torch.bool, device=s0.device)
     u_init = u_plan if planner else torch.zeros_like(u_plan)
     params = (w.expand(B, -1), *ctx.tensors())  # every parameter per scenario
     cost = StackCost(cfg.rbf_var)
@@ -1671,45 +1679,38 @@ def run_stack(
     planner=True,
     controller=True,
     plan_others=True,
-    pred_target=None,
     plan_dt=None,
     scene: ScenePlan | None = None,
-    noise=None,
-    batch_mean=batch_average,
+    **pred_options,
 ) -> StackOutput:
-    """One pass of the stack over a batch of Scenarios: predict, plan, control.
-
-    setting: 'rl' or 'il' (which L_ctr and planner target). train: the modes weighted by q(z|x,y)
-    and the schedules at `step` (as the authors' code); otherwise p(z|x). w: cost weights (5,),
-    default the hand-tuned ones. planner=False: iLQR starts from zero controls; controller=False:
-    the plan is final; plan_others=False: planner and controller ignore the others (ablations).
-    pred_target: the predictor's target (Table 2 shifts it). plan_dt: a finer planner and
-    controller step (ablation: 0.1 s), the per-step terms (all but C_goal) scaled by 1/substeps so
-    that eq. (3) sums the same costs per second. scene: the batch's scene_plan, if computed;
-    noise, batch_mean: Predictor.decode's, pred_loss's."""
+    """One pass of the stack over a batch: predict, plan, control. setting: 'rl' or 'il' (L_ctr
+    and the planner's target). train: the modes weighted by q(z|c,s_gt), the schedules at `step`
+    (the authors' code); else p(z|c). w: the cost weights (5,), default the hand-tuned ones.
+    Ablations: planner=False, iLQR from zero controls; controller=False, the plan is final;
+    plan_others=False, planner and controller ignore the others; plan_dt, 7.1. scene: the batch's
+    scene_plan, if computed. pred_options: pred_target (Table 2 shifts it), noise, batch_mean."""
     check_setting(setting)
-    sub = planner_substeps(cfg, plan_dt)
+    sub = planner_substeps(cfg, plan_dt)  # 1: the paper's clock
     like = dict(dtype=batch.ego_hist.dtype, device=batch.ego_hist.device)
     s0 = batch.ego_hist[:, -1]  # (B, 4)
-    per_step = torch.tensor([1 / sub, 1, 1 / sub, 1 / sub, 1 / sub], **like)  # goal: terminal
-    w_fixed = cost_weights(cfg, **like) * per_step
-    w = w_fixed if w is None else w * per_step
+    w_fixed, w = clock_weights(cfg, w, sub, like)  # (5,) the hand-tuned weights, those planned with
     # 1. predict, eq. (1)
     preds, probs, pred_mask, pred, l_pred = predict(
-        batch, model, method, cfg, sub, train, step, pred_target, noise, batch_mean
+        batch, model, method, cfg, train, step, sub, **pred_options
     )
     # 2. plan, eq. (2): costs of all candidates with the predictions; the plan is their argmin
     scene = scene_plan(batch, cfg, plan_dt) if scene is None else scene
     ctx, hctx = cost_contexts(batch, preds, probs, pred_mask, plan_others, sub, scene.goal)
     plan_out, l_plan = plan_with_target(batch, s0, ctx, hctx, scene, w, w_fixed, setting, cfg, sub)
     # 3. control, eq. (4)
-    x, u, converged = control(s0, plan_out, ctx, w, cfg, sub, planner, controller)
-    hindsight = total_cost(x, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
-    mse = ((x[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # at the logged steps
+    s, u, converged = control(s0, plan_out, ctx, w, cfg, sub, planner, controller)
+    hindsight = total_cost(s, u, hctx, w_fixed, cfg.rbf_var)  # (B,)
+    mse = ((s[:, sub::sub, :2] - batch.ego_fut[..., :2]) ** 2).sum((-1, -2))  # at the logged steps
     l_ctr = hindsight if setting == "rl" else mse
-    losses = (l_pred, l_plan, l_ctr)
-    metrics = (hindsight, mse, plan_out.plannable, converged)
-    return StackOutput(*losses, *metrics, x, u, plan_out.cands, plan_out.cost, pred)
+    losses = dict(l_pred=l_pred, l_plan=l_plan, l_ctr=l_ctr)
+    metrics = dict(hindsight=hindsight, mse=mse, plannable=plan_out.plannable, converged=converged)
+    results = dict(s=s, u=u, cands=plan_out.cands, cand_cost=plan_out.cost, pred=pred)
+    return StackOutput(**losses, **metrics, **results)
 
 
 def stack_loss(out: StackOutput, alphas, pred_weights=1.0, count=None):

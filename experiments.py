@@ -418,7 +418,7 @@ def stack_policy(model, method: Method, cfg: Config, device=None):
         with torch.no_grad():
             out = run_stack(to_device(batch, device), model, method, cfg, plan_others=False)
         home = batch.ego_hist.device
-        return out.x.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
+        return out.s.to(home), out.u.to(home), out.hindsight.to(home), out.plannable.to(home)
 
     return policy
 
@@ -614,7 +614,7 @@ def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) ->
     for i in range(0, len(val), batch_size):
         batch = to_device(val[i : i + batch_size], device)
         out = run_stack(batch, None, m, cfg, "rl")
-        w = cost_weights(cfg, out.x.dtype, device)
+        w = cost_weights(cfg, out.s.dtype, device)
         s0 = batch.ego_hist[:, -1]
         goal = (
             batch.goal
@@ -630,8 +630,8 @@ def goal_breakdown(val, m: Method, cfg: Config, device="cpu", batch_size=512) ->
             goal=goal,
         )
         # terms: (B, 5) weighted, as they add up to the hindsight cost
-        terms = cost_terms(out.x, out.u, hctx, cfg.rbf_var) * w
-        closest = (out.x[:, 1:, :2] - batch.agent_fut[..., :2]).norm(dim=-1).min(-1).values  # (B,)
+        terms = cost_terms(out.s, out.u, hctx, cfg.rbf_var) * w
+        closest = (out.s[:, 1:, :2] - batch.agent_fut[..., :2]).norm(dim=-1).min(-1).values  # (B,)
         for b in batch.behaviour[out.plannable].unique().tolist():
             rows = out.plannable & (batch.behaviour == b)
             name = data_synth.BEHAVIOURS[b] if b >= 0 else "real"

@@ -74,7 +74,7 @@ def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(
     valid = out.cands.valid[i]  # (N,)
     # p: (N,) eq. (2) relaxed
     p = torch.softmax(torch.where(valid, -cfg.beta * out.cand_cost[i].detach(), -math.inf), -1)
-    xs = out.cands.x[i].detach()  # (N, T+1, 4)
+    xs = out.cands.s[i].detach()  # (N, T+1, 4)
     cmap = plt.get_cmap("Greens")
     for n in torch.argsort(p).tolist():  # the likely candidates on top
         if valid[n]:
@@ -82,7 +82,7 @@ def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(
             ax.plot(xs[n, :, 0], xs[n, :, 1], color=shade, lw=1.0, zorder=6)
     # the controller's trajectory wide and translucent, the plan thin and dashed on top of it: both
     # stay visible where they overlap (the controller moves the plan by centimetres to metres)
-    ctrl = out.x[i, :, :2].detach()
+    ctrl = out.s[i, :, :2].detach()
     wide = dict(lw=4, alpha=0.55, zorder=8, solid_capstyle="round")
     ax.plot(*ctrl.T, color="tab:purple", label="controller", **wide)
     best = xs[int(p.argmax()), :, :2]
@@ -131,14 +131,14 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     )
     ax = axes[2]
     for name, out in outs.items():
-        plan = out.cands.x[i, int(planned[name][i]), :, :2]
+        plan = out.cands.s[i, int(planned[name][i]), :, :2]
         color = COLORS.get(name)
         ax.plot(*plan.T, "--", color=color, lw=1, label=f"{name}'s plan")
-        ax.plot(*out.x[i, :, :2].T, "o-", color=color, lw=2, ms=3, label=f"{name}'s controller")
+        ax.plot(*out.s[i, :, :2].T, "o-", color=color, lw=2, ms=3, label=f"{name}'s controller")
     ax.set(xlabel="x (m)", ylabel="y (m), stretched")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", fontsize=8)
-    apart = (oa.x[i, -1, :2] - ob.x[i, -1, :2]).norm().item()
+    apart = (oa.s[i, -1, :2] - ob.s[i, -1, :2]).norm().item()
     one_plan = " from the same plan" if planned[a][i] == planned[b][i] else ""
     ax.set_title(f"the executed trajectories end {apart:.2f} m apart{one_plan}", fontsize=9)
     fig.suptitle(

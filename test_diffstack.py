@@ -229,12 +229,12 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
     s0, goal, ctx = toy_scene()
     c = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, cfg)
     B, N = c.valid.shape
-    assert c.x.shape == (B, N, 7, 4) and c.u.shape == (B, N, 6, 2)
+    assert c.s.shape == (B, N, 7, 4) and c.u.shape == (B, N, 6, 2)
     # on straight lanes along +x the terminal state is known in closed form
     acc = torch.tensor(cfg.plan_accels, dtype=torch.float64)
     v_f = (s0[:, 3:4] + acc * 3.0).clamp_min(0)  # (B, 8)
     dist = (s0[:, 3:4] + v_f) / 2 * 3.0
-    lane0 = c.x[:, :24].reshape(B, 8, 3, 7, 4)  # first goal lane: the closest to the goal
+    lane0 = c.s[:, :24].reshape(B, 8, 3, 7, 4)  # first goal lane: the closest to the goal
     lane_y = torch.tensor([0.0, 3.5, 0.0], dtype=torch.float64)[:B]
     assert torch.allclose(
         lane0[..., -1, 0], (s0[:, 0:1] + dist)[..., None].expand(B, 8, 3), atol=1e-9
@@ -244,7 +244,7 @@ def test_planner_splines_hit_terminal_states_and_reject_infeasible():
         lane0[..., -1, 1], (lane_y[:, None, None] + off).expand(B, 8, 3), atol=1e-9
     )
     assert torch.allclose(lane0[..., -1, 3], v_f[..., None].expand(B, 8, 3), atol=1e-9)
-    assert torch.allclose(c.x[:, :, 0], s0[:, None].expand(B, N, 4))
+    assert torch.allclose(c.s[:, :, 0], s0[:, None].expand(B, N, 4))
     # every valid candidate respects the feasibility limits; hard stops from 10 m/s violate them
     lo, hi = (
         torch.tensor(cfg.u_lower, dtype=torch.float64),
@@ -270,11 +270,11 @@ def test_planner_takes_any_number_of_accelerations_and_offsets():
     small_cfg = ds.Config(plan_accels=(-1.0, 0.0, 1.0), plan_offsets=(0.0,))
     full = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, full_cfg)
     small = ds.plan_candidates(s0, goal, ctx.lanes, ctx.lanes_mask, small_cfg)
-    G = full.x.shape[1] // 24
-    assert small.x.shape[1] == G * 3
+    G = full.s.shape[1] // 24
+    assert small.s.shape[1] == G * 3
     # accel -1, 0, 1; offset 0
-    pick = full.x.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(3, G * 3, 7, 4)
-    assert torch.allclose(small.x, pick)
+    pick = full.s.reshape(3, G, 8, 3, 7, 4)[:, :, [2, 4, 6], 1].reshape(3, G * 3, 7, 4)
+    assert torch.allclose(small.s, pick)
     assert torch.equal(
         small.valid, full.valid.reshape(3, G, 8, 3)[:, :, [2, 4, 6], 1].reshape(3, G * 3)
     )
@@ -316,7 +316,7 @@ def test_relaxed_planner_gradients():
             ctx.lanes_mask,
         )
         return ds.plan_loss(
-            ds.total_cost(cands.x, cands.u, c, w), cands.valid, target, cfg.beta
+            ds.total_cost(cands.s, cands.u, c, w), cands.valid, target, cfg.beta
         ).sum()
 
     assert torch.autograd.gradcheck(loss, (preds, w))
@@ -1218,15 +1218,15 @@ def test_plan_dt_changes_the_resolution_not_the_problem(synth_small):
     gt = tr.Method("GT prediction", "gt")
     base = ds.run_stack(batch, None, gt, cfg)
     same = ds.run_stack(batch, None, gt, cfg, plan_dt=0.5)
-    assert torch.equal(base.x, same.x) and torch.equal(base.hindsight, same.hindsight)
+    assert torch.equal(base.s, same.s) and torch.equal(base.hindsight, same.hindsight)
     fine = ds.run_stack(batch, None, gt, cfg, plan_dt=0.1)
-    assert fine.x.shape == (64, 31, 4) and fine.u.shape == (64, 30, 2)
+    assert fine.s.shape == (64, 31, 4) and fine.u.shape == (64, 30, 2)
     k = base.plannable & fine.plannable & base.converged & fine.converged
     assert k.sum() > 30
     assert abs(fine.hindsight[k].mean() / base.hindsight[k].mean() - 1) < 0.03
-    assert (fine.x[k, 5::5, :2] - base.x[k, 1:, :2]).norm(dim=-1).mean() < 0.3
+    assert (fine.s[k, 5::5, :2] - base.s[k, 1:, :2]).norm(dim=-1).mean() < 0.3
     # the model moves the ego by the unicycle at 0.1 s
-    assert torch.allclose(ds.unicycle_rollout(fine.x[:, 0], fine.u, 0.1), fine.x, atol=1e-8)
+    assert torch.allclose(ds.unicycle_rollout(fine.s[:, 0], fine.u, 0.1), fine.s, atol=1e-8)
 
 
 def test_stack_gradients_reach_predictor_through_planner_and_controller(synth_small):
@@ -1540,7 +1540,7 @@ def run_stack_everything(setup):
     # the KKT backward as well
     (outs[-1].l_plan.sum() + outs[2].l_ctr.sum() + outs[2].l_pred.sum()).backward()
     for out in outs:
-        assert out.x.device.type == "cpu" and out.hindsight.device.type == "cpu"
+        assert out.s.device.type == "cpu" and out.hindsight.device.type == "cpu"
     return outs
 
 
@@ -1696,7 +1696,7 @@ def test_the_stack_on_a_device_matches_the_cpu(device, setup):
     for method in (tr.Method("No prediction", "none"), tr.Method("Standard")):
         a = ds.run_stack(batch, cpu_model.eval(), method, cfg)
         b = ds.run_stack(batch.to(device=device), dev_model.eval(), method, cfg)
-        assert b.x.device.type == device
+        assert b.s.device.type == device
         assert torch.allclose(a.hindsight, b.hindsight.cpu(), atol=1e-6)
     # training on the device: the data stays on the CPU (in the model's float64), each batch moved
     # as it is drawn

@@ -1520,7 +1520,7 @@ def test_the_stack_runs_on_real_scenes(real):
     loss = (out.l_pred + out.l_plan + out.l_ctr)[out.plannable].mean()
     loss.backward()
     assert out.plannable.float().mean() > 0.9 and out.converged[out.plannable].float().mean() > 0.9
-    for name in ("l_pred", "l_plan", "l_ctr", "hindsight", "mse", "x", "u"):
+    for name in ("l_pred", "l_plan", "l_ctr", "hindsight", "mse", "s", "u"):
         assert torch.isfinite(getattr(out, name)).all(), name
     assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())

@@ -242,7 +242,7 @@ def test_route_goal_is_on_the_ego_lane_at_its_speed_times_the_horizon(small):
     out_logged = ds.run_stack(b, None, tr.Method("No prediction", "none"), ds.Config(), "rl")
 
     def end(out):
-        return out.x[:, -1, :2]
+        return out.s[:, -1, :2]
 
     closer = (
         ((end(out_route) - g[:, :2]).norm(dim=-1) < (end(out_logged) - g[:, :2]).norm(dim=-1))
@@ -285,7 +285,7 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
     own = ds.scene_plan(data[rows], cfg, plan_dt)
     for a, b in (
         (scenes[rows].goal, own.goal),
-        (scenes[rows].cands.x, own.cands.x),
+        (scenes[rows].cands.s, own.cands.s),
         (scenes[rows].cands.u, own.cands.u),
         (scenes[rows].cands.valid, own.cands.valid),
         (scenes[rows].terms, own.terms),
@@ -301,7 +301,7 @@ def test_scene_plans_computed_once_change_no_number(small, goal, plan_dt):
             data[rows], model, m, cfg, "rl", step=0, train=True, plan_dt=plan_dt, scene=scene
         )
         (out.l_pred + out.l_plan + out.l_ctr).sum().backward()
-        return [out.l_plan, out.l_ctr, out.x] + [p.grad.clone() for p in model.parameters()]
+        return [out.l_plan, out.l_ctr, out.s] + [p.grad.clone() for p in model.parameters()]
 
     for a, b in zip(run(None), run(scenes[rows])):
         assert torch.equal(a, b)

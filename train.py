@@ -179,11 +179,9 @@ def grad_cost_weights(batch, cfg: Config) -> torch.Tensor:
     B = len(batch)
     ones = torch.ones(B, dtype=fut.dtype, device=fut.device)
     ctx, _ = cost_contexts(batch, fut[:, None], ones[:, None], ones)
-    x = torch.cat([batch.ego_hist[:, -1:], batch.ego_fut], 1)  # (B, T+1, 4)
+    ego = batch.ego_fut[..., :2]  # (B, T, 2) the expert's positions t1..T
     with torch.enable_grad():
-        (g,) = torch.autograd.grad(
-            collision_term(x[:, 1:, :2], ctx, cfg.rbf_var).sum() * cfg.w_coll, fut
-        )
+        (g,) = torch.autograd.grad(collision_term(ego, ctx, cfg.rbf_var).sum() * cfg.w_coll, fut)
     return g.flatten(1).norm(dim=-1)
 
 
@@ -342,7 +340,7 @@ def scene_plans(data, cfg: Config, plan_dt=None, chunk=1024) -> ScenePlan:
     return ScenePlan(
         cat(lambda p: p.goal),
         Candidates(
-            cat(lambda p: p.cands.x), cat(lambda p: p.cands.u), cat(lambda p: p.cands.valid)
+            cat(lambda p: p.cands.s), cat(lambda p: p.cands.u), cat(lambda p: p.cands.valid)
         ),
         cat(lambda p: p.terms),
     )

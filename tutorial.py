@@ -378,7 +378,7 @@ val = data.val
 ctx_gt = gt_context(val)
 ctx_none = dataclasses.replace(ctx_gt, pred_mask=torch.zeros(len(val)))
 cands, cost_gt, _, plannable, _ = ds.plan(val.ego_hist[:, -1], ctx_gt, val.goal, w_hand, cfg)
-cost_none = ds.total_cost(cands.x, cands.u, ctx_none, w_hand, cfg.rbf_var)
+cost_none = ds.total_cost(cands.s, cands.u, ctx_none, w_hand, cfg.rbf_var)
 target = ds.masked_argmin(cost_gt, cands.valid)  # n* = lowest hindsight cost
 betas = torch.logspace(-2, 2, 17).tolist()
 extra = []  # the mean L_plan (no prediction) - L_plan (GT) over the plannable samples, at each β
@@ -495,7 +495,7 @@ bg = data.val
 preds_cv = tr.constant_velocity(bg, cfg)[:, None].clone().requires_grad_()  # (B, K=1, T, 2)
 ctx_cv = dataclasses.replace(gt_context(bg), preds=preds_cv)
 cands_g, cost_g, best_g, ok_g, _ = ds.plan(bg.ego_hist[:, -1], ctx_cv, bg.goal, w_hand, cfg)
-hindsight_g = ds.total_cost(cands_g.x, cands_g.u, gt_context(bg), w_hand, cfg.rbf_var)
+hindsight_g = ds.total_cost(cands_g.s, cands_g.u, gt_context(bg), w_hand, cfg.rbf_var)
 target_g = ds.masked_argmin(hindsight_g, cands_g.valid)
 valid_g = cands_g.valid | ~ok_g[:, None]
 l_plan_g = torch.where(ok_g, ds.plan_loss(cost_g, valid_g, target_g, cfg.beta), 0.0)  # (B,)
@@ -594,7 +594,7 @@ used = torch.bincount(info.iters[ok_b]).tolist()
 print(f"converged {conv:.3f} of {int(ok_b.sum())}; samples per number of iterations: {used}")
 rel = (info.costs / info.costs[:, :1])[ok_b]  # (B, I+1) cost relative to the plan's
 i = int((info.costs[:, 0] - info.costs[:, -1]).argmax())  # the sample iLQR improves most
-xp_, xi_ = cands.x[i, best_b[i]], x[i]  # (T+1, 4) the plan's and the controller's states
+xp_, xi_ = cands.s[i, best_b[i]], x[i]  # (T+1, 4) the plan's and the controller's states
 print(f"sample {i}: cost of the plan {info.costs[i, 0]:.3f} -> after iLQR {info.costs[i, -1]:.3f}")
 course.figure_ilqr(batch, i, rel, xp_, u_plan[i], xi_, u[i], cfg)
 ratio = rel[:, -1].mean().item()
