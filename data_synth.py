@@ -1340,11 +1340,13 @@ def load_or_generate(
             return Dataset(
                 Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"])
             )
-        except Exception as e:  # any failure means: not our cache
+        except Exception as e:  # any failure means: not our cache (torch's unsafe advice unsaid)
+            why = " ".join(f"{e}".split())
+            why = "objects other than tensors" if "weights_only" in why else why[:160]
             raise ValueError(
-                f"{path}: not a readable data_synth cache ({e}); "
-                "move it away or use another cache_dir"
-            ) from e
+                f"{path}: not a valid data_synth cache ({why}); move it away or use another "
+                "cache_dir"
+            ) from None
     data = make_dataset(n, cfg, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -104,13 +103,8 @@ def _synthetic(n, seed, cache_dir) -> Dataset:
     lock = contextlib.nullcontext()
     if made is not None and not made.exists():
         lock = folder_lock(cache_dir, f"making the data cache {made.name}")
-    try:
-        with lock:
-            data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-    except ValueError as e:  # (a cache holding objects other than tensors: never torch's advice)
-        if isinstance(e.__cause__, pickle.UnpicklingError):
-            raise ValueError(f"{made}: not a data cache (objects other than tensors)") from None
-        raise
+    with lock:
+        data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
     parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
     bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]
     if bad:
