@@ -128,12 +128,27 @@ def _nbytes(obj) -> int:
     return sum(_nbytes(v) for v in items)
 
 
+def remove_stale_temporaries(folder) -> None:
+    """Remove the temporaries that killed writers left in folder: write_file_atomic's
+    .NAME.pidPID-*.tmp whose process is gone (a live writer's, another user's too, are kept)."""
+    for tmp in pathlib.Path(folder).glob(".*.pid*-*.tmp"):
+        pid = tmp.name.rpartition(".pid")[2].partition("-")[0]
+        try:
+            os.kill(int(pid), 0)  # (signal 0: whether the process exists)
+        except ProcessLookupError:
+            shutil.rmtree(tmp, ignore_errors=True)
+        except (ValueError, OverflowError, OSError):  # no PID, or another user's process
+            pass
+
+
 def write_file_atomic(path, write, needed: int = 0) -> None:
     """write(a file of path's name in a temporary folder beside it: a figure's format kept), then
-    rename it onto path: a kill leaves the old file, a full disk is one DiskFull line. The file gets
-    open()'s permissions, not mkstemp's 0600 (a shared lab folder)."""
+    rename it onto path: a kill leaves the old file (the next writer removes the temporary), a full
+    disk is one DiskFull line. The file gets open()'s permissions, not mkstemp's 0600."""
     path = pathlib.Path(path)
-    folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_temporaries(path.parent)
+    prefix = f".{path.name}.pid{os.getpid()}-"  # (the PID: remove_stale_temporaries reads it)
+    folder = tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)
     tmp = os.path.join(folder, path.name)
     try:
         write(tmp)
