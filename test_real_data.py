@@ -1640,6 +1640,27 @@ def test_write_nuscenes_onto_a_symlink_and_onto_dot(tmp_path, monkeypatch):
     assert pathlib.Path("v1.0-mini").is_dir() and pathlib.Path.cwd() == tmp_path / "empty"
 
 
+def test_write_nuscenes_never_replaces_the_current_folder(tmp_path, monkeypatch, capsys):
+    """`write-nuscenes . --overwrite` where `.` holds an earlier write: the current folder is never
+    renamed away from under the shell; one line naming it, before any scene is generated (and the
+    library call alike)."""
+    monkeypatch.chdir(tmp_path)
+    lab_data.main(["write-nuscenes", ".", "--scenes", "2"])  # `.` empty: filled in place
+    before, inode = sorted(tmp_path.rglob("*")), tmp_path.stat().st_ino
+    scenes = data_synth.generate_scenes(2, seed=0)
+    with pytest.raises(ValueError, match=r"write_nuscenes: refusing to replace '\.', the current"):
+        nuscenes.write_nuscenes(scenes, ".", overwrite=True)
+    monkeypatch.setattr(data_synth, "generate_scenes", lambda *a, **k: pytest.fail("generated"))
+    with pytest.raises(SystemExit) as e:
+        lab_data.main(["write-nuscenes", ".", "--overwrite"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and err.endswith(
+        "write-nuscenes: refusing to replace '.', the current folder or one holding it; give a "
+        "new folder"
+    )
+    assert os.stat(".").st_ino == inode and sorted(tmp_path.rglob("*")) == before
+
+
 def test_a_tampered_nuscenes_cache_is_refused_in_one_line(folder40, tmp_path):
     path = nuscenes.nuscenes_cache_path(folder40, "v1.0-mini", tmp_path)
     path.write_bytes(pickle.dumps(collections.Counter()))  # a pickle of what is not tensors

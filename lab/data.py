@@ -15,7 +15,7 @@ from data_synth import Dataset, SynthConfig
 from lab.cli import add_shared_options, bounded, check_name
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
-from lab.runs import folder_lock, one_line
+from lab.runs import folder_lock, one_line, refuse_current_folder
 
 MINI_VAL = ("scene-0103", "scene-0916")  # v1.0-mini's official mini_val (the rest: mini_train)
 
@@ -130,6 +130,7 @@ def main(argv=None) -> None:
     with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
         check_name(args.path, "path")
         if args.command == "write-nuscenes":
+            refuse_current_folder(args.path, "write-nuscenes")  # (before any work)
             scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
             write_nuscenes(scenes, args.path, args.version, overwrite=args.overwrite)
             print(f"wrote {args.scenes} scenes to {args.path}/{args.version} and {args.path}/maps")

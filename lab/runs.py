@@ -419,10 +419,20 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
         lock.release()
 
 
+def refuse_current_folder(root, who: str) -> None:
+    """OutputRefused if root is the current folder or holds it, and is not empty: write_folder
+    would rename it away from under the shell."""
+    real = pathlib.Path(root).resolve()
+    if pathlib.Path.cwd().is_relative_to(real) and any(real.iterdir()):
+        why = "the current folder or one holding it; give a new folder"
+        raise OutputRefused(f"{who}: refusing to replace '{root}', {why}")
+
+
 def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
     """A folder written whole: write(tmp) fills a temporary sibling, renamed into place, under a
     lock. files: those the writer (`who`) makes, replaced only with overwrite; a folder holding any
     other file (but directly in `also`) is never replaced."""
+    refuse_current_folder(root, who)
     root, real = pathlib.Path(root), pathlib.Path(root).resolve()  # (a symlink: its target)
     with folder_lock(real.parent, f"{who} {root}", f".{real.name}.lock"):
         for stale in real.parent.glob(f".{real.name}.old-*"):  # killed between its renames
