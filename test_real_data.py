@@ -1124,6 +1124,47 @@ def test_ctrl_c_ends_the_pool_at_once_in_one_line(folder40):
     ]
 
 
+def _interrupted(code, *args, ready="starting"):
+    """Run `code` in a process group of its own, Ctrl-C it (SIGINT to the group, as a terminal
+    sends it) once it prints `ready`: (exit code, stderr's lines); it must end within 30 s."""
+    import signal
+    import subprocess
+    import sys
+
+    run = subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        cwd=pathlib.Path(__file__).parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert ready in run.stdout.readline()
+        os.killpg(run.pid, signal.SIGINT)
+        _, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+    return run.returncode, err.strip().splitlines()
+
+
+def test_ctrl_c_while_the_pools_workers_start_reaches_none_of_them(folder40):
+    """Ctrl-C while the parse pool's workers start, before their initializer has run (slowed here
+    to 5 s): the main process's alone, exit 130, one line, no worker's traceback, no hang."""
+    code = (
+        "import sys, time\nfrom lab import nuscenes, data\n"
+        "start = nuscenes._start_worker\n"
+        "def slow_start():\n    print('starting', flush=True)\n    time.sleep(5)\n    start()\n"
+        "nuscenes._start_worker = slow_start\n"
+        "data.main(['read-nuscenes', sys.argv[1], '--workers', '2'])\n"
+    )
+    assert _interrupted(code, str(folder40)) == (
+        130,
+        ["python -m lab.data: interrupted (Ctrl-C); nothing half-written is left"],
+    )
+
+
 def test_a_cache_hit_gives_the_fresh_parse(folder40, tmp_path):
     lines = []
     fresh, report = nuscenes.load_nuscenes(folder40, workers=1)
