@@ -75,9 +75,9 @@ def nuscenes_version(path) -> str:
 def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None):
     """A Dataset: synthetic samples (n of data seed `seed`), or the nuScenes folder at `path` split
     by scene (the rule logged), cached in cache_dir."""
+    data_synth._check_seed("load_data", seed)
     if path is None:
         return _synthetic(n, seed, cache_dir)
-    data_synth._check_seed("load_data", seed)
     version = nuscenes_version(path)
     scenes, report = load_nuscenes_cached(Path(path), version, None, cache_dir, workers, log)
     if len(scenes) < 2:
@@ -96,12 +96,10 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
 def _synthetic(n, seed, cache_dir) -> Dataset:
     """load_or_generate, holding cache_dir while a missing cache is made; a cache holding NaN or inf
     (damaged: the generator makes none) is refused, naming it."""
-    try:
-        made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
-    except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
-        made = None
+    data_synth._check_count("load_data", "n (samples)", n, data_synth.MAX_SAMPLES)
+    made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
     lock = contextlib.nullcontext()
-    if made is not None and not made.exists():
+    if not made.exists():
         lock = folder_lock(cache_dir, f"making the data cache {made.name}")
     with lock:
         data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)

@@ -351,8 +351,7 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
     try:
         fork = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(workers, fork, initializer=_start_worker) as pool:
-            try:  # (SIGINT held while the workers fork: they start with it blocked until
-                # _start_worker ignores it; a Ctrl-C meanwhile interrupts this process after)
+            try:  # (SIGINT held while the workers fork: none gets it before _start_worker)
                 held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
                 try:
                     results = pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK)

@@ -116,9 +116,6 @@ os.umask(_UMASK)
 class DiskFull(OSError):
     """A write that found its disk full: one line naming the file and the space it needs."""
 
-    def __str__(self):
-        return self.args[0]
-
 
 def _nbytes(obj) -> int:
     """About how many bytes torch.save writes for obj: its tensors' data."""
@@ -129,15 +126,13 @@ def _nbytes(obj) -> int:
 
 
 def remove_stale_temporaries(folder) -> None:
-    """Remove the temporaries that killed writers left in folder: write_file_atomic's
-    .NAME.pidPID-*.tmp whose process is gone (a live writer's, another user's too, are kept)."""
+    """Remove write_file_atomic's .NAME.pidPID-*.tmp in folder whose writer PID is gone (killed)."""
     for tmp in pathlib.Path(folder).glob(".*.pid*-*.tmp"):
-        pid = tmp.name.rpartition(".pid")[2].partition("-")[0]
-        try:
-            os.kill(int(pid), 0)  # (signal 0: whether the process exists)
+        try:  # (signal 0: whether the process exists)
+            os.kill(int(tmp.name.rpartition(".pid")[2].partition("-")[0]), 0)
         except ProcessLookupError:
             shutil.rmtree(tmp, ignore_errors=True)
-        except (ValueError, OverflowError, OSError):  # no PID, or another user's process
+        except (ValueError, OverflowError, OSError):  # no PID, or another user's process: alive
             pass
 
 
@@ -396,10 +391,9 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
         ours = lock.is_locked  # (by this process, in an outer block)
         lock.acquire(blocking=False)
     except filelock.Timeout:
-        try:
-            holder = json.loads(path.read_text())
-        except (OSError, ValueError):
-            holder = None
+        holder = {}
+        with contextlib.suppress(ValueError):  # (unreadable, not JSON: load_json)
+            holder = load_json(path, "a lock's holder")
         holder = holder if isinstance(holder, dict) else {}
         raise OutputRefused(
             f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, "
@@ -420,8 +414,7 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
 
 
 def refuse_current_folder(root, who: str) -> None:
-    """OutputRefused if root is the current folder or holds it, and is not empty: write_folder
-    would rename it away from under the shell."""
+    """OutputRefused if root is not empty and is or holds the current folder (no rename of it)."""
     real = pathlib.Path(root).resolve()
     if pathlib.Path.cwd().is_relative_to(real) and any(real.iterdir()):
         why = "the current folder or one holding it; give a new folder"
