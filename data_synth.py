@@ -18,7 +18,6 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -1310,28 +1309,18 @@ def make_dataset(n: int, cfg: SynthConfig | None = None, seed: int = 0) -> Datas
 
 
 def _cache_path(n, seed, cfg, cache_dir):
-    key = json.dumps(
-        {"n": n, "seed": seed, "cfg": dataclasses.asdict(cfg), "format": _CACHE_FORMAT},
-        sort_keys=True,
-    )
-    return Path(
-        cache_dir
-    ) / f"scenarios-n{n}-s{seed}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt", key
+    key = dict(n=n, seed=seed, cfg=dataclasses.asdict(cfg), format=_CACHE_FORMAT)
+    key = json.dumps(key, sort_keys=True)
+    digest = hashlib.sha1(key.encode()).hexdigest()[:12]
+    return Path(cache_dir) / f"scenarios-n{n}-s{seed}-{digest}.pt", key
 
 
-def load_or_generate(
-    n: int,
-    seed: int = 0,
-    cache_dir: str | os.PathLike = "data_cache",
-    cfg: SynthConfig | None = None,
-) -> Dataset:
-    """The Dataset for (n, seed, cfg): from cache_dir if there, else generated and saved. The file
-    name hashes everything that determines the data; a file of that name that is not such a cache is
-    an error, never replaced."""
+def load_or_generate(n: int, seed: int = 0, cache_dir="data_cache", cfg: SynthConfig | None = None):
+    """The Dataset for (n, seed, cfg), from cache_dir (its file name hashes all that makes the data)
+    else generated and saved; a file of that name that is not such a cache is refused, kept."""
     _check_count("load_or_generate", "n (samples)", n, MAX_SAMPLES)
     _check_seed("load_or_generate", seed)
-    # numpy integers -> int, for the cache key's json
-    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()
+    n, seed, cfg = int(n), int(seed), cfg or SynthConfig()  # (numpy integers: int, for json)
     path, key = _cache_path(n, seed, cfg, cache_dir)
     if path.exists():
         try:
@@ -1340,23 +1329,21 @@ def load_or_generate(
             return Dataset(
                 Scenarios(**blob["train"]), Scenarios(**blob["val"]), Scenes(**blob["val_scenes"])
             )
-        except Exception as e:  # any failure means: not our cache
+        except Exception as e:  # any failure means: not our cache (torch's unsafe advice unsaid)
+            why = " ".join(f"{e}".split())
+            why = "objects other than tensors" if "weights_only" in why else why[:160]
             raise ValueError(
-                f"{path}: not a readable data_synth cache ({e}); "
-                "move it away or use another cache_dir"
-            ) from e
+                f"{path}: not a valid data_synth cache ({why}); move it away or use another "
+                "cache_dir"
+            ) from None
     data = make_dataset(n, cfg, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
 
     def own(batch):  # (slices share storage)
         return {k: v.clone() for k, v in batch.tensors().items()}
 
-    blob = {
-        "key": key,
-        "train": own(data.train),
-        "val": own(data.val),
-        "val_scenes": {**own(data.val_scenes), "names": data.val_scenes.names},
-    }
+    blob = dict(key=key, train=own(data.train), val=own(data.val))
+    blob["val_scenes"] = {**own(data.val_scenes), "names": data.val_scenes.names}
     save_atomic(blob, path)  # atomic: a crash or a full disk leaves no half-written cache
     return data
 

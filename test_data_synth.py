@@ -415,6 +415,26 @@ def test_cache_round_trip_and_foreign_file(tmp_path):
     assert path.read_bytes() == b"not a cache"  # never overwritten
 
 
+def test_a_tampered_cache_read_directly_is_refused_in_one_line(tmp_path):
+    """load_or_generate itself (not only lab.data) refuses a cache holding objects other than
+    tensors: one line naming the file, and neither it nor its traceback repeats torch's advice to
+    load it with weights_only=False (which would run the payload)."""
+    import pickle
+    import traceback
+
+    class Payload:
+        def __reduce__(self):
+            return (os.getcwd, ())
+
+    path = data_synth._cache_path(30, 3, data_synth.SynthConfig(), tmp_path)[0]
+    path.write_bytes(pickle.dumps(Payload()))
+    with pytest.raises(ValueError) as e:
+        data_synth.load_or_generate(30, seed=3, cache_dir=tmp_path)
+    assert str(e.value).startswith(f"{path}: not a valid data_synth cache")
+    assert "\n" not in str(e.value)
+    assert "weights_only" not in "".join(traceback.format_exception(e.value))
+
+
 def test_plot_scenario_draws_everything(small):
     import matplotlib
 

@@ -1124,6 +1124,47 @@ def test_ctrl_c_ends_the_pool_at_once_in_one_line(folder40):
     ]
 
 
+def _interrupted(code, *args, ready="starting"):
+    """Run `code` in a process group of its own, Ctrl-C it (SIGINT to the group, as a terminal
+    sends it) once it prints `ready`: (exit code, stderr's lines); it must end within 30 s."""
+    import signal
+    import subprocess
+    import sys
+
+    run = subprocess.Popen(
+        [sys.executable, "-c", code, *args],
+        cwd=pathlib.Path(__file__).parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert ready in run.stdout.readline()
+        os.killpg(run.pid, signal.SIGINT)
+        _, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+    return run.returncode, err.strip().splitlines()
+
+
+def test_ctrl_c_while_the_pools_workers_start_reaches_none_of_them(folder40):
+    """Ctrl-C while the parse pool's workers start, before their initializer has run (slowed here
+    to 5 s): the main process's alone, exit 130, one line, no worker's traceback, no hang."""
+    code = (
+        "import sys, time\nfrom lab import nuscenes, data\n"
+        "start = nuscenes._start_worker\n"
+        "def slow_start():\n    print('starting', flush=True)\n    time.sleep(5)\n    start()\n"
+        "nuscenes._start_worker = slow_start\n"
+        "data.main(['read-nuscenes', sys.argv[1], '--workers', '2'])\n"
+    )
+    assert _interrupted(code, str(folder40)) == (
+        130,
+        ["python -m lab.data: interrupted (Ctrl-C); nothing half-written is left"],
+    )
+
+
 def test_a_cache_hit_gives_the_fresh_parse(folder40, tmp_path):
     lines = []
     fresh, report = nuscenes.load_nuscenes(folder40, workers=1)
@@ -1638,6 +1679,27 @@ def test_write_nuscenes_onto_a_symlink_and_onto_dot(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path / "empty")
     nuscenes.write_nuscenes(scenes, ".")
     assert pathlib.Path("v1.0-mini").is_dir() and pathlib.Path.cwd() == tmp_path / "empty"
+
+
+def test_write_nuscenes_never_replaces_the_current_folder(tmp_path, monkeypatch, capsys):
+    """`write-nuscenes . --overwrite` where `.` holds an earlier write: the current folder is never
+    renamed away from under the shell; one line naming it, before any scene is generated (and the
+    library call alike)."""
+    monkeypatch.chdir(tmp_path)
+    lab_data.main(["write-nuscenes", ".", "--scenes", "2"])  # `.` empty: filled in place
+    before, inode = sorted(tmp_path.rglob("*")), tmp_path.stat().st_ino
+    scenes = data_synth.generate_scenes(2, seed=0)
+    with pytest.raises(ValueError, match=r"write_nuscenes: refusing to replace '\.', the current"):
+        nuscenes.write_nuscenes(scenes, ".", overwrite=True)
+    monkeypatch.setattr(data_synth, "generate_scenes", lambda *a, **k: pytest.fail("generated"))
+    with pytest.raises(SystemExit) as e:
+        lab_data.main(["write-nuscenes", ".", "--overwrite"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and err.endswith(
+        "write-nuscenes: refusing to replace '.', the current folder or one holding it; give a "
+        "new folder"
+    )
+    assert os.stat(".").st_ino == inode and sorted(tmp_path.rglob("*")) == before
 
 
 def test_a_tampered_nuscenes_cache_is_refused_in_one_line(folder40, tmp_path):

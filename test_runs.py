@@ -1123,3 +1123,37 @@ def test_a_tampered_data_cache_is_refused_in_one_line_without_torchs_advice(tmp_
         lab_data.load_data(None, 200, 0, tmp_path)
     assert str(path) in str(e.value) and "\n" not in str(e.value)
     assert "weights_only" not in str(e.value) and "objects other than tensors" in str(e.value)
+
+
+def test_a_killed_writers_temporary_is_removed_by_the_next_writer_but_a_live_ones_kept(tmp_path):
+    """kill -9 inside write_file_atomic leaves its temporary beside the target; the next atomic
+    write into that folder (of any file) removes it, but never the temporary of a writer still
+    writing, which then finishes."""
+    code = (
+        "import sys\nfrom lab import runs\n"
+        "def write(tmp):\n    open(tmp, 'w').write('whole')\n"
+        "    print('writing', flush=True)\n    sys.stdin.readline()\n"
+        "runs.write_file_atomic(sys.argv[1], write)\n"
+    )
+
+    def writer(name):
+        run = subprocess.Popen(
+            [sys.executable, "-c", code, str(tmp_path / name)],
+            cwd=runs.ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert run.stdout.readline() == "writing\n"
+        return run
+
+    killed, live = writer("a.json"), writer("b.json")
+    (live_tmp,) = set(tmp_path.glob(".b.json.*")) & set(tmp_path.glob(".*.tmp"))
+    killed.kill()
+    killed.wait()
+    assert len(list(tmp_path.glob(".*.tmp"))) == 2
+    runs.write_atomic(tmp_path / "c.json", "{}")  # another file of that folder
+    assert list(tmp_path.glob(".*.tmp")) == [live_tmp] and not (tmp_path / "a.json").exists()
+    live.communicate("\n", timeout=60)
+    assert live.returncode == 0 and (tmp_path / "b.json").read_text() == "whole"
+    assert not list(tmp_path.glob(".*.tmp"))

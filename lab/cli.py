@@ -4,6 +4,7 @@ threads, the checks of an output folder, and the machine a result names."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
@@ -20,11 +21,8 @@ def machine() -> str:
     """This machine for a result's provenance: architecture, processor, torch's instruction set,
     cores (the same seed gives the same numbers only on the same: docs/reproducibility.md)."""
     name = platform.processor() or "unknown processor"
-    try:
-        with open("/proc/cpuinfo") as f:
-            name = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
+    with contextlib.suppress(OSError, StopIteration), open("/proc/cpuinfo") as f:
+        name = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
     capability = torch.backends.cpu.get_cpu_capability()
     return f"{platform.machine()}, {name}, {capability}, {os.cpu_count()} cores"
 
@@ -116,10 +114,8 @@ def config_with(cfg: Config, assignments) -> Config:
             else:
                 value = type(default)(text)
         except (ValueError, KeyError):
-            raise ValueError(
-                f"--set {item}: {key} takes a {type(default).__name__} (default {default!r}), "
-                f"could not parse {text!r}"
-            ) from None
+            takes = f"{key} takes a {type(default).__name__} (default {default!r})"
+            raise ValueError(f"--set {item}: {takes}, could not parse {text!r}") from None
         if isinstance(value, tuple) and len(value) > 64:
             raise ValueError(f"--set {key}=...: a tuple field takes at most 64 values")
         if isinstance(value, float) and not math.isfinite(value):

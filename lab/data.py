@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import pickle
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ from data_synth import Dataset, SynthConfig
 from lab.cli import add_shared_options, bounded, check_name
 from lab.nuscenes import NUSC_VERSIONS, load_nuscenes_cached, load_nuscenes_scenarios
 from lab.nuscenes import write_nuscenes
-from lab.runs import folder_lock, one_line
+from lab.runs import folder_lock, one_line, refuse_current_folder
 
 MINI_VAL = ("scene-0103", "scene-0916")  # v1.0-mini's official mini_val (the rest: mini_train)
 
@@ -76,9 +75,9 @@ def nuscenes_version(path) -> str:
 def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, workers=None):
     """A Dataset: synthetic samples (n of data seed `seed`), or the nuScenes folder at `path` split
     by scene (the rule logged), cached in cache_dir."""
+    data_synth._check_seed("load_data", seed)
     if path is None:
         return _synthetic(n, seed, cache_dir)
-    data_synth._check_seed("load_data", seed)
     version = nuscenes_version(path)
     scenes, report = load_nuscenes_cached(Path(path), version, None, cache_dir, workers, log)
     if len(scenes) < 2:
@@ -97,20 +96,13 @@ def load_data(path=None, n=4000, seed=0, cache_dir="data_cache", log=print, work
 def _synthetic(n, seed, cache_dir) -> Dataset:
     """load_or_generate, holding cache_dir while a missing cache is made; a cache holding NaN or inf
     (damaged: the generator makes none) is refused, naming it."""
-    try:
-        made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
-    except (TypeError, ValueError, OverflowError):  # (load_or_generate names a bad n or seed)
-        made = None
+    data_synth._check_count("load_data", "n (samples)", n, data_synth.MAX_SAMPLES)
+    made = data_synth._cache_path(int(n), int(seed), SynthConfig(), cache_dir)[0]
     lock = contextlib.nullcontext()
-    if made is not None and not made.exists():
+    if not made.exists():
         lock = folder_lock(cache_dir, f"making the data cache {made.name}")
-    try:
-        with lock:
-            data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
-    except ValueError as e:  # (a cache holding objects other than tensors: never torch's advice)
-        if isinstance(e.__cause__, pickle.UnpicklingError):
-            raise ValueError(f"{made}: not a data cache (objects other than tensors)") from None
-        raise
+    with lock:
+        data = data_synth.load_or_generate(n, seed=seed, cache_dir=cache_dir)
     parts = {p: b.tensors() for p, b in data._asdict().items() if b is not None}
     bad = [f"{p}.{k}" for p, t in parts.items() for k, v in t.items() if not v.isfinite().all()]
     if bad:
@@ -136,6 +128,7 @@ def main(argv=None) -> None:
     with one_line(ap):  # bad input (a bad file, a foreign cache, a file in the way): one line
         check_name(args.path, "path")
         if args.command == "write-nuscenes":
+            refuse_current_folder(args.path, "write-nuscenes")  # (before any work)
             scenes = data_synth.generate_scenes(args.scenes, seed=args.seed)
             write_nuscenes(scenes, args.path, args.version, overwrite=args.overwrite)
             print(f"wrote {args.scenes} scenes to {args.path}/{args.version} and {args.path}/maps")

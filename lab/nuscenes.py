@@ -351,8 +351,13 @@ def _map_scenes(jobs: list, ctx, workers: int | None) -> list:
     try:
         fork = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(workers, fork, initializer=_start_worker) as pool:
-            try:
-                return list(pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK))
+            try:  # (SIGINT held while the workers fork: none gets it before _start_worker)
+                held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+                try:
+                    results = pool.map(_parse_in_worker, jobs, chunksize=PARSE_CHUNK)
+                finally:
+                    signal.pthread_sigmask(signal.SIG_SETMASK, held)
+                return list(results)
             except KeyboardInterrupt:  # the workers ignore Ctrl-C: they end here, now
                 pool.shutdown(wait=False, cancel_futures=True)
                 for worker in multiprocessing.active_children():

@@ -116,9 +116,6 @@ os.umask(_UMASK)
 class DiskFull(OSError):
     """A write that found its disk full: one line naming the file and the space it needs."""
 
-    def __str__(self):
-        return self.args[0]
-
 
 def _nbytes(obj) -> int:
     """About how many bytes torch.save writes for obj: its tensors' data."""
@@ -128,12 +125,25 @@ def _nbytes(obj) -> int:
     return sum(_nbytes(v) for v in items)
 
 
+def remove_stale_temporaries(folder) -> None:
+    """Remove write_file_atomic's .NAME.pidPID-*.tmp in folder whose writer PID is gone (killed)."""
+    for tmp in pathlib.Path(folder).glob(".*.pid*-*.tmp"):
+        try:  # (signal 0: whether the process exists)
+            os.kill(int(tmp.name.rpartition(".pid")[2].partition("-")[0]), 0)
+        except ProcessLookupError:
+            shutil.rmtree(tmp, ignore_errors=True)
+        except (ValueError, OverflowError, OSError):  # no PID, or another user's process: alive
+            pass
+
+
 def write_file_atomic(path, write, needed: int = 0) -> None:
     """write(a file of path's name in a temporary folder beside it: a figure's format kept), then
-    rename it onto path: a kill leaves the old file, a full disk is one DiskFull line. The file gets
-    open()'s permissions, not mkstemp's 0600 (a shared lab folder)."""
+    rename it onto path: a kill leaves the old file (the next writer removes the temporary), a full
+    disk is one DiskFull line. The file gets open()'s permissions, not mkstemp's 0600."""
     path = pathlib.Path(path)
-    folder = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    remove_stale_temporaries(path.parent)
+    prefix = f".{path.name}.pid{os.getpid()}-"  # (the PID: remove_stale_temporaries reads it)
+    folder = tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=path.parent)
     tmp = os.path.join(folder, path.name)
     try:
         write(tmp)
@@ -381,10 +391,9 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
         ours = lock.is_locked  # (by this process, in an outer block)
         lock.acquire(blocking=False)
     except filelock.Timeout:
-        try:
-            holder = json.loads(path.read_text())
-        except (OSError, ValueError):
-            holder = None
+        holder = {}
+        with contextlib.suppress(ValueError):  # (unreadable, not JSON: load_json)
+            holder = load_json(path, "a lock's holder")
         holder = holder if isinstance(holder, dict) else {}
         raise OutputRefused(
             f"{folder}: another run is writing here (PID {holder.get('pid', '?')}, "
@@ -404,10 +413,19 @@ def folder_lock(folder, command: str, lock_name: str = ".lock"):
         lock.release()
 
 
+def refuse_current_folder(root, who: str) -> None:
+    """OutputRefused if root is not empty and is or holds the current folder (no rename of it)."""
+    real = pathlib.Path(root).resolve()
+    if pathlib.Path.cwd().is_relative_to(real) and any(real.iterdir()):
+        why = "the current folder or one holding it; give a new folder"
+        raise OutputRefused(f"{who}: refusing to replace '{root}', {why}")
+
+
 def write_folder(root, write, who: str, files, overwrite: bool, also=None) -> None:
     """A folder written whole: write(tmp) fills a temporary sibling, renamed into place, under a
     lock. files: those the writer (`who`) makes, replaced only with overwrite; a folder holding any
     other file (but directly in `also`) is never replaced."""
+    refuse_current_folder(root, who)
     root, real = pathlib.Path(root), pathlib.Path(root).resolve()  # (a symlink: its target)
     with folder_lock(real.parent, f"{who} {root}", f".{real.name}.lock"):
         for stale in real.parent.glob(f".{real.name}.old-*"):  # killed between its renames
