@@ -141,19 +141,19 @@ class Config:
 # a safe omega = 1 there (a tiny omega inside torch.where would put NaN into the gradient).
 
 _SERIES_SWITCH = 0.3  # |omega tau| below which the series replaces the closed forms
-_SERIES_TERMS = 7  # k = 0 .. 6
+_SERIES_TERMS = 7  # i = 0 .. 6
 
 
 @functools.lru_cache(maxsize=None)
 def _series_coefficients(jmax, dtype, device):
-    """a_kj = (-1)^k / ((2k)! (2k+j+1)) and b_kj = (-1)^k / ((2k+1)! (2k+j+2)) of the moments'
+    """a_ij = (-1)^i / ((2i)! (2i+j+1)) and b_ij = (-1)^i / ((2i+1)! (2i+j+2)) of the moments'
     series, side by side: (terms, 2 (jmax+1))."""
-    f = math.factorial
+    fact = math.factorial
     rows = []
-    for k in range(_SERIES_TERMS):
-        a = [(-1) ** k / (f(2 * k) * (2 * k + j + 1)) for j in range(jmax + 1)]
-        b = [(-1) ** k / (f(2 * k + 1) * (2 * k + j + 2)) for j in range(jmax + 1)]
-        rows.append(a + b)
+    for i in range(_SERIES_TERMS):
+        a_i = [(-1) ** i / (fact(2 * i) * (2 * i + j + 1)) for j in range(jmax + 1)]
+        b_i = [(-1) ** i / (fact(2 * i + 1) * (2 * i + j + 2)) for j in range(jmax + 1)]
+        rows.append(a_i + b_i)
     return torch.tensor(rows, dtype=dtype, device=device)
 
 
@@ -165,14 +165,14 @@ def _moments(omega, tau, jmax):
     powers = torch.arange(1, J + 1, dtype=omega.dtype, device=omega.device)  # (J,) 1 .. j+1
     tau_pow = tau**powers  # (J,) tau^(j+1)
     # the series, term by term (th = 0 where the closed form is taken):
-    #     cm_j = tau^(j+1) sum_k a_kj th^2k,   sm_j = tau^(j+1) th sum_k b_kj th^2k
+    #     cm_j = tau^(j+1) sum_i a_ij th^2i,   sm_j = tau^(j+1) th sum_i b_ij th^2i
     th_s = torch.where(small, th, 0.0)
     coef = _series_coefficients(jmax, omega.dtype, omega.device)  # (terms, 2J)
     th2 = th_s**2
-    power = torch.ones_like(th_s)  # th^2k, from k = 0
+    power = torch.ones_like(th_s)  # th^2i, from i = 0
     series = 0.0
-    for k in range(_SERIES_TERMS):
-        series = series + power[..., None] * coef[k]  # (..., 2J)
+    for i in range(_SERIES_TERMS):
+        series = series + power[..., None] * coef[i]  # (..., 2J)
         power = power * th2
     cm_series = series[..., :J] * tau_pow
     sm_series = series[..., J:] * th_s[..., None] * tau_pow
@@ -346,8 +346,8 @@ def nearest_lane_segment(pos, heading, lanes, lanes_mask):
     lane, i = j // P, j % P
     last = (lanes_mask.sum(-1).gather(1, lane) - 1).clamp_min(0)  # (B, Q) the lane's last point
 
-    def point(k):  # the lane's point k (B, Q) -> (B, Q, 3)
-        return pts.gather(1, (lane * P + k)[..., None].expand(B, -1, 3))
+    def point(idx):  # the lane's point idx (B, Q) -> (B, Q, 3)
+        return pts.gather(1, (lane * P + idx)[..., None].expand(B, -1, 3))
 
     def dist2_to(a, b):  # squared distance from q to segment a -> b (B, Q)
         return segment_projection(q, a.detach(), b.detach())[1].square().sum(-1)
@@ -1756,8 +1756,8 @@ CONFIG_SIZES = dict(
 CONFIG_CHOICES = dict(train_plan_weights=("posterior", "prior"), goal=("logged", "route"))
 
 
-def _finite(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _config_field_error(name: str, kind: str, v):
