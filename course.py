@@ -386,9 +386,9 @@ def figure_modes(sub, pred, label):
     top = pred.probs.max(-1).values
     title = (
         f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future; "
-        "below, each box zoomed with the most likely mode's 1σ ellipses). "
-        f"The most likely mode has p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 "
-        f"end up to {spread:.1f} m apart,\nand the closest mode ends {closest.min():.1f} .. "
+        "below, each box zoomed: the most likely mode's 1σ ellipses).\nThe most likely mode has "
+        f"p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 end up to {spread:.1f} m "
+        f"apart, and the closest mode ends {closest.min():.1f} .. "
         f"{closest.max():.1f} m from the true position at T = 3 s"
     )
     _show(fig, title)

@@ -59,7 +59,7 @@ def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="p
         for t in range(pred.pos_cov.shape[2]):
             L = torch.linalg.cholesky(pred.pos_cov[i, best, t].detach().cpu())  # (2, 2)
             ell = xy[best, t + 1] + circle @ L.T  # (40, 2)
-            ax.fill(*ell.T, fc=color, ec="k", lw=0.6, alpha=0.6, zorder=9)  # over the modes
+            ax.plot(*ell.T, color="k", lw=1.0, zorder=9)  # over the modes
 
 
 def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(-10, 45, -12, 14)):

@@ -46,7 +46,7 @@
 #
 # Times: wall time per section on one torch thread of a 2-core VM with the data cached (the first
 # run generates it, a few seconds more); the last cell prints this run's times.
-# Plan 20-40 minutes per exercise, 3-5 hours for the whole course.
+# Plan 20-40 min per exercise (exercise 6: 45-90), 1.5-3 h for the 18 questions, 6-9 h in all.
 #
 # **Exercises.** Six functions to fill in (stubs until you do), in the order they build on each
 # other; one of them fixes a realistic bug. A check runs each on its own test problems against the
