@@ -523,9 +523,9 @@ show_g = [*top2, first_of(bg, "far", ok_g)]
 course.figure_plan_gradient(bg, show_g, preds_cv, gmax, cfg)
 
 # %% [markdown]
-# **Try it.** A *keep_lane* sample (the vehicle stays in the next lane), its prediction the GT
-# future *moved*: the truth, the vehicle moved 1.5 m toward the ego's lane, and the same at
-# $\beta = 10$; in a live kernel with ipywidgets, sliders move the prediction and change $\beta$.
+# **Try it.** A *keep_lane* sample, its prediction the GT future: as is, moved 1.5 m toward the
+# ego's lane, and that at $\beta = 10$. Each title says whether the plan is still $n^*$; the arrows
+# push the prediction where $\mathcal L_\text{plan}$ falls, their colour says how hard (one scale).
 
 # %%
 settings = [((0.0, 0.0), 1.0), ((0.0, -1.5), 1.0), ((0.0, -1.5), 10.0)]  # (shift (m), β)
