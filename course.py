@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from IPython.display import Markdown, display
-from matplotlib.colors import LogNorm
+from matplotlib.colors import ListedColormap, LogNorm
 from matplotlib.lines import Line2D
 from matplotlib.patches import FancyBboxPatch
 
@@ -28,6 +28,8 @@ import specs
 
 F64 = torch.float64
 P_NORM = LogNorm(1e-4, 1)  # the colour scale of the candidates' p_n
+FUTURE = dict(color="tab:orange", mec="k", ms=4, lw=2, zorder=10)  # a true future, on top
+G_NORM, G_MAP = LogNorm(1e-3, 10), ListedColormap(plt.cm.Reds(np.linspace(0.3, 1, 256)))  # |dL/dŝ|
 SECTION_TIMES = {}
 _CLOCK = {}
 
@@ -265,8 +267,7 @@ def figure_cost_map(ex, gx, gy, c_coll, c_goal, c_lat, c_sum, w_coll, ctx_t, t=1
 
 
 def figure_beta_signal(betas, extra, beta_paper, n):
-    """§4: what ignoring the vehicle adds to the mean L_plan (`extra`, nats) at each β of `betas`,
-    the title read off the curve: from which β on it grows monotonically, and any bump below."""
+    """§4: the mean L_plan that ignoring the vehicle adds (`extra`, nats) per β, and its title."""
     e = np.asarray(extra)
     up = next(i for i in range(len(e)) if (np.diff(e[i:]) > 0).all())  # monotone from betas[up]
     at = float(np.interp(np.log(beta_paper), np.log(betas), e))
@@ -288,8 +289,7 @@ def figure_beta_signal(betas, extra, beta_paper, n):
 
 
 def figure_plan_gradient(bg, show, preds, gmax, cfg):
-    """§4: -dL_plan/d(prediction) at one arrow scale (the longest 6 m) on the samples `show` of
-    `bg`, with the predictions `preds` (B, 1, T, 2)."""
+    """§4: -dL_plan/d(preds (B, 1, T, 2)) on the samples `show` of bg, the longest arrow 6 m."""
     kw = dict(beta=cfg.beta, what="constant velocity")
     panels = [dict(ex=bg[j : j + 1], preds=preds[j : j + 1], **kw) for j in show]
     title = (
@@ -301,8 +301,7 @@ def figure_plan_gradient(bg, show, preds, gmax, cfg):
 
 
 def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
-    """§5: the cost over iLQR's iterations relative to the plan's (`rel`); sample i's controller
-    minus plan, and both controls over time (grey band: the box)."""
+    """§5: iLQR's cost / the plan's per iteration (rel); sample i's controller - plan, controls."""
     mosaic = [["cost", "map", "map"], ["cost", "w", "a"]]
     _, axd = plt.subplot_mosaic(mosaic, figsize=(13, 6), layout="constrained")
     ax = axd["cost"]
@@ -342,8 +341,8 @@ def figure_ilqr(batch, i, rel, plan_x, plan_u, ctrl_x, ctrl_u, cfg):
     plt.show()
 
 
-def _modes_panel(ax, sub, pred, j, norm_p):
-    """figure_modes' panel of sample j, zoomed on the predicted vehicle."""
+def _modes_panel(ax, z, sub, pred, j, norm_p):
+    """figure_modes' panels of sample j: ax on its vehicle, z on the most likely mode's end (1σ)."""
     K = pred.probs.shape[1]
     P = torch.cat([pred.s0[j, None, None, :2].expand(K, 1, 2), pred.means[j]], 1)  # (K, 1+T, 2)
     pts = torch.cat([P.reshape(-1, 2), sub.agent_fut[j, :, :2], sub.agent_hist[j, -3:, :2]])
@@ -353,40 +352,43 @@ def _modes_panel(ax, sub, pred, j, norm_p):
     top3 = ", ".join(f"{q:.2f}" for q in pred.probs[j].sort(descending=True).values[:3].tolist())
     title = f"{data_synth.BEHAVIOURS[int(sub.behaviour[j])]}: largest p = {top3}"
     _scene(ax, sub, j, title, (c[0] - hx, c[0] + hx, c[1] - hy, c[1] + hy))
-    figures.plot_prediction(ax, pred, j, color="tab:red", label=None)  # 1σ ellipses, faint modes
     for k in torch.argsort(pred.probs[j]).tolist():  # the likely modes drawn last, on top
         pk = pred.probs[j, k].item()
         colour = plt.cm.viridis_r(norm_p(pk))
         ax.plot(*P[k].T, color=colour, lw=0.6 + 3 * pk / norm_p.vmax, zorder=8)
+    ax.plot(*torch.cat([sub.agent_hist[j, -1:, :2], sub.agent_fut[j, :, :2]]).T, "o-", **FUTURE)
+    figures.plot_prediction(z, pred, j, color="tab:red", label=None)
+    z.plot(*sub.agent_fut[j, :, :2].T, "o-", **dict(FUTURE, zorder=8, lw=1.2))
     k = int(pred.probs[j].argmax())
-    label = f"most likely, p = {pred.probs[j, k]:.2f}"
-    above = dict(xytext=(0, 14), textcoords="offset points", fontsize=8, ha="center", zorder=10)
-    arrow, frame = dict(arrowstyle="-", lw=0.6), dict(fc="white", ec="0.5", alpha=0.9, pad=1)
-    ax.annotate(label, P[k, -1].tolist(), arrowprops=arrow, bbox=frame, **above)
+    sd = torch.linalg.eigvalsh(pred.pos_cov[j, k, -1]).sqrt().tolist()  # (2,) m at T
+    (x, y), h = pred.means[j, k, -1].tolist(), max(2.0, 1.5 * sd[1])
+    z.set(xlim=(x - 1.5 * h, x + 1.5 * h), ylim=(y - h, y + h), aspect="equal", xlabel="x (m)")
+    title = f"the box above: most likely mode (p = {pred.probs[j, k]:.2f}), 1σ at 3 s"
+    z.set_title(f"{title} {sd[1]:.2f} × {sd[0]:.2f} m", fontsize=8)
+    ax.indicate_inset([x - 1.5 * h, y - h, 3 * h, 2 * h], edgecolor="0.3")
 
 
 def figure_modes(sub, pred, label):
     """§6: a predictor's (`label`) K modes on the samples of `sub`, coloured by p(z = k | x)."""
     norm_p = plt.Normalize(0, pred.probs.max().item())
-    fig, axes = plt.subplots(1, len(sub), figsize=(14, 3.9), layout="constrained")
-    for j, ax in enumerate(axes):
-        _modes_panel(ax, sub, pred, j, norm_p)
+    kw = dict(figsize=(14, 7.4), layout="constrained", height_ratios=(1, 1))
+    fig, (axes, zoom) = plt.subplots(2, len(sub), **kw)
+    for j, (ax, z) in enumerate(zip(axes, zoom)):
+        _modes_panel(ax, z, sub, pred, j, norm_p)
     _colorbar(fig, axes, "viridis_r", norm_p, "mode probability p(z = k | x)", 0.8)
-    handles = [
-        Line2D([], [], color="tab:blue", ls="-", label="a mode (colour, width: p)"),
-        Line2D([], [], color="tab:orange", ls="-", marker=".", label="true future"),
-        Line2D([], [], color="tab:red", lw=0.8, label="1σ, most likely mode"),
-    ]
-    axes[0].legend(handles=handles, loc="lower left", fontsize=7)
+    mode = Line2D([], [], color="tab:blue", ls="-", label="a mode (colour, width: p)")
+    future = Line2D([], [], color="tab:orange", marker="o", mec="k", label="true future (0.5 s)")
+    axes[0].legend(handles=[mode, future], loc="lower left", fontsize=7)
     ends = pred.means[:, :, -1, :2]  # (B, K, 2) the modes' positions at T
     likely = pred.probs >= 0.05  # (B, K) the modes drawn thick enough to see
     spread = max(torch.cdist(e[m], e[m]).max().item() for e, m in zip(ends, likely))
     closest = (ends - sub.agent_fut[:, None, -1, :2]).norm(dim=-1).min(-1).values  # (B,)
     top = pred.probs.max(-1).values
     title = (
-        f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future). "
-        f"The most likely mode has p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 "
-        f"end up to {spread:.1f} m apart,\nand the closest mode ends {closest.min():.1f} .. "
+        f"Standard predictor, {label}: its {pred.probs.shape[1]} modes (orange: the true future; "
+        "below, each box zoomed: the most likely mode's 1σ ellipses).\nThe most likely mode has "
+        f"p = {top.min():.2f} .. {top.max():.2f}; the modes with p ≥ 0.05 end up to {spread:.1f} m "
+        f"apart, and the closest mode ends {closest.min():.1f} .. "
         f"{closest.max():.1f} m from the true position at T = 3 s"
     )
     _show(fig, title)
@@ -425,20 +427,6 @@ def figure_learning_curves(histories):
         "→ last quarter of the steps; beyond the batch-to-batch noise (2 s.e.): "
     )
     _show(fig, title + (", ".join(moved) or "none"))
-
-
-def figure_stacks(batch, i, outs, cfg):
-    """§7, §8: sample i through the Standard and the DiffStack stacks (figures.plot_stack)."""
-    fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), layout="constrained")
-    for ax, name in zip(axes, ("Standard", "DiffStack")):
-        title = f"{name}: hindsight cost {outs[name].hindsight[i]:.2f}"
-        figures.plot_stack(ax, batch, i, outs[name], cfg, title, extent=(-12, 48, -10, 10))
-        ax.set(xlabel="x (m)", ylabel="y (m)")
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ticks = dict(boundaries=np.linspace(0, 1, 101), ticks=[0, 0.5, 1])
-    norm = plt.Normalize(-1 / 3, 1)
-    _colorbar(fig, axes, "Greens", norm, "candidate p_n / max p_n", 0.5, **ticks)
-    plt.show()
 
 
 def kkt_gradient_check(val, cfg, seed, out=print):
@@ -493,9 +481,9 @@ def show_source(fn):
     display(Markdown(f"{where}:\n\n```python\n{''.join(lines).rstrip()}\n```"))
 
 
-def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0, preds=None):
+def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0, preds=None, **_):
     """The relaxed planner of eq. (2) on `ex` (a batch of 1), its prediction `preds` (None: the GT
-    future) moved by `shift` (m): C, p_n, the plan, the target n*, L_plan and dL_plan/dŝ (T, 2)."""
+    future) moved by `shift` (m): C, p_n, the plan, n*, L_plan, dL_plan/dŝ (T, 2), their extent."""
     ctx = gt_context(ex)
     preds = ctx.preds if preds is None else preds.detach()
     preds = (preds + torch.tensor(shift, dtype=preds.dtype)).requires_grad_()
@@ -507,54 +495,61 @@ def planner_view(ex, cfg, shift=(0.0, 0.0), beta=1.0, preds=None):
     (grad,) = torch.autograd.grad(l_plan.sum(), preds)  # (1, K=1, T, 2)
     p = torch.softmax(torch.where(cands.valid, -beta * cost.detach(), -math.inf), -1)[0]
     view = dict(cost=cost.detach()[0], p=p, plan=int(plan[0]), target=int(target[0]))
-    return dict(view, l_plan=l_plan.item(), grad=grad[0, 0], pred=preds.detach()[0, 0], cands=cands)
+    pts = torch.cat([cands.s[0, cands.valid[0], :, :2].flatten(0, 1), preds[0, 0]])
+    pts = torch.cat([pts.detach(), ex.agent_hist[0, -1:, :2], ex.agent_fut[0, :, :2]])
+    (x0, y0), (x1, y1) = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+    view.update(extent=(x0 - 3, x1 + 3, y0 - 2, y1 + 2), l_plan=l_plan.item(), cands=cands)
+    return dict(view, grad=grad[0, 0], pred=preds.detach()[0, 0])
 
 
-def draw_planner_view(ax, cfg, ex, beta, shift=(0.0, 0.0), preds=None, what="GT", scale=None):
-    """planner_view drawn (`what`: the prediction): the valid candidates coloured and widened by
-    p_n, the plan, n*, the prediction, -dL_plan/dŝ as arrows (scale m per 1/m, or longest 3 m)."""
-    v = planner_view(ex, cfg, shift, beta, preds)
+def draw_planner_view(ax, v, ex, beta, shift=(0.0, 0.0), what="GT", scale=None, **_):
+    """planner_view v drawn (`what`: the prediction): candidates by p_n, the plan, n*, the
+    prediction, -dL_plan/dŝ as arrows coloured by size (scale: m per 1/m, None: the longest 3 m)."""
     p, valid, x = v["p"], v["cands"].valid[0], v["cands"].s[0, :, :, :2].detach()  # x (N, T+1, 2)
     hit = "plan = n*" if v["plan"] == v["target"] else f"plan {v['plan']} ≠ n*"
     moved = f" moved ({shift[0]:+.1f}, {shift[1]:+.1f}) m" if any(shift) else ""
-    gmax = v["grad"].norm(dim=-1).max().item()
     entropy = -(p[p > 0] * p[p > 0].log()).sum()
-    uniform = f"uniform over {int(valid.sum())}: {math.log(valid.sum()):.2f}"
     title = (
         f"{data_synth.BEHAVIOURS[int(ex.behaviour[0])]}, β = {beta:g}, {what}{moved}: L_plan "
-        f"{v['l_plan']:.2f}, {hit}, largest |dL/dŝ_t| {gmax:.1e} 1/m\nmax p_n = {p.max():.2f}, "
-        f"entropy {entropy:.2f} nats ({uniform})"
+        f"{v['l_plan']:.2f}, {hit}, largest |dL/dŝ_t| {v['grad'].norm(dim=-1).max():.1e} 1/m\n"
+        f"max p_n = {p.max():.2f}, entropy {entropy:.2f} nats (uniform: {valid.sum().log():.2f})"
     )
-    pts = torch.cat([x[valid].flatten(0, 1), v["pred"], ex.agent_fut[0, :, :2]])  # the zoom's
-    lo, hi = pts.min(0).values.tolist(), pts.max(0).values.tolist()
-    _scene(ax, ex, 0, title, (lo[0] - 3, hi[0] + 6, lo[1] - 3, hi[1] + 3))
+    _scene(ax, ex, 0, title, v["extent"])
     for n in torch.argsort(p).tolist():  # the likely candidates drawn last, on top
         if valid[n]:
             colour = plt.cm.viridis(P_NORM(max(p[n].item(), 1e-4)))
             ax.plot(*x[n].T, color=colour, lw=1.0 + 2 * p[n].item() ** 0.5, zorder=2)
-    ax.plot(*x[v["target"]].T, color="tab:green", lw=3, alpha=0.6, label="target n* (hindsight)")
-    ax.plot(*x[v["plan"]].T, "k--", lw=1.5, label="plan (argmin C)")
-    ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ")
-    arrows = -v["grad"] * (scale or 3 / max(gmax, 1e-12))
-    ax.quiver(*v["pred"].T, *arrows.T, color="tab:red", angles="xy", scale_units="xy", scale=1)
+    ax.plot(*x[v["target"]].T, color="magenta", lw=6, alpha=0.45, label="target n* (hindsight)")
+    ax.plot(*x[v["plan"]].T, "k--", marker="o", ms=3, lw=1.5, label="plan (argmin C)")
+    ax.plot(*v["pred"].T, "o-", color="tab:red", ms=3, label="prediction ŝ", zorder=7)
+    g = v["grad"].norm(dim=-1)  # (T,) 1/m
+    arrows = -v["grad"] * (scale or 3 / max(g.max().item(), 1e-12))
+    q = dict(angles="xy", scale_units="xy", scale=1, width=0.004, zorder=8, label="-dL_plan/dŝ")
+    ax.quiver(*v["pred"].T, *arrows.T, color=G_MAP(G_NORM(g.numpy())), **q)
 
 
 def planner_panels(panels, cfg, title, scale=None):
     """A draw_planner_view panel per dict of its arguments (ex, shift, beta, preds, what) in
-    panels, stacked, under one p_n colour bar; scale: one arrow scale for all."""
-    kw = dict(figsize=(10, 2.9 * len(panels)), layout="constrained", squeeze=False)
-    fig, axes = plt.subplots(len(panels), 1, **kw)
-    for ax, panel in zip(axes[:, 0], panels):
-        draw_planner_view(ax, cfg, scale=scale, **panel)
-    axes[0, 0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
-    _colorbar(fig, axes, "viridis", P_NORM, "p_n (log scale)", 0.6)
-    _show(fig, title)
+    panels, stacked, under colour bars of p_n and |dL_plan/dŝ_t|; scale: draw_planner_view's."""
+    views = [planner_view(cfg=cfg, **panel) for panel in panels]
+    # each panel's height from its data's aspect (equal axes), so no panel is left mostly empty
+    heights = [1.0 + 7 * (e[3] - e[2]) / (e[1] - e[0]) for e in [v["extent"] for v in views]]
+    kw = dict(figsize=(10, sum(heights) + 0.6), height_ratios=heights, layout="constrained")
+    fig, axes = plt.subplots(len(panels), 1, squeeze=False, **kw)
+    for ax, v, panel in zip(axes[:, 0], views, panels):
+        draw_planner_view(ax, v, scale=scale, **panel)
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", ncol=4)
+    _colorbar(fig, axes, "viridis", P_NORM, "p_n (log scale)", 0.9)
+    _colorbar(fig, axes, G_MAP, G_NORM, "|dL_plan/dŝ_t| (1/m), arrows", 0.9)
+    lengths = f"{scale:.2g} m per 1/m in all" if scale else "the longest 3 m in each panel"
+    _show(fig, f"{title}\n(arrows -dL_plan/dŝ: {lengths}; colour: size, one scale in all)".strip())
 
 
 def interactive_planner(ex, cfg, settings):
     """planner_panels of settings (shift, beta), then ipywidgets' sliders (or None without)."""
     title = "Move the prediction or change β: C, p_n, the plan and -dL_plan/dŝ (arrows) follow"
-    planner_panels([dict(ex=ex, shift=shift, beta=beta) for shift, beta in settings], cfg, title)
+    panels = [dict(ex=ex, shift=shift, beta=beta) for shift, beta in settings]
+    planner_panels(panels, cfg, title)
     try:
         import ipywidgets as widgets
     except ImportError:

@@ -44,8 +44,7 @@ def save_figure(fig, path) -> None:
 
 
 def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="prediction"):
-    """Scenario i's K modes from the agent's position, alpha and width by probability, and (cov)
-    the 1-sigma ellipses of the most likely mode; over plot_scenario."""
+    """Scenario i's K modes, alpha and width by probability, (cov) the most likely's 1σ ellipses."""
     p = pred.probs[i].detach().cpu()  # (K,)
     start = pred.s0[i, None, None, :2].expand(len(p), 1, 2)
     xy = torch.cat([start, pred.means[i]], 1).detach().cpu()  # (K, 1+T, 2)
@@ -60,12 +59,11 @@ def plot_prediction(ax, pred: Prediction, i, color="tab:red", cov=True, label="p
         for t in range(pred.pos_cov.shape[2]):
             L = torch.linalg.cholesky(pred.pos_cov[i, best, t].detach().cpu())  # (2, 2)
             ell = xy[best, t + 1] + circle @ L.T  # (40, 2)
-            ax.plot(ell[:, 0], ell[:, 1], color=color, lw=0.6, alpha=0.6)
+            ax.plot(*ell.T, color="k", lw=1.0, zorder=9)  # over the modes
 
 
 def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(-10, 45, -12, 14)):
-    """Fig. 3's kind of panel for scenario i: the scene, the predicted modes, the candidates by
-    p_n = softmax(-beta C_n), the plan (argmin) and the controller's trajectory."""
+    """Fig. 3's panel for scenario i: scene, modes, candidates by p_n, plan and controller."""
     import matplotlib.pyplot as plt
 
     data_synth.plot_scenario(ax, batch, i, title=title, extent=extent)
@@ -90,6 +88,24 @@ def plot_stack(ax, batch, i, out: StackOutput, cfg: Config, title=None, extent=(
     return ax
 
 
+def plot_plans(ax, outs: dict, i) -> None:
+    """Sample i's plan (dashed) and executed trajectory per stack in outs, y stretched."""
+    xy = []
+    for name, out in outs.items():
+        n = int(masked_argmin(out.cand_cost[i : i + 1], out.cands.valid[i : i + 1]))
+        xy.append((out.cands.s[i, n, :, :2], out.s[i, :, :2]))
+        color = COLORS.get(name)
+        ax.plot(*xy[-1][0].T, "--", color=color, lw=1, label=f"{name}'s plan")
+        ax.plot(*xy[-1][1].T, "o-", color=color, lw=2, ms=3, label=f"{name}'s controller")
+    ax.set(xlabel="x (m)", ylabel="y (m), stretched")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    (pa, ca), (pb, cb) = xy[:2]
+    plans, ends = (pa - pb).norm(dim=-1).max(), (ca[-1] - cb[-1]).norm()
+    title = f"zoomed, y stretched: the plans up to {plans:.2f} m apart, the executed trajectories"
+    ax.set_title(f"{title} end {ends:.2f} m apart", fontsize=9)
+
+
 def stack_outputs(batch, models: dict, cfg: Config) -> dict:
     """{name: StackOutput} of each predictor in models on a batch (eval mode, RL), on the CPU."""
     outs = {}
@@ -105,8 +121,6 @@ def stack_outputs(batch, models: dict, cfg: Config) -> dict:
 def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     """Fig. 3 (returns its scenario: the first model's hindsight cost over the second's most): the
     stacks mostly plan the same candidate, the predictions acting through the controller."""
-    import matplotlib.pyplot as plt
-
     batch = data.val[:n_search]
     outs = stack_outputs(batch, models, cfg)  # name -> StackOutput on the CPU
     (a, oa), (b, ob) = list(outs.items())[:2]
@@ -115,39 +129,31 @@ def figure_stack_example(data, models: dict, cfg: Config, path, n_search=256):
     # planned: (B,) the planned candidate
     planned = {name: masked_argmin(o.cand_cost, o.cands.valid) for name, o in outs.items()}
     same = int((planned[a] == planned[b])[both].sum())
-    fig, axes = plt.subplots(
-        3, 1, figsize=(10, 9.6), layout="constrained", height_ratios=(1, 1, 0.8)
-    )
-    for ax, (name, out) in zip(axes, outs.items()):
-        title = f"{name}: hindsight cost {out.hindsight[i].item():.3f}"
-        plot_stack(ax, batch, i, out, cfg, title, extent=(-12, 48, -10, 10))
-        ax.legend(loc="lower left", fontsize=7)
-    # the 0.25 .. 1 colours used
-    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))
-    ticks = [0, 0.25, 0.5, 0.75, 1]
-    bounds = np.linspace(0, 1, 101)
-    fig.colorbar(
-        sm, ax=axes[:2], shrink=0.8, label="candidate p_n / max p_n", ticks=ticks, boundaries=bounds
-    )
-    ax = axes[2]
-    for name, out in outs.items():
-        plan = out.cands.s[i, int(planned[name][i]), :, :2]
-        color = COLORS.get(name)
-        ax.plot(*plan.T, "--", color=color, lw=1, label=f"{name}'s plan")
-        ax.plot(*out.s[i, :, :2].T, "o-", color=color, lw=2, ms=3, label=f"{name}'s controller")
-    ax.set(xlabel="x (m)", ylabel="y (m), stretched")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", fontsize=8)
-    apart = (oa.s[i, -1, :2] - ob.s[i, -1, :2]).norm().item()
-    one_plan = " from the same plan" if planned[a][i] == planned[b][i] else ""
-    ax.set_title(f"the executed trajectories end {apart:.2f} m apart{one_plan}", fontsize=9)
-    fig.suptitle(
+    title = (
         f"Validation scenario {i}, where {a}'s hindsight cost exceeds {b}'s most: the stacks plan "
-        f"the same candidate in {same} of {int(both.sum())} scenarios\n({STACK_KEY})",
-        fontsize=10,
+        f"the same candidate in {same} of {int(both.sum())} scenarios\n({STACK_KEY})"
     )
-    save_figure(fig, path)
+    figure_stacks(batch, i, outs, cfg, title, path)
     return i
+
+
+def figure_stacks(batch, i, outs: dict, cfg: Config, title="", path=None) -> None:
+    """Sample i through the two stacks in outs (plot_stack), then plot_plans; path None: shown."""
+    import matplotlib.pyplot as plt
+
+    kw = dict(figsize=(10, 9.2), layout="constrained", height_ratios=(1, 1, 0.8))
+    fig, axes = plt.subplots(3, 1, **kw)
+    for ax, (name, out) in zip(axes, outs.items()):
+        title_n = f"{name}: hindsight cost {out.hindsight[i].item():.3f}"
+        plot_stack(ax, batch, i, out, cfg, title_n, extent=(-12, 48, -10, 10))
+        ax.set(xlabel="x (m)", ylabel="y (m)")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    sm = plt.cm.ScalarMappable(cmap="Greens", norm=plt.Normalize(-1 / 3, 1))  # 0.25 .. 1 used
+    ticks = dict(ticks=[0, 0.25, 0.5, 0.75, 1], boundaries=np.linspace(0, 1, 101))
+    fig.colorbar(sm, ax=axes[:2], shrink=0.8, label="candidate p_n / max p_n", **ticks)
+    plot_plans(axes[2], outs, i)
+    fig.suptitle(title, fontsize=10)
+    save_figure(fig, path)
 
 
 def figure_real_scenes(batch, models: dict, cfg: Config, path, rows: int = 3, apart: int = 3):
@@ -292,8 +298,7 @@ def _mean_curve(runs, key):
 
 
 def figure_learning_curves(results: dict, path, reference=None, methods=("Standard", "DiffStack")):
-    """Validation ADE and hindsight cost after every epoch, mean and s.e. over seeds; reference:
-    {name: hindsight cost on the same scenes}, drawn as horizontal lines."""
+    """Validation ADE and hindsight cost per epoch, mean ± s.e.; reference {name: cost}: lines."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=110, layout="constrained")
