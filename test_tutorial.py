@@ -489,3 +489,351 @@ def test_a_wrong_answer_cannot_stop_run_all(capsys):
         assert safe, f"line {call.lineno}: {ast.unparse(call)} can stop the notebook"
     assert not course.exercise(1, course.check_collision, lambda pos, ctx, v: pos[..., 0, 0])
     assert "EXERCISE 1: FAIL ✗ AssertionError: my_collision" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------------------------------------
+# The course as a student sees it: JupyterLab in a real (headless) browser, Run All, a slider.
+# ---------------------------------------------------------------------------------------------
+
+BROWSER_HOW = "apt-get install chromium chromium-driver; pip install selenium"
+# the prompts of the code cells ('[12]:', '[*]:', '[ ]:') and the kernel's state
+_LAB_STATE_JS = """
+const cells = [...document.querySelectorAll('.jp-Notebook .jp-CodeCell')];
+const status = document.querySelector('.jp-Notebook-ExecutionIndicator');
+return {
+  prompts: cells.map(c => (c.querySelector('.jp-InputPrompt') || {}).textContent || ''),
+  status: status ? status.getAttribute('data-status') : null,
+};
+"""
+
+
+def _browser_or_skip():
+    """(webdriver module, chromium path, chromedriver path), or a one-line skip saying how to get
+    them."""
+    import shutil
+
+    try:
+        from selenium import webdriver
+    except ImportError:
+        pytest.skip(f"browser test: no selenium here ({BROWSER_HOW})")
+    browser = next(
+        filter(None, map(shutil.which, ("chromium", "chromium-browser", "google-chrome"))), None
+    )
+    driver = shutil.which("chromedriver")
+    if browser is None or driver is None:
+        found = (("chromium", browser), ("chromedriver", driver))
+        missing = " and ".join(name for name, path in found if not path)
+        pytest.skip(f"browser test: no {missing} here ({BROWSER_HOW})")
+    return webdriver, browser, driver
+
+
+def _free_port():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_lab(folder, port, token, log):
+    """`jupyter lab` on port, serving folder (the kernel's cwd; the repository on PYTHONPATH, quick
+    mode, no solutions: the student's notebook), in its own process group; returns the Popen once
+    the server answers."""
+    import os
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    settings = folder / ".lab-settings"
+    quiet = {  # no news or update toast over the notebook
+        "@jupyterlab/apputils-extension/notification.jupyterlab-settings": {
+            "fetchNews": "false",
+            "checkForUpdates": False,
+            "doNotDisturbMode": True,
+        },
+    }
+    for name, value in quiet.items():
+        (settings / name).parent.mkdir(parents=True, exist_ok=True)
+        (settings / name).write_text(json.dumps(value))
+    env = dict(os.environ, DIFFSTACK_QUICK="1", PYTHONPATH=str(REPO))
+    env.pop("DIFFSTACK_SOLUTIONS", None)
+    env.update(
+        JUPYTERLAB_SETTINGS_DIR=str(settings),
+        JUPYTERLAB_WORKSPACES_DIR=str(folder / ".lab-workspaces"),
+        JUPYTER_RUNTIME_DIR=str(folder / ".jupyter-runtime"),
+    )
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "jupyter",
+            "lab",
+            "--no-browser",
+            "--ip=127.0.0.1",
+            "--allow-root",  # CI runs as root
+            "--LabApp.extension_manager=readonly",  # no look-up of extensions in a registry
+            f"--port={port}",
+            "--ServerApp.port_retries=0",
+            f"--IdentityProvider.token={token}",
+            f"--ServerApp.root_dir={folder}",
+        ],
+        cwd=folder,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,  # its own process group: the kernel is ended with it
+    )
+    deadline = time.time() + 120
+    while True:
+        try:
+            url = f"http://127.0.0.1:{port}/api/status?token={token}"
+            with urllib.request.urlopen(url, timeout=5) as r:
+                if r.status == 200:
+                    return server
+        except OSError:
+            pass
+        if server.poll() is not None or time.time() > deadline:
+            _stop(server, port, token)
+            raise AssertionError(f"jupyter lab did not start: {log.name}")
+        time.sleep(0.5)
+
+
+def _descendants(pid):
+    """The ids of pid's children, their children, ... (from /proc: no extra package)."""
+    import pathlib as pl
+
+    children = {}
+    for stat in pl.Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        kids = children.get(todo.pop(), [])
+        found += kids
+        todo += kids
+    return found
+
+
+def _stop(server, port, token):
+    """The server asked to shut down (it ends its kernels), then its process group and every
+    process it started (a kernel runs in a session of its own) killed if still there."""
+    import os
+    import signal
+    import subprocess
+    import urllib.request
+
+    started = _descendants(server.pid)
+    try:
+        url = f"http://127.0.0.1:{port}/api/shutdown?token={token}"
+        urllib.request.urlopen(urllib.request.Request(url, method="POST"), timeout=10).close()
+        server.wait(timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    for pid in started:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    try:
+        os.killpg(server.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    server.wait()
+
+
+def _full_page_screenshot(driver, path):
+    """The whole notebook in one image: the lab scrolls the notebook inside a panel as high as the
+    window, so the window is made as high as the notebook (scrolled to its top), then restored.
+    Cells drawn for the first time measure taller than estimated: made higher until all fit."""
+    import base64
+
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    height_js = (
+        "const o = document.querySelector('.jp-Notebook .jp-WindowedPanel-outer');"
+        "const i = document.querySelector('.jp-Notebook .jp-WindowedPanel-inner');"
+        "o.scrollTop = 0;"  # the cells' height, and the lab's bars above and below
+        "return [i.offsetHeight + window.innerHeight - o.clientHeight + 20, window.innerHeight];"
+    )
+    try:
+        for _ in range(6):
+            height, now = driver.execute_script(height_js)
+            if height <= now or now >= 60000:
+                break
+            height = min(height, 60000)
+            metrics = {"width": 1400, "height": height, "deviceScaleFactor": 1, "mobile": False}
+            driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", metrics)
+            WebDriverWait(driver, 30, poll_frequency=0.2).until(  # the lab laid out anew
+                lambda d, h=height: d.execute_script(height_js)[1] == h
+            )
+            driver.execute_async_script(  # two frames drawn: the cells brought into view painted
+                "const done = arguments[arguments.length - 1];"
+                "requestAnimationFrame(() => requestAnimationFrame(() => setTimeout(done, 500)));"
+            )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        shot = driver.execute_cdp_cmd("Page.captureScreenshot", {"format": "png"})
+        path.write_bytes(base64.b64decode(shot["data"]))
+    finally:
+        driver.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+
+
+def _menu(driver, top, label):
+    """Click the menu bar's `top`, then its item `label`."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    bar = driver.find_elements(By.CSS_SELECTOR, ".lm-MenuBar-item")
+    next(e for e in bar if e.text.strip() == top).click()
+    path = "//li[contains(@class, 'lm-Menu-item')][.//div[contains(@class, 'lm-Menu-itemLabel')]"
+    WebDriverWait(driver, 30, poll_frequency=0.2).until(
+        lambda d: d.find_element(By.XPATH, f"{path}[normalize-space()='{label}']]"),
+        f"no item {label!r} in the menu {top!r}",
+    ).click()
+
+
+_FIND_CELL_JS = """
+return [...document.querySelectorAll('.jp-Notebook .jp-CodeCell')].find(
+  c => (c.querySelector('.jp-InputArea-editor') || {}).textContent.includes(arguments[0]));
+"""
+# the outputs that show an error (a traceback), whatever renders them, named by their cell
+_ERRORS_JS = """
+return [...document.querySelectorAll('.jp-Notebook .jp-CodeCell')].flatMap((c, i) =>
+  [...c.querySelectorAll('.jp-OutputArea-output')]
+    .filter(o => o.getAttribute('data-mime-type') === 'application/vnd.jupyter.error'
+                 || o.textContent.includes('Traceback (most recent call last)'))
+    .map(o => `code cell ${i} ${c.querySelector('.jp-InputPrompt').textContent}\n`
+              + o.textContent.slice(-400)));
+"""
+
+
+@pytest.mark.slow
+def test_the_course_in_jupyterlab_in_a_browser(tmp_path):
+    """The course as a student sees it: tutorial.ipynb opened in JupyterLab in headless Chromium
+    (quick mode, the exercises' stubs), Run > Run All Cells; every code cell runs, none shows a
+    traceback, and a slider of the interactive cell (§4, course.interactive_planner) redraws its
+    figure. A screenshot of the whole page goes to $DIFFSTACK_SCREENSHOT (default: tmp_path), the
+    interactive cell's beside it (*_slider.png); $DIFFSTACK_NOTEBOOK opens another notebook (a
+    student's) in place of the repository's. About 1.5 minutes on 2 shared cores; run it alone
+    with `python -m pytest -q test_tutorial.py -k browser`."""
+    import os
+    import re
+    import secrets
+    import shutil
+
+    webdriver, browser, chromedriver = _browser_or_skip()
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    def until(seconds, condition, message):  # an element redrawn meanwhile: look again
+        wait = WebDriverWait(
+            driver, seconds, poll_frequency=0.5, ignored_exceptions=[StaleElementReferenceException]
+        )
+        return wait.until(condition, message)
+
+    run_timeout = float(os.environ.get("DIFFSTACK_BROWSER_TIMEOUT", 1200))  # Run All, under load
+    shot = pathlib.Path(os.environ.get("DIFFSTACK_SCREENSHOT") or tmp_path / "tutorial_lab.png")
+    folder = tmp_path / "course"  # what the lab serves: the notebook and the tables it reads
+    (folder / "results").mkdir(parents=True)
+    notebook = pathlib.Path(os.environ.get("DIFFSTACK_NOTEBOOK") or REPO / "tutorial.ipynb")
+    shutil.copy(notebook, folder / "tutorial.ipynb")
+    for f in (REPO / "results").iterdir():
+        if f.is_file():
+            shutil.copy(f, folder / "results")
+    stored = nbformat.read(folder / "tutorial.ipynb", as_version=4)
+    n_code = sum(c.cell_type == "code" for c in stored.cells)
+    port, token = _free_port(), secrets.token_hex(16)
+    with open(tmp_path / "lab.log", "w") as log:
+        server = _start_lab(folder, port, token, log)
+        driver, passed = None, False
+        try:
+            options = webdriver.ChromeOptions()
+            options.binary_location = browser
+            for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage"):
+                options.add_argument(arg)  # no sandbox: CI runs as root
+            options.add_argument("--window-size=1400,1000")
+            service = Service(chromedriver, log_output=str(tmp_path / "chromedriver.log"))
+            driver = webdriver.Chrome(options=options, service=service)
+            driver.get(f"http://127.0.0.1:{port}/lab/tree/tutorial.ipynb?reset&token={token}")
+
+            def state():
+                return driver.execute_script(_LAB_STATE_JS)
+
+            def loaded(_):
+                s = state()
+                return len(s["prompts"]) == n_code and s["status"] == "idle"
+
+            WebDriverWait(driver, 300, poll_frequency=0.5).until(
+                loaded, "the notebook did not open with an idle kernel in 5 minutes"
+            )
+            # Edit > Clear Outputs of All Cells (the stored ones would pass for this run's), then
+            # Run > Run All Cells, as a student does it
+            _menu(driver, "Edit", "Clear Outputs of All Cells")
+            WebDriverWait(driver, 60, poll_frequency=0.5).until(
+                lambda _: not any(re.fullmatch(r"\[\d+\]:", p) for p in state()["prompts"]),
+                "Clear Outputs of All Cells left a cell's execution count",
+            )
+            _menu(driver, "Run", "Run All Cells")
+
+            def finished(_):  # the kernel idle, the first cell run, none queued or running
+                s = state()
+                ran = re.fullmatch(r"\[\d+\]:", s["prompts"][0])
+                return s["status"] == "idle" and ran and "[*]:" not in s["prompts"]
+
+            WebDriverWait(driver, run_timeout, poll_frequency=2).until(
+                finished, f"Run All did not finish in {run_timeout:.0f} s"
+            )
+            prompts = state()["prompts"]
+            not_run = [i for i, p in enumerate(prompts) if not re.fullmatch(r"\[\d+\]:", p)]
+            errors = driver.execute_script(_ERRORS_JS)
+            assert not errors, f"{len(errors)} output(s) show a traceback; the first, {errors[0]}"
+            assert not not_run, f"Run All stopped: code cells {not_run} did not run"
+
+            # the interactive cell: its first slider moved one step, its figure redrawn
+            cell = driver.execute_script(_FIND_CELL_JS, "course.interactive_planner(")
+            assert cell is not None, "no code cell calls course.interactive_planner"
+            driver.execute_script("arguments[0].scrollIntoView({block: 'center'})", cell)
+            handles = cell.find_elements(By.CSS_SELECTOR, ".widget-slider .noUi-handle")
+            assert handles, (
+                "the interactive cell shows no slider: course.interactive_planner's widget is "
+                "not displayed in JupyterLab (ipywidgets)"
+            )
+
+            def figure():
+                imgs = cell.find_elements(By.CSS_SELECTOR, ".widget-interact img")
+                return imgs[-1].get_attribute("src") if imgs else None
+
+            before = until(120, lambda _: figure(), "the interactive cell shows no figure")
+            readout = cell.find_elements(By.CSS_SELECTOR, ".widget-slider .widget-readout")[0]
+            value = readout.text
+            handles[0].send_keys(Keys.ARROW_RIGHT)  # the focused handle moves one step
+            until(30, lambda _: readout.text != value, f"the slider did not move (still {value})")
+            until(
+                300,
+                lambda _: figure() not in (None, before),
+                f"the figure did not change when the slider moved from {value} to {readout.text}",
+            )
+            widget = cell.find_element(By.CSS_SELECTOR, ".widget-interact")
+            driver.execute_script("arguments[0].scrollIntoView({block: 'center'})", widget)
+            widget.screenshot(str(shot.with_name(shot.stem + "_slider.png")))
+            passed = True
+        finally:
+            try:
+                if driver is not None:
+                    try:
+                        _full_page_screenshot(driver, shot)
+                        print(f"screenshot: {shot}")
+                    except Exception as e:  # a failed test's own error is the one to show
+                        if passed:
+                            raise
+                        print(f"no screenshot: {e!r}")
+                    finally:
+                        driver.quit()
+            finally:
+                _stop(server, port, token)
