@@ -717,7 +717,7 @@ def test_the_course_in_jupyterlab_in_a_browser(tmp_path):
     traceback, and a slider of the interactive cell (§4, course.interactive_planner) redraws its
     figure. A screenshot of the whole page goes to $DIFFSTACK_SCREENSHOT (default: tmp_path), the
     interactive cell's beside it (*_slider.png); $DIFFSTACK_NOTEBOOK opens another notebook (a
-    student's) in place of the repository's. About 1.5 minutes on 2 shared cores; run it alone
+    student's) in place of the repository's. 55-85 s on 2 shared cores; run it alone
     with `python -m pytest -q test_tutorial.py -k browser`."""
     import os
     import re
