@@ -546,7 +546,7 @@ def planner_panels(panels, cfg, title, scale=None):
 
 
 def interactive_planner(ex, cfg, settings):
-    """planner_panels of settings (shift, beta), then ipywidgets' sliders (or None without)."""
+    """planner_panels of settings (shift, beta), then ipywidgets' sliders, shown (None without)."""
     title = "Move the prediction or change β: C, p_n, the plan and -dL_plan/dŝ (arrows) follow"
     panels = [dict(ex=ex, shift=shift, beta=beta) for shift, beta in settings]
     planner_panels(panels, cfg, title)
@@ -558,12 +558,12 @@ def interactive_planner(ex, cfg, settings):
     def redraw(dx=0.0, dy=0.0, beta=1.0):
         planner_panels([dict(ex=ex, shift=(dx, dy), beta=beta)], cfg, "")
 
-    return widgets.interactive(
+    return widgets.interact(  # shown at once, as the cell ends with another call
         redraw,
         dx=widgets.FloatSlider(value=0.0, min=-8, max=8, step=0.5, description="move x (m)"),
         dy=widgets.FloatSlider(value=0.0, min=-4, max=4, step=0.25, description="move y (m)"),
         beta=widgets.FloatLogSlider(value=1.0, base=10, min=-2, max=1, description="β"),
-    )
+    ).widget
 
 
 # --- the exercises' checks: the common part -------------------------------------------------------
