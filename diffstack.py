@@ -900,7 +900,18 @@ class ILQRInfo:
 
 
 def ilqr(
-    cost_fn, dynamics, s_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0
+    cost_fn,
+    dynamics,
+    s_init,
+    u_init,
+    params,
+    lo,
+    hi,
+    iters=5,
+    tol=0.05,
+    ls_steps=5,
+    ls_decay=5.0,
+    refine=0,
 ):
     """iLQR with box controls (App. C.2); differentiable by unrolling (`ILQR` gives the exact KKT
     gradient instead). s_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m)
@@ -939,7 +950,54 @@ def ilqr(
         moving = moving & (step_norm >= tol)
         if not moving.any():
             break
-    return s, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
+    converged = step_norm < tol
+    if refine and not converged.all():  # only where iLQR has not converged
+        a = (cost_fn, dynamics, s, u, params, lo, hi, ~converged, tol, refine)
+        s_r, u_r, done, k, step = active_set(*a)
+        s, u = torch.where(done[:, None, None], s_r, s), torch.where(done[:, None, None], u_r, u)
+        converged, step_norm = converged | done, torch.where(done, step, step_norm)
+        iters_run = iters_run + k
+    return s, u, ILQRInfo(converged, step_norm, iters_run, torch.stack(costs, 1))
+
+
+def active_set(cost_fn, dynamics, s, u, params, lo, hi, moving, tol, iters, patience=3):
+    """Where iLQR stalls, exact on a linear-quadratic problem: the primal-dual active-set method
+    (Hintermueller, Ito, Kunisch 2002), block principal pivoting with the backup rule of Portugal,
+    Judice, Vicente (1994). The held controls go to their bound, the free ones by the LQR with the
+    held fixed (lqr_backward's free), unclamped; then the violators flip: free controls outside
+    the box are held at the bound they crossed, held ones whose dC/du points into the box (at lo:
+    < 0) are freed. None left and the step below tol: a KKT point. Where the violators have not
+    become fewer than their least for `patience` iterations, the earliest step's flip alone (the
+    backup: no cycling). s (B, T+1, n), u, lo, hi (B, T, m), moving (B,) the scenarios to refine
+    -> s, u, converged, iterations, the last step's norm (B,)."""
+    B, T, m = u.shape
+    held_lo, held_hi = u <= lo, u >= hi  # (B, T, m) each
+    grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
+    least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
+    step, unbounded = torch.full_like(tries, math.inf, dtype=u.dtype), torch.full_like(u, math.inf)
+    iters_run, refined = torch.zeros_like(least), moving
+    for _ in range(iters):
+        dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
+        to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
+        to_hi = (free & (u > hi)) | (held_hi & (dC_du > 0))
+        count = (to_lo | to_hi).flatten(1).sum(-1)  # (B,)
+        moving = moving & ((count > 0) | (step >= tol))
+        if not moving.any():
+            break
+        tries, least = torch.where(count < least, patience, tries - 1), least.minimum(count)
+        first = (to_lo | to_hi).any(-1).long().argmax(-1)  # (B,) the earliest step with one
+        flip = (tries >= 0)[:, None] | (torch.arange(T, device=u.device) == first[:, None])
+        held_lo, held_hi = held_lo ^ (flip[..., None] & to_lo), held_hi ^ (flip[..., None] & to_hi)
+        held, go = held_lo | held_hi, moving[:, None, None]
+        u = torch.where(go & held, torch.where(held_lo, lo, hi), u)
+        s = rollout(dynamics, s[:, 0], u)
+        g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
+        ff, G, _, _ = lqr_backward(*dynamics_jacobians(dynamics, s, u), H, g, free=~held)
+        s_new, u_new = closed_loop_rollout(dynamics, s, u, ff, G, -unbounded, unbounded)
+        step = torch.where(moving, (u_new - u).flatten(1).norm(dim=-1), step)
+        s, u = torch.where(go, s_new, s), torch.where(go, u_new, u)
+        iters_run = iters_run + moving.long()
+    return s, u, refined & ~moving, iters_run, step
 
 
 def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
