@@ -673,11 +673,6 @@ def cost_expansion(cost_fn, s, u, params):
     return g, H
 
 
-def outer(a, b):
-    """a b' for vectors a (..., i), b (..., j) -> (..., i, j)."""
-    return a[..., :, None] * b[..., None, :]
-
-
 def _collision_expansion(pos, ctx: CostContext, rbf_var: float):
     """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions pos (B, T, 2) (see
     cost_expansion_closed_form)."""
@@ -689,7 +684,7 @@ def _collision_expansion(pos, ctx: CostContext, rbf_var: float):
     mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
     phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
     grad = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
-    hess = outer(diff, diff) / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
+    hess = diff[..., :, None] * diff[..., None, :] / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
     return grad, (phi[..., None, None] * hess).sum(1)
 
 
@@ -700,14 +695,14 @@ def _lane_expansion(pos, h, ctx: CostContext):
     a, b, has_lane = nearest_lane_segment(pos, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2
     _, r, lane_h, df = segment_projection(pos, a, b)  # (B, T, 2), (B, T), (B, T, 2)
     on = has_lane.to(pos.dtype)  # (B, T)
-    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dpos
+    J = eye - (b[..., :2] - a[..., :2])[..., :, None] * df[..., None, :]  # (B, T, 2, 2) dr/dpos
     g_lat = 2 * (J.mT @ r[..., None])[..., 0] * on[..., None]
     H_lat = 2 * J.mT @ J * on[..., None, None]
     e = wrap_angle(h - lane_h) * on  # (B, T)
     de_dpos = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
     de = torch.cat([de_dpos, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(pos, h)
     g_head = 2 * e[..., None] * de
-    H_head = 2 * outer(de, de) * on[..., None, None]
+    H_head = 2 * de[..., :, None] * de[..., None, :] * on[..., None, None]
     return g_lat, H_lat, g_head, H_head
 
 
@@ -900,18 +895,7 @@ class ILQRInfo:
 
 
 def ilqr(
-    cost_fn,
-    dynamics,
-    s_init,
-    u_init,
-    params,
-    lo,
-    hi,
-    iters=5,
-    tol=0.05,
-    ls_steps=5,
-    ls_decay=5.0,
-    refine=0,
+    cost_fn, dynamics, s_init, u_init, params, lo, hi, iters=5, tol=0.05, ls_steps=5, ls_decay=5.0
 ):
     """iLQR with box controls (App. C.2); differentiable by unrolling (`ILQR` gives the exact KKT
     gradient instead). s_init (B, n), u_init (B, T, m), lo/hi (m,) or (B, T, m)
@@ -950,17 +934,10 @@ def ilqr(
         moving = moving & (step_norm >= tol)
         if not moving.any():
             break
-    converged = step_norm < tol
-    if refine and not converged.all():  # only where iLQR has not converged
-        a = (cost_fn, dynamics, s, u, params, lo, hi, ~converged, tol, refine)
-        s_r, u_r, done, k, step = active_set(*a)
-        s, u = torch.where(done[:, None, None], s_r, s), torch.where(done[:, None, None], u_r, u)
-        converged, step_norm = converged | done, torch.where(done, step, step_norm)
-        iters_run = iters_run + k
-    return s, u, ILQRInfo(converged, step_norm, iters_run, torch.stack(costs, 1))
+    return s, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
 
 
-def active_set(cost_fn, dynamics, s, u, params, lo, hi, moving, tol, iters, patience=3):
+def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patience=3):
     """Where iLQR stalls, exact on a linear-quadratic problem: the primal-dual active-set method
     (Hintermueller, Ito, Kunisch 2002), block principal pivoting with the backup rule of Portugal,
     Judice, Vicente (1994). The held controls go to their bound, the free ones by the LQR with the
@@ -968,14 +945,15 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, moving, tol, iters, pati
     the box are held at the bound they crossed, held ones whose dC/du points into the box (at lo:
     < 0) are freed. None left and the step below tol: a KKT point. Where the violators have not
     become fewer than their least for `patience` iterations, the earliest step's flip alone (the
-    backup: no cycling). s (B, T+1, n), u, lo, hi (B, T, m), moving (B,) the scenarios to refine
-    -> s, u, converged, iterations, the last step's norm (B,)."""
+    backup: no cycling). Refines ilqr's s (B, T+1, n), u (B, T, m) where info has not converged,
+    lo/hi (m,) or (B, T, m) -> s, u, ILQRInfo (its costs ilqr's)."""
     B, T, m = u.shape
+    lo, hi, moving = lo.expand(B, T, m), hi.expand(B, T, m), ~info.converged
     held_lo, held_hi = u <= lo, u >= hi  # (B, T, m) each
     grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
     least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
     step, unbounded = torch.full_like(tries, math.inf, dtype=u.dtype), torch.full_like(u, math.inf)
-    iters_run, refined = torch.zeros_like(least), moving
+    iters_run = info.iters.clone()
     for _ in range(iters):
         dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
         to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
@@ -997,7 +975,8 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, moving, tol, iters, pati
         step = torch.where(moving, (u_new - u).flatten(1).norm(dim=-1), step)
         s, u = torch.where(go, s_new, s), torch.where(go, u_new, u)
         iters_run = iters_run + moving.long()
-    return s, u, refined & ~moving, iters_run, step
+    step = torch.where(info.converged, info.step_norm, step)
+    return s, u, ILQRInfo(info.converged | ~moving, step, iters_run, info.costs)
 
 
 def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
@@ -1145,8 +1124,12 @@ class ILQR(torch.autograd.Function):
 
     @staticmethod
     def forward(fctx, cost_fn, dynamics, settings, exact, s_init, u_init, *params):
+        refine = settings.pop("refine", 0)  # active_set's iterations, where iLQR has not converged
         with torch.no_grad():
             s, u, info = ilqr(cost_fn, dynamics, s_init, u_init, params, **settings)
+            if refine and not info.converged.all():
+                a = (settings["lo"], settings["hi"], info, settings.get("tol", 0.05), refine)
+                s, u, info = active_set(cost_fn, dynamics, s, u, params, *a)
         fctx.fns = (cost_fn, dynamics, exact)
         lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
         fctx.save_for_backward(s, u, info.converged, lo, hi, *params)
@@ -1167,7 +1150,8 @@ class ILQR(torch.autograd.Function):
 
 def ilqr_solve(cost_fn, dynamics, s_init, u_init, params, lo, hi, exact=True, **settings):
     """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,);
-    arguments and settings (iters, tol, ls_steps, ls_decay) as `ilqr`'s."""
+    arguments and settings (iters, tol, ls_steps, ls_decay) as `ilqr`'s; refine (0) caps
+    `active_set`'s iterations after it."""
     settings["lo"] = torch.as_tensor(lo, dtype=s_init.dtype, device=s_init.device)
     settings["hi"] = torch.as_tensor(hi, dtype=s_init.dtype, device=s_init.device)
     return ILQR.apply(cost_fn, dynamics, settings, exact, s_init, u_init, *params)

@@ -268,10 +268,10 @@ def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
 # |u| <= umax; loss sum u_0. mpc.pytorch's u_20 is idle, ours costs x_20 by H: the same problem.
 LQR_UMAX = (1e4, 1.0)  # the two configurations, in the order the reference script draws them
 LQR_N, LQR_NX, LQR_NU, LQR_BATCH = 20, 8, 4, 128
-LQR_SETTINGS = {  # ours at ilqr's defaults; run until the step is below 1e-6; and with a finer
-    "defaults": dict(iters=5, tol=0.05),  # line search (scales down to 2^-19, not 5^-4)
+LQR_SETTINGS = {  # ours at ilqr's defaults; until the step is below 1e-6; 2 iterations, then
+    "defaults": dict(iters=5, tol=0.05),  # diffstack.active_set until the step is below 1e-6
     "tight": dict(iters=100, tol=1e-6),
-    "finer": dict(iters=100, tol=1e-6, ls_steps=20, ls_decay=2.0),
+    "active set": dict(iters=2, tol=1e-6, refine=100),
 }
 LQR_MPC = dict(lqr_iter=100, eps=1e-6)  # mpc.pytorch as the reference script runs it
 LQR_CONVERGED = 1e-6  # a solve has converged when no control would move by more (kkt_residual)
@@ -341,8 +341,12 @@ class AffineLQR(torch.autograd.Function):
     @staticmethod
     def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
         with torch.no_grad():
-            dynamics = Affine(A, B, b)
-            x, u, info = ilqr(StageQuadratic(), dynamics, x_init, u_init, (H,), lo, hi, **settings)
+            (cost, dynamics), settings = (StageQuadratic(), Affine(A, B, b)), dict(settings)
+            refine = settings.pop("refine", 0)  # as diffstack.ILQR: active_set after ilqr
+            x, u, info = ilqr(cost, dynamics, x_init, u_init, (H,), lo, hi, **settings)
+            if refine:
+                a = (lo, hi, info, settings["tol"], refine)
+                x, u, info = diffstack.active_set(cost, dynamics, x, u, (H,), *a)
         ctx.save_for_backward(x, u, info.converged, lo.expand_as(u), hi.expand_as(u), A, B, b, H)
         ctx.mark_non_differentiable(info.converged, info.iters)
         return x, u, info.converged, info.iters
