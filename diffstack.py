@@ -641,12 +641,8 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
 #   min_{s, u}  sum_t l_t(s_t, u_t) + l_T(s_T)   s.t.  s_0 = s_init,  s_{t+1} = f(s_t, u_t),
 #                                                      lo <= u_t <= hi
-# The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
-# of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's
-# exact=False), whose Hessian lacks the dynamics' curvature sum_i lambda_i d2 f_i: exact on linear
-# dynamics only; tracking with the unicycle, 45 % off. The default (exact=True) adds it, the
-# Lagrangian's Hessian, and so differentiates the converged solution itself: test_diffstack.py
-# holds it to central differences within 1e-6 and prints the paper's variant's error beside it.
+# The backward pass differentiates the converged solution itself (kkt_backward: the paper's
+# variant, exact on linear dynamics only, is its exact=False). Where iLQR stalls, active_set.
 # General: `cost_fn(s, u, *params) -> (B, ...)` any twice-differentiable sum of per-step terms,
 # `dynamics(s_t, u_t) -> s_{t+1}` any twice-differentiable step; gradients reach s_init and every
 # tensor in `params`. Closed forms where they bring them (`expansion`, `jacobians`, `curvature`).
@@ -817,31 +813,22 @@ def box_qp(Q, q, lo, hi):
     return torch.where(inside[:, None], delta, delta_box), free_box | inside[:, None]
 
 
-def make_pd(Q, eps):
-    """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
-    lam = torch.linalg.eigvalsh(Q)[..., 0]  # (B,)
-    eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-    return Q + (eps - lam).clamp_min(0.0)[:, None, None] * eye
-
-
-def box_policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps):
-    """Control-limited DDP's step (Tassa et al. 2014, §III.B): the feed-forward ff solves the box QP
+def policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps, free=None):
+    """The step du = ff + G ds that minimises Q. iLQR's, control-limited DDP's (Tassa et al. 2014,
+    §III.B): the feed-forward ff solves the box QP
         min_ff 1/2 ff'Q_uu ff + Q_u'ff   s.t.  lo <= ff <= hi
     with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and G = -Q_uu^-1 Q_us on the
-    controls it leaves free, 0 on the clamped ones. Q_u (B, m, 1), Q_us (B, m, n), Q_uu (B, m, m),
-    lo, hi (B, m) -> ff (B, m, 1), G (B, m, n), free (B, m)."""
-    Q_uu = make_pd(Q_uu, pd_eps)
-    ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
-    G = solve_masked(Q_uu, torch.where(free[..., None], -Q_us, 0.0), free)  # (B, m, n)
-    return ff[..., None], G, free
-
-
-def fixed_policy(Q_u, Q_us, Q_uu, free):
-    """The step with the active set given (free (B, m) bool): [ff G] = -Q_uu^-1 [Q_u Q_us] on the
-    free controls, 0 on the held ones. Shapes as box_policy's."""
+    controls it leaves free, 0 on the clamped ones. With the active set given (free (B, m) bool):
+    [ff G] = -Q_uu^-1 [Q_u Q_us] on the free controls, 0 on the held ones. Q_u (B, m, 1),
+    Q_us (B, m, n), Q_uu (B, m, m), lo, hi (B, m) -> ff (B, m, 1), G (B, m, n), free (B, m)."""
+    box = free is None
+    if box:
+        least = torch.linalg.eigvalsh(Q_uu)[..., 0, None, None]  # (B, 1, 1)
+        Q_uu = Q_uu + (pd_eps - least).clamp_min(0.0) * torch.eye(Q_uu.shape[-1]).to(Q_uu)
+        ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
     rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_us], -1), 0.0)  # (B, m, 1+n)
     ffG = solve_masked(Q_uu, rhs, free)
-    return ffG[..., :1], ffG[..., 1:], free
+    return ff[..., None] if box else ffG[..., :1], ffG[..., 1:], free
 
 
 def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
@@ -852,11 +839,11 @@ def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
     transpose, f_s and f_u at t):
         Q_s  = l_s  + f_s'V+_s          Q_ss = l_ss + f_s'V+_ss f_s
         Q_u  = l_u  + f_u'V+_s          Q_uu = l_uu + f_u'V+_ss f_u     Q_us = l_us + f_u'V+_ss f_s
-        du   = ff + G ds                the step that minimises Q (box_policy or fixed_policy)
+        du   = ff + G ds                the step that minimises Q (policy)
         V_s  = Q_s  + G'Q_uu ff + G'Q_u + Q_us'ff
         V_ss = Q_ss + G'Q_uu G + G'Q_us + Q_us'G
-    iLQR's pass bounds du by lo, hi (B, T, m) (box_policy); the KKT backward's holds the controls
-    that are not free (B, T, m) at du = 0 (fixed_policy). f_s (B, T, n, n), f_u (B, T, n, m),
+    iLQR's pass bounds du by lo, hi (B, T, m); the KKT backward's and active_set's hold the
+    controls that are not free (B, T, m) at du = 0. f_s (B, T, n, n), f_u (B, T, n, m),
     H (B, T+1, n+m, n+m), g (B, T+1, n+m) (the last step has no control). Returns ff (B, T, m),
     G (B, T, m, n), free (B, T, m) and V_s at t = 0 (B, n): the costate lambda_0 = dV_0/ds_0."""
     T, n = f_s.shape[1], f_s.shape[-1]
@@ -872,10 +859,8 @@ def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
         Q_ss = l_ss + f_s_t.mT @ V_ss @ f_s_t  # (B, n, n)
         Q_uu = l_uu + f_u_t.mT @ V_ss @ f_u_t  # (B, m, m)
         Q_us = l_us + f_u_t.mT @ V_ss @ f_s_t  # (B, m, n)
-        if free is None:
-            ff, G, free_t = box_policy(Q_u, Q_us, Q_uu, lo[:, t], hi[:, t], pd_eps)
-        else:
-            ff, G, free_t = fixed_policy(Q_u, Q_us, Q_uu, free[:, t])
+        box = (lo[:, t], hi[:, t], pd_eps) if free is None else (None, None, 0.0, free[:, t])
+        ff, G, free_t = policy(Q_u, Q_us, Q_uu, *box)
         V_s = Q_s + G.mT @ Q_uu @ ff + G.mT @ Q_u + Q_us.mT @ ff  # (B, n, 1)
         V_ss = Q_ss + G.mT @ Q_uu @ G + G.mT @ Q_us + Q_us.mT @ G  # (B, n, n)
         V_ss = (V_ss + V_ss.mT) / 2  # symmetric up to rounding; kept exactly symmetric
@@ -921,13 +906,9 @@ def ilqr(
         g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
         f_s, f_u = dynamics_jacobians(dynamics, s, u)  # (B, T, n, n), (B, T, n, m)
         ff, G, _, _ = lqr_backward(f_s, f_u, H, g, lo - u, hi - u, pd_eps)
-        s_new, u_new, cost_new, accepted, full_step = line_search(
-            cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales
+        s, u, cost, full_step = line_search(  # a converged scenario stays where it is
+            cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales, moving
         )
-        take = moving & accepted  # (B,): a converged scenario stays where it is
-        s = torch.where(take[:, None, None], s_new, s)
-        u = torch.where(take[:, None, None], u_new, u)
-        cost = torch.where(take, cost_new, cost)
         step_norm = torch.where(moving, full_step, step_norm)
         iters_run = iters_run + moving.long()
         costs.append(cost)
@@ -953,7 +934,7 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
     grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
     least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
     step, unbounded = torch.full_like(tries, math.inf, dtype=u.dtype), torch.full_like(u, math.inf)
-    iters_run = info.iters.clone()
+    iters_run, s_in, u_in = info.iters.clone(), s, u
     for _ in range(iters):
         dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
         to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
@@ -975,7 +956,9 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
         step = torch.where(moving, (u_new - u).flatten(1).norm(dim=-1), step)
         s, u = torch.where(go, s_new, s), torch.where(go, u_new, u)
         iters_run = iters_run + moving.long()
-    step = torch.where(info.converged, info.step_norm, step)
+    back = moving[:, None, None]  # not converged: iLQR's s, u and step stand
+    s, u = torch.where(back, s_in, s), torch.where(back, u_in, u)
+    step = torch.where(info.converged | moving, info.step_norm, step)
     return s, u, ILQRInfo(info.converged | ~moving, step, iters_run, info.costs)
 
 
@@ -992,14 +975,14 @@ def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
     return torch.stack(s_out, 1), torch.stack(u_out, 1)
 
 
-def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales):
+def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales, moving):
     """Backtracking (App. C.2): the closed-loop rollout of the step eta ff + G ds at eta = 1, then
     at 1/5, 1/25, ... where the true cost rose; the first scale that does not raise it is taken.
-    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n), cost (B,) -> the new s, u, cost (the
-    old ones where no scale was accepted), accepted (B,), and the norm of the full step (B,)."""
+    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n), cost, moving (B,) -> the new s, u, cost
+    (the old ones where no scale was accepted or not moving), the norm of the full step (B,)."""
     eps = torch.finfo(s.dtype).eps
     s_new, u_new, cost_new = s, u, cost
-    accepted = torch.zeros_like(cost, dtype=torch.bool)
+    accepted = ~moving  # (B,): those not moving are not searched for
     for i, eta in enumerate(scales):
         s_eta, u_eta = closed_loop_rollout(dynamics, s, u, eta * ff, G, lo, hi)
         cost_eta = cost_fn(s_eta, u_eta, *params)  # (B,)
@@ -1014,15 +997,14 @@ def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales):
         accepted = accepted | take
         if accepted.all():
             break
-    return s_new, u_new, cost_new, accepted, full_step
+    return s_new, u_new, cost_new, full_step
 
 
 def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
     """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
-    lam (..., 4).
-
-    Only the displacement R(h) disp, disp = (along, lateral), is curved, in (h, v, omega, a). With
-    nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
+    lam (..., 4). Only the displacement R(h) disp, disp = (along, lateral), is curved, in
+    (h, v, omega, a). With nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree
+    rotation:
         d2/dh2 = -nu'disp,   d2/dh dq = (J'nu)' ddisp/dq,   d2/dq dr = nu' d2disp/dq dr
     (q, r in (v, omega, a)); the moments' rule above gives every derivative of disp."""
     h, v = s[..., 2], s[..., 3]
@@ -1078,8 +1060,9 @@ def kkt_backward(cost_fn, dynamics, s, u, params, free, grad_s, grad_u, exact=Tr
                                                                  ds_{t+1} = f_s ds_t + f_u du_t,
     H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(s_t, u_t) - s_{t+1}):
         H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(s_t, u_t)      (lagrangian_curvature)
-    (exact=False drops the curvature: the paper's variant). Amos et al.'s gradients, for the
-    quadratic cost 1/2 tau'C tau + c'tau of their LQR, with delta their d*_tau:
+    (exact=False drops the curvature: the paper's variant, "the KKT conditions of the last LQR
+    approximation" as mpc.pytorch's; tracking with the unicycle 45 % off). Amos et al.'s gradients,
+    for the quadratic cost 1/2 tau'C tau + c'tau of their LQR, with delta their d*_tau:
         dloss/dc = delta,  dloss/dC = (delta tau' + tau delta') / 2,  dloss/ds_init = lambda_0,
     the LQR's costate at t = 0. Both are the gradient of <grad_tau cost, delta> = <C tau + c, delta>
     in (C, c), tau and delta fixed; for any cost(tau; params), expanded at tau, the chain rule
