@@ -812,8 +812,8 @@ def policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps, free=None):
         min_ff 1/2 ff'Q_uu ff + Q_u'ff   s.t.  lo <= ff <= hi,    free: the controls it leaves free.
     Q_u (B, m, 1), Q_us, G (B, m, n), Q_uu (B, m, m), lo, hi, free (B, m) -> ff, G, free."""
     if box := free is None:
-        least = torch.linalg.eigvalsh(Q_uu)[..., 0, None, None]  # (B, 1, 1)
-        Q_uu = Q_uu + (pd_eps - least).clamp_min(0.0) * torch.eye(Q_uu.shape[-1]).to(Q_uu)
+        shift = (pd_eps - torch.linalg.eigvalsh(Q_uu)[..., :1]).clamp_min(0.0)  # (B, 1)
+        Q_uu = Q_uu + torch.diag_embed(shift.expand_as(Q_u[..., 0]))  # eigenvalues >= pd_eps
         ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
     rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_us], -1), 0.0)  # (B, m, 1+n)
     ffG = solve_masked(Q_uu, rhs, free)
