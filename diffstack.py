@@ -920,13 +920,13 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
     grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
     least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
     iters_run, step, s_in, u_in = info.iters, info.step_norm, s, u  # step: >= tol, or NaN
-    for _ in range(iters):
+    for k in range(iters + 1):  # the last: the check alone
         dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
         to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
         to_hi = (free & (u > hi)) | (held_hi & (dC_du > 0))
         count = (to_lo | to_hi).flatten(1).sum(-1)  # (B,)
         moving = moving & ((count > 0) | ~(step < tol))
-        if not moving.any():
+        if k == iters or not moving.any():
             break
         tries, least = torch.where(count < least, patience, tries - 1), least.minimum(count)
         first = (to_lo | to_hi).any(-1).long().argmax(-1)  # (B,) the earliest step with one
