@@ -920,7 +920,7 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
     grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
     least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
     iters_run, step, s_in, u_in = info.iters, info.step_norm, s, u  # step: >= tol, or NaN
-    for k in range(iters + 1):  # the last: the check alone
+    for k in range(iters + 1 if iters else 0):  # the last: the check alone
         dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
         to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
         to_hi = (free & (u > hi)) | (held_hi & (dC_du > 0))
@@ -1108,8 +1108,8 @@ class ILQR(torch.autograd.Function):
 
 
 def ilqr_solve(cost_fn, dynamics, s_init, u_init, params, lo, hi, exact=True, **settings):
-    """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,); settings
-    as `ilqr`'s (iters, tol, ls_steps, ls_decay), and refine: `active_set`'s iterations (0)."""
+    """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,), where not
+    a zero gradient (no solution to differentiate); settings `ilqr`'s, refine `active_set`'s (0)."""
     settings["lo"] = torch.as_tensor(lo, dtype=s_init.dtype, device=s_init.device)
     settings["hi"] = torch.as_tensor(hi, dtype=s_init.dtype, device=s_init.device)
     return ILQR.apply(cost_fn, dynamics, settings, exact, s_init, u_init, *params)
