@@ -435,3 +435,21 @@ def test_active_set_converges_on_all_128_problems():
         residual = bench.kkt_residual(u, M, q, P["lo"], P["hi"])
         assert conv.all() and residual.max() < bench.LQR_CONVERGED, umax
         assert (u - ref).abs().max() < 1e-5, umax
+
+
+def test_ilqr_solve_with_refine_is_affine_lqrs_solve_and_gradient():
+    # the researcher's call, diffstack.ilqr_solve(..., refine=100): the same solution as
+    # AffineLQR's, converged where iLQR alone stalls, and the same x_init and H gradients
+    P = lqr_subset(1.0, STALLED)
+    _, u, conv, _, (x_init, _, _, _, H) = affine_lqr(P, ACTIVE_SET, grad=True)
+    u[:, 0].sum().backward()
+    x_init2, H2 = P["x_init"].clone().requires_grad_(), P["H"].clone().requires_grad_()
+    dynamics = bench.Affine(P["A"], P["B"], P["b"])
+    args = (bench.StageQuadratic(), dynamics, x_init2, P["u_init"], (H2,), P["lo"], P["hi"])
+    _, u2, conv2 = diffstack.ilqr_solve(*args, **ACTIVE_SET)
+    u2[:, 0].sum().backward()
+    assert conv.all() and conv2.all() and torch.equal(u, u2)
+    assert torch.allclose(x_init.grad, x_init2.grad, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(H.grad, H2.grad, rtol=1e-10, atol=1e-12)
+    _, _, conv3 = diffstack.ilqr_solve(*args, **dict(ACTIVE_SET, refine=0))
+    assert not conv3.any()  # without it, iLQR's 2 iterations have not converged
