@@ -641,12 +641,7 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
 #   min_{s, u}  sum_t l_t(s_t, u_t) + l_T(s_T)   s.t.  s_0 = s_init,  s_{t+1} = f(s_t, u_t),
 #                                                      lo <= u_t <= hi
-# The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
-# of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's
-# exact=False), whose Hessian lacks the dynamics' curvature sum_i lambda_i d2 f_i: exact on linear
-# dynamics only; tracking with the unicycle, 45 % off. The default (exact=True) adds it, the
-# Lagrangian's Hessian, and so differentiates the converged solution itself: test_diffstack.py
-# holds it to central differences within 1e-6 and prints the paper's variant's error beside it.
+# The KKT backward differentiates the solution itself; where iLQR stalls, active_set refines it.
 # General: `cost_fn(s, u, *params) -> (B, ...)` any twice-differentiable sum of per-step terms,
 # `dynamics(s_t, u_t) -> s_{t+1}` any twice-differentiable step; gradients reach s_init and every
 # tensor in `params`. Closed forms where they bring them (`expansion`, `jacobians`, `curvature`).
@@ -666,21 +661,14 @@ def cost_expansion(cost_fn, s, u, params):
     if hasattr(cost_fn, "expansion"):
         return cost_fn.expansion(s, u, *params)
     n, T = s.shape[-1], u.shape[1]
-    u_padded = torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)  # u_T is padding
-    su = torch.cat([s, u_padded], -1)  # (B, T+1, n+m)
+    su = torch.cat([s, torch.cat([u, u.new_zeros(u[:, :1].shape)], 1)], -1)  # (B, T+1, n+m): u_T 0
     grad = torch.func.grad(lambda su: cost_fn(su[..., :n], su[:, :T, n:], *params).sum())
     H, g = _stagewise_jacobian(grad, su, with_value=True)
     return g, H
 
 
-def outer(a, b):
-    """a b' for vectors a (..., i), b (..., j) -> (..., i, j)."""
-    return a[..., :, None] * b[..., None, :]
-
-
 def _collision_expansion(pos, ctx: CostContext, rbf_var: float):
-    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in the positions pos (B, T, 2) (see
-    cost_expansion_closed_form)."""
+    """C_coll's gradient (B, T, 2) and Hessian (B, T, 2, 2) in pos (B, T, 2) (see below)."""
     eye = torch.eye(2, dtype=pos.dtype, device=pos.device)
     mu, spread = prediction_moments(ctx)  # (B, T, 2), (B, T)
     # the predicted mean first, then the other agents: (B, 1+A, ...)
@@ -689,35 +677,32 @@ def _collision_expansion(pos, ctx: CostContext, rbf_var: float):
     mask = torch.cat([ctx.pred_mask[:, None], ctx.others_mask], 1)[..., None]  # (B, 1+A, 1)
     phi = mask * rbf((diff**2).sum(-1) + offset, rbf_var)  # (B, 1+A, T)
     grad = -(phi[..., None] * diff).sum(1) / rbf_var  # (B, T, 2)
-    hess = outer(diff, diff) / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
+    hess = diff[..., :, None] * diff[..., None, :] / rbf_var**2 - eye / rbf_var  # (B, 1+A, T, 2, 2)
     return grad, (phi[..., None, None] * hess).sum(1)
 
 
 def _lane_expansion(pos, h, ctx: CostContext):
-    """The gradients and Hessians of C_lat in pos (B, T, 2) and of C_head in (pos, h) (B, T, 3) (see
-    cost_expansion_closed_form): (B, T, 2), (B, T, 2, 2), (B, T, 3), (B, T, 3, 3)."""
+    """C_lat's gradient, Hessian in pos (B, T, 2), C_head's in (pos, h) (B, T, 3) (see below)."""
     eye = torch.eye(2, dtype=pos.dtype, device=pos.device)
     a, b, has_lane = nearest_lane_segment(pos, h, ctx.lanes, ctx.lanes_mask)  # (B, T, 3) x 2
     _, r, lane_h, df = segment_projection(pos, a, b)  # (B, T, 2), (B, T), (B, T, 2)
     on = has_lane.to(pos.dtype)  # (B, T)
-    J = eye - outer(b[..., :2] - a[..., :2], df)  # (B, T, 2, 2) dr/dpos
+    J = eye - (b[..., :2] - a[..., :2])[..., :, None] * df[..., None, :]  # (B, T, 2, 2) dr/dpos
     g_lat = 2 * (J.mT @ r[..., None])[..., 0] * on[..., None]
     H_lat = 2 * J.mT @ J * on[..., None, None]
     e = wrap_angle(h - lane_h) * on  # (B, T)
     de_dpos = -wrap_angle(b[..., 2] - a[..., 2])[..., None] * df  # (B, T, 2)
     de = torch.cat([de_dpos, torch.ones_like(e)[..., None]], -1)  # (B, T, 3): d e / d(pos, h)
     g_head = 2 * e[..., None] * de
-    H_head = 2 * outer(de, de) * on[..., None, None]
+    H_head = 2 * de[..., :, None] * de[..., None, :] * on[..., None, None]
     return g_lat, H_lat, g_head, H_head
 
 
 def cost_expansion_closed_form(s, u, ctx: CostContext, w, rbf_var: float = 2.0):
-    """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in
-    (s_t, u_t) = (x, y, h, v, omega, a), step by step (s_0 costs nothing; u_T = 0 pads the last
-    step), in closed form: what cost_expansion computes by autodiff (the tests hold the two
-    together). s (B, T+1, 4), u (B, T, 2), w (5,) or (B, 5).
-
-    With pos, h a state's position and heading (sigma^2 = rbf_var):
+    """The gradient (B, T+1, 6) and block Hessian (B, T+1, 6, 6) of eq. (3) in (s_t, u_t) =
+    (x, y, h, v, omega, a), step by step (s_0 costs nothing; u_T = 0 pads the last step), in closed
+    form: cost_expansion's autodiff (held together by the tests). s (B, T+1, 4), u (B, T, 2), w (5,)
+    or (B, 5). With pos, h a state's position and heading (sigma^2 = rbf_var):
       C_coll  phi = exp(-(|pos - mu|^2 + spread) / 2 sigma^2) per predicted mean mu = mu_t, and
               with spread 0 per other agent (mu its position): grad = -phi (pos - mu) / sigma^2,
               Hess = phi ((pos - mu)(pos - mu)' / sigma^4 - I / sigma^2)
@@ -735,8 +720,7 @@ def cost_expansion_closed_form(s, u, ctx: CostContext, w, rbf_var: float = 2.0):
     g_coll, H_coll = _collision_expansion(pos, ctx, rbf_var)
     g_lat, H_lat, g_head, H_head = _lane_expansion(pos, h, ctx)
     # the states t1..T in rows 1..T, the controls t0..T-1 in rows 0..T-1
-    g = torch.zeros(B, T + 1, 6, dtype=s.dtype, device=s.device)
-    H = torch.zeros(B, T + 1, 6, 6, dtype=s.dtype, device=s.device)
+    g, H = s.new_zeros(B, T + 1, 6), s.new_zeros(B, T + 1, 6, 6)
     g[:, 1:, :2] = w_coll * g_coll + w_lat * g_lat
     g[:, 1:, :3] += w_head * g_head
     g[:, T, :2] += 2 * w_goal[:, 0] * (pos[:, -1] - ctx.goal)
@@ -773,9 +757,8 @@ def dynamics_jacobians(dynamics, s, u):
 
 
 def solve_small(M, rhs):
-    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2: in Table 4's
-    imitation trainings no seed of 14 landed above -13.5 with it, 4 of 10 above -3 with
-    torch.linalg.solve (docs/results.md)."""
+    """M^-1 rhs for M (..., m, m), rhs (..., m, r); by Cramer's rule when m = 2: Table 4's imitation
+    trainings, no seed of 14 above -13.5 with it, 4 of 10 above -3 with torch.linalg.solve."""
     if M.shape[-1] != 2:
         return torch.linalg.solve(M, rhs)
     m00, m01 = M[..., 0, 0, None], M[..., 0, 1, None]  # (..., 1) each
@@ -822,31 +805,19 @@ def box_qp(Q, q, lo, hi):
     return torch.where(inside[:, None], delta, delta_box), free_box | inside[:, None]
 
 
-def make_pd(Q, eps):
-    """Shift a symmetric Q (B, m, m) by a multiple of I until its smallest eigenvalue is >= eps."""
-    lam = torch.linalg.eigvalsh(Q)[..., 0]  # (B,)
-    eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
-    return Q + (eps - lam).clamp_min(0.0)[:, None, None] * eye
-
-
-def box_policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps):
-    """Control-limited DDP's step (Tassa et al. 2014, §III.B): the feed-forward ff solves the box QP
-        min_ff 1/2 ff'Q_uu ff + Q_u'ff   s.t.  lo <= ff <= hi
-    with Q_uu shifted to eigenvalues >= pd_eps (a descent direction), and G = -Q_uu^-1 Q_us on the
-    controls it leaves free, 0 on the clamped ones. Q_u (B, m, 1), Q_us (B, m, n), Q_uu (B, m, m),
-    lo, hi (B, m) -> ff (B, m, 1), G (B, m, n), free (B, m)."""
-    Q_uu = make_pd(Q_uu, pd_eps)
-    ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
-    G = solve_masked(Q_uu, torch.where(free[..., None], -Q_us, 0.0), free)  # (B, m, n)
-    return ff[..., None], G, free
-
-
-def fixed_policy(Q_u, Q_us, Q_uu, free):
-    """The step with the active set given (free (B, m) bool): [ff G] = -Q_uu^-1 [Q_u Q_us] on the
-    free controls, 0 on the held ones. Shapes as box_policy's."""
+def policy(Q_u, Q_us, Q_uu, lo, hi, pd_eps, free=None):
+    """The step du = ff + G ds that minimises Q: [ff G] = -Q_uu^-1 [Q_u Q_us] on the free controls
+    (free (B, m) bool, given), 0 on the held ones; iLQR's, control-limited DDP's (Tassa et al. 2014,
+    §III.B), with Q_uu shifted to eigenvalues >= pd_eps (descent) and ff the box QP's solution
+        min_ff 1/2 ff'Q_uu ff + Q_u'ff   s.t.  lo <= ff <= hi,    free: the controls it leaves free.
+    Q_u (B, m, 1), Q_us, G (B, m, n), Q_uu (B, m, m), lo, hi, free (B, m) -> ff, G, free."""
+    if box := free is None:
+        shift = (pd_eps - torch.linalg.eigvalsh(Q_uu)[..., :1]).clamp_min(0.0)  # (B, 1)
+        Q_uu = Q_uu + torch.diag_embed(shift.expand_as(Q_u[..., 0]))  # eigenvalues >= pd_eps
+        ff, free = box_qp(Q_uu, Q_u[..., 0], lo, hi)  # (B, m), (B, m)
     rhs = torch.where(free[..., None], -torch.cat([Q_u, Q_us], -1), 0.0)  # (B, m, 1+n)
     ffG = solve_masked(Q_uu, rhs, free)
-    return ffG[..., :1], ffG[..., 1:], free
+    return ff[..., None] if box else ffG[..., :1], ffG[..., 1:], free
 
 
 def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
@@ -857,16 +828,15 @@ def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
     transpose, f_s and f_u at t):
         Q_s  = l_s  + f_s'V+_s          Q_ss = l_ss + f_s'V+_ss f_s
         Q_u  = l_u  + f_u'V+_s          Q_uu = l_uu + f_u'V+_ss f_u     Q_us = l_us + f_u'V+_ss f_s
-        du   = ff + G ds                the step that minimises Q (box_policy or fixed_policy)
+        du   = ff + G ds                the step that minimises Q (policy)
         V_s  = Q_s  + G'Q_uu ff + G'Q_u + Q_us'ff
         V_ss = Q_ss + G'Q_uu G + G'Q_us + Q_us'G
-    iLQR's pass bounds du by lo, hi (B, T, m) (box_policy); the KKT backward's holds the controls
-    that are not free (B, T, m) at du = 0 (fixed_policy). f_s (B, T, n, n), f_u (B, T, n, m),
+    iLQR's pass bounds du by lo, hi (B, T, m); the KKT backward's and active_set's hold the
+    controls that are not free (B, T, m) at du = 0. f_s (B, T, n, n), f_u (B, T, n, m),
     H (B, T+1, n+m, n+m), g (B, T+1, n+m) (the last step has no control). Returns ff (B, T, m),
     G (B, T, m, n), free (B, T, m) and V_s at t = 0 (B, n): the costate lambda_0 = dV_0/ds_0."""
     T, n = f_s.shape[1], f_s.shape[-1]
-    V_s = g[:, T, :n, None]  # (B, n, 1)
-    V_ss = H[:, T, :n, :n]  # (B, n, n)
+    V_s, V_ss = g[:, T, :n, None], H[:, T, :n, :n]  # (B, n, 1), (B, n, n)
     steps = []  # (ff, G, free) of t = T-1 .. 0
     for t in reversed(range(T)):
         f_s_t, f_u_t = f_s[:, t], f_u[:, t]  # (B, n, n), (B, n, m)
@@ -877,10 +847,8 @@ def lqr_backward(f_s, f_u, H, g, lo=None, hi=None, pd_eps=0.0, free=None):
         Q_ss = l_ss + f_s_t.mT @ V_ss @ f_s_t  # (B, n, n)
         Q_uu = l_uu + f_u_t.mT @ V_ss @ f_u_t  # (B, m, m)
         Q_us = l_us + f_u_t.mT @ V_ss @ f_s_t  # (B, m, n)
-        if free is None:
-            ff, G, free_t = box_policy(Q_u, Q_us, Q_uu, lo[:, t], hi[:, t], pd_eps)
-        else:
-            ff, G, free_t = fixed_policy(Q_u, Q_us, Q_uu, free[:, t])
+        box = (lo[:, t], hi[:, t], pd_eps) if free is None else (None, None, 0.0, free[:, t])
+        ff, G, free_t = policy(Q_u, Q_us, Q_uu, *box)
         V_s = Q_s + G.mT @ Q_uu @ ff + G.mT @ Q_u + Q_us.mT @ ff  # (B, n, 1)
         V_ss = Q_ss + G.mT @ Q_uu @ G + G.mT @ Q_us + Q_us.mT @ G  # (B, n, n)
         V_ss = (V_ss + V_ss.mT) / 2  # symmetric up to rounding; kept exactly symmetric
@@ -918,21 +886,16 @@ def ilqr(
     # of Q_uu's entries (eps 1.2e-7 times up to ~1e3)
     pd_eps = 1e-6 if s.dtype == torch.float64 else 1e-3
     scales = ls_decay ** -torch.arange(ls_steps, dtype=s.dtype, device=s.device)  # 1, 1/5, ...
-    moving = torch.ones(B, dtype=torch.bool, device=s.device)
-    iters_run = torch.zeros(B, dtype=torch.long, device=s.device)
+    moving, iters_run = torch.ones_like(cost, dtype=torch.bool), torch.zeros_like(cost).long()
     step_norm = torch.full((B,), math.inf, dtype=s.dtype, device=s.device)
     costs = [cost]
     for _ in range(iters):
         g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
         f_s, f_u = dynamics_jacobians(dynamics, s, u)  # (B, T, n, n), (B, T, n, m)
         ff, G, _, _ = lqr_backward(f_s, f_u, H, g, lo - u, hi - u, pd_eps)
-        s_new, u_new, cost_new, accepted, full_step = line_search(
-            cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales
+        s, u, cost, full_step = line_search(  # a converged scenario stays where it is
+            cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales, moving
         )
-        take = moving & accepted  # (B,): a converged scenario stays where it is
-        s = torch.where(take[:, None, None], s_new, s)
-        u = torch.where(take[:, None, None], u_new, u)
-        cost = torch.where(take, cost_new, cost)
         step_norm = torch.where(moving, full_step, step_norm)
         iters_run = iters_run + moving.long()
         costs.append(cost)
@@ -940,6 +903,48 @@ def ilqr(
         if not moving.any():
             break
     return s, u, ILQRInfo(step_norm < tol, step_norm, iters_run, torch.stack(costs, 1))
+
+
+def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patience=3):
+    """Where iLQR stalls, exact on a linear-quadratic problem: the primal-dual active-set method
+    (Hintermueller, Ito, Kunisch 2002), block principal pivoting with Portugal, Judice, Vicente's
+    (1994) backup rule. The held controls go to their bound, the free ones by the LQR with the held
+    fixed, unclamped; then the violators flip: free controls outside the box are held at the bound
+    they crossed, held ones whose dC/du points into the box (at lo: < 0) freed. None left and the
+    step below tol: a KKT point. Where the violators have not become fewer than their least for
+    `patience` iterations, the earliest step's alone flip (no cycling). Refines ilqr's s (B, T+1,
+    n), u (B, T, m) where info has not converged; lo/hi (m,) or (B, T, m) -> s, u, ILQRInfo."""
+    B, T, m = u.shape
+    lo, hi, moving = lo.expand(B, T, m), hi.expand(B, T, m), ~info.converged
+    held_lo, held_hi = u <= lo, u >= hi  # (B, T, m) each
+    grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
+    least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
+    iters_run, step, s_in, u_in = info.iters, info.step_norm, s, u  # step: >= tol, or NaN
+    for k in range(iters + 1 if iters else 0):  # the last: the check alone
+        dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
+        to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
+        to_hi = (free & (u > hi)) | (held_hi & (dC_du > 0))
+        count = (to_lo | to_hi).flatten(1).sum(-1)  # (B,)
+        moving = moving & ((count > 0) | ~(step < tol))
+        if k == iters or not moving.any():
+            break
+        tries, least = torch.where(count < least, patience, tries - 1), least.minimum(count)
+        first = (to_lo | to_hi).any(-1).long().argmax(-1)  # (B,) the earliest step with one
+        flip = (tries >= 0)[:, None] | (torch.arange(T, device=u.device) == first[:, None])
+        held_lo, held_hi = held_lo ^ (flip[..., None] & to_lo), held_hi ^ (flip[..., None] & to_hi)
+        held, go = held_lo | held_hi, moving[:, None, None]
+        u = torch.where(go & held, torch.where(held_lo, lo, hi), u)
+        s = rollout(dynamics, s[:, 0], u)
+        g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
+        ff, G, _, _ = lqr_backward(*dynamics_jacobians(dynamics, s, u), H, g, free=~held)
+        s_new, u_new = closed_loop_rollout(dynamics, s, u, ff, G, lo - math.inf, hi + math.inf)
+        step = torch.where(moving, (u_new - u).flatten(1).norm(dim=-1), step)
+        s, u = torch.where(go, s_new, s), torch.where(go, u_new, u)
+        iters_run = iters_run + moving.long()
+    back = moving[:, None, None]  # not converged: iLQR's s, u and step stand
+    s, u = torch.where(back, s_in, s), torch.where(back, u_in, u)
+    step = torch.where(moving, info.step_norm, step)
+    return s, u, ILQRInfo(info.converged | ~moving, step, iters_run, info.costs)
 
 
 def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
@@ -955,14 +960,13 @@ def closed_loop_rollout(dynamics, s, u, ff, G, lo, hi):
     return torch.stack(s_out, 1), torch.stack(u_out, 1)
 
 
-def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales):
+def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales, moving):
     """Backtracking (App. C.2): the closed-loop rollout of the step eta ff + G ds at eta = 1, then
     at 1/5, 1/25, ... where the true cost rose; the first scale that does not raise it is taken.
-    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n), cost (B,) -> the new s, u, cost (the
-    old ones where no scale was accepted), accepted (B,), and the norm of the full step (B,)."""
+    s (B, T+1, n), u, ff, lo, hi (B, T, m), G (B, T, m, n), cost, moving (B,) -> the new s, u, cost
+    (the old ones where no scale was accepted or not moving), the norm of the full step (B,)."""
     eps = torch.finfo(s.dtype).eps
-    s_new, u_new, cost_new = s, u, cost
-    accepted = torch.zeros_like(cost, dtype=torch.bool)
+    s_new, u_new, cost_new, accepted = s, u, cost, ~moving  # those not moving: not searched
     for i, eta in enumerate(scales):
         s_eta, u_eta = closed_loop_rollout(dynamics, s, u, eta * ff, G, lo, hi)
         cost_eta = cost_fn(s_eta, u_eta, *params)  # (B,)
@@ -977,19 +981,17 @@ def line_search(cost_fn, dynamics, s, u, cost, ff, G, lo, hi, params, scales):
         accepted = accepted | take
         if accepted.all():
             break
-    return s_new, u_new, cost_new, accepted, full_step
+    return s_new, u_new, cost_new, full_step
 
 
 def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: float):
     """sum_i lam_i d2 f_i / d(s, u)^2 (..., 6, 6): the dynamics' curvature weighted by costates
-    lam (..., 4).
-
-    Only the displacement R(h) disp, disp = (along, lateral), is curved, in (h, v, omega, a). With
-    nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree rotation:
+    lam (..., 4). Only the displacement R(h) disp, disp = (along, lateral), is curved, in
+    (h, v, omega, a). With nu = R(h)' lam_xy (the costate in the heading frame) and J the 90-degree
+    rotation:
         d2/dh2 = -nu'disp,   d2/dh dq = (J'nu)' ddisp/dq,   d2/dq dr = nu' d2disp/dq dr
     (q, r in (v, omega, a)); the moments' rule above gives every derivative of disp."""
-    h, v = s[..., 2], s[..., 3]
-    omega, a = u.unbind(-1)
+    (h, v), (omega, a) = s[..., 2:].unbind(-1), u.unbind(-1)
     (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
@@ -1033,7 +1035,6 @@ def lagrangian_curvature(dynamics, s, u, g, f_s):
 
 def kkt_backward(cost_fn, dynamics, s, u, params, free, grad_s, grad_u, exact=True):
     """Gradients of a loss on the solution tau = (s, u) wrt s_init and params (Amos et al. 2018).
-
     At the solution the KKT conditions F(s, u, lambda; params) = 0 hold; by the implicit function
     theorem dloss/dparams = delta' dF/dparams, where delta solves the KKT system with the incoming
     gradient as right-hand side, an LQR problem:
@@ -1041,18 +1042,16 @@ def kkt_backward(cost_fn, dynamics, s, u, params, free, grad_s, grad_u, exact=Tr
                                                                  ds_{t+1} = f_s ds_t + f_u du_t,
     H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(s_t, u_t) - s_{t+1}):
         H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(s_t, u_t)      (lagrangian_curvature)
-    (exact=False drops the curvature: the paper's variant). Amos et al.'s gradients, for the
-    quadratic cost 1/2 tau'C tau + c'tau of their LQR, with delta their d*_tau:
+    (exact=False drops it: the paper's variant, mpc.pytorch's; tracking with the unicycle 45 % off).
+    Amos et al.'s, for their LQR's cost 1/2 tau'C tau + c'tau, with delta their d*_tau:
         dloss/dc = delta,  dloss/dC = (delta tau' + tau delta') / 2,  dloss/ds_init = lambda_0,
-    the LQR's costate at t = 0. Both are the gradient of <grad_tau cost, delta> = <C tau + c, delta>
-    in (C, c), tau and delta fixed; for any cost(tau; params), expanded at tau, the chain rule
-    through C and c gives params_gradients' double backward of the same product:
+    the LQR's costate at t = 0: the gradient of <grad_tau cost, delta> = <C tau + c, delta> in
+    (C, c), tau and delta fixed; for any cost(tau; params), by the chain rule through C and c:
         dloss/dparams = d/dparams [ sum_t dl_t/dtau_t(params) . delta_t ]     (delta fixed)
     s (B, T+1, n), u (B, T, m), free (B, T, m) bool, grad_s, grad_u like s, u."""
     g, H = cost_expansion(cost_fn, s, u, params)
     f_s, f_u = dynamics_jacobians(dynamics, s, u)
-    if exact:
-        H = H + lagrangian_curvature(dynamics, s, u, g, f_s)
+    H = H + lagrangian_curvature(dynamics, s, u, g, f_s) if exact else H
     grad_u_padded = torch.cat([grad_u, torch.zeros_like(grad_u[:, :1])], 1)
     rhs = torch.cat([grad_s, grad_u_padded], -1)  # (B, T+1, n+m)
     ff, G, _, lam0 = lqr_backward(f_s, f_u, H, rhs, free=free)
@@ -1072,9 +1071,7 @@ def params_gradients(cost_fn, s, u, params, ds, du):
     if not needs:
         return [None] * len(params)
     with torch.enable_grad():
-        ps = list(params)
-        for i in needs:
-            ps[i] = params[i].detach().requires_grad_()
+        ps = [p.detach().requires_grad_() if i in needs else p for i, p in enumerate(params)]
         sg, ug = s.detach().requires_grad_(), u.detach().requires_grad_()
         gs, gu = torch.autograd.grad(cost_fn(sg, ug, *ps).sum(), (sg, ug), create_graph=True)
         inner = (gs * ds).sum() + (gu * du).sum()  # < dC/dtau (params), delta >
@@ -1087,8 +1084,11 @@ class ILQR(torch.autograd.Function):
 
     @staticmethod
     def forward(fctx, cost_fn, dynamics, settings, exact, s_init, u_init, *params):
+        refine = settings.pop("refine", 0)  # active_set's iterations, where iLQR has not converged
         with torch.no_grad():
             s, u, info = ilqr(cost_fn, dynamics, s_init, u_init, params, **settings)
+            a = (settings["lo"], settings["hi"], info, settings.get("tol", 0.05), refine)
+            s, u, info = active_set(cost_fn, dynamics, s, u, params, *a)
         fctx.fns = (cost_fn, dynamics, exact)
         lo, hi = settings["lo"].expand_as(u), settings["hi"].expand_as(u)
         fctx.save_for_backward(s, u, info.converged, lo, hi, *params)
@@ -1108,8 +1108,8 @@ class ILQR(torch.autograd.Function):
 
 
 def ilqr_solve(cost_fn, dynamics, s_init, u_init, params, lo, hi, exact=True, **settings):
-    """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,);
-    arguments and settings (iters, tol, ls_steps, ls_decay) as `ilqr`'s."""
+    """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,), where not
+    a zero gradient (no solution to differentiate); settings `ilqr`'s, refine `active_set`'s (0)."""
     settings["lo"] = torch.as_tensor(lo, dtype=s_init.dtype, device=s_init.device)
     settings["hi"] = torch.as_tensor(hi, dtype=s_init.dtype, device=s_init.device)
     return ILQR.apply(cost_fn, dynamics, settings, exact, s_init, u_init, *params)

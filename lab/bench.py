@@ -268,10 +268,10 @@ def compare_mpc(B=256, threads=(1, 2), reps=5) -> dict | None:
 # |u| <= umax; loss sum u_0. mpc.pytorch's u_20 is idle, ours costs x_20 by H: the same problem.
 LQR_UMAX = (1e4, 1.0)  # the two configurations, in the order the reference script draws them
 LQR_N, LQR_NX, LQR_NU, LQR_BATCH = 20, 8, 4, 128
-LQR_SETTINGS = {  # ours at ilqr's defaults; run until the step is below 1e-6; and with a finer
-    "defaults": dict(iters=5, tol=0.05),  # line search (scales down to 2^-19, not 5^-4)
+LQR_SETTINGS = {  # ours at ilqr's defaults; until the step is below 1e-6; 2 iterations, then
+    "defaults": dict(iters=5, tol=0.05),  # diffstack.active_set until the step is below 1e-6
     "tight": dict(iters=100, tol=1e-6),
-    "finer": dict(iters=100, tol=1e-6, ls_steps=20, ls_decay=2.0),
+    "active set": dict(iters=2, tol=1e-6, refine=100),
 }
 LQR_MPC = dict(lqr_iter=100, eps=1e-6)  # mpc.pytorch as the reference script runs it
 LQR_CONVERGED = 1e-6  # a solve has converged when no control would move by more (kkt_residual)
@@ -341,8 +341,11 @@ class AffineLQR(torch.autograd.Function):
     @staticmethod
     def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
         with torch.no_grad():
-            dynamics = Affine(A, B, b)
-            x, u, info = ilqr(StageQuadratic(), dynamics, x_init, u_init, (H,), lo, hi, **settings)
+            (cost, dynamics), settings = (StageQuadratic(), Affine(A, B, b)), dict(settings)
+            refine = settings.pop("refine", 0)  # as diffstack.ILQR: active_set after ilqr
+            x, u, info = ilqr(cost, dynamics, x_init, u_init, (H,), lo, hi, **settings)
+            a = (lo, hi, info, settings.get("tol", 0.05), refine)
+            x, u, info = diffstack.active_set(cost, dynamics, x, u, (H,), *a)
         ctx.save_for_backward(x, u, info.converged, lo.expand_as(u), hi.expand_as(u), A, B, b, H)
         ctx.mark_non_differentiable(info.converged, info.iters)
         return x, u, info.converged, info.iters
@@ -350,7 +353,7 @@ class AffineLQR(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_x, grad_u, _, __):
         x, u, converged, lo, hi, A, B, b, H = ctx.saved_tensors
-        n, T = x.shape[-1], u.shape[1]
+        n = x.shape[-1]
         free = ((u - lo).abs() > 1e-8) & ((hi - u).abs() > 1e-8)  # the active set, held
         keep = converged.to(x.dtype)[:, None, None]
         cost, dynamics = StageQuadratic(), Affine(A, B, b)
@@ -358,11 +361,9 @@ class AffineLQR(torch.autograd.Function):
         A_t, B_t = dynamics.jacobians(x[:, :-1], u)
         rhs = torch.cat([grad_x * keep, F.pad(grad_u * keep, (0, 0, 0, 1))], -1)
         k, K, _, p0 = diffstack.lqr_backward(A_t, B_t, Hz, rhs, free=free)
-        dx, du = [torch.zeros_like(x[:, 0])], []  # the backward LQR's solution from dx_0 = 0
-        for t in range(T):
-            du.append(k[:, t] + (K[:, t] @ dx[-1][..., None])[..., 0])
-            dx.append((A_t[:, t] @ dx[-1][..., None] + B_t[:, t] @ du[-1][..., None])[..., 0])
-        dx, du = torch.stack(dx, 1), torch.stack(du, 1)
+        # the backward LQR's solution from dx_0 = 0: du = k + K dx, dx_{t+1} = A dx_t + B du_t
+        linear, unbounded = Affine(A, B, 0 * b), torch.full_like(u, float("inf"))
+        dx, du = diffstack.closed_loop_rollout(linear, 0 * x, 0 * u, k, K, -unbounded, unbounded)
         d = torch.cat([dx, F.pad(du, (0, 0, 0, 1))], -1)  # (B, N+1, n+m)
         lam = costates(g[..., :n], A_t)[:, 1:]  # (B, N, n): lambda_1 .. lambda_N
         dlam = costates(((Hz @ d[..., None])[..., 0] + rhs)[..., :n], A_t)[:, 1:]
@@ -499,7 +500,7 @@ def compare_bounded_lqr(B, reps, quick=False, hint=True) -> dict:
             r, entries, grads = bounded_lqr_at(umax, batch, min(reps, 3), solvers)
             rows, table = rows + r, table + entries
             if "mpc.pytorch" in grads:
-                pair = ("diffstack, tight", "mpc.pytorch")
+                pair = ("diffstack, active set", "mpc.pytorch")
                 conv = [e["converged"] for e in entries if e["solver"] in pair]
                 ours, mpc = (grads[name] for name in pair)
                 rel = ((ours - mpc).norm() / mpc.norm()).item() if conv == [batch] * 2 else None
