@@ -69,40 +69,32 @@ class Config:
     w_lat: float = 0.3  # lateral lane deviation weight w3
     w_head: float = 0.3  # lane heading deviation weight w4
     w_ctrl: float = 1.0  # control effort weight w5
-    # sigma^2 (m^2) of the collision RBF phi(d2) = exp(-d2 / 2 sigma^2) (the authors' exp(-d^2/4))
-    rbf_var: float = 2.0
+    rbf_var: float = 2.0  # sigma^2 (m^2) of phi(d2) = exp(-d2 / 2 sigma^2) (authors': exp(-d2/4))
     # --- planner, eq. (2), App. C.1 ---
     goal: str = "logged"  # g of eq. (3): the GT ego state at T (App. C.3), or 'route' (route_goal)
     goal_lane_dist: float = 4.5  # a goal lane passes within this distance (m) of the goal
-    # ... and its heading differs from the goal's by less (authors' code: pi/4)
-    goal_lane_heading: float = math.pi / 2
-    # lanes kept, closest to the goal first (the paper: every goal lane); N = 8 x 3 x this
-    max_goal_lanes: int = 2
+    goal_lane_heading: float = math.pi / 2  # and heading within this of the goal's (authors': pi/4)
+    max_goal_lanes: int = 2  # lanes kept, closest to the goal first (paper: all); N = 8 x 3 x this
     plan_accels: tuple = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # terminal accelerations
     plan_offsets: tuple = (-0.5, 0.0, 0.5)  # terminal lateral offsets from the lane centre (m)
     beta: float = 1.0  # temperature of the relaxed argmin p_n = softmax(-beta C)_n
-    # feasible |w v| (m/s^2), authors' code; and the controller's box (authors': a in [-6, 4])
-    feas_lat_accel: float = 8.0
-    feas_yaw_per_speed: float = 0.5  # feasible |w| <= this * |v| (1/m), authors' code
+    feas_lat_accel: float = 8.0  # feasible |omega v| (m/s^2), authors' code
+    feas_yaw_per_speed: float = 0.5  # feasible |omega| <= this * |v| (1/m), authors' code
     # --- controller, eq. (4), App. C.2 ---
     u_lower: tuple = (-0.7, -5.0)  # control lower bounds (yaw rate rad/s, accel m/s^2), authors'
-    u_upper: tuple = (0.7, 4.0)  # control upper bounds
+    u_upper: tuple = (0.7, 4.0)  # control upper bounds (the authors' box for a: [-6, 4])
     ilqr_iters: int = 5  # maximum iLQR iterations
     ilqr_tol: float = 0.05  # converged when the LQR step's norm is below this (authors': 0.01)
     line_search_steps: int = 5  # step scales tried: 1, 1/5, 1/25, ...
     line_search_decay: float = 5.0  # divide the step by this on failure
     # --- predictor, eq. (1), §3.1 (Trajectron++'s defaults, Salzmann et al. 2020) ---
-    # K, the values of the discrete latent z (= GMM components = trajectories for the planner)
-    pred_modes: int = 25
-    # width of the history LSTM, the neighbour encoder and each direction of the future BiLSTM
-    pred_enc_hidden: int = 32
+    pred_modes: int = 25  # K values of the latent z (= GMM components = the planner's trajectories)
+    pred_enc_hidden: int = 32  # widths: history LSTM, neighbour MLP, future BiLSTM (each direction)
     pred_latent_hidden: int = 32  # hidden width of the p(z|c) and q(z|c,s_gt) MLPs
     pred_dec_hidden: int = 64  # decoder GRU width (Trajectron++: 128; halved for CPU training)
     pred_radius: float = 30.0  # neighbours within this distance (m) at t0 are attended to
-    # input scales: position, velocity, acceleration, heading (and its rate)
-    pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)
-    # below this speed (m/s) the tracked heading replaces the velocity direction at t0
-    pred_min_speed: float = 0.5
+    pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)  # input scales: pos, vel, acc, heading (rate)
+    pred_min_speed: float = 0.5  # below it (m/s) the tracked heading replaces the velocity's at t0
     # std (m) added to every GMM component: at v = 0 the controls cannot move sideways
     pred_pos_std_min: float = 0.05
     pred_log_p_max: float = 6.0  # the loss's per-step log-likelihood is clamped above at this
@@ -112,14 +104,13 @@ class Config:
     pred_logit_clip: tuple = (0.05, 5.0, 300.0, 60.0)
     pred_nll_min: float = -20.0  # the NLL metric clamps each step's log p(pos_t) below at this
     pred_lr_decay: float = 0.9999  # learning rate multiplied by this after every iteration
-    pred_grad_clip: float = 1.0  # gradients clipped to [-c, c] elementwise, as Trajectron++
+    pred_grad_clip: float = 1.0  # gradients clipped to [-this, this] elementwise, as Trajectron++
     # --- training, §3.2, App. D ---
     alpha_rl: tuple = (1.0, 100.0, 1000.0)  # loss weights (L_pred, L_plan, L_ctr), RL setting
     alpha_il: tuple = (1.0, 10.0, 1000.0)  # loss weights in the IL setting
     lr: float = 3e-3  # Adam learning rate
     batch_size: int = 256  # scenarios per training step
-    # the planner's mode weights in training: q(z|c,s_gt) (authors' code) or 'prior'
-    train_plan_weights: str = "posterior"
+    train_plan_weights: str = "posterior"  # mode weights in training: q (the authors') or 'prior'
 
     def __post_init__(self):
         check_config(self)
@@ -641,7 +632,12 @@ def plan(s0, ctx: CostContext, goal_state, w, cfg: Config, scene: ScenePlan | No
 # ===== 5. Controller: box-constrained iLQR, eq. (4) and App. C.2, and its exact KKT backward =====
 #   min_{s, u}  sum_t l_t(s_t, u_t) + l_T(s_T)   s.t.  s_0 = s_init,  s_{t+1} = f(s_t, u_t),
 #                                                      lo <= u_t <= hi
-# The KKT backward differentiates the solution itself; where iLQR stalls, active_set refines it.
+# The backward pass goes beyond the paper by default. The paper differentiates "the KKT conditions
+# of the last LQR approximation" (as mpc.pytorch and the authors' code: kkt_backward's exact=False),
+# whose Hessian lacks the dynamics' curvature sum_i lambda_i d2 f_i: exact on linear dynamics only;
+# tracking with the unicycle, 45 % off. The default (exact=True) adds it, the Lagrangian's Hessian,
+# and so differentiates the converged solution itself (test_diffstack.py: within 1e-6 of central
+# differences). Where iLQR stalls on active bounds, active_set finishes the solve (refine).
 # General: `cost_fn(s, u, *params) -> (B, ...)` any twice-differentiable sum of per-step terms,
 # `dynamics(s_t, u_t) -> s_{t+1}` any twice-differentiable step; gradients reach s_init and every
 # tensor in `params`. Closed forms where they bring them (`expansion`, `jacobians`, `curvature`).
@@ -886,7 +882,8 @@ def ilqr(
     # of Q_uu's entries (eps 1.2e-7 times up to ~1e3)
     pd_eps = 1e-6 if s.dtype == torch.float64 else 1e-3
     scales = ls_decay ** -torch.arange(ls_steps, dtype=s.dtype, device=s.device)  # 1, 1/5, ...
-    moving, iters_run = torch.ones_like(cost, dtype=torch.bool), torch.zeros_like(cost).long()
+    moving = torch.ones_like(cost, dtype=torch.bool)  # not converged yet
+    iters_run = torch.zeros_like(cost).long()
     step_norm = torch.full((B,), math.inf, dtype=s.dtype, device=s.device)
     costs = [cost]
     for _ in range(iters):
@@ -915,13 +912,16 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
     `patience` iterations, the earliest step's alone flip (no cycling). Refines ilqr's s (B, T+1,
     n), u (B, T, m) where info has not converged; lo/hi (m,) or (B, T, m) -> s, u, ILQRInfo."""
     B, T, m = u.shape
-    lo, hi, moving = lo.expand(B, T, m), hi.expand(B, T, m), ~info.converged
+    lo, hi = lo.expand(B, T, m), hi.expand(B, T, m)
+    moving = ~info.converged  # (B,) the problems refined
     held_lo, held_hi = u <= lo, u >= hi  # (B, T, m) each
     grad = torch.func.grad(lambda u: cost_fn(rollout(dynamics, s[:, 0], u), u, *params).sum())
     least, tries = torch.full((B,), T * m + 1, device=u.device), torch.zeros(B, device=u.device)
-    iters_run, step, s_in, u_in = info.iters, info.step_norm, s, u  # step: >= tol, or NaN
+    iters_run, step = info.iters, info.step_norm  # step: >= tol, or NaN
+    s_in, u_in = s, u  # iLQR's, kept where this does not converge
     for k in range(iters + 1 if iters else 0):  # the last: the check alone
-        dC_du, free = grad(u), ~(held_lo | held_hi)  # (B, T, m)
+        dC_du = grad(u)  # (B, T, m): a held control's multiplier, up to its sign
+        free = ~(held_lo | held_hi)  # (B, T, m)
         to_lo = (free & (u < lo)) | (held_lo & (dC_du < 0))  # the violators
         to_hi = (free & (u > hi)) | (held_hi & (dC_du > 0))
         count = (to_lo | to_hi).flatten(1).sum(-1)  # (B,)
@@ -932,7 +932,8 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
         first = (to_lo | to_hi).any(-1).long().argmax(-1)  # (B,) the earliest step with one
         flip = (tries >= 0)[:, None] | (torch.arange(T, device=u.device) == first[:, None])
         held_lo, held_hi = held_lo ^ (flip[..., None] & to_lo), held_hi ^ (flip[..., None] & to_hi)
-        held, go = held_lo | held_hi, moving[:, None, None]
+        held = held_lo | held_hi  # (B, T, m)
+        go = moving[:, None, None]
         u = torch.where(go & held, torch.where(held_lo, lo, hi), u)
         s = rollout(dynamics, s[:, 0], u)
         g, H = cost_expansion(cost_fn, s, u, params)  # (B, T+1, n+m), (B, T+1, n+m, n+m)
@@ -991,7 +992,8 @@ def unicycle_curvature(s: torch.Tensor, u: torch.Tensor, lam: torch.Tensor, dt: 
     rotation:
         d2/dh2 = -nu'disp,   d2/dh dq = (J'nu)' ddisp/dq,   d2/dq dr = nu' d2disp/dq dr
     (q, r in (v, omega, a)); the moments' rule above gives every derivative of disp."""
-    (h, v), (omega, a) = s[..., 2:].unbind(-1), u.unbind(-1)
+    h, v = s[..., 2], s[..., 3]
+    omega, a = u.unbind(-1)
     (cm0, cm1, cm2, cm3), (sm0, sm1, sm2, sm3) = _moments(omega, dt, 3)
     cos_h, sin_h = torch.cos(h), torch.sin(h)
     nu_x = cos_h * lam[..., 0] + sin_h * lam[..., 1]  # nu = R(h)' lam_xy
@@ -1041,8 +1043,7 @@ def kkt_backward(cost_fn, dynamics, s, u, params, free, grad_s, grad_u, exact=Tr
         min_delta 1/2 delta'H delta + (dloss/dtau)'delta   s.t.  ds_0 = 0, du_active = 0,
                                                                  ds_{t+1} = f_s ds_t + f_u du_t,
     H the Hessian of the Lagrangian C + sum_t lambda_{t+1}' (f(s_t, u_t) - s_{t+1}):
-        H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(s_t, u_t)      (lagrangian_curvature)
-    (exact=False drops it: the paper's variant, mpc.pytorch's; tracking with the unicycle 45 % off).
+        H_t = d2 l_t + sum_i lambda_{t+1, i} d2 f_i(s_t, u_t) (lagrangian_curvature; exact=False: 0)
     Amos et al.'s, for their LQR's cost 1/2 tau'C tau + c'tau, with delta their d*_tau:
         dloss/dc = delta,  dloss/dC = (delta tau' + tau delta') / 2,  dloss/ds_init = lambda_0,
     the LQR's costate at t = 0: the gradient of <grad_tau cost, delta> = <C tau + c, delta> in
@@ -1084,7 +1085,7 @@ class ILQR(torch.autograd.Function):
 
     @staticmethod
     def forward(fctx, cost_fn, dynamics, settings, exact, s_init, u_init, *params):
-        refine = settings.pop("refine", 0)  # active_set's iterations, where iLQR has not converged
+        refine = settings.pop("refine", 100)  # active_set's iterations where iLQR has not converged
         with torch.no_grad():
             s, u, info = ilqr(cost_fn, dynamics, s_init, u_init, params, **settings)
             a = (settings["lo"], settings["hi"], info, settings.get("tol", 0.05), refine)
@@ -1109,7 +1110,7 @@ class ILQR(torch.autograd.Function):
 
 def ilqr_solve(cost_fn, dynamics, s_init, u_init, params, lo, hi, exact=True, **settings):
     """The differentiable controller, eq. (4): s (B, T+1, n), u (B, T, m), converged (B,), where not
-    a zero gradient (no solution to differentiate); settings `ilqr`'s, refine `active_set`'s (0)."""
+    a zero gradient (no solution to differentiate); settings `ilqr`'s, refine active_set's (100)."""
     settings["lo"] = torch.as_tensor(lo, dtype=s_init.dtype, device=s_init.device)
     settings["hi"] = torch.as_tensor(hi, dtype=s_init.dtype, device=s_init.device)
     return ILQR.apply(cost_fn, dynamics, settings, exact, s_init, u_init, *params)
@@ -1521,8 +1522,7 @@ def planner_config(cfg: Config, substeps: int) -> Config:
 
 
 def clock_weights(cfg: Config, w, substeps: int, like: dict):
-    """The weights of eq. (3) on the planner's clock: the hand-tuned ones and w (default: those),
-    each term per step divided by substeps but C_goal, a terminal one. (5,) each."""
+    """The weights (5,) of eq. (3) on the planner's clock: the hand-tuned ones and w (or those)."""
     per_step = torch.tensor([1 / substeps, 1, 1 / substeps, 1 / substeps, 1 / substeps], **like)
     w_fixed = cost_weights(cfg, **like) * per_step
     return w_fixed, w_fixed if w is None else w * per_step
@@ -1662,7 +1662,7 @@ def control(s0, plan_out: Plan, ctx, w, cfg: Config, substeps=1, planner=True, c
     params = (w.expand(B, -1), *ctx.tensors())  # every parameter per scenario
     cost = StackCost(cfg.rbf_var)
     dynamics = Unicycle(cfg.dt / substeps)
-    settings = dict(iters=cfg.ilqr_iters, tol=cfg.ilqr_tol)
+    settings = dict(iters=cfg.ilqr_iters, tol=cfg.ilqr_tol, refine=0)  # App. C.2: a fixed limit
     settings.update(ls_steps=cfg.line_search_steps, ls_decay=cfg.line_search_decay)
     return ilqr_solve(cost, dynamics, s0, u_init, params, cfg.u_lower, cfg.u_upper, **settings)
 

@@ -438,7 +438,7 @@ def test_active_set_converges_on_all_128_problems():
 
 
 def test_ilqr_solve_with_refine_is_affine_lqrs_solve_and_gradient():
-    # the researcher's call, diffstack.ilqr_solve(..., refine=100): the same solution as
+    # the researcher's call, diffstack.ilqr_solve (refine 100 by default): the same solution as
     # AffineLQR's, converged where iLQR alone stalls, and the same x_init and H gradients
     P = lqr_subset(1.0, STALLED)
     _, u, conv, _, (x_init, _, _, _, H) = affine_lqr(P, ACTIVE_SET, grad=True)
@@ -446,7 +446,8 @@ def test_ilqr_solve_with_refine_is_affine_lqrs_solve_and_gradient():
     x_init2, H2 = P["x_init"].clone().requires_grad_(), P["H"].clone().requires_grad_()
     dynamics = bench.Affine(P["A"], P["B"], P["b"])
     args = (bench.StageQuadratic(), dynamics, x_init2, P["u_init"], (H2,), P["lo"], P["hi"])
-    _, u2, conv2 = diffstack.ilqr_solve(*args, **ACTIVE_SET)
+    settings = {k: v for k, v in ACTIVE_SET.items() if k != "refine"}  # refine: the default
+    _, u2, conv2 = diffstack.ilqr_solve(*args, **settings)
     u2[:, 0].sum().backward()
     assert conv.all() and conv2.all() and torch.equal(u, u2)
     assert torch.allclose(x_init.grad, x_init2.grad, rtol=1e-10, atol=1e-12)

@@ -800,6 +800,7 @@ def test_unconverged_scenarios_get_no_gradient():
         hi,
         iters=1,
         tol=1e-12,
+        refine=0,  # iLQR alone: one iteration does not converge
     )
     assert not conv.any()
     x.sum().backward()

@@ -106,7 +106,7 @@ class TrackingCost:
 def ours_solve(P, x_init, x_ref, iters, eps):
     """P solved by our controller: x (B, T+1, 4), u (B, T, 2)."""
     params = (x_ref, P["u_ref"], P["Q"].expand(len(x_init), 4), P["R"].expand(len(x_init), 2))
-    solve = functools.partial(ilqr_solve, iters=iters, tol=eps)
+    solve = functools.partial(ilqr_solve, iters=iters, tol=eps, refine=0)  # iLQR alone, as mpc
     return solve(TrackingCost(), Unicycle(0.5), x_init, P["u_init"], params, P["lo"], P["hi"])[:2]
 
 
