@@ -95,8 +95,7 @@ class Config:
     pred_radius: float = 30.0  # neighbours within this distance (m) at t0 are attended to
     pred_scales: tuple = (30.0, 15.0, 4.0, math.pi)  # input scales: pos, vel, acc, heading (rate)
     pred_min_speed: float = 0.5  # below it (m/s) the tracked heading replaces the velocity's at t0
-    # std (m) added to every GMM component: at v = 0 the controls cannot move sideways
-    pred_pos_std_min: float = 0.05
+    pred_pos_std_min: float = 0.05  # std (m) added to each component: at v = 0 no sideways spread
     pred_log_p_max: float = 6.0  # the loss's per-step log-likelihood is clamped above at this
     pred_kl_min: float = 0.07  # free bits: the batch-mean KL(q || p) is clamped below at this
     pred_beta: tuple = (100.0, 400.0, 100.0)  # KL weight b(step) = b0 sigmoid((step - b1) / b2)
@@ -931,7 +930,8 @@ def active_set(cost_fn, dynamics, s, u, params, lo, hi, info, tol, iters, patien
         tries, least = torch.where(count < least, patience, tries - 1), least.minimum(count)
         first = (to_lo | to_hi).any(-1).long().argmax(-1)  # (B,) the earliest step with one
         flip = (tries >= 0)[:, None] | (torch.arange(T, device=u.device) == first[:, None])
-        held_lo, held_hi = held_lo ^ (flip[..., None] & to_lo), held_hi ^ (flip[..., None] & to_hi)
+        held_lo = held_lo ^ (flip[..., None] & to_lo)  # (B, T, m): the flipped change sides
+        held_hi = held_hi ^ (flip[..., None] & to_hi)
         held = held_lo | held_hi  # (B, T, m)
         go = moving[:, None, None]
         u = torch.where(go & held, torch.where(held_lo, lo, hi), u)
