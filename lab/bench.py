@@ -342,7 +342,7 @@ class AffineLQR(torch.autograd.Function):
     def forward(ctx, settings, lo, hi, u_init, x_init, A, B, b, H):
         with torch.no_grad():
             (cost, dynamics), settings = (StageQuadratic(), Affine(A, B, b)), dict(settings)
-            refine = settings.pop("refine", 0)  # as diffstack.ILQR: active_set after ilqr
+            refine = settings.pop("refine", 0)  # active_set after ilqr where a row asks for it
             x, u, info = ilqr(cost, dynamics, x_init, u_init, (H,), lo, hi, **settings)
             a = (lo, hi, info, settings.get("tol", 0.05), refine)
             x, u, info = diffstack.active_set(cost, dynamics, x, u, (H,), *a)
