@@ -245,6 +245,24 @@ TIGHT = dict(iters=100, tol=1e-9)
 ACTIVE_ROWS = [4, 12, 19, 21]  # at umax 1: 5, 5, 29 and 25 bounds active, and our solver converges
 
 
+def assert_directional_gradients(P, args, rel_step, first_controls):
+    """args' .grad (x_init, A, B, b, H) against central differences of first_controls(P moved
+    along a random direction, H's kept symmetric), step rel_step times the parameter's largest."""
+    g = torch.Generator().manual_seed(0)
+    for name, arg in zip(("x_init", "A", "B", "b", "H"), args):
+        v = torch.randn(arg.shape, generator=g, dtype=torch.float64)
+        if name == "H":
+            v = v + v.T  # H stays symmetric
+        h = rel_step * P[name].abs().max().item()
+
+        def at(s):
+            return first_controls(dict(P, **{name: P[name] + s * h * v}))
+
+        fd = (at(1) - at(-1)) / (2 * h)
+        ours = (arg.grad * v).sum()
+        assert abs(ours - fd) <= 1e-6 * max(1.0, abs(fd)), (name, ours.item(), fd.item())
+
+
 def test_bounded_lqr_problems_have_bounds_active_at_umax_1_only():
     for umax, active in ((1e4, False), (1.0, True)):
         P = bench.bounded_lqr_problem(umax)
@@ -305,19 +323,7 @@ def test_affine_lqr_gradient_matches_finite_differences(umax, rows):
     assert bench.kkt_residual(u.detach(), M, q, P["lo"], P["hi"]).max() < 1e-8
     assert ((ref.abs() > umax - 1e-9).sum() >= 40) == (umax == 1.0)
     u[:, 0].sum().backward()
-    g = torch.Generator().manual_seed(0)
-    for name, arg in zip(("x_init", "A", "B", "b", "H"), args):
-        v = torch.randn(arg.shape, generator=g, dtype=torch.float64)
-        if name == "H":
-            v = v + v.T  # H stays symmetric
-        h = 1e-5 * P[name].abs().max().item()
-
-        def at(s):
-            return reference_first_controls(dict(P, **{name: P[name] + s * h * v}))
-
-        fd = (at(1) - at(-1)) / (2 * h)
-        ours = (arg.grad * v).sum()
-        assert abs(ours - fd) <= 1e-6 * max(1.0, abs(fd)), (name, ours.item(), fd.item())
+    assert_directional_gradients(P, args, 1e-5, reference_first_controls)
 
 
 def test_json_never_replaces_a_file_bench_did_not_make(tmp_path, monkeypatch, capsys):
@@ -405,23 +411,14 @@ def test_affine_lqr_gradient_matches_finite_differences_at_n_20(umax, rows):
     assert conv.all() and (u.detach() - ref).abs().max() < 1e-5
     assert ((ref.abs() > umax - 1e-9).sum() >= 60) == (umax == 1.0)
     u[:, 0].sum().backward()
-    g = torch.Generator().manual_seed(0)
-    for name, arg in zip(("x_init", "A", "B", "b", "H"), args):
-        v = torch.randn(arg.shape, generator=g, dtype=torch.float64)
-        if name == "H":
-            v = v + v.T  # H stays symmetric
-        h = 1e-6 * P[name].abs().max().item()
 
-        def at(s):
-            Ps = dict(P, **{name: P[name] + s * h * v})
-            _, u_s, conv_s, _, _ = affine_lqr(Ps, ACTIVE_SET)
-            M_s, q_s = bench.condensed_qp(Ps)
-            assert conv_s.all() and bench.kkt_residual(u_s, M_s, q_s, P["lo"], P["hi"]).max() < 1e-8
-            return u_s[:, 0].sum()
+    def first_controls(Ps):  # ours, checked exact at every perturbed point
+        _, u_s, conv_s, _, _ = affine_lqr(Ps, ACTIVE_SET)
+        M_s, q_s = bench.condensed_qp(Ps)
+        assert conv_s.all() and bench.kkt_residual(u_s, M_s, q_s, P["lo"], P["hi"]).max() < 1e-8
+        return u_s[:, 0].sum()
 
-        fd = (at(1) - at(-1)) / (2 * h)
-        ours = (arg.grad * v).sum()
-        assert abs(ours - fd) <= 1e-6 * max(1.0, abs(fd)), (name, ours.item(), fd.item())
+    assert_directional_gradients(P, args, 1e-6, first_controls)
 
 
 def test_active_set_converges_on_all_128_problems():
